@@ -1,0 +1,1 @@
+"""The ``depth-fusion`` command: one module per subcommand, each with ``register(subparsers)``."""

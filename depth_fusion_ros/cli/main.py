@@ -1,0 +1,67 @@
+"""Entry point of ``depth-fusion``.
+
+Each subcommand lives in its own module of this package and exposes
+``register(subparsers)``, which adds its parser and sets ``func`` (called with the parsed
+arguments, returning an exit code). Heavy imports (torch, rclpy) happen inside ``func`` so
+``depth-fusion --help`` answers instantly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+#: Subcommands in the order ``--help`` lists them.
+SUBCOMMANDS = ('demo', 'synth', 'convert', 'evaluate', 'train', 'run', 'bench')
+
+DESCRIPTION = """\
+depth_fusion_ros: dense monocular depth by fusing single-view CNN depth with semi-dense
+multi-view depth from posed frames (Facil et al., RA-L 2017), for ROS 2 Jazzy.
+
+typical use:
+  depth-fusion demo                               # everything, on a synthetic sequence
+  depth-fusion synth artifacts/room               # render a posed RGB-D sequence
+  depth-fusion convert artifacts/room room.bag    # TUM folder (or ROS 1 bag) -> rosbag2
+  depth-fusion run --bag room.bag --record out    # the ROS 2 node graph on a bag
+  depth-fusion evaluate SEQ_DIR --methods tv,single_view,fused
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='depth-fusion', description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument('-v', '--verbose', action='store_true', help='debug logging')
+    sub = parser.add_subparsers(dest='command', metavar='COMMAND')
+    for name in SUBCOMMANDS:
+        importlib.import_module(f'{__package__}.{name}').register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format='%(levelname)s %(name)s: %(message)s',
+    )
+    if not getattr(args, 'func', None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print('interrupted', file=sys.stderr)
+        return 130
+    except (FileNotFoundError, ValueError, KeyError) as exc:
+        # Bad input is the user's to fix: say what and where, no traceback.
+        if args.verbose:
+            raise
+        print(f'depth-fusion {args.command}: error: {exc}', file=sys.stderr)
+        return 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,14 @@
+"""``depth-fusion synth``."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser('synth', help='(not implemented yet)')
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    raise NotImplementedError('depth-fusion synth is not implemented yet')

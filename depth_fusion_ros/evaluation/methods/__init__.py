@@ -1,0 +1,3 @@
+"""Importing this package registers every evaluation method, one module per stage."""
+
+from . import baselines, fusion, multi_view, single_view  # noqa: F401

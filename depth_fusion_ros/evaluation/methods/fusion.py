@@ -1,0 +1,1 @@
+"""Evaluation methods of the fusion stage (registered on import)."""

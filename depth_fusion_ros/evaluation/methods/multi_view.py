@@ -1,0 +1,1 @@
+"""Evaluation methods of the multi_view stage (registered on import)."""

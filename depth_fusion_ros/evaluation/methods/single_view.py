@@ -1,0 +1,1 @@
+"""Evaluation methods of the single_view stage (registered on import)."""

@@ -1,0 +1,145 @@
+"""Rigid-body poses: quaternions, 4x4 transforms, validation and interpolation (no ROS).
+
+Conventions used everywhere in the package:
+
+* a pose ``T_wc`` is a 4x4 float64 camera-to-world transform (the pose of the optical
+  frame in the map frame, REP 103/105): ``X_w = T_wc @ X_c``;
+* quaternions are ``(x, y, z, w)``, the order of ``geometry_msgs/Quaternion`` and the TUM
+  ground-truth files;
+* the relative transform used by the multi-view search is ``T_ok = inv(T_wo) @ T_wk``: it
+  maps keyframe-camera points into the other camera.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+#: Tolerance on ``R^T R - I`` (max abs) above which a rotation is rejected as not orthonormal.
+ORTHONORMAL_TOL = 1e-3
+#: Tolerance on ``| |q| - 1 |`` above which a quaternion is called not normalised.
+QUAT_NORM_TOL = 1e-3
+
+
+class PoseError(ValueError):
+    """A pose or quaternion that cannot be used (NaN, zero norm, not a rotation)."""
+
+
+def quat_to_matrix(q_xyzw: np.ndarray, *, normalise: bool = True) -> np.ndarray:
+    """Rotation matrix of an ``(x, y, z, w)`` quaternion.
+
+    With ``normalise=False`` a quaternion whose norm is off by more than ``QUAT_NORM_TOL``
+    raises, which is what a node wants for incoming messages (a SLAM that publishes
+    non-unit quaternions is broken, and silently fixing it hides the bug).
+    """
+    q = np.asarray(q_xyzw, dtype=np.float64).reshape(4)
+    if not np.all(np.isfinite(q)):
+        raise PoseError(f'quaternion has non-finite values: {q.tolist()}')
+    norm = float(np.linalg.norm(q))
+    if norm < 1e-9:
+        raise PoseError('quaternion has zero norm')
+    if not normalise and abs(norm - 1.0) > QUAT_NORM_TOL:
+        raise PoseError(f'quaternion is not normalised (|q| = {norm:.6f})')
+    return Rotation.from_quat(q / norm).as_matrix()
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """``(x, y, z, w)`` quaternion of a rotation matrix, with ``w >= 0``."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    return q if q[3] >= 0 else -q
+
+
+def make_pose(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+    """4x4 transform from a translation and an ``(x, y, z, w)`` quaternion."""
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(q_xyzw)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(T)):
+        raise PoseError(f'translation has non-finite values: {np.asarray(t).tolist()}')
+    return T
+
+
+def pose_to_tq(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split a 4x4 transform into ``(t (3,), q_xyzw (4,))``."""
+    T = np.asarray(T, dtype=np.float64)
+    return T[:3, 3].copy(), matrix_to_quat(T[:3, :3])
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (cheaper and exacter than ``np.linalg.inv``)."""
+    R = T[:3, :3]
+    Ti = np.eye(4)
+    Ti[:3, :3] = R.T
+    Ti[:3, 3] = -R.T @ T[:3, 3]
+    return Ti
+
+
+def relative_pose(T_wk: np.ndarray, T_wo: np.ndarray) -> np.ndarray:
+    """``T_ok = inv(T_wo) @ T_wk``: keyframe-camera coordinates to other-camera coordinates."""
+    return invert_pose(T_wo) @ T_wk
+
+
+def validate_pose(T: np.ndarray, what: str = 'pose') -> np.ndarray:
+    """Return ``T`` as float64 4x4 or raise ``PoseError`` saying what is wrong with it."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise PoseError(f'{what}: expected a 4x4 matrix, got shape {T.shape}')
+    if not np.all(np.isfinite(T)):
+        raise PoseError(f'{what}: contains NaN or infinite values')
+    if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > 1e-9:
+        raise PoseError(f'{what}: last row is {T[3].tolist()}, expected [0, 0, 0, 1]')
+    R = T[:3, :3]
+    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if err > ORTHONORMAL_TOL or np.linalg.det(R) <= 0:
+        raise PoseError(f'{what}: rotation is not orthonormal (max |R^T R - I| = {err:.2e})')
+    return T
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle (radians) of a rotation matrix."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def interpolate_poses(
+    stamps: np.ndarray, poses: np.ndarray, query: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Interpolate poses at ``query`` stamps: linear translation, slerp rotation.
+
+    ``stamps`` (N,) must be strictly increasing, ``poses`` (N, 4, 4). Returns
+    ``(T (M, 4, 4), valid (M,))``; a query outside ``[stamps[0], stamps[-1]]`` is invalid
+    (its pose is NaN) because extrapolating a trajectory invents motion.
+    """
+    stamps = np.asarray(stamps, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    query = np.atleast_1d(np.asarray(query, dtype=np.float64))
+    if stamps.ndim != 1 or poses.shape != (len(stamps), 4, 4):
+        raise ValueError(f'stamps {stamps.shape} and poses {poses.shape} do not match')
+    if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+        raise ValueError('pose stamps must be strictly increasing')
+    out = np.full((len(query), 4, 4), np.nan)
+    if len(stamps) == 0:
+        return out, np.zeros(len(query), dtype=bool)
+    valid = (query >= stamps[0]) & (query <= stamps[-1])
+    if not np.any(valid):
+        return out, valid
+    q = query[valid]
+    if len(stamps) == 1:
+        out[valid] = poses[0]
+        return out, valid
+    idx = np.clip(np.searchsorted(stamps, q, side='right') - 1, 0, len(stamps) - 2)
+    alpha = (q - stamps[idx]) / (stamps[idx + 1] - stamps[idx])
+    t = poses[idx, :3, 3] * (1 - alpha)[:, None] + poses[idx + 1, :3, 3] * alpha[:, None]
+    rots = Rotation.from_matrix(poses[:, :3, :3])
+    R = Slerp(stamps, rots)(q).as_matrix()
+    T = np.tile(np.eye(4), (len(q), 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = t
+    out[valid] = T
+    return out, valid
+
+
+def interpolate_pose(stamps: np.ndarray, poses: np.ndarray, t: float) -> np.ndarray | None:
+    """Single-stamp convenience wrapper of :func:`interpolate_poses` (``None`` if uncovered)."""
+    T, valid = interpolate_poses(stamps, poses, np.array([t]))
+    return T[0] if valid[0] else None

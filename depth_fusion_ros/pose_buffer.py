@@ -1,0 +1,87 @@
+"""A bounded, time-ordered buffer of poses that answers "where was the camera at t?".
+
+SLAM systems publish poses at their own rate and stamps; images arrive at another. The
+multi-view node keeps the recent poses here and asks for the pose at each image stamp.
+No ROS import: stamps are float seconds.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import interpolate_poses, validate_pose
+
+
+@dataclass(frozen=True)
+class PoseLookup:
+    """Result of a look-up: the pose, or ``None`` with the reason it could not be given."""
+
+    pose: np.ndarray | None
+    reason: str = ''
+
+
+class PoseBuffer:
+    """Keeps at most ``capacity`` poses sorted by stamp and interpolates between them.
+
+    ``max_gap`` (s) bounds the interval a query may be interpolated across: a SLAM that
+    lost tracking for two seconds must not produce a pose by slerping over the gap.
+    """
+
+    def __init__(self, capacity: int = 2000, max_gap: float = 0.5) -> None:
+        if capacity < 2:
+            raise ValueError('pose buffer capacity must be at least 2')
+        self.capacity = capacity
+        self.max_gap = max_gap
+        self._stamps: list[float] = []
+        self._poses: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    @property
+    def span(self) -> tuple[float, float] | None:
+        """``(oldest, newest)`` stamp held, or ``None`` when empty."""
+        return (self._stamps[0], self._stamps[-1]) if self._stamps else None
+
+    def insert(self, stamp: float, pose: np.ndarray) -> None:
+        """Add a pose (validated). Out-of-order stamps are placed in order; a duplicate stamp
+        replaces the earlier pose. Raises ``PoseError``/``ValueError`` on a bad pose or stamp."""
+        if not np.isfinite(stamp):
+            raise ValueError(f'pose stamp is not finite: {stamp}')
+        pose = validate_pose(pose, 'pose')
+        i = bisect.bisect_left(self._stamps, stamp)
+        if i < len(self._stamps) and self._stamps[i] == stamp:
+            self._poses[i] = pose
+            return
+        self._stamps.insert(i, stamp)
+        self._poses.insert(i, pose)
+        if len(self._stamps) > self.capacity:
+            del self._stamps[0]
+            del self._poses[0]
+
+    def lookup(self, stamp: float) -> PoseLookup:
+        """Pose at ``stamp`` (linear translation, slerp rotation) or the reason there is none."""
+        if not self._stamps:
+            return PoseLookup(None, 'no pose received yet')
+        lo, hi = self._stamps[0], self._stamps[-1]
+        if stamp < lo:
+            return PoseLookup(None, f'stamp {stamp:.3f} is older than the pose buffer ({lo:.3f})')
+        if stamp > hi:
+            return PoseLookup(None, f'stamp {stamp:.3f} is newer than the latest pose ({hi:.3f})')
+        i = bisect.bisect_left(self._stamps, stamp)
+        if self._stamps[i] == stamp:
+            return PoseLookup(self._poses[i].copy())
+        gap = self._stamps[i] - self._stamps[i - 1]
+        if gap > self.max_gap:
+            return PoseLookup(None, f'pose gap of {gap:.3f} s around stamp {stamp:.3f}')
+        T, _ = interpolate_poses(
+            np.array(self._stamps[i - 1 : i + 1]), np.stack(self._poses[i - 1 : i + 1]), np.array([stamp])
+        )
+        return PoseLookup(T[0])
+
+    def clear(self) -> None:
+        self._stamps.clear()
+        self._poses.clear()

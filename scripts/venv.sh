@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# Create or reuse ./.venv and install everything depth_fusion_ros needs, from the package index.
+# Sourced by scripts/demo.sh and scripts/test.sh; safe to run again (skips pip when nothing changed).
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="${DEPTH_FUSION_VENV:-$ROOT/.venv}"
+PY="${PYTHON:-python3}"
+
+# Pinned: unpinned ros-* names resolve to newer distributions; a bare `torch` pulls GBs of CUDA.
+REQUIREMENTS=(
+  "ros-jazzy-rclpy==7.1.6"
+  "ros-jazzy-common-interfaces==5.3.6"
+  "ros-jazzy-rmw-fastrtps-cpp==8.4.3"
+  "torch==2.13.0"
+  "numpy"
+  "opencv-python-headless"
+  "scipy"
+  "rosbags==0.11.9"
+  "pyyaml"
+  "tqdm"
+  "matplotlib"
+  "pytest"
+  "ruff"
+  "colcon-common-extensions"
+)
+
+if [ ! -x "$VENV/bin/python" ]; then
+  echo "[venv] creating $VENV"
+  "$PY" -m venv "$VENV"
+fi
+# shellcheck disable=SC1091
+. "$VENV/bin/activate"
+
+stamp="$VENV/.depth_fusion_stamp"
+want="$(printf '%s\n' "${REQUIREMENTS[@]}" | cat - "$ROOT/setup.py" | sha256sum | cut -d' ' -f1)"
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+  echo "[venv] installing dependencies (first run takes a minute or two)"
+  python -m pip install -q --disable-pip-version-check "torch==2.13.0"
+  python -m pip install -q --disable-pip-version-check "${REQUIREMENTS[@]}"
+  python -m pip install -q --disable-pip-version-check --no-deps -e "$ROOT"
+  echo "$want" > "$stamp"
+fi
+# ament_index look-ups (ros2 run style) resolve against the venv prefix.
+export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
