@@ -1,0 +1,35 @@
+"""Benchmarks printed by ``depth-fusion bench`` (figures, never assertions).
+
+One module per stage (``multi_view``, ``single_view``, ``fusion``, ``synthetic``,
+``node_graph``), each exposing::
+
+    TITLE: str
+    def run(opts: BenchOptions) -> list[BenchRow]
+
+so ``depth-fusion bench --only fusion`` runs one section.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class BenchOptions:
+    device: str = 'cpu'
+    #: Fewer repetitions and smaller inputs: a smoke run, not a measurement.
+    quick: bool = False
+    repeats: int = 5
+    #: Optional TUM folders (e.g. ../shared/data/...) for sections that measure on real data.
+    sequences: list[str] = field(default_factory=list)
+
+
+@dataclass
+class BenchRow:
+    name: str
+    value: float
+    unit: str
+    note: str = ''
+
+
+SECTIONS = ('synthetic', 'multi_view', 'single_view', 'fusion', 'node_graph')
