@@ -4,9 +4,10 @@ All metrics are computed on valid ground-truth pixels (finite and > 0) where the
 prediction is finite. Predictions made at the working resolution are upsampled to the
 ground-truth resolution first, as the paper does (320x240 -> 640x480).
 
-Per sequence, pixel-wise metrics (MAE, RMSE, AbsRel, delta<1.25, median AbsRel) are pooled
-over all pixels of all frames; the scale-invariant error is scale-invariant per image, so
-it is the mean of its per-frame values.
+Per sequence, pixel-wise metrics (MAE, RMSE, AbsRel, delta<1.25) are pooled over all pixels
+of all frames; medians use an even sample of at most ``SAMPLES_PER_FRAME`` pixels per frame;
+the scale-invariant error is scale-invariant per image, so it is the mean of its per-frame
+values.
 """
 
 from __future__ import annotations
@@ -20,6 +21,9 @@ import numpy as np
 GRADIENT_THRESHOLD = 0.35
 #: Smallest depth used inside logarithms (m), so a zero prediction cannot give -inf.
 LOG_EPS = 1e-3
+#: Per-frame pixels kept for medians, box plots and histograms. Sums stay exact; the kept
+#: pixels are an even stride through the valid ones, so memory is bounded per frame.
+SAMPLES_PER_FRAME = 10000
 
 
 def upsample_depth(pred: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -76,8 +80,9 @@ class MetricAccumulator:
     n_delta1: int = 0
     si_per_frame: list[float] = field(default_factory=list)
     mae_per_frame: list[float] = field(default_factory=list)
+    samples_per_frame: int = SAMPLES_PER_FRAME
     abs_rel_values: list[np.ndarray] = field(default_factory=list)
-    abs_err_values: list[np.ndarray] = field(default_factory=list)
+    err_values: list[np.ndarray] = field(default_factory=list)
 
     def add(self, pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> int:
         """Add one frame; returns how many pixels it contributed (0 adds a NaN frame MAE)."""
@@ -103,13 +108,18 @@ class MetricAccumulator:
         d = np.log(y) - np.log(np.maximum(p, LOG_EPS))
         self.si_per_frame.append(float(np.mean(d * d) - np.mean(d) ** 2))
         self.mae_per_frame.append(float(abs_err.mean()))
-        self.abs_rel_values.append(abs_rel.astype(np.float32))
-        self.abs_err_values.append(abs_err.astype(np.float32))
+        step = max(1, -(-y.size // self.samples_per_frame))
+        self.abs_rel_values.append(abs_rel[::step].astype(np.float32))
+        self.err_values.append(err[::step].astype(np.float32))
         return int(y.size)
 
+    def signed_errors(self) -> np.ndarray:
+        """Sampled signed errors ``prediction - ground truth`` (m) of all frames (histograms)."""
+        return np.concatenate(self.err_values) if self.err_values else np.zeros(0, np.float32)
+
     def errors(self) -> np.ndarray:
-        """All absolute errors pooled (m), e.g. for box plots and histograms."""
-        return np.concatenate(self.abs_err_values) if self.abs_err_values else np.zeros(0, np.float32)
+        """Sampled absolute errors (m) of all frames (box plots, medians)."""
+        return np.abs(self.signed_errors())
 
     def summary(self) -> dict[str, float]:
         if self.n == 0:
@@ -121,6 +131,7 @@ class MetricAccumulator:
                 'abs_rel': nan,
                 'delta1': nan,
                 'median_abs_rel': nan,
+                'median_abs_err': nan,
                 'n_pixels': 0,
             }
         return {

@@ -1,10 +1,21 @@
-"""``report.md`` (tables in the paper's layout) and figures from an evaluation run."""
+"""``report.md`` in the paper's table layout, plus the figures of an evaluation run.
+
+Tables (each appears when the methods it needs were run):
+
+* paper Table II: RMSE, scale-invariant and mean error of TV / single-view / fused per
+  sequence, with the oracle ("manual") selection's mean error;
+* paper Table III: the weight ablation (W1, W1·W2, all four) on oracle points;
+* paper Table I: median error on high- and low-gradient pixels;
+* every metric of every method, per sequence.
+"""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 if TYPE_CHECKING:
     from .harness import SequenceResult
@@ -17,40 +28,125 @@ COLUMNS = [
     ('delta1', 'δ<1.25', '{:.3f}'),
     ('median_abs_rel', 'median AbsRel', '{:.3f}'),
     ('density', 'density', '{:.3f}'),
+    ('n_omega', '|Ω|', '{:.0f}'),
     ('seconds_per_frame', 's/frame', '{:.3f}'),
 ]
 
 
-def _fmt(value: Any, pattern: str) -> str:
+def _fmt(value: Any, pattern: str = '{:.3f}') -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return '–'
     return pattern.format(value)
 
 
-def metrics_table(methods: dict[str, dict[str, Any]]) -> str:
-    """Markdown table: one row per method, the metric columns any method reports."""
-    cols = [c for c in COLUMNS if any(c[0] in m for m in methods.values())]
-    lines = [
-        '| method | ' + ' | '.join(c[1] for c in cols) + ' |',
-        '|---|' + '---:|' * len(cols),
-    ]
-    for name, m in methods.items():
-        lines.append(f'| {name} | ' + ' | '.join(_fmt(m.get(k), f) for k, _, f in cols) + ' |')
+def _table(header: list[str], rows: list[list[str]], align_first_left: bool = True) -> str:
+    lines = ['| ' + ' | '.join(header) + ' |']
+    lines.append('|' + ('---|' if align_first_left else '---:|') + '---:|' * (len(header) - 1))
+    lines += ['| ' + ' | '.join(r) + ' |' for r in rows]
     return '\n'.join(lines)
 
 
-def report_markdown(doc: dict[str, Any]) -> str:
-    out = ['# depth_fusion_ros evaluation', '']
+def metrics_table(methods: dict[str, dict[str, Any]]) -> str:
+    """One row per method, the metric columns any method reports."""
+    cols = [c for c in COLUMNS if any(c[0] in m for m in methods.values())]
+    rows = [[name] + [_fmt(m.get(k), f) for k, _, f in cols] for name, m in methods.items()]
+    return _table(['method'] + [c[1] for c in cols], rows)
+
+
+def _single_view_name(methods: dict[str, Any]) -> str | None:
+    return next((m for m in ('single_view', 'single_view_simulated') if m in methods), None)
+
+
+def paper_table(doc: dict[str, Any]) -> str | None:
+    """Paper Table II: TV / single-view / fused for RMSE, SI and MAE, plus oracle MAE."""
+    seqs = doc['sequences']
+    if not any('fused' in s['methods'] or 'tv' in s['methods'] for s in seqs.values()):
+        return None
+    header = ['sequence']
+    for metric in ('RMSE', 'scale-inv.', 'MAE (m)'):
+        header += [f'{metric} TV', f'{metric} single', f'{metric} fused']
+    header.append('MAE fused (oracle)')
+    rows = []
+    for name, s in seqs.items():
+        ms = s['methods']
+        sv = _single_view_name(ms)
+        row = [name]
+        for key in ('rmse', 'si', 'mae'):
+            for method in ('tv', sv, 'fused'):
+                row.append(_fmt(ms.get(method, {}).get(key)) if method else '–')
+        row.append(_fmt(ms.get('fused_oracle', {}).get('mae')))
+        rows.append(row)
+    return _table(header, rows)
+
+
+def ablation_table(doc: dict[str, Any]) -> str | None:
+    """Paper Table III: weights W1, W1·W2 and all four, all on oracle points."""
+    names = ('fused_w1', 'fused_w1w2', 'fused_oracle')
+    seqs = doc['sequences']
+    if not any(all(n in s['methods'] for n in names) for s in seqs.values()):
+        return None
+    header = ['sequence', 'SI W1', 'SI W1·W2', 'SI all four', 'MAE W1', 'MAE W1·W2', 'MAE all four']
+    rows, values = [], []
+    for name, s in seqs.items():
+        ms = s['methods']
+        if not all(n in ms for n in names):
+            continue
+        v = [ms[n].get('si') for n in names] + [ms[n].get('mae') for n in names]
+        values.append(v)
+        rows.append([name] + [_fmt(x) for x in v])
+    if len(values) > 1:
+        mean = np.nanmean(np.array(values, dtype=float), axis=0)
+        rows.append(['**mean**'] + [_fmt(float(x)) for x in mean])
+    return _table(header, rows)
+
+
+def gradient_table(doc: dict[str, Any]) -> str | None:
+    """Paper Table I: median absolute error (m) on high- and low-gradient pixels."""
+    rows = []
+    for name, s in doc['sequences'].items():
+        for method in ('multi_view', 'single_view', 'single_view_simulated', 'tv', 'fused'):
+            m = s['methods'].get(method)
+            if m and 'gradient' in m:
+                g = m['gradient']
+                rows.append(
+                    [
+                        name,
+                        method,
+                        _fmt(g['high'].get('median_abs_err')),
+                        _fmt(g['low'].get('median_abs_err')),
+                    ]
+                )
+    if not rows:
+        return None
+    return _table(['sequence', 'method', 'high-gradient', 'low-gradient'], rows)
+
+
+def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> str:
     opts = doc.get('options', {})
+    out = ['# depth_fusion_ros evaluation', '']
     out.append(
         f'Working resolution {opts.get("width")}x{opts.get("height")}, first {opts.get("frames")} frames, '
-        f'stride {opts.get("stride")}, single-view source `{opts.get("single_view")}`, '
-        f'neighbours {opts.get("num_neighbours")} ({opts.get("neighbour_mode")}), seed {opts.get("seed")}.'
+        f'keyframe stride {opts.get("stride")}, single-view source `{opts.get("single_view")}`, '
+        f'{opts.get("num_neighbours")} neighbours ({opts.get("neighbour_mode")}), seed {opts.get("seed")}. '
+        'Errors on valid ground-truth pixels after upsampling predictions to the ground-truth '
+        'resolution; semi-dense methods are scored on the pixels they estimate.'
     )
-    out.append('Metrics on valid ground-truth pixels after upsampling to the ground-truth resolution.')
     out.append('')
+    sections = [
+        ('Main results (paper Table II layout)', paper_table(doc)),
+        ('Weight ablation on oracle points (paper Table III)', ablation_table(doc)),
+        ('Median error by image gradient (paper Table I, threshold 0.35)', gradient_table(doc)),
+    ]
+    for title, table in sections:
+        if table:
+            out += [f'## {title}', '', table, '']
+    out += ['## All metrics', '']
     for name, seq in doc['sequences'].items():
-        out += [f'## {name} ({seq["frames"]} keyframes)', '', metrics_table(seq['methods']), '']
+        out += [f'### {name} ({seq["frames"]} keyframes)', '', metrics_table(seq['methods']), '']
+    if figures:
+        out += ['## Figures', '']
+        out += [f'![{Path(f).stem}]({Path(f).name})' for f in figures]
+        out.append('')
     out += ['## Methods', '']
     out += [f'- `{k}`: {v}' for k, v in doc.get('methods', {}).items()]
     return '\n'.join(out) + '\n'
@@ -59,6 +155,11 @@ def report_markdown(doc: dict[str, Any]) -> str:
 def write_report(
     doc: dict[str, Any], results: list[SequenceResult], out_dir: Path, figures: bool = True
 ) -> Path:
+    written: list[str] = []
+    if figures and results:
+        from .figures import write_figures
+
+        written = [str(p) for p in write_figures(results, out_dir)]
     path = out_dir / 'report.md'
-    path.write_text(report_markdown(doc))
+    path.write_text(report_markdown(doc, written))
     return path
