@@ -1,0 +1,548 @@
+"""numpy <-> ROS messages, for rclpy message classes *and* rosbags message objects.
+
+The nodes publish rclpy messages; the bag converter and reader work with rosbags
+dataclasses (no rclpy needed). Both have the same field names but are built differently
+(rosbags dataclasses need every field and hold ``uint8[]`` as numpy arrays; rclpy messages
+default every field and hold ``uint8[]`` as ``array.array``). A *message kind* hides that:
+
+    from depth_fusion_ros.data import messages as m
+    hdr = m.header_msg(stamp_ns, 'camera_rgb_optical_frame', kind=m.RCLPY)
+    msg = m.image_msg(rgb, 'rgb8', hdr, kind=m.RCLPY)                # rclpy
+    msg = m.image_msg(rgb, 'rgb8', hdr, kind=typestore)               # rosbags (any Typestore)
+    rgb = m.image_to_rgb(msg)                                         # works on both
+
+Readers (``image_to_numpy``, ``camera_info_to_calibration``, ``pose_stamped_to_matrix`` ...)
+only read attributes, so they accept either kind, and ROS 1 messages decoded by rosbags too
+(``CameraInfo.K``/``D`` upper case). rclpy is imported lazily, on first use of ``RCLPY``.
+
+Stamps: a ``builtin_interfaces/Time`` is converted to *integer nanoseconds* exactly
+(``stamp_to_ns``); float seconds are for the core, and ``sec_to_ns`` / ``ns_to_sec``
+round-trip a float stamp such as TUM's ``1305031102.175304`` without drift.
+"""
+
+from __future__ import annotations
+
+import array
+import dataclasses
+import importlib
+from decimal import ROUND_HALF_EVEN, Decimal
+from typing import Any
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from ..geometry import PoseError, pose_to_tq, quat_to_matrix, validate_pose
+from .undistort import CameraCalibration
+
+NS_PER_SEC = 1_000_000_000
+
+# --------------------------------------------------------------------------- message kinds
+
+
+class MessageKind:
+    """How to build messages of one flavour (rclpy or a rosbags typestore)."""
+
+    name = 'abstract'
+
+    def new(self, msgtype: str, **fields: Any) -> Any:
+        """A message of type ``pkg/msg/Name`` with the given fields."""
+        raise NotImplementedError
+
+    def uint8_array(self, data: bytes) -> Any:
+        """The value to store in a ``uint8[]`` field."""
+        raise NotImplementedError
+
+    def float64_array(self, values: np.ndarray) -> Any:
+        """The value to store in a ``float64[]`` (or ``float64[N]``) field."""
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f'<MessageKind {self.name}>'
+
+
+class RclpyKind(MessageKind):
+    """rclpy message classes (``sensor_msgs.msg.Image`` ...), imported on first use."""
+
+    name = 'rclpy'
+
+    def __init__(self) -> None:
+        self._classes: dict[str, type] = {}
+
+    def message_class(self, msgtype: str) -> type:
+        cls = self._classes.get(msgtype)
+        if cls is None:
+            pkg, _, name = msgtype.split('/')
+            try:
+                cls = getattr(importlib.import_module(f'{pkg}.msg'), name)
+            except (ImportError, AttributeError) as exc:
+                raise ValueError(f'rclpy message type {msgtype} is not available: {exc}') from exc
+            self._classes[msgtype] = cls
+        return cls
+
+    def new(self, msgtype: str, **fields: Any) -> Any:
+        return self.message_class(msgtype)(**fields)
+
+    def uint8_array(self, data: bytes) -> Any:
+        # rclpy's setter copies a bytes object in well under a millisecond for 640x480 rgb8;
+        # a numpy array or memoryview goes through a per-element path (~85 ms).
+        return data
+
+    def float64_array(self, values: np.ndarray) -> Any:
+        return array.array('d', np.asarray(values, dtype=np.float64).ravel().tolist())
+
+
+class TypestoreKind(MessageKind):
+    """rosbags dataclasses of one typestore (ROS 2 Jazzy, or ROS 1 Noetic for test bags).
+
+    ROS 1 differences are filled in: ``Header.seq`` defaults to 0 and lower-case field
+    names map onto ROS 1's upper-case ones (``CameraInfo.K``), so callers write one code path.
+    """
+
+    def __init__(self, typestore: Any) -> None:
+        self.typestore = typestore
+        self.name = f'rosbags:{type(typestore).__name__}'
+        self._fields: dict[str, tuple[type, frozenset[str]]] = {}
+
+    def _class(self, msgtype: str) -> tuple[type, frozenset[str]]:
+        entry = self._fields.get(msgtype)
+        if entry is None:
+            try:
+                cls = self.typestore.types[msgtype]
+            except KeyError as exc:
+                raise ValueError(f'message type {msgtype} is not in the typestore') from exc
+            entry = (cls, frozenset(f.name for f in dataclasses.fields(cls)))
+            self._fields[msgtype] = entry
+        return entry
+
+    def new(self, msgtype: str, **fields: Any) -> Any:
+        cls, names = self._class(msgtype)
+        args = {}
+        for key, value in fields.items():
+            if key not in names and key.upper() in names:
+                key = key.upper()
+            args[key] = value
+        if 'seq' in names and 'seq' not in args:
+            args['seq'] = 0
+        return cls(**args)
+
+    def uint8_array(self, data: bytes) -> Any:
+        return np.frombuffer(data, dtype=np.uint8)
+
+    def float64_array(self, values: np.ndarray) -> Any:
+        return np.array(values, dtype=np.float64).ravel()
+
+
+#: The rclpy message kind (lazy import: using it requires rclpy, importing this module does not).
+RCLPY = RclpyKind()
+
+
+def as_kind(kind: Any) -> MessageKind:
+    """Accept ``RCLPY``, ``'rclpy'``, a ``MessageKind`` or a rosbags ``Typestore``."""
+    if isinstance(kind, MessageKind):
+        return kind
+    if kind == 'rclpy':
+        return RCLPY
+    if hasattr(kind, 'types') and hasattr(kind, 'serialize_cdr'):
+        return TypestoreKind(kind)
+    raise ValueError(f'kind must be RCLPY, a MessageKind or a rosbags Typestore, got {kind!r}')
+
+
+# --------------------------------------------------------------------------- time and header
+
+
+def sec_to_ns(seconds: float) -> int:
+    """Integer nanoseconds of a float stamp, via its shortest decimal repr (no drift).
+
+    ``sec_to_ns(1305031102.175304) == 1305031102175304000`` exactly, whereas
+    ``int(1305031102.175304 * 1e9)`` is off by ~100 ns.
+    """
+    value = float(seconds)
+    if not np.isfinite(value):
+        raise ValueError(f'stamp must be finite, got {seconds!r}')
+    return int(Decimal(repr(value)).scaleb(9).to_integral_value(rounding=ROUND_HALF_EVEN))
+
+
+def ns_to_sec(ns: int) -> float:
+    """Float seconds of integer nanoseconds (int/int division is correctly rounded)."""
+    return int(ns) / NS_PER_SEC
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """Integer nanoseconds of a ``builtin_interfaces/Time`` (exact)."""
+    return int(stamp.sec) * NS_PER_SEC + int(stamp.nanosec)
+
+
+def stamp_to_sec(stamp: Any) -> float:
+    """Float seconds of a ``builtin_interfaces/Time``."""
+    return ns_to_sec(stamp_to_ns(stamp))
+
+
+def time_msg(ns: int, *, kind: Any) -> Any:
+    """A ``builtin_interfaces/Time`` of integer nanoseconds."""
+    if isinstance(ns, float | np.floating):
+        raise TypeError('time_msg takes integer nanoseconds; convert float seconds with sec_to_ns')
+    sec, nanosec = divmod(int(ns), NS_PER_SEC)
+    return as_kind(kind).new('builtin_interfaces/msg/Time', sec=sec, nanosec=nanosec)
+
+
+def _to_ns(stamp: Any) -> int:
+    """Nanoseconds of a Time message (``sec``/``nanosec``), an int (ns) or a float (seconds)."""
+    if hasattr(stamp, 'sec') and hasattr(stamp, 'nanosec'):
+        return stamp_to_ns(stamp)
+    if isinstance(stamp, int | np.integer):
+        return int(stamp)
+    if isinstance(stamp, float | np.floating):
+        return sec_to_ns(float(stamp))
+    raise ValueError(f'stamp must be a Time message, int nanoseconds or float seconds, got {stamp!r}')
+
+
+def header_msg(stamp: Any, frame_id: str, *, kind: Any) -> Any:
+    """A ``std_msgs/Header``.
+
+    ``stamp`` is a ``Time`` message of any kind, an **int = nanoseconds**, or a
+    **float = seconds**.
+    """
+    k = as_kind(kind)
+    return k.new('std_msgs/msg/Header', stamp=time_msg(_to_ns(stamp), kind=k), frame_id=str(frame_id))
+
+
+def _header_for(header: Any, kind: MessageKind) -> Any:
+    """``header`` rebuilt in ``kind`` (cheap; lets callers pass a header of another kind)."""
+    return header_msg(header.stamp, header.frame_id, kind=kind)
+
+
+# --------------------------------------------------------------------------- images
+
+#: encoding -> (numpy dtype, channels)
+ENCODINGS: dict[str, tuple[np.dtype, int]] = {
+    'rgb8': (np.dtype(np.uint8), 3),
+    'bgr8': (np.dtype(np.uint8), 3),
+    'rgba8': (np.dtype(np.uint8), 4),
+    'bgra8': (np.dtype(np.uint8), 4),
+    'mono8': (np.dtype(np.uint8), 1),
+    '8UC1': (np.dtype(np.uint8), 1),
+    '8UC3': (np.dtype(np.uint8), 3),
+    'mono16': (np.dtype(np.uint16), 1),
+    '16UC1': (np.dtype(np.uint16), 1),
+    '32FC1': (np.dtype(np.float32), 1),
+}
+
+
+def _encoding(encoding: str) -> tuple[np.dtype, int]:
+    try:
+        return ENCODINGS[encoding]
+    except KeyError:
+        raise ValueError(
+            f'unsupported image encoding {encoding!r} (supported: {", ".join(ENCODINGS)})'
+        ) from None
+
+
+def image_to_numpy(msg: Any) -> np.ndarray:
+    """The pixels of a ``sensor_msgs/Image`` as ``(H, W)`` or ``(H, W, C)``, native byte order.
+
+    Honours ``step`` (row padding) and ``is_bigendian``. The result may be a read-only view
+    of the message buffer: copy it before writing into it.
+    """
+    dtype, channels = _encoding(msg.encoding)
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = width * channels * dtype.itemsize
+    if height < 0 or width < 0:
+        raise ValueError(f'image size {width}x{height} is negative')
+    if step < row_bytes:
+        raise ValueError(
+            f'image step {step} is smaller than a {msg.encoding} row of {width} pixels ({row_bytes} B)'
+        )
+    buf = np.frombuffer(msg.data, dtype=np.uint8) if len(msg.data) else np.zeros(0, np.uint8)
+    if buf.size != step * height:
+        raise ValueError(
+            f'image data has {buf.size} bytes, expected step*height = {step}*{height} = {step * height}'
+        )
+    rows = buf.reshape(height, step)[:, :row_bytes]
+    wire = dtype.newbyteorder('>' if msg.is_bigendian else '<') if dtype.itemsize > 1 else dtype
+    if not rows.flags.c_contiguous:
+        rows = np.ascontiguousarray(rows)
+    arr = rows.view(wire)
+    arr = arr.reshape(height, width, channels) if channels > 1 else arr.reshape(height, width)
+    if wire != dtype.newbyteorder('='):
+        arr = arr.astype(dtype.newbyteorder('='))
+    return arr
+
+
+def image_to_rgb(msg: Any) -> np.ndarray:
+    """An ``HxWx3 uint8`` RGB image from rgb8/bgr8/rgba8/bgra8/mono8 (contiguous copy)."""
+    arr = image_to_numpy(msg)
+    enc = msg.encoding
+    if enc in ('rgb8', '8UC3'):
+        out = arr
+    elif enc == 'bgr8':
+        out = arr[..., ::-1]
+    elif enc == 'rgba8':
+        out = arr[..., :3]
+    elif enc == 'bgra8':
+        out = arr[..., 2::-1]
+    elif enc in ('mono8', '8UC1'):
+        out = np.repeat(arr[..., None], 3, axis=2)
+    else:
+        raise ValueError(f'cannot make an RGB image from encoding {enc!r}')
+    return np.ascontiguousarray(out)
+
+
+def image_to_depth(msg: Any) -> np.ndarray:
+    """Depth in metres (float32, NaN = none) from 32FC1 (m) or 16UC1/mono16 (mm, REP 118).
+
+    Non-finite and non-positive depths become NaN (REP 117's ``±Inf`` carry no depth).
+    """
+    arr = image_to_numpy(msg)
+    if msg.encoding == '32FC1':
+        depth = np.array(arr, dtype=np.float32)
+    elif msg.encoding in ('16UC1', 'mono16'):
+        depth = arr.astype(np.float32) / 1000.0
+    else:
+        raise ValueError(f'a depth image must be 32FC1 or 16UC1, got {msg.encoding!r}')
+    with np.errstate(invalid='ignore'):
+        depth[~(depth > 0) | ~np.isfinite(depth)] = np.nan
+    return depth
+
+
+def image_msg(arr: np.ndarray, encoding: str, header: Any, *, kind: Any, bigendian: bool = False) -> Any:
+    """A ``sensor_msgs/Image`` holding ``arr`` (no row padding).
+
+    ``arr`` must have the dtype and channel count of ``encoding`` (``float64`` is accepted for
+    ``32FC1`` and cast). ``bigendian=True`` writes multi-byte pixels big-endian.
+    """
+    k = as_kind(kind)
+    dtype, channels = _encoding(encoding)
+    arr = np.asarray(arr)
+    if encoding == '32FC1' and arr.dtype == np.float64:
+        arr = arr.astype(np.float32)
+    shape_ok = arr.ndim == 2 if channels == 1 else (arr.ndim == 3 and arr.shape[2] == channels)
+    if channels == 1 and arr.ndim == 3 and arr.shape[2] == 1:
+        arr, shape_ok = arr[..., 0], True
+    if not shape_ok:
+        want = '(H, W)' if channels == 1 else f'(H, W, {channels})'
+        raise ValueError(f'{encoding} needs an array of shape {want}, got {arr.shape}')
+    if arr.dtype != dtype:
+        raise ValueError(f'{encoding} needs dtype {dtype}, got {arr.dtype}')
+    wire = dtype.newbyteorder('>' if bigendian else '<') if dtype.itemsize > 1 else dtype
+    data = np.ascontiguousarray(arr, dtype=wire).tobytes()
+    height, width = arr.shape[:2]
+    return k.new(
+        'sensor_msgs/msg/Image',
+        header=_header_for(header, k),
+        height=int(height),
+        width=int(width),
+        encoding=encoding,
+        is_bigendian=int(bool(bigendian and dtype.itemsize > 1)),
+        step=int(width * channels * dtype.itemsize),
+        data=k.uint8_array(data),
+    )
+
+
+def rgb_image_msg(rgb: np.ndarray, header: Any, *, kind: Any) -> Any:
+    """``rgb8`` image of an ``HxWx3 uint8`` RGB array."""
+    return image_msg(rgb, 'rgb8', header, kind=kind)
+
+
+def depth_image_msg(depth: np.ndarray, header: Any, *, kind: Any) -> Any:
+    """``32FC1`` image of a depth array in metres (NaN = none, REP 117)."""
+    return image_msg(np.asarray(depth, dtype=np.float32), '32FC1', header, kind=kind)
+
+
+# --------------------------------------------------------------------------- camera info
+
+
+def _field(msg: Any, name: str) -> Any:
+    """``msg.name``, or ROS 1's upper-case ``msg.NAME``."""
+    if hasattr(msg, name):
+        return getattr(msg, name)
+    return getattr(msg, name.upper())
+
+
+def camera_info_to_calibration(msg: Any) -> CameraCalibration:
+    """``CameraCalibration`` (K at the raw size, distortion model, D) of a ``CameraInfo``."""
+    width, height = int(msg.width), int(msg.height)
+    K = np.asarray(_field(msg, 'k'), dtype=np.float64)
+    if K.size != 9:
+        raise ValueError(f'CameraInfo K has {K.size} values, expected 9')
+    if width <= 0 or height <= 0 or not np.all(np.isfinite(K)) or K[0] <= 0 or K[4] <= 0:
+        raise ValueError(
+            f'CameraInfo is not calibrated (size {width}x{height}, K = {K.tolist()}): '
+            'set the intrinsics parameter or publish a calibrated camera_info'
+        )
+    D = tuple(np.asarray(_field(msg, 'd'), dtype=np.float64).ravel().tolist())
+    return CameraCalibration(PinholeCamera.from_K(K, width, height), str(msg.distortion_model), D)
+
+
+def camera_info_msg(
+    camera: PinholeCamera | CameraCalibration,
+    header: Any,
+    *,
+    kind: Any,
+    distortion_model: str | None = None,
+    D: np.ndarray | tuple[float, ...] | None = None,
+) -> Any:
+    """A ``sensor_msgs/CameraInfo``: K, D, R = I, P = [K | 0], no binning, full ROI.
+
+    ``camera`` is a ``CameraCalibration`` (its model and D are used unless overridden) or an
+    undistorted ``PinholeCamera`` (``plumb_bob`` with zero D by default).
+    """
+    k = as_kind(kind)
+    if isinstance(camera, CameraCalibration):
+        model = camera.distortion_model if distortion_model is None else distortion_model
+        coeffs = camera.D if D is None else D
+        cam = camera.camera
+    else:
+        cam = camera
+        model = 'plumb_bob' if distortion_model is None else distortion_model
+        coeffs = (0.0,) * 5 if D is None else D
+    K = cam.K
+    P = np.hstack((K, np.zeros((3, 1))))
+    roi = k.new(
+        'sensor_msgs/msg/RegionOfInterest', x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+    )
+    return k.new(
+        'sensor_msgs/msg/CameraInfo',
+        header=_header_for(header, k),
+        height=cam.height,
+        width=cam.width,
+        distortion_model=model,
+        d=k.float64_array(np.asarray(coeffs, dtype=np.float64)),
+        k=np.asarray(K, dtype=np.float64).ravel(),
+        r=np.eye(3).ravel(),
+        p=P.ravel(),
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+    )
+
+
+# --------------------------------------------------------------------------- poses
+
+
+def _quat_xyzw(q: Any) -> np.ndarray:
+    return np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+
+
+def pose_to_matrix(pose: Any) -> np.ndarray:
+    """4x4 transform of a ``geometry_msgs/Pose``.
+
+    Raises ``geometry.PoseError`` for NaN/Inf values or a quaternion that is not unit length
+    (a broken pose source must be noticed, not silently renormalised).
+    """
+    t = np.array([pose.position.x, pose.position.y, pose.position.z], dtype=np.float64)
+    if not np.all(np.isfinite(t)):
+        raise PoseError(f'pose position has non-finite values: {t.tolist()}')
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(_quat_xyzw(pose.orientation), normalise=False)
+    T[:3, 3] = t
+    return T
+
+
+def transform_to_matrix(transform: Any) -> np.ndarray:
+    """4x4 transform of a ``geometry_msgs/Transform`` (as in ``/tf``); same checks as poses."""
+    t = np.array(
+        [transform.translation.x, transform.translation.y, transform.translation.z], dtype=np.float64
+    )
+    if not np.all(np.isfinite(t)):
+        raise PoseError(f'transform translation has non-finite values: {t.tolist()}')
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(_quat_xyzw(transform.rotation), normalise=False)
+    T[:3, 3] = t
+    return T
+
+
+def pose_stamped_to_matrix(msg: Any) -> np.ndarray:
+    """4x4 camera-to-world ``T_wc`` of a ``geometry_msgs/PoseStamped``."""
+    return pose_to_matrix(msg.pose)
+
+
+def pose_msg(T: np.ndarray, *, kind: Any) -> Any:
+    """A ``geometry_msgs/Pose`` of a 4x4 rigid transform (validated)."""
+    k = as_kind(kind)
+    t, q = pose_to_tq(validate_pose(T))
+    position = k.new('geometry_msgs/msg/Point', x=float(t[0]), y=float(t[1]), z=float(t[2]))
+    orientation = k.new(
+        'geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
+    )
+    return k.new('geometry_msgs/msg/Pose', position=position, orientation=orientation)
+
+
+def pose_stamped_msg(T_wc: np.ndarray, header: Any, *, kind: Any) -> Any:
+    """A ``geometry_msgs/PoseStamped`` of a camera-to-world pose (frame = ``header.frame_id``)."""
+    k = as_kind(kind)
+    return k.new('geometry_msgs/msg/PoseStamped', header=_header_for(header, k), pose=pose_msg(T_wc, kind=k))
+
+
+# --------------------------------------------------------------------------- point clouds
+
+#: ``sensor_msgs/PointField.FLOAT32``
+POINTFIELD_FLOAT32 = 7
+
+
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """``(N, 3) uint8`` colours as PCL's packed ``rgb`` float32 (bits ``0x00RRGGBB``)."""
+    rgb = np.asarray(rgb, dtype=np.uint8).reshape(-1, 3).astype(np.uint32)
+    return ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).view(np.float32)
+
+
+def pointcloud2_msg(xyz: np.ndarray, header: Any, *, kind: Any, rgb: np.ndarray | None = None) -> Any:
+    """An unorganised ``sensor_msgs/PointCloud2`` with float32 fields x, y, z (+ packed rgb).
+
+    ``xyz`` is ``(N, 3)`` in the header's frame; ``rgb`` an optional ``(N, 3) uint8``.
+    """
+    k = as_kind(kind)
+    xyz = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
+    names = ['x', 'y', 'z']
+    columns = [xyz]
+    if rgb is not None:
+        rgb = np.asarray(rgb)
+        if rgb.reshape(-1, 3).shape[0] != len(xyz):
+            raise ValueError(f'rgb has {rgb.reshape(-1, 3).shape[0]} points, xyz has {len(xyz)}')
+        names.append('rgb')
+        columns.append(pack_rgb(rgb)[:, None])
+    points = np.ascontiguousarray(np.hstack(columns), dtype='<f4')
+    point_step = 4 * len(names)
+    fields = [
+        k.new('sensor_msgs/msg/PointField', name=n, offset=4 * i, datatype=POINTFIELD_FLOAT32, count=1)
+        for i, n in enumerate(names)
+    ]
+    return k.new(
+        'sensor_msgs/msg/PointCloud2',
+        header=_header_for(header, k),
+        height=1,
+        width=len(xyz),
+        fields=fields,
+        is_bigendian=False,
+        point_step=point_step,
+        row_step=point_step * len(xyz),
+        data=k.uint8_array(points.tobytes()),
+        is_dense=bool(np.all(np.isfinite(xyz))),
+    )
+
+
+def pointcloud2_to_numpy(msg: Any) -> dict[str, np.ndarray]:
+    """The float32 fields of a little-endian ``PointCloud2`` as ``{name: (N,) array}``.
+
+    ``rgb`` is returned unpacked as ``(N, 3) uint8``. Only FLOAT32 fields are supported (that
+    is what ``pointcloud2_msg`` writes and what depth clouds use).
+    """
+    if msg.is_bigendian:
+        raise ValueError('big-endian PointCloud2 is not supported')
+    n = int(msg.width) * int(msg.height)
+    step = int(msg.point_step)
+    buf = np.frombuffer(msg.data, dtype=np.uint8)
+    if buf.size < n * step:
+        raise ValueError(f'PointCloud2 data has {buf.size} bytes, expected {n * step}')
+    rows = buf[: n * step].reshape(n, step)
+    out: dict[str, np.ndarray] = {}
+    for f in msg.fields:
+        if int(f.datatype) != POINTFIELD_FLOAT32:
+            raise ValueError(
+                f'PointCloud2 field {f.name!r} has datatype {f.datatype}, only FLOAT32 is supported'
+            )
+        col = np.ascontiguousarray(rows[:, f.offset : f.offset + 4]).view('<f4').ravel()
+        if f.name == 'rgb':
+            bits = col.view(np.uint32)
+            col = np.stack(((bits >> 16) & 255, (bits >> 8) & 255, bits & 255), axis=1).astype(np.uint8)
+        out[f.name] = col
+    return out
