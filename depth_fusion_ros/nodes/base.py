@@ -1,0 +1,141 @@
+"""What the three processing nodes share: common parameters, counters, the worker, ``main``.
+
+Construction contract (what ``depth-fusion run`` relies on to compose nodes): each node
+class takes ``**kwargs`` that go straight to ``rclpy.node.Node`` (``parameter_overrides``,
+``cli_args`` with remappings, ``namespace``, ``context``), so the same class runs alone
+(``main``) or with the others in one executor. Parameters are validated in the constructor:
+a bad value raises ``ValueError`` naming the node and the parameter.
+
+Topic names are relative (``depth_fusion/fused/depth``), so in the root namespace they are
+the documented ``/depth_fusion/...`` names and a ``namespace`` moves the whole graph.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import rclpy
+from rclpy.node import Node
+
+from .params import ParamSpec, declare_parameters
+from .qos import QOS_CHOICES, qos_profile
+from .stats import NodeStats
+from .worker import POLICIES, BoundedWorker
+
+#: Parameters every processing node declares (before its own).
+COMMON_PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec(
+        'input_qos',
+        'reliable',
+        'QoS of the subscriptions: reliable, or sensor_data (best effort) to match a camera driver',
+        choices=QOS_CHOICES,
+    ),
+    ParamSpec(
+        'output_qos',
+        'reliable',
+        'QoS of the publishers (a reliable publisher also serves best-effort subscribers)',
+        choices=QOS_CHOICES,
+    ),
+    ParamSpec('qos_depth', 10, 'history depth (KEEP_LAST) of every subscription and publisher', 1, 1000),
+    ParamSpec(
+        'queue_size',
+        1,
+        'work items waiting for the worker thread; more are dropped by queue_policy (memory stays bounded)',
+        1,
+        100,
+    ),
+    ParamSpec(
+        'queue_policy',
+        'latest',
+        'when the work queue is full: latest (drop the oldest waiting item), drop_new (drop the new '
+        'one) or block (the callback waits: nothing lost, the input is slowed)',
+        choices=POLICIES,
+    ),
+    ParamSpec('stats_period', 10.0, 'seconds between counter log lines (0: only at shutdown)', 0.0, 86400.0),
+    ParamSpec(
+        'warn_throttle', 5.0, 'minimum seconds between two warnings for the same drop reason', 0.0, 3600.0
+    ),
+)
+
+
+class DepthFusionNode(Node):
+    """An rclpy node with validated parameters, counters, a bounded worker and clean shutdown."""
+
+    def __init__(self, node_name: str, specs: Sequence[ParamSpec], **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self.params = declare_parameters(self, [*COMMON_PARAMETERS, *specs])
+        self.stats = NodeStats(self.get_logger().warning, throttle=float(self.params['warn_throttle']))
+        self.input_qos = qos_profile(str(self.params['input_qos']), int(self.params['qos_depth']))
+        self.output_qos = qos_profile(str(self.params['output_qos']), int(self.params['qos_depth']))
+        self._workers: list[BoundedWorker] = []
+        self._destroyed = False
+        period = float(self.params['stats_period'])
+        if period > 0:
+            self.create_timer(period, self.log_stats)
+
+    def make_worker(self, name: str, handle: Callable[[Any], None]) -> BoundedWorker:
+        """A worker with this node's queue parameters; drops and failures are counted and logged."""
+
+        def on_drop(item: Any, reason: str) -> None:
+            self.stats.dropped(f'worker_{reason}', f'{name} work item dropped ({reason.replace("_", " ")})')
+
+        def on_error(item: Any, exc: BaseException) -> None:
+            self.stats.dropped('processing_error', f'{name} failed: {type(exc).__name__}: {exc}')
+            self.get_logger().debug(f'{name} failure', throttle_duration_sec=1.0)
+
+        worker = BoundedWorker(
+            name,
+            handle,
+            maxsize=int(self.params['queue_size']),
+            policy=str(self.params['queue_policy']),
+            on_drop=on_drop,
+            on_error=on_error,
+        )
+        self._workers.append(worker)
+        return worker
+
+    def log_stats(self) -> None:
+        self.get_logger().info(self.stats.snapshot().summary())
+
+    def wait_idle(self, timeout: float = 10.0) -> bool:
+        """Block until every worker has nothing queued or in hand (tests, graceful flushing)."""
+        deadline = time.monotonic() + timeout
+        return all(w.wait_idle(max(0.0, deadline - time.monotonic())) for w in self._workers)
+
+    def destroy_node(self) -> None:
+        """Stop the workers (finishing the item in hand), log the final counters, then destroy."""
+        if not self._destroyed:
+            self._destroyed = True
+            for worker in self._workers:
+                if not worker.stop(timeout=10.0):
+                    self.get_logger().warning(f'worker {worker.name} did not stop within 10 s')
+            self.get_logger().info(f'final counters: {self.stats.snapshot().summary()}')
+        super().destroy_node()
+
+
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+    """Console entry point body: init, build the node, spin until Ctrl-C/shutdown, clean up.
+
+    Returns the process exit code: 0 on a normal stop, 2 when a parameter is invalid (the
+    message names it; no traceback, because it is the user's to fix).
+    """
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ValueError, FileNotFoundError) as exc:
+        rclpy.logging.get_logger('depth_fusion').error(str(exc))
+        code = 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code

@@ -1,0 +1,176 @@
+"""Incoming messages -> checked arrays on the working grid, or an :class:`InputError` saying why not.
+
+Every way a message can be unusable (wrong encoding, an image whose size does not match its
+camera_info, no camera_info yet, a NaN or non-unit quaternion, a stamp that goes backwards
+or repeats) becomes an ``InputError`` carrying a short *reason* key. The node counts the drop
+under that key and warns (throttled per key), so one broken stream neither kills the node
+nor floods the log, and the counters say exactly what was wrong.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from ..data import messages
+from ..data.undistort import CameraCalibration, Undistorter, check_distortion
+from ..geometry import PoseError
+
+
+class InputError(ValueError):
+    """A message the node cannot use; ``reason`` is the counter key (``bad_encoding`` ...)."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class WorkingImage:
+    """One image on the working grid: undistorted RGB, its camera, and the source header."""
+
+    stamp_ns: int
+    rgb: np.ndarray
+    camera: PinholeCamera
+    header: Any
+
+
+def header_stamp_ns(msg: Any) -> int:
+    """Integer nanoseconds of ``msg.header.stamp`` (exact, the key used to pair keyframes)."""
+    return messages.stamp_to_ns(msg.header.stamp)
+
+
+class StampGuard:
+    """Rejects stamps that repeat or go backwards on one stream (a replay glitch, a bad driver)."""
+
+    def __init__(self, stream: str) -> None:
+        self.stream = stream
+        self.last_ns: int | None = None
+
+    def check(self, stamp_ns: int) -> None:
+        """Raise ``InputError`` for a duplicate or older stamp; otherwise remember ``stamp_ns``."""
+        if self.last_ns is not None:
+            if stamp_ns == self.last_ns:
+                raise InputError(
+                    f'duplicate_stamp_{self.stream}',
+                    f'{self.stream} stamp {messages.ns_to_sec(stamp_ns):.6f} repeats the previous one',
+                )
+            if stamp_ns < self.last_ns:
+                raise InputError(
+                    f'stamp_out_of_order_{self.stream}',
+                    f'{self.stream} stamp {messages.ns_to_sec(stamp_ns):.6f} is older than the previous '
+                    f'{messages.ns_to_sec(self.last_ns):.6f}',
+                )
+        self.last_ns = stamp_ns
+
+    def reset(self) -> None:
+        self.last_ns = None
+
+
+def calibration_from_parameters(intrinsics: list[float], distortion: list[float]) -> tuple[float, ...] | None:
+    """``(fx, fy, cx, cy)`` when the intrinsics parameter is set (any value non-zero), else ``None``."""
+    if not any(intrinsics):
+        return None
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    if fx <= 0 or fy <= 0:
+        raise ValueError(f'parameter camera_intrinsics: fx and fy must be positive, got {intrinsics}')
+    check_distortion('plumb_bob', tuple(distortion))
+    return fx, fy, cx, cy
+
+
+class CameraInput:
+    """Keeps the latest CameraInfo and turns colour images into the undistorted working grid.
+
+    ``fixed_intrinsics`` (``fx, fy, cx, cy`` at the raw image size) and ``fixed_distortion``
+    replace CameraInfo for sources that publish none. With ``rectified=True`` the images are
+    already undistorted (e.g. the keyframe topic), so a CameraInfo is not needed: the image is
+    only resized to the working grid if its size differs.
+    """
+
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        *,
+        rectified: bool = False,
+        fixed_intrinsics: tuple[float, ...] | None = None,
+        fixed_distortion: tuple[float, ...] = (),
+    ) -> None:
+        self.width = int(width)
+        self.height = int(height)
+        self.rectified = rectified
+        self.fixed_intrinsics = fixed_intrinsics
+        self.fixed_distortion = tuple(fixed_distortion)
+        self.calibration: CameraCalibration | None = None
+
+    def update(self, info_msg: Any) -> None:
+        """Take a CameraInfo (raises ``InputError('bad_camera_info')`` if it is unusable)."""
+        try:
+            calib = messages.camera_info_to_calibration(info_msg)
+            check_distortion(calib.distortion_model, calib.D)
+        except ValueError as exc:
+            raise InputError('bad_camera_info', f'camera_info: {exc}') from None
+        self.calibration = calib
+
+    def _calibration_for(self, width: int, height: int) -> CameraCalibration:
+        if self.fixed_intrinsics is not None:
+            fx, fy, cx, cy = self.fixed_intrinsics
+            return CameraCalibration(
+                PinholeCamera(width, height, fx, fy, cx, cy), 'plumb_bob', self.fixed_distortion
+            )
+        calib = self.calibration
+        if calib is None:
+            if self.rectified:
+                return _identity_calibration(width, height)
+            raise InputError(
+                'no_camera_info', 'no camera_info received yet (set camera_intrinsics if there is none)'
+            )
+        if (calib.camera.width, calib.camera.height) != (width, height):
+            raise InputError(
+                'size_mismatch',
+                f'image is {width}x{height} but camera_info says {calib.camera.width}x{calib.camera.height}',
+            )
+        return calib
+
+    def working_image(self, msg: Any) -> WorkingImage:
+        """Decode, undistort and resize an image message to the working grid."""
+        try:
+            raw = messages.image_to_rgb(msg)
+        except ValueError as exc:
+            raise InputError('bad_encoding', f'image: {exc}') from None
+        height, width = raw.shape[:2]
+        if width == 0 or height == 0:
+            raise InputError('bad_image', 'image is empty')
+        calib = self._calibration_for(width, height)
+        undistorter = Undistorter.for_calibration(calib, self.width, self.height)
+        rgb = np.ascontiguousarray(undistorter.rgb(raw))
+        return WorkingImage(header_stamp_ns(msg), rgb, undistorter.camera, msg.header)
+
+
+def _identity_calibration(width: int, height: int) -> CameraCalibration:
+    """A stand-in camera for already-rectified images when only resizing is needed (no K used)."""
+    f = float(max(width, height))
+    return CameraCalibration(
+        PinholeCamera(width, height, f, f, (width - 1) / 2, (height - 1) / 2), 'plumb_bob', ()
+    )
+
+
+def pose_from_message(msg: Any) -> np.ndarray:
+    """4x4 ``T_wc`` of a PoseStamped, or ``InputError('bad_pose')`` naming the problem."""
+    try:
+        return messages.pose_stamped_to_matrix(msg)
+    except PoseError as exc:
+        raise InputError('bad_pose', f'pose: {exc}') from None
+
+
+def depth_from_message(msg: Any, what: str) -> np.ndarray:
+    """A 32FC1 image as float32 (NaN kept), or ``InputError('bad_encoding')``."""
+    if msg.encoding != '32FC1':
+        raise InputError('bad_encoding', f'{what}: expected 32FC1, got {msg.encoding!r}')
+    try:
+        return np.array(messages.image_to_numpy(msg), dtype=np.float32)
+    except ValueError as exc:
+        raise InputError('bad_image', f'{what}: {exc}') from None
