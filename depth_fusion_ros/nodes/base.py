@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from .params import ParamSpec, declare_parameters
@@ -73,7 +74,12 @@ class DepthFusionNode(Node):
         self._destroyed = False
         period = float(self.params['stats_period'])
         if period > 0:
-            self.create_timer(period, self.log_stats)
+            self.create_wall_timer(period, self.log_stats)
+
+    def create_wall_timer(self, period: float, callback: Callable[[], None]) -> Any:
+        """A timer on the steady clock: with ``use_sim_time`` a paused or finished bag stops ROS
+        time, and counters and pairing timeouts must keep running regardless."""
+        return self.create_timer(period, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def make_worker(self, name: str, handle: Callable[[Any], None]) -> BoundedWorker:
         """A worker with this node's queue parameters; drops and failures are counted and logged."""

@@ -25,6 +25,8 @@ class StatsSnapshot:
     processed: int = 0
     published: dict[str, int] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=dict)
+    #: Anomalies that still produced an output (fusion fallbacks ...), by reason.
+    noted: dict[str, int] = field(default_factory=dict)
     latency_mean_s: float = float('nan')
     latency_max_s: float = float('nan')
 
@@ -44,9 +46,10 @@ class StatsSnapshot:
             else 'latency n/a'
         )
         dropped = f'dropped {self.dropped_total}' + (f' ({fmt(self.dropped)})' if self.dropped else '')
+        noted = f' | noted {fmt(self.noted)}' if self.noted else ''
         return (
             f'received {fmt(self.received)} | processed {self.processed} | published {fmt(self.published)}'
-            f' | {dropped} | {latency}'
+            f' | {dropped}{noted} | {latency}'
         )
 
 
@@ -60,6 +63,7 @@ class NodeStats:
         self._received: Counter[str] = Counter()
         self._published: Counter[str] = Counter()
         self._dropped: Counter[str] = Counter()
+        self._noted: Counter[str] = Counter()
         self._processed = 0
         self._latency_sum = 0.0
         self._latency_max = 0.0
@@ -87,16 +91,26 @@ class NodeStats:
         ``message`` says what was wrong with this input; it is logged with the reason so the
         log names the problem, not just a counter.
         """
+        self._count_and_warn(self._dropped, 'dropped', reason, message, count)
+
+    def noted(self, reason: str, message: str = '') -> None:
+        """Count an anomaly that did not cost an output (e.g. a fusion fallback) and warn, throttled."""
+        self._count_and_warn(self._noted, 'note', reason, message, 1)
+
+    def _count_and_warn(
+        self, counter: Counter[str], verb: str, reason: str, message: str, count: int
+    ) -> None:
         now = time.monotonic()
+        key = f'{verb}:{reason}'
         with self._lock:
-            self._dropped[reason] += count
-            last, suppressed = self._last_warning.get(reason, (-float('inf'), 0))
+            counter[reason] += count
+            last, suppressed = self._last_warning.get(key, (-float('inf'), 0))
             if now - last < self.throttle:
-                self._last_warning[reason] = (last, suppressed + count)
+                self._last_warning[key] = (last, suppressed + count)
                 return
-            self._last_warning[reason] = (now, 0)
-        more = f' ({suppressed} more dropped for this reason since the last warning)' if suppressed else ''
-        self._warn(f'dropped [{reason}]: {message or reason}{more}')
+            self._last_warning[key] = (now, 0)
+        more = f' ({suppressed} more since the last warning)' if suppressed else ''
+        self._warn(f'{verb} [{reason}]: {message or reason}{more}')
 
     def snapshot(self) -> StatsSnapshot:
         with self._lock:
@@ -106,6 +120,7 @@ class NodeStats:
                 processed=n,
                 published=dict(self._published),
                 dropped=dict(self._dropped),
+                noted=dict(self._noted),
                 latency_mean_s=self._latency_sum / n if n else float('nan'),
                 latency_max_s=self._latency_max if n else float('nan'),
             )

@@ -1,0 +1,147 @@
+"""``single_view_node``: image -> single-view CNN depth (32FC1, metres) with the source header.
+
+By default it listens to the keyframes the multi-view node announces
+(``depth_fusion/keyframe/image``, already undistorted on the working grid), so the network
+runs only on keyframes and in parallel with the multi-view search. Pointed at a raw camera
+topic (``input_rectified: false``), it undistorts and resizes each image with its
+camera_info first.
+
+The network is loaded once at start-up (``model``: the shipped compact model, a checkpoint,
+or a TorchScript file with its metadata YAML) on ``device``; inference runs on the worker
+thread so subscriptions are never stalled. The model's output kind (``metric_depth``,
+``inverse_depth``, ``relative_depth``) is published once on a latched topic: the fusion node
+needs it to align non-metric outputs, and the depth image itself cannot carry it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+
+from ..data import messages
+from .base import DepthFusionNode, run_node
+from .image_input import CameraInput, InputError, StampGuard, WorkingImage, calibration_from_parameters
+from .params import ParamSpec
+from .qos import latched_qos
+
+NODE_NAME = 'single_view_node'
+
+TOPIC_IMAGE = 'depth_fusion/keyframe/image'
+TOPIC_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
+TOPIC_DEPTH = 'depth_fusion/single_view/depth'
+TOPIC_OUTPUT_KIND = 'depth_fusion/single_view/output_kind'
+
+PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec(
+        'model',
+        'default',
+        "single-view network: 'default' (the shipped compact model), a checkpoint file (.pth/.ckpt) "
+        'or a TorchScript .pt with its metadata YAML beside it (local files only)',
+    ),
+    ParamSpec('device', 'cpu', 'torch device of the network: cpu, cuda, cuda:1, ...'),
+    ParamSpec(
+        'input_rectified',
+        True,
+        'the input image is already undistorted (the keyframe topic): no camera_info needed, only '
+        'resized to width x height; false: undistort and resize with camera_info (a raw camera topic)',
+    ),
+    ParamSpec('width', 320, 'working grid width (pixels) of the output depth', 16, 4096),
+    ParamSpec('height', 240, 'working grid height (pixels) of the output depth', 16, 4096),
+    ParamSpec(
+        'camera_intrinsics',
+        [0.0, 0.0, 0.0, 0.0],
+        'fx, fy, cx, cy at the raw image size, used instead of camera_info when set (all zero: use '
+        'camera_info); only for input_rectified: false',
+        length=4,
+    ),
+    ParamSpec(
+        'camera_distortion',
+        [0.0, 0.0, 0.0, 0.0, 0.0],
+        'plumb_bob k1, k2, p1, p2, k3 that go with camera_intrinsics',
+        length=5,
+    ),
+    ParamSpec('warmup', True, 'run the network once at start-up so the first keyframe is not slow'),
+)
+
+
+@dataclass(frozen=True)
+class _Job:
+    image: WorkingImage
+    received_at: float
+
+
+class SingleViewNode(DepthFusionNode):
+    """Subscribes to an image stream and publishes the network's depth for each image."""
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
+        super().__init__(node_name, PARAMETERS, **kwargs)
+        p = self.params
+        fixed = calibration_from_parameters(p['camera_intrinsics'], p['camera_distortion'])
+        self.camera_input = CameraInput(
+            int(p['width']),
+            int(p['height']),
+            rectified=bool(p['input_rectified']),
+            fixed_intrinsics=fixed,
+            fixed_distortion=tuple(p['camera_distortion']),
+        )
+        self.predictor = self._load_predictor(str(p['model']), str(p['device']))
+        self.output_kind = str(getattr(self.predictor, 'output_kind', 'metric_depth'))
+        if p['warmup']:
+            self.predictor.predict(np.zeros((int(p['height']), int(p['width']), 3), dtype=np.uint8))
+        self._stamps = StampGuard('image')
+        self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
+        self._kind_pub = self.create_publisher(String, TOPIC_OUTPUT_KIND, latched_qos())
+        self._kind_pub.publish(String(data=self.output_kind))
+        self.worker = self.make_worker('single_view', self._process)
+        self.create_subscription(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
+        self.create_subscription(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
+        self.get_logger().info(
+            f'single-view model {p["model"]!r} ({self.output_kind}) on {p["device"]}; '
+            f'{self.resolve_topic_name(TOPIC_IMAGE)} -> {self.resolve_topic_name(TOPIC_DEPTH)}'
+        )
+
+    def _load_predictor(self, spec: str, device: str) -> Any:
+        from ..singleview.predictor import load_predictor
+
+        return load_predictor(spec, device=device)
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        self.stats.received('camera_info')
+        try:
+            self.camera_input.update(msg)
+        except InputError as exc:
+            self.stats.dropped(exc.reason, str(exc))
+
+    def _on_image(self, msg: Image) -> None:
+        received_at = time.monotonic()
+        self.stats.received('image')
+        try:
+            image = self.camera_input.working_image(msg)
+            self._stamps.check(image.stamp_ns)
+        except InputError as exc:
+            self.stats.dropped(exc.reason, str(exc))
+            return
+        self.worker.submit(_Job(image, received_at))
+
+    def _process(self, job: _Job) -> None:
+        depth = np.asarray(self.predictor.predict(job.image.rgb), dtype=np.float32)
+        if depth.shape != job.image.rgb.shape[:2]:
+            raise ValueError(f'the network returned {depth.shape}, expected {job.image.rgb.shape[:2]}')
+        self._depth_pub.publish(messages.depth_image_msg(depth, job.image.header, kind=messages.RCLPY))
+        self.stats.published('depth')
+        self.stats.processed(time.monotonic() - job.received_at)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point: ``single_view_node --ros-args --params-file config/depth_fusion.yaml``."""
+    return run_node(SingleViewNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
