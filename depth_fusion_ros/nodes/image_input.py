@@ -19,6 +19,9 @@ from ..data import messages
 from ..data.undistort import CameraCalibration, Undistorter, check_distortion
 from ..geometry import PoseError
 
+#: Encodings ``messages.image_to_rgb`` turns into RGB.
+COLOUR_ENCODINGS = ('rgb8', 'bgr8', 'rgba8', 'bgra8', 'mono8', '8UC1', '8UC3')
+
 
 class InputError(ValueError):
     """A message the node cannot use; ``reason`` is the counter key (``bad_encoding`` ...)."""
@@ -137,10 +140,15 @@ class CameraInput:
 
     def working_image(self, msg: Any) -> WorkingImage:
         """Decode, undistort and resize an image message to the working grid."""
+        if msg.encoding not in COLOUR_ENCODINGS:
+            raise InputError(
+                'bad_encoding',
+                f'image encoding {msg.encoding!r} is not colour (expected {", ".join(COLOUR_ENCODINGS)})',
+            )
         try:
             raw = messages.image_to_rgb(msg)
         except ValueError as exc:
-            raise InputError('bad_encoding', f'image: {exc}') from None
+            raise InputError('bad_image', f'image: {exc}') from None
         height, width = raw.shape[:2]
         if width == 0 or height == 0:
             raise InputError('bad_image', 'image is empty')

@@ -1,0 +1,143 @@
+"""single_view_node over real DDS: the network's depth with the source header, bad inputs survived."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+
+from depth_fusion_ros.camera import PinholeCamera
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.nodes.qos import latched_qos
+from depth_fusion_ros.nodes.single_view_node import SingleViewNode
+from depth_fusion_ros.nodes.testing import RosHarness
+
+K = m.RCLPY
+
+
+class _BrightnessDepth(torch.nn.Module):
+    """A stand-in network whose output depends on every pixel: 1 m + the mean normalised channel."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return 1.0 + x.mean(dim=1, keepdim=True).abs()
+
+
+@pytest.fixture(scope='module')
+def torchscript_model(tmp_path_factory) -> Path:
+    from depth_fusion_ros.singleview.metadata import ModelMetadata, write_metadata_yaml
+
+    folder = tmp_path_factory.mktemp('model')
+    path = folder / 'brightness.pt'
+    torch.jit.script(_BrightnessDepth()).save(str(path))
+    write_metadata_yaml(
+        ModelMetadata(input_width=160, input_height=120, depth_max=100.0), folder / 'brightness.yaml'
+    )
+    return path
+
+
+def _rgb(seed: int, height: int = 240, width: int = 320) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (height, width, 3), dtype=np.uint8)
+
+
+def _image(rgb: np.ndarray, stamp_ns: int, encoding: str = 'rgb8') -> Image:
+    msg = m.image_msg(rgb, 'rgb8', m.header_msg(stamp_ns, 'camera_rgb_optical_frame', kind=K), kind=K)
+    msg.encoding = encoding
+    return msg
+
+
+def test_keyframe_depth_has_source_header_and_bad_inputs_are_dropped(torchscript_model):
+    from depth_fusion_ros.singleview.predictor import load_predictor
+
+    reference = load_predictor(torchscript_model)
+    with RosHarness() as ros:
+        node = ros.add(
+            SingleViewNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('model', value=str(torchscript_model)),
+                    Parameter('queue_size', value=8),
+                ],
+            )
+        )
+        images = ros.publisher(Image, '/depth_fusion/keyframe/image')
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers([images])
+        good = {1_000_000_000 + i * 100_000_000: _rgb(i) for i in range(3)}
+        stamps = sorted(good)
+        images.publish(_image(good[stamps[0]], stamps[0]))
+        images.publish(_image(good[stamps[0]], stamps[0]))  # duplicate stamp
+        images.publish(_image(good[stamps[0]], stamps[0] - 1))  # older than the previous one
+        images.publish(_image(good[stamps[1]], stamps[1], encoding='yuv422'))  # unsupported encoding
+        truncated = _image(good[stamps[1]], stamps[1])
+        truncated.data = truncated.data[:-10]
+        images.publish(truncated)  # data shorter than step * height
+        images.publish(_image(good[stamps[1]], stamps[1]))
+        images.publish(_image(good[stamps[2]], stamps[2]))
+        assert ros.wait_for(lambda: len(depths) >= 3, timeout=20.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+
+    assert [m.stamp_to_ns(d.header.stamp) for d in depths] == stamps
+    assert snap.dropped == {
+        'duplicate_stamp_image': 1,
+        'stamp_out_of_order_image': 1,
+        'bad_encoding': 1,
+        'bad_image': 1,
+    }
+    for msg in depths:
+        assert msg.encoding == '32FC1' and msg.header.frame_id == 'camera_rgb_optical_frame'
+        assert (msg.width, msg.height) == (320, 240)
+        expected = reference.predict(good[m.stamp_to_ns(msg.header.stamp)])
+        np.testing.assert_allclose(m.image_to_numpy(msg), expected, rtol=1e-5)
+
+
+def test_raw_camera_input_is_undistorted_and_output_kind_is_latched(torchscript_model):
+    camera = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
+    with RosHarness() as ros:
+        node = ros.add(
+            SingleViewNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('model', value=str(torchscript_model)),
+                    Parameter('input_rectified', value=False),
+                    Parameter('queue_size', value=8),
+                ],
+                cli_args=[
+                    '--ros-args',
+                    '-r',
+                    'depth_fusion/keyframe/image:=/cam/image',
+                    '-r',
+                    'depth_fusion/keyframe/camera_info:=/cam/info',
+                ],
+            )
+        )
+        images = ros.publisher(Image, '/cam/image')
+        infos = ros.publisher(CameraInfo, '/cam/info')
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers([images, infos])
+        images.publish(_image(_rgb(0, 480, 640), 10))  # no camera_info yet: dropped
+        ros.wait_for(lambda: node.stats.snapshot().dropped.get('no_camera_info') == 1, 5.0)
+        infos.publish(
+            m.camera_info_msg(camera, m.header_msg(20, 'cam', kind=K), kind=K, D=(0.1, -0.05, 0, 0, 0))
+        )
+        ros.wait_for(lambda: node.stats.snapshot().received.get('camera_info') == 1, 5.0)
+        images.publish(_image(_rgb(1, 240, 320), 30))  # 320x240 but camera_info says 640x480
+        images.publish(_image(_rgb(2, 480, 640), 40))
+        assert ros.wait_for(lambda: len(depths) >= 1, timeout=20.0), node.stats.snapshot().summary()
+        kinds = ros.collect(String, '/depth_fusion/single_view/output_kind', latched_qos())  # joins late
+        assert ros.wait_for(lambda: len(kinds) == 1, timeout=10.0)
+        snap = node.stats.snapshot()
+    assert snap.dropped == {'no_camera_info': 1, 'size_mismatch': 1}
+    assert (depths[0].width, depths[0].height) == (320, 240) and m.stamp_to_ns(depths[0].header.stamp) == 40
+    assert kinds[0].data == 'metric_depth'
+
+
+def test_missing_model_fails_at_start_naming_the_file(tmp_path):
+    with RosHarness() as ros, pytest.raises(FileNotFoundError, match=r'nowhere\.pt'):
+        SingleViewNode(
+            context=ros.context, parameter_overrides=[Parameter('model', value=str(tmp_path / 'nowhere.pt'))]
+        )
