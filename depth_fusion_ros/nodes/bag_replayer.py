@@ -1,0 +1,486 @@
+"""``bag_replayer``: plays a rosbag2 (mcap or sqlite3) onto ROS topics, like ``ros2 bag play``.
+
+Why our own player: ``rosbag2_py`` and ``ros2 bag`` do not exist for a pip-installed ROS 2
+(see ROS2_PIP.md), while ``rosbags`` reads both storages and rclpy publishes serialized CDR
+bytes as they are. So the replayer never deserializes a message: the bag's bytes go straight
+to the wire, which keeps a 640x480 stream cheap on a small CPU.
+
+Playback runs in its own thread that sleeps until each message is due (the GIL is free while
+it sleeps), so in a composed process the executor keeps serving the processing nodes.
+
+Looping replays the bag again with every header stamp (and ``/clock``) shifted forward by the
+bag's length, patched in the CDR bytes: downstream pose buffers and time sources then see time
+moving forward, which is what a long soak test needs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import struct
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from .params import ParamSpec, declare_parameters
+
+NODE_NAME = 'bag_replayer'
+
+#: Every parameter of the node (``config/depth_fusion.yaml`` section ``bag_replayer``).
+REPLAYER_PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec('bag', '', 'rosbag2 to play: its folder (with metadata.yaml), or one .mcap / .db3 file'),
+    ParamSpec('rate', 1.0, 'playback speed as a multiple of the recorded rate', 0.01, 100.0),
+    ParamSpec('start_offset', 0.0, 'seconds of the bag skipped at the start', 0.0, None),
+    ParamSpec('loop', False, 'play the bag again when it ends (header stamps shifted forward each pass)'),
+    ParamSpec(
+        'loop_seconds',
+        0.0,
+        'with loop: stop after this many seconds of wall time (0: loop until shut down)',
+        0.0,
+        None,
+    ),
+    ParamSpec('topics', [''], "topics of the bag to play (empty or ['']: all)"),
+    ParamSpec('remap', [''], "topic remapping as 'from:=to' strings, applied before ROS -r rules"),
+    ParamSpec('publish_clock', False, 'publish the bag time on /clock (for use_sim_time nodes)'),
+    ParamSpec('clock_frequency', 100.0, 'how often /clock is published between messages, Hz', 1.0, 1000.0),
+    ParamSpec('reliable', True, 'reliable QoS (matches every subscriber); false: best effort'),
+    ParamSpec('qos_depth', 10, 'history depth of each publisher', 1, 10000),
+    ParamSpec(
+        'wait_for_subscribers',
+        0,
+        'before playing, wait until each topic of wait_topics has at least this many subscribers',
+        0,
+        1000,
+    ),
+    ParamSpec('wait_topics', [''], "topics wait_for_subscribers applies to (empty or ['']: all played)"),
+    ParamSpec(
+        'wait_for_nodes',
+        [''],
+        'before playing, wait until these nodes exist and their subscriptions to played topics match',
+    ),
+    ParamSpec(
+        'wait_timeout',
+        60.0,
+        'give up waiting after this many seconds and play anyway (0: forever)',
+        0.0,
+        None,
+    ),
+    ParamSpec('linger', 0.5, 'seconds to stay up after the last message so it is delivered', 0.0, 60.0),
+)
+
+
+class BagError(ValueError):
+    """A bag that cannot be played (missing, unknown storage, no playable topic)."""
+
+
+# --- the bag ------------------------------------------------------------------------------------
+
+
+def resolve_bag_path(path: str | Path) -> Path:
+    """The path rosbags opens, or ``FileNotFoundError``/``BagError`` saying what is wrong.
+
+    Accepts the bag folder or one storage file (``.mcap``, ``.db3``); a storage file inside a
+    bag folder is opened through its folder so the metadata (QoS, counts) is used.
+    """
+    if not str(path):
+        raise BagError(f'{NODE_NAME}: parameter "bag" is empty: give the rosbag2 folder to play')
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise FileNotFoundError(f'{NODE_NAME}: bag {p} does not exist')
+    if p.is_dir():
+        if not (p / 'metadata.yaml').is_file():
+            raise BagError(f'{NODE_NAME}: {p} is a folder without metadata.yaml, not a rosbag2')
+        return p
+    if p.suffix not in ('.mcap', '.db3'):
+        raise BagError(
+            f'{NODE_NAME}: {p}: unknown storage {p.suffix or "(no suffix)"!r}; '
+            'expected a rosbag2 folder, a .mcap or a .db3 file'
+        )
+    if (p.parent / 'metadata.yaml').is_file():
+        return p.parent
+    return p
+
+
+def open_bag(path: str | Path) -> Any:
+    """An open ``rosbags.rosbag2.Reader``; every failure is a ``BagError`` naming the bag."""
+    from rosbags.rosbag2 import Reader, ReaderError
+
+    p = resolve_bag_path(path)
+    try:
+        reader = Reader(p)
+        reader.open()
+    except (ReaderError, KeyError, OSError) as exc:
+        raise BagError(f'{NODE_NAME}: cannot read bag {p}: {exc}') from None
+    return reader
+
+
+def parse_remaps(items: Sequence[str]) -> dict[str, str]:
+    """``['/a:=/b']`` -> ``{'/a': '/b'}``; empty strings are ignored (ROS has no empty arrays)."""
+    remaps: dict[str, str] = {}
+    for item in items:
+        if not item:
+            continue
+        src, sep, dst = item.partition(':=')
+        if not sep or not src.strip() or not dst.strip():
+            raise ValueError(f"{NODE_NAME}: parameter 'remap': expected 'from:=to', got {item!r}")
+        remaps[src.strip()] = dst.strip()
+    return remaps
+
+
+def non_empty(items: Sequence[str]) -> list[str]:
+    return [s for s in items if s]
+
+
+def ros_message_class(msgtype: str) -> type:
+    """rclpy message class of a rosbags type name such as ``sensor_msgs/msg/Image``."""
+    package, _, name = msgtype.rpartition('/')
+    module = importlib.import_module(package.replace('/', '.'))
+    return getattr(module, name)
+
+
+def has_leading_header(msgtype: str) -> bool:
+    """Whether the message starts with a ``std_msgs/Header`` (so its stamp sits at byte 4)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        fields = get_typestore(Stores.ROS2_JAZZY).fielddefs[msgtype][1]
+    except KeyError:
+        return False
+    return bool(fields) and fields[0][1][1] == 'std_msgs/msg/Header'
+
+
+def header_stamp_ns(raw: bytes | memoryview) -> int:
+    """``header.stamp`` in ns of a CDR message that starts with a Header (no deserialization)."""
+    endian = '<' if raw[1] & 1 else '>'
+    sec, nanosec = struct.unpack_from(f'{endian}iI', raw, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+def shift_header_stamp(raw: bytes, shift_ns: int) -> bytes:
+    """A copy of ``raw`` whose ``header.stamp`` is moved by ``shift_ns`` (for looped playback)."""
+    if shift_ns == 0:
+        return raw
+    endian = '<' if raw[1] & 1 else '>'
+    sec, nanosec = divmod(header_stamp_ns(raw) + shift_ns, 1_000_000_000)
+    out = bytearray(raw)
+    struct.pack_into(f'{endian}iI', out, 4, sec, nanosec)
+    return bytes(out)
+
+
+@dataclass
+class PlayedTopic:
+    """One bag topic as played: where it goes and whether its stamp can be patched."""
+
+    bag_topic: str
+    out_topic: str
+    msgtype: str
+    stampable: bool
+    publisher: Any = None
+    connections: list[Any] = field(default_factory=list)
+
+
+@dataclass
+class PlaybackStats:
+    """What was played, for logs, tests and the benchmark."""
+
+    published: Counter = field(default_factory=Counter)
+    passes: int = 0
+    started_wall: float | None = None
+    ended_wall: float | None = None
+    #: Largest delay of a publish behind its due time (s): how far playback fell behind.
+    max_lag: float = 0.0
+
+
+# --- the node -----------------------------------------------------------------------------------
+
+
+class BagReplayer(Node):
+    """Publishes a rosbag2's messages at the recorded rate times ``rate``.
+
+    ``finished`` is set when playback ended (end of bag, ``loop_seconds`` reached or stopped);
+    ``on_finished`` (optional) is called from the playback thread at that moment. With
+    ``autostart=False`` playback begins only when :meth:`start` is called, so a launcher can
+    create every node of a composed graph first.
+    """
+
+    def __init__(
+        self,
+        *,
+        autostart: bool = True,
+        on_finished: Callable[[], None] | None = None,
+        node_name: str = NODE_NAME,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(node_name, **kwargs)
+        self.params = declare_parameters(self, REPLAYER_PARAMS)
+        self.finished = threading.Event()
+        self.stats = PlaybackStats()
+        self.error: BaseException | None = None
+        self._on_finished = on_finished
+        self._stop = threading.Event()
+        self._reader = open_bag(self.params['bag'])
+        try:
+            self._topics = self._plan_topics()
+            self._play_start_ns, self._loop_period_ns = self._plan_times()
+        except BaseException:
+            self._reader.close()
+            raise
+        self._clock_pub = None
+        if self.params['publish_clock']:
+            from rosgraph_msgs.msg import Clock
+
+            clock_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+            self._clock_pub = self.create_publisher(Clock, '/clock', clock_qos)
+            self._clock_msg = Clock()
+        self._thread = threading.Thread(target=self._run, name='bag_replayer', daemon=True)
+        self.get_logger().info(
+            f'playing {self._reader.path} ({len(self._topics)} topics, '
+            f'{self._reader.message_count} messages, {self._reader.duration / 1e9:.1f} s) '
+            f'at rate {self.params["rate"]:g}' + (' in a loop' if self.params['loop'] else '')
+        )
+        if autostart:
+            self.start()
+
+    # -- set-up --
+
+    def _plan_topics(self) -> dict[str, PlayedTopic]:
+        wanted = set(non_empty(self.params['topics']))
+        remaps = parse_remaps(self.params['remap'])
+        in_bag = {c.topic for c in self._reader.connections}
+        unknown = sorted(wanted - in_bag)
+        if unknown:
+            raise BagError(
+                f'{NODE_NAME}: topics {unknown} are not in {self._reader.path} (it has {sorted(in_bag)})'
+            )
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=self.params['qos_depth'],
+            reliability=ReliabilityPolicy.RELIABLE
+            if self.params['reliable']
+            else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.VOLATILE,
+        )
+        topics: dict[str, PlayedTopic] = {}
+        for conn in self._reader.connections:
+            if wanted and conn.topic not in wanted:
+                continue
+            if conn.topic in topics:
+                topics[conn.topic].connections.append(conn)
+                continue
+            try:
+                msg_cls = ros_message_class(conn.msgtype)
+            except (ImportError, AttributeError, ValueError):
+                self.get_logger().warning(
+                    f'skipping {conn.topic}: message type {conn.msgtype} is not installed'
+                )
+                continue
+            played = PlayedTopic(
+                conn.topic, remaps.get(conn.topic, conn.topic), conn.msgtype, has_leading_header(conn.msgtype)
+            )
+            played.publisher = self.create_publisher(msg_cls, played.out_topic, qos)
+            played.connections.append(conn)
+            topics[conn.topic] = played
+        if not topics:
+            raise BagError(f'{NODE_NAME}: nothing to play in {self._reader.path}')
+        return topics
+
+    def _plan_times(self) -> tuple[int, int]:
+        """First played bag time and the stamp shift between loop passes (ns)."""
+        start = self._reader.start_time
+        duration = self._reader.duration
+        offset_ns = round(self.params['start_offset'] * 1e9)
+        if offset_ns and offset_ns >= duration:
+            raise ValueError(
+                f"{NODE_NAME}: parameter 'start_offset' is {self.params['start_offset']} s but the bag "
+                f'lasts {duration / 1e9:.3f} s'
+            )
+        count = max(self._reader.message_count, 2)
+        # One mean message interval between passes, so the last message of a pass and the first
+        # of the next are not stamped alike.
+        gap = max(duration // (count - 1), 1)
+        return start + offset_ns, max(duration - offset_ns, 0) + gap
+
+    @property
+    def played_topics(self) -> dict[str, str]:
+        """``{published topic: message type}`` of everything this replayer publishes."""
+        return {t.out_topic: t.msgtype for t in self._topics.values()}
+
+    @property
+    def bag_path(self) -> Path:
+        return Path(self._reader.path)
+
+    # -- control --
+
+    def start(self) -> None:
+        """Start playback (once)."""
+        if not self._thread.is_alive() and not self.finished.is_set():
+            self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop playback and wait for the thread to end."""
+        self._stop.set()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+
+    def destroy_node(self) -> None:
+        self.stop()
+        with contextlib.suppress(Exception):  # already closed: nothing to release
+            self._reader.close()
+        super().destroy_node()
+
+    # -- playback thread --
+
+    def _run(self) -> None:
+        try:
+            self._wait_for_subscribers()
+            if not self._stop.is_set():
+                self._play()
+        except BaseException as exc:  # reported to whoever waits on finished
+            self.error = exc
+            self.get_logger().error(f'playback failed: {exc!r}')
+        finally:
+            self.stats.ended_wall = time.monotonic()
+            total = sum(self.stats.published.values())
+            self.get_logger().info(
+                f'playback ended: {total} messages in {self.stats.passes} pass(es), '
+                f'max lag {self.stats.max_lag * 1e3:.1f} ms'
+            )
+            self.finished.set()
+            if self._on_finished is not None:
+                self._on_finished()
+
+    def _play(self) -> None:
+        rate = self.params['rate']
+        connections = [c for t in self._topics.values() for c in t.connections]
+        by_conn = {c.id: t for t in self._topics.values() for c in t.connections}
+        self.stats.started_wall = wall0 = time.monotonic()
+        deadline = wall0 + self.params['loop_seconds'] if self.params['loop_seconds'] > 0 else None
+        t0 = self._play_start_ns
+        pass_index = 0
+        while not self._stop.is_set():
+            shift = pass_index * self._loop_period_ns
+            for conn, t_ns, raw in self._reader.messages(connections, start=self._play_start_ns):
+                due = wall0 + (t_ns + shift - t0) / 1e9 / rate
+                if deadline is not None and due > deadline:
+                    return
+                if not self._sleep_until(due, t0, wall0, rate):
+                    return
+                self.stats.max_lag = max(self.stats.max_lag, time.monotonic() - due)
+                topic = by_conn[conn.id]
+                data = bytes(raw)
+                if shift and topic.stampable:
+                    data = shift_header_stamp(data, shift)
+                self._publish_clock(t_ns + shift)
+                topic.publisher.publish(data)
+                self.stats.published[topic.out_topic] += 1
+            pass_index += 1
+            self.stats.passes = pass_index
+            if not self.params['loop']:
+                break
+        if self.params['linger'] > 0:
+            self._stop.wait(self.params['linger'])
+
+    def _sleep_until(self, due: float, t0: int, wall0: float, rate: float) -> bool:
+        """Sleep until ``due`` (monotonic), ticking /clock meanwhile; False when stopped."""
+        tick = 1.0 / self.params['clock_frequency']
+        while True:
+            now = time.monotonic()
+            if now >= due:
+                return not self._stop.is_set()
+            if self._clock_pub is not None:
+                self._publish_clock(t0 + int((now - wall0) * rate * 1e9))
+                step = min(tick, due - now)
+            else:
+                step = due - now
+            if self._stop.wait(step):
+                return False
+
+    def _publish_clock(self, t_ns: int) -> None:
+        if self._clock_pub is None:
+            return
+        self._clock_msg.clock.sec, self._clock_msg.clock.nanosec = divmod(t_ns, 1_000_000_000)
+        self._clock_pub.publish(self._clock_msg)
+
+    def _wait_for_subscribers(self) -> None:
+        count = self.params['wait_for_subscribers']
+        nodes = non_empty(self.params['wait_for_nodes'])
+        if count <= 0 and not nodes:
+            return
+        wait_topics = set(non_empty(self.params['wait_topics']))
+        pubs = {t.out_topic: t.publisher for t in self._topics.values()}
+        unknown = wait_topics - set(pubs)
+        if unknown:
+            raise BagError(f"{NODE_NAME}: parameter 'wait_topics' names topics not played: {sorted(unknown)}")
+        timeout = self.params['wait_timeout']
+        deadline = time.monotonic() + timeout if timeout > 0 else None
+        while not self._stop.is_set():
+            missing = self._not_ready(pubs, wait_topics or set(pubs), count, nodes)
+            if not missing:
+                return
+            if deadline is not None and time.monotonic() > deadline:
+                self.get_logger().warning(f'waited {timeout:g} s for subscribers, playing anyway: {missing}')
+                return
+            self._stop.wait(0.05)
+
+    def _not_ready(self, pubs: dict[str, Any], topics: set[str], count: int, nodes: list[str]) -> str:
+        """What is still missing before playback may start ('' when nothing)."""
+        for topic in sorted(topics):
+            have = pubs[topic].get_subscription_count()
+            if have < count:
+                return f'{topic} has {have}/{count} subscribers'
+        present = {
+            (ns.rstrip('/') + '/' + name) if ns != '/' else '/' + name
+            for name, ns in self.get_node_names_and_namespaces()
+        }
+        for wanted in nodes:
+            full = wanted if wanted.startswith('/') else '/' + wanted
+            if full not in present:
+                return f'node {wanted} not started'
+            ns, _, name = full.rpartition('/')
+            subs = self.get_subscriber_names_and_types_by_node(name, ns or '/')
+            needed = Counter(topic for topic, _ in subs if topic in pubs)
+            for topic in needed:
+                if pubs[topic].get_subscription_count() < 1:
+                    return f'{topic} not yet matched with {wanted}'
+        return ''
+
+
+# --- entry point --------------------------------------------------------------------------------
+
+
+def main(args: list[str] | None = None) -> int:
+    """``bag_replayer --ros-args -p bag:=PATH [-p rate:=0.5 ...]``: play, exit 0 at the end."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = BagReplayer()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while rclpy.ok() and not node.finished.is_set():
+            executor.spin_once(timeout_sec=0.1)
+        return 1 if node.error is not None else 0
+    except (FileNotFoundError, ValueError) as exc:
+        # The messages already name the node and the file or parameter: no traceback.
+        print(f'error: {exc}', file=sys.stderr, flush=True)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
