@@ -52,6 +52,7 @@ def make_tum_folder(
     gt_span: tuple[float, float] | None = None,
     depth_offset: float = 0.004,
     missing_depth: tuple[int, ...] = (),
+    D: tuple[float, ...] = (0, 0, 0, 0, 0),
 ) -> dict:
     """A small TUM folder: colour at 10 Hz from ``rgb_t0``, depth 4 ms later, 100 Hz poses."""
     w, h = size
@@ -81,7 +82,7 @@ def make_tum_folder(
     (root / 'rgb.txt').write_text('\n'.join(rgb_lines) + '\n')
     (root / 'depth.txt').write_text('\n'.join(depth_lines) + '\n')
     (root / 'groundtruth.txt').write_text('\n'.join(gt_lines) + '\n')
-    write_camera_yaml(root / 'camera.yaml', cam)
+    write_camera_yaml(root / 'camera.yaml', cam, D)
     return {'camera': cam, 'truth': truth, 'gt_t0': t0}
 
 

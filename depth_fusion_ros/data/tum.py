@@ -53,6 +53,7 @@ __all__ = [
     'TumTrajectory',
     'associate',
     'load_tum_sequence',
+    'nearest_stamps',
     'parse_stamp_ns',
     'read_camera_yaml',
     'read_depth_file',
@@ -282,20 +283,22 @@ class Association:
     dropped: dict[str, int] = field(default_factory=dict)
 
 
-def _nearest(sorted_ns: np.ndarray, query_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index of the nearest stamp in ``sorted_ns`` for each query, and its absolute gap (ns)."""
+def nearest_stamps(sorted_ns: np.ndarray, query_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the nearest stamp in ``sorted_ns`` (sorted) for each query, and its gap (ns).
+
+    With no stamps at all the gap is the int64 maximum, so every query fails any gap test.
+    """
+    sorted_ns = np.asarray(sorted_ns, dtype=np.int64)
+    query_ns = np.asarray(query_ns, dtype=np.int64)
     if len(sorted_ns) == 0:
         return np.zeros(len(query_ns), np.int64), np.full(len(query_ns), np.iinfo(np.int64).max)
-    right = (
-        np.clip(np.searchsorted(sorted_ns, query_ns), 1, len(sorted_ns) - 1) if len(sorted_ns) > 1 else None
-    )
-    if right is None:
+    if len(sorted_ns) == 1:
         return np.zeros(len(query_ns), np.int64), np.abs(query_ns - sorted_ns[0])
+    right = np.clip(np.searchsorted(sorted_ns, query_ns), 1, len(sorted_ns) - 1)
     left = right - 1
     gap_left = np.abs(query_ns - sorted_ns[left])
     gap_right = np.abs(sorted_ns[right] - query_ns)
-    idx = np.where(gap_right < gap_left, right, left)
-    return idx, np.minimum(gap_left, gap_right)
+    return np.where(gap_right < gap_left, right, left), np.minimum(gap_left, gap_right)
 
 
 def associate(
@@ -325,7 +328,7 @@ def associate(
     else:
         poses, has_pose = np.full((len(query), 4, 4), np.nan), np.zeros(len(query), bool)
     if index.depth is not None:
-        didx, gap = _nearest(index.depth.stamps_ns, query)
+        didx, gap = nearest_stamps(index.depth.stamps_ns, query)
         has_depth = gap <= round(depth_max_gap * NS_PER_SEC)
     else:
         didx, has_depth = np.zeros(len(query), np.int64), np.zeros(len(query), bool)

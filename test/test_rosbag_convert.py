@@ -1,0 +1,304 @@
+"""TUM folder / ROS 1 bag -> rosbag2 (mcap and sqlite3) -> read back."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from rosbags.rosbag1 import Writer as Ros1Writer
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from test_tum import make_tum_folder, write_camera_yaml
+
+from depth_fusion_ros.camera import PinholeCamera
+from depth_fusion_ros.cli.main import main as cli_main
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.data import rosbag_convert
+from depth_fusion_ros.data.rosbag_convert import BagTopics, TfTree, convert, ros1_to_rosbag2, tum_to_rosbag
+from depth_fusion_ros.data.rosbag_read import (
+    bag_topics,
+    iter_messages,
+    load_bag_sequence,
+    read_depth_images,
+    read_poses,
+)
+from depth_fusion_ros.data.tum import associate, load_tum_sequence, read_tum_index
+from depth_fusion_ros.data.undistort import CameraCalibration
+from depth_fusion_ros.geometry import make_pose
+
+RGB, INFO, DEPTH, POSE = (
+    '/camera/rgb/image_color',
+    '/camera/rgb/camera_info',
+    '/camera/depth/image',
+    '/camera/pose',
+)
+DISTORTION = (0.05, -0.02, 0.001, 0.0005, 0.0)
+
+
+def _raw_messages(bag: Path) -> list[tuple[str, int, bytes]]:
+    with Reader(bag) as reader:
+        return [(c.topic, t, bytes(raw)) for c, t, raw in reader.messages()]
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_tum_folder_round_trip(tmp_path, storage):
+    src = tmp_path / 'tum'
+    make_tum_folder(src, n=5, D=DISTORTION)
+    out = tmp_path / f'bag_{storage}'
+    result = tum_to_rosbag(src, out, storage=storage, show_progress=False)
+    assert result.frames == 5 and result.messages == {RGB: 5, INFO: 5, DEPTH: 5, POSE: 5}
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(['tum', out.name])  # no partial left
+    expected = {f.stamp_ns: f for f in associate(read_tum_index(src)).frames}
+
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import Image
+
+    seen = {RGB: [], DEPTH: [], POSE: [], INFO: []}
+    for topic, bag_time, raw in _raw_messages(out):
+        seen[topic].append(bag_time)
+        if topic == RGB:
+            ros = deserialize_message(raw, Image)  # rclpy decodes the bag's bytes
+            assert m.stamp_to_ns(ros.header.stamp) == bag_time
+            assert ros.encoding == 'rgb8' and ros.header.frame_id == 'camera_rgb_optical_frame'
+            original = cv2.cvtColor(cv2.imread(str(expected[bag_time].rgb_file)), cv2.COLOR_BGR2RGB)
+            np.testing.assert_array_equal(m.image_to_rgb(ros), original)  # raw, not undistorted
+        elif topic == DEPTH:
+            ros = deserialize_message(raw, Image)
+            raw_png = cv2.imread(str(expected[bag_time].depth_file), cv2.IMREAD_UNCHANGED)
+            depth = m.image_to_numpy(ros)
+            np.testing.assert_array_equal(np.isnan(depth), raw_png == 0)
+            np.testing.assert_array_equal(depth[raw_png > 0], raw_png[raw_png > 0].astype(np.float32) / 5000)
+    assert all(sorted(stamps) == sorted(expected) for stamps in seen.values())
+
+    stamps, poses = read_poses(out)
+    assert stamps.tolist() == sorted(expected)
+    for stamp, T in zip(stamps.tolist(), poses, strict=True):
+        np.testing.assert_allclose(T, expected[stamp].pose, atol=1e-9)
+    for _, _, info in iter_messages(out, [INFO]):
+        calib = m.camera_info_to_calibration(info)
+        assert calib.D == DISTORTION and calib.camera == read_tum_index(src).calibration.camera
+
+
+def test_bag_sequence_equals_folder_sequence(tmp_path):
+    src = tmp_path / 'tum'
+    make_tum_folder(src, n=4, D=DISTORTION)
+    out = tmp_path / 'bag'
+    tum_to_rosbag(src, out, show_progress=False)
+    folder = load_tum_sequence(src, width=32, height=24)
+    bag = load_bag_sequence(out, width=32, height=24)
+    assert len(bag) == len(folder) == 4 and bag.camera == folder.camera and bag.gt_camera == folder.gt_camera
+    for a, b in zip(folder.frames, bag.frames, strict=True):
+        assert a.stamp == b.stamp
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.depth, b.depth)  # NaN in the same places
+        np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
+    assert len(load_bag_sequence(out, max_frames=2)) == 2
+    depth = read_depth_images(out, DEPTH)
+    assert sorted(depth) == [round(f.stamp * 1e9) for f in folder.frames]
+    with pytest.raises(ValueError, match=r'no topic /nope \(it has: /camera/depth/image'):
+        read_depth_images(out, '/nope')
+
+
+def test_existing_output_and_overwrite(tmp_path):
+    src = tmp_path / 'tum'
+    make_tum_folder(src, n=3)
+    out = tmp_path / 'bag'
+    tum_to_rosbag(src, out, max_frames=1, show_progress=False)
+    with pytest.raises(ValueError, match='already exists'):
+        tum_to_rosbag(src, out, show_progress=False)
+    result = tum_to_rosbag(src, out, overwrite=True, storage='sqlite3', show_progress=False)
+    assert result.frames == 3 and bag_topics(out)[RGB] == ('sensor_msgs/msg/Image', 3)
+    not_a_bag = tmp_path / 'precious'
+    not_a_bag.mkdir()
+    (not_a_bag / 'notes.txt').write_text('keep me')
+    with pytest.raises(ValueError, match='not a rosbag2 folder: refusing'):
+        tum_to_rosbag(src, not_a_bag, overwrite=True, show_progress=False)
+    assert (not_a_bag / 'notes.txt').read_text() == 'keep me'
+
+
+def test_interrupted_conversion_leaves_no_bag(tmp_path, monkeypatch):
+    src = tmp_path / 'tum'
+    make_tum_folder(src, n=6)
+    calls = {'n': 0}
+    real = rosbag_convert.read_rgb_file
+
+    def flaky(path, camera=None):
+        calls['n'] += 1
+        if calls['n'] == 4:
+            raise KeyboardInterrupt
+        return real(path, camera)
+
+    monkeypatch.setattr(rosbag_convert, 'read_rgb_file', flaky)
+    with pytest.raises(KeyboardInterrupt):
+        tum_to_rosbag(src, tmp_path / 'bag', show_progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['tum']
+
+
+def test_cli_convert(tmp_path, capsys):
+    src = tmp_path / 'tum'
+    make_tum_folder(src, n=3)
+    out = tmp_path / 'out.db'
+    assert (
+        cli_main(['convert', str(src), str(out), '--storage', 'sqlite3', '--frames', '2', '--no-progress'])
+        == 0
+    )
+    assert 'wrote' in capsys.readouterr().out
+    assert bag_topics(out)[POSE] == ('geometry_msgs/msg/PoseStamped', 2)
+    assert cli_main(['convert', str(src), str(out), '--no-progress']) == 1
+    assert 'already exists (pass --overwrite' in capsys.readouterr().err
+    assert cli_main(['convert', str(src), str(tmp_path / 'x'), '--groundtruth', 'g.txt']) == 1
+    assert 'only apply to a ROS 1 bag' in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli_main(['convert', '--help'])
+    assert 'TUM RGB-D folder' in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------- ROS 1 bags
+
+ROS1 = get_typestore(Stores.ROS1_NOETIC)
+# Noetic's built-in store lacks tf2_msgs; real TUM bags carry its definition in the bag.
+ROS1.register(get_types_from_msg('geometry_msgs/TransformStamped[] transforms', 'tf2_msgs/msg/TFMessage'))
+CAM = PinholeCamera(64, 48, 50.0, 52.0, 31.5, 23.5)
+T_KINECT_OPTICAL = make_pose([0.02, -0.01, 0.03], [-0.5, 0.5, -0.5, 0.5])
+
+
+def _T_world_kinect(t: float) -> np.ndarray:
+    return make_pose([0.5 * (t - 99.95), 0.2, 1.0], [0.0, 0.0, 0.2588190, 0.9659258])
+
+
+def _tf_msg(parent: str, child: str, t_ns: int, T: np.ndarray):
+    k = m.as_kind(ROS1)
+    tr, q = T[:3, 3], m.pose_msg(T, kind=k).orientation
+    transform = k.new(
+        'geometry_msgs/msg/Transform',
+        translation=k.new('geometry_msgs/msg/Vector3', x=tr[0], y=tr[1], z=tr[2]),
+        rotation=q,
+    )
+    stamped = k.new(
+        'geometry_msgs/msg/TransformStamped',
+        header=m.header_msg(t_ns, parent, kind=k),
+        child_frame_id=child,
+        transform=transform,
+    )
+    return k.new('tf2_msgs/msg/TFMessage', transforms=[stamped])
+
+
+def write_ros1_bag(path: Path, n: int = 5, tf: bool = True) -> dict:
+    """A TUM-like ROS 1 bag: bgr8 colour at 10 Hz, 16UC1 depth 5 ms later, tf at 100 Hz."""
+    rng = np.random.default_rng(1)
+    events: list[tuple[int, str, str, object]] = []
+    truth = {}
+    calib = CameraCalibration(CAM, 'plumb_bob', DISTORTION)
+    for i in range(n):
+        t_ns = 100_000_000_000 + i * 100_000_000
+        rgb = rng.integers(0, 256, (48, 64, 3)).astype(np.uint8)
+        mm = rng.integers(0, 6000, (48, 64)).astype(np.uint16)
+        hdr = m.header_msg(t_ns, '/openni_rgb_optical_frame', kind=ROS1)
+        events.append(
+            (t_ns, RGB, 'sensor_msgs/msg/Image', m.image_msg(rgb[..., ::-1].copy(), 'bgr8', hdr, kind=ROS1))
+        )
+        events.append((t_ns, INFO, 'sensor_msgs/msg/CameraInfo', m.camera_info_msg(calib, hdr, kind=ROS1)))
+        d_ns = t_ns + 5_000_000
+        dhdr = m.header_msg(d_ns, '/openni_depth_optical_frame', kind=ROS1)
+        events.append((d_ns, DEPTH, 'sensor_msgs/msg/Image', m.image_msg(mm, '16UC1', dhdr, kind=ROS1)))
+        truth[t_ns] = {'rgb': rgb, 'depth_mm': mm, 'pose': _T_world_kinect(t_ns / 1e9) @ T_KINECT_OPTICAL}
+    if tf:
+        for j in range(int(n * 10 + 10)):
+            t_ns = 99_950_000_000 + j * 10_000_000
+            msg = _tf_msg('/world', '/kinect', t_ns, _T_world_kinect(t_ns / 1e9))
+            events.append((t_ns, '/tf', 'tf2_msgs/msg/TFMessage', msg))
+            if j % 10 == 0:  # ROS 1 style: a fixed transform republished on /tf
+                msg = _tf_msg('/kinect', '/openni_rgb_optical_frame', t_ns, T_KINECT_OPTICAL)
+                events.append((t_ns, '/tf', 'tf2_msgs/msg/TFMessage', msg))
+    events.sort(key=lambda e: e[0])
+    with Ros1Writer(path) as writer:
+        conns = {}
+        for t_ns, topic, msgtype, msg in events:
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=ROS1)
+            writer.write(conns[topic], t_ns, ROS1.serialize_ros1(msg, msgtype))
+    return truth
+
+
+def _check_ros1_output(out: Path, truth: dict, n: int) -> None:
+    stamps, poses = read_poses(out)
+    assert stamps.tolist() == sorted(truth)[:n]
+    for stamp, T in zip(stamps.tolist(), poses, strict=True):
+        np.testing.assert_allclose(T, truth[stamp]['pose'], atol=1e-9)
+    depth = read_depth_images(out, DEPTH)  # re-stamped with the colour stamps
+    assert sorted(depth) == sorted(truth)[:n]
+    for stamp, d in depth.items():
+        mm = truth[stamp]['depth_mm']
+        np.testing.assert_array_equal(np.isnan(d), mm == 0)
+        np.testing.assert_allclose(d[mm > 0], mm[mm > 0] / 1000.0, rtol=1e-6)
+    for _, bag_time, msg in iter_messages(out, [RGB]):
+        assert msg.encoding == 'rgb8' and m.stamp_to_ns(msg.header.stamp) == bag_time
+        np.testing.assert_array_equal(m.image_to_rgb(msg), truth[bag_time]['rgb'])
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_ros1_bag_with_tf_poses(tmp_path, storage):
+    src = tmp_path / 'tum.bag'
+    truth = write_ros1_bag(src)
+    out = tmp_path / 'ros2'
+    result = ros1_to_rosbag2(src, out, storage=storage, show_progress=False)
+    assert result.frames == 5 and result.pose_source.startswith('/tf (world -> openni_rgb_optical_frame)')
+    assert result.messages == {RGB: 5, INFO: 5, DEPTH: 5, POSE: 5}
+    _check_ros1_output(out, truth, 5)
+    seq = load_bag_sequence(out, width=32, height=24)
+    assert len(seq) == 5 and seq.gt_camera == CAM
+    np.testing.assert_allclose(seq.frames[2].pose, truth[sorted(truth)[2]]['pose'], atol=1e-9)
+
+
+def test_ros1_bag_with_groundtruth_and_camera_yaml(tmp_path):
+    src = tmp_path / 'tum.bag'
+    truth = write_ros1_bag(src, n=4, tf=False)
+    gt = tmp_path / 'groundtruth.txt'
+    lines = ['# timestamp tx ty tz qx qy qz qw']
+    for stamp in sorted(truth):
+        T = truth[stamp]['pose']
+        t, q = T[:3, 3], m.pose_msg(T, kind=ROS1).orientation
+        values = ' '.join(repr(float(v)) for v in (*t, q.x, q.y, q.z, q.w))
+        lines.append(f'{stamp / 1e9:.9f} {values}')
+    gt.write_text('\n'.join(lines) + '\n')
+    yaml_cam = PinholeCamera(64, 48, 60.0, 61.0, 32.0, 24.0)
+    write_camera_yaml(tmp_path / 'camera.yaml', yaml_cam, (0.1, 0, 0, 0, 0))
+    out = tmp_path / 'ros2'
+    result = convert(
+        src, out, groundtruth=gt, camera_yaml=tmp_path / 'camera.yaml', max_frames=3, show_progress=False
+    )
+    assert result.frames == 3 and result.pose_source.startswith('groundtruth')
+    _check_ros1_output(out, truth, 3)
+    for _, _, info in iter_messages(out, [INFO]):
+        assert m.camera_info_to_calibration(info).camera == yaml_cam
+
+
+def test_ros1_bag_errors(tmp_path):
+    src = tmp_path / 'tum.bag'
+    write_ros1_bag(src, n=2, tf=False)
+    result = ros1_to_rosbag2(src, tmp_path / 'noposes', show_progress=False)
+    assert result.pose_source == 'none' and POSE not in result.messages and result.frames == 2
+    with pytest.raises(ValueError, match=r'no colour topic /camera/rgb/image_raw \(it has:'):
+        ros1_to_rosbag2(
+            src, tmp_path / 'x', source_topics=BagTopics(rgb='/camera/rgb/image_raw'), show_progress=False
+        )
+    with pytest.raises(FileNotFoundError, match=r'missing\.bag'):
+        convert(tmp_path / 'missing.bag', tmp_path / 'y')
+    tree = TfTree()
+    tree.add('/world', '/kinect', 1, np.eye(4))
+    with pytest.raises(ValueError, match="no /tf chain from 'world' to 'camera'"):
+        tree.lookup('world', 'camera', np.array([1]))
+
+
+def test_tum_fr1_xyz_converts(tum_fr1_xyz, tmp_path):
+    out = tmp_path / 'fr1'
+    result = tum_to_rosbag(tum_fr1_xyz, out, max_frames=3, show_progress=False)
+    assert result.frames == 3
+    bag = load_bag_sequence(out)
+    folder = load_tum_sequence(tum_fr1_xyz, max_frames=3)
+    for a, b in zip(folder.frames, bag.frames, strict=True):
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
