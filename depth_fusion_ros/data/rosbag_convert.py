@@ -254,7 +254,7 @@ def tum_to_rosbag(
         'groundtruth',
         time.perf_counter() - start,
     )
-    logger.info('wrote %s: %d frames in %.1f s', writer.out, result.frames, result.seconds)
+    logger.debug('wrote %s: %d frames in %.1f s', writer.out, result.frames, result.seconds)
     return result
 
 
@@ -509,7 +509,7 @@ def ros1_to_rosbag2(
     result = ConvertResult(
         writer.out, len(selected), dict(writer.counts), dropped, pose_source, time.perf_counter() - start
     )
-    logger.info(
+    logger.debug(
         'wrote %s: %d frames (poses: %s) in %.1f s', writer.out, result.frames, pose_source, result.seconds
     )
     return result
