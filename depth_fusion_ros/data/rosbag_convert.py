@@ -142,10 +142,14 @@ class AtomicBagWriter:
         self._tmp_root = Path(
             tempfile.mkdtemp(prefix=f'.{self.out.name}.', suffix='.partial', dir=self.out.parent)
         )
-        self._writer = Writer(
-            self._tmp_root / self.out.name, version=9, storage_plugin=STORAGES[self.storage]
-        )
-        self._writer.open()
+        try:
+            self._writer = Writer(
+                self._tmp_root / self.out.name, version=9, storage_plugin=STORAGES[self.storage]
+            )
+            self._writer.open()
+        except BaseException:
+            shutil.rmtree(self._tmp_root, ignore_errors=True)
+            raise
         return self
 
     def write(self, topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
@@ -294,7 +298,7 @@ class TfTree:
     def _edge_at(self, child: str, query_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         _, stamps, poses, static = self._edges[child]
         arr = np.asarray(poses, dtype=np.float64)
-        if static or len(arr) == 1 or np.allclose(arr, arr[0], atol=1e-12):
+        if static or len(arr) == 1 or np.allclose(arr, arr[0], rtol=0.0, atol=1e-12):
             return np.broadcast_to(arr[-1], (len(query_ns), 4, 4)), np.ones(len(query_ns), bool)
         stamps_arr = np.asarray(stamps, dtype=np.int64)
         order = np.argsort(stamps_arr, kind='stable')
