@@ -27,6 +27,8 @@ class EvalOptions:
     frames: int | None = 100
     #: Every ``stride``-th frame of the first ``frames`` is a keyframe.
     stride: int = 1
+    #: Explicit keyframe indices (overrides ``stride``), e.g. the frames the node graph chose.
+    keyframes: list[int] | None = None
     seed: int = 0
     device: str = 'cpu'
     #: ``default`` (the shipped compact model), ``simulated`` (the simulated CNN prior), or a

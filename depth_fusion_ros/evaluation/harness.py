@@ -95,7 +95,10 @@ def evaluate_sequence(
 ) -> SequenceResult:
     """Run ``methods`` on the keyframes of an already loaded sequence."""
     specs = [get_method(m) for m in methods]
-    keyframes = list(range(0, len(sequence), max(1, options.stride)))
+    if options.keyframes is not None:
+        keyframes = [i for i in options.keyframes if 0 <= i < len(sequence)]
+    else:
+        keyframes = list(range(0, len(sequence), max(1, options.stride)))
     samples = set(sample_indices(keyframes, n_samples))
     records = {s.name: MethodRecord(s) for s in specs}
     shared: dict[str, Any] = {}
