@@ -33,3 +33,38 @@ def tum_fr1_xyz() -> Path:
 @pytest.fixture
 def redkitchen() -> Path:
     return shared_sequence('7scenes_redkitchen_000_499')
+
+
+# --- Synthetic sequences (depth_fusion_ros.data.synthetic): exact depth and poses, no shared
+# data needed. Session-scoped and shared between tests: treat them as read-only.
+
+#: Config of the ``synthetic_sequence`` / ``synthetic_tum_dir`` fixtures (320x240, 24 frames).
+SYNTHETIC_FIXTURE_CONFIG = dict(width=320, height=240, frames=24, seed=0)
+
+
+@pytest.fixture(scope='session')
+def synthetic_sequence():
+    """In-memory ``Sequence``: 320x240, 24 frames at 30 Hz, high parallax (0.6-1.2 m sweep
+    over the sequence, ~4 cm between consecutive frames), depth ground truth at 320x240."""
+    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
+
+    return render_sequence(SynthConfig(**SYNTHETIC_FIXTURE_CONFIG, parallax='high'))
+
+
+@pytest.fixture(scope='session')
+def synthetic_sequence_low_parallax():
+    """Same room as ``synthetic_sequence`` (same seed) seen with low parallax: panning
+    10-18 degrees with only a few cm of translation over the 24 frames."""
+    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
+
+    return render_sequence(SynthConfig(**SYNTHETIC_FIXTURE_CONFIG, parallax='low'))
+
+
+@pytest.fixture(scope='session')
+def synthetic_tum_dir(tmp_path_factory):
+    """TUM folder (rgb/, depth/, *.txt, camera.yaml, SOURCE.md) of the same frames as
+    ``synthetic_sequence``, written once per session."""
+    from depth_fusion_ros.data.synthetic import SynthConfig, write_synthetic_sequence
+
+    out = tmp_path_factory.mktemp('synthetic') / 'synth_s0_high'
+    return write_synthetic_sequence(out, SynthConfig(**SYNTHETIC_FIXTURE_CONFIG, parallax='high'))

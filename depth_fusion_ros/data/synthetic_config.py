@@ -1,0 +1,114 @@
+"""``SynthConfig``: every knob of a synthetic posed RGB-D sequence, validated up front.
+
+Kept apart from the renderer so the scene builder, the trajectory and the CLI can share it
+without importing each other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+from ..camera import PinholeCamera
+
+PARALLAX_MODES = ('high', 'low')
+
+#: Focal length at 640x480 (Kinect-like); other sizes scale it.
+DEFAULT_FOCAL_640 = 525.0
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """A synthetic sequence: same config (seed included) -> bit-identical output."""
+
+    width: int = 640
+    height: int = 480
+    frames: int = 100
+    fps: float = 30.0
+    seed: int = 0
+    #: 'high': mostly lateral translation (a ``sweep`` m sideways pass, gentle look-at);
+    #: 'low': mostly rotation with a few cm of translation.
+    parallax: str = 'high'
+    #: Focal lengths in pixels; ``None`` = 525 scaled to the image size.
+    fx: float | None = None
+    fy: float | None = None
+    #: Std of the per-frame Gaussian sensor noise, grey levels (0..255).
+    noise_sigma: float = 1.5
+    #: Fraction of surface groups (walls, boxes, table parts) with a flat albedo.
+    textureless_fraction: float = 0.35
+    #: Nominal room size (x width, y depth, z height) in metres, before per-seed jitter.
+    room_size: tuple[float, float, float] = (5.0, 4.5, 2.7)
+    #: Relative per-seed jitter of each room dimension (0.15 = +-15 %).
+    room_jitter: float = 0.15
+    boxes: int = 6
+    tables: int = 2
+    #: Lateral sweep length of the 'high' trajectory in metres; ``None`` = random in [0.6, 1.2].
+    sweep: float | None = None
+    #: Supersample pixels on depth/surface edges (4 extra rays each) so silhouettes do not alias.
+    antialias: bool = True
+    #: Stamp of the first frame (s); frame ``i`` is at ``t0 + i / fps`` rounded to 1 us.
+    t0: float = 1000.0
+
+    def __post_init__(self) -> None:
+        def bad(name: str, why: str) -> ValueError:
+            return ValueError(f'SynthConfig.{name}={getattr(self, name)!r}: {why}')
+
+        if self.width < 8 or self.height < 8:
+            raise bad('width', f'image must be at least 8x8, got {self.width}x{self.height}')
+        if self.frames < 1:
+            raise bad('frames', 'need at least one frame')
+        if not self.fps > 0:
+            raise bad('fps', 'must be positive')
+        if self.parallax not in PARALLAX_MODES:
+            raise bad('parallax', f'expected one of {", ".join(PARALLAX_MODES)}')
+        for name in ('fx', 'fy'):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise bad(name, 'focal length must be positive')
+        if not 0 <= self.noise_sigma <= 50:
+            raise bad('noise_sigma', 'expected 0..50 grey levels')
+        if not 0 <= self.textureless_fraction <= 1:
+            raise bad('textureless_fraction', 'expected a fraction in [0, 1]')
+        if len(self.room_size) != 3 or min(self.room_size) < 2.2 or max(self.room_size) > 20:
+            raise bad('room_size', 'expected three dimensions between 2.2 and 20 m')
+        if not 0 <= self.room_jitter < 0.5:
+            raise bad('room_jitter', 'expected 0 <= jitter < 0.5')
+        if not 0 <= self.boxes <= 40 or not 0 <= self.tables <= 10:
+            raise bad('boxes', f'expected 0..40 boxes and 0..10 tables, got {self.boxes} and {self.tables}')
+        if self.sweep is not None and not 0 < self.sweep <= 3.0:
+            raise bad('sweep', 'expected a lateral sweep in (0, 3] m')
+        if self.seed < 0:
+            raise bad('seed', 'must be non-negative')
+
+    def camera(self) -> PinholeCamera:
+        """Intrinsics: principal point at the image centre ((W - 1) / 2 with pixel-centre
+        coordinates), focal lengths as configured or 525 scaled from 640x480."""
+        fx = self.fx if self.fx is not None else DEFAULT_FOCAL_640 * self.width / 640.0
+        fy = self.fy if self.fy is not None else DEFAULT_FOCAL_640 * self.height / 480.0
+        return PinholeCamera(self.width, self.height, fx, fy, (self.width - 1) / 2.0, (self.height - 1) / 2.0)
+
+    def stamp(self, index: int) -> float:
+        """Stamp of frame ``index`` rounded to the microsecond, so it survives TUM text files."""
+        return round(self.t0 + index / self.fps, 6)
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d['room_size'] = list(self.room_size)
+        return d
+
+    def cli_args(self) -> list[str]:
+        """``depth-fusion synth`` options that reproduce this config (the seed, then the
+        options that differ from the defaults)."""
+        default = SynthConfig()
+        args: list[str] = []
+        for f in fields(self):
+            value, ref = getattr(self, f.name), getattr(default, f.name)
+            if value == ref and f.name != 'seed':
+                continue
+            flag = '--' + f.name.replace('_', '-')
+            if isinstance(value, bool):
+                args.append(flag if value else f'--no-{f.name.replace("_", "-")}')
+            elif isinstance(value, tuple):
+                args += [flag, *(repr(float(x)) for x in value)]
+            else:
+                args += [flag, repr(value) if isinstance(value, float) else str(value)]
+        return args

@@ -1,0 +1,276 @@
+"""Synthetic sequences: exact geometry, photometric consistency, determinism, TUM output."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from depth_fusion_ros.camera import PinholeCamera
+from depth_fusion_ros.data.sequence import Sequence
+from depth_fusion_ros.data.synthetic import (
+    SynthConfig,
+    build_world,
+    render_frame,
+    render_sequence,
+)
+from depth_fusion_ros.data.tum_writer import DEPTH_SCALE, png16_to_depth, write_tum_folder
+from depth_fusion_ros.geometry import quat_to_matrix, relative_pose, rotation_angle
+
+GAP = 5  # frames between the two views of the consistency checks
+
+
+def warp_into(camera: PinholeCamera, depth_k: np.ndarray, T_wk: np.ndarray, T_wj: np.ndarray):
+    """Project frame k's pixels (with its depth) into frame j: ``(map_x, map_y, z_in_j)``."""
+    T_jk = relative_pose(T_wk, T_wj)
+    points = camera.backproject(depth_k) @ T_jk[:3, :3].T + T_jk[:3, 3]
+    uv, z = camera.project(points)
+    return uv[..., 0].astype(np.float32), uv[..., 1].astype(np.float32), z
+
+
+def smooth_depth_mask(depth: np.ndarray, radius: int = 2) -> np.ndarray:
+    """Pixels at least ``radius`` px away from occlusion edges and creases.
+
+    Inverse depth is affine across a plane in the image, so its Laplacian vanishes on every
+    planar surface and is large only where surfaces meet.
+    """
+    inv = (1.0 / depth).astype(np.float32)
+    edge = np.abs(cv2.Laplacian(inv, cv2.CV_32F, ksize=1)) > 1e-3 * inv
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    return cv2.dilate(edge.astype(np.uint8), kernel) == 0
+
+
+def covisible(camera, frame_k, frame_j):
+    """Warp of k into j plus the mask of pixels visible in both, away from occlusion edges."""
+    map_x, map_y, z = warp_into(camera, frame_k.depth, frame_k.pose, frame_j.pose)
+    inside = (map_x > 2) & (map_x < camera.width - 3) & (map_y > 2) & (map_y < camera.height - 3) & (z > 0)
+    # Inverse depth is affine across a plane in the image, so it interpolates exactly.
+    inv_j = cv2.remap(1.0 / frame_j.depth, map_x, map_y, cv2.INTER_LINEAR, borderValue=0.0)
+    smooth_j = cv2.remap(smooth_depth_mask(frame_j.depth).astype(np.uint8), map_x, map_y, cv2.INTER_NEAREST)
+    depth_j = 1.0 / np.maximum(inv_j, 1e-6)
+    visible = inside & smooth_depth_mask(frame_k.depth) & (smooth_j > 0) & (z < depth_j * 1.05)
+    return map_x, map_y, z, depth_j, visible
+
+
+def test_config_validation_names_the_parameter():
+    with pytest.raises(ValueError, match='parallax'):
+        SynthConfig(parallax='medium')
+    with pytest.raises(ValueError, match='frames'):
+        SynthConfig(frames=0)
+    with pytest.raises(ValueError, match='textureless_fraction'):
+        SynthConfig(textureless_fraction=1.5)
+    cam = SynthConfig().camera()
+    assert (cam.width, cam.height, cam.fx, cam.cx, cam.cy) == (640, 480, 525.0, 319.5, 239.5)
+    assert SynthConfig(width=320, height=240).camera() == cam.scaled(320, 240)
+
+
+def test_sequence_layout(synthetic_sequence: Sequence):
+    seq = synthetic_sequence
+    assert len(seq) == 24
+    assert seq.camera == seq.gt_camera and (seq.camera.width, seq.camera.height) == (320, 240)
+    assert np.allclose(np.diff(seq.stamps), 1 / 30, atol=2e-6)
+    for f in seq.frames:
+        assert f.rgb.shape == (240, 320, 3) and f.rgb.dtype == np.uint8
+        assert f.depth.shape == (240, 320) and f.depth.dtype == np.float32
+        assert np.all(np.isfinite(f.depth))
+        assert np.allclose(f.pose[:3, :3].T @ f.pose[:3, :3], np.eye(3), atol=1e-9)
+    depths = np.stack([f.depth for f in seq.frames])
+    assert depths.min() > 0.5 and np.percentile(depths, 99) < 6.5  # indoor range
+
+
+def test_geometric_consistency(synthetic_sequence: Sequence):
+    """Depth of frame k warped into frame k+5 equals frame k+5's depth (within 1 %)."""
+    seq = synthetic_sequence
+    for k in (0, 9, 18):
+        _, _, z, depth_j, visible = covisible(seq.camera, seq.frames[k], seq.frames[k + GAP])
+        assert visible.mean() > 0.4, f'too little overlap between frames {k} and {k + GAP}'
+        rel = np.abs(z[visible] - depth_j[visible]) / depth_j[visible]
+        assert np.median(rel) < 0.01
+        assert np.percentile(rel, 90) < 0.01
+
+
+def test_photometric_consistency(synthetic_sequence: Sequence):
+    """The colour of textured surfaces carried by the warp matches: brightness constancy."""
+    seq = synthetic_sequence
+    scene, _ = build_world(SynthConfig(width=320, height=240, frames=24, seed=0))
+    k = 6
+    frame_k, frame_j = seq.frames[k], seq.frames[k + GAP]
+    textured = scene.surface_textured[render_frame(scene, seq.camera, frame_k.pose).surface]
+    map_x, map_y, z, depth_j, visible = covisible(seq.camera, frame_k, frame_j)
+    mask = visible & textured & (np.abs(z - depth_j) < 0.01 * depth_j)
+    warped = cv2.remap(frame_j.rgb, map_x, map_y, cv2.INTER_LINEAR).astype(np.float32)
+    diff = np.abs(warped - frame_k.rgb.astype(np.float32)).mean(axis=2)[mask]
+    assert mask.sum() > 5000
+    assert np.median(diff) < 3.0, np.median(diff)
+    # The same comparison without the geometry (plain frame difference) is far worse, so the
+    # check above is not passing on flat colour.
+    plain = np.abs(frame_j.rgb.astype(np.float32) - frame_k.rgb).mean(axis=2)[mask]
+    assert np.median(plain) > 3 * np.median(diff)
+
+
+def test_textured_vs_textureless_gradients():
+    """Texture-less surfaces have almost no image gradient, textured ones a lot."""
+    cfg = SynthConfig(width=320, height=240, frames=1, seed=2, textureless_fraction=0.5)
+    scene, trajectory = build_world(cfg)
+    frame = render_frame(
+        scene, cfg.camera(), trajectory.poses[0], noise_sigma=1.5, rng=np.random.default_rng(0)
+    )
+    grey = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3) / 8
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3) / 8
+    high = np.hypot(gx, gy) > 0.02  # 5 grey levels per pixel: far above the sensor noise
+    interior = np.zeros_like(high)
+    for s in np.unique(frame.surface):  # away from silhouettes and creases
+        region = cv2.erode((frame.surface == s).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        interior |= region
+    textured = interior & frame.textured
+    flat = interior & ~frame.textured
+    assert textured.sum() > 2000 and flat.sum() > 2000
+    assert high[textured].mean() > 0.3
+    assert high[flat].mean() < 0.01
+
+
+def test_parallax_modes_share_the_room_but_not_the_baseline():
+    high = SynthConfig(width=64, height=48, frames=30, seed=5, parallax='high')
+    low = SynthConfig(width=64, height=48, frames=30, seed=5, parallax='low')
+    scene_h, traj_h = build_world(high)
+    scene_l, traj_l = build_world(low)
+    assert np.array_equal(scene_h.centres, scene_l.centres)  # same room for both regimes
+    pos_h, pos_l = traj_h.positions, traj_l.positions
+    baseline_h = np.linalg.norm(pos_h[-1] - pos_h[0])
+    baseline_l = np.linalg.norm(pos_l - pos_l[0], axis=1).max()
+    assert 0.55 <= baseline_h <= 1.3
+    assert baseline_l < 0.08
+    assert baseline_h > 10 * baseline_l
+    # Low parallax still moves the view: it rotates.
+    assert np.rad2deg(rotation_angle(traj_l.poses[0][:3, :3].T @ traj_l.poses[-1][:3, :3])) > 15
+    # Every camera stays inside the room and clear of the furniture.
+    for traj, scene in ((traj_h, scene_h), (traj_l, scene_l)):
+        for obj in range(1, scene.n_objects):
+            local = (traj.positions - scene.centres[obj]) @ scene.rotations[obj]
+            assert np.all(np.max(np.abs(local) - scene.halves[obj], axis=1) > 0.5)
+        assert np.all(np.abs(traj.positions - scene.centres[0]) < scene.halves[0])
+
+
+def test_determinism_and_seed_variety():
+    cfg = SynthConfig(width=96, height=72, frames=3, seed=11)
+    a, b = render_sequence(cfg), render_sequence(cfg)
+    for fa, fb in zip(a.frames, b.frames, strict=True):
+        assert np.array_equal(fa.rgb, fb.rgb) and np.array_equal(fa.depth, fb.depth)
+        assert np.array_equal(fa.pose, fb.pose)
+    c = render_sequence(SynthConfig(width=96, height=72, frames=3, seed=12))
+    assert not np.array_equal(a.frames[0].depth, c.frames[0].depth)
+    assert np.abs(a.frames[0].rgb.astype(int) - c.frames[0].rgb).mean() > 10
+    rooms = [build_world(SynthConfig(width=32, height=24, frames=2, seed=s))[0] for s in range(4)]
+    layouts = {tuple(np.round(r.centres[1:3].ravel(), 3)) for r in rooms}
+    assert len(layouts) == 4
+
+
+def test_render_frame_is_exact_on_the_room_planes():
+    """A pixel's depth back-projects onto the surface the renderer reports it hit."""
+    cfg = SynthConfig(width=160, height=120, frames=2, seed=1, boxes=0, tables=0)
+    scene, trajectory = build_world(cfg)
+    camera = cfg.camera()
+    T = trajectory.poses[1]
+    frame = render_frame(scene, camera, T)
+    world = camera.backproject(frame.depth) @ T[:3, :3].T + T[:3, 3]
+    floor = frame.surface == 5
+    ceiling_or_wall = ~floor
+    assert floor.sum() > 1000
+    assert np.abs(world[floor][:, 2]).max() < 1e-4
+    half = scene.halves[0]
+    on_boundary = np.min(np.abs(np.abs(world - scene.centres[0]) - half), axis=-1)
+    assert on_boundary[ceiling_or_wall].max() < 1e-4
+
+
+def test_write_synthetic_sequence(synthetic_tum_dir, synthetic_sequence: Sequence):
+    path = synthetic_tum_dir
+    for name in ('rgb.txt', 'depth.txt', 'groundtruth.txt', 'camera.yaml', 'SOURCE.md'):
+        assert (path / name).is_file(), name
+    rgb_lines = [ln.split() for ln in (path / 'rgb.txt').read_text().splitlines() if not ln.startswith('#')]
+    assert len(rgb_lines) == 24 and all((path / f).is_file() for _, f in rgb_lines)
+    assert len(list((path / 'depth').glob('*.png'))) == 24
+
+    # Same config as the in-memory fixture: the files hold the same frames.
+    frame = synthetic_sequence.frames[7]
+    stamp, rgb_file = rgb_lines[7]
+    assert float(stamp) == frame.stamp
+    assert np.array_equal(cv2.cvtColor(cv2.imread(str(path / rgb_file)), cv2.COLOR_BGR2RGB), frame.rgb)
+    raw = cv2.imread(str(path / 'depth' / f'{stamp}.png'), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16
+    assert np.abs(png16_to_depth(raw) - frame.depth).max() <= 0.5 / DEPTH_SCALE + 1e-6
+
+    gt = [ln.split() for ln in (path / 'groundtruth.txt').read_text().splitlines() if not ln.startswith('#')]
+    values = np.array(gt[7][1:], dtype=float)
+    assert np.allclose(values[:3], frame.pose[:3, 3], atol=1e-8)
+    assert np.allclose(quat_to_matrix(values[3:]), frame.pose[:3, :3], atol=1e-8)
+
+    calib = yaml.safe_load((path / 'camera.yaml').read_text())
+    K = np.array(calib['camera_matrix']['data']).reshape(3, 3)
+    assert (calib['image_width'], calib['image_height']) == (320, 240)
+    assert np.allclose(K, synthetic_sequence.camera.K)
+    assert calib['distortion_model'] == 'plumb_bob' and calib['distortion_coefficients']['data'] == [0.0] * 5
+    assert 'depth-fusion synth' in (path / 'SOURCE.md').read_text()
+
+
+def test_write_loads_with_tum_reader(synthetic_tum_dir, synthetic_sequence: Sequence):
+    tum = pytest.importorskip('depth_fusion_ros.data.tum')
+    seq = tum.load_tum_sequence(synthetic_tum_dir, width=320, height=240)
+    assert len(seq) == 24 and seq.camera == synthetic_sequence.camera
+    np.testing.assert_allclose(seq.stamps, synthetic_sequence.stamps, atol=1e-6)
+    np.testing.assert_allclose(seq.poses, synthetic_sequence.poses, atol=1e-7)
+    assert np.abs(seq.frames[3].depth - synthetic_sequence.frames[3].depth).max() < 1e-3
+
+
+def test_writer_is_atomic_and_refuses_to_clobber(tmp_path):
+    camera = PinholeCamera(8, 6, 10.0, 10.0, 3.5, 2.5)
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    rgb = np.zeros((6, 8, 3), np.uint8)
+    depth = np.full((6, 8), 2.0, np.float32)
+    depth[0, 0], depth[0, 1] = np.nan, 20.0  # invalid and beyond the uint16 range -> 0
+    out = write_tum_folder(tmp_path / 'seq', camera, [1.0, 2.0], [rgb, rgb], [depth, depth], poses)
+    raw = cv2.imread(str(out / 'depth' / '1.000000.png'), cv2.IMREAD_UNCHANGED)
+    assert raw[0, 0] == 0 and raw[0, 1] == 0 and raw[1, 1] == 10000
+    with pytest.raises(ValueError, match='already exists'):
+        write_tum_folder(out, camera, [1.0, 2.0], [rgb, rgb], [depth, depth], poses)
+    with pytest.raises(ValueError, match='only 1'):
+        write_tum_folder(tmp_path / 'short', camera, [1.0, 2.0], [rgb], [depth], poses)
+    with pytest.raises(ValueError, match='frame 0: rgb'):
+        write_tum_folder(tmp_path / 'bad', camera, [1.0], [rgb[:, :4]], [depth], poses[:1])
+    with pytest.raises(ValueError, match='strictly increasing'):
+        write_tum_folder(tmp_path / 'bad', camera, [2.0, 1.0], [rgb, rgb], [depth, depth], poses)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['seq']  # no temp folders left behind
+    write_tum_folder(out, camera, [3.0], [rgb], [depth], poses[:1], overwrite=True)
+    assert (out / 'rgb' / '3.000000.png').is_file() and not (out / 'rgb' / '1.000000.png').exists()
+
+
+def test_cli_synth(tmp_path, capsys):
+    from depth_fusion_ros.cli.main import main
+
+    out = tmp_path / 'cli'
+    assert (
+        main(
+            ['synth', str(out), '--frames', '2', '--width', '64', '--height', '48', '--seed', '3', '--quiet']
+        )
+        == 0
+    )
+    assert len(list((out / 'rgb').glob('*.png'))) == 2
+    assert '--seed 3' in (out / 'SOURCE.md').read_text()
+    assert main(['synth', str(out), '--frames', '2', '--quiet']) == 1
+    assert 'already exists' in capsys.readouterr().err
+    assert main(['synth', str(tmp_path / 'x'), '--parallax', 'low', '--frames', '0', '--quiet']) == 1
+    assert 'frames' in capsys.readouterr().err
+
+
+def test_fixtures_have_their_parallax(
+    synthetic_sequence: Sequence, synthetic_sequence_low_parallax: Sequence
+):
+    """The shared fixtures other stages use: same room and size, very different baselines."""
+    high, low = synthetic_sequence, synthetic_sequence_low_parallax
+    assert len(low) == len(high) and low.camera == high.camera
+    step_high = np.linalg.norm(np.diff(high.poses[:, :3, 3], axis=0), axis=1)
+    step_low = np.linalg.norm(np.diff(low.poses[:, :3, 3], axis=0), axis=1)
+    assert step_high.mean() > 0.02  # >= 2 cm between consecutive frames
+    assert step_low.mean() < 0.005
+    assert not np.array_equal(low.frames[0].rgb, high.frames[0].rgb)
