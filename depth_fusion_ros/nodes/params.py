@@ -206,12 +206,14 @@ def dataclass_specs(
         if default is dataclasses.MISSING:
             continue
         description = descriptions.get(field.name, f'{config_cls.__name__}.{field.name}')
-        if default is None:
-            default, description = _none_sentinel(kind, description)
-        else:
-            default = kind(default)
         limit = limits.get(field.name)
         choices = tuple(limit) if limit and all(isinstance(v, str) for v in limit) else ()
+        if default is None:
+            default, description = _none_sentinel(kind, description)
+            if kind is bool:
+                choices = (NONE_STRING, 'true', 'false')
+        else:
+            default = kind(default)
         low, high = limit if limit and not choices else (None, None)  # type: ignore[misc]
         specs.append(ParamSpec(f'{prefix}.{field.name}', default, description, low, high, choices))
     return specs

@@ -1,0 +1,345 @@
+"""``fusion_node``: single-view + multi-view depth of one keyframe -> fused depth, confidence, cloud.
+
+The single-view and multi-view results of a keyframe arrive on separate topics at different
+times (the network and the plane sweep run in parallel in other nodes), so the node pairs
+them by **exact header stamp**, together with the keyframe's camera_info (and its image, for
+coloured points). A pairing waits at most ``pair_timeout`` seconds; because every upstream
+stream is in stamp order, a pairing that misses a part which its stream has already passed
+is hopeless and dropped at once. Both bounds keep memory flat whatever the input.
+
+A complete pairing goes to the worker: stage 1 of the point selection (best
+``stage1_fraction`` of the multi-view points by score), then the core's
+``fuse_keyframe`` (stage 2 RANSAC, the weighted interpolation, fallbacks). The fused depth
+(32FC1, metres), its confidence (32FC1) and the keyframe's camera_info are published with
+the source header, and optionally a PointCloud2 in the camera frame for RViz.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import String
+
+from ..camera import PinholeCamera
+from ..data import messages
+from ..fusion.interpolation import MODES as FUSION_MODES
+from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
+from ..fusion.weights import WEIGHT_SETS
+from ..multiview.semidense import MultiViewConfig, select_best_fraction
+from .base import DepthFusionNode, run_node
+from .image_input import InputError, StampGuard, depth_from_message, header_stamp_ns
+from .params import ParamSpec, build_dataclass, dataclass_specs
+from .qos import latched_qos
+
+NODE_NAME = 'fusion_node'
+
+TOPIC_SINGLE = 'depth_fusion/single_view/depth'
+TOPIC_OUTPUT_KIND = 'depth_fusion/single_view/output_kind'
+TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
+TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
+TOPIC_KEYFRAME_IMAGE = 'depth_fusion/keyframe/image'
+TOPIC_KEYFRAME_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
+TOPIC_FUSED_DEPTH = 'depth_fusion/fused/depth'
+TOPIC_FUSED_CONFIDENCE = 'depth_fusion/fused/confidence'
+TOPIC_FUSED_CAMERA_INFO = 'depth_fusion/fused/camera_info'
+TOPIC_FUSED_POINTS = 'depth_fusion/fused/points'
+
+OUTPUT_KINDS = ('auto', 'metric_depth', 'inverse_depth', 'relative_depth')
+
+#: Ranges / choices of the ``FusionConfig`` fields exposed as ``fusion.*`` parameters (the
+#: descriptions come with the core: ``FUSION_PARAMETER_DESCRIPTIONS``).
+FUSION_LIMITS: dict[str, Any] = {
+    'sigma1': (1e-6, None),
+    'sigma2': (0.0, None),
+    'sigma3': (0.0, None),
+    'weights': WEIGHT_SETS,
+    'mode': tuple(FUSION_MODES),
+    'fast_stride': (1, 64),
+    'chunk_elements': (1024, None),
+    'ransac_threshold': (1e-9, None),
+    'ransac_iterations': (1, 1_000_000),
+    'ransac_min_inliers': (2, None),
+    'seed': (0, None),
+    'max_points': (-1, None),
+}
+#: Set by the node itself (``device``) rather than under ``fusion.*``.
+FUSION_SKIP = ('device',)
+#: The node runs in real time by default; ``fusion.mode: exact`` for the paper's full sum.
+FUSION_NODE_DEFAULTS = {'mode': 'fast'}
+
+REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
+
+PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec('device', 'cpu', 'torch device of the fusion: cpu, cuda, cuda:1, ...'),
+    ParamSpec(
+        'stage1_fraction',
+        MultiViewConfig().select_fraction,
+        'stage 1 of the point selection: keep this fraction of the multi-view points, best score first',
+        1e-6,
+        1.0,
+    ),
+    ParamSpec(
+        'single_view_output_kind',
+        'auto',
+        'what the single-view depth holds; auto: as announced by single_view_node on '
+        f'{TOPIC_OUTPUT_KIND} (metric_depth until heard)',
+        choices=OUTPUT_KINDS,
+    ),
+    ParamSpec(
+        'pair_timeout',
+        10.0,
+        'seconds a keyframe waits for its missing single-view / multi-view part before it is dropped',
+        0.01,
+    ),
+    ParamSpec(
+        'max_pending_keyframes', 16, 'keyframes waiting for their parts at most (oldest dropped)', 1, 1000
+    ),
+    ParamSpec('publish_points', True, f'publish the fused depth as a PointCloud2 on {TOPIC_FUSED_POINTS}'),
+    ParamSpec('points_stride', 2, 'keep every n-th pixel in both directions in the point cloud', 1, 64),
+    ParamSpec('points_max_depth', 10.0, 'points farther than this (m) are left out of the cloud', 0.0),
+    ParamSpec('points_min_confidence', 0.0, 'points whose confidence is below this are left out', 0.0),
+    ParamSpec('points_color', True, 'colour the points with the keyframe image (waits for it when pairing)'),
+    *dataclass_specs(
+        FusionConfig,
+        'fusion',
+        FUSION_PARAMETER_DESCRIPTIONS,
+        FUSION_LIMITS,
+        FUSION_SKIP,
+        FUSION_NODE_DEFAULTS,
+    ),
+)
+
+
+@dataclass
+class _Pairing:
+    """The parts of one keyframe received so far."""
+
+    stamp_ns: int
+    first_seen: float
+    parts: dict[str, Any] = field(default_factory=dict)
+    header: Any = None
+
+
+@dataclass
+class _FusionJob:
+    pairing: _Pairing
+    received_at: float
+
+
+class FusionNode(DepthFusionNode):
+    """Pairs keyframe results by stamp and fuses them on a worker thread."""
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
+        super().__init__(node_name, PARAMETERS, **kwargs)
+        p = self.params
+        self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))
+        self.announced_kind: str | None = None
+        self.pending: dict[int, _Pairing] = {}
+        self.required = REQUIRED_PARTS + (('rgb',) if p['publish_points'] and p['points_color'] else ())
+        self._stamp_guards = {part: StampGuard(part) for part in (*REQUIRED_PARTS, 'rgb')}
+
+        self._depth_pub = self.create_publisher(Image, TOPIC_FUSED_DEPTH, self.output_qos)
+        self._confidence_pub = self.create_publisher(Image, TOPIC_FUSED_CONFIDENCE, self.output_qos)
+        self._info_pub = self.create_publisher(CameraInfo, TOPIC_FUSED_CAMERA_INFO, self.output_qos)
+        self._points_pub = (
+            self.create_publisher(PointCloud2, TOPIC_FUSED_POINTS, self.output_qos)
+            if p['publish_points']
+            else None
+        )
+        self.worker = self.make_worker('fusion', self._process)
+        q = self.input_qos
+        self.create_subscription(String, TOPIC_OUTPUT_KIND, self._on_output_kind, latched_qos())
+        self.create_subscription(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self._on_camera_info, q)
+        self.create_subscription(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
+        self.create_subscription(Image, TOPIC_MV_DEPTH, lambda m: self._on_depth(m, 'mv_depth'), q)
+        self.create_subscription(Image, TOPIC_MV_SCORE, lambda m: self._on_depth(m, 'mv_score'), q)
+        self.create_subscription(Image, TOPIC_SINGLE, lambda m: self._on_depth(m, 'single'), q)
+        self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
+        self.get_logger().info(
+            f'fusion ({self.config.mode} mode) on {p["device"]}: {self.resolve_topic_name(TOPIC_SINGLE)} + '
+            f'{self.resolve_topic_name(TOPIC_MV_DEPTH)} -> {self.resolve_topic_name(TOPIC_FUSED_DEPTH)}'
+        )
+
+    # --- callbacks: collect parts by stamp ------------------------------------------------------------
+
+    def _on_output_kind(self, msg: String) -> None:
+        if msg.data not in OUTPUT_KINDS[1:]:
+            self.stats.dropped('bad_output_kind', f'single-view output kind {msg.data!r} is unknown')
+            return
+        self.announced_kind = msg.data
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        self.stats.received('camera_info')
+        try:
+            calib = messages.camera_info_to_calibration(msg)
+        except ValueError as exc:
+            self.stats.dropped('bad_camera_info', f'keyframe camera_info: {exc}')
+            return
+        if calib.is_distorted:
+            self.stats.dropped(
+                'bad_camera_info', 'keyframe camera_info has distortion: expected the working grid'
+            )
+            return
+        self._add_part(msg, 'camera_info', (calib.camera, msg))
+
+    def _on_keyframe_image(self, msg: Image) -> None:
+        if 'rgb' not in self.required:
+            return
+        self.stats.received('keyframe_image')
+        try:
+            rgb = messages.image_to_rgb(msg)
+        except ValueError as exc:
+            self.stats.dropped('bad_encoding', f'keyframe image: {exc}')
+            return
+        self._add_part(msg, 'rgb', rgb)
+
+    def _on_depth(self, msg: Image, part: str) -> None:
+        self.stats.received(part)
+        try:
+            depth = depth_from_message(msg, part)
+        except InputError as exc:
+            self.stats.dropped(exc.reason, str(exc))
+            return
+        self._add_part(msg, part, depth)
+
+    def _add_part(self, msg: Any, part: str, value: Any) -> None:
+        received_at = time.monotonic()
+        stamp_ns = header_stamp_ns(msg)
+        try:
+            self._stamp_guards[part].check(stamp_ns)
+        except InputError as exc:
+            self.stats.dropped(exc.reason, str(exc))
+            return
+        self._drop_passed(part, stamp_ns)
+        pairing = self.pending.get(stamp_ns)
+        if pairing is None:
+            pairing = self.pending[stamp_ns] = _Pairing(stamp_ns, received_at, header=msg.header)
+            self._limit_pending()
+        pairing.parts[part] = value
+        if all(k in pairing.parts for k in self.required):
+            del self.pending[stamp_ns]
+            self.worker.submit(_FusionJob(pairing, received_at))
+
+    def _drop_passed(self, part: str, stamp_ns: int) -> None:
+        """Pairings older than ``stamp_ns`` still missing ``part`` will never get it: drop them now."""
+        if part not in self.required:
+            return
+        for old in sorted(s for s, pr in self.pending.items() if s < stamp_ns and part not in pr.parts):
+            pairing = self.pending.pop(old)
+            self.stats.dropped(
+                'unpaired', f'keyframe {messages.ns_to_sec(old):.3f}: {self._missing(pairing)}'
+            )
+
+    def _limit_pending(self) -> None:
+        while len(self.pending) > int(self.params['max_pending_keyframes']):
+            oldest = min(self.pending)
+            pairing = self.pending.pop(oldest)
+            self.stats.dropped(
+                'pair_overflow',
+                f'keyframe {messages.ns_to_sec(oldest):.3f} dropped: {self._missing(pairing)}',
+            )
+
+    def _expire(self) -> None:
+        now = time.monotonic()
+        timeout = float(self.params['pair_timeout'])
+        for stamp_ns in [s for s, pr in self.pending.items() if now - pr.first_seen > timeout]:
+            pairing = self.pending.pop(stamp_ns)
+            self.stats.dropped(
+                'pair_timeout',
+                f'keyframe {messages.ns_to_sec(stamp_ns):.3f} waited {timeout:g} s: {self._missing(pairing)}',
+            )
+
+    def _missing(self, pairing: _Pairing) -> str:
+        missing = [k for k in self.required if k not in pairing.parts]
+        return 'missing ' + ', '.join(missing) if missing else 'complete'
+
+    # --- worker ---------------------------------------------------------------------------------------
+
+    @property
+    def output_kind(self) -> str:
+        kind = str(self.params['single_view_output_kind'])
+        if kind == 'auto':
+            return self.announced_kind or 'metric_depth'
+        return kind
+
+    def _process(self, job: _FusionJob) -> None:
+        parts = job.pairing.parts
+        header = job.pairing.header
+        camera, info_msg = parts['camera_info']
+        try:
+            single, mv_depth, mv_score = _checked_inputs(parts, camera)
+        except InputError as exc:
+            self.stats.dropped(exc.reason, f'keyframe {messages.ns_to_sec(job.pairing.stamp_ns):.3f}: {exc}')
+            return
+        stage1 = select_best_fraction(
+            SimpleNamespace(depth=mv_depth, score=mv_score), float(self.params['stage1_fraction'])
+        )
+        result = fuse_keyframe(single, mv_depth, stage1, self.config, output_kind=self.output_kind)
+        if result.fallback:
+            self.stats.noted(
+                f'fallback_{result.fallback}',
+                f'keyframe {messages.ns_to_sec(job.pairing.stamp_ns):.3f}: fell back ({result.fallback})',
+            )
+        kind = messages.RCLPY
+        self._depth_pub.publish(messages.depth_image_msg(result.depth, header, kind=kind))
+        confidence = np.asarray(result.confidence, dtype=np.float32)
+        self._confidence_pub.publish(messages.image_msg(confidence, '32FC1', header, kind=kind))
+        self._info_pub.publish(info_msg)
+        if self._points_pub is not None:
+            self._points_pub.publish(self._cloud(result.depth, confidence, camera, parts.get('rgb'), header))
+        self.stats.published('fused')
+        self.stats.processed(time.monotonic() - job.received_at)
+
+    def _cloud(
+        self,
+        depth: np.ndarray,
+        confidence: np.ndarray,
+        camera: PinholeCamera,
+        rgb: np.ndarray | None,
+        header: Any,
+    ) -> PointCloud2:
+        """The fused depth as camera-frame points (every ``points_stride``-th pixel, filtered)."""
+        stride = int(self.params['points_stride'])
+        points = camera.backproject(depth)[::stride, ::stride].reshape(-1, 3)
+        z = points[:, 2]
+        with np.errstate(invalid='ignore'):
+            keep = np.isfinite(z) & (z > 0) & (z <= float(self.params['points_max_depth']))
+            keep &= confidence[::stride, ::stride].ravel() >= float(self.params['points_min_confidence'])
+        colours = None
+        if rgb is not None and rgb.shape[:2] == depth.shape:
+            colours = rgb[::stride, ::stride].reshape(-1, 3)[keep]
+        return messages.pointcloud2_msg(points[keep], header, kind=messages.RCLPY, rgb=colours)
+
+
+def _checked_inputs(
+    parts: dict[str, Any], camera: PinholeCamera
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Single-view depth, multi-view depth and score, all on the camera's grid, or ``InputError``."""
+    shape = (camera.height, camera.width)
+    single, mv_depth, mv_score = parts['single'], parts['mv_depth'], parts['mv_score']
+    for name, arr in (
+        ('single-view depth', single),
+        ('multi-view depth', mv_depth),
+        ('multi-view score', mv_score),
+    ):
+        if arr.shape != shape:
+            raise InputError(
+                'size_mismatch',
+                f'{name} is {arr.shape[1]}x{arr.shape[0]}, camera_info says {shape[1]}x{shape[0]}',
+            )
+    return single, mv_depth, mv_score
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point: ``fusion_node --ros-args --params-file config/depth_fusion.yaml``."""
+    return run_node(FusionNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

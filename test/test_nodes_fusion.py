@@ -1,0 +1,197 @@
+"""fusion_node over real DDS: pairing by exact stamp, fused outputs, bounded waits, bad inputs."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import String
+
+from depth_fusion_ros.camera import PinholeCamera
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
+from depth_fusion_ros.multiview.semidense import select_best_fraction
+from depth_fusion_ros.nodes.fusion_node import FusionNode
+from depth_fusion_ros.nodes.qos import latched_qos
+from depth_fusion_ros.nodes.testing import RosHarness
+
+K = m.RCLPY
+W, H = 160, 120
+CAMERA = PinholeCamera(W, H, 131.25, 131.25, 79.5, 59.5)
+FRAME = 'camera_rgb_optical_frame'
+
+
+def _scene(seed: int) -> SimpleNamespace:
+    """A slanted plane with a box in front; a single-view depth 25 % too far plus 0.2 m; exact
+    multi-view points on 4 % of the pixels and 1 % wrong ones; random scores."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float32)
+    gt = 2.0 + 0.8 * u / W + 0.4 * v / H
+    box = (u > 40 + 10 * seed) & (u < 90 + 10 * seed) & (v > 30) & (v < 80)
+    gt[box] = 1.3 + 0.002 * u[box]
+    single = (1.25 * gt + 0.2).astype(np.float32)
+    mv = np.full((H, W), np.nan, np.float32)
+    good = rng.choice(gt.size, size=int(0.04 * gt.size), replace=False)
+    mv.ravel()[good] = gt.ravel()[good]
+    bad = rng.choice(np.setdiff1d(np.arange(gt.size), good), size=int(0.01 * gt.size), replace=False)
+    mv.ravel()[bad] = gt.ravel()[bad] + rng.uniform(0.5, 2.0, bad.size).astype(np.float32)
+    score = np.where(np.isfinite(mv), rng.uniform(0.1, 1.0, (H, W)), np.nan).astype(np.float32)
+    rgb = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    return SimpleNamespace(gt=gt.astype(np.float32), single=single, mv=mv, score=score, rgb=rgb)
+
+
+class _Inputs:
+    """Publishers of everything the fusion node subscribes to."""
+
+    def __init__(self, ros: RosHarness) -> None:
+        self.info = ros.publisher(CameraInfo, '/depth_fusion/keyframe/camera_info')
+        self.image = ros.publisher(Image, '/depth_fusion/keyframe/image')
+        self.mv = ros.publisher(Image, '/depth_fusion/multi_view/depth')
+        self.score = ros.publisher(Image, '/depth_fusion/multi_view/score')
+        self.single = ros.publisher(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers([self.info, self.image, self.mv, self.score, self.single])
+
+    def publish(self, part: str, scene: SimpleNamespace, stamp_ns: int) -> None:
+        header = m.header_msg(stamp_ns, FRAME, kind=K)
+        if part == 'info':
+            self.info.publish(m.camera_info_msg(CAMERA, header, kind=K))
+        elif part == 'image':
+            self.image.publish(m.rgb_image_msg(scene.rgb, header, kind=K))
+        elif part in ('mv', 'score', 'single'):
+            array = {'mv': scene.mv, 'score': scene.score, 'single': scene.single}[part]
+            getattr(self, part).publish(
+                m.depth_image_msg(array, header, kind=K)
+                if part != 'score'
+                else m.image_msg(array, '32FC1', header, kind=K)
+            )
+        else:
+            raise AssertionError(part)
+
+    def keyframe(self, scene: SimpleNamespace, stamp_ns: int, skip: tuple[str, ...] = ()) -> None:
+        for part in ('info', 'image', 'mv', 'score', 'single'):
+            if part not in skip:
+                self.publish(part, scene, stamp_ns)
+
+
+def _fusion_node(ros: RosHarness, **params) -> FusionNode:
+    overrides = [Parameter('queue_size', value=8), *(Parameter(k, value=v) for k, v in params.items())]
+    return ros.add(FusionNode(context=ros.context, parameter_overrides=overrides))
+
+
+def _offline(scene: SimpleNamespace, output_kind: str = 'metric_depth') -> np.ndarray:
+    stage1 = select_best_fraction(SimpleNamespace(depth=scene.mv, score=scene.score), 0.25)
+    return fuse_keyframe(scene.single, scene.mv, stage1, FusionConfig(mode='fast'), output_kind).depth
+
+
+def test_pairs_by_exact_stamp_and_publishes_fused_outputs():
+    scenes = {1_000_000_000: _scene(0), 1_033_333_333: _scene(1)}
+    (a, b) = sorted(scenes)
+    with RosHarness() as ros:
+        node = _fusion_node(ros)
+        depths = ros.collect(Image, '/depth_fusion/fused/depth')
+        confidences = ros.collect(Image, '/depth_fusion/fused/confidence')
+        infos = ros.collect(CameraInfo, '/depth_fusion/fused/camera_info')
+        clouds = ros.collect(PointCloud2, '/depth_fusion/fused/points')
+        inputs = _Inputs(ros)
+        # The parts of two keyframes interleaved, as two nodes running in parallel deliver them.
+        for part, stamp in [('info', a), ('image', a), ('mv', a), ('info', b), ('image', b), ('score', a),
+                            ('mv', b), ('score', b), ('single', a), ('single', b)]:  # fmt: skip
+            inputs.publish(part, scenes[stamp], stamp)
+        assert ros.wait_for(lambda: len(clouds) == 2 and len(infos) == 2, 20.0), (
+            node.stats.snapshot().summary()
+        )
+        snap = node.stats.snapshot()
+
+    assert snap.dropped == {} and snap.processed == 2
+    assert [m.stamp_to_ns(d.header.stamp) for d in depths] == [a, b]
+    for outputs in (depths, confidences, infos, clouds):
+        assert all(msg.header.frame_id == FRAME for msg in outputs)
+        assert [m.stamp_to_ns(msg.header.stamp) for msg in outputs] == [a, b]
+    for depth_msg, conf_msg, cloud_msg in zip(depths, confidences, clouds, strict=True):
+        scene = scenes[m.stamp_to_ns(depth_msg.header.stamp)]
+        fused = m.image_to_numpy(depth_msg)
+        assert depth_msg.encoding == conf_msg.encoding == '32FC1'
+        np.testing.assert_allclose(fused, _offline(scene), rtol=1e-5, atol=1e-5)
+        err_fused = np.nanmean(np.abs(fused - scene.gt))
+        err_single = np.nanmean(np.abs(scene.single - scene.gt))
+        assert err_fused < 0.3 * err_single, (err_fused, err_single)
+        confidence = m.image_to_numpy(conf_msg)
+        assert confidence.shape == (H, W) and np.all(np.isfinite(confidence))
+        cloud = m.pointcloud2_to_numpy(cloud_msg)
+        xyz = np.stack([cloud['x'], cloud['y'], cloud['z']], axis=1)
+        expected = CAMERA.backproject(fused)[::2, ::2].reshape(-1, 3)
+        np.testing.assert_allclose(xyz, expected, rtol=1e-5)
+        np.testing.assert_array_equal(cloud['rgb'], scene.rgb[::2, ::2].reshape(-1, 3))
+    assert infos[0].k[0] == pytest.approx(CAMERA.fx) and infos[0].width == W
+
+
+def test_missing_parts_and_bad_inputs_are_dropped_and_counted():
+    scene = _scene(2)
+    with RosHarness() as ros:
+        node = _fusion_node(ros, pair_timeout=0.5, publish_points=False)
+        depths = ros.collect(Image, '/depth_fusion/fused/depth')
+        inputs = _Inputs(ros)
+        t = 2_000_000_000
+        inputs.keyframe(scene, t + 1, skip=('single',))  # its single-view part never comes ...
+        inputs.keyframe(scene, t + 2)  # ... which is certain once the next one's arrives
+        assert ros.wait_for(lambda: len(depths) == 1, 20.0)
+        inputs.keyframe(scene, t + 3, skip=('score',))  # the last one: only the timeout can tell
+        assert ros.wait_for(lambda: node.stats.snapshot().dropped.get('pair_timeout') == 1, 10.0)
+
+        header = m.header_msg(t + 4, FRAME, kind=K)
+        inputs.info.publish(m.camera_info_msg(CAMERA, header, kind=K))
+        inputs.mv.publish(m.rgb_image_msg(scene.rgb, header, kind=K))  # wrong encoding for a depth
+        inputs.single.publish(m.depth_image_msg(scene.single, header, kind=K))
+        inputs.single.publish(m.depth_image_msg(scene.single, header, kind=K))  # duplicate stamp
+        inputs.single.publish(
+            m.depth_image_msg(scene.single, m.header_msg(t, FRAME, kind=K), kind=K)
+        )  # older
+        uncalibrated = m.camera_info_msg(CAMERA, m.header_msg(t + 5, FRAME, kind=K), kind=K)
+        uncalibrated.k = [0.0] * 9
+        inputs.info.publish(uncalibrated)
+        inputs.keyframe(scene, t + 6, skip=('info',))
+        inputs.info.publish(
+            m.camera_info_msg(CAMERA.scaled(80, 60), m.header_msg(t + 6, FRAME, kind=K), kind=K)
+        )
+        inputs.keyframe(scene, t + 7)  # and a good keyframe still goes through afterwards
+        assert ros.wait_for(lambda: len(depths) == 2, 20.0), node.stats.snapshot().summary()
+        ros.wait_for(lambda: node.stats.snapshot().dropped_total >= 8, 5.0)
+        snap = node.stats.snapshot()
+
+    assert [m.stamp_to_ns(d.header.stamp) for d in depths] == [t + 2, t + 7]
+    assert snap.dropped == {
+        'unpaired': 2,  # t+1 (single never came) and t+4 (its multi-view depth was unusable)
+        'pair_timeout': 1,
+        'bad_encoding': 1,
+        'duplicate_stamp_single': 1,
+        'stamp_out_of_order_single': 1,
+        'bad_camera_info': 1,
+        'size_mismatch': 1,
+    }, snap.summary()
+
+
+def test_announced_output_kind_switches_on_alignment():
+    scene = _scene(3)
+    with RosHarness() as ros:
+        node = _fusion_node(ros, publish_points=False)
+        depths = ros.collect(Image, '/depth_fusion/fused/depth')
+        kind = ros.publisher(String, '/depth_fusion/single_view/output_kind', latched_qos())
+        kind.publish(String(data='relative_depth'))
+        assert ros.wait_for(lambda: node.output_kind == 'relative_depth', 10.0)
+        _Inputs(ros).keyframe(scene, 3_000_000_000)
+        assert ros.wait_for(lambda: len(depths) == 1, 20.0)
+    fused = m.image_to_numpy(depths[0])
+    np.testing.assert_allclose(fused, _offline(scene, 'relative_depth'), rtol=1e-5, atol=1e-5)
+    # aligned by the RANSAC line first, so the fused depth is close to the truth everywhere
+    assert np.nanmedian(np.abs(fused - scene.gt)) < 0.05
+
+
+def test_invalid_fusion_parameter_is_reported_by_name():
+    with RosHarness() as ros:
+        with pytest.raises(ValueError, match=r'fusion\.mode.*expected one of exact, fast'):
+            FusionNode(context=ros.context, parameter_overrides=[Parameter('fusion.mode', value='slow')])
+        with pytest.raises(ValueError, match='pair_timeout'):
+            FusionNode(context=ros.context, parameter_overrides=[Parameter('pair_timeout', value=-1.0)])
