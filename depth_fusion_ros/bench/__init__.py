@@ -22,6 +22,9 @@ class BenchOptions:
     repeats: int = 5
     #: Optional TUM folders (e.g. ../shared/data/...) for sections that measure on real data.
     sequences: list[str] = field(default_factory=list)
+    #: node_graph: seconds of looped replay to watch memory over (0: no soak); the CLI has no
+    #: flag for it, the environment variable DEPTH_FUSION_BENCH_SOAK_SECONDS sets it there.
+    soak_seconds: float = 0.0
 
 
 @dataclass

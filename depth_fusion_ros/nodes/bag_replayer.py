@@ -73,6 +73,14 @@ REPLAYER_PARAMS: tuple[ParamSpec, ...] = (
         0.0,
         None,
     ),
+    ParamSpec(
+        'start_delay',
+        0.0,
+        'seconds to wait after the subscribers are there, before the first message (lets the rest '
+        'of the graph finish discovery)',
+        0.0,
+        600.0,
+    ),
     ParamSpec('linger', 0.5, 'seconds to stay up after the last message so it is delivered', 0.0, 60.0),
 )
 
@@ -341,6 +349,8 @@ class BagReplayer(Node):
     def _run(self) -> None:
         try:
             self._wait_for_subscribers()
+            if self.params['start_delay'] > 0:
+                self._stop.wait(self.params['start_delay'])
             if not self._stop.is_set():
                 self._play()
         except BaseException as exc:  # reported to whoever waits on finished

@@ -175,6 +175,7 @@ class Recorder(Node):
     ``topics`` maps each topic to its type (``''``: taken from the graph once a publisher
     exists). ``watch`` names topics whose stamps are logged like the recorded ones but whose
     messages are not written (e.g. the input images, to measure latency without storing them).
+    With ``track_only`` nothing is written at all (no bag): every topic is only watched.
     """
 
     def __init__(
@@ -183,20 +184,24 @@ class Recorder(Node):
         output: str | Path | None = None,
         topics: Mapping[str, str] | None = None,
         watch: Mapping[str, str] | None = None,
+        track_only: bool = False,
         node_name: str = NODE_NAME,
         **kwargs: Any,
     ) -> None:
         super().__init__(node_name, **kwargs)
         self.params = declare_parameters(self, RECORDER_PARAMS)
-        out = Path(output if output is not None else self.params['output'])
-        if not str(out) or str(out) == '.':
-            raise ValueError(f"{NODE_NAME}: parameter 'output' is empty: give the bag folder to write")
         wanted = dict(topics) if topics is not None else parse_topic_specs(self.params['topics'])
         if not wanted:
             raise ValueError(f"{NODE_NAME}: nothing to record: parameter 'topics' is empty")
-        for topic, msgtype in {**(watch or {}), **wanted}.items():
+        watch = {**(watch or {}), **wanted} if track_only else dict(watch or {})
+        if track_only:
+            wanted = {}
+        for topic, msgtype in {**watch, **wanted}.items():
             check_message_type(topic, msgtype)
-        self.output = out
+        out = Path(output if output is not None else self.params['output'])
+        if not track_only and (not str(out) or str(out) == '.'):
+            raise ValueError(f"{NODE_NAME}: parameter 'output' is empty: give the bag folder to write")
+        self.output: Path | None = None if track_only else out
         self.staging = out.with_name(out.name + '.partial')
         self.counts: Counter[str] = Counter()
         self.stamp_logs: dict[str, StampLog] = {}
@@ -207,20 +212,22 @@ class Recorder(Node):
         self._qos = qos_profile(self.params['qos'], self.params['qos_depth'])
         self._record_subs: dict[str, Any] = {}
         self._written_topics: set[str] = set()
-        self._pending: dict[str, tuple[str, bool]] = {t: (m, False) for t, m in (watch or {}).items()}
+        self._pending: dict[str, tuple[str, bool]] = {t: (m, False) for t, m in watch.items()}
         self._pending.update({t: (m, True) for t, m in wanted.items()})
-        self._writer = self._open_writer()
+        self._writer = None if track_only else self._open_writer()
         self._subscribe_pending()
         if self._pending:
             # Types not given: resolved from the graph once a publisher shows up.
             self._discovery_timer = self.create_timer(
                 0.2, self._subscribe_pending, callback_group=self._group
             )
-        self.get_logger().info(f'recording {sorted(wanted)} to {out}')
+        if wanted:
+            self.get_logger().info(f'recording {sorted(wanted)} to {out}')
 
     # -- set-up --
 
     def _open_writer(self) -> BagWriterThread:
+        assert self.output is not None
         if self.output.exists():
             raise ValueError(f'{NODE_NAME}: {self.output} already exists: remove it or choose another output')
         if self.staging.exists():
@@ -288,16 +295,19 @@ class Recorder(Node):
 
     # -- closing --
 
-    def close(self, success: bool = True) -> Path:
+    def close(self, success: bool = True) -> Path | None:
         """Close the bag; on success move it to ``output`` and return that, else the staging path.
 
         A failure of the writer thread (e.g. disk full) raises ``RuntimeError`` and leaves the
-        bag in the staging folder.
+        bag in the staging folder. Returns ``None`` when tracking only (no bag).
         """
         with self._lock:
-            if self.closed:
-                return self.output if self.output.exists() else self.staging / self.output.name
+            already = self.closed
             self.closed = True
+        if self._writer is None or self.output is None:
+            return None
+        if already:
+            return self.output if self.output.exists() else self.staging / self.output.name
         self._writer.close()
         if not success:
             self.get_logger().warning(f'incomplete recording left in {self.staging}')

@@ -1,0 +1,241 @@
+"""Node graph throughput, latency, drops and memory (``depth-fusion bench --only node_graph``).
+
+Replays the first 100 frames of a sequence (``--sequence DIR``, converted once to a rosbag2
+under ``artifacts/bench/``; a synthetic room when none is given) at the recorded 30 Hz
+through the whole graph, composed and as processes, with the nodes' default parameters, and
+reports:
+
+* keyframes expected (every ``keyframe_every``-th frame), fused, and dropped on the way;
+* fused keyframes per second of playback;
+* end-to-end latency per keyframe: input image arrival -> fused depth arrival, both seen by the
+  runner's recorder (so it includes DDS transport both ways);
+* peak resident memory (this process when composed; the sum of the node processes' peaks
+  when separate).
+
+With ``DEPTH_FUSION_BENCH_SOAK_SECONDS=600`` (or ``BenchOptions.soak_seconds``) it then loops the
+bag for that long, composed, sampling the resident memory every few seconds, and reports it
+at the start, middle and end of the soak and its trend: a flat line means bounded queues and
+buffers really are bounded.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import BenchOptions, BenchRow
+
+TITLE = 'node graph (replayer -> multi-view + single-view -> fusion, real DDS)'
+
+log = logging.getLogger(__name__)
+
+BENCH_DIR = Path('artifacts') / 'bench'
+SOAK_ENV = 'DEPTH_FUSION_BENCH_SOAK_SECONDS'
+MODES_ENV = 'DEPTH_FUSION_BENCH_GRAPH_MODES'
+MODEL_ENV = 'DEPTH_FUSION_BENCH_MODEL'
+#: Keyframe spacing of the multi-view node's defaults (read from its table at run time).
+FRAMES = 100
+
+
+def _load_note() -> str:
+    try:
+        return f'load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores'
+    except OSError:
+        return ''
+
+
+def rss_mb(pid: int | str = 'self', field: str = 'VmRSS') -> float:
+    """``VmRSS`` (current) or ``VmHWM`` (peak) of a process in MB, NaN when unknown."""
+    try:
+        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+            if line.startswith(field + ':'):
+                return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError):
+        pass
+    return float('nan')
+
+
+def bench_bag(opts: BenchOptions) -> tuple[Path, str]:
+    """A rosbag2 of the first frames of the benchmark sequence (converted once, cached)."""
+    from ..data.rosbag_convert import tum_to_rosbag
+
+    frames = 30 if opts.quick else FRAMES
+    BENCH_DIR.mkdir(parents=True, exist_ok=True)
+    if opts.sequences:
+        src = Path(opts.sequences[0])
+        name = f'{src.name}_{frames}'
+    else:
+        from ..data.synthetic import SynthConfig, write_synthetic_sequence
+
+        name = f'synthetic_{frames}'
+        src = BENCH_DIR / name
+        if not (src / 'rgb.txt').is_file():
+            size = (320, 240) if opts.quick else (640, 480)
+            write_synthetic_sequence(src, SynthConfig(width=size[0], height=size[1], frames=frames, seed=0))
+    bag = BENCH_DIR / f'{name}.bag'
+    if not (bag / 'metadata.yaml').is_file():
+        tum_to_rosbag(src, bag, max_frames=frames, overwrite=True, show_progress=False)
+    return bag, name
+
+
+def keyframe_every() -> int:
+    from ..nodes.multi_view_node import PARAMETERS
+
+    return int(next(p.default for p in PARAMETERS if p.name == 'keyframe_every'))
+
+
+def image_count(bag: Path) -> int:
+    from ..nodes.bag_replayer import open_bag
+    from ..nodes.launcher import TOPIC_IMAGE
+
+    reader = open_bag(bag)
+    try:
+        return sum(c.msgcount for c in reader.connections if c.topic == TOPIC_IMAGE)
+    finally:
+        reader.close()
+
+
+class MemorySampler:
+    """Resident memory of the graph (this process, or the node processes) over time."""
+
+    def __init__(self, processes: bool) -> None:
+        self.processes = processes
+        self.samples: list[tuple[float, float]] = []
+        self.peak_children: dict[str, float] = {}
+        self.runner_max = 0.0
+        self.t0 = time.monotonic()
+
+    def __call__(self, run) -> None:
+        runner = rss_mb()
+        self.runner_max = max(self.runner_max, runner)
+        if self.processes:
+            total = 0.0
+            for name, proc in run.processes.items():
+                total += rss_mb(proc.pid)
+                self.peak_children[name] = max(self.peak_children.get(name, 0.0), rss_mb(proc.pid, 'VmHWM'))
+            self.samples.append((time.monotonic() - self.t0, total + runner))
+        else:
+            self.samples.append((time.monotonic() - self.t0, runner))
+
+    def peak(self) -> float:
+        """Peak of the graph: the node processes' own peaks plus the runner's largest sample, or,
+        composed, the largest sample of this process (its high-water mark would include
+        whatever ran before in the same process)."""
+        if self.processes:
+            return sum(self.peak_children.values()) + self.runner_max
+        return self.runner_max
+
+
+def graph_options(opts: BenchOptions, bag: Path, processes: bool, **extra):
+    from ..nodes.launcher import RunOptions
+
+    overrides = {
+        name: {'stats_period': 0.0} for name in ('single_view_node', 'multi_view_node', 'fusion_node')
+    }
+    return RunOptions(
+        bag=bag,
+        processes=processes,
+        device=opts.device,
+        single_view_model=os.environ.get(MODEL_ENV) or None,
+        overrides=overrides,
+        track_input=True,
+        flush_timeout=120.0,
+        log_dir=BENCH_DIR / 'logs' if processes else None,
+        **extra,
+    )
+
+
+def measure_run(opts: BenchOptions, bag: Path, processes: bool) -> list[BenchRow]:
+    from ..nodes.launcher import run_graph
+
+    mode = 'processes' if processes else 'composed'
+    sampler = MemorySampler(processes)
+    result = run_graph(graph_options(opts, bag, processes, on_progress=sampler, progress_period=0.5))
+    images = image_count(bag)
+    expected = len([i for i in range(images) if i % keyframe_every() == 0 and i > 0])
+    play_seconds = images / 30.0
+    latencies = np.array(sorted(result.latencies.values())) * 1e3
+    rows = [
+        BenchRow(f'{mode}: keyframes expected', expected, 'kf', f'{images} frames at 30 Hz'),
+        BenchRow(f'{mode}: keyframes fused', len(result.fused), 'kf', _load_note()),
+        BenchRow(f'{mode}: keyframes dropped', expected - len(result.fused), 'kf', _drop_note(result)),
+        BenchRow(f'{mode}: fused keyframes per second of playback', len(result.fused) / play_seconds, 'kf/s'),
+    ]
+    if latencies.size:
+        rows += [
+            BenchRow(f'{mode}: latency image -> fused, mean', float(latencies.mean()), 'ms'),
+            BenchRow(f'{mode}: latency image -> fused, median', float(np.median(latencies)), 'ms'),
+            BenchRow(f'{mode}: latency image -> fused, p95', float(np.percentile(latencies, 95)), 'ms'),
+            BenchRow(f'{mode}: latency image -> fused, max', float(latencies.max()), 'ms'),
+        ]
+    rows.append(BenchRow(f'{mode}: peak resident memory', sampler.peak(), 'MB', _peak_note(sampler)))
+    rows.append(BenchRow(f'{mode}: wall time incl. start-up and flush', result.seconds, 's'))
+    return rows
+
+
+def _drop_note(result) -> str:
+    drops = {}
+    for name, snap in result.node_stats.items():
+        for reason, count in snap.dropped.items():
+            drops[f'{name.removesuffix("_node")}.{reason}'] = count
+    missing = f'{len(result.missing)} announced but not fused' if result.missing else ''
+    parts = [', '.join(f'{k}={v}' for k, v in sorted(drops.items())), missing]
+    return '; '.join(p for p in parts if p)
+
+
+def _peak_note(sampler: MemorySampler) -> str:
+    if sampler.processes:
+        parts = [f'{k.removesuffix("_node")} {v:.0f}' for k, v in sampler.peak_children.items()]
+        return ' + '.join([*parts, f'runner {sampler.runner_max:.0f}'])
+    return 'whole process (torch, rclpy, all nodes), sampled every 0.5 s'
+
+
+def soak(opts: BenchOptions, bag: Path, seconds: float) -> list[BenchRow]:
+    """Loop the bag for ``seconds`` (composed) and report the resident memory over time."""
+    from ..nodes.launcher import run_graph
+
+    sampler = MemorySampler(processes=False)
+    period = max(1.0, seconds / 120)
+    overrides = {'bag_replayer': {'loop': True, 'loop_seconds': float(seconds)}}
+    options = graph_options(opts, bag, False, on_progress=sampler, progress_period=period)
+    options.track_input = False
+    for node, values in overrides.items():
+        options.overrides.setdefault(node, {}).update(values)
+    result = run_graph(options)
+    samples = np.array(sampler.samples)
+    if len(samples) < 3:
+        return [BenchRow('soak: too short to sample', seconds, 's')]
+    t, rss = samples[:, 0], samples[:, 1]
+    # Warm-up (allocator pools, torch caches) is over after the first tenth of the run.
+    steady = t >= t[-1] * 0.1
+    slope = float(np.polyfit(t[steady], rss[steady], 1)[0]) * 60.0 if steady.sum() >= 2 else float('nan')
+    mid = len(rss) // 2
+    return [
+        BenchRow('soak: looped replay', seconds, 's', f'{len(result.fused)} keyframes fused; {_load_note()}'),
+        BenchRow('soak: resident memory at start', float(rss[0]), 'MB', f't={t[0]:.0f} s'),
+        BenchRow(
+            'soak: resident memory after warm-up', float(rss[steady][0]), 'MB', f't={t[steady][0]:.0f} s'
+        ),
+        BenchRow('soak: resident memory at middle', float(rss[mid]), 'MB', f't={t[mid]:.0f} s'),
+        BenchRow('soak: resident memory at end', float(rss[-1]), 'MB', f't={t[-1]:.0f} s'),
+        BenchRow('soak: resident memory trend after warm-up', slope, 'MB/min'),
+        BenchRow('soak: peak resident memory', sampler.peak(), 'MB'),
+    ]
+
+
+def run(opts: BenchOptions) -> list[BenchRow]:
+    bag, name = bench_bag(opts)
+    modes = os.environ.get(MODES_ENV, 'composed' if opts.quick else 'composed,processes')
+    rows = [BenchRow(f'bag: {name}', image_count(bag), 'frames', str(bag))]
+    for mode in [m.strip() for m in modes.split(',') if m.strip()]:
+        if mode not in ('composed', 'processes'):
+            raise ValueError(f'{MODES_ENV}: unknown mode {mode!r} (composed, processes)')
+        rows += measure_run(opts, bag, mode == 'processes')
+    seconds = float(getattr(opts, 'soak_seconds', 0.0) or os.environ.get(SOAK_ENV, 0) or 0)
+    if seconds > 0:
+        rows += soak(opts, bag, seconds)
+    return rows

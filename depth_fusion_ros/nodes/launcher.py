@@ -1,0 +1,670 @@
+"""The node graph runner behind ``depth-fusion run``: replayer + three nodes + recorder.
+
+Two ways to run the same graph on a bag:
+
+* **composed** (default): ``single_view_node``, ``multi_view_node``, ``fusion_node``, the
+  ``bag_replayer`` and a recorder in this process, on one multi-threaded executor. One
+  start-up (torch, rclpy) instead of four, nothing copied between processes.
+* **processes**: the console scripts started with ``subprocess``, each with the same params
+  file, the recorder staying here. What a robot with a live camera runs, one node per core.
+
+Either way the run ends by itself: when the replayer reaches the end of the bag, the runner
+waits until every keyframe the multi-view node announced (``depth_fusion/keyframe/image``)
+has its fused depth, confidence and camera_info recorded, or until ``flush_timeout`` (a
+warning then names the keyframes that got no fused output and how far each one got). Then it
+closes the bag (written under a staging name and renamed only now), stops the nodes
+(SIGINT to the processes; they exit 0) and returns. Ctrl-C stops everything the same way,
+leaving the partial recording under ``OUT.partial/``.
+
+Fast DDS: a best-effort 640x480 image does not fit the default 0.5 MB shared-memory segment,
+so most are lost between processes. The runner points ``FASTRTPS_DEFAULT_PROFILES_FILE`` at
+the package's ``config/fastdds_shm.xml`` (10 MB segment) for itself and every child, unless
+the user already set a profile.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping, MutableMapping, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+# Topic names of the graph in the root namespace. They restate the node modules' relative
+# names (a test checks they agree) so that the process mode never imports torch here.
+TOPIC_IMAGE = '/camera/rgb/image_color'
+TOPIC_CAMERA_INFO = '/camera/rgb/camera_info'
+TOPIC_POSE = '/camera/pose'
+TOPIC_GT_DEPTH = '/camera/depth/image'
+TOPIC_KEYFRAME_IMAGE = '/depth_fusion/keyframe/image'
+TOPIC_SINGLE_DEPTH = '/depth_fusion/single_view/depth'
+TOPIC_MV_DEPTH = '/depth_fusion/multi_view/depth'
+TOPIC_FUSED_DEPTH = '/depth_fusion/fused/depth'
+TOPIC_FUSED_CONFIDENCE = '/depth_fusion/fused/confidence'
+TOPIC_FUSED_CAMERA_INFO = '/depth_fusion/fused/camera_info'
+
+IMAGE = 'sensor_msgs/msg/Image'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+
+#: What ``--record`` writes: enough to evaluate the fused depth against the bag's ground truth.
+RECORDED_TOPICS: dict[str, str] = {
+    TOPIC_FUSED_DEPTH: IMAGE,
+    TOPIC_FUSED_CONFIDENCE: IMAGE,
+    TOPIC_FUSED_CAMERA_INFO: CAMERA_INFO,
+    TOPIC_MV_DEPTH: IMAGE,
+    TOPIC_SINGLE_DEPTH: IMAGE,
+    TOPIC_KEYFRAME_IMAGE: IMAGE,
+}
+#: A keyframe is complete when all of these carry its stamp.
+FUSED_OUTPUTS = (TOPIC_FUSED_DEPTH, TOPIC_FUSED_CONFIDENCE, TOPIC_FUSED_CAMERA_INFO)
+#: Where a keyframe can get stuck, in pipeline order (named in the flush warning).
+STAGES = ((TOPIC_MV_DEPTH, 'multi-view depth'), (TOPIC_SINGLE_DEPTH, 'single-view depth'))
+
+#: node name -> (console script, module); the order nodes are started in.
+GRAPH_NODES: dict[str, tuple[str, str]] = {
+    'single_view_node': ('single_view_node', 'depth_fusion_ros.nodes.single_view_node'),
+    'multi_view_node': ('multi_view_node', 'depth_fusion_ros.nodes.multi_view_node'),
+    'fusion_node': ('fusion_node', 'depth_fusion_ros.nodes.fusion_node'),
+}
+REPLAYER = ('bag_replayer', 'depth_fusion_ros.nodes.bag_replayer')
+RECORDER_NODE = 'depth_fusion_recorder'
+
+PROFILE_ENV = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+
+
+# --- Fast DDS profile and shared memory ---------------------------------------------------------
+
+
+def fastdds_profile_path() -> Path:
+    """The package's Fast DDS profile (found in a checkout, a pip or a colcon install)."""
+    path = Path(str(resources.files('depth_fusion_ros') / 'config' / 'fastdds_shm.xml'))
+    if not path.is_file():
+        raise FileNotFoundError(f'Fast DDS profile {path} is missing from the installed package')
+    return path
+
+
+def apply_fastdds_profile(env: MutableMapping[str, str] | None = None) -> str:
+    """Point Fast DDS at the shared-memory profile in ``env`` (default ``os.environ``).
+
+    Must happen before the first rclpy context of the process is initialised (Fast DDS reads
+    the profile once). A profile the user already set is kept. Returns the profile in use.
+    """
+    env = os.environ if env is None else env
+    for name in PROFILE_ENV:
+        if env.get(name):
+            return env[name]
+    path = str(fastdds_profile_path())
+    for name in PROFILE_ENV:
+        env[name] = path
+    return path
+
+
+def shm_segments() -> dict[str, float]:
+    """Fast DDS shared-memory files in /dev/shm -> creation time (empty where there is none)."""
+    root = Path('/dev/shm')
+    if not root.is_dir():
+        return {}
+    out = {}
+    for p in root.iterdir():
+        if 'fastrtps_' in p.name:
+            with contextlib.suppress(OSError):
+                out[p.name] = p.stat().st_ctime
+    return out
+
+
+def mapped_shm_files() -> set[str]:
+    """Names of /dev/shm files some live process has mapped (read from /proc/*/maps)."""
+    mapped: set[str] = set()
+    for maps in Path('/proc').glob('[0-9]*/maps'):
+        with contextlib.suppress(OSError):
+            for line in maps.read_text().splitlines():
+                idx = line.find('/dev/shm/')
+                if idx >= 0:
+                    mapped.add(line[idx + len('/dev/shm/') :].split(' ')[0])
+    return mapped
+
+
+def orphan_segments(since: float) -> list[str]:
+    """Fast DDS data segments created after ``since`` (epoch s) that no process maps any more.
+
+    Lock files (``*_el``) are never mapped and are judged with their segment.
+    """
+    mapped = mapped_shm_files()
+    orphans = []
+    for name, created in shm_segments().items():
+        if created < since - 1.0:
+            continue
+        base = name[: -len('_el')] if name.endswith('_el') else name
+        if base not in mapped:
+            orphans.append(name)
+    return sorted(orphans)
+
+
+def remove_segments(names: Sequence[str]) -> None:
+    for name in names:
+        with contextlib.suppress(OSError):
+            (Path('/dev/shm') / name).unlink()
+
+
+# --- options and result -------------------------------------------------------------------------
+
+
+@dataclass
+class RunOptions:
+    """Everything ``depth-fusion run`` can be told (the CLI flags)."""
+
+    bag: Path
+    params_file: Path | None = None
+    #: rosbag2 folder to write the outputs to (``None``: nothing written, outputs still tracked).
+    record: Path | None = None
+    record_storage: str = 'mcap'
+    #: Extra topics to record besides :data:`RECORDED_TOPICS` (type from the graph).
+    record_extra: list[str] = field(default_factory=list)
+    processes: bool = False
+    #: Replayer settings; ``None`` leaves the params file (or the default) in charge.
+    rate: float | None = None
+    start_offset: float | None = None
+    #: Torch device of the three nodes and the single-view model (``None``: params file).
+    device: str | None = None
+    single_view_model: str | None = None
+    #: ``{node name: {parameter: value}}`` applied on top of the params file.
+    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Seconds to wait after the end of the bag for announced keyframes to be fused.
+    flush_timeout: float = 60.0
+    #: The outputs count as flushed once nothing new arrived for this long.
+    settle: float = 1.0
+    #: Processes: seconds for the nodes to start (torch import, model load) before giving up.
+    startup_timeout: float = 120.0
+    executor_threads: int = 4
+    #: Processes: folder for each child's log (``None``: children log to this terminal).
+    log_dir: Path | None = None
+    #: Log the input image stamps too (latency measurement by the benchmark).
+    track_input: bool = False
+    #: Called about every ``progress_period`` s while the bag plays (benchmark sampling).
+    on_progress: Callable[[GraphRun], None] | None = None
+    progress_period: float = 1.0
+
+
+@dataclass
+class RunResult:
+    """What happened: keyframes announced and fused, what was lost, where the bag is."""
+
+    announced: list[int]
+    fused: list[int]
+    missing: dict[int, str]
+    recorded: Path | None
+    counts: dict[str, int]
+    seconds: float
+    interrupted: bool = False
+    #: Per node, its final counters (composed mode only: the processes log theirs).
+    node_stats: dict[str, Any] = field(default_factory=dict)
+    #: Seconds from input image arrival to fused depth arrival, per keyframe (track_input).
+    latencies: dict[int, float] = field(default_factory=dict)
+    exit_codes: dict[str, int | None] = field(default_factory=dict)
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing and not self.interrupted
+
+
+class GraphError(RuntimeError):
+    """The graph could not run to the end (a node died, the replayer failed)."""
+
+
+# --- parameters ---------------------------------------------------------------------------------
+
+
+def read_params_file(path: Path | None) -> dict[str, dict[str, Any]]:
+    """``{node or '/**': {param: value}}`` of a ROS params file (validated enough to fail early)."""
+    if path is None:
+        return {}
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f'params file {path} does not exist')
+    try:
+        doc = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ValueError(f'params file {path}: not valid YAML: {exc}') from None
+    if not isinstance(doc, dict):
+        raise ValueError(f'params file {path}: expected node sections at the top level')
+    out: dict[str, dict[str, Any]] = {}
+    for node, section in doc.items():
+        params = section.get('ros__parameters') if isinstance(section, dict) else None
+        if not isinstance(params, dict):
+            raise ValueError(f'params file {path}: section {node!r} has no ros__parameters mapping')
+        out[str(node).lstrip('/') if node != '/**' else '/**'] = _flatten(params)
+    return out
+
+
+def _flatten(params: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+    """Nested YAML mappings -> dotted parameter names, as ROS reads them."""
+    flat: dict[str, Any] = {}
+    for key, value in params.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f'{name}.'))
+        else:
+            flat[name] = value
+    return flat
+
+
+def param_from_file(params: Mapping[str, Mapping[str, Any]], node: str, name: str) -> Any:
+    """The value a node gets from the params file: its own section first, then ``/**``."""
+    for section in (node, '/**'):
+        if name in params.get(section, {}):
+            return params[section][name]
+    return None
+
+
+def ros_arg_value(value: Any) -> str:
+    """A parameter value as ``-p name:=VALUE`` wants it (YAML)."""
+    import yaml
+
+    if isinstance(value, str):
+        return value if yaml.safe_load(value) == value and value else f"'{value}'"
+    return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()
+
+
+def node_overrides(options: RunOptions, bag_topics: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """Per node, the parameters the runner sets on top of the params file."""
+    params = read_params_file(options.params_file)
+    out: dict[str, dict[str, Any]] = {name: {} for name in (*GRAPH_NODES, REPLAYER[0])}
+    if options.device is not None:
+        for name in GRAPH_NODES:
+            out[name]['device'] = options.device
+    if options.single_view_model is not None:
+        out['single_view_node']['model'] = options.single_view_model
+    replayer = out[REPLAYER[0]]
+    replayer['bag'] = str(options.bag)
+    if options.rate is not None:
+        replayer['rate'] = float(options.rate)
+    if options.start_offset is not None:
+        replayer['start_offset'] = float(options.start_offset)
+    if param_from_file(params, REPLAYER[0], 'topics') in (None, [], ['']):
+        # Ground-truth depth is for evaluation only: no node listens, don't pay to publish it.
+        played = [t for t in bag_topics if t != TOPIC_GT_DEPTH]
+        replayer['topics'] = played or list(bag_topics)
+    replayer.setdefault('wait_for_nodes', list(GRAPH_NODES))
+    for node, values in options.overrides.items():
+        out.setdefault(node, {}).update(values)
+    return out
+
+
+def recorder_qos(options: RunOptions) -> str:
+    """The QoS the recorder must use to match the nodes' publishers."""
+    params = read_params_file(options.params_file)
+    kinds = {
+        options.overrides.get(n, {}).get('output_qos')
+        or param_from_file(params, n, 'output_qos')
+        or 'reliable'
+        for n in GRAPH_NODES
+    }
+    return 'sensor_data' if 'sensor_data' in kinds else 'reliable'
+
+
+def bag_topic_names(bag: Path) -> list[str]:
+    from .bag_replayer import open_bag
+
+    reader = open_bag(bag)
+    try:
+        return sorted({c.topic for c in reader.connections})
+    finally:
+        reader.close()
+
+
+# --- the run ------------------------------------------------------------------------------------
+
+
+class GraphRun:
+    """One run of the graph; :meth:`run` does it all. Exposed for the benchmark's sampling."""
+
+    def __init__(self, options: RunOptions) -> None:
+        self.options = options
+        self.started = time.monotonic()
+        self.recorder: Any = None
+        self.nodes: dict[str, Any] = {}
+        self.processes: dict[str, subprocess.Popen] = {}
+        self._context: Any = None
+        self._executor: Any = None
+        self._spin_thread: threading.Thread | None = None
+        self._logs: list[Any] = []
+        self._wall_start = time.time()
+        self.exit_codes: dict[str, int | None] = {}
+        self.executor_error: BaseException | None = None
+
+    # -- public --
+
+    def run(self) -> RunResult:
+        import rclpy
+        from rclpy.signals import SignalHandlerOptions
+
+        opts = self.options
+        topics = bag_topic_names(opts.bag)  # a bad bag fails here, before anything starts
+        overrides = node_overrides(opts, topics)
+        profile = apply_fastdds_profile()
+        log.info('Fast DDS profile: %s', profile)
+        self._wall_start = time.time()
+        self._context = rclpy.context.Context()
+        args = ['--ros-args', '--params-file', str(opts.params_file)] if opts.params_file else None
+        rclpy.init(args=args, context=self._context, signal_handler_options=SignalHandlerOptions.NO)
+        interrupted = False
+        try:
+            self._start_recorder(opts)
+            if opts.processes:
+                self._start_processes(overrides)
+            else:
+                self._start_composed(overrides)
+            try:
+                self._wait_for_end_of_bag()
+                self._wait_for_flush()
+            except KeyboardInterrupt:
+                interrupted = True
+                log.warning('interrupted: stopping the graph')
+            result = self._result(interrupted)
+            result.recorded = self._close_recorder(success=not interrupted)
+            return result
+        finally:
+            self._shutdown(interrupted)
+
+    # -- start-up --
+
+    def _start_recorder(self, opts: RunOptions) -> None:
+        from rclpy.parameter import Parameter
+
+        from .recorder import Recorder
+
+        topics = dict(RECORDED_TOPICS)
+        topics.update({t: '' for t in opts.record_extra if t not in topics})
+        watch = {TOPIC_IMAGE: IMAGE} if opts.track_input else {}
+        self.recorder = Recorder(
+            output=opts.record,
+            topics=topics,
+            watch=watch,
+            track_only=opts.record is None,
+            node_name=RECORDER_NODE,
+            context=self._context,
+            parameter_overrides=[
+                Parameter('storage', value=opts.record_storage),
+                Parameter('qos', value=recorder_qos(opts)),
+            ],
+        )
+        self._executor = self._make_executor()
+        self._executor.add_node(self.recorder)
+        self._spin_thread = threading.Thread(target=self._spin, name='graph-executor', daemon=True)
+        self._spin_thread.start()
+
+    def _make_executor(self) -> Any:
+        from rclpy.executors import MultiThreadedExecutor
+
+        threads = self.options.executor_threads if not self.options.processes else 2
+        return MultiThreadedExecutor(num_threads=threads, context=self._context)
+
+    def _spin(self) -> None:
+        try:
+            self._executor.spin()
+        except Exception as exc:
+            # The context is shut down under the executor at the end: nothing to report then.
+            if self._context.ok():
+                log.error('executor stopped: %r', exc, exc_info=True)
+                self.executor_error = exc
+
+    def _start_composed(self, overrides: dict[str, dict[str, Any]]) -> None:
+        import importlib
+
+        from rclpy.parameter import Parameter
+
+        from .bag_replayer import BagReplayer
+
+        def params(node: str) -> list[Parameter]:
+            return [Parameter(k, value=v) for k, v in overrides.get(node, {}).items()]
+
+        for name, (_, module) in GRAPH_NODES.items():
+            cls = _node_class(importlib.import_module(module))
+            log.info('starting %s', name)
+            node = cls(context=self._context, parameter_overrides=params(name))
+            self.nodes[name] = node
+            self._executor.add_node(node)
+        replayer = BagReplayer(
+            context=self._context, parameter_overrides=params(REPLAYER[0]), autostart=False
+        )
+        self.nodes[REPLAYER[0]] = replayer
+        self._executor.add_node(replayer)
+        replayer.start()
+
+    def _start_processes(self, overrides: dict[str, dict[str, Any]]) -> None:
+        env = os.environ.copy()
+        env.setdefault('PYTHONUNBUFFERED', '1')
+        replayer = dict(overrides.get(REPLAYER[0], {}))
+        replayer.setdefault('wait_for_nodes', list(GRAPH_NODES))
+        replayer.setdefault('wait_timeout', float(self.options.startup_timeout))
+        # Discovery between the nodes themselves finishes while the first frames play.
+        replayer.setdefault('start_delay', 1.0)
+        overrides = {**overrides, REPLAYER[0]: replayer}
+        for name, (script, module) in (*GRAPH_NODES.items(), (REPLAYER[0], REPLAYER)):
+            cmd = node_command(script, module, self._ros_args(overrides.get(name, {})))
+            self.processes[name] = self._popen(name, cmd, env)
+            log.info('started %s (pid %d)', name, self.processes[name].pid)
+
+    def _ros_args(self, values: Mapping[str, Any]) -> list[str]:
+        args = []
+        if self.options.params_file:
+            args += ['--params-file', str(self.options.params_file)]
+        for key, value in values.items():
+            args += ['-p', f'{key}:={ros_arg_value(value)}']
+        return args
+
+    def _popen(self, name: str, cmd: list[str], env: dict[str, str]) -> subprocess.Popen:
+        if self.options.log_dir is None:
+            return subprocess.Popen(cmd, env=env)
+        self.options.log_dir.mkdir(parents=True, exist_ok=True)
+        out = open(self.options.log_dir / f'{name}.log', 'w')  # noqa: SIM115 - closed in _shutdown
+        self._logs.append(out)
+        return subprocess.Popen(cmd, env={**env, 'RCUTILS_COLORIZED_OUTPUT': '0'}, stdout=out, stderr=out)
+
+    # -- waiting --
+
+    def _wait_for_end_of_bag(self) -> None:
+        next_progress = time.monotonic() + self.options.progress_period
+        while True:
+            self._check_processes()
+            if self.options.processes:
+                code = self.processes[REPLAYER[0]].poll()
+                if code is not None:
+                    if code != 0:
+                        raise GraphError(f'bag_replayer exited with code {code}{self._log_hint(REPLAYER[0])}')
+                    return
+            else:
+                replayer = self.nodes[REPLAYER[0]]
+                if replayer.finished.wait(0.1):
+                    if replayer.error is not None:
+                        raise GraphError(f'bag_replayer failed: {replayer.error!r}')
+                    return
+            if self.options.processes:
+                time.sleep(0.1)
+            if self.options.on_progress is not None and time.monotonic() >= next_progress:
+                self.options.on_progress(self)
+                next_progress += self.options.progress_period
+
+    def _check_processes(self) -> None:
+        """Raise ``GraphError`` when a node process or this process's executor died."""
+        if self.executor_error is not None:
+            raise GraphError(f'the executor stopped: {self.executor_error!r}')
+        if not self.options.processes:
+            return
+        for name in GRAPH_NODES:
+            code = self.processes[name].poll()
+            if code is not None:
+                raise GraphError(f'{name} exited early with code {code}{self._log_hint(name)}')
+
+    def _log_hint(self, name: str) -> str:
+        if self.options.log_dir is None:
+            return ''
+        return f' (see {self.options.log_dir / f"{name}.log"})'
+
+    def pending_keyframes(self) -> dict[int, str]:
+        """Announced keyframes without their complete fused output -> how far each got."""
+        logs = self.recorder.stamp_logs
+        announced = logs[TOPIC_KEYFRAME_IMAGE].stamps() if TOPIC_KEYFRAME_IMAGE in logs else []
+        missing = {}
+        for stamp in announced:
+            if all(topic in logs and stamp in logs[topic] for topic in FUSED_OUTPUTS):
+                continue
+            lacking = [what for topic, what in STAGES if topic not in logs or stamp not in logs[topic]]
+            missing[stamp] = 'no ' + ' and no '.join(lacking) if lacking else 'not fused'
+        return missing
+
+    def _wait_for_flush(self) -> None:
+        opts = self.options
+        deadline = time.monotonic() + opts.flush_timeout
+        while time.monotonic() < deadline:
+            self._check_processes()
+            quiet = time.monotonic() - self.recorder.last_arrival >= opts.settle
+            if quiet and not self.pending_keyframes() and self._nodes_idle():
+                return
+            time.sleep(0.05)
+        missing = self.pending_keyframes()
+        if missing:
+            listed = ', '.join(f'{s / 1e9:.3f} ({why})' for s, why in list(missing.items())[:10])
+            more = f' and {len(missing) - 10} more' if len(missing) > 10 else ''
+            log.warning(
+                'gave up waiting after %.0f s: %d announced keyframe(s) have no fused output: %s%s',
+                opts.flush_timeout,
+                len(missing),
+                listed,
+                more,
+            )
+
+    def _nodes_idle(self) -> bool:
+        """Composed: every worker has finished (processes are judged by their outputs only)."""
+        return all(node.wait_idle(0.0) for name, node in self.nodes.items() if name in GRAPH_NODES)
+
+    # -- results and shutdown --
+
+    def _result(self, interrupted: bool) -> RunResult:
+        logs = self.recorder.stamp_logs
+        announced = logs[TOPIC_KEYFRAME_IMAGE].stamps() if TOPIC_KEYFRAME_IMAGE in logs else []
+        fused = logs[TOPIC_FUSED_DEPTH].stamps() if TOPIC_FUSED_DEPTH in logs else []
+        latencies = {}
+        if TOPIC_IMAGE in logs and TOPIC_FUSED_DEPTH in logs:
+            for stamp in fused:
+                t_in = logs[TOPIC_IMAGE].arrival(stamp)
+                t_out = logs[TOPIC_FUSED_DEPTH].arrival(stamp)
+                if t_in is not None and t_out is not None:
+                    latencies[stamp] = t_out - t_in
+        stats = {}
+        for name, node in self.nodes.items():
+            if name in GRAPH_NODES:
+                stats[name] = node.stats.snapshot()
+        return RunResult(
+            announced=announced,
+            fused=fused,
+            missing=self.pending_keyframes(),
+            recorded=None,
+            counts=dict(self.recorder.counts),
+            seconds=time.monotonic() - self.started,
+            interrupted=interrupted,
+            node_stats=stats,
+            latencies=latencies,
+        )
+
+    def _close_recorder(self, success: bool) -> Path | None:
+        path = self.recorder.close(success=success)
+        if path is not None:
+            log.info('%s %s', 'recorded' if success else 'partial recording left in', path)
+        return path
+
+    def _shutdown(self, interrupted: bool) -> None:
+        if self.processes:
+            self._stop_processes(interrupted)
+        replayer = self.nodes.get(REPLAYER[0])
+        if replayer is not None:
+            replayer.stop()
+        for name in reversed(list(self.nodes)):
+            with contextlib.suppress(Exception):
+                self._executor.remove_node(self.nodes[name])
+            try:
+                self.nodes[name].destroy_node()
+            except Exception as exc:  # one node's failure must not leave the others running
+                log.error('%s: destroy_node failed: %r', name, exc)
+        if self.recorder is not None:
+            if not self.recorder.closed:
+                with contextlib.suppress(Exception):
+                    self.recorder.close(success=False)
+            self.recorder.destroy_node()
+        if self._executor is not None:
+            self._executor.shutdown(timeout_sec=5.0)
+        if self._context is not None:
+            self._context.try_shutdown()
+        if self._spin_thread is not None:
+            self._spin_thread.join(5.0)
+        for f in self._logs:
+            f.close()
+
+    def _stop_processes(self, interrupted: bool, timeout: float = 15.0) -> None:
+        """SIGINT each child still running (after a grace period on Ctrl-C, which they got too)."""
+        if interrupted:
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline and any(p.poll() is None for p in self.processes.values()):
+                time.sleep(0.05)
+        for p in self.processes.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        forced = False
+        deadline = time.monotonic() + timeout
+        for name, p in self.processes.items():
+            try:
+                p.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning('%s did not stop on SIGINT within %.0f s: killing it', name, timeout)
+                p.kill()
+                p.wait()
+                forced = True
+        self.exit_codes = {name: p.returncode for name, p in self.processes.items()}
+        if forced:
+            orphans = orphan_segments(self._wall_start)
+            if orphans:
+                log.warning('removing %d shared-memory segments left by killed nodes', len(orphans))
+                remove_segments(orphans)
+
+
+def _node_class(module: Any) -> type:
+    """The Node subclass a node module defines (``SingleViewNode``, ...)."""
+    from rclpy.node import Node
+
+    for value in vars(module).values():
+        if isinstance(value, type) and issubclass(value, Node) and value.__module__ == module.__name__:
+            return value
+    raise ImportError(f'{module.__name__} defines no rclpy Node subclass')
+
+
+def node_command(script: str, module: str, ros_args: list[str]) -> list[str]:
+    """Command line of a node: its console script when installed, else ``python -m module``."""
+    candidates = [Path(sys.executable).parent / script]
+    found = shutil.which(script)
+    if found:
+        candidates.append(Path(found))
+    for exe in candidates:
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return [str(exe), '--ros-args', *ros_args]
+    return [sys.executable, '-m', module, '--ros-args', *ros_args]
+
+
+def run_graph(options: RunOptions) -> RunResult:
+    """Run the graph on ``options.bag`` until the bag ends and the outputs are flushed."""
+    run = GraphRun(options)
+    result = run.run()
+    result.exit_codes = dict(run.exit_codes)
+    return result
