@@ -1,0 +1,269 @@
+"""One keyframe through the fusion: stage-2 selection, alignment, interpolation, fallbacks.
+
+``fuse_keyframe`` is what the ROS ``fusion_node`` and the ``fused*`` evaluation methods
+call. Numpy in, numpy out; the interpolation runs on torch (``FusionConfig.device``).
+
+Steps (paper §III-C/§III-D):
+
+1. stage-1 points = the given mask where ``m`` and ``s`` are finite (``n_stage1``);
+2. RANSAC ``m ≈ a·s + b`` over them; inliers = Ω (``n_omega``), or a given Ω (oracle);
+3. ``s ← a·s + b`` when aligning (default: only for non-metric sources);
+4. ``f = s + Σ W (m - s)`` over Ω, exact or fast; confidence from the support distance.
+
+Fallbacks never raise: the single-view depth is returned unchanged (not aligned: without a
+fit there is nothing to align with), confidence 0, and ``fallback`` names the reason —
+``no_single_view`` (``s`` has no finite pixel; depth all NaN), ``too_few_points`` (fewer
+stage-1 points than ``max(2, ransac_min_inliers)``, or fewer than 2 given Ω points when the
+source needs aligning), ``no_consensus`` (no line with ``ransac_min_inliers`` inliers),
+``empty_omega`` (a given Ω without a usable point).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
+from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind, fit_least_squares, fit_ransac
+from .weights import WeightParams, check_weight_params
+
+log = logging.getLogger(__name__)
+
+FALLBACKS = ('no_single_view', 'too_few_points', 'no_consensus', 'empty_omega')
+
+#: One line per ``FusionConfig`` field, for ROS parameter descriptions and docs.
+FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
+    'sigma1': 'proximity scale of W1 (pixels of the working grid)',
+    'sigma2': 'floor of the gradient differences in W2 (metres per pixel); bounds W2 by 1/sigma2^2',
+    'sigma3': 'floor added to W3 and W4 so no point of omega gets a vanishing weight',
+    'weights': "weight factors: 'w1' (proximity), 'w1w2' (+ gradients), 'all' (+ planes, the paper)",
+    'mode': "'exact': every pixel against every point; 'fast': exact on a coarse grid, guided upsampling",
+    'fast_stride': 'fast mode: exact offsets every fast_stride pixels in x and y',
+    'fast_refine': 'fast mode: pixels whose structure matches no coarse neighbour this well (0..1) are exact',
+    'chunk_elements': 'pixel-point pairs per chunk of the exact sum (8 bytes each at most, bounds memory)',
+    'compile_kernel': 'fuse the weight kernel with torch.compile (first call compiles; eager if it fails)',
+    'ransac_threshold': 'stage 2: inlier residual |m - (a s + b)| in metres (fraction of depth if relative)',
+    'ransac_relative': 'stage 2: ransac_threshold is a fraction of the predicted depth instead of metres',
+    'ransac_iterations': 'stage 2: random two-point hypotheses',
+    'ransac_min_inliers': 'stage 2: fewer inliers than this is no consensus (single-view depth published)',
+    'seed': 'seed of the RANSAC sampling and of the max_points subsampling (deterministic output)',
+    'align_scale': "map s <- a s + b before fusing; 'auto': only for non-metric single-view sources",
+    'max_points': 'fuse at most this many points of omega (seeded subsample); auto: all of them',
+}
+
+
+@dataclass
+class FusionConfig:
+    """Parameters of :func:`fuse_keyframe` (also the ``fusion.*`` ROS parameters).
+
+    Paper values: σ1 = 15 px, σ2 = 0.1, σ3 = 1e-3, all four weights.
+    """
+
+    sigma1: float = 15.0
+    sigma2: float = 0.1
+    sigma3: float = 1e-3
+    weights: str = 'all'
+    mode: str = 'exact'
+    fast_stride: int = 4
+    fast_refine: float = 0.3
+    chunk_elements: int = DEFAULT_CHUNK_ELEMENTS
+    compile_kernel: bool = False
+    ransac_threshold: float = 0.1
+    ransac_relative: bool = True
+    ransac_iterations: int = 200
+    ransac_min_inliers: int = 10
+    seed: int = 0
+    align_scale: bool | None = None
+    max_points: int | None = None
+    device: str = 'cpu'
+
+    def __post_init__(self) -> None:
+        check_weight_params(self.sigma1, self.sigma2, self.sigma3, self.weights)
+        if self.mode not in MODES:
+            raise ValueError(f'mode must be one of {", ".join(MODES)}, got {self.mode!r}')
+        for name in ('fast_stride', 'chunk_elements', 'ransac_iterations'):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
+        if self.ransac_min_inliers < 2:
+            raise ValueError(f'ransac_min_inliers must be >= 2, got {self.ransac_min_inliers}')
+        if not (np.isfinite(self.ransac_threshold) and self.ransac_threshold > 0):
+            raise ValueError(f'ransac_threshold must be positive, got {self.ransac_threshold}')
+        if not 0.0 <= self.fast_refine <= 1.0:
+            raise ValueError(f'fast_refine must be in [0, 1], got {self.fast_refine}')
+        if self.max_points is not None and self.max_points < 1:
+            raise ValueError(f'max_points must be >= 1 or None, got {self.max_points}')
+
+    @property
+    def weight_params(self) -> WeightParams:
+        return WeightParams(self.sigma1, self.sigma2, self.sigma3, self.weights)
+
+    def aligns(self, output_kind: str) -> bool:
+        """Whether ``s`` is mapped by the fit: as configured, else for non-metric sources."""
+        return output_kind != 'metric_depth' if self.align_scale is None else bool(self.align_scale)
+
+
+@dataclass
+class FusionResult:
+    """Fused keyframe. ``depth``/``confidence`` float32 HxW (NaN depth where ``s`` is NaN);
+    ``omega_mask`` the points fused; ``a, b`` the stage-2 line (1, 0 without one);
+    ``fallback`` None or one of :data:`FALLBACKS`."""
+
+    depth: np.ndarray
+    confidence: np.ndarray
+    omega_mask: np.ndarray
+    a: float
+    b: float
+    n_stage1: int
+    n_omega: int
+    fallback: str | None = None
+    #: The single-view depth the interpolation started from (aligned when aligning).
+    single_aligned: np.ndarray | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def fuse_keyframe(
+    single_depth: np.ndarray,
+    mv_depth: np.ndarray,
+    stage1_mask: np.ndarray | None,
+    config: FusionConfig | None = None,
+    output_kind: str = 'metric_depth',
+    *,
+    omega_mask: np.ndarray | None = None,
+) -> FusionResult:
+    """Fuse one keyframe (all inputs HxW on the working grid).
+
+    ``single_depth``: the single-view map (``output_kind`` units); ``mv_depth``: semi-dense
+    multi-view depth (m, NaN = none); ``stage1_mask``: stage-1 selected pixels (None = every
+    multi-view estimate). ``omega_mask`` replaces stage 2 by a given Ω (the oracle
+    selection); the alignment is then a least-squares fit on it.
+    """
+    config = config or FusionConfig()
+    check_output_kind(output_kind)
+    s = _image(single_depth, 'single-view depth')
+    m = _image(mv_depth, 'multi-view depth')
+    if m.shape != s.shape:
+        raise ValueError(f'multi-view depth {m.shape} and single-view depth {s.shape} differ in size')
+    stage1 = _mask(stage1_mask, s.shape, 'stage1_mask') if stage1_mask is not None else np.isfinite(m)
+    with np.errstate(invalid='ignore'):
+        usable = np.isfinite(s) & np.isfinite(m) & (m > 0)
+    stage1 = stage1 & usable
+    n_stage1 = int(stage1.sum())
+    inverse = output_kind == 'inverse_depth'
+    t0 = time.perf_counter()
+
+    if not np.isfinite(s).any():
+        return _fallback(s, stage1, n_stage1, 'no_single_view')
+    if omega_mask is not None:
+        omega = _mask(omega_mask, s.shape, 'omega_mask') & usable
+        if not omega.any():
+            return _fallback(s, stage1, n_stage1, 'empty_omega')
+        fit = fit_least_squares(s[omega], m[omega], inverse=inverse)
+        if not fit.ok and config.aligns(output_kind):
+            return _fallback(s, stage1, n_stage1, 'too_few_points')
+    else:
+        fit = fit_ransac(
+            s[stage1],
+            m[stage1],
+            threshold=config.ransac_threshold,
+            relative=config.ransac_relative,
+            iterations=config.ransac_iterations,
+            min_inliers=config.ransac_min_inliers,
+            seed=config.seed,
+            inverse=inverse,
+        )
+        if not fit.ok:
+            log.debug('stage 2 failed (%s) on %d stage-1 points', fit.reason, n_stage1)
+            return _fallback(s, stage1, n_stage1, fit.reason or 'no_consensus')
+        omega = np.zeros(s.shape, dtype=bool)
+        omega[stage1] = fit.inliers
+    t_select = time.perf_counter() - t0
+
+    omega = _cap_points(omega, config.max_points, config.seed)
+    base = fit.predict(s) if config.aligns(output_kind) else s
+    t1 = time.perf_counter()
+    interp = interpolate(
+        base,
+        m,
+        omega,
+        config.weight_params,
+        mode=config.mode,
+        fast_stride=config.fast_stride,
+        fast_refine=config.fast_refine,
+        chunk_elements=config.chunk_elements,
+        device=config.device,
+        compile_kernel=config.compile_kernel,
+    )
+    with np.errstate(invalid='ignore'):
+        depth = np.maximum(base + interp.offset, MIN_DEPTH).astype(np.float32)
+    depth[~np.isfinite(base)] = np.nan
+    confidence = confidence_from_support(interp.support_distance, config.sigma1)
+    confidence[~np.isfinite(depth)] = 0.0
+    return FusionResult(
+        depth=depth,
+        confidence=confidence,
+        omega_mask=omega,
+        a=fit.a,
+        b=fit.b,
+        n_stage1=n_stage1,
+        n_omega=int(omega.sum()),
+        single_aligned=base,
+        timings={'selection_s': t_select, 'interpolation_s': time.perf_counter() - t1},
+    )
+
+
+def _fallback(s: np.ndarray, stage1: np.ndarray, n_stage1: int, reason: str) -> FusionResult:
+    """The single-view depth unchanged, confidence 0, flagged with ``reason``."""
+    log.debug('fusion fallback: %s', reason)
+    return FusionResult(
+        depth=s.copy(),
+        confidence=np.zeros(s.shape, dtype=np.float32),
+        omega_mask=np.zeros(s.shape, dtype=bool),
+        a=1.0,
+        b=0.0,
+        n_stage1=n_stage1,
+        n_omega=0,
+        fallback=reason,
+        single_aligned=s,
+    )
+
+
+def _cap_points(omega: np.ndarray, max_points: int | None, seed: int) -> np.ndarray:
+    """At most ``max_points`` points of Ω, a seeded uniform subsample (bounds the cost)."""
+    count = int(omega.sum())
+    if max_points is None or count <= max_points:
+        return omega
+    keep = np.random.default_rng(seed).choice(np.flatnonzero(omega), size=max_points, replace=False)
+    capped = np.zeros_like(omega)
+    capped.ravel()[keep] = True
+    log.debug('omega capped from %d to %d points', count, max_points)
+    return capped
+
+
+def _image(a: np.ndarray, what: str) -> np.ndarray:
+    a = np.asarray(a)
+    if a.ndim != 2 or min(a.shape) < 2:
+        raise ValueError(f'{what} must be an HxW image (H, W >= 2), got shape {a.shape}')
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(f'{what} must be floating point (metres, NaN = none), got {a.dtype}')
+    return a.astype(np.float32, copy=False)
+
+
+def _mask(a: np.ndarray, shape: tuple[int, ...], what: str) -> np.ndarray:
+    a = np.asarray(a)
+    if a.shape != shape:
+        raise ValueError(f'{what} {a.shape} must have the size of the depth images {shape}')
+    return a.astype(bool, copy=False)
+
+
+__all__ = [
+    'FALLBACKS',
+    'FUSION_PARAMETER_DESCRIPTIONS',
+    'OUTPUT_KINDS',
+    'FusionConfig',
+    'FusionResult',
+    'LinearFit',
+    'fuse_keyframe',
+]

@@ -1,0 +1,167 @@
+"""Interpolation (exact/fast) and ``fuse_keyframe`` on synthetic planes and boxes with exact depth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from depth_fusion_ros.fusion.interpolation import interpolate
+from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
+from depth_fusion_ros.fusion.scenes import make_scene
+from depth_fusion_ros.fusion.weights import (
+    WeightParams,
+    depth_gradients,
+    normalise_weights,
+    samples_at,
+    unnormalised_weights,
+)
+
+
+def _dense_reference(s: np.ndarray, m: np.ndarray, omega: np.ndarray, params: WeightParams) -> np.ndarray:
+    """Eq. (2) straight from the formulas: the full (pixels x Ω) matrix, normalised, summed."""
+    gx, gy = (torch.from_numpy(g.ravel()) for g in depth_gradients(s))
+    st = torch.from_numpy(s.ravel())
+    width = s.shape[1]
+    pixels = samples_at(torch.arange(s.size), width, st, gx, gy).column()
+    q_index = torch.from_numpy(np.flatnonzero(omega))
+    points = samples_at(q_index, width, st, gx, gy).row()
+    w = normalise_weights(unnormalised_weights(pixels, points, params).double())
+    terms = torch.from_numpy(m.ravel()[q_index.numpy()]).double()[None, :] + (st[:, None] - points.s).double()
+    return (w * terms).sum(dim=1).reshape(s.shape).numpy()
+
+
+@pytest.mark.parametrize('weights', ['w1', 'w1w2', 'all'])
+def test_exact_mode_equals_the_formula_and_ignores_chunking(weights: str) -> None:
+    sc = make_scene(40, 30, n_points=25)
+    params = WeightParams(weights=weights)
+    omega = np.isfinite(sc.multi)
+    reference = _dense_reference(sc.single, sc.multi, omega, params)
+    for chunk in (7, 1 << 20):
+        got = sc.single + interpolate(sc.single, sc.multi, omega, params, chunk_elements=chunk).offset
+        assert np.allclose(got, reference, atol=2e-5)
+
+
+def test_wrong_scale_and_offset_pulled_onto_the_true_surface() -> None:
+    sc = make_scene(80, 60, n_points=80, scale=0.8, offset=0.3)
+    err_single = np.abs(sc.single - sc.depth).mean()
+    # Metric source: s kept, the interpolation alone bends it onto the points.
+    res = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(), 'metric_depth')
+    assert res.fallback is None and res.n_omega == 80
+    assert np.abs(res.depth - sc.depth).mean() < 0.15 * err_single
+    # Relative source: the stage-2 line maps s exactly, then the interpolation adds nothing.
+    res = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(), 'relative_depth')
+    assert res.a == pytest.approx(1.25, rel=1e-4) and res.b == pytest.approx(-0.375, abs=1e-4)
+    assert np.abs(res.depth - sc.depth).max() < 1e-4
+
+
+def test_planted_outliers_are_rejected_before_fusing() -> None:
+    sc = make_scene(80, 60, n_points=100, n_outliers=20, scale=1.0, offset=0.0)
+    res = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(), 'metric_depth')
+    assert res.n_stage1 == 100 and res.n_omega == 80
+    assert np.array_equal(res.omega_mask, sc.good)
+    assert np.abs(res.depth - sc.depth).max() < 1e-4
+
+
+@pytest.mark.parametrize('mode', ['exact', 'fast'])
+def test_empty_single_and_pair_of_points(mode: str) -> None:
+    sc = make_scene(40, 30, n_points=2, scale=1.0, offset=0.0)
+    cfg = FusionConfig(mode=mode, fast_stride=3)
+    s = sc.single
+    none = interpolate(s, sc.multi, np.zeros(s.shape, bool), mode=mode)
+    assert np.all(np.isnan(none.offset)) and np.all(np.isnan(none.support_distance))
+
+    # |Ω| = 1: plain normalisation, every pixel moves by that point's offset.
+    one = np.zeros(s.shape, bool)
+    one[10, 12] = True
+    m = np.full(s.shape, np.nan, np.float32)
+    m[10, 12] = s[10, 12] + 0.4
+    res = fuse_keyframe(s, m, None, cfg, omega_mask=one)
+    assert res.fallback is None and res.n_omega == 1
+    assert np.allclose(res.depth, s + 0.4, atol=1e-5)
+
+    # |Ω| = 2: min subtraction gives each pixel the offset of its heavier point.
+    two = one.copy()
+    two[25, 30] = True
+    m[25, 30] = s[25, 30] - 0.2
+    res = fuse_keyframe(s, m, None, cfg, omega_mask=two)
+    offset = res.depth - s
+    either = np.isclose(offset, 0.4, atol=1e-4) | np.isclose(offset, -0.2, atol=1e-4)
+    # The fast mode blends the two offsets along the border between the regions.
+    assert either.all() if mode == 'exact' else either.mean() > 0.8
+    assert np.all((offset > -0.2 - 1e-4) & (offset < 0.4 + 1e-4))
+    assert offset[10, 12] == pytest.approx(0.4, abs=1e-4) and offset[25, 30] == pytest.approx(-0.2, abs=1e-4)
+
+
+def test_fast_and_exact_agree_on_small_inputs() -> None:
+    sc = make_scene(96, 72, n_points=150, scale=0.85, offset=0.2, seed=2)
+    omega = np.isfinite(sc.multi)
+    exact = interpolate(sc.single, sc.multi, omega, mode='exact')
+    fast = interpolate(sc.single, sc.multi, omega, mode='fast', fast_stride=4)
+    diff = np.abs(exact.offset - fast.offset)
+    assert np.median(diff) < 2e-3 and diff.mean() < 1e-2
+    mae_exact = np.abs(sc.single + exact.offset - sc.depth).mean()
+    mae_fast = np.abs(sc.single + fast.offset - sc.depth).mean()
+    assert abs(mae_fast - mae_exact) <= 0.02 * mae_exact + 1e-4
+
+
+@pytest.mark.parametrize('mode', ['exact', 'fast'])
+def test_fused_output_is_finite_wherever_s_is(mode: str) -> None:
+    sc = make_scene(64, 48, n_points=60, seed=4)
+    s = sc.single.copy()
+    s[5:9, 20:40] = np.nan  # a hole, including coarse-grid pixels of the fast mode
+    s[0, :] = np.nan
+    res = fuse_keyframe(s, sc.multi, None, FusionConfig(mode=mode), 'relative_depth')
+    assert res.fallback is None
+    assert np.array_equal(np.isfinite(res.depth), np.isfinite(s))
+    assert np.all((res.confidence >= 0) & (res.confidence <= 1))
+    assert np.all(res.confidence[np.isnan(s)] == 0)
+
+
+def test_confidence_is_high_near_points_and_low_far_away() -> None:
+    s = np.full((60, 80), 2.0, np.float32)
+    m = np.full(s.shape, np.nan, np.float32)
+    m[28:33, 5:10] = 2.1
+    res = fuse_keyframe(s, m, None, FusionConfig(), 'metric_depth', omega_mask=np.isfinite(m))
+    assert res.confidence[30, 7] > 0.8 and res.confidence[30, 75] < 0.05
+
+
+def test_fallbacks_publish_the_single_view_depth_flagged() -> None:
+    sc = make_scene(40, 30, n_points=5)
+    res = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(ransac_min_inliers=10), 'relative_depth')
+    assert res.fallback == 'too_few_points' and res.n_stage1 == 5 and res.n_omega == 0
+    assert np.array_equal(res.depth, sc.single) and np.all(res.confidence == 0)
+    rng = np.random.default_rng(0)
+    junk = np.where(np.isfinite(make_scene(40, 30, n_points=200).multi), rng.uniform(1, 9, (30, 40)), np.nan)
+    cfg = FusionConfig(ransac_threshold=0.005, ransac_min_inliers=50)
+    assert fuse_keyframe(sc.single, junk.astype(np.float32), None, cfg).fallback == 'no_consensus'
+    empty = fuse_keyframe(sc.single, sc.multi, None, omega_mask=np.zeros((30, 40), bool))
+    assert empty.fallback == 'empty_omega'
+    nan = np.full((30, 40), np.nan, np.float32)
+    assert fuse_keyframe(nan, sc.multi, None).fallback == 'no_single_view'
+    stage1_empty = fuse_keyframe(sc.single, sc.multi, np.zeros((30, 40), bool))
+    assert stage1_empty.fallback == 'too_few_points' and stage1_empty.n_stage1 == 0
+
+
+def test_bad_inputs_raise_clear_errors() -> None:
+    s = np.ones((30, 40), np.float32)
+    with pytest.raises(ValueError, match='differ in size'):
+        fuse_keyframe(s, np.ones((30, 41), np.float32), None)
+    with pytest.raises(ValueError, match='stage1_mask'):
+        fuse_keyframe(s, s, np.ones((3, 3), bool))
+    with pytest.raises(ValueError, match='output_kind'):
+        fuse_keyframe(s, s, None, output_kind='disparity')
+    with pytest.raises(ValueError, match='floating point'):
+        fuse_keyframe(s.astype(np.uint16), s, None)
+    with pytest.raises(ValueError, match='mode'):
+        FusionConfig(mode='approximate')
+    with pytest.raises(ValueError, match='max_points'):
+        FusionConfig(max_points=0)
+
+
+def test_max_points_caps_omega_deterministically() -> None:
+    sc = make_scene(40, 30, n_points=100, scale=1.0, offset=0.0)
+    cfg = FusionConfig(max_points=30, seed=5)
+    a = fuse_keyframe(sc.single, sc.multi, None, cfg)
+    b = fuse_keyframe(sc.single, sc.multi, None, cfg)
+    assert a.n_omega == 30 and np.array_equal(a.omega_mask, b.omega_mask)

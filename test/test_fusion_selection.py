@@ -1,0 +1,72 @@
+"""Stage-2 selection: RANSAC m ≈ a·s + b rejects planted outliers, degenerate inputs fall back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from depth_fusion_ros.fusion.selection import fit_least_squares, fit_ransac
+
+
+def _line_with_outliers(n: int = 300, n_out: int = 60, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    s = rng.uniform(0.5, 3.0, n)
+    m = 1.3 * s + 0.2 + rng.normal(0, 0.01, n)
+    out = rng.choice(n, n_out, replace=False)
+    up = rng.random(n_out) < 0.5
+    m[out] = np.where(up, m[out] + rng.uniform(0.6, 2.0, n_out), m[out] * rng.uniform(0.3, 0.6, n_out))
+    truth = np.ones(n, dtype=bool)
+    truth[out] = False
+    return s, m, truth
+
+
+@pytest.mark.parametrize('relative', [False, True])
+def test_ransac_rejects_planted_outliers(relative: bool) -> None:
+    s, m, truth = _line_with_outliers()
+    fit = fit_ransac(s, m, threshold=0.08 if relative else 0.1, relative=relative, seed=3)
+    assert fit.ok and fit.reason is None
+    assert fit.a == pytest.approx(1.3, abs=0.02) and fit.b == pytest.approx(0.2, abs=0.04)
+    assert np.array_equal(fit.inliers, truth)
+
+
+def test_ransac_is_deterministic_for_a_seed() -> None:
+    s, m, _ = _line_with_outliers(n_out=120)
+    a = fit_ransac(s, m, seed=7, iterations=20)
+    b = fit_ransac(s, m, seed=7, iterations=20)
+    assert (a.a, a.b) == (b.a, b.b) and np.array_equal(a.inliers, b.inliers)
+
+
+def test_inverse_depth_model() -> None:
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.8, 4.0, 200)
+    s = 3.0 / depth - 0.1  # a relative inverse depth (scale 3, shift -0.1)
+    fit = fit_ransac(s, depth, inverse=True, threshold=0.02, relative=False)
+    assert fit.ok
+    assert np.allclose(fit.predict(s), depth, rtol=1e-4)
+
+
+def test_degenerate_inputs_fail_with_a_reason() -> None:
+    assert fit_ransac(np.array([1.0]), np.array([1.0]), min_inliers=2).reason == 'too_few_points'
+    assert fit_ransac(np.ones(5), np.arange(5.0) + 1, min_inliers=10).reason == 'too_few_points'
+    # Every single-view value equal: no line through two distinct points exists.
+    assert fit_ransac(np.ones(50), np.linspace(1, 3, 50)).reason == 'no_consensus'
+    # Pure noise: nothing gathers min_inliers within 1 cm.
+    rng = np.random.default_rng(0)
+    noisy = fit_ransac(
+        rng.uniform(1, 3, 40), rng.uniform(1, 9, 40), threshold=0.01, relative=False, min_inliers=20
+    )
+    assert not noisy.ok and noisy.reason == 'no_consensus'
+    assert fit_least_squares(np.array([2.0]), np.array([1.0])).reason == 'too_few_points'
+
+
+@pytest.mark.parametrize(
+    ('kwargs', 'name'),
+    [
+        ({'threshold': 0}, 'ransac_threshold'),
+        ({'iterations': 0}, 'ransac_iterations'),
+        ({'min_inliers': 1}, 'ransac_min_inliers'),
+    ],
+)
+def test_bad_ransac_parameters_are_named(kwargs: dict, name: str) -> None:
+    with pytest.raises(ValueError, match=name):
+        fit_ransac(np.arange(10.0), np.arange(10.0), **kwargs)
