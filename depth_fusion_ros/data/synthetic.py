@@ -140,6 +140,8 @@ def write_synthetic_sequence(
 ) -> Path:
     """Render and write a TUM-layout folder (frames streamed to disk, not held in memory)."""
     out_dir = Path(out_dir)
+    if out_dir.exists() and not overwrite:  # say so before spending time on rendering
+        raise ValueError(f'{out_dir} already exists (use overwrite / --overwrite to replace it)')
     scene, trajectory = build_world(cfg)
     frames = iter_frames(cfg, scene, trajectory, show_progress=show_progress)
     # The writer zips the rgb and depth iterables in lockstep, so tee buffers one frame.

@@ -40,6 +40,19 @@ def _frequency_radius(size: int) -> np.ndarray:
     return radius
 
 
+@lru_cache(maxsize=16)
+def _band_amplitude(size: int, min_wavelength: float, max_wavelength: float, slope: float) -> np.ndarray:
+    """Fourier amplitude of :func:`band_noise` (cached: a scene reuses a few bands)."""
+    f = _frequency_radius(size)
+    f_lo, f_hi = 1.0 / max_wavelength, 1.0 / min_wavelength
+    power_law = np.where(f > 0, f, 1.0) ** np.float32(-slope)
+    high_pass = (f / f_lo) ** 2 / (1.0 + (f / f_lo) ** 2)
+    low_pass = np.exp(-((f / f_hi) ** 2))
+    amplitude = (power_law * high_pass * low_pass).astype(np.float32)
+    amplitude.flags.writeable = False
+    return amplitude
+
+
 def band_noise(
     rng: np.random.Generator, size: int, min_wavelength: float, max_wavelength: float, slope: float = 1.0
 ) -> np.ndarray:
@@ -50,16 +63,12 @@ def band_noise(
     band-limited (no detail finer than ``min_wavelength``, hence no aliasing at level 0)
     and tiles seamlessly because the inverse FFT is periodic.
     """
-    f = _frequency_radius(size)
-    f_lo, f_hi = 1.0 / max_wavelength, 1.0 / min_wavelength
-    power_law = np.where(f > 0, f, 1.0) ** np.float32(-slope)
-    high_pass = (f / f_lo) ** 2 / (1.0 + (f / f_lo) ** 2)
-    low_pass = np.exp(-((f / f_hi) ** 2))
-    shape = f.shape
+    amplitude = _band_amplitude(size, float(min_wavelength), float(max_wavelength), float(slope))
+    shape = amplitude.shape
     coeffs = rng.standard_normal(shape, dtype=np.float32) + 1j * rng.standard_normal(shape, dtype=np.float32)
-    coeffs *= power_law * high_pass * low_pass
+    coeffs *= amplitude
     coeffs[0, 0] = 0.0
-    noise = scipy.fft.irfft2(coeffs.astype(np.complex64), s=(size, size))
+    noise = scipy.fft.irfft2(coeffs, s=(size, size))
     return (noise / max(float(noise.std()), 1e-12)).astype(np.float32)
 
 
@@ -97,7 +106,7 @@ def pattern(rng: np.random.Generator, kind: str, size: int) -> np.ndarray:
     if kind not in PATTERNS:
         raise ValueError(f'unknown texture pattern {kind!r} (expected one of {", ".join(PATTERNS)})')
     fine = band_noise(rng, size, 3.0, 24.0, slope=0.5)
-    y, x = np.mgrid[0:size, 0:size].astype(np.float32)
+    y, x = (a.astype(np.float32) for a in np.ogrid[0:size, 0:size])
     if kind == 'noise':
         base = band_noise(rng, size, 4.0, 128.0, slope=1.0)
         p = 0.5 + 0.22 * base + 0.08 * fine

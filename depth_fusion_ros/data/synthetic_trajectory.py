@@ -74,7 +74,8 @@ def make_trajectory(
     W, D = float(room[0]), float(room[1])
     s = np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)
     base = np.array([rng.uniform(-0.15, 0.15) * W, -D / 2 + rng.uniform(0.55, 0.85), rng.uniform(1.25, 1.6)])
-    view_dist = min(rng.uniform(2.0, 2.8), D - (base[1] + D / 2) - 0.4)
+    # Look 2-2.8 m into the room, but not through the far wall of a small room.
+    view_dist = max(min(rng.uniform(2.0, 2.8), D - (base[1] + D / 2) - 0.4), 0.5)
     target = np.array([base[0] + rng.uniform(-0.3, 0.3), base[1] + view_dist, rng.uniform(0.45, 0.85)])
     roll = _wobble(rng, s, np.deg2rad(2.0))
     if parallax == 'high':
