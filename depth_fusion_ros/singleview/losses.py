@@ -54,12 +54,20 @@ def gradient_loss(log_pred: torch.Tensor, log_gt: torch.Tensor, valid: torch.Ten
     return ((gx * gx).sum() + (gy * gy).sum()) / n.clamp(min=1)
 
 
+def resize_target(depth: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Nearest-neighbour resize of (B, 1, H, W) ground truth, so holes and edges never blend."""
+    if tuple(depth.shape[-2:]) == tuple(size):
+        return depth
+    return F.interpolate(depth, size=size, mode='nearest')
+
+
 def depth_loss(
     log_pred: torch.Tensor, depth: torch.Tensor, si_lambda: float = 0.5, grad_weight: float = 1.0
 ) -> torch.Tensor:
     """Training loss of a (B, 1, h, w) log-depth prediction against (B, 1, H, W) metric depth
-    (NaN = unknown); the prediction is upsampled to the ground truth's size first."""
-    log_pred = upsample_to(log_pred, tuple(depth.shape[-2:]))
+    (NaN = unknown), at the prediction's resolution (as Eigen et al. train): the ground truth
+    is resampled to it, which is also cheaper than upsampling the prediction."""
+    depth = resize_target(depth, tuple(log_pred.shape[-2:]))
     log_gt, valid = log_depth_target(depth)
     loss = scale_invariant_loss(log_pred, log_gt, valid, si_lambda)
     if grad_weight > 0:
