@@ -112,3 +112,12 @@ def test_cli_help_documents_the_options():
         '--set',
     ):
         assert flag in out.stdout
+
+
+def test_running_doc_lists_every_replayer_and_recorder_parameter():
+    from depth_fusion_ros.nodes.bag_replayer import REPLAYER_PARAMS
+    from depth_fusion_ros.nodes.recorder import RECORDER_PARAMS
+
+    doc = (Path(__file__).resolve().parents[1] / 'docs' / 'running.md').read_text()
+    for spec in (*REPLAYER_PARAMS, *RECORDER_PARAMS):
+        assert f'| `{spec.name}` |' in doc, f'docs/running.md does not describe {spec.name}'

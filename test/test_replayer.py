@@ -40,6 +40,7 @@ INFO = '/camera/rgb/camera_info'
 POSE = '/camera/pose'
 T0_NS = 1_700_000_000 * 1_000_000_000
 PERIOD_NS = 33_333_333
+POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
 
 
 # --- test bags ----------------------------------------------------------------------------------
@@ -416,3 +417,13 @@ def test_console_script_plays_to_the_end_and_reports_bad_bags(bag, tmp_path):
     )
     assert bad.returncode == 1
     assert f'bag {tmp_path / "missing_bag"} does not exist' in bad.stderr
+
+
+def test_same_instant_messages_play_calibration_first():
+    """An image stored before its camera_info of the same instant is played after it."""
+    from depth_fusion_ros.nodes.bag_replayer import calibration_first
+
+    types = {'img': 'sensor_msgs/msg/Image', 'info': 'sensor_msgs/msg/CameraInfo', 'pose': POSE_TYPE}
+    stored = [('img', 1, 'a'), ('info', 1, 'b'), ('pose', 1, 'c'), ('img', 2, 'd'), ('pose', 2, 'e')]
+    played = list(calibration_first(iter(stored), types.get))
+    assert [(c, t) for c, t, _ in played] == [('info', 1), ('pose', 1), ('img', 1), ('pose', 2), ('img', 2)]

@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -181,6 +181,32 @@ def shift_header_stamp(raw: bytes, shift_ns: int) -> bytes:
     out = bytearray(raw)
     struct.pack_into(f'{endian}iI', out, 4, sec, nanosec)
     return bytes(out)
+
+
+#: Order of messages recorded at the same instant: what describes an image before the image.
+INSTANT_ORDER = {
+    'sensor_msgs/msg/CameraInfo': 0,
+    'geometry_msgs/msg/PoseStamped': 1,
+    'tf2_msgs/msg/TFMessage': 1,
+}
+
+
+def calibration_first(
+    messages: Iterable[tuple[Any, int, Any]], msgtype_of: Callable[[Any], str]
+) -> Iterator[tuple[Any, int, Any]]:
+    """``messages`` with each run of equal timestamps reordered camera_info, poses, then the rest.
+
+    A converter or a driver may store an image before the camera_info of the same instant; a
+    node receiving that image first cannot use it (it has no intrinsics yet) and drops it, which
+    shifts every later keyframe. Playback timing is unchanged (same timestamps).
+    """
+    group: list[tuple[Any, int, Any]] = []
+    for item in messages:
+        if group and item[1] != group[0][1]:
+            yield from sorted(group, key=lambda m: INSTANT_ORDER.get(msgtype_of(m[0]), 2))
+            group = []
+        group.append(item)
+    yield from sorted(group, key=lambda m: INSTANT_ORDER.get(msgtype_of(m[0]), 2))
 
 
 @dataclass
@@ -377,7 +403,8 @@ class BagReplayer(Node):
         pass_index = 0
         while not self._stop.is_set():
             shift = pass_index * self._loop_period_ns
-            for conn, t_ns, raw in self._reader.messages(connections, start=self._play_start_ns):
+            messages = self._reader.messages(connections, start=self._play_start_ns)
+            for conn, t_ns, raw in calibration_first(messages, lambda c: by_conn[c.id].msgtype):
                 due = wall0 + (t_ns + shift - t0) / 1e9 / rate
                 if deadline is not None and due > deadline:
                     return

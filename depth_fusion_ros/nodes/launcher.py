@@ -80,6 +80,9 @@ GRAPH_NODES: dict[str, tuple[str, str]] = {
 REPLAYER = ('bag_replayer', 'depth_fusion_ros.nodes.bag_replayer')
 RECORDER_NODE = 'depth_fusion_recorder'
 
+#: Topics every rclpy node has, which say nothing about a node being set up.
+STANDARD_TOPICS = frozenset({'/rosout', '/parameter_events'})
+
 PROFILE_ENV = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 
 
@@ -184,6 +187,11 @@ class RunOptions:
     flush_timeout: float = 60.0
     #: The outputs count as flushed once nothing new arrived for this long.
     settle: float = 1.0
+    #: Processes: keyframes still in flight after this long without any output are given up.
+    idle_timeout: float = 30.0
+    #: Processes: torch/OpenMP threads per node process (``None``: cores / 3 unless
+    #: OMP_NUM_THREADS is set), so three processes do not oversubscribe the cores.
+    threads_per_node: int | None = None
     #: Processes: seconds for the nodes to start (torch import, model load) before giving up.
     startup_timeout: float = 120.0
     executor_threads: int = 4
@@ -362,17 +370,19 @@ class GraphRun:
         rclpy.init(args=args, context=self._context, signal_handler_options=SignalHandlerOptions.NO)
         interrupted = False
         try:
-            self._start_recorder(opts)
-            if opts.processes:
-                self._start_processes(overrides)
-            else:
-                self._start_composed(overrides)
             try:
+                self._start_recorder(opts)
+                if opts.processes:
+                    self._start_processes(overrides)
+                else:
+                    self._start_composed(overrides)
                 self._wait_for_end_of_bag()
                 self._wait_for_flush()
             except KeyboardInterrupt:
                 interrupted = True
                 log.warning('interrupted: stopping the graph')
+                if self.recorder is None:
+                    raise
             result = self._result(interrupted)
             result.recorded = self._close_recorder(success=not interrupted)
             return result
@@ -447,16 +457,63 @@ class GraphRun:
     def _start_processes(self, overrides: dict[str, dict[str, Any]]) -> None:
         env = os.environ.copy()
         env.setdefault('PYTHONUNBUFFERED', '1')
+        threads = self.options.threads_per_node
+        if threads is None and 'OMP_NUM_THREADS' not in env:
+            threads = max(1, (os.cpu_count() or 1) // len(GRAPH_NODES))
+        if threads is not None:
+            env['OMP_NUM_THREADS'] = str(threads)
         replayer = dict(overrides.get(REPLAYER[0], {}))
         replayer.setdefault('wait_for_nodes', list(GRAPH_NODES))
         replayer.setdefault('wait_timeout', float(self.options.startup_timeout))
-        # Discovery between the nodes themselves finishes while the first frames play.
+        # The nodes' publishers and subscriptions exist (checked below); this lets the other
+        # processes' participants match them too before the first frame.
         replayer.setdefault('start_delay', 1.0)
         overrides = {**overrides, REPLAYER[0]: replayer}
-        for name, (script, module) in (*GRAPH_NODES.items(), (REPLAYER[0], REPLAYER)):
-            cmd = node_command(script, module, self._ros_args(overrides.get(name, {})))
-            self.processes[name] = self._popen(name, cmd, env)
-            log.info('started %s (pid %d)', name, self.processes[name].pid)
+        for name, (script, module) in GRAPH_NODES.items():
+            self._spawn(name, script, module, overrides, env)
+        self._wait_for_nodes_ready()
+        self._spawn(REPLAYER[0], *REPLAYER, overrides, env)
+
+    def _spawn(
+        self, name: str, script: str, module: str, overrides: dict[str, dict[str, Any]], env: dict[str, str]
+    ) -> None:
+        cmd = node_command(script, module, self._ros_args(overrides.get(name, {})))
+        self.processes[name] = self._popen(name, cmd, env)
+        log.info('started %s (pid %d)', name, self.processes[name].pid)
+
+    def _wait_for_nodes_ready(self) -> None:
+        """Wait until every node process has finished its constructor (model loaded, topics made).
+
+        A node is visible in the graph as soon as its constructor starts, long before a slow
+        one (loading a network) creates its publishers; the nodes create their subscriptions
+        last, so a node with subscriptions is ready. Without this wait the first keyframes'
+        results could be published before the fusion node is subscribed to them.
+        """
+        deadline = time.monotonic() + self.options.startup_timeout
+        while True:
+            self._check_processes()
+            waiting = [name for name in GRAPH_NODES if not self._node_ready(name)]
+            if not waiting:
+                log.info('nodes ready after %.1f s', time.monotonic() - self.started)
+                return
+            if time.monotonic() > deadline:
+                raise GraphError(
+                    f'{", ".join(waiting)} not ready after {self.options.startup_timeout:g} s'
+                    + ''.join(self._log_hint(n) for n in waiting[:1])
+                )
+            time.sleep(0.1)
+
+    def _node_ready(self, name: str) -> bool:
+        graph = self.recorder
+        if name not in {n for n, ns in graph.get_node_names_and_namespaces() if ns == '/'}:
+            return False
+        try:
+            subs = graph.get_subscriber_names_and_types_by_node(name, '/')
+            pubs = graph.get_publisher_names_and_types_by_node(name, '/')
+        except Exception:  # the node left the graph between the two calls
+            return False
+        own = [t for t, _ in subs if t not in STANDARD_TOPICS]
+        return bool(own) and any(t not in STANDARD_TOPICS for t, _ in pubs)
 
     def _ros_args(self, values: Mapping[str, Any]) -> list[str]:
         args = []
@@ -527,25 +584,59 @@ class GraphRun:
         return missing
 
     def _wait_for_flush(self) -> None:
+        """Wait for the announced keyframes' fused outputs; warn naming what never came.
+
+        Every stage handles keyframes in stamp order, so a keyframe older than the newest fused
+        one is lost (a full queue, a failure), not late. Done when no keyframe is in flight and
+        nothing arrived for ``settle`` s (composed: the workers must be idle too, and then
+        nothing can still come). As processes, a keyframe still in flight after ``idle_timeout``
+        s without any output is given up. ``flush_timeout`` bounds it all.
+        """
         opts = self.options
-        deadline = time.monotonic() + opts.flush_timeout
-        while time.monotonic() < deadline:
+        start = time.monotonic()
+        why = ''
+        while True:
             self._check_processes()
-            quiet = time.monotonic() - self.recorder.last_arrival >= opts.settle
-            if quiet and not self.pending_keyframes() and self._nodes_idle():
-                return
+            now = time.monotonic()
+            silent = now - self.recorder.last_arrival
+            if silent >= opts.settle and self._nodes_idle():
+                if not opts.processes or not self.in_flight_keyframes():
+                    break
+                if silent >= opts.idle_timeout:
+                    why = f'nothing arrived for {silent:.0f} s'
+                    break
+            if now - start >= opts.flush_timeout:
+                why = f'gave up after {opts.flush_timeout:g} s'
+                break
             time.sleep(0.05)
         missing = self.pending_keyframes()
         if missing:
-            listed = ', '.join(f'{s / 1e9:.3f} ({why})' for s, why in list(missing.items())[:10])
+            listed = ', '.join(f'{s / 1e9:.3f} ({what})' for s, what in list(missing.items())[:10])
             more = f' and {len(missing) - 10} more' if len(missing) > 10 else ''
             log.warning(
-                'gave up waiting after %.0f s: %d announced keyframe(s) have no fused output: %s%s',
-                opts.flush_timeout,
+                '%d announced keyframe(s) have no fused output%s: %s%s%s',
                 len(missing),
+                f' ({why})' if why else '',
                 listed,
                 more,
+                self._drop_summary(),
             )
+
+    def in_flight_keyframes(self) -> list[int]:
+        """Announced keyframes newer than the newest fused one (they may still come)."""
+        fused = self.recorder.stamp_logs.get(TOPIC_FUSED_DEPTH)
+        newest = max(fused.stamps(), default=-1) if fused is not None else -1
+        return [s for s in self.pending_keyframes() if s > newest]
+
+    def _drop_summary(self) -> str:
+        """``'; dropped by fusion_node: worker_queue_full=2'`` (composed mode: the nodes' counters)."""
+        parts = []
+        for name, node in self.nodes.items():
+            if name in GRAPH_NODES:
+                dropped = node.stats.snapshot().dropped
+                if dropped:
+                    parts.append(f'{name}: ' + ', '.join(f'{k}={v}' for k, v in sorted(dropped.items())))
+        return '; dropped by ' + '; '.join(parts) if parts else ''
 
     def _nodes_idle(self) -> bool:
         """Composed: every worker has finished (processes are judged by their outputs only)."""
