@@ -188,13 +188,15 @@ def dataclass_specs(
     scalar type (arrays, nested configs) and fields in ``skip`` are left out. A field whose
     default is ``None`` becomes a string (``'auto'`` = ``None``), a float or an int parameter
     with the sentinel documented in its description, chosen from the field's annotation.
-    A field missing from ``descriptions`` still becomes a parameter (so the nodes keep working
-    when the core grows), described by its name; ``missing_descriptions`` lists them for tests.
+    Descriptions come from ``descriptions``, else from the ``#:`` comment above the field in the
+    dataclass (:func:`field_comments`), else the field's name (``missing_descriptions`` lists
+    those for tests); so a field added to the core becomes a described parameter by itself.
     """
     limits = limits or {}
     defaults = defaults or {}
     skip = set(skip)
     hints = typing.get_type_hints(config_cls)
+    descriptions = {**field_comments(config_cls), **descriptions}
     specs = []
     for field in dataclasses.fields(config_cls):
         if field.name in skip or field.name.startswith('_'):
@@ -217,6 +219,42 @@ def dataclass_specs(
         low, high = limit if limit and not choices else (None, None)  # type: ignore[misc]
         specs.append(ParamSpec(f'{prefix}.{field.name}', default, description, low, high, choices))
     return specs
+
+
+def field_comments(config_cls: type) -> dict[str, str]:
+    """``#:`` comments written above the fields of a dataclass, by field name.
+
+    The core configs document their fields that way (``#: Coarse inverse-depth samples per
+    pixel.``); reading them keeps the ROS parameter descriptions in step with the core when a
+    field is added, without a second table to maintain. A comment above several fields
+    applies to each of them.
+    """
+    import inspect
+
+    try:
+        lines = inspect.getsource(config_cls).splitlines()
+    except (OSError, TypeError):
+        return {}
+    names = {f.name for f in dataclasses.fields(config_cls)}
+    comments: dict[str, str] = {}
+    block: list[str] = []
+    in_comment = False
+    for line in lines:
+        text = line.strip()
+        if text.startswith('#:'):
+            if not in_comment:
+                block = []  # a new comment block replaces the one above the previous field
+            block.append(text[2:].strip())
+            in_comment = True
+            continue
+        in_comment = False
+        name = text.split(':', 1)[0].strip()
+        if name in names and ':' in text:
+            if block:
+                comments[name] = ' '.join(block).rstrip('.')
+            continue  # the same block may document the next field too
+        block = []
+    return comments
 
 
 def _field_default(field: dataclasses.Field) -> Any:
@@ -244,8 +282,10 @@ def _none_sentinel(kind: type, description: str) -> tuple[ParamValue, str]:
 def missing_descriptions(
     config_cls: type, descriptions: Mapping[str, str], skip: Iterable[str] = ()
 ) -> list[str]:
-    """Scalar fields of ``config_cls`` that have no description in ``descriptions`` (test helper)."""
+    """Scalar fields of ``config_cls`` described neither in ``descriptions`` nor by a ``#:``
+    comment in the dataclass (test helper)."""
     hints = typing.get_type_hints(config_cls)
+    descriptions = {**field_comments(config_cls), **descriptions}
     return [
         f.name
         for f in dataclasses.fields(config_cls)

@@ -1,0 +1,412 @@
+"""``multi_view_node``: image + camera_info + PoseStamped -> semi-dense keyframe depth and score.
+
+Poses come from any SLAM at their own rate and stamps, so the node keeps them in a bounded
+:class:`~depth_fusion_ros.pose_buffer.PoseBuffer` and interpolates the pose at each image
+stamp (linear translation, slerp). An image newer than the latest pose waits (bounded, see
+``pose_wait``) because a SLAM usually publishes a frame's pose after the frame; an image the
+buffer cannot cover (before the first pose, across a gap longer than ``max_pose_gap``, or
+never reached by the poses in time) is dropped and counted.
+
+Every posed frame is kept, undistorted on the working grid, in a bounded buffer of recent
+frames: the only frames the multi-view search may use as neighbours (online mode: past
+frames the node really received). The keyframe decision is deterministic given the input
+stream (every ``keyframe_every``-th posed frame, or by motion), so a replay of the same bag
+gives the same keyframes as the offline evaluation with the same stride.
+
+A keyframe is announced on ``depth_fusion/keyframe/image`` (rgb8, undistorted, working grid)
+and ``depth_fusion/keyframe/camera_info`` with the source header when the worker takes it,
+before the plane sweep: the single-view node then runs the network in parallel. A keyframe
+dropped from the work queue (latest-wins) is never announced, so every announced keyframe
+gets a multi-view depth (possibly without estimates) and the fusion node never waits for
+one that will not come.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image
+
+from ..camera import PinholeCamera
+from ..data import messages
+from ..data.sequence import Frame
+from ..geometry import invert_pose, rotation_angle
+from ..multiview.neighbours import NeighbourConfig, select_neighbours
+from ..multiview.semidense import MultiViewConfig, estimate_semidense
+from ..pose_buffer import PoseBuffer
+from .base import DepthFusionNode, run_node
+from .image_input import (
+    CameraInput,
+    InputError,
+    StampGuard,
+    WorkingImage,
+    calibration_from_parameters,
+    header_stamp_ns,
+    pose_from_message,
+)
+from .params import ParamSpec, build_dataclass, dataclass_specs
+from .qos import qos_profile
+
+NODE_NAME = 'multi_view_node'
+
+TOPIC_IMAGE = 'camera/rgb/image_color'
+TOPIC_CAMERA_INFO = 'camera/rgb/camera_info'
+TOPIC_POSE = 'camera/pose'
+TOPIC_KEYFRAME_IMAGE = 'depth_fusion/keyframe/image'
+TOPIC_KEYFRAME_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
+TOPIC_DEPTH = 'depth_fusion/multi_view/depth'
+TOPIC_SCORE = 'depth_fusion/multi_view/score'
+
+KEYFRAME_POLICIES = ('every_k', 'motion')
+
+#: Descriptions of the ``MultiViewConfig`` fields exposed as ``multi_view.*`` parameters.
+MULTI_VIEW_DESCRIPTIONS = {
+    'min_depth': 'nearest depth hypothesis (m); the sweep is uniform in inverse depth',
+    'max_depth': 'farthest depth hypothesis (m)',
+    'num_samples': 'coarse inverse-depth samples per pixel',
+    'refine_samples': 'fine samples on each side of the coarse minimum',
+    'patch': "patch layout of the ZNCC cost: 'point', 'cross' (5 pixels) or 'box' (9)",
+    'patch_stride': 'spacing (px) of the patch samples',
+    'blur_sigma': 'Gaussian blur (px) before matching (noise, aliasing)',
+    'noise_floor': 'grey-level noise floor of the ZNCC normalisation',
+    'min_gradient': 'candidate pixels: grey gradient magnitude (grey in [0, 1] per px) at least this',
+    'all_pixels': 'search every pixel instead of the high-gradient ones (dense, slower)',
+    'min_view_fraction': 'a depth sample counts only if at least this fraction of the neighbours sees it',
+    'max_cost': 'estimates whose best cost (1 - ZNCC) is above this are dropped',
+    'second_min_exclusion': 'samples around the best ignored when looking for the second-best minimum',
+    'chunk_elements': 'largest intermediate tensor in float elements (bounds memory)',
+}
+MULTI_VIEW_LIMITS: dict[str, Any] = {
+    'min_depth': (1e-3, None),
+    'max_depth': (1e-3, None),
+    'num_samples': (3, 4096),
+    'refine_samples': (1, 64),
+    'patch': ('point', 'cross', 'box'),
+    'patch_stride': (1, 16),
+    'blur_sigma': (0.0, 20.0),
+    'noise_floor': (0.0, 1.0),
+    'min_gradient': (0.0, 10.0),
+    'max_candidate_fraction': (0.0, 1.0),
+    'min_view_fraction': (0.0, 1.0),
+    'max_cost': (0.0, 2.0),
+    'second_min_exclusion': (0, 1000),
+    'chunk_elements': (1024, None),
+}
+#: Descriptions of the ``NeighbourConfig`` fields exposed as ``neighbours.*`` parameters.
+NEIGHBOUR_DESCRIPTIONS = {
+    'window': 'neighbour candidates: the last window posed frames received (kept undistorted in memory)',
+    'scene_depth': 'typical scene depth (m) that turns a baseline into parallax and places the overlap test',
+    'target_parallax': 'preferred baseline / scene depth of a neighbour',
+    'min_parallax': 'below this baseline / depth a frame counts as zero baseline (pure rotation)',
+    'max_parallax': 'above this baseline / depth a frame is not used (appearance changes too much)',
+    'max_rotation_deg': 'largest rotation between keyframe and neighbour (degrees)',
+    'min_overlap': 'smallest fraction of the keyframe that must be visible in a neighbour',
+    'min_separation': 'chosen neighbours are at least this fraction of the target baseline apart',
+}
+NEIGHBOUR_LIMITS: dict[str, Any] = {
+    'window': (1, 1000),
+    'scene_depth': (1e-3, None),
+    'target_parallax': (1e-6, None),
+    'min_parallax': (0.0, None),
+    'max_parallax': (0.0, None),
+    'max_rotation_deg': (0.0, 180.0),
+    'min_overlap': (0.0, 1.0),
+    'min_separation': (0.0, None),
+}
+#: Stage 1 runs in the fusion node (``stage1_fraction``), on the score image published here.
+MULTI_VIEW_SKIP = ('select_fraction',)
+
+PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec('device', 'cpu', 'torch device of the plane sweep: cpu, cuda, cuda:1, ...'),
+    ParamSpec(
+        'width', 320, 'working grid width (pixels): images are undistorted and resized to it', 16, 4096
+    ),
+    ParamSpec('height', 240, 'working grid height (pixels)', 16, 4096),
+    ParamSpec(
+        'camera_intrinsics',
+        [0.0, 0.0, 0.0, 0.0],
+        'fx, fy, cx, cy at the raw image size, used instead of camera_info when set '
+        '(all zero: use camera_info)',
+        length=4,
+    ),
+    ParamSpec(
+        'camera_distortion',
+        [0.0, 0.0, 0.0, 0.0, 0.0],
+        'plumb_bob k1, k2, p1, p2, k3 for camera_intrinsics',
+        length=5,
+    ),
+    ParamSpec(
+        'keyframe_policy',
+        'every_k',
+        'every_k: every keyframe_every-th posed frame; motion: when the camera moved '
+        'keyframe_min_translation or turned keyframe_min_rotation_deg since the last keyframe',
+        choices=KEYFRAME_POLICIES,
+    ),
+    ParamSpec('keyframe_every', 5, 'every_k policy: posed frames 0, k, 2k, ... are keyframes', 1, 100000),
+    ParamSpec(
+        'keyframe_min_translation', 0.05, 'motion policy: translation (m) since the last keyframe', 0.0
+    ),
+    ParamSpec(
+        'keyframe_min_rotation_deg',
+        5.0,
+        'motion policy: rotation (degrees) since the last keyframe',
+        0.0,
+        180.0,
+    ),
+    ParamSpec('num_neighbours', 4, 'overlapping past frames used per keyframe', 1, 32),
+    ParamSpec(
+        'min_neighbours',
+        1,
+        'a frame becomes a keyframe only when at least this many usable neighbours exist',
+        1,
+        32,
+    ),
+    ParamSpec(
+        'pose_qos_depth',
+        100,
+        'history depth of the pose subscription: poses are small and come in bursts from a SLAM, and a '
+        'lost pose means interpolating over a longer interval',
+        1,
+        100000,
+    ),
+    ParamSpec('pose_buffer_size', 1000, 'poses kept for interpolation (oldest dropped first)', 2, 1000000),
+    ParamSpec(
+        'max_pose_gap',
+        0.5,
+        'seconds between two poses above which an image between them is not interpolated (tracking lost)',
+        0.0,
+    ),
+    ParamSpec(
+        'pose_wait',
+        1.0,
+        'an image newer than the latest pose waits until the image stream is this many seconds (stamp '
+        'time) ahead of it; then it is dropped as not posed',
+        0.0,
+    ),
+    ParamSpec(
+        'max_pending_images', 30, 'images waiting for their pose at most (oldest dropped first)', 1, 10000
+    ),
+    *dataclass_specs(NeighbourConfig, 'neighbours', NEIGHBOUR_DESCRIPTIONS, NEIGHBOUR_LIMITS),
+    *dataclass_specs(
+        MultiViewConfig, 'multi_view', MULTI_VIEW_DESCRIPTIONS, MULTI_VIEW_LIMITS, skip=MULTI_VIEW_SKIP
+    ),
+)
+
+
+@dataclass
+class _Pending:
+    image: WorkingImage
+    received_at: float
+
+
+@dataclass
+class _KeyframeJob:
+    key: Frame
+    neighbours: list[Frame]
+    camera: PinholeCamera
+    header: Any
+    received_at: float
+
+
+class MultiViewNode(DepthFusionNode):
+    """Poses images by stamp, decides keyframes and runs the semi-dense search on a worker."""
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
+        super().__init__(node_name, PARAMETERS, **kwargs)
+        p = self.params
+        self.config: MultiViewConfig = build_dataclass(MultiViewConfig, p, 'multi_view')
+        self.neighbour_config: NeighbourConfig = build_dataclass(NeighbourConfig, p, 'neighbours')
+        try:
+            self.config.validate()
+            self.neighbour_config.validate()
+        except ValueError as exc:
+            raise ValueError(f'{self.get_name()}: {exc}') from None
+        fixed = calibration_from_parameters(p['camera_intrinsics'], p['camera_distortion'])
+        self.camera_input = CameraInput(
+            int(p['width']),
+            int(p['height']),
+            fixed_intrinsics=fixed,
+            fixed_distortion=tuple(p['camera_distortion']),
+        )
+        self.device = str(p['device'])
+        self.pose_buffer = PoseBuffer(capacity=int(p['pose_buffer_size']), max_gap=float(p['max_pose_gap']))
+        self.frames: deque[Frame] = deque(maxlen=self.neighbour_config.window)
+        self.pending: deque[_Pending] = deque()
+        self.posed_count = 0
+        self.keyframes_decided = 0
+        self._last_keyframe_pose: np.ndarray | None = None
+        self._image_stamps = StampGuard('image')
+        self._pose_stamps = StampGuard('pose')
+        self._newest_image_ns: int | None = None
+
+        self._kf_image_pub = self.create_publisher(Image, TOPIC_KEYFRAME_IMAGE, self.output_qos)
+        self._kf_info_pub = self.create_publisher(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self.output_qos)
+        self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
+        self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
+        self.worker = self.make_worker('multi_view', self._process)
+        self.create_subscription(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
+        pose_qos = qos_profile(str(p['input_qos']), int(p['pose_qos_depth']))
+        self.create_subscription(PoseStamped, TOPIC_POSE, self._on_pose, pose_qos)
+        self.create_subscription(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
+        self.get_logger().info(
+            f'multi-view on {self.device}, keyframes {p["keyframe_policy"]}'
+            + (f' every {p["keyframe_every"]}' if p['keyframe_policy'] == 'every_k' else '')
+            + f', {p["num_neighbours"]} neighbours among the last {self.neighbour_config.window} frames; '
+            f'{self.resolve_topic_name(TOPIC_IMAGE)} + {self.resolve_topic_name(TOPIC_POSE)} -> '
+            f'{self.resolve_topic_name(TOPIC_DEPTH)}'
+        )
+
+    # --- callbacks (light: decode, check, buffer) ---------------------------------------------------
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        self.stats.received('camera_info')
+        try:
+            self.camera_input.update(msg)
+        except InputError as exc:
+            self.stats.dropped(exc.reason, str(exc))
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        self.stats.received('pose')
+        try:
+            T_wc = pose_from_message(msg)
+            stamp_ns = header_stamp_ns(msg)
+            self._pose_stamps.check(stamp_ns)
+        except InputError as exc:
+            self.stats.dropped(exc.reason, str(exc))
+            return
+        self.pose_buffer.insert(messages.ns_to_sec(stamp_ns), T_wc)
+        self._resolve_pending()
+
+    def _on_image(self, msg: Image) -> None:
+        received_at = time.monotonic()
+        self.stats.received('image')
+        try:
+            image = self.camera_input.working_image(msg)
+            self._image_stamps.check(image.stamp_ns)
+        except InputError as exc:
+            self.stats.dropped(exc.reason, str(exc))
+            return
+        self._newest_image_ns = image.stamp_ns
+        self.pending.append(_Pending(image, received_at))
+        while len(self.pending) > int(self.params['max_pending_images']):
+            old = self.pending.popleft()
+            self.stats.dropped(
+                'pose_wait_overflow',
+                f'image {messages.ns_to_sec(old.image.stamp_ns):.3f} dropped: more than '
+                f'{self.params["max_pending_images"]} images waiting for poses',
+            )
+        self._resolve_pending()
+
+    def _resolve_pending(self) -> None:
+        """Pose every waiting image the buffer now covers, in stamp order; drop the hopeless ones."""
+        wait_ns = messages.sec_to_ns(float(self.params['pose_wait']))
+        while self.pending:
+            head = self.pending[0]
+            stamp = messages.ns_to_sec(head.image.stamp_ns)
+            span = self.pose_buffer.span
+            if span is None or stamp > span[1]:
+                # The pose of this image may still come; give up once the stream is pose_wait ahead.
+                if (
+                    self._newest_image_ns is not None
+                    and self._newest_image_ns - head.image.stamp_ns > wait_ns
+                ):
+                    self.pending.popleft()
+                    newest = 'no pose yet' if span is None else f'latest pose {span[1]:.3f}'
+                    self.stats.dropped('no_pose', f'image {stamp:.3f} has no pose ({newest}); dropped')
+                    continue
+                return
+            self.pending.popleft()
+            if stamp < span[0]:
+                self.stats.dropped('no_pose', f'image {stamp:.3f} is older than the first pose {span[0]:.3f}')
+                continue
+            lookup = self.pose_buffer.lookup(stamp)
+            if lookup.pose is None:
+                self.stats.dropped('pose_gap', f'image {stamp:.3f}: {lookup.reason}')
+                continue
+            self._on_posed_frame(head, lookup.pose)
+
+    def _on_posed_frame(self, pending: _Pending, T_wc: np.ndarray) -> None:
+        image = pending.image
+        frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
+        self.posed_count += 1
+        if self._is_keyframe_candidate(frame):
+            neighbours = self._select_neighbours(frame, image.camera)
+            if len(neighbours) >= int(self.params['min_neighbours']):
+                self.keyframes_decided += 1
+                self._last_keyframe_pose = T_wc
+                self.worker.submit(
+                    _KeyframeJob(frame, neighbours, image.camera, image.header, pending.received_at)
+                )
+        self.frames.append(frame)
+
+    # --- keyframe policy ----------------------------------------------------------------------------
+
+    def _is_keyframe_candidate(self, frame: Frame) -> bool:
+        if self.params['keyframe_policy'] == 'every_k':
+            return frame.index % int(self.params['keyframe_every']) == 0
+        if self._last_keyframe_pose is None:
+            return True
+        delta = invert_pose(self._last_keyframe_pose) @ frame.pose
+        moved = float(np.linalg.norm(delta[:3, 3])) >= float(self.params['keyframe_min_translation'])
+        turned = np.degrees(rotation_angle(delta[:3, :3])) >= float(self.params['keyframe_min_rotation_deg'])
+        return moved or turned
+
+    def _select_neighbours(self, key: Frame, camera: PinholeCamera) -> list[Frame]:
+        """Up to ``num_neighbours`` of the buffered past frames, chosen by the core's online rule."""
+        history = list(self.frames)
+        if not history:
+            return []
+        poses = np.stack([f.pose for f in history] + [key.pose])
+        chosen = select_neighbours(
+            poses,
+            len(history),
+            int(self.params['num_neighbours']),
+            mode='online',
+            camera=camera,
+            config=self.neighbour_config,
+        )
+        return [history[i] for i in chosen]
+
+    # --- worker (heavy) -----------------------------------------------------------------------------
+
+    def _process(self, job: _KeyframeJob) -> None:
+        kind = messages.RCLPY
+        self._kf_info_pub.publish(messages.camera_info_msg(job.camera, job.header, kind=kind))
+        self._kf_image_pub.publish(messages.rgb_image_msg(job.key.rgb, job.header, kind=kind))
+        self.stats.published('keyframe')
+        try:
+            result = estimate_semidense(
+                job.key.gray,
+                job.key.pose,
+                [f.gray for f in job.neighbours],
+                [f.pose for f in job.neighbours],
+                job.camera,
+                self.config,
+                device=self.device,
+                neighbours=[f.index for f in job.neighbours],
+            )
+            depth, score = result.depth, result.score.astype(np.float32)
+        except Exception as exc:  # the keyframe is announced: downstream must still hear of it
+            self.stats.dropped('processing_error', f'multi-view search failed: {type(exc).__name__}: {exc}')
+            self.get_logger().debug(traceback.format_exc())
+            depth = score = np.full((job.camera.height, job.camera.width), np.nan, dtype=np.float32)
+        self._depth_pub.publish(messages.depth_image_msg(depth, job.header, kind=kind))
+        self._score_pub.publish(messages.image_msg(score, '32FC1', job.header, kind=kind))
+        self.stats.published('depth')
+        self.stats.processed(time.monotonic() - job.received_at)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point: ``multi_view_node --ros-args --params-file config/depth_fusion.yaml``."""
+    return run_node(MultiViewNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,257 @@
+"""multi_view_node over real DDS: poses from a separate stream, keyframes, accuracy, bad inputs."""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image
+
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.geometry import interpolate_poses
+from depth_fusion_ros.multiview.neighbours import NeighbourConfig, select_neighbours
+from depth_fusion_ros.multiview.semidense import MultiViewConfig, estimate_semidense
+from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
+from depth_fusion_ros.nodes.qos import qos_profile
+from depth_fusion_ros.nodes.testing import RosHarness
+
+K = m.RCLPY
+FRAME = 'camera_rgb_optical_frame'
+
+
+class _Camera:
+    """Publishers of what a camera driver and a SLAM system publish."""
+
+    def __init__(self, ros: RosHarness) -> None:
+        deep = qos_profile('reliable', 100)  # a slow subscriber must not lose a burst
+        self.image = ros.publisher(Image, '/camera/rgb/image_color', deep)
+        self.info = ros.publisher(CameraInfo, '/camera/rgb/camera_info', deep)
+        self.pose = ros.publisher(PoseStamped, '/camera/pose', deep)
+        self.poses_published = 0
+        assert ros.wait_for_subscribers([self.image, self.info, self.pose])
+
+    def publish_image(self, rgb: np.ndarray, stamp_ns: int, camera, encoding: str = 'rgb8') -> None:
+        header = m.header_msg(stamp_ns, FRAME, kind=K)
+        self.info.publish(m.camera_info_msg(camera, header, kind=K))
+        msg = m.rgb_image_msg(rgb, header, kind=K)
+        msg.encoding = encoding
+        self.image.publish(msg)
+
+    def publish_pose(self, T_wc: np.ndarray, stamp_ns: int) -> None:
+        self.poses_published += 1
+        self.pose.publish(m.pose_stamped_msg(T_wc, m.header_msg(stamp_ns, 'world', kind=K), kind=K))
+
+
+def _collect_outputs(ros: RosHarness) -> dict[str, list]:
+    return {
+        'depth': ros.collect(Image, '/depth_fusion/multi_view/depth'),
+        'score': ros.collect(Image, '/depth_fusion/multi_view/score'),
+        'keyframe': ros.collect(Image, '/depth_fusion/keyframe/image'),
+        'keyframe_info': ros.collect(CameraInfo, '/depth_fusion/keyframe/camera_info'),
+    }
+
+
+def _stamps(messages: list) -> list[int]:
+    return [m.stamp_to_ns(msg.header.stamp) for msg in messages]
+
+
+def test_slam_rate_poses_are_interpolated_and_depth_is_accurate(synthetic_sequence, tmp_path):
+    """Poses at 2.5x the image rate, at other stamps than the images (but the first), published
+    after the image (as a SLAM system would); parameters from a --params-file that changes the
+    keyframe stride."""
+    seq = synthetic_sequence
+    stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    pose_stamps = np.concatenate(
+        ([seq.stamps[0]], np.arange(seq.stamps[0] + 0.007, seq.stamps[-1], 1 / 75.0))
+    )
+    pose_T, valid = interpolate_poses(seq.stamps, seq.poses, pose_stamps)
+    assert valid.all()
+    params = tmp_path / 'params.yaml'
+    params.write_text(
+        'multi_view_node:\n  ros__parameters:\n    keyframe_every: 6\n    queue_size: 8\n    qos_depth: 100\n'
+    )
+
+    with RosHarness(args=['--ros-args', '--params-file', str(params)]) as ros:
+        node = ros.add(MultiViewNode(context=ros.context))
+        assert node.params['keyframe_every'] == 6  # the default is 5
+        out = _collect_outputs(ros)
+        cam = _Camera(ros)
+        first_pose = 0
+        for i, frame in enumerate(seq.frames):
+            cam.publish_image(frame.rgb, stamps[i], seq.camera)
+            # the SLAM answers a little later with the poses up to just after this image
+            horizon = seq.stamps[i] + 0.014 if i + 1 < len(seq.frames) else np.inf
+            while first_pose < len(pose_stamps) and pose_stamps[first_pose] <= horizon:
+                cam.publish_pose(pose_T[first_pose], m.sec_to_ns(float(pose_stamps[first_pose])))
+                first_pose += 1
+            time.sleep(0.02)
+        # the last images lie after the last pose stamp: only a pose at or after them covers them
+        cam.publish_pose(seq.poses[-1], stamps[-1])
+        expected_keys = [6, 12, 18]  # posed frames 0, 6, 12 ... with at least one past neighbour
+        assert ros.wait_for(lambda: len(out['score']) == len(expected_keys), 120.0), (
+            node.stats.snapshot().summary()
+        )
+        snap = node.stats.snapshot()
+
+    assert snap.dropped == {}, snap.summary()
+    assert snap.received['pose'] == cam.poses_published and node.posed_count == len(seq.frames)
+    key_stamps = [stamps[k] for k in expected_keys]
+    for name in ('depth', 'score', 'keyframe', 'keyframe_info'):
+        assert _stamps(out[name]) == key_stamps, name
+        assert all(msg.header.frame_id == FRAME for msg in out[name])
+    for k, kf, info in zip(expected_keys, out['keyframe'], out['keyframe_info'], strict=True):
+        np.testing.assert_array_equal(m.image_to_rgb(kf), seq.frames[k].rgb)  # undistorted already, same size
+        assert info.k[0] == pytest.approx(seq.camera.fx) and list(info.d) == [0.0] * 5
+
+    published_stamps = np.append(pose_stamps, seq.stamps[-1])
+    node_poses, _ = interpolate_poses(published_stamps, np.concatenate((pose_T, seq.poses[-1:])), seq.stamps)
+    rel_errors = []
+    for k, depth_msg, score_msg in zip(expected_keys, out['depth'], out['score'], strict=True):
+        depth = m.image_to_numpy(depth_msg)
+        score = m.image_to_numpy(score_msg)
+        gt = seq.frames[k].depth
+        valid = np.isfinite(depth) & np.isfinite(gt)
+        assert valid.mean() > 0.05, f'keyframe {k}: density {valid.mean():.3f}'
+        assert np.array_equal(np.isfinite(score), np.isfinite(depth))
+        rel = np.abs(depth[valid] - gt[valid]) / gt[valid]
+        rel_errors.append(np.median(rel))
+        # The same search offline, on the poses the node could know (the pose stream interpolated
+        # at the image stamps) and the same online neighbours: the node adds nothing of its own.
+        neighbours = select_neighbours(node_poses[: k + 1], k, 4, 'online', seq.camera, NeighbourConfig())
+        offline = estimate_semidense(
+            seq.frames[k].gray,
+            node_poses[k],
+            [seq.frames[i].gray for i in neighbours],
+            [node_poses[i] for i in neighbours],
+            seq.camera,
+            MultiViewConfig(),
+        ).depth
+        both = np.isfinite(depth) & np.isfinite(offline)
+        assert both.sum() > 0.99 * np.isfinite(offline).sum()
+        assert np.median(np.abs(depth[both] - offline[both]) / offline[both]) < 1e-4
+    assert max(rel_errors) < 0.04, rel_errors
+
+
+def test_bad_inputs_are_dropped_counted_and_processing_goes_on(synthetic_sequence):
+    seq = synthetic_sequence
+    stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    with RosHarness() as ros:
+        node = ros.add(
+            MultiViewNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('width', value=160),
+                    Parameter('height', value=120),
+                    Parameter('keyframe_every', value=3),
+                    Parameter('max_pose_gap', value=0.1),
+                    Parameter('queue_size', value=10),
+                ],
+            )
+        )
+        out = _collect_outputs(ros)
+        cam = _Camera(ros)
+
+        def expect(reason: str, count: int = 1) -> None:
+            ok = ros.wait_for(lambda: node.stats.snapshot().dropped.get(reason, 0) == count, 10.0)
+            assert ok, f'{reason}: {node.stats.snapshot().summary()}'
+
+        rgb = seq.frames[0].rgb
+        cam.image.publish(m.rgb_image_msg(rgb, m.header_msg(stamps[0], FRAME, kind=K), kind=K))
+        expect('no_camera_info')
+        uncalibrated = m.camera_info_msg(seq.camera, m.header_msg(stamps[0], FRAME, kind=K), kind=K)
+        uncalibrated.k = [0.0] * 9
+        cam.info.publish(uncalibrated)
+        expect('bad_camera_info')
+        cam.publish_image(rgb, stamps[0], seq.camera, encoding='yuv422')
+        expect('bad_encoding')
+        small = np.ascontiguousarray(rgb[::2, ::2])
+        cam.image.publish(m.rgb_image_msg(small, m.header_msg(stamps[0], FRAME, kind=K), kind=K))
+        expect('size_mismatch')
+        cam.publish_image(seq.frames[1].rgb, stamps[1], seq.camera)  # waits for a pose ...
+        cam.publish_image(seq.frames[1].rgb, stamps[1], seq.camera)
+        expect('duplicate_stamp_image')
+        cam.publish_image(rgb, stamps[0], seq.camera)
+        expect('stamp_out_of_order_image')
+        broken = m.pose_stamped_msg(seq.poses[2], m.header_msg(stamps[2], 'world', kind=K), kind=K)
+        broken.pose.orientation.x = float('nan')
+        cam.pose.publish(broken)
+        broken.pose.orientation.x, broken.pose.orientation.w = 0.3, 1.2  # |q| != 1
+        cam.pose.publish(broken)
+        expect('bad_pose', 2)
+        cam.publish_pose(seq.poses[2], stamps[2])  # ... and the first pose comes after frame 1
+        expect('no_pose')
+        cam.publish_pose(seq.poses[2], stamps[2])
+        expect('duplicate_stamp_pose')
+        cam.publish_pose(seq.poses[1], stamps[1])
+        expect('stamp_out_of_order_pose')
+
+        lost = range(11, 18)  # tracking lost: no poses for these frames (a 0.27 s gap)
+        for i in range(2, len(seq.frames)):
+            cam.publish_image(seq.frames[i].rgb, stamps[i], seq.camera)
+            if i not in lost and i > 2:
+                cam.publish_pose(seq.poses[i], stamps[i])
+            time.sleep(0.01)
+        expect('pose_gap', len(lost))
+        # posed frames 2..10 and 18..23; keyframes every 3rd posed frame with a past neighbour
+        before_gap, after_gap = [5, 8], [18, 21]
+        assert ros.wait_for(lambda: len(out['score']) == 4, 120.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+
+    assert snap.dropped == {
+        'no_camera_info': 1,
+        'bad_camera_info': 1,
+        'bad_encoding': 1,
+        'size_mismatch': 1,
+        'duplicate_stamp_image': 1,
+        'stamp_out_of_order_image': 1,
+        'bad_pose': 2,
+        'no_pose': 1,
+        'duplicate_stamp_pose': 1,
+        'stamp_out_of_order_pose': 1,
+        'pose_gap': len(lost),
+    }, snap.summary()
+    assert _stamps(out['depth']) == [stamps[k] for k in before_gap + after_gap]
+    for depth_msg in out['depth']:
+        assert (depth_msg.width, depth_msg.height) == (160, 120)
+        assert np.isfinite(m.image_to_numpy(depth_msg)).mean() > 0.02
+
+
+def test_motion_keyframes_and_parameter_errors(synthetic_sequence):
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        node = MultiViewNode(
+            context=ros.context,
+            parameter_overrides=[
+                Parameter('keyframe_policy', value='motion'),
+                Parameter('keyframe_min_translation', value=0.15),
+            ],
+        )
+        keyframes = []
+        for frame in seq.frames:  # what the node does for each posed frame
+            if node._is_keyframe_candidate(frame):
+                keyframes.append(frame.index)
+                node._last_keyframe_pose = frame.pose
+        node.destroy_node()
+        assert keyframes[0] == 0 and len(keyframes) >= 3
+        centres = seq.poses[keyframes, :3, 3]
+        assert np.all(np.linalg.norm(np.diff(centres, axis=0), axis=1) >= 0.15)
+        # every frame in between moved less than that since the keyframe before it
+        for a, b in itertools.pairwise(keyframes):
+            inside = seq.poses[a + 1 : b, :3, 3] - seq.poses[a, :3, 3]
+            assert np.all(np.linalg.norm(inside, axis=1) < 0.15)
+        with pytest.raises(ValueError, match='keyframe_policy'):
+            MultiViewNode(
+                context=ros.context, parameter_overrides=[Parameter('keyframe_policy', value='often')]
+            )
+        with pytest.raises(ValueError, match='min_depth < max_depth'):
+            MultiViewNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('multi_view.min_depth', value=5.0),
+                    Parameter('multi_view.max_depth', value=2.0),
+                ],
+            )
