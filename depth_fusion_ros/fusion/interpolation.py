@@ -33,12 +33,14 @@ import numpy as np
 import torch
 
 from .weights import (
+    MAX_EXPONENT,
     Samples,
     WeightParams,
     depth_gradients,
     proximity_weights,
     samples_at,
     structure_weights,
+    unnormalised_weights,
 )
 
 log = logging.getLogger(__name__)
@@ -80,23 +82,46 @@ def confidence_from_support(support_distance: np.ndarray, sigma1: float) -> np.n
 
 
 def _chunk_sums(p: Samples, q: Samples, v: torch.Tensor, params: WeightParams) -> tuple[torch.Tensor, ...]:
-    """Pixels ``p`` (C, 1) against points ``q`` (1, Q): with ``W' = W̃ - min W̃`` the sums
-    ``ΣW'v, ΣW', ΣW'd`` (min-subtracted) and ``ΣW̃v, ΣW̃, ΣW̃d`` (plain), ``d = ‖p - q‖``."""
+    """Pixels ``p`` (C, 1) against points ``q`` (1, Q), with ``W' = W̃ - min W̃`` and
+    ``d = ‖p - q‖``: ``(ΣW'v, ΣW', ΣW'd, min W̃)`` per pixel.
+
+    Functional form: what ``torch.compile`` fuses into one loop over Ω.
+    """
     dx = q.x - p.x
     dy = q.y - p.y
     distance = torch.sqrt(dx * dx + dy * dy)
     w = proximity_weights(distance, params)
     if params.weights != 'w1':
         w = w * structure_weights(p, q, params, dx, dy)
-    shifted = w - w.amin(dim=1, keepdim=True)
-    return (
-        shifted @ v,
-        shifted.sum(dim=1),
-        (shifted * distance).sum(dim=1),
-        w @ v,
-        w.sum(dim=1),
-        (w * distance).sum(dim=1),
-    )
+    low = w.amin(dim=1, keepdim=True)
+    shifted = w - low
+    return shifted @ v, shifted.sum(dim=1), (shifted * distance).sum(dim=1), low.squeeze(1)
+
+
+def _chunk_sums_inplace(
+    p: Samples, q: Samples, v: torch.Tensor, params: WeightParams
+) -> tuple[torch.Tensor, ...]:
+    """:func:`_chunk_sums` with in-place operations on two (C, Q) buffers.
+
+    The same formulas (tests compare them); about twice as fast as the functional form in
+    eager mode because it streams through memory fewer times.
+    """
+    dx = q.x - p.x
+    dy = q.y - p.y
+    distance = torch.hypot(dx, dy)
+    w = torch.mul(distance, -1.0 / params.sigma1).clamp_(min=-MAX_EXPONENT).exp_()
+    if params.use_w2:
+        t = torch.sub(q.gx, p.gx).abs_().add_(params.sigma2)
+        w.div_(t.mul_(torch.sub(q.gy, p.gy).abs_().add_(params.sigma2)))
+    if params.use_w34:
+        offset = p.s - q.s
+        for grad, delta in ((p.gx, dx), (p.gy, dy)):
+            torch.addcmul(offset, grad, delta, out=delta)  # delta is not needed after this
+            delta.abs_().clamp_(max=MAX_EXPONENT).neg_().exp_().add_(params.sigma3)
+            w.mul_(delta)
+    low = w.amin(dim=1, keepdim=True)
+    w.sub_(low)
+    return w @ v, w.sum(dim=1), w.mul_(distance).sum(dim=1), low.squeeze(1)
 
 
 _COMPILED: dict[tuple, Callable] = {}
@@ -106,19 +131,19 @@ _COMPILE_FAILED: set[str] = set()
 def _chunk_function(params: WeightParams, compile_kernel: bool, device: torch.device) -> Callable:
     """The per-chunk kernel, compiled with ``torch.compile`` (inductor) when asked and possible.
 
-    Compiling fuses the ~25 elementwise passes of the eager version into one loop (≈ 3x
-    faster on CPU). A failing compiler (no C++ toolchain, unsupported platform) is logged
-    once and the eager kernel is used: same numbers, only slower.
+    Compiling fuses the elementwise passes into one loop (several times faster on CPU than
+    eager). A failing compiler (no C++ toolchain, unsupported platform) is logged once and
+    the eager kernel is used: same numbers, only slower.
     """
 
     def eager(p: Samples, q: Samples, v: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return _chunk_sums(p, q, v, params)
+        return _chunk_sums_inplace(p, q, v, params)
 
     if not compile_kernel or device.type in _COMPILE_FAILED:
         return eager
     key = (params, device.type)
     if key not in _COMPILED:
-        _COMPILED[key] = torch.compile(eager, dynamic=True)
+        _COMPILED[key] = torch.compile(lambda p, q, v: _chunk_sums(p, q, v, params), dynamic=True)
     compiled = _COMPILED[key]
 
     def guarded(p: Samples, q: Samples, v: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -134,17 +159,32 @@ def _chunk_function(params: WeightParams, compile_kernel: bool, device: torch.de
     return guarded
 
 
+def _plain_normalisation(
+    p: Samples, q: Samples, v: torch.Tensor, params: WeightParams
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Offsets and support distances with ``W̃ / Σ W̃`` (the guard of eq. (9)); equal weights
+    where even ``Σ W̃`` is 0 (every weight underflowed, only possible with σ3 = 0)."""
+    w = unnormalised_weights(p, q, params)
+    distance = torch.sqrt((q.x - p.x) ** 2 + (q.y - p.y) ** 2)
+    w = torch.where(w.sum(dim=1, keepdim=True) > 0, w, torch.ones_like(w))
+    total = w.sum(dim=1)
+    return (w @ v) / total, (w * distance).sum(dim=1) / total
+
+
 def _offsets_at(
     pixels: Samples,
     points: Samples,
     v: torch.Tensor,
     kernel: Callable,
     chunk_elements: int,
+    params: WeightParams,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact offsets and support distances of ``pixels`` (1-D samples) against Ω.
 
     Chunks have a fixed size (the last one padded by repeating a pixel) so a compiled kernel
-    sees one pixel-count shape per |Ω|.
+    sees one pixel-count shape per |Ω|. Rows whose weights are all equal (the min-subtracted
+    sum vanishes next to the plain sum ``ΣW' + |Ω|·min``; always when |Ω| = 1) are redone
+    with plain normalisation.
     """
     n = pixels.x.numel()
     n_points = points.x.numel()
@@ -152,21 +192,19 @@ def _offsets_at(
     q = points.row()
     offsets = torch.empty(n, dtype=v.dtype, device=v.device)
     support = torch.empty(n, dtype=v.dtype, device=v.device)
-    tiny = torch.finfo(v.dtype).tiny
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
         index = torch.arange(start, start + chunk, device=v.device).clamp_max(n - 1)
-        num, den, dist, plain_num, plain_den, plain_dist = kernel(pixels.take(index).column(), q, v)
-        # Guard of eq. (9): all weights equal (up to float32 rounding; always when |Ω| = 1)
-        # -> plain normalisation.
-        equal = den <= (EQUAL_WEIGHTS_RTOL * n_points) * plain_den
-        offset = torch.where(equal, plain_num / plain_den.clamp_min(tiny), num / den.clamp_min(tiny))
-        distance = torch.where(equal, plain_dist / plain_den.clamp_min(tiny), dist / den.clamp_min(tiny))
-        # Every weight underflowed (only possible with sigma3 = 0): equal weights.
-        offset = torch.where(plain_den > 0, offset, v.mean())
-        distance = torch.where(plain_den > 0, distance, torch.full_like(distance, float('inf')))
-        offsets[start:stop] = offset[: stop - start]
-        support[start:stop] = distance[: stop - start]
+        num, den, dist, low = kernel(pixels.take(index).column(), q, v)
+        offsets[start:stop] = (num / den)[: stop - start]
+        support[start:stop] = (dist / den)[: stop - start]
+        plain = den + n_points * low
+        equal = (den <= (EQUAL_WEIGHTS_RTOL * n_points) * plain)[: stop - start]
+        if bool(equal.any()):
+            rows = index[: stop - start][equal]
+            off, sup = _plain_normalisation(pixels.take(rows).column(), q, v, params)
+            offsets[rows] = off
+            support[rows] = sup
     return offsets, support
 
 
@@ -226,7 +264,9 @@ def interpolate(
 
     if mode == 'exact' or fast_stride == 1:
         pixel_index = torch.from_numpy(np.flatnonzero(valid_s)).to(dev)
-        off, sup = _offsets_at(samples_at(pixel_index, width, s_t, gx, gy), points, v, kernel, chunk_elements)
+        off, sup = _offsets_at(
+            samples_at(pixel_index, width, s_t, gx, gy), points, v, kernel, chunk_elements, params
+        )
         offset.ravel()[valid_s.ravel()] = off.cpu().numpy()
         support.ravel()[valid_s.ravel()] = sup.cpu().numpy()
         return Interpolation(offset, support)
@@ -271,7 +311,7 @@ def _fast_offsets(
     coarse_support = torch.full((coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
     if coarse_valid.any():
         idx = torch.from_numpy(coarse_flat[coarse_valid]).to(dev)
-        off, sup = _offsets_at(samples_at(idx, width, s, gx, gy), points, v, kernel, chunk_elements)
+        off, sup = _offsets_at(samples_at(idx, width, s, gx, gy), points, v, kernel, chunk_elements, params)
         sel = torch.from_numpy(np.flatnonzero(coarse_valid)).to(dev)
         coarse_offset[sel] = off
         coarse_support[sel] = sup
@@ -311,7 +351,7 @@ def _fast_offsets(
     log.debug('fast fusion: %d of %d pixels computed exactly', int(fix.sum()), fix.numel())
     if bool(fix.any()):
         idx = pixel_index[fix]
-        off, sup = _offsets_at(samples_at(idx, width, s, gx, gy), points, v, kernel, chunk_elements)
+        off, sup = _offsets_at(samples_at(idx, width, s, gx, gy), points, v, kernel, chunk_elements, params)
         offset[idx] = off
         support[idx] = sup
     return offset, support
