@@ -140,10 +140,14 @@ def run(args: argparse.Namespace) -> int:
         print(f'depth-fusion run: error: {exc}', file=sys.stderr)
         return 1
     mode = 'processes' if options.processes else 'composed'
+    if result.interrupted:
+        where = f'; partial recording in {result.recorded}' if result.recorded else ''
+        print(f'interrupted: {len(result.fused)} of {len(result.announced)} keyframes fused ({mode}){where}')
+        return 130
     print(
         f'{len(result.fused)} of {len(result.announced)} keyframes fused in {result.seconds:.1f} s ({mode})'
         + (f'; recorded to {result.recorded}' if result.recorded else '')
     )
     if result.missing:
         print(f'{len(result.missing)} keyframe(s) without fused output (see the warning above)')
-    return 130 if result.interrupted else 0
+    return 0

@@ -368,6 +368,7 @@ class GraphRun:
         self._context = rclpy.context.Context()
         args = ['--ros-args', '--params-file', str(opts.params_file)] if opts.params_file else None
         rclpy.init(args=args, context=self._context, signal_handler_options=SignalHandlerOptions.NO)
+        previous_handlers = install_stop_signals()
         interrupted = False
         try:
             try:
@@ -388,6 +389,8 @@ class GraphRun:
             return result
         finally:
             self._shutdown(interrupted)
+            for sig, handler in previous_handlers.items():
+                signal.signal(sig, handler)
 
     # -- start-up --
 
@@ -729,6 +732,21 @@ class GraphRun:
             if orphans:
                 log.warning('removing %d shared-memory segments left by killed nodes', len(orphans))
                 remove_segments(orphans)
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def install_stop_signals() -> dict[int, Any]:
+    """SIGINT and SIGTERM stop the run cleanly (as ``KeyboardInterrupt``); returns the old handlers.
+
+    Also when the shell started us with SIGINT ignored (a background job) or a supervisor
+    stops us with SIGTERM: the node processes must never be orphaned.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
 def _node_class(module: Any) -> type:
