@@ -106,12 +106,12 @@ class ParamSpec:
     def range_text(self) -> str:
         """Human-readable limits for docs and descriptors (empty when unconstrained)."""
         if self.choices:
-            return 'one of: ' + ', '.join(self.choices)
+            return 'one of ' + ', '.join(self.choices)
         if self.min_value is None and self.max_value is None:
             return f'{self.length} values' if self.length else ''
         low = '-inf' if self.min_value is None else f'{self.min_value:g}'
         high = 'inf' if self.max_value is None else f'{self.max_value:g}'
-        return f'[{low}, {high}]'
+        return f'range [{low}, {high}]'
 
 
 def declare_parameters(node: Any, specs: Sequence[ParamSpec]) -> dict[str, ParamValue]:
@@ -273,7 +273,7 @@ def _none_sentinel(kind: type, description: str) -> tuple[ParamValue, str]:
     if kind is str:
         return NONE_STRING, f"{description} ('{NONE_STRING}': automatic)"
     if kind is bool:
-        return NONE_STRING, f"{description} ('{NONE_STRING}', 'true' or 'false')"
+        return NONE_STRING, description  # its choices (auto, true, false) are listed with it
     if kind is float:
         return -1.0, f'{description} (negative: automatic)'
     return -1, f'{description} (negative: automatic)'
@@ -335,12 +335,14 @@ def _from_sentinel(kind: type | None, value: ParamValue, key: str) -> Any:
 
 
 def yaml_section(node_name: str, specs: Sequence[ParamSpec]) -> str:
-    """``node_name: ros__parameters:`` block with every default and its description as a comment."""
+    """``node_name: ros__parameters:`` block with every default, its description and limits as comments."""
+    import textwrap
+
     lines = [f'{node_name}:', '  ros__parameters:']
     for spec in specs:
         limits = spec.range_text()
-        comment = spec.description + (f' [{limits}]' if limits else '')
-        lines.append(f'    # {comment}')
+        comment = spec.description + (f' ({limits})' if limits and not limits[0].isdigit() else '')
+        lines += textwrap.wrap(comment, width=96, initial_indent='    # ', subsequent_indent='    #   ')
         lines.append(f'    {spec.name}: {_yaml_value(spec.default)}')
     return '\n'.join(lines) + '\n'
 
@@ -361,7 +363,7 @@ def markdown_table(specs: Sequence[ParamSpec]) -> str:
     """Markdown table of ``specs`` (name, default, limits, description) for docs/nodes.md."""
     rows = ['| parameter | default | range | description |', '|---|---|---|---|']
     for spec in specs:
-        rows.append(
-            f'| `{spec.name}` | `{_yaml_value(spec.default)}` | {spec.range_text()} | {spec.description} |'
-        )
+        description = spec.description.replace('|', '\\|')
+        default = _yaml_value(spec.default)
+        rows.append(f'| `{spec.name}` | `{default}` | {spec.range_text()} | {description} |')
     return '\n'.join(rows) + '\n'

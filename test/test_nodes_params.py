@@ -1,0 +1,180 @@
+"""Parameters, the YAML file, the launch file and the console scripts of the processing nodes."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from rclpy.parameter import Parameter
+
+from depth_fusion_ros.fusion.pipeline import FusionConfig
+from depth_fusion_ros.multiview.neighbours import NeighbourConfig
+from depth_fusion_ros.multiview.semidense import MultiViewConfig
+from depth_fusion_ros.nodes import fusion_node, multi_view_node
+from depth_fusion_ros.nodes.config_yaml import (
+    PROCESSING_NODES,
+    available_nodes,
+    find_config_file,
+    node_parameters,
+    render_yaml,
+)
+from depth_fusion_ros.nodes.params import missing_descriptions
+from depth_fusion_ros.nodes.testing import RosHarness
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / 'config' / 'depth_fusion.yaml'
+LAUNCH = ROOT / 'launch' / 'depth_fusion.launch.py'
+BIN = Path(sys.executable).parent
+
+
+class _Net(torch.nn.Module):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return 2.0 + 0.0 * x[:, :1]
+
+
+@pytest.fixture(scope='module')
+def model_path(tmp_path_factory) -> Path:
+    """A tiny TorchScript network with its metadata YAML (the shipped model may not exist yet)."""
+    from depth_fusion_ros.singleview.metadata import ModelMetadata, write_metadata_yaml
+
+    folder = tmp_path_factory.mktemp('model')
+    torch.jit.script(_Net()).save(str(folder / 'net.pt'))
+    write_metadata_yaml(ModelMetadata(input_width=64, input_height=48), folder / 'net.yaml')
+    return folder / 'net.pt'
+
+
+def test_yaml_holds_every_parameter_with_its_default():
+    doc = yaml.safe_load(CONFIG.read_text())
+    assert set(PROCESSING_NODES) <= set(doc), 'a processing node has no section'
+    for node in available_nodes():
+        section = doc[node]['ros__parameters']
+        specs = node_parameters(node)
+        assert list(section) == [s.name for s in specs], f'{node}: regenerate config/depth_fusion.yaml'
+        for spec in specs:
+            assert section[spec.name] == spec.default, f'{node}.{spec.name}'
+            assert spec.description and spec.check(section[spec.name]) == spec.default
+    regenerate = 'python -m depth_fusion_ros.nodes.config_yaml > config/depth_fusion.yaml'
+    assert CONFIG.read_text() == render_yaml(), f'config/depth_fusion.yaml is stale: {regenerate}'
+    assert find_config_file() == CONFIG
+
+
+def test_core_config_fields_are_all_described():
+    assert missing_descriptions(MultiViewConfig, multi_view_node.MULTI_VIEW_DESCRIPTIONS) == []
+    assert missing_descriptions(NeighbourConfig, multi_view_node.NEIGHBOUR_DESCRIPTIONS) == []
+    from depth_fusion_ros.fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS
+
+    assert missing_descriptions(FusionConfig, FUSION_PARAMETER_DESCRIPTIONS, fusion_node.FUSION_SKIP) == []
+
+
+def test_params_file_is_accepted_by_every_node_and_descriptors_are_set(model_path):
+    from depth_fusion_ros.nodes.fusion_node import FusionNode
+    from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
+    from depth_fusion_ros.nodes.single_view_node import SingleViewNode
+
+    with RosHarness(args=['--ros-args', '--params-file', str(CONFIG)]) as ros:
+        nodes = [
+            MultiViewNode(context=ros.context),
+            SingleViewNode(
+                context=ros.context, parameter_overrides=[Parameter('model', value=str(model_path))]
+            ),
+            FusionNode(context=ros.context),
+        ]
+        try:
+            fusion = nodes[2]
+            assert fusion.config == FusionConfig(mode='fast')  # the node's one default that differs
+            descriptor = fusion.describe_parameter('fusion.sigma1')
+            assert 'proximity' in descriptor.description and descriptor.read_only
+            assert descriptor.floating_point_range[0].from_value > 0
+            assert nodes[0].describe_parameter('keyframe_every').integer_range[0].from_value == 1
+        finally:
+            for node in nodes:
+                node.destroy_node()
+
+
+def test_launch_file_compiles_and_describes_the_graph():
+    source = LAUNCH.read_text()
+    compile(source, str(LAUNCH), 'exec')
+    pytest.importorskip('launch', reason='launch is not installable from pip (see ROS2_PIP.md)')
+    pytest.importorskip('launch_ros', reason='launch_ros is not installable from pip')
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location('depth_fusion_launch', LAUNCH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.generate_launch_description().entities
+
+
+class _Process:
+    """A console script with its merged output collected by a thread."""
+
+    def __init__(self, *args: str) -> None:
+        self.proc = subprocess.Popen(
+            [str(BIN / args[0]), *args[1:]], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            self.lines.append(line)
+
+    @property
+    def output(self) -> str:
+        return ''.join(self.lines)
+
+    def wait_for_output(self, text: str, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            if text in self.output:
+                return True
+            time.sleep(0.1)
+        return text in self.output
+
+    def finish(self, timeout: float = 30.0) -> int:
+        try:
+            code = self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            code = self.proc.wait()
+        self._reader.join(5.0)
+        return code
+
+
+def test_console_scripts_start_with_the_params_file_and_stop_on_sigint(model_path):
+    args = ['--ros-args', '--params-file', str(CONFIG)]
+    procs = {
+        'multi_view_node': _Process('multi_view_node', *args, '-p', 'keyframe_every:=3'),
+        'single_view_node': _Process('single_view_node', *args, '-p', f'model:={model_path}'),
+        'fusion_node': _Process('fusion_node', *args, '-p', 'fusion.mode:=exact'),
+        'bad': _Process('fusion_node', '--ros-args', '-p', 'fusion.weights:=w5'),
+    }
+    ready = {
+        'multi_view_node': 'keyframes every_k every 3',  # the -p on top of the file took effect
+        'single_view_node': "single-view model '",
+        'fusion_node': 'fusion (exact mode)',
+    }
+    try:
+        for name, marker in ready.items():
+            assert procs[name].wait_for_output(marker, 90.0), f'{name} did not start:\n{procs[name].output}'
+        for name in ready:
+            procs[name].proc.send_signal(signal.SIGINT)
+        for name in ready:
+            code = procs[name].finish()
+            assert code == 0, f'{name} exited with {code}:\n{procs[name].output}'
+            assert 'final counters' in procs[name].output, procs[name].output
+            assert 'Traceback' not in procs[name].output, procs[name].output
+        assert procs['bad'].finish() == 2
+        assert 'fusion.weights' in procs['bad'].output and 'Traceback' not in procs['bad'].output
+    finally:
+        for proc in procs.values():
+            if proc.proc.poll() is None:
+                proc.proc.kill()
+                proc.finish()
