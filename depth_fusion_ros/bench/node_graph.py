@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import time
 from pathlib import Path
 
@@ -162,7 +163,12 @@ def measure_run(opts: BenchOptions, bag: Path, processes: bool) -> list[BenchRow
     rows = [
         BenchRow(f'{mode}: keyframes expected', expected, 'kf', f'{images} frames at 30 Hz'),
         BenchRow(f'{mode}: keyframes fused', len(result.fused), 'kf', _load_note()),
-        BenchRow(f'{mode}: keyframes dropped', expected - len(result.fused), 'kf', _drop_note(result)),
+        BenchRow(
+            f'{mode}: keyframes dropped',
+            expected - len(result.fused),
+            'kf',
+            _drop_note(result, BENCH_DIR / 'logs' if processes else None),
+        ),
         BenchRow(f'{mode}: fused keyframes per second of playback', len(result.fused) / play_seconds, 'kf/s'),
     ]
     if latencies.size:
@@ -177,10 +183,25 @@ def measure_run(opts: BenchOptions, bag: Path, processes: bool) -> list[BenchRow
     return rows
 
 
-def _drop_note(result) -> str:
+def logged_drops(log_dir: Path) -> dict[str, dict[str, int]]:
+    """Drop counters of node processes, from the ``final counters: ... dropped N (a=1 b=2)`` lines."""
+    out: dict[str, dict[str, int]] = {}
+    for log_file in sorted(log_dir.glob('*.log')):
+        finals = [ln for ln in log_file.read_text(errors='replace').splitlines() if 'final counters:' in ln]
+        match = re.search(r'dropped \d+ \(([^)]*)\)', finals[-1]) if finals else None
+        if match:
+            pairs = (item.split('=') for item in match.group(1).split())
+            out[log_file.stem] = {k: int(v) for k, v in pairs}
+    return out
+
+
+def _drop_note(result, log_dir: Path | None = None) -> str:
+    counters = {name: snap.dropped for name, snap in result.node_stats.items()}
+    if log_dir is not None:
+        counters.update(logged_drops(log_dir))
     drops = {}
-    for name, snap in result.node_stats.items():
-        for reason, count in snap.dropped.items():
+    for name, dropped in counters.items():
+        for reason, count in dropped.items():
             drops[f'{name.removesuffix("_node")}.{reason}'] = count
     missing = f'{len(result.missing)} announced but not fused' if result.missing else ''
     parts = [', '.join(f'{k}={v}' for k, v in sorted(drops.items())), missing]

@@ -352,6 +352,7 @@ class GraphRun:
         self._wall_start = time.time()
         self.exit_codes: dict[str, int | None] = {}
         self.executor_error: BaseException | None = None
+        self._next_progress = 0.0
 
     # -- public --
 
@@ -537,7 +538,6 @@ class GraphRun:
     # -- waiting --
 
     def _wait_for_end_of_bag(self) -> None:
-        next_progress = time.monotonic() + self.options.progress_period
         while True:
             self._check_processes()
             if self.options.processes:
@@ -554,9 +554,16 @@ class GraphRun:
                     return
             if self.options.processes:
                 time.sleep(0.1)
-            if self.options.on_progress is not None and time.monotonic() >= next_progress:
-                self.options.on_progress(self)
-                next_progress += self.options.progress_period
+            self._tick_progress()
+
+    def _tick_progress(self) -> None:
+        """Call ``on_progress`` every ``progress_period`` s while the graph runs (benchmark sampling)."""
+        if self.options.on_progress is None:
+            return
+        now = time.monotonic()
+        if now >= self._next_progress:
+            self._next_progress = now + self.options.progress_period
+            self.options.on_progress(self)
 
     def _check_processes(self) -> None:
         """Raise ``GraphError`` when a node process or this process's executor died."""
@@ -611,6 +618,7 @@ class GraphRun:
             if now - start >= opts.flush_timeout:
                 why = f'gave up after {opts.flush_timeout:g} s'
                 break
+            self._tick_progress()
             time.sleep(0.05)
         missing = self.pending_keyframes()
         if missing:

@@ -202,7 +202,7 @@ class Recorder(Node):
         if not track_only and (not str(out) or str(out) == '.'):
             raise ValueError(f"{NODE_NAME}: parameter 'output' is empty: give the bag folder to write")
         self.output: Path | None = None if track_only else out
-        self.staging = out.with_name(out.name + '.partial')
+        self.staging = out.with_name(out.name + '.partial') if not track_only else Path()
         self.counts: Counter[str] = Counter()
         self.stamp_logs: dict[str, StampLog] = {}
         self.last_arrival = time.monotonic()
