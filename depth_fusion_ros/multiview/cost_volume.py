@@ -1,0 +1,235 @@
+"""Photometric matching cost of keyframe pixels against neighbour frames at hypothesised inverse depths.
+
+This is the shared core of the semi-dense search (``semidense.py``) and of the dense TV
+baseline (``tv.py``): both need ``C(x, rho)``, the photometric error of keyframe pixel ``x``
+at inverse depth ``rho`` averaged over the neighbours that see it.
+
+Inverse depth is the inverse **z-depth** (``rho = 1 / z``, the SPEC's ``m = 1 / rho``), not the
+inverse distance along the unit ray of the paper's eq. (1): with ``x_n = K^-1 (u, v, 1)`` the
+keyframe point is ``x_n / rho`` and its projection into a neighbour is
+
+    p_o(rho) ~ K (R_ok x_n + rho t_ok) = a + rho b,   u_o = (a_0 + rho b_0) / (a_2 + rho b_2),
+
+a ratio of affine functions of ``rho``. ``a`` (per pixel and neighbour) and ``b`` (per
+neighbour) are computed once, so a sweep over any number of samples is a few multiply-adds
+followed by one bilinear gather (``grid_sample``) for all pixels x samples x neighbours.
+
+Photometric error: zero-mean normalised cross-correlation (ZNCC) of a small patch, as the
+cost ``1 - ZNCC``. Why ZNCC rather than the paper's raw intensity difference: TUM's
+auto-exposure changes gain and bias between frames, 7-Scenes colour is JPEG and TUM has
+motion blur; ZNCC is exactly invariant to a local gain and bias, bounded in ``[0, 2]`` (so one
+occluded neighbour cannot dominate the average) and a patch averages out pixel noise. The
+patch is sampled as a per-pixel *descriptor*: each image is blurred, the patch values around
+every pixel are stacked as channels and normalised to zero mean and unit norm once per image.
+A bilinear lookup of the descriptor image at the projected point then gives the neighbour's
+(normalised) patch there, and the ZNCC is a dot product. This assumes the patch keeps its
+shape between views (fronto-parallel, small rotation), which the neighbour selection bounds.
+The normalisation adds ``eps`` to the norm so texture-less patches get near-zero descriptors
+and a flat cost of about 1: they produce no distinct minimum and so low photometric scores.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F  # noqa: N812  (the conventional alias)
+
+#: Patch layouts (offsets in units of the patch stride): cost per lookup grows with the size.
+PATCH_OFFSETS: dict[str, tuple[tuple[int, int], ...]] = {
+    'point': ((0, 0),),
+    'cross': ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)),
+    'box': tuple((dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)),
+}
+
+
+def patch_reach(patch: str, stride: int) -> int:
+    """Largest pixel offset of a patch (the image margin its lookups need)."""
+    return max(max(abs(dx), abs(dy)) for dx, dy in PATCH_OFFSETS[patch]) * stride
+
+
+def check_patch(patch: str, stride: int) -> None:
+    if patch not in PATCH_OFFSETS:
+        raise ValueError(f'patch must be one of {sorted(PATCH_OFFSETS)}, got {patch!r}')
+    if int(stride) < 1:
+        raise ValueError(f'patch_stride must be >= 1, got {stride}')
+
+
+def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of ``(B, H, W)`` images (replicate borders); identity for sigma <= 0."""
+    if sigma <= 0:
+        return images
+    radius = max(1, math.ceil(2.5 * sigma))
+    x = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
+    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    out = images[:, None]
+    out = F.conv2d(F.pad(out, (radius, radius, 0, 0), mode='replicate'), kernel.view(1, 1, 1, -1))
+    out = F.conv2d(F.pad(out, (0, 0, radius, radius), mode='replicate'), kernel.view(1, 1, -1, 1))
+    return out[:, 0]
+
+
+def patch_descriptors(
+    images: torch.Tensor, patch: str = 'cross', stride: int = 2, blur_sigma: float = 1.0, eps: float = 0.01
+) -> torch.Tensor:
+    """Zero-mean, (almost) unit-norm patch descriptors ``(B, C, H, W)`` of grey ``(B, H, W)`` images.
+
+    ``eps`` (grey levels in [0, 1]) is the noise floor added to the patch norm: a patch whose
+    contrast is below it gets a short descriptor, so its ZNCC with anything is near 0.
+    """
+    check_patch(patch, stride)
+    blurred = gaussian_blur(images, blur_sigma)
+    reach = patch_reach(patch, stride)
+    padded = F.pad(blurred[:, None], (reach,) * 4, mode='replicate')[:, 0]
+    h, w = images.shape[-2:]
+    channels = [
+        padded[
+            :, reach + dy * stride : reach + dy * stride + h, reach + dx * stride : reach + dx * stride + w
+        ]
+        for dx, dy in PATCH_OFFSETS[patch]
+    ]
+    desc = torch.stack(channels, dim=1)
+    desc = desc - desc.mean(dim=1, keepdim=True)
+    norm = torch.sqrt((desc * desc).sum(dim=1, keepdim=True) + desc.shape[1] * eps * eps)
+    return desc / norm
+
+
+@dataclass
+class EpipolarRays:
+    """Projection of keyframe pixels into ``n`` neighbours as affine functions of inverse depth.
+
+    ``a`` (n, M, 3) = ``K R_ok x_n`` per neighbour and pixel, ``b`` (n, 3) = ``K t_ok``, so the
+    homogeneous projection at inverse depth ``rho`` is ``a + rho b``. ``width``/``height`` are
+    the neighbour image size (for the normalised coordinates of ``grid_sample``).
+    """
+
+    a: torch.Tensor
+    b: torch.Tensor
+    width: int
+    height: int
+
+    @property
+    def num_neighbours(self) -> int:
+        return int(self.b.shape[0])
+
+    def chunk(self, start: int, stop: int) -> EpipolarRays:
+        return EpipolarRays(self.a[:, start:stop], self.b, self.width, self.height)
+
+    def _normalised(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``a``, ``b`` rescaled so ``(a + rho b)[:2] / (a + rho b)[2]`` is ``grid_sample``'s [-1, 1].
+
+        ``x = u * 2 / (W - 1) - 1 = (sx num_u - w) / w``: folding the affine map into the
+        rows costs O(M) instead of O(M x S) per sweep.
+        """
+        scale = torch.tensor(
+            [2.0 / (self.width - 1), 2.0 / (self.height - 1), 1.0], dtype=self.a.dtype, device=self.a.device
+        )
+        a = self.a * scale
+        b = self.b * scale
+        a = torch.cat((a[..., :2] - a[..., 2:], a[..., 2:]), dim=-1)
+        b = torch.cat((b[..., :2] - b[..., 2:], b[..., 2:]), dim=-1)
+        return a, b
+
+    def grid(self, rho: torch.Tensor) -> torch.Tensor:
+        """``grid_sample`` coordinates (n, M, S, 2) at inverse depths ``rho`` ((S,) or (M, S)).
+
+        Points behind a neighbour camera are sent far outside its image (they sample zeros).
+        """
+        a, b = self._normalised()
+        rho = rho if rho.ndim == 2 else rho[None, :]
+        n, m = a.shape[:2]
+        s = rho.shape[-1]
+        out = torch.empty((n, m, s, 2), dtype=a.dtype, device=a.device)
+        w = torch.addcmul(a[..., 2:3], b[:, None, 2:3], rho[None])
+        inv_w = torch.reciprocal(w.clamp_(min=1e-6))
+        for k in range(2):
+            torch.mul(
+                torch.addcmul(a[..., k : k + 1], b[:, None, k : k + 1], rho[None]), inv_w, out=out[..., k]
+            )
+        return out.clamp_(-2.0, 2.0)
+
+    def project(self, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Pixel ``(u, v)`` (n, M, S) at inverse depths ``rho`` ((S,) or (M, S)), and whether the
+        point lies in front of the neighbour camera."""
+        rho = rho if rho.ndim == 2 else rho[None, :]
+        a = self.a[..., None]  # (n, M, 3, 1)
+        b = self.b[:, None, :, None]  # (n, 1, 3, 1)
+        p = a + b * rho[None, :, None, :]  # (n, M, 3, S)
+        w = p[:, :, 2]
+        in_front = w > 1e-9
+        w_safe = torch.where(in_front, w, torch.ones_like(w))
+        return p[:, :, 0] / w_safe, p[:, :, 1] / w_safe, in_front
+
+    def parallax(self, rho: torch.Tensor) -> torch.Tensor:
+        """``|d p_o / d rho|`` (n, M): pixels moved along each epipolar line per unit inverse depth.
+
+        From ``u = (a0 + rho b0) / (a2 + rho b2)``: ``du/drho = (b0 a2 - a0 b2) / (a2 + rho b2)^2``.
+        Zero for a pure rotation (``t_ok = 0``), which is what makes its geometric score 0.
+        """
+        a = self.a
+        b = self.b[:, None, :]
+        w = a[..., 2] + rho[None, :] * b[..., 2]
+        w2 = torch.clamp(w * w, min=1e-12)
+        du = (b[..., 0] * a[..., 2] - a[..., 0] * b[..., 2]) / w2
+        dv = (b[..., 1] * a[..., 2] - a[..., 1] * b[..., 2]) / w2
+        return torch.sqrt(du * du + dv * dv)
+
+
+def epipolar_rays(
+    u: torch.Tensor,
+    v: torch.Tensor,
+    K: np.ndarray,
+    T_ok: np.ndarray,
+    size: tuple[int, int],
+    device: torch.device,
+) -> EpipolarRays:
+    """Rays of keyframe pixels ``(u, v)`` (M,) for relative poses ``T_ok`` (n, 4, 4); ``size`` = (W, H)."""
+    K = np.asarray(K, dtype=np.float64)
+    T_ok = np.asarray(T_ok, dtype=np.float64).reshape(-1, 4, 4)
+    H = K @ T_ok[:, :3, :3] @ np.linalg.inv(K)  # (n, 3, 3): pixel-to-pixel homography at infinity
+    b = np.einsum('ij,nj->ni', K, T_ok[:, :3, 3])
+    Ht = torch.as_tensor(H, dtype=torch.float32, device=device)
+    pix = torch.stack((u, v, torch.ones_like(u)), dim=-1).to(device=device, dtype=torch.float32)  # (M, 3)
+    a = torch.einsum('nij,mj->nmi', Ht, pix)
+    return EpipolarRays(a, torch.as_tensor(b, dtype=torch.float32, device=device), int(size[0]), int(size[1]))
+
+
+def visibility_channel(neighbour_desc: torch.Tensor, margin: int) -> torch.Tensor:
+    """Descriptor images with their border band zeroed and a last channel that is 1 inside it.
+
+    Sampling that extra channel bilinearly gives, at once with the descriptor, the (soft)
+    weight of each neighbour for each sample: 1 well inside the image, 0 outside or behind
+    the camera (zero padding), a fraction on the border - no per-sample masks to compute.
+    """
+    n, _, h, w = neighbour_desc.shape
+    inside = torch.zeros((n, 1, h, w), dtype=neighbour_desc.dtype, device=neighbour_desc.device)
+    inside[..., margin : h - margin, margin : w - margin] = 1.0
+    return torch.cat((neighbour_desc * inside, inside), dim=1)
+
+
+def sample_cost(
+    key_desc: torch.Tensor, neighbour_images: torch.Tensor, rays: EpipolarRays, rho: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Neighbour-averaged ``1 - ZNCC`` (M, S) and the (soft) number of neighbours seeing each sample.
+
+    ``key_desc`` (C, M) are the keyframe descriptors of the M pixels, ``neighbour_images``
+    (n, C + 1, H, W) the neighbour descriptors with their visibility channel
+    (:func:`visibility_channel`). Where no neighbour sees a sample the mean is 1 (no match)
+    and the count 0; callers decide how many views they require.
+    """
+    channels = key_desc.shape[0]
+    sampled = F.grid_sample(
+        neighbour_images, rays.grid(rho), mode='bilinear', padding_mode='zeros', align_corners=True
+    )  # (n, C + 1, M, S)
+    count = sampled[:, channels].sum(dim=0)
+    zncc = (sampled[:, :channels] * key_desc[None, :, :, None]).sum(dim=(0, 1))
+    cost = (count - zncc + 1e-3) / (count + 1e-3)
+    return cost, count
+
+
+def rows_per_chunk(num_neighbours: int, channels: int, samples: int, budget_elements: int) -> int:
+    """Pixels per chunk so the largest intermediate (n x C x M x S floats) stays within budget."""
+    per_row = max(1, num_neighbours * max(channels, 3) * samples)
+    return max(1, int(budget_elements) // per_row)
