@@ -8,7 +8,7 @@ stream is in stamp order, a pairing that misses a part which its stream has alre
 is hopeless and dropped at once. Both bounds keep memory flat whatever the input.
 
 A complete pairing goes to the worker: stage 1 of the point selection (best
-``stage1_fraction`` of the multi-view points by score), then the core's
+``fusion.stage1_fraction`` of the multi-view points by score), then the core's
 ``fuse_keyframe`` (stage 2 RANSAC, the weighted interpolation, fallbacks). The fused depth
 (32FC1, metres), its confidence (32FC1) and the keyframe's camera_info are published with
 the source header, and optionally a PointCloud2 in the camera frame for RViz.
@@ -17,6 +17,7 @@ the source header, and optionally a PointCloud2 in the camera frame for RViz.
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from types import SimpleNamespace
@@ -74,16 +75,11 @@ FUSION_SKIP = ('device',)
 FUSION_NODE_DEFAULTS = {'mode': 'fast'}
 
 REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
+#: How many closed keyframe stamps are remembered to recognise late parts.
+CLOSED_MEMORY = 256
 
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('device', 'cpu', 'torch device of the fusion: cpu, cuda, cuda:1, ...'),
-    ParamSpec(
-        'stage1_fraction',
-        MultiViewConfig().select_fraction,
-        'stage 1 of the point selection: keep this fraction of the multi-view points, best score first',
-        1e-6,
-        1.0,
-    ),
     ParamSpec(
         'single_view_output_kind',
         'auto',
@@ -105,6 +101,13 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('points_max_depth', 10.0, 'points farther than this (m) are left out of the cloud', 0.0),
     ParamSpec('points_min_confidence', 0.0, 'points whose confidence is below this are left out', 0.0),
     ParamSpec('points_color', True, 'colour the points with the keyframe image (waits for it when pairing)'),
+    ParamSpec(
+        'fusion.stage1_fraction',
+        MultiViewConfig().select_fraction,
+        'stage 1 of the point selection: keep this fraction of the multi-view points, best score first',
+        1e-6,
+        1.0,
+    ),
     *dataclass_specs(
         FusionConfig,
         'fusion',
@@ -141,6 +144,8 @@ class FusionNode(DepthFusionNode):
         self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))
         self.announced_kind: str | None = None
         self.pending: dict[int, _Pairing] = {}
+        #: Stamps of keyframes already fused or dropped (the most recent ``CLOSED_MEMORY``).
+        self._closed: OrderedDict[int, None] = OrderedDict()
         self.required = REQUIRED_PARTS + (('rgb',) if p['publish_points'] and p['points_color'] else ())
         self._stamp_guards = {part: StampGuard(part) for part in (*REQUIRED_PARTS, 'rgb')}
 
@@ -216,6 +221,13 @@ class FusionNode(DepthFusionNode):
         except InputError as exc:
             self.stats.dropped(exc.reason, str(exc))
             return
+        if stamp_ns in self._closed:
+            # Its keyframe was fused or given up already: a straggler must not open a new pairing.
+            if part in self.required:
+                self.stats.dropped(
+                    'late_part', f'{part} of keyframe {messages.ns_to_sec(stamp_ns):.3f} came too late'
+                )
+            return
         self._drop_passed(part, stamp_ns)
         pairing = self.pending.get(stamp_ns)
         if pairing is None:
@@ -223,37 +235,37 @@ class FusionNode(DepthFusionNode):
             self._limit_pending()
         pairing.parts[part] = value
         if all(k in pairing.parts for k in self.required):
-            del self.pending[stamp_ns]
+            self._close(stamp_ns)
             self.worker.submit(_FusionJob(pairing, received_at))
+
+    def _close(self, stamp_ns: int, reason: str = '', message: str = '') -> _Pairing:
+        """Take a pairing out of the pending set (completed, or dropped for ``reason``)."""
+        pairing = self.pending.pop(stamp_ns)
+        self._closed[stamp_ns] = None
+        while len(self._closed) > CLOSED_MEMORY:
+            self._closed.popitem(last=False)
+        if reason:
+            self.stats.dropped(
+                reason, f'keyframe {messages.ns_to_sec(stamp_ns):.3f} {message}: {self._missing(pairing)}'
+            )
+        return pairing
 
     def _drop_passed(self, part: str, stamp_ns: int) -> None:
         """Pairings older than ``stamp_ns`` still missing ``part`` will never get it: drop them now."""
         if part not in self.required:
             return
         for old in sorted(s for s, pr in self.pending.items() if s < stamp_ns and part not in pr.parts):
-            pairing = self.pending.pop(old)
-            self.stats.dropped(
-                'unpaired', f'keyframe {messages.ns_to_sec(old):.3f}: {self._missing(pairing)}'
-            )
+            self._close(old, 'unpaired', f'will not get its {part}')
 
     def _limit_pending(self) -> None:
         while len(self.pending) > int(self.params['max_pending_keyframes']):
-            oldest = min(self.pending)
-            pairing = self.pending.pop(oldest)
-            self.stats.dropped(
-                'pair_overflow',
-                f'keyframe {messages.ns_to_sec(oldest):.3f} dropped: {self._missing(pairing)}',
-            )
+            self._close(min(self.pending), 'pair_overflow', 'dropped: too many keyframes waiting')
 
     def _expire(self) -> None:
         now = time.monotonic()
         timeout = float(self.params['pair_timeout'])
         for stamp_ns in [s for s, pr in self.pending.items() if now - pr.first_seen > timeout]:
-            pairing = self.pending.pop(stamp_ns)
-            self.stats.dropped(
-                'pair_timeout',
-                f'keyframe {messages.ns_to_sec(stamp_ns):.3f} waited {timeout:g} s: {self._missing(pairing)}',
-            )
+            self._close(stamp_ns, 'pair_timeout', f'waited {timeout:g} s')
 
     def _missing(self, pairing: _Pairing) -> str:
         missing = [k for k in self.required if k not in pairing.parts]
@@ -278,7 +290,7 @@ class FusionNode(DepthFusionNode):
             self.stats.dropped(exc.reason, f'keyframe {messages.ns_to_sec(job.pairing.stamp_ns):.3f}: {exc}')
             return
         stage1 = select_best_fraction(
-            SimpleNamespace(depth=mv_depth, score=mv_score), float(self.params['stage1_fraction'])
+            SimpleNamespace(depth=mv_depth, score=mv_score), float(self.params['fusion.stage1_fraction'])
         )
         result = fuse_keyframe(single, mv_depth, stage1, self.config, output_kind=self.output_kind)
         if result.fallback:

@@ -120,7 +120,7 @@ NEIGHBOUR_LIMITS: dict[str, Any] = {
     'min_overlap': (0.0, 1.0),
     'min_separation': (0.0, None),
 }
-#: Stage 1 runs in the fusion node (``stage1_fraction``), on the score image published here.
+#: Stage 1 runs in the fusion node (``fusion.stage1_fraction``), on the score image published here.
 MULTI_VIEW_SKIP = ('select_fraction',)
 
 PARAMETERS: tuple[ParamSpec, ...] = (
