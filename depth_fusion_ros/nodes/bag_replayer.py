@@ -477,16 +477,22 @@ class BagReplayer(Node):
             (ns.rstrip('/') + '/' + name) if ns != '/' else '/' + name
             for name, ns in self.get_node_names_and_namespaces()
         }
+        # Per played topic, how many of the awaited nodes subscribe to it: the publisher must be
+        # matched at least that many times (other listeners may be matched already).
+        needed: Counter[str] = Counter()
         for wanted in nodes:
             full = wanted if wanted.startswith('/') else '/' + wanted
             if full not in present:
                 return f'node {wanted} not started'
             ns, _, name = full.rpartition('/')
-            subs = self.get_subscriber_names_and_types_by_node(name, ns or '/')
-            needed = Counter(topic for topic, _ in subs if topic in pubs)
-            for topic in needed:
-                if pubs[topic].get_subscription_count() < 1:
-                    return f'{topic} not yet matched with {wanted}'
+            try:
+                subs = self.get_subscriber_names_and_types_by_node(name, ns or '/')
+            except Exception:  # the node left the graph meanwhile
+                return f'node {wanted} not started'
+            needed.update({topic for topic, _ in subs if topic in pubs})
+        for topic, n in sorted(needed.items()):
+            if pubs[topic].get_subscription_count() < n:
+                return f'{topic} not yet matched with the nodes subscribing to it'
         return ''
 
 

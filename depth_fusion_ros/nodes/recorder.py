@@ -215,6 +215,7 @@ class Recorder(Node):
         self._pending: dict[str, tuple[str, bool]] = {t: (m, False) for t, m in watch.items()}
         self._pending.update({t: (m, True) for t, m in wanted.items()})
         self._writer = None if track_only else self._open_writer()
+        self._discovery_timer: Any = None
         self._subscribe_pending()
         if self._pending:
             # Types not given: resolved from the graph once a publisher shows up.
@@ -252,6 +253,8 @@ class Recorder(Node):
                 msgtype = types[0]
             self._subscribe(topic, msgtype, write)
             del self._pending[topic]
+        if not self._pending and self._discovery_timer is not None:
+            self._discovery_timer.cancel()
 
     def _subscribe(self, topic: str, msgtype: str, write: bool) -> None:
         msg_cls = ros_message_class(msgtype)
