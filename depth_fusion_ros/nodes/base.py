@@ -12,8 +12,9 @@ the documented ``/depth_fusion/...`` names and a ``namespace`` moves the whole g
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import rclpy
@@ -61,12 +62,33 @@ COMMON_PARAMETERS: tuple[ParamSpec, ...] = (
 )
 
 
-class DepthFusionNode(Node):
-    """An rclpy node with validated parameters, counters, a bounded worker and clean shutdown."""
+def common_parameters(defaults: Mapping[str, Any] | None = None) -> tuple[ParamSpec, ...]:
+    """:data:`COMMON_PARAMETERS` with a node's own defaults (e.g. a deeper work queue)."""
+    defaults = dict(defaults or {})
+    unknown = set(defaults) - {spec.name for spec in COMMON_PARAMETERS}
+    if unknown:
+        raise ValueError(f'no common parameter named {sorted(unknown)}')
+    return tuple(
+        dataclasses.replace(spec, default=defaults[spec.name]) if spec.name in defaults else spec
+        for spec in COMMON_PARAMETERS
+    )
 
-    def __init__(self, node_name: str, specs: Sequence[ParamSpec], **kwargs: Any) -> None:
+
+class DepthFusionNode(Node):
+    """An rclpy node with validated parameters, counters, a bounded worker and clean shutdown.
+
+    ``common_defaults`` changes the defaults of :data:`COMMON_PARAMETERS` for this node.
+    """
+
+    def __init__(
+        self,
+        node_name: str,
+        specs: Sequence[ParamSpec],
+        common_defaults: Mapping[str, Any] | None = None,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(node_name, **kwargs)
-        self.params = declare_parameters(self, [*COMMON_PARAMETERS, *specs])
+        self.params = declare_parameters(self, [*common_parameters(common_defaults), *specs])
         self.stats = NodeStats(self.get_logger().warning, throttle=float(self.params['warn_throttle']))
         self.input_qos = qos_profile(str(self.params['input_qos']), int(self.params['qos_depth']))
         self.output_qos = qos_profile(str(self.params['output_qos']), int(self.params['qos_depth']))

@@ -25,7 +25,8 @@ NODE_TABLES: dict[str, tuple[str, str]] = {
     'fusion_node': ('depth_fusion_ros.nodes.fusion_node', 'PARAMETERS'),
     'bag_replayer': ('depth_fusion_ros.nodes.bag_replayer', 'REPLAYER_PARAMS'),
 }
-#: Nodes built on ``base.DepthFusionNode`` also declare ``base.COMMON_PARAMETERS``.
+#: Nodes built on ``base.DepthFusionNode`` also declare ``base.COMMON_PARAMETERS`` (with the
+#: node module's ``COMMON_DEFAULTS``).
 PROCESSING_NODES = ('multi_view_node', 'single_view_node', 'fusion_node')
 
 HEADER = """\
@@ -43,11 +44,12 @@ HEADER = """\
 def node_parameters(node_name: str) -> tuple[ParamSpec, ...]:
     """Every parameter ``node_name`` declares, in declaration order."""
     module_name, attribute = NODE_TABLES[node_name]
-    table = tuple(getattr(importlib.import_module(module_name), attribute))
+    module = importlib.import_module(module_name)
+    table = tuple(getattr(module, attribute))
     if node_name in PROCESSING_NODES:
-        from .base import COMMON_PARAMETERS
+        from .base import common_parameters
 
-        return (*COMMON_PARAMETERS, *table)
+        return (*common_parameters(getattr(module, 'COMMON_DEFAULTS', None)), *table)
     return table
 
 

@@ -78,6 +78,10 @@ REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
 #: How many closed keyframe stamps are remembered to recognise late parts.
 CLOSED_MEMORY = 256
 
+#: Common parameter defaults of this node: a completed pairing holds the work of two nodes,
+#: so a few are kept rather than one dropped.
+COMMON_DEFAULTS = {'queue_size': 4}
+
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('device', 'cpu', 'torch device of the fusion: cpu, cuda, cuda:1, ...'),
     ParamSpec(
@@ -139,7 +143,7 @@ class FusionNode(DepthFusionNode):
     """Pairs keyframe results by stamp and fuses them on a worker thread."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
-        super().__init__(node_name, PARAMETERS, **kwargs)
+        super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
         p = self.params
         self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))
         self.announced_kind: str | None = None
