@@ -148,7 +148,7 @@ class _Process:
         return code
 
 
-def test_console_scripts_start_with_the_params_file_and_stop_on_sigint(model_path):
+def test_console_scripts_start_with_the_params_file_and_stop_on_signals(model_path):
     args = ['--ros-args', '--params-file', str(CONFIG)]
     procs = {
         'multi_view_node': _Process('multi_view_node', *args, '-p', 'keyframe_every:=3'),
@@ -164,13 +164,16 @@ def test_console_scripts_start_with_the_params_file_and_stop_on_sigint(model_pat
     try:
         for name, marker in ready.items():
             assert procs[name].wait_for_output(marker, 90.0), f'{name} did not start:\n{procs[name].output}'
-        for name in ready:
-            procs[name].proc.send_signal(signal.SIGINT)
+        for name in ready:  # Ctrl-C, and a service manager's SIGTERM for one of them
+            procs[name].proc.send_signal(signal.SIGTERM if name == 'fusion_node' else signal.SIGINT)
         for name in ready:
             code = procs[name].finish()
             assert code == 0, f'{name} exited with {code}:\n{procs[name].output}'
             assert 'final counters' in procs[name].output, procs[name].output
             assert 'Traceback' not in procs[name].output, procs[name].output
+            assert 'context is invalid' not in procs[name].output, procs[
+                name
+            ].output  # logged before shutdown
         assert procs['bad'].finish() == 2
         assert 'fusion.weights' in procs['bad'].output and 'Traceback' not in procs['bad'].output
     finally:

@@ -13,6 +13,8 @@ the documented ``/depth_fusion/...`` names and a ``namespace`` moves the whole g
 from __future__ import annotations
 
 import dataclasses
+import signal
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -144,19 +146,28 @@ class DepthFusionNode(Node):
 
 
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
-    """Console entry point body: init, build the node, spin until Ctrl-C/shutdown, clean up.
+    """Console entry point body: init, build the node, spin until Ctrl-C/SIGTERM, clean up.
 
-    Returns the process exit code: 0 on a normal stop, 2 when a parameter is invalid (the
-    message names it; no traceback, because it is the user's to fix).
+    rclpy's own signal handler would shut the context down at once, so the final counters
+    could no longer reach ``/rosout``; instead SIGINT (KeyboardInterrupt) and SIGTERM end the
+    spin loop, the node is destroyed while the context is still valid (workers joined, final
+    counters logged), then rclpy shuts down. Returns the process exit code: 0 on a normal stop,
+    2 when a parameter is invalid (the message names it; no traceback: it is the user's to fix).
     """
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(args=args)
+    stop = threading.Event()
+    previous_term = signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     code = 0
     try:
         node = factory()
-        rclpy.spin(node)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while rclpy.ok() and not stop.is_set():
+            executor.spin_once(timeout_sec=0.2)  # returns often enough to notice a signal
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, FileNotFoundError) as exc:
@@ -166,4 +177,5 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        signal.signal(signal.SIGTERM, previous_term)
     return code
