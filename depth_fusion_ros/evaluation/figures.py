@@ -27,9 +27,18 @@ DEPTH_COLUMNS = (
     'single_view_simulated',
     'fused',
     'fused_oracle',
+    'graph_fused',
 )
-ERROR_COLUMNS = ('single_view', 'single_view_simulated', 'fused', 'fused_oracle')
-BOX_ORDER = ('fused_oracle', 'fused', 'single_view', 'single_view_simulated', 'multi_view', 'tv')
+ERROR_COLUMNS = ('single_view', 'single_view_simulated', 'fused', 'fused_oracle', 'graph_fused')
+BOX_ORDER = (
+    'fused_oracle',
+    'fused',
+    'graph_fused',
+    'single_view',
+    'single_view_simulated',
+    'multi_view',
+    'tv',
+)
 DEPTH_CMAP = 'turbo'
 ERROR_CMAP = 'magma'
 
