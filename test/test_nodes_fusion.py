@@ -217,3 +217,17 @@ def test_invalid_fusion_parameter_is_reported_by_name():
             FusionNode(context=ros.context, parameter_overrides=[Parameter('fusion.mode', value='slow')])
         with pytest.raises(ValueError, match='pair_timeout'):
             FusionNode(context=ros.context, parameter_overrides=[Parameter('pair_timeout', value=-1.0)])
+
+
+def test_pending_keyframes_stay_bounded_under_a_flood():
+    """Parts of keyframes that never complete: memory holds max_pending_keyframes at most."""
+    with RosHarness() as ros:
+        node = _fusion_node(ros, max_pending_keyframes=5, publish_points=False)
+        inputs = _Inputs(ros)
+        for i in range(30):
+            inputs.publish('info', None, 4_000_000_000 + i)
+        # a burst larger than the QoS history may lose some messages in transport: count arrivals
+        received = ros.wait_until_stable(lambda: node.stats.snapshot().received.get('camera_info', 0))
+        snap = node.stats.snapshot()
+        assert received > 5 and len(node.pending) == 5
+    assert snap.dropped == {'pair_overflow': received - 5}

@@ -255,3 +255,28 @@ def test_motion_keyframes_and_parameter_errors(synthetic_sequence):
                     Parameter('multi_view.max_depth', value=2.0),
                 ],
             )
+
+
+def test_images_waiting_for_poses_stay_bounded(synthetic_sequence):
+    """An image stream without poses (SLAM not started): at most max_pending_images are kept."""
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        node = ros.add(
+            MultiViewNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('width', value=80),
+                    Parameter('height', value=60),
+                    Parameter('max_pending_images', value=5),
+                    Parameter('pose_wait', value=100.0),
+                ],
+            )
+        )
+        cam = _Camera(ros)
+        for i, frame in enumerate(seq.frames):
+            cam.publish_image(frame.rgb, m.sec_to_ns(seq.stamps[i]), seq.camera)
+        # a burst larger than the QoS history may lose some messages in transport: count arrivals
+        received = ros.wait_until_stable(lambda: node.stats.snapshot().received.get('image', 0))
+        snap = node.stats.snapshot()
+        assert received > 5 and len(node.pending) == 5
+    assert snap.dropped == {'pose_wait_overflow': received - 5}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -141,3 +142,30 @@ def test_missing_model_fails_at_start_naming_the_file(tmp_path):
         SingleViewNode(
             context=ros.context, parameter_overrides=[Parameter('model', value=str(tmp_path / 'nowhere.pt'))]
         )
+
+
+def test_input_qos_parameter_matches_a_best_effort_camera(torchscript_model):
+    from depth_fusion_ros.nodes.qos import qos_profile
+
+    with RosHarness() as ros:
+        best_effort = ros.publisher(Image, '/depth_fusion/keyframe/image', qos_profile('sensor_data', 5))
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        ros.add(SingleViewNode('sv_reliable', context=ros.context, parameter_overrides=[
+            Parameter('model', value=str(torchscript_model))]))  # fmt: skip
+        node = ros.add(
+            SingleViewNode(
+                'sv_sensor_data',
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('model', value=str(torchscript_model)),
+                    Parameter('input_qos', value='sensor_data'),
+                ],
+            )
+        )
+        # a reliable subscription does not match a best-effort publisher: only one match
+        assert ros.wait_for(lambda: best_effort.get_subscription_count() == 1, 10.0)
+        time.sleep(0.3)
+        assert best_effort.get_subscription_count() == 1
+        best_effort.publish(_image(_rgb(5), 50))
+        assert ros.wait_for(lambda: len(depths) == 1, 20.0)
+    assert node.stats.snapshot().processed == 1 and m.stamp_to_ns(depths[0].header.stamp) == 50

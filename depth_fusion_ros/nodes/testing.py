@@ -72,6 +72,24 @@ class RosHarness:
             time.sleep(period)
         return bool(predicate())
 
+    @staticmethod
+    def wait_until_stable(value: Callable[[], Any], quiet: float = 0.5, timeout: float = 10.0) -> Any:
+        """Poll ``value()`` until it has not changed for ``quiet`` seconds; return it.
+
+        For floods, where KEEP_LAST histories may legitimately lose part of a burst and the test
+        cannot know how many messages will arrive.
+        """
+        deadline = time.monotonic() + timeout
+        last, since = value(), time.monotonic()
+        while time.monotonic() < deadline:
+            time.sleep(0.05)
+            current = value()
+            if current != last:
+                last, since = current, time.monotonic()
+            elif time.monotonic() - since >= quiet:
+                break
+        return last
+
     def wait_for_subscribers(self, publishers: Sequence[Any], count: int = 1, timeout: float = 10.0) -> bool:
         """Wait until every publisher is matched by ``count`` subscriptions (DDS discovery)."""
         return self.wait_for(lambda: all(p.get_subscription_count() >= count for p in publishers), timeout)
