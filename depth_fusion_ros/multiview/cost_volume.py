@@ -58,17 +58,21 @@ def check_patch(patch: str, stride: int) -> None:
 
 
 def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of ``(B, H, W)`` images (replicate borders); identity for sigma <= 0."""
+    """Separable Gaussian blur of ``(B, H, W)`` images (replicate borders); identity for sigma <= 0.
+
+    Written as a sum of shifted slices: for the few-tap kernels used here that is several
+    times faster on CPU than ``conv2d`` and runs unchanged on CUDA.
+    """
     if sigma <= 0:
         return images
     radius = max(1, math.ceil(2.5 * sigma))
-    x = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
-    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
-    kernel = kernel / kernel.sum()
-    out = images[:, None]
-    out = F.conv2d(F.pad(out, (radius, radius, 0, 0), mode='replicate'), kernel.view(1, 1, 1, -1))
-    out = F.conv2d(F.pad(out, (0, 0, radius, radius), mode='replicate'), kernel.view(1, 1, -1, 1))
-    return out[:, 0]
+    taps = [math.exp(-0.5 * (k / sigma) ** 2) for k in range(-radius, radius + 1)]
+    total = sum(taps)
+    h, w = images.shape[-2:]
+    padded = F.pad(images[:, None], (radius, radius, 0, 0), mode='replicate')[:, 0]
+    rows = sum(t / total * padded[..., k : k + w] for k, t in enumerate(taps))
+    padded = F.pad(rows[:, None], (0, 0, radius, radius), mode='replicate')[:, 0]
+    return sum(t / total * padded[..., k : k + h, :] for k, t in enumerate(taps))
 
 
 def patch_descriptors(

@@ -177,6 +177,23 @@ def select_best_fraction(result: MultiViewResult, fraction: float = 0.25) -> np.
     return mask
 
 
+def empty_result(camera: PinholeCamera) -> MultiViewResult:
+    """A result without any estimate (e.g. a keyframe with no overlapping neighbour yet)."""
+    nan = np.full((camera.height, camera.width), np.nan, dtype=np.float32)
+    return MultiViewResult(
+        depth=nan,
+        depth_std=nan.copy(),
+        photometric_score=nan.copy(),
+        geometric_score=nan.copy(),
+        score=nan.copy(),
+        cost=nan.copy(),
+        candidates=np.zeros(nan.shape, dtype=bool),
+        camera=camera,
+        distinctiveness=nan.copy(),
+        sharpness=nan.copy(),
+    )
+
+
 def gradient_magnitude(gray: torch.Tensor) -> torch.Tensor:
     """Central-difference grey gradient magnitude (grey levels per pixel), zero on the border."""
     g = torch.zeros_like(gray)

@@ -1,1 +1,139 @@
-"""Evaluation methods of the multi_view stage (registered on import)."""
+"""Evaluation methods of the multi_view stage (registered on import).
+
+* ``multi_view``: the semi-dense estimate (sparse: scored on its pixels; the harness adds
+  ``density``);
+* ``multi_view_selected``: the stage-1 points (best ``select_fraction`` by
+  photometric x geometric score), sparse;
+* ``tv``: the dense DTAM-style TV-regularised baseline over the same neighbours.
+
+The fusion methods reuse the per-keyframe result through :func:`multi_view_result` and the
+neighbours through :func:`neighbour_indices`. Options honoured: ``--neighbour-mode``,
+``--neighbours``, ``--device``, and ``--set multi_view.<field>=...`` (``MultiViewConfig``),
+``--set neighbours.<field>=...`` (``NeighbourConfig``), ``--set tv.<field>=...`` (``TVConfig``).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ...multiview.neighbours import NeighbourConfig, select_neighbours
+from ...multiview.params import apply_overrides
+from ...multiview.semidense import MultiViewConfig, MultiViewResult, empty_result, estimate_semidense
+from ...multiview.tv import TVConfig, estimate_tv
+from ..context import KeyframeContext
+from ..registry import MethodOutput, register_method
+
+log = logging.getLogger(__name__)
+
+#: ``--set <stage>.<field>=value`` stages read here.
+MULTI_VIEW_STAGE = 'multi_view'
+NEIGHBOURS_STAGE = 'neighbours'
+TV_STAGE = 'tv'
+
+
+def multi_view_config(ctx: KeyframeContext) -> MultiViewConfig:
+    """``MultiViewConfig`` with the run's ``--set multi_view.*`` overrides (checked)."""
+    config = apply_overrides(MultiViewConfig(), ctx.stage_params(MULTI_VIEW_STAGE), MULTI_VIEW_STAGE)
+    config.validate()
+    return config
+
+
+def neighbour_config(ctx: KeyframeContext) -> NeighbourConfig:
+    """``NeighbourConfig`` with the run's ``--set neighbours.*`` overrides (checked)."""
+    config = apply_overrides(NeighbourConfig(), ctx.stage_params(NEIGHBOURS_STAGE), NEIGHBOURS_STAGE)
+    config.validate()
+    return config
+
+
+def tv_config(ctx: KeyframeContext) -> TVConfig:
+    """``TVConfig`` with the run's ``--set tv.*`` overrides (checked)."""
+    config = apply_overrides(TVConfig(), ctx.stage_params(TV_STAGE), TV_STAGE)
+    config.validate()
+    return config
+
+
+def neighbour_indices(ctx: KeyframeContext) -> list[int]:
+    """Frame indices of the keyframe's neighbours (``--neighbour-mode``, ``--neighbours``).
+
+    The table lives in the run's shared memo (one per sequence and settings), so every
+    method and keyframe agrees on it.
+    """
+    mode, n = ctx.options.neighbour_mode, ctx.options.num_neighbours
+    config = neighbour_config(ctx)
+    table: dict[int, list[int]] = ctx.shared_cached(f'multi_view:neighbours:{mode}:{n}:{config}', dict)
+    if ctx.index not in table:
+        poses = ctx.sequence.poses
+        table[ctx.index] = select_neighbours(poses, ctx.index, n, mode, ctx.camera, config)
+    return table[ctx.index]
+
+
+def _neighbour_views(ctx: KeyframeContext, indices: list[int]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    frames = ctx.sequence.frames
+    return [frames[i].gray for i in indices], [frames[i].pose for i in indices]
+
+
+def multi_view_result(ctx: KeyframeContext) -> MultiViewResult:
+    """The semi-dense estimate of this keyframe, computed once per keyframe (memoised)."""
+
+    def compute() -> MultiViewResult:
+        indices = neighbour_indices(ctx)
+        if not indices:
+            log.warning(
+                '%s: keyframe %d has no overlapping neighbour; no multi-view depth',
+                ctx.sequence.name,
+                ctx.index,
+            )
+            return empty_result(ctx.camera)
+        grays, poses = _neighbour_views(ctx, indices)
+        return estimate_semidense(
+            ctx.frame.gray,
+            ctx.frame.pose,
+            grays,
+            poses,
+            ctx.camera,
+            multi_view_config(ctx),
+            device=ctx.options.device,
+            neighbours=indices,
+        )
+
+    return ctx.cached('multi_view:result', compute)
+
+
+@register_method(
+    'multi_view',
+    'semi-dense multi-view depth (ZNCC inverse-depth sweep over the selected neighbours)',
+    sparse=True,
+)
+def multi_view(ctx: KeyframeContext) -> MethodOutput:
+    result = multi_view_result(ctx)
+    return MethodOutput(
+        result.depth,
+        {'n_estimates': float(result.valid.sum()), 'n_neighbours': float(len(result.neighbours))},
+    )
+
+
+@register_method(
+    'multi_view_selected',
+    'multi-view points kept by stage 1 (best fraction by photometric x geometric score)',
+    sparse=True,
+)
+def multi_view_selected(ctx: KeyframeContext) -> MethodOutput:
+    result = multi_view_result(ctx)
+    mask = result.selected_mask(multi_view_config(ctx).select_fraction)
+    depth = np.where(mask, result.depth, np.float32(np.nan)).astype(np.float32)
+    return MethodOutput(depth, {'n_selected': float(mask.sum())})
+
+
+@register_method('tv', 'dense DTAM-style multi-view depth: cost volume + Huber-TV (primal-dual)')
+def tv(ctx: KeyframeContext) -> MethodOutput:
+    indices = neighbour_indices(ctx)
+    if not indices:
+        log.warning('%s: keyframe %d has no overlapping neighbour; no TV depth', ctx.sequence.name, ctx.index)
+        return MethodOutput(np.full((ctx.camera.height, ctx.camera.width), np.nan, dtype=np.float32))
+    grays, poses = _neighbour_views(ctx, indices)
+    depth = estimate_tv(
+        ctx.frame.gray, ctx.frame.pose, grays, poses, ctx.camera, tv_config(ctx), device=ctx.options.device
+    )
+    return MethodOutput(depth, {'n_neighbours': float(len(indices))})

@@ -1,0 +1,249 @@
+"""DTAM-style dense multi-view depth: cost volume + Huber-TV regularisation (the paper's "TV" baseline).
+
+Newcombe et al., "DTAM: Dense Tracking and Mapping in Real-Time" (ICCV 2011), with the
+primal-dual algorithm of Handa et al., "Applications of Legendre-Fenchel transformation to
+computer vision problems" (2011 tech. report):
+
+1. a photometric cost volume ``C(x, k)`` for *every* pixel and ``num_samples`` inverse depths
+   (the same ``1 - ZNCC`` cost and neighbours as the semi-dense search, ``cost_volume.py``);
+2. minimise ``E(d) = sum_x g(x) |grad d(x)|_eps + lambda C(x, d(x))`` over the normalised
+   inverse depth ``d`` in [0, 1] (``rho = rho_min + d (rho_max - rho_min)``), where ``|.|_eps``
+   is the Huber norm and ``g = exp(-alpha |grad I|^beta)`` lowers the smoothing across image
+   edges. The non-convex data term is decoupled through an auxiliary ``a`` and a quadratic
+   coupling ``(d - a)^2 / (2 theta)``: for a fixed ``a`` the convex Huber-ROF problem in ``d``
+   takes one primal-dual step (dual ascent on ``q``, projected on the unit ball; primal descent
+   on ``d``); for a fixed ``d`` the point-wise problem in ``a`` is an exhaustive search over the
+   samples of the cost volume refined by a parabola. ``theta`` decreases geometrically from
+   ``theta_start`` to ``theta_end``, which tightens the coupling until ``d = a``.
+
+Inverse depth is inverse z-depth; the output is dense (every pixel has a depth). Memory:
+the cost volume is ``H x W x num_samples`` float32 (20 MB at 320x240x64); it is built in
+chunks of pixels, so the intermediate tensors stay bounded by ``chunk_elements``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..camera import PinholeCamera
+from .cost_volume import (
+    check_patch,
+    epipolar_rays,
+    gaussian_blur,
+    patch_descriptors,
+    patch_reach,
+    rows_per_chunk,
+    sample_cost,
+    visibility_channel,
+)
+from .views import prepare_views
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TVConfig:
+    """Parameters of the TV-regularised dense baseline (DTAM defaults where they apply)."""
+
+    #: Depth range (m) and inverse-depth samples of the cost volume.
+    min_depth: float = 0.2
+    max_depth: float = 10.0
+    num_samples: int = 64
+    #: Patch of the ZNCC cost (see ``MultiViewConfig``).
+    patch: str = 'box'
+    patch_stride: int = 2
+    blur_sigma: float = 0.5
+    noise_floor: float = 0.01
+    #: A cost sample counts only if at least this fraction of the neighbours sees it.
+    min_view_fraction: float = 0.5
+    #: Weight of the photometric data term against the TV term.
+    data_weight: float = 1.0
+    #: Huber threshold of the regulariser (normalised inverse depth per pixel).
+    huber_eps: float = 1e-3
+    #: Edge weight ``g = exp(-edge_alpha |grad I|^edge_beta)`` (grey in [0, 1] per pixel).
+    edge_alpha: float = 10.0
+    edge_beta: float = 1.0
+    #: Coupling schedule: ``theta`` from ``theta_start`` to ``theta_end``, times ``theta_decay`` per step.
+    theta_start: float = 0.2
+    theta_end: float = 1e-4
+    theta_decay: float = 0.9
+    #: Largest intermediate tensor while building the cost volume, in float elements.
+    chunk_elements: int = 1 << 21
+
+    def validate(self) -> None:
+        if not (0 < self.min_depth < self.max_depth) or not math.isfinite(self.max_depth):
+            raise ValueError(f'tv: need 0 < min_depth < max_depth, got {self.min_depth} and {self.max_depth}')
+        if self.num_samples < 3:
+            raise ValueError(f'tv.num_samples must be >= 3, got {self.num_samples}')
+        check_patch(self.patch, self.patch_stride)
+        if not (0 < self.theta_end < self.theta_start):
+            raise ValueError(
+                f'tv: need 0 < theta_end < theta_start, got {self.theta_end}, {self.theta_start}'
+            )
+        if not (0 < self.theta_decay < 1):
+            raise ValueError(f'tv.theta_decay must be in (0, 1), got {self.theta_decay}')
+        if self.data_weight <= 0 or self.huber_eps < 0:
+            raise ValueError('tv.data_weight must be positive and tv.huber_eps non-negative')
+
+    @property
+    def iterations(self) -> int:
+        """Primal-dual iterations the ``theta`` schedule implies."""
+        return max(1, math.ceil(math.log(self.theta_end / self.theta_start) / math.log(self.theta_decay)))
+
+
+def build_cost_volume(
+    grays: torch.Tensor, T_ok: np.ndarray, camera: PinholeCamera, config: TVConfig
+) -> torch.Tensor:
+    """``(H*W, S)`` mean ``1 - ZNCC`` of every keyframe pixel at ``num_samples`` inverse depths.
+
+    Samples seen by too few neighbours get the uninformative cost 1, so the regulariser
+    fills them in.
+    """
+    device = grays.device
+    h, w = camera.height, camera.width
+    desc = patch_descriptors(grays, config.patch, config.patch_stride, config.blur_sigma, config.noise_floor)
+    margin = patch_reach(config.patch, config.patch_stride)
+    neighbour_images = visibility_channel(desc[1:], margin)
+    key_desc = desc[0].reshape(desc.shape[1], -1)
+    v, u = torch.meshgrid(
+        torch.arange(h, device=device, dtype=torch.float32),
+        torch.arange(w, device=device, dtype=torch.float32),
+        indexing='ij',
+    )
+    rays = epipolar_rays(u.reshape(-1), v.reshape(-1), camera.K, T_ok, camera.size, device)
+    rho = torch.linspace(1.0 / config.max_depth, 1.0 / config.min_depth, config.num_samples, device=device)
+    n = T_ok.shape[0]
+    need = max(1, math.ceil(config.min_view_fraction * n - 1e-9)) - 0.5
+    chunk = rows_per_chunk(n, desc.shape[1], config.num_samples, config.chunk_elements)
+    volume = torch.empty((h * w, config.num_samples), dtype=torch.float32, device=device)
+    for start in range(0, h * w, chunk):
+        stop = min(start + chunk, h * w)
+        cost, count = sample_cost(key_desc[:, start:stop], neighbour_images, rays.chunk(start, stop), rho)
+        volume[start:stop] = torch.where(count >= need, cost, torch.ones_like(cost))
+    return volume
+
+
+def edge_weights(gray: torch.Tensor, alpha: float, beta: float) -> torch.Tensor:
+    """``g = exp(-alpha |grad I|^beta)``: small across strong image edges, where depth may jump."""
+    gy, gx = torch.gradient(gray)
+    return torch.exp(-alpha * torch.sqrt(gx * gx + gy * gy).pow(beta))
+
+
+def _grad(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward differences with Neumann boundary (zero past the last row/column)."""
+    gx = torch.zeros_like(d)
+    gy = torch.zeros_like(d)
+    gx[:, :-1] = d[:, 1:] - d[:, :-1]
+    gy[:-1, :] = d[1:, :] - d[:-1, :]
+    return gx, gy
+
+
+def _div(px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Divergence, the negative adjoint of :func:`_grad`."""
+    div = torch.zeros_like(px)
+    div[:, 0] = px[:, 0]
+    div[:, 1:-1] = px[:, 1:-1] - px[:, :-2]
+    div[:, -1] = -px[:, -2]
+    div[0, :] += py[0, :]
+    div[1:-1, :] += py[1:-1, :] - py[:-2, :]
+    div[-1, :] += -py[-2, :]
+    return div
+
+
+def _point_search(
+    volume: torch.Tensor, d: torch.Tensor, theta: float, weight: float, cost_range: float
+) -> torch.Tensor:
+    """``argmin_a (d - a)^2 / (2 theta) + weight C(a)`` per pixel, refined by a parabola.
+
+    Only samples with ``(d - a)^2 / (2 theta) <= weight * (max C - min C)`` can win (DTAM's
+    search-window bound), so the search looks at a window around ``d`` that shrinks with
+    ``theta``: the late iterations cost a few samples instead of the whole volume.
+    """
+    s = volume.shape[1]
+    scale = 1.0 / (s - 1)
+    pos = d.reshape(-1) * (s - 1)  # continuous sample index of d
+    radius = math.ceil(math.sqrt(2.0 * theta * weight * cost_range) * (s - 1)) + 1
+    if 2 * radius + 1 >= s:  # the whole volume: no gather needed
+        idx = torch.arange(s, device=d.device)[None, :].expand(pos.shape[0], s)
+        quad = (pos[:, None] - idx.to(pos.dtype)) * scale
+        energy = quad * quad / (2.0 * theta) + weight * volume
+    else:
+        centre = torch.round(pos)
+        offsets = torch.arange(-radius, radius + 1, device=d.device)
+        idx = (centre.long()[:, None] + offsets[None, :]).clamp_(0, s - 1)
+        # Out-of-range offsets repeat a border sample with a larger quadratic term: they never win.
+        quad = ((pos - centre)[:, None] - offsets[None, :].to(pos.dtype)) * scale
+        energy = quad * quad / (2.0 * theta) + weight * torch.gather(volume, 1, idx)
+    k = torch.gather(idx, 1, energy.argmin(dim=1, keepdim=True))[:, 0].clamp(1, s - 2)
+    around = k[:, None] + torch.arange(-1, 2, device=d.device)[None, :]
+    quad = (pos[:, None] - around.to(pos.dtype)) * scale
+    e = quad * quad / (2.0 * theta) + weight * torch.gather(volume, 1, around)
+    e_m, e_0, e_p = e.unbind(dim=1)
+    curvature = e_m - 2.0 * e_0 + e_p
+    delta = torch.where(
+        curvature > 1e-12, 0.5 * (e_m - e_p) / curvature.clamp(min=1e-12), torch.zeros_like(e_0)
+    )
+    a = (k.to(d.dtype) + delta.clamp(-1.0, 1.0)) * scale
+    return a.reshape(d.shape).clamp(0.0, 1.0)
+
+
+def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> torch.Tensor:
+    """Normalised inverse depth ``d`` (H, W) in [0, 1] minimising the decoupled Huber-TV energy."""
+    h, w = gray.shape
+    g = edge_weights(gaussian_blur(gray[None], config.blur_sigma)[0], config.edge_alpha, config.edge_beta)
+    s = volume.shape[1]
+    a = (volume.argmin(dim=1).to(torch.float32) / (s - 1)).reshape(h, w)
+    d = a.clone()
+    qx = torch.zeros_like(d)
+    qy = torch.zeros_like(d)
+    # Chambolle-Pock steps with sigma * tau * L^2 <= 1 for the weighted gradient (L^2 = 8 max g^2 <= 8).
+    sigma_q = tau_d = 1.0 / math.sqrt(8.0)
+    eps = config.huber_eps
+    theta = config.theta_start
+    cost_range = float((volume.max(dim=1).values - volume.min(dim=1).values).max())
+    for _ in range(config.iterations):
+        gx, gy = _grad(d)
+        qx = (qx + sigma_q * g * gx) / (1.0 + sigma_q * eps)
+        qy = (qy + sigma_q * g * gy) / (1.0 + sigma_q * eps)
+        norm = torch.clamp(torch.sqrt(qx * qx + qy * qy), min=1.0)
+        qx, qy = qx / norm, qy / norm
+        d = (d + tau_d * (g * _div(qx, qy) + a / theta)) / (1.0 + tau_d / theta)
+        a = _point_search(volume, d, theta, config.data_weight, cost_range)
+        theta = max(theta * config.theta_decay, config.theta_end)
+    return a
+
+
+def estimate_tv(
+    key_gray: np.ndarray,
+    key_pose: np.ndarray,
+    neighbour_grays: Sequence[np.ndarray],
+    neighbour_poses: Sequence[np.ndarray],
+    camera: PinholeCamera,
+    config: TVConfig | None = None,
+    device: str | torch.device = 'cpu',
+) -> np.ndarray:
+    """Dense depth (H, W) float32 in metres of a keyframe from ``n >= 1`` posed neighbours.
+
+    Same inputs and errors as :func:`~.semidense.estimate_semidense`.
+    """
+    config = config or TVConfig()
+    config.validate()
+    views = prepare_views(key_gray, key_pose, neighbour_grays, neighbour_poses, camera, device)
+    with torch.no_grad():
+        volume = build_cost_volume(views.grays, views.T_ok, camera, config)
+        d = regularise(volume, views.grays[0], config)
+    rho_min, rho_max = 1.0 / config.max_depth, 1.0 / config.min_depth
+    rho = rho_min + d * (rho_max - rho_min)
+    log.debug(
+        'tv: %d iterations, %d samples, %d neighbours',
+        config.iterations,
+        config.num_samples,
+        views.num_neighbours,
+    )
+    return (1.0 / rho).cpu().numpy().astype(np.float32)
