@@ -29,6 +29,7 @@ from std_msgs.msg import String
 
 from ..camera import PinholeCamera
 from ..data import messages
+from ..fusion import pipeline as fusion_pipeline
 from ..fusion.interpolation import MODES as FUSION_MODES
 from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
 from ..fusion.weights import WEIGHT_SETS
@@ -68,6 +69,8 @@ FUSION_LIMITS: dict[str, Any] = {
     'ransac_min_inliers': (2, None),
     'seed': (0, None),
     'max_points': (-1, None),
+    'ransac_model': tuple(getattr(fusion_pipeline, 'RANSAC_MODELS', ())),
+    'metric_scale_range': (1.0, None),
 }
 #: Set by the node itself (``device``) rather than under ``fusion.*``.
 FUSION_SKIP = ('device',)

@@ -214,6 +214,8 @@ def dataclass_specs(
             default, description = _none_sentinel(kind, description)
             if kind is bool:
                 choices = (NONE_STRING, 'true', 'false')
+            elif kind is str and choices:
+                choices = (NONE_STRING, *choices)
         else:
             default = kind(default)
         low, high = limit if limit and not choices else (None, None)  # type: ignore[misc]
