@@ -2,8 +2,8 @@
 
 The single-view and multi-view results of a keyframe arrive on separate topics at different
 times (the network and the plane sweep run in parallel in other nodes), so the node pairs
-them by **exact header stamp**, together with the keyframe's camera_info (and its image, for
-coloured points). A pairing waits at most ``pair_timeout`` seconds; because every upstream
+them by **exact header stamp**, together with the keyframe's camera_info (and its image, when
+it has come, to colour the points). A pairing waits at most ``pair_timeout`` seconds; because every upstream
 stream is in stamp order, a pairing that misses a part which its stream has already passed
 is hopeless and dropped at once. Both bounds keep memory flat whatever the input.
 
@@ -107,7 +107,12 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('points_stride', 2, 'keep every n-th pixel in both directions in the point cloud', 1, 64),
     ParamSpec('points_max_depth', 10.0, 'points farther than this (m) are left out of the cloud', 0.0),
     ParamSpec('points_min_confidence', 0.0, 'points whose confidence is below this are left out', 0.0),
-    ParamSpec('points_color', True, 'colour the points with the keyframe image (waits for it when pairing)'),
+    ParamSpec(
+        'points_color',
+        True,
+        'colour the points with the keyframe image when it has arrived (the multi-view node sends it '
+        'before its depth, so it nearly always has; a keyframe never waits for it)',
+    ),
     ParamSpec(
         'fusion.stage1_fraction',
         MultiViewConfig().select_fraction,
@@ -153,7 +158,8 @@ class FusionNode(DepthFusionNode):
         self.pending: dict[int, _Pairing] = {}
         #: Stamps of keyframes already fused or dropped (the most recent ``CLOSED_MEMORY``).
         self._closed: OrderedDict[int, None] = OrderedDict()
-        self.required = REQUIRED_PARTS + (('rgb',) if p['publish_points'] and p['points_color'] else ())
+        self.required = REQUIRED_PARTS
+        self.want_rgb = bool(p['publish_points'] and p['points_color'])
         self._stamp_guards = {part: StampGuard(part) for part in (*REQUIRED_PARTS, 'rgb')}
 
         self._depth_pub = self.create_publisher(Image, TOPIC_FUSED_DEPTH, self.output_qos)
@@ -201,7 +207,7 @@ class FusionNode(DepthFusionNode):
         self._add_part(msg, 'camera_info', (calib.camera, msg))
 
     def _on_keyframe_image(self, msg: Image) -> None:
-        if 'rgb' not in self.required:
+        if not self.want_rgb:
             return
         self.stats.received('keyframe_image')
         try:
