@@ -70,3 +70,18 @@ def test_degenerate_inputs_fail_with_a_reason() -> None:
 def test_bad_ransac_parameters_are_named(kwargs: dict, name: str) -> None:
     with pytest.raises(ValueError, match=name):
         fit_ransac(np.arange(10.0), np.arange(10.0), **kwargs)
+
+
+def test_scale_model_and_plausible_scales_resist_a_clustered_majority_of_outliers() -> None:
+    """Wrong matches piling up at the near end of the sweep (m ≈ 0.25 m) outnumber the good
+    points; an unconstrained line follows them, a plausible metric scale does not."""
+    rng = np.random.default_rng(2)
+    s = rng.uniform(2.0, 4.0, 400)
+    m = 1.1 * s * (1 + rng.normal(0, 0.02, 400))
+    wrong = np.arange(400) < 240
+    m[wrong] = rng.uniform(0.24, 0.26, wrong.sum())
+    free = fit_ransac(s, m, threshold=0.2, relative=True)
+    assert free.inliers[wrong].mean() > 0.9  # the line found the cluster
+    fit = fit_ransac(s, m, threshold=0.2, relative=True, affine=False, scale_range=(0.5, 2.0))
+    assert fit.ok and fit.b == 0.0 and fit.a == pytest.approx(1.1, abs=0.02)
+    assert np.array_equal(fit.inliers, ~wrong)

@@ -32,6 +32,7 @@ from .weights import WeightParams, check_weight_params
 
 log = logging.getLogger(__name__)
 
+RANSAC_MODELS = ('affine', 'scale')
 FALLBACKS = ('no_single_view', 'too_few_points', 'no_consensus', 'empty_omega')
 
 #: One line per ``FusionConfig`` field, for ROS parameter descriptions and docs.
@@ -48,6 +49,8 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'ransac_threshold': 'stage 2: inlier residual |m - (a s + b)| in metres (fraction of depth if relative)',
     'ransac_relative': 'stage 2: ransac_threshold is a fraction of the predicted depth instead of metres',
     'ransac_iterations': 'stage 2: random two-point hypotheses',
+    'ransac_model': "stage 2 model: 'affine' m = a s + b, 'scale' m = a s; auto: scale for metric sources",
+    'metric_scale_range': 'stage 2, metric sources: only fits with 1/r <= a <= r are plausible (r = this)',
     'ransac_min_inliers': 'stage 2: fewer inliers than this is no consensus (single-view depth published)',
     'seed': 'seed of the RANSAC sampling and of the max_points subsampling (deterministic output)',
     'align_scale': "map s <- a s + b before fusing; 'auto': only for non-metric single-view sources",
@@ -74,6 +77,8 @@ class FusionConfig:
     ransac_threshold: float = 0.1
     ransac_relative: bool = True
     ransac_iterations: int = 200
+    ransac_model: str | None = None
+    metric_scale_range: float = 2.0
     ransac_min_inliers: int = 10
     seed: int = 0
     align_scale: bool | None = None
@@ -93,12 +98,33 @@ class FusionConfig:
             raise ValueError(f'ransac_threshold must be positive, got {self.ransac_threshold}')
         if not 0.0 <= self.fast_refine <= 1.0:
             raise ValueError(f'fast_refine must be in [0, 1], got {self.fast_refine}')
+        if self.ransac_model not in (None, *RANSAC_MODELS):
+            raise ValueError(
+                f'ransac_model must be one of {", ".join(RANSAC_MODELS)} or None, got {self.ransac_model!r}'
+            )
+        if not (np.isfinite(self.metric_scale_range) and self.metric_scale_range >= 1.0):
+            raise ValueError(
+                f'metric_scale_range must be a finite number >= 1, got {self.metric_scale_range}'
+            )
         if self.max_points is not None and self.max_points < 1:
             raise ValueError(f'max_points must be >= 1 or None, got {self.max_points}')
 
     @property
     def weight_params(self) -> WeightParams:
         return WeightParams(self.sigma1, self.sigma2, self.sigma3, self.weights)
+
+    def model(self, output_kind: str) -> str:
+        """Stage-2 model: as configured, else ``scale`` for metric sources (``affine`` otherwise)."""
+        if self.ransac_model is not None:
+            return self.ransac_model
+        return 'scale' if output_kind == 'metric_depth' else 'affine'
+
+    def scale_range(self, output_kind: str) -> tuple[float, float]:
+        """Plausible ``a`` of the stage-2 fit: within ``metric_scale_range`` of 1 for a metric
+        source, any positive value otherwise."""
+        if output_kind != 'metric_depth':
+            return (0.0, np.inf)
+        return (1.0 / self.metric_scale_range, self.metric_scale_range)
 
     def aligns(self, output_kind: str) -> bool:
         """Whether ``s`` is mapped by the fit: as configured, else for non-metric sources."""
@@ -173,6 +199,8 @@ def fuse_keyframe(
             min_inliers=config.ransac_min_inliers,
             seed=config.seed,
             inverse=inverse,
+            affine=config.model(output_kind) == 'affine',
+            scale_range=config.scale_range(output_kind),
         )
         if not fit.ok:
             log.debug('stage 2 failed (%s) on %d stage-1 points', fit.reason, n_stage1)

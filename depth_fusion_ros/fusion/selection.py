@@ -135,6 +135,8 @@ def fit_ransac(
     min_inliers: int = 10,
     seed: int = 0,
     inverse: bool = False,
+    affine: bool = True,
+    scale_range: tuple[float, float] = (0.0, np.inf),
 ) -> LinearFit:
     """Robust ``m ≈ a·s + b`` (``1/m ≈ a·s + b`` when ``inverse``) over paired 1-D samples.
 
@@ -163,15 +165,9 @@ def fit_ransac(
     target = 1.0 / mu if inverse else mu
 
     rng = np.random.default_rng(seed)
-    first = rng.integers(0, idx.size, size=iterations)
-    second = rng.integers(0, idx.size - 1, size=iterations)
-    second += second >= first  # two distinct points per hypothesis
-    ds = su[second] - su[first]
-    with np.errstate(divide='ignore', invalid='ignore'):
-        a = (target[second] - target[first]) / ds
-    b = target[first] - a * su[first]
-    good = np.isfinite(a) & np.isfinite(b) & (a > 0) & (np.abs(ds) > 0)
-    a, b = a[good], b[good]
+    a, b = _hypotheses(su, target, iterations, rng, affine)
+    plausible = (a >= scale_range[0]) & (a <= scale_range[1])
+    a, b = a[plausible], b[plausible]
     if a.size == 0:
         return failed_fit(n, inverse, 'no_consensus')
 
@@ -190,8 +186,9 @@ def fit_ransac(
 
     inl = _inliers(a_best, b_best, su, mu, threshold, relative, inverse)
     for _ in range(REFINEMENTS):
-        line = least_squares_line(su[inl], target[inl])
-        if line is None or not line[0] > 0:
+        refit = least_squares_line if affine else least_squares_scale
+        line = refit(su[inl], target[inl])
+        if line is None or not scale_range[0] <= line[0] <= scale_range[1]:
             break
         refined = _inliers(line[0], line[1], su, mu, threshold, relative, inverse)
         if refined.sum() < inl.sum():
@@ -205,6 +202,33 @@ def fit_ransac(
     inliers = np.zeros(n, dtype=bool)
     inliers[idx[inl]] = True
     return LinearFit(a_best, b_best, inverse, inliers, ok=True, max_depth=float(mu[inl].max()))
+
+
+def _hypotheses(
+    s: np.ndarray, target: np.ndarray, iterations: int, rng: np.random.Generator, affine: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Increasing models through random minimal samples: two distinct points for a line,
+    one point for a scale."""
+    first = rng.integers(0, s.size, size=iterations)
+    if affine:
+        second = rng.integers(0, s.size - 1, size=iterations)
+        second += second >= first  # two distinct points per hypothesis
+        ds = s[second] - s[first]
+        with np.errstate(divide='ignore', invalid='ignore'):
+            a = (target[second] - target[first]) / ds
+        b = target[first] - a * s[first]
+    else:
+        with np.errstate(divide='ignore', invalid='ignore'):
+            a = target[first] / s[first]
+        b = np.zeros_like(a)
+    good = np.isfinite(a) & np.isfinite(b) & (a > 0)
+    return a[good], b[good]
+
+
+def least_squares_scale(x: np.ndarray, y: np.ndarray) -> tuple[float, float] | None:
+    """``y ≈ a·x`` by least squares, as ``(a, 0)``; None without a usable point."""
+    xx = float(np.dot(x, x))
+    return (float(np.dot(x, y)) / xx, 0.0) if x.size and xx > 0 else None
 
 
 def _inliers(
