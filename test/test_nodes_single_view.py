@@ -169,3 +169,27 @@ def test_input_qos_parameter_matches_a_best_effort_camera(torchscript_model):
         best_effort.publish(_image(_rgb(5), 50))
         assert ros.wait_for(lambda: len(depths) == 1, 20.0)
     assert node.stats.snapshot().processed == 1 and m.stamp_to_ns(depths[0].header.stamp) == 50
+
+
+def test_an_unexpected_error_in_a_callback_does_not_end_the_node(torchscript_model):
+    with RosHarness() as ros:
+        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=[
+            Parameter('model', value=str(torchscript_model))]))  # fmt: skip
+        images = ros.publisher(Image, '/depth_fusion/keyframe/image')
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers([images])
+        real = node.camera_input.working_image
+        calls = []
+
+        def broken_once(msg):
+            calls.append(msg)
+            if len(calls) == 1:
+                raise RuntimeError('a bug nobody anticipated')
+            return real(msg)
+
+        node.camera_input.working_image = broken_once
+        images.publish(_image(_rgb(0), 10))
+        assert ros.wait_for(lambda: node.stats.snapshot().dropped.get('callback_error') == 1, 10.0)
+        images.publish(_image(_rgb(1), 20))
+        assert ros.wait_for(lambda: len(depths) == 1, 20.0)
+    assert m.stamp_to_ns(depths[0].header.stamp) == 20

@@ -16,6 +16,7 @@ import dataclasses
 import signal
 import threading
 import time
+import traceback
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -100,10 +101,35 @@ class DepthFusionNode(Node):
         if period > 0:
             self.create_wall_timer(period, self.log_stats)
 
+    def subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None], qos: Any) -> Any:
+        """``create_subscription`` whose callback can never take the node down.
+
+        An exception escaping a callback ends ``spin`` and so the node. Every expected problem
+        is an ``InputError`` handled in the callback; anything else (a bug, a message nobody
+        thought of) is counted as ``callback_error`` and logged with its traceback instead.
+        """
+
+        def guarded(msg: Any) -> None:
+            try:
+                callback(msg)
+            except Exception as exc:
+                self.stats.dropped('callback_error', f'{topic}: {type(exc).__name__}: {exc}')
+                self.get_logger().debug(traceback.format_exc())
+
+        return self.create_subscription(msg_type, topic, guarded, qos)
+
     def create_wall_timer(self, period: float, callback: Callable[[], None]) -> Any:
         """A timer on the steady clock: with ``use_sim_time`` a paused or finished bag stops ROS
         time, and counters and pairing timeouts must keep running regardless."""
-        return self.create_timer(period, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+        def guarded() -> None:
+            try:
+                callback()
+            except Exception as exc:  # same rule as subscriptions: never end the spin
+                self.stats.dropped('callback_error', f'timer: {type(exc).__name__}: {exc}')
+                self.get_logger().debug(traceback.format_exc())
+
+        return self.create_timer(period, guarded, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def make_worker(self, name: str, handle: Callable[[Any], None]) -> BoundedWorker:
         """A worker with this node's queue parameters; drops and failures are counted and logged."""
@@ -113,7 +139,8 @@ class DepthFusionNode(Node):
 
         def on_error(item: Any, exc: BaseException) -> None:
             self.stats.dropped('processing_error', f'{name} failed: {type(exc).__name__}: {exc}')
-            self.get_logger().debug(f'{name} failure', throttle_duration_sec=1.0)
+            trace = ''.join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+            self.get_logger().debug(f'{name} failure:\n{trace}')
 
         worker = BoundedWorker(
             name,

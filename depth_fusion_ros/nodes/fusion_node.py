@@ -172,12 +172,12 @@ class FusionNode(DepthFusionNode):
         )
         self.worker = self.make_worker('fusion', self._process)
         q = self.input_qos
-        self.create_subscription(String, TOPIC_OUTPUT_KIND, self._on_output_kind, latched_qos())
-        self.create_subscription(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self._on_camera_info, q)
-        self.create_subscription(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
-        self.create_subscription(Image, TOPIC_MV_DEPTH, lambda m: self._on_depth(m, 'mv_depth'), q)
-        self.create_subscription(Image, TOPIC_MV_SCORE, lambda m: self._on_depth(m, 'mv_score'), q)
-        self.create_subscription(Image, TOPIC_SINGLE, lambda m: self._on_depth(m, 'single'), q)
+        self.subscribe(String, TOPIC_OUTPUT_KIND, self._on_output_kind, latched_qos())
+        self.subscribe(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self._on_camera_info, q)
+        self.subscribe(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
+        self.subscribe(Image, TOPIC_MV_DEPTH, lambda m: self._on_depth(m, 'mv_depth'), q)
+        self.subscribe(Image, TOPIC_MV_SCORE, lambda m: self._on_depth(m, 'mv_score'), q)
+        self.subscribe(Image, TOPIC_SINGLE, lambda m: self._on_depth(m, 'single'), q)
         self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
         self.get_logger().info(
             f'fusion ({self.config.mode} mode) on {p["device"]}: {self.resolve_topic_name(TOPIC_SINGLE)} + '

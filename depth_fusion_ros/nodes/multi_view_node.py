@@ -251,10 +251,10 @@ class MultiViewNode(DepthFusionNode):
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
         self.worker = self.make_worker('multi_view', self._process)
-        self.create_subscription(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
+        self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
         pose_qos = qos_profile(str(p['input_qos']), int(p['pose_qos_depth']))
-        self.create_subscription(PoseStamped, TOPIC_POSE, self._on_pose, pose_qos)
-        self.create_subscription(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
+        self.subscribe(PoseStamped, TOPIC_POSE, self._on_pose, pose_qos)
+        self.subscribe(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
         self.get_logger().info(
             f'multi-view on {self.device}, keyframes {p["keyframe_policy"]}'
             + (f' every {p["keyframe_every"]}' if p['keyframe_policy'] == 'every_k' else '')
@@ -281,7 +281,11 @@ class MultiViewNode(DepthFusionNode):
         except InputError as exc:
             self.stats.dropped(exc.reason, str(exc))
             return
-        self.pose_buffer.insert(messages.ns_to_sec(stamp_ns), T_wc)
+        try:
+            self.pose_buffer.insert(messages.ns_to_sec(stamp_ns), T_wc)
+        except ValueError as exc:  # PoseError: not a rigid transform
+            self.stats.dropped('bad_pose', f'pose: {exc}')
+            return
         self._resolve_pending()
 
     def _on_image(self, msg: Image) -> None:

@@ -103,8 +103,8 @@ class SingleViewNode(DepthFusionNode):
         self._kind_pub = self.create_publisher(String, TOPIC_OUTPUT_KIND, latched_qos())
         self._kind_pub.publish(String(data=self.output_kind))
         self.worker = self.make_worker('single_view', self._process)
-        self.create_subscription(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
-        self.create_subscription(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
+        self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
+        self.subscribe(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
         self.get_logger().info(
             f'single-view model {p["model"]!r} ({self.output_kind}) on {p["device"]}; '
             f'{self.resolve_topic_name(TOPIC_IMAGE)} -> {self.resolve_topic_name(TOPIC_DEPTH)}'
