@@ -181,3 +181,22 @@ def test_console_scripts_start_with_the_params_file_and_stop_on_signals(model_pa
             if proc.proc.poll() is None:
                 proc.proc.kill()
                 proc.finish()
+
+
+def test_a_namespace_moves_every_topic_of_a_node():
+    from depth_fusion_ros.nodes.fusion_node import FusionNode
+
+    with RosHarness() as ros:
+        node = FusionNode(context=ros.context, namespace='robot1')
+        try:
+            published = sorted(p.topic_name for p in node.publishers if 'depth_fusion' in p.topic_name)
+            subscribed = sorted(s.topic_name for s in node.subscriptions)
+        finally:
+            node.destroy_node()
+    assert published == [
+        '/robot1/depth_fusion/fused/camera_info',
+        '/robot1/depth_fusion/fused/confidence',
+        '/robot1/depth_fusion/fused/depth',
+        '/robot1/depth_fusion/fused/points',
+    ]
+    assert all(topic.startswith('/robot1/depth_fusion/') for topic in subscribed), subscribed
