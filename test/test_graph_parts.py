@@ -121,3 +121,30 @@ def test_running_doc_lists_every_replayer_and_recorder_parameter():
     doc = (Path(__file__).resolve().parents[1] / 'docs' / 'running.md').read_text()
     for spec in (*REPLAYER_PARAMS, *RECORDER_PARAMS):
         assert f'| `{spec.name}` |' in doc, f'docs/running.md does not describe {spec.name}'
+
+
+def test_segments_of_a_killed_node_are_found_and_removed():
+    """What the no-leftover checks rely on: SIGKILL leaves a participant segment nobody maps."""
+    import os
+    import signal
+    import time
+
+    since = time.time()
+    code = (
+        'import rclpy, time; rclpy.init(); n = rclpy.create_node("doomed"); '
+        'print("up", flush=True); time.sleep(60)'
+    )
+    env = os.environ.copy()
+    launcher.apply_fastdds_profile(env)
+    proc = subprocess.Popen([sys.executable, '-c', code], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout.readline().strip() == 'up'
+        time.sleep(0.5)
+        assert launcher.orphan_segments(since) == [], 'a live node segment is not an orphan'
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    orphans = launcher.orphan_segments(since)
+    assert orphans, 'the killed node left no segment (or it was not recognised)'
+    launcher.remove_segments(launcher.orphan_segments(since, include_ports=True))
+    assert launcher.orphan_segments(since) == []

@@ -201,6 +201,7 @@ def check_accuracy_matches_offline(
     assert len(both) >= 0.9 * len(keyframes), f'{len(both)} of {len(keyframes)} keyframes scored'
     on = float(np.mean([online[i] for i in both]))
     off = float(np.mean([offline[i] for i in both]))
+    print(f'fused MAE over {len(both)} keyframes: graph {on:.4f} m, offline evaluate {off:.4f} m')
     assert abs(on - off) <= 0.05 * off, f'online MAE {on:.4f} m vs offline {off:.4f} m'
 
 

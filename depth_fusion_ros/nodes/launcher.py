@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -113,14 +114,23 @@ def apply_fastdds_profile(env: MutableMapping[str, str] | None = None) -> str:
     return path
 
 
-def shm_segments() -> dict[str, float]:
-    """Fast DDS shared-memory files in /dev/shm -> creation time (empty where there is none)."""
+#: A participant's own segment (``fastrtps_<16 hex>``) and its lock file. Port segments
+#: (``fastrtps_port<N>``) and their mutexes are shared by every participant on that port and
+#: managed by Fast DDS itself, so they are never judged here.
+PARTICIPANT_SEGMENT = re.compile(r'^fastrtps_[0-9a-f]{16}(_el)?$')
+
+
+PORT_SEGMENT = re.compile(r'^(sem\.)?fastrtps_port\d+(_el|_mutex)?$')
+
+
+def shm_segments(include_ports: bool = False) -> dict[str, float]:
+    """Fast DDS participant segments (and port segments) in /dev/shm -> creation time."""
     root = Path('/dev/shm')
     if not root.is_dir():
         return {}
     out = {}
     for p in root.iterdir():
-        if 'fastrtps_' in p.name:
+        if PARTICIPANT_SEGMENT.match(p.name) or (include_ports and PORT_SEGMENT.match(p.name)):
             with contextlib.suppress(OSError):
                 out[p.name] = p.stat().st_ctime
     return out
@@ -138,14 +148,17 @@ def mapped_shm_files() -> set[str]:
     return mapped
 
 
-def orphan_segments(since: float) -> list[str]:
-    """Fast DDS data segments created after ``since`` (epoch s) that no process maps any more.
+def orphan_segments(since: float, include_ports: bool = False) -> list[str]:
+    """Participant segments created after ``since`` (epoch s) that no process maps any more:
+    what a node killed without shutdown leaves behind.
 
-    Lock files (``*_el``) are never mapped and are judged with their segment.
+    Lock files (``*_el``) are never mapped and are judged with their segment. With
+    ``include_ports`` also the port segments and mutexes nobody maps (a killed node leaves
+    those too; ``fastdds shm clean`` would remove them).
     """
     mapped = mapped_shm_files()
     orphans = []
-    for name, created in shm_segments().items():
+    for name, created in shm_segments(include_ports).items():
         if created < since - 1.0:
             continue
         base = name[: -len('_el')] if name.endswith('_el') else name
@@ -736,7 +749,7 @@ class GraphRun:
                 forced = True
         self.exit_codes = {name: p.returncode for name, p in self.processes.items()}
         if forced:
-            orphans = orphan_segments(self._wall_start)
+            orphans = orphan_segments(self._wall_start, include_ports=True)
             if orphans:
                 log.warning('removing %d shared-memory segments left by killed nodes', len(orphans))
                 remove_segments(orphans)
