@@ -238,6 +238,8 @@ def soak(opts: BenchOptions, bag: Path, seconds: float) -> list[BenchRow]:
         options.overrides.setdefault(node, {}).update(values)
     result = run_graph(options)
     samples = np.array(sampler.samples)
+    curve = BENCH_DIR / 'soak_rss.csv'
+    np.savetxt(curve, samples, fmt='%.1f', delimiter=',', header='seconds,rss_mb', comments='')
     if len(samples) < 3:
         return [BenchRow('soak: too short to sample', seconds, 's')]
     t, rss = samples[:, 0], samples[:, 1]
@@ -246,7 +248,12 @@ def soak(opts: BenchOptions, bag: Path, seconds: float) -> list[BenchRow]:
     slope = float(np.polyfit(t[steady], rss[steady], 1)[0]) * 60.0 if steady.sum() >= 2 else float('nan')
     mid = len(rss) // 2
     return [
-        BenchRow('soak: looped replay', seconds, 's', f'{len(result.fused)} keyframes fused; {_load_note()}'),
+        BenchRow(
+            'soak: looped replay',
+            seconds,
+            's',
+            f'{len(result.fused)} keyframes fused; {_load_note()}; curve in {curve}',
+        ),
         BenchRow('soak: resident memory at start', float(rss[0]), 'MB', f't={t[0]:.0f} s'),
         BenchRow(
             'soak: resident memory after warm-up', float(rss[steady][0]), 'MB', f't={t[steady][0]:.0f} s'
