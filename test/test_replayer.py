@@ -287,7 +287,7 @@ def test_use_sim_time_node_sees_bag_time(context, bag):
     )
     seen: list[int] = []
     sim.create_subscription(Image, IMAGE, lambda m: seen.append(sim.get_clock().now().nanoseconds), 10)
-    replayer = make_replayer(context, bag, rate=2.0, publish_clock=True)
+    replayer = make_replayer(context, bag, rate=2.0, publish_clock=True, wait_topics=[IMAGE, '/clock'])
     with Spinning(context, sim, replayer):
         replayer.start()
         assert replayer.finished.wait(20.0)

@@ -452,14 +452,16 @@ class BagReplayer(Node):
         if count <= 0 and not nodes:
             return
         wait_topics = set(non_empty(self.params['wait_topics']))
-        pubs = {t.out_topic: t.publisher for t in self._topics.values()}
+        played = {t.out_topic: t.publisher for t in self._topics.values()}
+        # /clock may be waited for by name (a use_sim_time node must hear it from the start).
+        pubs = {**played, '/clock': self._clock_pub} if self._clock_pub is not None else dict(played)
         unknown = wait_topics - set(pubs)
         if unknown:
             raise BagError(f"{NODE_NAME}: parameter 'wait_topics' names topics not played: {sorted(unknown)}")
         timeout = self.params['wait_timeout']
         deadline = time.monotonic() + timeout if timeout > 0 else None
         while not self._stop.is_set():
-            missing = self._not_ready(pubs, wait_topics or set(pubs), count, nodes)
+            missing = self._not_ready(pubs, wait_topics or set(played), count, nodes)
             if not missing:
                 return
             if deadline is not None and time.monotonic() > deadline:
