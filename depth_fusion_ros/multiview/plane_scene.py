@@ -120,10 +120,15 @@ def look_at_pose(
     return T
 
 
-def default_scene() -> list[Plane]:
-    """A textured back wall at 3 m, a slanted textured floor, and a slanted textured board at ~1.5 m."""
+def default_scene(texel: float = 0.006) -> list[Plane]:
+    """A textured back wall at 3 m, a textured floor 0.6 m below the camera, and a slanted board at ~1.5 m.
+
+    ``texel`` (m) is the texture resolution: keep it near the pixel footprint at the far wall
+    (``3 m / fx``) or coarser, since the renderer does not filter textures (aliasing would make
+    the appearance depend on the viewpoint).
+    """
     return [
-        Plane((0.0, 0.0, 1.0), 3.0, seed=1),
-        Plane((0.0, 1.0, 0.0), 0.6, seed=2),
-        Plane((0.3, 0.0, 1.0), 1.5, seed=3, texture_scale=0.003, bounds=(-0.6, 0.4, -0.5, 0.3)),
+        Plane((0.0, 0.0, 1.0), 3.0, seed=1, texture_scale=texel),
+        Plane((0.0, 1.0, 0.0), 0.6, seed=2, texture_scale=texel),
+        Plane((0.3, 0.0, 1.0), 1.5, seed=3, texture_scale=0.75 * texel, bounds=(-0.6, 0.4, -0.5, 0.3)),
     ]
