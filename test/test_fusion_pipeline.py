@@ -58,7 +58,7 @@ def test_wrong_scale_and_offset_pulled_onto_the_true_surface() -> None:
 
 def test_planted_outliers_are_rejected_before_fusing() -> None:
     sc = make_scene(80, 60, n_points=100, n_outliers=20, scale=1.0, offset=0.0)
-    res = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(), 'metric_depth')
+    res = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(ransac_threshold=0.1), 'metric_depth')
     assert res.n_stage1 == 100 and res.n_omega == 80
     assert np.array_equal(res.omega_mask, sc.good)
     assert np.abs(res.depth - sc.depth).max() < 1e-4
