@@ -186,7 +186,9 @@ def fuse_keyframe(
         omega = _mask(omega_mask, s.shape, 'omega_mask') & usable
         if not omega.any():
             return _fallback(s, stage1, n_stage1, 'empty_omega')
-        fit = fit_least_squares(s[omega], m[omega], inverse=inverse)
+        fit = fit_least_squares(
+            s[omega], m[omega], inverse=inverse, affine=config.model(output_kind) == 'affine'
+        )
         if not fit.ok and config.aligns(output_kind):
             return _fallback(s, stage1, n_stage1, 'too_few_points')
     else:

@@ -240,15 +240,19 @@ def _inliers(
     return r <= (t[0] if isinstance(t, np.ndarray) else t)
 
 
-def fit_least_squares(s: np.ndarray, m: np.ndarray, *, inverse: bool = False) -> LinearFit:
+def fit_least_squares(
+    s: np.ndarray, m: np.ndarray, *, inverse: bool = False, affine: bool = True
+) -> LinearFit:
     """Plain least-squares fit on points already known to be good (the oracle selection).
 
-    Fails with ``too_few_points`` below two usable points or without spread in ``s``.
+    Fails with ``too_few_points`` below two usable points (one for a scale) or without
+    spread in ``s``.
     """
     s = np.asarray(s, dtype=np.float64).ravel()
     m = np.asarray(m, dtype=np.float64).ravel()
     usable = np.isfinite(s) & np.isfinite(m) & (m > 0)
-    line = least_squares_line(s[usable], 1.0 / m[usable] if inverse else m[usable])
+    refit = least_squares_line if affine else least_squares_scale
+    line = refit(s[usable], 1.0 / m[usable] if inverse else m[usable])
     if line is None:
         return failed_fit(s.size, inverse, 'too_few_points')
     return LinearFit(line[0], line[1], inverse, usable, ok=True, max_depth=float(m[usable].max()))
