@@ -7,6 +7,7 @@ the parameter, so a typo on the command line is reported instead of silently ign
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from typing import Any, TypeVar
 
@@ -21,9 +22,13 @@ def _coerce(value: Any, default: Any, where: str) -> Any:
             return value.lower() == 'true'
         raise ValueError(f'{where}: expected true/false, got {value!r}')
     if isinstance(default, int):
-        if isinstance(value, bool) or not float(value).is_integer():
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            number = math.nan
+        if isinstance(value, bool) or not number.is_integer():
             raise ValueError(f'{where}: expected an integer, got {value!r}')
-        return int(value)
+        return int(number)
     if isinstance(default, float):
         if isinstance(value, bool):
             raise ValueError(f'{where}: expected a number, got {value!r}')

@@ -64,6 +64,10 @@ class TVConfig:
     min_view_fraction: float = 0.5
     #: Weight of the photometric data term against the TV term.
     data_weight: float = 1.0
+    #: Weight each pixel's data term by its cost curve's contrast (see ``data_confidence``).
+    confidence_weighting: bool = True
+    #: Pixels below this confidence start from the median confident inverse depth.
+    min_confidence: float = 0.1
     #: Huber threshold of the regulariser (normalised inverse depth per pixel).
     huber_eps: float = 1e-3
     #: Edge weight ``g = exp(-edge_alpha |grad I|^edge_beta)`` (grey in [0, 1] per pixel).
@@ -157,18 +161,19 @@ def _div(px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
 
 
 def _point_search(
-    volume: torch.Tensor, d: torch.Tensor, theta: float, weight: float, cost_range: float
+    volume: torch.Tensor, d: torch.Tensor, theta: float, weight: torch.Tensor, cost_range: float
 ) -> torch.Tensor:
     """``argmin_a (d - a)^2 / (2 theta) + weight C(a)`` per pixel, refined by a parabola.
 
-    Only samples with ``(d - a)^2 / (2 theta) <= weight * (max C - min C)`` can win (DTAM's
+    ``weight`` is (H*W, 1); ``cost_range`` the largest ``weight * (max C - min C)``. Only
+    samples with ``(d - a)^2 / (2 theta) <= weight * (max C - min C)`` can win (DTAM's
     search-window bound), so the search looks at a window around ``d`` that shrinks with
     ``theta``: the late iterations cost a few samples instead of the whole volume.
     """
     s = volume.shape[1]
     scale = 1.0 / (s - 1)
     pos = d.reshape(-1) * (s - 1)  # continuous sample index of d
-    radius = math.ceil(math.sqrt(2.0 * theta * weight * cost_range) * (s - 1)) + 1
+    radius = math.ceil(math.sqrt(2.0 * theta * cost_range) * (s - 1)) + 1
     if 2 * radius + 1 >= s:  # the whole volume: no gather needed
         idx = torch.arange(s, device=d.device)[None, :].expand(pos.shape[0], s)
         quad = (pos[:, None] - idx.to(pos.dtype)) * scale
@@ -193,12 +198,31 @@ def _point_search(
     return a.reshape(d.shape).clamp(0.0, 1.0)
 
 
+def data_confidence(volume: torch.Tensor) -> torch.Tensor:
+    """``(mean C - min C) / mean C`` per pixel (H*W, 1): 0 for a flat cost curve (no texture).
+
+    Weighting the data term by it lets the regulariser alone fill texture-less areas, where a
+    normalised cost is pure noise and its minimum random; plain DTAM trusts every pixel's
+    cost equally and needs far more iterations to smooth such noise out.
+    """
+    mean = volume.mean(dim=1, keepdim=True)
+    return ((mean - volume.min(dim=1, keepdim=True).values) / mean.clamp(min=1e-6)).clamp(0.0, 1.0)
+
+
 def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> torch.Tensor:
     """Normalised inverse depth ``d`` (H, W) in [0, 1] minimising the decoupled Huber-TV energy."""
     h, w = gray.shape
     g = edge_weights(gaussian_blur(gray[None], config.blur_sigma)[0], config.edge_alpha, config.edge_beta)
     s = volume.shape[1]
     a = (volume.argmin(dim=1).to(torch.float32) / (s - 1)).reshape(h, w)
+    weight = torch.full((h * w, 1), config.data_weight, device=volume.device)
+    if config.confidence_weighting:
+        confidence = data_confidence(volume)
+        weight = weight * confidence
+        # Start texture-less pixels at the typical confident inverse depth, not at a random minimum.
+        low = (confidence < config.min_confidence).reshape(h, w)
+        if bool(low.any()) and not bool(low.all()):
+            a = torch.where(low, a[~low].median(), a)
     d = a.clone()
     qx = torch.zeros_like(d)
     qy = torch.zeros_like(d)
@@ -206,7 +230,9 @@ def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> to
     sigma_q = tau_d = 1.0 / math.sqrt(8.0)
     eps = config.huber_eps
     theta = config.theta_start
-    cost_range = float((volume.max(dim=1).values - volume.min(dim=1).values).max())
+    cost_range = float(
+        ((volume.max(dim=1, keepdim=True).values - volume.min(dim=1, keepdim=True).values) * weight).max()
+    )
     for _ in range(config.iterations):
         gx, gy = _grad(d)
         qx = (qx + sigma_q * g * gx) / (1.0 + sigma_q * eps)
@@ -214,7 +240,7 @@ def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> to
         norm = torch.clamp(torch.sqrt(qx * qx + qy * qy), min=1.0)
         qx, qy = qx / norm, qy / norm
         d = (d + tau_d * (g * _div(qx, qy) + a / theta)) / (1.0 + tau_d / theta)
-        a = _point_search(volume, d, theta, config.data_weight, cost_range)
+        a = _point_search(volume, d, theta, weight, cost_range)
         theta = max(theta * config.theta_decay, config.theta_end)
     return a
 

@@ -1,0 +1,81 @@
+"""Evaluation methods multi_view, multi_view_selected and tv on the synthetic room sequence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from depth_fusion_ros.evaluation.context import EvalOptions, KeyframeContext
+from depth_fusion_ros.evaluation.harness import evaluate_sequence
+from depth_fusion_ros.evaluation.methods.multi_view import multi_view_result, neighbour_indices
+from depth_fusion_ros.evaluation.registry import get_method
+from depth_fusion_ros.metrics import high_gradient_mask
+
+
+@pytest.fixture(autouse=True, scope='module')
+def one_torch_thread():
+    """One intra-op thread (see test_multiview_semidense): fast and stable on a loaded machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_methods_are_registered_with_their_kind():
+    assert get_method('multi_view').sparse
+    assert get_method('multi_view_selected').sparse
+    assert not get_method('tv').sparse
+
+
+def test_semi_dense_methods_on_the_synthetic_room(synthetic_sequence):
+    options = EvalOptions(frames=24, stride=12)
+    result = evaluate_sequence(
+        synthetic_sequence, ['multi_view', 'multi_view_selected'], options, show_progress=False
+    )
+    everything = result.records['multi_view'].to_json()
+    selected = result.records['multi_view_selected'].to_json()
+    assert everything['density'] > 0.05
+    assert 0.01 < selected['density'] < everything['density']
+    assert selected['median_abs_rel'] < 0.02
+    assert selected['n_selected'] > 0
+
+
+def test_result_and_neighbours_are_shared_and_options_honoured(synthetic_sequence):
+    shared: dict = {}
+    options = EvalOptions(
+        neighbour_mode='online', num_neighbours=2, params={'multi_view': {'num_samples': 40}}
+    )
+    ctx = KeyframeContext(synthetic_sequence, 10, options, shared)
+    indices = neighbour_indices(ctx)
+    assert len(indices) == 2 and all(i < 10 for i in indices)
+    result = multi_view_result(ctx)
+    assert multi_view_result(ctx) is result
+    assert result.neighbours == tuple(indices)
+    # A second keyframe context of the same run reuses the neighbour table.
+    assert any(key.startswith('multi_view:neighbours:online:2') for key in shared)
+    # The first keyframe has no past frame online: an all-NaN estimate, not an error.
+    first = multi_view_result(KeyframeContext(synthetic_sequence, 0, options, shared))
+    assert not np.isfinite(first.depth).any()
+
+
+def test_unknown_or_mistyped_override_is_reported(synthetic_sequence):
+    for params, message in (
+        ({'multi_view': {'num_sample': 40}}, 'unknown parameter multi_view.num_sample'),
+        ({'multi_view': {'num_samples': 'many'}}, 'multi_view.num_samples: expected an integer'),
+        ({'neighbours': {'window': 0}}, 'neighbours.window must be >= 1'),
+    ):
+        ctx = KeyframeContext(synthetic_sequence, 5, EvalOptions(params=params), {})
+        with pytest.raises(ValueError, match=message):
+            get_method('multi_view').fn(ctx)
+
+
+def test_tv_method_is_dense(synthetic_sequence):
+    options = EvalOptions(params={'tv': {'edge_alpha': 10.0}})  # an override goes through
+    ctx = KeyframeContext(synthetic_sequence, 12, options, {})
+    out = get_method('tv').fn(ctx)
+    gt = ctx.gt_depth_working
+    assert out.depth.shape == gt.shape and np.all(np.isfinite(out.depth))
+    # TV is reliable on image edges only (the paper's point): score it there.
+    edges = high_gradient_mask(ctx.frame.gray) & np.isfinite(gt)
+    assert np.median(np.abs(out.depth[edges] - gt[edges]) / gt[edges]) < 0.15
