@@ -76,7 +76,7 @@ class TVConfig:
     #: Coupling schedule: ``theta`` from ``theta_start`` to ``theta_end``, times ``theta_decay`` per step.
     theta_start: float = 0.2
     theta_end: float = 1e-4
-    theta_decay: float = 0.9
+    theta_decay: float = 0.85
     #: Largest intermediate tensor while building the cost volume, in float elements.
     chunk_elements: int = 1 << 21
 
@@ -160,41 +160,38 @@ def _div(px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
     return div
 
 
-def _point_search(
-    volume: torch.Tensor, d: torch.Tensor, theta: float, weight: torch.Tensor, cost_range: float
-) -> torch.Tensor:
-    """``argmin_a (d - a)^2 / (2 theta) + weight C(a)`` per pixel, refined by a parabola.
+def _point_search(weighted: torch.Tensor, d: torch.Tensor, theta: float, cost_range: float) -> torch.Tensor:
+    """``argmin_a (d - a)^2 / (2 theta) + w C(a)`` per pixel, refined by a parabola.
 
-    ``weight`` is (H*W, 1); ``cost_range`` the largest ``weight * (max C - min C)``. Only
-    samples with ``(d - a)^2 / (2 theta) <= weight * (max C - min C)`` can win (DTAM's
-    search-window bound), so the search looks at a window around ``d`` that shrinks with
-    ``theta``: the late iterations cost a few samples instead of the whole volume.
+    ``weighted`` is the (H*W, S) volume already multiplied by the per-pixel data weight ``w``;
+    ``cost_range`` the largest ``w * (max C - min C)``. Only samples with
+    ``(d - a)^2 / (2 theta) <= w * (max C - min C)`` can win (DTAM's search-window bound), so
+    the search looks at a window around ``d`` that shrinks with ``theta``: the late
+    iterations cost a few samples instead of the whole volume. The window has one extra
+    sample on each side so the parabola needs no second lookup.
     """
-    s = volume.shape[1]
+    n, s = weighted.shape
     scale = 1.0 / (s - 1)
     pos = d.reshape(-1) * (s - 1)  # continuous sample index of d
-    radius = math.ceil(math.sqrt(2.0 * theta * cost_range) * (s - 1)) + 1
+    radius = math.ceil(math.sqrt(2.0 * theta * cost_range) * (s - 1)) + 2
     if 2 * radius + 1 >= s:  # the whole volume: no gather needed
-        idx = torch.arange(s, device=d.device)[None, :].expand(pos.shape[0], s)
-        quad = (pos[:, None] - idx.to(pos.dtype)) * scale
-        energy = quad * quad / (2.0 * theta) + weight * volume
+        start = torch.zeros(n, dtype=torch.long, device=d.device)
+        offsets = torch.arange(s, device=d.device)
+        costs = weighted
     else:
-        centre = torch.round(pos)
-        offsets = torch.arange(-radius, radius + 1, device=d.device)
-        idx = (centre.long()[:, None] + offsets[None, :]).clamp_(0, s - 1)
-        # Out-of-range offsets repeat a border sample with a larger quadratic term: they never win.
-        quad = ((pos - centre)[:, None] - offsets[None, :].to(pos.dtype)) * scale
-        energy = quad * quad / (2.0 * theta) + weight * torch.gather(volume, 1, idx)
-    k = torch.gather(idx, 1, energy.argmin(dim=1, keepdim=True))[:, 0].clamp(1, s - 2)
-    around = k[:, None] + torch.arange(-1, 2, device=d.device)[None, :]
-    quad = (pos[:, None] - around.to(pos.dtype)) * scale
-    e = quad * quad / (2.0 * theta) + weight * torch.gather(volume, 1, around)
-    e_m, e_0, e_p = e.unbind(dim=1)
+        start = torch.round(pos).long() - radius
+        offsets = torch.arange(2 * radius + 1, device=d.device)
+        costs = torch.gather(weighted, 1, (start[:, None] + offsets[None, :]).clamp_(0, s - 1))
+    # Out-of-range window entries repeat a border sample with a larger quadratic term: they never win.
+    quad = ((pos - start)[:, None] - offsets[None, :]) * scale
+    energy = torch.addcmul(costs, quad, quad, value=0.5 / theta)
+    j = energy[:, 1:-1].argmin(dim=1, keepdim=True) + 1
+    e_m, e_0, e_p = torch.gather(energy, 1, j + torch.tensor([[-1, 0, 1]], device=d.device)).unbind(dim=1)
     curvature = e_m - 2.0 * e_0 + e_p
     delta = torch.where(
         curvature > 1e-12, 0.5 * (e_m - e_p) / curvature.clamp(min=1e-12), torch.zeros_like(e_0)
     )
-    a = (k.to(d.dtype) + delta.clamp(-1.0, 1.0)) * scale
+    a = ((start + j[:, 0]).to(d.dtype) + delta.clamp(-1.0, 1.0)) * scale
     return a.reshape(d.shape).clamp(0.0, 1.0)
 
 
@@ -230,9 +227,8 @@ def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> to
     sigma_q = tau_d = 1.0 / math.sqrt(8.0)
     eps = config.huber_eps
     theta = config.theta_start
-    cost_range = float(
-        ((volume.max(dim=1, keepdim=True).values - volume.min(dim=1, keepdim=True).values) * weight).max()
-    )
+    weighted = volume * weight
+    cost_range = float((weighted.max(dim=1).values - weighted.min(dim=1).values).max())
     for _ in range(config.iterations):
         gx, gy = _grad(d)
         qx = (qx + sigma_q * g * gx) / (1.0 + sigma_q * eps)
@@ -240,7 +236,7 @@ def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> to
         norm = torch.clamp(torch.sqrt(qx * qx + qy * qy), min=1.0)
         qx, qy = qx / norm, qy / norm
         d = (d + tau_d * (g * _div(qx, qy) + a / theta)) / (1.0 + tau_d / theta)
-        a = _point_search(volume, d, theta, weight, cost_range)
+        a = _point_search(weighted, d, theta, cost_range)
         theta = max(theta * config.theta_decay, config.theta_end)
     return a
 

@@ -1,0 +1,168 @@
+"""Multi-view benchmark: semi-dense keyframes/s, TV seconds per keyframe, accuracy, memory bound.
+
+The issue's reference load: 320x240 keyframes with n = 4 neighbours, default parameters;
+targets are semi-dense >= 10 keyframes/s and TV <= 3 s per keyframe on 2 CPU cores. The
+scene is the synthetic room (``data.synthetic``, high parallax) and, with ``--sequence``,
+the first frames of real TUM-layout folders (real images have other gradient statistics,
+hence another candidate count). Each time is the median of ``repeats`` runs after a warm-up.
+
+Every row's note carries the 1-minute load average and torch's intra-op thread count: on a
+shared machine the figures move with the load. The ``1 thread`` rows repeat the semi-dense
+timing with one intra-op thread, which is far more stable under load (a loaded machine
+deschedules torch's second worker, and every small op then waits for it).
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from ..data.sequence import Sequence
+from ..multiview.neighbours import select_neighbours
+from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
+from ..multiview.tv import TVConfig, estimate_tv
+from . import BenchOptions, BenchRow
+
+TITLE = 'multi_view (semi-dense sweep, TV baseline)'
+
+WIDTH, HEIGHT = 320, 240
+NEIGHBOURS = 4
+
+
+def _note(extra: str = '') -> str:
+    load = os.getloadavg()[0]
+    base = f'load {load:.1f}, {torch.get_num_threads()} threads'
+    return f'{extra}; {base}' if extra else base
+
+
+def _median_time(fn: Callable[[], object], repeats: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def _synthetic_sequence(quick: bool) -> Sequence:
+    from ..data.synthetic import SynthConfig, render_sequence
+
+    return render_sequence(
+        SynthConfig(width=WIDTH, height=HEIGHT, frames=12 if quick else 24, parallax='high')
+    )
+
+
+def _real_sequence(path: str, quick: bool) -> Sequence:
+    from ..data.tum import load_tum_sequence
+
+    return load_tum_sequence(path, width=WIDTH, height=HEIGHT, max_frames=12 if quick else 37)
+
+
+def _keyframe_inputs(seq: Sequence, key: int) -> tuple:
+    chosen = select_neighbours(seq.poses, key, NEIGHBOURS, 'offline', seq.camera)
+    frames = seq.frames
+    return (
+        frames[key].gray,
+        frames[key].pose,
+        [frames[i].gray for i in chosen],
+        [frames[i].pose for i in chosen],
+        seq.camera,
+    )
+
+
+def _median_abs_rel(depth: np.ndarray, gt: np.ndarray | None, mask: np.ndarray) -> float:
+    if gt is None:
+        return float('nan')
+    valid = mask & np.isfinite(gt) & (gt > 0)
+    return float(np.median(np.abs(depth[valid] - gt[valid]) / gt[valid])) if valid.any() else float('nan')
+
+
+def _semi_dense_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
+    key = len(seq) // 2
+    inputs = _keyframe_inputs(seq, key)
+    config = MultiViewConfig()
+
+    def run() -> object:
+        return estimate_semidense(*inputs, config, device=opts.device)
+
+    seconds = _median_time(run, opts.repeats)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        seconds_one = _median_time(run, opts.repeats)
+    finally:
+        torch.set_num_threads(threads)
+    result = estimate_semidense(*inputs, config, device=opts.device)
+    gt = seq.gt_depth_working(key)
+    selected = select_best_fraction(result, config.select_fraction)
+    return [
+        BenchRow(f'{label}: semi-dense keyframes/s', 1.0 / seconds, 'kf/s', _note('target >= 10')),
+        BenchRow(f'{label}: semi-dense per keyframe', seconds * 1e3, 'ms', _note()),
+        BenchRow(f'{label}: semi-dense keyframes/s, 1 thread', 1.0 / seconds_one, 'kf/s', _note()),
+        BenchRow(f'{label}: candidates searched', float(result.candidates.sum()), 'px', _note()),
+        BenchRow(f'{label}: multi_view density', result.density, 'fraction', _note()),
+        BenchRow(
+            f'{label}: multi_view_selected median AbsRel',
+            _median_abs_rel(result.depth, gt, selected),
+            'ratio',
+            _note(f'{selected.mean():.3%} of pixels selected'),
+        ),
+    ]
+
+
+def _tv_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
+    key = len(seq) // 2
+    inputs = _keyframe_inputs(seq, key)
+    config = TVConfig()
+    seconds = _median_time(lambda: estimate_tv(*inputs, config, device=opts.device), 1 if opts.quick else 2)
+    depth = estimate_tv(*inputs, config, device=opts.device)
+    gt = seq.gt_depth_working(key)
+    return [
+        BenchRow(
+            f'{label}: TV per keyframe', seconds, 's', _note(f'target <= 3; {config.iterations} iterations')
+        ),
+        BenchRow(
+            f'{label}: TV median AbsRel',
+            _median_abs_rel(depth, gt, np.ones(depth.shape, bool)),
+            'ratio',
+            _note(),
+        ),
+    ]
+
+
+def _memory_rows(seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
+    """The largest intermediate is bounded by ``chunk_elements`` whatever the sample count."""
+    inputs = _keyframe_inputs(seq, len(seq) // 2)
+    rows = []
+    for samples in (64, 1024):
+        config = MultiViewConfig(num_samples=samples)
+        seconds = _median_time(lambda c=config: estimate_semidense(*inputs, c, device=opts.device), 1)
+        rows.append(
+            BenchRow(
+                f'semi-dense with {samples} samples',
+                seconds * 1e3,
+                'ms',
+                _note(f'largest intermediate <= {config.chunk_elements * 4 / 2**20:.0f} MiB'),
+            )
+        )
+    return rows
+
+
+def run(opts: BenchOptions) -> list[BenchRow]:
+    synthetic = _synthetic_sequence(opts.quick)
+    rows = _semi_dense_rows('synthetic room', synthetic, opts)
+    for path in opts.sequences:
+        real = _real_sequence(path, opts.quick)
+        rows += _semi_dense_rows(real.name, real, opts)
+        if not opts.quick:
+            rows += _tv_rows(real.name, real, opts)
+    rows += _tv_rows('synthetic room', synthetic, opts)
+    if not opts.quick:
+        rows += _memory_rows(synthetic, opts)
+    return rows
