@@ -39,7 +39,6 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 #: Patch layouts (offsets in units of the patch stride): cost per lookup grows with the size.
 PATCH_OFFSETS: dict[str, tuple[tuple[int, int], ...]] = {
-    'point': ((0, 0),),
     'cross': ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)),
     'box': tuple((dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)),
 }
@@ -75,29 +74,78 @@ def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
     return sum(t / total * padded[..., k : k + h, :] for k, t in enumerate(taps))
 
 
-def patch_descriptors(
-    images: torch.Tensor, patch: str = 'cross', stride: int = 2, blur_sigma: float = 1.0, eps: float = 0.01
-) -> torch.Tensor:
-    """Zero-mean, (almost) unit-norm patch descriptors ``(B, C, H, W)`` of grey ``(B, H, W)`` images.
+def zero_mean_basis(patch: str) -> np.ndarray:
+    """Orthonormal rows spanning the zero-mean patches: ``(P - 1, P)`` for a ``P``-tap patch.
 
-    ``eps`` (grey levels in [0, 1]) is the noise floor added to the patch norm: a patch whose
-    contrast is below it gets a short descriptor, so its ZNCC with anything is near 0.
+    Projecting a patch on them removes its mean and keeps every dot product between
+    zero-mean patches, so the ZNCC is unchanged with one channel less to look up. For the
+    3x3 box the rows are the 2-D DCT-II basis without its constant term, lowest frequencies
+    first.
+    """
+    offsets = PATCH_OFFSETS[patch]
+    taps = len(offsets)
+    if patch == 'box':
+        k = np.arange(3)
+        dct = np.cos(np.pi * (2 * k[None, :] + 1) * k[:, None] / 6.0) * np.sqrt(2.0 / 3.0)
+        dct[0] /= np.sqrt(2.0)
+        order = sorted(((fy, fx) for fy in range(3) for fx in range(3)), key=lambda f: (f[0] + f[1], f))
+        rows = [np.outer(dct[fy], dct[fx]) for fy, fx in order[1:]]
+        # PATCH_OFFSETS['box'] is row-major over (dy, dx) in -1..1, as np.outer's layout.
+        return np.stack([r.reshape(-1) for r in rows])
+    centering = np.eye(taps) - 1.0 / taps
+    values, vectors = np.linalg.eigh(centering)
+    return vectors[:, values > 0.5].T
+
+
+def patch_descriptors(
+    images: torch.Tensor,
+    patch: str = 'box',
+    stride: int = 2,
+    blur_sigma: float = 0.5,
+    eps: float = 0.01,
+    visibility_margin: int | None = None,
+) -> torch.Tensor:
+    """Normalised zero-mean patch descriptors ``(B, P - 1, H, W)`` of grey ``(B, H, W)`` images.
+
+    Each pixel's ``P`` patch values are projected on :func:`zero_mean_basis` and divided by
+    ``sqrt(|v|^2 + P eps^2)``: the dot product of two descriptors is the patch ZNCC, except
+    that ``eps`` (grey levels in [0, 1], the noise floor) shortens low-contrast descriptors so
+    their ZNCC with anything is near 0. With ``visibility_margin`` the descriptors are zeroed
+    in a border band of that width and a last channel, 1 inside the band, is appended: see
+    :func:`sample_cost`.
     """
     check_patch(patch, stride)
     blurred = gaussian_blur(images, blur_sigma)
     reach = patch_reach(patch, stride)
     padded = F.pad(blurred[:, None], (reach,) * 4, mode='replicate')[:, 0]
-    h, w = images.shape[-2:]
-    channels = [
-        padded[
-            :, reach + dy * stride : reach + dy * stride + h, reach + dx * stride : reach + dx * stride + w
-        ]
-        for dx, dy in PATCH_OFFSETS[patch]
-    ]
-    desc = torch.stack(channels, dim=1)
-    desc = desc - desc.mean(dim=1, keepdim=True)
-    norm = torch.sqrt((desc * desc).sum(dim=1, keepdim=True) + desc.shape[1] * eps * eps)
-    return desc / norm
+    b, h, w = images.shape
+    offsets = PATCH_OFFSETS[patch]
+    stack = torch.stack(
+        [
+            padded[
+                :,
+                reach + dy * stride : reach + dy * stride + h,
+                reach + dx * stride : reach + dx * stride + w,
+            ]
+            for dx, dy in offsets
+        ],
+        dim=1,
+    )
+    basis = torch.as_tensor(zero_mean_basis(patch), dtype=images.dtype, device=images.device)
+    channels = basis.shape[0]
+    extra = 0 if visibility_margin is None else 1
+    out = torch.empty((b, channels + extra, h, w), dtype=images.dtype, device=images.device)
+    desc = out[:, :channels]
+    desc.copy_(torch.matmul(basis, stack.reshape(b, len(offsets), h * w)).reshape(b, channels, h, w))
+    # (d * d).sum beats linalg.vector_norm over the channel dimension by far on CPU.
+    desc.div_(torch.sqrt((desc * desc).sum(dim=1, keepdim=True) + len(offsets) * eps * eps))
+    if visibility_margin is not None:
+        m = int(visibility_margin)
+        inside = out[:, channels]
+        inside.zero_()
+        inside[:, m : h - m, m : w - m] = 1.0
+        desc.mul_(inside[:, None])
+    return out
 
 
 @dataclass
@@ -200,19 +248,6 @@ def epipolar_rays(
     return EpipolarRays(a, torch.as_tensor(b, dtype=torch.float32, device=device), int(size[0]), int(size[1]))
 
 
-def visibility_channel(neighbour_desc: torch.Tensor, margin: int) -> torch.Tensor:
-    """Descriptor images with their border band zeroed and a last channel that is 1 inside it.
-
-    Sampling that extra channel bilinearly gives, at once with the descriptor, the (soft)
-    weight of each neighbour for each sample: 1 well inside the image, 0 outside or behind
-    the camera (zero padding), a fraction on the border - no per-sample masks to compute.
-    """
-    n, _, h, w = neighbour_desc.shape
-    inside = torch.zeros((n, 1, h, w), dtype=neighbour_desc.dtype, device=neighbour_desc.device)
-    inside[..., margin : h - margin, margin : w - margin] = 1.0
-    return torch.cat((neighbour_desc * inside, inside), dim=1)
-
-
 def sample_cost(
     key_desc: torch.Tensor, neighbour_images: torch.Tensor, rays: EpipolarRays, rho: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -220,8 +255,11 @@ def sample_cost(
 
     ``key_desc`` (C, M) are the keyframe descriptors of the M pixels, ``neighbour_images``
     (n, C + 1, H, W) the neighbour descriptors with their visibility channel
-    (:func:`visibility_channel`). Where no neighbour sees a sample the mean is 1 (no match)
-    and the count 0; callers decide how many views they require.
+    (``patch_descriptors(..., visibility_margin=...)``). Sampling that channel bilinearly gives,
+    at once with the descriptor, the (soft) weight of each neighbour for each sample: 1 well
+    inside the image, 0 outside or behind the camera (zero padding), a fraction on the border,
+    with no per-sample masks to compute. Where no neighbour sees a sample the mean is 1 (no
+    match) and the count 0; callers decide how many views they require.
     """
     channels = key_desc.shape[0]
     sampled = F.grid_sample(

@@ -47,7 +47,6 @@ from .cost_volume import (
     patch_reach,
     rows_per_chunk,
     sample_cost,
-    visibility_channel,
 )
 from .views import prepare_views
 
@@ -65,7 +64,7 @@ class MultiViewConfig:
     num_samples: int = 64
     #: Fine samples on each side of the coarse minimum (spacing = coarse step / refine_samples).
     refine_samples: int = 3
-    #: Patch layout of the ZNCC cost ('point', 'cross' = 5 pixels, 'box' = 9) and its spacing (px).
+    #: Patch layout of the ZNCC cost ('cross' = 5 pixels, 'box' = 3x3) and its spacing (px).
     patch: str = 'box'
     patch_stride: int = 2
     #: Gaussian blur (px) before matching: less noise and aliasing along the sweep.
@@ -328,19 +327,20 @@ def estimate_semidense(
     views = prepare_views(key_gray, key_pose, neighbour_grays, neighbour_poses, camera, device)
     dev = views.device
     n = views.num_neighbours
+    margin = patch_reach(config.patch, config.patch_stride)
     desc = patch_descriptors(
-        views.grays, config.patch, config.patch_stride, config.blur_sigma, config.noise_floor
+        views.grays, config.patch, config.patch_stride, config.blur_sigma, config.noise_floor, margin
     )
+    channels = desc.shape[1] - 1
     cand = candidate_mask(views.grays[0], config)
     vs, us = torch.nonzero(cand, as_tuple=True)
-    key_desc = desc[0][:, vs, us]
-    margin = float(patch_reach(config.patch, config.patch_stride))
-    neighbour_desc = visibility_channel(desc[1:], int(margin))
+    key_desc = desc[0, :channels][:, vs, us]
+    neighbour_desc = desc[1:]
     rays = epipolar_rays(us.float(), vs.float(), camera.K, views.T_ok, camera.size, dev)
     rho_min, rho_max = config.rho_range
     rho_grid = torch.linspace(rho_min, rho_max, config.num_samples, device=dev, dtype=torch.float32)
     min_views = max(1, math.ceil(config.min_view_fraction * n - 1e-9))
-    chunk = rows_per_chunk(n, desc.shape[1], config.num_samples, config.chunk_elements)
+    chunk = rows_per_chunk(n, channels + 1, config.num_samples, config.chunk_elements)
 
     parts: list[_ChunkEstimate] = []
     with torch.no_grad():
@@ -354,7 +354,7 @@ def estimate_semidense(
                     rho_grid,
                     config,
                     min_views,
-                    margin,
+                    float(margin),
                 )
             )
     result = _assemble(parts, vs, us, cand, camera, tuple(int(i) for i in neighbours))

@@ -40,7 +40,6 @@ from .cost_volume import (
     patch_reach,
     rows_per_chunk,
     sample_cost,
-    visibility_channel,
 )
 from .views import prepare_views
 
@@ -111,10 +110,13 @@ def build_cost_volume(
     """
     device = grays.device
     h, w = camera.height, camera.width
-    desc = patch_descriptors(grays, config.patch, config.patch_stride, config.blur_sigma, config.noise_floor)
     margin = patch_reach(config.patch, config.patch_stride)
-    neighbour_images = visibility_channel(desc[1:], margin)
-    key_desc = desc[0].reshape(desc.shape[1], -1)
+    desc = patch_descriptors(
+        grays, config.patch, config.patch_stride, config.blur_sigma, config.noise_floor, margin
+    )
+    channels = desc.shape[1] - 1
+    neighbour_images = desc[1:]
+    key_desc = desc[0, :channels].reshape(channels, -1)
     v, u = torch.meshgrid(
         torch.arange(h, device=device, dtype=torch.float32),
         torch.arange(w, device=device, dtype=torch.float32),
@@ -124,7 +126,7 @@ def build_cost_volume(
     rho = torch.linspace(1.0 / config.max_depth, 1.0 / config.min_depth, config.num_samples, device=device)
     n = T_ok.shape[0]
     need = max(1, math.ceil(config.min_view_fraction * n - 1e-9)) - 0.5
-    chunk = rows_per_chunk(n, desc.shape[1], config.num_samples, config.chunk_elements)
+    chunk = rows_per_chunk(n, channels + 1, config.num_samples, config.chunk_elements)
     volume = torch.empty((h * w, config.num_samples), dtype=torch.float32, device=device)
     for start in range(0, h * w, chunk):
         stop = min(start + chunk, h * w)
