@@ -74,27 +74,40 @@ def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
     return sum(t / total * padded[..., k : k + h, :] for k, t in enumerate(taps))
 
 
-def zero_mean_basis(patch: str) -> np.ndarray:
-    """Orthonormal rows spanning the zero-mean patches: ``(P - 1, P)`` for a ``P``-tap patch.
+def zero_mean_basis(patch: str, channels: int = 0) -> np.ndarray:
+    """Orthonormal rows spanning the zero-mean patches, lowest spatial frequencies first.
 
-    Projecting a patch on them removes its mean and keeps every dot product between
-    zero-mean patches, so the ZNCC is unchanged with one channel less to look up. For the
-    3x3 box the rows are the 2-D DCT-II basis without its constant term, lowest frequencies
-    first.
+    ``(K, P)`` for a ``P``-tap patch, ``K = P - 1`` (all of them) or ``channels`` when given.
+    Projecting a patch on all of them removes its mean and keeps every dot product between
+    zero-mean patches, so the ZNCC is exact with one channel less to look up; keeping only the
+    lowest frequencies is a ZNCC of a smoothed patch, cheaper still (each channel is one more
+    bilinear lookup per pixel, sample and neighbour). ``box``: the 2-D DCT-II basis of the 3x3
+    patch without its constant term, by increasing frequency; ``cross``: the two gradients,
+    then a Laplacian and an anisotropy term.
     """
-    offsets = PATCH_OFFSETS[patch]
-    taps = len(offsets)
+    taps = len(PATCH_OFFSETS[patch])
+    if not (0 <= channels <= taps - 1):
+        raise ValueError(
+            f'descriptor_channels must be in [0, {taps - 1}] for the {patch!r} patch, got {channels}'
+        )
     if patch == 'box':
         k = np.arange(3)
         dct = np.cos(np.pi * (2 * k[None, :] + 1) * k[:, None] / 6.0) * np.sqrt(2.0 / 3.0)
         dct[0] /= np.sqrt(2.0)
         order = sorted(((fy, fx) for fy in range(3) for fx in range(3)), key=lambda f: (f[0] + f[1], f))
-        rows = [np.outer(dct[fy], dct[fx]) for fy, fx in order[1:]]
         # PATCH_OFFSETS['box'] is row-major over (dy, dx) in -1..1, as np.outer's layout.
-        return np.stack([r.reshape(-1) for r in rows])
-    centering = np.eye(taps) - 1.0 / taps
-    values, vectors = np.linalg.eigh(centering)
-    return vectors[:, values > 0.5].T
+        rows = np.stack([np.outer(dct[fy], dct[fx]).reshape(-1) for fy, fx in order[1:]])
+    else:  # cross: (0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)
+        rows = np.array(
+            [
+                [0.0, -1.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 0.0, -1.0, 1.0],
+                [4.0, -1.0, -1.0, -1.0, -1.0],
+                [0.0, 1.0, 1.0, -1.0, -1.0],
+            ]
+        )
+        rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+    return rows[: channels or taps - 1]
 
 
 def patch_descriptors(
@@ -104,10 +117,12 @@ def patch_descriptors(
     blur_sigma: float = 0.5,
     eps: float = 0.01,
     visibility_margin: int | None = None,
+    channels: int = 0,
 ) -> torch.Tensor:
-    """Normalised zero-mean patch descriptors ``(B, P - 1, H, W)`` of grey ``(B, H, W)`` images.
+    """Normalised zero-mean patch descriptors ``(B, K, H, W)`` of grey ``(B, H, W)`` images.
 
-    Each pixel's ``P`` patch values are projected on :func:`zero_mean_basis` and divided by
+    Each pixel's ``P`` patch values are projected on :func:`zero_mean_basis` (``K = channels``
+    rows, or all ``P - 1`` when 0) and divided by
     ``sqrt(|v|^2 + P eps^2)``: the dot product of two descriptors is the patch ZNCC, except
     that ``eps`` (grey levels in [0, 1], the noise floor) shortens low-contrast descriptors so
     their ZNCC with anything is near 0. With ``visibility_margin`` the descriptors are zeroed
@@ -131,7 +146,7 @@ def patch_descriptors(
         ],
         dim=1,
     )
-    basis = torch.as_tensor(zero_mean_basis(patch), dtype=images.dtype, device=images.device)
+    basis = torch.as_tensor(zero_mean_basis(patch, channels), dtype=images.dtype, device=images.device)
     channels = basis.shape[0]
     extra = 0 if visibility_margin is None else 1
     out = torch.empty((b, channels + extra, h, w), dtype=images.dtype, device=images.device)
@@ -187,20 +202,18 @@ class EpipolarRays:
     def grid(self, rho: torch.Tensor) -> torch.Tensor:
         """``grid_sample`` coordinates (n, M, S, 2) at inverse depths ``rho`` ((S,) or (M, S)).
 
-        Points behind a neighbour camera are sent far outside its image (they sample zeros).
+        Points behind a neighbour camera are sent far outside its image (they sample zeros):
+        ``w`` is clamped to a small positive value, which no visible point has (``w`` is about 1).
         """
         a, b = self._normalised()
         rho = rho if rho.ndim == 2 else rho[None, :]
         n, m = a.shape[:2]
         s = rho.shape[-1]
         out = torch.empty((n, m, s, 2), dtype=a.dtype, device=a.device)
-        w = torch.addcmul(a[..., 2:3], b[:, None, 2:3], rho[None])
-        inv_w = torch.reciprocal(w.clamp_(min=1e-6))
+        w = torch.addcmul(a[..., 2:3], b[:, None, 2:3], rho[None]).clamp_(min=1e-4)
         for k in range(2):
-            torch.mul(
-                torch.addcmul(a[..., k : k + 1], b[:, None, k : k + 1], rho[None]), inv_w, out=out[..., k]
-            )
-        return out.clamp_(-2.0, 2.0)
+            torch.div(torch.addcmul(a[..., k : k + 1], b[:, None, k : k + 1], rho[None]), w, out=out[..., k])
+        return out
 
     def project(self, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Pixel ``(u, v)`` (n, M, S) at inverse depths ``rho`` ((S,) or (M, S)), and whether the
@@ -265,8 +278,9 @@ def sample_cost(
     sampled = F.grid_sample(
         neighbour_images, rays.grid(rho), mode='bilinear', padding_mode='zeros', align_corners=True
     )  # (n, C + 1, M, S)
-    count = sampled[:, channels].sum(dim=0)
-    zncc = (sampled[:, :channels] * key_desc[None, :, :, None]).sum(dim=(0, 1))
+    summed = sampled.sum(dim=0)  # (C + 1, M, S): the key descriptor is the same for every neighbour
+    count = summed[channels]
+    zncc = (summed[:channels] * key_desc[:, :, None]).sum(dim=0)
     cost = (count - zncc + 1e-3) / (count + 1e-3)
     return cost, count
 

@@ -47,6 +47,7 @@ from .cost_volume import (
     patch_reach,
     rows_per_chunk,
     sample_cost,
+    zero_mean_basis,
 )
 from .views import prepare_views
 
@@ -61,12 +62,14 @@ class MultiViewConfig:
     min_depth: float = 0.2
     max_depth: float = 10.0
     #: Coarse inverse-depth samples per pixel.
-    num_samples: int = 64
+    num_samples: int = 48
     #: Fine samples on each side of the coarse minimum (spacing = coarse step / refine_samples).
     refine_samples: int = 3
     #: Patch layout of the ZNCC cost ('cross' = 5 pixels, 'box' = 3x3) and its spacing (px).
     patch: str = 'box'
     patch_stride: int = 2
+    #: Descriptor channels kept, lowest spatial frequencies first (0 = all: box 8, cross 4; exact ZNCC).
+    descriptor_channels: int = 6
     #: Gaussian blur (px) before matching: less noise and aliasing along the sweep.
     blur_sigma: float = 0.5
     #: Grey-level noise floor of the ZNCC normalisation (texture below it matches nothing).
@@ -99,6 +102,7 @@ class MultiViewConfig:
         if self.refine_samples < 1:
             raise ValueError(f'multi_view.refine_samples must be >= 1, got {self.refine_samples}')
         check_patch(self.patch, self.patch_stride)
+        zero_mean_basis(self.patch, self.descriptor_channels)  # raises on a bad channel count
         if not (0 < self.min_view_fraction <= 1):
             raise ValueError(f'multi_view.min_view_fraction must be in (0, 1], got {self.min_view_fraction}')
         if not (0 < self.select_fraction <= 1):
@@ -329,7 +333,13 @@ def estimate_semidense(
     n = views.num_neighbours
     margin = patch_reach(config.patch, config.patch_stride)
     desc = patch_descriptors(
-        views.grays, config.patch, config.patch_stride, config.blur_sigma, config.noise_floor, margin
+        views.grays,
+        config.patch,
+        config.patch_stride,
+        config.blur_sigma,
+        config.noise_floor,
+        margin,
+        config.descriptor_channels,
     )
     channels = desc.shape[1] - 1
     cand = candidate_mask(views.grays[0], config)

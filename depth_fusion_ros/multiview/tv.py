@@ -40,6 +40,7 @@ from .cost_volume import (
     patch_reach,
     rows_per_chunk,
     sample_cost,
+    zero_mean_basis,
 )
 from .views import prepare_views
 
@@ -57,6 +58,7 @@ class TVConfig:
     #: Patch of the ZNCC cost (see ``MultiViewConfig``).
     patch: str = 'box'
     patch_stride: int = 2
+    descriptor_channels: int = 0
     blur_sigma: float = 0.5
     noise_floor: float = 0.01
     #: A cost sample counts only if at least this fraction of the neighbours sees it.
@@ -85,6 +87,7 @@ class TVConfig:
         if self.num_samples < 3:
             raise ValueError(f'tv.num_samples must be >= 3, got {self.num_samples}')
         check_patch(self.patch, self.patch_stride)
+        zero_mean_basis(self.patch, self.descriptor_channels)
         if not (0 < self.theta_end < self.theta_start):
             raise ValueError(
                 f'tv: need 0 < theta_end < theta_start, got {self.theta_end}, {self.theta_start}'
@@ -112,7 +115,13 @@ def build_cost_volume(
     h, w = camera.height, camera.width
     margin = patch_reach(config.patch, config.patch_stride)
     desc = patch_descriptors(
-        grays, config.patch, config.patch_stride, config.blur_sigma, config.noise_floor, margin
+        grays,
+        config.patch,
+        config.patch_stride,
+        config.blur_sigma,
+        config.noise_floor,
+        margin,
+        config.descriptor_channels,
     )
     channels = desc.shape[1] - 1
     neighbour_images = desc[1:]
