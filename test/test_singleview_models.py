@@ -8,12 +8,18 @@ import torch
 import yaml
 from test_singleview_toy import one_torch_thread  # noqa: F401  (autouse fixture)
 
+from depth_fusion_ros.metrics import frame_metrics
 from depth_fusion_ros.singleview.architectures import build_model, count_parameters
 from depth_fusion_ros.singleview.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from depth_fusion_ros.singleview.compact_net import CompactConfig, CompactDepthNet
 from depth_fusion_ros.singleview.eigen_net import EigenConfig, EigenFergusNet
 from depth_fusion_ros.singleview.metadata import ModelMetadata, read_metadata_yaml
-from depth_fusion_ros.singleview.predictor import DepthPredictor, load_predictor, predictor_from_network
+from depth_fusion_ros.singleview.predictor import (
+    DepthPredictor,
+    default_model_path,
+    load_predictor,
+    predictor_from_network,
+)
 from depth_fusion_ros.singleview.torchscript_model import export_torchscript
 
 TINY_COMPACT = {
@@ -239,3 +245,21 @@ def test_unknown_architecture_and_config_fields():
     with pytest.raises(ValueError, match=r'widths'):
         CompactConfig.from_dict({'widths': 3})
     assert isinstance(build_model('eigen', TINY_EIGEN), EigenFergusNet)
+
+
+def test_shipped_model_is_small_synthetic_only_and_better_than_a_constant(synthetic_sequence):
+    """The committed default model: <= 10 MB, trained on the project's synthetic rooms only,
+    and on an unseen synthetic room clearly better than each frame's median depth."""
+    path = default_model_path()
+    assert path.is_file() and path.stat().st_size <= 10e6
+    info = load_checkpoint(path).metadata.info
+    assert info['training_sources'] and all(s.startswith('Synthetic room') for s in info['training_sources'])
+    assert not any('shared' in s for s in info['training_sequences'])
+    predictor = load_predictor('default')
+    assert predictor.output_kind == 'metric_depth' and predictor.input_size == (320, 240)
+    for i in (0, 12):
+        frame = synthetic_sequence.frames[i]
+        depth = predictor.predict(frame.rgb)
+        assert depth.shape == frame.rgb.shape[:2] and np.isfinite(depth).all()
+        constant = np.full_like(frame.depth, np.nanmedian(frame.depth))
+        assert frame_metrics(depth, frame.depth)['mae'] < 0.8 * frame_metrics(constant, frame.depth)['mae']

@@ -140,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
     )
     info = {
         'command': shlex.join(['depth-fusion', *sys.argv[1:]]) if sys.argv else '',
+        # SOURCE.md titles of every folder given (training and validation split): provenance.
         'training_sources': sorted({source_summary(f) for f in args.sequences}),
         'validation_sequences': list(val.sequences),
         'validation_samples': len(val),
