@@ -157,7 +157,8 @@ class DepthPredictor:
 def predictor_from_network(
     net: nn.Module, metadata: ModelMetadata, device: str | torch.device = 'cpu', name: str = ''
 ) -> DepthPredictor:
-    """A predictor around one of our log-depth networks (a training-time model, say)."""
+    """A predictor around one of our log-depth networks (a training-time model, say); the
+    network is moved to ``device`` and put in eval mode."""
     meta = ModelMetadata.from_dict({**metadata.to_dict(), 'output_kind': 'metric_depth', 'scale': 1.0})
     return DepthPredictor(MetricDepthHead(net), meta, device, name=name or getattr(net, 'architecture', ''))
 
