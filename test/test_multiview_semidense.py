@@ -200,3 +200,16 @@ def test_rendered_sequence_high_parallax(synthetic_sequence):
     assert result.density > 0.05
     assert selected.mean() > 0.01
     assert np.median(relative_error(result.depth, gt, selected)) < 0.02
+
+
+def test_pixels_leaving_most_neighbours_get_no_estimate(planes_views):
+    grays, _, poses = planes_views
+    # Three of four neighbours 0.4 m to the right: the keyframe's left border (~35 px at the
+    # 3 m wall, more for nearer surfaces) leaves their images; only one neighbour still sees it.
+    far = [translated((0.4, 0.0, 0.0)), translated((0.4, 0.05, 0.0)), translated((0.45, -0.05, 0.0))]
+    far_grays, _ = render_views(SCENE, far)
+    result = estimate_semidense(
+        grays[0], poses[0], [grays[1], *far_grays], [poses[1], *far], CAMERA, MultiViewConfig(max_depth=4.0)
+    )
+    assert not result.valid[:, :30].any()
+    assert result.valid[:, 60:].sum() > 1000
