@@ -89,7 +89,7 @@ class MultiViewConfig:
     #: Stage-1 point selection: keep this fraction of the estimates, best score first.
     select_fraction: float = 0.25
     #: Largest intermediate tensor, in float elements (bounded memory, about 4 bytes each).
-    chunk_elements: int = 1 << 21
+    chunk_elements: int = 1 << 22
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad parameter."""

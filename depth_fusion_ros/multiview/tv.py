@@ -79,7 +79,7 @@ class TVConfig:
     theta_end: float = 1e-4
     theta_decay: float = 0.85
     #: Largest intermediate tensor while building the cost volume, in float elements.
-    chunk_elements: int = 1 << 21
+    chunk_elements: int = 1 << 22
 
     def validate(self) -> None:
         if not (0 < self.min_depth < self.max_depth) or not math.isfinite(self.max_depth):
