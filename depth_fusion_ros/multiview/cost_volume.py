@@ -64,7 +64,7 @@ def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
     """
     if sigma <= 0:
         return images
-    radius = max(1, math.ceil(2.5 * sigma))
+    radius = max(1, round(2.5 * sigma))  # +-2.5 sigma, rounded: 3 taps for the default 0.5
     taps = [math.exp(-0.5 * (k / sigma) ** 2) for k in range(-radius, radius + 1)]
     total = sum(taps)
     h, w = images.shape[-2:]
