@@ -13,7 +13,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         'compare them with the ground-truth depth (paper §IV). Writes OUT/results.json and '
         'OUT/report.md and prints the table.',
     )
-    p.add_argument('sequences', nargs='+', metavar='SEQ_DIR', help='TUM-layout folder(s)')
+    p.add_argument('sequences', nargs='*', metavar='SEQ_DIR', help='TUM-layout folder(s)')
     p.add_argument(
         '--methods', default='single_view,multi_view,fused', help='comma-separated method names (see --list)'
     )
@@ -77,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
         for name, spec in available_methods().items():
             print(f'{name:24s} {spec.description}')
         return 0
+    if not args.sequences:
+        raise ValueError('give at least one TUM-layout folder (SEQ_DIR), or --list')
     methods = [m.strip() for m in args.methods.split(',') if m.strip()]
     options = EvalOptions(
         frames=args.frames,
