@@ -25,6 +25,7 @@ from which :func:`confidence_from_support` derives the confidence.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -128,33 +129,36 @@ _COMPILED: dict[tuple, Callable] = {}
 _COMPILE_FAILED: set[str] = set()
 
 
-def _chunk_function(params: WeightParams, compile_kernel: bool, device: torch.device) -> Callable:
-    """The per-chunk kernel, compiled with ``torch.compile`` (inductor) when asked and possible.
+def _maybe_compiled(
+    name: str, fn: Callable, params: WeightParams, compile_kernel: bool, device: torch.device
+) -> Callable:
+    """``fn(*args, params)`` as a function of ``args``, compiled with ``torch.compile``
+    (inductor) when asked and possible.
 
     Compiling fuses the elementwise passes into one loop (several times faster on CPU than
     eager). A failing compiler (no C++ toolchain, unsupported platform) is logged once and
-    the eager kernel is used: same numbers, only slower.
+    eager code is used from then on: same numbers, only slower.
     """
 
-    def eager(p: Samples, q: Samples, v: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return _chunk_sums_inplace(p, q, v, params)
+    def eager(*args: object) -> tuple[torch.Tensor, ...]:
+        return fn(*args, params)
 
     if not compile_kernel or device.type in _COMPILE_FAILED:
         return eager
-    key = (params, device.type)
+    key = (name, params, device.type)
     if key not in _COMPILED:
-        _COMPILED[key] = torch.compile(lambda p, q, v: _chunk_sums(p, q, v, params), dynamic=True)
+        _COMPILED[key] = torch.compile(eager, dynamic=True)
     compiled = _COMPILED[key]
 
-    def guarded(p: Samples, q: Samples, v: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def guarded(*args: object) -> tuple[torch.Tensor, ...]:
         if device.type in _COMPILE_FAILED:
-            return eager(p, q, v)
+            return eager(*args)
         try:
-            return compiled(p, q, v)
+            return compiled(*args)
         except Exception as exc:  # the compiler stack raises many types; any failure means eager
             _COMPILE_FAILED.add(device.type)
-            log.warning('torch.compile of the fusion kernel failed on %s (%s); using eager', device, exc)
-            return eager(p, q, v)
+            log.warning('torch.compile of the fusion kernels failed on %s (%s); using eager', device, exc)
+            return eager(*args)
 
     return guarded
 
@@ -260,7 +264,10 @@ def interpolate(
     point_index = torch.from_numpy(np.flatnonzero(points_mask)).to(dev)
     points = samples_at(point_index, width, s_t, gx, gy)
     v = torch.from_numpy((m - s)[points_mask].astype(np.float32)).to(dev)
-    kernel = _chunk_function(params, compile_kernel, dev)
+    # Eager: the in-place kernel (fewer passes over memory); compiled: the functional one.
+    kernel = _maybe_compiled('chunk', _chunk_sums, params, compile_kernel, dev)
+    if not compile_kernel or dev.type in _COMPILE_FAILED:
+        kernel = functools.partial(_chunk_sums_inplace, params=params)
 
     if mode == 'exact' or fast_stride == 1:
         pixel_index = torch.from_numpy(np.flatnonzero(valid_s)).to(dev)
@@ -272,7 +279,18 @@ def interpolate(
         return Interpolation(offset, support)
 
     off_t, support_t = _fast_offsets(
-        valid_s, s_t, gx, gy, points, v, params, kernel, chunk_elements, fast_stride, fast_refine
+        valid_s,
+        s_t,
+        gx,
+        gy,
+        points,
+        v,
+        params,
+        kernel,
+        chunk_elements,
+        fast_stride,
+        fast_refine,
+        _maybe_compiled('blend', _blend_corners, params, compile_kernel, dev),
     )
     offset.ravel()[:] = off_t.cpu().numpy()
     support.ravel()[:] = support_t.cpu().numpy()
@@ -287,6 +305,85 @@ def coarse_axis(size: int, stride: int) -> np.ndarray:
     return axis if axis[-1] == size - 1 else np.append(axis, size - 1)
 
 
+@dataclass(frozen=True)
+class _CoarseGrid:
+    """Geometry of the fast mode for one image size and stride (cached: it never changes).
+
+    ``coarse_flat``: flat pixel index of each coarse sample; per pixel (rows of ``H*W``):
+    ``corner_index`` (4 coarse samples around it, into ``coarse_flat``), ``corner_flat``
+    (their flat pixel indices), ``bilinear`` weights, and the corner-minus-pixel offsets
+    ``dx``/``dy`` in pixels.
+    """
+
+    coarse_flat: np.ndarray
+    corner_index: torch.Tensor
+    corner_flat: torch.Tensor
+    bilinear: torch.Tensor
+    dx: torch.Tensor
+    dy: torch.Tensor
+
+
+@functools.lru_cache(maxsize=8)
+def _coarse_grid(height: int, width: int, stride: int, device: torch.device) -> _CoarseGrid:
+    xs = coarse_axis(width, stride)
+    ys = coarse_axis(height, stride)
+    coarse_flat = (ys[:, None] * width + xs[None, :]).ravel()
+    cell_x = np.clip(np.searchsorted(xs, np.arange(width), side='right') - 1, 0, len(xs) - 2)
+    cell_y = np.clip(np.searchsorted(ys, np.arange(height), side='right') - 1, 0, len(ys) - 2)
+    fx = (np.arange(width) - xs[cell_x]) / (xs[cell_x + 1] - xs[cell_x])
+    fy = (np.arange(height) - ys[cell_y]) / (ys[cell_y + 1] - ys[cell_y])
+    corners, bilinear, dxs, dys = [], [], [], []
+    for oy, wy in ((0, 1.0 - fy), (1, fy)):
+        for ox, wx in ((0, 1.0 - fx), (1, fx)):
+            corners.append(((cell_y + oy)[:, None] * len(xs) + (cell_x + ox)[None, :]).ravel())
+            bilinear.append((wy[:, None] * wx[None, :]).ravel())
+            dxs.append(
+                np.broadcast_to((xs[cell_x + ox] - np.arange(width))[None, :], (height, width)).ravel()
+            )
+            dys.append(
+                np.broadcast_to((ys[cell_y + oy] - np.arange(height))[:, None], (height, width)).ravel()
+            )
+    corner_index = np.stack(corners, axis=1)
+
+    def tensor(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
+
+    return _CoarseGrid(
+        coarse_flat=coarse_flat,
+        corner_index=tensor(corner_index, torch.int64),
+        corner_flat=tensor(coarse_flat[corner_index], torch.int64),
+        bilinear=tensor(np.stack(bilinear, axis=1), torch.float32),
+        dx=tensor(np.stack(dxs, axis=1), torch.float32),
+        dy=tensor(np.stack(dys, axis=1), torch.float32),
+    )
+
+
+def _blend_corners(
+    pixels: Samples,
+    corners: Samples,
+    dx: torch.Tensor,
+    dy: torch.Tensor,
+    bilinear: torch.Tensor,
+    corner_offset: torch.Tensor,
+    corner_support: torch.Tensor,
+    params: WeightParams,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Structure-guided bilinear blend of the four corners of every pixel.
+
+    ``pixels`` are (N, 1), ``corners`` and the rest (N, 4). Returns the blended offset and
+    support distance, the total blend weight and the best corner structure factor.
+    """
+    structure = structure_weights(pixels, corners, params, dx, dy) * (1.0 / params.max_weight)
+    usable = torch.isfinite(corner_offset) & (bilinear > 0)
+    blend = torch.where(usable, bilinear * structure.pow(CORNER_SHARPNESS), torch.zeros_like(bilinear))
+    total = blend.sum(dim=1)
+    norm = 1.0 / total.clamp_min(torch.finfo(bilinear.dtype).tiny)
+    offset = (blend * torch.where(usable, corner_offset, torch.zeros_like(bilinear))).sum(dim=1) * norm
+    support = (blend * torch.where(usable, corner_support, torch.zeros_like(bilinear))).sum(dim=1) * norm
+    best = torch.where(usable, structure, torch.zeros_like(structure)).amax(dim=1)
+    return offset, support, total, best
+
+
 def _fast_offsets(
     valid_s: np.ndarray,
     s: torch.Tensor,
@@ -299,64 +396,43 @@ def _fast_offsets(
     chunk_elements: int,
     stride: int,
     refine_below: float,
+    blend: Callable,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact offsets on a coarse grid, structure-guided bilinear upsampling, exact fix-ups."""
     height, width = valid_s.shape
     dev = s.device
-    xs = coarse_axis(width, stride)
-    ys = coarse_axis(height, stride)
-    coarse_flat = (ys[:, None] * width + xs[None, :]).ravel()
-    coarse_valid = valid_s.ravel()[coarse_flat]
-    coarse_offset = torch.full((coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
-    coarse_support = torch.full((coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
+    grid = _coarse_grid(height, width, stride, dev)
+    coarse_valid = valid_s.ravel()[grid.coarse_flat]
+    coarse_offset = torch.full((grid.coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
+    coarse_support = torch.full((grid.coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
     if coarse_valid.any():
-        idx = torch.from_numpy(coarse_flat[coarse_valid]).to(dev)
+        idx = torch.from_numpy(grid.coarse_flat[coarse_valid]).to(dev)
         off, sup = _offsets_at(samples_at(idx, width, s, gx, gy), points, v, kernel, chunk_elements, params)
         sel = torch.from_numpy(np.flatnonzero(coarse_valid)).to(dev)
         coarse_offset[sel] = off
         coarse_support[sel] = sup
 
-    # The four coarse corners around every pixel and their bilinear weights.
-    cell_x = np.clip(np.searchsorted(xs, np.arange(width), side='right') - 1, 0, len(xs) - 2)
-    cell_y = np.clip(np.searchsorted(ys, np.arange(height), side='right') - 1, 0, len(ys) - 2)
-    fx = (np.arange(width) - xs[cell_x]) / (xs[cell_x + 1] - xs[cell_x])
-    fy = (np.arange(height) - ys[cell_y]) / (ys[cell_y + 1] - ys[cell_y])
-    corners, bilinear = [], []
-    for oy, wy in ((0, 1.0 - fy), (1, fy)):
-        for ox, wx in ((0, 1.0 - fx), (1, fx)):
-            corners.append(((cell_y + oy)[:, None] * len(xs) + (cell_x + ox)[None, :]).ravel())
-            bilinear.append((wy[:, None] * wx[None, :]).ravel())
-    corner_index = torch.from_numpy(np.stack(corners, axis=1)).to(dev)  # (H*W, 4) into the coarse grid
-    bilinear_w = torch.from_numpy(np.stack(bilinear, axis=1).astype(np.float32)).to(dev)
-
-    pixel_index = torch.arange(height * width, device=dev)
-    pixels = samples_at(pixel_index, width, s, gx, gy).column()
-    corner_flat = torch.from_numpy(coarse_flat).to(dev)[corner_index]
-    corners_s = samples_at(corner_flat.reshape(-1), width, s, gx, gy)
-    corners_s = Samples(*(t.reshape(-1, 4) for t in corners_s))
-    structure = _structure_weights(pixels, corners_s, params)
-    corner_offset = coarse_offset[corner_index]
-    usable = torch.isfinite(corner_offset) & (bilinear_w > 0)
-    blend = torch.where(usable, bilinear_w * structure.pow(CORNER_SHARPNESS), torch.zeros_like(bilinear_w))
-    total = blend.sum(dim=1)
-    safe = torch.where(usable, corner_offset, torch.zeros_like(corner_offset))
-    offset = (blend * safe).sum(dim=1) / total.clamp_min(torch.finfo(s.dtype).tiny)
-    safe_support = torch.where(usable, coarse_support[corner_index], torch.zeros_like(corner_offset))
-    support = (blend * safe_support).sum(dim=1) / total.clamp_min(torch.finfo(s.dtype).tiny)
+    zero = torch.zeros(1, 1, dtype=s.dtype, device=dev)  # pixel positions enter only through dx, dy
+    pixels = Samples(zero, zero, s[:, None], gx[:, None], gy[:, None])
+    c = grid.corner_flat
+    corners = Samples(zero, zero, s[c], gx[c], gy[c])
+    offset, support, total, best = blend(
+        pixels,
+        corners,
+        grid.dx,
+        grid.dy,
+        grid.bilinear,
+        coarse_offset[grid.corner_index],
+        coarse_support[grid.corner_index],
+    )
 
     # Pixels the corners cannot represent (no usable corner, or a structure unlike all of
     # them: depth edges of s, thin objects between coarse pixels): compute them exactly.
-    best = torch.where(usable, structure, torch.zeros_like(structure)).amax(dim=1)
     fix = ((total <= 0) | (best < refine_below)) & torch.from_numpy(valid_s.ravel()).to(dev)
     log.debug('fast fusion: %d of %d pixels computed exactly', int(fix.sum()), fix.numel())
     if bool(fix.any()):
-        idx = pixel_index[fix]
+        idx = torch.nonzero(fix).squeeze(1)
         off, sup = _offsets_at(samples_at(idx, width, s, gx, gy), points, v, kernel, chunk_elements, params)
         offset[idx] = off
         support[idx] = sup
     return offset, support
-
-
-def _structure_weights(p: Samples, c: Samples, params: WeightParams) -> torch.Tensor:
-    """The structure factors between pixels and their coarse corners, scaled to at most 1."""
-    return structure_weights(p, c, params, c.x - p.x, c.y - p.y) * (1.0 / params.max_weight)
