@@ -86,4 +86,4 @@ def test_colcon_build_and_test(tmp_path):
     )
     assert test.returncode == 0, test.stdout + test.stderr
     result = subprocess.run(['colcon', 'test-result', '--all'], cwd=tmp_path, capture_output=True, text=True)
-    assert '1 tests, 0 errors, 0 failures' in result.stdout, result.stdout
+    assert 'Summary: 1 test, 0 errors, 0 failures' in result.stdout, result.stdout
