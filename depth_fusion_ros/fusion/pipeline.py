@@ -74,7 +74,7 @@ class FusionConfig:
     fast_refine: float = 0.3
     chunk_elements: int = DEFAULT_CHUNK_ELEMENTS
     compile_kernel: bool = False
-    ransac_threshold: float = 0.25
+    ransac_threshold: float = 0.35
     ransac_relative: bool = True
     ransac_iterations: int = 200
     ransac_model: str | None = None
