@@ -59,7 +59,8 @@ def prepare_sequence(opts: DemoOptions, work: Path) -> Path:
     from .data.synthetic_config import SynthConfig
 
     cfg = SynthConfig(frames=opts.frames, seed=opts.seed, parallax=opts.parallax)
-    return write_synthetic_sequence(work / 'sequence', cfg, overwrite=True, show_progress=True)
+    name = f'synthetic_room_seed{opts.seed}_{opts.parallax}_parallax'
+    return write_synthetic_sequence(work / name, cfg, overwrite=True, show_progress=True)
 
 
 def run_demo(opts: DemoOptions) -> dict[str, Any]:
@@ -95,6 +96,10 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
             rate=opts.rate,
             device=opts.device,
             single_view_model=opts.single_view,
+            # The demo scores every keyframe, so the multi-view node must not drop any when a
+            # slow machine falls behind the 30 Hz replay: its callback waits instead, and the
+            # DDS history holds the backlog (a live robot keeps the default 'latest').
+            overrides={'multi_view_node': {'queue_policy': 'block', 'qos_depth': max(100, opts.frames)}},
         )
     )
     _step(opts, 'node_graph', t0)
