@@ -396,14 +396,36 @@ def read_depth_file(
 
 
 def _load_frame(
-    i: int, af: AssociatedFrame, undistorter: Undistorter, with_depth: bool, depth_scale: float
+    i: int, af: AssociatedFrame, undistorter: Undistorter, depth_undistorter: Undistorter, depth_scale: float
 ) -> Frame:
-    native = undistorter.native_camera
-    rgb = undistorter.rgb(read_rgb_file(af.rgb_file, native))
+    """One frame: colour on the working grid; depth undistorted (and registered into the colour
+    camera when the two calibrations differ) at the native resolution."""
+    rgb = undistorter.rgb(read_rgb_file(af.rgb_file, undistorter.native_camera))
     depth = None
-    if with_depth and af.depth_file is not None:
-        depth = undistorter.depth(read_depth_file(af.depth_file, native, depth_scale))
+    if af.depth_file is not None:
+        native = depth_undistorter.native_camera
+        depth = depth_undistorter.depth(read_depth_file(af.depth_file, native, depth_scale))
+        if depth_undistorter is not undistorter:
+            depth = register_depth(depth, native, undistorter.native_camera)
     return Frame(index=i, stamp=af.stamp, rgb=rgb, pose=af.pose, depth=depth)
+
+
+def register_depth(
+    depth: np.ndarray, depth_camera: PinholeCamera, colour_camera: PinholeCamera
+) -> np.ndarray:
+    """Resample depth from a depth camera onto the pixel grid of the colour camera.
+
+    For sensors whose depth and colour cameras sit at (nearly) the same optical centre with the
+    same orientation but have different intrinsics (7-Scenes: depth fx 585, colour about 525):
+    a point keeps its z, only its pixel moves, so this is a nearest-neighbour remap (NaN where
+    the depth camera does not see).
+    """
+    u, v = colour_camera.pixel_grid()
+    map_x = (depth_camera.cx + depth_camera.fx * (u - colour_camera.cx) / colour_camera.fx).astype(np.float32)
+    map_y = (depth_camera.cy + depth_camera.fy * (v - colour_camera.cy) / colour_camera.fy).astype(np.float32)
+    return cv2.remap(
+        depth, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=float('nan')
+    )
 
 
 def load_tum_sequence(
@@ -415,6 +437,7 @@ def load_tum_sequence(
     require_depth: bool = True,
     undistort: bool = True,
     depth_scale: float = TUM_DEPTH_SCALE,
+    rgb_calibration: CameraCalibration | None = None,
 ) -> Sequence:
     """Load a TUM folder as a ``Sequence``.
 
@@ -423,23 +446,42 @@ def load_tum_sequence(
     resolution (``Sequence.gt_camera``). Frames outside the ground truth or without depth are
     dropped and counted in ``Sequence.dropped``. With ``undistort=False`` the distortion in
     camera.yaml is ignored (for already-rectified data).
+
+    ``rgb_calibration``: the colour camera's calibration when the folder's camera.yaml
+    describes the *depth* camera (7-Scenes ships the depth intrinsics). Colour is then
+    undistorted with it, and the ground-truth depth is registered into the colour camera
+    with :func:`register_depth` (same optical centre assumed).
     """
     index = read_tum_index(path, require_depth=require_depth)
     assoc = associate(index, depth_max_gap, require_depth=require_depth, max_frames=max_frames)
-    calib = index.calibration
-    D = calib.D if undistort else ()
-    undistorter = Undistorter.for_calibration(
-        CameraCalibration(calib.camera, calib.distortion_model, D), width, height
-    )
+    depth_calib = index.calibration
+    colour_calib = rgb_calibration or depth_calib
+    if colour_calib.camera.size != depth_calib.camera.size:
+        raise ValueError(
+            f'{index.root}: colour calibration is {colour_calib.camera.width}x{colour_calib.camera.height}, '
+            f'camera.yaml (depth) is {depth_calib.camera.width}x{depth_calib.camera.height}'
+        )
+
+    def undistorter_of(calib: CameraCalibration) -> Undistorter:
+        D = calib.D if undistort else ()
+        return Undistorter.for_calibration(
+            CameraCalibration(calib.camera, calib.distortion_model, D), width, height
+        )
+
+    undistorter = undistorter_of(colour_calib)
+    depth_undistorter = undistorter_of(depth_calib) if rgb_calibration is not None else undistorter
+
     # cv2 decodes with the GIL released: a few threads overlap PNG/JPEG decoding.
     workers = max(1, min(4, os.cpu_count() or 1))
     with ThreadPoolExecutor(workers) as pool:
         frames = list(
             pool.map(
-                lambda item: _load_frame(item[0], item[1], undistorter, True, depth_scale),
+                lambda item: _load_frame(item[0], item[1], undistorter, depth_undistorter, depth_scale),
                 enumerate(assoc.frames),
             )
         )
+    if rgb_calibration is not None:
+        logger.info('%s: colour calibration overridden; depth registered into the colour camera', index.name)
     if assoc.dropped:
         logger.info('%s: dropped frames %s', index.name, assoc.dropped)
     return Sequence(

@@ -39,6 +39,9 @@ class EvalOptions:
     num_neighbours: int = 4
     width: int = 320
     height: int = 240
+    #: Colour-camera calibration YAML per sequence name ('*': every sequence), for folders whose
+    #: camera.yaml is the depth camera's (7-Scenes): see ``load_tum_sequence(rgb_calibration=)``.
+    rgb_cameras: dict[str, str] = field(default_factory=dict)
     #: Per-stage overrides, e.g. ``{'multi_view': {'num_samples': 96}, 'fusion': {'mode': 'fast'}}``.
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
 

@@ -143,19 +143,32 @@ def evaluate_sequences(
     figures: bool = True,
 ) -> dict[str, Any]:
     """Evaluate ``methods`` on TUM-layout folders; write ``results.json`` and ``report.md``."""
-    from ..data.tum import load_tum_sequence
-
     for m in methods:  # fail before loading data when a name is wrong
         get_method(m)
     results: list[SequenceResult] = []
     for p in paths:
-        seq = load_tum_sequence(p, width=options.width, height=options.height, max_frames=options.frames)
+        seq = load_evaluation_sequence(p, options)
         log.info('%s: %d frames loaded (dropped: %s)', seq.name, len(seq), seq.dropped)
         results.append(evaluate_sequence(seq, methods, options, str(p), show_progress=show_progress))
     doc = results_document(results, methods, options)
     if out_dir is not None:
         write_outputs(doc, results, Path(out_dir), figures=figures)
     return doc
+
+
+def load_evaluation_sequence(path: str | Path, options: EvalOptions) -> Sequence:
+    """Load a TUM folder as the options say (working size, frames, colour-camera override)."""
+    from ..data.tum import load_tum_sequence, read_camera_yaml
+
+    name = Path(path).resolve().name
+    override = options.rgb_cameras.get(name, options.rgb_cameras.get('*'))
+    return load_tum_sequence(
+        path,
+        width=options.width,
+        height=options.height,
+        max_frames=options.frames,
+        rgb_calibration=read_camera_yaml(override) if override else None,
+    )
 
 
 def results_document(
