@@ -423,32 +423,28 @@ def _quat_xyzw(q: Any) -> np.ndarray:
     return np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
 
 
+def _rigid_to_matrix(translation: Any, rotation: Any, what: str) -> np.ndarray:
+    t = np.array([translation.x, translation.y, translation.z], dtype=np.float64)
+    if not np.all(np.isfinite(t)):
+        raise PoseError(f'{what} has non-finite values: {t.tolist()}')
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(_quat_xyzw(rotation), normalise=False)
+    T[:3, 3] = t
+    return T
+
+
 def pose_to_matrix(pose: Any) -> np.ndarray:
     """4x4 transform of a ``geometry_msgs/Pose``.
 
     Raises ``geometry.PoseError`` for NaN/Inf values or a quaternion that is not unit length
     (a broken pose source must be noticed, not silently renormalised).
     """
-    t = np.array([pose.position.x, pose.position.y, pose.position.z], dtype=np.float64)
-    if not np.all(np.isfinite(t)):
-        raise PoseError(f'pose position has non-finite values: {t.tolist()}')
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(_quat_xyzw(pose.orientation), normalise=False)
-    T[:3, 3] = t
-    return T
+    return _rigid_to_matrix(pose.position, pose.orientation, 'pose position')
 
 
 def transform_to_matrix(transform: Any) -> np.ndarray:
     """4x4 transform of a ``geometry_msgs/Transform`` (as in ``/tf``); same checks as poses."""
-    t = np.array(
-        [transform.translation.x, transform.translation.y, transform.translation.z], dtype=np.float64
-    )
-    if not np.all(np.isfinite(t)):
-        raise PoseError(f'transform translation has non-finite values: {t.tolist()}')
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(_quat_xyzw(transform.rotation), normalise=False)
-    T[:3, 3] = t
-    return T
+    return _rigid_to_matrix(transform.translation, transform.rotation, 'transform translation')
 
 
 def pose_stamped_to_matrix(msg: Any) -> np.ndarray:

@@ -18,6 +18,7 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..data.undistort import CameraCalibration, Undistorter, check_distortion
 from ..geometry import PoseError
+from .params import ParamSpec
 
 #: Encodings ``messages.image_to_rgb`` turns into RGB.
 COLOUR_ENCODINGS = ('rgb8', 'bgr8', 'rgba8', 'bgra8', 'mono8', '8UC1', '8UC3')
@@ -84,6 +85,31 @@ def calibration_from_parameters(intrinsics: list[float], distortion: list[float]
     return fx, fy, cx, cy
 
 
+def working_grid_parameters(note: str = '') -> tuple[ParamSpec, ...]:
+    """``width``, ``height``, ``camera_intrinsics``, ``camera_distortion``: the working grid and
+    the fallback calibration of every node that reads camera images (``note`` is appended to
+    the calibration descriptions)."""
+    return (
+        ParamSpec(
+            'width', 320, 'working grid width (pixels): images are undistorted and resized to it', 16, 4096
+        ),
+        ParamSpec('height', 240, 'working grid height (pixels)', 16, 4096),
+        ParamSpec(
+            'camera_intrinsics',
+            [0.0, 0.0, 0.0, 0.0],
+            'fx, fy, cx, cy at the raw image size, used instead of camera_info when set '
+            f'(all zero: use camera_info){note}',
+            length=4,
+        ),
+        ParamSpec(
+            'camera_distortion',
+            [0.0, 0.0, 0.0, 0.0, 0.0],
+            f'plumb_bob k1, k2, p1, p2, k3 for camera_intrinsics{note}',
+            length=5,
+        ),
+    )
+
+
 class CameraInput:
     """Keeps the latest CameraInfo and turns colour images into the undistorted working grid.
 
@@ -108,6 +134,19 @@ class CameraInput:
         self.fixed_intrinsics = fixed_intrinsics
         self.fixed_distortion = tuple(fixed_distortion)
         self.calibration: CameraCalibration | None = None
+
+    @classmethod
+    def from_parameters(cls, params: dict[str, Any], rectified: bool = False) -> CameraInput:
+        """Built from the values of :func:`working_grid_parameters`."""
+        return cls(
+            int(params['width']),
+            int(params['height']),
+            rectified=rectified,
+            fixed_intrinsics=calibration_from_parameters(
+                params['camera_intrinsics'], params['camera_distortion']
+            ),
+            fixed_distortion=tuple(params['camera_distortion']),
+        )
 
     def update(self, info_msg: Any) -> None:
         """Take a CameraInfo (raises ``InputError('bad_camera_info')`` if it is unusable)."""

@@ -38,6 +38,7 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
 from ..geometry import invert_pose, rotation_angle
+from ..multiview.cost_volume import PATCH_OFFSETS
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
@@ -47,9 +48,9 @@ from .image_input import (
     InputError,
     StampGuard,
     WorkingImage,
-    calibration_from_parameters,
     header_stamp_ns,
     pose_from_message,
+    working_grid_parameters,
 )
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .qos import qos_profile
@@ -72,7 +73,7 @@ MULTI_VIEW_DESCRIPTIONS = {
     'max_depth': 'farthest depth hypothesis (m)',
     'num_samples': 'coarse inverse-depth samples per pixel',
     'refine_samples': 'fine samples on each side of the coarse minimum',
-    'patch': "patch layout of the ZNCC cost: 'point', 'cross' (5 pixels) or 'box' (9)",
+    'patch': "patch layout of the ZNCC cost: 'cross' (5 pixels) or 'box' (3x3)",
     'patch_stride': 'spacing (px) of the patch samples',
     'blur_sigma': 'Gaussian blur (px) before matching (noise, aliasing)',
     'noise_floor': 'grey-level noise floor of the ZNCC normalisation',
@@ -88,7 +89,7 @@ MULTI_VIEW_LIMITS: dict[str, Any] = {
     'max_depth': (1e-3, None),
     'num_samples': (3, 4096),
     'refine_samples': (1, 64),
-    'patch': ('point', 'cross', 'box'),
+    'patch': tuple(sorted(PATCH_OFFSETS)),
     'patch_stride': (1, 16),
     'blur_sigma': (0.0, 20.0),
     'noise_floor': (0.0, 1.0),
@@ -125,23 +126,7 @@ MULTI_VIEW_SKIP = ('select_fraction',)
 
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('device', 'cpu', 'torch device of the plane sweep: cpu, cuda, cuda:1, ...'),
-    ParamSpec(
-        'width', 320, 'working grid width (pixels): images are undistorted and resized to it', 16, 4096
-    ),
-    ParamSpec('height', 240, 'working grid height (pixels)', 16, 4096),
-    ParamSpec(
-        'camera_intrinsics',
-        [0.0, 0.0, 0.0, 0.0],
-        'fx, fy, cx, cy at the raw image size, used instead of camera_info when set '
-        '(all zero: use camera_info)',
-        length=4,
-    ),
-    ParamSpec(
-        'camera_distortion',
-        [0.0, 0.0, 0.0, 0.0, 0.0],
-        'plumb_bob k1, k2, p1, p2, k3 for camera_intrinsics',
-        length=5,
-    ),
+    *working_grid_parameters(),
     ParamSpec(
         'keyframe_policy',
         'every_k',
@@ -228,13 +213,7 @@ class MultiViewNode(DepthFusionNode):
             self.neighbour_config.validate()
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
-        fixed = calibration_from_parameters(p['camera_intrinsics'], p['camera_distortion'])
-        self.camera_input = CameraInput(
-            int(p['width']),
-            int(p['height']),
-            fixed_intrinsics=fixed,
-            fixed_distortion=tuple(p['camera_distortion']),
-        )
+        self.camera_input = CameraInput.from_parameters(p)
         self.device = str(p['device'])
         self.pose_buffer = PoseBuffer(capacity=int(p['pose_buffer_size']), max_gap=float(p['max_pose_gap']))
         self.frames: deque[Frame] = deque(maxlen=self.neighbour_config.window)

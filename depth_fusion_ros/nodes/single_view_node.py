@@ -26,7 +26,7 @@ from std_msgs.msg import String
 
 from ..data import messages
 from .base import DepthFusionNode, run_node
-from .image_input import CameraInput, InputError, StampGuard, WorkingImage, calibration_from_parameters
+from .image_input import CameraInput, InputError, StampGuard, WorkingImage, working_grid_parameters
 from .params import ParamSpec
 from .qos import latched_qos
 
@@ -55,21 +55,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'the input image is already undistorted (the keyframe topic): no camera_info needed, only '
         'resized to width x height; false: undistort and resize with camera_info (a raw camera topic)',
     ),
-    ParamSpec('width', 320, 'working grid width (pixels) of the output depth', 16, 4096),
-    ParamSpec('height', 240, 'working grid height (pixels) of the output depth', 16, 4096),
-    ParamSpec(
-        'camera_intrinsics',
-        [0.0, 0.0, 0.0, 0.0],
-        'fx, fy, cx, cy at the raw image size, used instead of camera_info when set (all zero: use '
-        'camera_info); only for input_rectified: false',
-        length=4,
-    ),
-    ParamSpec(
-        'camera_distortion',
-        [0.0, 0.0, 0.0, 0.0, 0.0],
-        'plumb_bob k1, k2, p1, p2, k3 that go with camera_intrinsics',
-        length=5,
-    ),
+    *working_grid_parameters('; only for input_rectified: false'),
     ParamSpec('warmup', True, 'run the network once at start-up so the first keyframe is not slow'),
 )
 
@@ -86,14 +72,7 @@ class SingleViewNode(DepthFusionNode):
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
         super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
         p = self.params
-        fixed = calibration_from_parameters(p['camera_intrinsics'], p['camera_distortion'])
-        self.camera_input = CameraInput(
-            int(p['width']),
-            int(p['height']),
-            rectified=bool(p['input_rectified']),
-            fixed_intrinsics=fixed,
-            fixed_distortion=tuple(p['camera_distortion']),
-        )
+        self.camera_input = CameraInput.from_parameters(p, rectified=bool(p['input_rectified']))
         self.predictor = self._load_predictor(str(p['model']), str(p['device']))
         self.output_kind = str(getattr(self.predictor, 'output_kind', 'metric_depth'))
         if p['warmup']:
