@@ -75,20 +75,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def parse_overrides(items: list[str]) -> dict[str, dict[str, object]]:
-    """``['fusion.mode=fast', 'multi_view.num_samples=96']`` -> nested dict with typed values."""
-    import yaml
-
-    params: dict[str, dict[str, object]] = {}
-    for item in items:
-        key, sep, value = item.partition('=')
-        stage, dot, name = key.partition('.')
-        if not sep or not dot or not stage or not name:
-            raise ValueError(f'--set expects STAGE.KEY=VALUE, got {item!r}')
-        params.setdefault(stage, {})[name] = yaml.safe_load(value)
-    return params
-
-
 def parse_rgb_cameras(items: list[str]) -> dict[str, str]:
     """``['seq=cam.yaml', 'all.yaml']`` -> ``{'seq': 'cam.yaml', '*': 'all.yaml'}``."""
     out: dict[str, str] = {}
@@ -103,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.harness import evaluate_sequences
     from ..evaluation.registry import available_methods
     from ..evaluation.report import report_markdown
+    from .overrides import parse_overrides
 
     if args.list:
         for name, spec in available_methods().items():
@@ -121,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         num_neighbours=args.neighbours,
         width=args.width,
         height=args.height,
-        params=parse_overrides(args.set),
+        params=parse_overrides(args.set, 'STAGE'),
         rgb_cameras=parse_rgb_cameras(args.rgb_camera),
     )
     doc = evaluate_sequences(args.sequences, methods, options, args.out, figures=not args.no_figures)

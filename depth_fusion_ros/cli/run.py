@@ -90,22 +90,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def parse_sets(items: list[str]) -> dict[str, dict[str, object]]:
-    """``['fusion_node.fusion.mode=exact']`` -> ``{'fusion_node': {'fusion.mode': 'exact'}}``."""
-    import yaml
-
-    out: dict[str, dict[str, object]] = {}
-    for item in items:
-        key, sep, value = item.partition('=')
-        node, dot, name = key.partition('.')
-        if not sep or not dot or not node or not name:
-            raise ValueError(f'--set expects NODE.PARAM=VALUE, got {item!r}')
-        out.setdefault(node, {})[name] = yaml.safe_load(value)
-    return out
-
-
 def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept lazy)
     from ..nodes.launcher import RunOptions
+    from .overrides import parse_overrides
 
     if args.rate is not None and args.rate <= 0:
         raise ValueError(f'--rate must be positive, got {args.rate}')
@@ -122,7 +109,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         start_offset=args.start_offset,
         device=args.device,
         single_view_model=args.single_view,
-        overrides=parse_sets(args.set),
+        overrides=parse_overrides(args.set, 'NODE'),
         flush_timeout=args.flush_timeout,
         log_dir=args.log_dir,
     )
