@@ -83,7 +83,16 @@ def generate_launch_description() -> LaunchDescription:
         executable='bag_replayer',
         name='bag_replayer',
         output='screen',
-        parameters=[params_file, {'bag': bag, 'publish_clock': use_sim_time, 'use_sim_time': False}],
+        parameters=[
+            params_file,
+            {
+                'bag': bag,
+                'publish_clock': use_sim_time,
+                'use_sim_time': False,
+                # play only once the graph is up, so the first frames are not lost
+                'wait_for_nodes': ['multi_view_node', 'single_view_node', 'fusion_node'],
+            },
+        ],
         condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
     )
     return LaunchDescription([*arguments, multi_view, single_view, fusion, replayer])
