@@ -63,6 +63,11 @@ def prepare_sequence(opts: DemoOptions, work: Path) -> Path:
     return write_synthetic_sequence(work / name, cfg, overwrite=True, show_progress=True)
 
 
+def _lossless(frames: int) -> dict[str, object]:
+    """Node parameters for an offline replay that must keep every keyframe."""
+    return {'queue_policy': 'block', 'qos_depth': max(100, frames)}
+
+
 def run_demo(opts: DemoOptions) -> dict[str, Any]:
     """Run every step; returns the results document (also written to ``opts.out``)."""
     from .data.rosbag_convert import convert
@@ -70,7 +75,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     from .evaluation.context import EvalOptions
     from .evaluation.harness import evaluate_sequence, results_document, write_outputs
     from .evaluation.methods.recorded import recorded_keyframes
-    from .nodes.launcher import RunOptions, run_graph
+    from .nodes.launcher import GRAPH_NODES, RunOptions, run_graph
 
     out = Path(opts.out)
     work = out / 'work'
@@ -96,10 +101,10 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
             rate=opts.rate,
             device=opts.device,
             single_view_model=opts.single_view,
-            # The demo scores every keyframe, so the multi-view node must not drop any when a
-            # slow machine falls behind the 30 Hz replay: its callback waits instead, and the
-            # DDS history holds the backlog (a live robot keeps the default 'latest').
-            overrides={'multi_view_node': {'queue_policy': 'block', 'qos_depth': max(100, opts.frames)}},
+            # The demo scores every keyframe, so no node may drop one when a slow machine
+            # falls behind the 30 Hz replay: callbacks wait instead, and the DDS history holds
+            # the backlog (a live robot keeps the default 'latest').
+            overrides={node: _lossless(opts.frames) for node in GRAPH_NODES},
         )
     )
     _step(opts, 'node_graph', t0)

@@ -79,6 +79,7 @@ def params_file(tmp_path_factory, toy_model) -> Path:
 /**:
   ros__parameters:
     queue_size: 16
+    qos_depth: 100
     stats_period: 0.0
 multi_view_node:
   ros__parameters:

@@ -73,6 +73,7 @@ def test_colcon_build_and_test(tmp_path):
     share = tmp_path / 'install' / 'depth_fusion_ros' / 'share' / 'depth_fusion_ros'
     assert (share / 'package.xml').is_file()
     assert (share / 'config' / 'depth_fusion.yaml').is_file()
+    assert (share / 'config' / 'cameras' / '7scenes_rgb.yaml').is_file()
     marker = (
         tmp_path / 'install' / 'depth_fusion_ros' / 'share' / 'ament_index' / 'resource_index' / 'packages'
     )

@@ -85,6 +85,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help='after the bag ends, wait at most this long for the last keyframes (default 60)',
     )
     p.add_argument(
+        '--threads',
+        type=int,
+        metavar='N',
+        help='torch CPU threads per node (default: 1 composed, cores/3 with --processes; '
+        'OMP_NUM_THREADS is respected)',
+    )
+    p.add_argument(
         '--log-dir', type=Path, metavar='DIR', help="with --processes: write each node's log to DIR/NODE.log"
     )
     p.set_defaults(func=run)
@@ -98,6 +105,8 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         raise ValueError(f'--rate must be positive, got {args.rate}')
     if args.log_dir is not None and not args.processes:
         raise ValueError('--log-dir only applies with --processes')
+    if args.threads is not None and args.threads < 1:
+        raise ValueError(f'--threads must be at least 1, got {args.threads}')
     return RunOptions(
         bag=args.bag,
         params_file=args.params,
@@ -112,6 +121,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         overrides=parse_overrides(args.set, 'NODE'),
         flush_timeout=args.flush_timeout,
         log_dir=args.log_dir,
+        threads_per_node=args.threads,
     )
 
 

@@ -297,3 +297,18 @@ __all__ = [
     'LinearFit',
     'fuse_keyframe',
 ]
+
+
+def warm_up(config: FusionConfig, width: int = 320, height: int = 240) -> float:
+    """Run the fusion once on a synthetic planes-and-boxes keyframe; returns the seconds it took.
+
+    With ``compile_kernel`` the first call compiles the kernels (about 10 s on 2 CPU cores,
+    also with torch's on-disk cache): a node does it at start-up so its first keyframe is not
+    late. Kernels are compiled for dynamic shapes, so other grid sizes and |Ω| reuse them.
+    """
+    from .scenes import make_scene
+
+    scene = make_scene(width, height, n_points=max(8, width * height // 100), seed=0)
+    start = time.perf_counter()
+    fuse_keyframe(scene.single, scene.multi, None, config)
+    return time.perf_counter() - start

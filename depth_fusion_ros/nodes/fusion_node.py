@@ -31,7 +31,7 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..fusion import pipeline as fusion_pipeline
 from ..fusion.interpolation import MODES as FUSION_MODES
-from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
+from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe, warm_up
 from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig, select_best_fraction
 from .base import DepthFusionNode, run_node
@@ -74,8 +74,10 @@ FUSION_LIMITS: dict[str, Any] = {
 }
 #: Set by the node itself (``device``) rather than under ``fusion.*``.
 FUSION_SKIP = ('device',)
-#: The node runs in real time by default; ``fusion.mode: exact`` for the paper's full sum.
-FUSION_NODE_DEFAULTS = {'mode': 'fast'}
+#: The node runs in real time by default: the fast mode (``fusion.mode: exact`` for the paper's
+#: full sum) with compiled kernels (about 4x faster than eager on CPU; compiled once at start-up,
+#: eager if no compiler works).
+FUSION_NODE_DEFAULTS = {'mode': 'fast', 'compile_kernel': True}
 
 REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
 #: How many closed keyframe stamps are remembered to recognise late parts.
@@ -170,6 +172,9 @@ class FusionNode(DepthFusionNode):
             if p['publish_points']
             else None
         )
+        if self.config.compile_kernel:
+            seconds = warm_up(self.config)
+            self.get_logger().info(f'fusion kernels ready (compiled in {seconds:.1f} s)')
         self.worker = self.make_worker('fusion', self._process)
         q = self.input_qos
         self.subscribe(String, TOPIC_OUTPUT_KIND, self._on_output_kind, latched_qos())
