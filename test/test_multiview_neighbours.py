@@ -77,6 +77,12 @@ def test_zero_baseline_frames_only_with_a_warning(caplog):
         chosen = select_neighbours(poses, 0, 2, 'offline', CAMERA)
     assert len(chosen) == 2
     assert 'zero baseline' in caplog.text
+    # A node routes the warning to its own throttled counter instead of the logger.
+    caplog.clear()
+    said: list[str] = []
+    with caplog.at_level(logging.WARNING, logger='depth_fusion_ros.multiview.neighbours'):
+        assert select_neighbours(poses, 0, 2, 'offline', CAMERA, warn=said.append) == chosen
+    assert len(said) == 1 and 'zero baseline' in said[0] and not caplog.text
 
 
 def test_zero_baseline_frames_do_not_displace_real_parallax(caplog):

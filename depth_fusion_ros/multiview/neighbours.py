@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -154,11 +155,14 @@ def select_neighbours(
     mode: str = 'online',
     camera: PinholeCamera | None = None,
     config: NeighbourConfig | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> list[int]:
     """Indices (into ``poses``, camera-to-world (N, 4, 4)) of up to ``n`` neighbours of frame ``key``.
 
     Returns fewer (possibly none, e.g. the first frame online) when not enough frames overlap.
     A NaN or non-orthonormal pose in the window raises ``geometry.PoseError`` naming the frame.
+    Zero-baseline-only neighbours are reported through ``warn`` (default: this module's logger);
+    a node passes its throttled counter, since a robot standing still triggers it every keyframe.
     """
     config = config or NeighbourConfig()
     config.validate()
@@ -190,13 +194,14 @@ def select_neighbours(
         flat = sorted((c for c in usable if c.parallax < config.min_parallax), key=lambda c: -c.parallax)
         chosen += [c.index for c in flat[: n - len(chosen)]]
         if chosen and not with_parallax:
-            log.warning(
-                'keyframe %d: every overlapping frame has (almost) zero baseline (< %.3g x scene depth, '
-                'e.g. a pure rotation); multi-view depth from neighbours %s will be unreliable',
-                key,
-                config.min_parallax,
-                chosen,
+            message = (
+                f'every overlapping frame has (almost) zero baseline (< {config.min_parallax:.3g} x '
+                f'scene depth, e.g. a pure rotation): its multi-view depth will be unreliable'
             )
+            if warn is None:
+                log.warning('keyframe %d (neighbours %s): %s', key, chosen, message)
+            else:
+                warn(message)
     if not chosen:
         log.debug('keyframe %d: no overlapping neighbour among %d frames (%s mode)', key, len(indices), mode)
     return chosen

@@ -354,6 +354,7 @@ class MultiViewNode(DepthFusionNode):
             mode='online',
             camera=camera,
             config=self.neighbour_config,
+            warn=lambda message: self.stats.noted('zero_baseline', f'keyframe {key.stamp:.3f}: {message}'),
         )
         return [history[i] for i in chosen]
 
