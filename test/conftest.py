@@ -17,6 +17,32 @@ os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(1, 100)
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
+@pytest.fixture(scope='module')
+def one_torch_thread():
+    """One intra-op torch thread for a module's tests (``pytestmark = usefixtures(...)``): on a
+    loaded shared machine, torch's pool waits on descheduled workers at every small op (tens of
+    times slower with two threads); the results are identical."""
+    torch = pytest.importorskip('torch')
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def save_torchscript_depth_model(module, folder: Path, stem: str) -> Path:
+    """Script a stand-in depth network into ``folder/stem.pt`` with its metadata YAML (160x120
+    input, metric depth): what a user bringing their own TorchScript model provides."""
+    import torch
+
+    from depth_fusion_ros.singleview.metadata import ModelMetadata, write_metadata_yaml
+
+    path = folder / f'{stem}.pt'
+    torch.jit.script(module).save(str(path))
+    metadata = ModelMetadata(input_width=160, input_height=120, depth_max=100.0)
+    write_metadata_yaml(metadata, folder / f'{stem}.yaml')
+    return path
+
+
 def shared_sequence(name: str) -> Path:
     """Path of a sequence in ../shared/data, or skip the test saying why."""
     path = SHARED_DATA / name

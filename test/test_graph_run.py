@@ -28,6 +28,8 @@ import pytest
 rclpy = pytest.importorskip('rclpy', reason='rclpy (ros-jazzy-rclpy) is not installed')
 torch = pytest.importorskip('torch')
 
+from conftest import save_torchscript_depth_model  # noqa: E402
+
 from depth_fusion_ros.nodes.launcher import (  # noqa: E402
     TOPIC_FUSED_DEPTH,
     TOPIC_IMAGE,
@@ -50,15 +52,7 @@ class _ToyDepth(torch.nn.Module):
 
 @pytest.fixture(scope='module')
 def toy_model(tmp_path_factory) -> Path:
-    from depth_fusion_ros.singleview.metadata import ModelMetadata, write_metadata_yaml
-
-    folder = tmp_path_factory.mktemp('toy_model')
-    path = folder / 'toy.pt'
-    torch.jit.script(_ToyDepth()).save(str(path))
-    write_metadata_yaml(
-        ModelMetadata(input_width=160, input_height=120, depth_max=100.0), folder / 'toy.yaml'
-    )
-    return path
+    return save_torchscript_depth_model(_ToyDepth(), tmp_path_factory.mktemp('toy_model'), 'toy')
 
 
 @pytest.fixture(scope='module')

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from depth_fusion_ros.evaluation.context import EvalOptions, KeyframeContext
 from depth_fusion_ros.evaluation.harness import evaluate_sequence
@@ -12,14 +11,7 @@ from depth_fusion_ros.evaluation.methods.multi_view import multi_view_result, ne
 from depth_fusion_ros.evaluation.registry import get_method
 from depth_fusion_ros.metrics import high_gradient_mask
 
-
-@pytest.fixture(autouse=True, scope='module')
-def one_torch_thread():
-    """One intra-op thread (see test_multiview_semidense): fast and stable on a loaded machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 
 def test_methods_are_registered_with_their_kind():

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.geometry import PoseError, make_pose
@@ -23,14 +22,7 @@ OFFSETS = ((0.08, 0.0, 0.0), (-0.08, 0.0, 0.0), (0.0, 0.06, 0.0), (0.05, -0.05, 
 SCENE = default_scene(texel=0.008)
 
 
-@pytest.fixture(autouse=True, scope='module')
-def one_torch_thread():
-    """One intra-op thread: on a loaded shared machine, torch's thread pool waits on descheduled
-    workers for every small op (tens of times slower); the results are identical."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 
 def translated(offset: tuple[float, float, float]) -> np.ndarray:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.geometry import PoseError
@@ -15,13 +14,7 @@ CAMERA = PinholeCamera(160, 120, 130.0, 130.0, 79.5, 59.5)
 OFFSETS = ((0.12, 0.0, 0.0), (-0.12, 0.0, 0.0), (0.0, 0.1, 0.0), (0.08, -0.08, 0.05))
 
 
-@pytest.fixture(autouse=True, scope='module')
-def one_torch_thread():
-    """One intra-op thread (see test_multiview_semidense): fast and stable on a loaded machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 
 @pytest.fixture(scope='module')

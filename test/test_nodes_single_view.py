@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import save_torchscript_depth_model
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
@@ -30,15 +31,7 @@ class _BrightnessDepth(torch.nn.Module):
 
 @pytest.fixture(scope='module')
 def torchscript_model(tmp_path_factory) -> Path:
-    from depth_fusion_ros.singleview.metadata import ModelMetadata, write_metadata_yaml
-
-    folder = tmp_path_factory.mktemp('model')
-    path = folder / 'brightness.pt'
-    torch.jit.script(_BrightnessDepth()).save(str(path))
-    write_metadata_yaml(
-        ModelMetadata(input_width=160, input_height=120, depth_max=100.0), folder / 'brightness.yaml'
-    )
-    return path
+    return save_torchscript_depth_model(_BrightnessDepth(), tmp_path_factory.mktemp('model'), 'brightness')
 
 
 def _rgb(seed: int, height: int = 240, width: int = 320) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_singleview_toy import one_torch_thread, toy_sequence  # noqa: F401  (autouse fixture)
+from test_singleview_toy import toy_sequence
 
 from depth_fusion_ros.cli.main import main
 from depth_fusion_ros.evaluation.context import EvalOptions, KeyframeContext
@@ -17,6 +17,8 @@ from depth_fusion_ros.singleview.architectures import build_model
 from depth_fusion_ros.singleview.checkpoint import load_checkpoint, save_checkpoint
 from depth_fusion_ros.singleview.metadata import ModelMetadata, write_metadata_yaml
 from depth_fusion_ros.singleview.predictor import load_predictor
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 TINY_ARGS = [
     '--arch-config', 'input_width=64', '--arch-config', 'input_height=48',

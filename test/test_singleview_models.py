@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from test_singleview_toy import one_torch_thread  # noqa: F401  (autouse fixture)
 
 from depth_fusion_ros.metrics import frame_metrics
 from depth_fusion_ros.singleview.architectures import build_model, count_parameters
@@ -21,6 +20,8 @@ from depth_fusion_ros.singleview.predictor import (
     predictor_from_network,
 )
 from depth_fusion_ros.singleview.torchscript_model import export_torchscript
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 TINY_COMPACT = {
     'input_width': 64,

@@ -9,21 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data.sequence import Frame, Sequence
 from depth_fusion_ros.singleview.training_data import DepthSamples
 
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Import into a test module to run its torch code on one thread: on a shared, loaded
-    machine, OpenMP barriers make small ops tens of times slower with two threads."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 
 def toy_frame(width: int, height: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from test_singleview_toy import one_torch_thread, toy_samples  # noqa: F401  (autouse fixture)
+from test_singleview_toy import toy_samples
 
 from depth_fusion_ros.singleview.augment import AugmentConfig, augment_batch, zoom_crop
 from depth_fusion_ros.singleview.checkpoint import load_checkpoint
@@ -19,6 +19,8 @@ from depth_fusion_ros.singleview.losses import (
 )
 from depth_fusion_ros.singleview.training import TrainConfig, learning_rate, train_model
 from depth_fusion_ros.singleview.training_data import DepthSamples, split_validation
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 TINY = {
     'input_width': 64,
