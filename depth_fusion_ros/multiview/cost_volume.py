@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -108,6 +109,21 @@ def zero_mean_basis(patch: str, channels: int = 0) -> np.ndarray:
         )
         rows /= np.linalg.norm(rows, axis=1, keepdims=True)
     return rows[: channels or taps - 1]
+
+
+def stage_descriptors(images: torch.Tensor, config: Any) -> torch.Tensor:
+    """:func:`patch_descriptors` with a stage's matching settings (``MultiViewConfig`` or
+    ``TVConfig``: ``patch``, ``patch_stride``, ``blur_sigma``, ``noise_floor``,
+    ``descriptor_channels``), visibility band included, so both stages match the same way."""
+    return patch_descriptors(
+        images,
+        config.patch,
+        config.patch_stride,
+        config.blur_sigma,
+        config.noise_floor,
+        patch_reach(config.patch, config.patch_stride),
+        config.descriptor_channels,
+    )
 
 
 def patch_descriptors(

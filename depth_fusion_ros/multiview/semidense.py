@@ -49,10 +49,10 @@ from .cost_volume import (
     check_patch,
     epipolar_rays,
     gaussian_blur,
-    patch_descriptors,
     patch_reach,
     rows_per_chunk,
     sample_cost,
+    stage_descriptors,
     zero_mean_basis,
 )
 from .views import prepare_views
@@ -338,15 +338,7 @@ def estimate_semidense(
     dev = views.device
     n = views.num_neighbours
     margin = patch_reach(config.patch, config.patch_stride)
-    desc = patch_descriptors(
-        views.grays,
-        config.patch,
-        config.patch_stride,
-        config.blur_sigma,
-        config.noise_floor,
-        margin,
-        config.descriptor_channels,
-    )
+    desc = stage_descriptors(views.grays, config)
     channels = desc.shape[1] - 1
     cand = candidate_mask(views.grays[0], config)
     vs, us = torch.nonzero(cand, as_tuple=True)

@@ -36,10 +36,9 @@ from .cost_volume import (
     check_patch,
     epipolar_rays,
     gaussian_blur,
-    patch_descriptors,
-    patch_reach,
     rows_per_chunk,
     sample_cost,
+    stage_descriptors,
     zero_mean_basis,
 )
 from .views import prepare_views
@@ -98,6 +97,10 @@ class TVConfig:
             raise ValueError('tv.data_weight must be positive and tv.huber_eps non-negative')
 
     @property
+    def rho_range(self) -> tuple[float, float]:
+        return 1.0 / self.max_depth, 1.0 / self.min_depth
+
+    @property
     def iterations(self) -> int:
         """Primal-dual iterations the ``theta`` schedule implies."""
         return max(1, math.ceil(math.log(self.theta_end / self.theta_start) / math.log(self.theta_decay)))
@@ -113,16 +116,7 @@ def build_cost_volume(
     """
     device = grays.device
     h, w = camera.height, camera.width
-    margin = patch_reach(config.patch, config.patch_stride)
-    desc = patch_descriptors(
-        grays,
-        config.patch,
-        config.patch_stride,
-        config.blur_sigma,
-        config.noise_floor,
-        margin,
-        config.descriptor_channels,
-    )
+    desc = stage_descriptors(grays, config)
     channels = desc.shape[1] - 1
     neighbour_images = desc[1:]
     key_desc = desc[0, :channels].reshape(channels, -1)
@@ -132,7 +126,7 @@ def build_cost_volume(
         indexing='ij',
     )
     rays = epipolar_rays(u.reshape(-1), v.reshape(-1), camera.K, T_ok, camera.size, device)
-    rho = torch.linspace(1.0 / config.max_depth, 1.0 / config.min_depth, config.num_samples, device=device)
+    rho = torch.linspace(*config.rho_range, config.num_samples, device=device)
     n = T_ok.shape[0]
     need = max(1, math.ceil(config.min_view_fraction * n - 1e-9)) - 0.5
     chunk = rows_per_chunk(n, channels + 1, config.num_samples, config.chunk_elements)
@@ -271,7 +265,7 @@ def estimate_tv(
     with torch.no_grad():
         volume = build_cost_volume(views.grays, views.T_ok, camera, config)
         d = regularise(volume, views.grays[0], config)
-    rho_min, rho_max = 1.0 / config.max_depth, 1.0 / config.min_depth
+    rho_min, rho_max = config.rho_range
     rho = rho_min + d * (rho_max - rho_min)
     log.debug(
         'tv: %d iterations, %d samples, %d neighbours',
