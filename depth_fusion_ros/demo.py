@@ -75,7 +75,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     from .evaluation.context import EvalOptions
     from .evaluation.harness import evaluate_sequence, results_document, write_outputs
     from .evaluation.methods.recorded import recorded_keyframes
-    from .nodes.launcher import GRAPH_NODES, RunOptions, run_graph
+    from .nodes.graph import GRAPH_NODES, RunOptions, run_graph
 
     out = Path(opts.out)
     work = out / 'work'

@@ -11,7 +11,7 @@ import pytest
 
 pytest.importorskip('rclpy', reason='rclpy (ros-jazzy-rclpy) is not installed')
 
-from depth_fusion_ros.nodes import launcher
+from depth_fusion_ros.nodes import graph as launcher
 
 
 def test_fastdds_profile_is_shipped_and_kept_when_user_set_one(tmp_path):

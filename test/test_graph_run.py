@@ -30,7 +30,7 @@ torch = pytest.importorskip('torch')
 
 from conftest import save_torchscript_depth_model  # noqa: E402
 
-from depth_fusion_ros.nodes.launcher import (  # noqa: E402
+from depth_fusion_ros.nodes.graph import (  # noqa: E402
     TOPIC_FUSED_DEPTH,
     TOPIC_IMAGE,
     RunOptions,

@@ -101,7 +101,7 @@ def keyframe_every() -> int:
 
 def image_count(bag: Path) -> int:
     from ..nodes.bag_replayer import open_bag
-    from ..nodes.launcher import TOPIC_IMAGE
+    from ..nodes.graph import TOPIC_IMAGE
 
     reader = open_bag(bag)
     try:
@@ -142,7 +142,7 @@ class MemorySampler:
 
 
 def graph_options(opts: BenchOptions, bag: Path, processes: bool, **extra):
-    from ..nodes.launcher import RunOptions
+    from ..nodes.graph import RunOptions
 
     overrides = {
         name: {'stats_period': 0.0} for name in ('single_view_node', 'multi_view_node', 'fusion_node')
@@ -161,7 +161,7 @@ def graph_options(opts: BenchOptions, bag: Path, processes: bool, **extra):
 
 
 def measure_run(opts: BenchOptions, bag: Path, processes: bool) -> list[BenchRow]:
-    from ..nodes.launcher import run_graph
+    from ..nodes.graph import run_graph
 
     mode = 'processes' if processes else 'composed'
     sampler = MemorySampler(processes)
@@ -227,7 +227,7 @@ def _peak_note(sampler: MemorySampler) -> str:
 
 def soak(opts: BenchOptions, bag: Path, seconds: float) -> list[BenchRow]:
     """Loop the bag for ``seconds`` (composed) and report the resident memory over time."""
-    from ..nodes.launcher import run_graph
+    from ..nodes.graph import run_graph
 
     sampler = MemorySampler(processes=False)
     period = max(1.0, seconds / 120)

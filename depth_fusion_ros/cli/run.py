@@ -98,7 +98,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept lazy)
-    from ..nodes.launcher import RunOptions
+    from ..nodes.graph import RunOptions
     from .overrides import parse_overrides
 
     if args.rate is not None and args.rate <= 0:
@@ -128,7 +128,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from ..nodes.launcher import GraphError, run_graph
+    from ..nodes.graph import GraphError, run_graph
 
     options = options_from_args(args)
     try:

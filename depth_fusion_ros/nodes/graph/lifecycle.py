@@ -1,12 +1,13 @@
-"""The node graph runner behind ``depth-fusion run``: replayer + three nodes + recorder.
+"""The life of one graph run: start, feed, wait for the outputs, stop.
 
 Two ways to run the same graph on a bag:
 
 * **composed** (default): ``single_view_node``, ``multi_view_node``, ``fusion_node``, the
   ``bag_replayer`` and a recorder in this process, on one multi-threaded executor. One
   start-up (torch, rclpy) instead of four, nothing copied between processes.
-* **processes**: the console scripts started with ``subprocess``, each with the same params
-  file, the recorder staying here. What a robot with a live camera runs, one node per core.
+* **processes**: the console scripts started with ``subprocess`` (:mod:`.spawn`), each with the
+  same params file, the recorder staying here. What a robot with a live camera runs, one node
+  per core.
 
 Either way the run ends by itself: when the replayer reaches the end of the bag, the runner
 waits until every keyframe the multi-view node announced (``depth_fusion/keyframe/image``)
@@ -15,11 +16,6 @@ warning then names the keyframes that got no fused output and how far each one g
 closes the bag (written under a staging name and renamed only now), stops the nodes
 (SIGINT to the processes; they exit 0) and returns. Ctrl-C stops everything the same way,
 leaving the partial recording under ``OUT.partial/``.
-
-Fast DDS: a best-effort 640x480 image does not fit the default 0.5 MB shared-memory segment,
-so most are lost between processes. The runner points ``FASTRTPS_DEFAULT_PROFILES_FILE`` at
-the package's ``config/fastdds_shm.xml`` (10 MB segment) for itself and every child, unless
-the user already set a profile.
 """
 
 from __future__ import annotations
@@ -27,328 +23,33 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import re
-import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
-from collections.abc import Callable, Mapping, MutableMapping, Sequence
-from dataclasses import dataclass, field
-from importlib import resources
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from .dds import apply_fastdds_profile
+from .options import GraphError, RunOptions, RunResult
+from .param_merge import bag_topic_names, node_overrides, recorder_qos, ros_arg_value
+from .spawn import node_class, node_command, popen_node, stop_processes
+from .topics import (
+    FUSED_OUTPUTS,
+    GRAPH_NODES,
+    IMAGE,
+    RECORDED_TOPICS,
+    RECORDER_NODE,
+    REPLAYER,
+    STAGES,
+    STANDARD_TOPICS,
+    TOPIC_FUSED_DEPTH,
+    TOPIC_IMAGE,
+    TOPIC_KEYFRAME_IMAGE,
+)
+
 log = logging.getLogger(__name__)
-
-# Topic names of the graph in the root namespace. They restate the node modules' relative
-# names (a test checks they agree) so that the process mode never imports torch here.
-TOPIC_IMAGE = '/camera/rgb/image_color'
-TOPIC_CAMERA_INFO = '/camera/rgb/camera_info'
-TOPIC_POSE = '/camera/pose'
-TOPIC_GT_DEPTH = '/camera/depth/image'
-TOPIC_KEYFRAME_IMAGE = '/depth_fusion/keyframe/image'
-TOPIC_SINGLE_DEPTH = '/depth_fusion/single_view/depth'
-TOPIC_MV_DEPTH = '/depth_fusion/multi_view/depth'
-TOPIC_FUSED_DEPTH = '/depth_fusion/fused/depth'
-TOPIC_FUSED_CONFIDENCE = '/depth_fusion/fused/confidence'
-TOPIC_FUSED_CAMERA_INFO = '/depth_fusion/fused/camera_info'
-
-IMAGE = 'sensor_msgs/msg/Image'
-CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
-
-#: What ``--record`` writes: enough to evaluate the fused depth against the bag's ground truth.
-RECORDED_TOPICS: dict[str, str] = {
-    TOPIC_FUSED_DEPTH: IMAGE,
-    TOPIC_FUSED_CONFIDENCE: IMAGE,
-    TOPIC_FUSED_CAMERA_INFO: CAMERA_INFO,
-    TOPIC_MV_DEPTH: IMAGE,
-    TOPIC_SINGLE_DEPTH: IMAGE,
-    TOPIC_KEYFRAME_IMAGE: IMAGE,
-}
-#: A keyframe is complete when all of these carry its stamp.
-FUSED_OUTPUTS = (TOPIC_FUSED_DEPTH, TOPIC_FUSED_CONFIDENCE, TOPIC_FUSED_CAMERA_INFO)
-#: Where a keyframe can get stuck, in pipeline order (named in the flush warning).
-STAGES = ((TOPIC_MV_DEPTH, 'multi-view depth'), (TOPIC_SINGLE_DEPTH, 'single-view depth'))
-
-#: node name -> (console script, module); the order nodes are started in.
-GRAPH_NODES: dict[str, tuple[str, str]] = {
-    'single_view_node': ('single_view_node', 'depth_fusion_ros.nodes.single_view_node'),
-    'multi_view_node': ('multi_view_node', 'depth_fusion_ros.nodes.multi_view_node'),
-    'fusion_node': ('fusion_node', 'depth_fusion_ros.nodes.fusion_node'),
-}
-REPLAYER = ('bag_replayer', 'depth_fusion_ros.nodes.bag_replayer')
-RECORDER_NODE = 'depth_fusion_recorder'
-
-#: Topics every rclpy node has, which say nothing about a node being set up.
-STANDARD_TOPICS = frozenset({'/rosout', '/parameter_events'})
-
-PROFILE_ENV = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
-
-
-# --- Fast DDS profile and shared memory ---------------------------------------------------------
-
-
-def fastdds_profile_path() -> Path:
-    """The package's Fast DDS profile (found in a checkout, a pip or a colcon install)."""
-    path = Path(str(resources.files('depth_fusion_ros') / 'config' / 'fastdds_shm.xml'))
-    if not path.is_file():
-        raise FileNotFoundError(f'Fast DDS profile {path} is missing from the installed package')
-    return path
-
-
-def apply_fastdds_profile(env: MutableMapping[str, str] | None = None) -> str:
-    """Point Fast DDS at the shared-memory profile in ``env`` (default ``os.environ``).
-
-    Must happen before the first rclpy context of the process is initialised (Fast DDS reads
-    the profile once). A profile the user already set is kept. Returns the profile in use.
-    """
-    env = os.environ if env is None else env
-    for name in PROFILE_ENV:
-        if env.get(name):
-            return env[name]
-    path = str(fastdds_profile_path())
-    for name in PROFILE_ENV:
-        env[name] = path
-    return path
-
-
-#: A participant's own segment (``fastrtps_<16 hex>``) and its lock file. Port segments
-#: (``fastrtps_port<N>``) and their mutexes are shared by every participant on that port and
-#: managed by Fast DDS itself, so they are never judged here.
-PARTICIPANT_SEGMENT = re.compile(r'^fastrtps_[0-9a-f]{16}(_el)?$')
-
-
-PORT_SEGMENT = re.compile(r'^(sem\.)?fastrtps_port\d+(_el|_mutex)?$')
-
-
-def shm_segments(include_ports: bool = False) -> dict[str, float]:
-    """Fast DDS participant segments (and port segments) in /dev/shm -> creation time."""
-    root = Path('/dev/shm')
-    if not root.is_dir():
-        return {}
-    out = {}
-    for p in root.iterdir():
-        if PARTICIPANT_SEGMENT.match(p.name) or (include_ports and PORT_SEGMENT.match(p.name)):
-            with contextlib.suppress(OSError):
-                out[p.name] = p.stat().st_ctime
-    return out
-
-
-def mapped_shm_files() -> set[str]:
-    """Names of /dev/shm files some live process has mapped (read from /proc/*/maps)."""
-    mapped: set[str] = set()
-    for maps in Path('/proc').glob('[0-9]*/maps'):
-        with contextlib.suppress(OSError):
-            for line in maps.read_text().splitlines():
-                idx = line.find('/dev/shm/')
-                if idx >= 0:
-                    mapped.add(line[idx + len('/dev/shm/') :].split(' ')[0])
-    return mapped
-
-
-def orphan_segments(since: float, include_ports: bool = False) -> list[str]:
-    """Participant segments created after ``since`` (epoch s) that no process maps any more:
-    what a node killed without shutdown leaves behind.
-
-    Lock files (``*_el``) are never mapped and are judged with their segment. With
-    ``include_ports`` also the port segments and mutexes nobody maps (a killed node leaves
-    those too; ``fastdds shm clean`` would remove them).
-    """
-    mapped = mapped_shm_files()
-    orphans = []
-    for name, created in shm_segments(include_ports).items():
-        if created < since - 1.0:
-            continue
-        base = name[: -len('_el')] if name.endswith('_el') else name
-        if base not in mapped:
-            orphans.append(name)
-    return sorted(orphans)
-
-
-def remove_segments(names: Sequence[str]) -> None:
-    for name in names:
-        with contextlib.suppress(OSError):
-            (Path('/dev/shm') / name).unlink()
-
-
-# --- options and result -------------------------------------------------------------------------
-
-
-@dataclass
-class RunOptions:
-    """Everything ``depth-fusion run`` can be told (the CLI flags)."""
-
-    bag: Path
-    params_file: Path | None = None
-    #: rosbag2 folder to write the outputs to (``None``: nothing written, outputs still tracked).
-    record: Path | None = None
-    record_storage: str = 'mcap'
-    #: Extra topics to record besides :data:`RECORDED_TOPICS` (type from the graph).
-    record_extra: list[str] = field(default_factory=list)
-    processes: bool = False
-    #: Replayer settings; ``None`` leaves the params file (or the default) in charge.
-    rate: float | None = None
-    start_offset: float | None = None
-    #: Torch device of the three nodes and the single-view model (``None``: params file).
-    device: str | None = None
-    single_view_model: str | None = None
-    #: ``{node name: {parameter: value}}`` applied on top of the params file.
-    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
-    #: Seconds to wait after the end of the bag for announced keyframes to be fused.
-    flush_timeout: float = 60.0
-    #: The outputs count as flushed once nothing new arrived for this long.
-    settle: float = 1.0
-    #: Processes: keyframes still in flight after this long without any output are given up.
-    idle_timeout: float = 30.0
-    #: Torch/OpenMP threads per node process (``None``: cores / 3 unless OMP_NUM_THREADS is
-    #: set), so three processes do not oversubscribe the cores. Composed, the three nodes'
-    #: workers share one torch pool: ``None`` means 1 thread (each worker then keeps a core
-    #: busy on its own; measured 4x more keyframes fused than 2 shared threads on 2 cores).
-    threads_per_node: int | None = None
-    #: Processes: seconds for the nodes to start (torch import, model load) before giving up.
-    startup_timeout: float = 120.0
-    executor_threads: int = 4
-    #: Processes: folder for each child's log (``None``: children log to this terminal).
-    log_dir: Path | None = None
-    #: Log the input image stamps too (latency measurement by the benchmark).
-    track_input: bool = False
-    #: Called about every ``progress_period`` s while the bag plays (benchmark sampling).
-    on_progress: Callable[[GraphRun], None] | None = None
-    progress_period: float = 1.0
-
-
-@dataclass
-class RunResult:
-    """What happened: keyframes announced and fused, what was lost, where the bag is."""
-
-    announced: list[int]
-    fused: list[int]
-    missing: dict[int, str]
-    recorded: Path | None
-    counts: dict[str, int]
-    seconds: float
-    interrupted: bool = False
-    #: Per node, its final counters (composed mode only: the processes log theirs).
-    node_stats: dict[str, Any] = field(default_factory=dict)
-    #: Seconds from input image arrival to fused depth arrival, per keyframe (track_input).
-    latencies: dict[int, float] = field(default_factory=dict)
-    exit_codes: dict[str, int | None] = field(default_factory=dict)
-
-    @property
-    def complete(self) -> bool:
-        return not self.missing and not self.interrupted
-
-
-class GraphError(RuntimeError):
-    """The graph could not run to the end (a node died, the replayer failed)."""
-
-
-# --- parameters ---------------------------------------------------------------------------------
-
-
-def read_params_file(path: Path | None) -> dict[str, dict[str, Any]]:
-    """``{node or '/**': {param: value}}`` of a ROS params file (validated enough to fail early)."""
-    if path is None:
-        return {}
-    import yaml
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f'params file {path} does not exist')
-    try:
-        doc = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ValueError(f'params file {path}: not valid YAML: {exc}') from None
-    if not isinstance(doc, dict):
-        raise ValueError(f'params file {path}: expected node sections at the top level')
-    out: dict[str, dict[str, Any]] = {}
-    for node, section in doc.items():
-        params = section.get('ros__parameters') if isinstance(section, dict) else None
-        if not isinstance(params, dict):
-            raise ValueError(f'params file {path}: section {node!r} has no ros__parameters mapping')
-        out[str(node).lstrip('/') if node != '/**' else '/**'] = _flatten(params)
-    return out
-
-
-def _flatten(params: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
-    """Nested YAML mappings -> dotted parameter names, as ROS reads them."""
-    flat: dict[str, Any] = {}
-    for key, value in params.items():
-        name = f'{prefix}{key}'
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f'{name}.'))
-        else:
-            flat[name] = value
-    return flat
-
-
-def param_from_file(params: Mapping[str, Mapping[str, Any]], node: str, name: str) -> Any:
-    """The value a node gets from the params file: its own section first, then ``/**``."""
-    for section in (node, '/**'):
-        if name in params.get(section, {}):
-            return params[section][name]
-    return None
-
-
-def ros_arg_value(value: Any) -> str:
-    """A parameter value as ``-p name:=VALUE`` wants it (YAML)."""
-    import yaml
-
-    if isinstance(value, str):
-        return value if yaml.safe_load(value) == value and value else f"'{value}'"
-    return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()
-
-
-def node_overrides(options: RunOptions, bag_topics: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """Per node, the parameters the runner sets on top of the params file."""
-    params = read_params_file(options.params_file)
-    out: dict[str, dict[str, Any]] = {name: {} for name in (*GRAPH_NODES, REPLAYER[0])}
-    if options.device is not None:
-        for name in GRAPH_NODES:
-            out[name]['device'] = options.device
-    if options.single_view_model is not None:
-        out['single_view_node']['model'] = options.single_view_model
-    replayer = out[REPLAYER[0]]
-    replayer['bag'] = str(options.bag)
-    if options.rate is not None:
-        replayer['rate'] = float(options.rate)
-    if options.start_offset is not None:
-        replayer['start_offset'] = float(options.start_offset)
-    if param_from_file(params, REPLAYER[0], 'topics') in (None, [], ['']):
-        # Ground-truth depth is for evaluation only: no node listens, don't pay to publish it.
-        played = [t for t in bag_topics if t != TOPIC_GT_DEPTH]
-        replayer['topics'] = played or list(bag_topics)
-    replayer.setdefault('wait_for_nodes', list(GRAPH_NODES))
-    for node, values in options.overrides.items():
-        out.setdefault(node, {}).update(values)
-    return out
-
-
-def recorder_qos(options: RunOptions) -> str:
-    """The QoS the recorder must use to match the nodes' publishers."""
-    params = read_params_file(options.params_file)
-    kinds = {
-        options.overrides.get(n, {}).get('output_qos')
-        or param_from_file(params, n, 'output_qos')
-        or 'reliable'
-        for n in GRAPH_NODES
-    }
-    return 'sensor_data' if 'sensor_data' in kinds else 'reliable'
-
-
-def bag_topic_names(bag: Path) -> list[str]:
-    from .bag_replayer import open_bag
-
-    reader = open_bag(bag)
-    try:
-        return sorted({c.topic for c in reader.connections})
-    finally:
-        reader.close()
-
-
-# --- the run ------------------------------------------------------------------------------------
 
 
 class GraphRun:
@@ -414,7 +115,7 @@ class GraphRun:
     def _start_recorder(self, opts: RunOptions) -> None:
         from rclpy.parameter import Parameter
 
-        from .recorder import Recorder
+        from ..recorder import Recorder
 
         topics = dict(RECORDED_TOPICS)
         topics.update({t: '' for t in opts.record_extra if t not in topics})
@@ -456,7 +157,7 @@ class GraphRun:
 
         from rclpy.parameter import Parameter
 
-        from .bag_replayer import BagReplayer
+        from ..bag_replayer import BagReplayer
 
         def params(node: str) -> list[Parameter]:
             return [Parameter(k, value=v) for k, v in overrides.get(node, {}).items()]
@@ -464,7 +165,7 @@ class GraphRun:
         self._set_composed_threads()
 
         for name, (_, module) in GRAPH_NODES.items():
-            cls = _node_class(importlib.import_module(module))
+            cls = node_class(importlib.import_module(module))
             log.info('starting %s', name)
             node = cls(context=self._context, parameter_overrides=params(name))
             self.nodes[name] = node
@@ -558,12 +259,12 @@ class GraphRun:
         return args
 
     def _popen(self, name: str, cmd: list[str], env: dict[str, str]) -> subprocess.Popen:
-        if self.options.log_dir is None:
-            return subprocess.Popen(cmd, env=env)
-        self.options.log_dir.mkdir(parents=True, exist_ok=True)
-        out = open(self.options.log_dir / f'{name}.log', 'w')  # noqa: SIM115 - closed in _shutdown
-        self._logs.append(out)
-        return subprocess.Popen(cmd, env={**env, 'RCUTILS_COLORIZED_OUTPUT': '0'}, stdout=out, stderr=out)
+        out = None
+        if self.options.log_dir is not None:
+            self.options.log_dir.mkdir(parents=True, exist_ok=True)
+            out = open(self.options.log_dir / f'{name}.log', 'w')  # noqa: SIM115 - closed in _shutdown
+            self._logs.append(out)
+        return popen_node(cmd, env, out)
 
     # -- waiting --
 
@@ -720,7 +421,7 @@ class GraphRun:
 
     def _shutdown(self, interrupted: bool) -> None:
         if self.processes:
-            self._stop_processes(interrupted)
+            self.exit_codes = stop_processes(self.processes, interrupted, self._wall_start)
         replayer = self.nodes.get(REPLAYER[0])
         if replayer is not None:
             replayer.stop()
@@ -749,32 +450,6 @@ class GraphRun:
 
             torch.set_num_threads(self._torch_threads_before)
 
-    def _stop_processes(self, interrupted: bool, timeout: float = 15.0) -> None:
-        """SIGINT each child still running (after a grace period on Ctrl-C, which they got too)."""
-        if interrupted:
-            deadline = time.monotonic() + 1.0
-            while time.monotonic() < deadline and any(p.poll() is None for p in self.processes.values()):
-                time.sleep(0.05)
-        for p in self.processes.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        forced = False
-        deadline = time.monotonic() + timeout
-        for name, p in self.processes.items():
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.warning('%s did not stop on SIGINT within %.0f s: killing it', name, timeout)
-                p.kill()
-                p.wait()
-                forced = True
-        self.exit_codes = {name: p.returncode for name, p in self.processes.items()}
-        if forced:
-            orphans = orphan_segments(self._wall_start, include_ports=True)
-            if orphans:
-                log.warning('removing %d shared-memory segments left by killed nodes', len(orphans))
-                remove_segments(orphans)
-
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt(signal.Signals(signum).name)
@@ -789,28 +464,6 @@ def install_stop_signals() -> dict[int, Any]:
     if threading.current_thread() is not threading.main_thread():
         return {}
     return {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-
-def _node_class(module: Any) -> type:
-    """The Node subclass a node module defines (``SingleViewNode``, ...)."""
-    from rclpy.node import Node
-
-    for value in vars(module).values():
-        if isinstance(value, type) and issubclass(value, Node) and value.__module__ == module.__name__:
-            return value
-    raise ImportError(f'{module.__name__} defines no rclpy Node subclass')
-
-
-def node_command(script: str, module: str, ros_args: list[str]) -> list[str]:
-    """Command line of a node: its console script when installed, else ``python -m module``."""
-    candidates = [Path(sys.executable).parent / script]
-    found = shutil.which(script)
-    if found:
-        candidates.append(Path(found))
-    for exe in candidates:
-        if exe.is_file() and os.access(exe, os.X_OK):
-            return [str(exe), '--ros-args', *ros_args]
-    return [sys.executable, '-m', module, '--ros-args', *ros_args]
 
 
 def run_graph(options: RunOptions) -> RunResult:

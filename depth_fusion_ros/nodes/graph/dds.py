@@ -1,0 +1,103 @@
+"""Fast DDS profile and its shared-memory segments.
+
+A best-effort 640x480 image does not fit the default 0.5 MB shared-memory segment, so most are
+lost between processes. The runner points ``FASTRTPS_DEFAULT_PROFILES_FILE`` at the package's
+``config/fastdds_shm.xml`` (10 MB segment) for itself and every child, unless the user already
+set a profile. Nodes killed without shutdown leave their segments behind; these helpers find and
+remove them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+from collections.abc import MutableMapping, Sequence
+from importlib import resources
+from pathlib import Path
+
+PROFILE_ENV = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+
+
+
+def fastdds_profile_path() -> Path:
+    """The package's Fast DDS profile (found in a checkout, a pip or a colcon install)."""
+    path = Path(str(resources.files('depth_fusion_ros') / 'config' / 'fastdds_shm.xml'))
+    if not path.is_file():
+        raise FileNotFoundError(f'Fast DDS profile {path} is missing from the installed package')
+    return path
+
+
+def apply_fastdds_profile(env: MutableMapping[str, str] | None = None) -> str:
+    """Point Fast DDS at the shared-memory profile in ``env`` (default ``os.environ``).
+
+    Must happen before the first rclpy context of the process is initialised (Fast DDS reads
+    the profile once). A profile the user already set is kept. Returns the profile in use.
+    """
+    env = os.environ if env is None else env
+    for name in PROFILE_ENV:
+        if env.get(name):
+            return env[name]
+    path = str(fastdds_profile_path())
+    for name in PROFILE_ENV:
+        env[name] = path
+    return path
+
+
+#: A participant's own segment (``fastrtps_<16 hex>``) and its lock file. Port segments
+#: (``fastrtps_port<N>``) and their mutexes are shared by every participant on that port and
+#: managed by Fast DDS itself, so they are never judged here.
+PARTICIPANT_SEGMENT = re.compile(r'^fastrtps_[0-9a-f]{16}(_el)?$')
+
+
+PORT_SEGMENT = re.compile(r'^(sem\.)?fastrtps_port\d+(_el|_mutex)?$')
+
+
+def shm_segments(include_ports: bool = False) -> dict[str, float]:
+    """Fast DDS participant segments (and port segments) in /dev/shm -> creation time."""
+    root = Path('/dev/shm')
+    if not root.is_dir():
+        return {}
+    out = {}
+    for p in root.iterdir():
+        if PARTICIPANT_SEGMENT.match(p.name) or (include_ports and PORT_SEGMENT.match(p.name)):
+            with contextlib.suppress(OSError):
+                out[p.name] = p.stat().st_ctime
+    return out
+
+
+def mapped_shm_files() -> set[str]:
+    """Names of /dev/shm files some live process has mapped (read from /proc/*/maps)."""
+    mapped: set[str] = set()
+    for maps in Path('/proc').glob('[0-9]*/maps'):
+        with contextlib.suppress(OSError):
+            for line in maps.read_text().splitlines():
+                idx = line.find('/dev/shm/')
+                if idx >= 0:
+                    mapped.add(line[idx + len('/dev/shm/') :].split(' ')[0])
+    return mapped
+
+
+def orphan_segments(since: float, include_ports: bool = False) -> list[str]:
+    """Participant segments created after ``since`` (epoch s) that no process maps any more:
+    what a node killed without shutdown leaves behind.
+
+    Lock files (``*_el``) are never mapped and are judged with their segment. With
+    ``include_ports`` also the port segments and mutexes nobody maps (a killed node leaves
+    those too; ``fastdds shm clean`` would remove them).
+    """
+    mapped = mapped_shm_files()
+    orphans = []
+    for name, created in shm_segments(include_ports).items():
+        if created < since - 1.0:
+            continue
+        base = name[: -len('_el')] if name.endswith('_el') else name
+        if base not in mapped:
+            orphans.append(name)
+    return sorted(orphans)
+
+
+def remove_segments(names: Sequence[str]) -> None:
+    for name in names:
+        with contextlib.suppress(OSError):
+            (Path('/dev/shm') / name).unlink()

@@ -1,0 +1,81 @@
+"""What a run is told (:class:`RunOptions`) and what it reports (:class:`RunResult`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .lifecycle import GraphRun
+
+
+@dataclass
+class RunOptions:
+    """Everything ``depth-fusion run`` can be told (the CLI flags)."""
+
+    bag: Path
+    params_file: Path | None = None
+    #: rosbag2 folder to write the outputs to (``None``: nothing written, outputs still tracked).
+    record: Path | None = None
+    record_storage: str = 'mcap'
+    #: Extra topics to record besides :data:`RECORDED_TOPICS` (type from the graph).
+    record_extra: list[str] = field(default_factory=list)
+    processes: bool = False
+    #: Replayer settings; ``None`` leaves the params file (or the default) in charge.
+    rate: float | None = None
+    start_offset: float | None = None
+    #: Torch device of the three nodes and the single-view model (``None``: params file).
+    device: str | None = None
+    single_view_model: str | None = None
+    #: ``{node name: {parameter: value}}`` applied on top of the params file.
+    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Seconds to wait after the end of the bag for announced keyframes to be fused.
+    flush_timeout: float = 60.0
+    #: The outputs count as flushed once nothing new arrived for this long.
+    settle: float = 1.0
+    #: Processes: keyframes still in flight after this long without any output are given up.
+    idle_timeout: float = 30.0
+    #: Torch/OpenMP threads per node process (``None``: cores / 3 unless OMP_NUM_THREADS is
+    #: set), so three processes do not oversubscribe the cores. Composed, the three nodes'
+    #: workers share one torch pool: ``None`` means 1 thread (each worker then keeps a core
+    #: busy on its own; measured 4x more keyframes fused than 2 shared threads on 2 cores).
+    threads_per_node: int | None = None
+    #: Processes: seconds for the nodes to start (torch import, model load) before giving up.
+    startup_timeout: float = 120.0
+    executor_threads: int = 4
+    #: Processes: folder for each child's log (``None``: children log to this terminal).
+    log_dir: Path | None = None
+    #: Log the input image stamps too (latency measurement by the benchmark).
+    track_input: bool = False
+    #: Called about every ``progress_period`` s while the bag plays (benchmark sampling).
+    on_progress: Callable[[GraphRun], None] | None = None
+    progress_period: float = 1.0
+
+
+@dataclass
+class RunResult:
+    """What happened: keyframes announced and fused, what was lost, where the bag is."""
+
+    announced: list[int]
+    fused: list[int]
+    missing: dict[int, str]
+    recorded: Path | None
+    counts: dict[str, int]
+    seconds: float
+    interrupted: bool = False
+    #: Per node, its final counters (composed mode only: the processes log theirs).
+    node_stats: dict[str, Any] = field(default_factory=dict)
+    #: Seconds from input image arrival to fused depth arrival, per keyframe (track_input).
+    latencies: dict[int, float] = field(default_factory=dict)
+    exit_codes: dict[str, int | None] = field(default_factory=dict)
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing and not self.interrupted
+
+
+class GraphError(RuntimeError):
+    """The graph could not run to the end (a node died, the replayer failed)."""
+

@@ -1,0 +1,86 @@
+"""Starting and stopping node processes (``depth-fusion run --processes``).
+
+Each node runs as its console script with ``--ros-args``; when a child does not stop on SIGINT
+it is killed and the shared-memory segments it left are removed.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+from .dds import orphan_segments, remove_segments
+
+log = logging.getLogger(__name__)
+
+
+def node_class(module: Any) -> type:
+    """The Node subclass a node module defines (``SingleViewNode``, ...)."""
+    from rclpy.node import Node
+
+    for value in vars(module).values():
+        if isinstance(value, type) and issubclass(value, Node) and value.__module__ == module.__name__:
+            return value
+    raise ImportError(f'{module.__name__} defines no rclpy Node subclass')
+
+
+def node_command(script: str, module: str, ros_args: list[str]) -> list[str]:
+    """Command line of a node: its console script when installed, else ``python -m module``."""
+    candidates = [Path(sys.executable).parent / script]
+    found = shutil.which(script)
+    if found:
+        candidates.append(Path(found))
+    for exe in candidates:
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return [str(exe), '--ros-args', *ros_args]
+    return [sys.executable, '-m', module, '--ros-args', *ros_args]
+
+
+def popen_node(cmd: list[str], env: dict[str, str], log_file: TextIO | None) -> subprocess.Popen:
+    """Start one node process, logging to ``log_file`` (uncoloured) or to this terminal."""
+    if log_file is None:
+        return subprocess.Popen(cmd, env=env)
+    return subprocess.Popen(
+        cmd, env={**env, 'RCUTILS_COLORIZED_OUTPUT': '0'}, stdout=log_file, stderr=log_file
+    )
+
+
+def stop_processes(
+    processes: dict[str, subprocess.Popen], interrupted: bool, since: float, timeout: float = 15.0
+) -> dict[str, int | None]:
+    """SIGINT each child still running (after a grace period on Ctrl-C, which they got too).
+
+    A child that does not stop within ``timeout`` is killed, and the shared-memory segments
+    created after ``since`` (epoch s) that nobody maps any more are removed. Returns the exit
+    codes by node name.
+    """
+    if interrupted:
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline and any(p.poll() is None for p in processes.values()):
+            time.sleep(0.05)
+    for p in processes.values():
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    forced = False
+    deadline = time.monotonic() + timeout
+    for name, p in processes.items():
+        try:
+            p.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            log.warning('%s did not stop on SIGINT within %.0f s: killing it', name, timeout)
+            p.kill()
+            p.wait()
+            forced = True
+    if forced:
+        orphans = orphan_segments(since, include_ports=True)
+        if orphans:
+            log.warning('removing %d shared-memory segments left by killed nodes', len(orphans))
+            remove_segments(orphans)
+    return {name: p.returncode for name, p in processes.items()}

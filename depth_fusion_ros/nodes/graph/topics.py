@@ -1,0 +1,47 @@
+"""Topic names and node table of the graph ``depth-fusion run`` starts.
+
+They restate the node modules' relative names (a test checks they agree) so that the process
+mode never imports torch in the runner.
+"""
+
+from __future__ import annotations
+
+TOPIC_IMAGE = '/camera/rgb/image_color'
+TOPIC_CAMERA_INFO = '/camera/rgb/camera_info'
+TOPIC_POSE = '/camera/pose'
+TOPIC_GT_DEPTH = '/camera/depth/image'
+TOPIC_KEYFRAME_IMAGE = '/depth_fusion/keyframe/image'
+TOPIC_SINGLE_DEPTH = '/depth_fusion/single_view/depth'
+TOPIC_MV_DEPTH = '/depth_fusion/multi_view/depth'
+TOPIC_FUSED_DEPTH = '/depth_fusion/fused/depth'
+TOPIC_FUSED_CONFIDENCE = '/depth_fusion/fused/confidence'
+TOPIC_FUSED_CAMERA_INFO = '/depth_fusion/fused/camera_info'
+
+IMAGE = 'sensor_msgs/msg/Image'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+
+#: What ``--record`` writes: enough to evaluate the fused depth against the bag's ground truth.
+RECORDED_TOPICS: dict[str, str] = {
+    TOPIC_FUSED_DEPTH: IMAGE,
+    TOPIC_FUSED_CONFIDENCE: IMAGE,
+    TOPIC_FUSED_CAMERA_INFO: CAMERA_INFO,
+    TOPIC_MV_DEPTH: IMAGE,
+    TOPIC_SINGLE_DEPTH: IMAGE,
+    TOPIC_KEYFRAME_IMAGE: IMAGE,
+}
+#: A keyframe is complete when all of these carry its stamp.
+FUSED_OUTPUTS = (TOPIC_FUSED_DEPTH, TOPIC_FUSED_CONFIDENCE, TOPIC_FUSED_CAMERA_INFO)
+#: Where a keyframe can get stuck, in pipeline order (named in the flush warning).
+STAGES = ((TOPIC_MV_DEPTH, 'multi-view depth'), (TOPIC_SINGLE_DEPTH, 'single-view depth'))
+
+#: node name -> (console script, module); the order nodes are started in.
+GRAPH_NODES: dict[str, tuple[str, str]] = {
+    'single_view_node': ('single_view_node', 'depth_fusion_ros.nodes.single_view_node'),
+    'multi_view_node': ('multi_view_node', 'depth_fusion_ros.nodes.multi_view_node'),
+    'fusion_node': ('fusion_node', 'depth_fusion_ros.nodes.fusion_node'),
+}
+REPLAYER = ('bag_replayer', 'depth_fusion_ros.nodes.bag_replayer')
+RECORDER_NODE = 'depth_fusion_recorder'
+
+#: Topics every rclpy node has, which say nothing about a node being set up.
+STANDARD_TOPICS = frozenset({'/rosout', '/parameter_events'})
