@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..chunking import effective_chunk_elements
 from .weights import (
     MAX_EXPONENT,
     Samples,
@@ -259,6 +260,7 @@ def interpolate(
         return Interpolation(offset, support)
 
     dev = torch.device(device)
+    chunk_elements = effective_chunk_elements(chunk_elements, dev)
     gx_np, gy_np = depth_gradients(s)
     s_t = torch.from_numpy(np.where(valid_s, s, 0.0).astype(np.float32).ravel()).to(dev)
     gx = torch.from_numpy(gx_np.ravel()).to(dev)

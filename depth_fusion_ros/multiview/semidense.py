@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from ..camera import PinholeCamera
+from ..chunking import effective_chunk_elements
 from .cost_volume import (
     EpipolarRays,
     check_patch,
@@ -348,7 +349,8 @@ def estimate_semidense(
     rho_min, rho_max = config.rho_range
     rho_grid = torch.linspace(rho_min, rho_max, config.num_samples, device=dev, dtype=torch.float32)
     min_views = max(1, math.ceil(config.min_view_fraction * n - 1e-9))
-    chunk = rows_per_chunk(n, channels + 1, config.num_samples, config.chunk_elements)
+    budget = effective_chunk_elements(config.chunk_elements, dev)
+    chunk = rows_per_chunk(n, channels + 1, config.num_samples, budget)
 
     parts: list[_ChunkEstimate] = []
     with torch.no_grad():
@@ -365,7 +367,7 @@ def estimate_semidense(
                     float(margin),
                 )
             )
-    result = _assemble(parts, vs, us, cand, camera, tuple(int(i) for i in neighbours))
+    result = _assemble(parts, vs, us, camera, tuple(int(i) for i in neighbours))
     log.debug(
         'semi-dense: %d candidates, %d estimates (%.1f %%), %d neighbours',
         int(vs.numel()),
@@ -380,25 +382,29 @@ def _assemble(
     parts: list[_ChunkEstimate],
     vs: torch.Tensor,
     us: torch.Tensor,
-    cand: torch.Tensor,
     camera: PinholeCamera,
     neighbours: tuple[int, ...],
 ) -> MultiViewResult:
     """Scatter the per-candidate estimates into NaN-filled (H, W) maps."""
     shape = (camera.height, camera.width)
-
-    def cat(name: str) -> np.ndarray:
-        if not parts:
-            return np.zeros(0, dtype=np.float32)
-        return torch.cat([getattr(p, name) for p in parts]).detach().cpu().numpy()
-
-    ok = cat('ok').astype(bool)
-    rho = cat('rho').astype(np.float64)
-    parallax_sq = cat('parallax_sq').astype(np.float64)
-    rows, cols = vs.cpu().numpy()[ok], us.cpu().numpy()[ok]
-    rho, parallax_sq = rho[ok], parallax_sq[ok]
+    names = ('ok', 'rho', 'parallax_sq', 'distinct', 'sharpness', 'cost')
+    # One device-to-host copy for everything (each .cpu() is a synchronising round trip on CUDA).
+    if parts:
+        packed = torch.cat([torch.stack([getattr(p, n).float() for n in names]) for p in parts], dim=1)
+        packed = torch.cat((packed, torch.stack((vs, us)).float()), dim=0).cpu().numpy()
+    else:
+        packed = np.zeros((len(names) + 2, 0), dtype=np.float32)
+    fields = dict(zip(names, packed[: len(names)], strict=True))
+    ok = fields['ok'] > 0.5
+    all_rows = packed[len(names)].astype(np.intp)
+    all_cols = packed[len(names) + 1].astype(np.intp)
+    candidates = np.zeros(shape, dtype=bool)
+    candidates[all_rows, all_cols] = True
+    rows, cols = all_rows[ok], all_cols[ok]
+    rho = fields['rho'].astype(np.float64)[ok]
+    parallax_sq = fields['parallax_sq'].astype(np.float64)[ok]
     sigma_rho = 1.0 / np.sqrt(np.maximum(parallax_sq, 1e-24))
-    distinct, sharpness = cat('distinct')[ok], cat('sharpness')[ok]
+    distinct, sharpness = fields['distinct'][ok], fields['sharpness'][ok]
     photometric = distinct * sharpness
     geometric = 1.0 / sigma_rho
 
@@ -413,8 +419,8 @@ def _assemble(
         photometric_score=image(photometric),
         geometric_score=image(geometric),
         score=image(photometric * geometric),
-        cost=image(cat('cost')[ok]),
-        candidates=cand.cpu().numpy(),
+        cost=image(fields['cost'][ok]),
+        candidates=candidates,
         camera=camera,
         distinctiveness=image(distinct),
         sharpness=image(sharpness),

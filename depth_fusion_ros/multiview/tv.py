@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from ..camera import PinholeCamera
+from ..chunking import effective_chunk_elements
 from .cost_volume import (
     check_patch,
     epipolar_rays,
@@ -129,7 +130,8 @@ def build_cost_volume(
     rho = torch.linspace(*config.rho_range, config.num_samples, device=device)
     n = T_ok.shape[0]
     need = max(1, math.ceil(config.min_view_fraction * n - 1e-9)) - 0.5
-    chunk = rows_per_chunk(n, channels + 1, config.num_samples, config.chunk_elements)
+    budget = effective_chunk_elements(config.chunk_elements, key_desc.device)
+    chunk = rows_per_chunk(n, channels + 1, config.num_samples, budget)
     volume = torch.empty((h * w, config.num_samples), dtype=torch.float32, device=device)
     for start in range(0, h * w, chunk):
         stop = min(start + chunk, h * w)
