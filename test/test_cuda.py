@@ -1,0 +1,108 @@
+"""The hot paths on CUDA give the CPU's results (skipped where torch sees no CUDA device).
+
+CI has no GPU, so these run only on a machine with one (``./scripts/test.sh -k cuda`` there,
+once per change to a hot path). The chunk-size test runs everywhere: a GPU uses other chunk
+sizes than the CPU (``depth_fusion_ros.chunking``), which must not change any result.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from depth_fusion_ros.chunking import CUDA_CHUNK_ELEMENTS, effective_chunk_elements
+from depth_fusion_ros.fusion.interpolation import interpolate
+from depth_fusion_ros.fusion.scenes import planes_and_boxes
+from depth_fusion_ros.multiview.neighbours import select_neighbours
+from depth_fusion_ros.multiview.semidense import MultiViewConfig, estimate_semidense
+from depth_fusion_ros.multiview.tv import TVConfig, estimate_tv
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason='no CUDA device visible to torch')
+
+
+def keyframe_inputs(seq, key: int = 12, n: int = 4) -> tuple:
+    chosen = select_neighbours(seq.poses, key, n, 'offline', seq.camera)
+    f = seq.frames
+    return f[key].gray, f[key].pose, [f[i].gray for i in chosen], [f[i].pose for i in chosen], seq.camera
+
+
+def fusion_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    depth = planes_and_boxes(160, 120, boxes=3, seed=seed)
+    single = (0.9 * depth + 0.1 + rng.normal(0, 0.01, depth.shape)).astype(np.float32)
+    omega = np.zeros(depth.shape, dtype=bool)
+    omega.ravel()[rng.choice(depth.size, size=400, replace=False)] = True
+    return single, np.where(omega, depth, np.nan).astype(np.float32), omega
+
+
+def test_cuda_chunk_budget_is_larger_only_off_cpu():
+    assert effective_chunk_elements(1024, 'cpu') == 1024
+    assert effective_chunk_elements(1024, 'cuda') == CUDA_CHUNK_ELEMENTS
+    assert effective_chunk_elements(CUDA_CHUNK_ELEMENTS * 2, 'cuda:0') == CUDA_CHUNK_ELEMENTS * 2
+
+
+def test_chunk_size_does_not_change_results(synthetic_sequence):
+    """What a GPU's larger chunks do, checked on the CPU: one chunk or many, same numbers."""
+    inputs = keyframe_inputs(synthetic_sequence)
+    small = estimate_semidense(*inputs, config=MultiViewConfig(chunk_elements=1 << 18))
+    large = estimate_semidense(*inputs, config=MultiViewConfig(chunk_elements=1 << 26))
+    np.testing.assert_array_equal(np.isfinite(small.depth), np.isfinite(large.depth))
+    np.testing.assert_allclose(small.depth, large.depth, rtol=1e-5, equal_nan=True)
+    single, multi, omega = fusion_scene()
+    a = interpolate(single, multi, omega, mode='exact', chunk_elements=1 << 14)
+    b = interpolate(single, multi, omega, mode='exact', chunk_elements=1 << 26)
+    np.testing.assert_allclose(a.offset, b.offset, atol=1e-5, equal_nan=True)
+
+
+def agreement(cpu: np.ndarray, gpu: np.ndarray) -> tuple[float, float]:
+    """(share of pixels valid in exactly one, median relative difference where both are)."""
+    both = np.isfinite(cpu) & np.isfinite(gpu)
+    one = np.isfinite(cpu) ^ np.isfinite(gpu)
+    rel = np.abs(cpu[both] - gpu[both]) / cpu[both]
+    return float(one.mean()), float(np.median(rel)) if rel.size else 0.0
+
+
+@needs_cuda
+def test_semidense_on_cuda_matches_cpu(synthetic_sequence):
+    inputs = keyframe_inputs(synthetic_sequence)
+    cpu = estimate_semidense(*inputs, device='cpu')
+    gpu = estimate_semidense(*inputs, device='cuda')
+    only_one, median_rel = agreement(cpu.depth, gpu.depth)
+    assert only_one < 0.002 and median_rel < 1e-5
+    assert abs(gpu.density - cpu.density) < 0.002
+
+
+@needs_cuda
+def test_tv_on_cuda_matches_cpu(synthetic_sequence):
+    inputs = keyframe_inputs(synthetic_sequence)
+    config = TVConfig()
+    cpu = estimate_tv(*inputs, config, device='cpu')
+    gpu = estimate_tv(*inputs, config, device='cuda')
+    rel = np.abs(cpu - gpu) / cpu
+    assert np.nanmedian(rel) < 1e-3
+
+
+@needs_cuda
+@pytest.mark.parametrize('mode', ['exact', 'fast'])
+@pytest.mark.parametrize('compiled', [False, True])
+def test_fusion_on_cuda_matches_cpu(mode, compiled):
+    single, multi, omega = fusion_scene()
+    cpu = interpolate(single, multi, omega, mode=mode)
+    gpu = interpolate(single, multi, omega, mode=mode, device='cuda', compile_kernel=compiled)
+    np.testing.assert_allclose(cpu.offset, gpu.offset, atol=1e-4, equal_nan=True)
+    np.testing.assert_allclose(
+        cpu.support_distance, gpu.support_distance, rtol=1e-3, atol=1e-3, equal_nan=True
+    )
+
+
+@needs_cuda
+def test_shipped_network_on_cuda_matches_cpu(synthetic_sequence):
+    from depth_fusion_ros.singleview.predictor import load_predictor
+
+    rgb = synthetic_sequence.frames[0].rgb
+    cpu = load_predictor('default', device='cpu').predict(rgb)
+    gpu = load_predictor('default', device='cuda').predict(rgb)
+    np.testing.assert_allclose(cpu, gpu, rtol=1e-3)
