@@ -55,8 +55,7 @@ def prepare_sequence(opts: DemoOptions, work: Path) -> Path:
         if not (Path(opts.sequence) / 'rgb.txt').is_file():
             raise FileNotFoundError(f'{opts.sequence} is not a TUM-layout folder (no rgb.txt)')
         return Path(opts.sequence)
-    from .data.synthetic import write_synthetic_sequence
-    from .data.synthetic_config import SynthConfig
+    from .data.synthetic import SynthConfig, write_synthetic_sequence
 
     cfg = SynthConfig(frames=opts.frames, seed=opts.seed, parallax=opts.parallax)
     name = f'synthetic_room_seed{opts.seed}_{opts.parallax}_parallax'

@@ -6,9 +6,7 @@ import numpy as np
 import yaml
 
 from depth_fusion_ros.camera import PinholeCamera
-from depth_fusion_ros.data.synthetic import build_world
-from depth_fusion_ros.data.synthetic_config import SynthConfig
-from depth_fusion_ros.data.synthetic_render import render_frame
+from depth_fusion_ros.data.synthetic import SynthConfig, build_world, render_frame
 from depth_fusion_ros.data.tum import load_tum_sequence, read_camera_yaml, register_depth
 from depth_fusion_ros.data.tum_writer import write_tum_folder
 

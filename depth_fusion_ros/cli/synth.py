@@ -24,7 +24,7 @@ examples:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..data.synthetic_config import PARALLAX_MODES, SynthConfig
+    from ..data.synthetic import PARALLAX_MODES, SynthConfig
 
     d = SynthConfig()
     p = sub.add_parser(
@@ -101,7 +101,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def config_from_args(args: argparse.Namespace):
     """The ``SynthConfig`` of parsed arguments (raises ValueError naming a bad option)."""
-    from ..data.synthetic_config import SynthConfig
+    from ..data.synthetic import SynthConfig
 
     return SynthConfig(
         width=args.width,

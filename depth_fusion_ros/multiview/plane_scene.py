@@ -2,7 +2,7 @@
 
 The multi-view search only needs images with exact depth and poses; a few textured planes
 rendered by inverse warping (ray-plane intersection, bilinear texture lookup) give exactly
-that in milliseconds, without the full synthetic-sequence renderer of ``data/synthetic.py``.
+that in milliseconds, without the full synthetic-sequence renderer of ``data/synthetic/``.
 A plane may be texture-less (constant grey) to check that such areas get no estimate.
 """
 

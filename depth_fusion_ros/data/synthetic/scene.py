@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .synthetic_config import SynthConfig
-from .synthetic_texture import PATTERNS, TextureAtlas, random_colour, textured_albedo
-from .synthetic_trajectory import Trajectory
+from .config import SynthConfig
+from .texture import PATTERNS, TextureAtlas, random_colour, textured_albedo
+from .trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

@@ -21,8 +21,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..camera import PinholeCamera
-from .synthetic_scene import Scene
+from ...camera import PinholeCamera
+from .scene import Scene
 
 #: Hits closer than this along the ray (m) are ignored (the camera is never that close).
 NEAR = 1e-3

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from ..camera import PinholeCamera
+from ...camera import PinholeCamera
 
 PARALLAX_MODES = ('high', 'low')
 

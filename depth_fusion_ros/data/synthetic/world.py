@@ -5,7 +5,7 @@ materials) is ray cast in numpy along a camera trajectory with high or low paral
 
     cfg = SynthConfig(width=320, height=240, frames=24, parallax='high', seed=3)
     seq = render_sequence(cfg)                      # in memory, depth GT at cfg resolution
-    write_synthetic_sequence('artifacts/room', cfg)  # TUM folder + camera.yaml + SOURCE.md
+    write_synthetic_sequence('artifacts/room', cfg)  # TUM folder (writer.py)
 
 Determinism: everything derives from ``cfg.seed`` through separate random streams (room
 and furniture; trajectory; per-frame sensor noise), so the same config gives bit-identical
@@ -16,35 +16,17 @@ many frames were rendered before it.
 
 from __future__ import annotations
 
-import itertools
 import logging
-import shlex
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
-import yaml
 
-from ..progress import progress
-from .sequence import Frame, Sequence
-from .synthetic_config import PARALLAX_MODES, SynthConfig
-from .synthetic_render import RenderedFrame, render_frame
-from .synthetic_scene import Scene, build_scene
-from .synthetic_trajectory import Trajectory, make_trajectory
-from .tum_writer import write_tum_folder
-
-__all__ = [
-    'PARALLAX_MODES',
-    'RenderedFrame',
-    'Scene',
-    'SynthConfig',
-    'Trajectory',
-    'build_world',
-    'iter_frames',
-    'render_frame',
-    'render_sequence',
-    'write_synthetic_sequence',
-]
+from ...progress import progress
+from ..sequence import Frame, Sequence
+from .config import PARALLAX_MODES, SynthConfig
+from .render import RenderedFrame, render_frame
+from .scene import Scene, build_scene
+from .trajectory import Trajectory, make_trajectory
 
 log = logging.getLogger(__name__)
 
@@ -105,56 +87,3 @@ def render_sequence(cfg: SynthConfig, show_progress: bool = False) -> Sequence:
         for i, f, pose in iter_frames(cfg, show_progress=show_progress)
     ]
     return Sequence(name=sequence_name(cfg), camera=camera, frames=frames, gt_camera=camera)
-
-
-def source_markdown(cfg: SynthConfig, out_dir: Path) -> str:
-    """SOURCE.md text: how to regenerate the folder and what its ground truth is."""
-    command = shlex.join(['depth-fusion', 'synth', str(out_dir), *cfg.cli_args()])
-    config = yaml.safe_dump(cfg.as_dict(), sort_keys=False, default_flow_style=None).strip()
-    return f"""# Synthetic room {sequence_name(cfg)}
-
-Rendered by depth_fusion_ros (`depth_fusion_ros/data/synthetic.py`): numpy ray casting of a
-procedural room (floor, walls, ceiling, boxes, tables) with textured and texture-less
-Lambertian materials, camera trajectory with {cfg.parallax} parallax, seed {cfg.seed}.
-No external data: free to use and redistribute.
-
-Regenerate (bit-identical with the same package version):
-
-    {command}
-
-Ground truth: `depth/*.png` is the exact z-depth at pixel centres quantised to 1/5000 m
-(0 = invalid, none here); `groundtruth.txt` holds the exact camera-to-world poses at the
-same stamps as the images (no association error). Images are undistorted (zero plumb_bob
-distortion in `camera.yaml`); colour has Gaussian sensor noise of {cfg.noise_sigma:g} grey levels.
-
-Config:
-
-```yaml
-{config}
-```
-"""
-
-
-def write_synthetic_sequence(
-    out_dir: str | Path, cfg: SynthConfig, *, overwrite: bool = False, show_progress: bool = False
-) -> Path:
-    """Render and write a TUM-layout folder (frames streamed to disk, not held in memory)."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not overwrite:  # say so before spending time on rendering
-        raise ValueError(f'{out_dir} already exists (use overwrite / --overwrite to replace it)')
-    scene, trajectory = build_world(cfg)
-    frames = iter_frames(cfg, scene, trajectory, show_progress=show_progress)
-    # The writer zips the rgb and depth iterables in lockstep, so tee buffers one frame.
-    for_rgb, for_depth = itertools.tee((f.rgb, f.depth) for _, f, _ in frames)
-    stamps = np.array([cfg.stamp(i) for i in range(cfg.frames)])
-    return write_tum_folder(
-        out_dir,
-        cfg.camera(),
-        stamps,
-        (rgb for rgb, _ in for_rgb),
-        (depth for _, depth in for_depth),
-        trajectory.poses,
-        name=sequence_name(cfg),
-        source_md=source_markdown(cfg, out_dir),
-        overwrite=overwrite,
-    )
