@@ -15,12 +15,13 @@ compressed, so ``depth-fusion run`` can set ``multi_view_node.image_transport`` 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
-from .messages import _header_for, as_kind
+from .messages import _header_for, as_kind, image_msg, image_to_rgb
 
 #: Suffix image_transport appends to the base topic for the ``compressed`` transport.
 COMPRESSED_SUFFIX = '/compressed'
@@ -118,3 +119,49 @@ def image_transport_for_topics(
     if image_topic in names:
         return 'raw'
     return 'compressed' if compressed_topic(image_topic) in names else 'raw'
+
+
+@dataclass(frozen=True)
+class ColourFormat:
+    """How a converter writes colour: raw ``rgb8`` Image, or a CompressedImage (``png``/``jpeg``)
+    on ``<topic>/compressed``."""
+
+    compression: str | None = None
+    jpeg_quality: int = DEFAULT_JPEG_QUALITY
+
+    def __post_init__(self) -> None:
+        if self.compression is not None and self.compression not in FORMATS:
+            raise ValueError(
+                f'compression must be one of {", ".join(FORMATS)} or None, got {self.compression!r}'
+            )
+        if not 1 <= int(self.jpeg_quality) <= 100:
+            raise ValueError(f'JPEG quality must be in [1, 100], got {self.jpeg_quality}')
+
+    def message(self, rgb: np.ndarray, header: Any, topic: str, *, kind: Any) -> tuple[str, str, Any]:
+        """``(topic, msgtype, message)`` of one colour frame in this format."""
+        if self.compression is None:
+            return topic, 'sensor_msgs/msg/Image', image_msg(rgb, 'rgb8', header, kind=kind)
+        msg = compressed_image_msg(
+            rgb, header, kind=kind, fmt=self.compression, jpeg_quality=self.jpeg_quality
+        )
+        return compressed_topic(topic), COMPRESSED_IMAGE, msg
+
+
+def any_image_to_rgb(msg: Any) -> np.ndarray:
+    """RGB of a raw Image or a CompressedImage (readers of bags that may hold either)."""
+    if hasattr(msg, 'format') and not hasattr(msg, 'encoding'):
+        return decode_compressed(msg)
+    return image_to_rgb(msg)
+
+
+def colour_topic_in(bag_topics: Iterable[str], image_topic: str) -> str:
+    """``image_topic`` if present, else its ``/compressed`` topic if that is (else ``image_topic``)."""
+    return (
+        compressed_topic(image_topic)
+        if image_transport_for_topics(bag_topics, image_topic) == 'compressed'
+        else image_topic
+    )
+
+
+#: Raw rgb8 colour (the converters' default).
+RAW_COLOUR = ColourFormat()
