@@ -132,10 +132,11 @@ class DepthFusionNode(Node):
         """
 
         self._input_topics.append(topic)
+        resolved = self.resolve_topic_name(topic)
 
         def guarded(msg: Any) -> None:
             try:
-                self.input_watch.observe(topic, msg)
+                self.input_watch.observe(resolved, msg)
                 callback(msg)
             except Exception as exc:
                 self.stats.dropped('callback_error', f'{topic}: {type(exc).__name__}: {exc}')
