@@ -20,6 +20,7 @@ SRC is either
 OUT_BAG is the rosbag2 folder to create (mcap by default). Written per colour frame, all with
 the colour stamp (header stamp = bag time):
   <rgb-topic>          sensor_msgs/Image rgb8, the original (distorted) colour image
+                       (with --compressed: sensor_msgs/CompressedImage on <rgb-topic>/compressed)
   <camera-info-topic>  sensor_msgs/CameraInfo, K and D of the colour camera
   <depth-topic>        sensor_msgs/Image 32FC1, ground-truth depth in metres (NaN = none)
   <pose-topic>         geometry_msgs/PoseStamped, camera-to-world, frame <world-frame>
@@ -30,6 +31,7 @@ counted. The bag appears only when the conversion completes.
 EPILOG = """\
 examples:
   depth-fusion convert data/rgbd_dataset_freiburg1_xyz fr1_xyz.mcap --frames 100
+  depth-fusion convert data/rgbd_dataset_freiburg1_xyz fr1_xyz_jpeg --compressed jpeg
   depth-fusion convert fr1_xyz.bag fr1_xyz_ros2 --groundtruth fr1_xyz-groundtruth.txt \\
       --camera-yaml camera.yaml
 """
@@ -59,6 +61,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=0.02,
         metavar='SEC',
         help='largest colour-depth stamp difference to associate (default: %(default)s s)',
+    )
+    p.add_argument(
+        '--compressed',
+        nargs='?',
+        const='png',
+        choices=('png', 'jpeg'),
+        default=None,
+        metavar='png|jpeg',
+        help='write colour as sensor_msgs/CompressedImage on <rgb-topic>/compressed (image_transport '
+        "'compressed'); png (default: lossless, the evaluation matches the raw bag) or jpeg (what "
+        'robots record: ~10x smaller, lossy)',
+    )
+    p.add_argument(
+        '--jpeg-quality',
+        type=int,
+        default=None,
+        metavar='Q',
+        help='JPEG quality 1-100 with --compressed jpeg (default: 90)',
     )
     p.add_argument('--no-progress', action='store_true', help='no progress bar')
     out = p.add_argument_group('output topics and frames')
@@ -99,7 +119,15 @@ def run(args: argparse.Namespace) -> int:
 
     if args.frames is not None and args.frames <= 0:
         raise ValueError(f'--frames must be positive, got {args.frames}')
+    from ..data.compressed import DEFAULT_JPEG_QUALITY, ColourFormat
+
+    if args.jpeg_quality is not None and args.compressed != 'jpeg':
+        raise ValueError('--jpeg-quality only applies with --compressed jpeg')
+    quality = DEFAULT_JPEG_QUALITY if args.jpeg_quality is None else args.jpeg_quality
+    if not 1 <= quality <= 100:
+        raise ValueError(f'--jpeg-quality must be in [1, 100], got {quality}')
     options = {
+        'colour': ColourFormat(args.compressed, quality),
         'storage': args.storage,
         'max_frames': args.frames,
         'topics': BagTopics(args.rgb_topic, args.camera_info_topic, args.depth_topic, args.pose_topic),
@@ -120,7 +148,8 @@ def run(args: argparse.Namespace) -> int:
         )
     result = convert(src, args.out, **options)
     counts = ', '.join(f'{topic} {n}' for topic, n in result.messages.items())
-    print(f'wrote {result.path} ({args.storage}): {result.frames} frames in {result.seconds:.1f} s')
+    colour = f', colour {args.compressed}-compressed' if args.compressed else ''
+    print(f'wrote {result.path} ({args.storage}{colour}): {result.frames} frames in {result.seconds:.1f} s')
     print(f'  poses from {result.pose_source}; messages: {counts}')
     if result.dropped:
         print(f'  skipped colour frames: {result.dropped}')

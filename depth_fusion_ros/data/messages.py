@@ -452,6 +452,17 @@ def pose_stamped_to_matrix(msg: Any) -> np.ndarray:
     return pose_to_matrix(msg.pose)
 
 
+def pose_message_to_matrix(msg: Any) -> np.ndarray:
+    """4x4 pose of a PoseStamped, PoseWithCovarianceStamped or nav_msgs/Odometry.
+
+    The two latter nest the ``Pose`` one level deeper (``msg.pose.pose``); the covariance and
+    Odometry's twist are not used. The pose is that of the message's frame (``child_frame_id``
+    for Odometry) in ``header.frame_id``.
+    """
+    pose = msg.pose
+    return pose_to_matrix(pose.pose if hasattr(pose, 'pose') else pose)
+
+
 def pose_msg(T: np.ndarray, *, kind: Any) -> Any:
     """A ``geometry_msgs/Pose`` of a 4x4 rigid transform (validated)."""
     k = as_kind(kind)

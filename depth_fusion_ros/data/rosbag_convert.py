@@ -36,12 +36,12 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 from ..progress import progress
+from .compressed import RAW_COLOUR, ColourFormat
 from .messages import (
     camera_info_msg,
     camera_info_to_calibration,
     depth_image_msg,
     header_msg,
-    image_msg,
     image_to_depth,
     image_to_rgb,
     pose_stamped_msg,
@@ -216,8 +216,11 @@ def tum_to_rosbag(
     include_depth: bool = True,
     overwrite: bool = False,
     show_progress: bool = True,
+    colour: ColourFormat = RAW_COLOUR,
 ) -> ConvertResult:
     """Convert a TUM folder (with camera.yaml and groundtruth.txt) into a rosbag2.
+
+    ``colour`` chooses raw rgb8 images or CompressedImage (PNG/JPEG) on ``<rgb>/compressed``.
 
     Colour frames outside the ground truth (and, with ``include_depth``, without a depth image
     within ``depth_max_gap`` s) are not written; ``ConvertResult.dropped`` counts them.
@@ -244,7 +247,8 @@ def tum_to_rosbag(
         for af, rgb, depth in _prefetch(decode, frames):
             stamp = af.stamp_ns
             hdr = header_msg(stamp, frame_ids.camera, kind=ts)
-            writer.write(topics.rgb, IMAGE, stamp, image_msg(rgb, 'rgb8', hdr, kind=ts))
+            rgb_topic, rgb_type, rgb_msg = colour.message(rgb, hdr, topics.rgb, kind=ts)
+            writer.write(rgb_topic, rgb_type, stamp, rgb_msg)
             writer.write(topics.camera_info, CAMERA_INFO, stamp, camera_info_msg(calib, hdr, kind=ts))
             if depth is not None:
                 writer.write(topics.depth, IMAGE, stamp, depth_image_msg(depth, hdr, kind=ts))
@@ -444,6 +448,7 @@ def ros1_to_rosbag2(
     include_depth: bool = True,
     overwrite: bool = False,
     show_progress: bool = True,
+    colour: ColourFormat = RAW_COLOUR,
 ) -> ConvertResult:
     """Convert a ROS 1 bag (e.g. a TUM RGB-D ``.bag``) into our rosbag2 layout.
 
@@ -509,6 +514,7 @@ def ros1_to_rosbag2(
             depth_targets,
             depth_max_gap,
             show_progress,
+            colour,
         )
     result = ConvertResult(
         writer.out, len(selected), dict(writer.counts), dropped, pose_source, time.perf_counter() - start
@@ -530,6 +536,7 @@ def _write_ros1_frames(
     depth_targets: dict[int, list[int]],
     depth_max_gap: float,
     show_progress: bool,
+    colour: ColourFormat = RAW_COLOUR,
 ) -> None:
     """Second pass: convert and write the selected colour frames and their depth."""
     ts = writer.typestore
@@ -556,7 +563,8 @@ def _write_ros1_frames(
                 rgb = image_to_rgb(msg)
                 _check_image_size(rgb, cam, conn.topic, stamp)
                 hdr = header_msg(stamp, frame_ids.camera, kind=ts)
-                out.push(topics.rgb, IMAGE, stamp, image_msg(rgb, 'rgb8', hdr, kind=ts))
+                rgb_topic, rgb_type, rgb_msg = colour.message(rgb, hdr, topics.rgb, kind=ts)
+                out.push(rgb_topic, rgb_type, stamp, rgb_msg)
                 out.push(topics.camera_info, CAMERA_INFO, stamp, camera_info_msg(calib, hdr, kind=ts))
                 pose = selected[stamp]
                 if pose is not None:

@@ -7,7 +7,8 @@ No rclpy needed: messages are decoded with rosbags' ROS 2 Jazzy typestore, and c
 * ``read_depth_images(bag, topic)`` collects recorded depth (e.g. the fused output) keyed by
   header stamp in nanoseconds;
 * ``load_bag_sequence(bag, ...)`` rebuilds an evaluation ``Sequence`` from the colour,
-  camera-info, pose and ground-truth depth topics that ``depth-fusion convert`` writes,
+  camera-info, pose and ground-truth depth topics that ``depth-fusion convert`` writes (colour
+  raw, or CompressedImage on ``<rgb topic>/compressed`` when the raw topic is absent),
   undistorting with the CameraInfo's D exactly like ``load_tum_sequence`` does.
 """
 
@@ -23,10 +24,10 @@ import numpy as np
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
+from .compressed import any_image_to_rgb, colour_topic_in
 from .messages import (
     camera_info_to_calibration,
     image_to_depth,
-    image_to_rgb,
     pose_stamped_to_matrix,
     stamp_to_ns,
 )
@@ -156,6 +157,7 @@ def load_bag_sequence(
     path = _check_bag(bag)
     if depth_topic is None:
         require_depth = False
+    rgb_topic = colour_topic_in(bag_topics(path), rgb_topic)  # raw, else <rgb>/compressed
     rgb_stamps, depth_stamps, calib, pose_stamps, poses = _scan(
         path, rgb_topic, camera_info_topic if calibration is None else None, pose_topic, depth_topic
     )
@@ -190,7 +192,7 @@ def load_bag_sequence(
     for topic, _, msg in iter_messages(path, topics):
         stamp = stamp_to_ns(msg.header.stamp)
         if topic == rgb_topic and stamp in want_rgb and stamp not in rgb:
-            rgb[stamp] = und.rgb(image_to_rgb(msg))
+            rgb[stamp] = und.rgb(any_image_to_rgb(msg))
         elif topic == depth_topic and stamp in want_depth and stamp not in depth:
             depth[stamp] = und.depth(image_to_depth(msg))
     frames = [

@@ -10,7 +10,8 @@ Steps (paper §III-C/§III-D):
 3. ``s ← a·s + b`` when aligning (default: only for non-metric sources);
 4. ``f = s + Σ W (m - s)`` over Ω, exact or fast; confidence from the support distance.
 
-Fallbacks never raise: the single-view depth is returned unchanged (not aligned: without a
+Fallbacks never raise: the single-view depth is returned (its non-finite and non-positive
+values set to NaN by ``valid_depth.sanitize_depth``, like every output; not aligned: without a
 fit there is nothing to align with), confidence 0, and ``fallback`` names the reason —
 ``no_single_view`` (``s`` has no finite pixel; depth all NaN), ``too_few_points`` (fewer
 stage-1 points than ``max(2, ransac_min_inliers)``, or fewer than 2 given Ω points when the
@@ -28,6 +29,7 @@ import numpy as np
 
 from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind, fit_least_squares, fit_ransac
+from .valid_depth import sanitize_depth
 from .weights import WeightParams, check_weight_params
 
 log = logging.getLogger(__name__)
@@ -229,6 +231,7 @@ def fuse_keyframe(
     with np.errstate(invalid='ignore'):
         depth = np.maximum(base + interp.offset, MIN_DEPTH).astype(np.float32)
     depth[~np.isfinite(base)] = np.nan
+    depth, _ = sanitize_depth(depth)
     confidence = confidence_from_support(interp.support_distance, config.sigma1)
     confidence[~np.isfinite(depth)] = 0.0
     return FusionResult(
@@ -247,8 +250,11 @@ def fuse_keyframe(
 def _fallback(s: np.ndarray, stage1: np.ndarray, n_stage1: int, reason: str) -> FusionResult:
     """The single-view depth unchanged, confidence 0, flagged with ``reason``."""
     log.debug('fusion fallback: %s', reason)
+    depth, invalid = sanitize_depth(s)  # a fallback passes s on: never its inf / negative codes
+    if invalid:
+        log.debug('fusion fallback %s: %d non-finite or non-positive depths set to NaN', reason, invalid)
     return FusionResult(
-        depth=s.copy(),
+        depth=depth,
         confidence=np.zeros(s.shape, dtype=np.float32),
         omega_mask=np.zeros(s.shape, dtype=bool),
         a=1.0,

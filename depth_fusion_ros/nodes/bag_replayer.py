@@ -187,6 +187,8 @@ def shift_header_stamp(raw: bytes, shift_ns: int) -> bytes:
 INSTANT_ORDER = {
     'sensor_msgs/msg/CameraInfo': 0,
     'geometry_msgs/msg/PoseStamped': 1,
+    'geometry_msgs/msg/PoseWithCovarianceStamped': 1,
+    'nav_msgs/msg/Odometry': 1,
     'tf2_msgs/msg/TFMessage': 1,
 }
 

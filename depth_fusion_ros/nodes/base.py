@@ -21,9 +21,12 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from . import diagnostics as diag
+from .input_watch import InputWatch
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
 from .stats import NodeStats
@@ -62,7 +65,11 @@ COMMON_PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'warn_throttle', 5.0, 'minimum seconds between two warnings for the same drop reason', 0.0, 3600.0
     ),
+    *diag.PARAMETERS,
 )
+
+#: Seconds between two looks at the number of publishers of each input topic.
+PUBLISHER_CHECK_PERIOD = 2.0
 
 
 def common_parameters(defaults: Mapping[str, Any] | None = None) -> tuple[ParamSpec, ...]:
@@ -100,6 +107,21 @@ class DepthFusionNode(Node):
         period = float(self.params['stats_period'])
         if period > 0:
             self.create_wall_timer(period, self.log_stats)
+        self.input_watch = InputWatch(self.get_logger().warning)
+        self._input_topics: list[str] = []
+        self.create_wall_timer(PUBLISHER_CHECK_PERIOD, self._check_publishers)
+        self.diagnostics = diag.Diagnostics(
+            node_name,
+            str(self.params.get('device', 'cpu')),
+            float(self.params['diagnostics_drop_share']),
+            float(self.params['diagnostics_input_timeout']),
+        )
+        self._diagnostics_pub = None
+        if float(self.params['diagnostics_period']) > 0:
+            self._diagnostics_pub = self.create_publisher(
+                DiagnosticArray, diag.TOPIC_DIAGNOSTICS, qos_profile('reliable', 10)
+            )
+            self.create_wall_timer(float(self.params['diagnostics_period']), self.publish_diagnostics)
 
     def subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None], qos: Any) -> Any:
         """``create_subscription`` whose callback can never take the node down.
@@ -109,8 +131,12 @@ class DepthFusionNode(Node):
         thought of) is counted as ``callback_error`` and logged with its traceback instead.
         """
 
+        self._input_topics.append(topic)
+        resolved = self.resolve_topic_name(topic)
+
         def guarded(msg: Any) -> None:
             try:
+                self.input_watch.observe(resolved, msg)
                 callback(msg)
             except Exception as exc:
                 self.stats.dropped('callback_error', f'{topic}: {type(exc).__name__}: {exc}')
@@ -156,9 +182,58 @@ class DepthFusionNode(Node):
     def log_stats(self) -> None:
         self.get_logger().info(self.stats.snapshot().summary())
 
+    # --- health: hooks a node overrides, diagnostics, mixed sources ----------------------------------
+
+    def diagnostic_requirements(self) -> list[diag.Requirement]:
+        """Inputs that must keep arriving while others do (ERROR in the diagnostics otherwise)."""
+        return []
+
+    def readiness(self) -> tuple[bool, str]:
+        """``(ready, what it still waits for)``: e.g. no camera_info yet."""
+        return True, ''
+
+    def diagnostic_extra(self) -> dict[str, Any]:
+        """Node-specific key/values of the diagnostic status."""
+        return {}
+
+    def held_items(self) -> int:
+        """Inputs held outside the workers that may still become work (images waiting for a pose)."""
+        return 0
+
+    def queue_depth(self) -> int:
+        return sum(w.pending for w in self._workers)
+
+    def diagnostic_array(self) -> DiagnosticArray:
+        """The node's ``DiagnosticArray`` now (also what :meth:`publish_diagnostics` sends)."""
+        ready, waiting_for = self.readiness()
+        extra = {'held inputs': self.held_items(), **self.diagnostic_extra()}
+        return self.diagnostics.array(
+            self.get_clock().now().to_msg(),
+            self.stats.snapshot(),
+            self.stats.arrival_times(),
+            self.diagnostic_requirements(),
+            self.queue_depth(),
+            ready,
+            waiting_for,
+            extra,
+            warnings=list(self.input_watch.findings.values()),
+        )
+
+    def publish_diagnostics(self) -> None:
+        if self._diagnostics_pub is not None:
+            self._diagnostics_pub.publish(self.diagnostic_array())
+
+    def _check_publishers(self) -> None:
+        self.input_watch.check_publishers(self, list(dict.fromkeys(self._input_topics)))
+
     def wait_idle(self, timeout: float = 10.0) -> bool:
-        """Block until every worker has nothing queued or in hand (tests, graceful flushing)."""
+        """Block until every worker has nothing queued or in hand and no input is held (tests,
+        graceful flushing: images waiting for a pose are not done yet)."""
         deadline = time.monotonic() + timeout
+        while self.held_items() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        if self.held_items():
+            return False
         return all(w.wait_idle(max(0.0, deadline - time.monotonic())) for w in self._workers)
 
     def destroy_node(self) -> None:

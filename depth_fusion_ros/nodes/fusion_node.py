@@ -35,6 +35,7 @@ from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_
 from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig, select_best_fraction
 from .base import DepthFusionNode, run_node
+from .diagnostics import Requirement
 from .image_input import InputError, StampGuard, depth_from_message, header_stamp_ns
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .qos import latched_qos
@@ -288,6 +289,14 @@ class FusionNode(DepthFusionNode):
     def _missing(self, pairing: _Pairing) -> str:
         missing = [k for k in self.required if k not in pairing.parts]
         return 'missing ' + ', '.join(missing) if missing else 'complete'
+
+    def diagnostic_requirements(self) -> list[Requirement]:
+        """Each half of a keyframe needs the other (a dead single-view or multi-view node)."""
+        single, mv = self.resolve_topic_name(TOPIC_SINGLE), self.resolve_topic_name(TOPIC_MV_DEPTH)
+        return [Requirement('single', 'mv_depth', single), Requirement('mv_depth', 'single', mv)]
+
+    def diagnostic_extra(self) -> dict[str, Any]:
+        return {'pending keyframes': len(self.pending), 'single-view output kind': self.output_kind}
 
     # --- worker ---------------------------------------------------------------------------------------
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..data import messages
+from ..data.compressed import decode_compressed
 from ..data.undistort import CameraCalibration, Undistorter, check_distortion
 from ..geometry import PoseError
 from .params import ParamSpec
@@ -178,16 +179,8 @@ class CameraInput:
         return calib
 
     def working_image(self, msg: Any) -> WorkingImage:
-        """Decode, undistort and resize an image message to the working grid."""
-        if msg.encoding not in COLOUR_ENCODINGS:
-            raise InputError(
-                'bad_encoding',
-                f'image encoding {msg.encoding!r} is not colour (expected {", ".join(COLOUR_ENCODINGS)})',
-            )
-        try:
-            raw = messages.image_to_rgb(msg)
-        except ValueError as exc:
-            raise InputError('bad_image', f'image: {exc}') from None
+        """Decode, undistort and resize an image message (Image or CompressedImage) to the working grid."""
+        raw = decode_colour(msg)
         height, width = raw.shape[:2]
         if width == 0 or height == 0:
             raise InputError('bad_image', 'image is empty')
@@ -195,6 +188,25 @@ class CameraInput:
         undistorter = Undistorter.for_calibration(calib, self.width, self.height)
         rgb = np.ascontiguousarray(undistorter.rgb(raw))
         return WorkingImage(header_stamp_ns(msg), rgb, undistorter.camera, msg.header)
+
+
+def decode_colour(msg: Any) -> np.ndarray:
+    """RGB of a ``sensor_msgs/Image`` or ``CompressedImage`` (it has ``format``), or ``InputError``:
+    ``bad_encoding`` / ``bad_image`` for raw images, ``bad_compressed`` for undecodable ones."""
+    if hasattr(msg, 'format') and not hasattr(msg, 'encoding'):
+        try:
+            return decode_compressed(msg)
+        except ValueError as exc:
+            raise InputError('bad_compressed', f'compressed image: {exc}') from None
+    if msg.encoding not in COLOUR_ENCODINGS:
+        raise InputError(
+            'bad_encoding',
+            f'image encoding {msg.encoding!r} is not colour (expected {", ".join(COLOUR_ENCODINGS)})',
+        )
+    try:
+        return messages.image_to_rgb(msg)
+    except ValueError as exc:
+        raise InputError('bad_image', f'image: {exc}') from None
 
 
 def _identity_calibration(width: int, height: int) -> CameraCalibration:
@@ -206,9 +218,10 @@ def _identity_calibration(width: int, height: int) -> CameraCalibration:
 
 
 def pose_from_message(msg: Any) -> np.ndarray:
-    """4x4 ``T_wc`` of a PoseStamped, or ``InputError('bad_pose')`` naming the problem."""
+    """4x4 pose of a PoseStamped, PoseWithCovarianceStamped or Odometry, or
+    ``InputError('bad_pose')`` naming the problem."""
     try:
-        return messages.pose_stamped_to_matrix(msg)
+        return messages.pose_message_to_matrix(msg)
     except PoseError as exc:
         raise InputError('bad_pose', f'pose: {exc}') from None
 

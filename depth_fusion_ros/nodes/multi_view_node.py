@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from ..camera import PinholeCamera
@@ -42,7 +41,9 @@ from ..multiview.cost_volume import PATCH_OFFSETS
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
+from . import robot_inputs
 from .base import DepthFusionNode, run_node
+from .diagnostics import Requirement
 from .image_input import (
     CameraInput,
     InputError,
@@ -127,6 +128,7 @@ MULTI_VIEW_SKIP = ('select_fraction',)
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('device', 'cpu', 'torch device of the plane sweep: cpu, cuda, cuda:1, ...'),
     *working_grid_parameters(),
+    *robot_inputs.PARAMETERS,
     ParamSpec(
         'keyframe_policy',
         'every_k',
@@ -214,6 +216,10 @@ class MultiViewNode(DepthFusionNode):
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
         self.camera_input = CameraInput.from_parameters(p)
+        try:
+            self.T_pose_cam = robot_inputs.transform_from_parameter(p['camera_from_pose_frame'])
+        except ValueError as exc:
+            raise ValueError(f'{self.get_name()}: {exc}') from None
         self.device = str(p['device'])
         self.pose_buffer = PoseBuffer(capacity=int(p['pose_buffer_size']), max_gap=float(p['max_pose_gap']))
         self.frames: deque[Frame] = deque(maxlen=self.neighbour_config.window)
@@ -224,6 +230,7 @@ class MultiViewNode(DepthFusionNode):
         self._image_stamps = StampGuard('image')
         self._pose_stamps = StampGuard('pose')
         self._newest_image_ns: int | None = None
+        self._last_input = time.monotonic()
 
         self._kf_image_pub = self.create_publisher(Image, TOPIC_KEYFRAME_IMAGE, self.output_qos)
         self._kf_info_pub = self.create_publisher(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self.output_qos)
@@ -232,13 +239,18 @@ class MultiViewNode(DepthFusionNode):
         self.worker = self.make_worker('multi_view', self._process)
         self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
         pose_qos = qos_profile(str(p['input_qos']), int(p['pose_qos_depth']))
-        self.subscribe(PoseStamped, TOPIC_POSE, self._on_pose, pose_qos)
-        self.subscribe(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
+        self.pose_input = robot_inputs.PoseSubscription(
+            self, TOPIC_POSE, str(p['pose_type']), self._on_pose, pose_qos
+        )
+        self.image_topic = robot_inputs.subscribe_image(
+            self, TOPIC_IMAGE, self._on_image, self.input_qos, str(p['image_transport'])
+        )
+        self.create_wall_timer(0.25, self._give_up_pending)
         self.get_logger().info(
             f'multi-view on {self.device}, keyframes {p["keyframe_policy"]}'
             + (f' every {p["keyframe_every"]}' if p['keyframe_policy'] == 'every_k' else '')
             + f', {p["num_neighbours"]} neighbours among the last {self.neighbour_config.window} frames; '
-            f'{self.resolve_topic_name(TOPIC_IMAGE)} + {self.resolve_topic_name(TOPIC_POSE)} -> '
+            f'{self.resolve_topic_name(self.image_topic)} + {self.resolve_topic_name(TOPIC_POSE)} -> '
             f'{self.resolve_topic_name(TOPIC_DEPTH)}'
         )
 
@@ -251,10 +263,11 @@ class MultiViewNode(DepthFusionNode):
         except InputError as exc:
             self.stats.dropped(exc.reason, str(exc))
 
-    def _on_pose(self, msg: PoseStamped) -> None:
+    def _on_pose(self, msg: Any) -> None:
         self.stats.received('pose')
+        self._last_input = time.monotonic()
         try:
-            T_wc = pose_from_message(msg)
+            T_wc = pose_from_message(msg) @ self.T_pose_cam
             stamp_ns = header_stamp_ns(msg)
             self._pose_stamps.check(stamp_ns)
         except InputError as exc:
@@ -267,8 +280,8 @@ class MultiViewNode(DepthFusionNode):
             return
         self._resolve_pending()
 
-    def _on_image(self, msg: Image) -> None:
-        received_at = time.monotonic()
+    def _on_image(self, msg: Any) -> None:
+        received_at = self._last_input = time.monotonic()
         self.stats.received('image')
         try:
             image = self.camera_input.working_image(msg)
@@ -314,6 +327,57 @@ class MultiViewNode(DepthFusionNode):
                 self.stats.dropped('pose_gap', f'image {stamp:.3f}: {lookup.reason}')
                 continue
             self._on_posed_frame(head, lookup.pose)
+
+    def _give_up_pending(self, reason: str = '') -> None:
+        """Drop (``no_pose``) the images still waiting once no image nor pose came for ``pose_wait``
+        seconds: at the end of a stream nothing will move the stamp-time wait on, and images of
+        a bag without poses must be counted, not kept silently."""
+        if not self.pending:
+            return
+        quiet = time.monotonic() - self._last_input
+        if not reason and quiet <= float(self.params['pose_wait']):
+            return
+        span = self.pose_buffer.span
+        why = reason or f'no input for {quiet:.1f} s'
+        latest = (
+            f'latest pose {span[1]:.3f}'
+            if span
+            else f'no pose ever received on {self.pose_input.resolved_topic}'
+        )
+        count = len(self.pending)
+        self.pending.clear()
+        self.stats.dropped('no_pose', f'{count} image(s) never got a pose ({latest}; {why})', count=count)
+
+    def held_items(self) -> int:
+        return len(self.pending)
+
+    def diagnostic_requirements(self) -> list[Requirement]:
+        reqs = [Requirement('pose', 'image', self.pose_input.resolved_topic)]
+        if self.camera_input.fixed_intrinsics is None:
+            reqs.append(Requirement('camera_info', 'image', self.resolve_topic_name(TOPIC_CAMERA_INFO)))
+        return reqs
+
+    def readiness(self) -> tuple[bool, str]:
+        waiting = []
+        if self.camera_input.fixed_intrinsics is None and self.camera_input.calibration is None:
+            waiting.append('camera_info')
+        if self.pose_buffer.span is None:
+            waiting.append(f'a pose ({self.pose_input.pose_type or "type not discovered yet"})')
+        return not waiting, ', '.join(waiting)
+
+    def diagnostic_extra(self) -> dict[str, Any]:
+        return {
+            'image topic': self.resolve_topic_name(self.image_topic),
+            'pose topic': self.pose_input.resolved_topic,
+            'pose type': self.pose_input.pose_type or 'not discovered yet',
+            'posed frames': self.posed_count,
+            'keyframes': self.keyframes_decided,
+        }
+
+    def destroy_node(self) -> None:
+        if not self._destroyed:
+            self._give_up_pending('node shutting down')
+        super().destroy_node()
 
     def _on_posed_frame(self, pending: _Pending, T_wc: np.ndarray) -> None:
         image = pending.image

@@ -120,6 +120,9 @@ class SingleViewNode(DepthFusionNode):
         self.stats.published('depth')
         self.stats.processed(time.monotonic() - job.received_at)
 
+    def diagnostic_extra(self) -> dict[str, Any]:
+        return {'model': self.params['model'], 'output kind': self.output_kind}
+
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point: ``single_view_node --ros-args --params-file config/depth_fusion.yaml``."""

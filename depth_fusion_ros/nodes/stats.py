@@ -65,14 +65,25 @@ class NodeStats:
         self._dropped: Counter[str] = Counter()
         self._noted: Counter[str] = Counter()
         self._processed = 0
+        #: stream -> monotonic time of its first / latest message (diagnostics: missing inputs)
+        self._first_seen: dict[str, float] = {}
+        self._last_seen: dict[str, float] = {}
         self._latency_sum = 0.0
         self._latency_max = 0.0
         #: reason -> (monotonic time of the last warning, drops since then)
         self._last_warning: dict[str, tuple[float, int]] = {}
 
     def received(self, stream: str) -> None:
+        now = time.monotonic()
         with self._lock:
             self._received[stream] += 1
+            self._first_seen.setdefault(stream, now)
+            self._last_seen[stream] = now
+
+    def arrival_times(self) -> tuple[dict[str, float], dict[str, float]]:
+        """``(first, latest)`` monotonic arrival time per input stream."""
+        with self._lock:
+            return dict(self._first_seen), dict(self._last_seen)
 
     def published(self, stream: str) -> None:
         with self._lock:

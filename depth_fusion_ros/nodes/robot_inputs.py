@@ -1,0 +1,163 @@
+"""The input flavours robots publish: image_transport ``compressed``, three pose message types,
+and a pose that is not the camera's.
+
+* ``image_transport: compressed`` subscribes to ``<image topic>/compressed``
+  (``sensor_msgs/CompressedImage``) instead of the raw topic; decoding is in
+  ``data.compressed`` and happens in the node's image callback like raw decoding.
+* ``pose_type`` picks the pose message: ``PoseStamped``, ``PoseWithCovarianceStamped``
+  (AMCL-style, some SLAMs) or ``nav_msgs/Odometry`` (VINS-Fusion, robot_localization). ``auto``
+  waits for a publisher and subscribes with its type (ROS cannot subscribe "to any type").
+* ``camera_from_pose_frame`` is the fixed transform from the pose's frame (a body or IMU
+  frame) to the camera optical frame: ``T_world_cam = T_world_pose @ T_pose_cam``. TF is not
+  on pip for Jazzy, so it is a parameter (docs/nodes.md says how to read it from a URDF or
+  ``tf2_echo``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ..data import messages
+from ..data.compressed import COMPRESSED_SUFFIX, TRANSPORTS
+from ..geometry import quat_to_matrix
+from .params import ParamSpec
+
+#: ``pose_type`` value -> ROS message type name.
+POSE_MESSAGE_TYPES = {
+    'pose_stamped': 'geometry_msgs/msg/PoseStamped',
+    'pose_with_covariance': 'geometry_msgs/msg/PoseWithCovarianceStamped',
+    'odometry': 'nav_msgs/msg/Odometry',
+}
+POSE_TYPES = ('auto', *POSE_MESSAGE_TYPES)
+IDENTITY_TQ = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+
+PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec(
+        'image_transport',
+        'raw',
+        'raw: sensor_msgs/Image on the image topic; compressed: sensor_msgs/CompressedImage (JPEG/PNG) '
+        "on '<image topic>/compressed', as image_transport's compressed plugin publishes it",
+        choices=TRANSPORTS,
+    ),
+    ParamSpec(
+        'pose_type',
+        'auto',
+        'message type of the pose topic: pose_stamped, pose_with_covariance (PoseWithCovarianceStamped), '
+        "odometry (nav_msgs/Odometry, its pose.pose); auto: the type the topic's publishers use",
+        choices=POSE_TYPES,
+    ),
+    ParamSpec(
+        'camera_from_pose_frame',
+        IDENTITY_TQ,
+        "x, y, z, qx, qy, qz, qw: the camera optical frame in the pose's frame (the pose's child frame, "
+        "e.g. base_link or imu); T_world_cam = T_world_pose @ this; identity: the pose is the camera's",
+        length=7,
+    ),
+)
+
+
+def transform_from_parameter(values: list[float], name: str = 'camera_from_pose_frame') -> np.ndarray:
+    """4x4 of ``[x, y, z, qx, qy, qz, qw]``; ``ValueError`` naming the parameter if it is not rigid."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.shape != (7,) or not np.all(np.isfinite(v)):
+        raise ValueError(
+            f'parameter {name!r} must be 7 finite numbers [x, y, z, qx, qy, qz, qw], got {values}'
+        )
+    norm = float(np.linalg.norm(v[3:]))
+    if abs(norm - 1.0) > 1e-3:
+        raise ValueError(
+            f'parameter {name!r}: quaternion (qx, qy, qz, qw) = {v[3:].tolist()} has norm {norm:.4g}, '
+            'expected 1 (order is x, y, z, w as tf2_echo prints it)'
+        )
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(v[3:] / norm)
+    T[:3, 3] = v[:3]
+    return T
+
+
+def image_topic_for(topic: str, transport: str) -> str:
+    """The topic the images of ``transport`` come on (``<topic>/compressed`` for compressed)."""
+    return topic.rstrip('/') + COMPRESSED_SUFFIX if transport == 'compressed' else topic
+
+
+def image_message_class(transport: str) -> type:
+    from sensor_msgs.msg import CompressedImage, Image
+
+    return CompressedImage if transport == 'compressed' else Image
+
+
+def subscribe_image(node: Any, topic: str, callback: Callable[[Any], None], qos: Any, transport: str) -> str:
+    """Subscribe ``callback`` to the images of ``transport``; returns the topic subscribed."""
+    name = image_topic_for(topic, transport)
+    node.subscribe(image_message_class(transport), name, callback, qos)
+    return name
+
+
+def pose_message_class(pose_type: str) -> type:
+    return messages.RCLPY.message_class(POSE_MESSAGE_TYPES[pose_type])
+
+
+def pose_type_of(msgtype: str) -> str | None:
+    """``pose_type`` of a ROS type name (``geometry_msgs/msg/PoseStamped``), ``None`` if unsupported."""
+    for key, value in POSE_MESSAGE_TYPES.items():
+        if value == msgtype:
+            return key
+    return None
+
+
+class PoseSubscription:
+    """Subscribes to the pose topic with the configured type, or discovers it (``auto``).
+
+    ``auto`` polls the graph (``get_publishers_info_by_topic``) on a timer until a publisher of
+    a supported type appears, then subscribes with that type. Publishers of several types (two
+    pose sources on one topic) are warned about once; a publisher of an unsupported type too.
+    """
+
+    def __init__(
+        self, node: Any, topic: str, pose_type: str, callback: Callable[[Any], None], qos: Any,
+        period: float = 0.25,
+    ) -> None:  # fmt: skip
+        self.node = node
+        self.topic = topic
+        self.callback = callback
+        self.qos = qos
+        self.pose_type: str | None = None
+        self._warned: set[str] = set()
+        if pose_type == 'auto':
+            self._timer = node.create_wall_timer(period, self.discover)
+        else:
+            self._subscribe(pose_type)
+
+    @property
+    def resolved_topic(self) -> str:
+        return self.node.resolve_topic_name(self.topic)
+
+    def _subscribe(self, pose_type: str) -> None:
+        self.pose_type = pose_type
+        self.node.subscribe(pose_message_class(pose_type), self.topic, self.callback, self.qos)
+
+    def discover(self) -> None:
+        """One look at the topic's publishers: subscribe when found, warn once on conflicts."""
+        infos = self.node.get_publishers_info_by_topic(self.resolved_topic)
+        types = sorted({str(i.topic_type) for i in infos})
+        supported = [t for t in types if pose_type_of(t)]
+        unsupported = [t for t in types if not pose_type_of(t)]
+        if unsupported and 'unsupported' not in self._warned:
+            self._warned.add('unsupported')
+            self.node.get_logger().warning(
+                f'{self.resolved_topic} is published as {", ".join(unsupported)}: not a pose type this node '
+                f'reads ({", ".join(POSE_MESSAGE_TYPES.values())})'
+            )
+        if len(supported) > 1 and 'conflict' not in self._warned:
+            self._warned.add('conflict')
+            who = ', '.join(f'{i.node_name} ({i.topic_type})' for i in infos)
+            self.node.get_logger().warning(
+                f'{self.resolved_topic} has publishers of several pose types: {who}; subscribed with '
+                f'{self.pose_type or supported[0]} only. Set pose_type, or remap one of the sources'
+            )
+        if self.pose_type is None and supported:
+            self._subscribe(pose_type_of(supported[0]) or 'pose_stamped')
+            self.node.get_logger().info(f'pose_type auto: {self.resolved_topic} is {supported[0]}')

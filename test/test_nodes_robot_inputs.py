@@ -1,0 +1,258 @@
+"""Robot inputs over real DDS: CompressedImage, Odometry / PoseWithCovarianceStamped poses of a body
+frame, unposed images counted, /diagnostics, and mixed sources noticed."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.data.compressed import compressed_image_msg
+from depth_fusion_ros.geometry import invert_pose, make_pose, pose_to_tq
+from depth_fusion_ros.nodes.fusion_node import FusionNode
+from depth_fusion_ros.nodes.image_input import CameraInput
+from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
+from depth_fusion_ros.nodes.qos import qos_profile
+from depth_fusion_ros.nodes.testing import RosHarness
+
+K = m.RCLPY
+FRAME = 'camera_rgb_optical_frame'
+DEEP = qos_profile('reliable', 100)
+IMAGE, INFO, POSE = '/camera/rgb/image_color', '/camera/rgb/camera_info', '/camera/pose'
+#: camera optical frame in the body frame: 10 cm forward, 5 cm up, rotated (z forward -> x forward)
+T_BODY_CAM = make_pose(np.array([0.1, 0.0, 0.05]), np.array([-0.5, 0.5, -0.5, 0.5]))
+
+
+def _node(ros: RosHarness, **params) -> MultiViewNode:
+    base = {'width': 80, 'height': 60, 'queue_size': 8, 'keyframe_every': 5}
+    overrides = [Parameter(k, value=v) for k, v in {**base, **params}.items()]
+    return ros.add(MultiViewNode(context=ros.context, parameter_overrides=overrides))
+
+
+def _header(stamp_ns: int, frame: str = FRAME):
+    return m.header_msg(stamp_ns, frame, kind=K)
+
+
+def _pose_msg(cls: type, T: np.ndarray, stamp_ns: int):
+    """``T`` as a PoseStamped, PoseWithCovarianceStamped or Odometry (child frame base_link)."""
+    pose = m.pose_msg(T, kind=K)
+    msg = cls(header=_header(stamp_ns, 'odom'))
+    if cls is PoseStamped:
+        msg.pose = pose
+    else:
+        msg.pose.pose = pose
+        if cls is Odometry:
+            msg.child_frame_id = 'base_link'
+    return msg
+
+
+def _statuses(arrays: list, name: str) -> list[DiagnosticStatus]:
+    return [s for a in list(arrays) for s in a.status if s.name == f'depth_fusion/{name}']
+
+
+def _with_level(arrays: list, name: str, level: bytes) -> list[DiagnosticStatus]:
+    return [s for s in _statuses(arrays, name) if s.level == level]
+
+
+def _values(status: DiagnosticStatus) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+def test_compressed_images_are_decoded_and_a_corrupt_one_is_counted(synthetic_sequence):
+    """image_transport compressed: PNG frames on <image>/compressed give the same working images
+    and keyframes as raw ones; a corrupt JPEG is a counted drop and the node goes on."""
+    seq = synthetic_sequence
+    stamps = [m.sec_to_ns(s) for s in seq.stamps[:7]]
+    with RosHarness() as ros:
+        node = _node(ros, image_transport='compressed', pose_type='pose_stamped')
+        keyframes = ros.collect(Image, '/depth_fusion/keyframe/image')
+        scores = ros.collect(Image, '/depth_fusion/multi_view/score')
+        image = ros.publisher(CompressedImage, IMAGE + '/compressed', DEEP)
+        info = ros.publisher(CameraInfo, INFO, DEEP)
+        pose = ros.publisher(PoseStamped, POSE, DEEP)
+        assert ros.wait_for_subscribers([image, info, pose])
+        for i, stamp in enumerate(stamps):
+            info.publish(m.camera_info_msg(seq.camera, _header(stamp), kind=K))
+            pose.publish(m.pose_stamped_msg(seq.poses[i], _header(stamp, 'world'), kind=K))
+            image.publish(compressed_image_msg(seq.frames[i].rgb, _header(stamp), kind=K, fmt='png'))
+            if i == 2:
+                corrupt = CompressedImage(header=_header(stamp + 1), format='rgb8; jpeg compressed bgr8')
+                corrupt.data = b'\xff\xd8\xff\xe0 truncated'
+                image.publish(corrupt)
+        assert ros.wait_for(lambda: len(scores) == 1, 60.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+    assert snap.dropped == {'bad_compressed': 1}
+    assert snap.received['image'] == len(stamps) + 1 and node.posed_count == len(stamps)
+    raw = CameraInput(80, 60)
+    raw.update(m.camera_info_msg(seq.camera, _header(stamps[5]), kind=K))
+    expected = raw.working_image(m.rgb_image_msg(seq.frames[5].rgb, _header(stamps[5]), kind=K)).rgb
+    assert m.stamp_to_ns(keyframes[0].header.stamp) == stamps[5]
+    np.testing.assert_array_equal(m.image_to_rgb(keyframes[0]), expected)  # lossless: as raw
+
+
+@pytest.mark.parametrize(
+    ('msg_cls', 'pose_type'),
+    [(Odometry, 'auto'), (PoseWithCovarianceStamped, 'auto'), (Odometry, 'odometry'),
+     (PoseWithCovarianceStamped, 'pose_with_covariance'), (PoseStamped, 'auto')],
+)  # fmt: skip
+def test_pose_types_and_the_body_to_camera_transform(synthetic_sequence, msg_cls, pose_type):
+    """A body-frame pose (T_world_body) of each message type plus camera_from_pose_frame gives
+    the camera pose exactly; auto finds the type from the publisher."""
+    seq = synthetic_sequence
+    t, q = pose_to_tq(T_BODY_CAM)
+    with RosHarness() as ros:
+        node = _node(ros, pose_type=pose_type, camera_from_pose_frame=[*t.tolist(), *q.tolist()])
+        pose = ros.publisher(msg_cls, POSE, DEEP)
+        image = ros.publisher(Image, IMAGE, DEEP)
+        info = ros.publisher(CameraInfo, INFO, DEEP)
+        assert ros.wait_for_subscribers([pose, image, info])  # auto: subscribed once it saw `pose`
+        for i in range(4):
+            stamp = m.sec_to_ns(seq.stamps[i])
+            T_world_body = seq.poses[i] @ invert_pose(T_BODY_CAM)
+            pose.publish(_pose_msg(msg_cls, T_world_body, stamp))
+            info.publish(m.camera_info_msg(seq.camera, _header(stamp), kind=K))
+            image.publish(m.rgb_image_msg(seq.frames[i].rgb, _header(stamp), kind=K))
+        assert ros.wait_for(lambda: node.posed_count == 4, 20.0), node.stats.snapshot().summary()
+        frames = list(node.frames)
+    assert node.pose_input.pose_type == {PoseStamped: 'pose_stamped', Odometry: 'odometry'}.get(
+        msg_cls, 'pose_with_covariance'
+    )
+    for i, frame in enumerate(frames):
+        np.testing.assert_allclose(frame.pose, seq.poses[i], atol=1e-9)
+
+
+def test_bad_camera_from_pose_frame_is_a_one_line_error():
+    with RosHarness() as ros:
+        for value, match in (
+            ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0], 'has norm 2'),
+            ([0.0, 0.0, float('nan'), 0.0, 0.0, 0.0, 1.0], '7 finite numbers'),
+        ):
+            with pytest.raises(
+                ValueError, match=f"multi_view_node: parameter 'camera_from_pose_frame'.*{match}"
+            ):
+                MultiViewNode(
+                    context=ros.context,
+                    parameter_overrides=[Parameter('camera_from_pose_frame', value=value)],
+                )
+
+
+def test_auto_pose_type_warns_once_when_publishers_disagree():
+    with RosHarness() as ros, RosHarness() as other:
+        node = _node(ros, pose_type='auto')
+        stamped = ros.publisher(PoseStamped, POSE)
+        assert ros.wait_for(lambda: node.pose_input.pose_type == 'pose_stamped')
+        other.publisher(Odometry, POSE)  # a second source of another type on the same topic
+        assert ros.wait_for(lambda: 'conflict' in node.pose_input._warned, 10.0)
+        assert stamped.get_subscription_count() >= 1
+
+
+def test_a_bag_without_poses_counts_every_image_and_reports_an_error(synthetic_sequence):
+    """20 images, no pose topic at all (the issue's bag): the status turns ERROR naming the pose
+    topic while images arrive, and once the input is quiet all 20 are dropped as no_pose."""
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        node = _node(ros, diagnostics_period=0.2, diagnostics_input_timeout=0.5)
+        arrays = ros.collect(DiagnosticArray, '/diagnostics')
+        image = ros.publisher(Image, IMAGE, DEEP)
+        info = ros.publisher(CameraInfo, INFO, DEEP)
+        assert ros.wait_for_subscribers([image, info])
+        for i in range(20):
+            stamp = m.sec_to_ns(seq.stamps[0] + 0.04 * i)  # 0.76 s of stamps: within pose_wait
+            info.publish(m.camera_info_msg(seq.camera, _header(stamp), kind=K))
+            image.publish(m.rgb_image_msg(seq.frames[i].rgb, _header(stamp), kind=K))
+            time.sleep(0.05)
+
+        def errors():
+            return _with_level(arrays, 'multi_view_node', DiagnosticStatus.ERROR)
+
+        assert ros.wait_for(errors, 10.0)
+        assert 'no pose yet while image arrives (/camera/pose)' in errors()[0].message
+        assert ros.wait_for(lambda: node.stats.snapshot().dropped.get('no_pose', 0) == 20, 10.0), (
+            node.stats.snapshot().summary()
+        )
+        assert node.wait_idle(1.0) and node.held_items() == 0
+        assert ros.wait_for(
+            lambda: _values(_statuses(arrays, 'multi_view_node')[-1]).get('dropped no_pose') == '20'
+        )
+        snap = node.stats.snapshot()
+    assert snap.dropped == {'no_pose': 20} and snap.received['image'] == 20
+    values = _values(_statuses(arrays, 'multi_view_node')[-1])
+    for key in ('ready', 'rate image (Hz)', 'received image', 'processed', 'queue depth', 'dropped total'):
+        assert key in values, key
+    assert values['ready'] == 'false' and values['pose type'] == 'not discovered yet'
+
+
+def test_images_still_waiting_at_shutdown_are_counted(synthetic_sequence):
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        node = _node(ros, pose_wait=100.0)
+        image = ros.publisher(Image, IMAGE, DEEP)
+        info = ros.publisher(CameraInfo, INFO, DEEP)
+        assert ros.wait_for_subscribers([image, info])
+        for i in range(3):
+            stamp = m.sec_to_ns(seq.stamps[i])
+            info.publish(m.camera_info_msg(seq.camera, _header(stamp), kind=K))
+            image.publish(m.rgb_image_msg(seq.frames[i].rgb, _header(stamp), kind=K))
+        assert ros.wait_for(lambda: node.held_items() == 3)
+        assert not node.wait_idle(0.1)  # images waiting for a pose: not done
+    assert node.stats.snapshot().dropped == {'no_pose': 3}
+
+
+def test_fusion_status_warns_when_drops_exceed_the_share():
+    with RosHarness() as ros:
+        node = ros.add(
+            FusionNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('fusion.compile_kernel', value=False),
+                    Parameter('diagnostics_period', value=0.2),
+                ],
+            )
+        )
+        arrays = ros.collect(DiagnosticArray, '/diagnostics')
+        depth = ros.publisher(Image, '/depth_fusion/multi_view/depth')
+        assert ros.wait_for_subscribers([depth])
+        assert ros.wait_for(lambda: _statuses(arrays, 'fusion_node'), 10.0)
+        assert _statuses(arrays, 'fusion_node')[0].level == DiagnosticStatus.OK
+        bad = m.rgb_image_msg(np.zeros((4, 4, 3), np.uint8), _header(1), kind=K)  # not 32FC1
+        depth.publish(bad)
+        warn = lambda: [s for s in _statuses(arrays, 'fusion_node') if s.level == DiagnosticStatus.WARN]  # noqa: E731
+        assert ros.wait_for(warn, 10.0), node.stats.snapshot().summary()
+        assert 'of the recent inputs dropped' in warn()[0].message
+        assert _values(warn()[0])['dropped bad_encoding'] == '1'
+        assert warn()[0].hardware_id == 'cpu'
+
+
+def test_second_publisher_and_interleaved_streams_are_noticed():
+    """A second publisher on camera_info, stamps of two streams interleaved, and two frame_ids:
+    each is found once and turns the status WARN."""
+    with RosHarness() as ros:
+        node = _node(ros, diagnostics_period=0.2)
+        arrays = ros.collect(DiagnosticArray, '/diagnostics')
+        info = ros.publisher(CameraInfo, INFO, DEEP)
+        intruder = Node('other_camera_driver', context=ros.context)
+        ros.add(intruder)
+        intruder.create_publisher(CameraInfo, INFO, DEEP)
+        assert ros.wait_for_subscribers([info])
+        assert ros.wait_for(lambda: f'{INFO} publishers' in node.input_watch.findings, 10.0)
+        assert 'other_camera_driver' in node.input_watch.findings[f'{INFO} publishers']
+        cam = m.camera_info_msg
+        from depth_fusion_ros.camera import PinholeCamera
+
+        pinhole = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+        for i in range(4):  # run A at 100 s, run B at 200 s, alternating
+            info.publish(cam(pinhole, _header(m.sec_to_ns(200.0 + i), 'cam_b'), kind=K))
+            info.publish(cam(pinhole, _header(m.sec_to_ns(100.0 + i), 'cam_a'), kind=K))
+        assert ros.wait_for(lambda: f'{INFO} interleaved' in node.input_watch.findings, 10.0)
+        assert f'{INFO} frames' in node.input_watch.findings
+        warn = lambda: [s for s in _statuses(arrays, 'multi_view_node') if 'interleaved' in s.message]  # noqa: E731
+        assert ros.wait_for(warn, 10.0)
+        assert warn()[-1].level == DiagnosticStatus.WARN
