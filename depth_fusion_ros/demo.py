@@ -62,11 +62,6 @@ def prepare_sequence(opts: DemoOptions, work: Path) -> Path:
     return write_synthetic_sequence(work / name, cfg, overwrite=True, show_progress=True)
 
 
-def _lossless(frames: int) -> dict[str, object]:
-    """Node parameters for an offline replay that must keep every keyframe."""
-    return {'queue_policy': 'block', 'qos_depth': max(100, frames)}
-
-
 def run_demo(opts: DemoOptions) -> dict[str, Any]:
     """Run every step; returns the results document (also written to ``opts.out``)."""
     from .data.rosbag_convert import convert
@@ -74,7 +69,8 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     from .evaluation.context import EvalOptions
     from .evaluation.harness import evaluate_sequence, results_document, write_outputs
     from .evaluation.methods.recorded import recorded_keyframes
-    from .nodes.graph import GRAPH_NODES, RunOptions, run_graph
+    from .nodes.graph import RunOptions, run_graph
+    from .nodes.graph.summary import drop_reasons, keyframe_summary
 
     out = Path(opts.out)
     work = out / 'work'
@@ -100,10 +96,8 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
             rate=opts.rate,
             device=opts.device,
             single_view_model=opts.single_view,
-            # The demo scores every keyframe, so no node may drop one when a slow machine
-            # falls behind the 30 Hz replay: callbacks wait instead, and the DDS history holds
-            # the backlog (a live robot keeps the default 'latest').
-            overrides={node: _lossless(opts.frames) for node in GRAPH_NODES},
+            # Paced (the default): the replayer waits while the graph is busy, so a slow
+            # machine fuses every keyframe the policy chooses and the report scores them all.
         )
     )
     _step(opts, 'node_graph', t0)
@@ -132,8 +126,11 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         'input_bag': str(bag),
         'recorded_bag': str(run.recorded),
         'processes': opts.processes,
+        'keyframes_chosen': len(run.chosen),
         'keyframes_announced': len(run.announced),
         'keyframes_fused': len(run.fused),
+        'keyframes_dropped': drop_reasons(run),
+        'graph_summary': keyframe_summary(run, 'processes' if opts.processes else 'composed'),
         'keyframes_lost': {str(k): v for k, v in run.missing.items()},
         'graph_seconds': round(run.seconds, 2),
         'step_seconds': dict(opts.timings),

@@ -61,8 +61,7 @@ def run(args: argparse.Namespace) -> int:
         print(f'\n{name}: {seq["frames"]} keyframes\n')
         print(metrics_table(seq['methods']))
     print(
-        f'\nnode graph: {demo["keyframes_fused"]}/{demo["keyframes_announced"]} keyframes fused '
-        f'in {demo["graph_seconds"]:.1f} s; steps (s): {demo["step_seconds"]}'
+        f'\nnode graph: {demo["graph_summary"]}; steps (s): {demo["step_seconds"]}'
     )
     out = Path(args.out).resolve()
     print(f'\nreport:  {out / "report.md"}\nresults: {out / "results.json"}\nfigures: {out}/*.png')

@@ -57,6 +57,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument('--processes', action='store_true', help='run each node as its own process')
     p.add_argument(
+        '--realtime',
+        action='store_true',
+        help='play at the recorded rate whatever the graph does and report what it drops (default: a '
+        'paced replay that waits while the graph is busy, so every keyframe is fused)',
+    )
+    p.add_argument(
         '--rate',
         type=float,
         help='playback speed, a multiple of the recorded rate (default: params file or 1)',
@@ -114,6 +120,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         record_storage=args.storage,
         record_extra=list(args.record_topic),
         processes=args.processes,
+        realtime=args.realtime,
         rate=args.rate,
         start_offset=args.start_offset,
         device=args.device,
@@ -129,6 +136,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from ..nodes.graph import GraphError, run_graph
+    from ..nodes.graph.summary import keyframe_summary
 
     options = options_from_args(args)
     try:
@@ -139,12 +147,9 @@ def run(args: argparse.Namespace) -> int:
     mode = 'processes' if options.processes else 'composed'
     if result.interrupted:
         where = f'; partial recording in {result.recorded}' if result.recorded else ''
-        print(f'interrupted: {len(result.fused)} of {len(result.announced)} keyframes fused ({mode}){where}')
+        print(f'interrupted: {keyframe_summary(result, mode)}{where}')
         return 130
-    print(
-        f'{len(result.fused)} of {len(result.announced)} keyframes fused in {result.seconds:.1f} s ({mode})'
-        + (f'; recorded to {result.recorded}' if result.recorded else '')
-    )
+    print(keyframe_summary(result, mode) + (f'; recorded to {result.recorded}' if result.recorded else ''))
     if result.missing:
         print(f'{len(result.missing)} keyframe(s) without fused output (see the warning above)')
     return 0

@@ -30,6 +30,7 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from .pacer import Pacer
 from .params import ParamSpec, declare_parameters
 
 NODE_NAME = 'bag_replayer'
@@ -80,6 +81,43 @@ REPLAYER_PARAMS: tuple[ParamSpec, ...] = (
         'of the graph finish discovery)',
         0.0,
         600.0,
+    ),
+    ParamSpec(
+        'wait_ready',
+        [''],
+        "before playing, wait until these nodes said they are ready (on depth_fusion/ready) and this "
+        "replayer's publishers are matched with their subscriptions (empty or ['']: do not wait)",
+    ),
+    ParamSpec(
+        'pace',
+        False,
+        'paced replay: before each image of pace_topic, wait while the graph is busy (see '
+        'max_keyframes_in_flight); never faster than rate. Lossless on a slow machine; false: play at '
+        'the recorded rate whatever the graph does (real time)',
+    ),
+    ParamSpec('pace_topic', '/camera/rgb/image_color', 'pace: the camera image topic (as published)'),
+    ParamSpec(
+        'max_keyframes_in_flight',
+        2,
+        'pace: chosen keyframes not yet fused (nor dropped) at most before the next image waits',
+        1,
+        1000,
+    ),
+    ParamSpec(
+        'max_images_ahead',
+        4,
+        'pace: images sent but not yet handled by multi_view_node at most (keep it below the keyframe '
+        'spacing so a keyframe is known before the next one is sent)',
+        1,
+        1000,
+    ),
+    ParamSpec(
+        'pace_timeout',
+        120.0,
+        'pace: without any progress from the graph for this many seconds, pacing is switched off '
+        '(warning) and the replay goes on at the recorded rate',
+        0.1,
+        None,
     ),
     ParamSpec('linger', 0.5, 'seconds to stay up after the last message so it is delivered', 0.0, 60.0),
 )
@@ -276,11 +314,24 @@ class BagReplayer(Node):
             clock_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
             self._clock_pub = self.create_publisher(Clock, '/clock', clock_qos)
             self._clock_msg = Clock()
+        self.pacer: Pacer | None = None
+        if self.params['pace'] or non_empty(self.params['wait_ready']):
+            self.pacer = Pacer(
+                self,
+                max_keyframes=self.params['max_keyframes_in_flight'],
+                max_images_ahead=self.params['max_images_ahead'],
+                timeout=self.params['pace_timeout'],
+                stop=self._stop,
+                warn=self.get_logger().warning,
+                enabled=bool(self.params['pace']),
+            )
         self._thread = threading.Thread(target=self._run, name='bag_replayer', daemon=True)
         self.get_logger().info(
             f'playing {self._reader.path} ({len(self._topics)} topics, '
             f'{self._reader.message_count} messages, {self._reader.duration / 1e9:.1f} s) '
-            f'at rate {self.params["rate"]:g}' + (' in a loop' if self.params['loop'] else '')
+            f'at rate {self.params["rate"]:g}'
+            + (' in a loop' if self.params['loop'] else '')
+            + (', paced by the graph' if self.params['pace'] else '')
         )
         if autostart:
             self.start()
@@ -387,9 +438,13 @@ class BagReplayer(Node):
         finally:
             self.stats.ended_wall = time.monotonic()
             total = sum(self.stats.published.values())
+            paced = ''
+            if self.pacer is not None and self.params['pace']:
+                ps = self.pacer.stats
+                paced = f'; the graph held it back {ps.pauses} times, {ps.paused_s:.1f} s in all'
             self.get_logger().info(
                 f'playback ended: {total} messages in {self.stats.passes} pass(es), '
-                f'max lag {self.stats.max_lag * 1e3:.1f} ms'
+                f'max lag {self.stats.max_lag * 1e3:.1f} ms{paced}'
             )
             self.finished.set()
             if self._on_finished is not None:
@@ -402,6 +457,8 @@ class BagReplayer(Node):
         self.stats.started_wall = wall0 = time.monotonic()
         deadline = wall0 + self.params['loop_seconds'] if self.params['loop_seconds'] > 0 else None
         t0 = self._play_start_ns
+        pace_topic = self.params['pace_topic'] if self.params['pace'] else None
+        pacer = self.pacer
         pass_index = 0
         while not self._stop.is_set():
             shift = pass_index * self._loop_period_ns
@@ -412,13 +469,20 @@ class BagReplayer(Node):
                     return
                 if not self._sleep_until(due, t0, wall0, rate):
                     return
-                self.stats.max_lag = max(self.stats.max_lag, time.monotonic() - due)
                 topic = by_conn[conn.id]
+                paced = pacer is not None and topic.out_topic == pace_topic
+                # Never faster than the recorded rate; later when the graph is busy (the
+                # schedule is kept, so a graph that catches up gets the recorded timing back).
+                if paced and not pacer.before_image():
+                    return
+                self.stats.max_lag = max(self.stats.max_lag, time.monotonic() - due)
                 data = bytes(raw)
                 if shift and topic.stampable:
                     data = shift_header_stamp(data, shift)
                 self._publish_clock(t_ns + shift)
                 topic.publisher.publish(data)
+                if paced and topic.stampable:
+                    pacer.sent_image(header_stamp_ns(data))
                 self.stats.published[topic.out_topic] += 1
             pass_index += 1
             self.stats.passes = pass_index
@@ -451,7 +515,8 @@ class BagReplayer(Node):
     def _wait_for_subscribers(self) -> None:
         count = self.params['wait_for_subscribers']
         nodes = non_empty(self.params['wait_for_nodes'])
-        if count <= 0 and not nodes:
+        ready_nodes = non_empty(self.params['wait_ready'])
+        if count <= 0 and not nodes and not ready_nodes:
             return
         wait_topics = set(non_empty(self.params['wait_topics']))
         played = {t.out_topic: t.publisher for t in self._topics.values()}
@@ -464,12 +529,27 @@ class BagReplayer(Node):
         deadline = time.monotonic() + timeout if timeout > 0 else None
         while not self._stop.is_set():
             missing = self._not_ready(pubs, wait_topics or set(played), count, nodes)
+            missing = missing or self._not_ready_nodes(played, ready_nodes)
             if not missing:
                 return
             if deadline is not None and time.monotonic() > deadline:
                 self.get_logger().warning(f'waited {timeout:g} s for subscribers, playing anyway: {missing}')
                 return
             self._stop.wait(0.05)
+
+    def _not_ready_nodes(self, pubs: dict[str, Any], nodes: list[str]) -> str:
+        """What is missing before the ``wait_ready`` nodes can be fed ('' when nothing): their
+        ready lines, then this replayer's publishers matched with every subscription they named."""
+        if not nodes or self.pacer is None:
+            return ''
+        waiting = self.pacer.ready.missing(nodes)
+        if waiting:
+            return f'{", ".join(waiting)} not ready'
+        for topic, pub in sorted(pubs.items()):
+            wanted = self.pacer.ready.subscribers_of(topic, nodes)
+            if pub.get_subscription_count() < wanted:
+                return f'{topic} matched {pub.get_subscription_count()}/{wanted} ready subscribers'
+        return ''
 
     def _not_ready(self, pubs: dict[str, Any], topics: set[str], count: int, nodes: list[str]) -> str:
         """What is still missing before playback may start ('' when nothing)."""

@@ -157,14 +157,23 @@ class DepthFusionNode(Node):
 
         return self.create_timer(period, guarded, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
-    def make_worker(self, name: str, handle: Callable[[Any], None]) -> BoundedWorker:
-        """A worker with this node's queue parameters; drops and failures are counted and logged."""
+    def make_worker(
+        self, name: str, handle: Callable[[Any], None], on_lost: Callable[[Any, str], None] | None = None
+    ) -> BoundedWorker:
+        """A worker with this node's queue parameters; drops and failures are counted and logged.
+
+        ``on_lost(item, reason)`` is told of every item dropped (``worker_queue_full`` ...) or
+        failed (``processing_error``), e.g. to announce a lost keyframe to the graph.
+        """
+        lost = on_lost or (lambda item, reason: None)
 
         def on_drop(item: Any, reason: str) -> None:
             self.stats.dropped(f'worker_{reason}', f'{name} work item dropped ({reason.replace("_", " ")})')
+            lost(item, f'worker_{reason}')
 
         def on_error(item: Any, exc: BaseException) -> None:
             self.stats.dropped('processing_error', f'{name} failed: {type(exc).__name__}: {exc}')
+            lost(item, 'processing_error')
             trace = ''.join(traceback.format_exception(type(exc), exc, exc.__traceback__))
             self.get_logger().debug(f'{name} failure:\n{trace}')
 

@@ -31,11 +31,13 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..fusion import pipeline as fusion_pipeline
 from ..fusion.interpolation import MODES as FUSION_MODES
-from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe, warm_up
+from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
 from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig, select_best_fraction
 from .base import DepthFusionNode, run_node
 from .diagnostics import Requirement
+from .fusion_warmup import start_kernels
+from .graph_events import EVENT_FUSED, GraphEvents
 from .image_input import InputError, StampGuard, depth_from_message, header_stamp_ns
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .qos import latched_qos
@@ -106,6 +108,13 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'max_pending_keyframes', 16, 'keyframes waiting for their parts at most (oldest dropped)', 1, 1000
     ),
+    ParamSpec(
+        'compile_in_background',
+        True,
+        'with fusion.compile_kernel: fuse with the eager kernels from the start and switch to the compiled '
+        'ones once they are built on a background thread (ready in about a second instead of 10+ s); '
+        'false: compile in the constructor, before subscribing',
+    ),
     ParamSpec('publish_points', True, f'publish the fused depth as a PointCloud2 on {TOPIC_FUSED_POINTS}'),
     ParamSpec('points_stride', 2, 'keep every n-th pixel in both directions in the point cloud', 1, 64),
     ParamSpec('points_max_depth', 10.0, 'points farther than this (m) are left out of the cloud', 0.0),
@@ -173,10 +182,12 @@ class FusionNode(DepthFusionNode):
             if p['publish_points']
             else None
         )
-        if self.config.compile_kernel:
-            seconds = warm_up(self.config)
-            self.get_logger().info(f'fusion kernels ready (compiled in {seconds:.1f} s)')
-        self.worker = self.make_worker('fusion', self._process)
+        self.events = GraphEvents(self)
+        #: What the worker fuses with: eager until compiled kernels are ready (see fusion_warmup).
+        self.active_config = start_kernels(self, self.config, bool(p['compile_in_background']))
+        self.worker = self.make_worker(
+            'fusion', self._process, on_lost=lambda job, why: self.events.dropped(job.pairing.stamp_ns, why)
+        )
         q = self.input_qos
         self.subscribe(String, TOPIC_OUTPUT_KIND, self._on_output_kind, latched_qos())
         self.subscribe(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self._on_camera_info, q)
@@ -189,6 +200,7 @@ class FusionNode(DepthFusionNode):
             f'fusion ({self.config.mode} mode) on {p["device"]}: {self.resolve_topic_name(TOPIC_SINGLE)} + '
             f'{self.resolve_topic_name(TOPIC_MV_DEPTH)} -> {self.resolve_topic_name(TOPIC_FUSED_DEPTH)}'
         )
+        self.events.ready()
 
     # --- callbacks: collect parts by stamp ------------------------------------------------------------
 
@@ -267,6 +279,7 @@ class FusionNode(DepthFusionNode):
             self.stats.dropped(
                 reason, f'keyframe {messages.ns_to_sec(stamp_ns):.3f} {message}: {self._missing(pairing)}'
             )
+            self.events.dropped(stamp_ns, reason)
         return pairing
 
     def _drop_passed(self, part: str, stamp_ns: int) -> None:
@@ -315,11 +328,12 @@ class FusionNode(DepthFusionNode):
             single, mv_depth, mv_score = _checked_inputs(parts, camera)
         except InputError as exc:
             self.stats.dropped(exc.reason, f'keyframe {messages.ns_to_sec(job.pairing.stamp_ns):.3f}: {exc}')
+            self.events.dropped(job.pairing.stamp_ns, exc.reason)
             return
         stage1 = select_best_fraction(
             SimpleNamespace(depth=mv_depth, score=mv_score), float(self.params['fusion.stage1_fraction'])
         )
-        result = fuse_keyframe(single, mv_depth, stage1, self.config, output_kind=self.output_kind)
+        result = fuse_keyframe(single, mv_depth, stage1, self.active_config, output_kind=self.output_kind)
         if result.fallback:
             self.stats.noted(
                 f'fallback_{result.fallback}',
@@ -333,6 +347,7 @@ class FusionNode(DepthFusionNode):
         if self._points_pub is not None:
             self._points_pub.publish(self._cloud(result.depth, confidence, camera, parts.get('rgb'), header))
         self.stats.published('fused')
+        self.events.event(job.pairing.stamp_ns, EVENT_FUSED)
         self.stats.processed(time.monotonic() - job.received_at)
 
     def _cloud(

@@ -44,6 +44,7 @@ from ..pose_buffer import PoseBuffer
 from . import robot_inputs
 from .base import DepthFusionNode, run_node
 from .diagnostics import Requirement
+from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, GraphEvents
 from .image_input import (
     CameraInput,
     InputError,
@@ -53,6 +54,7 @@ from .image_input import (
     pose_from_message,
     working_grid_parameters,
 )
+from .info_wait import AwaitingCalibration
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .qos import qos_profile
 
@@ -180,6 +182,14 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'max_pending_images', 30, 'images waiting for their pose at most (oldest dropped first)', 1, 10000
     ),
+    ParamSpec(
+        'camera_info_wait',
+        1.0,
+        'images that come before the first camera_info wait for it until the image stream is this many '
+        'seconds (stamp time) ahead of them (at most max_pending_images); then they are dropped as '
+        'no_camera_info (0: drop at once)',
+        0.0,
+    ),
     *dataclass_specs(NeighbourConfig, 'neighbours', NEIGHBOUR_DESCRIPTIONS, NEIGHBOUR_LIMITS),
     *dataclass_specs(
         MultiViewConfig, 'multi_view', MULTI_VIEW_DESCRIPTIONS, MULTI_VIEW_LIMITS, skip=MULTI_VIEW_SKIP
@@ -236,7 +246,11 @@ class MultiViewNode(DepthFusionNode):
         self._kf_info_pub = self.create_publisher(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self.output_qos)
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
-        self.worker = self.make_worker('multi_view', self._process)
+        self.events = GraphEvents(self)
+        self.awaiting_info = AwaitingCalibration(
+            float(p['camera_info_wait']), int(p['max_pending_images'])
+        )
+        self.worker = self.make_worker('multi_view', self._process, on_lost=self._on_keyframe_lost)
         self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
         pose_qos = qos_profile(str(p['input_qos']), int(p['pose_qos_depth']))
         self.pose_input = robot_inputs.PoseSubscription(
@@ -253,6 +267,7 @@ class MultiViewNode(DepthFusionNode):
             f'{self.resolve_topic_name(self.image_topic)} + {self.resolve_topic_name(TOPIC_POSE)} -> '
             f'{self.resolve_topic_name(TOPIC_DEPTH)}'
         )
+        self.events.ready()
 
     # --- callbacks (light: decode, check, buffer) ---------------------------------------------------
 
@@ -262,6 +277,9 @@ class MultiViewNode(DepthFusionNode):
             self.camera_input.update(msg)
         except InputError as exc:
             self.stats.dropped(exc.reason, str(exc))
+            return
+        for _, image_msg in self.awaiting_info.release():
+            self._on_image(image_msg, counted=True)
 
     def _on_pose(self, msg: Any) -> None:
         self.stats.received('pose')
@@ -280,14 +298,21 @@ class MultiViewNode(DepthFusionNode):
             return
         self._resolve_pending()
 
-    def _on_image(self, msg: Any) -> None:
+    def _on_image(self, msg: Any, counted: bool = False) -> None:
         received_at = self._last_input = time.monotonic()
-        self.stats.received('image')
+        if not counted:
+            self.stats.received('image')
         try:
             image = self.camera_input.working_image(msg)
             self._image_stamps.check(image.stamp_ns)
         except InputError as exc:
+            if exc.reason == 'no_camera_info':
+                for stamp_ns, _ in self.awaiting_info.hold(header_stamp_ns(msg), msg):
+                    self.stats.dropped(exc.reason, str(exc))
+                    self.events.event(stamp_ns, EVENT_IMAGE)
+                return
             self.stats.dropped(exc.reason, str(exc))
+            self.events.event(header_stamp_ns(msg), EVENT_IMAGE)
             return
         self._newest_image_ns = image.stamp_ns
         self.pending.append(_Pending(image, received_at))
@@ -298,6 +323,7 @@ class MultiViewNode(DepthFusionNode):
                 f'image {messages.ns_to_sec(old.image.stamp_ns):.3f} dropped: more than '
                 f'{self.params["max_pending_images"]} images waiting for poses',
             )
+            self.events.event(old.image.stamp_ns, EVENT_IMAGE)
         self._resolve_pending()
 
     def _resolve_pending(self) -> None:
@@ -316,17 +342,20 @@ class MultiViewNode(DepthFusionNode):
                     self.pending.popleft()
                     newest = 'no pose yet' if span is None else f'latest pose {span[1]:.3f}'
                     self.stats.dropped('no_pose', f'image {stamp:.3f} has no pose ({newest}); dropped')
+                    self.events.event(head.image.stamp_ns, EVENT_IMAGE)
                     continue
                 return
             self.pending.popleft()
             if stamp < span[0]:
                 self.stats.dropped('no_pose', f'image {stamp:.3f} is older than the first pose {span[0]:.3f}')
-                continue
-            lookup = self.pose_buffer.lookup(stamp)
-            if lookup.pose is None:
-                self.stats.dropped('pose_gap', f'image {stamp:.3f}: {lookup.reason}')
-                continue
-            self._on_posed_frame(head, lookup.pose)
+            else:
+                lookup = self.pose_buffer.lookup(stamp)
+                if lookup.pose is None:
+                    self.stats.dropped('pose_gap', f'image {stamp:.3f}: {lookup.reason}')
+                else:
+                    self._on_posed_frame(head, lookup.pose)
+            # After 'chosen' (same writer): a replayer seeing this ack knows the decision.
+            self.events.event(head.image.stamp_ns, EVENT_IMAGE)
 
     def _give_up_pending(self, reason: str = '') -> None:
         """Drop (``no_pose``) the images still waiting once no image nor pose came for ``pose_wait``
@@ -388,6 +417,7 @@ class MultiViewNode(DepthFusionNode):
             if len(neighbours) >= int(self.params['min_neighbours']):
                 self.keyframes_decided += 1
                 self._last_keyframe_pose = T_wc
+                self.events.event(image.stamp_ns, EVENT_CHOSEN)
                 self.worker.submit(
                     _KeyframeJob(frame, neighbours, image.camera, image.header, pending.received_at)
                 )
@@ -421,6 +451,10 @@ class MultiViewNode(DepthFusionNode):
             warn=lambda message: self.stats.noted('zero_baseline', f'keyframe {key.stamp:.3f}: {message}'),
         )
         return [history[i] for i in chosen]
+
+    def _on_keyframe_lost(self, job: _KeyframeJob, reason: str) -> None:
+        """A chosen keyframe the worker dropped before announcing it: the graph must hear of it."""
+        self.events.dropped(header_stamp_ns(job), reason)
 
     # --- worker (heavy) -----------------------------------------------------------------------------
 

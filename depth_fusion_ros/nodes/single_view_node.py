@@ -26,6 +26,7 @@ from std_msgs.msg import String
 
 from ..data import messages
 from .base import DepthFusionNode, run_node
+from .graph_events import GraphEvents
 from .image_input import CameraInput, InputError, StampGuard, WorkingImage, working_grid_parameters
 from .params import ParamSpec
 from .qos import latched_qos
@@ -72,6 +73,7 @@ class SingleViewNode(DepthFusionNode):
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
         super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
         p = self.params
+        self.events = GraphEvents(self)
         self.camera_input = CameraInput.from_parameters(p, rectified=bool(p['input_rectified']))
         self.predictor = self._load_predictor(str(p['model']), str(p['device']))
         self.output_kind = str(getattr(self.predictor, 'output_kind', 'metric_depth'))
@@ -88,6 +90,7 @@ class SingleViewNode(DepthFusionNode):
             f'single-view model {p["model"]!r} ({self.output_kind}) on {p["device"]}; '
             f'{self.resolve_topic_name(TOPIC_IMAGE)} -> {self.resolve_topic_name(TOPIC_DEPTH)}'
         )
+        self.events.ready()
 
     def _load_predictor(self, spec: str, device: str) -> Any:
         from ..singleview.predictor import load_predictor

@@ -9,10 +9,12 @@ Two ways to run the same graph on a bag:
   same params file, the recorder staying here. What a robot with a live camera runs, one node
   per core.
 
+The replayer starts once every node said it is ready (``depth_fusion/ready``) and, unless
+``realtime``, paces the replay by the graph's progress so no keyframe is lost (:mod:`.pacing`).
 Either way the run ends by itself: when the replayer reaches the end of the bag, the runner
-waits until every keyframe the multi-view node announced (``depth_fusion/keyframe/image``)
-has its fused depth, confidence and camera_info recorded, or until ``flush_timeout`` (a
-warning then names the keyframes that got no fused output and how far each one got). Then it
+waits until every keyframe the keyframe policy chose (``depth_fusion/keyframe/events``) is
+fused or given up, or until ``flush_timeout`` (a warning then names the keyframes that got no
+fused output and how far each one got). Then it
 closes the bag (written under a staging name and renamed only now), stops the nodes
 (SIGINT to the processes; they exit 0) and returns. Ctrl-C stops everything the same way,
 leaving the partial recording under ``OUT.partial/``.
@@ -31,8 +33,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
 from .dds import apply_fastdds_profile
 from .options import GraphError, RunOptions, RunResult
+from .pacing import paced_overrides
 from .param_merge import bag_topic_names, node_overrides, recorder_qos, ros_arg_value
 from .spawn import node_class, node_command, popen_node, stop_processes
 from .topics import (
@@ -43,7 +47,6 @@ from .topics import (
     RECORDER_NODE,
     REPLAYER,
     STAGES,
-    STANDARD_TOPICS,
     TOPIC_FUSED_DEPTH,
     TOPIC_IMAGE,
     TOPIC_KEYFRAME_IMAGE,
@@ -70,6 +73,10 @@ class GraphRun:
         self.exit_codes: dict[str, int | None] = {}
         self.executor_error: BaseException | None = None
         self._next_progress = 0.0
+        self.ledger = KeyframeLedger()
+        self.ready = ReadyWatcher()
+        self._spawned_at: dict[str, float] = {}
+        self.ready_seconds: dict[str, float] = {}
 
     # -- public --
 
@@ -79,7 +86,7 @@ class GraphRun:
 
         opts = self.options
         topics = bag_topic_names(opts.bag)  # a bad bag fails here, before anything starts
-        overrides = node_overrides(opts, topics)
+        overrides = paced_overrides(opts, node_overrides(opts, topics))
         profile = apply_fastdds_profile()
         log.info('Fast DDS profile: %s', profile)
         self._wall_start = time.time()
@@ -132,6 +139,8 @@ class GraphRun:
                 Parameter('qos', value=recorder_qos(opts)),
             ],
         )
+        # Keyframe events and ready lines: readiness, the flush and the honest summary.
+        self._event_subs = subscribe_events(self.recorder, self.ledger, self.ready)
         self._executor = self._make_executor()
         self._executor.add_node(self.recorder)
         self._spin_thread = threading.Thread(target=self._spin, name='graph-executor', daemon=True)
@@ -167,7 +176,9 @@ class GraphRun:
         for name, (_, module) in GRAPH_NODES.items():
             cls = node_class(importlib.import_module(module))
             log.info('starting %s', name)
+            started = time.monotonic()
             node = cls(context=self._context, parameter_overrides=params(name))
+            self.ready_seconds[name] = time.monotonic() - started
             self.nodes[name] = node
             self._executor.add_node(node)
         replayer = BagReplayer(
@@ -197,13 +208,6 @@ class GraphRun:
             threads = max(1, (os.cpu_count() or 1) // len(GRAPH_NODES))
         if threads is not None:
             env['OMP_NUM_THREADS'] = str(threads)
-        replayer = dict(overrides.get(REPLAYER[0], {}))
-        replayer.setdefault('wait_for_nodes', list(GRAPH_NODES))
-        replayer.setdefault('wait_timeout', float(self.options.startup_timeout))
-        # The nodes' publishers and subscriptions exist (checked below); this lets the other
-        # processes' participants match them too before the first frame.
-        replayer.setdefault('start_delay', 1.0)
-        overrides = {**overrides, REPLAYER[0]: replayer}
         for name, (script, module) in GRAPH_NODES.items():
             self._spawn(name, script, module, overrides, env)
         self._wait_for_nodes_ready()
@@ -213,42 +217,37 @@ class GraphRun:
         self, name: str, script: str, module: str, overrides: dict[str, dict[str, Any]], env: dict[str, str]
     ) -> None:
         cmd = node_command(script, module, self._ros_args(overrides.get(name, {})))
+        self._spawned_at[name] = time.monotonic()
         self.processes[name] = self._popen(name, cmd, env)
         log.info('started %s (pid %d)', name, self.processes[name].pid)
 
     def _wait_for_nodes_ready(self) -> None:
-        """Wait until every node process has finished its constructor (model loaded, topics made).
-
-        A node is visible in the graph as soon as its constructor starts, long before a slow
-        one (loading a network) creates its publishers; the nodes create their subscriptions
-        last, so a node with subscriptions is ready. Without this wait the first keyframes'
-        results could be published before the fusion node is subscribed to them.
-        """
+        """Wait until every node process said it is ready (``depth_fusion/ready``: warm-up done,
+        subscriptions made) and this runner hears each node's keyframe events, so no keyframe
+        is missed by the summary. The replayer waits for the same lines before it plays."""
         deadline = time.monotonic() + self.options.startup_timeout
+        publishers = self._event_subs[0]
         while True:
             self._check_processes()
-            waiting = [name for name in GRAPH_NODES if not self._node_ready(name)]
-            if not waiting:
-                log.info('nodes ready after %.1f s', time.monotonic() - self.started)
+            for name in GRAPH_NODES:
+                arrived = self.ready.arrival.get('/' + name)
+                if arrived is not None and name not in self.ready_seconds:
+                    self.ready_seconds[name] = arrived - self._spawned_at[name]
+            waiting = self.ready.missing(list(GRAPH_NODES))
+            if not waiting and publishers.get_publisher_count() >= len(GRAPH_NODES):
+                log.info(
+                    'nodes ready after %.1f s (%s)',
+                    time.monotonic() - self.started,
+                    ', '.join(f'{n} {t:.1f} s' for n, t in self.ready_seconds.items()),
+                )
                 return
             if time.monotonic() > deadline:
+                waiting = waiting or ['the keyframe events of every node']
                 raise GraphError(
                     f'{", ".join(waiting)} not ready after {self.options.startup_timeout:g} s'
-                    + ''.join(self._log_hint(n) for n in waiting[:1])
+                    + ''.join(self._log_hint(n) for n in waiting[:1] if n in GRAPH_NODES)
                 )
-            time.sleep(0.1)
-
-    def _node_ready(self, name: str) -> bool:
-        graph = self.recorder
-        if name not in {n for n, ns in graph.get_node_names_and_namespaces() if ns == '/'}:
-            return False
-        try:
-            subs = graph.get_subscriber_names_and_types_by_node(name, '/')
-            pubs = graph.get_publisher_names_and_types_by_node(name, '/')
-        except Exception:  # the node left the graph between the two calls
-            return False
-        own = [t for t, _ in subs if t not in STANDARD_TOPICS]
-        return bool(own) and any(t not in STANDARD_TOPICS for t, _ in pubs)
+            time.sleep(0.05)
 
     def _ros_args(self, values: Mapping[str, Any]) -> list[str]:
         args = []
@@ -312,26 +311,42 @@ class GraphRun:
             return ''
         return f' (see {self.options.log_dir / f"{name}.log"})'
 
-    def pending_keyframes(self) -> dict[int, str]:
-        """Announced keyframes without their complete fused output -> how far each got."""
+    def chosen_keyframes(self) -> list[int]:
+        """Every keyframe the policy chose: the chosen events, plus any announced or fused one
+        whose event was missed (so nothing fused is ever left out of the count)."""
         logs = self.recorder.stamp_logs
-        announced = logs[TOPIC_KEYFRAME_IMAGE].stamps() if TOPIC_KEYFRAME_IMAGE in logs else []
+        seen = set(self.ledger.snapshot().chosen)
+        for topic in (TOPIC_KEYFRAME_IMAGE, TOPIC_FUSED_DEPTH):
+            if topic in logs:
+                seen.update(logs[topic].stamps())
+        return sorted(seen)
+
+    def pending_keyframes(self) -> dict[int, str]:
+        """Chosen keyframes without their complete fused output -> what became of each."""
+        logs = self.recorder.stamp_logs
+        drops = self.ledger.snapshot().dropped
         missing = {}
-        for stamp in announced:
+        for stamp in self.chosen_keyframes():
             if all(topic in logs and stamp in logs[topic] for topic in FUSED_OUTPUTS):
                 continue
+            if stamp in drops:
+                missing[stamp] = f'dropped: {drops[stamp]}'
+                continue
+            announced = TOPIC_KEYFRAME_IMAGE in logs and stamp in logs[TOPIC_KEYFRAME_IMAGE]
             lacking = [what for topic, what in STAGES if topic not in logs or stamp not in logs[topic]]
-            missing[stamp] = 'no ' + ' and no '.join(lacking) if lacking else 'not fused'
+            if not announced:
+                missing[stamp] = 'chosen, never announced'
+            else:
+                missing[stamp] = 'no ' + ' and no '.join(lacking) if lacking else 'not fused'
         return missing
 
     def _wait_for_flush(self) -> None:
-        """Wait for the announced keyframes' fused outputs; warn naming what never came.
+        """Wait until every chosen keyframe is fused or given up; warn naming what never came.
 
-        Every stage handles keyframes in stamp order, so a keyframe older than the newest fused
-        one is lost (a full queue, a failure), not late. Done when no keyframe is in flight and
-        nothing arrived for ``settle`` s (composed: the workers must be idle too, and then
-        nothing can still come). As processes, a keyframe still in flight after ``idle_timeout``
-        s without any output is given up. ``flush_timeout`` bounds it all.
+        The nodes report each keyframe's end (``fused`` or ``dropped:<reason>``), so the run is
+        done when none is in flight and nothing arrived for ``settle`` s (composed: the workers
+        must be idle too). A keyframe still in flight after ``idle_timeout`` s without any
+        output is given up; ``flush_timeout`` bounds it all.
         """
         opts = self.options
         start = time.monotonic()
@@ -339,9 +354,9 @@ class GraphRun:
         while True:
             self._check_processes()
             now = time.monotonic()
-            silent = now - self.recorder.last_arrival
+            silent = now - max(self.recorder.last_arrival, self.ledger.last_event)
             if silent >= opts.settle and self._nodes_idle():
-                if not opts.processes or not self.in_flight_keyframes():
+                if not self.in_flight_keyframes():
                     break
                 if silent >= opts.idle_timeout:
                     why = f'nothing arrived for {silent:.0f} s'
@@ -356,7 +371,7 @@ class GraphRun:
             listed = ', '.join(f'{s / 1e9:.3f} ({what})' for s, what in list(missing.items())[:10])
             more = f' and {len(missing) - 10} more' if len(missing) > 10 else ''
             log.warning(
-                '%d announced keyframe(s) have no fused output%s: %s%s%s',
+                '%d chosen keyframe(s) have no fused output%s: %s%s%s',
                 len(missing),
                 f' ({why})' if why else '',
                 listed,
@@ -365,10 +380,12 @@ class GraphRun:
             )
 
     def in_flight_keyframes(self) -> list[int]:
-        """Announced keyframes newer than the newest fused one (they may still come)."""
-        fused = self.recorder.stamp_logs.get(TOPIC_FUSED_DEPTH)
-        newest = max(fused.stamps(), default=-1) if fused is not None else -1
-        return [s for s in self.pending_keyframes() if s > newest]
+        """Chosen keyframes neither fused nor given up yet (they may still come)."""
+        logs = self.recorder.stamp_logs
+        fused = set(logs[TOPIC_FUSED_DEPTH].stamps()) if TOPIC_FUSED_DEPTH in logs else set()
+        snap = self.ledger.snapshot()
+        done = fused | set(snap.dropped)
+        return [s for s in self.chosen_keyframes() if s not in done]
 
     def _drop_summary(self) -> str:
         """``'; dropped by fusion_node: worker_queue_full=2'`` (composed mode: the nodes' counters)."""
@@ -404,6 +421,10 @@ class GraphRun:
         return RunResult(
             announced=announced,
             fused=fused,
+            chosen=self.chosen_keyframes(),
+            drops=self.ledger.snapshot().dropped,
+            paced=not self.options.realtime,
+            ready_seconds=dict(self.ready_seconds),
             missing=self.pending_keyframes(),
             recorded=None,
             counts=dict(self.recorder.counts),

@@ -23,6 +23,11 @@ class RunOptions:
     #: Extra topics to record besides :data:`RECORDED_TOPICS` (type from the graph).
     record_extra: list[str] = field(default_factory=list)
     processes: bool = False
+    #: Play at the recorded rate whatever the graph does (drops reported); default: a paced,
+    #: lossless replay that waits while the graph is busy (see :mod:`.pacing`).
+    realtime: bool = False
+    #: Paced replay: chosen keyframes unfinished at most (``None``: the replayer's default).
+    max_keyframes_in_flight: int | None = None
     #: Replayer settings; ``None`` leaves the params file (or the default) in charge.
     rate: float | None = None
     start_offset: float | None = None
@@ -70,6 +75,13 @@ class RunResult:
     #: Seconds from input image arrival to fused depth arrival, per keyframe (track_input).
     latencies: dict[int, float] = field(default_factory=dict)
     exit_codes: dict[str, int | None] = field(default_factory=dict)
+    #: Every keyframe the keyframe policy chose (announced or not), and those given up -> why
+    #: (``'multi_view.worker_queue_full'`` ...), from the nodes' keyframe events.
+    chosen: list[int] = field(default_factory=list)
+    drops: dict[int, str] = field(default_factory=dict)
+    paced: bool = True
+    #: Per node, seconds from its start to its "ready" line (time-to-ready).
+    ready_seconds: dict[str, float] = field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
