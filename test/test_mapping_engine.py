@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from map_geometry import room_surface_distance
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data.synthetic import SynthConfig, build_world, render_sequence
@@ -11,8 +12,6 @@ from depth_fusion_ros.mapping import MapConfig, make_map, read_ply, write_ply
 from depth_fusion_ros.mapping.engine import make_map as make_map_direct
 from depth_fusion_ros.mapping.open3d_tsdf import open3d_available
 from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
-
-from map_geometry import room_surface_distance
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
@@ -98,9 +97,9 @@ def test_wrong_sizes_and_bad_config_are_refused():
         tsdf.integrate(np.ones((10, 10), np.float32), LOOK_DOWN_Z, CAMERA)
     with pytest.raises(ValueError, match='confidence'):
         tsdf.integrate(_wall(), LOOK_DOWN_Z, CAMERA, confidence=np.ones((3, 3), np.float32))
-    with pytest.raises(ValueError, match='map.voxel_size'):
+    with pytest.raises(ValueError, match=r'map\.voxel_size'):
         MapConfig(voxel_size=0).validate()
-    with pytest.raises(ValueError, match='map.engine'):
+    with pytest.raises(ValueError, match=r'map\.engine'):
         MapConfig(engine='nvblox').validate()
 
 
@@ -115,7 +114,7 @@ def test_engine_choice_says_what_it_picked():
 
 
 def test_ply_round_trip(tmp_path, room):
-    scene, seq = room
+    _, seq = room
     tsdf = TorchTSDF(MapConfig(engine='torch'))
     tsdf.integrate(seq.gt_depth_working(0), seq.frames[0].pose, seq.camera, rgb=seq.frames[0].rgb)
     mesh = tsdf.mesh()
@@ -124,7 +123,7 @@ def test_ply_round_trip(tmp_path, room):
     np.testing.assert_array_equal(back.triangles, mesh.triangles)
     np.testing.assert_array_equal(back.colours, mesh.colours)
     assert back.triangles.max() < len(back.vertices)
-    with pytest.raises(ValueError, match='.ply'):
+    with pytest.raises(ValueError, match=r'\.ply'):
         write_ply(tmp_path / 'm.obj', mesh)
 
 

@@ -370,7 +370,7 @@ class MultiViewNode(DepthFusionNode):
         kind = messages.RCLPY
         self._kf_info_pub.publish(messages.camera_info_msg(job.camera, job.header, kind=kind))
         self._kf_image_pub.publish(messages.rgb_image_msg(job.key.rgb, job.header, kind=kind))
-        pose_header = messages.header_msg(messages.stamp_to_ns(job.header.stamp), self._world_frame, kind=kind)
+        pose_header = messages.header_msg(job.header.stamp, self._world_frame, kind=kind)
         self._kf_pose_pub.publish(messages.pose_stamped_msg(job.key.pose, pose_header, kind=kind))
         self.stats.published('keyframe')
         try:
