@@ -43,6 +43,7 @@ setup(
             'single_view_node = depth_fusion_ros.nodes.single_view_node:main',
             'multi_view_node = depth_fusion_ros.nodes.multi_view_node:main',
             'fusion_node = depth_fusion_ros.nodes.fusion_node:main',
+            'map_node = depth_fusion_ros.nodes.map_node:main',
         ],
     },
 )

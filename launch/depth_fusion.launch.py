@@ -4,10 +4,13 @@
     ros2 launch depth_fusion_ros depth_fusion.launch.py bag:=/data/room.mcap use_sim_time:=true
     ros2 launch depth_fusion_ros depth_fusion.launch.py image:=/camera/color/image_raw \\
         camera_info:=/camera/color/camera_info pose:=/orb_slam3/camera_pose
+    ros2 launch depth_fusion_ros depth_fusion.launch.py map:=true    # + map_node (TSDF map)
 
 Starts ``multi_view_node``, ``single_view_node`` and ``fusion_node`` with one parameter file
 (``params_file``, default: the installed ``config/depth_fusion.yaml``) and, when ``bag`` is
-given, ``bag_replayer`` playing it (with ``/clock`` when ``use_sim_time`` is true). The input
+given, ``bag_replayer`` playing it (with ``/clock`` when ``use_sim_time`` is true), and with
+``map:=true`` ``map_node``, which integrates the fused depth into a TSDF map (``ros2 service
+call /map_node/save_map std_srvs/srv/Trigger`` writes its mesh; docs/mapping.md). The input
 topics of the multi-view node are remapped from the launch arguments; the outputs stay under
 ``/depth_fusion``. Without a ROS install, ``depth-fusion run`` does the same in one command.
 """
@@ -45,6 +48,9 @@ def generate_launch_description() -> LaunchDescription:
             'bag', default_value='', description='rosbag2 to play with bag_replayer (optional)'
         ),
         DeclareLaunchArgument(
+            'map', default_value='false', description='also start map_node (TSDF map of the fused depth)'
+        ),
+        DeclareLaunchArgument(
             'image', default_value='/camera/rgb/image_color', description='colour image topic'
         ),
         DeclareLaunchArgument(
@@ -78,6 +84,14 @@ def generate_launch_description() -> LaunchDescription:
     fusion = Node(
         package=PACKAGE, executable='fusion_node', name='fusion_node', output='screen', parameters=common
     )
+    mapping = Node(
+        package=PACKAGE,
+        executable='map_node',
+        name='map_node',
+        output='screen',
+        parameters=common,
+        condition=IfCondition(LaunchConfiguration('map')),
+    )
     replayer = Node(
         package=PACKAGE,
         executable='bag_replayer',
@@ -95,4 +109,4 @@ def generate_launch_description() -> LaunchDescription:
         ],
         condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
     )
-    return LaunchDescription([*arguments, multi_view, single_view, fusion, replayer])
+    return LaunchDescription([*arguments, multi_view, single_view, fusion, mapping, replayer])

@@ -112,6 +112,30 @@ def test_launch_file_compiles_and_describes_the_graph():
     assert module.generate_launch_description().entities
 
 
+
+def _launch_calls(name: str) -> list[dict]:
+    """Keyword arguments (as source text) of every ``name(...)`` call in the launch file."""
+    import ast
+
+    tree = ast.parse(LAUNCH.read_text())
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, 'id', '') == name]
+    return [
+        {k.arg: ast.literal_eval(k.value) if isinstance(k.value, ast.Constant) else ast.unparse(k.value)
+         for k in c.keywords} | {'_args': [ast.unparse(a) for a in c.args]}
+        for c in calls
+    ]  # fmt: skip
+
+
+def test_launch_file_starts_map_node_only_with_map_true():
+    """Without ``launch`` installed: the launch file's map argument and map_node, read from its AST."""
+    arguments = {c['_args'][0].strip("'"): c for c in _launch_calls('DeclareLaunchArgument')}
+    assert arguments['map']['default_value'] == 'false'
+    nodes = {c['executable']: c for c in _launch_calls('Node')}
+    assert set(nodes) >= {'multi_view_node', 'single_view_node', 'fusion_node', 'map_node'}
+    assert nodes['map_node']['condition'] == "IfCondition(LaunchConfiguration('map'))"
+    assert nodes['map_node']['parameters'] == 'common'  # the same params file as the other nodes
+    assert 'condition' not in nodes['fusion_node']
+
 class _Process:
     """A console script with its merged output collected by a thread."""
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = ('depth-fusion', 'bag_replayer', 'single_view_node', 'multi_view_node', 'fusion_node')
+SCRIPTS = ('depth-fusion', 'bag_replayer', 'single_view_node', 'multi_view_node', 'fusion_node', 'map_node')
 
 
 def tracked_files() -> list[str]:

@@ -23,11 +23,12 @@ NODE_TABLES: dict[str, tuple[str, str]] = {
     'multi_view_node': ('depth_fusion_ros.nodes.multi_view_node', 'PARAMETERS'),
     'single_view_node': ('depth_fusion_ros.nodes.single_view_node', 'PARAMETERS'),
     'fusion_node': ('depth_fusion_ros.nodes.fusion_node', 'PARAMETERS'),
+    'map_node': ('depth_fusion_ros.nodes.map_node', 'PARAMETERS'),
     'bag_replayer': ('depth_fusion_ros.nodes.bag_replayer', 'REPLAYER_PARAMS'),
 }
 #: Nodes built on ``base.DepthFusionNode`` also declare ``base.COMMON_PARAMETERS`` (with the
 #: node module's ``COMMON_DEFAULTS``).
-PROCESSING_NODES = ('multi_view_node', 'single_view_node', 'fusion_node')
+PROCESSING_NODES = ('multi_view_node', 'single_view_node', 'fusion_node', 'map_node')
 
 HEADER = """\
 # Parameters of every depth_fusion_ros node, with their defaults.

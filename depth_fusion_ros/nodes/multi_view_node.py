@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from ..camera import PinholeCamera
@@ -67,6 +68,8 @@ TOPIC_KEYFRAME_IMAGE = 'depth_fusion/keyframe/image'
 TOPIC_KEYFRAME_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
 TOPIC_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_SCORE = 'depth_fusion/multi_view/score'
+#: The keyframe's interpolated camera-to-world pose, with its stamp (map_node pairs it by stamp).
+TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
 
 KEYFRAME_POLICIES = ('every_k', 'motion')
 
@@ -241,11 +244,14 @@ class MultiViewNode(DepthFusionNode):
         self._pose_stamps = StampGuard('pose')
         self._newest_image_ns: int | None = None
         self._last_input = time.monotonic()
+        #: frame_id of the pose stream (the world frame the keyframe poses are published in).
+        self._world_frame = 'world'
 
         self._kf_image_pub = self.create_publisher(Image, TOPIC_KEYFRAME_IMAGE, self.output_qos)
         self._kf_info_pub = self.create_publisher(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self.output_qos)
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
+        self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
         self.events = GraphEvents(self)
         self.awaiting_info = AwaitingCalibration(
             float(p['camera_info_wait']), int(p['max_pending_images'])
@@ -296,6 +302,7 @@ class MultiViewNode(DepthFusionNode):
         except ValueError as exc:  # PoseError: not a rigid transform
             self.stats.dropped('bad_pose', f'pose: {exc}')
             return
+        self._world_frame = msg.header.frame_id or self._world_frame
         self._resolve_pending()
 
     def _on_image(self, msg: Any, counted: bool = False) -> None:
@@ -462,6 +469,8 @@ class MultiViewNode(DepthFusionNode):
         kind = messages.RCLPY
         self._kf_info_pub.publish(messages.camera_info_msg(job.camera, job.header, kind=kind))
         self._kf_image_pub.publish(messages.rgb_image_msg(job.key.rgb, job.header, kind=kind))
+        pose_header = messages.header_msg(job.header.stamp, self._world_frame, kind=kind)
+        self._kf_pose_pub.publish(messages.pose_stamped_msg(job.key.pose, pose_header, kind=kind))
         self.stats.published('keyframe')
         try:
             result = estimate_semidense(

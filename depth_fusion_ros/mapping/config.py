@@ -1,0 +1,99 @@
+"""``MapConfig``: what bounds and weights the TSDF map (shared by every engine).
+
+A TSDF integrates depth along camera rays into a signed distance that is truncated at
+``truncation`` metres around the surface. The map is *bounded*: depth outside
+``[min_depth, max_depth]`` is ignored and at most ``max_blocks`` voxel blocks of
+``block_size``³ voxels are ever allocated (blocks farthest from the camera are evicted when a
+new keyframe needs room), so memory is capped whatever the replay length.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+#: Engines: ``auto`` picks Open3D when it is installed and torch otherwise.
+ENGINES = ('auto', 'torch', 'open3d')
+
+
+@dataclass
+class MapConfig:
+    """TSDF map parameters (voxel size, truncation, depth range, memory cap, weighting)."""
+
+    #: Edge of one voxel (m).
+    voxel_size: float = 0.04
+    #: TSDF truncation distance (m); 0 = 3 voxels.
+    truncation: float = 0.0
+    #: Depth outside [min_depth, max_depth] (m) is not integrated.
+    min_depth: float = 0.1
+    max_depth: float = 6.0
+    #: Most voxel blocks held at once (the memory cap); the farthest from the camera are evicted.
+    max_blocks: int = 10000
+    #: Voxels along each edge of a block.
+    block_size: int = 8
+    #: Pixels whose confidence is below this are left out; the rest are weighted by confidence.
+    min_confidence: float = 0.3
+    #: A voxel's weight stops growing here, so a changed scene can still overwrite it.
+    max_weight: float = 50.0
+    #: Surface extraction keeps voxels observed with at least this accumulated weight.
+    min_weight: float = 0.5
+    #: Pixel stride of the block allocation pass: 4 px are 9 cm at 6 m (320 px wide, 60° field of
+    #: view), well inside one 32 cm block, so no block is missed.
+    allocation_stride: int = 4
+    #: ``auto``, ``torch`` or ``open3d``.
+    engine: str = 'auto'
+    #: torch / Open3D device: ``cpu``, ``cuda``, ``cuda:1``.
+    device: str = 'cpu'
+
+    @property
+    def truncation_m(self) -> float:
+        return self.truncation if self.truncation > 0 else 3.0 * self.voxel_size
+
+    @property
+    def block_m(self) -> float:
+        """Edge of one block (m)."""
+        return self.voxel_size * self.block_size
+
+    @property
+    def bytes_per_block(self) -> int:
+        """TSDF + weight (float32) + colour (3 x float32) per block: what ``max_blocks`` caps."""
+        return self.block_size**3 * 4 * 5
+
+    def validate(self) -> MapConfig:
+        """``self``, or ``ValueError`` naming the bad field."""
+        checks = [
+            ('voxel_size', self.voxel_size > 0 and math.isfinite(self.voxel_size), 'must be > 0'),
+            ('truncation', self.truncation >= 0, 'must be >= 0 (0: 3 voxels)'),
+            ('min_depth', self.min_depth >= 0, 'must be >= 0'),
+            ('max_depth', self.max_depth > self.min_depth, 'must be > min_depth'),
+            ('max_blocks', self.max_blocks >= 1, 'must be >= 1'),
+            ('block_size', 2 <= self.block_size <= 32, 'must be in [2, 32]'),
+            ('min_confidence', 0 <= self.min_confidence <= 1, 'must be in [0, 1]'),
+            ('max_weight', self.max_weight > 0, 'must be > 0'),
+            ('min_weight', self.min_weight >= 0, 'must be >= 0'),
+            ('allocation_stride', self.allocation_stride >= 1, 'must be >= 1'),
+            ('engine', self.engine in ENGINES, f'must be one of {", ".join(ENGINES)}'),
+        ]
+        for name, ok, why in checks:
+            if not ok:
+                raise ValueError(f'map.{name}={getattr(self, name)!r}: {why}')
+        return self
+
+
+#: Descriptions of the fields, for the node's parameter table.
+MAP_PARAMETER_DESCRIPTIONS = {
+    'voxel_size': 'edge of one TSDF voxel (m)',
+    'truncation': 'TSDF truncation distance (m); 0 = 3 voxels',
+    'min_depth': 'depth nearer than this (m) is not integrated',
+    'max_depth': 'depth farther than this (m) is not integrated',
+    'max_blocks': 'most voxel blocks held at once (memory cap: 10 KiB each at 8^3 voxels); the blocks '
+    'farthest from the camera are evicted',
+    'block_size': 'voxels along each edge of a block',
+    'min_confidence': 'pixels whose fused confidence is below this are left out; the rest are weighted '
+    'by their confidence',
+    'max_weight': 'a voxel weight stops growing here (a changed scene can still overwrite it)',
+    'min_weight': 'surface extraction keeps voxels observed with at least this accumulated weight',
+    'allocation_stride': 'pixel stride of the block allocation pass',
+    'engine': 'TSDF engine: auto (Open3D when installed, else torch), torch, or open3d (falls back to '
+    'torch with one log line when Open3D is missing)',
+}

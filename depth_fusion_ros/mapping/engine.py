@@ -1,0 +1,57 @@
+"""Picks the TSDF engine: ``torch`` (always there), ``open3d`` (optional), or ``auto``.
+
+``make_map(config)`` returns the engine and one line saying what was chosen and why, which
+the node logs at start: a missing optional engine is a fallback that is said, never silent.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from .config import MapConfig
+from .open3d_tsdf import Open3DTSDF, open3d_available
+from .surface import SurfaceMesh
+from .torch_tsdf import TorchTSDF
+
+
+class TSDFMap(Protocol):
+    """What every engine offers."""
+
+    name: str
+    config: MapConfig
+    evicted_blocks: int
+    integrated: int
+
+    @property
+    def n_blocks(self) -> int: ...
+
+    @property
+    def memory_bytes(self) -> int: ...
+
+    def integrate(
+        self,
+        depth: np.ndarray,
+        T_wc: np.ndarray,
+        camera: PinholeCamera,
+        confidence: np.ndarray | None = None,
+        rgb: np.ndarray | None = None,
+    ) -> int: ...
+
+    def mesh(self) -> SurfaceMesh: ...
+
+
+def make_map(config: MapConfig) -> tuple[TSDFMap, str]:
+    """The engine ``config.engine`` asks for, or the torch engine with the reason it fell back."""
+    config.validate()
+    wanted = config.engine
+    if wanted == 'torch':
+        return TorchTSDF(config), f'TSDF engine: torch on {config.device}'
+    missing = open3d_available()
+    if missing is None:
+        return Open3DTSDF(config), f'TSDF engine: open3d (VoxelBlockGrid) on {config.device}'
+    if wanted == 'auto':
+        return TorchTSDF(config), f'TSDF engine: torch on {config.device} (auto; Open3D not installed)'
+    return TorchTSDF(config), f'TSDF engine: open3d unavailable ({missing}); falling back to torch'

@@ -1,0 +1,303 @@
+"""``map_node``: fused depth + confidence + camera_info + keyframe pose -> a TSDF map.
+
+The fused depth of a keyframe, its confidence and camera_info come from ``fusion_node`` and
+the keyframe's camera-to-world pose from ``multi_view_node`` (``depth_fusion/keyframe/pose``),
+each on its own topic with the keyframe's stamp, so the node pairs them by **exact stamp**
+(as the fusion node pairs its inputs; the keyframe image, when it has come, colours the map).
+A complete keyframe goes to the worker, which integrates it into the map (core:
+``depth_fusion_ros.mapping``): pixels below ``map.min_confidence`` are left out, the others
+are weighted by their confidence. The map is bounded (``map.max_blocks``), so memory is
+capped whatever the replay length.
+
+Outputs: the surface as a PointCloud2 (``depth_fusion/map/points``, world frame = the pose's
+frame, xyz + rgb) every ``1 / points_rate`` seconds when it changed, and the mesh as a binary
+``.ply`` at ``save_path`` on the ``~/save_map`` service (std_srvs/Trigger) and, with
+``save_on_shutdown``, when the node stops (what ``depth-fusion run --save-map`` uses).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from ..data import messages
+from ..mapping.config import ENGINES, MAP_PARAMETER_DESCRIPTIONS, MapConfig
+from ..mapping.engine import make_map
+from ..mapping.ply import write_ply
+from ..mapping.surface import SurfaceMesh
+from .base import DepthFusionNode, run_node
+from .image_input import InputError, depth_from_message, pose_from_message
+from .params import ParamSpec, build_dataclass, dataclass_specs
+from .stamp_pairing import StampPairer
+
+NODE_NAME = 'map_node'
+
+TOPIC_FUSED_DEPTH = 'depth_fusion/fused/depth'
+TOPIC_FUSED_CONFIDENCE = 'depth_fusion/fused/confidence'
+TOPIC_FUSED_CAMERA_INFO = 'depth_fusion/fused/camera_info'
+TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
+TOPIC_KEYFRAME_IMAGE = 'depth_fusion/keyframe/image'
+TOPIC_MAP_POINTS = 'depth_fusion/map/points'
+
+REQUIRED_PARTS = ('depth', 'confidence', 'camera_info', 'pose')
+
+MAP_LIMITS: dict[str, Any] = {
+    'voxel_size': (1e-3, 10.0),
+    'truncation': (0.0, 100.0),
+    'min_depth': (0.0, None),
+    'max_depth': (1e-3, None),
+    'max_blocks': (1, 10_000_000),
+    'block_size': (2, 32),
+    'min_confidence': (0.0, 1.0),
+    'max_weight': (1e-6, None),
+    'min_weight': (0.0, None),
+    'allocation_stride': (1, 64),
+    'engine': ENGINES,
+}
+
+#: Integration is fast: a few keyframes may wait rather than be dropped.
+COMMON_DEFAULTS = {'queue_size': 4}
+
+PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec('device', 'cpu', 'torch (or Open3D) device of the TSDF: cpu, cuda, cuda:1, ...'),
+    *dataclass_specs(MapConfig, 'map', MAP_PARAMETER_DESCRIPTIONS, MAP_LIMITS, skip=('device',)),
+    ParamSpec(
+        'points_rate',
+        1.0,
+        f'Hz at which the map surface is published on {TOPIC_MAP_POINTS} when it changed (0: never)',
+        0.0,
+        100.0,
+    ),
+    ParamSpec(
+        'points_max', 200000, 'most points per published cloud (evenly subsampled beyond)', 1, 100_000_000
+    ),
+    ParamSpec('save_path', 'map.ply', 'where ~/save_map (and save_on_shutdown) write the mesh (.ply)'),
+    ParamSpec('save_on_shutdown', False, 'write the mesh to save_path when the node stops'),
+    ParamSpec(
+        'use_color', True, f'colour the map with the keyframe image ({TOPIC_KEYFRAME_IMAGE}) when it came'
+    ),
+    ParamSpec(
+        'pair_timeout',
+        10.0,
+        'seconds a keyframe waits for its missing depth, confidence, camera_info or pose (then dropped)',
+        0.01,
+    ),
+    ParamSpec(
+        'max_pending_keyframes', 16, 'keyframes waiting for their parts at most (oldest dropped)', 1, 1000
+    ),
+)
+
+
+class MapNode(DepthFusionNode):
+    """Pairs fused keyframes with their poses by stamp and integrates them into a TSDF."""
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
+        super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
+        p = self.params
+        try:
+            config = build_dataclass(MapConfig, p, 'map', device=str(p['device'])).validate()
+        except ValueError as exc:
+            raise ValueError(f'{self.get_name()}: {exc}') from None
+        save_path = Path(str(p['save_path']))
+        if save_path.suffix.lower() != '.ply':
+            raise ValueError(f'{self.get_name()}: parameter save_path={str(save_path)!r} must end in .ply')
+        self.map, engine_note = make_map(config)
+        self.get_logger().info(engine_note)
+        self._lock = threading.Lock()
+        self._dirty = False
+        self._world_frame = ''
+        self._integrated = 0
+        required = REQUIRED_PARTS
+        optional = ('rgb',) if p['use_color'] else ()
+        self.pairer = StampPairer(
+            required,
+            optional,
+            timeout=float(p['pair_timeout']),
+            max_pending=int(p['max_pending_keyframes']),
+            on_complete=lambda pairing: self.worker.submit(pairing),
+            on_drop=self.stats.dropped,
+        )
+        self._points_pub = self.create_publisher(PointCloud2, TOPIC_MAP_POINTS, self.output_qos)
+        self.worker = self.make_worker('map', self._integrate)
+        q = self.input_qos
+        self.subscribe(Image, TOPIC_FUSED_DEPTH, lambda m: self._on_image(m, 'depth'), q)
+        self.subscribe(Image, TOPIC_FUSED_CONFIDENCE, lambda m: self._on_image(m, 'confidence'), q)
+        self.subscribe(CameraInfo, TOPIC_FUSED_CAMERA_INFO, self._on_camera_info, q)
+        self.subscribe(PoseStamped, TOPIC_KEYFRAME_POSE, self._on_pose, q)
+        if p['use_color']:
+            self.subscribe(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
+        self.create_service(Trigger, '~/save_map', self._on_save)
+        self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
+        if float(p['points_rate']) > 0:
+            self.create_wall_timer(1.0 / float(p['points_rate']), self._publish_points)
+        cap = config.max_blocks * config.bytes_per_block / 2**20
+        self.get_logger().info(
+            f'map: {config.voxel_size * 100:g} cm voxels, truncation {config.truncation_m * 100:g} cm, '
+            f'depth {config.min_depth:g}-{config.max_depth:g} m, at most {config.max_blocks} blocks '
+            f'({cap:.0f} MiB); {self.resolve_topic_name(TOPIC_FUSED_DEPTH)} + '
+            f'{self.resolve_topic_name(TOPIC_KEYFRAME_POSE)} -> {self.resolve_topic_name(TOPIC_MAP_POINTS)}, '
+            f'mesh on {self.resolve_service_name("~/save_map")}'
+        )
+
+    # --- callbacks: collect parts by stamp ------------------------------------------------------------
+
+    def _on_image(self, msg: Image, part: str) -> None:
+        self.stats.received(part)
+        try:
+            value = depth_from_message(msg, f'fused {part}')
+        except InputError as exc:
+            self.stats.dropped(exc.reason, str(exc))
+            return
+        self.pairer.add(msg.header, part, value)
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        self.stats.received('camera_info')
+        try:
+            calib = messages.camera_info_to_calibration(msg)
+        except ValueError as exc:
+            self.stats.dropped('bad_camera_info', f'fused camera_info: {exc}')
+            return
+        if calib.is_distorted:
+            self.stats.dropped(
+                'bad_camera_info', 'fused camera_info has distortion: expected the working grid'
+            )
+            return
+        self.pairer.add(msg.header, 'camera_info', calib.camera)
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        self.stats.received('pose')
+        try:
+            T_wc = pose_from_message(msg)
+        except InputError as exc:
+            self.stats.dropped(exc.reason, str(exc))
+            return
+        self.pairer.add(msg.header, 'pose', (T_wc, msg.header.frame_id))
+
+    def _on_keyframe_image(self, msg: Image) -> None:
+        try:
+            rgb = messages.image_to_rgb(msg)
+        except ValueError as exc:
+            self.stats.dropped('bad_encoding', f'keyframe image: {exc}')
+            return
+        self.pairer.add(msg.header, 'rgb', rgb)
+
+    def _expire(self) -> None:
+        self.pairer.expire(time.monotonic())
+
+    # --- worker ---------------------------------------------------------------------------------------
+
+    def _integrate(self, pairing: Any) -> None:
+        parts = pairing.parts
+        camera = parts['camera_info']
+        depth, confidence = parts['depth'], parts['confidence']
+        T_wc, frame_id = parts['pose']
+        stamp = messages.ns_to_sec(pairing.stamp_ns)
+        shape = (camera.height, camera.width)
+        if depth.shape != shape or confidence.shape != shape:
+            self.stats.dropped(
+                'size_mismatch',
+                f'keyframe {stamp:.3f}: depth {depth.shape}, confidence {confidence.shape}, '
+                f'camera_info {shape}',
+            )
+            return
+        rgb = parts.get('rgb')
+        if rgb is not None and rgb.shape[:2] != shape:
+            rgb = None
+        with self._lock:
+            if self._world_frame and frame_id and frame_id != self._world_frame:
+                self.stats.dropped(
+                    'frame_mismatch',
+                    f'keyframe {stamp:.3f}: pose in {frame_id!r}, map in {self._world_frame!r}',
+                )
+                return
+            self._world_frame = self._world_frame or frame_id or 'world'
+            evicted = self.map.evicted_blocks
+            self.map.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb)
+            if self.map.evicted_blocks > evicted:
+                self.stats.noted(
+                    'blocks_evicted', f'map full ({self.map.config.max_blocks} blocks): evicted the farthest'
+                )
+            self._dirty = True
+            self._integrated += 1
+        self.stats.published('integrated')
+        self.stats.processed(time.monotonic() - pairing.first_seen)
+
+    # --- outputs --------------------------------------------------------------------------------------
+
+    @property
+    def integrated(self) -> int:
+        """Keyframes integrated so far."""
+        return self._integrated
+
+    def extract(self) -> tuple[SurfaceMesh, str]:
+        """The current mesh and the world frame it is in (thread-safe)."""
+        with self._lock:
+            return self.map.mesh(), self._world_frame or 'world'
+
+    def _publish_points(self) -> None:
+        if not self._dirty:
+            return
+        self._dirty = False
+        mesh, frame = self.extract()
+        points, colours = mesh.vertices, mesh.colours
+        limit = int(self.params['points_max'])
+        if len(points) > limit:
+            keep = np.linspace(0, len(points) - 1, limit).astype(np.int64)
+            points, colours = points[keep], colours[keep]
+        header = messages.header_msg(self.get_clock().now().nanoseconds, frame, kind=messages.RCLPY)
+        self._points_pub.publish(messages.pointcloud2_msg(points, header, kind=messages.RCLPY, rgb=colours))
+        self.stats.published('points')
+
+    def save_map(self, path: str | Path | None = None) -> tuple[Path, int, int]:
+        """Write the mesh to ``path`` (default ``save_path``): (path, vertices, triangles).
+
+        ``ValueError`` when the map is still empty: an empty file would look like a map.
+        """
+        path = Path(path or str(self.params['save_path']))
+        mesh, _ = self.extract()
+        if mesh.is_empty:
+            raise ValueError(
+                f'the map is empty ({self._integrated} keyframes integrated): nothing written to {path}'
+            )
+        write_ply(path, mesh)
+        return path, len(mesh.vertices), len(mesh.triangles)
+
+    def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            path, nv, nt = self.save_map()
+        except (OSError, ValueError) as exc:
+            response.success, response.message = False, str(exc)
+            self.get_logger().warning(f'save_map: {exc}')
+            return response
+        response.success = True
+        response.message = f'{path}: {nv} vertices, {nt} triangles from {self._integrated} keyframes'
+        self.get_logger().info(f'save_map: {response.message}')
+        return response
+
+    def destroy_node(self) -> None:
+        """Finish the integrations in hand, then write the mesh if ``save_on_shutdown``."""
+        if not self._destroyed and self.params['save_on_shutdown']:
+            self.wait_idle(10.0)
+            try:
+                path, nv, nt = self.save_map()
+                self.get_logger().info(f'map saved to {path} ({nv} vertices, {nt} triangles)')
+            except (OSError, ValueError) as exc:
+                self.get_logger().error(f'map not saved: {exc}')
+        super().destroy_node()
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point: ``map_node --ros-args --params-file config/depth_fusion.yaml``."""
+    return run_node(MapNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,114 @@
+"""Pairs the parts of one keyframe that arrive on separate topics by their exact header stamp.
+
+Every upstream stream is in stamp order, so a pending keyframe still missing a part whose
+stream has already passed its stamp will never get it and is dropped at once (``unpaired``);
+the others wait at most ``timeout`` seconds (``pair_timeout``) and at most ``max_pending``
+keyframes wait (``pair_overflow``). Stragglers of a closed keyframe are counted
+(``late_part``). Memory stays bounded whatever the input. No ROS import: callers pass the
+message header.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..data import messages
+
+#: How many closed keyframe stamps are remembered to recognise late parts.
+CLOSED_MEMORY = 256
+
+
+@dataclass
+class Pairing:
+    """The parts of one keyframe received so far."""
+
+    stamp_ns: int
+    first_seen: float
+    header: Any
+    parts: dict[str, Any] = field(default_factory=dict)
+
+
+class StampPairer:
+    """Collects required (and optional) parts per stamp; hands complete keyframes on."""
+
+    def __init__(
+        self,
+        required: Sequence[str],
+        optional: Sequence[str],
+        timeout: float,
+        max_pending: int,
+        on_complete: Callable[[Pairing], None],
+        on_drop: Callable[[str, str], None],
+    ) -> None:
+        self.required = tuple(required)
+        self.known = set(required) | set(optional)
+        self.timeout = timeout
+        self.max_pending = max_pending
+        self.on_complete = on_complete
+        self.on_drop = on_drop
+        self.pending: dict[int, Pairing] = {}
+        self._closed: OrderedDict[int, None] = OrderedDict()
+        self._last: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def add(self, header: Any, part: str, value: Any) -> None:
+        """Add ``part`` of the keyframe stamped ``header.stamp``."""
+        if part not in self.known:
+            raise ValueError(f'unknown part {part!r}')
+        stamp_ns = messages.stamp_to_ns(header.stamp)
+        complete = None
+        with self._lock:
+            last = self._last.get(part)
+            if last is not None and stamp_ns <= last:
+                reason = 'duplicate_stamp' if stamp_ns == last else 'stamp_out_of_order'
+                self.on_drop(
+                    f'{reason}_{part}', f'{part} stamp {messages.ns_to_sec(stamp_ns):.3f} is not newer'
+                )
+                return
+            self._last[part] = stamp_ns
+            if stamp_ns in self._closed:
+                if part in self.required:
+                    self.on_drop(
+                        'late_part', f'{part} of keyframe {messages.ns_to_sec(stamp_ns):.3f} came too late'
+                    )
+                return
+            if part in self.required:
+                self._drop_passed(part, stamp_ns)
+            pairing = self.pending.get(stamp_ns)
+            if pairing is None:
+                pairing = self.pending[stamp_ns] = Pairing(stamp_ns, time.monotonic(), header)
+                while len(self.pending) > self.max_pending:
+                    self._close(min(self.pending), 'pair_overflow', 'dropped: too many keyframes waiting')
+            pairing.parts[part] = value
+            if all(k in pairing.parts for k in self.required):
+                complete = self._close(stamp_ns)
+        if complete is not None:
+            self.on_complete(complete)
+
+    def expire(self, now: float) -> None:
+        """Drop the keyframes that waited longer than ``timeout``."""
+        with self._lock:
+            for stamp_ns in [s for s, p in self.pending.items() if now - p.first_seen > self.timeout]:
+                self._close(stamp_ns, 'pair_timeout', f'waited {self.timeout:g} s')
+
+    def _drop_passed(self, part: str, stamp_ns: int) -> None:
+        for old in sorted(s for s, p in self.pending.items() if s < stamp_ns and part not in p.parts):
+            self._close(old, 'unpaired', f'will not get its {part}')
+
+    def _close(self, stamp_ns: int, reason: str = '', message: str = '') -> Pairing:
+        pairing = self.pending.pop(stamp_ns)
+        self._closed[stamp_ns] = None
+        while len(self._closed) > CLOSED_MEMORY:
+            self._closed.popitem(last=False)
+        if reason:
+            missing = ', '.join(k for k in self.required if k not in pairing.parts) or 'nothing'
+            self.on_drop(
+                reason,
+                f'keyframe {messages.ns_to_sec(stamp_ns):.3f} {message}: missing {missing}',
+            )
+        return pairing

@@ -1,0 +1,148 @@
+"""map_node over real DDS: a synthetic room integrated keyframe by keyframe, saved and checked."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from map_geometry import room_surface_distance
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.data.synthetic import SynthConfig, build_world, render_sequence
+from depth_fusion_ros.mapping import read_ply
+from depth_fusion_ros.nodes.map_node import MapNode
+from depth_fusion_ros.nodes.testing import RosHarness
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+K = m.RCLPY
+FRAME = 'camera_rgb_optical_frame'
+T0 = 1_000_000_000
+
+
+@pytest.fixture(scope='module')
+def room():
+    cfg = SynthConfig(width=160, height=120, frames=16, seed=7)
+    return build_world(cfg)[0], render_sequence(cfg)
+
+
+class _Inputs:
+    def __init__(self, ros: RosHarness) -> None:
+        self.depth = ros.publisher(Image, '/depth_fusion/fused/depth')
+        self.confidence = ros.publisher(Image, '/depth_fusion/fused/confidence')
+        self.info = ros.publisher(CameraInfo, '/depth_fusion/fused/camera_info')
+        self.pose = ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose')
+        self.image = ros.publisher(Image, '/depth_fusion/keyframe/image')
+        assert ros.wait_for_subscribers([self.depth, self.confidence, self.info, self.pose, self.image])
+
+    def keyframe(self, seq, i: int, stamp_ns: int, skip: tuple[str, ...] = (), pose=None) -> None:
+        header = m.header_msg(stamp_ns, FRAME, kind=K)
+        world = m.header_msg(stamp_ns, 'world', kind=K)
+        depth = seq.gt_depth_working(i)
+        confidence = np.full(depth.shape, 0.8, np.float32)
+        parts = {
+            'image': lambda: self.image.publish(m.rgb_image_msg(seq.frames[i].rgb, header, kind=K)),
+            'info': lambda: self.info.publish(m.camera_info_msg(seq.camera, header, kind=K)),
+            'depth': lambda: self.depth.publish(m.depth_image_msg(depth, header, kind=K)),
+            'confidence': lambda: self.confidence.publish(m.image_msg(confidence, '32FC1', header, kind=K)),
+            'pose': lambda: self.pose.publish(pose or m.pose_stamped_msg(seq.frames[i].pose, world, kind=K)),
+        }
+        for name, send in parts.items():
+            if name not in skip:
+                send()
+
+
+def _map_node(ros: RosHarness, **params) -> MapNode:
+    overrides = [Parameter('queue_size', value=16), *(Parameter(k, value=v) for k, v in params.items())]
+    return ros.add(MapNode(context=ros.context, parameter_overrides=overrides))
+
+
+def _call_save(ros: RosHarness) -> Trigger.Response:
+    client = ros.probe.create_client(Trigger, '/map_node/save_map')
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(Trigger.Request())
+    assert ros.wait_for(future.done, 30.0)
+    return future.result()
+
+
+def test_integrates_a_synthetic_room_and_saves_a_mesh_on_its_geometry(room, tmp_path):
+    scene, seq = room
+    path = tmp_path / 'room.ply'
+    with RosHarness() as ros:
+        node = _map_node(ros, save_path=str(path), points_rate=5.0, **{'map.engine': 'torch'})
+        clouds = ros.collect(PointCloud2, '/depth_fusion/map/points')
+        empty = _call_save(ros)
+        assert not empty.success and 'empty' in empty.message and not path.exists()
+        inputs = _Inputs(ros)
+        stamps = [T0 + k * 100_000_000 for k in range(8)]
+        for k, stamp in enumerate(stamps):
+            inputs.keyframe(seq, 2 * k, stamp)
+        assert ros.wait_for(lambda: node.integrated == 8, 30.0), node.stats.snapshot().summary()
+        assert ros.wait_for(lambda: len(clouds) > 0, 10.0)
+        saved = _call_save(ros)
+        assert saved.success, saved.message
+        assert '8 keyframes' in saved.message
+    mesh = read_ply(path)
+    dist = room_surface_distance(scene, mesh.vertices.astype(np.float64))
+    assert len(mesh.triangles) > 1000
+    assert np.median(dist) < 0.015 and np.percentile(dist, 90) < 0.04
+    cloud = clouds[-1]
+    assert cloud.header.frame_id == 'world'
+    xyz = m.pointcloud2_to_numpy(cloud)
+    assert 'rgb' in xyz or 'rgb' in {f.name for f in cloud.fields}
+
+
+def test_pairs_by_stamp_drops_incomplete_and_bad_keyframes_and_saves_on_shutdown(room, tmp_path):
+    _, seq = room
+    path = tmp_path / 'shutdown.ply'
+    with RosHarness() as ros:
+        node = _map_node(ros, save_path=str(path), save_on_shutdown=True, points_rate=0.0)
+        inputs = _Inputs(ros)
+        inputs.keyframe(seq, 0, T0, skip=('pose',))  # the pose of this keyframe never comes
+        bad = m.pose_stamped_msg(seq.frames[2].pose, m.header_msg(T0 + 10**8, 'world', kind=K), kind=K)
+        bad.pose.orientation.w = float('nan')
+        inputs.keyframe(seq, 2, T0 + 10**8, pose=bad)  # unusable pose: dropped, node goes on
+        inputs.keyframe(seq, 4, T0 + 2 * 10**8)
+        assert ros.wait_for(lambda: node.integrated == 1, 30.0), node.stats.snapshot().summary()
+        dropped = node.stats.snapshot().dropped
+        assert dropped.get('bad_pose') == 1
+        assert dropped.get('unpaired', 0) == 2  # keyframes 0 and 1 will never get their pose
+    assert path.exists() and len(read_ply(path).vertices) > 100
+
+
+def test_bad_parameters_fail_at_start():
+    with RosHarness() as ros:
+        with pytest.raises(ValueError, match='save_path'):
+            MapNode(context=ros.context, parameter_overrides=[Parameter('save_path', value='map.obj')])
+        with pytest.raises(ValueError, match=r'map\.engine'):
+            MapNode(context=ros.context, parameter_overrides=[Parameter('map.engine', value='nvblox')])
+
+
+def test_multi_view_node_publishes_each_keyframe_pose_with_its_stamp(room):
+    """What the map node pairs on: the keyframe's interpolated pose, stamped like its image."""
+    from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
+
+    _, seq = room
+    with RosHarness() as ros:
+        params = [Parameter('keyframe_every', value=3), Parameter('queue_size', value=8)]
+        ros.add(MultiViewNode(context=ros.context, parameter_overrides=params))
+        poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')
+        keyframes = ros.collect(Image, '/depth_fusion/keyframe/image')
+        image = ros.publisher(Image, '/camera/rgb/image_color')
+        info = ros.publisher(CameraInfo, '/camera/rgb/camera_info')
+        pose = ros.publisher(PoseStamped, '/camera/pose')
+        assert ros.wait_for_subscribers([image, info, pose])
+        stamps = [T0 + k * 33_000_000 for k in range(8)]
+        for k, stamp in enumerate(stamps):
+            pose.publish(m.pose_stamped_msg(seq.frames[k].pose, m.header_msg(stamp, 'world', kind=K), kind=K))
+            header = m.header_msg(stamp, FRAME, kind=K)
+            info.publish(m.camera_info_msg(seq.camera, header, kind=K))
+            image.publish(m.rgb_image_msg(seq.frames[k].rgb, header, kind=K))
+        assert ros.wait_for(lambda: len(poses) == 2 and len(keyframes) == 2, 20.0)
+    assert [m.stamp_to_ns(p.header.stamp) for p in poses] == [stamps[3], stamps[6]]
+    assert [m.stamp_to_ns(k.header.stamp) for k in keyframes] == [stamps[3], stamps[6]]
+    assert all(p.header.frame_id == 'world' for p in poses)
+    np.testing.assert_allclose(m.pose_stamped_to_matrix(poses[0]), seq.frames[3].pose, atol=1e-6)
