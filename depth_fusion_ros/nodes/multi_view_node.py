@@ -56,6 +56,7 @@ from .image_input import (
     working_grid_parameters,
 )
 from .info_wait import AwaitingCalibration
+from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .qos import qos_profile
 
@@ -197,6 +198,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     *dataclass_specs(
         MultiViewConfig, 'multi_view', MULTI_VIEW_DESCRIPTIONS, MULTI_VIEW_LIMITS, skip=MULTI_VIEW_SKIP
     ),
+    *FILTER_PARAMETERS,
 )
 
 
@@ -234,6 +236,12 @@ class MultiViewNode(DepthFusionNode):
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
         self.device = str(p['device'])
+        try:
+            self.filter_feed = FilterFeed.from_parameters(
+                p, self.config, self.device, lambda message: self.stats.dropped('filter_behind', message)
+            )
+        except ValueError as exc:
+            raise ValueError(f'{self.get_name()}: {exc}') from None
         self.pose_buffer = PoseBuffer(capacity=int(p['pose_buffer_size']), max_gap=float(p['max_pose_gap']))
         self.frames: deque[Frame] = deque(maxlen=self.neighbour_config.window)
         self.pending: deque[_Pending] = deque()
@@ -419,6 +427,8 @@ class MultiViewNode(DepthFusionNode):
         image = pending.image
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
+        if self.filter_feed is not None:
+            self.filter_feed.append(frame)  # the filter sees every posed frame
         if self._is_keyframe_candidate(frame):
             neighbours = self._select_neighbours(frame, image.camera)
             if len(neighbours) >= int(self.params['min_neighbours']):
@@ -465,6 +475,21 @@ class MultiViewNode(DepthFusionNode):
 
     # --- worker (heavy) -----------------------------------------------------------------------------
 
+    def _estimate(self, job: _KeyframeJob) -> Any:
+        """The keyframe's multi-view result: the filter's (fed every posed frame) or the sweep's."""
+        if self.filter_feed is not None:
+            return self.filter_feed.result_for(job.key, job.camera)
+        return estimate_semidense(
+            job.key.gray,
+            job.key.pose,
+            [f.gray for f in job.neighbours],
+            [f.pose for f in job.neighbours],
+            job.camera,
+            self.config,
+            device=self.device,
+            neighbours=[f.index for f in job.neighbours],
+        )
+
     def _process(self, job: _KeyframeJob) -> None:
         kind = messages.RCLPY
         self._kf_info_pub.publish(messages.camera_info_msg(job.camera, job.header, kind=kind))
@@ -473,16 +498,7 @@ class MultiViewNode(DepthFusionNode):
         self._kf_pose_pub.publish(messages.pose_stamped_msg(job.key.pose, pose_header, kind=kind))
         self.stats.published('keyframe')
         try:
-            result = estimate_semidense(
-                job.key.gray,
-                job.key.pose,
-                [f.gray for f in job.neighbours],
-                [f.pose for f in job.neighbours],
-                job.camera,
-                self.config,
-                device=self.device,
-                neighbours=[f.index for f in job.neighbours],
-            )
+            result = self._estimate(job)
             depth, score = result.depth, result.score.astype(np.float32)
         except Exception as exc:  # the keyframe is announced: downstream must still hear of it
             self.stats.dropped('processing_error', f'multi-view search failed: {type(exc).__name__}: {exc}')

@@ -9,7 +9,9 @@
 The fusion methods reuse the per-keyframe result through :func:`multi_view_result` and the
 neighbours through :func:`neighbour_indices`. Options honoured: ``--neighbour-mode``,
 ``--neighbours``, ``--device``, and ``--set multi_view.<field>=...`` (``MultiViewConfig``),
-``--set neighbours.<field>=...`` (``NeighbourConfig``), ``--set tv.<field>=...`` (``TVConfig``).
+``--set neighbours.<field>=...`` (``NeighbourConfig``), ``--set tv.<field>=...`` (``TVConfig``),
+``--set multi_view.method=filter`` (the temporal depth filter run over *every* frame of the
+sequence up to each keyframe, in order; ``--set filter.<field>=...``, ``FilterConfig``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import logging
 
 import numpy as np
 
+from ...multiview.filter_config import MULTI_VIEW_METHODS, FilterConfig
+from ...multiview.filter_stream import FilterStream
 from ...multiview.neighbours import NeighbourConfig, select_neighbours
 from ...multiview.params import apply_overrides
 from ...multiview.semidense import MultiViewConfig, MultiViewResult, empty_result, estimate_semidense
@@ -31,11 +35,32 @@ log = logging.getLogger(__name__)
 MULTI_VIEW_STAGE = 'multi_view'
 NEIGHBOURS_STAGE = 'neighbours'
 TV_STAGE = 'tv'
+FILTER_STAGE = 'filter'
+#: ``--set multi_view.method=sweep|filter``: not a ``MultiViewConfig`` field, read here.
+METHOD_PARAM = 'method'
+DEFAULT_METHOD = 'sweep'
+
+
+def multi_view_method(ctx: KeyframeContext) -> str:
+    """``sweep`` (the paper's per-keyframe search) or ``filter`` (the temporal depth filter)."""
+    method = str(ctx.stage_params(MULTI_VIEW_STAGE).get(METHOD_PARAM, DEFAULT_METHOD))
+    if method not in MULTI_VIEW_METHODS:
+        raise ValueError(f'multi_view.method must be one of {", ".join(MULTI_VIEW_METHODS)}, got {method!r}')
+    return method
+
+
+def filter_config(ctx: KeyframeContext) -> FilterConfig:
+    """``FilterConfig`` with the run's ``--set filter.*`` overrides (checked)."""
+    config = apply_overrides(FilterConfig(), ctx.stage_params(FILTER_STAGE), FILTER_STAGE)
+    config.validate()
+    return config
 
 
 def multi_view_config(ctx: KeyframeContext) -> MultiViewConfig:
     """``MultiViewConfig`` with the run's ``--set multi_view.*`` overrides (checked)."""
-    config = apply_overrides(MultiViewConfig(), ctx.stage_params(MULTI_VIEW_STAGE), MULTI_VIEW_STAGE)
+    params = ctx.stage_params(MULTI_VIEW_STAGE)
+    params.pop(METHOD_PARAM, None)
+    config = apply_overrides(MultiViewConfig(), params, MULTI_VIEW_STAGE)
     config.validate()
     return config
 
@@ -74,10 +99,26 @@ def _neighbour_views(ctx: KeyframeContext, indices: list[int]) -> tuple[list[np.
     return [frames[i].gray for i in indices], [frames[i].pose for i in indices]
 
 
+def _filter_result(ctx: KeyframeContext) -> MultiViewResult:
+    """The depth filter run over every frame of the sequence up to this keyframe, in order."""
+    config, matching = filter_config(ctx), multi_view_config(ctx)
+    frames = ctx.sequence.frames
+
+    def make() -> FilterStream:
+        return FilterStream(
+            lambda i: (frames[i].gray, frames[i].pose), ctx.camera, config, matching, ctx.options.device
+        )
+
+    stream = ctx.shared_cached(f'multi_view:filter:{config}:{matching}', make)
+    return stream.result_at(ctx.index)
+
+
 def multi_view_result(ctx: KeyframeContext) -> MultiViewResult:
-    """The semi-dense estimate of this keyframe, computed once per keyframe (memoised)."""
+    """The multi-view estimate of this keyframe (sweep or filter), computed once per keyframe."""
 
     def compute() -> MultiViewResult:
+        if multi_view_method(ctx) == 'filter':
+            return _filter_result(ctx)
         indices = neighbour_indices(ctx)
         if not indices:
             log.warning(

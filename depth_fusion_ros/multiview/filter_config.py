@@ -1,0 +1,100 @@
+"""Parameters of the temporal inverse-depth filter (``multi_view.method: filter``).
+
+They live apart from ``MultiViewConfig`` (the paper's sweep) so that the two methods can be
+tuned independently; the matching itself (patch, blur, descriptor channels, noise floor) is
+shared: the filter takes those fields from the ``MultiViewConfig`` it is given, so one
+``multi_view.patch`` setting changes both methods the same way.
+
+Defaults were chosen on the synthetic rooms (``data.synthetic``: high and low parallax,
+rotation-heavy and wide-baseline motion), never on the shared real sequences.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+#: The multi-view methods: the paper's per-keyframe sweep and the temporal filter.
+MULTI_VIEW_METHODS = ('sweep', 'filter')
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Gaussian x uniform inverse-depth filter (Vogiatzis & Hernandez 2011; SVO, REMODE)."""
+
+    #: Candidate pixels: the strongest this fraction of the image (gradient at least
+    #: ``multi_view.min_gradient``). Larger than the sweep's: a filter pixel is cheap.
+    max_candidate_fraction: float = 0.3
+    #: Std of the matching error along the epipolar line (px): the measurement variance is
+    #: ``(pixel_sigma / J)^2`` with ``J`` the epipolar motion per unit inverse depth.
+    pixel_sigma: float = 1.0
+    #: Search interval: the prior mean +- ``search_sigmas`` standard deviations.
+    search_sigmas: float = 2.0
+    #: Samples of a short search (a converged pixel) and of a long one (a new pixel).
+    short_samples: int = 8
+    long_samples: int = 32
+    #: A search is short when its interval spans at most this many pixels per sample.
+    max_step_px: float = 1.0
+    #: Fine samples on each side of the best coarse sample of a long search.
+    refine_samples: int = 2
+    #: Long searches a pixel without an estimate gets per keyframe (texture-less pixels never match).
+    seed_attempts: int = 2
+    #: A match whose cost (1 - ZNCC) is above this is a failed observation (an outlier vote).
+    max_cost: float = 0.4
+    #: New pixels (long search) need a distinct minimum: modified second-best ratio at least this.
+    min_distinctiveness: float = 0.1
+    #: Beta prior of a new pixel's inlier ratio (a, b): 10, 10 as SVO.
+    init_a: float = 10.0
+    init_b: float = 10.0
+    #: Estimates are dropped when the inlier ratio ``a / (a + b)`` falls below this ...
+    min_inlier_ratio: float = 0.3
+    #: ... and published only when it is at least this and they have ``min_updates`` measurements.
+    publish_inlier_ratio: float = 0.55
+    min_updates: int = 2
+    #: Published only when the inverse-depth std is at most this fraction of the inverse depth.
+    max_relative_sigma: float = 0.1
+    #: A frame updates the keyframe only with baseline / scene depth at least this (parallax) ...
+    min_parallax: float = 0.01
+    #: ... and a rotation to the keyframe of at most this (the patch must keep its shape).
+    max_rotation_deg: float = 20.0
+    #: A frame becomes the new filter keyframe at this parallax, rotation or visible fraction.
+    keyframe_parallax: float = 0.12
+    keyframe_rotation_deg: float = 12.0
+    keyframe_min_visible: float = 0.6
+    #: Propagation into a new keyframe: the variance grows by this factor, plus this relative std.
+    propagation_inflation: float = 1.5
+    propagation_relative_sigma: float = 0.01
+    #: Scene depth (m) assumed before any estimate exists (parallax of the first frames).
+    scene_depth: float = 1.5
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad ``filter.<parameter>``."""
+        checks = (
+            ('max_candidate_fraction', 0 < self.max_candidate_fraction <= 1, 'in (0, 1]'),
+            ('pixel_sigma', self.pixel_sigma > 0, 'positive'),
+            ('search_sigmas', self.search_sigmas > 0, 'positive'),
+            ('short_samples', self.short_samples >= 3, '>= 3'),
+            ('long_samples', self.long_samples >= 3, '>= 3'),
+            ('max_step_px', self.max_step_px > 0, 'positive'),
+            ('refine_samples', self.refine_samples >= 1, '>= 1'),
+            ('seed_attempts', self.seed_attempts >= 1, '>= 1'),
+            ('max_cost', 0 < self.max_cost <= 2, 'in (0, 2]'),
+            ('init_a', self.init_a > 0, 'positive'),
+            ('init_b', self.init_b > 0, 'positive'),
+            ('min_inlier_ratio', 0 <= self.min_inlier_ratio < 1, 'in [0, 1)'),
+            ('publish_inlier_ratio', 0 <= self.publish_inlier_ratio <= 1, 'in [0, 1]'),
+            ('min_updates', self.min_updates >= 1, '>= 1'),
+            ('max_relative_sigma', self.max_relative_sigma > 0, 'positive'),
+            ('min_parallax', self.min_parallax >= 0, '>= 0'),
+            ('keyframe_parallax', self.keyframe_parallax > self.min_parallax, '> filter.min_parallax'),
+            ('keyframe_min_visible', 0 <= self.keyframe_min_visible <= 1, 'in [0, 1]'),
+            ('propagation_inflation', self.propagation_inflation >= 1, '>= 1'),
+            ('propagation_relative_sigma', self.propagation_relative_sigma >= 0, '>= 0'),
+            ('scene_depth', self.scene_depth > 0 and math.isfinite(self.scene_depth), 'positive'),
+        )
+        for name, ok, what in checks:
+            if not ok:
+                raise ValueError(f'filter.{name} must be {what}, got {getattr(self, name)}')
+        for name in ('max_rotation_deg', 'keyframe_rotation_deg'):
+            if not (0 < getattr(self, name) <= 180):
+                raise ValueError(f'filter.{name} must be in (0, 180], got {getattr(self, name)}')

@@ -1,0 +1,73 @@
+"""The filter's published estimate as a ``MultiViewResult``, so selection and fusion work unchanged.
+
+Field by field (a pixel is published once its inlier ratio, its number of measurements and
+its relative inverse-depth std pass the ``filter.*`` thresholds):
+
+* ``depth`` = ``1 / mu``; ``depth_std`` = ``sigma / mu^2`` (m), the posterior std;
+* ``geometric_score`` = ``1 / sigma`` (the posterior inverse-depth std: every frame that
+  matched it adds its ``J^2 / pixel_sigma^2``, as the sweep's one-pixel score sums its
+  neighbours' ``J^2``);
+* ``photometric_score`` = the inlier ratio ``a / (a + b)``: how often the pixel's patch was
+  found where the estimate says (the filter's analogue of a distinct photometric minimum);
+* ``score`` = their product: what stage 1 of the point selection ranks by;
+* ``cost`` = the last matching cost ``1 - ZNCC``;
+* and, beyond ``MultiViewResult``: ``variance`` (inverse depth squared), ``inlier_ratio`` and
+  ``updates`` (measurements fused), for fusion weights and diagnostics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..camera import PinholeCamera
+from .semidense import MultiViewResult
+
+
+@dataclass
+class FilterResult(MultiViewResult):
+    """``MultiViewResult`` plus the filter's per-pixel posterior (NaN where no estimate)."""
+
+    variance: np.ndarray | None = None
+    inlier_ratio: np.ndarray | None = None
+    updates: np.ndarray | None = None
+
+
+def assemble_result(
+    camera: PinholeCamera,
+    target: torch.Tensor,
+    mu: torch.Tensor,
+    var: torch.Tensor,
+    inlier: torch.Tensor,
+    updates: torch.Tensor,
+    cost: torch.Tensor,
+    candidates: torch.Tensor,
+) -> FilterResult:
+    """Scatter published estimates (flat pixel indices ``target``) into NaN-filled (H, W) maps."""
+    shape = (camera.height, camera.width)
+    idx = target.cpu().numpy()
+
+    def image(values: torch.Tensor) -> np.ndarray:
+        out = np.full(shape[0] * shape[1], np.nan, dtype=np.float32)
+        out[idx] = values.detach().cpu().numpy().astype(np.float32)
+        return out.reshape(shape)
+
+    sigma = torch.sqrt(var)
+    geometric = 1.0 / torch.clamp(sigma, min=1e-12)
+    return FilterResult(
+        depth=image(1.0 / mu),
+        depth_std=image(sigma / (mu * mu)),
+        photometric_score=image(inlier),
+        geometric_score=image(geometric),
+        score=image(inlier * geometric),
+        cost=image(cost),
+        candidates=candidates.cpu().numpy().reshape(shape),
+        camera=camera,
+        distinctiveness=image(inlier),
+        sharpness=np.full(shape, np.nan, dtype=np.float32),
+        variance=image(var),
+        inlier_ratio=image(inlier),
+        updates=image(updates.to(mu.dtype)),
+    )

@@ -1,0 +1,170 @@
+"""The temporal inverse-depth filter (multi_view.method: filter) on synthetic rooms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from depth_fusion_ros.multiview.filter import KEYFRAME, SKIPPED, UPDATED, DepthFilter
+from depth_fusion_ros.multiview.filter_config import FilterConfig
+from depth_fusion_ros.multiview.filter_stream import FilterStream
+from depth_fusion_ros.multiview.filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
+from depth_fusion_ros.multiview.neighbours import select_neighbours
+from depth_fusion_ros.multiview.semidense import estimate_semidense, select_best_fraction
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+
+def _abs_rel(depth: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    valid = np.isfinite(depth) & np.isfinite(gt) & (gt > 0)
+    if mask is not None:
+        valid &= mask
+    return np.abs(depth[valid] - gt[valid]) / gt[valid]
+
+
+@pytest.fixture(scope='module')
+def filtered(synthetic_sequence):
+    """The filter run over the whole high-parallax sequence, and its result in the last frame."""
+    seq = synthetic_sequence
+    f = DepthFilter(seq.camera)
+    actions = [f.process(fr.gray, fr.pose) for fr in seq.frames]
+    return f, actions, f.result(seq.frames[-1].pose)
+
+
+def test_filter_converges_to_the_true_depth_better_than_the_sweep(synthetic_sequence, filtered):
+    seq = synthetic_sequence
+    f, actions, result = filtered
+    last = len(seq) - 1
+    gt = seq.gt_depth_working(last)
+    assert actions[0] == KEYFRAME and UPDATED in actions
+    assert f.stats.frames == len(seq) and f.stats.updated + f.stats.skipped + f.stats.keyframes == len(seq)
+    rel = _abs_rel(result.depth, gt)
+    assert result.density > 0.1, result.density
+    assert np.median(rel) < 0.03, np.median(rel)
+    # The sweep on the same frame (online neighbours: the past, as the filter) at equal density:
+    # the filter's best estimates by score, as many as the sweep has, are more accurate.
+    chosen = select_neighbours(seq.poses, last, 4, 'online', seq.camera)
+    sweep = estimate_semidense(
+        seq.frames[last].gray,
+        seq.frames[last].pose,
+        [seq.frames[i].gray for i in chosen],
+        [seq.frames[i].pose for i in chosen],
+        seq.camera,
+    )
+    n = int(sweep.valid.sum())
+    assert result.valid.sum() >= n
+    best = np.zeros(result.depth.shape, bool)
+    flat = np.flatnonzero(result.valid)
+    best.ravel()[flat[np.argsort(-result.score.ravel()[flat])[:n]]] = True
+    filter_error = np.mean(_abs_rel(result.depth, gt, best))
+    sweep_error = np.mean(_abs_rel(sweep.depth, gt))
+    assert filter_error < sweep_error, (filter_error, sweep_error)
+    # Its own fields: variance, inlier ratio and update counts where there is an estimate.
+    assert np.array_equal(np.isfinite(result.variance), result.valid)
+    assert np.nanmin(result.inlier_ratio) >= FilterConfig().publish_inlier_ratio
+    assert np.nanmin(result.updates) >= FilterConfig().min_updates
+    # Selection works unchanged on it.
+    assert select_best_fraction(result, 0.25).sum() == round(0.25 * result.valid.sum())
+
+
+def test_variance_shrinks_with_frames(synthetic_sequence):
+    seq = synthetic_sequence
+    f = DepthFilter(
+        seq.camera, FilterConfig(keyframe_parallax=10.0, keyframe_rotation_deg=90.0, keyframe_min_visible=0.0)
+    )
+    medians = []
+    for i, fr in enumerate(seq.frames[:12]):
+        f.process(fr.gray, fr.pose)
+        if i in (4, 11):
+            r = f.result()
+            medians.append((np.nanmedian(np.sqrt(r.variance) * r.depth), np.nanmedian(r.updates)))
+    assert f.stats.keyframes == 1
+    (early_sigma, early_n), (late_sigma, late_n) = medians
+    assert late_n > early_n
+    assert late_sigma < 0.7 * early_sigma, medians
+
+
+def test_estimates_are_propagated_into_the_next_keyframe(synthetic_sequence):
+    seq = synthetic_sequence
+    f = DepthFilter(seq.camera)
+    i = 0
+    while f.stats.keyframes < 2:
+        f.process(seq.frames[i].gray, seq.frames[i].pose)
+        i += 1
+    key = i - 1
+    # The new keyframe holds estimates with several measurements: only propagation brings them.
+    carried = f.key.updates >= 3
+    assert int(carried.sum()) > 0.05 * f.key.flat.numel()
+    r = f.result()
+    gt = seq.gt_depth_working(key)
+    many = np.nan_to_num(r.updates) >= 3
+    assert many.sum() > 500
+    assert np.median(_abs_rel(r.depth, gt, many)) < 0.03
+
+
+def test_outliers_lower_the_inlier_ratio():
+    mu, var = torch.tensor([0.5, 0.5]), torch.tensor([1e-4, 1e-4])
+    prior = BetaGaussian(mu, var, torch.tensor([10.0, 10.0]), torch.tensor([10.0, 10.0]))
+    tau2 = torch.tensor([1e-4, 1e-4])
+    state = prior
+    for _ in range(5):  # pixel 0 keeps agreeing, pixel 1 gets far-off measurements
+        state = gaussian_uniform_update(state, torch.tensor([0.5, 2.0]), tau2, (0.1, 5.0))
+    assert state.inlier_ratio[0] > 0.55 > 0.45 > state.inlier_ratio[1]
+    assert abs(float(state.mu[1]) - 0.5) < 0.05  # the outliers barely moved the estimate
+    assert float(state.var[0]) < 1e-4 / 4
+    failed = outlier_vote(prior, torch.tensor([False, True]))
+    assert failed.inlier_ratio[1] < failed.inlier_ratio[0]
+
+
+def test_occluding_outliers_are_dropped_in_the_filter(synthetic_sequence):
+    """Frames whose image is another scene (a wrong frame in the stream) give outlier votes."""
+    seq = synthetic_sequence
+    config = FilterConfig(keyframe_parallax=10.0, keyframe_rotation_deg=90.0, keyframe_min_visible=0.0)
+    f = DepthFilter(seq.camera, config)
+    for fr in seq.frames[:8]:
+        f.process(fr.gray, fr.pose)
+    before = f.key.state.inlier_ratio[f.key.updates > 0].mean()
+    rng = np.random.default_rng(0)
+    for fr in seq.frames[8:12]:
+        f.process(rng.random(fr.gray.shape).astype(np.float32), fr.pose)  # noise instead of the room
+    after = f.key.state.inlier_ratio[f.key.updates > 0].mean()
+    assert after < before - 0.05, (before, after)
+
+
+def test_frames_without_baseline_are_skipped(synthetic_sequence):
+    seq = synthetic_sequence
+    f = DepthFilter(seq.camera)
+    assert f.process(seq.frames[0].gray, seq.frames[0].pose) == KEYFRAME
+    assert f.process(seq.frames[0].gray, seq.frames[0].pose) == SKIPPED
+    assert f.result().density == 0.0
+
+
+def test_stream_restarts_when_asked_for_an_earlier_frame(synthetic_sequence):
+    seq = synthetic_sequence
+    calls = []
+
+    def frame(i):
+        calls.append(i)
+        return seq.frames[i].gray, seq.frames[i].pose
+
+    stream = FilterStream(frame, seq.camera)
+    stream.result_at(3)
+    stream.result_at(5)
+    assert calls == [0, 1, 2, 3, 3, 4, 5, 5]  # each frame fed once, in order (+ the pose asked for)
+    assert stream.next_index == 6
+    stream.result_at(1)
+    assert stream.next_index == 2 and stream.filter.stats.frames == 2
+
+
+def test_bad_parameters_and_inputs_raise(synthetic_sequence):
+    seq = synthetic_sequence
+    with pytest.raises(ValueError, match=r'filter\.pixel_sigma'):
+        DepthFilter(seq.camera, FilterConfig(pixel_sigma=0.0))
+    with pytest.raises(ValueError, match=r'filter\.keyframe_parallax'):
+        FilterConfig(keyframe_parallax=0.001).validate()
+    f = DepthFilter(seq.camera)
+    with pytest.raises(ValueError, match='frame image'):
+        f.process(np.zeros((10, 10), np.float32), seq.frames[0].pose)
+    with pytest.raises(ValueError, match='frame pose'):
+        f.process(seq.frames[0].gray, np.full((4, 4), np.nan))
