@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -213,6 +213,53 @@ def data_confidence(volume: torch.Tensor) -> torch.Tensor:
     return ((mean - volume.min(dim=1, keepdim=True).values) / mean.clamp(min=1e-6)).clamp(0.0, 1.0)
 
 
+def _primal_dual_step(
+    qx: torch.Tensor,
+    qy: torch.Tensor,
+    d: torch.Tensor,
+    a: torch.Tensor,
+    g: torch.Tensor,
+    sigma_q: float,
+    tau_d: float,
+    eps: float,
+    theta: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One Chambolle-Pock iteration of the Huber-TV problem coupled to ``a``: dual ascent on
+    ``q`` (projected on the unit ball), then primal descent on ``d``."""
+    gx, gy = _grad(d)
+    qx = (qx + sigma_q * g * gx) / (1.0 + sigma_q * eps)
+    qy = (qy + sigma_q * g * gy) / (1.0 + sigma_q * eps)
+    norm = torch.clamp(torch.sqrt(qx * qx + qy * qy), min=1.0)
+    qx, qy = qx / norm, qy / norm
+    d = (d + tau_d * (g * _div(qx, qy) + a / theta)) / (1.0 + tau_d / theta)
+    return qx, qy, d
+
+
+_COMPILED_STEP: dict[str, Callable] = {}
+
+
+def _primal_dual_step_for(device: torch.device) -> Callable:
+    """The iteration as one fused kernel on a GPU (``torch.compile``; ~25 launches otherwise,
+    which dominate there), eager on a CPU. Falls back to eager, logged once, if compiling fails."""
+    if device.type == 'cpu' or _COMPILED_STEP.get(device.type) is False:
+        return _primal_dual_step
+    if device.type not in _COMPILED_STEP:
+        _COMPILED_STEP[device.type] = torch.compile(_primal_dual_step, dynamic=False)
+    compiled = _COMPILED_STEP[device.type]
+
+    def guarded(*args: object) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        if _COMPILED_STEP.get(device.type) is False:
+            return _primal_dual_step(*args)
+        try:
+            return compiled(*args)
+        except Exception as exc:  # the compiler stack raises many types; any failure means eager
+            _COMPILED_STEP[device.type] = False
+            log.warning('torch.compile of the TV iteration failed on %s (%s); using eager', device, exc)
+            return _primal_dual_step(*args)
+
+    return guarded
+
+
 def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> torch.Tensor:
     """Normalised inverse depth ``d`` (H, W) in [0, 1] minimising the decoupled Huber-TV energy."""
     h, w = gray.shape
@@ -236,15 +283,16 @@ def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> to
     theta = config.theta_start
     weighted = volume * weight
     cost_range = float((weighted.max(dim=1).values - weighted.min(dim=1).values).max())
+    thetas = []
     for _ in range(config.iterations):
-        gx, gy = _grad(d)
-        qx = (qx + sigma_q * g * gx) / (1.0 + sigma_q * eps)
-        qy = (qy + sigma_q * g * gy) / (1.0 + sigma_q * eps)
-        norm = torch.clamp(torch.sqrt(qx * qx + qy * qy), min=1.0)
-        qx, qy = qx / norm, qy / norm
-        d = (d + tau_d * (g * _div(qx, qy) + a / theta)) / (1.0 + tau_d / theta)
-        a = _point_search(weighted, d, theta, cost_range)
+        thetas.append(theta)
         theta = max(theta * config.theta_decay, config.theta_end)
+    # theta as a 0-d tensor: a compiled step must not be specialised (recompiled) per value.
+    theta_t = torch.tensor(thetas, dtype=d.dtype, device=d.device)
+    step = _primal_dual_step_for(volume.device)
+    for i, theta in enumerate(thetas):
+        qx, qy, d = step(qx, qy, d, a, g, sigma_q, tau_d, eps, theta_t[i])
+        a = _point_search(weighted, d, theta, cost_range)
     return a
 
 
