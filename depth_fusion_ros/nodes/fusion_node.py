@@ -35,7 +35,7 @@ from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_
 from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig, select_best_fraction
 from .base import DepthFusionNode, run_node
-from .fusion_warmup import start_kernels
+from .fusion_warmup import finish_compiling, start_kernels
 from .graph_events import EVENT_FUSED, GraphEvents
 from .image_input import InputError, StampGuard, depth_from_message, header_stamp_ns
 from .params import ParamSpec, build_dataclass, dataclass_specs
@@ -301,6 +301,10 @@ class FusionNode(DepthFusionNode):
     def _missing(self, pairing: _Pairing) -> str:
         missing = [k for k in self.required if k not in pairing.parts]
         return 'missing ' + ', '.join(missing) if missing else 'complete'
+
+    def destroy_node(self) -> None:
+        finish_compiling(self)
+        super().destroy_node()
 
     # --- worker ---------------------------------------------------------------------------------------
 

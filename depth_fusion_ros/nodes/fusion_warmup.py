@@ -45,5 +45,16 @@ def start_kernels(node: Any, config: FusionConfig, background: bool) -> FusionCo
             f'fusion kernels compiled in the background in {time.monotonic() - start:.1f} s; switched'
         )
 
-    threading.Thread(target=compile_then_switch, name='fusion-compile', daemon=True).start()
+    node.compile_thread = threading.Thread(target=compile_then_switch, name='fusion-compile', daemon=True)
+    node.compile_thread.start()
     return dataclasses.replace(config, compile_kernel=False)
+
+
+def finish_compiling(node: Any, timeout: float = 300.0) -> None:
+    """Wait for a background compilation still running (at shutdown): a process that exits
+    while torch compiles on another thread aborts in torch's C++ teardown."""
+    thread = getattr(node, 'compile_thread', None)
+    if thread is None or not thread.is_alive():
+        return
+    node.get_logger().info('waiting for the background compilation of the fusion kernels to end')
+    thread.join(timeout)
