@@ -191,7 +191,12 @@ def measure_run(
     reasons = drop_reasons(result)
     log_drops = _drop_note(result, BENCH_DIR / 'logs' if processes else None)
     rows = [
-        BenchRow(f'{mode}: time to ready, {n.removesuffix("_node")}', t, 's')
+        BenchRow(
+            f'{mode}: time to ready, {n.removesuffix("_node")}',
+            t,
+            's',
+            f'constructor {result.constructor_seconds[n]:.1f} s' if n in result.constructor_seconds else '',
+        )
         for n, t in result.ready_seconds.items()
     ]
     rows += [

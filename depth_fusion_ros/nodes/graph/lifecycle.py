@@ -425,6 +425,9 @@ class GraphRun:
             drops=self.ledger.snapshot().dropped,
             paced=not self.options.realtime,
             ready_seconds=dict(self.ready_seconds),
+            constructor_seconds={
+                n: st.seconds for n in GRAPH_NODES if (st := self.ready.statuses.get('/' + n)) is not None
+            },
             missing=self.pending_keyframes(),
             recorded=None,
             counts=dict(self.recorder.counts),

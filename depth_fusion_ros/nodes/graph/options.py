@@ -82,6 +82,8 @@ class RunResult:
     paced: bool = True
     #: Per node, seconds from its start to its "ready" line (time-to-ready).
     ready_seconds: dict[str, float] = field(default_factory=dict)
+    #: Per node, of those the seconds its constructor took (the rest: interpreter, imports).
+    constructor_seconds: dict[str, float] = field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
@@ -90,4 +92,3 @@ class RunResult:
 
 class GraphError(RuntimeError):
     """The graph could not run to the end (a node died, the replayer failed)."""
-
