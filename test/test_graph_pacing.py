@@ -102,6 +102,7 @@ def test_paced_replay_fuses_every_keyframe_of_a_slow_graph(bag, toy_model):
     assert len(result.chosen) >= 15  # 24 frames, every one but the first (no neighbour yet)
     assert result.drops == {} and result.missing == {}
     assert sorted(result.fused) == result.chosen
+    assert result.images_handled == result.images_played == 24  # every image reached the policy
     assert result.paced and set(result.ready_seconds) == {
         'single_view_node',
         'multi_view_node',
