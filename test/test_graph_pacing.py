@@ -253,3 +253,29 @@ def test_keyframes_dropped_before_announcement_are_announced_as_dropped(syntheti
     assert len(dropped) == snap.dropped.get('worker_queue_full', 0) > 0
     assert sorted(announced + dropped) == chosen  # every chosen keyframe: announced or dropped
     assert np.all(np.diff(chosen) > 0)
+
+
+def test_run_cli_is_paced_unless_realtime(tmp_path):
+    """``depth-fusion run`` is paced by default; ``--realtime`` reaches the runner, and the
+    replayer and node settings follow (what the user set wins)."""
+    import argparse
+
+    from depth_fusion_ros.cli import run as run_cli
+    from depth_fusion_ros.nodes.graph.pacing import paced_overrides
+
+    parser = argparse.ArgumentParser()
+    run_cli.register(parser.add_subparsers())
+    paced = run_cli.options_from_args(parser.parse_args(['run', '--bag', 'x.bag']))
+    live = run_cli.options_from_args(
+        parser.parse_args(
+            ['run', '--bag', 'x.bag', '--realtime', '--set', 'fusion_node.queue_policy=drop_new']
+        )
+    )
+    assert not paced.realtime and live.realtime
+    p = paced_overrides(paced, {})
+    assert p['bag_replayer']['pace'] is True and p['bag_replayer']['wait_for_nodes'] == ['']
+    assert p['bag_replayer']['wait_ready'] == ['single_view_node', 'multi_view_node', 'fusion_node']
+    assert {p[n]['queue_policy'] for n in ('single_view_node', 'multi_view_node', 'fusion_node')} == {'block'}
+    r = paced_overrides(live, {'fusion_node': {'queue_policy': 'drop_new'}})
+    assert r['bag_replayer']['pace'] is False and r['fusion_node']['queue_policy'] == 'drop_new'
+    assert 'queue_policy' not in r.get('multi_view_node', {})
