@@ -103,8 +103,9 @@ def generate_launch_description() -> LaunchDescription:
                 'bag': bag,
                 'publish_clock': use_sim_time,
                 'use_sim_time': False,
-                # play only once the graph is up, so the first frames are not lost
-                'wait_for_nodes': ['multi_view_node', 'single_view_node', 'fusion_node'],
+                # play only once every node said it is ready (its /depth_fusion/ready line),
+                # so the first frames are not lost
+                'wait_ready': ['multi_view_node', 'single_view_node', 'fusion_node'],
             },
         ],
         condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),

@@ -149,6 +149,8 @@ def test_bad_inputs_are_dropped_counted_and_processing_goes_on(synthetic_sequenc
                     Parameter('keyframe_every', value=3),
                     Parameter('max_pose_gap', value=0.1),
                     Parameter('queue_size', value=10),
+                    # drop at once (the default waits for a late camera_info: test_graph_pacing)
+                    Parameter('camera_info_wait', value=0.0),
                 ],
             )
         )

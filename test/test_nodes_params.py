@@ -223,5 +223,7 @@ def test_a_namespace_moves_every_topic_of_a_node():
         '/robot1/depth_fusion/fused/confidence',
         '/robot1/depth_fusion/fused/depth',
         '/robot1/depth_fusion/fused/points',
+        '/robot1/depth_fusion/keyframe/events',
+        '/robot1/depth_fusion/ready',
     ]
     assert all(topic.startswith('/robot1/depth_fusion/') for topic in subscribed), subscribed

@@ -2,11 +2,16 @@
 
 Replays the first 100 frames of a sequence (``--sequence DIR``, converted once to a rosbag2
 under ``artifacts/bench/``; a synthetic room when none is given) at the recorded 30 Hz
-through the whole graph, composed and as processes, with the nodes' default parameters, and
-reports:
+through the whole graph with the nodes' default parameters, in several runs (mode, pacing,
+rate; ``DEPTH_FUSION_BENCH_GRAPH_RUNS``, default ``processes:paced:1,processes:realtime:1,
+composed:paced:1,composed:realtime:1,processes:paced:10``: the last one plays 10x faster than
+recorded, paced, so the graph runs flat out: its throughput is the highest sustainable
+keyframe rate). Per run it reports:
 
-* keyframes expected (every ``keyframe_every``-th frame), fused, and dropped on the way;
-* fused keyframes per second of playback;
+* time-to-ready of each node (start -> its "ready" line);
+* keyframes the policy chose, fused, and dropped by node and reason (the run's summary);
+* fused keyframes per second of the run (first image sent -> last keyframe fused), and of
+  playback at the recorded rate (fused / recorded seconds);
 * end-to-end latency per keyframe: input image arrival -> fused depth arrival, both seen by the
   runner's recorder (so it includes DDS transport both ways);
 * peak resident memory (this process when composed; the sum of the node processes' peaks
@@ -37,6 +42,10 @@ log = logging.getLogger(__name__)
 BENCH_DIR = Path('artifacts') / 'bench'
 SOAK_ENV = 'DEPTH_FUSION_BENCH_SOAK_SECONDS'
 MODES_ENV = 'DEPTH_FUSION_BENCH_GRAPH_MODES'
+RUNS_ENV = 'DEPTH_FUSION_BENCH_GRAPH_RUNS'
+DEFAULT_RUNS = (
+    'processes:paced:1,processes:realtime:1,composed:paced:1,composed:realtime:1,processes:paced:10'
+)
 MODEL_ENV = 'DEPTH_FUSION_BENCH_MODEL'
 #: Keyframe spacing of the multi-view node's defaults (read from its table at run time).
 FRAMES = 100
@@ -160,37 +169,116 @@ def graph_options(opts: BenchOptions, bag: Path, processes: bool, **extra):
     )
 
 
-def measure_run(opts: BenchOptions, bag: Path, processes: bool) -> list[BenchRow]:
-    from ..nodes.graph import run_graph
+def measure_run(
+    opts: BenchOptions, bag: Path, processes: bool, realtime: bool = False, rate: float = 1.0
+) -> list[BenchRow]:
+    from ..nodes.graph import TOPIC_FUSED_DEPTH, TOPIC_IMAGE, GraphRun
+    from ..nodes.graph.summary import drop_reasons, keyframe_summary
 
-    mode = 'processes' if processes else 'composed'
+    mode = ('processes' if processes else 'composed') + (' real time' if realtime else ' paced')
+    mode += f' x{rate:g}' if rate != 1.0 else ''
     sampler = MemorySampler(processes)
-    result = run_graph(graph_options(opts, bag, processes, on_progress=sampler, progress_period=0.5))
+    options = graph_options(opts, bag, processes, on_progress=sampler, progress_period=0.5)
+    options.realtime = realtime
+    options.rate = rate
+    graph = GraphRun(options)
+    result = graph.run()
+    spans = {'run': run_span(graph.recorder.stamp_logs, TOPIC_IMAGE, TOPIC_FUSED_DEPTH)}
     images = image_count(bag)
     expected = len([i for i in range(images) if i % keyframe_every() == 0 and i > 0])
     play_seconds = images / 30.0
     latencies = np.array(sorted(result.latencies.values())) * 1e3
+    reasons = drop_reasons(result)
+    log_drops = _drop_note(result, BENCH_DIR / 'logs' if processes else None)
     rows = [
-        BenchRow(f'{mode}: keyframes expected', expected, 'kf', f'{images} frames at 30 Hz'),
-        BenchRow(f'{mode}: keyframes fused', len(result.fused), 'kf', _load_note()),
+        BenchRow(
+            f'{mode}: time to ready, {n.removesuffix("_node")}',
+            t,
+            's',
+            f'constructor {result.constructor_seconds[n]:.1f} s' if n in result.constructor_seconds else '',
+        )
+        for n, t in result.ready_seconds.items()
+    ]
+    rows += [
+        BenchRow(
+            f'{mode}: keyframes chosen', len(result.chosen), 'kf', f'{expected} expected of {images} frames'
+        ),
+        BenchRow(
+            f'{mode}: keyframes fused',
+            len(result.fused),
+            'kf',
+            f'{100.0 * len(result.fused) / max(len(result.chosen), 1):.0f} % of chosen; {_load_note()}',
+        ),
         BenchRow(
             f'{mode}: keyframes dropped',
-            expected - len(result.fused),
+            sum(reasons.values()),
             'kf',
-            _drop_note(result, BENCH_DIR / 'logs' if processes else None),
+            ', '.join(f'{k}={v}' for k, v in sorted(reasons.items())) or log_drops,
         ),
-        BenchRow(f'{mode}: fused keyframes per second of playback', len(result.fused) / play_seconds, 'kf/s'),
     ]
+    if realtime:  # a paced replay stretches the recording: only the run's own rate says anything
+        rows.append(
+            BenchRow(
+                f'{mode}: fused kf per second of recording',
+                len(result.fused) / play_seconds * rate,
+                'kf/s',
+                f'{images} frames at {30 * rate:g} Hz',
+            )
+        )
+    if spans.get('run'):
+        rows.append(
+            BenchRow(
+                f'{mode}: fused kf per second of the run',
+                len(result.fused) / spans['run'],
+                'kf/s',
+                f'first image sent -> last keyframe fused: {spans["run"]:.1f} s',
+            )
+        )
     if latencies.size:
         rows += [
-            BenchRow(f'{mode}: latency image -> fused, mean', float(latencies.mean()), 'ms'),
             BenchRow(f'{mode}: latency image -> fused, median', float(np.median(latencies)), 'ms'),
             BenchRow(f'{mode}: latency image -> fused, p95', float(np.percentile(latencies, 95)), 'ms'),
             BenchRow(f'{mode}: latency image -> fused, max', float(latencies.max()), 'ms'),
         ]
+    for node, ms in node_latencies(result, BENCH_DIR / 'logs' if processes else None).items():
+        rows.append(
+            BenchRow(f'{mode}: {node} latency in -> out, mean', ms, 'ms', 'per keyframe, queue wait included')
+        )
     rows.append(BenchRow(f'{mode}: peak resident memory', sampler.peak(), 'MB', _peak_note(sampler)))
-    rows.append(BenchRow(f'{mode}: wall time incl. start-up and flush', result.seconds, 's'))
+    rows.append(
+        BenchRow(
+            f'{mode}: wall time incl. start-up and flush', result.seconds, 's', keyframe_summary(result, mode)
+        )
+    )
     return rows
+
+
+def run_span(logs: dict, first: str, last: str) -> float:
+    """Seconds from the first message of ``first`` to the last of ``last`` seen by the recorder."""
+    if first not in logs or last not in logs:
+        return 0.0
+    starts = [t for t in map(logs[first].arrival, logs[first].stamps()) if t is not None]
+    ends = [t for t in map(logs[last].arrival, logs[last].stamps()) if t is not None]
+    return max(ends) - min(starts) if starts and ends else 0.0
+
+
+def node_latencies(result, log_dir: Path | None) -> dict[str, float]:
+    """Per node, mean ms from an input's arrival to its output (the profile: which node is
+    the bottleneck), from the composed nodes' counters or the processes' final log lines."""
+    out = {
+        name.removesuffix('_node'): snap.latency_mean_s * 1e3
+        for name, snap in result.node_stats.items()
+        if snap.processed
+    }
+    if log_dir is not None:
+        for log_file in sorted(log_dir.glob('*_node.log')):
+            finals = [
+                ln for ln in log_file.read_text(errors='replace').splitlines() if 'final counters:' in ln
+            ]
+            match = re.search(r'latency mean ([0-9.]+) ms', finals[-1]) if finals else None
+            if match:
+                out[log_file.stem.removesuffix('_node')] = float(match.group(1))
+    return out
 
 
 def logged_drops(log_dir: Path) -> dict[str, dict[str, int]]:
@@ -265,16 +353,34 @@ def soak(opts: BenchOptions, bag: Path, seconds: float) -> list[BenchRow]:
     ]
 
 
+def graph_runs(opts: BenchOptions) -> list[tuple[str, str, float]]:
+    """``[(mode, pacing, rate), ...]`` from ``DEPTH_FUSION_BENCH_GRAPH_RUNS`` (or the older
+    ``DEPTH_FUSION_BENCH_GRAPH_MODES``: those modes, paced, at the recorded rate)."""
+    if os.environ.get(MODES_ENV) and not os.environ.get(RUNS_ENV):
+        spec = ','.join(f'{m.strip()}:paced:1' for m in os.environ[MODES_ENV].split(',') if m.strip())
+    else:
+        spec = os.environ.get(RUNS_ENV) or ('composed:paced:1' if opts.quick else DEFAULT_RUNS)
+    runs = []
+    for item in (i.strip() for i in spec.split(',') if i.strip()):
+        parts = item.split(':')
+        mode, pacing = parts[0], parts[1] if len(parts) > 1 else 'paced'
+        try:
+            rate = float(parts[2]) if len(parts) > 2 else 1.0
+        except ValueError:
+            rate = -1.0
+        if mode not in ('composed', 'processes') or pacing not in ('paced', 'realtime') or rate <= 0:
+            raise ValueError(f'{RUNS_ENV}: bad run {item!r} (MODE:PACING:RATE, e.g. processes:realtime:1)')
+        runs.append((mode, pacing, rate))
+    return runs
+
+
 def run(opts: BenchOptions) -> list[BenchRow]:
     bag, name = bench_bag(opts)
     # Processes first: the runner then holds no torch and no composed nodes, so its own memory
     # (counted in the processes' peak) is the runner's alone.
-    modes = os.environ.get(MODES_ENV, 'composed' if opts.quick else 'processes,composed')
     rows = [BenchRow(f'bag: {name}', image_count(bag), 'frames', str(bag))]
-    for mode in [m.strip() for m in modes.split(',') if m.strip()]:
-        if mode not in ('composed', 'processes'):
-            raise ValueError(f'{MODES_ENV}: unknown mode {mode!r} (composed, processes)')
-        rows += measure_run(opts, bag, mode == 'processes')
+    for mode, pacing, rate in graph_runs(opts):
+        rows += measure_run(opts, bag, mode == 'processes', pacing == 'realtime', rate)
     seconds = float(getattr(opts, 'soak_seconds', 0.0) or os.environ.get(SOAK_ENV, 0) or 0)
     if seconds > 0:
         rows += soak(opts, bag, seconds)

@@ -36,7 +36,7 @@ from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig, select_best_fraction
 from .base import DepthFusionNode, run_node
 from .diagnostics import Requirement
-from .fusion_warmup import start_kernels
+from .fusion_warmup import exit_now_if_compiling, finish_compiling, start_kernels
 from .graph_events import EVENT_FUSED, GraphEvents
 from .image_input import InputError, StampGuard, depth_from_message, header_stamp_ns
 from .params import ParamSpec, build_dataclass, dataclass_specs
@@ -162,8 +162,9 @@ class _FusionJob:
 class FusionNode(DepthFusionNode):
     """Pairs keyframe results by stamp and fuses them on a worker thread."""
 
-    def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
+    def __init__(self, node_name: str = NODE_NAME, own_process: bool = False, **kwargs: Any) -> None:
         super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
+        self._own_process = own_process
         p = self.params
         self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))
         self.announced_kind: str | None = None
@@ -311,6 +312,12 @@ class FusionNode(DepthFusionNode):
     def diagnostic_extra(self) -> dict[str, Any]:
         return {'pending keyframes': len(self.pending), 'single-view output kind': self.output_kind}
 
+    def destroy_node(self) -> None:
+        # Composed, this process lives on (and must not exit mid-compile); a node process
+        # exits at once instead (main).
+        finish_compiling(self, 0.0 if self._own_process else 120.0)
+        super().destroy_node()
+
     # --- worker ---------------------------------------------------------------------------------------
 
     @property
@@ -392,7 +399,7 @@ def _checked_inputs(
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point: ``fusion_node --ros-args --params-file config/depth_fusion.yaml``."""
-    return run_node(FusionNode, args)
+    return exit_now_if_compiling(run_node(lambda: FusionNode(own_process=True), args))
 
 
 if __name__ == '__main__':

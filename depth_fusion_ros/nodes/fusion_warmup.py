@@ -10,11 +10,15 @@ nothing either way; a live camera gets its first keyframes fused a little slower
 from __future__ import annotations
 
 import dataclasses
+import os
+import sys
 import threading
 import time
 from typing import Any
 
 from ..fusion.pipeline import FusionConfig, warm_up
+
+COMPILE_THREAD = 'fusion-compile'
 
 
 def start_kernels(node: Any, config: FusionConfig, background: bool) -> FusionConfig:
@@ -45,5 +49,35 @@ def start_kernels(node: Any, config: FusionConfig, background: bool) -> FusionCo
             f'fusion kernels compiled in the background in {time.monotonic() - start:.1f} s; switched'
         )
 
-    threading.Thread(target=compile_then_switch, name='fusion-compile', daemon=True).start()
+    node.compile_thread = threading.Thread(target=compile_then_switch, name=COMPILE_THREAD, daemon=True)
+    node.compile_thread.start()
     return dataclasses.replace(config, compile_kernel=False)
+
+
+def finish_compiling(node: Any, timeout: float) -> bool:
+    """Wait up to ``timeout`` s for a background compilation still running at shutdown; True
+    when none is left. (An interpreter that exits while torch compiles on another thread
+    aborts in torch's C++ teardown: see :func:`exit_now_if_compiling`.)"""
+    thread = getattr(node, 'compile_thread', None)
+    if thread is None or not thread.is_alive():
+        return True
+    if timeout > 0:
+        node.get_logger().info(f'waiting up to {timeout:g} s for the background compilation to end')
+        thread.join(timeout)
+    return not thread.is_alive()
+
+
+def compiling() -> bool:
+    """Whether a background compilation is still running in this process."""
+    return any(t.name == COMPILE_THREAD and t.is_alive() for t in threading.enumerate())
+
+
+def exit_now_if_compiling(code: int) -> int:
+    """A node process about to exit while a compilation still runs ends here, skipping the
+    interpreter's teardown (which would abort with a torch error and exit 134); the node was
+    destroyed and rclpy shut down already, so nothing is lost."""
+    if compiling():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code

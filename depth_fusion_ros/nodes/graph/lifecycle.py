@@ -403,6 +403,23 @@ class GraphRun:
 
     # -- results and shutdown --
 
+    def _images_played(self) -> int | None:
+        """Camera images the replayer published: its counter composed; as processes the bag's
+        count when the whole bag played once (else unknown)."""
+        replayer = self.nodes.get(REPLAYER[0])
+        if replayer is not None:
+            return int(replayer.stats.published.get(TOPIC_IMAGE, 0))
+        settings = self.options.overrides.get(REPLAYER[0], {})
+        if self.options.start_offset or settings.get('loop') or settings.get('start_offset'):
+            return None
+        from ..bag_replayer import open_bag
+
+        reader = open_bag(self.options.bag)
+        try:
+            return sum(c.msgcount for c in reader.connections if c.topic == TOPIC_IMAGE)
+        finally:
+            reader.close()
+
     def _result(self, interrupted: bool) -> RunResult:
         logs = self.recorder.stamp_logs
         announced = logs[TOPIC_KEYFRAME_IMAGE].stamps() if TOPIC_KEYFRAME_IMAGE in logs else []
@@ -425,6 +442,11 @@ class GraphRun:
             drops=self.ledger.snapshot().dropped,
             paced=not self.options.realtime,
             ready_seconds=dict(self.ready_seconds),
+            images_played=self._images_played(),
+            images_handled=self.ledger.snapshot().images,
+            constructor_seconds={
+                n: st.seconds for n in GRAPH_NODES if (st := self.ready.statuses.get('/' + n)) is not None
+            },
             missing=self.pending_keyframes(),
             recorded=None,
             counts=dict(self.recorder.counts),

@@ -82,6 +82,12 @@ class RunResult:
     paced: bool = True
     #: Per node, seconds from its start to its "ready" line (time-to-ready).
     ready_seconds: dict[str, float] = field(default_factory=dict)
+    #: Camera images the replayer sent (``None``: unknown) and multi_view_node handled
+    #: (posed, or dropped with a reason): the gap was lost on the way (DDS history overflow).
+    images_played: int | None = None
+    images_handled: int = 0
+    #: Per node, of those the seconds its constructor took (the rest: interpreter, imports).
+    constructor_seconds: dict[str, float] = field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
@@ -90,4 +96,3 @@ class RunResult:
 
 class GraphError(RuntimeError):
     """The graph could not run to the end (a node died, the replayer failed)."""
-

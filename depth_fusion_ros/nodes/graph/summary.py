@@ -30,7 +30,12 @@ def keyframe_summary(result: RunResult, mode: str) -> str:
     lost = sum(reasons.values())
     detail = ' (' + ', '.join(f'{k}={v}' for k, v in sorted(reasons.items())) + ')' if reasons else ''
     pacing = 'paced' if result.paced else 'real time'
-    return (
+    line = (
         f'{len(result.chosen)} keyframes chosen, {len(set(result.fused) & set(result.chosen))} fused, '
         f'{lost} dropped{detail} in {result.seconds:.1f} s ({mode}, {pacing})'
     )
+    played = result.images_played
+    if played is not None and result.images_handled < played:
+        # Images that never reached the keyframe policy cannot be counted as keyframes: say so.
+        line += f'; only {result.images_handled} of {played} images reached multi_view_node'
+    return line

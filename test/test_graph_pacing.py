@@ -1,0 +1,281 @@
+"""Lossless replay, readiness and the honest summary, over real DDS.
+
+* A paced replay (the default of ``depth-fusion run``) into a graph far slower than the replay
+  (every frame a keyframe, played at 10x the recorded rate, one-slot work queues) fuses every
+  keyframe the policy chose; the same replay with ``realtime`` loses keyframes and the
+  summary counts each one by node and reason.
+* multi_view_node announces every chosen keyframe, also those its worker drops before
+  announcing them (``worker_queue_full``), and says when it is ready (transient-local line
+  naming its subscriptions).
+* Images that come before the first camera_info wait for it instead of being dropped.
+
+Kept cheap: 160x120 working grid, a toy TorchScript network, eager fusion kernels.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason='rclpy (ros-jazzy-rclpy) is not installed')
+torch = pytest.importorskip('torch')
+
+from conftest import save_torchscript_depth_model  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+from std_msgs.msg import Header, String  # noqa: E402
+
+from depth_fusion_ros.data import messages as m  # noqa: E402
+from depth_fusion_ros.nodes.graph import RunOptions, run_graph  # noqa: E402
+from depth_fusion_ros.nodes.graph.options import RunResult  # noqa: E402
+from depth_fusion_ros.nodes.graph.summary import drop_reasons, keyframe_summary  # noqa: E402
+from depth_fusion_ros.nodes.graph_events import (  # noqa: E402
+    READERS_DEPTH,
+    TOPIC_KEYFRAME_EVENTS,
+    TOPIC_READY,
+    KeyframeLedger,
+    ReadyStatus,
+    events_qos,
+    ready_qos,
+)
+from depth_fusion_ros.nodes.multi_view_node import MultiViewNode  # noqa: E402
+from depth_fusion_ros.nodes.qos import qos_profile  # noqa: E402
+from depth_fusion_ros.nodes.testing import RosHarness  # noqa: E402
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+FRAME = 'camera_rgb_optical_frame'
+SMALL = {'width': 160, 'height': 120}
+
+
+class _ToyDepth(torch.nn.Module):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return 2.0 + 0.5 * torch.sigmoid(x.mean(dim=1, keepdim=True))
+
+
+@pytest.fixture(scope='module')
+def toy_model(tmp_path_factory):
+    return save_torchscript_depth_model(_ToyDepth(), tmp_path_factory.mktemp('toy'), 'toy')
+
+
+@pytest.fixture(scope='module')
+def bag(synthetic_tum_dir, tmp_path_factory):
+    from depth_fusion_ros.data.rosbag_convert import tum_to_rosbag
+
+    return tum_to_rosbag(
+        synthetic_tum_dir, tmp_path_factory.mktemp('pacing') / 'synth.bag', show_progress=False
+    ).path
+
+
+def _slow_graph(bag, toy_model, realtime: bool) -> RunOptions:
+    """Every posed frame a keyframe, 10x the recorded rate, one-slot queues: far too fast.
+
+    The queue policy is left to the runner: the nodes' default ('latest': drop the oldest)
+    in real time, 'block' when paced.
+    """
+    common = {'stats_period': 0.0, 'queue_size': 1}
+    return RunOptions(
+        bag=bag,
+        rate=10.0,
+        realtime=realtime,
+        single_view_model=str(toy_model),
+        overrides={
+            'multi_view_node': {**common, **SMALL, 'keyframe_every': 1},
+            'single_view_node': {**common, **SMALL},
+            'fusion_node': {
+                **common,
+                'fusion.compile_kernel': False,
+                'publish_points': False,
+                'pair_timeout': 60.0,
+            },
+        },
+        flush_timeout=120.0,
+    )
+
+
+def test_paced_replay_fuses_every_keyframe_of_a_slow_graph(bag, toy_model):
+    result = run_graph(_slow_graph(bag, toy_model, realtime=False))
+    print(keyframe_summary(result, 'composed'))
+    assert len(result.chosen) >= 15  # 24 frames, every one but the first (no neighbour yet)
+    assert result.drops == {} and result.missing == {}
+    assert sorted(result.fused) == result.chosen
+    assert result.images_handled == result.images_played == 24  # every image reached the policy
+    assert result.paced and set(result.ready_seconds) == {
+        'single_view_node',
+        'multi_view_node',
+        'fusion_node',
+    }
+
+
+def test_realtime_replay_reports_every_drop(bag, toy_model):
+    result = run_graph(_slow_graph(bag, toy_model, realtime=True))
+    summary = keyframe_summary(result, 'composed')
+    print(summary)
+    reasons = drop_reasons(result)
+    # Every chosen keyframe is accounted for: fused, or dropped by a named node and reason.
+    assert len(result.fused) + sum(reasons.values()) == len(result.chosen)
+    assert 'unaccounted' not in reasons
+    assert reasons.get('multi_view.worker_queue_full', 0) > 0, summary
+    assert f'{len(result.chosen)} keyframes chosen, {len(result.fused)} fused' in summary
+    assert 'real time' in summary
+    # The multi-view node's own counter agrees with what the summary says it dropped.
+    counted = result.node_stats['multi_view_node'].dropped.get('worker_queue_full', 0)
+    assert reasons['multi_view.worker_queue_full'] == counted
+
+
+def test_summary_counts_drops_before_announcement():
+    """The case of issue 13: 29 chosen, 9 dropped by multi_view_node before announcing."""
+    chosen = list(range(29))
+    result = RunResult(
+        announced=chosen[9:],
+        fused=chosen[9:],
+        missing={},
+        recorded=None,
+        counts={},
+        seconds=5.0,
+        chosen=chosen,
+        drops={s: 'multi_view.worker_queue_full' for s in chosen[:9]},
+        paced=False,
+    )
+    line = keyframe_summary(result, 'processes')
+    assert line.startswith('29 keyframes chosen, 20 fused, 9 dropped (multi_view.worker_queue_full=9)')
+
+
+def test_ledger_first_final_event_wins_and_counts_in_flight():
+    ledger = KeyframeLedger()
+    for stamp in (1, 2, 3):
+        ledger.add(stamp, 'chosen')
+    ledger.add(1, 'fused')
+    ledger.add(1, 'dropped:fusion.late_part')  # a straggler after fusion changes nothing
+    ledger.add(2, 'dropped:multi_view.worker_queue_full')
+    assert ledger.in_flight() == 1
+    snap = ledger.snapshot()
+    assert snap.fused == [1] and snap.in_flight == [3]
+    assert snap.drop_reasons() == {'multi_view.worker_queue_full': 1}
+
+
+# --- multi_view_node alone ------------------------------------------------------------------------
+
+
+def _mv_node(ros: RosHarness, **params) -> MultiViewNode:
+    values = {'stats_period': 0.0, **SMALL, **params}
+    return ros.add(
+        MultiViewNode(
+            context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]
+        )
+    )
+
+
+def _publishers(ros: RosHarness):
+    deep = qos_profile('reliable', 100)
+    pubs = (
+        ros.publisher(Image, '/camera/rgb/image_color', deep),
+        ros.publisher(CameraInfo, '/camera/rgb/camera_info', deep),
+        ros.publisher(PoseStamped, '/camera/pose', deep),
+    )
+    assert ros.wait_for_subscribers(list(pubs))
+    return pubs
+
+
+def _events(ros: RosHarness) -> list:
+    return ros.collect(Header, '/' + TOPIC_KEYFRAME_EVENTS, events_qos())
+
+
+def test_ready_line_and_images_before_camera_info_wait(synthetic_sequence):
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        node = _mv_node(ros, keyframe_every=2)
+        # A reader joining after the node is ready still hears its line (transient local).
+        ready = ros.collect(String, '/' + TOPIC_READY, ready_qos(READERS_DEPTH))
+        events = _events(ros)
+        image_pub, info_pub, pose_pub = _publishers(ros)
+        assert ros.wait_for(lambda: len(ready) >= 1, 10.0)
+        status = ReadyStatus.from_json(ready[0].data)
+        assert status.node == '/multi_view_node'
+        assert {'/camera/rgb/image_color', '/camera/pose', '/camera/rgb/camera_info'} <= set(
+            status.subscribes
+        )
+
+        stamps = [m.sec_to_ns(s) for s in seq.stamps[:5]]
+        for i, stamp in enumerate(stamps):  # images first, no camera_info yet
+            header = m.header_msg(stamp, FRAME, kind=m.RCLPY)
+            image_pub.publish(m.rgb_image_msg(seq.frames[i].rgb, header, kind=m.RCLPY))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('image', 0) == 5, 10.0)
+        assert len(node.awaiting_info) == 5
+        header = m.header_msg(stamps[0], FRAME, kind=m.RCLPY)
+        info_pub.publish(m.camera_info_msg(seq.camera, header, kind=m.RCLPY))
+        for i, stamp in enumerate(stamps):
+            pose_pub.publish(
+                m.pose_stamped_msg(seq.poses[i], m.header_msg(stamp, 'world', kind=m.RCLPY), kind=m.RCLPY)
+            )
+        assert ros.wait_for(lambda: node.posed_count == 5, 10.0), node.stats.snapshot().summary()
+        assert node.wait_idle(30.0)
+        assert ros.wait_for(lambda: sum(e.frame_id == 'image' for e in events) == 5, 10.0)
+        snap = node.stats.snapshot()
+    assert 'no_camera_info' not in snap.dropped
+    acked = [m.stamp_to_ns(e.stamp) for e in events if e.frame_id == 'image']
+    assert acked == stamps  # every image handled, in order
+    chosen = [m.stamp_to_ns(e.stamp) for e in events if e.frame_id == 'chosen']
+    assert chosen == stamps[2::2]  # every 2nd posed frame, but the first (no neighbour)
+
+
+def test_keyframes_dropped_before_announcement_are_announced_as_dropped(synthetic_sequence):
+    seq = synthetic_sequence
+    n = 12
+    with RosHarness() as ros:
+        node = _mv_node(
+            ros, keyframe_every=1, queue_size=1, queue_policy='latest', qos_depth=100, width=320, height=240
+        )
+        events = _events(ros)
+        keyframes = ros.collect(Image, '/depth_fusion/keyframe/image')
+        image_pub, info_pub, pose_pub = _publishers(ros)
+        stamps = [m.sec_to_ns(s) for s in seq.stamps[:n]]
+        for i, stamp in enumerate(stamps):  # a burst: far faster than the plane sweep
+            header = m.header_msg(stamp, FRAME, kind=m.RCLPY)
+            pose_pub.publish(
+                m.pose_stamped_msg(seq.poses[i], m.header_msg(stamp, 'world', kind=m.RCLPY), kind=m.RCLPY)
+            )
+            info_pub.publish(m.camera_info_msg(seq.camera, header, kind=m.RCLPY))
+            image_pub.publish(m.rgb_image_msg(seq.frames[i].rgb, header, kind=m.RCLPY))
+        assert ros.wait_for(lambda: sum(e.frame_id == 'image' for e in events) == n, 20.0)
+        assert node.wait_idle(60.0)
+        time.sleep(0.3)
+        snap = node.stats.snapshot()
+        chosen = [m.stamp_to_ns(e.stamp) for e in events if e.frame_id == 'chosen']
+        dropped = [
+            m.stamp_to_ns(e.stamp) for e in events if e.frame_id == 'dropped:multi_view.worker_queue_full'
+        ]
+        announced = [m.stamp_to_ns(k.header.stamp) for k in keyframes]
+    assert len(chosen) == node.keyframes_decided == n - 1
+    assert len(dropped) == snap.dropped.get('worker_queue_full', 0) > 0
+    assert sorted(announced + dropped) == chosen  # every chosen keyframe: announced or dropped
+    assert np.all(np.diff(chosen) > 0)
+
+
+def test_run_cli_is_paced_unless_realtime(tmp_path):
+    """``depth-fusion run`` is paced by default; ``--realtime`` reaches the runner, and the
+    replayer and node settings follow (what the user set wins)."""
+    import argparse
+
+    from depth_fusion_ros.cli import run as run_cli
+    from depth_fusion_ros.nodes.graph.pacing import paced_overrides
+
+    parser = argparse.ArgumentParser()
+    run_cli.register(parser.add_subparsers())
+    paced = run_cli.options_from_args(parser.parse_args(['run', '--bag', 'x.bag']))
+    live = run_cli.options_from_args(
+        parser.parse_args(
+            ['run', '--bag', 'x.bag', '--realtime', '--set', 'fusion_node.queue_policy=drop_new']
+        )
+    )
+    assert not paced.realtime and live.realtime
+    p = paced_overrides(paced, {})
+    assert p['bag_replayer']['pace'] is True and p['bag_replayer']['wait_for_nodes'] == ['']
+    assert p['bag_replayer']['wait_ready'] == ['single_view_node', 'multi_view_node', 'fusion_node']
+    assert {p[n]['queue_policy'] for n in ('single_view_node', 'multi_view_node', 'fusion_node')} == {'block'}
+    r = paced_overrides(live, {'fusion_node': {'queue_policy': 'drop_new'}})
+    assert r['bag_replayer']['pace'] is False and r['fusion_node']['queue_policy'] == 'drop_new'
+    assert 'queue_policy' not in r.get('multi_view_node', {})
