@@ -174,7 +174,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'pose_wait',
         1.0,
         'an image newer than the latest pose waits until the image stream is this many seconds (stamp '
-        'time) ahead of it; then it is dropped as not posed',
+        'time) ahead of it, or until no image nor pose arrived for this many seconds (end of the stream); '
+        'then it is dropped as not posed (no_pose)',
         0.0,
     ),
     ParamSpec(
