@@ -3,6 +3,7 @@ and replaying compressed bags, and choosing the transport from a bag's topics.""
 
 from __future__ import annotations
 
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -106,20 +107,50 @@ def test_cli_convert_compressed_and_its_option_errors(tmp_path, capsys) -> None:
 
 
 def test_replayer_plays_a_compressed_bag(context, tmp_path) -> None:  # noqa: F811
+    from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CompressedImage
 
     src = tmp_path / 'tum'
     truth = make_tum_folder(src, n=4)
     out = tmp_path / 'bag'
     tum_to_rosbag(src, out, show_progress=False, colour=ColourFormat('png'))
-    listener = Listener(context, {COMPRESSED: CompressedImage})
+    listener = Listener(context, {COMPRESSED: CompressedImage, '/diagnostics': DiagnosticArray})
     replayer = make_replayer(context, out, wait_topics=[COMPRESSED], rate=4.0)
+
+    def finished_status() -> list:
+        return [
+            s
+            for _, a in list(listener.got['/diagnostics'])
+            for s in a.status
+            if s.name == 'depth_fusion/bag_replayer' and s.message == 'finished'
+        ]
+
     with Spinning(context, listener.node, replayer):
         replayer.start()
         assert replayer.finished.wait(20.0)
         listener.settle()
+        deadline = time.monotonic() + 5.0
+        while not finished_status() and time.monotonic() < deadline:
+            time.sleep(0.05)
+    values = {kv.key: kv.value for kv in finished_status()[0].values}
+    assert values[f'published {COMPRESSED}'] == '4' and finished_status()[0].level == b'\x00'
     got = [msg for _, msg in listener.got[COMPRESSED]]
     assert len(got) == 4 and replayer.error is None
     expected = [truth['truth'][k]['rgb'] for k in sorted(truth['truth'])]
     for msg, rgb in zip(got, expected, strict=True):
         np.testing.assert_array_equal(decode_compressed(msg), rgb)  # PNG: bit-exact after the replay
+
+
+def test_ros1_bag_converts_to_compressed_png_exactly(tmp_path) -> None:
+    from test_rosbag_convert import write_ros1_bag
+
+    from depth_fusion_ros.data.rosbag_convert import ros1_to_rosbag2
+    from depth_fusion_ros.data.rosbag_read import iter_messages
+
+    src = tmp_path / 'tum.bag'
+    truth = write_ros1_bag(src, n=3)
+    out = tmp_path / 'ros2'
+    result = ros1_to_rosbag2(src, out, show_progress=False, colour=ColourFormat('png'))
+    assert result.messages[COMPRESSED] == 3 and RGB not in result.messages
+    for _, bag_time, msg in iter_messages(out, [COMPRESSED]):
+        np.testing.assert_array_equal(decode_compressed(msg), truth[bag_time]['rgb'])

@@ -21,6 +21,7 @@ from depth_fusion_ros.nodes.fusion_node import FusionNode
 from depth_fusion_ros.nodes.image_input import CameraInput
 from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
 from depth_fusion_ros.nodes.qos import qos_profile
+from depth_fusion_ros.nodes.robot_inputs import pose_type_for_topics
 from depth_fusion_ros.nodes.testing import RosHarness
 
 K = m.RCLPY
@@ -109,8 +110,9 @@ def test_pose_types_and_the_body_to_camera_transform(synthetic_sequence, msg_cls
     seq = synthetic_sequence
     t, q = pose_to_tq(T_BODY_CAM)
     with RosHarness() as ros:
-        node = _node(ros, pose_type=pose_type, camera_from_pose_frame=[*t.tolist(), *q.tolist()])
+        # the source first: in one process a topic has one type (see PoseSubscription.PROVISIONAL)
         pose = ros.publisher(msg_cls, POSE, DEEP)
+        node = _node(ros, pose_type=pose_type, camera_from_pose_frame=[*t.tolist(), *q.tolist()])
         image = ros.publisher(Image, IMAGE, DEEP)
         info = ros.publisher(CameraInfo, INFO, DEEP)
         assert ros.wait_for_subscribers([pose, image, info])  # auto: subscribed once it saw `pose`
@@ -121,6 +123,7 @@ def test_pose_types_and_the_body_to_camera_transform(synthetic_sequence, msg_cls
             info.publish(m.camera_info_msg(seq.camera, _header(stamp), kind=K))
             image.publish(m.rgb_image_msg(seq.frames[i].rgb, _header(stamp), kind=K))
         assert ros.wait_for(lambda: node.posed_count == 4, 20.0), node.stats.snapshot().summary()
+        assert ros.wait_for(lambda: node.pose_input.pose_type is not None)  # auto: confirmed
         frames = list(node.frames)
     assert node.pose_input.pose_type == {PoseStamped: 'pose_stamped', Odometry: 'odometry'}.get(
         msg_cls, 'pose_with_covariance'
@@ -142,6 +145,23 @@ def test_bad_camera_from_pose_frame_is_a_one_line_error():
                     context=ros.context,
                     parameter_overrides=[Parameter('camera_from_pose_frame', value=value)],
                 )
+
+
+def test_auto_pose_type_switches_to_another_process_odometry_and_maps_bag_types():
+    """auto starts on PoseStamped (no pose lost at start-up) and switches when the publisher, in
+    another process (participant), is an Odometry; the launcher helper names the bag's type."""
+    with RosHarness() as ros, RosHarness() as other:
+        node = _node(ros, pose_type='auto')
+        assert node.pose_input.subscribed_type == 'pose_stamped' and node.pose_input.pose_type is None
+        odometry = other.publisher(Odometry, POSE, DEEP)
+        assert other.wait_for_subscribers([odometry])  # matched only once the node switched
+        assert node.pose_input.pose_type == 'odometry'
+        odometry.publish(_pose_msg(Odometry, np.eye(4), 1_000_000_000))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('pose', 0) == 1)
+    assert pose_type_for_topics({POSE: 'nav_msgs/msg/Odometry'}) == 'odometry'
+    assert pose_type_for_topics({POSE: 'geometry_msgs/msg/PoseStamped'}) == 'pose_stamped'
+    assert pose_type_for_topics({'/other': 'nav_msgs/msg/Odometry'}) == 'auto'
+    assert pose_type_for_topics({POSE: 'std_msgs/msg/String'}) == 'auto'
 
 
 def test_auto_pose_type_warns_once_when_publishers_disagree():
@@ -187,7 +207,7 @@ def test_a_bag_without_poses_counts_every_image_and_reports_an_error(synthetic_s
     values = _values(_statuses(arrays, 'multi_view_node')[-1])
     for key in ('ready', 'rate image (Hz)', 'received image', 'processed', 'queue depth', 'dropped total'):
         assert key in values, key
-    assert values['ready'] == 'false' and values['pose type'] == 'not discovered yet'
+    assert values['ready'] == 'false' and values['pose type'] == 'pose_stamped (auto: no publisher seen yet)'
 
 
 def test_images_still_waiting_at_shutdown_are_counted(synthetic_sequence):

@@ -71,7 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar='png|jpeg',
         help='write colour as sensor_msgs/CompressedImage on <rgb-topic>/compressed (image_transport '
         "'compressed'); png (default: lossless, the evaluation matches the raw bag) or jpeg (what "
-        'robots record: ~10x smaller, lossy)',
+        'robots record: much smaller, lossy)',
     )
     p.add_argument(
         '--jpeg-quality',

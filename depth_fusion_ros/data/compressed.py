@@ -28,7 +28,7 @@ COMPRESSED_SUFFIX = '/compressed'
 COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
 TRANSPORTS = ('raw', 'compressed')
 #: Formats ``compressed_image_msg`` writes. PNG is lossless (a converted evaluation bag gives
-#: exactly the raw bag's results); JPEG is what robots record (about 10x smaller, lossy).
+#: exactly the raw bag's results); JPEG is what robots record (~9x smaller than PNG, lossy).
 FORMATS = ('png', 'jpeg')
 DEFAULT_JPEG_QUALITY = 90
 

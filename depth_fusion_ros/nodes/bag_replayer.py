@@ -27,9 +27,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.clock import Clock as SteadyClock
+from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from .diagnostics import TOPIC_DIAGNOSTICS, replayer_array
 from .pacer import Pacer
 from .params import ParamSpec, declare_parameters
 
@@ -326,6 +330,10 @@ class BagReplayer(Node):
                 enabled=bool(self.params['pace']),
             )
         self._thread = threading.Thread(target=self._run, name='bag_replayer', daemon=True)
+        self._diagnostics_pub = self.create_publisher(
+            DiagnosticArray, TOPIC_DIAGNOSTICS, QoSProfile(depth=10)
+        )
+        self.create_timer(1.0, self.publish_diagnostics, clock=SteadyClock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(
             f'playing {self._reader.path} ({len(self._topics)} topics, '
             f'{self._reader.message_count} messages, {self._reader.duration / 1e9:.1f} s) '
@@ -405,6 +413,27 @@ class BagReplayer(Node):
         return Path(self._reader.path)
 
     # -- control --
+
+    def publish_diagnostics(self) -> None:
+        """1 Hz status on /diagnostics (what was played, or why playback failed)."""
+        if self.finished.is_set():
+            state = 'finished'
+        elif self.stats.started_wall is not None:
+            state = 'playing'
+        else:
+            state = 'waiting to start'
+        error = '' if self.error is None else f'{type(self.error).__name__}: {self.error}'
+        self._diagnostics_pub.publish(
+            replayer_array(
+                self.get_name(),
+                self.get_clock().now().to_msg(),
+                dict(self.stats.published),
+                self.stats.passes,
+                self.stats.max_lag,
+                state,
+                error,
+            )
+        )
 
     def start(self) -> None:
         """Start playback (once)."""

@@ -209,3 +209,23 @@ class Diagnostics:
         array = DiagnosticArray(status=[status])
         array.header.stamp = stamp
         return array
+
+
+def replayer_array(
+    name: str, stamp: Any, published: Mapping[str, int], passes: int, max_lag_s: float, state: str, error: str
+) -> Any:
+    """The bag_replayer's ``DiagnosticArray``: what it played; ERROR when playback failed."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    values = [('state', state), ('passes', str(passes)), ('max lag (ms)', f'{max_lag_s * 1000:.1f}')]
+    values += [(f'published {k}', str(v)) for k, v in sorted(published.items())]
+    status = DiagnosticStatus(
+        level=bytes([ERROR if error else OK]),
+        name=NAME_PREFIX + name,
+        message=f'playback failed: {error}' if error else state,
+        hardware_id='bag',
+        values=[KeyValue(key=k, value=v) for k, v in values],
+    )
+    array = DiagnosticArray(status=[status])
+    array.header.stamp = stamp
+    return array

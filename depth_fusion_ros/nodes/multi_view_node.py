@@ -180,7 +180,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'pose_wait',
         1.0,
         'an image newer than the latest pose waits until the image stream is this many seconds (stamp '
-        'time) ahead of it; then it is dropped as not posed',
+        'time) ahead of it, or until no image nor pose arrived for this many seconds (end of the stream); '
+        'then it is dropped as not posed (no_pose)',
         0.0,
     ),
     ParamSpec(
@@ -406,14 +407,14 @@ class MultiViewNode(DepthFusionNode):
         if self.camera_input.fixed_intrinsics is None and self.camera_input.calibration is None:
             waiting.append('camera_info')
         if self.pose_buffer.span is None:
-            waiting.append(f'a pose ({self.pose_input.pose_type or "type not discovered yet"})')
+            waiting.append(f'a pose on {self.pose_input.resolved_topic} ({self.pose_input.description})')
         return not waiting, ', '.join(waiting)
 
     def diagnostic_extra(self) -> dict[str, Any]:
         return {
             'image topic': self.resolve_topic_name(self.image_topic),
             'pose topic': self.pose_input.resolved_topic,
-            'pose type': self.pose_input.pose_type or 'not discovered yet',
+            'pose type': self.pose_input.description,
             'posed frames': self.posed_count,
             'keyframes': self.keyframes_decided,
         }

@@ -15,7 +15,7 @@ and a pose that is not the camera's.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -108,13 +108,31 @@ def pose_type_of(msgtype: str) -> str | None:
     return None
 
 
+def pose_type_for_topics(topic_types: Mapping[str, str], pose_topic: str = '/camera/pose') -> str:
+    """``pose_type`` for a bag or graph whose topics have these types (``{name: 'pkg/msg/Type'}``).
+
+    ``'auto'`` when the pose topic is absent or of an unsupported type (the node then reports
+    it); otherwise the explicit type, so a composed graph subscribes with it from the start.
+    """
+    return pose_type_of(str(topic_types.get(pose_topic, ''))) or 'auto'
+
+
 class PoseSubscription:
     """Subscribes to the pose topic with the configured type, or discovers it (``auto``).
 
-    ``auto`` polls the graph (``get_publishers_info_by_topic``) on a timer until a publisher of
-    a supported type appears, then subscribes with that type. Publishers of several types (two
+    ``auto`` subscribes at once as PoseStamped (the common case: no pose is lost while the
+    graph starts, and a replayer waiting for its subscribers sees one), then polls the topic's
+    publishers (``get_publishers_info_by_topic``) on a timer and, when they use another
+    supported type, subscribes with that type instead. Publishers of several pose types (two
     pose sources on one topic) are warned about once; a publisher of an unsupported type too.
     """
+
+    #: In one process (one DDS participant) a topic has one type: a node composed with a
+    #: publisher of another pose type created *after* it must be given ``pose_type`` explicitly
+    #: (``depth-fusion run`` does, from the bag: :func:`pose_type_for_topics`).
+    PROVISIONAL = 'pose_stamped'
+    #: seconds between two looks at the publishers once the type is known (conflict watch only)
+    SLOW_PERIOD = 2.0
 
     def __init__(
         self, node: Any, topic: str, pose_type: str, callback: Callable[[Any], None], qos: Any,
@@ -124,23 +142,43 @@ class PoseSubscription:
         self.topic = topic
         self.callback = callback
         self.qos = qos
+        #: the type confirmed by a publisher (or configured); None while ``auto`` has seen none
         self.pose_type: str | None = None
+        #: the type of the current subscription
+        self.subscribed_type: str | None = None
+        self._subscription: Any = None
         self._warned: set[str] = set()
+        self._timer: Any = None
         if pose_type == 'auto':
+            try:
+                self._subscribe(self.PROVISIONAL)
+            except Exception as exc:  # another type is already on the topic in this process
+                node.get_logger().debug(f'no provisional PoseStamped subscription: {exc}')
             self._timer = node.create_wall_timer(period, self.discover)
         else:
             self._subscribe(pose_type)
+            self.pose_type = pose_type
 
     @property
     def resolved_topic(self) -> str:
         return self.node.resolve_topic_name(self.topic)
 
+    @property
+    def description(self) -> str:
+        """For diagnostics: the confirmed type, or the provisional one."""
+        return self.pose_type or f'{self.subscribed_type} (auto: no publisher seen yet)'
+
     def _subscribe(self, pose_type: str) -> None:
-        self.pose_type = pose_type
-        self.node.subscribe(pose_message_class(pose_type), self.topic, self.callback, self.qos)
+        if self._subscription is not None:
+            self.node.destroy_subscription(self._subscription)
+            self._subscription = self.subscribed_type = None
+        self.subscribed_type = pose_type
+        self._subscription = self.node.subscribe(
+            pose_message_class(pose_type), self.topic, self.callback, self.qos
+        )
 
     def discover(self) -> None:
-        """One look at the topic's publishers: subscribe when found, warn once on conflicts."""
+        """One look at the topic's publishers: confirm or switch the type, warn once on conflicts."""
         infos = self.node.get_publishers_info_by_topic(self.resolved_topic)
         types = sorted({str(i.topic_type) for i in infos})
         supported = [t for t in types if pose_type_of(t)]
@@ -159,5 +197,10 @@ class PoseSubscription:
                 f'{self.pose_type or supported[0]} only. Set pose_type, or remap one of the sources'
             )
         if self.pose_type is None and supported:
-            self._subscribe(pose_type_of(supported[0]) or 'pose_stamped')
+            found = pose_type_of(supported[0]) or self.PROVISIONAL
+            if found != self.subscribed_type:
+                self._subscribe(found)
+            self.pose_type = found
             self.node.get_logger().info(f'pose_type auto: {self.resolved_topic} is {supported[0]}')
+            self.node.destroy_timer(self._timer)
+            self._timer = self.node.create_wall_timer(self.SLOW_PERIOD, self.discover)
