@@ -167,9 +167,18 @@ def _first_line(exc: BaseException) -> str:
 
 @contextlib.contextmanager
 def _quiet_exporter() -> Iterator[None]:
-    """torch's ONNX exporter prints progress lines and warnings; keep the CLI's output ours."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        yield
+    """torch's ONNX exporter prints progress lines and its graph passes log at INFO; keep the
+    CLI's output ours."""
+    loggers = [logging.getLogger(name) for name in ('onnx_ir', 'onnxscript', 'torch.onnx')]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.WARNING)
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            yield
+    finally:
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
 
 
 def export_onnx(

@@ -230,3 +230,14 @@ def _load_exported(
     if is_torchscript_file(path):
         return (*load_torchscript(path, metadata_path, device), 'TorchScript')
     return None
+
+
+def check_model(
+    spec: str | Path, device: str | torch.device = 'cpu', *, allow_simulated: bool = False
+) -> None:
+    """Load ``spec`` once and drop it: what a command calls before it starts any work, so a
+    model that cannot be loaded is a one-line error naming the file and the reason
+    (``FileNotFoundError`` / ``ValueError``). The simulated sources pass when allowed."""
+    if allow_simulated and str(spec) in SIMULATED_SPECS:
+        return
+    load_predictor(spec, device)
