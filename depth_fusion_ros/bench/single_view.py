@@ -130,8 +130,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
         rows.append(BenchRow(f'compact 320x240 batch of 4 ({thread_counts[0]} threads)', 4 / sec, 'img/s',
                              _load_note()))  # fmt: skip
 
-    with _torch_threads(thread_counts[0]):
-        rows += host_rows(opts, rgb, repeats, thread_counts[0], _median_seconds, _load_note)
+    rows += host_rows(opts, rgb, repeats, thread_counts, _torch_threads, _median_seconds, _load_note)
     rows += _eigen_rows(opts, rgb, repeats, thread_counts)  # the 870 MB network is freed on return
 
     gt = 1.0 + 3.0 * rng.random((240, 320)).astype(np.float32)
