@@ -1,7 +1,8 @@
 """Single-view CNN inference speed (``depth-fusion bench --only single_view``).
 
 Targets: the compact model at >= 10 Hz for a 320x240 image on 2 CPU cores; the Eigen &
-Fergus network's inference time measured. Figures are ``DepthPredictor.predict`` end to
+Fergus network's inference time measured; the shipped network under ONNX Runtime, torch.export
+and eager torch (``model_hosts.py``). Figures are ``DepthPredictor.predict`` end to
 end (resize, normalise, network, resize back), the median of ``repeats`` runs after a
 warm-up, with the torch thread count stated. Each row carries the 1-minute load average:
 on a shared machine other processes' load inflates the times (and makes 2 threads slower
@@ -19,6 +20,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from . import BenchOptions, BenchRow
+from .model_hosts import host_rows
 
 TITLE = 'single-view CNN inference (depth_fusion_ros.singleview)'
 
@@ -128,6 +130,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
         rows.append(BenchRow(f'compact 320x240 batch of 4 ({thread_counts[0]} threads)', 4 / sec, 'img/s',
                              _load_note()))  # fmt: skip
 
+    rows += host_rows(opts, rgb, repeats, thread_counts, _torch_threads, _median_seconds, _load_note)
     rows += _eigen_rows(opts, rgb, repeats, thread_counts)  # the 870 MB network is freed on return
 
     gt = 1.0 + 3.0 * rng.random((240, 320)).astype(np.float32)

@@ -34,7 +34,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--processes', action='store_true', help='run each node as its own process')
     p.add_argument('--device', default='cpu', help="torch device (default cpu; 'cuda' when available)")
     p.add_argument(
-        '--single-view', default='default', metavar='MODEL', help="network: 'default' or a model path"
+        '--single-view',
+        default='default',
+        metavar='MODEL',
+        help="network: 'default' or a model path (.onnx, .pt2, TorchScript .pt + YAML, checkpoint)",
     )
     p.add_argument('--rate', type=float, default=1.0, help='replay speed, multiple of real time (default 1)')
     p.set_defaults(func=run)
@@ -43,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..demo import DemoOptions, run_demo
     from ..evaluation.report import metrics_table
+    from ..singleview.predictor import check_model
+
+    check_model(args.single_view, args.device)  # one-line error before the room is rendered
 
     opts = DemoOptions(
         out=Path(args.out),

@@ -42,7 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--single-view',
         default='default',
         metavar='SRC',
-        help="single-view source: 'default' (shipped model), 'simulated', or a model path",
+        help="single-view source: 'default' (shipped model), a model path (.onnx, .pt2, TorchScript .pt "
+        "with its YAML, or a checkpoint), 'simulated' (the simulated CNN prior) or 'simulated_relative' "
+        '(it as inverse depth up to an unknown scale and shift per keyframe)',
     )
     p.add_argument('--neighbours', type=int, default=4, help='overlapping frames per keyframe (default 4)')
     p.add_argument(
@@ -89,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.harness import evaluate_sequences
     from ..evaluation.registry import available_methods
     from ..evaluation.report import report_markdown
+    from ..singleview.predictor import check_model
     from .overrides import parse_overrides
 
     if args.list:
@@ -98,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.sequences:
         raise ValueError('give at least one TUM-layout folder (SEQ_DIR), or --list')
     methods = [m.strip() for m in args.methods.split(',') if m.strip()]
+    check_model(args.single_view, args.device, allow_simulated=True)  # before any data is loaded
     options = EvalOptions(
         frames=args.frames,
         stride=args.stride,

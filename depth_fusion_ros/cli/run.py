@@ -74,7 +74,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         '--single-view',
         metavar='MODEL',
-        help="single-view network: 'default', a checkpoint, or a TorchScript .pt (default: params file)",
+        help="single-view network: 'default', a checkpoint, or an exported model (.onnx, .pt2, TorchScript "
+        '.pt) with its YAML beside it (default: params file)',
     )
     p.add_argument(
         '--set',
@@ -139,6 +140,10 @@ def run(args: argparse.Namespace) -> int:
     from ..nodes.graph.summary import keyframe_summary
 
     options = options_from_args(args)
+    if args.single_view is not None:
+        from ..singleview.predictor import check_model
+
+        check_model(args.single_view, args.device or 'cpu')  # one-line error before the graph starts
     try:
         result = run_graph(options)
     except GraphError as exc:

@@ -31,8 +31,9 @@ class EvalOptions:
     keyframes: list[int] | None = None
     seed: int = 0
     device: str = 'cpu'
-    #: ``default`` (the shipped compact model), ``simulated`` (the simulated CNN prior), or a
-    #: path to a checkpoint / TorchScript model.
+    #: ``default`` (the shipped compact model), ``simulated`` (the simulated CNN prior),
+    #: ``simulated_relative`` (it as inverse depth up to scale and shift), or a path to a
+    #: checkpoint or an exported model (``.onnx``, ``.pt2``, TorchScript ``.pt``) with its YAML.
     single_view: str = 'default'
     #: ``offline``: neighbours from a window around the keyframe; ``online``: past frames only.
     neighbour_mode: str = 'offline'

@@ -7,7 +7,8 @@ Steps (paper §III-C/§III-D):
 
 1. stage-1 points = the given mask where ``m`` and ``s`` are finite (``n_stage1``);
 2. RANSAC ``m ≈ a·s + b`` over them; inliers = Ω (``n_omega``), or a given Ω (oracle);
-3. ``s ← a·s + b`` when aligning (default: only for non-metric sources);
+3. ``s ← a·s + b`` when aligning (default: only for non-metric sources), in the model's own
+   space (``alignment.py``); pixels mapped to a non-positive depth are NaN (``n_nonpositive``);
 4. ``f = s + Σ W (m - s)`` over Ω, exact or fast; confidence from the support distance.
 
 Fallbacks never raise: the single-view depth is returned (its non-finite and non-positive
@@ -27,8 +28,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .alignment import AlignedDepth, apply_alignment, fit_alignment
 from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
-from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind, fit_least_squares, fit_ransac
+from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
 from .valid_depth import sanitize_depth
 from .weights import WeightParams, check_weight_params
 
@@ -149,6 +151,8 @@ class FusionResult:
     fallback: str | None = None
     #: The single-view depth the interpolation started from (aligned when aligning).
     single_aligned: np.ndarray | None = None
+    #: Pixels whose aligned depth (or inverse depth) was not positive: NaN in ``depth``.
+    n_nonpositive: int = 0
     timings: dict[str, float] = field(default_factory=dict)
 
 
@@ -179,7 +183,6 @@ def fuse_keyframe(
         usable = np.isfinite(s) & np.isfinite(m) & (m > 0)
     stage1 = stage1 & usable
     n_stage1 = int(stage1.sum())
-    inverse = output_kind == 'inverse_depth'
     t0 = time.perf_counter()
 
     if not np.isfinite(s).any():
@@ -188,24 +191,11 @@ def fuse_keyframe(
         omega = _mask(omega_mask, s.shape, 'omega_mask') & usable
         if not omega.any():
             return _fallback(s, stage1, n_stage1, 'empty_omega')
-        fit = fit_least_squares(
-            s[omega], m[omega], inverse=inverse, affine=config.model(output_kind) == 'affine'
-        )
+        fit = fit_alignment(s[omega], m[omega], output_kind, config, robust=False)
         if not fit.ok and config.aligns(output_kind):
             return _fallback(s, stage1, n_stage1, 'too_few_points')
     else:
-        fit = fit_ransac(
-            s[stage1],
-            m[stage1],
-            threshold=config.ransac_threshold,
-            relative=config.ransac_relative,
-            iterations=config.ransac_iterations,
-            min_inliers=config.ransac_min_inliers,
-            seed=config.seed,
-            inverse=inverse,
-            affine=config.model(output_kind) == 'affine',
-            scale_range=config.scale_range(output_kind),
-        )
+        fit = fit_alignment(s[stage1], m[stage1], output_kind, config)
         if not fit.ok:
             log.debug('stage 2 failed (%s) on %d stage-1 points', fit.reason, n_stage1)
             return _fallback(s, stage1, n_stage1, fit.reason or 'no_consensus')
@@ -214,7 +204,9 @@ def fuse_keyframe(
     t_select = time.perf_counter() - t0
 
     omega = _cap_points(omega, config.max_points, config.seed)
-    base = fit.predict(s) if config.aligns(output_kind) else s
+    aligned = apply_alignment(s, fit) if config.aligns(output_kind) else AlignedDepth(s, 0)
+    base = aligned.depth
+    omega &= np.isfinite(base)
     t1 = time.perf_counter()
     interp = interpolate(
         base,
@@ -243,6 +235,7 @@ def fuse_keyframe(
         n_stage1=n_stage1,
         n_omega=int(omega.sum()),
         single_aligned=base,
+        n_nonpositive=aligned.n_nonpositive,
         timings={'selection_s': t_select, 'interpolation_s': time.perf_counter() - t1},
     )
 

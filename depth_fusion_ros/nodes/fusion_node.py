@@ -346,6 +346,12 @@ class FusionNode(DepthFusionNode):
                 f'fallback_{result.fallback}',
                 f'keyframe {messages.ns_to_sec(job.pairing.stamp_ns):.3f}: fell back ({result.fallback})',
             )
+        if result.n_nonpositive:
+            self.stats.noted(
+                'nonpositive_aligned',
+                f'keyframe {messages.ns_to_sec(job.pairing.stamp_ns):.3f}: {result.n_nonpositive} pixels of '
+                f'the {self.output_kind} source aligned to a non-positive depth (published as NaN)',
+            )
         kind = messages.RCLPY
         self._depth_pub.publish(messages.depth_image_msg(result.depth, header, kind=kind))
         confidence = np.asarray(result.confidence, dtype=np.float32)

@@ -7,10 +7,11 @@ topic (``input_rectified: false``), it undistorts and resizes each image with it
 camera_info first.
 
 The network is loaded once at start-up (``model``: the shipped compact model, a checkpoint,
-or a TorchScript file with its metadata YAML) on ``device``; inference runs on the worker
-thread so subscriptions are never stalled. The model's output kind (``metric_depth``,
-``inverse_depth``, ``relative_depth``) is published once on a latched topic: the fusion node
-needs it to align non-metric outputs, and the depth image itself cannot carry it.
+or an ONNX / torch.export / TorchScript file with its metadata YAML) on ``device``;
+inference runs on the worker thread so subscriptions are never stalled. The model's output
+kind (``metric_depth``, ``inverse_depth``, ``relative_depth``) is published once on a
+latched topic: the fusion node needs it to align non-metric outputs, and the depth image
+itself cannot carry it.
 """
 
 from __future__ import annotations
@@ -46,8 +47,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'model',
         'default',
-        "single-view network: 'default' (the shipped compact model), a checkpoint file (.pth/.ckpt) "
-        'or a TorchScript .pt with its metadata YAML beside it (local files only)',
+        "single-view network: 'default' (the shipped compact model), a checkpoint file, or an exported "
+        'model with its metadata YAML beside it: ONNX .onnx (ONNX Runtime), torch.export .pt2 or '
+        'TorchScript .pt (local files only)',
     ),
     ParamSpec('device', 'cpu', 'torch device of the network: cpu, cuda, cuda:1, ...'),
     ParamSpec(

@@ -1,10 +1,11 @@
 """What a depth network expects and what it returns: the metadata every model carries.
 
-The same record travels inside our checkpoints (``metadata`` key) and beside a TorchScript
-model (a YAML file), so the predictor can preprocess any network the same way: resize the
-RGB image to ``input_width`` x ``input_height``, scale it to ``[0, 1]`` (``pixel_scale``),
-normalise with ``mean``/``std`` per channel, run the network, multiply its output by
-``scale`` and read it as ``output_kind``.
+The same record travels inside our checkpoints (``metadata`` key) and beside an exported
+model (TorchScript ``.pt``, ONNX ``.onnx``, ``torch.export`` ``.pt2``: a YAML file), so the
+predictor can preprocess any network the same way: resize the RGB image to ``input_width`` x
+``input_height`` (``dynamic_input`` networks: to its own size rounded to ``size_multiple``),
+scale it to ``[0, 1]`` (``pixel_scale``), normalise with ``mean``/``std`` per channel, run the
+network, multiply its output by ``scale`` and read it as ``output_kind``.
 """
 
 from __future__ import annotations
@@ -33,6 +34,13 @@ class ModelMetadata:
 
     input_width: int = 320
     input_height: int = 240
+    #: True: the network takes any input size (dynamic height/width axes); it is fed the
+    #: image at its own size, rounded to a multiple of ``size_multiple``. ``input_width`` x
+    #: ``input_height`` is then only the size checked at load time.
+    dynamic_input: bool = False
+    #: Dynamic inputs: both sides are rounded to a multiple of this (14 for ViT/DINOv2
+    #: patches, 32 for many CNN encoders).
+    size_multiple: int = 1
     #: Per-channel mean and std applied after dividing the uint8 image by ``pixel_scale``.
     mean: tuple[float, float, float] = IMAGENET_MEAN
     std: tuple[float, float, float] = IMAGENET_STD
@@ -62,6 +70,14 @@ class ModelMetadata:
 
         if int(self.input_width) <= 0 or int(self.input_height) <= 0:
             raise bad(f'input size must be positive, got {self.input_width}x{self.input_height}')
+        if not isinstance(self.dynamic_input, bool):
+            raise bad(f'dynamic_input must be true or false, got {self.dynamic_input!r}')
+        if (
+            isinstance(self.size_multiple, bool)
+            or not isinstance(self.size_multiple, int)
+            or self.size_multiple < 1
+        ):
+            raise bad(f'size_multiple must be an integer >= 1, got {self.size_multiple!r}')
         if len(self.mean) != 3 or len(self.std) != 3:
             raise bad(f'mean and std need 3 values (one per channel), got {self.mean} and {self.std}')
         if not all(math.isfinite(s) and s > 0 for s in self.std):
@@ -81,6 +97,14 @@ class ModelMetadata:
     def input_size(self) -> tuple[int, int]:
         """``(width, height)``, the order OpenCV expects."""
         return (int(self.input_width), int(self.input_height))
+
+    def network_size(self, width: int, height: int) -> tuple[int, int]:
+        """``(width, height)`` the network is fed for an image of that size: the fixed input
+        size, or (dynamic inputs) the image's own size rounded to ``size_multiple``."""
+        if not self.dynamic_input:
+            return self.input_size
+        k = int(self.size_multiple)
+        return (max(k, round(width / k) * k), max(k, round(height / k) * k))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain types only, so checkpoints stay loadable with ``weights_only=True``."""
@@ -109,8 +133,23 @@ class ModelMetadata:
         return meta
 
 
+def metadata_path_for(model_path: str | Path, what: str = 'model') -> Path:
+    """The YAML beside ``model_path``: ``x.yaml`` if it exists, else ``x.<suffix>.yaml``."""
+    model_path = Path(model_path)
+    same_stem = model_path.with_suffix('.yaml')
+    if same_stem.is_file():
+        return same_stem
+    appended = model_path.with_name(model_path.name + '.yaml')
+    if appended.is_file():
+        return appended
+    raise FileNotFoundError(
+        f'metadata YAML for {what} {model_path} not found: expected {same_stem} or {appended} '
+        '(input size, mean/std, output_kind, scale; see docs/single_view.md)'
+    )
+
+
 def read_metadata_yaml(path: str | Path) -> ModelMetadata:
-    """Read the YAML that sits beside a TorchScript model; errors name the file."""
+    """Read the YAML that sits beside an exported model; errors name the file."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f'model metadata file not found: {path}')

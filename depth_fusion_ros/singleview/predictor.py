@@ -6,7 +6,10 @@ evaluation use. ``spec`` is:
 * ``'default'``: the compact model shipped in ``depth_fusion_ros/models/`` (found next to
   this package, not through ament_index, so it works from a pip install and a colcon one);
 * a checkpoint path (``.pt`` written by ``depth-fusion train``, see ``checkpoint.py``);
-* a TorchScript path (``.pt``) with its metadata YAML beside it (``torchscript_model.py``).
+* an exported model with its metadata YAML beside it: ONNX ``.onnx`` run by ONNX Runtime
+  (``onnx_model.py``), a ``torch.export`` program ``.pt2`` (``pt2_model.py``), or TorchScript
+  ``.pt`` (``torchscript_model.py``). An exported model is run once at load on a blank image
+  of its input size, so one that rejects that input fails at start, naming the file.
 
 Weights come from local files only; nothing is downloaded. A ``DepthPredictor`` resizes the
 image to the network's input size, normalises it as its metadata says, runs the network
@@ -28,6 +31,8 @@ from torch import nn
 
 from .checkpoint import is_torchscript_file, load_checkpoint
 from .metadata import ModelMetadata
+from .onnx_model import ONNX_SUFFIX, load_onnx
+from .pt2_model import PT2_SUFFIX, load_pt2
 from .torchscript_model import MetricDepthHead, load_torchscript
 
 log = logging.getLogger(__name__)
@@ -37,6 +42,9 @@ MODELS_DIR = Path(__file__).resolve().parents[1] / 'models'
 DEFAULT_MODEL_NAME = 'compact_synthetic.pt'
 #: The simulated prior is an evaluation tool, never a network the nodes may load.
 SIMULATED_SPEC = 'simulated'
+#: The simulated prior as a disparity network gives it (inverse depth, unknown scale and shift).
+SIMULATED_RELATIVE_SPEC = 'simulated_relative'
+SIMULATED_SPECS = (SIMULATED_SPEC, SIMULATED_RELATIVE_SPEC)
 
 
 def default_model_path() -> Path:
@@ -99,7 +107,7 @@ class DepthPredictor:
 
     def preprocess(self, images: Sequence[np.ndarray]) -> torch.Tensor:
         """Resize each image to the input size and normalise: (B, 3, h, w) float32 on ``device``."""
-        width, height = self.input_size
+        width, height = self.metadata.network_size(images[0].shape[1], images[0].shape[0])
         batch = []
         for i, rgb in enumerate(images):
             check_rgb(rgb, f'image {i}')
@@ -153,6 +161,21 @@ class DepthPredictor:
         """HxW float32 ``output_kind`` map at the size of ``rgb`` (HxWx3 uint8 RGB)."""
         return self.predict_batch([check_rgb(rgb)])[0]
 
+    def check_network(self, source: str | Path) -> None:
+        """Run the network once on a blank image of its input size; ``ValueError`` naming
+        ``source`` when it rejects that input or returns something that is not a depth map."""
+        width, height = self.input_size
+        try:
+            out = self.predict_batch([np.zeros((height, width, 3), dtype=np.uint8)])[0]
+        except Exception as exc:  # a foreign network raises anything: shape guards, ORT errors...
+            lines = str(exc).strip().splitlines()
+            detail = f'{type(exc).__name__}: {lines[0] if lines else ""}'
+            raise ValueError(
+                f'{source}: the network fails on a {width}x{height} input as its YAML describes ({detail})'
+            ) from None
+        if out.shape != (height, width):
+            raise ValueError(f'{source}: the network returned {out.shape}, expected {(height, width)}')
+
 
 def predictor_from_network(
     net: nn.Module, metadata: ModelMetadata, device: str | torch.device = 'cpu', name: str = ''
@@ -166,25 +189,55 @@ def predictor_from_network(
 def load_predictor(
     spec: str | Path = 'default', device: str | torch.device = 'cpu', metadata_path: str | Path | None = None
 ) -> DepthPredictor:
-    """The predictor named by ``spec`` ('default', a checkpoint, or TorchScript + YAML).
+    """The predictor named by ``spec``: 'default', a checkpoint, or an exported model
+    (``.onnx``, ``.pt2``, TorchScript ``.pt``) with its YAML.
 
     Raises ``FileNotFoundError`` for a missing file and ``ValueError`` for anything unusable,
     always naming the file, so a node fails at start rather than at the first image.
     """
     device = resolve_device(device)
-    if str(spec) == SIMULATED_SPEC:
+    if str(spec) in SIMULATED_SPECS:
         raise ValueError(
-            "'simulated' is the evaluation-only simulated CNN prior, not a network: "
-            'use it through depth-fusion evaluate --single-view simulated'
+            f'{str(spec)!r} is the evaluation-only simulated CNN prior, not a network: '
+            f'use it through depth-fusion evaluate --single-view {spec}'
         )
     path = default_model_path() if str(spec) == 'default' else Path(spec).expanduser()
     if not path.is_file():
         hint = ' (the shipped model is missing: reinstall the package)' if str(spec) == 'default' else ''
         raise FileNotFoundError(f'single-view model not found: {path}{hint}')
-    if is_torchscript_file(path):
-        module, metadata = load_torchscript(path, metadata_path, device)
-        log.info('single-view model: TorchScript %s (%s)', path, metadata.output_kind)
-        return DepthPredictor(module, metadata, device, name=path.name)
+    exported = _load_exported(path, metadata_path, device)
+    if exported is not None:
+        module, metadata, host = exported
+        log.info('single-view model: %s %s (%s)', host, path, metadata.output_kind)
+        predictor = DepthPredictor(module, metadata, device, name=path.name)
+        predictor.check_network(path)
+        return predictor
     ckpt = load_checkpoint(path, device)
     log.info('single-view model: %s checkpoint %s', ckpt.architecture, path)
     return predictor_from_network(ckpt.model, ckpt.metadata, device, name=f'{ckpt.architecture}:{path.name}')
+
+
+def _load_exported(
+    path: Path, metadata_path: str | Path | None, device: torch.device
+) -> tuple[nn.Module, ModelMetadata, str] | None:
+    """``(module, metadata, host)`` of an exported model (by suffix, then by content); None
+    for a training checkpoint."""
+    suffix = path.suffix.lower()
+    if suffix == ONNX_SUFFIX:
+        return (*load_onnx(path, metadata_path, device), 'ONNX Runtime')
+    if suffix == PT2_SUFFIX:
+        return (*load_pt2(path, metadata_path, device), 'torch.export')
+    if is_torchscript_file(path):
+        return (*load_torchscript(path, metadata_path, device), 'TorchScript')
+    return None
+
+
+def check_model(
+    spec: str | Path, device: str | torch.device = 'cpu', *, allow_simulated: bool = False
+) -> None:
+    """Load ``spec`` once and drop it: what a command calls before it starts any work, so a
+    model that cannot be loaded is a one-line error naming the file and the reason
+    (``FileNotFoundError`` / ``ValueError``). The simulated sources pass when allowed."""
+    if allow_simulated and str(spec) in SIMULATED_SPECS:
+        return
+    load_predictor(spec, device)

@@ -22,6 +22,10 @@ Defaults give a single-view MAE of about 0.2–0.4 m on indoor scenes at 1–4 m
 paper's Eigen column (0.23–0.32 m on TUM). Every draw comes from
 ``numpy.random.default_rng(seed)``; the evaluation seeds it with ``(options.seed, frame
 index)`` so results are reproducible frame by frame.
+
+``to_relative_inverse`` turns it into what a disparity network gives: inverse depth with an
+unknown positive scale and shift per image (``--single-view simulated_relative``), so the
+fusion's alignment of relative models is measured against the same prior made metric.
 """
 
 from __future__ import annotations
@@ -166,3 +170,32 @@ class SimulatedPrior:
 
     def predict(self, gt_depth: np.ndarray, rgb: np.ndarray, seed: int | tuple[int, ...] = 0) -> np.ndarray:
         return simulate_prior(gt_depth, rgb, self.config, seed).depth
+
+
+@dataclass
+class RelativeInverse:
+    """A metric depth turned into inverse depth with an unknown positive scale and shift."""
+
+    inverse: np.ndarray  # (H, W) float32, scale / depth + shift
+    scale: float
+    shift: float
+
+
+def to_relative_inverse(
+    depth: np.ndarray, seed: int | tuple[int, ...] = 0, scale_range: tuple[float, float] = (0.05, 20.0)
+) -> RelativeInverse:
+    """``scale / depth + shift`` with a log-uniform ``scale`` in ``scale_range`` and a
+    uniform ``shift`` in ``[0, 2 x median(scale / depth)]``: what a disparity network
+    (MiDaS, DPT, Depth Anything) gives, an affine-invariant inverse depth whose scale and
+    shift change from image to image. Seeded, so a keyframe always gets the same pair."""
+    depth = np.asarray(depth, dtype=np.float64)
+    valid = np.isfinite(depth) & (depth > 0)
+    if not valid.any():
+        raise ValueError('simulated relative prior: the depth has no positive pixel')
+    rng = np.random.default_rng(seed)
+    lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
+    scale = float(np.exp(rng.uniform(lo, hi)))
+    with np.errstate(divide='ignore', invalid='ignore'):
+        inverse = np.where(valid, scale / depth, np.nan)
+    shift = float(rng.uniform(0.0, 2.0 * np.nanmedian(inverse)))
+    return RelativeInverse((inverse + shift).astype(np.float32), scale, shift)

@@ -23,6 +23,7 @@ from torch import nn
 
 from .architectures import model_input_size
 from .metadata import ModelMetadata, read_metadata_yaml, write_metadata_yaml
+from .metadata import metadata_path_for as _metadata_path_for
 
 
 @contextlib.contextmanager
@@ -46,18 +47,8 @@ class MetricDepthHead(nn.Module):
 
 
 def metadata_path_for(model_path: str | Path) -> Path:
-    """The YAML beside ``model_path``: ``x.yaml`` if it exists, else ``x.pt.yaml``."""
-    model_path = Path(model_path)
-    same_stem = model_path.with_suffix('.yaml')
-    if same_stem.is_file():
-        return same_stem
-    appended = model_path.with_name(model_path.name + '.yaml')
-    if appended.is_file():
-        return appended
-    raise FileNotFoundError(
-        f'metadata YAML for TorchScript model {model_path} not found: expected {same_stem} or {appended} '
-        '(input size, mean/std, output_kind, scale; see docs/single_view.md)'
-    )
+    """The YAML beside a TorchScript model: ``x.yaml`` if it exists, else ``x.pt.yaml``."""
+    return _metadata_path_for(model_path, 'TorchScript model')
 
 
 def load_torchscript(

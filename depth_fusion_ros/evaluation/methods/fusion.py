@@ -16,7 +16,8 @@ compiled with ``torch.compile`` here unless ``fusion.compile_kernel=false``: an 
 runs hundreds of keyframes, so the one-off compile pays for itself many times.
 
 Per-frame extras: ``n_stage1``, ``n_omega``, ``fallback`` (1 when the frame fell back to
-the single-view depth), ``scale_a``/``offset_b`` (the stage-2 line).
+the single-view depth), ``scale_a``/``offset_b`` (the stage-2 line), ``n_nonpositive``
+(pixels the alignment of a relative source mapped to a non-positive depth: NaN, uncovered).
 """
 
 from __future__ import annotations
@@ -92,6 +93,7 @@ def _output(result: FusionResult) -> MethodOutput:
         'fallback': 0.0 if result.fallback is None else 1.0,
         'scale_a': float(result.a),
         'offset_b': float(result.b),
+        'n_nonpositive': float(result.n_nonpositive),
     }
     return MethodOutput(result.depth, extras)
 

@@ -1,7 +1,9 @@
 """Evaluation methods of the single_view stage (registered on import).
 
 * ``single_view``: the single-view source of the run (``--single-view``): the shipped
-  compact model (``default``), a checkpoint / TorchScript path, or ``simulated``.
+  compact model (``default``), a model path (checkpoint, ONNX, ``torch.export`` .pt2,
+  TorchScript), ``simulated``, or ``simulated_relative`` (the simulated prior as inverse
+  depth with a random positive scale and shift per keyframe, what a disparity network gives).
 * ``single_view_simulated``: always the simulated CNN prior (``singleview.simulated``).
 
 The fusion methods reuse the same prediction through ``single_view_prediction(ctx)``, which
@@ -17,8 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ...singleview.predictor import SIMULATED_SPEC, DepthPredictor, load_predictor
-from ...singleview.simulated import SimulatedPriorConfig, simulate_prior
+from ...singleview.predictor import SIMULATED_RELATIVE_SPEC, SIMULATED_SPEC, DepthPredictor, load_predictor
+from ...singleview.simulated import SimulatedPriorConfig, simulate_prior, to_relative_inverse
 from ..context import KeyframeContext
 from ..registry import MethodOutput, register_method
 
@@ -56,6 +58,14 @@ def _simulated(ctx: KeyframeContext) -> SingleViewPrediction:
     return SingleViewPrediction(sim.depth, 'metric_depth')
 
 
+def _simulated_relative(ctx: KeyframeContext) -> SingleViewPrediction:
+    """The simulated prior as a disparity network would give it: inverse depth with a seeded
+    random positive scale and shift per keyframe (the fusion must find both)."""
+    metric = single_view_prediction(ctx, SIMULATED_SPEC).depth
+    rel = to_relative_inverse(metric, seed=(int(ctx.options.seed), int(ctx.index), 1))
+    return SingleViewPrediction(rel.inverse, 'inverse_depth')
+
+
 def _network(ctx: KeyframeContext, source: str) -> SingleViewPrediction:
     predictor = _model(ctx, source)
     depth = predictor.predict(ctx.frame.rgb)
@@ -71,6 +81,8 @@ def single_view_prediction(ctx: KeyframeContext, source: str | None = None) -> S
     src = str(source if source is not None else ctx.options.single_view)
     if src == SIMULATED_SPEC:
         return ctx.cached('single_view:simulated', lambda: _simulated(ctx))
+    if src == SIMULATED_RELATIVE_SPEC:
+        return ctx.cached('single_view:simulated_relative', lambda: _simulated_relative(ctx))
     return ctx.cached(f'single_view:{src}', lambda: _network(ctx, src))
 
 
@@ -103,7 +115,8 @@ def to_metric(
 @register_method(
     'single_view',
     'single-view depth of --single-view (default: the shipped compact CNN trained on synthetic data; '
-    "'simulated': the simulated prior); metric outputs scored as they are, relative/inverse outputs "
+    "'simulated': the simulated prior; 'simulated_relative': it as inverse depth up to scale and shift); "
+    'metric outputs scored as they are, relative/inverse outputs '
     'after per-frame median scaling to the ground truth',
 )
 def single_view(ctx: KeyframeContext) -> MethodOutput:
