@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
+from .guard_apply import guarded_depth
 from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind, fit_least_squares, fit_ransac
 from .weights import WeightParams, check_weight_params
@@ -55,6 +57,7 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'seed': 'seed of the RANSAC sampling and of the max_points subsampling (deterministic output)',
     'align_scale': "map s <- a s + b before fusing; 'auto': only for non-metric single-view sources",
     'max_points': 'fuse at most this many points of omega (seeded subsample); auto: all of them',
+    'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
 
 
@@ -83,6 +86,8 @@ class FusionConfig:
     seed: int = 0
     align_scale: bool | None = None
     max_points: int | None = None
+    #: Check the evidence per keyframe and degrade gracefully (``guard.py``, ``GuardConfig``).
+    guard: bool = True
     device: str = 'cpu'
 
     def __post_init__(self) -> None:
@@ -148,6 +153,13 @@ class FusionResult:
     #: The single-view depth the interpolation started from (aligned when aligning).
     single_aligned: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    #: The guard's step on the ladder (``guard.DECISIONS``), why, and the keyframe confidence
+    #: that scaled ``confidence``; ``full`` / 1.0 when the guard is off.
+    decision: str = 'full'
+    decision_reason: str = ''
+    keyframe_confidence: float = 1.0
+    #: The evidence the guard measured (``guard.GuardVerdict.evidence``).
+    evidence: dict[str, float] = field(default_factory=dict)
 
 
 def fuse_keyframe(
@@ -158,13 +170,17 @@ def fuse_keyframe(
     output_kind: str = 'metric_depth',
     *,
     omega_mask: np.ndarray | None = None,
+    guard_config: GuardConfig | None = None,
+    evidence: MultiViewEvidence | None = None,
 ) -> FusionResult:
     """Fuse one keyframe (all inputs HxW on the working grid).
 
     ``single_depth``: the single-view map (``output_kind`` units); ``mv_depth``: semi-dense
     multi-view depth (m, NaN = none); ``stage1_mask``: stage-1 selected pixels (None = every
     multi-view estimate). ``omega_mask`` replaces stage 2 by a given Ω (the oracle
-    selection); the alignment is then a least-squares fit on it.
+    selection); the alignment is then a least-squares fit on it, and the guard is skipped
+    (a given Ω is trusted). ``guard_config`` / ``evidence``: the guard's thresholds and the
+    optional per-pixel multi-view evidence (``guard.MultiViewEvidence``).
     """
     config = config or FusionConfig()
     check_output_kind(output_kind)
@@ -211,8 +227,14 @@ def fuse_keyframe(
         omega[stage1] = fit.inliers
     t_select = time.perf_counter() - t0
 
-    omega = _cap_points(omega, config.max_points, config.seed)
     base = fit.predict(s) if config.aligns(output_kind) else s
+    verdict = None
+    if config.guard and omega_mask is None:
+        verdict = assess(base, m, omega, n_stage1, guard_config, evidence)
+        if verdict.decision not in ('full', 'fewer_points'):
+            return _guarded(base, m, fit, n_stage1, verdict, config, guard_config or GuardConfig())
+        omega = verdict.trusted
+    omega = _cap_points(omega, config.max_points, config.seed)
     t1 = time.perf_counter()
     interp = interpolate(
         base,
@@ -231,6 +253,8 @@ def fuse_keyframe(
     depth[~np.isfinite(base)] = np.nan
     confidence = confidence_from_support(interp.support_distance, config.sigma1)
     confidence[~np.isfinite(depth)] = 0.0
+    if verdict is not None:
+        confidence *= np.float32(verdict.confidence)
     return FusionResult(
         depth=depth,
         confidence=confidence,
@@ -241,6 +265,45 @@ def fuse_keyframe(
         n_omega=int(omega.sum()),
         single_aligned=base,
         timings={'selection_s': t_select, 'interpolation_s': time.perf_counter() - t1},
+        **_verdict_fields(verdict),
+    )
+
+
+def _verdict_fields(verdict: GuardVerdict | None) -> dict:
+    if verdict is None:
+        return {}
+    return {
+        'decision': verdict.decision,
+        'decision_reason': verdict.reason,
+        'keyframe_confidence': verdict.confidence,
+        'evidence': dict(verdict.evidence),
+    }
+
+
+def _guarded(
+    base: np.ndarray,
+    m: np.ndarray,
+    fit: LinearFit,
+    n_stage1: int,
+    verdict: GuardVerdict,
+    config: FusionConfig,
+    guard_config: GuardConfig,
+) -> FusionResult:
+    """A keyframe the guard stepped down to ``scale_only``, ``single_scaled`` or ``single_view``.
+
+    It starts from ``base``: ``s`` itself, or ``s`` mapped by the fit when aligning (a
+    non-metric source must be in metres whatever the decision)."""
+    depth, confidence = guarded_depth(base, m, verdict, config, guard_config)
+    return FusionResult(
+        depth=depth,
+        confidence=confidence,
+        omega_mask=verdict.trusted,
+        a=fit.a,
+        b=fit.b,
+        n_stage1=n_stage1,
+        n_omega=int(verdict.trusted.sum()),
+        single_aligned=base,
+        **_verdict_fields(verdict),
     )
 
 
@@ -257,6 +320,9 @@ def _fallback(s: np.ndarray, stage1: np.ndarray, n_stage1: int, reason: str) -> 
         n_omega=0,
         fallback=reason,
         single_aligned=s,
+        decision='single_view',
+        decision_reason=reason,
+        keyframe_confidence=0.0,
     )
 
 
