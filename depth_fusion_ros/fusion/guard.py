@@ -15,7 +15,10 @@ The guard therefore measures, per keyframe and without ground truth:
 * **local consistency**: each point's log residual against the median of its Ω neighbours
   within ``neighbourhood_px``. The deviation estimates the multi-view noise alone (the smooth
   single-view error cancels); ``mv_noise`` is its robust spread (MAD x 1.4826), and a point
-  deviating by more than ``local_tolerance`` is *inconsistent*;
+  deviating by more than ``local_tolerance`` is *inconsistent*. The fusion averages about
+  the points of a neighbourhood, so the noise that reaches the depth is
+  ``effective_noise = mv_noise / sqrt(neighbours + 1)``; per-point fusion pays only while it is
+  below ``max_mv_noise`` and below the single-view error ``sqrt(fit_spread² - mv_noise²)``;
 * **support**: stage-2 inliers (``n_omega``) and their share of the stage-1 points
   (``inlier_ratio``); points with no Ω neighbour cannot be checked and are not trusted;
 * **parallax** (when the multi-view result is known): each point's relative depth
@@ -74,7 +77,7 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'local_tolerance': 'a point whose log residual deviates from its neighbours by more is inconsistent',
     'max_relative_std': 'points whose depth_std / depth (1 px of matching error) is above this: untrusted',
     'min_agreement': 'points confirmed by a smaller fraction of the neighbour frames are untrusted',
-    'max_mv_noise': 'estimated multi-view noise (log depth) above which no point bends the depth',
+    'max_mv_noise': 'multi-view noise (log depth) averaged over the local points above which no point bends the depth',
     'full_fraction': 'share of Ω that must be trusted to fuse every point (else only the trusted ones)',
     'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
     'min_scale_points': 'fewer trusted points than this: no regional scale correction',
@@ -93,11 +96,11 @@ class GuardConfig:
 
     neighbourhood_px: float = 12.0
     min_neighbours: int = 2
-    local_tolerance: float = 0.08
+    local_tolerance: float = 0.15
     max_relative_std: float = 0.15
     min_agreement: float = 0.5
     max_mv_noise: float = 0.06
-    full_fraction: float = 0.85
+    full_fraction: float = 0.8
     min_trusted_points: int = 40
     min_scale_points: int = 20
     scale_sigma_px: float = 60.0
@@ -173,17 +176,19 @@ class GuardVerdict:
 
 def _local_deviation(
     points: np.ndarray, residual: np.ndarray, radius: float, min_neighbours: int
-) -> np.ndarray:
+) -> tuple[np.ndarray, float]:
     """|residual - median residual of the other points within ``radius``| per point (NaN when
-    fewer than ``min_neighbours`` neighbours)."""
+    fewer than ``min_neighbours`` neighbours), and the median number of neighbours."""
     tree = cKDTree(points)
     neighbours = tree.query_ball_point(points, r=radius)
     out = np.full(len(points), np.nan)
+    counts = np.zeros(len(points))
     for i, idx in enumerate(neighbours):
         others = [j for j in idx if j != i]
+        counts[i] = len(others)
         if len(others) >= min_neighbours:
             out[i] = abs(residual[i] - np.median(residual[others]))
-    return out
+    return out, float(np.median(counts)) if len(counts) else 0.0
 
 
 def assess(
@@ -210,7 +215,7 @@ def assess(
 
     rows, cols = np.nonzero(usable)
     residual = np.log(m[usable].astype(np.float64)) - np.log(base[usable].astype(np.float64))
-    deviation = _local_deviation(
+    deviation, support = _local_deviation(
         np.stack((cols, rows), axis=1).astype(np.float64),
         residual,
         config.neighbourhood_px,
@@ -229,6 +234,11 @@ def assess(
     mv_noise = MAD_TO_SIGMA * float(np.median(deviation[checked])) / np.sqrt(2.0) if checked.any() else np.inf
     centre = float(np.median(residual))
     fit_spread = MAD_TO_SIGMA * float(np.median(np.abs(residual - centre)))
+    # The fusion averages the points near a pixel, so what reaches the depth is the noise over
+    # about ``support + 1`` points; it helps only while that is below the single-view error,
+    # which is what remains of the fit residual's spread once the multi-view noise is removed.
+    effective_noise = mv_noise / np.sqrt(support + 1.0)
+    single_error = float(np.sqrt(max(fit_spread**2 - mv_noise**2, 0.0)))
     n_trusted = int(good.sum())
     trusted = np.zeros(omega.shape, dtype=bool)
     trusted[rows[good], cols[good]] = True
@@ -238,6 +248,8 @@ def assess(
     scale_error = fit_spread / np.sqrt(max(len(scale_points), 1))
     stats.update(
         mv_noise=float(mv_noise),
+        effective_noise=float(effective_noise),
+        single_error=single_error,
         fit_spread=fit_spread,
         n_trusted=float(n_trusted),
         trusted_fraction=trusted_fraction,
@@ -250,7 +262,7 @@ def assess(
         confidence = DECISION_CONFIDENCE[decision] * (trusted_fraction if decision != 'full' else 1.0)
         return GuardVerdict(decision, reason, points, float(confidence), scale, stats)
 
-    noisy = mv_noise > config.max_mv_noise
+    noisy = effective_noise > min(config.max_mv_noise, single_error)
     if not noisy and n_trusted >= config.min_trusted_points:
         if trusted_fraction >= config.full_fraction:
             return verdict('full', 'consistent multi-view points', usable.copy())
@@ -260,7 +272,8 @@ def assess(
             trusted,
         )
     why = (
-        f'multi-view noise {mv_noise:.3f} > {config.max_mv_noise:g}'
+        f'averaged multi-view noise {effective_noise:.3f} > '
+        f'min({config.max_mv_noise:g}, single-view {single_error:.3f})'
         if noisy
         else f'{n_trusted} trusted points < {config.min_trusted_points}'
     )
