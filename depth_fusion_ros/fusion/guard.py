@@ -77,7 +77,7 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'local_tolerance': 'a point whose log residual deviates from its neighbours by more is inconsistent',
     'max_relative_std': 'points whose depth_std / depth (1 px of matching error) is above this: untrusted',
     'min_agreement': 'points confirmed by a smaller fraction of the neighbour frames are untrusted',
-    'max_mv_noise': 'multi-view noise (log depth, averaged over nearby points) above which no point bends depth',
+    'max_mv_noise': 'averaged multi-view noise (log depth) above which no point bends the depth',
     'full_fraction': 'share of Ω that must be trusted to fuse every point (else only the trusted ones)',
     'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
     'min_scale_points': 'fewer trusted points than this: no regional scale correction',
