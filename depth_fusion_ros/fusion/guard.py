@@ -82,6 +82,7 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
     'min_scale_points': 'fewer trusted points than this: no regional scale correction',
     'scale_sigma_px': 'scale_only: proximity scale (px) of the smooth scale correction',
+    'reach_px': 'local corrections fade out with the distance (px) to their points: weight exp(-D / reach)',
     'max_scale_error': 'largest standard error (log) of the global multi-view scale that is still applied',
 }
 
@@ -104,6 +105,7 @@ class GuardConfig:
     min_trusted_points: int = 40
     min_scale_points: int = 20
     scale_sigma_px: float = 60.0
+    reach_px: float = 30.0
     max_scale_error: float = 0.03
 
     def __post_init__(self) -> None:
@@ -116,6 +118,7 @@ class GuardConfig:
             'max_relative_std',
             'max_mv_noise',
             'scale_sigma_px',
+            'reach_px',
         )
         for name in positive:
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):

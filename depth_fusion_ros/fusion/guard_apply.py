@@ -60,3 +60,21 @@ def guarded_depth(
     depth[~finite] = np.nan
     confidence[~np.isfinite(depth)] = 0.0
     return depth, confidence.astype(np.float32)
+
+
+def limit_reach(
+    depth: np.ndarray, base: np.ndarray, support_distance: np.ndarray, scale: float, reach_px: float
+) -> np.ndarray:
+    """Fade the local corrections out with the distance to the points that make them.
+
+    The interpolation's weights are normalised, so a pixel 100 px from every point still
+    takes their full offset, though the single-view error there (another region of the
+    network's prediction) is unrelated to theirs: extrapolated, a correction adds error. The
+    fused depth is blended towards ``scale * base`` (the single-view depth with the global
+    multi-view scale) with weight ``exp(-D / reach_px)``, ``D`` the pixel's weighted
+    distance to its points.
+    """
+    with np.errstate(invalid='ignore'):
+        near = np.exp(-np.nan_to_num(support_distance, nan=np.inf) / reach_px).astype(np.float32)
+    out = near * depth + (1.0 - near) * (np.float32(scale) * base)
+    return np.where(np.isfinite(depth), np.maximum(out, MIN_DEPTH), np.nan).astype(np.float32)

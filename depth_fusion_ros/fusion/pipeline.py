@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
-from .guard_apply import guarded_depth
+from .guard_apply import guarded_depth, limit_reach
 from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind, fit_least_squares, fit_ransac
 from .weights import WeightParams, check_weight_params
@@ -251,6 +251,9 @@ def fuse_keyframe(
     with np.errstate(invalid='ignore'):
         depth = np.maximum(base + interp.offset, MIN_DEPTH).astype(np.float32)
     depth[~np.isfinite(base)] = np.nan
+    if verdict is not None:
+        reach = (guard_config or GuardConfig()).reach_px
+        depth = limit_reach(depth, base, interp.support_distance, 1.0, reach)
     confidence = confidence_from_support(interp.support_distance, config.sigma1)
     confidence[~np.isfinite(depth)] = 0.0
     if verdict is not None:

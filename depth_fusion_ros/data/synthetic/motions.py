@@ -50,7 +50,7 @@ def rotation_sweep(
     direction = float(rng.choice((-1.0, 1.0)))
     x = np.clip(base[0] + direction * step * k, -half_room, half_room)
     positions = np.stack((x, np.full(frames, base[1]), np.full(frames, base[2])), axis=1)
-    positions[:, 2] += 0.01 * np.sin(2 * np.pi * (k / max(frames, 2) + rng.uniform()))
+    positions[:, 2] += 0.01 * np.sin(2 * np.pi * (k / 90.0 + rng.uniform()))  # a slow bob, 3 s period
     rel = target - base
     dist = float(np.linalg.norm(rel))
     heading0 = np.arctan2(rel[1], rel[0])
