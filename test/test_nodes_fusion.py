@@ -234,3 +234,37 @@ def test_pending_keyframes_stay_bounded_under_a_flood():
         snap = node.stats.snapshot()
         assert received > 5 and len(node.pending) == 5
     assert snap.dropped == {'pair_overflow': received - 5}
+
+
+def test_publishes_the_guard_decision_per_keyframe_and_counts_it():
+    import json
+
+    good = _scene(0)
+    bad = _scene(1)
+    rng = np.random.default_rng(7)
+    noise = np.exp(rng.normal(0.0, 0.4, (H, W))).astype(np.float32)  # independent wrong matches
+    bad.mv = (bad.mv * noise).astype(np.float32)
+    a, b = 3_000_000_000, 3_033_333_333
+    with RosHarness() as ros:
+        node = _fusion_node(ros, publish_points=False)
+        decisions = ros.collect(String, '/depth_fusion/fused/decision')
+        confidences = ros.collect(Image, '/depth_fusion/fused/confidence')
+        inputs = _Inputs(ros)
+        inputs.keyframe(good, a)
+        inputs.keyframe(bad, b)
+        assert ros.wait_for(lambda: len(decisions) == 2 and len(confidences) == 2, 20.0), (
+            node.stats.snapshot().summary()
+        )
+        snap = node.stats.snapshot()
+
+    verdicts = [json.loads(msg.data) for msg in decisions]
+    assert [round(v['stamp'] * 1e9) for v in verdicts] == [a, b]
+    assert verdicts[0]['decision'] in ('full', 'fewer_points'), verdicts[0]
+    assert verdicts[1]['decision'] in ('scale_only', 'single_scaled', 'single_view'), verdicts[1]
+    assert verdicts[1]['reason'] and verdicts[1]['evidence']['mv_noise'] > verdicts[0]['evidence']['mv_noise']
+    assert verdicts[1]['confidence'] < verdicts[0]['confidence']
+    assert sum(snap.counts['decision'].values()) == 2
+    assert snap.counts['decision'][verdicts[1]['decision']] >= 1
+    assert snap.noted.get(f'guard_{verdicts[1]["decision"]}') == 1
+    bad_confidence = m.image_to_numpy(confidences[1])
+    assert float(bad_confidence.max()) <= verdicts[1]['confidence'] + 1e-6

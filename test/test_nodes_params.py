@@ -112,7 +112,6 @@ def test_launch_file_compiles_and_describes_the_graph():
     assert module.generate_launch_description().entities
 
 
-
 def _launch_calls(name: str) -> list[dict]:
     """Keyword arguments (as source text) of every ``name(...)`` call in the launch file."""
     import ast
@@ -135,6 +134,7 @@ def test_launch_file_starts_map_node_only_with_map_true():
     assert nodes['map_node']['condition'] == "IfCondition(LaunchConfiguration('map'))"
     assert nodes['map_node']['parameters'] == 'common'  # the same params file as the other nodes
     assert 'condition' not in nodes['fusion_node']
+
 
 class _Process:
     """A console script with its merged output collected by a thread."""

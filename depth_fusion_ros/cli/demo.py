@@ -66,9 +66,7 @@ def run(args: argparse.Namespace) -> int:
     for name, seq in doc['sequences'].items():
         print(f'\n{name}: {seq["frames"]} keyframes\n')
         print(metrics_table(seq['methods']))
-    print(
-        f'\nnode graph: {demo["graph_summary"]}; steps (s): {demo["step_seconds"]}'
-    )
+    print(f'\nnode graph: {demo["graph_summary"]}; steps (s): {demo["step_seconds"]}')
     out = Path(args.out).resolve()
     print(f'\nreport:  {out / "report.md"}\nresults: {out / "results.json"}\nfigures: {out}/*.png')
     return 0

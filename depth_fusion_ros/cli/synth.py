@@ -20,11 +20,12 @@ examples:
   depth-fusion synth artifacts/room                       # 100 frames 640x480, high parallax
   depth-fusion synth artifacts/room_low --parallax low --seed 3
   depth-fusion synth artifacts/small --frames 24 --width 320 --height 240
+  depth-fusion synth artifacts/rot --stress rotation --frames 60   # a stress case (see --stress)
 """
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..data.synthetic import PARALLAX_MODES, SynthConfig
+    from ..data.synthetic import MOTIONS, PARALLAX_MODES, STRESS_CASES, SynthConfig
 
     d = SynthConfig()
     p = sub.add_parser(
@@ -94,6 +95,44 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--no-antialias', dest='antialias', action='store_false', help='do not supersample silhouette pixels'
     )
     p.add_argument('--t0', type=float, default=d.t0, help=f'stamp of the first frame in s (default {d.t0:g})')
+    p.add_argument(
+        '--motion',
+        choices=MOTIONS,
+        default=d.motion,
+        help="'parallax': the --parallax trajectory; 'rotation_sweep', 'keyframe_stream': stress motions "
+        'with fixed per-frame steps (default parallax)',
+    )
+    p.add_argument(
+        '--step-translation',
+        type=float,
+        default=d.step_translation,
+        help=f'stress motions: metres between consecutive frames (default {d.step_translation:g})',
+    )
+    p.add_argument(
+        '--step-rotation-deg',
+        type=float,
+        default=d.step_rotation_deg,
+        help=f'stress motions: degrees between consecutive frames (default {d.step_rotation_deg:g})',
+    )
+    p.add_argument(
+        '--texture-contrast',
+        type=float,
+        default=d.texture_contrast,
+        help=f'contrast of the textures in (0, 1] (default {d.texture_contrast:g}; low = faint texture)',
+    )
+    p.add_argument(
+        '--focal-error',
+        type=float,
+        default=d.focal_error,
+        help='relative error of the focal lengths written to camera.yaml (rendering uses the true ones; '
+        f'default {d.focal_error:g})',
+    )
+    p.add_argument(
+        '--stress',
+        choices=tuple(STRESS_CASES),
+        default=None,
+        help='start from a named stress case (data/synthetic/stress.py); options given explicitly win',
+    )
     p.add_argument('--overwrite', action='store_true', help='replace OUT_DIR if it exists')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     p.set_defaults(func=run)
@@ -101,38 +140,50 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def config_from_args(args: argparse.Namespace):
     """The ``SynthConfig`` of parsed arguments (raises ValueError naming a bad option)."""
-    from ..data.synthetic import SynthConfig
+    from ..data.synthetic import STRESS_CASES, SynthConfig
+
+    preset = STRESS_CASES.get(getattr(args, 'stress', None) or '', {})
+    defaults = SynthConfig()
+
+    def pick(name: str, value):
+        # A stress preset fills the options left at their defaults.
+        return preset[name] if name in preset and value == getattr(defaults, name) else value
 
     return SynthConfig(
-        width=args.width,
-        height=args.height,
-        frames=args.frames,
-        fps=args.fps,
-        seed=args.seed,
-        parallax=args.parallax,
-        fx=args.fx,
-        fy=args.fy,
-        noise_sigma=args.noise_sigma,
-        textureless_fraction=args.textureless_fraction,
+        width=pick('width', args.width),
+        height=pick('height', args.height),
+        frames=pick('frames', args.frames),
+        fps=pick('fps', args.fps),
+        seed=pick('seed', args.seed),
+        parallax=pick('parallax', args.parallax),
+        fx=pick('fx', args.fx),
+        fy=pick('fy', args.fy),
+        noise_sigma=pick('noise_sigma', args.noise_sigma),
+        textureless_fraction=pick('textureless_fraction', args.textureless_fraction),
         room_size=tuple(args.room_size),
-        room_jitter=args.room_jitter,
-        boxes=args.boxes,
-        tables=args.tables,
-        sweep=args.sweep,
-        antialias=args.antialias,
-        t0=args.t0,
+        room_jitter=pick('room_jitter', args.room_jitter),
+        boxes=pick('boxes', args.boxes),
+        tables=pick('tables', args.tables),
+        sweep=pick('sweep', args.sweep),
+        antialias=pick('antialias', args.antialias),
+        t0=pick('t0', args.t0),
+        motion=pick('motion', args.motion),
+        step_translation=pick('step_translation', args.step_translation),
+        step_rotation_deg=pick('step_rotation_deg', args.step_rotation_deg),
+        texture_contrast=pick('texture_contrast', args.texture_contrast),
+        focal_error=pick('focal_error', args.focal_error),
     )
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..data.synthetic import write_synthetic_sequence
+    from ..data.synthetic import sequence_name, write_synthetic_sequence
 
     cfg = config_from_args(args)
     start = time.perf_counter()
     out = write_synthetic_sequence(args.out_dir, cfg, overwrite=args.overwrite, show_progress=not args.quiet)
     elapsed = time.perf_counter() - start
     print(
-        f'wrote {cfg.frames} frames {cfg.width}x{cfg.height} ({cfg.parallax} parallax, seed {cfg.seed}) '
+        f'wrote {cfg.frames} frames {cfg.width}x{cfg.height} ({sequence_name(cfg)}) '
         f'to {out} in {elapsed:.1f} s ({elapsed / cfg.frames:.3f} s/frame)'
     )
     return 0

@@ -4,7 +4,8 @@
   colour scale per row (Fig. 6);
 * ``<seq>_errors.png`` — absolute error images of single-view and fused depth (Fig. 5);
 * ``error_boxplots.png`` — per-sequence error distributions per method (Fig. 7);
-* ``single_view_error_histogram.png`` — signed single-view error per sequence (Fig. 2).
+* ``single_view_error_histogram.png`` — signed single-view error per sequence (Fig. 2);
+* ``guard_decisions.png`` — the guard's decision and points used per keyframe (``guard_report``).
 
 matplotlib runs headless (Agg); nothing here is needed to compute the numbers.
 """
@@ -185,4 +186,7 @@ def write_figures(results: list[SequenceResult], out_dir: Path) -> list[Path]:
         written.append(error_grid(r, out_dir / f'{r.name}_errors.png'))
     written.append(error_boxplots(results, out_dir / 'error_boxplots.png'))
     written.append(single_view_histogram(results, out_dir / 'single_view_error_histogram.png'))
+    from .guard_report import decision_figure
+
+    written.append(decision_figure(results, out_dir / 'guard_decisions.png'))
     return [p for p in written if p is not None]

@@ -51,6 +51,8 @@ class MethodRecord:
         }
         for key, values in self.extras.items():
             out[key] = float(np.nanmean(values)) if len(values) else float('nan')
+        if self.extras:
+            out['per_frame_extras'] = {k: [_finite_or_none(v) for v in vs] for k, vs in self.extras.items()}
         out['seconds_per_frame'] = float(np.mean(self.seconds)) if self.seconds else float('nan')
         return out
 

@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .alignment import AlignedDepth, apply_alignment, fit_alignment
+from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
+from .guard_apply import guarded_depth, limit_reach
 from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
 from .valid_depth import sanitize_depth
@@ -59,6 +61,7 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'seed': 'seed of the RANSAC sampling and of the max_points subsampling (deterministic output)',
     'align_scale': "map s <- a s + b before fusing; 'auto': only for non-metric single-view sources",
     'max_points': 'fuse at most this many points of omega (seeded subsample); auto: all of them',
+    'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
 
 
@@ -87,6 +90,8 @@ class FusionConfig:
     seed: int = 0
     align_scale: bool | None = None
     max_points: int | None = None
+    #: Check the evidence per keyframe and degrade gracefully (``guard.py``, ``GuardConfig``).
+    guard: bool = True
     device: str = 'cpu'
 
     def __post_init__(self) -> None:
@@ -154,6 +159,13 @@ class FusionResult:
     #: Pixels whose aligned depth (or inverse depth) was not positive: NaN in ``depth``.
     n_nonpositive: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+    #: The guard's step on the ladder (``guard.DECISIONS``), why, and the keyframe confidence
+    #: that scaled ``confidence``; ``full`` / 1.0 when the guard is off.
+    decision: str = 'full'
+    decision_reason: str = ''
+    keyframe_confidence: float = 1.0
+    #: The evidence the guard measured (``guard.GuardVerdict.evidence``).
+    evidence: dict[str, float] = field(default_factory=dict)
 
 
 def fuse_keyframe(
@@ -164,13 +176,17 @@ def fuse_keyframe(
     output_kind: str = 'metric_depth',
     *,
     omega_mask: np.ndarray | None = None,
+    guard_config: GuardConfig | None = None,
+    evidence: MultiViewEvidence | None = None,
 ) -> FusionResult:
     """Fuse one keyframe (all inputs HxW on the working grid).
 
     ``single_depth``: the single-view map (``output_kind`` units); ``mv_depth``: semi-dense
     multi-view depth (m, NaN = none); ``stage1_mask``: stage-1 selected pixels (None = every
     multi-view estimate). ``omega_mask`` replaces stage 2 by a given Ω (the oracle
-    selection); the alignment is then a least-squares fit on it.
+    selection); the alignment is then a least-squares fit on it, and the guard is skipped
+    (a given Ω is trusted). ``guard_config`` / ``evidence``: the guard's thresholds and the
+    optional per-pixel multi-view evidence (``guard.MultiViewEvidence``).
     """
     config = config or FusionConfig()
     check_output_kind(output_kind)
@@ -203,9 +219,17 @@ def fuse_keyframe(
         omega[stage1] = fit.inliers
     t_select = time.perf_counter() - t0
 
-    omega = _cap_points(omega, config.max_points, config.seed)
     aligned = apply_alignment(s, fit) if config.aligns(output_kind) else AlignedDepth(s, 0)
     base = aligned.depth
+    verdict = None
+    if config.guard and omega_mask is None:
+        verdict = assess(base, m, omega, n_stage1, guard_config, evidence)
+        if verdict.decision not in ('full', 'fewer_points'):
+            guarded = _guarded(base, m, fit, n_stage1, verdict, config, guard_config or GuardConfig())
+            guarded.n_nonpositive = aligned.n_nonpositive
+            return guarded
+        omega = verdict.trusted
+    omega = _cap_points(omega, config.max_points, config.seed)
     omega &= np.isfinite(base)
     t1 = time.perf_counter()
     interp = interpolate(
@@ -223,9 +247,14 @@ def fuse_keyframe(
     with np.errstate(invalid='ignore'):
         depth = np.maximum(base + interp.offset, MIN_DEPTH).astype(np.float32)
     depth[~np.isfinite(base)] = np.nan
+    if verdict is not None:
+        reach = (guard_config or GuardConfig()).reach_px
+        depth = limit_reach(depth, base, interp.support_distance, 1.0, reach)
     depth, _ = sanitize_depth(depth)
     confidence = confidence_from_support(interp.support_distance, config.sigma1)
     confidence[~np.isfinite(depth)] = 0.0
+    if verdict is not None:
+        confidence *= np.float32(verdict.confidence)
     return FusionResult(
         depth=depth,
         confidence=confidence,
@@ -237,6 +266,47 @@ def fuse_keyframe(
         single_aligned=base,
         n_nonpositive=aligned.n_nonpositive,
         timings={'selection_s': t_select, 'interpolation_s': time.perf_counter() - t1},
+        **_verdict_fields(verdict),
+    )
+
+
+def _verdict_fields(verdict: GuardVerdict | None) -> dict:
+    if verdict is None:
+        return {}
+    return {
+        'decision': verdict.decision,
+        'decision_reason': verdict.reason,
+        'keyframe_confidence': verdict.confidence,
+        'evidence': dict(verdict.evidence),
+    }
+
+
+def _guarded(
+    base: np.ndarray,
+    m: np.ndarray,
+    fit: LinearFit,
+    n_stage1: int,
+    verdict: GuardVerdict,
+    config: FusionConfig,
+    guard_config: GuardConfig,
+) -> FusionResult:
+    """A keyframe the guard stepped down to ``scale_only``, ``single_scaled`` or ``single_view``.
+
+    It starts from ``base``: ``s`` itself, or ``s`` mapped by the fit when aligning (a
+    non-metric source must be in metres whatever the decision)."""
+    depth, confidence = guarded_depth(base, m, verdict, config, guard_config)
+    depth, _ = sanitize_depth(depth)
+    confidence[~np.isfinite(depth)] = 0.0
+    return FusionResult(
+        depth=depth,
+        confidence=confidence,
+        omega_mask=verdict.trusted,
+        a=fit.a,
+        b=fit.b,
+        n_stage1=n_stage1,
+        n_omega=int(verdict.trusted.sum()),
+        single_aligned=base,
+        **_verdict_fields(verdict),
     )
 
 
@@ -256,6 +326,9 @@ def _fallback(s: np.ndarray, stage1: np.ndarray, n_stage1: int, reason: str) -> 
         n_omega=0,
         fallback=reason,
         single_aligned=s,
+        decision='single_view',
+        decision_reason=reason,
+        keyframe_confidence=0.0,
     )
 
 

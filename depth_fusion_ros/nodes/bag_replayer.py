@@ -89,7 +89,7 @@ REPLAYER_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'wait_ready',
         [''],
-        "before playing, wait until these nodes said they are ready (on depth_fusion/ready) and this "
+        'before playing, wait until these nodes said they are ready (on depth_fusion/ready) and this '
         "replayer's publishers are matched with their subscriptions (empty or ['']: do not wait)",
     ),
     ParamSpec(

@@ -12,10 +12,18 @@ A complete pairing goes to the worker: stage 1 of the point selection (best
 ``fuse_keyframe`` (stage 2 RANSAC, the weighted interpolation, fallbacks). The fused depth
 (32FC1, metres), its confidence (32FC1) and the keyframe's camera_info are published with
 the source header, and optionally a PointCloud2 in the camera frame for RViz.
+
+The fusion's guard (``fusion/guard.py``) judges every keyframe's multi-view evidence and may
+step down from the full fusion (fewer points, a smooth scale correction, the single-view
+depth with the multi-view scale, or the single-view depth as it is). Its decision, reason,
+keyframe confidence and evidence go out as JSON on ``fused/decision`` (std_msgs/String, one
+per fused keyframe, published before the depth) and are tallied per decision in the node's
+stats (``counts['decision']``); the keyframe confidence also scales ``fused/confidence``.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -30,6 +38,7 @@ from std_msgs.msg import String
 from ..camera import PinholeCamera
 from ..data import messages
 from ..fusion import pipeline as fusion_pipeline
+from ..fusion.guard import GUARD_PARAMETER_DESCRIPTIONS, GuardConfig
 from ..fusion.interpolation import MODES as FUSION_MODES
 from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
 from ..fusion.weights import WEIGHT_SETS
@@ -54,6 +63,7 @@ TOPIC_FUSED_DEPTH = 'depth_fusion/fused/depth'
 TOPIC_FUSED_CONFIDENCE = 'depth_fusion/fused/confidence'
 TOPIC_FUSED_CAMERA_INFO = 'depth_fusion/fused/camera_info'
 TOPIC_FUSED_POINTS = 'depth_fusion/fused/points'
+TOPIC_FUSED_DECISION = 'depth_fusion/fused/decision'
 
 OUTPUT_KINDS = ('auto', 'metric_depth', 'inverse_depth', 'relative_depth')
 
@@ -74,6 +84,20 @@ FUSION_LIMITS: dict[str, Any] = {
     'max_points': (-1, None),
     'ransac_model': tuple(getattr(fusion_pipeline, 'RANSAC_MODELS', ())),
     'metric_scale_range': (1.0, None),
+}
+#: Ranges of the ``guard.*`` parameters (``GuardConfig``).
+GUARD_LIMITS: dict[str, Any] = {
+    'neighbourhood_px': (1e-3, None),
+    'min_neighbours': (1, None),
+    'local_tolerance': (1e-6, None),
+    'max_relative_std': (1e-6, None),
+    'min_agreement': (0.0, 1.0),
+    'max_mv_noise': (1e-6, None),
+    'full_fraction': (0.0, 1.0),
+    'min_trusted_points': (1, None),
+    'min_scale_points': (1, None),
+    'scale_sigma_px': (1e-3, None),
+    'max_scale_error': (0.0, None),
 }
 #: Set by the node itself (``device``) rather than under ``fusion.*``.
 FUSION_SKIP = ('device',)
@@ -140,6 +164,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         FUSION_SKIP,
         FUSION_NODE_DEFAULTS,
     ),
+    *dataclass_specs(GuardConfig, 'guard', GUARD_PARAMETER_DESCRIPTIONS, GUARD_LIMITS),
 )
 
 
@@ -167,6 +192,7 @@ class FusionNode(DepthFusionNode):
         self._own_process = own_process
         p = self.params
         self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))
+        self.guard_config = build_dataclass(GuardConfig, p, 'guard')
         self.announced_kind: str | None = None
         self.pending: dict[int, _Pairing] = {}
         #: Stamps of keyframes already fused or dropped (the most recent ``CLOSED_MEMORY``).
@@ -178,6 +204,7 @@ class FusionNode(DepthFusionNode):
         self._depth_pub = self.create_publisher(Image, TOPIC_FUSED_DEPTH, self.output_qos)
         self._confidence_pub = self.create_publisher(Image, TOPIC_FUSED_CONFIDENCE, self.output_qos)
         self._info_pub = self.create_publisher(CameraInfo, TOPIC_FUSED_CAMERA_INFO, self.output_qos)
+        self._decision_pub = self.create_publisher(String, TOPIC_FUSED_DECISION, self.output_qos)
         self._points_pub = (
             self.create_publisher(PointCloud2, TOPIC_FUSED_POINTS, self.output_qos)
             if p['publish_points']
@@ -340,18 +367,32 @@ class FusionNode(DepthFusionNode):
         stage1 = select_best_fraction(
             SimpleNamespace(depth=mv_depth, score=mv_score), float(self.params['fusion.stage1_fraction'])
         )
-        result = fuse_keyframe(single, mv_depth, stage1, self.active_config, output_kind=self.output_kind)
+        result = fuse_keyframe(
+            single,
+            mv_depth,
+            stage1,
+            self.active_config,
+            output_kind=self.output_kind,
+            guard_config=self.guard_config,
+        )
+        stamp = messages.ns_to_sec(job.pairing.stamp_ns)
         if result.fallback:
             self.stats.noted(
-                f'fallback_{result.fallback}',
-                f'keyframe {messages.ns_to_sec(job.pairing.stamp_ns):.3f}: fell back ({result.fallback})',
+                f'fallback_{result.fallback}', f'keyframe {stamp:.3f}: fell back ({result.fallback})'
+            )
+        elif result.decision not in ('full', 'fewer_points'):
+            self.stats.noted(
+                f'guard_{result.decision}',
+                f'keyframe {stamp:.3f}: {result.decision} ({result.decision_reason})',
             )
         if result.n_nonpositive:
             self.stats.noted(
                 'nonpositive_aligned',
-                f'keyframe {messages.ns_to_sec(job.pairing.stamp_ns):.3f}: {result.n_nonpositive} pixels of '
+                f'keyframe {stamp:.3f}: {result.n_nonpositive} pixels of '
                 f'the {self.output_kind} source aligned to a non-positive depth (published as NaN)',
             )
+        self.stats.count('decision', result.decision)
+        self._decision_pub.publish(String(data=decision_json(result, stamp)))
         kind = messages.RCLPY
         self._depth_pub.publish(messages.depth_image_msg(result.depth, header, kind=kind))
         confidence = np.asarray(result.confidence, dtype=np.float32)
@@ -382,6 +423,23 @@ class FusionNode(DepthFusionNode):
         if rgb is not None and rgb.shape[:2] == depth.shape:
             colours = rgb[::stride, ::stride].reshape(-1, 3)[keep]
         return messages.pointcloud2_msg(points[keep], header, kind=messages.RCLPY, rgb=colours)
+
+
+def decision_json(result: Any, stamp: float) -> str:
+    """The guard's verdict for one keyframe as one JSON line (``fused/decision``)."""
+    evidence = {k: (round(v, 4) if np.isfinite(v) else None) for k, v in result.evidence.items()}
+    return json.dumps(
+        {
+            'stamp': stamp,
+            'decision': result.decision,
+            'reason': result.decision_reason,
+            'confidence': round(float(result.keyframe_confidence), 4),
+            'n_stage1': int(result.n_stage1),
+            'n_points': int(result.n_omega),
+            'fallback': result.fallback,
+            'evidence': evidence,
+        }
+    )
 
 
 def _checked_inputs(

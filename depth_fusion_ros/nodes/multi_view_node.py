@@ -262,9 +262,7 @@ class MultiViewNode(DepthFusionNode):
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
         self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
         self.events = GraphEvents(self)
-        self.awaiting_info = AwaitingCalibration(
-            float(p['camera_info_wait']), int(p['max_pending_images'])
-        )
+        self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), int(p['max_pending_images']))
         self.worker = self.make_worker('multi_view', self._process, on_lost=self._on_keyframe_lost)
         self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
         pose_qos = qos_profile(str(p['input_qos']), int(p['pose_qos_depth']))

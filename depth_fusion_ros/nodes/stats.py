@@ -29,6 +29,8 @@ class StatsSnapshot:
     noted: dict[str, int] = field(default_factory=dict)
     latency_mean_s: float = float('nan')
     latency_max_s: float = float('nan')
+    #: Plain tallies by group and key (e.g. ``{'decision': {'full': 12, 'scale_only': 2}}``).
+    counts: dict[str, dict[str, int]] = field(default_factory=dict)
 
     @property
     def dropped_total(self) -> int:
@@ -47,9 +49,10 @@ class StatsSnapshot:
         )
         dropped = f'dropped {self.dropped_total}' + (f' ({fmt(self.dropped)})' if self.dropped else '')
         noted = f' | noted {fmt(self.noted)}' if self.noted else ''
+        counts = ''.join(f' | {group} {fmt(c)}' for group, c in sorted(self.counts.items()))
         return (
             f'received {fmt(self.received)} | processed {self.processed} | published {fmt(self.published)}'
-            f' | {dropped}{noted} | {latency}'
+            f' | {dropped}{noted}{counts} | {latency}'
         )
 
 
@@ -64,6 +67,7 @@ class NodeStats:
         self._published: Counter[str] = Counter()
         self._dropped: Counter[str] = Counter()
         self._noted: Counter[str] = Counter()
+        self._counts: dict[str, Counter[str]] = {}
         self._processed = 0
         #: stream -> monotonic time of its first / latest message (diagnostics: missing inputs)
         self._first_seen: dict[str, float] = {}
@@ -95,6 +99,11 @@ class NodeStats:
             self._processed += 1
             self._latency_sum += latency_s
             self._latency_max = max(self._latency_max, latency_s)
+
+    def count(self, group: str, key: str) -> None:
+        """Tally an outcome that is neither a drop nor an anomaly (e.g. the fusion's decision)."""
+        with self._lock:
+            self._counts.setdefault(group, Counter())[key] += 1
 
     def dropped(self, reason: str, message: str = '', count: int = 1) -> None:
         """Count ``count`` inputs dropped for ``reason`` and warn (throttled per reason).
@@ -134,4 +143,5 @@ class NodeStats:
                 noted=dict(self._noted),
                 latency_mean_s=self._latency_sum / n if n else float('nan'),
                 latency_max_s=self._latency_max if n else float('nan'),
+                counts={group: dict(c) for group, c in self._counts.items()},
             )

@@ -11,6 +11,9 @@ from dataclasses import asdict, dataclass, fields
 from ...camera import PinholeCamera
 
 PARALLAX_MODES = ('high', 'low')
+#: Camera motions: ``parallax`` = the ``parallax`` mode's trajectory; the others are the
+#: stress motions of ``motions.py`` (fixed per-frame translation and rotation steps).
+MOTIONS = ('parallax', 'rotation_sweep', 'keyframe_stream')
 
 #: Focal length at 640x480 (Kinect-like); other sizes scale it.
 DEFAULT_FOCAL_640 = 525.0
@@ -47,6 +50,16 @@ class SynthConfig:
     antialias: bool = True
     #: Stamp of the first frame (s); frame ``i`` is at ``t0 + i / fps`` rounded to 1 us.
     t0: float = 1000.0
+    #: Camera motion (see :data:`MOTIONS`); the stress motions use the two steps below.
+    motion: str = 'parallax'
+    #: Stress motions: translation (m) and rotation (degrees) from one frame to the next.
+    step_translation: float = 0.012
+    step_rotation_deg: float = 0.6
+    #: Contrast of the textured albedos around their mean (1 = as drawn; 0.2 = faint texture).
+    texture_contrast: float = 1.0
+    #: Relative error of the focal lengths *given to the pipeline* (camera.yaml, ``Sequence.camera``);
+    #: rendering always uses the true ones (``camera()``). 0.1 = the pipeline's fx, fy are 10 % long.
+    focal_error: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ValueError:
@@ -78,6 +91,16 @@ class SynthConfig:
             raise bad('sweep', 'expected a lateral sweep in (0, 3] m')
         if self.seed < 0:
             raise bad('seed', 'must be non-negative')
+        if self.motion not in MOTIONS:
+            raise bad('motion', f'expected one of {", ".join(MOTIONS)}')
+        if not 0 <= self.step_translation <= 1.0:
+            raise bad('step_translation', 'expected 0..1 m per frame')
+        if not 0 <= self.step_rotation_deg <= 30.0:
+            raise bad('step_rotation_deg', 'expected 0..30 degrees per frame')
+        if not 0 < self.texture_contrast <= 1.0:
+            raise bad('texture_contrast', 'expected a contrast in (0, 1]')
+        if not -0.5 < self.focal_error < 0.5:
+            raise bad('focal_error', 'expected a relative error in (-0.5, 0.5)')
 
     def camera(self) -> PinholeCamera:
         """Intrinsics: principal point at the image centre ((W - 1) / 2 with pixel-centre
@@ -85,6 +108,15 @@ class SynthConfig:
         fx = self.fx if self.fx is not None else DEFAULT_FOCAL_640 * self.width / 640.0
         fy = self.fy if self.fy is not None else DEFAULT_FOCAL_640 * self.height / 480.0
         return PinholeCamera(self.width, self.height, fx, fy, (self.width - 1) / 2.0, (self.height - 1) / 2.0)
+
+    def pipeline_camera(self) -> PinholeCamera:
+        """The intrinsics the pipeline is told (camera.yaml): the true ones with the focal
+        lengths off by ``focal_error``, the failure of a wrong calibration."""
+        true = self.camera()
+        if self.focal_error == 0.0:
+            return true
+        k = 1.0 + self.focal_error
+        return PinholeCamera(true.width, true.height, true.fx * k, true.fy * k, true.cx, true.cy)
 
     def stamp(self, index: int) -> float:
         """Stamp of frame ``index`` rounded to the microsecond, so it survives TUM text files."""

@@ -245,7 +245,11 @@ def _assign_materials(
             texel_size[g] = 1.0
             continue
         large = g in ROOM_FACES or g.endswith('_top')
-        textures.append(textured_albedo(rng, str(rng.choice(PATTERNS)), 512 if large else 256))
+        albedo = textured_albedo(rng, str(rng.choice(PATTERNS)), 512 if large else 256)
+        if cfg.texture_contrast != 1.0:  # faint texture: same pattern, squeezed towards its mean
+            mean = albedo.mean(axis=(0, 1), keepdims=True)
+            albedo = (mean + cfg.texture_contrast * (albedo - mean)).astype(np.float32)
+        textures.append(albedo)
         texel_size[g] = (0.004 if g in ROOM_FACES else 0.003) * rng.uniform(0.8, 1.25)
     return texture_of, textures, textured, texel_size
 

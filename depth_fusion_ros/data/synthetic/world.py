@@ -24,6 +24,7 @@ import numpy as np
 from ...progress import progress
 from ..sequence import Frame, Sequence
 from .config import PARALLAX_MODES, SynthConfig
+from .motions import MOTION_FUNCTIONS
 from .render import RenderedFrame, render_frame
 from .scene import Scene, build_scene
 from .trajectory import Trajectory, make_trajectory
@@ -34,10 +35,15 @@ log = logging.getLogger(__name__)
 _ROOM_STREAM, _TRAJECTORY_STREAM, _NOISE_STREAM = 0, 1, 2
 #: Poses per trajectory used to keep furniture off the camera path (independent of frames).
 _KEEP_OUT_SAMPLES = 64
+#: Sub-stream of the trajectory stream drawn by the stress motions.
+_STRESS_SUBSTREAM = 1
 
 
 def sequence_name(cfg: SynthConfig) -> str:
-    return f'synth_s{cfg.seed}_{cfg.parallax}'
+    name = f'synth_s{cfg.seed}_{cfg.parallax if cfg.motion == "parallax" else cfg.motion}'
+    if cfg.focal_error:
+        name += f'_focal{cfg.focal_error:+g}'
+    return name
 
 
 def build_world(cfg: SynthConfig) -> tuple[Scene, Trajectory]:
@@ -51,9 +57,25 @@ def build_world(cfg: SynthConfig) -> tuple[Scene, Trajectory]:
 
     # Furniture keeps clear of both parallax modes' paths, so the room is the same for both.
     both = [trajectory(mode, _KEEP_OUT_SAMPLES) for mode in PARALLAX_MODES]
-    keep_out = Trajectory(np.concatenate([t.poses for t in both]), both[0].view_origin, both[0].view_target)
+    main = trajectory(cfg.parallax, cfg.frames)
+    paths = [t.poses for t in both]
+    if cfg.motion != 'parallax':
+        # A stress motion starts from the same nominal viewpoint; furniture keeps off it too.
+        rng = np.random.default_rng([cfg.seed, _TRAJECTORY_STREAM, _STRESS_SUBSTREAM])
+        motion = MOTION_FUNCTIONS[cfg.motion]
+        main = motion(
+            cfg.frames,
+            room,
+            main.view_origin,
+            main.view_target,
+            rng,
+            cfg.step_translation,
+            cfg.step_rotation_deg,
+        )
+        paths.append(main.poses)
+    keep_out = Trajectory(np.concatenate(paths), both[0].view_origin, both[0].view_target)
     scene = build_scene(cfg, room, keep_out, room_rng)
-    return scene, trajectory(cfg.parallax, cfg.frames)
+    return scene, main
 
 
 def iter_frames(
@@ -78,12 +100,14 @@ def iter_frames(
 def render_sequence(cfg: SynthConfig, show_progress: bool = False) -> Sequence:
     """Render the whole sequence in memory.
 
-    ``camera`` and ``gt_camera`` are both the config's camera: rgb and ground-truth depth
-    (float32 z-depth in metres, exact at pixel centres, no invalid pixels) share its size.
+    rgb and ground-truth depth (float32 z-depth in metres, exact at pixel centres, no invalid
+    pixels) share the config's size. ``gt_camera`` is the true camera; ``camera`` is what the
+    pipeline is told (the same unless ``focal_error``).
     """
-    camera = cfg.camera()
     frames = [
         Frame(index=i, stamp=cfg.stamp(i), rgb=f.rgb, pose=pose.copy(), depth=f.depth)
         for i, f, pose in iter_frames(cfg, show_progress=show_progress)
     ]
-    return Sequence(name=sequence_name(cfg), camera=camera, frames=frames, gt_camera=camera)
+    return Sequence(
+        name=sequence_name(cfg), camera=cfg.pipeline_camera(), frames=frames, gt_camera=cfg.camera()
+    )

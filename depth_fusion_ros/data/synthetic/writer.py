@@ -14,6 +14,21 @@ from .config import SynthConfig
 from .world import build_world, iter_frames, sequence_name
 
 
+def _motion(cfg: SynthConfig) -> str:
+    if cfg.motion == 'parallax':
+        return f'with {cfg.parallax} parallax'
+    return f'{cfg.motion} ({cfg.step_translation:g} m and {cfg.step_rotation_deg:g} deg per frame)'
+
+
+def _focal_note(cfg: SynthConfig) -> str:
+    if not cfg.focal_error:
+        return ''
+    return (
+        f'\n**camera.yaml is deliberately wrong**: its focal lengths are {cfg.focal_error:+.0%} off the '
+        f'ones used for rendering (fx = {cfg.camera().fx:g} px), a calibration-error stress case.'
+    )
+
+
 def source_markdown(cfg: SynthConfig, out_dir: Path) -> str:
     """SOURCE.md text: how to regenerate the folder and what its ground truth is."""
     command = shlex.join(['depth-fusion', 'synth', str(out_dir), *cfg.cli_args()])
@@ -22,7 +37,7 @@ def source_markdown(cfg: SynthConfig, out_dir: Path) -> str:
 
 Rendered by depth_fusion_ros (`depth_fusion_ros/data/synthetic/`): numpy ray casting of a
 procedural room (floor, walls, ceiling, boxes, tables) with textured and texture-less
-Lambertian materials, camera trajectory with {cfg.parallax} parallax, seed {cfg.seed}.
+Lambertian materials, camera motion {_motion(cfg)}, seed {cfg.seed}.{_focal_note(cfg)}
 No external data: free to use and redistribute.
 
 Regenerate (bit-identical with the same package version):
@@ -56,7 +71,7 @@ def write_synthetic_sequence(
     stamps = np.array([cfg.stamp(i) for i in range(cfg.frames)])
     return write_tum_folder(
         out_dir,
-        cfg.camera(),
+        cfg.pipeline_camera(),
         stamps,
         (rgb for rgb, _ in for_rgb),
         (depth for _, depth in for_depth),

@@ -3,6 +3,8 @@
 * ``fused`` — the paper's method: stage-1 (best ``stage1_fraction`` by score) and stage-2
   (RANSAC) point selection, then the interpolation with all four weights;
 * ``fused_fast`` — the same in the fast mode (the harness then measures fast vs exact);
+* ``fused_unguarded`` — ``fused`` without the guard (``fusion.guard=false``): the paper's
+  fusion as it was, to compare with;
 * ``fused_oracle`` — Ω = the multi-view points within ``oracle_threshold`` (10 cm) of the
   ground truth, as the paper's right-hand table (an upper bound of the selection);
 * ``fused_w1``, ``fused_w1w2`` — oracle points with the weights W1, W1·W2 only (Table III;
@@ -15,9 +17,13 @@ plus ``stage1_fraction`` and ``oracle_threshold``. A method's own setting (the m
 compiled with ``torch.compile`` here unless ``fusion.compile_kernel=false``: an evaluation
 runs hundreds of keyframes, so the one-off compile pays for itself many times.
 
-Per-frame extras: ``n_stage1``, ``n_omega``, ``fallback`` (1 when the frame fell back to
-the single-view depth), ``scale_a``/``offset_b`` (the stage-2 line), ``n_nonpositive``
-(pixels the alignment of a relative source mapped to a non-positive depth: NaN, uncovered).
+Per-frame extras: ``n_stage1``, ``n_omega`` (the points fused), ``fallback`` (1 when the
+frame fell back to the single-view depth), ``scale_a``/``offset_b`` (the stage-2 line),
+``n_nonpositive`` (pixels the alignment of a relative source mapped to a non-positive depth:
+NaN, uncovered), and the guard's ``decision`` (index into ``guard.DECISIONS``: 0 full ... 4 single-view) and
+``keyframe_confidence``. ``--set guard.<GuardConfig field>=...`` sets its thresholds; the
+automatic methods give it the multi-view result's per-pixel evidence (``depth_std``, and the
+neighbour agreement when the multi-view stage provides one).
 """
 
 from __future__ import annotations
@@ -28,11 +34,14 @@ from typing import Any
 
 import numpy as np
 
+from ...fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence
 from ...fusion.pipeline import FusionConfig, FusionResult, fuse_keyframe
+from ...multiview.params import apply_overrides
 from ..context import KeyframeContext
 from ..registry import MethodOutput, register_method
 
 STAGE = 'fusion'
+GUARD_STAGE = 'guard'
 #: Stage-1 fraction of the paper (best 25 % by photometric x geometric score).
 DEFAULT_STAGE1_FRACTION = 0.25
 #: The paper's oracle: multi-view points whose error against ground truth is below 10 cm.
@@ -59,6 +68,11 @@ def fusion_settings(ctx: KeyframeContext, **forced: Any) -> tuple[FusionConfig, 
             f'{", ".join(sorted(known | set(extra)))}'
         )
     return FusionConfig(**params), extra
+
+
+def guard_settings(ctx: KeyframeContext) -> GuardConfig:
+    """``GuardConfig`` with the run's ``--set guard.*`` overrides (checked)."""
+    return apply_overrides(GuardConfig(), ctx.stage_params(GUARD_STAGE), GUARD_STAGE)
 
 
 def _inputs(ctx: KeyframeContext) -> tuple[np.ndarray, str, Any]:
@@ -94,6 +108,8 @@ def _output(result: FusionResult) -> MethodOutput:
         'scale_a': float(result.a),
         'offset_b': float(result.b),
         'n_nonpositive': float(result.n_nonpositive),
+        'decision': float(DECISIONS.index(result.decision)),
+        'keyframe_confidence': float(result.keyframe_confidence),
     }
     return MethodOutput(result.depth, extras)
 
@@ -103,7 +119,16 @@ def fused_automatic(ctx: KeyframeContext, **forced: Any) -> MethodOutput:
     config, extra = fusion_settings(ctx, **forced)
     single, kind, mv = _inputs(ctx)
     stage1 = _stage1(ctx, mv, extra['stage1_fraction'])
-    return _output(fuse_keyframe(single, mv.depth, stage1, config, output_kind=kind))
+    result = fuse_keyframe(
+        single,
+        mv.depth,
+        stage1,
+        config,
+        output_kind=kind,
+        guard_config=guard_settings(ctx),
+        evidence=MultiViewEvidence.from_result(mv),
+    )
+    return _output(result)
 
 
 def fused_oracle(ctx: KeyframeContext, **forced: Any) -> MethodOutput:
@@ -132,6 +157,12 @@ _register(
     'as fused, fast mode (exact on a coarse grid + structure-guided upsampling)',
     fused_automatic,
     mode='fast',
+)
+_register(
+    'fused_unguarded',
+    'as fused without the guard (fusion.guard=false): every stage-2 point bends the depth',
+    fused_automatic,
+    guard=False,
 )
 _register(
     'fused_oracle',

@@ -19,7 +19,6 @@ from pathlib import Path
 PROFILE_ENV = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 
 
-
 def fastdds_profile_path() -> Path:
     """The package's Fast DDS profile (found in a checkout, a pip or a colcon install)."""
     path = Path(str(resources.files('depth_fusion_ros') / 'config' / 'fastdds_shm.xml'))

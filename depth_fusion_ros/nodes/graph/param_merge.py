@@ -108,4 +108,3 @@ def bag_topic_names(bag: Path) -> list[str]:
         return sorted({c.topic for c in reader.connections})
     finally:
         reader.close()
-

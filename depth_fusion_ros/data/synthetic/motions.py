@@ -1,0 +1,99 @@
+"""Stress camera motions: the hand-held and keyframe-stream regimes where multi-view depth fails.
+
+Both are parametrised by the translation and rotation *between consecutive frames*
+(``SynthConfig.step_translation``, ``step_rotation_deg``), because that is what a user
+reports and what decides the multi-view geometry:
+
+* ``rotation_sweep`` — a hand-held sweep of a room, e.g. 1.2 cm and 0.6 deg per frame at
+  30 Hz: the camera walks sideways *and turns the same way*, so the image motion is mostly
+  rotation (0.6 deg is ~3 px at 320x240, the translation ~1.5 px at 2 m). Over 100 frames it
+  turns ~60 deg and moves ~1.2 m. Neighbours with enough baseline are also rotated a lot.
+* ``keyframe_stream`` — what a SLAM's keyframes give: e.g. 15 cm and 6.7 deg between
+  consecutive frames (0.67 s apart). The camera orbits a point in front of it (a radius
+  that makes the two steps consistent: ``R = step / angle``) back and forth over +-5 steps,
+  so every neighbour is at least one wide step away.
+
+Poses are camera-to-world (optical frame: x right, y down, z forward), in the room frame of
+``trajectory.py`` (z up, camera near the ``y = -D/2`` wall looking along ``+y``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .trajectory import WALL_CLEARANCE, Trajectory, look_at
+
+#: Half-period (in frames) of the keyframe stream's back-and-forth orbit.
+STREAM_HALF_PERIOD = 5
+
+
+def _triangle(k: np.ndarray, half_period: int) -> np.ndarray:
+    """Integer triangle wave 0, 1, ..., h, h-1, ..., -h, ... centred on 0 (amplitude h)."""
+    phase = (k + half_period // 2) % (4 * half_period)
+    up = np.minimum(phase, 2 * half_period - phase)
+    return np.where(phase <= 2 * half_period, up, phase - 4 * half_period) - half_period // 2
+
+
+def rotation_sweep(
+    frames: int,
+    room: np.ndarray,
+    base: np.ndarray,
+    target: np.ndarray,
+    rng: np.random.Generator,
+    step: float,
+    step_deg: float,
+) -> Trajectory:
+    """Sideways walk turning the same way: ``step`` m and ``step_deg`` deg per frame, centred
+    on the nominal viewpoint (clipped to the room)."""
+    half_room = float(room[0]) / 2 - WALL_CLEARANCE
+    k = np.arange(frames, dtype=np.float64) - (frames - 1) / 2.0
+    direction = float(rng.choice((-1.0, 1.0)))
+    x = np.clip(base[0] + direction * step * k, -half_room, half_room)
+    positions = np.stack((x, np.full(frames, base[1]), np.full(frames, base[2])), axis=1)
+    positions[:, 2] += 0.01 * np.sin(2 * np.pi * (k / 90.0 + rng.uniform()))  # a slow bob, 3 s period
+    rel = target - base
+    dist = float(np.linalg.norm(rel))
+    heading0 = np.arctan2(rel[1], rel[0])
+    pitch = np.arctan2(rel[2], np.hypot(rel[0], rel[1]))
+    # Moving towards +x and turning right (clockwise seen from above, heading decreasing):
+    # translation and rotation then move the image the same way.
+    heading = heading0 - direction * np.deg2rad(step_deg) * k
+    directions = np.stack(
+        (np.cos(heading) * np.cos(pitch), np.sin(heading) * np.cos(pitch), np.full(frames, np.sin(pitch))),
+        axis=1,
+    )
+    poses = np.stack([look_at(p, p + d * dist) for p, d in zip(positions, directions, strict=True)])
+    return Trajectory(poses, base, target)
+
+
+def keyframe_stream(
+    frames: int,
+    room: np.ndarray,
+    base: np.ndarray,
+    target: np.ndarray,
+    rng: np.random.Generator,
+    step: float,
+    step_deg: float,
+) -> Trajectory:
+    """Back-and-forth orbit about a point ahead of the nominal camera: each frame ``step`` m
+    and ``step_deg`` deg from the previous one."""
+    angle_step = np.deg2rad(max(step_deg, 1e-3))
+    radius = step / (2.0 * np.sin(angle_step / 2.0)) if step > 0 else 0.0
+    forward = target - base
+    forward[2] = 0.0
+    forward /= np.linalg.norm(forward)
+    centre = base + forward * radius
+    centre[2] = target[2]
+    start = float(np.arctan2(base[1] - centre[1], base[0] - centre[0]))
+    k = _triangle(np.arange(frames), STREAM_HALF_PERIOD) * float(rng.choice((-1.0, 1.0)))
+    angles = start + angle_step * k
+    positions = np.stack(
+        (centre[0] + radius * np.cos(angles), centre[1] + radius * np.sin(angles), np.full(frames, base[2])),
+        axis=1,
+    )
+    # Pure orbit: the view turns by exactly the orbit angle, looking at the centre's column.
+    poses = np.stack([look_at(p, np.array([centre[0], centre[1], target[2]])) for p in positions])
+    return Trajectory(poses, base, target)
+
+
+MOTION_FUNCTIONS = {'rotation_sweep': rotation_sweep, 'keyframe_stream': keyframe_stream}

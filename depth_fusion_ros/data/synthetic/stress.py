@@ -1,0 +1,45 @@
+"""Named stress cases: synthetic sequences that reproduce where multi-view depth misleads the fusion.
+
+Each case is a ``SynthConfig`` preset (any field can still be overridden). They mirror
+the failures reported on real sequences (issue 11), so the fusion's guard can be tested on
+data with exact ground truth:
+
+=================  ==========================================================================
+``translation``    the good case: a lateral sweep with high parallax (multi-view is reliable)
+``rotation``       hand-held, rotation-dominant sweep: 1.2 cm and 0.6 deg per frame at 30 Hz
+``keyframes``      a SLAM keyframe stream: 15 cm and 6.7 deg between frames 0.67 s apart
+``low_texture``    most surfaces flat, the rest faint (texture contrast 0.25); lateral sweep
+``wrong_focal``    the lateral sweep, but camera.yaml's focal lengths are 10 % too long
+=================  ==========================================================================
+
+``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
+tests; ``depth-fusion synth OUT --stress rotation`` writes one as a TUM folder.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+from .config import SynthConfig
+
+STRESS_CASES: dict[str, dict[str, Any]] = {
+    'translation': {'parallax': 'high', 'sweep': 1.0},
+    'rotation': {'motion': 'rotation_sweep', 'step_translation': 0.012, 'step_rotation_deg': 0.6},
+    'keyframes': {
+        'motion': 'keyframe_stream',
+        'step_translation': 0.15,
+        'step_rotation_deg': 6.7,
+        'fps': 1.5,
+    },
+    'low_texture': {'parallax': 'high', 'sweep': 1.0, 'textureless_fraction': 0.85, 'texture_contrast': 0.25},
+    'wrong_focal': {'parallax': 'high', 'sweep': 1.0, 'focal_error': 0.10},
+}
+
+
+def stress_config(name: str, **overrides: Any) -> SynthConfig:
+    """The ``SynthConfig`` of a named stress case (``STRESS_CASES``), with ``overrides``."""
+    if name not in STRESS_CASES:
+        raise ValueError(f'unknown stress case {name!r}; expected one of {", ".join(STRESS_CASES)}')
+    base = SynthConfig(width=320, height=240, frames=100)
+    return replace(base, **{**STRESS_CASES[name], **overrides})

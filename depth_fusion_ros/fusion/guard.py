@@ -1,0 +1,297 @@
+"""The fusion's guard: never make the depth worse than the single-view input it started from.
+
+The paper's fusion trusts every point of Ω: each bends the single-view depth ``s`` onto its
+multi-view depth ``m``. Where the multi-view evidence is wrong (rotation-dominant motion,
+wide baselines, weak texture, a wrong calibration) that makes the fused depth *worse* than
+``s``. Stage 2 (one RANSAC line over the whole image with a loose threshold) cannot see it:
+its threshold must pass the single-view error of correct points, which is as large as the
+error of many wrong matches.
+
+What separates the two errors is their *spatial structure*. A single-view network is wrong
+smoothly, by regions (a segment off by 20 %), so the residual ``log m - log s`` of correct
+points varies slowly across the image. Wrong matches are independent from point to point.
+The guard therefore measures, per keyframe and without ground truth:
+
+* **local consistency**: each point's log residual against the median of its Ω neighbours
+  within ``neighbourhood_px``. The deviation estimates the multi-view noise alone (the smooth
+  single-view error cancels); ``mv_noise`` is its robust spread (MAD x 1.4826), and a point
+  deviating by more than ``local_tolerance`` is *inconsistent*. The fusion averages about
+  the points of a neighbourhood, so the noise that reaches the depth is
+  ``effective_noise = mv_noise / sqrt(neighbours + 1)``; per-point fusion pays only while it is
+  below ``max_mv_noise`` and below the single-view error ``sqrt(fit_spread² - mv_noise²)``;
+* **support**: stage-2 inliers (``n_omega``) and their share of the stage-1 points
+  (``inlier_ratio``); points with no Ω neighbour cannot be checked and are not trusted;
+* **parallax** (when the multi-view result is known): each point's relative depth
+  uncertainty ``depth_std / depth`` from one pixel of matching error, i.e. its parallax and
+  epipolar geometry;
+* **agreement between neighbours** (when the multi-view stage provides it): the fraction of
+  the neighbour frames that individually confirm the match;
+* **fit residual**: the robust spread of the log residual over Ω (``fit_spread``), which
+  bounds how much the multi-view scale can be trusted.
+
+and steps down a ladder (``DECISIONS``, least to most degraded):
+
+=================  ======================================================================
+``full``           the paper's fusion over Ω (almost every point is consistent)
+``fewer_points``   the fusion over the trusted points only (consistent, enough parallax)
+``scale_only``     no per-point bending: a smooth multiplicative correction of ``s`` from
+                   the trusted points (W1 only, ``scale_sigma_px``): regional scale only
+``single_scaled``  the single-view depth with the multi-view global scale (one number)
+``single_view``    the single-view depth as it is (a non-metric source still needs the
+                   fit to be in metres), flagged; confidence 0
+=================  ======================================================================
+
+Each decision comes with a reason (which evidence failed) and a keyframe confidence in
+[0, 1] that multiplies the per-pixel confidence, so a consumer thresholding the confidence
+drops the pixels of untrusted keyframes. No ground truth is used anywhere. The thresholds
+were chosen on the synthetic stress cases (``data.synthetic.stress``), never on real data:
+see docs/fusion.md.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+log = logging.getLogger(__name__)
+
+DECISIONS = ('full', 'fewer_points', 'scale_only', 'single_scaled', 'single_view')
+#: Keyframe confidence of each decision before it is scaled by the share of trusted points.
+DECISION_CONFIDENCE = {
+    'full': 1.0,
+    'fewer_points': 1.0,
+    'scale_only': 0.5,
+    'single_scaled': 0.2,
+    'single_view': 0.0,
+}
+#: MAD -> standard deviation of a normal distribution.
+MAD_TO_SIGMA = 1.4826
+
+#: One line per ``GuardConfig`` field (ROS parameter descriptions, docs).
+GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
+    'neighbourhood_px': 'radius (px) of the Ω neighbourhood a point is checked against',
+    'min_neighbours': 'Ω neighbours within the radius a point needs to be checked (else it is not trusted)',
+    'local_tolerance': 'a point whose log residual deviates from its neighbours by more is inconsistent',
+    'max_relative_std': 'points whose depth_std / depth (1 px of matching error) is above this: untrusted',
+    'min_agreement': 'points confirmed by a smaller fraction of the neighbour frames are untrusted',
+    'max_mv_noise': 'averaged multi-view noise (log depth) above which no point bends the depth',
+    'full_fraction': 'share of Ω that must be trusted to fuse every point (else only the trusted ones)',
+    'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
+    'min_scale_points': 'fewer trusted points than this: no regional scale correction',
+    'scale_sigma_px': 'scale_only: proximity scale (px) of the smooth scale correction',
+    'reach_px': 'local corrections fade out with the distance (px) to their points: weight exp(-D / reach)',
+    'max_scale_error': 'largest standard error (log) of the global multi-view scale that is still applied',
+}
+
+
+@dataclass(frozen=True)
+class GuardConfig:
+    """Thresholds of the guard (also the ``guard.*`` ROS parameters; ``FusionConfig.guard``
+    switches it on and off).
+
+    Defaults chosen on the synthetic stress cases at 320x240 (docs/fusion.md).
+    """
+
+    neighbourhood_px: float = 12.0
+    min_neighbours: int = 2
+    local_tolerance: float = 0.15
+    max_relative_std: float = 0.15
+    min_agreement: float = 0.5
+    max_mv_noise: float = 0.06
+    full_fraction: float = 0.8
+    min_trusted_points: int = 40
+    min_scale_points: int = 20
+    scale_sigma_px: float = 60.0
+    reach_px: float = 30.0
+    max_scale_error: float = 0.03
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        positive = (
+            'neighbourhood_px',
+            'local_tolerance',
+            'max_relative_std',
+            'max_mv_noise',
+            'scale_sigma_px',
+            'reach_px',
+        )
+        for name in positive:
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f'guard.{name} must be a positive number, got {getattr(self, name)}')
+        for name in ('min_agreement', 'full_fraction'):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f'guard.{name} must be in [0, 1], got {getattr(self, name)}')
+        for name in ('min_neighbours', 'min_trusted_points', 'min_scale_points'):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f'guard.{name} must be >= 1, got {getattr(self, name)}')
+        if not (np.isfinite(self.max_scale_error) and self.max_scale_error >= 0):
+            raise ValueError(f'guard.max_scale_error must be >= 0, got {self.max_scale_error}')
+
+
+@dataclass
+class MultiViewEvidence:
+    """Optional per-pixel evidence of the multi-view stage (HxW float32, NaN = none).
+
+    ``relative_std``: ``depth_std / depth`` (parallax and epipolar geometry of the estimate);
+    ``agreement``: fraction of neighbour frames that confirm the match on their own.
+    """
+
+    relative_std: np.ndarray | None = None
+    agreement: np.ndarray | None = None
+
+    @classmethod
+    def from_result(cls, result: object) -> MultiViewEvidence:
+        """From a ``MultiViewResult`` (or anything with ``depth``/``depth_std``, optional ``agreement``)."""
+        depth = getattr(result, 'depth', None)
+        std = getattr(result, 'depth_std', None)
+        rel = None
+        if depth is not None and std is not None:
+            with np.errstate(invalid='ignore', divide='ignore'):
+                rel = (np.asarray(std, dtype=np.float32) / np.asarray(depth, dtype=np.float32)).astype(
+                    np.float32
+                )
+        return cls(relative_std=rel, agreement=getattr(result, 'agreement', None))
+
+
+@dataclass
+class GuardVerdict:
+    """The guard's decision for one keyframe."""
+
+    decision: str
+    reason: str
+    #: Points the fusion may use (a subset of Ω); empty for the non-fusing decisions.
+    trusted: np.ndarray
+    #: Keyframe confidence in [0, 1]: multiplies the per-pixel confidence.
+    confidence: float
+    #: Global multi-view scale (median ratio m / s over the trusted points, or Ω).
+    scale: float = 1.0
+    evidence: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def level(self) -> int:
+        return DECISIONS.index(self.decision)
+
+
+def _local_deviation(
+    points: np.ndarray, residual: np.ndarray, radius: float, min_neighbours: int
+) -> tuple[np.ndarray, float]:
+    """|residual - median residual of the other points within ``radius``| per point (NaN when
+    fewer than ``min_neighbours`` neighbours), and the median number of neighbours."""
+    tree = cKDTree(points)
+    neighbours = tree.query_ball_point(points, r=radius)
+    out = np.full(len(points), np.nan)
+    counts = np.zeros(len(points))
+    for i, idx in enumerate(neighbours):
+        others = [j for j in idx if j != i]
+        counts[i] = len(others)
+        if len(others) >= min_neighbours:
+            out[i] = abs(residual[i] - np.median(residual[others]))
+    return out, float(np.median(counts)) if len(counts) else 0.0
+
+
+def assess(
+    base: np.ndarray,
+    m: np.ndarray,
+    omega: np.ndarray,
+    n_stage1: int,
+    config: GuardConfig | None = None,
+    evidence: MultiViewEvidence | None = None,
+) -> GuardVerdict:
+    """Judge the multi-view evidence of one keyframe (all maps HxW on the working grid).
+
+    ``base``: the single-view depth the fusion starts from (metres); ``m``: multi-view depth;
+    ``omega``: the stage-2 points; ``n_stage1``: how many stage-1 points stage 2 saw.
+    """
+    config = config or GuardConfig()
+    with np.errstate(invalid='ignore'):
+        usable = omega & np.isfinite(base) & np.isfinite(m) & (base > 0) & (m > 0)
+    n_omega = int(usable.sum())
+    stats: dict[str, float] = {'n_omega': float(n_omega), 'inlier_ratio': n_omega / max(n_stage1, 1)}
+    empty = np.zeros(omega.shape, dtype=bool)
+    if n_omega < config.min_scale_points:
+        return GuardVerdict('single_view', f'only {n_omega} stage-2 points', empty, 0.0, 1.0, stats)
+
+    rows, cols = np.nonzero(usable)
+    residual = np.log(m[usable].astype(np.float64)) - np.log(base[usable].astype(np.float64))
+    deviation, support = _local_deviation(
+        np.stack((cols, rows), axis=1).astype(np.float64),
+        residual,
+        config.neighbourhood_px,
+        config.min_neighbours,
+    )
+    checked = np.isfinite(deviation)
+    good = checked & (deviation <= config.local_tolerance)
+    if evidence is not None and evidence.relative_std is not None:
+        rel = evidence.relative_std[usable]
+        stats['median_relative_std'] = float(np.nanmedian(rel)) if np.isfinite(rel).any() else float('nan')
+        good &= np.nan_to_num(rel, nan=np.inf) <= config.max_relative_std
+    if evidence is not None and evidence.agreement is not None:
+        agree = evidence.agreement[usable]
+        stats['median_agreement'] = float(np.nanmedian(agree)) if np.isfinite(agree).any() else float('nan')
+        good &= np.nan_to_num(agree, nan=0.0) >= config.min_agreement
+    mv_noise = MAD_TO_SIGMA * float(np.median(deviation[checked])) / np.sqrt(2.0) if checked.any() else np.inf
+    centre = float(np.median(residual))
+    fit_spread = MAD_TO_SIGMA * float(np.median(np.abs(residual - centre)))
+    # The fusion averages the points near a pixel, so what reaches the depth is the noise over
+    # about ``support + 1`` points; it helps only while that is below the single-view error,
+    # which is what remains of the fit residual's spread once the multi-view noise is removed.
+    effective_noise = mv_noise / np.sqrt(support + 1.0)
+    single_error = float(np.sqrt(max(fit_spread**2 - mv_noise**2, 0.0)))
+    n_trusted = int(good.sum())
+    trusted = np.zeros(omega.shape, dtype=bool)
+    trusted[rows[good], cols[good]] = True
+    trusted_fraction = n_trusted / n_omega
+    scale_points = residual[good] if n_trusted >= config.min_scale_points else residual
+    scale_log = float(np.median(scale_points))
+    scale_error = fit_spread / np.sqrt(max(len(scale_points), 1))
+    stats.update(
+        mv_noise=float(mv_noise),
+        effective_noise=float(effective_noise),
+        single_error=single_error,
+        fit_spread=fit_spread,
+        n_trusted=float(n_trusted),
+        trusted_fraction=trusted_fraction,
+        scale=float(np.exp(scale_log)),
+        scale_error=float(scale_error),
+    )
+    scale = float(np.exp(scale_log))
+
+    def verdict(decision: str, reason: str, points: np.ndarray) -> GuardVerdict:
+        confidence = DECISION_CONFIDENCE[decision] * (trusted_fraction if decision != 'full' else 1.0)
+        return GuardVerdict(decision, reason, points, float(confidence), scale, stats)
+
+    noisy = effective_noise > min(config.max_mv_noise, single_error)
+    if not noisy and n_trusted >= config.min_trusted_points:
+        if trusted_fraction >= config.full_fraction:
+            return verdict('full', 'consistent multi-view points', usable.copy())
+        return verdict(
+            'fewer_points',
+            f'{n_omega - n_trusted} of {n_omega} points inconsistent with their neighbours',
+            trusted,
+        )
+    why = (
+        f'averaged multi-view noise {effective_noise:.3f} > '
+        f'min({config.max_mv_noise:g}, single-view {single_error:.3f})'
+        if noisy
+        else f'{n_trusted} trusted points < {config.min_trusted_points}'
+    )
+    if n_trusted >= config.min_scale_points and not noisy:
+        return verdict('scale_only', why, trusted)
+    if scale_error <= config.max_scale_error:
+        return verdict('single_scaled', why + '; global scale kept', empty)
+    return verdict('single_view', why + f'; scale uncertain ({scale_error:.3f})', empty)
+
+
+def verdict_dict(verdict: GuardVerdict) -> dict[str, object]:
+    """JSON-friendly summary (node diagnostics, evaluation extras)."""
+    return {
+        'decision': verdict.decision,
+        'reason': verdict.reason,
+        'confidence': verdict.confidence,
+        **{k: v for k, v in asdict(verdict).items() if k == 'evidence'},
+    }

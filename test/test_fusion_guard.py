@@ -1,0 +1,116 @@
+"""The fusion's guard: evidence, decisions, and never worse than the single-view input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from depth_fusion_ros.fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence, assess
+from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
+from depth_fusion_ros.fusion.scenes import planes_and_boxes
+
+W, H = 120, 90
+
+
+def _single(depth: np.ndarray, seed: int) -> np.ndarray:
+    """A CNN-like single-view depth: wrong by region (a 3x3 grid of scales 0.75-1.3), right locally."""
+    rng = np.random.default_rng(seed)
+    factors = rng.uniform(0.75, 1.3, (3, 3))
+    rows = np.minimum(np.arange(H) * 3 // H, 2)
+    cols = np.minimum(np.arange(W) * 3 // W, 2)
+    return (depth * factors[rows][:, cols]).astype(np.float32)
+
+
+def _multi(depth: np.ndarray, seed: int, density: float, noise: float, region: np.ndarray | None = None):
+    """Semi-dense multi-view depth on a random ``density`` of the pixels, log-normal ``noise``
+    (independent per point: wrong matches) inside ``region`` (everywhere when None)."""
+    rng = np.random.default_rng(seed + 100)
+    m = np.full(depth.shape, np.nan, dtype=np.float32)
+    pick = rng.random(depth.shape) < density
+    values = depth * np.exp(rng.normal(0.0, 1.0, depth.shape) * noise)
+    if region is not None:
+        values = np.where(region, values, depth)
+    m[pick] = values[pick]
+    return m
+
+
+def _mae(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.nanmean(np.abs(a - b)))
+
+
+@pytest.fixture(scope='module')
+def truth() -> np.ndarray:
+    return planes_and_boxes(W, H, boxes=2, seed=4)
+
+
+def test_consistent_points_keep_the_full_fusion(truth):
+    single = _single(truth, 0)
+    multi = _multi(truth, 0, density=0.08, noise=0.01)
+    result = fuse_keyframe(single, multi, None, FusionConfig(mode='fast'))
+    assert result.decision == 'full', result.decision_reason
+    assert result.keyframe_confidence == 1.0 and result.fallback is None
+    assert result.evidence['mv_noise'] < GuardConfig().max_mv_noise
+    assert _mae(result.depth, truth) < 0.7 * _mae(single, truth)
+
+
+def test_independent_wrong_matches_step_down_and_never_hurt(truth):
+    single = _single(truth, 1)
+    multi = _multi(truth, 1, density=0.01, noise=0.5)  # sparse, most points 20-80 % off, independently
+    guarded = fuse_keyframe(single, multi, None, FusionConfig(mode='fast'))
+    unguarded = fuse_keyframe(single, multi, None, FusionConfig(mode='fast', guard=False))
+    assert DECISIONS.index(guarded.decision) >= DECISIONS.index('scale_only'), guarded.evidence
+    assert guarded.evidence['effective_noise'] > GuardConfig().max_mv_noise
+    assert _mae(guarded.depth, truth) <= _mae(single, truth)
+    assert _mae(guarded.depth, truth) <= _mae(unguarded.depth, truth)
+    assert float(np.nanmax(guarded.confidence)) <= guarded.keyframe_confidence < 1.0
+
+
+def test_a_bad_region_is_dropped_and_the_rest_fused(truth):
+    single = _single(truth, 2)
+    bad = np.zeros(truth.shape, dtype=bool)
+    bad[:, : W // 2] = True  # half of the image has wrong matches
+    multi = _multi(truth, 2, density=0.08, noise=0.35, region=bad)
+    result = fuse_keyframe(single, multi, None, FusionConfig(mode='fast'))
+    assert result.decision == 'fewer_points', (result.decision, result.evidence)
+    used = result.omega_mask
+    assert used[bad].mean() < 0.5 * used[~bad].mean()
+    assert _mae(result.depth, truth) < _mae(single, truth)
+
+
+def test_too_few_points_is_the_single_view_depth_flagged(truth):
+    single = _single(truth, 3)
+    multi = _multi(truth, 3, density=0.0015, noise=0.0)
+    result = fuse_keyframe(single, multi, None, FusionConfig(mode='fast', ransac_min_inliers=2))
+    assert result.decision == 'single_view' and result.keyframe_confidence == 0.0
+    np.testing.assert_array_equal(result.depth, single)
+    assert not result.confidence.any()
+
+
+def test_guard_off_and_given_omega_are_the_paper_fusion(truth):
+    single = _single(truth, 4)
+    multi = _multi(truth, 4, density=0.08, noise=0.35)
+    off = fuse_keyframe(single, multi, None, FusionConfig(mode='fast', guard=False))
+    assert off.decision == 'full' and off.evidence == {}
+    oracle = fuse_keyframe(single, multi, None, FusionConfig(mode='fast'), omega_mask=np.isfinite(multi))
+    assert oracle.decision == 'full'
+
+
+def test_parallax_evidence_removes_low_parallax_points(truth):
+    single = _single(truth, 5)
+    multi = _multi(truth, 5, density=0.08, noise=0.01)
+    omega = np.isfinite(multi)
+    rel = np.where(omega, 0.01, np.nan).astype(np.float32)
+    rel[:, W // 2 :] = 0.5  # half the points have almost no parallax
+    evidence = MultiViewEvidence(relative_std=rel)
+    verdict = assess(single, multi, omega, int(omega.sum()), GuardConfig(), evidence)
+    assert verdict.decision == 'fewer_points'
+    assert not verdict.trusted[:, W // 2 :].any() and verdict.trusted[:, : W // 2].any()
+    assert verdict.evidence['median_relative_std'] > 0
+
+
+@pytest.mark.parametrize(
+    ('field', 'value'), [('local_tolerance', 0.0), ('full_fraction', 1.5), ('min_trusted_points', 0)]
+)
+def test_bad_thresholds_raise(field, value):
+    with pytest.raises(ValueError, match=f'guard.{field}'):
+        GuardConfig(**{field: value})
