@@ -26,7 +26,6 @@ import torch
 from ..camera import PinholeCamera
 from .semidense import MultiViewResult
 
-
 #: ``score = inlier_ratio * sigma^-SIGMA_POWER``. 0: the posterior std is left out of the
 #: ranking. It mostly says how long a region has been observed, so ranking by it packs the
 #: stage-1 points into one part of the image (synthetic room: row spread 20-29 px instead of
