@@ -30,8 +30,9 @@ class FilterConfig:
     pixel_sigma: float = 1.0
     #: Search interval: the prior mean +- ``search_sigmas`` standard deviations.
     search_sigmas: float = 2.0
-    #: Samples of a short search (a converged pixel) and of a long one (a new pixel).
+    #: Samples of a short search (a pixel with an estimate; the parabola goes through them).
     short_samples: int = 8
+    #: Samples of a long search (a pixel without an estimate: the whole inverse-depth range).
     long_samples: int = 32
     #: A search is short when its interval spans at most this many pixels per sample.
     max_step_px: float = 1.0
@@ -43,26 +44,31 @@ class FilterConfig:
     max_cost: float = 0.4
     #: New pixels (long search) need a distinct minimum: modified second-best ratio at least this.
     min_distinctiveness: float = 0.1
-    #: Beta prior of a new pixel's inlier ratio (a, b): 10, 10 as SVO.
+    #: Beta prior ``a`` of a new pixel's inlier ratio (10 as SVO).
     init_a: float = 10.0
+    #: Beta prior ``b`` of a new pixel's inlier ratio (10 as SVO).
     init_b: float = 10.0
-    #: Estimates are dropped when the inlier ratio ``a / (a + b)`` falls below this ...
+    #: Estimates are dropped (reset to no estimate) when the inlier ratio ``a / (a + b)`` falls below this.
     min_inlier_ratio: float = 0.3
-    #: ... and published only when it is at least this and they have ``min_updates`` measurements.
+    #: Estimates are published only with an inlier ratio at least this.
     publish_inlier_ratio: float = 0.55
+    #: Estimates are published only after at least this many measurements.
     min_updates: int = 2
     #: Published only when the inverse-depth std is at most this fraction of the inverse depth.
     max_relative_sigma: float = 0.1
-    #: A frame updates the keyframe only with baseline / scene depth at least this (parallax) ...
-    min_parallax: float = 0.01
-    #: ... and a rotation to the keyframe of at most this (the patch must keep its shape).
-    max_rotation_deg: float = 20.0
-    #: A frame becomes the new filter keyframe at this parallax, rotation or visible fraction.
+    #: A frame updates the keyframe only with baseline / scene depth at least this (below: skipped).
+    min_parallax: float = 0.003
+    #: A frame updates the keyframe only with a rotation to it of at most this (degrees).
+    max_rotation_deg: float = 25.0
+    #: A frame becomes the new filter keyframe at this baseline / scene depth ...
     keyframe_parallax: float = 0.12
-    keyframe_rotation_deg: float = 12.0
+    #: ... or at this rotation to the keyframe (degrees) ...
+    keyframe_rotation_deg: float = 20.0
+    #: ... or when less than this fraction of the estimates projects into it.
     keyframe_min_visible: float = 0.6
-    #: Propagation into a new keyframe: the variance grows by this factor, plus this relative std.
+    #: Propagation into a new keyframe multiplies the variance by this.
     propagation_inflation: float = 1.5
+    #: Propagation into a new keyframe adds this std relative to the inverse depth.
     propagation_relative_sigma: float = 0.01
     #: Scene depth (m) assumed before any estimate exists (parallax of the first frames).
     scene_depth: float = 1.5

@@ -9,7 +9,8 @@ its relative inverse-depth std pass the ``filter.*`` thresholds):
   neighbours' ``J^2``);
 * ``photometric_score`` = the inlier ratio ``a / (a + b)``: how often the pixel's patch was
   found where the estimate says (the filter's analogue of a distinct photometric minimum);
-* ``score`` = their product: what stage 1 of the point selection ranks by;
+* ``score`` = ``inlier_ratio * geometric_score ** SIGMA_POWER`` (``SIGMA_POWER = 0``: the
+  inlier ratio alone, see below): what stage 1 of the point selection ranks by;
 * ``cost`` = the last matching cost ``1 - ZNCC``;
 * and, beyond ``MultiViewResult``: ``variance`` (inverse depth squared), ``inlier_ratio`` and
   ``updates`` (measurements fused), for fusion weights and diagnostics.
@@ -24,6 +25,12 @@ import torch
 
 from ..camera import PinholeCamera
 from .semidense import MultiViewResult
+
+#: ``score = inlier_ratio * sigma^-SIGMA_POWER``. 0: the posterior std is left out of the
+#: ranking. It mostly says how long a region has been observed, so ranking by it packs the
+#: stage-1 points into one part of the image (synthetic room: row spread 20-29 px instead of
+#: 70) and the fusion then extrapolates from there (fused MAE 0.45 m against 0.32 m with 0).
+SIGMA_POWER = 0.0
 
 
 @dataclass
@@ -61,7 +68,7 @@ def assemble_result(
         depth_std=image(sigma / (mu * mu)),
         photometric_score=image(inlier),
         geometric_score=image(geometric),
-        score=image(inlier * geometric),
+        score=image(inlier * geometric**SIGMA_POWER),
         cost=image(cost),
         candidates=candidates.cpu().numpy().reshape(shape),
         camera=camera,

@@ -39,6 +39,9 @@ FILTER_STAGE = 'filter'
 #: ``--set multi_view.method=sweep|filter``: not a ``MultiViewConfig`` field, read here.
 METHOD_PARAM = 'method'
 DEFAULT_METHOD = 'sweep'
+#: ``--neighbour-mode offline``: the filter's estimate of frame k is read after frame k + this
+#: (warped back into k), as the sweep then takes neighbours on both sides; online: causal.
+OFFLINE_LOOKAHEAD = 10
 
 
 def multi_view_method(ctx: KeyframeContext) -> str:
@@ -104,12 +107,20 @@ def _filter_result(ctx: KeyframeContext) -> MultiViewResult:
     config, matching = filter_config(ctx), multi_view_config(ctx)
     frames = ctx.sequence.frames
 
+    lookahead = OFFLINE_LOOKAHEAD if ctx.options.neighbour_mode == 'offline' else 0
+
     def make() -> FilterStream:
         return FilterStream(
-            lambda i: (frames[i].gray, frames[i].pose), ctx.camera, config, matching, ctx.options.device
+            lambda i: (frames[i].gray, frames[i].pose),
+            ctx.camera,
+            config,
+            matching,
+            ctx.options.device,
+            lookahead=lookahead,
+            num_frames=len(frames),
         )
 
-    stream = ctx.shared_cached(f'multi_view:filter:{config}:{matching}', make)
+    stream = ctx.shared_cached(f'multi_view:filter:{config}:{matching}:{lookahead}', make)
     return stream.result_at(ctx.index)
 
 

@@ -1,0 +1,69 @@
+"""multi_view_node with multi_view.method=filter over real DDS: every posed frame feeds the filter."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image
+from test_nodes_multi_view import _Camera, _stamps
+
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.multiview.filter import DepthFilter
+from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
+from depth_fusion_ros.nodes.testing import RosHarness
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+
+def test_filter_method_publishes_accurate_keyframe_depth(synthetic_sequence):
+    seq = synthetic_sequence
+    stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    with RosHarness() as ros:
+        node = ros.add(
+            MultiViewNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('multi_view.method', value='filter'),
+                    Parameter('keyframe_every', value=6),
+                    Parameter('queue_size', value=8),
+                    Parameter('qos_depth', value=100),
+                ],
+            )
+        )
+        assert node.filter_feed is not None
+        depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        score_msgs = ros.collect(Image, '/depth_fusion/multi_view/score')
+        ros.collect(CameraInfo, '/depth_fusion/keyframe/camera_info')
+        cam = _Camera(ros)
+        for i, frame in enumerate(seq.frames):
+            cam.publish_pose(frame.pose, stamps[i])
+            cam.publish_image(frame.rgb, stamps[i], seq.camera)
+            time.sleep(0.02)
+        expected_keys = [6, 12, 18]
+        assert ros.wait_for(lambda: len(score_msgs) == len(expected_keys), 120.0), (
+            node.stats.snapshot().summary()
+        )
+        snap = node.stats.snapshot()
+        filt = node.filter_feed.filter
+
+    assert snap.dropped == {}, snap.summary()
+    assert _stamps(depth_msgs) == [stamps[k] for k in expected_keys]
+    # The filter saw every posed frame up to the last keyframe, not only the keyframes.
+    assert isinstance(filt, DepthFilter) and filt.stats.frames == expected_keys[-1] + 1
+    for k, depth_msg, score_msg in zip(expected_keys, depth_msgs, score_msgs, strict=True):
+        depth, score = m.image_to_numpy(depth_msg), m.image_to_numpy(score_msg)
+        gt = seq.frames[k].depth
+        valid = np.isfinite(depth) & np.isfinite(gt)
+        assert valid.mean() > 0.05, f'keyframe {k}: density {valid.mean():.3f}'
+        assert np.array_equal(np.isfinite(score), np.isfinite(depth))
+        assert np.median(np.abs(depth[valid] - gt[valid]) / gt[valid]) < 0.04
+
+
+def test_unknown_method_is_refused():
+    with RosHarness() as ros, pytest.raises(Exception, match=r'multi_view\.method'):
+        MultiViewNode(
+            context=ros.context, parameter_overrides=[Parameter('multi_view.method', value='magic')]
+        )
