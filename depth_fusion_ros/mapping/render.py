@@ -15,7 +15,7 @@ from ..camera import PinholeCamera
 from .surface import SurfaceMesh
 
 
-def viewpoint(T_wc: np.ndarray, pull_back: float = 1.0) -> np.ndarray:
+def viewpoint(T_wc: np.ndarray, pull_back: float = 0.5) -> np.ndarray:
     """``T_wc`` moved ``pull_back`` metres backwards along its optical axis."""
     T = np.array(T_wc, dtype=np.float64)
     T[:3, 3] -= pull_back * T[:3, 2]
@@ -52,8 +52,8 @@ def map_figure(
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    # Twice the image size at the same focal length: a wider view than the keyframe's.
-    w, h = camera.width * 2, camera.height * 2
+    # 1.5x the image size at the same focal length: a wider view than the keyframe's.
+    w, h = camera.width * 3 // 2, camera.height * 3 // 2
     view = PinholeCamera(w, h, camera.fx, camera.fy, (w - 1) / 2, (h - 1) / 2)
     pose = viewpoint(T_wc)
     fig, axes = plt.subplots(1, len(meshes), figsize=(4.2 * len(meshes), 3.5), squeeze=False)
