@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,6 +43,8 @@ class SequenceOutput:
 
     metrics: dict[str, float]
     figure: Callable[[Path], list[Path]] | None = None
+    #: Anything else a caller may want (the map's mesh, for the demo's .ply); not in results.json.
+    artifacts: dict[str, Any] = field(default_factory=dict)
 
 
 MethodFn = Callable[['KeyframeContext'], MethodOutput]

@@ -106,7 +106,8 @@ def _finish(label: str) -> Callable[[SequenceContext], SequenceOutput]:
         engine = seq.shared[f'map:{label}']
         metrics['map_blocks'] = float(engine.n_blocks)
         metrics['map_evicted_blocks'] = float(engine.evicted_blocks)
-        return SequenceOutput(metrics, seq.shared.setdefault('map:figure', _figure(seq)))
+        figure = seq.shared.setdefault('map:figure', _figure(seq))
+        return SequenceOutput(metrics, figure, {'mesh': meshes[label]})
 
     return finish
 
