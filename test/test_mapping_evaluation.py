@@ -36,6 +36,12 @@ def test_map_methods_report_accuracy_completeness_and_a_picture(tmp_path):
     assert 'mae' in scores['single_view_simulated']  # ordinary methods are scored as before
     assert (tmp_path / f'{seq.name}_map.png').is_file()
     assert f'{seq.name}_map.png' in (tmp_path / 'report.md').read_text()
+    # What the demo does with it: the fused map's mesh as map.ply.
+    from depth_fusion_ros.demo import _write_map
+    from depth_fusion_ros.mapping import read_ply
+
+    mesh = read_ply(_write_map(result, tmp_path))
+    assert len(mesh.vertices) == scores['map']['map_points']
 
 
 def test_score_map_against_a_known_shift():
