@@ -146,3 +146,19 @@ def test_multi_view_node_publishes_each_keyframe_pose_with_its_stamp(room):
     assert [m.stamp_to_ns(k.header.stamp) for k in keyframes] == [stamps[3], stamps[6]]
     assert all(p.header.frame_id == 'world' for p in poses)
     np.testing.assert_allclose(m.pose_stamped_to_matrix(poses[0]), seq.frames[3].pose, atol=1e-6)
+
+
+def test_run_parameters_for_the_launcher(tmp_path):
+    from depth_fusion_ros.nodes.map_node import PARAMETERS, run_parameters
+
+    params = run_parameters(tmp_path / 'map.ply')
+    assert params['save_on_shutdown'] is True and params['save_path'].endswith('map.ply')
+    declared = {spec.name: spec for spec in PARAMETERS} | {
+        'queue_policy': None,
+        'queue_size': None,
+        'qos_depth': None,
+    }
+    assert set(params) <= set(declared)
+    assert 'save_path' not in run_parameters(None, lossless=False)
+    with pytest.raises(ValueError, match='ply'):
+        run_parameters('map.obj')

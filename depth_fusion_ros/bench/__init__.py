@@ -35,4 +35,4 @@ class BenchRow:
     note: str = ''
 
 
-SECTIONS = ('synthetic', 'multi_view', 'single_view', 'fusion', 'node_graph')
+SECTIONS = ('synthetic', 'multi_view', 'single_view', 'fusion', 'mapping', 'node_graph')

@@ -69,4 +69,6 @@ def run(args: argparse.Namespace) -> int:
     print(f'\nnode graph: {demo["graph_summary"]}; steps (s): {demo["step_seconds"]}')
     out = Path(args.out).resolve()
     print(f'\nreport:  {out / "report.md"}\nresults: {out / "results.json"}\nfigures: {out}/*.png')
+    if 'map_ply' in demo:
+        print(f'map:     {Path(demo["map_ply"]).resolve()} (mesh of the fused depth, world frame)')
     return 0

@@ -90,3 +90,14 @@ class KeyframeContext:
 
     def stage_params(self, stage: str) -> dict[str, Any]:
         return dict(self.options.params.get(stage, {}))
+
+
+@dataclass
+class SequenceContext:
+    """A whole sequence after its keyframes ran: what a sequence-level method's ``finish`` sees."""
+
+    sequence: Sequence
+    keyframes: list[int]
+    options: EvalOptions
+    #: The same per-sequence memo as ``KeyframeContext.shared``.
+    shared: dict[str, Any]

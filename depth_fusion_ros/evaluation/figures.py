@@ -77,7 +77,7 @@ def _row_range(gt: np.ndarray) -> tuple[float, float]:
 def depth_grid(result: SequenceResult, path: Path) -> Path | None:
     """Sample keyframes x (RGB, methods..., ground truth), one depth colour scale per row."""
     cols = _columns(result, DEPTH_COLUMNS)
-    frames = sorted(next(iter(result.records.values())).samples) if result.records else []
+    frames = sorted(next((r.samples for r in result.records.values() if r.samples), {}))
     if not frames:
         return None
     plt = _pyplot()
@@ -178,12 +178,26 @@ def single_view_histogram(results: list[SequenceResult], path: Path) -> Path | N
     return path
 
 
+def sequence_figures(result: SequenceResult, out_dir: Path) -> list[Path]:
+    """Pictures of sequence-level methods (e.g. the maps); a figure shared by several methods
+    is drawn once."""
+    drawn: list = []
+    paths: list[Path] = []
+    for record in result.records.values():
+        figure = record.sequence_output.figure if record.sequence_output else None
+        if figure is not None and not any(figure is f for f in drawn):
+            drawn.append(figure)
+            paths.extend(figure(out_dir))
+    return paths
+
+
 def write_figures(results: list[SequenceResult], out_dir: Path) -> list[Path]:
     """Every figure of the run; returns the files written."""
     written: list[Path | None] = []
     for r in results:
         written.append(depth_grid(r, out_dir / f'{r.name}_depths.png'))
         written.append(error_grid(r, out_dir / f'{r.name}_errors.png'))
+        written.extend(sequence_figures(r, out_dir))
     written.append(error_boxplots(results, out_dir / 'error_boxplots.png'))
     written.append(single_view_histogram(results, out_dir / 'single_view_error_histogram.png'))
     from .guard_report import decision_figure

@@ -23,8 +23,8 @@ import numpy as np
 from ..data.sequence import Sequence
 from ..metrics import MetricAccumulator, high_gradient_mask, upsample_depth
 from ..progress import progress
-from .context import EvalOptions, KeyframeContext
-from .registry import MethodSpec, get_method
+from .context import EvalOptions, KeyframeContext, SequenceContext
+from .registry import MethodSpec, SequenceOutput, get_method
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +41,12 @@ class MethodRecord:
     seconds: list[float] = field(default_factory=list)
     #: Working-resolution depth of the sample frames, for figures.
     samples: dict[int, np.ndarray] = field(default_factory=dict)
+    #: What a sequence-level method (``spec.finish``) reported.
+    sequence_output: SequenceOutput | None = None
 
     def to_json(self) -> dict[str, Any]:
+        if self.spec.finish is not None:
+            return self._sequence_json()
         out: dict[str, Any] = dict(self.all.summary())
         out['per_frame_mae'] = [_finite_or_none(v) for v in self.all.mae_per_frame]
         out['gradient'] = {
@@ -53,6 +57,13 @@ class MethodRecord:
             out[key] = float(np.nanmean(values)) if len(values) else float('nan')
         if self.extras:
             out['per_frame_extras'] = {k: [_finite_or_none(v) for v in vs] for k, vs in self.extras.items()}
+        out['seconds_per_frame'] = float(np.mean(self.seconds)) if self.seconds else float('nan')
+        return out
+
+    def _sequence_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = dict(self.sequence_output.metrics if self.sequence_output else {})
+        for key, values in self.extras.items():
+            out[key] = float(np.nanmean(values)) if len(values) else float('nan')
         out['seconds_per_frame'] = float(np.mean(self.seconds)) if self.seconds else float('nan')
         return out
 
@@ -119,11 +130,17 @@ def evaluate_sequence(
             t0 = time.perf_counter()
             out = spec.fn(ctx)
             records[spec.name].seconds.append(time.perf_counter() - t0)
-            _score(records[spec.name], out.depth, gt, high)
             for key, value in out.extras.items():
                 records[spec.name].extras[key].append(float(value))
+            if spec.finish is not None:
+                continue  # scored once for the whole sequence, below
+            _score(records[spec.name], out.depth, gt, high)
             if i in samples:
                 records[spec.name].samples[i] = out.depth
+    whole = SequenceContext(sequence, keyframes, options, shared)
+    for spec in specs:
+        if spec.finish is not None:
+            records[spec.name].sequence_output = spec.finish(whole)
     return SequenceResult(sequence.name, path, keyframes, records, sequence)
 
 

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 if TYPE_CHECKING:
-    from .context import KeyframeContext
+    from .context import KeyframeContext, SequenceContext
 
 
 @dataclass
@@ -31,7 +32,25 @@ class MethodOutput:
     extras: dict[str, float] = field(default_factory=dict)
 
 
+@dataclass
+class SequenceOutput:
+    """What a sequence-level method (one with ``finish``) reports once per sequence.
+
+    ``metrics`` go into results.json under the method; ``figure(out_dir)`` writes the
+    method's pictures and returns their paths (methods sharing one figure share the callable,
+    and it is called once).
+    """
+
+    metrics: dict[str, float]
+    figure: Callable[[Path], list[Path]] | None = None
+    #: Anything else a caller may want (the map's mesh, for the demo's .ply); not in results.json.
+    artifacts: dict[str, Any] = field(default_factory=dict)
+
+
 MethodFn = Callable[['KeyframeContext'], MethodOutput]
+#: Called once after the last keyframe of a sequence (``SequenceContext``) for methods whose
+#: result spans keyframes (a map); their per-keyframe depth is not scored.
+FinishFn = Callable[['SequenceContext'], SequenceOutput]
 
 
 @dataclass(frozen=True)
@@ -41,18 +60,25 @@ class MethodSpec:
     description: str
     #: Semi-dense methods are scored on their estimated pixels only, and report ``density``.
     sparse: bool = False
+    finish: FinishFn | None = None
 
 
 _METHODS: dict[str, MethodSpec] = {}
 
 
-def register_method(name: str, description: str, *, sparse: bool = False) -> Callable[[MethodFn], MethodFn]:
-    """Decorator: make ``fn`` available to ``depth-fusion evaluate --methods name``."""
+def register_method(
+    name: str, description: str, *, sparse: bool = False, finish: FinishFn | None = None
+) -> Callable[[MethodFn], MethodFn]:
+    """Decorator: make ``fn`` available to ``depth-fusion evaluate --methods name``.
+
+    With ``finish``, the method is scored once per sequence by ``finish`` (after ``fn`` ran
+    on every keyframe) instead of per keyframe.
+    """
 
     def decorate(fn: MethodFn) -> MethodFn:
         if name in _METHODS:
             raise ValueError(f'evaluation method {name!r} registered twice')
-        _METHODS[name] = MethodSpec(name, fn, description, sparse)
+        _METHODS[name] = MethodSpec(name, fn, description, sparse, finish)
         return fn
 
     return decorate

@@ -31,6 +31,10 @@ COLUMNS = [
     ('median_abs_rel', 'median AbsRel', '{:.3f}'),
     ('density', 'density', '{:.3f}'),
     ('n_omega', '|Ω|', '{:.0f}'),
+    ('map_accuracy_median_m', 'map acc. median (m)', '{:.3f}'),
+    ('map_accuracy_mean_m', 'map acc. mean (m)', '{:.3f}'),
+    ('map_completeness_5cm', 'map compl. 5 cm', '{:.3f}'),
+    ('map_completeness_10cm', 'map compl. 10 cm', '{:.3f}'),
     ('seconds_per_frame', 's/frame', '{:.3f}'),
 ]
 

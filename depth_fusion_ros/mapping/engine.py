@@ -50,8 +50,16 @@ def make_map(config: MapConfig) -> tuple[TSDFMap, str]:
     if wanted == 'torch':
         return TorchTSDF(config), f'TSDF engine: torch on {config.device}'
     missing = open3d_available()
+    if wanted == 'auto' and missing is None and config.device.startswith('cuda') and not _open3d_cuda():
+        return TorchTSDF(config), f'TSDF engine: torch on {config.device} (auto; this Open3D has no CUDA)'
     if missing is None:
         return Open3DTSDF(config), f'TSDF engine: open3d (VoxelBlockGrid) on {config.device}'
     if wanted == 'auto':
         return TorchTSDF(config), f'TSDF engine: torch on {config.device} (auto; Open3D not installed)'
     return TorchTSDF(config), f'TSDF engine: open3d unavailable ({missing}); falling back to torch'
+
+
+def _open3d_cuda() -> bool:
+    import open3d.core as o3c
+
+    return bool(o3c.cuda.is_available())

@@ -294,6 +294,27 @@ class MapNode(DepthFusionNode):
         super().destroy_node()
 
 
+#: What ``depth-fusion run`` records besides its own topics when the map runs.
+RECORDED_TOPICS = {'/' + TOPIC_KEYFRAME_POSE: 'geometry_msgs/msg/PoseStamped'}
+
+
+def run_parameters(save_map: str | Path | None, lossless: bool = True) -> dict[str, Any]:
+    """Parameter overrides for ``map_node`` in a bag replay (``depth-fusion run --save-map FILE``).
+
+    The mesh is written when the node is destroyed (``save_on_shutdown``) after its queue
+    drained; ``lossless`` integrates every keyframe (the callback waits) as the demo's nodes do.
+    """
+    params: dict[str, Any] = {}
+    if save_map is not None:
+        path = Path(save_map)
+        if path.suffix.lower() != '.ply':
+            raise ValueError(f'--save-map {path}: the map is written as .ply')
+        params.update(save_path=str(path), save_on_shutdown=True)
+    if lossless:
+        params.update(queue_policy='block', queue_size=16, qos_depth=100)
+    return params
+
+
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point: ``map_node --ros-args --params-file config/depth_fusion.yaml``."""
     return run_node(MapNode, args)

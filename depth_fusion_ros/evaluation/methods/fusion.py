@@ -116,19 +116,27 @@ def _output(result: FusionResult) -> MethodOutput:
 
 def fused_automatic(ctx: KeyframeContext, **forced: Any) -> MethodOutput:
     """Fusion with the paper's automatic two-stage selection."""
-    config, extra = fusion_settings(ctx, **forced)
-    single, kind, mv = _inputs(ctx)
-    stage1 = _stage1(ctx, mv, extra['stage1_fraction'])
-    result = fuse_keyframe(
-        single,
-        mv.depth,
-        stage1,
-        config,
-        output_kind=kind,
-        guard_config=guard_settings(ctx),
-        evidence=MultiViewEvidence.from_result(mv),
-    )
-    return _output(result)
+    return _output(fused_result(ctx, **forced))
+
+
+def fused_result(ctx: KeyframeContext, **forced: Any) -> FusionResult:
+    """The automatic fusion of this keyframe (memoised without ``forced``: ``map`` reuses it)."""
+
+    def compute() -> FusionResult:
+        config, extra = fusion_settings(ctx, **forced)
+        single, kind, mv = _inputs(ctx)
+        stage1 = _stage1(ctx, mv, extra['stage1_fraction'])
+        return fuse_keyframe(
+            single,
+            mv.depth,
+            stage1,
+            config,
+            output_kind=kind,
+            guard_config=guard_settings(ctx),
+            evidence=MultiViewEvidence.from_result(mv),
+        )
+
+    return ctx.cached('fusion:automatic', compute) if not forced else compute()
 
 
 def fused_oracle(ctx: KeyframeContext, **forced: Any) -> MethodOutput:
