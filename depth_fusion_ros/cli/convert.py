@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from .argtypes import at_least
+
 DESCRIPTION = """\
 Convert a posed RGB-D recording into a ROS 2 bag (rosbag2) that `depth-fusion run` and the
 nodes can play.
@@ -49,7 +51,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (default: %(default)s)'
     )
     p.add_argument(
-        '--frames', type=int, default=None, metavar='N', help='write only the first N usable frames'
+        '--frames',
+        type=at_least(1, '--frames'),
+        default=None,
+        metavar='N',
+        help='write only the first N usable frames',
     )
     p.add_argument('--overwrite', action='store_true', help='replace OUT_BAG if it is an existing rosbag2')
     p.add_argument('--no-depth', action='store_true', help='do not write ground-truth depth')
@@ -96,9 +102,9 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ..data.rosbag_convert import BagTopics, FrameIds, convert
+    from .paths import check_output
 
-    if args.frames is not None and args.frames <= 0:
-        raise ValueError(f'--frames must be positive, got {args.frames}')
+    check_output(args.out, 'OUT_BAG', exists_ok=args.overwrite, overwrite_flag='--overwrite', bag=True)
     options = {
         'storage': args.storage,
         'max_frames': args.frames,
