@@ -23,8 +23,8 @@ recorded topics (--record): /depth_fusion/fused/{depth,confidence,camera_info},
 the input bag keeps the ground truth (/camera/depth/image) to evaluate them against.
 
 examples:
-  depth-fusion run --bag artifacts/room.bag --record runs/room_out
-  depth-fusion run --bag room.bag --params my_params.yaml --processes --rate 0.5
+  depth-fusion run --bag artifacts/room --record runs/room_out
+  depth-fusion run --bag room --params my_params.yaml --processes --rate 0.5
 """
 
 
