@@ -32,6 +32,7 @@ counted. The bag appears only when the conversion completes.
 EPILOG = """\
 examples:
   depth-fusion convert data/rgbd_dataset_freiburg1_xyz fr1_xyz.mcap --frames 100
+  depth-fusion convert --repair runs/crashed.partial/crashed runs/crashed_repaired
   depth-fusion convert fr1_xyz.bag fr1_xyz_ros2 --groundtruth fr1_xyz-groundtruth.txt \\
       --camera-yaml camera.yaml
 """
@@ -58,6 +59,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help='write only the first N usable frames',
     )
     p.add_argument('--overwrite', action='store_true', help='replace OUT_BAG if it is an existing rosbag2')
+    p.add_argument(
+        '--repair',
+        action='store_true',
+        help='SRC is a rosbag2 that a crashed recorder left truncated: copy its readable messages '
+        'into a clean OUT_BAG',
+    )
     p.add_argument('--no-depth', action='store_true', help='do not write ground-truth depth')
     p.add_argument(
         '--depth-max-gap',
@@ -105,6 +112,12 @@ def run(args: argparse.Namespace) -> int:
     from .paths import check_output
 
     check_output(args.out, 'OUT_BAG', exists_ok=args.overwrite, overwrite_flag='--overwrite', bag=True)
+    if args.repair:
+        from ..data.bag_recovery import repair_bag
+
+        written, summary = repair_bag(args.src, args.out, storage=args.storage, overwrite=args.overwrite)
+        print(f'{summary}; wrote {written} messages to {args.out} ({args.storage})')
+        return 0
     options = {
         'storage': args.storage,
         'max_frames': args.frames,
