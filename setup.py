@@ -22,20 +22,22 @@ setup(
     # torch from its own index (CPU or CUDA build): neither is listed here on purpose.
     install_requires=[
         'setuptools',
-        'numpy',
-        'scipy',
-        'opencv-python-headless',
-        'rosbags>=0.11',
-        'pyyaml',
-        'tqdm',
-        'matplotlib',
+        # Ranges, not pins: a library must install beside other packages. The exact versions
+        # tested are pinned in scripts/venv.sh.
+        'numpy>=2.0',
+        'scipy>=1.11',
+        'opencv-python-headless>=4.8',
+        'rosbags>=0.11,<0.12',  # bag recovery reads rosbags' mcap records (data/bag_recovery.py)
+        'pyyaml>=6.0',
+        'tqdm>=4.60',
+        'matplotlib>=3.7',
     ],
     zip_safe=True,
     maintainer='depth_fusion_ros maintainers',
     maintainer_email='maintainers@depth-fusion-ros.org',
     description='Single-view and multi-view depth fusion for ROS 2 (Facil et al. 2017).',
     license='BSD-3-Clause',
-    extras_require={'test': ['pytest']},
+    extras_require={'test': ['pytest>=8']},
     entry_points={
         'console_scripts': [
             'depth-fusion = depth_fusion_ros.cli.main:main',

@@ -6,7 +6,8 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${DEPTH_FUSION_VENV:-$ROOT/.venv}"
 PY="${PYTHON:-python3}"
 
-# Pinned: unpinned ros-* names resolve to newer distributions; a bare `torch` pulls GBs of CUDA.
+# Every dependency pinned to the versions the project is tested with (a fresh clone installs
+# exactly what CI ran). Unpinned ros-* names resolve to newer distributions; a bare `torch` pulls GBs of CUDA.
 REQUIREMENTS=(
   "ros-jazzy-rclpy==7.1.6"
   "ros-jazzy-common-interfaces==5.3.6"
@@ -15,16 +16,16 @@ REQUIREMENTS=(
   "onnxruntime==1.32.0"
   "onnx==1.23.2"
   "onnxscript==0.7.2"
-  "numpy"
-  "opencv-python-headless"
-  "scipy"
+  "numpy==2.4.6"
+  "opencv-python-headless==5.0.0.93"
+  "scipy==1.17.1"
   "rosbags==0.11.9"
-  "pyyaml"
-  "tqdm"
-  "matplotlib"
-  "pytest"
-  "ruff"
-  "colcon-common-extensions"
+  "pyyaml==6.0.3"
+  "tqdm==4.70.1"
+  "matplotlib==3.11.2"
+  "pytest==9.2.0"
+  "ruff==0.17.6"
+  "colcon-common-extensions==0.3.0"
 )
 
 if [ ! -x "$VENV/bin/python" ]; then

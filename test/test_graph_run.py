@@ -60,7 +60,7 @@ def graph_bag(synthetic_tum_dir, tmp_path_factory) -> Path:
     from depth_fusion_ros.data.rosbag_convert import tum_to_rosbag
 
     return tum_to_rosbag(
-        synthetic_tum_dir, tmp_path_factory.mktemp('graph') / 'synth.bag', show_progress=False
+        synthetic_tum_dir, tmp_path_factory.mktemp('graph') / 'synth', show_progress=False
     ).path
 
 
@@ -215,7 +215,7 @@ def test_graph_fuses_every_keyframe_like_offline(
     since = time.time()
     listener = FusedListener()
     try:
-        out = tmp_path / 'out.bag'
+        out = tmp_path / 'out'
         result = run_graph(
             RunOptions(
                 bag=graph_bag,
@@ -231,7 +231,7 @@ def test_graph_fuses_every_keyframe_like_offline(
     finally:
         listener.close()
     assert result.complete, result.missing
-    assert result.recorded == out and out.is_dir() and not (tmp_path / 'out.bag.partial').exists()
+    assert result.recorded == out and out.is_dir() and not (tmp_path / 'out.partial').exists()
     assert set(result.announced) <= set(expected_keyframes)
     check_fused_messages(listener.received, expected_keyframes)
     check_accuracy_matches_offline(out, synthetic_tum_dir, keyframe_indices(graph_bag), offline_mae)
@@ -248,7 +248,7 @@ def test_graph_fuses_every_keyframe_like_offline(
 def test_ctrl_c_stops_processes_cleanly(graph_bag, params_file, tmp_path):
     """SIGINT to ``depth-fusion run --processes`` mid-bag: children gone, partial bag kept, exit 130."""
     since = time.time()
-    out = tmp_path / 'interrupted.bag'
+    out = tmp_path / 'interrupted'
     cmd = [
         sys.executable,
         '-m',
@@ -285,5 +285,5 @@ def test_ctrl_c_stops_processes_cleanly(graph_bag, params_file, tmp_path):
     time.sleep(0.5)
     alive = [p for p in pids if running(p)]
     assert alive == [], f'children still running: {alive}'
-    assert (tmp_path / 'interrupted.bag.partial').is_dir() and not out.exists()
+    assert (tmp_path / 'interrupted.partial').is_dir() and not out.exists()
     assert orphan_segments(since) == []

@@ -86,7 +86,7 @@ def bench_bag(opts: BenchOptions) -> tuple[Path, str]:
         if not (src / 'rgb.txt').is_file():
             size = (320, 240) if opts.quick else (640, 480)
             write_synthetic_sequence(src, SynthConfig(width=size[0], height=size[1], frames=frames, seed=0))
-    bag = BENCH_DIR / f'{name}.bag'
+    bag = BENCH_DIR / f'{name}_rosbag2'  # no .bag suffix: tools take *.bag for ROS 1
     if not (bag / 'metadata.yaml').is_file():
         tum_to_rosbag(src, bag, max_frames=frames, overwrite=True, show_progress=False)
     return bag, name

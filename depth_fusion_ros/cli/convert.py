@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from .argtypes import at_least
+
 DESCRIPTION = """\
 Convert a posed RGB-D recording into a ROS 2 bag (rosbag2) that `depth-fusion run` and the
 nodes can play.
@@ -32,6 +34,7 @@ EPILOG = """\
 examples:
   depth-fusion convert data/rgbd_dataset_freiburg1_xyz fr1_xyz.mcap --frames 100
   depth-fusion convert data/rgbd_dataset_freiburg1_xyz fr1_xyz_jpeg --compressed jpeg
+  depth-fusion convert --repair runs/crashed.partial/crashed runs/crashed_repaired
   depth-fusion convert fr1_xyz.bag fr1_xyz_ros2 --groundtruth fr1_xyz-groundtruth.txt \\
       --camera-yaml camera.yaml
 """
@@ -51,9 +54,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (default: %(default)s)'
     )
     p.add_argument(
-        '--frames', type=int, default=None, metavar='N', help='write only the first N usable frames'
+        '--frames',
+        type=at_least(1, '--frames'),
+        default=None,
+        metavar='N',
+        help='write only the first N usable frames',
     )
     p.add_argument('--overwrite', action='store_true', help='replace OUT_BAG if it is an existing rosbag2')
+    p.add_argument(
+        '--repair',
+        action='store_true',
+        help='SRC is a rosbag2 that a crashed recorder left truncated: copy its readable messages '
+        'into a clean OUT_BAG',
+    )
     p.add_argument('--no-depth', action='store_true', help='do not write ground-truth depth')
     p.add_argument(
         '--depth-max-gap',
@@ -116,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ..data.rosbag_convert import BagTopics, FrameIds, convert
+    from .paths import check_output
 
     if args.frames is not None and args.frames <= 0:
         raise ValueError(f'--frames must be positive, got {args.frames}')
@@ -126,6 +140,13 @@ def run(args: argparse.Namespace) -> int:
     quality = DEFAULT_JPEG_QUALITY if args.jpeg_quality is None else args.jpeg_quality
     if not 1 <= quality <= 100:
         raise ValueError(f'--jpeg-quality must be in [1, 100], got {quality}')
+    check_output(args.out, 'OUT_BAG', exists_ok=args.overwrite, overwrite_flag='--overwrite', bag=True)
+    if args.repair:
+        from ..data.bag_recovery import repair_bag
+
+        written, summary = repair_bag(args.src, args.out, storage=args.storage, overwrite=args.overwrite)
+        print(f'{summary}; wrote {written} messages to {args.out} ({args.storage})')
+        return 0
     options = {
         'colour': ColourFormat(args.compressed, quality),
         'storage': args.storage,

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .argtypes import at_least
+
 DESCRIPTION = """\
 Run the whole pipeline once, end to end, on embedded defaults:
 
@@ -28,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument('--out', default='demo_out', help='output folder (default demo_out)')
     p.add_argument('--sequence', metavar='DIR', help='a TUM-layout folder instead of the synthetic room')
-    p.add_argument('--frames', type=int, default=60, help='frames to use (default 60)')
+    p.add_argument('--frames', type=at_least(1, '--frames'), default=60, help='frames to use (default 60)')
     p.add_argument('--seed', type=int, default=0, help='seed of the synthetic room and the evaluation')
     p.add_argument('--parallax', choices=('high', 'low'), default='high', help='synthetic trajectory')
     p.add_argument('--processes', action='store_true', help='run each node as its own process')
@@ -49,6 +51,9 @@ def run(args: argparse.Namespace) -> int:
     from ..singleview.predictor import check_model
 
     check_model(args.single_view, args.device)  # one-line error before the room is rendered
+    from .paths import check_output
+
+    check_output(args.out, '--out')  # before minutes of work, see cli/paths.py
 
     opts = DemoOptions(
         out=Path(args.out),

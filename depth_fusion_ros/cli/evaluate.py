@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from .argtypes import at_least
+
 #: The paper's evaluation: Table II columns, the oracle, the Table III ablation, Table I inputs.
 PAPER_METHODS = (
     'tv',
@@ -33,10 +35,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument('--list', action='store_true', help='list the available methods and exit')
     p.add_argument(
-        '--frames', type=int, default=100, help='use the first N frames (default 100, as the paper)'
+        '--frames',
+        type=at_least(1, '--frames'),
+        default=100,
+        help='use the first N frames (default 100, as the paper)',
     )
     p.add_argument(
-        '--stride', type=int, default=1, help='every k-th of those frames is a keyframe (default 1)'
+        '--stride',
+        type=at_least(1, '--stride'),
+        default=1,
+        help='every k-th of those frames is a keyframe (default 1)',
     )
     p.add_argument(
         '--single-view',
@@ -92,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.registry import available_methods
     from ..evaluation.report import report_markdown
     from ..singleview.predictor import check_model
-    from .overrides import parse_overrides
+    from .overrides import check_stage_overrides, parse_overrides
+    from .paths import check_output
 
     if args.list:
         for name, spec in available_methods().items():
@@ -102,6 +111,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError('give at least one TUM-layout folder (SEQ_DIR), or --list')
     methods = [m.strip() for m in args.methods.split(',') if m.strip()]
     check_model(args.single_view, args.device, allow_simulated=True)  # before any data is loaded
+    params = parse_overrides(args.set, 'STAGE')
+    check_stage_overrides(params)  # a typo fails now, not after minutes of evaluation
+    check_output(args.out, '--out')
     options = EvalOptions(
         frames=args.frames,
         stride=args.stride,
@@ -112,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         num_neighbours=args.neighbours,
         width=args.width,
         height=args.height,
-        params=parse_overrides(args.set, 'STAGE'),
+        params=params,
         rgb_cameras=parse_rgb_cameras(args.rgb_camera),
     )
     doc = evaluate_sequences(args.sequences, methods, options, args.out, figures=not args.no_figures)

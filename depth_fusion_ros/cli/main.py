@@ -24,7 +24,7 @@ typical use:
   depth-fusion demo                               # everything, on a synthetic sequence
   depth-fusion synth artifacts/room               # render a posed RGB-D sequence
   depth-fusion convert artifacts/room room.bag    # TUM folder (or ROS 1 bag) -> rosbag2
-  depth-fusion run --bag room.bag --record out    # the ROS 2 node graph on a bag
+  depth-fusion run --bag room --record out        # the ROS 2 node graph on a bag
   depth-fusion evaluate SEQ_DIR --methods tv,single_view,fused
   depth-fusion export --format onnx --out model.onnx   # the network as ONNX (+ model.yaml)
 """

@@ -1,6 +1,24 @@
-"""``--set OWNER.KEY=VALUE`` options, shared by the subcommands that take them."""
+"""``--set OWNER.KEY=VALUE`` options, shared by the subcommands that take them, and their check.
+
+Why the check: ``--set nosuchnode.x=1`` and ``--set multi_view_node.keyframe_evry=3`` (a typo)
+used to be ignored silently, and the run used the default. Every name is now checked before
+any work against what really exists, with a did-you-mean:
+
+* ``run``: node names and the nodes' ``PARAMETERS`` tables (``nodes/config_yaml``; importing a
+  node module declares nothing and starts no rclpy), plus what every ROS node has
+  (``use_sim_time``, ``qos_overrides.*``);
+* ``evaluate``: the stages the evaluation methods read (:func:`evaluation_stages`) and the
+  fields of their config dataclasses.
+"""
 
 from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable, Mapping
+
+#: Parameters every rclpy node declares or accepts besides its own table.
+ROS_NODE_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
+ROS_PARAMETER_PREFIXES = ('qos_overrides.',)
 
 
 def parse_overrides(items: list[str], owner: str = 'STAGE') -> dict[str, dict[str, object]]:
@@ -18,5 +36,91 @@ def parse_overrides(items: list[str], owner: str = 'STAGE') -> dict[str, dict[st
         name, dot, param = key.partition('.')
         if not sep or not dot or not name or not param:
             raise ValueError(f'--set expects {owner}.KEY=VALUE, got {item!r}')
-        out.setdefault(name, {})[param] = yaml.safe_load(value)
+        try:
+            parsed = yaml.safe_load(value)
+        except yaml.YAMLError:
+            raise ValueError(f'--set {item}: {value!r} is not a valid value (YAML)') from None
+        out.setdefault(name, {})[param] = parsed
     return out
+
+
+def did_you_mean(name: str, known: Iterable[str]) -> str:
+    """``'; did you mean keyframe_every?'`` or ``''``."""
+    close = difflib.get_close_matches(name, list(known), n=3, cutoff=0.6)
+    return f'; did you mean {" or ".join(close)}?' if close else ''
+
+
+def check_names(
+    overrides: Mapping[str, Mapping[str, object]],
+    known: Mapping[str, Iterable[str]],
+    owner: str,
+    accept: frozenset[str] = frozenset(),
+    accept_prefixes: tuple[str, ...] = (),
+) -> None:
+    """Raise ``ValueError`` (one line, with a did-you-mean) for the first unknown owner or key."""
+    for name, values in overrides.items():
+        if name not in known:
+            first = next(iter(values), 'KEY')
+            raise ValueError(
+                f'--set {name}.{first}: unknown {owner} {name!r}{did_you_mean(name, known)} '
+                f'(known: {", ".join(sorted(known))})'
+            )
+        params = set(known[name])
+        for key in values:
+            if key in params or key in accept or key.startswith(accept_prefixes):
+                continue
+            raise ValueError(
+                f'--set {name}.{key}: {name} has no parameter {key!r}{did_you_mean(key, params)}'
+                + (
+                    ' (all of them: docs/nodes.md)'
+                    if owner == 'node'
+                    else f' (known: {", ".join(sorted(params))})'
+                )
+            )
+
+
+def node_parameter_names() -> dict[str, set[str]]:
+    """``{node: parameter names}`` of every node ``depth-fusion run`` starts (their tables)."""
+    from ..nodes.config_yaml import available_nodes, node_parameters
+
+    return {node: {spec.name for spec in node_parameters(node)} for node in available_nodes()}
+
+
+def check_node_overrides(overrides: Mapping[str, Mapping[str, object]]) -> None:
+    """``run --set NODE.PARAM=VALUE``: the node exists and declares the parameter."""
+    if overrides:
+        check_names(overrides, node_parameter_names(), 'node', ROS_NODE_PARAMETERS, ROS_PARAMETER_PREFIXES)
+
+
+def evaluation_stages() -> dict[str, set[str]]:
+    """``{stage: keys}`` that ``evaluate --set STAGE.KEY=VALUE`` reaches (what the methods read
+    with ``ctx.stage_params``). A new stage read by a method must be added here."""
+    import dataclasses
+
+    from ..evaluation.methods.fusion import STAGE as FUSION_STAGE
+    from ..evaluation.methods.multi_view import MULTI_VIEW_STAGE, NEIGHBOURS_STAGE, TV_STAGE
+    from ..evaluation.methods.recorded import TOPICS as RECORDED_TOPICS
+    from ..evaluation.methods.single_view import SIMULATED_STAGE
+    from ..fusion.pipeline import FusionConfig
+    from ..multiview.neighbours import NeighbourConfig
+    from ..multiview.semidense import MultiViewConfig
+    from ..multiview.tv import TVConfig
+    from ..singleview.simulated import SimulatedPriorConfig
+
+    def fields(cls: type) -> set[str]:
+        return {f.name for f in dataclasses.fields(cls)}
+
+    return {
+        MULTI_VIEW_STAGE: fields(MultiViewConfig),
+        NEIGHBOURS_STAGE: fields(NeighbourConfig),
+        TV_STAGE: fields(TVConfig),
+        FUSION_STAGE: fields(FusionConfig) | {'stage1_fraction', 'oracle_threshold'},
+        SIMULATED_STAGE: fields(SimulatedPriorConfig),
+        'recorded': {'bag', *RECORDED_TOPICS},
+    }
+
+
+def check_stage_overrides(overrides: Mapping[str, Mapping[str, object]]) -> None:
+    """``evaluate --set STAGE.KEY=VALUE``: the stage exists and has the key."""
+    if overrides:
+        check_names(overrides, evaluation_stages(), 'stage')

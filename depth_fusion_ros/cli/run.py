@@ -23,8 +23,8 @@ recorded topics (--record): /depth_fusion/fused/{depth,confidence,camera_info},
 the input bag keeps the ground truth (/camera/depth/image) to evaluate them against.
 
 examples:
-  depth-fusion run --bag artifacts/room.bag --record runs/room_out
-  depth-fusion run --bag room.bag --params my_params.yaml --processes --rate 0.5
+  depth-fusion run --bag artifacts/room --record runs/room_out
+  depth-fusion run --bag room --params my_params.yaml --processes --rate 0.5
 """
 
 
@@ -101,12 +101,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         '--log-dir', type=Path, metavar='DIR', help="with --processes: write each node's log to DIR/NODE.log"
     )
+    net = p.add_argument_group('ROS domain (docs/running.md)')
+    net.add_argument(
+        '--domain-id',
+        type=int,
+        metavar='N',
+        help='join ROS domain N on purpose (e.g. a live robot); default: a free private domain '
+        'with localhost-only discovery, so no other graph hears this run',
+    )
+    net.add_argument(
+        '--localhost-only',
+        action='store_true',
+        help='with --domain-id: discover peers on this machine only '
+        '(ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST)',
+    )
+    p.add_argument(
+        '--allow-missing',
+        action='store_true',
+        help='run even when the bag lacks the image, camera_info or pose topic (says what is missing)',
+    )
     p.set_defaults(func=run)
 
 
 def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept lazy)
     from ..nodes.graph import RunOptions
-    from .overrides import parse_overrides
+    from ..nodes.graph.isolation import check_domain_id
+    from .overrides import check_node_overrides, parse_overrides
+    from .paths import check_output
 
     if args.rate is not None and args.rate <= 0:
         raise ValueError(f'--rate must be positive, got {args.rate}')
@@ -114,6 +135,16 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         raise ValueError('--log-dir only applies with --processes')
     if args.threads is not None and args.threads < 1:
         raise ValueError(f'--threads must be at least 1, got {args.threads}')
+    if args.localhost_only and args.domain_id is None:
+        raise ValueError('--localhost-only applies with --domain-id (a private run is localhost-only)')
+    if args.domain_id is not None:
+        check_domain_id(args.domain_id)
+    overrides = parse_overrides(args.set, 'NODE')
+    check_node_overrides(overrides)
+    if args.record is not None:
+        check_output(args.record, '--record', exists_ok=False, bag=True)
+    if args.log_dir is not None:
+        check_output(args.log_dir, '--log-dir')
     return RunOptions(
         bag=args.bag,
         params_file=args.params,
@@ -126,10 +157,13 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         start_offset=args.start_offset,
         device=args.device,
         single_view_model=args.single_view,
-        overrides=parse_overrides(args.set, 'NODE'),
+        overrides=overrides,
         flush_timeout=args.flush_timeout,
         log_dir=args.log_dir,
         threads_per_node=args.threads,
+        domain_id=args.domain_id,
+        localhost_only=True if args.localhost_only else None,
+        allow_missing=args.allow_missing,
     )
 
 
@@ -144,17 +178,29 @@ def run(args: argparse.Namespace) -> int:
         from ..singleview.predictor import check_model
 
         check_model(args.single_view, args.device or 'cpu')  # one-line error before the graph starts
+    mode = 'processes' if options.processes else 'composed'
     try:
         result = run_graph(options)
     except GraphError as exc:
         print(f'depth-fusion run: error: {exc}', file=sys.stderr)
+        partial = exc.result
+        if partial is not None:
+            where = f'; partial recording (readable) in {partial.recorded}' if partial.recorded else ''
+            print(
+                f'stopped: {len(partial.fused)} of {len(partial.announced)} keyframes fused before '
+                f'the failure ({mode}){where}',
+                file=sys.stderr,
+            )
         return 1
-    mode = 'processes' if options.processes else 'composed'
+    domain = f' on ROS domain {result.domain_id}' if result.domain_id is not None else ''
     if result.interrupted:
         where = f'; partial recording in {result.recorded}' if result.recorded else ''
         print(f'interrupted: {keyframe_summary(result, mode)}{where}')
         return 130
-    print(keyframe_summary(result, mode) + (f'; recorded to {result.recorded}' if result.recorded else ''))
+    print(
+        keyframe_summary(result, mode + domain)
+        + (f'; recorded to {result.recorded}' if result.recorded else '')
+    )
     if result.missing:
         print(f'{len(result.missing)} keyframe(s) without fused output (see the warning above)')
     return 0

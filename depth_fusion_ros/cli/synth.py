@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import time
 
+from .argtypes import at_least
+
 DESCRIPTION = """\
 Render a seeded synthetic indoor room (floor, walls, ceiling, boxes, tables; textured and
 texture-less surfaces) along a camera trajectory, with exact depth and poses, and write it in
@@ -36,7 +38,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument('out_dir', metavar='OUT_DIR', help='folder to create (must not exist unless --overwrite)')
-    p.add_argument('--frames', type=int, default=d.frames, help=f'number of frames (default {d.frames})')
+    p.add_argument(
+        '--frames',
+        type=at_least(1, '--frames'),
+        default=d.frames,
+        help=f'number of frames (default {d.frames})',
+    )
     p.add_argument('--width', type=int, default=d.width, help=f'image width in pixels (default {d.width})')
     p.add_argument(
         '--height', type=int, default=d.height, help=f'image height in pixels (default {d.height})'

@@ -7,6 +7,8 @@ import shlex
 import sys
 from pathlib import Path
 
+from .argtypes import at_least
+
 EPILOG = """\
 examples:
   depth-fusion train artifacts/synth/seq_* --out runs/compact --steps 3000
@@ -50,7 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=0.1,
         help='without --val: hold out this fraction of the folders (or of the frames of a single folder)',
     )
-    p.add_argument('--frames', type=int, default=None, help='use the first N frames of each folder')
+    p.add_argument(
+        '--frames', type=at_least(1, '--frames'), default=None, help='use the first N frames of each folder'
+    )
     p.add_argument('--every', type=int, default=1, help='use every k-th frame (default 1)')
     p.add_argument('--steps', type=int, default=2000, help='optimiser steps (default 2000)')
     p.add_argument('--batch-size', type=int, default=8, help='images per step (default 8)')

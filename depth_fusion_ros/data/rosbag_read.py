@@ -17,13 +17,14 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator
 from collections.abc import Sequence as Seq
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
+from .bag_recovery import open_rosbag2, storage_file
 from .compressed import any_image_to_rgb, colour_topic_in
 from .messages import (
     camera_info_to_calibration,
@@ -56,7 +57,7 @@ def _check_bag(bag: str | Path) -> Path:
     path = Path(bag)
     if not path.exists():
         raise FileNotFoundError(f'bag {path} not found')
-    if not (path.is_dir() and (path / 'metadata.yaml').is_file()):
+    if not (path.is_dir() and ((path / 'metadata.yaml').is_file() or storage_file(path) is not None)):
         raise ValueError(
             f'{path} is not a rosbag2 folder (no metadata.yaml); ROS 1 bags: run depth-fusion convert'
         )
@@ -65,7 +66,7 @@ def _check_bag(bag: str | Path) -> Path:
 
 def bag_topics(bag: str | Path) -> dict[str, tuple[str, int]]:
     """``{topic: (msgtype, message count)}`` of a rosbag2."""
-    with Reader(_check_bag(bag)) as reader:
+    with closing(open_rosbag2(_check_bag(bag))) as reader:
         return {name: (info.msgtype, info.msgcount) for name, info in reader.topics.items()}
 
 
@@ -75,7 +76,7 @@ def iter_messages(bag: str | Path, topics: Seq[str] | None = None) -> Iterator[t
     A requested topic that is not in the bag raises ``ValueError`` listing the topics it has.
     """
     path = _check_bag(bag)
-    with Reader(path) as reader:
+    with closing(open_rosbag2(path)) as reader:
         if topics is not None:
             missing = sorted(set(topics) - set(reader.topics))
             if missing:

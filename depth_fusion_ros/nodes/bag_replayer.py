@@ -33,6 +33,7 @@ from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from ..data.bag_recovery import open_rosbag2, storage_file
 from .diagnostics import TOPIC_DIAGNOSTICS, replayer_array
 from .pacer import Pacer
 from .params import ParamSpec, declare_parameters
@@ -146,9 +147,9 @@ def resolve_bag_path(path: str | Path) -> Path:
     if not p.exists():
         raise FileNotFoundError(f'{NODE_NAME}: bag {p} does not exist')
     if p.is_dir():
-        if not (p / 'metadata.yaml').is_file():
+        if not (p / 'metadata.yaml').is_file() and storage_file(p) is None:
             raise BagError(f'{NODE_NAME}: {p} is a folder without metadata.yaml, not a rosbag2')
-        return p
+        return p  # without metadata.yaml: a crashed recording, see data.bag_recovery
     if p.suffix not in ('.mcap', '.db3'):
         raise BagError(
             f'{NODE_NAME}: {p}: unknown storage {p.suffix or "(no suffix)"!r}; '
@@ -161,12 +162,11 @@ def resolve_bag_path(path: str | Path) -> Path:
 
 def open_bag(path: str | Path) -> Any:
     """An open ``rosbags.rosbag2.Reader``; every failure is a ``BagError`` naming the bag."""
-    from rosbags.rosbag2 import Reader, ReaderError
+    from rosbags.rosbag2 import ReaderError
 
     p = resolve_bag_path(path)
     try:
-        reader = Reader(p)
-        reader.open()
+        reader = open_rosbag2(p)  # a truncated bag plays up to its last readable message
     except (ReaderError, KeyError, OSError) as exc:
         raise BagError(f'{NODE_NAME}: cannot read bag {p}: {exc}') from None
     return reader

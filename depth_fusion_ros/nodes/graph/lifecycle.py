@@ -35,10 +35,12 @@ from typing import Any
 
 from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
 from .dds import apply_fastdds_profile
+from .inputs import check_inputs
+from .isolation import Isolation, isolate
 from .options import GraphError, RunOptions, RunResult
 from .pacing import paced_overrides
 from .param_merge import bag_topic_names, node_overrides, recorder_qos, ros_arg_value
-from .spawn import node_class, node_command, popen_node, stop_processes
+from .spawn import describe_exit, node_class, node_command, popen_node, stop_processes
 from .topics import (
     FUSED_OUTPUTS,
     GRAPH_NODES,
@@ -77,6 +79,7 @@ class GraphRun:
         self.ready = ReadyWatcher()
         self._spawned_at: dict[str, float] = {}
         self.ready_seconds: dict[str, float] = {}
+        self.isolation: Isolation | None = None
 
     # -- public --
 
@@ -87,11 +90,13 @@ class GraphRun:
         opts = self.options
         topics = bag_topic_names(opts.bag)  # a bad bag fails here, before anything starts
         overrides = paced_overrides(opts, node_overrides(opts, topics))
+        check_inputs(opts, topics)  # a bag without image/camera_info/pose fails here, see .inputs
         profile = apply_fastdds_profile()
         log.info('Fast DDS profile: %s', profile)
         self._wall_start = time.time()
         self._context = rclpy.context.Context()
         args = ['--ros-args', '--params-file', str(opts.params_file)] if opts.params_file else None
+        self.isolation = isolate(opts.domain_id, opts.localhost_only)  # before any context: see .isolation
         rclpy.init(args=args, context=self._context, signal_handler_options=SignalHandlerOptions.NO)
         previous_handlers = install_stop_signals()
         interrupted = False
@@ -109,11 +114,17 @@ class GraphRun:
                 log.warning('interrupted: stopping the graph')
                 if self.recorder is None:
                     raise
+            except GraphError as exc:  # a node died: say how far the run got, keep what was recorded
+                if self.recorder is not None:
+                    exc.result = self._result(interrupted=True)
+                    exc.result.recorded = self._close_recorder(success=False)
+                raise
             result = self._result(interrupted)
             result.recorded = self._close_recorder(success=not interrupted)
             return result
         finally:
             self._shutdown(interrupted)
+            self.isolation.close()
             for sig, handler in previous_handlers.items():
                 signal.signal(sig, handler)
 
@@ -274,7 +285,7 @@ class GraphRun:
                 code = self.processes[REPLAYER[0]].poll()
                 if code is not None:
                     if code != 0:
-                        raise GraphError(f'bag_replayer exited with code {code}{self._log_hint(REPLAYER[0])}')
+                        raise GraphError(f'bag_replayer {describe_exit(code)}{self._log_hint(REPLAYER[0])}')
                     return
             else:
                 replayer = self.nodes[REPLAYER[0]]
@@ -304,7 +315,7 @@ class GraphRun:
         for name in GRAPH_NODES:
             code = self.processes[name].poll()
             if code is not None:
-                raise GraphError(f'{name} exited early with code {code}{self._log_hint(name)}')
+                raise GraphError(f'{name} {describe_exit(code)}{self._log_hint(name)}')
 
     def _log_hint(self, name: str) -> str:
         if self.options.log_dir is None:
@@ -514,4 +525,5 @@ def run_graph(options: RunOptions) -> RunResult:
     run = GraphRun(options)
     result = run.run()
     result.exit_codes = dict(run.exit_codes)
+    result.domain_id = run.isolation.domain if run.isolation else None
     return result

@@ -57,6 +57,12 @@ class RunOptions:
     #: Called about every ``progress_period`` s while the bag plays (benchmark sampling).
     on_progress: Callable[[GraphRun], None] | None = None
     progress_period: float = 1.0
+    #: ROS domain of the graph (``None``: a free private one, see :mod:`.isolation`).
+    domain_id: int | None = None
+    #: Localhost-only discovery (``None``: yes for a private domain, no with ``domain_id``).
+    localhost_only: bool | None = None
+    #: Run even when the bag lacks a topic the graph needs (``--allow-missing``).
+    allow_missing: bool = False
 
 
 @dataclass
@@ -88,6 +94,8 @@ class RunResult:
     images_handled: int = 0
     #: Per node, of those the seconds its constructor took (the rest: interpreter, imports).
     constructor_seconds: dict[str, float] = field(default_factory=dict)
+    #: The ROS domain the graph ran on.
+    domain_id: int | None = None
 
     @property
     def complete(self) -> bool:
@@ -95,4 +103,10 @@ class RunResult:
 
 
 class GraphError(RuntimeError):
-    """The graph could not run to the end (a node died, the replayer failed)."""
+    """The graph could not run to the end (a node died, the replayer failed).
+
+    ``result`` holds how far it got (keyframes fused, the partial recording) when the graph
+    had started.
+    """
+
+    result: RunResult | None = None

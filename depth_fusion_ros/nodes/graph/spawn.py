@@ -43,6 +43,18 @@ def node_command(script: str, module: str, ros_args: list[str]) -> list[str]:
     return [sys.executable, '-m', module, '--ros-args', *ros_args]
 
 
+def describe_exit(code: int) -> str:
+    """``'was killed by SIGKILL (exit -9)'`` or ``'exited early with code 1'``: a node that
+    stopped while the run still needed it."""
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f'signal {-code}'
+        return f'was killed by {name} (exit {code})'
+    return f'exited early with code {code}'
+
+
 def popen_node(cmd: list[str], env: dict[str, str], log_file: TextIO | None) -> subprocess.Popen:
     """Start one node process, logging to ``log_file`` (uncoloured) or to this terminal."""
     if log_file is None:

@@ -1,0 +1,177 @@
+"""Bad input refused before any work, in one line: output paths, ``--set`` names, ``--frames``,
+a bag that lacks a topic the graph needs, and pinned dependencies."""
+
+from __future__ import annotations
+
+import errno
+import re
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from depth_fusion_ros.cli.main import main
+from depth_fusion_ros.cli.overrides import check_node_overrides, check_stage_overrides
+from depth_fusion_ros.cli.paths import OutputPathError, check_output
+from depth_fusion_ros.nodes.graph import RunOptions
+from depth_fusion_ros.nodes.graph.inputs import MissingInputError, check_inputs, missing_inputs
+
+ROOT = Path(__file__).resolve().parents[1]
+ALL = ['/camera/rgb/image_color', '/camera/rgb/camera_info', '/camera/pose', '/camera/depth/image']
+
+
+def one_line_error(capsys, argv: list[str], code: int = 1) -> str:
+    if code == 2:  # argparse
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2
+    else:
+        assert main(argv) == code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and 'Traceback' not in '\n'.join(err)
+    return err[-1]
+
+
+# --- output paths -----------------------------------------------------------------------------
+
+
+def test_output_under_a_file_existing_and_bag_suffix(tmp_path):
+    (tmp_path / 'file').write_text('x')
+    with pytest.raises(OutputPathError, match='is a file, not a folder'):
+        check_output(tmp_path / 'file' / 'sub' / 'out', '--out')
+    (tmp_path / 'bag').mkdir()
+    with pytest.raises(OutputPathError, match=r'already exists \(pass --overwrite'):
+        check_output(tmp_path / 'bag', 'OUT_BAG', exists_ok=False, overwrite_flag='--overwrite')
+    with pytest.raises(OutputPathError, match=r'must not end in \.bag.*use .*/x$'):
+        check_output(tmp_path / 'x.bag', '--record', bag=True)
+    assert check_output(tmp_path / 'new' / 'deep' / 'out', '--out') == tmp_path / 'new' / 'deep' / 'out'
+    assert not (tmp_path / 'new').exists()  # the check creates nothing
+
+
+def test_read_only_file_system_is_reported(tmp_path, monkeypatch):
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, 'Read-only file system')
+
+    monkeypatch.setattr(tempfile, 'mkstemp', read_only)
+    with pytest.raises(OutputPathError, match=r'cannot write in .*: Read-only file system'):
+        check_output(tmp_path / 'out', '--out')
+
+
+@pytest.mark.parametrize(
+    'argv',
+    [
+        ['demo', '--out', '{f}/out'],
+        ['evaluate', '{d}', '--out', '{f}/out', '--methods', 'single_view'],
+        ['convert', '{d}', '{f}/out'],
+        ['run', '--bag', '{d}', '--record', '{f}/out'],
+    ],
+    ids=['demo', 'evaluate', 'convert', 'run'],
+)
+def test_every_command_checks_its_output_first(argv, tmp_path, capsys):
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('x')
+    line = one_line_error(capsys, [a.format(f=blocker, d=tmp_path) for a in argv])
+    assert f'{blocker} is a file, not a folder' in line
+
+
+def test_bag_outputs_refuse_the_bag_suffix(tmp_path, capsys):
+    assert 'use ' in one_line_error(capsys, ['convert', str(tmp_path), str(tmp_path / 'x.bag')])
+    line = one_line_error(capsys, ['run', '--bag', str(tmp_path), '--record', str(tmp_path / 'o.bag')])
+    assert 'must not end in .bag' in line
+
+
+# --- --set and --frames -------------------------------------------------------------------------
+
+
+def test_unknown_node_and_parameter_have_did_you_mean():
+    with pytest.raises(ValueError, match=r"unknown node 'nosuchnode'"):
+        check_node_overrides({'nosuchnode': {'x': 1}})
+    with pytest.raises(ValueError, match=r"no parameter 'keyframe_evry'; did you mean keyframe_every"):
+        check_node_overrides({'multi_view_node': {'keyframe_evry': 3}})
+    with pytest.raises(ValueError, match=r"unknown node 'multi_veiw_node'; did you mean multi_view_node"):
+        check_node_overrides({'multi_veiw_node': {'keyframe_every': 3}})
+    check_node_overrides(
+        {
+            'multi_view_node': {'keyframe_every': 3, 'use_sim_time': True, 'multi_view.patch': 3},
+            'bag_replayer': {'loop': True},
+            'fusion_node': {'fusion.compile_kernel': False},
+        }
+    )
+
+
+def test_unknown_evaluation_stage_and_key():
+    with pytest.raises(ValueError, match=r"unknown stage 'fusoin'; did you mean fusion"):
+        check_stage_overrides({'fusoin': {'mode': 'fast'}})
+    with pytest.raises(ValueError, match=r"fusion has no parameter 'sigma_1'; did you mean sigma1"):
+        check_stage_overrides({'fusion': {'sigma_1': 10}})
+    check_stage_overrides({'fusion': {'mode': 'fast', 'stage1_fraction': 0.3}, 'recorded': {'bag': 'x'}})
+
+
+def test_set_typo_is_an_error_in_the_cli(tmp_path, capsys):
+    line = one_line_error(capsys, ['run', '--bag', str(tmp_path), '--set', 'multi_view_node.keyframe_evry=3'])
+    assert 'did you mean keyframe_every' in line
+    line = one_line_error(capsys, ['evaluate', str(tmp_path), '--set', 'fusion.mdoe=fast'])
+    assert 'did you mean mode' in line
+
+
+@pytest.mark.parametrize('command', [['evaluate', 'x'], ['demo'], ['convert', 'a', 'b'], ['synth', 'o']])
+@pytest.mark.parametrize('value', ['0', '-3'])
+def test_frames_must_be_positive_and_the_message_names_the_option(command, value, capsys):
+    line = one_line_error(capsys, [*command, '--frames', value], code=2)
+    assert line.endswith(f'argument --frames: must be at least 1, got {value}')
+    assert 'max_frames' not in line
+
+
+# --- a bag lacking a needed topic -------------------------------------------------------------
+
+
+def test_missing_inputs_are_named():
+    opts = RunOptions(bag=Path('b'))
+    assert missing_inputs(opts, ALL) == []
+    assert missing_inputs(opts, [t for t in ALL if t != '/camera/pose']) == ['the pose topic /camera/pose']
+    no_info = [t for t in ALL if 'camera_info' not in t]
+    assert 'camera_info' in missing_inputs(opts, no_info)[0]
+    with_k = RunOptions(
+        bag=Path('b'), overrides={'multi_view_node': {'camera_intrinsics': [500, 500, 320, 240]}}
+    )
+    assert missing_inputs(with_k, no_info) == []
+    compressed = ['/camera/rgb/image_color/compressed', *ALL[1:]]
+    assert missing_inputs(opts, compressed) == []
+    remapped = RunOptions(bag=Path('b'), overrides={'bag_replayer': {'remap': ['/odom_pose:=/camera/pose']}})
+    assert missing_inputs(remapped, [*ALL[:2], '/odom_pose']) == []
+    only_images = RunOptions(
+        bag=Path('b'), overrides={'bag_replayer': {'topics': ['/camera/rgb/image_color']}}
+    )
+    assert len(missing_inputs(only_images, ALL)) == 2
+
+
+def test_missing_pose_stops_before_start_or_runs_with_allow_missing(caplog):
+    topics = [t for t in ALL if t != '/camera/pose']
+    with pytest.raises(MissingInputError, match=r'lacks the pose topic /camera/pose .*--allow-missing'):
+        check_inputs(RunOptions(bag=Path('b')), topics)
+    assert check_inputs(RunOptions(bag=Path('b'), allow_missing=True), topics) == [
+        'the pose topic /camera/pose'
+    ]
+    assert 'running without the pose topic' in caplog.text
+
+
+def test_run_on_a_bag_without_pose_is_one_line(synthetic_tum_dir, tmp_path, capsys):
+    from run_bags import shifted_copy, small_bag
+
+    bag = shifted_copy(
+        small_bag(synthetic_tum_dir, tmp_path / 'full', frames=3), tmp_path / 'nopose', 0, ('/camera/pose',)
+    )
+    line = one_line_error(capsys, ['run', '--bag', str(bag), '--record', str(tmp_path / 'out')])
+    assert re.search(r'lacks the pose topic /camera/pose \(it has: .*image_color', line), line
+    assert not (tmp_path / 'out').exists() and not (tmp_path / 'out.partial').exists()
+
+
+# --- pinned dependencies ----------------------------------------------------------------------
+
+
+def test_every_venv_requirement_is_pinned():
+    text = (ROOT / 'scripts' / 'venv.sh').read_text()
+    block = text[text.index('REQUIREMENTS=(') : text.index(')', text.index('REQUIREMENTS=('))]
+    reqs = re.findall(r'"([^"]+)"', block)
+    assert len(reqs) >= 14
+    assert all(re.fullmatch(r'[A-Za-z0-9_.\-]+==[0-9][0-9A-Za-z.+]*', r) for r in reqs), reqs
