@@ -14,7 +14,7 @@ import logging
 import sys
 
 #: Subcommands in the order ``--help`` lists them.
-SUBCOMMANDS = ('demo', 'synth', 'convert', 'evaluate', 'train', 'run', 'bench')
+SUBCOMMANDS = ('demo', 'synth', 'convert', 'evaluate', 'train', 'adapt', 'run', 'bench')
 
 DESCRIPTION = """\
 depth_fusion_ros: dense monocular depth by fusing single-view CNN depth with semi-dense
@@ -26,6 +26,7 @@ typical use:
   depth-fusion convert artifacts/room room.bag    # TUM folder (or ROS 1 bag) -> rosbag2
   depth-fusion run --bag room.bag --record out    # the ROS 2 node graph on a bag
   depth-fusion evaluate SEQ_DIR --methods tv,single_view,fused
+  depth-fusion adapt SEQ_DIR --out adapted.pt     # self-supervised adaptation to a scene
 """
 
 

@@ -185,4 +185,7 @@ def write_figures(results: list[SequenceResult], out_dir: Path) -> list[Path]:
         written.append(error_grid(r, out_dir / f'{r.name}_errors.png'))
     written.append(error_boxplots(results, out_dir / 'error_boxplots.png'))
     written.append(single_view_histogram(results, out_dir / 'single_view_error_histogram.png'))
+    from .adaptation_report import adaptation_curves
+
+    written.append(adaptation_curves(results, out_dir / 'adaptation_mae.png'))
     return [p for p in written if p is not None]

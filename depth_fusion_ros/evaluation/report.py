@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .adaptation_report import adaptation_table
+
 if TYPE_CHECKING:
     from .harness import SequenceResult
 
@@ -136,6 +138,7 @@ def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> st
         ('Main results (paper Table II layout)', paper_table(doc)),
         ('Weight ablation on oracle points (paper Table III)', ablation_table(doc)),
         ('Median error by image gradient (paper Table I, threshold 0.35)', gradient_table(doc)),
+        ('Online adaptation, prequential (figure adaptation_mae.png)', adaptation_table(doc)),
     ]
     for title, table in sections:
         if table:

@@ -8,7 +8,14 @@ camera_info first.
 
 The network is loaded once at start-up (``model``: the shipped compact model, a checkpoint,
 or a TorchScript file with its metadata YAML) on ``device``; inference runs on the worker
-thread so subscriptions are never stalled. The model's output kind (``metric_depth``,
+thread so subscriptions are never stalled.
+
+With ``adapt`` on (``auto``: on for the project's own networks, off for TorchScript), the
+node also listens to the multi-view depth and score and the keyframe pose, and trains the
+network on each keyframe on a background thread (``depth_fusion_ros.adaptation``; see
+docs/adaptation.md). Inference never waits for it: it uses the last accepted weights,
+swapped atomically. ``~/save_model`` (std_srvs/Trigger) and shutdown write them to
+``adaptation.checkpoint``, which ``model:`` loads next time. The model's output kind (``metric_depth``,
 ``inverse_depth``, ``relative_depth``) is published once on a latched topic: the fusion node
 needs it to align non-metric outputs, and the depth image itself cannot carry it.
 """
@@ -29,6 +36,7 @@ from .base import DepthFusionNode, run_node
 from .image_input import CameraInput, InputError, StampGuard, WorkingImage, working_grid_parameters
 from .params import ParamSpec
 from .qos import latched_qos
+from .single_view_adaptation import ADAPTATION_PARAMETERS, NodeAdaptation, adaptation_wanted
 
 NODE_NAME = 'single_view_node'
 
@@ -57,6 +65,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ),
     *working_grid_parameters('; only for input_rectified: false'),
     ParamSpec('warmup', True, 'run the network once at start-up so the first keyframe is not slow'),
+    *ADAPTATION_PARAMETERS,
 )
 
 
@@ -82,6 +91,9 @@ class SingleViewNode(DepthFusionNode):
         self._kind_pub = self.create_publisher(String, TOPIC_OUTPUT_KIND, latched_qos())
         self._kind_pub.publish(String(data=self.output_kind))
         self.worker = self.make_worker('single_view', self._process)
+        self.adaptation: NodeAdaptation | None = None
+        if adaptation_wanted(p):
+            self.adaptation = NodeAdaptation(self, self.predictor)
         self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
         self.subscribe(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
         self.get_logger().info(
@@ -111,14 +123,26 @@ class SingleViewNode(DepthFusionNode):
             self.stats.dropped(exc.reason, str(exc))
             return
         self.worker.submit(_Job(image, received_at))
+        if self.adaptation is not None:
+            self.adaptation.on_keyframe_image(image, calibrated=self.camera_input.calibration is not None)
+
+    def current_predictor(self) -> Any:
+        """The predictor to run now: the latest accepted adapted weights, or the loaded model."""
+        return self.adaptation.slot.get()[0] if self.adaptation is not None else self.predictor
 
     def _process(self, job: _Job) -> None:
-        depth = np.asarray(self.predictor.predict(job.image.rgb), dtype=np.float32)
+        depth = np.asarray(self.current_predictor().predict(job.image.rgb), dtype=np.float32)
         if depth.shape != job.image.rgb.shape[:2]:
             raise ValueError(f'the network returned {depth.shape}, expected {job.image.rgb.shape[:2]}')
         self._depth_pub.publish(messages.depth_image_msg(depth, job.image.header, kind=messages.RCLPY))
         self.stats.published('depth')
         self.stats.processed(time.monotonic() - job.received_at)
+
+    def destroy_node(self) -> None:
+        """Stop adapting and write the adapted weights (``adaptation.checkpoint``), then stop."""
+        if self.adaptation is not None and not self._destroyed:
+            self.adaptation.shutdown()
+        super().destroy_node()
 
 
 def main(args: Sequence[str] | None = None) -> int:
