@@ -78,7 +78,7 @@ def make_sample(
     """
     if mv_depth.shape != rgb.shape[:2] or mv_score.shape != rgb.shape[:2]:
         raise ValueError(
-            f'multi-view depth {mv_depth.shape} / score {mv_score.shape} differ from the image {rgb.shape[:2]}'
+            f'multi-view depth {mv_depth.shape} / score {mv_score.shape} differ from image {rgb.shape[:2]}'
         )
     with np.errstate(invalid='ignore'):
         depth = np.where(mv_depth > 0, mv_depth, np.nan).astype(np.float32)
