@@ -1,6 +1,6 @@
 """Benchmarks printed by ``depth-fusion bench`` (figures, never assertions).
 
-One module per stage (``multi_view``, ``single_view``, ``fusion``, ``synthetic``,
+One module per stage (``multi_view``, ``single_view``, ``adaptation``, ``fusion``, ``synthetic``,
 ``node_graph``), each exposing::
 
     TITLE: str
@@ -35,4 +35,4 @@ class BenchRow:
     note: str = ''
 
 
-SECTIONS = ('synthetic', 'multi_view', 'single_view', 'fusion', 'mapping', 'node_graph')
+SECTIONS = ('synthetic', 'multi_view', 'single_view', 'adaptation', 'fusion', 'mapping', 'node_graph')

@@ -14,7 +14,7 @@ import logging
 import sys
 
 #: Subcommands in the order ``--help`` lists them.
-SUBCOMMANDS = ('demo', 'synth', 'convert', 'evaluate', 'train', 'export', 'run', 'bench')
+SUBCOMMANDS = ('demo', 'synth', 'convert', 'evaluate', 'train', 'adapt', 'export', 'run', 'bench')
 
 DESCRIPTION = """\
 depth_fusion_ros: dense monocular depth by fusing single-view CNN depth with semi-dense
@@ -27,6 +27,7 @@ typical use:
   depth-fusion run --bag room --record out        # the ROS 2 node graph on a bag
   depth-fusion evaluate SEQ_DIR --methods tv,single_view,fused
   depth-fusion export --format onnx --out model.onnx   # the network as ONNX (+ model.yaml)
+  depth-fusion adapt SEQ_DIR --out adapted.pt     # self-supervised adaptation to a scene
 """
 
 

@@ -203,4 +203,7 @@ def write_figures(results: list[SequenceResult], out_dir: Path) -> list[Path]:
     from .guard_report import decision_figure
 
     written.append(decision_figure(results, out_dir / 'guard_decisions.png'))
+    from .adaptation_report import adaptation_curves
+
+    written.append(adaptation_curves(results, out_dir / 'adaptation_mae.png'))
     return [p for p in written if p is not None]

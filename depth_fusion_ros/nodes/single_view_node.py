@@ -12,6 +12,13 @@ inference runs on the worker thread so subscriptions are never stalled. The mode
 kind (``metric_depth``, ``inverse_depth``, ``relative_depth``) is published once on a
 latched topic: the fusion node needs it to align non-metric outputs, and the depth image
 itself cannot carry it.
+
+With ``adapt`` on (``auto``: on for the project's own networks, off for exported ones), the
+node also listens to the multi-view depth and score and the keyframe pose, and trains the
+network on each keyframe on a background thread (``depth_fusion_ros.adaptation``; see
+docs/adaptation.md). Inference never waits for it: it uses the last accepted weights,
+swapped atomically. ``~/save_model`` (std_srvs/Trigger) and shutdown write them to
+``adaptation.checkpoint``, which ``model:`` loads next time.
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ from .graph_events import GraphEvents
 from .image_input import CameraInput, InputError, StampGuard, WorkingImage, working_grid_parameters
 from .params import ParamSpec
 from .qos import latched_qos
+from .single_view_adaptation import ADAPTATION_PARAMETERS, NodeAdaptation, adaptation_wanted
 
 NODE_NAME = 'single_view_node'
 
@@ -60,6 +68,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ),
     *working_grid_parameters('; only for input_rectified: false'),
     ParamSpec('warmup', True, 'run the network once at start-up so the first keyframe is not slow'),
+    *ADAPTATION_PARAMETERS,
 )
 
 
@@ -86,6 +95,9 @@ class SingleViewNode(DepthFusionNode):
         self._kind_pub = self.create_publisher(String, TOPIC_OUTPUT_KIND, latched_qos())
         self._kind_pub.publish(String(data=self.output_kind))
         self.worker = self.make_worker('single_view', self._process)
+        self.adaptation: NodeAdaptation | None = None
+        if adaptation_wanted(p):
+            self.adaptation = NodeAdaptation(self, self.predictor)
         self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
         self.subscribe(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
         self.get_logger().info(
@@ -116,9 +128,15 @@ class SingleViewNode(DepthFusionNode):
             self.stats.dropped(exc.reason, str(exc))
             return
         self.worker.submit(_Job(image, received_at))
+        if self.adaptation is not None:
+            self.adaptation.on_keyframe_image(image, calibrated=self.camera_input.calibration is not None)
+
+    def current_predictor(self) -> Any:
+        """The predictor to run now: the latest accepted adapted weights, or the loaded model."""
+        return self.adaptation.slot.get()[0] if self.adaptation is not None else self.predictor
 
     def _process(self, job: _Job) -> None:
-        depth = np.asarray(self.predictor.predict(job.image.rgb), dtype=np.float32)
+        depth = np.asarray(self.current_predictor().predict(job.image.rgb), dtype=np.float32)
         if depth.shape != job.image.rgb.shape[:2]:
             raise ValueError(f'the network returned {depth.shape}, expected {job.image.rgb.shape[:2]}')
         self._depth_pub.publish(messages.depth_image_msg(depth, job.image.header, kind=messages.RCLPY))
@@ -127,6 +145,12 @@ class SingleViewNode(DepthFusionNode):
 
     def diagnostic_extra(self) -> dict[str, Any]:
         return {'model': self.params['model'], 'output kind': self.output_kind}
+
+    def destroy_node(self) -> None:
+        """Stop adapting and write the adapted weights (``adaptation.checkpoint``), then stop."""
+        if self.adaptation is not None and not self._destroyed:
+            self.adaptation.shutdown()
+        super().destroy_node()
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -62,6 +62,12 @@ def is_torchscript_file(path: str | Path) -> bool:
         return False
 
 
+def is_exported_model(path: str | Path) -> bool:
+    """An exported network (ONNX, torch.export .pt2, TorchScript): inference only, no
+    trainable weights the adapter could update."""
+    return Path(path).suffix.lower() in ('.onnx', '.pt2') or is_torchscript_file(path)
+
+
 def save_checkpoint(
     path: str | Path,
     model: nn.Module,

@@ -1,3 +1,3 @@
 """Importing this package registers every evaluation method, one module per stage."""
 
-from . import baselines, fusion, mapping, multi_view, recorded, single_view  # noqa: F401
+from . import adapted, baselines, fusion, mapping, multi_view, recorded, single_view  # noqa: F401

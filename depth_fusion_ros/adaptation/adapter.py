@@ -1,0 +1,281 @@
+"""The Adapter: trains the network on each new keyframe (plus replay), guarded, versioned.
+
+``observe(sample)`` is one update: check the guard (held-out multi-view points of this and
+recent keyframes), take ``steps_per_keyframe`` Adam steps on the self-supervised loss over
+the new keyframe and ``replay_per_step`` replayed ones, check the guard again and roll the
+weights *and the optimiser state* back if it got worse. Accepted updates bump ``version``.
+
+The adapter owns its training copy of the network; whoever runs inference gets copies of
+accepted weights (``inference_network``), so training never mutates a module that is
+predicting. Prequential use (offline evaluation): predict keyframe k with the current
+weights, then ``observe`` it.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..singleview.metadata import ModelMetadata
+from ..singleview.predictor import DepthPredictor, predictor_from_network, resolve_device
+from .config import AdaptConfig
+from .guard import GuardVerdict, guard_error, judge
+from .losses import photometric, smoothness, sparse_log_l1
+from .prepared import PreparedSample
+from .replay import ReplayBuffer
+from .sample import AdaptSample
+
+log = logging.getLogger(__name__)
+
+STATUSES = ('updated', 'rolled_back', 'skipped')
+
+
+@dataclass
+class UpdateReport:
+    """What one ``observe`` did."""
+
+    key: int
+    status: str
+    reason: str = ''
+    steps: int = 0
+    loss_first: float = float('nan')
+    loss_last: float = float('nan')
+    guard: GuardVerdict | None = None
+    version: int = 0
+    seconds: float = 0.0
+    photometric: bool = False
+
+
+@dataclass
+class AdapterCounters:
+    observed: int = 0
+    updated: int = 0
+    rolled_back: int = 0
+    skipped: int = 0
+    steps: int = 0
+    train_seconds: float = 0.0
+    reasons: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
+
+
+def _output_bias(net: nn.Module) -> list[nn.Parameter]:
+    """The network's final scalar bias (a global log-depth offset), if it has one."""
+    scalars = [(n, p) for n, p in net.named_parameters() if p.numel() == 1 and n.endswith('bias')]
+    return [scalars[-1][1]] if scalars else []
+
+
+class Adapter:
+    """Online self-supervised training of one of our log-depth networks."""
+
+    def __init__(
+        self,
+        net: nn.Module,
+        metadata: ModelMetadata,
+        config: AdaptConfig | None = None,
+        device: str | torch.device = 'cpu',
+        name: str = '',
+    ):
+        self.config = config or AdaptConfig()
+        self.config.validate()
+        self.device = resolve_device(device)
+        self.metadata = metadata
+        self.name = name or getattr(net, 'architecture', type(net).__name__)
+        self.net = copy.deepcopy(net).to(self.device)
+        self._set_train_mode()
+        bias = _output_bias(self.net)
+        bias_ids = {id(p) for p in bias}
+        groups = [
+            {'params': [p for p in self.net.parameters() if id(p) not in bias_ids], 'lr': self.config.lr}
+        ]
+        if bias and self.config.scale_lr > 0:
+            groups.append({'params': bias, 'lr': self.config.scale_lr})
+        self.optimizer = torch.optim.Adam(groups)
+        self.buffer: ReplayBuffer[PreparedSample] = ReplayBuffer(self.config.buffer_size)
+        self.counters = AdapterCounters()
+        self.version = 0
+        # Preprocessing (resize, normalisation) exactly as the inference predictor does it.
+        self._preprocessor = predictor_from_network(nn.Identity(), metadata, self.device)
+
+    # --- construction -------------------------------------------------------------------------
+
+    @classmethod
+    def from_spec(
+        cls, spec: str | Path, config: AdaptConfig | None = None, device: str | torch.device = 'cpu'
+    ) -> Adapter:
+        """An adapter for the network named like ``load_predictor``'s ``spec`` ('default' or a
+        checkpoint of ``depth-fusion train`` / ``adapt``). Exported models cannot adapt."""
+        from ..singleview.checkpoint import is_exported_model, load_checkpoint
+        from ..singleview.predictor import SIMULATED_SPEC, default_model_path
+
+        if str(spec) == SIMULATED_SPEC:
+            raise ValueError("adaptation needs a network: 'simulated' is the evaluation-only prior")
+        path = default_model_path() if str(spec) == 'default' else Path(spec).expanduser()
+        if not path.is_file():
+            raise FileNotFoundError(f'single-view model not found: {path}')
+        if is_exported_model(path):
+            raise ValueError(
+                f"{path}: adaptation trains the project's own networks (checkpoints of depth-fusion "
+                'train/adapt, or the shipped model); an exported ONNX / .pt2 / TorchScript model '
+                'cannot be adapted'
+            )
+        ckpt = load_checkpoint(path, device)
+        return cls(ckpt.model, ckpt.metadata, config, device, name=f'{ckpt.architecture}:{path.name}')
+
+    # --- inference side -----------------------------------------------------------------------
+
+    def inference_network(self) -> nn.Module:
+        """A detached eval-mode copy of the current weights (safe to hand to another thread)."""
+        net = copy.deepcopy(self.net).eval()
+        for p in net.parameters():
+            p.requires_grad_(False)
+        return net
+
+    def predictor(self) -> DepthPredictor:
+        """A predictor around a copy of the current weights (metres, as ``load_predictor``)."""
+        return predictor_from_network(self.inference_network(), self.metadata, self.device, name=self.name)
+
+    # --- training -----------------------------------------------------------------------------
+
+    def _set_train_mode(self) -> None:
+        self.net.train()
+        if self.config.freeze_batchnorm:
+            for m in self.net.modules():
+                if isinstance(m, nn.modules.batchnorm._BatchNorm):
+                    m.eval()
+
+    def _eval_forward(self, x: torch.Tensor) -> torch.Tensor:
+        was = self.net.training
+        self.net.eval()
+        try:
+            return self.net(x)
+        finally:
+            if was:
+                self._set_train_mode()
+
+    def prepare(self, sample: AdaptSample) -> PreparedSample:
+        return PreparedSample(sample, self._preprocessor.preprocess, self.device)
+
+    def loss(self, batch: list[PreparedSample]) -> torch.Tensor:
+        """Mean over the batch of the weighted self-supervised terms."""
+        cfg = self.config
+        log_depth = self.net(torch.cat([s.x for s in batch]))
+        h, w = log_depth.shape[-2:]
+        total = log_depth.new_zeros(())
+        for i, s in enumerate(batch):
+            ld = log_depth[i : i + 1]
+            term = cfg.sparse_weight * sparse_log_l1(ld, s.train_uv, s.train_log, s.width, s.height)
+            photo = s.photometric(h, w) if cfg.photometric_weight > 0 else None
+            if photo is not None:
+                term = term + cfg.photometric_weight * photometric(
+                    ld, photo.key, photo.neighbours, photo.k, photo.t_ok, cfg.ssim_alpha
+                )
+            if cfg.smoothness_weight > 0:
+                term = term + cfg.smoothness_weight * smoothness(ld, s.image(h, w))
+            total = total + term
+        return total / len(batch)
+
+    def _snapshot(self) -> tuple[dict, dict]:
+        return copy.deepcopy(self.net.state_dict()), copy.deepcopy(self.optimizer.state_dict())
+
+    def _restore(self, snap: tuple[dict, dict]) -> None:
+        self.net.load_state_dict(snap[0])
+        self.optimizer.load_state_dict(snap[1])
+
+    def observe(self, sample: AdaptSample, abort: Callable[[], bool] | None = None) -> UpdateReport:
+        """Train on ``sample`` (+ replay); keep the update only if the guard allows it.
+
+        ``abort`` is checked between steps (a node shutting down): a true answer restores the
+        weights and reports the keyframe as skipped (``stopped``).
+        """
+        t0 = time.perf_counter()
+        cfg = self.config
+        self.counters.observed += 1
+        prepared = self.prepare(sample)
+        if prepared.n_train < max(1, cfg.min_points):
+            return self._skip(sample.key, f'too_few_points ({prepared.n_train} < {cfg.min_points})', t0)
+        guard_set = [prepared, *self.buffer.recent(cfg.guard_keyframes)]
+        before = guard_error(self._eval_forward, guard_set)
+        snap = self._snapshot()
+        losses = []
+        seed = [int(cfg.seed), int(self.counters.observed)]
+        for step in range(cfg.steps_per_keyframe):
+            if abort is not None and abort():
+                self._restore(snap)
+                return self._skip(sample.key, 'stopped', t0)
+            rng = np.random.default_rng([*seed, step])
+            batch = [prepared, *self.buffer.draw(cfg.replay_per_step, rng)]
+            loss = self.loss(batch)
+            if not torch.isfinite(loss):
+                self._restore(snap)
+                return self._skip(sample.key, 'non_finite_loss', t0)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.grad_clip > 0:
+                nn.utils.clip_grad_norm_(self.net.parameters(), cfg.grad_clip)
+            self.optimizer.step()
+            losses.append(float(loss.detach()))
+        self.counters.steps += len(losses)
+        after = guard_error(self._eval_forward, guard_set)
+        verdict = judge(before, after, cfg.guard_tolerance, sum(s.n_holdout > 0 for s in guard_set))
+        report = UpdateReport(
+            key=sample.key,
+            status='rolled_back' if verdict.rolled_back else 'updated',
+            steps=len(losses),
+            loss_first=losses[0],
+            loss_last=losses[-1],
+            guard=verdict,
+            photometric=sample.has_photometric and cfg.photometric_weight > 0,
+        )
+        if verdict.rolled_back:
+            self._restore(snap)
+            self.counters.rolled_back += 1
+            log.warning(
+                'adaptation: update on keyframe %d rolled back (held-out error %.4f -> %.4f, %d keyframes)',
+                sample.key,
+                before,
+                after,
+                verdict.keyframes,
+            )
+        else:
+            self.counters.updated += 1
+            self.version += 1
+            self.buffer.add(prepared)
+        report.version = self.version
+        report.seconds = time.perf_counter() - t0
+        self.counters.train_seconds += report.seconds
+        return report
+
+    def _skip(self, key: int, reason: str, t0: float) -> UpdateReport:
+        self.counters.skipped += 1
+        short = reason.split(' ')[0]
+        self.counters.reasons[short] = self.counters.reasons.get(short, 0) + 1
+        log.info('adaptation: keyframe %d not trained on: %s', key, reason)
+        return UpdateReport(key, 'skipped', reason, version=self.version, seconds=time.perf_counter() - t0)
+
+    # --- persistence --------------------------------------------------------------------------
+
+    def save(self, path: str | Path, extra_info: dict[str, Any] | None = None) -> Path:
+        """Write the current weights as a checkpoint that ``model:`` / ``--single-view`` load."""
+        from ..singleview.checkpoint import save_checkpoint
+
+        info = dict(self.metadata.info)
+        info['adaptation'] = {
+            'adapted_from': self.name,
+            'version': self.version,
+            'counters': self.counters.as_dict(),
+            'config': dict(self.config.__dict__),
+            **(extra_info or {}),
+        }
+        metadata = ModelMetadata.from_dict({**self.metadata.to_dict(), 'info': info})
+        return save_checkpoint(path, self.inference_network(), metadata)

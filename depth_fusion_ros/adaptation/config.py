@@ -1,0 +1,95 @@
+"""Settings of the online adaptation (the ``adaptation.*`` parameters of ``single_view_node``).
+
+Defaults were chosen on synthetic sequences (``depth-fusion synth``), never on the shared
+real data: see docs/adaptation.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass
+class AdaptConfig:
+    """How the network learns from each keyframe."""
+
+    #: Adam learning rate of the network's weights.
+    lr: float = 3e-4
+    #: Learning rate of the output bias (a global log-depth offset): the scale of a network
+    #: trained elsewhere is its largest error and must move within a few keyframes.
+    scale_lr: float = 2e-2
+    #: Optimiser steps per keyframe (each on the keyframe plus replayed ones).
+    steps_per_keyframe: int = 6
+    #: Past keyframes kept for replay (oldest replaced first).
+    buffer_size: int = 32
+    #: Replayed keyframes in each step's batch, besides the new keyframe.
+    replay_per_step: int = 2
+    #: Weight of the sparse term: L1 of log depth at the selected multi-view points.
+    sparse_weight: float = 1.0
+    #: Weight of the photometric term (SSIM + L1 against the posed neighbours); 0 disables it.
+    photometric_weight: float = 1.0
+    #: Weight of the edge-aware smoothness of mean-normalised inverse depth.
+    smoothness_weight: float = 1e-3
+    #: SSIM share of the photometric error (the rest is L1), as Monodepth2.
+    ssim_alpha: float = 0.85
+    #: Stage-1 selection: the best fraction of the multi-view points by score are targets.
+    select_fraction: float = 0.25
+    #: Share of the selected points held out of training for the guard.
+    holdout_fraction: float = 0.2
+    #: A keyframe with fewer training points than this is not trained on (counted as skipped).
+    min_points: int = 30
+    #: Recent replay keyframes whose held-out points the guard checks with the new keyframe's.
+    guard_keyframes: int = 4
+    #: An update is rolled back when the guard error grows by more than this fraction.
+    guard_tolerance: float = 0.02
+    #: Gradient norm clipping (0: none).
+    grad_clip: float = 1.0
+    #: Keep BatchNorm statistics frozen (eval-mode normalisation while training).
+    freeze_batchnorm: bool = True
+    #: Seed of the replay choices and the held-out split.
+    seed: int = 0
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad field."""
+        positive = ('lr', 'steps_per_keyframe', 'buffer_size')
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f'adaptation.{name} must be positive, got {getattr(self, name)}')
+        nonneg = (
+            'scale_lr',
+            'replay_per_step',
+            'sparse_weight',
+            'photometric_weight',
+            'smoothness_weight',
+            'guard_keyframes',
+            'guard_tolerance',
+            'grad_clip',
+            'min_points',
+        )
+        for name in nonneg:
+            if getattr(self, name) < 0:
+                raise ValueError(f'adaptation.{name} must be >= 0, got {getattr(self, name)}')
+        for name in ('select_fraction',):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f'adaptation.{name} must be in (0, 1], got {getattr(self, name)}')
+        if not 0 <= self.holdout_fraction < 1:
+            raise ValueError(f'adaptation.holdout_fraction must be in [0, 1), got {self.holdout_fraction}')
+        if not 0 <= self.ssim_alpha <= 1:
+            raise ValueError(f'adaptation.ssim_alpha must be in [0, 1], got {self.ssim_alpha}')
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> AdaptConfig:
+        """A config from ``{field: value}`` (unknown fields are an error naming them)."""
+        known = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - set(known))
+        if unknown:
+            raise ValueError(f'unknown adaptation parameter(s) {unknown}; known: {sorted(known)}')
+        values = {}
+        for name, value in data.items():
+            kind = type(known[name].default)
+            values[name] = kind(value) if kind is not bool else bool(value)
+        cfg = cls(**values)
+        cfg.validate()
+        return cfg

@@ -1,0 +1,115 @@
+"""Assembles a keyframe's training signals as the graph publishes them, part by part.
+
+In the node graph a keyframe's image, pose, multi-view depth and score arrive on separate
+topics at different times, keyed by the same header stamp. ``KeyframeAssembler`` collects
+them and returns an :class:`~.sample.AdaptSample` as soon as the image, depth and score are
+in, with the pose when it came first or is still expected. It keeps the most recent posed
+keyframes as the photometric neighbours of the next ones (the previous keyframes with enough
+baseline), and bounded memory: at most ``max_pending`` incomplete keyframes.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict, deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from .sample import AdaptSample, Neighbour, make_sample
+
+PARTS = ('rgb', 'depth', 'score', 'pose')
+
+
+@dataclass
+class _Parts:
+    values: dict[str, Any] = field(default_factory=dict)
+    camera: PinholeCamera | None = None
+
+
+class KeyframeAssembler:
+    """Pairs image / pose / depth / score by stamp; yields samples, keeps posed neighbours."""
+
+    def __init__(
+        self,
+        *,
+        select_fraction: float = 0.25,
+        holdout_fraction: float = 0.2,
+        seed: int = 0,
+        neighbours: int = 2,
+        min_baseline: float = 0.02,
+        max_pending: int = 8,
+        window: int = 8,
+    ):
+        self.select_fraction = select_fraction
+        self.holdout_fraction = holdout_fraction
+        self.seed = seed
+        self.n_neighbours = int(neighbours)
+        self.min_baseline = float(min_baseline)
+        self.max_pending = int(max_pending)
+        self._pending: OrderedDict[int, _Parts] = OrderedDict()
+        self._recent: deque[Neighbour] = deque(maxlen=max(1, window))
+        #: Once any pose has arrived, a keyframe waits for its own (until it is evicted).
+        self.poses_seen = False
+        self.evicted_incomplete = 0
+
+    def add(
+        self, stamp_ns: int, part: str, value: Any, camera: PinholeCamera | None = None
+    ) -> list[AdaptSample]:
+        """Add one part; returns the samples that became complete (usually none or one)."""
+        if part not in PARTS:
+            raise ValueError(f'unknown keyframe part {part!r}')
+        if part == 'pose':
+            self.poses_seen = True
+        entry = self._pending.setdefault(int(stamp_ns), _Parts())
+        entry.values[part] = value
+        if camera is not None:
+            entry.camera = camera
+        out: list[AdaptSample] = []
+        if self._ready(entry, waiting_for_pose=True):
+            out.append(self._finish(int(stamp_ns)))
+        while len(self._pending) > self.max_pending:
+            old_stamp, old = next(iter(self._pending.items()))
+            if self._ready(old, waiting_for_pose=False):
+                out.append(self._finish(old_stamp))  # its pose never came: sparse term only
+            else:
+                self._pending.pop(old_stamp)
+                self.evicted_incomplete += 1
+        return out
+
+    def _ready(self, entry: _Parts, waiting_for_pose: bool) -> bool:
+        v = entry.values
+        if not all(k in v for k in ('rgb', 'depth', 'score')) or entry.camera is None:
+            return False
+        return 'pose' in v or not (waiting_for_pose and self.poses_seen)
+
+    def _neighbours(self, pose: np.ndarray) -> list[Neighbour]:
+        chosen = []
+        for n in reversed(self._recent):
+            if np.linalg.norm(n.pose[:3, 3] - pose[:3, 3]) >= self.min_baseline:
+                chosen.append(n)
+            if len(chosen) >= self.n_neighbours:
+                break
+        return chosen
+
+    def _finish(self, stamp_ns: int) -> AdaptSample:
+        entry = self._pending.pop(stamp_ns)
+        v = entry.values
+        pose = v.get('pose')
+        neighbours = self._neighbours(pose) if pose is not None and self.n_neighbours > 0 else []
+        sample = make_sample(
+            stamp_ns,
+            v['rgb'],
+            entry.camera,
+            v['depth'],
+            v['score'],
+            select_fraction=self.select_fraction,
+            holdout_fraction=self.holdout_fraction,
+            seed=self.seed,
+            pose=pose,
+            neighbours=neighbours,
+        )
+        if pose is not None:
+            self._recent.append(Neighbour(v['rgb'], pose))
+        return sample

@@ -1,0 +1,148 @@
+"""The Adapter on its own thread, off the inference path; accepted weights swapped atomically.
+
+Inference must never wait for training. So training happens on a thread that owns the
+:class:`~.adapter.Adapter` (torch releases the GIL inside its operators, so both threads
+compute at once), samples reach it through a small bounded queue (``submit`` never blocks;
+when training falls behind the oldest waiting keyframe is dropped and counted), and each
+accepted update produces a *new* predictor around a copy of the weights, published through a
+:class:`WeightSlot`. Inference takes the slot's current predictor with one locked read and
+runs it; training never touches a module that is predicting, and a swap never waits for a
+prediction in flight.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from ..singleview.predictor import DepthPredictor
+from .adapter import Adapter, UpdateReport
+from .sample import AdaptSample
+
+log = logging.getLogger(__name__)
+
+
+class WeightSlot:
+    """The predictor inference uses now, and its version; ``swap`` replaces both at once."""
+
+    def __init__(self, predictor: DepthPredictor, version: int = 0):
+        self._lock = threading.Lock()
+        self._predictor = predictor
+        self._version = version
+
+    def get(self) -> tuple[DepthPredictor, int]:
+        with self._lock:
+            return self._predictor, self._version
+
+    def swap(self, predictor: DepthPredictor, version: int) -> None:
+        with self._lock:
+            self._predictor, self._version = predictor, version
+
+    @property
+    def version(self) -> int:
+        with self._lock:
+            return self._version
+
+
+class OnlineAdaptation:
+    """Runs ``adapter.observe`` on a background thread for each submitted sample.
+
+    ``on_report`` (optional) is called on the training thread after every update with its
+    :class:`~.adapter.UpdateReport` (for counters and logs).
+    """
+
+    def __init__(
+        self,
+        adapter: Adapter,
+        slot: WeightSlot,
+        queue_size: int = 2,
+        on_report: Callable[[UpdateReport], None] | None = None,
+        name: str = 'adaptation',
+    ):
+        if queue_size < 1:
+            raise ValueError(f'adaptation queue size must be >= 1, got {queue_size}')
+        self.adapter = adapter
+        self.slot = slot
+        self.on_report = on_report
+        self._queue: deque[AdaptSample] = deque()
+        self._queue_size = int(queue_size)
+        self._cond = threading.Condition()
+        self._stop = False
+        self._busy = False
+        self.submitted = 0
+        self.dropped = 0
+        self.failed = 0
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, sample: AdaptSample) -> bool:
+        """Queue a keyframe for training; never blocks. False when an older one was dropped."""
+        with self._cond:
+            self.submitted += 1
+            dropped = len(self._queue) >= self._queue_size
+            if dropped:
+                self._queue.popleft()
+                self.dropped += 1
+            self._queue.append(sample)
+            self._cond.notify()
+        return not dropped
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                sample = self._queue.popleft()
+                self._busy = True
+            try:
+                report = self.adapter.observe(sample, abort=lambda: self._stop)
+                if report.status == 'updated':
+                    self.slot.swap(self.adapter.predictor(), self.adapter.version)
+                if self.on_report is not None:
+                    self.on_report(report)
+            except Exception:  # a bad sample must not end adaptation
+                self.failed += 1
+                log.exception('adaptation update failed')
+            finally:
+                with self._cond:
+                    self._busy = False
+                    self._cond.notify_all()
+
+    def wait_idle(self, timeout: float = 30.0) -> bool:
+        """Block until nothing is queued or training (tests, flushing before a save)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: not self._queue and not self._busy, timeout)
+
+    def stop(self, timeout: float = 30.0) -> bool:
+        """Stop after the update in hand (queued samples are discarded); True when joined."""
+        with self._cond:
+            self._stop = True
+            self._queue.clear()
+            self._cond.notify_all()
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    def save(self, path: str | Path, extra_info: dict[str, Any] | None = None) -> Path:
+        """Write the weights inference uses now (the last accepted update) as a checkpoint;
+        never waits for an update in progress."""
+        from ..singleview.checkpoint import save_checkpoint
+        from ..singleview.metadata import ModelMetadata
+
+        predictor, version = self.slot.get()
+        net = predictor.module.net  # MetricDepthHead around the log-depth network
+        info = dict(self.adapter.metadata.info)
+        info['adaptation'] = {
+            'adapted_from': self.adapter.name,
+            'version': version,
+            'counters': self.adapter.counters.as_dict(),
+            'config': dict(self.adapter.config.__dict__),
+            **(extra_info or {}),
+        }
+        metadata = ModelMetadata.from_dict({**self.adapter.metadata.to_dict(), 'info': info})
+        return save_checkpoint(Path(path).expanduser(), net, metadata)

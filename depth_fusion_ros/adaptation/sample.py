@@ -1,0 +1,100 @@
+"""One keyframe's training signals, built only from what the graph publishes.
+
+An :class:`AdaptSample` holds the keyframe image, the selected multi-view points split into
+training and held-out ones (the guard's), and, when poses are known, the keyframe pose and
+posed neighbour images for the photometric term. Nothing here ever reads ground truth: the
+split and the selection use the multi-view depth and its score only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from ..multiview.semidense import select_best_fraction
+
+
+@dataclass
+class Neighbour:
+    """A posed view of the scene used to check the keyframe's depth photometrically."""
+
+    rgb: np.ndarray
+    #: Camera-to-world pose (4x4).
+    pose: np.ndarray
+
+
+@dataclass
+class AdaptSample:
+    """Training signals of one keyframe (working grid, undistorted)."""
+
+    key: int
+    rgb: np.ndarray
+    camera: PinholeCamera
+    #: (N, 2) pixel coordinates (u = column, v = row) and (N,) depths (m) of the training points.
+    train_uv: np.ndarray
+    train_depth: np.ndarray
+    #: The same for the held-out points (guard only, never trained on).
+    holdout_uv: np.ndarray
+    holdout_depth: np.ndarray
+    #: Camera-to-world pose of the keyframe, or None (then no photometric term).
+    pose: np.ndarray | None = None
+    neighbours: list[Neighbour] = field(default_factory=list)
+
+    @property
+    def has_photometric(self) -> bool:
+        return self.pose is not None and len(self.neighbours) > 0
+
+
+def split_holdout(count: int, fraction: float, seed: tuple[int, ...]) -> np.ndarray:
+    """Bool mask of the ``count`` points that are held out (a seeded draw, ``fraction`` of them)."""
+    rng = np.random.default_rng(list(seed))
+    held = np.zeros(count, dtype=bool)
+    n_held = round(fraction * count)
+    if n_held:
+        held[rng.choice(count, size=n_held, replace=False)] = True
+    return held
+
+
+def make_sample(
+    key: int,
+    rgb: np.ndarray,
+    camera: PinholeCamera,
+    mv_depth: np.ndarray,
+    mv_score: np.ndarray,
+    *,
+    select_fraction: float = 0.25,
+    holdout_fraction: float = 0.2,
+    seed: int = 0,
+    pose: np.ndarray | None = None,
+    neighbours: list[Neighbour] | None = None,
+) -> AdaptSample:
+    """A sample from a keyframe's multi-view depth and score maps (NaN = no estimate).
+
+    Stage 1 keeps the best ``select_fraction`` by score (as the fusion does); of those, a seeded
+    ``holdout_fraction`` is kept apart for the guard.
+    """
+    if mv_depth.shape != rgb.shape[:2] or mv_score.shape != rgb.shape[:2]:
+        raise ValueError(
+            f'multi-view depth {mv_depth.shape} / score {mv_score.shape} differ from image {rgb.shape[:2]}'
+        )
+    with np.errstate(invalid='ignore'):
+        depth = np.where(mv_depth > 0, mv_depth, np.nan).astype(np.float32)
+    mask = select_best_fraction(SimpleNamespace(depth=depth, score=mv_score), select_fraction)
+    rows, cols = np.nonzero(mask)
+    uv = np.stack([cols, rows], axis=1).astype(np.float32)
+    values = depth[rows, cols].astype(np.float32)
+    held = split_holdout(len(values), holdout_fraction, (int(seed), int(key) & 0x7FFFFFFF))
+    return AdaptSample(
+        key=int(key),
+        rgb=rgb,
+        camera=camera,
+        train_uv=uv[~held],
+        train_depth=values[~held],
+        holdout_uv=uv[held],
+        holdout_depth=values[held],
+        pose=None if pose is None else np.asarray(pose, dtype=np.float64),
+        neighbours=list(neighbours or []) if pose is not None else [],
+    )

@@ -1,0 +1,114 @@
+"""``depth-fusion adapt``: adapt a single-view network to posed sequences offline, self-supervised.
+
+The same code as the node's online adaptation and the evaluation's ``single_view_adapted``
+(``evaluation.methods.adapted.observe_keyframe``): keyframes in order, the multi-view search
+of each against its neighbours, then one guarded update on its selected multi-view points and
+its photometric consistency with the posed neighbours. Ground-truth depth is never read for
+training (folders without depth images work). Writes a checkpoint that ``--single-view`` /
+``model:`` load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        'adapt',
+        help='adapt the single-view network to posed sequences, self-supervised (writes a checkpoint)',
+        description='Train the single-view network on TUM-layout folders without ground truth: '
+        'multi-view depth of the selected points and photometric consistency with posed '
+        'neighbours, with replay and a held-out guard (docs/adaptation.md). Writes --out, a '
+        'checkpoint that --single-view and the node parameter model: load.',
+    )
+    p.add_argument('sequences', nargs='+', metavar='SEQ_DIR', help='TUM-layout folder(s), in order')
+    p.add_argument('--out', required=True, metavar='CKPT', help='checkpoint to write (.pt)')
+    p.add_argument(
+        '--model',
+        default='default',
+        help="network to start from: 'default' or a checkpoint (default: default)",
+    )
+    p.add_argument(
+        '--frames', type=int, default=None, help='use the first N frames of each sequence (default all)'
+    )
+    p.add_argument('--stride', type=int, default=1, help='every k-th frame is a keyframe (default 1)')
+    p.add_argument('--neighbours', type=int, default=4, help='overlapping frames per keyframe (default 4)')
+    p.add_argument(
+        '--neighbour-mode',
+        choices=('offline', 'online'),
+        default='online',
+        help='online: past frames only, as the node (default); offline: a window around the keyframe',
+    )
+    p.add_argument('--width', type=int, default=320, help='working width (default 320)')
+    p.add_argument('--height', type=int, default=240, help='working height (default 240)')
+    p.add_argument('--device', default='cpu', help='torch device (default cpu)')
+    p.add_argument('--seed', type=int, default=0, help='seed (default 0)')
+    p.add_argument('--threads', type=int, default=0, help='torch threads (default: torch decides)')
+    p.add_argument(
+        '--set',
+        action='append',
+        default=[],
+        metavar='STAGE.KEY=VALUE',
+        help='override a parameter, e.g. --set adaptation.lr=1e-4 or --set multi_view.num_samples=64',
+    )
+    p.add_argument(
+        '--rgb-camera',
+        action='append',
+        default=[],
+        metavar='[SEQ_NAME=]YAML',
+        help='colour-camera calibration for a sequence whose camera.yaml is the depth camera (7-Scenes)',
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from ..evaluation.context import EvalOptions, KeyframeContext
+    from ..evaluation.harness import load_evaluation_sequence
+    from ..evaluation.methods.adapted import adaptation_run, observe_keyframe
+    from ..progress import progress
+    from .evaluate import parse_rgb_cameras
+    from .overrides import parse_overrides
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    options = EvalOptions(
+        frames=args.frames,
+        stride=args.stride,
+        seed=args.seed,
+        device=args.device,
+        single_view=args.model,
+        neighbour_mode=args.neighbour_mode,
+        num_neighbours=args.neighbours,
+        width=args.width,
+        height=args.height,
+        params=parse_overrides(args.set, 'STAGE'),
+        rgb_cameras=parse_rgb_cameras(args.rgb_camera),
+    )
+    run_state = None
+    for path in args.sequences:
+        seq = load_evaluation_sequence(path, options)
+        shared = {} if run_state is None else {'adaptation:run': run_state}
+        keyframes = range(0, len(seq), max(1, args.stride))
+        for i in progress(keyframes, desc=seq.name, unit='kf'):
+            ctx = KeyframeContext(seq, i, options, shared)
+            run_state = adaptation_run(ctx)
+            observe_keyframe(ctx, run_state)
+    if run_state is None:
+        raise ValueError('the sequences hold no keyframe')
+    c = run_state.adapter.counters
+    summary = (
+        f'{c.observed} keyframes: {c.updated} updates, {c.rolled_back} rolled back by the guard, '
+        f'{c.skipped} skipped {dict(c.reasons) or ""}, {c.steps} steps in {c.train_seconds:.1f} s'
+    )
+    if c.updated == 0:
+        raise ValueError(f'no update was kept, nothing to write ({summary})')
+    out = run_state.adapter.save(
+        args.out, {'sequences': [str(s) for s in args.sequences], 'command': ' '.join(sys.argv)}
+    )
+    print(summary)
+    print(f'wrote {out} (use it with --single-view {out} or the node parameter model:={out})')
+    return 0

@@ -1,0 +1,140 @@
+"""Evaluation methods of online adaptation, scored prequentially (registered on import).
+
+* ``single_view_adapted`` — the single-view network (``--single-view``, one of our
+  checkpoints) adapting online to the sequence;
+* ``fused_adapted`` — the paper's fusion on that adapted single-view depth.
+
+Prequential: keyframes are evaluated in order, and keyframe k is predicted by the network as
+it was *before* it trained on keyframe k (it has seen keyframes < k only); then it trains on
+k. The training signals are what the node graph has: the keyframe's multi-view result
+(shared with ``multi_view`` / ``fused``) and its posed multi-view neighbours; never the ground
+truth. Each sequence starts again from the original network. ``--set adaptation.<field>=``
+overrides ``AdaptConfig`` fields. ``depth-fusion adapt`` runs the same code to write a
+checkpoint.
+
+Per-frame extras: ``adapt_version`` (accepted updates so far), ``adapt_rolled_back``,
+``adapt_skipped``, ``adapt_seconds`` (training time of the keyframe).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ...adaptation.adapter import Adapter, UpdateReport
+from ...adaptation.config import AdaptConfig
+from ...adaptation.sample import AdaptSample, Neighbour, make_sample
+from ...singleview.predictor import DepthPredictor
+from ..context import KeyframeContext
+from ..registry import MethodOutput, register_method
+from .single_view import SingleViewPrediction
+
+STAGE = 'adaptation'
+
+
+@dataclass
+class AdaptationRun:
+    """The per-sequence state: the adapter and a predictor around its accepted weights."""
+
+    adapter: Adapter
+    predictor: DepthPredictor
+    version: int = 0
+
+
+def adaptation_config(ctx: KeyframeContext) -> AdaptConfig:
+    """``AdaptConfig`` with the run's seed and ``--set adaptation.*`` overrides."""
+    return AdaptConfig.from_dict({'seed': int(ctx.options.seed), **ctx.stage_params(STAGE)})
+
+
+def adaptation_run(ctx: KeyframeContext) -> AdaptationRun:
+    def start() -> AdaptationRun:
+        adapter = Adapter.from_spec(ctx.options.single_view, adaptation_config(ctx), ctx.options.device)
+        return AdaptationRun(adapter, adapter.predictor())
+
+    return ctx.shared_cached('adaptation:run', start)
+
+
+def keyframe_sample(ctx: KeyframeContext, config: AdaptConfig) -> AdaptSample:
+    """The keyframe's training signals: its selected multi-view points and posed neighbours."""
+    from .multi_view import multi_view_result, neighbour_indices
+
+    mv = multi_view_result(ctx)
+    frames = ctx.sequence.frames
+    neighbours = [Neighbour(frames[j].rgb, frames[j].pose) for j in neighbour_indices(ctx)]
+    return make_sample(
+        ctx.index,
+        ctx.frame.rgb,
+        ctx.camera,
+        mv.depth,
+        mv.score,
+        select_fraction=config.select_fraction,
+        holdout_fraction=config.holdout_fraction,
+        seed=config.seed,
+        pose=ctx.frame.pose,
+        neighbours=neighbours,
+    )
+
+
+def observe_keyframe(ctx: KeyframeContext, run: AdaptationRun) -> UpdateReport:
+    """Train on this keyframe; refresh the predictor when the update was kept."""
+    report = run.adapter.observe(keyframe_sample(ctx, run.adapter.config))
+    if run.adapter.version != run.version:
+        run.predictor = run.adapter.predictor()
+        run.version = run.adapter.version
+    return report
+
+
+def adapted_prediction(ctx: KeyframeContext) -> tuple[SingleViewPrediction, UpdateReport]:
+    """Prediction of the weights from before this keyframe, then the update on it (once)."""
+
+    def compute() -> tuple[SingleViewPrediction, UpdateReport]:
+        run = adaptation_run(ctx)
+        depth = run.predictor.predict(ctx.frame.rgb)
+        size = (ctx.camera.width, ctx.camera.height)
+        if depth.shape[::-1] != size:
+            depth = cv2.resize(depth, size, interpolation=cv2.INTER_LINEAR)
+        report = observe_keyframe(ctx, run)
+        return SingleViewPrediction(depth.astype(np.float32), run.predictor.output_kind), report
+
+    return ctx.cached('adaptation:prediction', compute)
+
+
+def _extras(report: UpdateReport) -> dict[str, float]:
+    return {
+        'adapt_version': float(report.version),
+        'adapt_rolled_back': float(report.status == 'rolled_back'),
+        'adapt_skipped': float(report.status == 'skipped'),
+        'adapt_seconds': float(report.seconds),
+    }
+
+
+@register_method(
+    'single_view_adapted',
+    'single-view network adapting online (multi-view points + photometric consistency with posed '
+    'neighbours, replay, guard); prequential: keyframe k predicted before training on it',
+)
+def single_view_adapted(ctx: KeyframeContext) -> MethodOutput:
+    prediction, report = adapted_prediction(ctx)
+    return MethodOutput(prediction.depth, _extras(report))
+
+
+@register_method(
+    'fused_adapted',
+    'fusion (automatic selection) on the online-adapted single-view depth, prequential',
+)
+def fused_adapted(ctx: KeyframeContext) -> MethodOutput:
+    from ...fusion.pipeline import fuse_keyframe
+    from .fusion import _output, _stage1, fusion_settings
+    from .multi_view import multi_view_result
+
+    config, extra = fusion_settings(ctx)
+    prediction, report = adapted_prediction(ctx)
+    mv = multi_view_result(ctx)
+    stage1 = _stage1(ctx, mv, extra['stage1_fraction'])
+    out = _output(
+        fuse_keyframe(prediction.depth, mv.depth, stage1, config, output_kind=prediction.output_kind)
+    )
+    out.extras.update(_extras(report))
+    return out

@@ -1,0 +1,250 @@
+"""The single-view node's online adaptation: parameters, training-signal topics, save service.
+
+Thin glue between ROS and ``depth_fusion_ros.adaptation``: it declares the ``adapt`` and
+``adaptation.*`` parameters, subscribes to the multi-view depth and score and to the keyframe
+pose, assembles each keyframe's sample (``KeyframeAssembler``), hands it to the training
+thread (``OnlineAdaptation``) and serves ``~/save_model``. Without a keyframe pose topic it
+adapts with the sparse multi-view term only, and says so once.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import Image
+
+from ..adaptation.adapter import Adapter, UpdateReport
+from ..adaptation.config import AdaptConfig
+from ..adaptation.keyframes import KeyframeAssembler
+from ..adaptation.online import OnlineAdaptation, WeightSlot
+from ..adaptation.sample import AdaptSample
+from .image_input import InputError, WorkingImage, depth_from_message, header_stamp_ns, pose_from_message
+from .params import ParamSpec, build_dataclass, dataclass_specs
+
+TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
+TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
+#: Published by multi_view_node for every keyframe (PoseStamped, world frame, keyframe stamp).
+TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
+SERVICE_SAVE = '~/save_model'
+ADAPT_CHOICES = ('auto', 'true', 'false')
+DEFAULT_CHECKPOINT = '~/.ros/depth_fusion_ros/single_view_adapted.pt'
+
+ADAPT_LIMITS: dict[str, Any] = {
+    'lr': (1e-9, 1.0),
+    'scale_lr': (0.0, 1.0),
+    'steps_per_keyframe': (1, 1000),
+    'buffer_size': (1, 10000),
+    'replay_per_step': (0, 64),
+    'sparse_weight': (0.0, None),
+    'photometric_weight': (0.0, None),
+    'smoothness_weight': (0.0, None),
+    'ssim_alpha': (0.0, 1.0),
+    'select_fraction': (1e-6, 1.0),
+    'holdout_fraction': (0.0, 0.9),
+    'min_points': (0, None),
+    'guard_keyframes': (0, 1000),
+    'guard_tolerance': (0.0, None),
+    'grad_clip': (0.0, None),
+    'seed': (0, None),
+}
+
+ADAPTATION_PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec(
+        'adapt',
+        'auto',
+        "online self-supervised adaptation of the network to the scene: 'auto' = on for the project's "
+        'own networks (the shipped model, checkpoints of depth-fusion train/adapt), off for TorchScript '
+        "models; 'true' (an error for a model that cannot adapt) or 'false' (the network as loaded)",
+        choices=ADAPT_CHOICES,
+    ),
+    ParamSpec(
+        'adaptation.checkpoint',
+        DEFAULT_CHECKPOINT,
+        'where ~/save_model and shutdown write the adapted weights, a checkpoint that model: loads; '
+        "'' = nothing is written at shutdown",
+    ),
+    ParamSpec(
+        'adaptation.queue_size',
+        2,
+        'keyframes waiting for the training thread; when it falls behind the oldest is dropped (counted)',
+        1,
+        100,
+    ),
+    ParamSpec(
+        'adaptation.neighbours',
+        2,
+        'previous posed keyframes warped into each keyframe for the photometric term (0: sparse term only)',
+        0,
+        8,
+    ),
+    ParamSpec(
+        'adaptation.min_baseline',
+        0.02,
+        'a previous keyframe is a photometric neighbour only if its camera is at least this far (m)',
+        0.0,
+    ),
+    *dataclass_specs(AdaptConfig, 'adaptation', {}, ADAPT_LIMITS),
+)
+
+
+def is_own_network(spec: str) -> bool:
+    """True for networks the adapter can train: the shipped model and our checkpoints."""
+    from ..singleview.checkpoint import is_exported_model
+
+    if spec == 'default':
+        return True
+    path = Path(spec).expanduser()
+    return path.is_file() and not is_exported_model(path)
+
+
+def adaptation_wanted(params: dict[str, Any]) -> bool:
+    """Resolve ``adapt`` (auto / true / false) for ``model``; ``true`` on a model that cannot
+    adapt is a start-up error naming it."""
+    mode, model = str(params['adapt']), str(params['model'])
+    if mode == 'false':
+        return False
+    own = is_own_network(model)
+    if mode == 'true' and not own:
+        raise ValueError(
+            f"single_view_node: adapt is 'true' but model {model!r} cannot be adapted (only the shipped "
+            'model and checkpoints of depth-fusion train/adapt can; exported ONNX / .pt2 / TorchScript '
+            "cannot): set adapt: 'false'"
+        )
+    return own
+
+
+class NodeAdaptation:
+    """Everything the node does for adaptation, given the node and its loaded predictor."""
+
+    def __init__(self, node: Any, predictor: Any) -> None:
+        p = node.params
+        self.node = node
+        self.config = build_dataclass(AdaptConfig, p, 'adaptation')
+        self.config.validate()
+        self.checkpoint = str(p['adaptation.checkpoint'])
+        self.adapter = Adapter.from_spec(str(p['model']), self.config, str(p['device']))
+        self.slot = WeightSlot(predictor)
+        self.online = OnlineAdaptation(
+            self.adapter, self.slot, int(p['adaptation.queue_size']), on_report=self._on_report
+        )
+        self.assembler = KeyframeAssembler(
+            select_fraction=self.config.select_fraction,
+            holdout_fraction=self.config.holdout_fraction,
+            seed=self.config.seed,
+            neighbours=int(p['adaptation.neighbours']),
+            min_baseline=float(p['adaptation.min_baseline']),
+        )
+        self._lock = threading.Lock()
+        self._uncalibrated: set[int] = set()
+        self._said_sparse_only = False
+        q = node.input_qos
+        node.subscribe(Image, TOPIC_MV_DEPTH, lambda m: self._on_depth(m, 'depth'), q)
+        node.subscribe(Image, TOPIC_MV_SCORE, lambda m: self._on_depth(m, 'score'), q)
+        node.subscribe(PoseStamped, TOPIC_KEYFRAME_POSE, self._on_pose, q)
+        from std_srvs.srv import Trigger
+
+        self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
+        node.get_logger().info(
+            f'adapting {self.adapter.name} online: lr {self.config.lr:g}, '
+            f'{self.config.steps_per_keyframe} steps/keyframe, replay {self.config.replay_per_step} of '
+            f'{self.config.buffer_size}; signals {node.resolve_topic_name(TOPIC_MV_DEPTH)}, '
+            f'{node.resolve_topic_name(TOPIC_KEYFRAME_POSE)}; checkpoint {self.checkpoint or "(none)"}'
+        )
+
+    # --- parts of a keyframe --------------------------------------------------------------------
+
+    def on_keyframe_image(self, image: WorkingImage, calibrated: bool) -> None:
+        if not calibrated:
+            self._uncalibrated.add(image.stamp_ns)
+        self._add(image.stamp_ns, 'rgb', image.rgb, image.camera)
+
+    def _on_depth(self, msg: Image, part: str) -> None:
+        self.node.stats.received(f'mv_{part}')
+        try:
+            value = depth_from_message(msg, f'multi-view {part}')
+        except InputError as exc:
+            self.node.stats.dropped(exc.reason, str(exc))
+            return
+        self._add(header_stamp_ns(msg), part, value)
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        self.node.stats.received('keyframe_pose')
+        try:
+            pose = pose_from_message(msg)
+        except InputError as exc:
+            self.node.stats.dropped(exc.reason, str(exc))
+            return
+        self._add(header_stamp_ns(msg), 'pose', pose)
+
+    def _add(self, stamp_ns: int, part: str, value: Any, camera: Any = None) -> None:
+        with self._lock:
+            samples = self.assembler.add(stamp_ns, part, value, camera)
+        for sample in samples:
+            self._submit(sample)
+
+    def _submit(self, sample: AdaptSample) -> None:
+        if sample.key in self._uncalibrated:
+            self._uncalibrated.discard(sample.key)
+            sample.pose, sample.neighbours = None, []  # no intrinsics: no photometric term
+        if not sample.has_photometric and not self._said_sparse_only:
+            self._said_sparse_only = True
+            self.node.get_logger().info(
+                f'adaptation: keyframe without pose, camera_info or posed neighbour on '
+                f'{self.node.resolve_topic_name(TOPIC_KEYFRAME_POSE)}: adapting with the sparse '
+                'multi-view term only while this lasts (said once)'
+            )
+        if not self.online.submit(sample):
+            self.node.stats.dropped(
+                'adapt_queue_full', 'training fell behind: oldest keyframe not trained on'
+            )
+
+    # --- results --------------------------------------------------------------------------------
+
+    def _on_report(self, report: UpdateReport) -> None:
+        stats = self.node.stats
+        if report.status == 'updated':
+            stats.published('adapted_weights')
+        elif report.status == 'rolled_back':
+            g = report.guard
+            stats.noted(
+                'adapt_rollback',
+                f'keyframe {report.key} update rolled back: held-out error {g.before:.4f} -> {g.after:.4f}',
+            )
+        else:
+            stats.noted('adapt_skipped', f'keyframe {report.key} not trained on: {report.reason}')
+
+    def save(self) -> Path:
+        if not self.checkpoint:
+            raise ValueError("adaptation.checkpoint is '' : no path to save the adapted model to")
+        return self.online.save(self.checkpoint)
+
+    def _on_save(self, request: Any, response: Any) -> Any:
+        try:
+            path = self.save()
+        except (OSError, ValueError) as exc:
+            response.success, response.message = False, f'not saved: {exc}'
+        else:
+            response.success = True
+            response.message = f'saved adapted weights (version {self.slot.version}) to {path}'
+            self.node.get_logger().info(response.message)
+        return response
+
+    def shutdown(self) -> None:
+        """Stop the training thread, then write the checkpoint (when a path is set)."""
+        if not self.online.stop(timeout=60.0):
+            self.node.get_logger().warning('adaptation thread did not stop within 60 s')
+        c = self.adapter.counters
+        summary = (
+            f'adaptation: {c.observed} keyframes, {c.updated} updates, {c.rolled_back} rolled back, '
+            f'{c.skipped} skipped, {self.online.dropped} dropped, {self.online.failed} failed'
+        )
+        self.node.get_logger().info(summary)
+        if self.checkpoint:
+            try:
+                path = self.save()
+                self.node.get_logger().info(f'adapted weights (version {self.slot.version}) saved to {path}')
+            except (OSError, ValueError) as exc:
+                self.node.get_logger().error(f'could not save the adapted weights: {exc}')

@@ -1,0 +1,215 @@
+"""Online self-supervised adaptation (core + evaluation): prequential scoring, ground-truth
+invariance, guarded rollback of a poisoned update, the replay buffer and the loss terms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from depth_fusion_ros.adaptation.adapter import Adapter
+from depth_fusion_ros.adaptation.config import AdaptConfig
+from depth_fusion_ros.adaptation.keyframes import KeyframeAssembler
+from depth_fusion_ros.adaptation.losses import photometric
+from depth_fusion_ros.adaptation.replay import ReplayBuffer
+from depth_fusion_ros.adaptation.sample import Neighbour, make_sample
+from depth_fusion_ros.data.sequence import Frame, Sequence
+from depth_fusion_ros.evaluation.context import EvalOptions, KeyframeContext
+from depth_fusion_ros.evaluation.methods.adapted import (
+    adaptation_run,
+    keyframe_sample,
+    observe_keyframe,
+    single_view_adapted,
+)
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+#: Small and quick: two steps per keyframe, one replayed keyframe.
+FAST = {'steps_per_keyframe': 2, 'replay_per_step': 1, 'min_points': 5}
+
+
+@pytest.fixture(scope='module')
+def tiny_model(tmp_path_factory) -> str:
+    """A compact network at 64x48 input (a checkpoint like depth-fusion train writes): the same
+    code paths as the shipped one, ~25x cheaper per training step."""
+    from depth_fusion_ros.singleview.architectures import build_model
+    from depth_fusion_ros.singleview.checkpoint import save_checkpoint
+    from depth_fusion_ros.singleview.metadata import ModelMetadata
+
+    torch.manual_seed(0)
+    net = build_model('compact', {'input_width': 64, 'input_height': 48})
+    path = tmp_path_factory.mktemp('tiny') / 'tiny_compact.pt'
+    save_checkpoint(path, net, ModelMetadata(input_width=64, input_height=48))
+    return str(path)
+
+
+@pytest.fixture(scope='module')
+def small_sequence():
+    """A 160x120 synthetic room, 6 frames: multi-view at this size takes well under a second."""
+    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
+
+    return render_sequence(SynthConfig(width=160, height=120, frames=6, seed=3, parallax='high'))
+
+
+def _options(model: str, **params) -> EvalOptions:
+    return EvalOptions(frames=None, single_view=model, params={'adaptation': {**FAST, **params}})
+
+
+def _gt_sample(seq: Sequence, i: int, scale: float = 1.0, photometric_views: bool = False):
+    """A sample whose 'multi-view' points are the ground truth (times ``scale``), every 7th pixel."""
+    gt = seq.gt_depth_working(i)
+    depth = np.full(gt.shape, np.nan, np.float32)
+    depth[::7, ::7] = gt[::7, ::7] * scale
+    score = np.where(np.isfinite(depth), 1.0, np.nan).astype(np.float32)
+    f = seq.frames[i]
+    nb = [Neighbour(seq.frames[j].rgb, seq.frames[j].pose) for j in (i - 1, i + 1) if 0 <= j < len(seq)]
+    return make_sample(
+        i,
+        f.rgb,
+        seq.camera,
+        depth,
+        score,
+        select_fraction=1.0,
+        pose=f.pose if photometric_views else None,
+        neighbours=nb if photometric_views else None,
+    )
+
+
+def test_prediction_of_keyframe_k_comes_from_weights_trained_on_keyframes_before_k_only(
+    small_sequence, tiny_model
+):
+    seq, options = small_sequence, _options(tiny_model)
+    shared: dict = {}
+    scored = [single_view_adapted(KeyframeContext(seq, i, options, shared)).depth for i in range(4)]
+    run = adaptation_run(KeyframeContext(seq, 0, options, shared))
+    assert run.adapter.counters.updated >= 2  # it did learn
+
+    replay_shared: dict = {}
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict({**FAST, 'seed': 0}))
+    for k in range(4):
+        expected = adapter.predictor().predict(seq.frames[k].rgb)
+        np.testing.assert_array_equal(scored[k], expected)  # bit-identical
+        adapter.observe(keyframe_sample(KeyframeContext(seq, k, options, replay_shared), adapter.config))
+    # Keyframe 0 is predicted by the untouched network, later ones by adapted weights.
+    first = Adapter.from_spec(tiny_model).predictor().predict(seq.frames[3].rgb)
+    assert not np.array_equal(scored[3], first)
+
+
+def test_adapted_weights_do_not_depend_on_ground_truth(small_sequence, tiny_model):
+    rng = np.random.default_rng(0)
+    noisy = Sequence(
+        small_sequence.name,
+        small_sequence.camera,
+        [
+            Frame(f.index, f.stamp, f.rgb, f.pose, rng.uniform(0.1, 9.0, f.depth.shape).astype(np.float32))
+            for f in small_sequence.frames
+        ],
+        small_sequence.gt_camera,
+    )
+    states = []
+    for seq in (small_sequence, noisy):
+        options, shared = _options(tiny_model), {}
+        for i in range(3):
+            ctx = KeyframeContext(seq, i, options, shared)
+            observe_keyframe(ctx, adaptation_run(ctx))
+        states.append(adaptation_run(KeyframeContext(seq, 0, options, shared)).adapter.net.state_dict())
+    assert states[0].keys() == states[1].keys()
+    for key in states[0]:
+        assert torch.equal(states[0][key], states[1][key]), key
+    untouched = Adapter.from_spec(tiny_model).net.state_dict()
+    assert any(not torch.equal(states[0][k], untouched[k]) for k in states[0])
+
+
+def test_guard_rolls_back_a_poisoned_update_and_restores_weights_and_optimiser(small_sequence, tiny_model):
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict({**FAST, 'steps_per_keyframe': 4}))
+    for i in range(4):
+        assert adapter.observe(_gt_sample(small_sequence, i)).status == 'updated'
+    weights = {k: v.clone() for k, v in adapter.net.state_dict().items()}
+    optimiser_steps = adapter.optimizer.state_dict()['state'][0]['step'].clone()
+    # Every multi-view depth of this keyframe (held-out points included) is 4x wrong, in the
+    # direction away from the truth for the network as it is now (which has not converged).
+    current = adapter.predictor().predict(small_sequence.frames[4].rgb)
+    ratio = np.nanmedian(current / small_sequence.gt_depth_working(4))
+    report = adapter.observe(_gt_sample(small_sequence, 4, scale=0.25 if ratio < 1 else 4.0))
+    assert report.status == 'rolled_back'
+    assert report.guard.after > report.guard.before
+    assert adapter.counters.rolled_back == 1 and adapter.version == 4
+    for key, value in adapter.net.state_dict().items():
+        assert torch.equal(value, weights[key]), key
+    assert torch.equal(adapter.optimizer.state_dict()['state'][0]['step'], optimiser_steps)
+    assert all(s.key != 4 for s in adapter.buffer)  # a rejected keyframe is not replayed
+    # A sound keyframe afterwards is accepted again.
+    assert adapter.observe(_gt_sample(small_sequence, 5)).status == 'updated'
+
+
+def test_too_few_points_is_skipped_and_counted(small_sequence, tiny_model):
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict({**FAST, 'min_points': 10_000}))
+    report = adapter.observe(_gt_sample(small_sequence, 0))
+    assert report.status == 'skipped' and 'too_few_points' in report.reason
+    assert adapter.counters.skipped == 1 and adapter.version == 0
+
+
+def test_photometric_term_is_lowest_at_the_true_scale(small_sequence, tiny_model):
+    """Known poses make the photometric consistency metric: scaling the depth raises it."""
+    seq = small_sequence
+    sample = _gt_sample(seq, 2, photometric_views=True)
+    adapter = Adapter.from_spec(tiny_model)
+    prepared = adapter.prepare(sample)
+    photo = prepared.photometric(60, 80)
+    gt = torch.from_numpy(np.nan_to_num(seq.gt_depth_working(2), nan=5.0))[None, None]
+    gt = torch.nn.functional.interpolate(gt, size=(60, 80), mode='area')
+    errors = {
+        s: float(photometric(torch.log(gt * s), photo.key, photo.neighbours, photo.k, photo.t_ok))
+        for s in (0.5, 0.8, 1.0, 1.25, 2.0)
+    }
+    assert min(errors, key=errors.get) == 1.0, errors
+
+
+def test_replay_buffer_is_bounded_and_draws_distinct_items():
+    buf: ReplayBuffer[int] = ReplayBuffer(3)
+    for i in range(5):
+        buf.add(i)
+    assert list(buf) == [2, 3, 4] and buf.recent(2) == [4, 3]
+    draw = buf.draw(5, np.random.default_rng(0))
+    assert sorted(draw) == [2, 3, 4]
+    with pytest.raises(ValueError, match='capacity'):
+        ReplayBuffer(0)
+
+
+def test_assembler_waits_for_the_pose_once_poses_are_known(small_sequence):
+    seq = small_sequence
+    asm = KeyframeAssembler(select_fraction=1.0, neighbours=1, min_baseline=0.0)
+    depth = seq.gt_depth_working(0)
+    score = np.ones_like(depth)
+    # No pose topic: complete with image + depth + score (sparse term only).
+    out = (
+        asm.add(10, 'rgb', seq.frames[0].rgb, seq.camera)
+        + asm.add(10, 'depth', depth)
+        + asm.add(10, 'score', score)
+    )
+    assert len(out) == 1 and out[0].pose is None
+    # Once a pose has been seen, a keyframe waits for its own; the previous posed one is its neighbour.
+    assert asm.add(20, 'pose', seq.frames[1].pose) == []
+    out = (
+        asm.add(20, 'rgb', seq.frames[1].rgb, seq.camera)
+        + asm.add(20, 'depth', depth)
+        + asm.add(20, 'score', score)
+    )
+    assert len(out) == 1 and out[0].pose is not None and out[0].neighbours == []
+    out = (
+        asm.add(30, 'rgb', seq.frames[2].rgb, seq.camera)
+        + asm.add(30, 'depth', depth)
+        + asm.add(30, 'score', score)
+    )
+    assert out == []
+    out = asm.add(30, 'pose', seq.frames[2].pose)
+    assert len(out) == 1 and out[0].has_photometric and len(out[0].neighbours) == 1
+
+
+def test_bad_settings_are_clear_errors():
+    with pytest.raises(ValueError, match=r'adaptation\.lr'):
+        AdaptConfig.from_dict({'lr': 0.0})
+    with pytest.raises(ValueError, match='unknown adaptation parameter'):
+        AdaptConfig.from_dict({'learning_rate': 1e-3})
+    with pytest.raises(ValueError, match='simulated'):
+        Adapter.from_spec('simulated')

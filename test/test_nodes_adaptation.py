@@ -1,0 +1,167 @@
+"""single_view_node adapting online over real DDS: inference never waits for training, weights
+swap in, ~/save_model writes a checkpoint that loads, adapt false is bit-identical."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import rclpy
+import torch
+from conftest import save_torchscript_depth_model
+from geometry_msgs.msg import PoseStamped
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
+
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.nodes.single_view_node import SingleViewNode
+from depth_fusion_ros.nodes.testing import RosHarness
+from depth_fusion_ros.singleview.predictor import load_predictor
+
+K = m.RCLPY
+FRAME = 'camera_rgb_optical_frame'
+
+
+@pytest.fixture(scope='module')
+def tiny_model(tmp_path_factory) -> str:
+    """A compact network checkpoint at 64x48 input: adaptable (auto = on), cheap to train."""
+    from depth_fusion_ros.singleview.architectures import build_model
+    from depth_fusion_ros.singleview.checkpoint import save_checkpoint
+    from depth_fusion_ros.singleview.metadata import ModelMetadata
+
+    torch.manual_seed(0)
+    net = build_model('compact', {'input_width': 64, 'input_height': 48})
+    path = tmp_path_factory.mktemp('tiny') / 'tiny_compact.pt'
+    save_checkpoint(path, net, ModelMetadata(input_width=64, input_height=48))
+    return str(path)
+
+
+@pytest.fixture(scope='module')
+def room():
+    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
+
+    return render_sequence(SynthConfig(width=160, height=120, frames=6, seed=3, parallax='high'))
+
+
+def _params(model: str, **extra) -> list[Parameter]:
+    values = {'model': model, 'width': 160, 'height': 120, 'queue_size': 8, **extra}
+    return [Parameter(k, value=v) for k, v in values.items()]
+
+
+def _publish_keyframe(pubs: dict, room, i: int, stamp: int, signals: bool = True) -> None:
+    header = m.header_msg(stamp, FRAME, kind=K)
+    f = room.frames[i]
+    if signals:
+        pubs['pose'].publish(m.pose_stamped_msg(f.pose, m.header_msg(stamp, 'world', kind=K), kind=K))
+    pubs['image'].publish(m.image_msg(f.rgb, 'rgb8', header, kind=K))
+    if signals:
+        gt = room.gt_depth_working(i)
+        depth = np.full(gt.shape, np.nan, np.float32)
+        depth[::5, ::5] = gt[::5, ::5]  # stands in for the multi-view points
+        pubs['depth'].publish(m.depth_image_msg(depth, header, kind=K))
+        pubs['score'].publish(
+            m.depth_image_msg(np.where(np.isfinite(depth), 1.0, np.nan).astype(np.float32), header, kind=K)
+        )
+
+
+def test_inference_never_waits_for_training_and_adapted_weights_are_saved(tiny_model, room, tmp_path):
+    checkpoint = tmp_path / 'adapted.pt'
+    original = load_predictor(tiny_model)
+    with RosHarness() as ros:
+        node = ros.add(
+            SingleViewNode(
+                context=ros.context,
+                parameter_overrides=_params(
+                    tiny_model,
+                    **{
+                        'adaptation.checkpoint': str(checkpoint),
+                        'adaptation.steps_per_keyframe': 3,
+                        'adaptation.min_points': 5,
+                        'adaptation.queue_size': 8,
+                        'adaptation.min_baseline': 0.0,
+                    },
+                ),
+            )
+        )
+        assert node.adaptation is not None  # auto: on for one of our checkpoints
+        # Hold the training thread inside its first update, as a very slow update would.
+        gate, entered = threading.Event(), threading.Event()
+        observe = node.adaptation.adapter.observe
+
+        def slow_observe(sample, abort=None):
+            entered.set()
+            gate.wait(60)
+            return observe(sample, abort)
+
+        node.adaptation.adapter.observe = slow_observe
+        pubs = {
+            'image': ros.publisher(Image, '/depth_fusion/keyframe/image'),
+            'info': ros.publisher(CameraInfo, '/depth_fusion/keyframe/camera_info'),
+            'pose': ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose'),
+            'depth': ros.publisher(Image, '/depth_fusion/multi_view/depth'),
+            'score': ros.publisher(Image, '/depth_fusion/multi_view/score'),
+        }
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers(list(pubs.values()))
+        pubs['info'].publish(m.camera_info_msg(room.camera, m.header_msg(1, FRAME, kind=K), kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('camera_info') == 1, 10.0)
+        stamps = [1_000_000_000 + i * 100_000_000 for i in range(6)]
+        for i in range(4):
+            _publish_keyframe(pubs, room, i, stamps[i])
+        assert ros.wait_for(lambda: len(depths) >= 4, timeout=30.0), node.stats.snapshot().summary()
+        assert entered.is_set() and node.adaptation.slot.version == 0  # training is stuck, inference is not
+        for msg, i in zip(depths, range(4), strict=True):
+            np.testing.assert_array_equal(m.image_to_numpy(msg), original.predict(room.frames[i].rgb))
+
+        gate.set()
+        assert ros.wait_for(lambda: node.adaptation.slot.version >= 2, timeout=60.0), (
+            node.stats.snapshot().summary()
+        )
+        _publish_keyframe(pubs, room, 4, stamps[4], signals=False)
+        assert ros.wait_for(lambda: len(depths) >= 5, timeout=30.0)
+        adapted = m.image_to_numpy(depths[4])
+        assert not np.array_equal(adapted, original.predict(room.frames[4].rgb))  # new weights swapped in
+
+        client_node = rclpy.create_node('save_client', context=ros.context)
+        ros.add(client_node)
+        client = client_node.create_client(Trigger, '/single_view_node/save_model')
+        assert client.wait_for_service(timeout_sec=10.0)
+        future = client.call_async(Trigger.Request())
+        assert ros.wait_for(future.done, timeout=30.0)
+        assert future.result().success, future.result().message
+        current = node.current_predictor().predict(room.frames[5].rgb)
+        snap = node.stats.snapshot()
+
+    assert snap.published['adapted_weights'] >= 2 and snap.received['keyframe_pose'] == 4
+    np.testing.assert_array_equal(load_predictor(checkpoint).predict(room.frames[5].rgb), current)
+
+
+def test_adapt_false_is_the_network_as_loaded_bit_for_bit(tiny_model, room):
+    reference = load_predictor(tiny_model)
+    with RosHarness() as ros:
+        node = ros.add(
+            SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model, adapt='false'))
+        )
+        assert node.adaptation is None
+        image = ros.publisher(Image, '/depth_fusion/keyframe/image')
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers([image])
+        for i in range(2):
+            image.publish(
+                m.image_msg(room.frames[i].rgb, 'rgb8', m.header_msg(10 + i, FRAME, kind=K), kind=K)
+            )
+        assert ros.wait_for(lambda: len(depths) >= 2, timeout=20.0)
+    for i, msg in enumerate(depths):
+        np.testing.assert_array_equal(m.image_to_numpy(msg), reference.predict(room.frames[i].rgb))
+
+
+def test_adapt_true_on_a_torchscript_model_fails_at_start(tmp_path):
+    class Flat(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return 1.0 + 0.0 * x[:, :1]
+
+    path = save_torchscript_depth_model(Flat(), tmp_path, 'flat')
+    with RosHarness() as ros, pytest.raises(ValueError, match='cannot be adapted'):
+        SingleViewNode(context=ros.context, parameter_overrides=_params(str(path), adapt='true'))
