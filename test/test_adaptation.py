@@ -130,7 +130,11 @@ def test_guard_rolls_back_a_poisoned_update_and_restores_weights_and_optimiser(s
     # direction away from the truth for the network as it is now (which has not converged).
     current = adapter.predictor().predict(small_sequence.frames[4].rgb)
     ratio = np.nanmedian(current / small_sequence.gt_depth_working(4))
+    # A long update without replay (the damage 4 default steps with replay do is within the
+    # guard's tolerance: the guard judges harm, not intent).
+    adapter.config.steps_per_keyframe, adapter.config.replay_per_step = 30, 0
     report = adapter.observe(_gt_sample(small_sequence, 4, scale=0.25 if ratio < 1 else 4.0))
+    adapter.config.steps_per_keyframe, adapter.config.replay_per_step = 4, 1
     assert report.status == 'rolled_back'
     assert report.guard.after > report.guard.before
     assert adapter.counters.rolled_back == 1 and adapter.version == 4

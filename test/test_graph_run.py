@@ -225,6 +225,9 @@ def test_graph_fuses_every_keyframe_like_offline(
                 log_dir=tmp_path / 'logs' if processes else None,
                 flush_timeout=240.0,
                 idle_timeout=120.0,
+                # The independent listener is on the suite's domain: join it on purpose (a run
+                # otherwise takes a private one, test_run_isolation.py).
+                domain_id=int(os.environ['ROS_DOMAIN_ID']),
             )
         )
         time.sleep(0.2)

@@ -221,6 +221,7 @@ def test_a_namespace_moves_every_topic_of_a_node():
     assert published == [
         '/robot1/depth_fusion/fused/camera_info',
         '/robot1/depth_fusion/fused/confidence',
+        '/robot1/depth_fusion/fused/decision',
         '/robot1/depth_fusion/fused/depth',
         '/robot1/depth_fusion/fused/points',
         '/robot1/depth_fusion/keyframe/events',

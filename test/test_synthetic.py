@@ -260,8 +260,10 @@ def test_cli_synth(tmp_path, capsys):
     assert '--seed 3' in (out / 'SOURCE.md').read_text()
     assert main(['synth', str(out), '--frames', '2', '--quiet']) == 1
     assert 'already exists' in capsys.readouterr().err
-    assert main(['synth', str(tmp_path / 'x'), '--parallax', 'low', '--frames', '0', '--quiet']) == 1
-    assert 'frames' in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # argparse: usage + one-line error, exit 2
+        main(['synth', str(tmp_path / 'x'), '--parallax', 'low', '--frames', '0', '--quiet'])
+    assert exc.value.code == 2
+    assert '--frames' in capsys.readouterr().err
 
 
 def test_fixtures_have_their_parallax(

@@ -97,11 +97,24 @@ def evaluation_stages() -> dict[str, set[str]]:
     with ``ctx.stage_params``). A new stage read by a method must be added here."""
     import dataclasses
 
+    from ..adaptation.config import AdaptConfig
+    from ..evaluation.methods.adapted import STAGE as ADAPT_STAGE
+    from ..evaluation.methods.fusion import GUARD_STAGE
     from ..evaluation.methods.fusion import STAGE as FUSION_STAGE
-    from ..evaluation.methods.multi_view import MULTI_VIEW_STAGE, NEIGHBOURS_STAGE, TV_STAGE
+    from ..evaluation.methods.mapping import STAGE as MAP_STAGE
+    from ..evaluation.methods.multi_view import (
+        FILTER_STAGE,
+        METHOD_PARAM,
+        MULTI_VIEW_STAGE,
+        NEIGHBOURS_STAGE,
+        TV_STAGE,
+    )
     from ..evaluation.methods.recorded import TOPICS as RECORDED_TOPICS
     from ..evaluation.methods.single_view import SIMULATED_STAGE
+    from ..fusion.guard import GuardConfig
     from ..fusion.pipeline import FusionConfig
+    from ..mapping.config import MapConfig
+    from ..multiview.filter_config import FilterConfig
     from ..multiview.neighbours import NeighbourConfig
     from ..multiview.semidense import MultiViewConfig
     from ..multiview.tv import TVConfig
@@ -111,7 +124,11 @@ def evaluation_stages() -> dict[str, set[str]]:
         return {f.name for f in dataclasses.fields(cls)}
 
     return {
-        MULTI_VIEW_STAGE: fields(MultiViewConfig),
+        MULTI_VIEW_STAGE: fields(MultiViewConfig) | {METHOD_PARAM},
+        FILTER_STAGE: fields(FilterConfig),
+        GUARD_STAGE: fields(GuardConfig),
+        ADAPT_STAGE: fields(AdaptConfig),
+        MAP_STAGE: fields(MapConfig),
         NEIGHBOURS_STAGE: fields(NeighbourConfig),
         TV_STAGE: fields(TVConfig),
         FUSION_STAGE: fields(FusionConfig) | {'stage1_fraction', 'oracle_threshold'},

@@ -249,7 +249,7 @@ def fuse_keyframe(
     depth[~np.isfinite(base)] = np.nan
     if verdict is not None:
         reach = (guard_config or GuardConfig()).reach_px
-        depth = limit_reach(depth, base, interp.support_distance, 1.0, reach)
+        depth = limit_reach(depth, base, interp.support_distance, verdict.scale, reach)
     depth, _ = sanitize_depth(depth)
     confidence = confidence_from_support(interp.support_distance, config.sigma1)
     confidence[~np.isfinite(depth)] = 0.0
