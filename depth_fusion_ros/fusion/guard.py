@@ -82,7 +82,7 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
     'min_scale_points': 'fewer trusted points than this: no regional scale correction',
     'scale_sigma_px': 'scale_only: proximity scale (px) of the smooth scale correction',
-    'reach_px': 'local corrections fade out with the distance (px) to their points: weight exp(-D / reach)',
+    'reach_px': 'corrections fade with the distance D (px) to their points: weight exp(-D / reach); 0: off',
     'max_scale_error': 'largest standard error (log) of the global multi-view scale that is still applied',
 }
 
@@ -101,11 +101,11 @@ class GuardConfig:
     max_relative_std: float = 0.15
     min_agreement: float = 0.5
     max_mv_noise: float = 0.06
-    full_fraction: float = 0.8
+    full_fraction: float = 0.5
     min_trusted_points: int = 40
     min_scale_points: int = 20
     scale_sigma_px: float = 60.0
-    reach_px: float = 30.0
+    reach_px: float = 0.0
     max_scale_error: float = 0.03
 
     def __post_init__(self) -> None:
@@ -118,7 +118,6 @@ class GuardConfig:
             'max_relative_std',
             'max_mv_noise',
             'scale_sigma_px',
-            'reach_px',
         )
         for name in positive:
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
@@ -129,6 +128,8 @@ class GuardConfig:
         for name in ('min_neighbours', 'min_trusted_points', 'min_scale_points'):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f'guard.{name} must be >= 1, got {getattr(self, name)}')
+        if not (np.isfinite(self.reach_px) and self.reach_px >= 0):
+            raise ValueError(f'guard.reach_px must be >= 0 (0: off), got {self.reach_px}')
         if not (np.isfinite(self.max_scale_error) and self.max_scale_error >= 0):
             raise ValueError(f'guard.max_scale_error must be >= 0, got {self.max_scale_error}')
 

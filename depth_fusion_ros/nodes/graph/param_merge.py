@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from .options import RunOptions
 from .topics import GRAPH_NODES, REPLAYER, TOPIC_GT_DEPTH
+
+log = logging.getLogger(__name__)
 
 
 def read_params_file(path: Path | None) -> dict[str, dict[str, Any]]:
@@ -83,9 +86,34 @@ def node_overrides(options: RunOptions, bag_topics: Sequence[str]) -> dict[str, 
         played = [t for t in bag_topics if t != TOPIC_GT_DEPTH]
         replayer['topics'] = played or list(bag_topics)
     replayer.setdefault('wait_for_nodes', list(GRAPH_NODES))
+    _inputs_from_bag(options, params, bag_topics, out['multi_view_node'])
     for node, values in options.overrides.items():
         out.setdefault(node, {}).update(values)
     return out
+
+
+def _inputs_from_bag(
+    options: RunOptions, params: dict, bag_topics: Sequence[str], multi_view: dict[str, Any]
+) -> None:
+    """The image transport and pose type the bag holds, unless the params file says.
+
+    A bag with only ``<image>/compressed`` then runs with ``image_transport: compressed``,
+    one with Odometry or PoseWithCovarianceStamped poses subscribes with that type from the
+    start (``auto`` would discover it, a moment later: the first poses could be lost).
+    """
+    from ...data.compressed import image_transport_for_topics
+    from ...data.rosbag_read import bag_topics as bag_topic_types
+    from ..robot_inputs import pose_type_for_topics
+
+    if param_from_file(params, 'multi_view_node', 'image_transport') is None:
+        multi_view['image_transport'] = image_transport_for_topics(bag_topics)
+    if param_from_file(params, 'multi_view_node', 'pose_type') is None:
+        try:
+            types = {name: info[0] for name, info in bag_topic_types(options.bag).items()}
+        except Exception as exc:  # the replayer reports an unreadable bag itself
+            log.debug('pose type of %s not read: %s', options.bag, exc)
+            return
+        multi_view['pose_type'] = pose_type_for_topics(types)
 
 
 def recorder_qos(options: RunOptions) -> str:
