@@ -165,3 +165,25 @@ def test_adapt_true_on_a_torchscript_model_fails_at_start(tmp_path):
     path = save_torchscript_depth_model(Flat(), tmp_path, 'flat')
     with RosHarness() as ros, pytest.raises(ValueError, match='cannot be adapted'):
         SingleViewNode(context=ros.context, parameter_overrides=_params(str(path), adapt='true'))
+
+
+@pytest.mark.parametrize('suffix', ['.onnx', '.pt2', '.pt'])
+def test_exported_models_do_not_adapt_by_default_and_refuse_adapt_true(tmp_path, suffix):
+    """ONNX / torch.export / TorchScript files hold no trainable weights: auto is off for
+    them, true is a one-line start-up error naming the model."""
+    from depth_fusion_ros.nodes.single_view_adaptation import adaptation_wanted
+
+    if suffix == '.pt':
+
+        class Flat(torch.nn.Module):
+            def forward(self, x: torch.Tensor) -> torch.Tensor:
+                return 1.0 + 0.0 * x[:, :1]
+
+        path = save_torchscript_depth_model(Flat(), tmp_path, 'flat')
+    else:
+        path = tmp_path / f'model{suffix}'
+        path.write_bytes(b'not read: the suffix decides')
+    assert adaptation_wanted({'adapt': 'auto', 'model': str(path)}) is False
+    with pytest.raises(ValueError, match='cannot be adapted'):
+        adaptation_wanted({'adapt': 'true', 'model': str(path)})
+    assert adaptation_wanted({'adapt': 'auto', 'model': 'default'}) is True
