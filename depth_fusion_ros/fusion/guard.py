@@ -82,7 +82,8 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
     'min_scale_points': 'fewer trusted points than this: no regional scale correction',
     'scale_sigma_px': 'scale_only: proximity scale (px) of the smooth scale correction',
-    'reach_px': 'corrections fade with the distance D (px) to their points: weight exp(-D / reach); 0: off',
+    'reach': 'local corrections fade towards the single-view depth with the distance D to their points: '
+    'weight exp(-(D / (reach x image width))^2); 0: off',
     'max_scale_error': 'largest standard error (log) of the global multi-view scale that is still applied',
 }
 
@@ -92,7 +93,7 @@ class GuardConfig:
     """Thresholds of the guard (also the ``guard.*`` ROS parameters; ``FusionConfig.guard``
     switches it on and off).
 
-    Defaults chosen on the synthetic stress cases at 320x240 (docs/fusion.md).
+    Defaults chosen on the synthetic stress cases at 160x120 and 320x240 (docs/fusion.md).
     """
 
     neighbourhood_px: float = 12.0
@@ -105,7 +106,7 @@ class GuardConfig:
     min_trusted_points: int = 40
     min_scale_points: int = 20
     scale_sigma_px: float = 60.0
-    reach_px: float = 0.0
+    reach: float = 0.3
     max_scale_error: float = 0.03
 
     def __post_init__(self) -> None:
@@ -128,8 +129,8 @@ class GuardConfig:
         for name in ('min_neighbours', 'min_trusted_points', 'min_scale_points'):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f'guard.{name} must be >= 1, got {getattr(self, name)}')
-        if not (np.isfinite(self.reach_px) and self.reach_px >= 0):
-            raise ValueError(f'guard.reach_px must be >= 0 (0: off), got {self.reach_px}')
+        if not (np.isfinite(self.reach) and self.reach >= 0):
+            raise ValueError(f'guard.reach must be >= 0 (share of the image width; 0: off), got {self.reach}')
         if not (np.isfinite(self.max_scale_error) and self.max_scale_error >= 0):
             raise ValueError(f'guard.max_scale_error must be >= 0, got {self.max_scale_error}')
 
