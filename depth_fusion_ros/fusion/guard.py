@@ -80,7 +80,7 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'max_mv_noise': 'averaged multi-view noise (log depth) above which no point bends the depth',
     'full_fraction': 'share of Ω that must be trusted to fuse every point (else only the trusted ones)',
     'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
-    'min_scale_points': 'fewer trusted points than this: no regional scale correction',
+    'min_scale_points': 'fewer trusted points than this: no regional or global scale correction',
     'scale_sigma_px': 'scale_only: proximity scale (px) of the smooth scale correction',
     'reach': 'local corrections fade towards the single-view depth with the distance D to their points: '
     'weight exp(-(D / (reach x image width))^2); 0: off',
@@ -284,6 +284,11 @@ def assess(
     )
     if n_trusted >= config.min_scale_points and not noisy:
         return verdict('scale_only', why, trusted)
+    if n_trusted < config.min_scale_points:
+        # The scale would come from the points the evidence rejected. Their errors are not
+        # independent (rotation-dominant motion biases every low-parallax depth the same
+        # way: 15-25 % too near on the stress cases), so their small scatter says nothing.
+        return verdict('single_view', why + f'; scale untrusted ({n_trusted} trusted points)', empty)
     if scale_error <= config.max_scale_error:
         return verdict('single_scaled', why + '; global scale kept', empty)
     return verdict('single_view', why + f'; scale uncertain ({scale_error:.3f})', empty)
