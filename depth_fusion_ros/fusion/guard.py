@@ -41,6 +41,13 @@ and steps down a ladder (``DECISIONS``, least to most degraded):
                    fit to be in metres), flagged; confidence 0
 =================  ======================================================================
 
+In ``full`` and ``fewer_points`` the corrections fade back to ``s`` with the distance to
+their points (``reach``, ``guard_apply.limit_reach``): a point speaks for its neighbourhood,
+not for a flat region 100 px away whose single-view error is another region's. No decision
+takes a scale from points the evidence rejected: with fewer than ``min_scale_points`` trusted
+points the keyframe is ``single_view`` (low-parallax points agree with each other and are
+biased together, so their small scatter says nothing about their scale).
+
 Each decision comes with a reason (which evidence failed) and a keyframe confidence in
 [0, 1] that multiplies the per-pixel confidence, so a consumer thresholding the confidence
 drops the pixels of untrusted keyframes. No ground truth is used anywhere. The thresholds
