@@ -111,8 +111,38 @@ def test_parallax_evidence_removes_low_parallax_points(truth):
     assert verdict.evidence['median_relative_std'] > 0
 
 
+def test_corrections_do_not_reach_far_from_their_points(truth):
+    # The single-view depth is 25 % too far on the left, 5 % too near on the right: unrelated
+    # errors, as in two regions of a network's prediction.
+    single = (truth * np.where(np.arange(W) < W // 2, 1.25, 0.95)[None, :]).astype(np.float32)
+    multi = _multi(truth, 6, density=0.08, noise=0.01)
+    multi[:, W // 3 :] = np.nan  # the points cover the left third only (weak texture elsewhere)
+    reached = fuse_keyframe(single, multi, None, FusionConfig(mode='fast'))
+    unlimited = fuse_keyframe(
+        single, multi, None, FusionConfig(mode='fast'), guard_config=GuardConfig(reach=0.0)
+    )
+    assert reached.decision == 'full' and 0 < reached.evidence['coverage'] < 0.6
+    far = np.s_[:, W - W // 6 :]  # more than reach x width from every point: the single-view depth
+    np.testing.assert_allclose(reached.depth[far], single[far], rtol=0.02)
+    near = np.s_[:, : W // 3]
+    assert _mae(reached.depth[near], truth[near]) < 0.5 * _mae(single[near], truth[near])
+    assert _mae(reached.depth, truth) < min(_mae(single, truth), _mae(unlimited.depth, truth))
+
+
+def test_no_scale_from_untrusted_points(truth):
+    single = _single(truth, 7)
+    multi = _multi(truth, 7, density=0.08, noise=0.01) * np.float32(0.8)  # consistent, 20 % too near
+    omega = np.isfinite(multi)
+    evidence = MultiViewEvidence(relative_std=np.where(omega, 0.5, np.nan).astype(np.float32))  # no parallax
+    result = fuse_keyframe(single, multi, None, FusionConfig(mode='fast'), evidence=evidence)
+    assert result.decision == 'single_view' and 'scale untrusted' in result.decision_reason
+    np.testing.assert_allclose(result.depth, single)
+    assert result.keyframe_confidence == 0.0
+
+
 @pytest.mark.parametrize(
-    ('field', 'value'), [('local_tolerance', 0.0), ('full_fraction', 1.5), ('min_trusted_points', 0)]
+    ('field', 'value'),
+    [('local_tolerance', 0.0), ('full_fraction', 1.5), ('min_trusted_points', 0), ('reach', -1.0)],
 )
 def test_bad_thresholds_raise(field, value):
     with pytest.raises(ValueError, match=f'guard.{field}'):

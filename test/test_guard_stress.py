@@ -29,9 +29,15 @@ def _steps(poses: np.ndarray) -> tuple[float, float]:
     )
 
 
-@pytest.fixture(scope='module', params=sorted(STRESS_CASES))
+#: Every case with seed 0, plus a rotation seed whose low-parallax points are consistent and
+#: 20 % too near everywhere (the global scale they give made it 1.34x the single-view MAE).
+CASES = [(name, 0) for name in sorted(STRESS_CASES)] + [('rotation', 5)]
+
+
+@pytest.fixture(scope='module', params=CASES, ids=[f'{n}-{s}' for n, s in CASES])
 def evaluated(request):
-    cfg = stress_config(request.param, width=W, height=H, frames=FRAMES)
+    name, seed = request.param
+    cfg = stress_config(name, width=W, height=H, frames=FRAMES, seed=seed)
     sequence = render_sequence(cfg)
     options = EvalOptions(
         frames=FRAMES,
@@ -42,7 +48,7 @@ def evaluated(request):
         params={'fusion': {'compile_kernel': False, 'mode': 'fast'}},
     )
     result = evaluate_sequence(sequence, METHODS, options, show_progress=False)
-    return request.param, cfg, sequence, result
+    return name, cfg, sequence, result
 
 
 def test_stress_motions_have_the_reported_steps():
@@ -61,10 +67,9 @@ def test_wrong_focal_tells_the_pipeline_wrong_intrinsics():
     assert sequence.camera.cx == sequence.gt_camera.cx
 
 
-#: Cases the guard does not catch yet (issue 11, docs/fusion.md "Known misses"): their
-#: multi-view points are consistent with each other (the guard keeps them all), but biased
-#: against the simulated prior, which has the true scale. Bounded so that they cannot get worse.
-KNOWN_MISSES = {'low_texture': 1.3}
+#: Cases the guard does not catch yet (docs/fusion.md), bounded so that they cannot get
+#: worse: none since the corrections fade with the distance to their points (``guard.reach``).
+KNOWN_MISSES: dict[str, float] = {}
 
 
 def test_fused_is_never_worse_than_single_view(evaluated):

@@ -41,6 +41,13 @@ and steps down a ladder (``DECISIONS``, least to most degraded):
                    fit to be in metres), flagged; confidence 0
 =================  ======================================================================
 
+In ``full`` and ``fewer_points`` the corrections fade back to ``s`` with the distance to
+their points (``reach``, ``guard_apply.limit_reach``): a point speaks for its neighbourhood,
+not for a flat region 100 px away whose single-view error is another region's. No decision
+takes a scale from points the evidence rejected: with fewer than ``min_scale_points`` trusted
+points the keyframe is ``single_view`` (low-parallax points agree with each other and are
+biased together, so their small scatter says nothing about their scale).
+
 Each decision comes with a reason (which evidence failed) and a keyframe confidence in
 [0, 1] that multiplies the per-pixel confidence, so a consumer thresholding the confidence
 drops the pixels of untrusted keyframes. No ground truth is used anywhere. The thresholds
@@ -80,9 +87,10 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'max_mv_noise': 'averaged multi-view noise (log depth) above which no point bends the depth',
     'full_fraction': 'share of Ω that must be trusted to fuse every point (else only the trusted ones)',
     'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
-    'min_scale_points': 'fewer trusted points than this: no regional scale correction',
+    'min_scale_points': 'fewer trusted points than this: no regional or global scale correction',
     'scale_sigma_px': 'scale_only: proximity scale (px) of the smooth scale correction',
-    'reach_px': 'corrections fade with the distance D (px) to their points: weight exp(-D / reach); 0: off',
+    'reach': 'local corrections fade towards the single-view depth with the distance D to their points: '
+    'weight exp(-(D / (reach x image width))^2); 0: off',
     'max_scale_error': 'largest standard error (log) of the global multi-view scale that is still applied',
 }
 
@@ -92,7 +100,7 @@ class GuardConfig:
     """Thresholds of the guard (also the ``guard.*`` ROS parameters; ``FusionConfig.guard``
     switches it on and off).
 
-    Defaults chosen on the synthetic stress cases at 320x240 (docs/fusion.md).
+    Defaults chosen on the synthetic stress cases at 160x120 and 320x240 (docs/fusion.md).
     """
 
     neighbourhood_px: float = 12.0
@@ -105,7 +113,7 @@ class GuardConfig:
     min_trusted_points: int = 40
     min_scale_points: int = 20
     scale_sigma_px: float = 60.0
-    reach_px: float = 0.0
+    reach: float = 0.3
     max_scale_error: float = 0.03
 
     def __post_init__(self) -> None:
@@ -128,8 +136,8 @@ class GuardConfig:
         for name in ('min_neighbours', 'min_trusted_points', 'min_scale_points'):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f'guard.{name} must be >= 1, got {getattr(self, name)}')
-        if not (np.isfinite(self.reach_px) and self.reach_px >= 0):
-            raise ValueError(f'guard.reach_px must be >= 0 (0: off), got {self.reach_px}')
+        if not (np.isfinite(self.reach) and self.reach >= 0):
+            raise ValueError(f'guard.reach must be >= 0 (share of the image width; 0: off), got {self.reach}')
         if not (np.isfinite(self.max_scale_error) and self.max_scale_error >= 0):
             raise ValueError(f'guard.max_scale_error must be >= 0, got {self.max_scale_error}')
 
@@ -283,6 +291,11 @@ def assess(
     )
     if n_trusted >= config.min_scale_points and not noisy:
         return verdict('scale_only', why, trusted)
+    if n_trusted < config.min_scale_points:
+        # The scale would come from the points the evidence rejected. Their errors are not
+        # independent (rotation-dominant motion biases every low-parallax depth the same
+        # way: 15-25 % too near on the stress cases), so their small scatter says nothing.
+        return verdict('single_view', why + f'; scale untrusted ({n_trusted} trusted points)', empty)
     if scale_error <= config.max_scale_error:
         return verdict('single_scaled', why + '; global scale kept', empty)
     return verdict('single_view', why + f'; scale uncertain ({scale_error:.3f})', empty)

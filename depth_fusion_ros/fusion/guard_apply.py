@@ -63,18 +63,28 @@ def guarded_depth(
 
 
 def limit_reach(
-    depth: np.ndarray, base: np.ndarray, support_distance: np.ndarray, scale: float, reach_px: float
-) -> np.ndarray:
+    depth: np.ndarray, base: np.ndarray, support_distance: np.ndarray, reach_px: float
+) -> tuple[np.ndarray, float]:
     """Fade the local corrections out with the distance to the points that make them.
 
     The interpolation's weights are normalised, so a pixel 100 px from every point still
     takes their full offset, though the single-view error there (another region of the
-    network's prediction) is unrelated to theirs: extrapolated, a correction adds error. The
-    fused depth is blended towards ``scale * base`` (the single-view depth with the global
-    multi-view scale) with weight ``exp(-D / reach_px)``, ``D`` the pixel's weighted
-    distance to its points.
+    network's prediction) is unrelated to theirs: extrapolated, a correction adds error.
+    Where the points cover little of the image (weak texture) most pixels are such. The
+    fused depth is blended towards ``base`` (the single-view depth the fusion started from)
+    with weight ``exp(-(D / reach_px)²)``, ``D`` the pixel's weighted distance to its
+    points: full corrections near the points, none far from them. Not towards the global
+    multi-view scale: the median of the points' ratios is that of the few regions they sit
+    in, and on the stress cases it was a worse guess for the rest of the image than
+    ``base`` itself (docs/fusion.md).
+
+    Returns the depth and the *coverage*: the mean weight over the finite pixels (the
+    share of the correction that was kept).
     """
     with np.errstate(invalid='ignore'):
-        near = np.exp(-np.nan_to_num(support_distance, nan=np.inf) / reach_px).astype(np.float32)
-    out = near * depth + (1.0 - near) * (np.float32(scale) * base)
-    return np.where(np.isfinite(depth), np.maximum(out, MIN_DEPTH), np.nan).astype(np.float32)
+        d = np.nan_to_num(support_distance, nan=np.inf).astype(np.float32)
+        near = np.exp(-np.square(d / np.float32(reach_px))).astype(np.float32)
+    out = near * depth + (1.0 - near) * base
+    finite = np.isfinite(depth)
+    coverage = float(near[finite].mean()) if finite.any() else 0.0
+    return np.where(finite, np.maximum(out, MIN_DEPTH), np.nan).astype(np.float32), coverage

@@ -247,9 +247,10 @@ def fuse_keyframe(
     with np.errstate(invalid='ignore'):
         depth = np.maximum(base + interp.offset, MIN_DEPTH).astype(np.float32)
     depth[~np.isfinite(base)] = np.nan
-    reach = (guard_config or GuardConfig()).reach_px
+    reach = (guard_config or GuardConfig()).reach
     if verdict is not None and reach > 0:
-        depth = limit_reach(depth, base, interp.support_distance, verdict.scale, reach)
+        depth, coverage = limit_reach(depth, base, interp.support_distance, reach * base.shape[1])
+        verdict.evidence['coverage'] = coverage
     depth, _ = sanitize_depth(depth)
     confidence = confidence_from_support(interp.support_distance, config.sigma1)
     confidence[~np.isfinite(depth)] = 0.0

@@ -97,6 +97,7 @@ GUARD_LIMITS: dict[str, Any] = {
     'min_trusted_points': (1, None),
     'min_scale_points': (1, None),
     'scale_sigma_px': (1e-3, None),
+    'reach': (0.0, None),
     'max_scale_error': (0.0, None),
 }
 #: Set by the node itself (``device``) rather than under ``fusion.*``.
