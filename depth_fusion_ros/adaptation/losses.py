@@ -21,6 +21,7 @@ same quantities for one keyframe.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
@@ -95,6 +96,17 @@ def _pad(t: torch.Tensor) -> torch.Tensor:
     return F.pad(t, (1, 1, 1, 1), mode='reflect')
 
 
+@lru_cache(maxsize=16)
+def _box_weight(channels: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    return torch.full((channels, 1, 3, 3), 1.0 / 9.0, device=device, dtype=dtype)
+
+
+def _box3(t: torch.Tensor) -> torch.Tensor:
+    """3x3 window means of every channel (``avg_pool2d(t, 3, 1)``, as a depthwise convolution:
+    the same sums, several times faster on the CPU forward and backward)."""
+    return F.conv2d(t, _box_weight(t.shape[1], t.device, t.dtype), groups=t.shape[1])
+
+
 @dataclass
 class KeyStats:
     """The keyframe's side of :func:`ssim_error` (it is never warped, so computed once)."""
@@ -107,8 +119,8 @@ class KeyStats:
 
 def key_stats(image: torch.Tensor) -> KeyStats:
     """:class:`KeyStats` of ``image`` (K, C, H, W), computed as :func:`ssim_error` does."""
-    mu = F.avg_pool2d(_pad(image), 3, 1)
-    return KeyStats(image, mu, mu**2, F.avg_pool2d(_pad(image * image), 3, 1) - mu**2)
+    mu = _box3(_pad(image))
+    return KeyStats(image, mu, mu**2, _box3(_pad(image * image)) - mu**2)
 
 
 def photo_error_to_key(x: torch.Tensor, key: KeyStats, alpha: float) -> torch.Tensor:
@@ -118,7 +130,7 @@ def photo_error_to_key(x: torch.Tensor, key: KeyStats, alpha: float) -> torch.Te
     ``key`` holds one keyframe (broadcast over ``x``) or one per row of ``x``.
     """
     y, c = key.image, x.shape[1]
-    pooled = F.avg_pool2d(_pad(torch.cat([x, x * x, x * y.expand_as(x)], dim=1)), 3, 1)
+    pooled = _box3(_pad(torch.cat([x, x * x, x * y.expand_as(x)], dim=1)))
     mu_x, xx, xy = pooled[:, :c], pooled[:, c : 2 * c], pooled[:, 2 * c :]
     sx = xx - mu_x**2
     sxy = xy - mu_x * key.mu
