@@ -207,3 +207,24 @@ def test_observe_learns_the_same_weights_as_the_reference(tiny_model, samples):
         np.testing.assert_allclose(fast.predictor().predict(s.rgb), ref.predictor().predict(s.rgb), rtol=2e-5)
     fast_state, ref_state = fast.optimizer.state_dict()['state'], ref.optimizer.state_dict()['state']
     assert all(torch.equal(fast_state[k]['step'], ref_state[k]['step']) for k in ref_state)
+
+
+def test_inference_copies_are_refilled_only_once_nobody_holds_them(tiny_model, samples):
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict(CONFIG))
+    held = adapter.predictor()  # inference still predicting with version 0, say
+    frozen = {k: v.clone() for k, v in held.module.net.state_dict().items()}
+    assert adapter.observe(samples[0]).status == 'updated'
+    newer = adapter.predictor()
+    assert newer.module.net is not held.module.net
+    for key, value in held.module.net.state_dict().items():
+        assert torch.equal(value, frozen[key]), key  # a held copy is never written to
+    released = id(newer.module.net)
+    del newer
+    assert adapter.observe(samples[1]).status == 'updated'
+    again = adapter.predictor()
+    assert id(again.module.net) == released and adapter._copies.reused >= 1
+    for a, b in zip(again.module.net.state_dict().values(), adapter.net.state_dict().values(), strict=True):
+        assert torch.equal(a, b)  # refilled with the current weights
+    image = samples[2].rgb
+    np.testing.assert_array_equal(again.predict(image), Adapter.predictor(adapter).predict(image))
+    assert not any(p.requires_grad for p in again.module.net.parameters())

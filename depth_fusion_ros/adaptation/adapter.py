@@ -32,6 +32,7 @@ from ..singleview.predictor import DepthPredictor, predictor_from_network, resol
 from .batch import batch_loss
 from .config import AdaptConfig
 from .guard import GuardVerdict, guard_errors, judge
+from .inference_copies import InferenceCopies
 from .prepared import PreparedSample
 from .replay import ReplayBuffer
 from .sample import AdaptSample
@@ -110,6 +111,7 @@ class Adapter:
         self.counters = AdapterCounters()
         self.version = 0
         self._weights = WeightSnapshot(self.net, self.optimizer)
+        self._copies = InferenceCopies(self.net)
         # Names the current weights: guard errors computed under a token stay valid while it
         # is current (a rollback restores the token of the weights it restores).
         self._tokens = itertools.count(1)
@@ -145,11 +147,9 @@ class Adapter:
     # --- inference side -----------------------------------------------------------------------
 
     def inference_network(self) -> nn.Module:
-        """A detached eval-mode copy of the current weights (safe to hand to another thread)."""
-        net = copy.deepcopy(self.net).eval()
-        for p in net.parameters():
-            p.requires_grad_(False)
-        return net
+        """A detached eval-mode copy of the current weights (safe to hand to another thread):
+        a pooled copy nobody holds any more, refilled in place, or a new deep copy."""
+        return self._copies.take()
 
     def predictor(self) -> DepthPredictor:
         """A predictor around a copy of the current weights (metres, as ``load_predictor``)."""
