@@ -33,7 +33,7 @@ class PointBatch:
 
 def point_batch(grids: Sequence[torch.Tensor], targets: Sequence[torch.Tensor]) -> PointBatch:
     """Stack per-keyframe (N_b, 2) grids and (N_b,) targets into a padded :class:`PointBatch`."""
-    longest = max((int(g.shape[0]) for g in grids), default=0)
+    longest = max(1, *(int(g.shape[0]) for g in grids))  # a zero-size grid_sample is refused
     ref = grids[0]
     grid = ref.new_zeros((len(grids), longest, 2))
     target = ref.new_zeros((len(grids), longest))
