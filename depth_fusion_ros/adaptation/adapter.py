@@ -9,6 +9,9 @@ The adapter owns its training copy of the network; whoever runs inference gets c
 accepted weights (``inference_network``), so training never mutates a module that is
 predicting. Prequential use (offline evaluation): predict keyframe k with the current
 weights, then ``observe`` it.
+
+Only ``observe`` changes ``net``: the guard's per-keyframe errors are kept for the weights
+they were computed with (a token), so writing into ``net`` from outside would leave them stale.
 """
 
 from __future__ import annotations
