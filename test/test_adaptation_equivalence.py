@@ -228,3 +228,37 @@ def test_inference_copies_are_refilled_only_once_nobody_holds_them(tiny_model, s
     image = samples[2].rgb
     np.testing.assert_array_equal(again.predict(image), Adapter.predictor(adapter).predict(image))
     assert not any(p.requires_grad for p in again.module.net.parameters())
+
+
+def test_snapshot_restores_weights_buffers_and_optimiser_state_in_place():
+    from depth_fusion_ros.adaptation.snapshot import WeightSnapshot
+
+    torch.manual_seed(0)
+    net = nn.Sequential(nn.Conv2d(3, 4, 3), nn.BatchNorm2d(4))
+    optimizer = torch.optim.Adam(net.parameters(), lr=0.1, foreach=True)
+    snapshot = WeightSnapshot(net, optimizer)
+    x = torch.rand(2, 3, 8, 8)
+
+    def step() -> None:
+        optimizer.zero_grad()
+        net(x).square().mean().backward()  # train mode: BatchNorm running stats change too
+        optimizer.step()
+
+    initial = copy.deepcopy(net.state_dict())
+    snapshot.save()  # no optimiser state yet: a rollback of the first update empties it again
+    step()
+    snapshot.restore()
+    assert all(torch.equal(v, initial[k]) for k, v in net.state_dict().items())
+    assert len(optimizer.state) == 0
+    step()
+    after_one = copy.deepcopy(net.state_dict()), copy.deepcopy(optimizer.state_dict())
+    held = [optimizer.state[p]['exp_avg'] for p in net.parameters()]
+    snapshot.save()
+    step()
+    step()
+    snapshot.restore()
+    assert all(torch.equal(v, after_one[0][k]) for k, v in net.state_dict().items())
+    for key, state in optimizer.state_dict()['state'].items():
+        for name, value in state.items():
+            assert torch.equal(value, after_one[1]['state'][key][name]), (key, name)
+    assert all(optimizer.state[p]['exp_avg'] is h for p, h in zip(net.parameters(), held, strict=True))
