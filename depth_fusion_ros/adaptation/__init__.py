@@ -10,7 +10,11 @@ because the poses are). It never sees ground truth.
 * ``warp.py``     inverse warping of a posed neighbour into the keyframe with a depth map
 * ``losses.py``   sparse log-depth L1, SSIM+L1 photometric (min over neighbours, auto-mask),
                   edge-aware smoothness
+* ``prepared.py`` a sample's tensors on the device, depth-independent parts made once
+* ``batch.py``    one step's loss for the whole batch at once (keyframes x neighbours)
 * ``replay.py``   ReplayBuffer of past keyframes (against forgetting)
+* ``snapshot.py`` weights + optimiser state before an update, in preallocated buffers
+* ``inference_copies.py`` eval copies for inference, refilled in place once released
 * ``guard.py``    held-out multi-view points: score an update, decide on a rollback
 * ``adapter.py``  Adapter: train on one keyframe (+ replay), guard, roll back, version weights
 * ``online.py``   OnlineAdaptation: the Adapter on its own thread, weights swapped atomically

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .losses import sample_map
+from .batch import point_batch
+from .losses import sparse_batch
 from .prepared import PreparedSample
 
 
@@ -30,18 +31,23 @@ class GuardVerdict:
 
 
 @torch.no_grad()
+def guard_errors(
+    forward: Callable[[torch.Tensor], torch.Tensor], samples: Sequence[PreparedSample]
+) -> torch.Tensor:
+    """(len(samples),) mean held-out log-depth error of each sample (all must have held-out
+    points), in one forward pass; left on the device (no host sync)."""
+    log_depth = forward(torch.cat([s.x for s in samples]))
+    points = point_batch([s.holdout_grid for s in samples], [s.holdout_log for s in samples])
+    return sparse_batch(log_depth, points.grid, points.target, points.mask)
+
+
 def guard_error(forward: Callable[[torch.Tensor], torch.Tensor], samples: Sequence[PreparedSample]) -> float:
     """Mean over ``samples`` (with held-out points) of their mean held-out log-depth error;
     NaN when no sample has held-out points."""
     usable = [s for s in samples if s.n_holdout > 0]
     if not usable:
         return float('nan')
-    log_depth = forward(torch.cat([s.x for s in usable]))
-    errors = [
-        (sample_map(log_depth[i : i + 1], s.holdout_uv, s.width, s.height) - s.holdout_log).abs().mean()
-        for i, s in enumerate(usable)
-    ]
-    return float(torch.stack(errors).mean())
+    return float(guard_errors(forward, usable).mean())
 
 
 def judge(before: float, after: float, tolerance: float, keyframes: int) -> GuardVerdict:

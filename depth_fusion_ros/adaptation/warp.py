@@ -24,20 +24,29 @@ def pixel_rays(k_inv: torch.Tensor, height: int, width: int) -> torch.Tensor:
 
 
 def warp_neighbours(
-    images: torch.Tensor, depth: torch.Tensor, k: torch.Tensor, t_ok: torch.Tensor
+    images: torch.Tensor,
+    depth: torch.Tensor,
+    k: torch.Tensor,
+    t_ok: torch.Tensor,
+    rays: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Warp ``images`` (N, C, H, W) into the keyframe whose depth is ``depth`` (1, 1, H, W).
 
     ``k`` is the (3, 3) intrinsic matrix of this grid, ``t_ok`` (N, 4, 4) the keyframe-to-
     neighbour transforms. Returns the warped images (N, C, H, W) and a validity mask (N, 1, H, W):
     the point is in front of the neighbour and projects inside it.
+
+    Batched over keyframes too: ``depth`` may be (N, 1, H, W) (each image's own keyframe
+    depth), ``k`` (N, 3, 3) and ``rays`` (N, 3, H*W). ``rays`` (:func:`pixel_rays` of
+    ``K^-1``) are computed when not given; training passes them, computed once per keyframe.
     """
     n, _, height, width = images.shape
-    rays = pixel_rays(torch.linalg.inv(k), height, width)  # (3, HW)
-    points = rays[None] * depth.reshape(1, 1, -1)  # (1, 3, HW)
+    if rays is None:
+        rays = pixel_rays(torch.linalg.inv(k), height, width)  # (3, HW)
+    points = rays * depth.reshape(depth.shape[0], 1, -1)  # (1 or N, 3, HW)
     cam = t_ok[:, :3, :3] @ points + t_ok[:, :3, 3:]  # (N, 3, HW)
     z = cam[:, 2:3]
-    proj = k[None] @ cam
+    proj = k @ cam
     front = z > 1e-3
     safe_z = torch.where(front, proj[:, 2:3], torch.ones_like(z))
     u = proj[:, 0] / safe_z[:, 0]
