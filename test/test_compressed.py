@@ -159,15 +159,15 @@ def test_ros1_bag_converts_to_compressed_png_exactly(tmp_path) -> None:
 def test_run_takes_the_transport_and_pose_type_from_the_bag(tmp_path) -> None:
     """``depth-fusion run`` on a compressed bag needs no flag; a params file still wins."""
     from depth_fusion_ros.nodes.graph import RunOptions
-    from depth_fusion_ros.nodes.graph.param_merge import bag_topic_names, node_overrides
+    from depth_fusion_ros.nodes.graph.param_merge import bag_topic_types, node_overrides
 
     src = tmp_path / 'tum'
     make_tum_folder(src, n=2)
     out = tmp_path / 'bag'
     tum_to_rosbag(src, out, show_progress=False, colour=ColourFormat('png'))
-    mv = node_overrides(RunOptions(bag=out), bag_topic_names(out))['multi_view_node']
+    mv = node_overrides(RunOptions(bag=out), bag_topic_types(out))['multi_view_node']
     assert mv['image_transport'] == 'compressed' and mv['pose_type'] == 'pose_stamped'
     params = tmp_path / 'params.yaml'
     params.write_text('multi_view_node:\n  ros__parameters:\n    image_transport: raw\n    pose_type: auto\n')
-    mv = node_overrides(RunOptions(bag=out, params_file=params), bag_topic_names(out))['multi_view_node']
+    mv = node_overrides(RunOptions(bag=out, params_file=params), bag_topic_types(out))['multi_view_node']
     assert 'image_transport' not in mv and 'pose_type' not in mv

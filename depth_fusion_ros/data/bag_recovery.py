@@ -89,7 +89,8 @@ def mcap_readable_end(f: Any, start: int, size: int) -> int:
                 compression = body[32 : 32 + clen].decode()
                 (dlen,) = struct.unpack('<Q', body[32 + clen : 40 + clen])
                 decompress(body[40 + clen : 40 + clen + dlen], compression, usize, crc)
-            except Exception:  # a damaged chunk ends the readable part
+            except Exception as exc:  # any decode / CRC / codec error: the readable part ends here
+                logger.debug('mcap: damaged chunk at byte %d ends the readable part: %r', pos, exc)
                 break
         pos += 9 + length
     return pos

@@ -39,7 +39,7 @@ from .inputs import check_inputs
 from .isolation import Isolation, isolate
 from .options import GraphError, RunOptions, RunResult
 from .pacing import paced_overrides
-from .param_merge import bag_topic_names, node_overrides, recorder_qos, ros_arg_value
+from .param_merge import bag_topic_types, node_overrides, recorder_qos, ros_arg_value
 from .spawn import describe_exit, node_class, node_command, popen_node, stop_processes
 from .topics import (
     FUSED_OUTPUTS,
@@ -88,8 +88,9 @@ class GraphRun:
         from rclpy.signals import SignalHandlerOptions
 
         opts = self.options
-        topics = bag_topic_names(opts.bag)  # a bad bag fails here, before anything starts
-        overrides = paced_overrides(opts, node_overrides(opts, topics))
+        types = bag_topic_types(opts.bag)  # a bad bag fails here, before anything starts
+        topics = sorted(types)
+        overrides = paced_overrides(opts, node_overrides(opts, types))
         check_inputs(opts, topics)  # a bag without image/camera_info/pose fails here, see .inputs
         profile = apply_fastdds_profile()
         log.info('Fast DDS profile: %s', profile)

@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from .options import RunOptions
 from .topics import GRAPH_NODES, REPLAYER, TOPIC_GT_DEPTH
-
-log = logging.getLogger(__name__)
 
 
 def read_params_file(path: Path | None) -> dict[str, dict[str, Any]]:
@@ -66,8 +63,14 @@ def ros_arg_value(value: Any) -> str:
     return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()
 
 
-def node_overrides(options: RunOptions, bag_topics: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """Per node, the parameters the runner sets on top of the params file."""
+def node_overrides(
+    options: RunOptions, bag_topics: Mapping[str, str] | Sequence[str]
+) -> dict[str, dict[str, Any]]:
+    """Per node, the parameters the runner sets on top of the params file.
+
+    ``bag_topics``: the bag's topic names, or ``{name: message type}`` (``bag_topic_types``),
+    which also sets ``multi_view_node.pose_type`` from the pose topic's type.
+    """
     params = read_params_file(options.params_file)
     out: dict[str, dict[str, Any]] = {name: {} for name in (*GRAPH_NODES, REPLAYER[0])}
     if options.device is not None:
@@ -86,14 +89,14 @@ def node_overrides(options: RunOptions, bag_topics: Sequence[str]) -> dict[str, 
         played = [t for t in bag_topics if t != TOPIC_GT_DEPTH]
         replayer['topics'] = played or list(bag_topics)
     replayer.setdefault('wait_for_nodes', list(GRAPH_NODES))
-    _inputs_from_bag(options, params, bag_topics, out['multi_view_node'])
+    _inputs_from_bag(params, bag_topics, out['multi_view_node'])
     for node, values in options.overrides.items():
         out.setdefault(node, {}).update(values)
     return out
 
 
 def _inputs_from_bag(
-    options: RunOptions, params: dict, bag_topics: Sequence[str], multi_view: dict[str, Any]
+    params: dict, bag_topics: Mapping[str, str] | Sequence[str], multi_view: dict[str, Any]
 ) -> None:
     """The image transport and pose type the bag holds, unless the params file says.
 
@@ -102,18 +105,12 @@ def _inputs_from_bag(
     start (``auto`` would discover it, a moment later: the first poses could be lost).
     """
     from ...data.compressed import image_transport_for_topics
-    from ...data.rosbag_read import bag_topics as bag_topic_types
     from ..robot_inputs import pose_type_for_topics
 
     if param_from_file(params, 'multi_view_node', 'image_transport') is None:
         multi_view['image_transport'] = image_transport_for_topics(bag_topics)
-    if param_from_file(params, 'multi_view_node', 'pose_type') is None:
-        try:
-            types = {name: info[0] for name, info in bag_topic_types(options.bag).items()}
-        except Exception as exc:  # the replayer reports an unreadable bag itself
-            log.debug('pose type of %s not read: %s', options.bag, exc)
-            return
-        multi_view['pose_type'] = pose_type_for_topics(types)
+    if isinstance(bag_topics, Mapping) and param_from_file(params, 'multi_view_node', 'pose_type') is None:
+        multi_view['pose_type'] = pose_type_for_topics(bag_topics)
 
 
 def recorder_qos(options: RunOptions) -> str:
@@ -128,11 +125,16 @@ def recorder_qos(options: RunOptions) -> str:
     return 'sensor_data' if 'sensor_data' in kinds else 'reliable'
 
 
-def bag_topic_names(bag: Path) -> list[str]:
+def bag_topic_types(bag: Path) -> dict[str, str]:
+    """``{topic: message type}`` of the bag, read once for the names and the types."""
     from ..bag_replayer import open_bag
 
     reader = open_bag(bag)
     try:
-        return sorted({c.topic for c in reader.connections})
+        return {c.topic: c.msgtype for c in reader.connections}
     finally:
         reader.close()
+
+
+def bag_topic_names(bag: Path) -> list[str]:
+    return sorted(bag_topic_types(bag))
