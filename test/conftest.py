@@ -94,3 +94,28 @@ def synthetic_tum_dir(tmp_path_factory):
 
     out = tmp_path_factory.mktemp('synthetic') / 'synth_s0_high'
     return write_synthetic_sequence(out, SynthConfig(**SYNTHETIC_FIXTURE_CONFIG, parallax='high'))
+
+
+@pytest.fixture(scope='session')
+def tiny_model(tmp_path_factory) -> str:
+    """A compact network checkpoint at 64x48 input (as depth-fusion train writes one): the
+    shipped network's code paths, adaptable (``adapt: auto`` is on), ~25x cheaper to train."""
+    import torch
+
+    from depth_fusion_ros.singleview.architectures import build_model
+    from depth_fusion_ros.singleview.checkpoint import save_checkpoint
+    from depth_fusion_ros.singleview.metadata import ModelMetadata
+
+    torch.manual_seed(0)
+    net = build_model('compact', {'input_width': 64, 'input_height': 48})
+    path = tmp_path_factory.mktemp('tiny') / 'tiny_compact.pt'
+    save_checkpoint(path, net, ModelMetadata(input_width=64, input_height=48))
+    return str(path)
+
+
+@pytest.fixture(scope='session')
+def small_sequence():
+    """A 160x120 synthetic room, 6 frames: multi-view at this size takes well under a second."""
+    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
+
+    return render_sequence(SynthConfig(width=160, height=120, frames=6, seed=3, parallax='high'))

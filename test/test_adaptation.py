@@ -28,29 +28,6 @@ pytestmark = pytest.mark.usefixtures('one_torch_thread')
 FAST = {'steps_per_keyframe': 2, 'replay_per_step': 1, 'min_points': 5}
 
 
-@pytest.fixture(scope='module')
-def tiny_model(tmp_path_factory) -> str:
-    """A compact network at 64x48 input (a checkpoint like depth-fusion train writes): the same
-    code paths as the shipped one, ~25x cheaper per training step."""
-    from depth_fusion_ros.singleview.architectures import build_model
-    from depth_fusion_ros.singleview.checkpoint import save_checkpoint
-    from depth_fusion_ros.singleview.metadata import ModelMetadata
-
-    torch.manual_seed(0)
-    net = build_model('compact', {'input_width': 64, 'input_height': 48})
-    path = tmp_path_factory.mktemp('tiny') / 'tiny_compact.pt'
-    save_checkpoint(path, net, ModelMetadata(input_width=64, input_height=48))
-    return str(path)
-
-
-@pytest.fixture(scope='module')
-def small_sequence():
-    """A 160x120 synthetic room, 6 frames: multi-view at this size takes well under a second."""
-    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-
-    return render_sequence(SynthConfig(width=160, height=120, frames=6, seed=3, parallax='high'))
-
-
 def _options(model: str, **params) -> EvalOptions:
     return EvalOptions(frames=None, single_view=model, params={'adaptation': {**FAST, **params}})
 

@@ -130,19 +130,6 @@ def _ref_observe(adapter: Adapter, sample) -> tuple[str, list[float], float, flo
 
 
 @pytest.fixture(scope='module')
-def tiny_model(tmp_path_factory) -> str:
-    from depth_fusion_ros.singleview.architectures import build_model
-    from depth_fusion_ros.singleview.checkpoint import save_checkpoint
-    from depth_fusion_ros.singleview.metadata import ModelMetadata
-
-    torch.manual_seed(0)
-    net = build_model('compact', {'input_width': 64, 'input_height': 48})
-    path = tmp_path_factory.mktemp('tiny') / 'tiny_compact.pt'
-    save_checkpoint(path, net, ModelMetadata(input_width=64, input_height=48))
-    return str(path)
-
-
-@pytest.fixture(scope='module')
 def samples():
     """Posed keyframes of a 160x120 room: photometric, sparse and smoothness terms all on.
     The keyframe 3 has one neighbour, the keyframe 4 none (uneven pairs in a batch)."""

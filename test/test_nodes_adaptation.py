@@ -25,24 +25,8 @@ FRAME = 'camera_rgb_optical_frame'
 
 
 @pytest.fixture(scope='module')
-def tiny_model(tmp_path_factory) -> str:
-    """A compact network checkpoint at 64x48 input: adaptable (auto = on), cheap to train."""
-    from depth_fusion_ros.singleview.architectures import build_model
-    from depth_fusion_ros.singleview.checkpoint import save_checkpoint
-    from depth_fusion_ros.singleview.metadata import ModelMetadata
-
-    torch.manual_seed(0)
-    net = build_model('compact', {'input_width': 64, 'input_height': 48})
-    path = tmp_path_factory.mktemp('tiny') / 'tiny_compact.pt'
-    save_checkpoint(path, net, ModelMetadata(input_width=64, input_height=48))
-    return str(path)
-
-
-@pytest.fixture(scope='module')
-def room():
-    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-
-    return render_sequence(SynthConfig(width=160, height=120, frames=6, seed=3, parallax='high'))
+def room(small_sequence):
+    return small_sequence
 
 
 def _params(model: str, **extra) -> list[Parameter]:

@@ -133,6 +133,25 @@ class ModelMetadata:
         return meta
 
 
+def check_input_size(
+    path: Path, metadata: ModelMetadata, shape: list[Any], fixed_h: int | None, fixed_w: int | None, what: str
+) -> None:
+    """An exported ``what`` ('model', 'program') with input ``shape`` (H, W fixed or None) can
+    take what its YAML promises: a dynamic size, or the YAML's fixed one. ``ValueError`` naming
+    ``path`` otherwise (shared by the ONNX and torch.export hosts)."""
+    width, height = metadata.input_size
+    if metadata.dynamic_input and (fixed_h is not None or fixed_w is not None):
+        raise ValueError(
+            f'{path}: the YAML says dynamic_input but the {what} fixes its input to {shape[3]}x{shape[2]} '
+            '(export it with dynamic height/width, or set input_width/input_height instead)'
+        )
+    if fixed_w not in (None, width) or fixed_h not in (None, height):
+        raise ValueError(
+            f'{path}: the {what} takes {shape[3]}x{shape[2]} images but its YAML says '
+            f'input_width x input_height = {width}x{height}'
+        )
+
+
 def metadata_path_for(model_path: str | Path, what: str = 'model') -> Path:
     """The YAML beside ``model_path``: ``x.yaml`` if it exists, else ``x.<suffix>.yaml``."""
     model_path = Path(model_path)

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .metadata import ModelMetadata, metadata_path_for, read_metadata_yaml
+from .metadata import ModelMetadata, check_input_size, metadata_path_for, read_metadata_yaml
 
 log = logging.getLogger(__name__)
 
@@ -112,18 +112,7 @@ def check_onnx_signature(session: Any, metadata: ModelMetadata, path: Path) -> N
         raise ValueError(f'{path}: input {inp.name!r} has shape {shape}, expected (B, 3, H, W)')
     if _dim(shape[1]) not in (None, 3):
         raise ValueError(f'{path}: input {inp.name!r} has {shape[1]} channels, expected 3 (B, 3, H, W)')
-    width, height = metadata.input_size
-    fixed_h, fixed_w = _dim(shape[2]), _dim(shape[3])
-    if metadata.dynamic_input and (fixed_h is not None or fixed_w is not None):
-        raise ValueError(
-            f'{path}: the YAML says dynamic_input but the model fixes its input to {shape[3]}x{shape[2]} '
-            '(export it with dynamic height/width axes, or set input_width/input_height instead)'
-        )
-    if (fixed_w not in (None, width)) or (fixed_h not in (None, height)):
-        raise ValueError(
-            f'{path}: the model takes {shape[3]}x{shape[2]} images but its YAML says '
-            f'input_width x input_height = {width}x{height}'
-        )
+    check_input_size(path, metadata, shape, _dim(shape[2]), _dim(shape[3]), 'model')
 
 
 def load_onnx(

@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .metadata import ModelMetadata, metadata_path_for, read_metadata_yaml
+from .metadata import ModelMetadata, check_input_size, metadata_path_for, read_metadata_yaml
 
 log = logging.getLogger(__name__)
 
@@ -72,19 +72,9 @@ def check_pt2_signature(program: torch.export.ExportedProgram, metadata: ModelMe
         raise ValueError(f'{path}: expected one image input (B, 3, H, W), the program takes {n} input(s)')
     if len(shape) != 4 or (isinstance(shape[1], int) and shape[1] != 3):
         raise ValueError(f'{path}: the program takes input of shape {shape}, expected (B, 3, H, W)')
-    width, height = metadata.input_size
     fixed_h = shape[2] if isinstance(shape[2], int) else None
     fixed_w = shape[3] if isinstance(shape[3], int) else None
-    if metadata.dynamic_input and (fixed_h is not None or fixed_w is not None):
-        raise ValueError(
-            f'{path}: the YAML says dynamic_input but the program fixes its input to {shape[3]}x{shape[2]} '
-            '(export it with dynamic height/width, or set input_width/input_height instead)'
-        )
-    if fixed_w not in (None, width) or fixed_h not in (None, height):
-        raise ValueError(
-            f'{path}: the program takes {shape[3]}x{shape[2]} images but its YAML says '
-            f'input_width x input_height = {width}x{height}'
-        )
+    check_input_size(path, metadata, shape, fixed_h, fixed_w, 'program')
 
 
 def load_pt2(
