@@ -221,13 +221,12 @@ def fuse_keyframe(
 
     aligned = apply_alignment(s, fit) if config.aligns(output_kind) else AlignedDepth(s, 0)
     base = aligned.depth
+    guard_config = guard_config or GuardConfig()
     verdict = None
     if config.guard and omega_mask is None:
         verdict = assess(base, m, omega, n_stage1, guard_config, evidence)
         if verdict.decision not in ('full', 'fewer_points'):
-            guarded = _guarded(base, m, fit, n_stage1, verdict, config, guard_config or GuardConfig())
-            guarded.n_nonpositive = aligned.n_nonpositive
-            return guarded
+            return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config)
         omega = verdict.trusted
     omega = _cap_points(omega, config.max_points, config.seed)
     omega &= np.isfinite(base)
@@ -247,9 +246,9 @@ def fuse_keyframe(
     with np.errstate(invalid='ignore'):
         depth = np.maximum(base + interp.offset, MIN_DEPTH).astype(np.float32)
     depth[~np.isfinite(base)] = np.nan
-    reach = (guard_config or GuardConfig()).reach
-    if verdict is not None and reach > 0:
-        depth, coverage = limit_reach(depth, base, interp.support_distance, reach * base.shape[1])
+    if verdict is not None and guard_config.reach > 0:
+        radius = guard_config.reach * base.shape[1]
+        depth, coverage = limit_reach(depth, base, interp.support_distance, radius)
         verdict.evidence['coverage'] = coverage
     depth, _ = sanitize_depth(depth)
     confidence = confidence_from_support(interp.support_distance, config.sigma1)
@@ -283,7 +282,7 @@ def _verdict_fields(verdict: GuardVerdict | None) -> dict:
 
 
 def _guarded(
-    base: np.ndarray,
+    aligned: AlignedDepth,
     m: np.ndarray,
     fit: LinearFit,
     n_stage1: int,
@@ -293,8 +292,9 @@ def _guarded(
 ) -> FusionResult:
     """A keyframe the guard stepped down to ``scale_only``, ``single_scaled`` or ``single_view``.
 
-    It starts from ``base``: ``s`` itself, or ``s`` mapped by the fit when aligning (a
+    It starts from ``aligned.depth``: ``s`` itself, or ``s`` mapped by the fit when aligning (a
     non-metric source must be in metres whatever the decision)."""
+    base = aligned.depth
     depth, confidence = guarded_depth(base, m, verdict, config, guard_config)
     depth, _ = sanitize_depth(depth)
     confidence[~np.isfinite(depth)] = 0.0
@@ -307,6 +307,7 @@ def _guarded(
         n_stage1=n_stage1,
         n_omega=int(verdict.trusted.sum()),
         single_aligned=base,
+        n_nonpositive=aligned.n_nonpositive,
         **_verdict_fields(verdict),
     )
 
