@@ -39,6 +39,11 @@ def test_param_spec_checks_type_range_and_choices():
     assert ParamSpec('K', [0.0] * 4, 'd', length=4).check([1, 2, 3, 4]) == [1.0, 2.0, 3.0, 4.0]
     with pytest.raises(ValueError, match='true or false'):
         ParamSpec('flag', True, 'd').check('yes')
+    # an unquoted YAML `adapt: false` is a bool; a true/false/auto string parameter takes it
+    tri = ParamSpec('adapt', 'auto', 'd', choices=('auto', 'true', 'false'))
+    assert (tri.check(False), tri.check(True)) == ('false', 'true')
+    with pytest.raises(ValueError, match='must be a string'):
+        ParamSpec('mode', 'fast', 'd', choices=('exact', 'fast')).check(True)
 
 
 @dataclass

@@ -13,6 +13,7 @@ prediction in flight.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -62,9 +63,15 @@ class OnlineAdaptation:
         queue_size: int = 2,
         on_report: Callable[[UpdateReport], None] | None = None,
         name: str = 'adaptation',
+        nice: int = 0,
     ):
         if queue_size < 1:
             raise ValueError(f'adaptation queue size must be >= 1, got {queue_size}')
+        if not 0 <= nice <= 19:
+            raise ValueError(f'adaptation nice must be in [0, 19], got {nice}')
+        self.nice = int(nice)
+        #: the niceness the training thread runs at (None until it started, or where unsupported)
+        self.thread_nice: int | None = None
         self.adapter = adapter
         self.slot = slot
         self.on_report = on_report
@@ -91,7 +98,30 @@ class OnlineAdaptation:
             self._cond.notify()
         return not dropped
 
+    def _lower_priority(self) -> None:
+        """Make this (the training) thread and the torch worker threads it creates yield the CPU.
+
+        On a small CPU the graph's real-time path (inference, multi-view, fusion) must not wait
+        for training; with a niceness of 10 the scheduler gives this thread about a tenth of a
+        contended core and all of an idle one. Linux keeps the nice value per thread and new
+        threads inherit it, so it is set here, before the first torch op creates this thread's
+        OpenMP team. Where the platform has no per-thread priority it is said once and ignored.
+        """
+        if self.nice == 0:
+            self.thread_nice = 0
+            return
+        try:
+            tid = threading.get_native_id()
+            base = os.getpriority(os.PRIO_PROCESS, tid)
+            os.setpriority(os.PRIO_PROCESS, tid, min(19, base + self.nice))
+            self.thread_nice = os.getpriority(os.PRIO_PROCESS, tid)
+        except (AttributeError, OSError) as exc:  # not Linux / not permitted
+            log.warning(
+                'adaptation: cannot lower the training thread priority (%s); it runs at normal priority', exc
+            )
+
     def _run(self) -> None:
+        self._lower_priority()
         while True:
             with self._cond:
                 while not self._queue and not self._stop:

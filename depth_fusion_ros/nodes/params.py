@@ -75,6 +75,9 @@ class ParamSpec:
             self._check_range(value, label)
             return value
         if kind is str:
+            if isinstance(value, bool) and {'true', 'false'} <= set(self.choices or ()):
+                # YAML reads an unquoted `adapt: false` (or `--set ...adapt=false`) as a bool
+                value = 'true' if value else 'false'
             if not isinstance(value, str):
                 raise ValueError(f'{label} must be a string, got {value!r}')
             if self.choices and value not in self.choices:

@@ -74,6 +74,14 @@ ADAPTATION_PARAMETERS: tuple[ParamSpec, ...] = (
         100,
     ),
     ParamSpec(
+        'adaptation.nice',
+        10,
+        'scheduling niceness of the training thread (Linux): training then uses the CPU that inference, '
+        'multi-view and fusion leave idle instead of delaying them; 0 = the same priority as inference',
+        0,
+        19,
+    ),
+    ParamSpec(
         'adaptation.neighbours',
         2,
         'previous posed keyframes warped into each keyframe for the photometric term (0: sparse term only)',
@@ -128,7 +136,11 @@ class NodeAdaptation:
         self.adapter = Adapter.from_spec(str(p['model']), self.config, str(p['device']))
         self.slot = WeightSlot(predictor)
         self.online = OnlineAdaptation(
-            self.adapter, self.slot, int(p['adaptation.queue_size']), on_report=self._on_report
+            self.adapter,
+            self.slot,
+            int(p['adaptation.queue_size']),
+            on_report=self._on_report,
+            nice=int(p['adaptation.nice']),
         )
         self.assembler = KeyframeAssembler(
             select_fraction=self.config.select_fraction,
