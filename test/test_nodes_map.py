@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
@@ -148,10 +150,12 @@ def test_multi_view_node_publishes_each_keyframe_pose_with_its_stamp(room):
     np.testing.assert_allclose(m.pose_stamped_to_matrix(poses[0]), seq.frames[3].pose, atol=1e-6)
 
 
-def test_run_parameters_for_the_launcher(tmp_path):
-    from depth_fusion_ros.nodes.map_node import PARAMETERS, run_parameters
+def test_map_settings_of_a_graph_run(tmp_path):
+    from depth_fusion_ros.nodes.graph import RunOptions
+    from depth_fusion_ros.nodes.graph.param_merge import map_overrides
+    from depth_fusion_ros.nodes.map_node import PARAMETERS
 
-    params = run_parameters(tmp_path / 'map.ply')
+    params = map_overrides(RunOptions(bag=tmp_path, save_map=tmp_path / 'map.ply', device='cpu'))
     assert params['save_on_shutdown'] is True and params['save_path'].endswith('map.ply')
     declared = {spec.name: spec for spec in PARAMETERS} | {
         'queue_policy': None,
@@ -159,6 +163,6 @@ def test_run_parameters_for_the_launcher(tmp_path):
         'qos_depth': None,
     }
     assert set(params) <= set(declared)
-    assert 'save_path' not in run_parameters(None, lossless=False)
+    assert 'save_path' not in map_overrides(RunOptions(bag=tmp_path, map=True, realtime=True))
     with pytest.raises(ValueError, match='ply'):
-        run_parameters('map.obj')
+        map_overrides(RunOptions(bag=tmp_path, save_map=Path('map.obj')))

@@ -19,12 +19,17 @@ process and the children) so 640x480 images are not lost between processes; set
 FASTRTPS_DEFAULT_PROFILES_FILE yourself to use another.
 
 recorded topics (--record): /depth_fusion/fused/{depth,confidence,camera_info},
-/depth_fusion/multi_view/depth, /depth_fusion/single_view/depth, /depth_fusion/keyframe/image;
+/depth_fusion/multi_view/depth, /depth_fusion/single_view/depth, /depth_fusion/keyframe/{image,pose};
 the input bag keeps the ground truth (/camera/depth/image) to evaluate them against.
+
+--map also starts map_node (docs/mapping.md): every fused keyframe is integrated into a TSDF map,
+published on /depth_fusion/map/points; --save-map FILE.ply writes its mesh when the run ends (an
+error, exit 1, when no map could be written).
 
 examples:
   depth-fusion run --bag artifacts/room --record runs/room_out
   depth-fusion run --bag room --params my_params.yaml --processes --rate 0.5
+  depth-fusion run --bag room --save-map runs/room_map.ply
 """
 
 
@@ -56,6 +61,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         help='also record this topic (repeatable; its type is taken from the graph)',
     )
     p.add_argument('--processes', action='store_true', help='run each node as its own process')
+    p.add_argument(
+        '--map',
+        action='store_true',
+        help='also start map_node: a TSDF map of the fused depth (docs/mapping.md)',
+    )
+    p.add_argument(
+        '--save-map',
+        type=Path,
+        metavar='FILE.ply',
+        help="write the map's mesh to FILE.ply when the run ends (implies --map)",
+    )
     p.add_argument(
         '--realtime',
         action='store_true',
@@ -141,6 +157,13 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         check_domain_id(args.domain_id)
     overrides = parse_overrides(args.set, 'NODE')
     check_node_overrides(overrides)
+    with_map = args.map or args.save_map is not None
+    if 'map_node' in overrides and not with_map:
+        raise ValueError('--set map_node.*: map_node is not started; add --map (or --save-map FILE.ply)')
+    if args.save_map is not None:
+        if args.save_map.suffix.lower() != '.ply':
+            raise ValueError(f'--save-map {args.save_map}: the map is written as .ply')
+        check_output(args.save_map, '--save-map', folder=False)
     if args.record is not None:
         check_output(args.record, '--record', exists_ok=False, bag=True)
     if args.log_dir is not None:
@@ -164,6 +187,8 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         domain_id=args.domain_id,
         localhost_only=True if args.localhost_only else None,
         allow_missing=args.allow_missing,
+        map=args.map,
+        save_map=args.save_map,
     )
 
 
@@ -203,4 +228,10 @@ def run(args: argparse.Namespace) -> int:
     )
     if result.missing:
         print(f'{len(result.missing)} keyframe(s) without fused output (see the warning above)')
+    if options.save_map is not None:
+        if result.map_error is not None:
+            print(f'depth-fusion run: error: {result.map_error}', file=sys.stderr)
+            return 1
+        vertices, faces = result.map_size or (0, 0)
+        print(f'map: {vertices} vertices, {faces} faces written to {result.map_file}')
     return 0

@@ -45,6 +45,9 @@ def write_ply(path: str | Path, mesh: SurfaceMesh) -> Path:
             f.write(header.encode('ascii'))
             f.write(vertices.tobytes())
             f.write(faces.tobytes())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it private; a map is an ordinary file
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -34,6 +34,7 @@ from ..mapping.engine import make_map
 from ..mapping.ply import write_ply
 from ..mapping.surface import SurfaceMesh
 from .base import DepthFusionNode, run_node
+from .graph_events import GraphEvents
 from .image_input import InputError, depth_from_message, pose_from_message
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .stamp_pairing import StampPairer
@@ -101,6 +102,7 @@ class MapNode(DepthFusionNode):
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
         super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
+        self.events = GraphEvents(self)  # the ready line a graph runner waits for
         p = self.params
         try:
             config = build_dataclass(MapConfig, p, 'map', device=str(p['device'])).validate()
@@ -138,6 +140,7 @@ class MapNode(DepthFusionNode):
         self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
         if float(p['points_rate']) > 0:
             self.create_wall_timer(1.0 / float(p['points_rate']), self._publish_points)
+        self.events.ready()
         cap = config.max_blocks * config.bytes_per_block / 2**20
         self.get_logger().info(
             f'map: {config.voxel_size * 100:g} cm voxels, truncation {config.truncation_m * 100:g} cm, '
@@ -292,27 +295,6 @@ class MapNode(DepthFusionNode):
             except (OSError, ValueError) as exc:
                 self.get_logger().error(f'map not saved: {exc}')
         super().destroy_node()
-
-
-#: What ``depth-fusion run`` records besides its own topics when the map runs.
-RECORDED_TOPICS = {'/' + TOPIC_KEYFRAME_POSE: 'geometry_msgs/msg/PoseStamped'}
-
-
-def run_parameters(save_map: str | Path | None, lossless: bool = True) -> dict[str, Any]:
-    """Parameter overrides for ``map_node`` in a bag replay (``depth-fusion run --save-map FILE``).
-
-    The mesh is written when the node is destroyed (``save_on_shutdown``) after its queue
-    drained; ``lossless`` integrates every keyframe (the callback waits) as the demo's nodes do.
-    """
-    params: dict[str, Any] = {}
-    if save_map is not None:
-        path = Path(save_map)
-        if path.suffix.lower() != '.ply':
-            raise ValueError(f'--save-map {path}: the map is written as .ply')
-        params.update(save_path=str(path), save_on_shutdown=True)
-    if lossless:
-        params.update(queue_policy='block', queue_size=16, qos_depth=100)
-    return params
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -37,6 +37,7 @@ from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
 from .dds import apply_fastdds_profile
 from .inputs import check_inputs
 from .isolation import Isolation, isolate
+from .map_output import check_saved_map
 from .options import GraphError, RunOptions, RunResult
 from .pacing import paced_overrides
 from .param_merge import bag_topic_types, node_overrides, recorder_qos, ros_arg_value
@@ -52,6 +53,7 @@ from .topics import (
     TOPIC_FUSED_DEPTH,
     TOPIC_IMAGE,
     TOPIC_KEYFRAME_IMAGE,
+    graph_nodes,
 )
 
 log = logging.getLogger(__name__)
@@ -62,6 +64,8 @@ class GraphRun:
 
     def __init__(self, options: RunOptions) -> None:
         self.options = options
+        #: The nodes this run starts: the fusion graph, plus ``map_node`` with ``--map``.
+        self.graph_nodes = graph_nodes(options.with_map)
         self.started = time.monotonic()
         self.recorder: Any = None
         self.nodes: dict[str, Any] = {}
@@ -72,6 +76,7 @@ class GraphRun:
         self._logs: list[Any] = []
         self._torch_threads_before: int | None = None
         self._wall_start = time.time()
+        self.started_wall = self._wall_start
         self.exit_codes: dict[str, int | None] = {}
         self.executor_error: BaseException | None = None
         self._next_progress = 0.0
@@ -185,7 +190,7 @@ class GraphRun:
 
         self._set_composed_threads()
 
-        for name, (_, module) in GRAPH_NODES.items():
+        for name, (_, module) in self.graph_nodes.items():
             cls = node_class(importlib.import_module(module))
             log.info('starting %s', name)
             started = time.monotonic()
@@ -220,7 +225,7 @@ class GraphRun:
             threads = max(1, (os.cpu_count() or 1) // len(GRAPH_NODES))
         if threads is not None:
             env['OMP_NUM_THREADS'] = str(threads)
-        for name, (script, module) in GRAPH_NODES.items():
+        for name, (script, module) in self.graph_nodes.items():
             self._spawn(name, script, module, overrides, env)
         self._wait_for_nodes_ready()
         self._spawn(REPLAYER[0], *REPLAYER, overrides, env)
@@ -241,11 +246,11 @@ class GraphRun:
         publishers = self._event_subs[0]
         while True:
             self._check_processes()
-            for name in GRAPH_NODES:
+            for name in self.graph_nodes:
                 arrived = self.ready.arrival.get('/' + name)
                 if arrived is not None and name not in self.ready_seconds:
                     self.ready_seconds[name] = arrived - self._spawned_at[name]
-            waiting = self.ready.missing(list(GRAPH_NODES))
+            waiting = self.ready.missing(list(self.graph_nodes))
             if not waiting and publishers.get_publisher_count() >= len(GRAPH_NODES):
                 log.info(
                     'nodes ready after %.1f s (%s)',
@@ -257,7 +262,7 @@ class GraphRun:
                 waiting = waiting or ['the keyframe events of every node']
                 raise GraphError(
                     f'{", ".join(waiting)} not ready after {self.options.startup_timeout:g} s'
-                    + ''.join(self._log_hint(n) for n in waiting[:1] if n in GRAPH_NODES)
+                    + ''.join(self._log_hint(n) for n in waiting[:1] if n in self.graph_nodes)
                 )
             time.sleep(0.05)
 
@@ -313,7 +318,7 @@ class GraphRun:
             raise GraphError(f'the executor stopped: {self.executor_error!r}')
         if not self.options.processes:
             return
-        for name in GRAPH_NODES:
+        for name in self.graph_nodes:
             code = self.processes[name].poll()
             if code is not None:
                 raise GraphError(f'{name} {describe_exit(code)}{self._log_hint(name)}')
@@ -410,8 +415,9 @@ class GraphRun:
         return '; dropped by ' + '; '.join(parts) if parts else ''
 
     def _nodes_idle(self) -> bool:
-        """Composed: every worker has finished (processes are judged by their outputs only)."""
-        return all(node.wait_idle(0.0) for name, node in self.nodes.items() if name in GRAPH_NODES)
+        """Composed: every worker has finished, the map's integration included (processes are
+        judged by their outputs only)."""
+        return all(node.wait_idle(0.0) for name, node in self.nodes.items() if name in self.graph_nodes)
 
     # -- results and shutdown --
 
@@ -445,7 +451,7 @@ class GraphRun:
                     latencies[stamp] = t_out - t_in
         stats = {}
         for name, node in self.nodes.items():
-            if name in GRAPH_NODES:
+            if name in self.graph_nodes:
                 stats[name] = node.stats.snapshot()
         return RunResult(
             announced=announced,
@@ -457,7 +463,9 @@ class GraphRun:
             images_played=self._images_played(),
             images_handled=self.ledger.snapshot().images,
             constructor_seconds={
-                n: st.seconds for n in GRAPH_NODES if (st := self.ready.statuses.get('/' + n)) is not None
+                n: st.seconds
+                for n in self.graph_nodes
+                if (st := self.ready.statuses.get('/' + n)) is not None
             },
             missing=self.pending_keyframes(),
             recorded=None,
@@ -527,4 +535,8 @@ def run_graph(options: RunOptions) -> RunResult:
     result = run.run()
     result.exit_codes = dict(run.exit_codes)
     result.domain_id = run.isolation.domain if run.isolation else None
+    if options.save_map is not None:  # written by map_node as it stopped
+        result.map_file, result.map_size, result.map_error = check_saved_map(
+            options.save_map, run.started_wall
+        )
     return result

@@ -63,6 +63,14 @@ class RunOptions:
     localhost_only: bool | None = None
     #: Run even when the bag lacks a topic the graph needs (``--allow-missing``).
     allow_missing: bool = False
+    #: Also start ``map_node`` (``--map``), which integrates every fused keyframe into a TSDF.
+    map: bool = False
+    #: Write the map's mesh here when the run ends (``--save-map FILE.ply``; implies ``map``).
+    save_map: Path | None = None
+
+    @property
+    def with_map(self) -> bool:
+        return self.map or self.save_map is not None
 
 
 @dataclass
@@ -96,6 +104,10 @@ class RunResult:
     constructor_seconds: dict[str, float] = field(default_factory=dict)
     #: The ROS domain the graph ran on.
     domain_id: int | None = None
+    #: ``--save-map``: the mesh file written, and its vertex and triangle counts; or why not.
+    map_file: Path | None = None
+    map_size: tuple[int, int] | None = None
+    map_error: str | None = None
 
     @property
     def complete(self) -> bool:

@@ -18,7 +18,7 @@ from typing import Any
 
 from .options import RunOptions
 from .param_merge import param_from_file, read_params_file
-from .topics import GRAPH_NODES, REPLAYER
+from .topics import GRAPH_NODES, REPLAYER, graph_nodes
 
 
 def paced_overrides(options: RunOptions, overrides: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -36,7 +36,7 @@ def paced_overrides(options: RunOptions, overrides: dict[str, dict[str, Any]]) -
     replayer = out.setdefault(REPLAYER[0], {})
     paced = not options.realtime
     for name, value in (
-        ('wait_ready', list(GRAPH_NODES)),
+        ('wait_ready', list(graph_nodes(options.with_map))),
         ('wait_for_nodes', ['']),  # replaced by the nodes' own ready lines
         ('start_delay', 0.0),
         ('wait_timeout', float(options.startup_timeout)),

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from .options import RunOptions
-from .topics import GRAPH_NODES, REPLAYER, TOPIC_GT_DEPTH
+from .topics import GRAPH_NODES, MAP_NODE, REPLAYER, TOPIC_GT_DEPTH
 
 
 def read_params_file(path: Path | None) -> dict[str, dict[str, Any]]:
@@ -90,6 +90,8 @@ def node_overrides(
         replayer['topics'] = played or list(bag_topics)
     replayer.setdefault('wait_for_nodes', list(GRAPH_NODES))
     _inputs_from_bag(params, bag_topics, out['multi_view_node'])
+    if options.with_map:
+        out[MAP_NODE[0]] = map_overrides(options)
     for node, values in options.overrides.items():
         out.setdefault(node, {}).update(values)
     return out
@@ -111,6 +113,23 @@ def _inputs_from_bag(
         multi_view['image_transport'] = image_transport_for_topics(bag_topics)
     if isinstance(bag_topics, Mapping) and param_from_file(params, 'multi_view_node', 'pose_type') is None:
         multi_view['pose_type'] = pose_type_for_topics(bag_topics)
+
+
+def map_overrides(options: RunOptions) -> dict[str, Any]:
+    """``map_node``'s settings in a run: the mesh written when it stops with ``--save-map``
+    (``save_on_shutdown``, after its queue drained), every keyframe integrated in a paced
+    replay (its callback waits instead of dropping, as the other nodes' do), the device."""
+    values: dict[str, Any] = {}
+    if options.save_map is not None:
+        path = Path(options.save_map).expanduser()
+        if path.suffix.lower() != '.ply':
+            raise ValueError(f'--save-map {path}: the map is written as .ply')
+        values.update(save_path=str(path), save_on_shutdown=True)
+    if not options.realtime:
+        values.update(queue_policy='block', queue_size=16, qos_depth=100)
+    if options.device is not None:
+        values['device'] = options.device
+    return values
 
 
 def recorder_qos(options: RunOptions) -> str:

@@ -16,9 +16,11 @@ TOPIC_MV_DEPTH = '/depth_fusion/multi_view/depth'
 TOPIC_FUSED_DEPTH = '/depth_fusion/fused/depth'
 TOPIC_FUSED_CONFIDENCE = '/depth_fusion/fused/confidence'
 TOPIC_FUSED_CAMERA_INFO = '/depth_fusion/fused/camera_info'
+TOPIC_KEYFRAME_POSE = '/depth_fusion/keyframe/pose'
 
 IMAGE = 'sensor_msgs/msg/Image'
 CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 
 #: What ``--record`` writes: enough to evaluate the fused depth against the bag's ground truth.
 RECORDED_TOPICS: dict[str, str] = {
@@ -28,6 +30,7 @@ RECORDED_TOPICS: dict[str, str] = {
     TOPIC_MV_DEPTH: IMAGE,
     TOPIC_SINGLE_DEPTH: IMAGE,
     TOPIC_KEYFRAME_IMAGE: IMAGE,
+    TOPIC_KEYFRAME_POSE: POSE_STAMPED,
 }
 #: A keyframe is complete when all of these carry its stamp.
 FUSED_OUTPUTS = (TOPIC_FUSED_DEPTH, TOPIC_FUSED_CONFIDENCE, TOPIC_FUSED_CAMERA_INFO)
@@ -40,8 +43,18 @@ GRAPH_NODES: dict[str, tuple[str, str]] = {
     'multi_view_node': ('multi_view_node', 'depth_fusion_ros.nodes.multi_view_node'),
     'fusion_node': ('fusion_node', 'depth_fusion_ros.nodes.fusion_node'),
 }
+#: Started with ``--map`` / ``--save-map``: integrates the fused keyframes into a TSDF map.
+MAP_NODE = ('map_node', 'depth_fusion_ros.nodes.map_node')
 REPLAYER = ('bag_replayer', 'depth_fusion_ros.nodes.bag_replayer')
 RECORDER_NODE = 'depth_fusion_recorder'
 
 #: Topics every rclpy node has, which say nothing about a node being set up.
 STANDARD_TOPICS = frozenset({'/rosout', '/parameter_events'})
+
+
+def graph_nodes(with_map: bool) -> dict[str, tuple[str, str]]:
+    """The nodes a run starts, in start order: the fusion graph, and ``map_node`` with a map."""
+    nodes = dict(GRAPH_NODES)
+    if with_map:
+        nodes[MAP_NODE[0]] = MAP_NODE
+    return nodes

@@ -1,0 +1,75 @@
+"""``depth-fusion run --map / --save-map``: map_node in the graph, its mesh written at the end."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from depth_fusion_ros.nodes.graph.map_output import check_saved_map
+
+pytest.importorskip('rclpy', reason='rclpy (ros-jazzy-rclpy) is not installed')
+torch = pytest.importorskip('torch')
+
+from conftest import save_torchscript_depth_model  # noqa: E402
+from run_bags import header_stamps, small_bag, write_params  # noqa: E402
+
+POSE = '/depth_fusion/keyframe/pose'
+FUSED = '/depth_fusion/fused/depth'
+
+
+class _ToyDepth(torch.nn.Module):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return 2.0 + 0.5 * torch.sigmoid(x.mean(dim=1, keepdim=True))
+
+
+def test_save_map_writes_the_mesh_of_every_fused_keyframe(synthetic_tum_dir, tmp_path):
+    from depth_fusion_ros.mapping.ply import read_ply
+    from depth_fusion_ros.nodes.graph import RunOptions, run_graph
+
+    model = save_torchscript_depth_model(_ToyDepth(), tmp_path, 'toy')
+    params = write_params(tmp_path / 'params.yaml', model)
+    bag = small_bag(synthetic_tum_dir, tmp_path / 'bag')
+    out = tmp_path / 'maps' / 'room.ply'
+    result = run_graph(
+        RunOptions(bag=bag, params_file=params, record=tmp_path / 'rec', save_map=out, flush_timeout=120.0)
+    )
+    assert result.complete and result.fused, result
+    assert result.map_error is None and result.map_file == out
+    mesh = read_ply(out)
+    assert result.map_size == (len(mesh.vertices), len(mesh.triangles)) and len(mesh.vertices) > 0
+    map_stats = result.node_stats['map_node']
+    assert map_stats.published.get('integrated') == len(result.fused)  # every fused keyframe is in the map
+    # the keyframe poses the map used are recorded with the fused depth, stamp for stamp
+    assert header_stamps(tmp_path / 'rec', POSE) == header_stamps(tmp_path / 'rec', FUSED)
+
+
+def test_no_map_written_is_an_error_not_a_success(tmp_path):
+    stale = tmp_path / 'old.ply'
+    stale.write_bytes(b'ply\nformat binary_little_endian 1.0\nelement vertex 3\nend_header\n')
+    file, size, why = check_saved_map(stale, since_wall=stale.stat().st_mtime + 60.0)  # from an earlier run
+    assert file is None and size is None and 'wrote no map' in why
+    file, size, why = check_saved_map(tmp_path / 'missing.ply', since_wall=0.0)
+    assert file is None and 'wrote no map' in why
+    assert check_saved_map(stale, since_wall=0.0)[1] == (3, 0)
+
+
+def _args(*argv: str) -> argparse.Namespace:
+    from depth_fusion_ros.cli.main import build_parser
+
+    return build_parser().parse_args(['run', '--bag', 'b', *argv])
+
+
+def test_map_options_are_checked_before_anything_runs(tmp_path):
+    from depth_fusion_ros.cli.run import options_from_args
+
+    with pytest.raises(ValueError, match='map_node is not started; add --map'):
+        options_from_args(_args('--set', 'map_node.map.voxel_size=0.02'))
+    with pytest.raises(ValueError, match=r'written as \.ply'):
+        options_from_args(_args('--save-map', str(tmp_path / 'm.obj')))
+    opts = options_from_args(
+        _args('--save-map', str(tmp_path / 'm.ply'), '--set', 'map_node.map.voxel_size=0.02')
+    )
+    assert opts.with_map and opts.save_map == tmp_path / 'm.ply'
+    assert options_from_args(_args('--map')).with_map
+    assert not options_from_args(_args()).with_map
