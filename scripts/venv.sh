@@ -5,6 +5,13 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${DEPTH_FUSION_VENV:-$ROOT/.venv}"
 PY="${PYTHON:-python3}"
+# DEPTH_FUSION_TORCH=cuda: the CUDA build of the same torch (PyPI's torch==2.13.0 for Linux x86_64,
+# CUDA 13; several GB) instead of the CPU build CI uses. scripts/demo.sh --cuda sets it.
+TORCH_BUILD="${DEPTH_FUSION_TORCH:-cpu}"
+case "$TORCH_BUILD" in
+  cpu|cuda) ;;
+  *) echo "scripts/venv.sh: DEPTH_FUSION_TORCH must be cpu or cuda, got '$TORCH_BUILD'" >&2; exit 2 ;;
+esac
 
 # Every dependency pinned to the versions the project is tested with (a fresh clone installs
 # exactly what CI ran). Unpinned ros-* names resolve to newer distributions; a bare `torch` pulls GBs of CUDA.
@@ -36,10 +43,16 @@ fi
 . "$VENV/bin/activate"
 
 stamp="$VENV/.depth_fusion_stamp"
-want="$(printf '%s\n' "${REQUIREMENTS[@]}" | cat - "$ROOT/setup.py" | sha256sum | cut -d' ' -f1)"
+want="$(printf '%s\n' "torch build: $TORCH_BUILD" "${REQUIREMENTS[@]}" | cat - "$ROOT/setup.py" | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "[venv] installing dependencies (first run takes a minute or two)"
-  python -m pip install -q --disable-pip-version-check "torch==2.13.0"
+  if [ "$TORCH_BUILD" = cuda ]; then
+    # --isolated: PyPI's wheel, not a CPU wheel a local pip configuration may point at.
+    python -m pip install -q --disable-pip-version-check --isolated --force-reinstall "torch==2.13.0"
+    python -c 'import sys, torch; sys.exit(0 if torch.version.cuda else "scripts/venv.sh: the installed torch " + torch.__version__ + " has no CUDA; install a CUDA build of torch==2.13.0 into .venv by hand")'
+  else
+    python -m pip install -q --disable-pip-version-check "torch==2.13.0"
+  fi
   python -m pip install -q --disable-pip-version-check "${REQUIREMENTS[@]}"
   python -m pip install -q --disable-pip-version-check --no-deps -e "$ROOT"
   echo "$want" > "$stamp"

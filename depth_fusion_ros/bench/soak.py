@@ -16,6 +16,11 @@ Reported (figures, never assertions):
 * the same growth per process, so a leak is attributed to a node.
 
 The curve goes to ``artifacts/bench/soak_rss.csv`` (seconds, total, then one column per process).
+
+With ``DEPTH_FUSION_SOAK_MAP_BLOCKS=N`` the graph also runs ``map_node`` (``--map``) with
+``map.max_blocks = N``: set N below what the scene needs and the map evicts blocks all along,
+so the run shows whether the map node's memory stays under its declared cap
+(N x ``MapConfig.bytes_per_block``) over the whole looped replay.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from .node_graph import BENCH_DIR, _load_note, bench_bag, graph_options, rss_mb
 
 TITLE = 'soak (looped replay as processes, resident memory over time)'
 SECONDS_ENV = 'DEPTH_FUSION_SOAK_SECONDS'
+MAP_BLOCKS_ENV = 'DEPTH_FUSION_SOAK_MAP_BLOCKS'
 DEFAULT_SECONDS = 1800.0
 #: Share of the run counted as warm-up.
 WARMUP_SHARE = 0.2
@@ -74,6 +80,10 @@ def run(opts: BenchOptions) -> list[BenchRow]:
     options.track_input = False
     options.overrides.setdefault('bag_replayer', {}).update({'loop': True, 'loop_seconds': seconds})
     options.flush_timeout = 30.0
+    map_blocks = int(os.environ.get(MAP_BLOCKS_ENV, '0') or 0)
+    if map_blocks > 0:
+        options.map = True
+        options.overrides.setdefault('map_node', {}).update({'map.max_blocks': map_blocks})
     result = run_graph(options)
     names = sorted({k for s in sampler.rss for k in s})
     if len(sampler.times) < 6:
@@ -106,4 +116,27 @@ def run(opts: BenchOptions) -> list[BenchRow]:
     for i, n in enumerate(names):
         w, e, g, _ = growth(t, table[:, i], seconds)
         rows.append(BenchRow(f'soak: {n} RSS growth', g, '%', f'{w:.0f} -> {e:.0f} MB'))
+    if map_blocks > 0 and 'map_node' in names:
+        rows += map_rows(t, table[:, names.index('map_node')], seconds, map_blocks)
     return rows
+
+
+def map_rows(t: np.ndarray, rss: np.ndarray, seconds: float, max_blocks: int) -> list[BenchRow]:
+    """map_node's memory against its declared cap: how far its RSS rose above the level after
+    warm-up (torch, rclpy and the first keyframes), at most, compared with the voxel cap."""
+    from ..mapping.config import MapConfig
+
+    cap = max_blocks * MapConfig().bytes_per_block / 2**20
+    warm, end, _, _ = growth(t, rss, seconds)
+    steady = rss[t >= min(max(30.0, WARMUP_SHARE * seconds), t[-1] * 0.5)]
+    rise = float(np.nanmax(steady)) - warm
+    verdict = 'under' if rise <= cap else 'OVER'
+    return [
+        BenchRow('soak: map_node declared voxel cap', cap, 'MB', f'map.max_blocks={max_blocks}'),
+        BenchRow(
+            'soak: map_node RSS largest rise after warm-up',
+            rise,
+            'MB',
+            f'{verdict} the cap; {warm:.0f} MB after warm-up, {end:.0f} MB at the end',
+        ),
+    ]

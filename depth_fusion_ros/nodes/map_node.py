@@ -235,6 +235,17 @@ class MapNode(DepthFusionNode):
 
     # --- outputs --------------------------------------------------------------------------------------
 
+    def diagnostic_extra(self) -> dict[str, Any]:
+        """The map's size against its cap on ``/diagnostics``: a robot can watch it stay bounded."""
+        config = self.map.config
+        return {
+            'keyframes integrated': self._integrated,
+            'blocks': self.map.n_blocks,
+            'blocks evicted': self.map.evicted_blocks,
+            'voxel storage MiB': round(self.map.memory_bytes / 2**20, 2),
+            'cap MiB': round(config.max_blocks * config.bytes_per_block / 2**20, 2),
+        }
+
     @property
     def integrated(self) -> int:
         """Keyframes integrated so far."""
