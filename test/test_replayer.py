@@ -253,6 +253,28 @@ def test_loop_shifts_stamps_forward(context, bag):
     assert values[:21] == [*range(20), 0], values  # the second pass starts again at frame 0
 
 
+def test_loop_seconds_is_wall_time_also_when_a_busy_graph_holds_the_replay(context, bag):
+    from types import SimpleNamespace
+
+    from sensor_msgs.msg import Image
+
+    listener = Listener(context, {IMAGE: Image})
+    replayer = make_replayer(
+        context, bag, rate=10.0, loop=True, loop_seconds=0.5, topics=[IMAGE], qos_depth=1000, pace=True
+    )
+    # A graph that takes 0.2 s per image: the replay falls far behind its recorded schedule
+    # (which, before, decided when to stop: 0.5 s of bag time took minutes of wall time).
+    replayer.pacer = SimpleNamespace(
+        before_image=lambda: time.sleep(0.2) is None,
+        sent_image=lambda stamp: None,
+        stats=SimpleNamespace(pauses=0, paused_s=0.0),
+    )
+    start = time.monotonic()
+    play(context, replayer, listener)
+    assert time.monotonic() - start < 5.0
+    assert 1 <= len(listener.got[IMAGE]) <= 5
+
+
 def test_remap_and_topic_selection(context, bag):
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import Image

@@ -494,8 +494,8 @@ class BagReplayer(Node):
             messages = self._reader.messages(connections, start=self._play_start_ns)
             for conn, t_ns, raw in calibration_first(messages, lambda c: by_conn[c.id].msgtype):
                 due = wall0 + (t_ns + shift - t0) / 1e9 / rate
-                if deadline is not None and due > deadline:
-                    return
+                if deadline is not None and max(due, time.monotonic()) > deadline:
+                    return  # wall time: a paced replay runs behind its schedule, and still stops
                 if not self._sleep_until(due, t0, wall0, rate):
                     return
                 topic = by_conn[conn.id]
