@@ -194,19 +194,22 @@ ONE_PASS_MIN_RTOL = 0.1
 ONE_PASS_ROWS = 8192
 
 
-def _one_pass_kernel(sums: Callable, params: WeightParams, chunk_elements: int) -> Callable:
+def _one_pass_kernel(
+    sums: Callable, params: WeightParams, chunk_elements: int, n_points: int = 1
+) -> Callable:
     """The ``(ΣW'v, ΣW', ΣW'd, min W̃)`` kernel of :func:`_offsets_at` from the one-pass sums
     ``sums(p, q, v)`` (compiled), its shaky rows redone by :func:`_chunk_sums_inplace` in
-    blocks of ``chunk_elements`` pairs. ``kernel.rows`` tells :func:`_offsets_at` its chunk."""
+    blocks of ``chunk_elements`` pairs. ``kernel.rows`` tells :func:`_offsets_at` its chunk:
+    ``ONE_PASS_ROWS``, or ``chunk_elements / n_points`` (|Ω|) where that is more."""
 
     def kernel(p: Samples, q: Samples, v: torch.Tensor) -> tuple[torch.Tensor, ...]:
         wv, w, wd, low, d = sums(p, q, v)
-        n_points = q.x.shape[-1]
+        n_q = q.x.shape[-1]
         num = wv - low * v.sum()
-        den = w - n_points * low
+        den = w - n_q * low
         dist = wd - low * d
-        shaky = torch.nonzero(n_points * low > ONE_PASS_MIN_RTOL * w).squeeze(1)
-        block = max(1, chunk_elements // max(1, n_points))
+        shaky = torch.nonzero(n_q * low > ONE_PASS_MIN_RTOL * w).squeeze(1)
+        block = max(1, chunk_elements // max(1, n_q))
         for start in range(0, shaky.numel(), block):
             rows = shaky[start : start + block]
             exact = _chunk_sums_inplace(Samples(*(t[rows] for t in p)), q, v, params)
@@ -214,7 +217,8 @@ def _one_pass_kernel(sums: Callable, params: WeightParams, chunk_elements: int) 
                 out[rows] = value
         return num, den, dist, low
 
-    kernel.rows = ONE_PASS_ROWS  # type: ignore[attr-defined]
+    # chunk_elements per point already gives more rows than ONE_PASS_ROWS on CUDA (64 M elements).
+    kernel.rows = max(ONE_PASS_ROWS, chunk_elements // max(1, n_points))  # type: ignore[attr-defined]
     return kernel
 
 
@@ -364,7 +368,10 @@ def interpolate(
     # Eager: the in-place two-pass kernel (fewer passes over memory); compiled: the one-pass
     # sums fused into one loop over Ω.
     kernel = _one_pass_kernel(
-        _maybe_compiled('sums', _chunk_sums_one_pass, params, compile_kernel, dev), params, chunk_elements
+        _maybe_compiled('sums', _chunk_sums_one_pass, params, compile_kernel, dev),
+        params,
+        chunk_elements,
+        int(points.x.numel()),
     )
     if not compile_kernel or dev.type in _COMPILE_FAILED:
         kernel = functools.partial(_chunk_sums_inplace, params=params)
