@@ -130,14 +130,21 @@ def _profile_row(label: str, run: Callable[[], object]) -> BenchRow:
     """
     from torch.profiler import ProfilerActivity, profile
 
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
-        run()
+    # One thread: with two, a loaded machine's OpenMP stalls land on whichever op waits.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            run()
+    finally:
+        torch.set_num_threads(threads)
     ops = [e for e in prof.key_averages() if e.key.startswith('aten::')]
     total = sum(e.self_cpu_time_total for e in ops) or 1.0
     top = sorted(ops, key=lambda e: -e.self_cpu_time_total)[:4]
     shares = ', '.join(f'{e.key[6:]} {100.0 * e.self_cpu_time_total / total:.0f} %' for e in top)
     calls = sum(e.count for e in ops)
-    return BenchRow(f'{label}: semi-dense torch op calls per keyframe', float(calls), 'calls', _note(shares))
+    note = _note(f'self time, 1 thread: {shares}')
+    return BenchRow(f'{label}: semi-dense torch op calls per keyframe', float(calls), 'calls', note)
 
 
 def _tv_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
