@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 import torch
 
+from depth_fusion_ros.fusion import interpolation
 from depth_fusion_ros.fusion.interpolation import (
     _chunk_sums,
     _chunk_sums_inplace,
     _chunk_sums_one_pass,
     _exp_nonpositive,
+    _no_one_pass,
     _one_pass_kernel,
     interpolate,
 )
@@ -217,6 +219,26 @@ def test_one_pass_sums_equal_the_two_pass_kernel(weights: str, n_points: int) ->
 
     p, q, v = samples(64).column(), samples(n_points).row(), torch.randn(n_points, generator=g)
     params = WeightParams(weights=weights)
-    kernel = _one_pass_kernel(lambda *a: _chunk_sums_one_pass(*a, params), params, chunk_elements=50)
-    for a, b in zip(kernel(p, q, v), _chunk_sums_inplace(p, q, v, params), strict=True):
-        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(b.abs().max()))
+    one_pass = _one_pass_kernel(lambda *a: _chunk_sums_one_pass(*a, params), params, chunk_elements=50)
+    no_compiler = _one_pass_kernel(_no_one_pass, params, chunk_elements=50)  # two-pass in blocks
+    for kernel in (one_pass, no_compiler):
+        for a, b in zip(kernel(p, q, v), _chunk_sums_inplace(p, q, v, params), strict=True):
+            assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(b.abs().max()))
+
+
+def test_a_failing_compiler_falls_back_to_the_eager_kernel(monkeypatch: pytest.MonkeyPatch) -> None:
+    def broken_compile(fn: object, **kwargs: object) -> object:
+        def call(*args: object) -> None:
+            raise RuntimeError('no C++ compiler')
+
+        return call
+
+    monkeypatch.setattr(torch, 'compile', broken_compile)
+    monkeypatch.setattr(interpolation, '_COMPILED', {})
+    monkeypatch.setattr(interpolation, '_COMPILE_FAILED', set())
+    sc = make_scene(40, 30, n_points=25)
+    omega = np.isfinite(sc.multi)
+    eager = interpolate(sc.single, sc.multi, omega, chunk_elements=100)
+    fallen = interpolate(sc.single, sc.multi, omega, chunk_elements=100, compile_kernel=True)
+    assert 'cpu' in interpolation._COMPILE_FAILED
+    assert np.allclose(eager.offset, fallen.offset, atol=1e-6, equal_nan=True)

@@ -203,13 +203,20 @@ def _one_pass_kernel(
     ``ONE_PASS_ROWS``, or ``chunk_elements / n_points`` (|Ω|) where that is more."""
 
     def kernel(p: Samples, q: Samples, v: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        wv, w, wd, low, d = sums(p, q, v)
         n_q = q.x.shape[-1]
+        block = max(1, chunk_elements // max(1, n_q))
+        one_pass = sums(p, q, v)
+        if one_pass is None:  # the compiler failed: two passes, in blocks of bounded memory
+            parts = [
+                _chunk_sums_inplace(p.take(slice(i, i + block)), q, v, params)
+                for i in range(0, len(p.x), block)
+            ]
+            return tuple(torch.cat(column) for column in zip(*parts, strict=True))
+        wv, w, wd, low, d = one_pass
         num = wv - low * v.sum()
         den = w - n_q * low
         dist = wd - low * d
         shaky = torch.nonzero(n_q * low > ONE_PASS_MIN_RTOL * w).squeeze(1)
-        block = max(1, chunk_elements // max(1, n_q))
         for start in range(0, shaky.numel(), block):
             rows = shaky[start : start + block]
             exact = _chunk_sums_inplace(Samples(*(t[rows] for t in p)), q, v, params)
@@ -222,19 +229,33 @@ def _one_pass_kernel(
     return kernel
 
 
+def _no_one_pass(*args: object) -> None:
+    """Fallback of the compiled one-pass sums: ``None`` tells :func:`_one_pass_kernel` to use
+    the two-pass eager kernel (the one-pass form in eager would hold a dozen (pixels, Ω)
+    temporaries)."""
+    return None
+
+
 _COMPILED: dict[tuple, Callable] = {}
 _COMPILE_FAILED: set[str] = set()
 
 
 def _maybe_compiled(
-    name: str, fn: Callable, params: WeightParams, compile_kernel: bool, device: torch.device
+    name: str,
+    fn: Callable,
+    params: WeightParams,
+    compile_kernel: bool,
+    device: torch.device,
+    fallback: Callable | None = None,
 ) -> Callable:
     """``fn(*args, params)`` as a function of ``args``, compiled with ``torch.compile``
     (inductor) when asked and possible.
 
     Compiling fuses the elementwise passes into one loop (several times faster on CPU than
     eager). A failing compiler (no C++ toolchain, unsupported platform) is logged once and
-    eager code is used from then on: same numbers, only slower.
+    eager code is used from then on: same numbers, only slower. ``fallback(*args)`` replaces
+    the eager ``fn`` after a failure when given (a kernel whose eager form would not bound
+    its memory).
     """
 
     def eager(*args: object) -> tuple[torch.Tensor, ...]:
@@ -247,15 +268,17 @@ def _maybe_compiled(
         _COMPILED[key] = torch.compile(eager, dynamic=True)
     compiled = _COMPILED[key]
 
+    backup = fallback or eager
+
     def guarded(*args: object) -> tuple[torch.Tensor, ...]:
         if device.type in _COMPILE_FAILED:
-            return eager(*args)
+            return backup(*args)
         try:
             return compiled(*args)
         except Exception as exc:  # the compiler stack raises many types; any failure means eager
             _COMPILE_FAILED.add(device.type)
             log.warning('torch.compile of the fusion kernels failed on %s (%s); using eager', device, exc)
-            return eager(*args)
+            return backup(*args)
 
     return guarded
 
@@ -368,7 +391,7 @@ def interpolate(
     # Eager: the in-place two-pass kernel (fewer passes over memory); compiled: the one-pass
     # sums fused into one loop over Ω.
     kernel = _one_pass_kernel(
-        _maybe_compiled('sums', _chunk_sums_one_pass, params, compile_kernel, dev),
+        _maybe_compiled('sums', _chunk_sums_one_pass, params, compile_kernel, dev, fallback=_no_one_pass),
         params,
         chunk_elements,
         int(points.x.numel()),
