@@ -24,9 +24,11 @@ import numpy as np
 import torch
 
 from ..data.sequence import Sequence
+from ..multiview.cost_volume import stage_descriptors
 from ..multiview.neighbours import select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
 from ..multiview.tv import TVConfig, estimate_tv
+from ..multiview.views import prepare_views
 from . import BenchOptions, BenchRow
 from .multi_view_filter import filter_rows
 
@@ -102,6 +104,7 @@ def _semi_dense_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[Benc
         torch.set_num_threads(threads)
     result = estimate_semidense(*inputs, config, device=opts.device)
     profile_row = _profile_row(label, run)
+    descriptors = _descriptor_seconds(inputs, config, opts)
     gt = seq.gt_depth_working(key)
     selected = select_best_fraction(result, config.select_fraction)
     return [
@@ -109,6 +112,12 @@ def _semi_dense_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[Benc
         BenchRow(f'{label}: semi-dense per keyframe', seconds * 1e3, 'ms', _note()),
         BenchRow(f'{label}: semi-dense keyframes/s, 1 thread', 1.0 / seconds_one, 'kf/s', _note()),
         profile_row,
+        BenchRow(
+            f'{label}: semi-dense descriptors per keyframe',
+            descriptors * 1e3,
+            'ms',
+            _note(f'{1 + NEIGHBOURS} images; {100 * descriptors / seconds:.0f} % of the keyframe'),
+        ),
         BenchRow(f'{label}: candidates searched', float(result.candidates.sum()), 'px', _note()),
         BenchRow(f'{label}: multi_view density', result.density, 'fraction', _note()),
         BenchRow(
@@ -118,6 +127,18 @@ def _semi_dense_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[Benc
             _note(f'{selected.mean():.3%} of pixels selected'),
         ),
     ]
+
+
+def _descriptor_seconds(inputs: tuple, config: MultiViewConfig, opts: BenchOptions) -> float:
+    """Median time of the per-image stage of one keyframe (validation, upload, patch
+    descriptors of the keyframe and its neighbours); the rest of the keyframe is the sweep."""
+    key_gray, key_pose, grays, poses, camera = inputs
+
+    def run() -> object:
+        views = prepare_views(key_gray, key_pose, grays, poses, camera, opts.device)
+        return stage_descriptors(views.grays, config)
+
+    return _median_time(run, opts.repeats)
 
 
 def _profile_row(label: str, run: Callable[[], object]) -> BenchRow:
