@@ -89,6 +89,12 @@ def run(opts: BenchOptions) -> list[BenchRow]:
 
                     first, median = _timed(call, repeats)
                     rows.append(BenchRow(f'{mode} {tag}: s/keyframe', median, 's', _note(size)))
+                    if mode == 'exact':
+                        pairs = float(np.isfinite(single).sum()) * int(omega.sum())
+                        # wall time x threads per weight: the kernel's cost independent of threading
+                        per_pair = median / pairs * 1e9 * threads
+                        note = f'{pairs:.3g} weights (pixels x |Ω|)'
+                        rows.append(BenchRow(f'exact {tag}: ns x threads per weight', per_pair, 'ns', note))
                     if mode == 'fast':
                         rows.append(BenchRow(f'fast {tag}: keyframes/s', 1.0 / median, 'Hz', size))
                     if compiled and threads == thread_counts[0]:

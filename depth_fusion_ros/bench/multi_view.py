@@ -24,9 +24,11 @@ import numpy as np
 import torch
 
 from ..data.sequence import Sequence
+from ..multiview.cost_volume import stage_descriptors
 from ..multiview.neighbours import select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
 from ..multiview.tv import TVConfig, estimate_tv
+from ..multiview.views import prepare_views
 from . import BenchOptions, BenchRow
 from .multi_view_filter import filter_rows
 
@@ -101,12 +103,21 @@ def _semi_dense_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[Benc
     finally:
         torch.set_num_threads(threads)
     result = estimate_semidense(*inputs, config, device=opts.device)
+    profile_row = _profile_row(label, run)
+    descriptors = _descriptor_seconds(inputs, config, opts)
     gt = seq.gt_depth_working(key)
     selected = select_best_fraction(result, config.select_fraction)
     return [
         BenchRow(f'{label}: semi-dense keyframes/s', 1.0 / seconds, 'kf/s', _note('target >= 10')),
         BenchRow(f'{label}: semi-dense per keyframe', seconds * 1e3, 'ms', _note()),
         BenchRow(f'{label}: semi-dense keyframes/s, 1 thread', 1.0 / seconds_one, 'kf/s', _note()),
+        profile_row,
+        BenchRow(
+            f'{label}: semi-dense descriptors per keyframe',
+            descriptors * 1e3,
+            'ms',
+            _note(f'{1 + NEIGHBOURS} images; {100 * descriptors / seconds:.0f} % of the keyframe'),
+        ),
         BenchRow(f'{label}: candidates searched', float(result.candidates.sum()), 'px', _note()),
         BenchRow(f'{label}: multi_view density', result.density, 'fraction', _note()),
         BenchRow(
@@ -116,6 +127,45 @@ def _semi_dense_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[Benc
             _note(f'{selected.mean():.3%} of pixels selected'),
         ),
     ]
+
+
+def _descriptor_seconds(inputs: tuple, config: MultiViewConfig, opts: BenchOptions) -> float:
+    """Median time of the per-image stage of one keyframe (validation, upload, patch
+    descriptors of the keyframe and its neighbours); the rest of the keyframe is the sweep."""
+    key_gray, key_pose, grays, poses, camera = inputs
+
+    def run() -> object:
+        views = prepare_views(key_gray, key_pose, grays, poses, camera, opts.device)
+        return stage_descriptors(views.grays, config)
+
+    return _median_time(run, opts.repeats)
+
+
+def _profile_row(label: str, run: Callable[[], object]) -> BenchRow:
+    """Where one keyframe's time goes: torch operator calls per keyframe and the operators
+    with the largest self time (``torch.profiler``, CPU side), as shares of the total.
+
+    On CPU the sweep's bilinear lookups (``grid_sampler_2d``: neighbours x channels x
+    candidates x samples gathers) dominate; the rest is elementwise passes over the same
+    (candidates x samples) grids and the per-image descriptors.
+    """
+    from torch.profiler import ProfilerActivity, profile
+
+    # One thread: with two, a loaded machine's OpenMP stalls land on whichever op waits.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            run()
+    finally:
+        torch.set_num_threads(threads)
+    ops = [e for e in prof.key_averages() if e.key.startswith('aten::')]
+    total = sum(e.self_cpu_time_total for e in ops) or 1.0
+    top = sorted(ops, key=lambda e: -e.self_cpu_time_total)[:4]
+    shares = ', '.join(f'{e.key[6:]} {100.0 * e.self_cpu_time_total / total:.0f} %' for e in top)
+    calls = sum(e.count for e in ops)
+    note = _note(f'self time, 1 thread: {shares}')
+    return BenchRow(f'{label}: semi-dense torch op calls per keyframe', float(calls), 'calls', note)
 
 
 def _tv_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[BenchRow]:

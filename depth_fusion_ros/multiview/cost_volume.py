@@ -70,9 +70,14 @@ def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
     total = sum(taps)
     h, w = images.shape[-2:]
     padded = F.pad(images[:, None], (radius, radius, 0, 0), mode='replicate')[:, 0]
-    rows = sum(t / total * padded[..., k : k + w] for k, t in enumerate(taps))
+    rows = padded[..., :w] * (taps[0] / total)
+    for k, t in enumerate(taps[1:], start=1):
+        rows.add_(padded[..., k : k + w] * (t / total))
     padded = F.pad(rows[:, None], (0, 0, radius, radius), mode='replicate')[:, 0]
-    return sum(t / total * padded[..., k : k + h, :] for k, t in enumerate(taps))
+    out = padded[..., :h, :] * (taps[0] / total)
+    for k, t in enumerate(taps[1:], start=1):
+        out.add_(padded[..., k : k + h, :] * (t / total))
+    return out
 
 
 def zero_mean_basis(patch: str, channels: int = 0) -> np.ndarray:
@@ -167,16 +172,28 @@ def patch_descriptors(
     extra = 0 if visibility_margin is None else 1
     out = torch.empty((b, channels + extra, h, w), dtype=images.dtype, device=images.device)
     desc = out[:, :channels]
-    desc.copy_(torch.matmul(basis, stack.reshape(b, len(offsets), h * w)).reshape(b, channels, h, w))
-    # (d * d).sum beats linalg.vector_norm over the channel dimension by far on CPU.
-    desc.div_(torch.sqrt((desc * desc).sum(dim=1, keepdim=True) + len(offsets) * eps * eps))
+    projected = torch.matmul(basis, stack.reshape(b, len(offsets), h * w)).reshape(b, channels, h, w)
+    # (d * d).sum beats linalg.vector_norm over the channel dimension by far on CPU; the
+    # division writes straight into the output (one pass, no copy first).
+    norm = torch.sqrt(projected.square().sum(dim=1, keepdim=True) + len(offsets) * eps * eps)
+    torch.div(projected, norm, out=desc)
     if visibility_margin is not None:
         m = int(visibility_margin)
         inside = out[:, channels]
         inside.zero_()
         inside[:, m : h - m, m : w - m] = 1.0
-        desc.mul_(inside[:, None])
+        _zero_border(desc, m)
     return out
+
+
+def _zero_border(images: torch.Tensor, margin: int) -> None:
+    """Zero a band of ``margin`` pixels along the border of ``(..., H, W)`` images, in place."""
+    if margin <= 0:
+        return
+    images[..., :margin, :] = 0.0
+    images[..., -margin:, :] = 0.0
+    images[..., :, :margin] = 0.0
+    images[..., :, -margin:] = 0.0
 
 
 @dataclass
@@ -296,8 +313,8 @@ def sample_cost(
     )  # (n, C + 1, M, S)
     summed = sampled.sum(dim=0)  # (C + 1, M, S): the key descriptor is the same for every neighbour
     count = summed[channels]
-    zncc = (summed[:channels] * key_desc[:, :, None]).sum(dim=0)
-    cost = (count - zncc + 1e-3) / (count + 1e-3)
+    zncc = summed[:channels].mul_(key_desc[:, :, None]).sum(dim=0)  # in place: fewer buffers
+    cost = zncc.neg_().add_(count).add_(1e-3).div_(count + 1e-3)  # (count - zncc + 1e-3) / (count + 1e-3)
     return cost, count
 
 
