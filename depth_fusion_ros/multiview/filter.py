@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
 from ..geometry import relative_pose, rotation_angle, validate_pose
@@ -70,6 +71,7 @@ class _Keyframe:
     grad: torch.Tensor  # (2, M) grey gradient (gx, gy) per px after the matching blur
     state: BetaGaussian
     updates: torch.Tensor  # (M,) measurements fused (0 = no estimate yet)
+    prior: torch.Tensor  # (M,) bool: mu, var hold a prior (measured, carried or filled): short searches
     cost: torch.Tensor  # (M,) last matching cost
     attempts: torch.Tensor  # (M,) long searches spent on a pixel without an estimate
 
@@ -226,6 +228,7 @@ class DepthFilter:
             grad,
             state,
             updates,
+            torch.zeros_like(updates, dtype=torch.bool),
             cost,
             torch.zeros_like(updates),
         )
@@ -279,18 +282,59 @@ class DepthFilter:
         st.a[at] = old.state.a[src]
         st.b[at] = old.state.b[src]
         new.updates[at] = old.updates[src]
+        new.prior[at] = True
         new.cost[at] = old.cost[src]
+        filled = self._fill_holes(
+            new, warped.target, warped.rho, old.state.var[rows[warped.source]] * warped.scale**4
+        )
         # Pixels without a prior: a first measurement from the previous keyframe image.
         T_ok = relative_pose(T_wn, old.pose)
         if float(np.linalg.norm(T_ok[:3, 3])) / self._scene >= c.min_parallax:
             self._update(new, old.desc, T_ok, only=new.updates == 0)
         log.debug(
-            'filter keyframe: %d carried of %d, %d pixels',
+            'filter keyframe: %d carried of %d, %d filled, %d pixels',
             int(at.numel()),
             int(rows.numel()),
+            filled,
             int(new.flat.numel()),
         )
         return new
+
+    def _fill_holes(self, new: _Keyframe, target: torch.Tensor, rho: torch.Tensor, var: torch.Tensor) -> int:
+        """A prior for new pixels among carried estimates: the mean of those within ``fill_radius``.
+
+        LSD-SLAM fills the holes that nearest-pixel propagation leaves (rounding, new
+        candidates between carried ones) from their neighbours. The prior's variance is the
+        neighbours' mean variance plus their spread (large across a depth edge), inflated as
+        a propagation; it counts as no measurement (``updates`` stays 0), so the pixel is
+        published only after frames confirm it, but it gets a short search instead of a
+        whole-range one. Returns the number of pixels filled.
+        """
+        c = self.config
+        if c.fill_radius <= 0 or target.numel() == 0:
+            return 0
+        h, w = self.camera.height, self.camera.width
+        maps = torch.zeros((4, h * w), dtype=rho.dtype, device=rho.device)
+        maps[0, target] = 1.0
+        maps[1, target] = rho
+        maps[2, target] = rho * rho
+        maps[3, target] = var
+        k = 2 * c.fill_radius + 1
+        sums = F.avg_pool2d(maps.view(1, 4, h, w), k, stride=1, padding=c.fill_radius) * float(k * k)
+        sums = sums.view(4, h * w)[:, new.flat]
+        n = sums[0]
+        hole = ~new.prior & (n >= c.fill_min_neighbours)
+        n = torch.clamp(n, min=1.0)
+        mean = sums[1] / n
+        spread = torch.clamp(sums[2] / n - mean * mean, min=0.0)
+        fill_var = (sums[3] / n + spread) * c.propagation_inflation + (
+            c.propagation_relative_sigma * mean
+        ) ** 2
+        st = new.state
+        st.mu = torch.where(hole, mean, st.mu)
+        st.var = torch.where(hole, fill_var, st.var)
+        new.prior = new.prior | hole
+        return int(hole.sum())
 
     def _tau2(self, rho: torch.Tensor, j: torch.Tensor, baseline: float) -> torch.Tensor:
         """Measurement variance: one ``pixel_sigma`` of matching error back-propagated through the
@@ -314,7 +358,7 @@ class DepthFilter:
         cam = self.camera
         st = key.state
         rays = epipolar_rays(key.us, key.vs, cam.K, T_fk[None], cam.size, self.device)
-        fresh = key.updates == 0
+        fresh = ~key.prior
         baseline = max(float(np.linalg.norm(T_fk[:3, 3])), 1e-9)
         prior = torch.where(fresh, torch.full_like(st.mu, 0.5 * (rho_min + rho_max)), st.mu)
         pu, pv, front = _project(rays, prior)
@@ -392,15 +436,17 @@ class DepthFilter:
         b_n = torch.where(init, torch.full_like(b_r, c.init_b), torch.where(upd, post.b, voted))
         n_n = key.updates[rows] + (init | upd).long()
         # Outliers: a pixel that keeps failing is reset to "no estimate" (it may be re-seeded).
-        drop = (n_n > 0) & (a_n / (a_n + b_n) < c.min_inlier_ratio)
+        drop = ~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio)
         lo_r, hi_r = self.rho_range
         st.mu[rows] = torch.where(drop, torch.full_like(mu_n, 0.5 * (lo_r + hi_r)), mu_n)
         st.var[rows] = torch.where(drop, torch.full_like(var_n, (hi_r - lo_r) ** 2), var_n)
         st.a[rows] = torch.where(drop, torch.full_like(a_n, c.init_a), a_n)
         st.b[rows] = torch.where(drop, torch.full_like(b_n, c.init_b), b_n)
         key.updates[rows] = torch.where(drop, torch.zeros_like(n_n), n_n)
+        key.prior[rows] = (key.prior[rows] | init) & ~drop
         key.cost[rows] = torch.where(init | upd, cost, key.cost[rows])
         return seen
+
 
 def _epipolar_motion(rays: EpipolarRays, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(du/drho, dv/drho)`` (M,) in the (single) frame of ``rays``: the epipolar direction

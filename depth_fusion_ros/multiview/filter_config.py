@@ -91,6 +91,11 @@ class FilterConfig:
     propagation_inflation: float = 1.5
     #: Propagation into a new keyframe adds this std relative to the inverse depth.
     propagation_relative_sigma: float = 0.01
+    #: New keyframe pixels between carried estimates get a prior from those within this radius
+    #: (px; LSD-SLAM's hole filling): a short search instead of a whole-range one. 0 = off.
+    fill_radius: int = 2
+    #: ... when at least this many carried estimates lie within the radius.
+    fill_min_neighbours: int = 3
     #: Scene depth (m) assumed before any estimate exists (parallax of the first frames).
     scene_depth: float = 1.5
 
@@ -122,6 +127,8 @@ class FilterConfig:
             ('keyframe_min_visible', 0 <= self.keyframe_min_visible <= 1, 'in [0, 1]'),
             ('propagation_inflation', self.propagation_inflation >= 1, '>= 1'),
             ('propagation_relative_sigma', self.propagation_relative_sigma >= 0, '>= 0'),
+            ('fill_radius', self.fill_radius >= 0, '>= 0'),
+            ('fill_min_neighbours', self.fill_min_neighbours >= 1, '>= 1'),
             ('scene_depth', self.scene_depth > 0 and math.isfinite(self.scene_depth), 'positive'),
         )
         for name, ok, what in checks:

@@ -54,6 +54,8 @@ FILTER_LIMITS: dict[str, Any] = {
     'keyframe_min_visible': (0.0, 1.0),
     'propagation_inflation': (1.0, None),
     'propagation_relative_sigma': (0.0, None),
+    'fill_radius': (0, 50),
+    'fill_min_neighbours': (1, 10000),
     'scene_depth': (1e-3, None),
 }
 
