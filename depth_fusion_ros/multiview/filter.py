@@ -319,9 +319,7 @@ class DepthFilter:
         maps[1, target] = rho
         maps[2, target] = rho * rho
         maps[3, target] = var
-        k = 2 * c.fill_radius + 1
-        sums = F.avg_pool2d(maps.view(1, 4, h, w), k, stride=1, padding=c.fill_radius) * float(k * k)
-        sums = sums.view(4, h * w)[:, new.flat]
+        sums = _box_sum(maps.view(4, h, w), c.fill_radius).view(4, h * w)[:, new.flat]
         n = sums[0]
         hole = ~new.prior & (n >= c.fill_min_neighbours)
         n = torch.clamp(n, min=1.0)
@@ -379,31 +377,25 @@ class DepthFilter:
         estimates = ~fresh
         n_estimates = float(estimates.sum())
         seen = float((visible & estimates).sum()) / n_estimates if n_estimates > 0 else 1.0
-        rows = torch.nonzero(want, as_tuple=True)[0]
-        if rows.numel() == 0:
-            return seen
-        sub = EpipolarRays(rays.a[:, rows], rays.b, rays.width, rays.height)
-        f_r, mu_r, var_r, j_r = fresh[rows], st.mu[rows], st.var[rows], j_mu[rows]
-        half = torch.maximum(c.search_sigmas * torch.sqrt(var_r), 2.0 / torch.clamp(j_r, min=1e-9))
-        lo = torch.where(f_r, torch.full_like(mu_r, rho_min), torch.clamp(mu_r - half, rho_min, rho_max))
-        hi = torch.where(f_r, torch.full_like(mu_r, rho_max), torch.clamp(mu_r + half, rho_min, rho_max))
+        half = torch.maximum(c.search_sigmas * torch.sqrt(st.var), 2.0 / torch.clamp(j_mu, min=1e-9))
+        lo = torch.where(fresh, torch.full_like(st.mu, rho_min), torch.clamp(st.mu - half, rho_min, rho_max))
+        hi = torch.where(fresh, torch.full_like(st.mu, rho_max), torch.clamp(st.mu + half, rho_min, rho_max))
         # Interval length in pixels, to first order (the epipolar motion at the prior mean).
-        short = ~f_r & (j_r * (hi - lo) <= c.short_samples * c.max_step_px)
-        x = torch.full_like(mu_r, math.nan)
-        cost = torch.full_like(mu_r, math.inf)
-        valid = torch.zeros_like(f_r)
-        key_desc = key.key_desc[:, rows]
+        short = ~fresh & (j_mu * (hi - lo) <= c.short_samples * c.max_step_px)
+        x = torch.full_like(st.mu, math.nan)
+        cost = torch.full_like(st.mu, math.inf)
+        valid = torch.zeros_like(fresh)
         for mask, samples, refine, distinct in (
-            (short, c.short_samples, 0, False),
-            (~short, c.long_samples, c.refine_samples, True),
+            (want & short, c.short_samples, 0, False),
+            (want & ~short, c.long_samples, c.refine_samples, True),
         ):
             idx = torch.nonzero(mask, as_tuple=True)[0]
             if idx.numel() == 0:
                 continue
             found = search_interval(
-                key_desc[:, idx],
+                key.key_desc[:, idx],
                 desc,
-                EpipolarRays(sub.a[:, idx], sub.b, sub.width, sub.height),
+                EpipolarRays(rays.a[:, idx], rays.b, rays.width, rays.height),
                 lo[idx],
                 hi[idx],
                 samples,
@@ -415,11 +407,22 @@ class DepthFilter:
             if distinct:
                 good &= found.distinct >= c.min_distinctiveness
             x[idx], cost[idx], valid[idx] = found.rho, found.cost, good
+        rows = torch.nonzero(want, as_tuple=True)[0]
+        if rows.numel() == 0:
+            return seen
         valid &= (x >= rho_min) & (x <= rho_max)
-        xr = torch.where(valid, x, mu_r)
-        j_x = torch.hypot(*_epipolar_motion(sub, xr))
+        xr = torch.where(valid, x, st.mu)
+        j_x = torch.hypot(*_epipolar_motion(rays, xr))
         valid &= j_x > 1e-6
-        tau2 = self._tau2(xr, j_x, baseline)
+        tau2 = self._tau2(xr, j_x, baseline)[rows]
+        f_r, mu_r, var_r, valid, x, cost = (
+            fresh[rows],
+            st.mu[rows],
+            st.var[rows],
+            valid[rows],
+            x[rows],
+            cost[rows],
+        )
         init, upd = f_r & valid, ~f_r & valid
         fail = ~f_r & ~valid  # visible (chosen above) but nothing matched: an outlier vote
         a_r, b_r = st.a[rows], st.b[rows]
@@ -464,3 +467,12 @@ def _project(rays: EpipolarRays, rho: torch.Tensor) -> tuple[torch.Tensor, torch
     front = w > 1e-9
     ws = torch.where(front, w, torch.ones_like(w))
     return (a[:, 0] + rho * b[0]) / ws, (a[:, 1] + rho * b[1]) / ws, front
+
+
+def _box_sum(maps: torch.Tensor, r: int) -> torch.Tensor:
+    """Sum of each ``(C, H, W)`` map over the ``(2r + 1)^2`` window (zeros outside): separable
+    shifted slices, several times faster on CPU than ``avg_pool2d`` for these small windows."""
+    h, w = maps.shape[-2:]
+    padded = F.pad(maps, (r, r, r, r))
+    rows = sum(padded[:, :, k : k + w] for k in range(2 * r + 1))
+    return sum(rows[:, k : k + h, :] for k in range(2 * r + 1))
