@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..data.sequence import Sequence
-from ..metrics import MetricAccumulator, high_gradient_mask, upsample_depth
+from ..metrics import MetricAccumulator, good_density, high_gradient_mask, upsample_depth
 from ..progress import progress
 from .context import EvalOptions, KeyframeContext, SequenceContext
 from .registry import MethodSpec, SequenceOutput, get_method
@@ -152,23 +152,6 @@ def _score(rec: MethodRecord, depth: np.ndarray, gt: np.ndarray, high: np.ndarra
     if rec.spec.sparse:
         rec.extras['density'].append(float(np.isfinite(depth).mean()))
         rec.extras['good_density'].append(good_density(pred, gt))
-
-
-#: ``good_density``: estimates within this relative error of the ground truth count as good.
-GOOD_ABS_REL = 0.10
-
-
-def good_density(pred: np.ndarray, gt: np.ndarray, max_abs_rel: float = GOOD_ABS_REL) -> float:
-    """Fraction of *all* pixels holding an estimate within ``max_abs_rel`` of valid ground truth.
-
-    Density and accuracy in one number (issue 11's "density of multi-view estimates with
-    AbsRel <= 10 %"): a method cannot raise it by publishing more wrong points, nor by
-    publishing fewer right ones. Pixels without ground truth count as not good.
-    """
-    valid = np.isfinite(pred) & np.isfinite(gt) & (gt > 0)
-    good = np.zeros(gt.shape, dtype=bool)
-    good[valid] = np.abs(pred[valid] - gt[valid]) <= max_abs_rel * gt[valid]
-    return float(good.mean())
 
 
 def evaluate_sequences(
