@@ -23,7 +23,7 @@ class FilterConfig:
     """Gaussian x uniform inverse-depth filter (Vogiatzis & Hernandez 2011; SVO, REMODE)."""
 
     #: Candidate pixels: the strongest this fraction of the image (gradient at least
-    #: ``multi_view.min_gradient``). Larger than the sweep's: a filter pixel is cheap.
+    #: ``filter.min_gradient``). Larger than the sweep's: a filter pixel is cheap.
     max_candidate_fraction: float = 0.6
     #: Candidate pixels: grey gradient (grey in [0, 1] per px, after the matching blur) at least
     #: this. Lower than the sweep's ``multi_view.min_gradient``: a weak gradient is matched only
@@ -39,11 +39,12 @@ class FilterConfig:
     #: Pose noise (m) of the camera positions: a relative std ``pose_sigma / baseline`` of the
     #: measured inverse depth, added to ``tau^2``. Frames close to the keyframe then weigh
     #: little however sharp their match (a 2 mm pose error over a 5 mm baseline is a 40 %
-    #: depth error). 0 for exact poses.
+    #: depth error). Default 0: the defaults are chosen on synthetic sequences, whose poses
+    #: are exact; set it to the pose source's noise.
     pose_sigma: float = 0.0
     #: A pixel with an estimate is searched in a frame only when the frame can still teach it
     #: something: prior variance / predicted measurement variance at least this (REMODE stops
-    #: updating converged seeds). Saves most of the per-frame cost once estimates converge.
+    #: updating converged seeds). Saves searches once estimates have converged.
     min_information: float = 0.1
     #: Search interval: the prior mean +- ``search_sigmas`` standard deviations.
     search_sigmas: float = 2.0
