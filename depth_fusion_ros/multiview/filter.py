@@ -176,7 +176,15 @@ class DepthFilter:
         candidates = torch.zeros(shape, dtype=torch.bool, device=self.device)
         candidates[target] = True
         return assemble_result(
-            cam, target, mu, var, st.inlier_ratio[rows], key.updates[rows], key.cost[rows], candidates
+            cam,
+            target,
+            mu,
+            var,
+            st.inlier_ratio[rows],
+            key.updates[rows],
+            key.cost[rows],
+            candidates,
+            self.config.score_relative_power,
         )
 
     def scene_depth(self) -> float:

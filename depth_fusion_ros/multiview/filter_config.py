@@ -76,6 +76,10 @@ class FilterConfig:
     publish_inlier_ratio: float = 0.5
     #: Estimates are published only after at least this many measurements.
     min_updates: int = 2
+    #: Stage-1 ranking: ``score = inlier_ratio * (mu / sigma) ** this`` (the posterior's relative
+    #: precision). 0: the inlier ratio alone (the relative precision also says how long a
+    #: region has been observed, and can pack the stage-1 points into it).
+    score_relative_power: float = 0.0
     #: Published only when the inverse-depth std is at most this fraction of the inverse depth.
     max_relative_sigma: float = 0.1
     #: A frame updates the keyframe only with baseline / scene depth at least this (below: skipped).
@@ -122,6 +126,7 @@ class FilterConfig:
             ('min_inlier_ratio', 0 <= self.min_inlier_ratio < 1, 'in [0, 1)'),
             ('publish_inlier_ratio', 0 <= self.publish_inlier_ratio <= 1, 'in [0, 1]'),
             ('min_updates', self.min_updates >= 1, '>= 1'),
+            ('score_relative_power', self.score_relative_power >= 0, '>= 0'),
             ('max_relative_sigma', self.max_relative_sigma > 0, 'positive'),
             ('min_parallax', self.min_parallax >= 0, '>= 0'),
             ('keyframe_parallax', self.keyframe_parallax > self.min_parallax, '> filter.min_parallax'),
