@@ -92,6 +92,19 @@ def test_filter_has_twice_the_sweeps_good_density_at_better_selected_accuracy(sy
     assert _median_selected_abs_rel(result, gt) <= _median_selected_abs_rel(sweep, gt)
 
 
+def test_evaluation_reports_the_filters_good_density_above_the_sweeps(synthetic_sequence):
+    """``--set multi_view.method=filter`` through the harness: the report's good density."""
+    from depth_fusion_ros.evaluation.context import EvalOptions
+    from depth_fusion_ros.evaluation.harness import evaluate_sequence
+
+    good = {}
+    for method in ('sweep', 'filter'):
+        options = EvalOptions(frames=24, stride=12, params={'multi_view': {'method': method}})
+        result = evaluate_sequence(synthetic_sequence, ['multi_view'], options, show_progress=False)
+        good[method] = result.records['multi_view'].to_json()['good_density']
+    assert good['filter'] > 1.5 * good['sweep'], good
+
+
 def test_good_density_counts_only_accurate_estimates():
     gt = np.full((2, 4), 2.0, np.float32)
     gt[1, 3] = np.nan  # no ground truth: never good
