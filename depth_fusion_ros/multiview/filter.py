@@ -11,19 +11,23 @@ For each posed frame, in stream order (:meth:`DepthFilter.process`):
 1. **Skip** it if its baseline / scene depth is below ``min_parallax`` (no depth information,
    and a frame too close to the keyframe adds correlated noise) or it turned more than
    ``max_rotation_deg`` (the patch no longer keeps its shape).
-2. **Update**: each pixel is searched along its epipolar line in the frame within
-   ``mu +- search_sigmas sigma`` (at least +-2 px; the whole range for a pixel without an
-   estimate: the "coarse sweep" of a new pixel), ``filter_search``; the match gives a
-   measurement ``x`` with variance ``tau^2 = (pixel_sigma / J)^2``, ``J`` the epipolar motion
-   per unit inverse depth (one pixel of matching error back-propagated, as the sweep's
-   geometric score). Then the Gaussian x uniform update; a visible pixel that matched
-   nothing gets an outlier vote; a pixel whose inlier ratio drops below ``min_inlier_ratio``
-   is reset to "no estimate".
+2. **Update**: cheap tests on every pixel pick those the frame can teach something: the
+   gradient along the epipolar line at least ``min_epipolar_gradient`` (LSD-SLAM), the prior
+   variance at least ``min_information`` x the frame's measurement variance (REMODE), a
+   whole-range search only from frames with ``seed_parallax`` and ``seed_attempts`` left.
+   Those are searched along their epipolar line within ``mu +- search_sigmas sigma`` (at
+   least +-2 px; the whole range for a pixel without a prior), ``filter_search``; the match
+   gives a measurement ``x`` with variance ``tau^2 = (pixel_sigma / J)^2`` (+ the pose noise
+   term), ``J`` the epipolar motion per unit inverse depth (one pixel of matching error
+   back-propagated, as the sweep's geometric score). Then the Gaussian x uniform update; a
+   visible pixel that matched nothing gets an outlier vote; a pixel whose inlier ratio drops
+   below ``min_inlier_ratio`` is reset to "no estimate".
 3. **New keyframe** when the parallax reaches ``keyframe_parallax``, the rotation
    ``keyframe_rotation_deg`` or the visible fraction of the estimates falls below
    ``keyframe_min_visible``: the estimates are propagated into the frame
-   (``filter_propagate``: warped mean, inflated variance, Beta carried), and the pixels
-   left without a prior get their first measurement from the previous keyframe image.
+   (``filter_propagate``: warped mean, inflated variance, Beta carried), holes between
+   carried estimates get their neighbours' mean as a prior (LSD-SLAM), and every pixel left
+   without a carried estimate gets its first measurement from the previous keyframe image.
 
 :meth:`DepthFilter.result` publishes the keyframe's converged estimates, or warps them into
 any other posed frame (the keyframe of the node or of the evaluation need not be the
