@@ -62,6 +62,24 @@ def high_gradient_mask(gray: np.ndarray, threshold: float = GRADIENT_THRESHOLD) 
     return normalised_gradient(gray) >= threshold
 
 
+#: ``good_density``: estimates within this relative error of the ground truth count as good.
+GOOD_ABS_REL = 0.10
+
+
+def good_density(pred: np.ndarray, gt: np.ndarray, max_abs_rel: float = GOOD_ABS_REL) -> float:
+    """Fraction of *all* pixels holding an estimate within ``max_abs_rel`` of valid ground truth.
+
+    Density and accuracy of a semi-dense method in one number (issue 11: "density of
+    multi-view estimates with AbsRel <= 10 %"): it cannot be raised by publishing more wrong
+    points, nor kept by publishing fewer right ones. Pixels without ground truth count as
+    not good. ``pred`` and ``gt`` have the same shape (upsample first).
+    """
+    valid = np.isfinite(pred) & np.isfinite(gt) & (gt > 0)
+    good = np.zeros(gt.shape, dtype=bool)
+    good[valid] = np.abs(pred[valid] - gt[valid]) <= max_abs_rel * gt[valid]
+    return float(good.mean())
+
+
 def frame_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
     """Metrics of one depth image against ground truth of the same shape."""
     acc = MetricAccumulator()

@@ -6,6 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+import depth_fusion_ros.multiview.filter as filter_module
+from depth_fusion_ros.camera import PinholeCamera
+from depth_fusion_ros.metrics import good_density
 from depth_fusion_ros.multiview.filter import KEYFRAME, SKIPPED, UPDATED, DepthFilter
 from depth_fusion_ros.multiview.filter_config import FilterConfig
 from depth_fusion_ros.multiview.filter_stream import FilterStream
@@ -66,6 +69,114 @@ def test_filter_converges_to_the_true_depth_better_than_the_sweep(synthetic_sequ
     assert np.nanmin(result.updates) >= FilterConfig().min_updates
     # Selection works unchanged on it.
     assert select_best_fraction(result, 0.25).sum() == round(0.25 * result.valid.sum())
+
+
+def _median_selected_abs_rel(result, gt) -> float:
+    return float(np.median(_abs_rel(result.depth, gt, select_best_fraction(result, 0.25))))
+
+
+def test_filter_has_twice_the_sweeps_good_density_at_better_selected_accuracy(synthetic_sequence, filtered):
+    """Issue 11's density target on the synthetic room, both causal (the sweep's online
+    neighbours, the filter after the stream): pixels within 10 % of the truth, of all pixels."""
+    seq = synthetic_sequence
+    _, _, result = filtered
+    last = len(seq) - 1
+    gt = seq.gt_depth_working(last)
+    chosen = select_neighbours(seq.poses, last, 4, 'online', seq.camera)
+    fr = seq.frames
+    sweep = estimate_semidense(
+        fr[last].gray, fr[last].pose, [fr[i].gray for i in chosen], [fr[i].pose for i in chosen], seq.camera
+    )
+    filter_good, sweep_good = good_density(result.depth, gt), good_density(sweep.depth, gt)
+    assert filter_good > 0.18 and filter_good >= 2.0 * sweep_good, (filter_good, sweep_good)
+    assert _median_selected_abs_rel(result, gt) <= _median_selected_abs_rel(sweep, gt)
+
+
+def test_evaluation_reports_the_filters_good_density_above_the_sweeps(synthetic_sequence):
+    """``--set multi_view.method=filter`` through the harness: the report's good density."""
+    from depth_fusion_ros.evaluation.context import EvalOptions
+    from depth_fusion_ros.evaluation.harness import evaluate_sequence
+
+    good = {}
+    for method in ('sweep', 'filter'):
+        options = EvalOptions(frames=24, stride=12, params={'multi_view': {'method': method}})
+        result = evaluate_sequence(synthetic_sequence, ['multi_view'], options, show_progress=False)
+        good[method] = result.records['multi_view'].to_json()['good_density']
+    assert good['filter'] > 1.5 * good['sweep'], good
+
+
+def test_good_density_counts_only_accurate_estimates():
+    gt = np.full((2, 4), 2.0, np.float32)
+    gt[1, 3] = np.nan  # no ground truth: never good
+    pred = np.array([[2.1, 2.5, np.nan, 1.85], [2.0, 2.19, 1.0, 2.0]], np.float32)
+    assert good_density(pred, gt) == 4 / 8  # 2.1, 1.85, 2.0, 2.19 are within 10 %
+
+
+def test_new_keyframe_pixels_get_a_prior_from_carried_neighbours(synthetic_sequence):
+    """LSD-SLAM's hole filling: right after a keyframe switch, pixels between carried
+    estimates hold an accurate prior (a short search next frame, not a whole-range one)."""
+    seq = synthetic_sequence
+    priors = {}
+    for radius in (0, FilterConfig().fill_radius):
+        f = DepthFilter(seq.camera, FilterConfig(fill_radius=radius))
+        i = 0
+        while f.stats.keyframes < 2:
+            f.process(seq.frames[i].gray, seq.frames[i].pose)
+            i += 1
+        key = f.key
+        priors[radius] = key.prior.clone()
+    gt = seq.gt_depth_working(i - 1).ravel()[key.flat.numpy()]
+    filled = (priors[FilterConfig().fill_radius] & ~priors[0]).numpy()
+    assert filled.sum() > 0.05 * key.flat.numel(), filled.sum()
+    # The pixels only filling gives a prior (the whole-range search found nothing there),
+    # after one short search against the previous keyframe: mostly right, a prior to refine.
+    depth = 1.0 / key.state.mu.numpy()[filled]
+    rel = np.abs(depth - gt[filled]) / gt[filled]
+    assert np.median(rel) < 0.08 and np.mean(rel < 0.1) > 0.55, (np.median(rel), np.mean(rel < 0.1))
+
+
+def _stripes(camera: PinholeCamera) -> np.ndarray:
+    """Horizontal stripes: all the gradient is vertical."""
+    rows = np.arange(camera.height, dtype=np.float32)[:, None]
+    return np.repeat(0.5 + 0.4 * np.sin(rows * 0.7), camera.width, axis=1)
+
+
+def test_edges_along_the_epipolar_line_are_not_searched():
+    """Sideways motion: every epipolar line is horizontal, along the stripes. Every position
+    on the line matches equally well, so LSD-SLAM's test leaves such pixels alone."""
+    camera = PinholeCamera(80, 60, 60.0, 60.0, 39.5, 29.5)
+    image = _stripes(camera)
+    attempts = {}
+    for threshold in (0.0, FilterConfig().min_epipolar_gradient):
+        f = DepthFilter(camera, FilterConfig(min_epipolar_gradient=threshold))
+        for k in range(6):
+            pose = np.eye(4)
+            pose[0, 3] = 0.05 * k  # 5 cm sideways per frame
+            f.process(image, pose)
+        assert f.key.flat.numel() > 0  # the stripes are candidates
+        attempts[threshold] = int(f.key.attempts.sum())
+    assert attempts[0.0] > 0
+    assert attempts[FilterConfig().min_epipolar_gradient] == 0
+
+
+def test_converged_pixels_are_left_alone(synthetic_sequence, monkeypatch):
+    """REMODE: a frame that cannot shrink a pixel's variance does not search it."""
+    seq = synthetic_sequence
+    searched = {}
+    real = filter_module.search_interval
+    for information in (0.0, 1.0):
+        rows = []
+
+        def counting(key_desc, *args, rows=rows, **kwargs):
+            rows.append(key_desc.shape[1])
+            return real(key_desc, *args, **kwargs)
+
+        monkeypatch.setattr(filter_module, 'search_interval', counting)
+        f = DepthFilter(seq.camera, FilterConfig(min_information=information))
+        for fr in seq.frames[:8]:
+            f.process(fr.gray, fr.pose)
+        searched[information] = sum(rows)
+    assert searched[1.0] < 0.8 * searched[0.0], searched
 
 
 def test_variance_shrinks_with_frames(synthetic_sequence):
@@ -163,6 +274,9 @@ def test_bad_parameters_and_inputs_raise(synthetic_sequence):
         DepthFilter(seq.camera, FilterConfig(pixel_sigma=0.0))
     with pytest.raises(ValueError, match=r'filter\.keyframe_parallax'):
         FilterConfig(keyframe_parallax=0.001).validate()
+    for bad in ({'min_gradient': -1.0}, {'pose_sigma': -0.1}, {'fill_radius': -1}, {'seed_parallax': -1.0}):
+        with pytest.raises(ValueError, match=rf'filter\.{next(iter(bad))}'):
+            FilterConfig(**bad).validate()
     f = DepthFilter(seq.camera)
     with pytest.raises(ValueError, match='frame image'):
         f.process(np.zeros((10, 10), np.float32), seq.frames[0].pose)

@@ -29,6 +29,7 @@ def test_semi_dense_methods_on_the_synthetic_room(synthetic_sequence):
     selected = result.records['multi_view_selected'].to_json()
     assert everything['density'] > 0.05
     assert 0.01 < selected['density'] < everything['density']
+    assert 0.5 * everything['density'] < everything['good_density'] <= everything['density']
     assert selected['median_abs_rel'] < 0.02
     assert selected['n_selected'] > 0
 

@@ -30,9 +30,8 @@ from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_be
 from ..multiview.tv import TVConfig, estimate_tv
 from ..multiview.views import prepare_views
 from . import BenchOptions, BenchRow
-from .multi_view_filter import filter_rows
 
-TITLE = 'multi_view (semi-dense sweep, temporal filter, TV baseline)'
+TITLE = 'multi_view (semi-dense sweep, TV baseline; the temporal filter: multi_view_filter)'
 
 WIDTH, HEIGHT = 320, 240
 NEIGHBOURS = 4
@@ -210,11 +209,9 @@ def _memory_rows(seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
 def run(opts: BenchOptions) -> list[BenchRow]:
     synthetic = _synthetic_sequence(opts.quick)
     rows = _semi_dense_rows('synthetic room', synthetic, opts)
-    rows += filter_rows('synthetic room', synthetic, opts)
     for path in opts.sequences:
         real = _real_sequence(path, opts.quick)
         rows += _semi_dense_rows(real.name, real, opts)
-        rows += filter_rows(real.name, real, opts)
         if not opts.quick:
             rows += _tv_rows(real.name, real, opts)
     rows += _tv_rows('synthetic room', synthetic, opts)

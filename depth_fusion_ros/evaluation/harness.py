@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..data.sequence import Sequence
-from ..metrics import MetricAccumulator, high_gradient_mask, upsample_depth
+from ..metrics import MetricAccumulator, good_density, high_gradient_mask, upsample_depth
 from ..progress import progress
 from .context import EvalOptions, KeyframeContext, SequenceContext
 from .registry import MethodSpec, SequenceOutput, get_method
@@ -151,6 +151,7 @@ def _score(rec: MethodRecord, depth: np.ndarray, gt: np.ndarray, high: np.ndarra
     rec.low_gradient.add(pred, gt, ~high)
     if rec.spec.sparse:
         rec.extras['density'].append(float(np.isfinite(depth).mean()))
+        rec.extras['good_density'].append(good_density(pred, gt))
 
 
 def evaluate_sequences(

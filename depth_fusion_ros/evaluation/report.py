@@ -31,6 +31,7 @@ COLUMNS = [
     ('delta1', 'δ<1.25', '{:.3f}'),
     ('median_abs_rel', 'median AbsRel', '{:.3f}'),
     ('density', 'density', '{:.3f}'),
+    ('good_density', 'density AbsRel≤10 %', '{:.3f}'),
     ('n_omega', '|Ω|', '{:.0f}'),
     ('map_accuracy_median_m', 'map acc. median (m)', '{:.3f}'),
     ('map_accuracy_mean_m', 'map acc. mean (m)', '{:.3f}'),

@@ -23,11 +23,29 @@ class FilterConfig:
     """Gaussian x uniform inverse-depth filter (Vogiatzis & Hernandez 2011; SVO, REMODE)."""
 
     #: Candidate pixels: the strongest this fraction of the image (gradient at least
-    #: ``multi_view.min_gradient``). Larger than the sweep's: a filter pixel is cheap.
-    max_candidate_fraction: float = 0.3
+    #: ``filter.min_gradient``). Larger than the sweep's: a filter pixel is cheap.
+    max_candidate_fraction: float = 0.6
+    #: Candidate pixels: grey gradient (grey in [0, 1] per px, after the matching blur) at least
+    #: this. Lower than the sweep's ``multi_view.min_gradient``: a weak gradient is matched only
+    #: in frames whose epipolar line crosses it (``min_epipolar_gradient``) and only published
+    #: once several frames agree, so the filter can afford pixels the sweep must leave out.
+    min_gradient: float = 0.01
+    #: A frame searches a pixel only where the gradient along its epipolar line is at least this
+    #: (LSD-SLAM): along an edge parallel to the line every position matches equally well.
+    min_epipolar_gradient: float = 0.003
     #: Std of the matching error along the epipolar line (px): the measurement variance is
     #: ``(pixel_sigma / J)^2`` with ``J`` the epipolar motion per unit inverse depth.
     pixel_sigma: float = 1.0
+    #: Pose noise (m) of the camera positions: a relative std ``pose_sigma / baseline`` of the
+    #: measured inverse depth, added to ``tau^2``. Frames close to the keyframe then weigh
+    #: little however sharp their match (a 2 mm pose error over a 5 mm baseline is a 40 %
+    #: depth error). Default 0: the defaults are chosen on synthetic sequences, whose poses
+    #: are exact; set it to the pose source's noise.
+    pose_sigma: float = 0.0
+    #: A pixel with an estimate is searched in a frame only when the frame can still teach it
+    #: something: prior variance / predicted measurement variance at least this (REMODE stops
+    #: updating converged seeds). Saves searches once estimates have converged.
+    min_information: float = 0.1
     #: Search interval: the prior mean +- ``search_sigmas`` standard deviations.
     search_sigmas: float = 2.0
     #: Samples of a short search (a pixel with an estimate; the parabola goes through them).
@@ -40,6 +58,10 @@ class FilterConfig:
     refine_samples: int = 2
     #: Long searches a pixel without an estimate gets per keyframe (texture-less pixels never match).
     seed_attempts: int = 2
+    #: A pixel without an estimate is searched over the whole range only in frames with at least
+    #: this baseline / scene depth: from a short baseline the whole range spans a few pixels,
+    #: and a wrong first measurement is then confirmed by the short searches around it.
+    seed_parallax: float = 0.03
     #: A match whose cost (1 - ZNCC) is above this is a failed observation (an outlier vote).
     max_cost: float = 0.4
     #: New pixels (long search) need a distinct minimum: modified second-best ratio at least this.
@@ -51,9 +73,13 @@ class FilterConfig:
     #: Estimates are dropped (reset to no estimate) when the inlier ratio ``a / (a + b)`` falls below this.
     min_inlier_ratio: float = 0.3
     #: Estimates are published only with an inlier ratio at least this.
-    publish_inlier_ratio: float = 0.55
+    publish_inlier_ratio: float = 0.5
     #: Estimates are published only after at least this many measurements.
     min_updates: int = 2
+    #: Stage-1 ranking: ``score = inlier_ratio * (mu / sigma) ** this`` (the posterior's relative
+    #: precision). 0: the inlier ratio alone (the relative precision also says how long a
+    #: region has been observed, and can pack the stage-1 points into it).
+    score_relative_power: float = 0.0
     #: Published only when the inverse-depth std is at most this fraction of the inverse depth.
     max_relative_sigma: float = 0.1
     #: A frame updates the keyframe only with baseline / scene depth at least this (below: skipped).
@@ -70,6 +96,11 @@ class FilterConfig:
     propagation_inflation: float = 1.5
     #: Propagation into a new keyframe adds this std relative to the inverse depth.
     propagation_relative_sigma: float = 0.01
+    #: New keyframe pixels between carried estimates get a prior from those within this radius
+    #: (px; LSD-SLAM's hole filling): a short search instead of a whole-range one. 0 = off.
+    fill_radius: int = 2
+    #: ... when at least this many carried estimates lie within the radius.
+    fill_min_neighbours: int = 3
     #: Scene depth (m) assumed before any estimate exists (parallax of the first frames).
     scene_depth: float = 1.5
 
@@ -77,12 +108,17 @@ class FilterConfig:
         """Raise ``ValueError`` naming the first bad ``filter.<parameter>``."""
         checks = (
             ('max_candidate_fraction', 0 < self.max_candidate_fraction <= 1, 'in (0, 1]'),
+            ('min_gradient', self.min_gradient >= 0, '>= 0'),
+            ('min_epipolar_gradient', self.min_epipolar_gradient >= 0, '>= 0'),
             ('pixel_sigma', self.pixel_sigma > 0, 'positive'),
+            ('pose_sigma', self.pose_sigma >= 0 and math.isfinite(self.pose_sigma), '>= 0'),
+            ('min_information', self.min_information >= 0, '>= 0'),
             ('search_sigmas', self.search_sigmas > 0, 'positive'),
             ('short_samples', self.short_samples >= 3, '>= 3'),
             ('long_samples', self.long_samples >= 3, '>= 3'),
             ('max_step_px', self.max_step_px > 0, 'positive'),
             ('refine_samples', self.refine_samples >= 1, '>= 1'),
+            ('seed_parallax', self.seed_parallax >= 0, '>= 0'),
             ('seed_attempts', self.seed_attempts >= 1, '>= 1'),
             ('max_cost', 0 < self.max_cost <= 2, 'in (0, 2]'),
             ('init_a', self.init_a > 0, 'positive'),
@@ -90,12 +126,15 @@ class FilterConfig:
             ('min_inlier_ratio', 0 <= self.min_inlier_ratio < 1, 'in [0, 1)'),
             ('publish_inlier_ratio', 0 <= self.publish_inlier_ratio <= 1, 'in [0, 1]'),
             ('min_updates', self.min_updates >= 1, '>= 1'),
+            ('score_relative_power', self.score_relative_power >= 0, '>= 0'),
             ('max_relative_sigma', self.max_relative_sigma > 0, 'positive'),
             ('min_parallax', self.min_parallax >= 0, '>= 0'),
             ('keyframe_parallax', self.keyframe_parallax > self.min_parallax, '> filter.min_parallax'),
             ('keyframe_min_visible', 0 <= self.keyframe_min_visible <= 1, 'in [0, 1]'),
             ('propagation_inflation', self.propagation_inflation >= 1, '>= 1'),
             ('propagation_relative_sigma', self.propagation_relative_sigma >= 0, '>= 0'),
+            ('fill_radius', self.fill_radius >= 0, '>= 0'),
+            ('fill_min_neighbours', self.fill_min_neighbours >= 1, '>= 1'),
             ('scene_depth', self.scene_depth > 0 and math.isfinite(self.scene_depth), 'positive'),
         )
         for name, ok, what in checks:

@@ -9,7 +9,8 @@ its relative inverse-depth std pass the ``filter.*`` thresholds):
   neighbours' ``J^2``);
 * ``photometric_score`` = the inlier ratio ``a / (a + b)``: how often the pixel's patch was
   found where the estimate says (the filter's analogue of a distinct photometric minimum);
-* ``score`` = ``inlier_ratio * geometric_score ** SIGMA_POWER`` (``SIGMA_POWER = 0``: the
+* ``score`` = ``inlier_ratio * geometric_score ** SIGMA_POWER * (mu / sigma) ** p`` with
+  ``p = filter.score_relative_power`` (``SIGMA_POWER = 0`` and ``p = 0`` by default: the
   inlier ratio alone, see below): what stage 1 of the point selection ranks by;
 * ``cost`` = the last matching cost ``1 - ZNCC``;
 * and, beyond ``MultiViewResult``: ``variance`` (inverse depth squared), ``inlier_ratio`` and
@@ -51,6 +52,7 @@ def assemble_result(
     updates: torch.Tensor,
     cost: torch.Tensor,
     candidates: torch.Tensor,
+    relative_power: float = 0.0,
 ) -> FilterResult:
     """Scatter published estimates (flat pixel indices ``target``) into NaN-filled (H, W) maps."""
     shape = (camera.height, camera.width)
@@ -68,7 +70,7 @@ def assemble_result(
         depth_std=image(sigma / (mu * mu)),
         photometric_score=image(inlier),
         geometric_score=image(geometric),
-        score=image(inlier * geometric**SIGMA_POWER),
+        score=image(inlier * geometric**SIGMA_POWER * (mu / torch.clamp(sigma, min=1e-12)) ** relative_power),
         cost=image(cost),
         candidates=candidates.cpu().numpy().reshape(shape),
         camera=camera,

@@ -15,8 +15,9 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
-from .cost_volume import EpipolarRays, rows_per_chunk, sample_cost
+from .cost_volume import EpipolarRays, rows_per_chunk
 
 
 @dataclass
@@ -47,6 +48,24 @@ def _distinctiveness(cost: torch.Tensor, best: torch.Tensor, c1: torch.Tensor) -
     return torch.clamp(1.0 - c1 / torch.clamp(c2, min=1e-6), 0.0, 1.0)
 
 
+def frame_cost(
+    key_desc: torch.Tensor, frame_desc: torch.Tensor, rays: EpipolarRays, rho: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``1 - ZNCC`` (M, S) against one frame and whether the frame sees each sample (soft, 0-1).
+
+    ``cost_volume.sample_cost`` for a single neighbour (same numbers), without the sum over
+    neighbours: one ``grid_sample`` and one contraction over the descriptor channels.
+    """
+    channels = key_desc.shape[0]
+    grid = rays.grid(rho)
+    sampled = F.grid_sample(frame_desc, grid, mode='bilinear', padding_mode='zeros', align_corners=True)[0]
+    count = sampled[channels]
+    zncc = sampled[0] * key_desc[0, :, None]
+    for c in range(1, channels):
+        zncc.addcmul_(sampled[c], key_desc[c, :, None])
+    return (count - zncc + 1e-3) / (count + 1e-3), count
+
+
 def _search_rows(
     key_desc: torch.Tensor,
     frame_desc: torch.Tensor,
@@ -55,14 +74,15 @@ def _search_rows(
     hi: torch.Tensor,
     samples: int,
     refine: int,
+    with_distinctiveness: bool,
 ) -> SearchResult:
     t = torch.linspace(0.0, 1.0, samples, device=lo.device, dtype=lo.dtype)
     step = (hi - lo) / (samples - 1)
     grid = lo[:, None] + step[:, None] * (t[None, :] * (samples - 1))
-    cost, count = sample_cost(key_desc, frame_desc, rays, grid)
+    cost, count = frame_cost(key_desc, frame_desc, rays, grid)
     cost = torch.where(count >= 0.5, cost, torch.full_like(cost, math.inf))
     c1, best = cost.min(dim=1)
-    distinct = _distinctiveness(cost, best, c1)
+    distinct = _distinctiveness(cost, best, c1) if with_distinctiveness else c1
     if refine == 0:  # a short search: its samples are already about a pixel apart
         j = best.clamp(1, samples - 2)
         cm, c0, cp = _gather(cost, j - 1), _gather(cost, j), _gather(cost, j + 1)
@@ -70,7 +90,7 @@ def _search_rows(
     fine_step = step / refine
     offsets = torch.arange(-refine, refine + 1, device=lo.device, dtype=lo.dtype)
     fine = _gather(grid, best)[:, None] + offsets[None, :] * fine_step[:, None]
-    fcost, fcount = sample_cost(key_desc, frame_desc, rays, fine)
+    fcost, fcount = frame_cost(key_desc, frame_desc, rays, fine)
     fcost = torch.where(fcount >= 0.5, fcost, torch.full_like(fcost, math.inf))
     j = fcost.argmin(dim=1).clamp(1, 2 * refine - 1)
     cm, c0, cp = _gather(fcost, j - 1), _gather(fcost, j), _gather(fcost, j + 1)
@@ -106,6 +126,7 @@ def search_interval(
     samples: int,
     refine: int,
     chunk_elements: int = 1 << 22,
+    with_distinctiveness: bool = True,
 ) -> SearchResult:
     """Best inverse depth of each pixel in ``[lo, hi]`` (M,) against one frame.
 
@@ -113,6 +134,8 @@ def search_interval(
     descriptors with their visibility channel, ``rays`` the pixels' epipolar rays into it.
     ``refine`` fine samples on each side of the best coarse one (0: the parabola goes through
     the coarse samples themselves). Memory is bounded by ``chunk_elements`` as in the sweep.
+    ``with_distinctiveness=False`` skips the second-best ratio (``distinct`` is then undefined):
+    a short search around a converged estimate does not use it.
     """
     m = int(lo.numel())
     if m == 0:
@@ -128,6 +151,7 @@ def search_interval(
             hi[s : s + chunk],
             samples,
             refine,
+            with_distinctiveness,
         )
         for s in range(0, m, chunk)
     ]

@@ -27,12 +27,17 @@ from .params import ParamSpec, build_dataclass, dataclass_specs
 #: ``filter.*`` limits (the descriptions come from the ``#:`` comments of ``FilterConfig``).
 FILTER_LIMITS: dict[str, Any] = {
     'max_candidate_fraction': (0.0, 1.0),
+    'min_gradient': (0.0, 1.0),
+    'min_epipolar_gradient': (0.0, 1.0),
     'pixel_sigma': (1e-3, 100.0),
+    'pose_sigma': (0.0, 10.0),
+    'min_information': (0.0, None),
     'search_sigmas': (0.1, 10.0),
     'short_samples': (3, 256),
     'long_samples': (3, 4096),
     'max_step_px': (0.05, 100.0),
     'refine_samples': (1, 64),
+    'seed_parallax': (0.0, None),
     'seed_attempts': (1, 1000),
     'max_cost': (0.0, 2.0),
     'min_distinctiveness': (0.0, 1.0),
@@ -41,6 +46,7 @@ FILTER_LIMITS: dict[str, Any] = {
     'min_inlier_ratio': (0.0, 1.0),
     'publish_inlier_ratio': (0.0, 1.0),
     'min_updates': (1, 100000),
+    'score_relative_power': (0.0, 10.0),
     'max_relative_sigma': (1e-6, None),
     'min_parallax': (0.0, None),
     'max_rotation_deg': (0.0, 180.0),
@@ -49,6 +55,8 @@ FILTER_LIMITS: dict[str, Any] = {
     'keyframe_min_visible': (0.0, 1.0),
     'propagation_inflation': (1.0, None),
     'propagation_relative_sigma': (0.0, None),
+    'fill_radius': (0, 50),
+    'fill_min_neighbours': (1, 10000),
     'scene_depth': (1e-3, None),
 }
 

@@ -39,9 +39,9 @@ FILTER_STAGE = 'filter'
 #: ``--set multi_view.method=sweep|filter``: not a ``MultiViewConfig`` field, read here.
 METHOD_PARAM = 'method'
 DEFAULT_METHOD = 'sweep'
-#: ``--neighbour-mode offline``: the filter's estimate of frame k is read after frame k + this
-#: (warped back into k), as the sweep then takes neighbours on both sides; online: causal.
-OFFLINE_LOOKAHEAD = 10
+#: ``--neighbour-mode offline``: the filter's estimate of frame k is read after frame
+#: k + ``neighbours.window`` (warped back into k), as the sweep then takes its neighbours from
+#: ``window`` frames on both sides; online: causal.
 
 
 def multi_view_method(ctx: KeyframeContext) -> str:
@@ -107,7 +107,7 @@ def _filter_result(ctx: KeyframeContext) -> MultiViewResult:
     config, matching = filter_config(ctx), multi_view_config(ctx)
     frames = ctx.sequence.frames
 
-    lookahead = OFFLINE_LOOKAHEAD if ctx.options.neighbour_mode == 'offline' else 0
+    lookahead = neighbour_config(ctx).window if ctx.options.neighbour_mode == 'offline' else 0
 
     def make() -> FilterStream:
         return FilterStream(
