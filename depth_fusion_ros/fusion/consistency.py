@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch.nn import functional
 
+CANDIDATE_SCOPES = ('omega', 'band', 'all')
 #: One line per ``ConsistencyConfig`` field (ROS parameter descriptions, docs).
 CONSISTENCY_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'enabled': 'stage 3: test every multi-view estimate against its neighbours (drop inconsistent '
@@ -42,6 +43,8 @@ CONSISTENCY_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'tolerance': 'stage 3: largest |log(m/s) - local reference| of a kept point',
     'min_support': 'stage 3: smallest Gaussian-weighted neighbour count for a point to be tested',
     'iterations': 'stage 3: passes; each takes its reference from the points the previous one kept',
+    'candidates': "stage 3: estimates it may keep: 'omega' (only drop stage-2 points), 'band' (every "
+    "estimate within the stage-2 threshold of the line), 'all'",
 }
 
 
@@ -57,6 +60,9 @@ class ConsistencyConfig:
     tolerance: float = 0.03
     min_support: float = 1.0
     iterations: int = 3
+    #: Which estimates may be kept: ``omega`` (stage 3 only drops stage-2 points), ``band``
+    #: (every estimate within the stage-2 threshold of the line), ``all``.
+    candidates: str = 'band'
 
     def __post_init__(self) -> None:
         self.validate()
@@ -68,6 +74,11 @@ class ConsistencyConfig:
                 raise ValueError(f'consistency.{name} must be a positive number, got {value}')
         if not (np.isfinite(self.min_support) and self.min_support >= 0):
             raise ValueError(f'consistency.min_support must be >= 0, got {self.min_support}')
+        if self.candidates not in CANDIDATE_SCOPES:
+            raise ValueError(
+                f'consistency.candidates must be one of {", ".join(CANDIDATE_SCOPES)}, '
+                f'got {self.candidates!r}'
+            )
         if int(self.iterations) < 1:
             raise ValueError(f'consistency.iterations must be >= 1, got {self.iterations}')
 
@@ -144,3 +155,25 @@ def consistent_points(
         'n_stage3': float(out.sum()),
     }
     return out, stats
+
+
+def stage2_band(
+    s: np.ndarray, m: np.ndarray, usable: np.ndarray, fit: object, threshold: float, relative: bool
+) -> np.ndarray:
+    """Every usable multi-view estimate (stage 1 or not) within the stage-2 inlier threshold of
+    the fitted line ``fit`` (a ``selection.LinearFit``)."""
+    pred = fit.predict(s)
+    limit = threshold * pred if relative else np.float32(threshold)
+    with np.errstate(invalid='ignore'):
+        return usable & (np.abs(m - pred) <= limit)
+
+
+def stage3_candidates(
+    scope: str, omega: np.ndarray, usable: np.ndarray, band_fn: object
+) -> np.ndarray:
+    """The estimates stage 3 may keep: ``omega`` (only drop), ``band`` (the stage-2 band), ``all``."""
+    if scope == 'omega':
+        return omega
+    if scope == 'band':
+        return band_fn()
+    return usable
