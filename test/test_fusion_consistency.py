@@ -72,7 +72,11 @@ def _fuse(kind: str, **consistency):
         sc['single'], sc['multi'], sc['stage1'], cfg, consistency_config=ConsistencyConfig(enabled=False)
     )
     ours = fuse_keyframe(
-        sc['single'], sc['multi'], sc['stage1'], cfg, consistency_config=ConsistencyConfig(**consistency)
+        sc['single'],
+        sc['multi'],
+        sc['stage1'],
+        cfg,
+        consistency_config=ConsistencyConfig(enabled=True, **consistency),
     )
     oracle = fuse_keyframe(sc['single'], sc['multi'], None, cfg, omega_mask=sc['oracle'])
     return sc, paper, ours, oracle
@@ -133,8 +137,20 @@ def test_isolated_stage2_points_are_kept_and_isolated_others_are_not():
     m[30, 30] = 3.0  # a lone estimate outside stage 2: never added untested
     omega = np.zeros_like(s, dtype=bool)
     omega[5, 5] = True
-    kept, stats = consistent_points(s, m, omega, np.isfinite(m), ConsistencyConfig())
+    kept, stats = consistent_points(s, m, omega, np.isfinite(m), ConsistencyConfig(enabled=True))
     assert kept[5, 5] and not kept[30, 30] and stats['n_added'] == 0
+
+
+def test_off_by_default_is_the_paper_selection():
+    sc = _scene('in_band')
+    cfg = FusionConfig(mode='fast')
+    default = fuse_keyframe(sc['single'], sc['multi'], sc['stage1'], cfg)
+    paper = fuse_keyframe(
+        sc['single'], sc['multi'], sc['stage1'], cfg, consistency_config=ConsistencyConfig(enabled=False)
+    )
+    assert np.array_equal(default.omega_mask, paper.omega_mask)
+    np.testing.assert_array_equal(default.depth, paper.depth)
+    assert 'n_added' not in default.evidence
 
 
 @pytest.mark.parametrize(

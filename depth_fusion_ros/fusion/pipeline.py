@@ -189,8 +189,8 @@ def fuse_keyframe(
     selection); the alignment is then a least-squares fit on it, and the guard is skipped
     (a given Ω is trusted). ``guard_config`` / ``evidence``: the guard's thresholds and the
     optional per-pixel multi-view evidence (``guard.MultiViewEvidence``).
-    ``consistency_config``: stage 3 (``consistency.py``; default on): every multi-view estimate
-    tested against its neighbours, skipped with a given Ω.
+    ``consistency_config``: stage 3 (``consistency.py``; off by default): every multi-view
+    estimate of the stage-2 band tested against its neighbours, skipped with a given Ω.
     """
     config = config or FusionConfig()
     check_output_kind(output_kind)

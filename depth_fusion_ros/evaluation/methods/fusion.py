@@ -24,8 +24,8 @@ NaN, uncovered), and the guard's ``decision`` (index into ``guard.DECISIONS``: 0
 ``keyframe_confidence``. ``--set guard.<GuardConfig field>=...`` sets its thresholds; the
 automatic methods give it the multi-view result's per-pixel evidence (``depth_std``, and the
 neighbour agreement when the multi-view stage provides one). ``--set consistency.<field>=...``
-sets stage 3 of the selection (``fusion/consistency.py``; ``consistency.enabled=false``: the
-paper's two stages).
+sets stage 3 of the selection (``fusion/consistency.py``; off by default, the paper's two
+stages); ``fused_consistent`` is ``fused`` with it on.
 """
 
 from __future__ import annotations
@@ -149,8 +149,8 @@ def fused_result(ctx: KeyframeContext, **forced: Any) -> FusionResult:
     return ctx.cached('fusion:automatic', compute) if not forced else compute()
 
 
-def fused_paper_selection(ctx: KeyframeContext) -> FusionResult:
-    """``fused`` without stage 3 (the paper's score + RANSAC selection, guarded)."""
+def fused_consistent(ctx: KeyframeContext) -> FusionResult:
+    """``fused`` with stage 3 of the selection switched on (``--set consistency.*`` still apply)."""
     config, extra = fusion_settings(ctx)
     single, kind, mv = _inputs(ctx)
     return fuse_keyframe(
@@ -161,7 +161,7 @@ def fused_paper_selection(ctx: KeyframeContext) -> FusionResult:
         output_kind=kind,
         guard_config=guard_settings(ctx),
         evidence=MultiViewEvidence.from_result(mv),
-        consistency_config=ConsistencyConfig(enabled=False),
+        consistency_config=dataclasses.replace(consistency_settings(ctx), enabled=True),
     )
 
 
@@ -199,9 +199,9 @@ _register(
     guard=False,
 )
 _register(
-    'fused_paper_selection',
-    'as fused with the paper\'s two-stage selection only (consistency.enabled=false)',
-    lambda ctx: _output(fused_paper_selection(ctx)),
+    'fused_consistent',
+    'as fused with stage 3 of the selection on (consistency.enabled=true, fusion/consistency.py)',
+    lambda ctx: _output(fused_consistent(ctx)),
 )
 _register(
     'fused_oracle',
