@@ -7,11 +7,11 @@ import pytest
 
 from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
 from depth_fusion_ros.evaluation.context import EvalOptions, KeyframeContext
-from depth_fusion_ros.evaluation.methods.fusion import fusion_settings, oracle_mask
+from depth_fusion_ros.evaluation.methods.fusion import consistency_settings, fusion_settings, oracle_mask
 from depth_fusion_ros.evaluation.methods.single_view import single_view_prediction
 from depth_fusion_ros.evaluation.registry import available_methods, get_method
 
-FUSION_METHODS = ('fused', 'fused_fast', 'fused_oracle', 'fused_w1', 'fused_w1w2')
+FUSION_METHODS = ('fused', 'fused_fast', 'fused_oracle', 'fused_w1', 'fused_w1w2', 'fused_consistent')
 
 
 @pytest.fixture(scope='module')
@@ -62,3 +62,14 @@ def test_oracle_mask_keeps_points_within_the_threshold() -> None:
     assert oracle_mask(mv, gt, 0.1).tolist() == [[True, False, False, False]]
     with pytest.raises(ValueError, match='ground-truth'):
         oracle_mask(mv, None, 0.1)
+
+
+def test_consistency_parameters_are_honoured_and_checked(sequence) -> None:
+    options = EvalOptions(
+        single_view='simulated', params={'consistency': {'tolerance': 0.05, 'candidates': 'all'}}
+    )
+    config = consistency_settings(KeyframeContext(sequence, 2, options, {}))
+    assert config.tolerance == 0.05 and config.candidates == 'all' and not config.enabled
+    bad = EvalOptions(single_view='simulated', params={'consistency': {'tolerence': 0.05}})
+    with pytest.raises(ValueError, match=r'consistency\.tolerence'):
+        consistency_settings(KeyframeContext(sequence, 2, bad, {}))

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .alignment import AlignedDepth, apply_alignment, fit_alignment
+from .consistency import ConsistencyConfig, consistent_points, stage2_band, stage3_candidates
 from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
 from .guard_apply import guarded_depth, limit_reach
 from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
@@ -178,6 +179,7 @@ def fuse_keyframe(
     omega_mask: np.ndarray | None = None,
     guard_config: GuardConfig | None = None,
     evidence: MultiViewEvidence | None = None,
+    consistency_config: ConsistencyConfig | None = None,
 ) -> FusionResult:
     """Fuse one keyframe (all inputs HxW on the working grid).
 
@@ -187,6 +189,8 @@ def fuse_keyframe(
     selection); the alignment is then a least-squares fit on it, and the guard is skipped
     (a given Ω is trusted). ``guard_config`` / ``evidence``: the guard's thresholds and the
     optional per-pixel multi-view evidence (``guard.MultiViewEvidence``).
+    ``consistency_config``: stage 3 (``consistency.py``; off by default): every multi-view
+    estimate of the stage-2 band tested against its neighbours, skipped with a given Ω.
     """
     config = config or FusionConfig()
     check_output_kind(output_kind)
@@ -221,10 +225,21 @@ def fuse_keyframe(
 
     aligned = apply_alignment(s, fit) if config.aligns(output_kind) else AlignedDepth(s, 0)
     base = aligned.depth
+    consistency_config = consistency_config or ConsistencyConfig()
+    stage3: dict[str, float] = {}
+    if consistency_config.enabled and omega_mask is None:
+        candidates = stage3_candidates(
+            consistency_config.candidates,
+            omega,
+            usable,
+            lambda: stage2_band(s, m, usable, fit, config.ransac_threshold, config.ransac_relative),
+        )
+        omega, stage3 = consistent_points(base, m, omega, candidates, consistency_config, config.device)
     guard_config = guard_config or GuardConfig()
     verdict = None
     if config.guard and omega_mask is None:
         verdict = assess(base, m, omega, n_stage1, guard_config, evidence)
+        verdict.evidence.update(stage3)
         if verdict.decision not in ('full', 'fewer_points'):
             return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config)
         omega = verdict.trusted

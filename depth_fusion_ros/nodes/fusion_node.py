@@ -38,6 +38,7 @@ from std_msgs.msg import String
 from ..camera import PinholeCamera
 from ..data import messages
 from ..fusion import pipeline as fusion_pipeline
+from ..fusion.consistency import CONSISTENCY_PARAMETER_DESCRIPTIONS, ConsistencyConfig
 from ..fusion.guard import GUARD_PARAMETER_DESCRIPTIONS, GuardConfig
 from ..fusion.interpolation import MODES as FUSION_MODES
 from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
@@ -99,6 +100,13 @@ GUARD_LIMITS: dict[str, Any] = {
     'scale_sigma_px': (1e-3, None),
     'reach': (0.0, None),
     'max_scale_error': (0.0, None),
+}
+#: Ranges of the ``consistency.*`` parameters (``ConsistencyConfig``, stage 3 of the selection).
+CONSISTENCY_LIMITS: dict[str, Any] = {
+    'sigma_px': (1e-3, None),
+    'tolerance': (1e-6, None),
+    'min_support': (0.0, None),
+    'iterations': (1, 100),
 }
 #: Set by the node itself (``device``) rather than under ``fusion.*``.
 FUSION_SKIP = ('device',)
@@ -166,6 +174,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         FUSION_NODE_DEFAULTS,
     ),
     *dataclass_specs(GuardConfig, 'guard', GUARD_PARAMETER_DESCRIPTIONS, GUARD_LIMITS),
+    *dataclass_specs(
+        ConsistencyConfig, 'consistency', CONSISTENCY_PARAMETER_DESCRIPTIONS, CONSISTENCY_LIMITS
+    ),
 )
 
 
@@ -194,6 +205,7 @@ class FusionNode(DepthFusionNode):
         p = self.params
         self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))
         self.guard_config = build_dataclass(GuardConfig, p, 'guard')
+        self.consistency_config = build_dataclass(ConsistencyConfig, p, 'consistency')
         self.announced_kind: str | None = None
         self.pending: dict[int, _Pairing] = {}
         #: Stamps of keyframes already fused or dropped (the most recent ``CLOSED_MEMORY``).
@@ -375,6 +387,7 @@ class FusionNode(DepthFusionNode):
             self.active_config,
             output_kind=self.output_kind,
             guard_config=self.guard_config,
+            consistency_config=self.consistency_config,
         )
         stamp = messages.ns_to_sec(job.pairing.stamp_ns)
         if result.fallback:

@@ -23,7 +23,9 @@ frame fell back to the single-view depth), ``scale_a``/``offset_b`` (the stage-2
 NaN, uncovered), and the guard's ``decision`` (index into ``guard.DECISIONS``: 0 full ... 4 single-view) and
 ``keyframe_confidence``. ``--set guard.<GuardConfig field>=...`` sets its thresholds; the
 automatic methods give it the multi-view result's per-pixel evidence (``depth_std``, and the
-neighbour agreement when the multi-view stage provides one).
+neighbour agreement when the multi-view stage provides one). ``--set consistency.<field>=...``
+sets stage 3 of the selection (``fusion/consistency.py``; off by default, the paper's two
+stages); ``fused_consistent`` is ``fused`` with it on.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from ...fusion.consistency import ConsistencyConfig
 from ...fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence
 from ...fusion.pipeline import FusionConfig, FusionResult, fuse_keyframe
 from ...multiview.params import apply_overrides
@@ -42,6 +45,7 @@ from ..registry import MethodOutput, register_method
 
 STAGE = 'fusion'
 GUARD_STAGE = 'guard'
+CONSISTENCY_STAGE = 'consistency'
 #: Stage-1 fraction of the paper (best 25 % by photometric x geometric score).
 DEFAULT_STAGE1_FRACTION = 0.25
 #: The paper's oracle: multi-view points whose error against ground truth is below 10 cm.
@@ -73,6 +77,11 @@ def fusion_settings(ctx: KeyframeContext, **forced: Any) -> tuple[FusionConfig, 
 def guard_settings(ctx: KeyframeContext) -> GuardConfig:
     """``GuardConfig`` with the run's ``--set guard.*`` overrides (checked)."""
     return apply_overrides(GuardConfig(), ctx.stage_params(GUARD_STAGE), GUARD_STAGE)
+
+
+def consistency_settings(ctx: KeyframeContext) -> ConsistencyConfig:
+    """``ConsistencyConfig`` (stage 3) with the run's ``--set consistency.*`` overrides (checked)."""
+    return apply_overrides(ConsistencyConfig(), ctx.stage_params(CONSISTENCY_STAGE), CONSISTENCY_STAGE)
 
 
 def _inputs(ctx: KeyframeContext) -> tuple[np.ndarray, str, Any]:
@@ -134,9 +143,26 @@ def fused_result(ctx: KeyframeContext, **forced: Any) -> FusionResult:
             output_kind=kind,
             guard_config=guard_settings(ctx),
             evidence=MultiViewEvidence.from_result(mv),
+            consistency_config=consistency_settings(ctx),
         )
 
     return ctx.cached('fusion:automatic', compute) if not forced else compute()
+
+
+def fused_consistent(ctx: KeyframeContext) -> FusionResult:
+    """``fused`` with stage 3 of the selection switched on (``--set consistency.*`` still apply)."""
+    config, extra = fusion_settings(ctx)
+    single, kind, mv = _inputs(ctx)
+    return fuse_keyframe(
+        single,
+        mv.depth,
+        _stage1(ctx, mv, extra['stage1_fraction']),
+        config,
+        output_kind=kind,
+        guard_config=guard_settings(ctx),
+        evidence=MultiViewEvidence.from_result(mv),
+        consistency_config=dataclasses.replace(consistency_settings(ctx), enabled=True),
+    )
 
 
 def fused_oracle(ctx: KeyframeContext, **forced: Any) -> MethodOutput:
@@ -171,6 +197,11 @@ _register(
     'as fused without the guard (fusion.guard=false): every stage-2 point bends the depth',
     fused_automatic,
     guard=False,
+)
+_register(
+    'fused_consistent',
+    'as fused with stage 3 of the selection on (consistency.enabled=true, fusion/consistency.py)',
+    lambda ctx: _output(fused_consistent(ctx)),
 )
 _register(
     'fused_oracle',
