@@ -183,6 +183,7 @@ def measure_run(
     options.rate = rate
     graph = GraphRun(options)
     result = graph.run()
+    result.exit_codes = dict(graph.exit_codes)  # which processes ran: only their logs count
     spans = {'run': run_span(graph.recorder.stamp_logs, TOPIC_IMAGE, TOPIC_FUSED_DEPTH)}
     images = image_count(bag)
     expected = len([i for i in range(images) if i % keyframe_every() == 0 and i > 0])
@@ -271,7 +272,9 @@ def node_latencies(result, log_dir: Path | None) -> dict[str, float]:
         if snap.processed
     }
     if log_dir is not None:
-        for log_file in sorted(log_dir.glob('*_node.log')):
+        for log_file in run_logs(log_dir, result):
+            if not log_file.stem.endswith('_node'):
+                continue
             finals = [
                 ln for ln in log_file.read_text(errors='replace').splitlines() if 'final counters:' in ln
             ]
@@ -281,10 +284,17 @@ def node_latencies(result, log_dir: Path | None) -> dict[str, float]:
     return out
 
 
-def logged_drops(log_dir: Path) -> dict[str, dict[str, int]]:
+def run_logs(log_dir: Path, result) -> list[Path]:
+    """The log files of this run's processes (an earlier run in the same folder may have
+    started other nodes, e.g. map_node in a soak: their old logs are not this run's)."""
+    ran = set(getattr(result, 'exit_codes', None) or {})
+    return [f for f in sorted(log_dir.glob('*.log')) if not ran or f.stem in ran]
+
+
+def logged_drops(log_dir: Path, result=None) -> dict[str, dict[str, int]]:
     """Drop counters of node processes, from the ``final counters: ... dropped N (a=1 b=2)`` lines."""
     out: dict[str, dict[str, int]] = {}
-    for log_file in sorted(log_dir.glob('*.log')):
+    for log_file in run_logs(log_dir, result):
         finals = [ln for ln in log_file.read_text(errors='replace').splitlines() if 'final counters:' in ln]
         match = re.search(r'dropped \d+ \(([^)]*)\)', finals[-1]) if finals else None
         if match:
@@ -296,7 +306,7 @@ def logged_drops(log_dir: Path) -> dict[str, dict[str, int]]:
 def _drop_note(result, log_dir: Path | None = None) -> str:
     counters = {name: snap.dropped for name, snap in result.node_stats.items()}
     if log_dir is not None:
-        counters.update(logged_drops(log_dir))
+        counters.update(logged_drops(log_dir, result))
     drops = {}
     for name, dropped in counters.items():
         for reason, count in dropped.items():
