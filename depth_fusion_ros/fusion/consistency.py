@@ -34,6 +34,8 @@ import numpy as np
 import torch
 from torch.nn import functional
 
+from .selection import LinearFit, inliers_of
+
 CANDIDATE_SCOPES = ('omega', 'band', 'all')
 #: One line per ``ConsistencyConfig`` field (ROS parameter descriptions, docs).
 CONSISTENCY_PARAMETER_DESCRIPTIONS: dict[str, str] = {
@@ -161,21 +163,22 @@ def consistent_points(
     return out, stats
 
 
-def stage2_band(
-    s: np.ndarray, m: np.ndarray, usable: np.ndarray, fit: object, threshold: float, relative: bool
+def stage3_candidates(
+    scope: str,
+    omega: np.ndarray,
+    usable: np.ndarray,
+    s: np.ndarray,
+    m: np.ndarray,
+    fit: LinearFit,
+    threshold: float,
+    relative: bool,
 ) -> np.ndarray:
-    """Every usable multi-view estimate (stage 1 or not) within the stage-2 inlier threshold of
-    the fitted line ``fit`` (a ``selection.LinearFit``)."""
-    pred = fit.predict(s)
-    limit = threshold * pred if relative else np.float32(threshold)
-    with np.errstate(invalid='ignore'):
-        return usable & (np.abs(m - pred) <= limit)
-
-
-def stage3_candidates(scope: str, omega: np.ndarray, usable: np.ndarray, band_fn: object) -> np.ndarray:
-    """The estimates stage 3 may keep: ``omega`` (only drop), ``band`` (the stage-2 band), ``all``."""
+    """The estimates stage 3 may keep: ``omega`` (only drop), ``band`` (every usable estimate the
+    stage-2 line explains within its inlier threshold, stage 1 or not), ``all`` (every usable one)."""
     if scope == 'omega':
         return omega
     if scope == 'band':
-        return band_fn()
+        band = np.zeros_like(usable)
+        band[usable] = inliers_of(fit, s[usable], m[usable], threshold, relative)
+        return band
     return usable

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .alignment import AlignedDepth, apply_alignment, fit_alignment
-from .consistency import ConsistencyConfig, consistent_points, stage2_band, stage3_candidates
+from .consistency import ConsistencyConfig, consistent_points, stage3_candidates
 from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
 from .guard_apply import guarded_depth, limit_reach
 from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
@@ -232,7 +232,11 @@ def fuse_keyframe(
             consistency_config.candidates,
             omega,
             usable,
-            lambda: stage2_band(s, m, usable, fit, config.ransac_threshold, config.ransac_relative),
+            s,
+            m,
+            fit,
+            config.ransac_threshold,
+            config.ransac_relative,
         )
         omega, stage3 = consistent_points(base, m, omega, candidates, consistency_config, config.device)
     guard_config = guard_config or GuardConfig()

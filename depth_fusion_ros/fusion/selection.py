@@ -231,6 +231,12 @@ def least_squares_scale(x: np.ndarray, y: np.ndarray) -> tuple[float, float] | N
     return (float(np.dot(x, y)) / xx, 0.0) if x.size and xx > 0 else None
 
 
+def inliers_of(fit: LinearFit, s: np.ndarray, m: np.ndarray, threshold: float, relative: bool) -> np.ndarray:
+    """Which points ``(s, m)`` the line ``fit`` explains within the stage-2 inlier threshold:
+    the test RANSAC itself applies, for points it was not fitted on."""
+    return _inliers(fit.a, fit.b, s, m, threshold, relative, fit.inverse)
+
+
 def _inliers(
     a: float, b: float, s: np.ndarray, m: np.ndarray, threshold: float, relative: bool, inverse: bool
 ) -> np.ndarray:
