@@ -44,7 +44,6 @@ from .weights import (
     Samples,
     WeightParams,
     depth_gradients,
-    proximity_weights,
     samples_at,
     structure_weights,
     unnormalised_weights,
@@ -88,30 +87,14 @@ def confidence_from_support(support_distance: np.ndarray, sigma1: float) -> np.n
     return np.nan_to_num(conf, nan=0.0).astype(np.float32)
 
 
-def _chunk_sums(p: Samples, q: Samples, v: torch.Tensor, params: WeightParams) -> tuple[torch.Tensor, ...]:
-    """Pixels ``p`` (C, 1) against points ``q`` (1, Q), with ``W' = W̃ - min W̃`` and
-    ``d = ‖p - q‖``: ``(ΣW'v, ΣW', ΣW'd, min W̃)`` per pixel.
-
-    Functional form: what ``torch.compile`` fuses into one loop over Ω.
-    """
-    dx = q.x - p.x
-    dy = q.y - p.y
-    distance = torch.sqrt(dx * dx + dy * dy)
-    w = proximity_weights(distance, params)
-    if params.weights != 'w1':
-        w = w * structure_weights(p, q, params, dx, dy)
-    low = w.amin(dim=1, keepdim=True)
-    shifted = w - low
-    return shifted @ v, shifted.sum(dim=1), (shifted * distance).sum(dim=1), low.squeeze(1)
-
-
 def _chunk_sums_inplace(
     p: Samples, q: Samples, v: torch.Tensor, params: WeightParams
 ) -> tuple[torch.Tensor, ...]:
-    """:func:`_chunk_sums` with in-place operations on two (C, Q) buffers.
+    """Pixels ``p`` (C, 1) against points ``q`` (1, Q), with ``W' = W̃ - min W̃`` and
+    ``d = ‖p - q‖``: ``(ΣW'v, ΣW', ΣW'd, min W̃)`` per pixel, in place on two (C, Q) buffers.
 
-    The same formulas (tests compare them); about twice as fast as the functional form in
-    eager mode because it streams through memory fewer times.
+    The formulas of :mod:`.weights` (a test compares them), streamed through memory as few
+    times as eager torch allows.
     """
     dx = q.x - p.x
     dy = q.y - p.y
@@ -163,7 +146,7 @@ def _chunk_sums_one_pass(
     """``(ΣW̃v, ΣW̃, ΣW̃d, min W̃, Σd)`` per pixel in ONE pass over Ω (what torch.compile
     turns into a single loop with five accumulators, nothing of size (C, Q) in memory).
 
-    The min-subtracted sums of :func:`_chunk_sums` follow exactly: ``Σ(W̃ - m)v = ΣW̃v - mΣv``,
+    The min-subtracted sums of :func:`_chunk_sums_inplace` follow exactly: ``Σ(W̃ - m)v = ΣW̃v - mΣv``,
     ``Σ(W̃ - m) = ΣW̃ - |Ω|m``, ``Σ(W̃ - m)d = ΣW̃d - mΣd`` (see :func:`_one_pass_kernel`, which
     sends rows where ``|Ω|m`` is not negligible next to ``ΣW̃`` to the two-pass kernel).
     Same factors as :func:`.weights.unnormalised_weights`, with :func:`_exp_nonpositive` for
@@ -390,13 +373,14 @@ def interpolate(
     v = torch.from_numpy((m - s)[points_mask].astype(np.float32)).to(dev)
     # Eager: the in-place two-pass kernel (fewer passes over memory); compiled: the one-pass
     # sums fused into one loop over Ω.
-    kernel = _one_pass_kernel(
-        _maybe_compiled('sums', _chunk_sums_one_pass, params, compile_kernel, dev, fallback=_no_one_pass),
-        params,
-        chunk_elements,
-        int(points.x.numel()),
-    )
-    if not compile_kernel or dev.type in _COMPILE_FAILED:
+    if compile_kernel and dev.type not in _COMPILE_FAILED:
+        kernel = _one_pass_kernel(
+            _maybe_compiled('sums', _chunk_sums_one_pass, params, True, dev, fallback=_no_one_pass),
+            params,
+            chunk_elements,
+            int(points.x.numel()),
+        )
+    else:
         kernel = functools.partial(_chunk_sums_inplace, params=params)
 
     if mode == 'exact' or fast_stride == 1:
