@@ -260,11 +260,11 @@ class EpipolarRays:
         w_safe = torch.where(in_front, w, torch.ones_like(w))
         return p[:, :, 0] / w_safe, p[:, :, 1] / w_safe, in_front
 
-    def parallax(self, rho: torch.Tensor) -> torch.Tensor:
-        """``|d p_o / d rho|`` (n, M): pixels moved along each epipolar line per unit inverse depth.
+    def motion(self, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(du/drho, dv/drho)`` (n, M) at inverse depths ``rho`` (M,): the epipolar direction
+        scaled by the pixels moved per unit inverse depth.
 
         From ``u = (a0 + rho b0) / (a2 + rho b2)``: ``du/drho = (b0 a2 - a0 b2) / (a2 + rho b2)^2``.
-        Zero for a pure rotation (``t_ok = 0``), which is what makes its geometric score 0.
         """
         a = self.a
         b = self.b[:, None, :]
@@ -272,6 +272,14 @@ class EpipolarRays:
         w2 = torch.clamp(w * w, min=1e-12)
         du = (b[..., 0] * a[..., 2] - a[..., 0] * b[..., 2]) / w2
         dv = (b[..., 1] * a[..., 2] - a[..., 1] * b[..., 2]) / w2
+        return du, dv
+
+    def parallax(self, rho: torch.Tensor) -> torch.Tensor:
+        """``|d p_o / d rho|`` (n, M): pixels moved along each epipolar line per unit inverse depth.
+
+        Zero for a pure rotation (``t_ok = 0``), which is what makes its geometric score 0.
+        """
+        du, dv = self.motion(rho)
         return torch.sqrt(du * du + dv * dv)
 
 

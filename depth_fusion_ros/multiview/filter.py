@@ -220,10 +220,11 @@ class DepthFilter:
         return state, torch.zeros(m, dtype=torch.long, device=self.device), full(math.nan)
 
     def _new_keyframe(self, image: torch.Tensor, desc: torch.Tensor, T_wk: np.ndarray) -> _Keyframe:
-        cand = candidate_mask(image, self._candidates)
+        # One blur for the candidate test and the gradients (candidate_mask's own smoothing).
+        smooth = gaussian_blur(image[None], self.matching.blur_sigma)[0]
+        cand = candidate_mask(image, self._candidates, smooth=smooth)
         vs, us = torch.nonzero(cand, as_tuple=True)
         # Candidates lie away from the border, so the central differences stay inside.
-        smooth = gaussian_blur(image[None], self.matching.blur_sigma)[0]
         grad = torch.stack(
             ((smooth[vs, us + 1] - smooth[vs, us - 1]) * 0.5, (smooth[vs + 1, us] - smooth[vs - 1, us]) * 0.5)
         )
@@ -371,10 +372,10 @@ class DepthFilter:
         fresh = ~key.prior
         baseline = max(float(np.linalg.norm(T_fk[:3, 3])), 1e-9)
         prior = torch.where(fresh, torch.full_like(st.mu, 0.5 * (rho_min + rho_max)), st.mu)
-        pu, pv, front = _project(rays, prior)
+        pu, pv, front = (t[0, :, 0] for t in rays.project(prior[:, None]))
         m = self.margin
         visible = front & (pu >= m) & (pu <= cam.width - 1 - m) & (pv >= m) & (pv <= cam.height - 1 - m)
-        du, dv = _epipolar_motion(rays, prior)
+        du, dv = (t[0] for t in rays.motion(prior))
         j_mu = torch.hypot(du, dv)
         # LSD-SLAM: only where the gradient has a component along the epipolar line.
         along = (key.grad[0] * du + key.grad[1] * dv).abs() / torch.clamp(j_mu, min=1e-9)
@@ -424,7 +425,7 @@ class DepthFilter:
             return seen
         valid &= (x >= rho_min) & (x <= rho_max)
         xr = torch.where(valid, x, st.mu)
-        j_x = torch.hypot(*_epipolar_motion(rays, xr))
+        j_x = torch.hypot(*(t[0] for t in rays.motion(xr)))
         valid &= j_x > 1e-6
         tau2 = self._tau2(xr, j_x, baseline)[rows]
         f_r, mu_r, var_r, valid, x, cost = (
@@ -452,33 +453,15 @@ class DepthFilter:
         n_n = key.updates[rows] + (init | upd).long()
         # Outliers: a pixel that keeps failing is reset to "no estimate" (it may be re-seeded).
         drop = ~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio)
-        lo_r, hi_r = self.rho_range
-        st.mu[rows] = torch.where(drop, torch.full_like(mu_n, 0.5 * (lo_r + hi_r)), mu_n)
-        st.var[rows] = torch.where(drop, torch.full_like(var_n, (hi_r - lo_r) ** 2), var_n)
-        st.a[rows] = torch.where(drop, torch.full_like(a_n, c.init_a), a_n)
-        st.b[rows] = torch.where(drop, torch.full_like(b_n, c.init_b), b_n)
+        reset, _, _ = self._fresh_state(int(rows.numel()))
+        st.mu[rows] = torch.where(drop, reset.mu, mu_n)
+        st.var[rows] = torch.where(drop, reset.var, var_n)
+        st.a[rows] = torch.where(drop, reset.a, a_n)
+        st.b[rows] = torch.where(drop, reset.b, b_n)
         key.updates[rows] = torch.where(drop, torch.zeros_like(n_n), n_n)
         key.prior[rows] = (key.prior[rows] | init) & ~drop
         key.cost[rows] = torch.where(init | upd, cost, key.cost[rows])
         return seen
-
-
-def _epipolar_motion(rays: EpipolarRays, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(du/drho, dv/drho)`` (M,) in the (single) frame of ``rays``: the epipolar direction
-    scaled by the pixels moved per unit inverse depth (``EpipolarRays.parallax`` is its norm)."""
-    a, b = rays.a[0], rays.b[0]
-    w = a[:, 2] + rho * b[2]
-    w2 = torch.clamp(w * w, min=1e-12)
-    return (b[0] * a[:, 2] - a[:, 0] * b[2]) / w2, (b[1] * a[:, 2] - a[:, 1] * b[2]) / w2
-
-
-def _project(rays: EpipolarRays, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Pixel ``(u, v)`` (M,) at inverse depth ``rho`` in the (single) frame of ``rays``, and in front."""
-    a, b = rays.a[0], rays.b[0]
-    w = a[:, 2] + rho * b[2]
-    front = w > 1e-9
-    ws = torch.where(front, w, torch.ones_like(w))
-    return (a[:, 0] + rho * b[0]) / ws, (a[:, 1] + rho * b[1]) / ws, front
 
 
 def _box_sum(maps: torch.Tensor, r: int) -> torch.Tensor:

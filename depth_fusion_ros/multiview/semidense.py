@@ -213,8 +213,12 @@ def gradient_magnitude(gray: torch.Tensor) -> torch.Tensor:
     return g
 
 
-def candidate_mask(gray: torch.Tensor, config: MultiViewConfig) -> torch.Tensor:
-    """Pixels to search: high gradient (or all) and far enough from the border for the patch."""
+def candidate_mask(
+    gray: torch.Tensor, config: MultiViewConfig, smooth: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Pixels to search: high gradient (or all) and far enough from the border for the patch.
+
+    ``smooth``: ``gray`` already blurred by ``config.blur_sigma``, when the caller has it."""
     h, w = gray.shape
     margin = patch_reach(config.patch, config.patch_stride) + 1
     mask = torch.zeros((h, w), dtype=torch.bool, device=gray.device)
@@ -223,7 +227,8 @@ def candidate_mask(gray: torch.Tensor, config: MultiViewConfig) -> torch.Tensor:
     if config.all_pixels:
         mask[margin:-margin, margin:-margin] = True
         return mask
-    smooth = gaussian_blur(gray[None], config.blur_sigma)[0]
+    if smooth is None:
+        smooth = gaussian_blur(gray[None], config.blur_sigma)[0]
     grad = gradient_magnitude(smooth)[margin:-margin, margin:-margin]
     threshold = config.min_gradient
     cap = int(config.max_candidate_fraction * h * w)
