@@ -67,8 +67,9 @@ def _real_sequence(path: str, quick: bool) -> Sequence:
     return load_tum_sequence(path, width=WIDTH, height=HEIGHT, max_frames=12 if quick else 37)
 
 
-def _keyframe_inputs(seq: Sequence, key: int) -> tuple:
-    chosen = select_neighbours(seq.poses, key, NEIGHBOURS, 'offline', seq.camera)
+def _keyframe_inputs(seq: Sequence, key: int, mode: str = 'offline') -> tuple:
+    """``estimate_semidense``'s first arguments for keyframe ``key`` and its ``NEIGHBOURS``."""
+    chosen = select_neighbours(seq.poses, key, NEIGHBOURS, mode, seq.camera)
     frames = seq.frames
     return (
         frames[key].gray,

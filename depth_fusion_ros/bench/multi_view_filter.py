@@ -21,10 +21,9 @@ import torch
 from ..data.sequence import Sequence
 from ..metrics import good_density
 from ..multiview.filter import DepthFilter
-from ..multiview.neighbours import select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
 from . import BenchOptions, BenchRow
-from .multi_view import _real_sequence, _synthetic_sequence
+from .multi_view import _keyframe_inputs, _median_abs_rel, _real_sequence, _synthetic_sequence
 
 TITLE = 'multi_view_filter (temporal inverse-depth filter against the per-keyframe sweep)'
 
@@ -50,10 +49,7 @@ def _stream_seconds(seq: Sequence, device: str) -> tuple[list[float], DepthFilte
 
 
 def _sweep_seconds(seq: Sequence, key: int, device: str, repeats: int) -> float:
-    chosen = select_neighbours(seq.poses, key, 4, 'offline', seq.camera)
-    fr = seq.frames
-    grays, poses = [fr[i].gray for i in chosen], [fr[i].pose for i in chosen]
-    args = (fr[key].gray, fr[key].pose, grays, poses, seq.camera)
+    args = _keyframe_inputs(seq, key)
     estimate_semidense(*args, MultiViewConfig(), device=device)  # warm-up
     times = []
     for _ in range(max(1, repeats)):
@@ -65,10 +61,7 @@ def _sweep_seconds(seq: Sequence, key: int, device: str, repeats: int) -> float:
 
 def _accuracy(depth: np.ndarray, gt: np.ndarray, selected: np.ndarray) -> tuple[float, float]:
     """Good density (AbsRel <= 10 %, of all pixels) and the selected points' median AbsRel."""
-    valid = np.isfinite(depth) & np.isfinite(gt) & (gt > 0)
-    rel = np.abs(depth - gt) / np.where(valid, gt, 1.0)
-    chosen = selected & valid
-    return good_density(depth, gt), float(np.median(rel[chosen])) if chosen.any() else float('nan')
+    return good_density(depth, gt), _median_abs_rel(depth, gt, selected & np.isfinite(depth))
 
 
 def filter_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
@@ -96,16 +89,8 @@ def filter_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[BenchRow]
     if gt is not None:
         fraction = MultiViewConfig().select_fraction
         good, selected = _accuracy(result.depth, gt, select_best_fraction(result, fraction))
-        fr = seq.frames
-        chosen = select_neighbours(seq.poses, last, 4, 'online', seq.camera)
         swept = estimate_semidense(
-            fr[last].gray,
-            fr[last].pose,
-            [fr[i].gray for i in chosen],
-            [fr[i].pose for i in chosen],
-            seq.camera,
-            MultiViewConfig(),
-            device=opts.device,
+            *_keyframe_inputs(seq, last, 'online'), MultiViewConfig(), device=opts.device
         )
         sweep_good, sweep_selected = _accuracy(swept.depth, gt, select_best_fraction(swept, fraction))
         rows += [
