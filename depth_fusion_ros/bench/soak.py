@@ -58,10 +58,15 @@ class ProcessSampler:
         self.rss.append(sample)
 
 
+def steady_window(t: np.ndarray, total_seconds: float) -> np.ndarray:
+    """Samples after warm-up: past ``WARMUP_SHARE`` of the run (at least 30 s), and at most
+    the first half of what was sampled."""
+    return t >= min(max(30.0, WARMUP_SHARE * total_seconds), t[-1] * 0.5)
+
+
 def growth(t: np.ndarray, values: np.ndarray, total_seconds: float) -> tuple[float, float, float, float]:
     """(warm-up level, end level, growth %, max excursion %) of one RSS series."""
-    warm_end = max(30.0, WARMUP_SHARE * total_seconds)
-    steady = t >= min(warm_end, t[-1] * 0.5)
+    steady = steady_window(t, total_seconds)
     s_v = values[steady]
     head = s_v[: max(1, len(s_v) // 20)]
     tail = s_v[-max(1, len(s_v) // 20) :]
@@ -97,7 +102,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
         header='seconds,total_mb,' + ','.join(f'{n}_mb' for n in names), comments='',
     )  # fmt: skip
     warm, end, grew, peak = growth(t, total, seconds)
-    steady = t >= min(max(30.0, WARMUP_SHARE * seconds), t[-1] * 0.5)
+    steady = steady_window(t, seconds)
     slope = float(np.polyfit(t[steady], total[steady], 1)[0]) * 60.0
     verdict = 'within' if abs(grew) <= TARGET_PERCENT and peak <= TARGET_PERCENT else 'OUTSIDE'
     rows = [
@@ -128,8 +133,7 @@ def map_rows(t: np.ndarray, rss: np.ndarray, seconds: float, max_blocks: int) ->
 
     cap = max_blocks * MapConfig().bytes_per_block / 2**20
     warm, end, _, _ = growth(t, rss, seconds)
-    steady = rss[t >= min(max(30.0, WARMUP_SHARE * seconds), t[-1] * 0.5)]
-    rise = float(np.nanmax(steady)) - warm
+    rise = float(np.nanmax(rss[steady_window(t, seconds)])) - warm
     verdict = 'under' if rise <= cap else 'OVER'
     return [
         BenchRow('soak: map_node declared voxel cap', cap, 'MB', f'map.max_blocks={max_blocks}'),

@@ -142,6 +142,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept lazy)
     from ..nodes.graph import RunOptions
     from ..nodes.graph.isolation import check_domain_id
+    from ..nodes.graph.map_output import check_map_path
     from .overrides import check_node_overrides, parse_overrides
     from .paths import check_output
 
@@ -161,9 +162,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
     if 'map_node' in overrides and not with_map:
         raise ValueError('--set map_node.*: map_node is not started; add --map (or --save-map FILE.ply)')
     if args.save_map is not None:
-        if args.save_map.suffix.lower() != '.ply':
-            raise ValueError(f'--save-map {args.save_map}: the map is written as .ply')
-        check_output(args.save_map, '--save-map', folder=False)
+        check_output(check_map_path(args.save_map), '--save-map', folder=False)
     if args.record is not None:
         check_output(args.record, '--record', exists_ok=False, bag=True)
     if args.log_dir is not None:

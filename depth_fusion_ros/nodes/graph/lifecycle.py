@@ -76,7 +76,6 @@ class GraphRun:
         self._logs: list[Any] = []
         self._torch_threads_before: int | None = None
         self._wall_start = time.time()
-        self.started_wall = self._wall_start
         self.exit_codes: dict[str, int | None] = {}
         self.executor_error: BaseException | None = None
         self._next_progress = 0.0
@@ -537,6 +536,6 @@ def run_graph(options: RunOptions) -> RunResult:
     result.domain_id = run.isolation.domain if run.isolation else None
     if options.save_map is not None:  # written by map_node as it stopped
         result.map_file, result.map_size, result.map_error = check_saved_map(
-            options.save_map, run.started_wall
+            options.save_map, run._wall_start
         )
     return result

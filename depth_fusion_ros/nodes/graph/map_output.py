@@ -10,6 +10,14 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def check_map_path(path: str | Path) -> Path:
+    """``--save-map``'s path, expanded; ``ValueError`` unless it names a ``.ply`` file."""
+    path = Path(path).expanduser()
+    if path.suffix.lower() != '.ply':
+        raise ValueError(f'--save-map {path}: the map is written as .ply')
+    return path
+
+
 def ply_counts(path: Path) -> tuple[int, int]:
     """(vertices, faces) from a PLY header, without reading the body."""
     counts = {'vertex': 0, 'face': 0}

@@ -6,6 +6,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from .map_output import check_map_path
 from .options import RunOptions
 from .topics import GRAPH_NODES, MAP_NODE, REPLAYER, TOPIC_GT_DEPTH
 
@@ -121,10 +122,7 @@ def map_overrides(options: RunOptions) -> dict[str, Any]:
     replay (its callback waits instead of dropping, as the other nodes' do), the device."""
     values: dict[str, Any] = {}
     if options.save_map is not None:
-        path = Path(options.save_map).expanduser()
-        if path.suffix.lower() != '.ply':
-            raise ValueError(f'--save-map {path}: the map is written as .ply')
-        values.update(save_path=str(path), save_on_shutdown=True)
+        values.update(save_path=str(check_map_path(options.save_map)), save_on_shutdown=True)
     if not options.realtime:
         values.update(queue_policy='block', queue_size=16, qos_depth=100)
     if options.device is not None:
