@@ -214,6 +214,27 @@ def test_announced_output_kind_switches_on_alignment():
     assert np.nanmedian(np.abs(fused - scene.gt)) < 0.05
 
 
+def test_announced_filter_method_sends_every_estimate_to_stage_two():
+    """multi_view_node announces ``filter`` (latched): stage 1 keeps every estimate, not 25 %."""
+    scene = _scene(4)
+    with RosHarness() as ros:
+        node = _fusion_node(ros, publish_points=False)
+        depths = ros.collect(Image, '/depth_fusion/fused/depth')
+        method = ros.publisher(String, '/depth_fusion/multi_view/method', latched_qos())
+        method.publish(String(data='filter'))
+        assert ros.wait_for(lambda: node.announced_method == 'filter', 10.0)
+        _Inputs(ros).keyframe(scene, 5_000_000_000)
+        assert ros.wait_for(lambda: len(depths) == 1, 20.0)
+        method.publish(String(data='bundle_adjustment'))
+        assert ros.wait_for(lambda: node.stats.snapshot().dropped.get('bad_multi_view_method') == 1, 10.0)
+        assert node.announced_method == 'filter'
+    every = np.isfinite(scene.mv)
+    expected = fuse_keyframe(scene.single, scene.mv, every, FusionConfig(mode='fast')).depth
+    fused = m.image_to_numpy(depths[0])
+    np.testing.assert_allclose(fused, expected, rtol=1e-5, atol=1e-5)
+    assert not np.allclose(fused, _offline(scene), atol=1e-3)  # not the paper's best 25 %
+
+
 def test_invalid_fusion_parameter_is_reported_by_name():
     with RosHarness() as ros:
         with pytest.raises(ValueError, match=r'fusion\.mode.*expected one of exact, fast'):

@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
 from test_nodes_multi_view import _Camera, _stamps
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.multiview.filter import DepthFilter
 from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
+from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.testing import RosHarness
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
@@ -37,6 +39,8 @@ def test_filter_method_publishes_accurate_keyframe_depth(synthetic_sequence):
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         score_msgs = ros.collect(Image, '/depth_fusion/multi_view/score')
         ros.collect(CameraInfo, '/depth_fusion/keyframe/camera_info')
+        # latched: a fusion_node that starts later still learns the method (its stage-1 rule)
+        methods = ros.collect(String, '/depth_fusion/multi_view/method', latched_qos())
         cam = _Camera(ros)
         for i, frame in enumerate(seq.frames):
             cam.publish_pose(frame.pose, stamps[i])
@@ -50,6 +54,7 @@ def test_filter_method_publishes_accurate_keyframe_depth(synthetic_sequence):
         filt = node.filter_feed.filter
 
     assert snap.dropped == {}, snap.summary()
+    assert [msg.data for msg in methods] == ['filter']
     assert _stamps(depth_msgs) == [stamps[k] for k in expected_keys]
     # The filter saw every posed frame up to the last keyframe, not only the keyframes.
     assert isinstance(filt, DepthFilter) and filt.stats.frames == expected_keys[-1] + 1

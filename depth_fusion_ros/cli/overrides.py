@@ -131,7 +131,7 @@ def evaluation_stages() -> dict[str, set[str]]:
         MAP_STAGE: fields(MapConfig),
         NEIGHBOURS_STAGE: fields(NeighbourConfig),
         TV_STAGE: fields(TVConfig),
-        FUSION_STAGE: fields(FusionConfig) | {'stage1_fraction', 'oracle_threshold'},
+        FUSION_STAGE: fields(FusionConfig) | {'stage1_fraction', 'stage1', 'oracle_threshold'},
         SIMULATED_STAGE: fields(SimulatedPriorConfig),
         'recorded': {'bag', *RECORDED_TOPICS},
     }

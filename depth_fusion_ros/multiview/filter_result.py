@@ -41,6 +41,7 @@ class FilterResult(MultiViewResult):
     variance: np.ndarray | None = None
     inlier_ratio: np.ndarray | None = None
     updates: np.ndarray | None = None
+    method: str = 'filter'
 
 
 def assemble_result(

@@ -56,6 +56,7 @@ from .cost_volume import (
     stage_descriptors,
     zero_mean_basis,
 )
+from .stage1 import resolve_rule, stage1_mask
 from .views import prepare_views
 
 log = logging.getLogger(__name__)
@@ -149,6 +150,8 @@ class MultiViewResult:
     sharpness: np.ndarray | None = None
     #: Frame indices of the neighbours used, when the caller knows them.
     neighbours: tuple[int, ...] = ()
+    #: The method that produced it (``multi_view.method``): decides the stage-1 rule.
+    method: str = 'sweep'
 
     @property
     def valid(self) -> np.ndarray:
@@ -163,6 +166,10 @@ class MultiViewResult:
     def selected_mask(self, fraction: float = 0.25) -> np.ndarray:
         """Stage-1 selection: see :func:`select_best_fraction`."""
         return select_best_fraction(self, fraction)
+
+    def stage1_mask(self, rule: str = 'auto', fraction: float = 0.25) -> np.ndarray:
+        """Stage-1 points under ``rule`` (``auto``: this method's rule; see :mod:`.stage1`)."""
+        return stage1_mask(self.depth, self.score, resolve_rule(rule, self.method), fraction)
 
     def selected_depth(self, fraction: float = 0.25) -> np.ndarray:
         """Depth of the stage-1 points, NaN elsewhere."""

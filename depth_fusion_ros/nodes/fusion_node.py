@@ -7,8 +7,9 @@ it has come, to colour the points). A pairing waits at most ``pair_timeout`` sec
 stream is in stamp order, a pairing that misses a part which its stream has already passed
 is hopeless and dropped at once. Both bounds keep memory flat whatever the input.
 
-A complete pairing goes to the worker: stage 1 of the point selection (best
-``fusion.stage1_fraction`` of the multi-view points by score), then the core's
+A complete pairing goes to the worker: stage 1 of the point selection (``fusion.stage1``:
+the best ``fusion.stage1_fraction`` of the sweep's points by score, every estimate of the
+filter, as multi_view_node announces its method on a latched topic), then the core's
 ``fuse_keyframe`` (stage 2 RANSAC, the weighted interpolation, fallbacks). The fused depth
 (32FC1, metres), its confidence (32FC1) and the keyframe's camera_info are published with
 the source header, and optionally a PointCloud2 in the camera frame for RViz.
@@ -28,7 +29,6 @@ import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -43,7 +43,8 @@ from ..fusion.guard import GUARD_PARAMETER_DESCRIPTIONS, GuardConfig
 from ..fusion.interpolation import MODES as FUSION_MODES
 from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
 from ..fusion.weights import WEIGHT_SETS
-from ..multiview.semidense import MultiViewConfig, select_best_fraction
+from ..multiview.semidense import MultiViewConfig
+from ..multiview.stage1 import METHOD_RULES, STAGE1_RULES, resolve_rule, stage1_mask
 from .base import DepthFusionNode, run_node
 from .diagnostics import Requirement
 from .fusion_warmup import exit_now_if_compiling, finish_compiling, start_kernels
@@ -58,6 +59,7 @@ TOPIC_SINGLE = 'depth_fusion/single_view/depth'
 TOPIC_OUTPUT_KIND = 'depth_fusion/single_view/output_kind'
 TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
+TOPIC_MV_METHOD = 'depth_fusion/multi_view/method'
 TOPIC_KEYFRAME_IMAGE = 'depth_fusion/keyframe/image'
 TOPIC_KEYFRAME_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
 TOPIC_FUSED_DEPTH = 'depth_fusion/fused/depth'
@@ -159,6 +161,14 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'before its depth, so it nearly always has; a keyframe never waits for it)',
     ),
     ParamSpec(
+        'fusion.stage1',
+        'auto',
+        'stage 1 of the point selection: fraction (the best fusion.stage1_fraction by score, the '
+        'paper), all (every multi-view estimate), auto: the rule of the multi-view method announced '
+        f'on {TOPIC_MV_METHOD} (sweep: fraction, filter: all; fraction until heard)',
+        choices=STAGE1_RULES,
+    ),
+    ParamSpec(
         'fusion.stage1_fraction',
         MultiViewConfig().select_fraction,
         'stage 1 of the point selection: keep this fraction of the multi-view points, best score first',
@@ -207,6 +217,7 @@ class FusionNode(DepthFusionNode):
         self.guard_config = build_dataclass(GuardConfig, p, 'guard')
         self.consistency_config = build_dataclass(ConsistencyConfig, p, 'consistency')
         self.announced_kind: str | None = None
+        self.announced_method: str | None = None
         self.pending: dict[int, _Pairing] = {}
         #: Stamps of keyframes already fused or dropped (the most recent ``CLOSED_MEMORY``).
         self._closed: OrderedDict[int, None] = OrderedDict()
@@ -231,6 +242,7 @@ class FusionNode(DepthFusionNode):
         )
         q = self.input_qos
         self.subscribe(String, TOPIC_OUTPUT_KIND, self._on_output_kind, latched_qos())
+        self.subscribe(String, TOPIC_MV_METHOD, self._on_method, latched_qos())
         self.subscribe(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self._on_camera_info, q)
         self.subscribe(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
         self.subscribe(Image, TOPIC_MV_DEPTH, lambda m: self._on_depth(m, 'mv_depth'), q)
@@ -250,6 +262,12 @@ class FusionNode(DepthFusionNode):
             self.stats.dropped('bad_output_kind', f'single-view output kind {msg.data!r} is unknown')
             return
         self.announced_kind = msg.data
+
+    def _on_method(self, msg: String) -> None:
+        if msg.data not in METHOD_RULES:
+            self.stats.dropped('bad_multi_view_method', f'multi-view method {msg.data!r} is unknown')
+            return
+        self.announced_method = msg.data
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         self.stats.received('camera_info')
@@ -377,9 +395,8 @@ class FusionNode(DepthFusionNode):
             self.stats.dropped(exc.reason, f'keyframe {messages.ns_to_sec(job.pairing.stamp_ns):.3f}: {exc}')
             self.events.dropped(job.pairing.stamp_ns, exc.reason)
             return
-        stage1 = select_best_fraction(
-            SimpleNamespace(depth=mv_depth, score=mv_score), float(self.params['fusion.stage1_fraction'])
-        )
+        rule = resolve_rule(str(self.params['fusion.stage1']), self.announced_method)
+        stage1 = stage1_mask(mv_depth, mv_score, rule, float(self.params['fusion.stage1_fraction']))
         result = fuse_keyframe(
             single,
             mv_depth,

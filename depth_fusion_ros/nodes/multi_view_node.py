@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
 
 from ..camera import PinholeCamera
 from ..data import messages
@@ -58,7 +59,7 @@ from .image_input import (
 from .info_wait import AwaitingCalibration
 from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
-from .qos import qos_profile
+from .qos import latched_qos, qos_profile
 
 NODE_NAME = 'multi_view_node'
 
@@ -71,6 +72,8 @@ TOPIC_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_SCORE = 'depth_fusion/multi_view/score'
 #: The keyframe's interpolated camera-to-world pose, with its stamp (map_node pairs it by stamp).
 TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
+#: Latched: the multi-view method (``sweep`` or ``filter``); fusion_node's stage 1 follows it.
+TOPIC_METHOD = 'depth_fusion/multi_view/method'
 
 KEYFRAME_POLICIES = ('every_k', 'motion')
 
@@ -261,6 +264,8 @@ class MultiViewNode(DepthFusionNode):
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
         self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
+        self._method_pub = self.create_publisher(String, TOPIC_METHOD, latched_qos())
+        self._method_pub.publish(String(data=str(p['multi_view.method'])))
         self.events = GraphEvents(self)
         self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), int(p['max_pending_images']))
         self.worker = self.make_worker('multi_view', self._process, on_lost=self._on_keyframe_lost)

@@ -132,7 +132,7 @@ def fused_adapted(ctx: KeyframeContext) -> MethodOutput:
     config, extra = fusion_settings(ctx)
     prediction, report = adapted_prediction(ctx)
     mv = multi_view_result(ctx)
-    stage1 = _stage1(ctx, mv, extra['stage1_fraction'])
+    stage1 = _stage1(ctx, mv, extra)
     out = _output(
         fuse_keyframe(prediction.depth, mv.depth, stage1, config, output_kind=prediction.output_kind)
     )

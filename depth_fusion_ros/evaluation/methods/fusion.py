@@ -12,9 +12,10 @@
 
 The single-view source is the run's ``--single-view`` (``ctx.options.single_view``). The
 ``fusion`` stage parameters (``--set fusion.KEY=VALUE``) override ``FusionConfig`` fields,
-plus ``stage1_fraction`` and ``oracle_threshold``. A method's own setting (the mode of
-``fused_fast``, the weights of the ablation) wins over the overrides. The weight kernel is
-compiled with ``torch.compile`` here unless ``fusion.compile_kernel=false``: an evaluation
+plus ``stage1_fraction``, ``stage1`` (``auto|fraction|all``, multiview/stage1.py) and
+``oracle_threshold``. A method's own setting (the mode of ``fused_fast``, the weights of the
+ablation) wins over the overrides. The weight kernel is compiled with ``torch.compile`` here
+unless ``fusion.compile_kernel=false``: an evaluation
 runs hundreds of keyframes, so the one-off compile pays for itself many times.
 
 Per-frame extras: ``n_stage1``, ``n_omega`` (the points fused), ``fallback`` (1 when the
@@ -54,14 +55,15 @@ DEFAULT_ORACLE_THRESHOLD = 0.10
 EVALUATION_DEFAULTS: dict[str, Any] = {'compile_kernel': True}
 
 
-def fusion_settings(ctx: KeyframeContext, **forced: Any) -> tuple[FusionConfig, dict[str, float]]:
+def fusion_settings(ctx: KeyframeContext, **forced: Any) -> tuple[FusionConfig, dict[str, Any]]:
     """``FusionConfig`` from the evaluation defaults, ``--set fusion.*`` and ``forced``; plus
-    the method-level settings (``stage1_fraction``, ``oracle_threshold``)."""
+    the method-level settings (``stage1_fraction``, ``stage1``, ``oracle_threshold``)."""
     params = {'device': ctx.options.device, 'seed': int(ctx.options.seed), **EVALUATION_DEFAULTS}
     params.update(ctx.stage_params(STAGE))
     extra = {
         'stage1_fraction': float(params.pop('stage1_fraction', DEFAULT_STAGE1_FRACTION)),
         'oracle_threshold': float(params.pop('oracle_threshold', DEFAULT_ORACLE_THRESHOLD)),
+        'stage1': str(params.pop('stage1', 'auto')),
     }
     params.update(forced)
     known = {f.name for f in dataclasses.fields(FusionConfig)}
@@ -93,10 +95,11 @@ def _inputs(ctx: KeyframeContext) -> tuple[np.ndarray, str, Any]:
     return prediction.depth, prediction.output_kind, multi_view_result(ctx)
 
 
-def _stage1(ctx: KeyframeContext, mv: Any, fraction: float) -> np.ndarray:
-    from ...multiview.semidense import select_best_fraction
-
-    return ctx.cached(f'fusion:stage1:{fraction}', lambda: select_best_fraction(mv, fraction))
+def _stage1(ctx: KeyframeContext, mv: Any, extra: dict[str, Any]) -> np.ndarray:
+    """Stage-1 points: ``--set fusion.stage1=auto|fraction|all`` (auto: the multi-view
+    method's rule, multiview/stage1.py) with ``fusion.stage1_fraction``."""
+    rule, fraction = extra['stage1'], extra['stage1_fraction']
+    return ctx.cached(f'fusion:stage1:{rule}:{fraction}', lambda: mv.stage1_mask(rule, fraction))
 
 
 def oracle_mask(mv_depth: np.ndarray, gt: np.ndarray | None, threshold: float) -> np.ndarray:
@@ -134,7 +137,7 @@ def fused_result(ctx: KeyframeContext, **forced: Any) -> FusionResult:
     def compute() -> FusionResult:
         config, extra = fusion_settings(ctx, **forced)
         single, kind, mv = _inputs(ctx)
-        stage1 = _stage1(ctx, mv, extra['stage1_fraction'])
+        stage1 = _stage1(ctx, mv, extra)
         return fuse_keyframe(
             single,
             mv.depth,
@@ -156,7 +159,7 @@ def fused_consistent(ctx: KeyframeContext) -> FusionResult:
     return fuse_keyframe(
         single,
         mv.depth,
-        _stage1(ctx, mv, extra['stage1_fraction']),
+        _stage1(ctx, mv, extra),
         config,
         output_kind=kind,
         guard_config=guard_settings(ctx),

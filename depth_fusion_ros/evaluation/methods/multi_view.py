@@ -2,8 +2,9 @@
 
 * ``multi_view``: the semi-dense estimate (sparse: scored on its pixels; the harness adds
   ``density``);
-* ``multi_view_selected``: the stage-1 points (best ``select_fraction`` by
-  photometric x geometric score), sparse;
+* ``multi_view_selected``: the stage-1 points (the method's rule, multiview/stage1.py: the
+  sweep's best ``select_fraction`` by photometric x geometric score, every estimate of the
+  filter; ``--set fusion.stage1=`` overrides), sparse;
 * ``tv``: the dense DTAM-style TV-regularised baseline over the same neighbours.
 
 The fusion methods reuse the per-keyframe result through :func:`multi_view_result` and the
@@ -168,12 +169,14 @@ def multi_view(ctx: KeyframeContext) -> MethodOutput:
 
 @register_method(
     'multi_view_selected',
-    'multi-view points kept by stage 1 (best fraction by photometric x geometric score)',
+    'multi-view points kept by stage 1 (sweep: best fraction by photometric x geometric score; '
+    'filter: every published estimate)',
     sparse=True,
 )
 def multi_view_selected(ctx: KeyframeContext) -> MethodOutput:
     result = multi_view_result(ctx)
-    mask = result.selected_mask(multi_view_config(ctx).select_fraction)
+    rule = str(ctx.stage_params('fusion').get('stage1', 'auto'))
+    mask = result.stage1_mask(rule, multi_view_config(ctx).select_fraction)
     depth = np.where(mask, result.depth, np.float32(np.nan)).astype(np.float32)
     return MethodOutput(depth, {'n_selected': float(mask.sum())})
 
