@@ -268,6 +268,30 @@ def test_stream_restarts_when_asked_for_an_earlier_frame(synthetic_sequence):
     assert stream.next_index == 2 and stream.filter.stats.frames == 2
 
 
+def test_fixed_lag_read_keeps_what_left_the_filter_keyframe(synthetic_sequence):
+    """With the asked-for frames known, the look-ahead read of frame k is completed by what the
+    filter keyframes left inside the window held of k's pixels; the final read is unchanged."""
+    seq = synthetic_sequence
+
+    def frame(i):
+        return seq.frames[i].gray, seq.frames[i].pose
+
+    asked = [0, 6, 12]
+    plain = FilterStream(frame, seq.camera, lookahead=12, num_frames=len(seq))
+    lagged = FilterStream(frame, seq.camera, lookahead=12, num_frames=len(seq), keyframes=asked)
+    gained = 0
+    for k in asked:
+        a, b = plain.result_at(k), lagged.result_at(k)
+        np.testing.assert_array_equal(b.depth[a.valid], a.depth[a.valid])
+        assert np.all(b.valid[a.valid])
+        filled = b.valid & ~a.valid
+        gained += int(filled.sum())
+        if filled.sum() > 50:
+            assert np.median(_abs_rel(b.depth, seq.gt_depth_working(k), filled)) < 0.05
+        assert np.array_equal(np.isfinite(b.score), b.valid)
+    assert lagged.filter.stats.keyframes >= 3 and gained > 500, gained
+
+
 def test_bad_parameters_and_inputs_raise(synthetic_sequence):
     seq = synthetic_sequence
     with pytest.raises(ValueError, match=r'filter\.pixel_sigma'):

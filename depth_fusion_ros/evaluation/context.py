@@ -47,6 +47,13 @@ class EvalOptions:
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
+def keyframe_indices(num_frames: int, options: EvalOptions) -> list[int]:
+    """The keyframes of a run: ``options.keyframes`` within the sequence, else every ``stride``-th."""
+    if options.keyframes is not None:
+        return [i for i in options.keyframes if 0 <= i < num_frames]
+    return list(range(0, num_frames, max(1, options.stride)))
+
+
 class KeyframeContext:
     """One keyframe of a sequence under evaluation."""
 

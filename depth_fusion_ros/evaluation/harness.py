@@ -23,7 +23,7 @@ import numpy as np
 from ..data.sequence import Sequence
 from ..metrics import MetricAccumulator, good_density, high_gradient_mask, upsample_depth
 from ..progress import progress
-from .context import EvalOptions, KeyframeContext, SequenceContext
+from .context import EvalOptions, KeyframeContext, SequenceContext, keyframe_indices
 from .registry import MethodSpec, SequenceOutput, get_method
 
 log = logging.getLogger(__name__)
@@ -108,10 +108,7 @@ def evaluate_sequence(
 ) -> SequenceResult:
     """Run ``methods`` on the keyframes of an already loaded sequence."""
     specs = [get_method(m) for m in methods]
-    if options.keyframes is not None:
-        keyframes = [i for i in options.keyframes if 0 <= i < len(sequence)]
-    else:
-        keyframes = list(range(0, len(sequence), max(1, options.stride)))
+    keyframes = keyframe_indices(len(sequence), options)
     samples = set(sample_indices(keyframes, n_samples))
     records = {s.name: MethodRecord(s) for s in specs}
     shared: dict[str, Any] = {}

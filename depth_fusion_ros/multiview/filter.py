@@ -157,16 +157,20 @@ class DepthFilter:
         self.stats.skipped += 1
         return SKIPPED
 
-    def result(self, pose: np.ndarray | None = None) -> FilterResult:
-        """Published estimates in the filter's keyframe, or warped into the camera at ``pose``."""
+    def result(self, pose: np.ndarray | None = None, keyframe: _Keyframe | None = None) -> FilterResult:
+        """Published estimates in the filter's keyframe, or warped into the camera at ``pose``.
+
+        ``keyframe``: an earlier keyframe state (``self.key`` as it was before a switch) instead
+        of the current one; a fixed-lag read uses it to keep what left the view.
+        """
         cam = self.camera
         shape = cam.height * cam.width
-        if self.key is None:
+        key = self.key if keyframe is None else keyframe
+        if key is None:
             none = torch.zeros(0, device=self.device)
             return assemble_result(
                 cam, none.long(), none, none, none, none, none, torch.zeros(shape, dtype=torch.bool)
             )
-        key = self.key
         rows = torch.nonzero(self._published(key), as_tuple=True)[0]
         st = key.state
         mu, var = st.mu[rows], st.var[rows]

@@ -19,6 +19,7 @@ its relative inverse-depth std pass the ``filter.*`` thresholds):
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,3 +82,22 @@ def assemble_result(
         inlier_ratio=image(inlier),
         updates=image(updates.to(mu.dtype)),
     )
+
+
+def fill_missing(primary: FilterResult, extra: FilterResult) -> FilterResult:
+    """``primary`` with its pixels without an estimate taken from ``extra`` (same camera).
+
+    The fixed-lag read of the offline evaluation (:mod:`.filter_stream`): the estimate of a
+    frame after the look-ahead, completed by what earlier filter keyframes held of the pixels
+    that have since left the view.
+    """
+    take = ~np.isfinite(primary.depth) & np.isfinite(extra.depth)
+    if not take.any():
+        return primary
+    maps = {}
+    for f in dataclasses.fields(primary):
+        a, b = getattr(primary, f.name), getattr(extra, f.name)
+        if isinstance(a, np.ndarray) and a.dtype != bool and isinstance(b, np.ndarray):
+            maps[f.name] = np.where(take, b, a).astype(a.dtype)
+    maps['candidates'] = primary.candidates | extra.candidates
+    return dataclasses.replace(primary, **maps)

@@ -27,7 +27,7 @@ from ...multiview.neighbours import NeighbourConfig, select_neighbours
 from ...multiview.params import apply_overrides
 from ...multiview.semidense import MultiViewConfig, MultiViewResult, empty_result, estimate_semidense
 from ...multiview.tv import TVConfig, estimate_tv
-from ..context import KeyframeContext
+from ..context import KeyframeContext, keyframe_indices
 from ..registry import MethodOutput, register_method
 
 log = logging.getLogger(__name__)
@@ -119,6 +119,7 @@ def _filter_result(ctx: KeyframeContext) -> MultiViewResult:
             ctx.options.device,
             lookahead=lookahead,
             num_frames=len(frames),
+            keyframes=keyframe_indices(len(frames), ctx.options),
         )
 
     stream = ctx.shared_cached(f'multi_view:filter:{config}:{matching}:{lookahead}', make)
