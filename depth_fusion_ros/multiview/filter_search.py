@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from .cost_volume import EpipolarRays, rows_per_chunk
+from .filter_config import FilterConfig
 
 
 @dataclass
@@ -31,39 +32,61 @@ class SearchResult:
 
 
 def _gather(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    return torch.gather(t, 1, idx[:, None])[:, 0]
+    """``t[idx[r], r]`` of a samples-first (S, R) tensor."""
+    return torch.gather(t, 0, idx[None, :])[0]
 
 
 def _distinctiveness(cost: torch.Tensor, best: torch.Tensor, c1: torch.Tensor) -> torch.Tensor:
-    """Modified second-best ratio ``1 - c1 / c2`` over local minima more than one sample away."""
-    inf = torch.full_like(cost[:, :1], math.inf)
-    left = torch.cat((inf, cost[:, :-1]), dim=1)
-    right = torch.cat((cost[:, 1:], inf), dim=1)
-    is_min = (cost <= left) & (cost <= right) & torch.isfinite(cost)
-    idx = torch.arange(cost.shape[1], device=cost.device)
-    far = (idx[None, :] - best[:, None]).abs() > 1
-    c2 = torch.where(is_min & far, cost, torch.full_like(cost, math.inf)).min(dim=1).values
-    largest = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, -math.inf)).max(dim=1).values
+    """Modified second-best ratio ``1 - c1 / c2`` over local minima more than one sample away.
+
+    ``cost`` is samples-first (S, R). ``c2`` is the lowest local minimum outside the best
+    sample and its two neighbours, or the largest finite cost when there is none (a single
+    basin). A dozen whole-tensor ops (one padding for the neighbour comparisons, a scatter
+    for the exclusion): this runs on every whole-range search.
+    """
+    inf = math.inf
+    padded = F.pad(cost, (0, 0, 1, 1), value=inf)
+    is_min = (cost <= padded[:-2]) & (cost <= padded[2:])
+    near = (best[None, :] + torch.arange(-1, 2, device=cost.device)[:, None]).clamp_(0, cost.shape[0] - 1)
+    others = cost.masked_fill(~is_min, inf).scatter_(0, near, inf)
+    c2 = others.min(dim=0).values
+    # Costs are >= 0, so -1 stands for "no finite cost" (the ratio is then 0, as c1 is inf).
+    largest = torch.nan_to_num(cost, posinf=-1.0).max(dim=0).values
     c2 = torch.where(torch.isfinite(c2), c2, largest)
     return torch.clamp(1.0 - c1 / torch.clamp(c2, min=1e-6), 0.0, 1.0)
 
 
+def _grid(rays: EpipolarRays, rho: torch.Tensor) -> torch.Tensor:
+    """``grid_sample`` coordinates (1, S, R, 2) of one frame at samples-first ``rho`` (S, R):
+    ``EpipolarRays.grid``'s numbers, laid out so the sample axis is outermost."""
+    a, b = rays._normalised()
+    a, b = a[0], b[0]
+    w = torch.addcmul(a[None, :, 2], rho, b[2]).clamp_(min=1e-4)
+    xy = torch.addcmul(a[None, :, :2], rho[..., None], b[:2])
+    return xy.div_(w[..., None])[None]
+
+
 def frame_cost(
     key_desc: torch.Tensor, frame_desc: torch.Tensor, rays: EpipolarRays, rho: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``1 - ZNCC`` (M, S) against one frame and whether the frame sees each sample (soft, 0-1).
+) -> torch.Tensor:
+    """``1 - ZNCC`` (S, R) against one frame at samples-first inverse depths ``rho`` (S, R);
+    ``inf`` where the frame does not see the sample (its soft visibility below 0.5).
 
     ``cost_volume.sample_cost`` for a single neighbour (same numbers), without the sum over
-    neighbours: one ``grid_sample`` and one contraction over the descriptor channels.
+    neighbours: one ``grid_sample`` and one contraction over the descriptor channels, the
+    rest in place. Samples-first, so the reductions over the samples (best, second best) and
+    the gathers run across the rows, vectorised, instead of along short rows.
     """
     channels = key_desc.shape[0]
-    grid = rays.grid(rho)
-    sampled = F.grid_sample(frame_desc, grid, mode='bilinear', padding_mode='zeros', align_corners=True)[0]
+    sampled = F.grid_sample(
+        frame_desc, _grid(rays, rho), mode='bilinear', padding_mode='zeros', align_corners=True
+    )[0]
     count = sampled[channels]
-    zncc = sampled[0] * key_desc[0, :, None]
+    zncc = sampled[0] * key_desc[0]
     for c in range(1, channels):
-        zncc.addcmul_(sampled[c], key_desc[c, :, None])
-    return (count - zncc + 1e-3) / (count + 1e-3), count
+        zncc.addcmul_(sampled[c], key_desc[c])
+    cost = zncc.neg_().add_(count).add_(1e-3).div_(count + 1e-3)  # (count - zncc + 1e-3) / (count + 1e-3)
+    return cost.masked_fill_(count < 0.5, math.inf)
 
 
 def _search_rows(
@@ -76,23 +99,21 @@ def _search_rows(
     refine: int,
     with_distinctiveness: bool,
 ) -> SearchResult:
-    t = torch.linspace(0.0, 1.0, samples, device=lo.device, dtype=lo.dtype)
+    k = torch.arange(samples, device=lo.device, dtype=lo.dtype)
     step = (hi - lo) / (samples - 1)
-    grid = lo[:, None] + step[:, None] * (t[None, :] * (samples - 1))
-    cost, count = frame_cost(key_desc, frame_desc, rays, grid)
-    cost = torch.where(count >= 0.5, cost, torch.full_like(cost, math.inf))
-    c1, best = cost.min(dim=1)
+    grid = torch.addcmul(lo[None, :], k[:, None], step[None, :])  # (S, R)
+    cost = frame_cost(key_desc, frame_desc, rays, grid)
+    c1, best = cost.min(dim=0)
     distinct = _distinctiveness(cost, best, c1) if with_distinctiveness else c1
-    if refine == 0:  # a short search: its samples are already about a pixel apart
+    if refine == 0:  # the samples are already about a pixel apart: the parabola goes through them
         j = best.clamp(1, samples - 2)
         cm, c0, cp = _gather(cost, j - 1), _gather(cost, j), _gather(cost, j + 1)
         return _parabola(grid, j, step, cm, c0, cp, c1, distinct)
     fine_step = step / refine
     offsets = torch.arange(-refine, refine + 1, device=lo.device, dtype=lo.dtype)
-    fine = _gather(grid, best)[:, None] + offsets[None, :] * fine_step[:, None]
-    fcost, fcount = frame_cost(key_desc, frame_desc, rays, fine)
-    fcost = torch.where(fcount >= 0.5, fcost, torch.full_like(fcost, math.inf))
-    j = fcost.argmin(dim=1).clamp(1, 2 * refine - 1)
+    fine = torch.addcmul(_gather(grid, best)[None, :], offsets[:, None], fine_step[None, :])
+    fcost = frame_cost(key_desc, frame_desc, rays, fine)
+    j = fcost.argmin(dim=0).clamp(1, 2 * refine - 1)
     cm, c0, cp = _gather(fcost, j - 1), _gather(fcost, j), _gather(fcost, j + 1)
     return _parabola(fine, j, fine_step, cm, c0, cp, c1, distinct)
 
@@ -107,7 +128,7 @@ def _parabola(
     c1: torch.Tensor,
     distinct: torch.Tensor,
 ) -> SearchResult:
-    """Sub-sample minimum of the parabola through samples ``j - 1, j, j + 1`` of ``grid``."""
+    """Sub-sample minimum of the parabola through samples ``j - 1, j, j + 1`` of ``grid`` (S, R)."""
     curvature = cm - 2.0 * c0 + cp
     ok = torch.isfinite(curvature) & (curvature > 0) & torch.isfinite(c1)
     safe = torch.where(ok, curvature, torch.ones_like(curvature))
@@ -160,3 +181,44 @@ def search_interval(
     return SearchResult(
         *(torch.cat([getattr(p, f) for p in parts]) for f in ('rho', 'cost', 'distinct', 'ok'))
     )
+
+
+def search_buckets(config: FilterConfig) -> tuple[tuple[int, int, bool], ...]:
+    """``(samples, refine, distinctiveness)`` of the search buckets, by increasing interval.
+
+    ``verify`` (a converged estimate at the +-2 px floor), ``short`` (an estimate), ``medium``
+    (a whole-range or wide search of at most ``medium_samples - 1`` px: one sample a pixel,
+    no refinement) and ``long`` (coarse samples, then ``refine_samples`` each side of the best).
+    The samples stay about ``max_step_px`` apart wherever the interval allows: more would
+    only sample the same cost basin again.
+    """
+    c = config
+    return (
+        (c.verify_samples, 0, False),
+        (c.short_samples, 0, False),
+        (c.medium_samples, 0, True),
+        (c.long_samples, c.refine_samples, True),
+    )
+
+
+def plan_buckets(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterConfig) -> torch.Tensor:
+    """Bucket index (into :func:`search_buckets`) of each search from its interval length in px.
+
+    ``span_px``: the interval's length along the epipolar line (the largest epipolar motion at
+    its ends times its length, so no sample step exceeds it); ``fresh``: pixels without an
+    estimate, which always get a distinctiveness test (``medium`` or ``long``).
+    """
+    c = config
+    tolerance = 1.0 + 1e-4  # the +-2 px floor, computed, lands a rounding error above 4 px
+    off = torch.zeros_like(fresh)
+    verify = (
+        (~fresh & (span_px <= (c.verify_samples - 1) * c.max_step_px * tolerance))
+        if c.verify_samples
+        else off
+    )
+    short = ~fresh & (span_px <= c.short_samples * c.max_step_px)
+    medium = (span_px <= (c.medium_samples - 1) * c.max_step_px * tolerance) if c.medium_samples else off
+    bucket = torch.full_like(span_px, 3, dtype=torch.long)
+    bucket = torch.where(medium, 2, bucket)
+    bucket = torch.where(short, 1, bucket)
+    return torch.where(verify, 0, bucket)
