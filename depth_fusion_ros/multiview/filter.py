@@ -451,27 +451,43 @@ class DepthFilter:
         if c.seed_radius <= 0:
             return None
         first = fresh & (key.attempts.index_select(0, rows) == 1)  # _choose counted this attempt
-        if not bool(first.any()):
+        if not bool(first.any()) or not bool((key.updates > 0).any()):
             return None
-        has = key.updates > 0
-        h, w = self.camera.height, self.camera.width
-        r = c.seed_radius
-        lows = torch.full((h * w,), math.inf, device=self.device)
-        lows[key.flat[has]] = key.state.mu[has]
-        highs = torch.where(torch.isfinite(lows), lows, -math.inf)
-        near_lo = -F.max_pool2d(-lows.view(1, 1, h, w), 2 * r + 1, stride=1, padding=r).view(-1)
-        near_hi = F.max_pool2d(highs.view(1, 1, h, w), 2 * r + 1, stride=1, padding=r).view(-1)
-        at = key.flat.index_select(0, rows)
-        n_lo, n_hi = near_lo.index_select(0, at), near_hi.index_select(0, at)
-        use = first & torch.isfinite(n_lo)
-        safe_lo = torch.where(use, n_lo, lo)
-        safe_hi = torch.where(use, n_hi, hi)
+        sel = torch.nonzero(first, as_tuple=True)[0]
+        n_lo, n_hi = self._neighbour_range(key, rows.index_select(0, sel))
+        near = torch.isfinite(n_lo)
+        sel, n_lo, n_hi = sel[near], n_lo[near], n_hi[near]
+        a_s = a_r.index_select(0, sel)
         rho_min, rho_max = self.rho_range
-        pad_lo = 2.0 * c.min_search_px / torch.clamp(_motion(a_r, b, safe_lo), min=1e-9)
-        pad_hi = 2.0 * c.min_search_px / torch.clamp(_motion(a_r, b, safe_hi), min=1e-9)
-        lo.copy_(torch.where(use, torch.clamp(safe_lo - pad_lo, rho_min, rho_max), lo))
-        hi.copy_(torch.where(use, torch.clamp(safe_hi + pad_hi, rho_min, rho_max), hi))
+        pad = 2.0 * c.min_search_px
+        lo.index_copy_(
+            0, sel, torch.clamp(n_lo - pad / torch.clamp(_motion(a_s, b, n_lo), min=1e-9), rho_min, rho_max)
+        )
+        hi.index_copy_(
+            0, sel, torch.clamp(n_hi + pad / torch.clamp(_motion(a_s, b, n_hi), min=1e-9), rho_min, rho_max)
+        )
+        use = torch.zeros_like(first)
+        use[sel] = True
         return use
+
+    def _neighbour_range(self, key: _Keyframe, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Lowest and highest measured inverse depth within ``seed_radius`` px of each row's
+        pixel (``inf``, ``-inf`` where none): one gather of the (2r + 1)^2 window per row."""
+        r = self.config.seed_radius
+        h, w = self.camera.height, self.camera.width
+        wp = w + 2 * r
+        has = key.updates > 0
+        padded_flat = (key.vs.long() + r) * wp + key.us.long() + r
+        size = (h + 2 * r) * wp
+        mu = key.state.mu
+        lows = torch.full((size,), math.inf, device=self.device)
+        lows.index_copy_(0, padded_flat, torch.where(has, mu, math.inf))
+        highs = torch.full((size,), -math.inf, device=self.device)
+        highs.index_copy_(0, padded_flat, torch.where(has, mu, -math.inf))
+        d = torch.arange(-r, r + 1, device=self.device)
+        offsets = (d[:, None] * wp + d[None, :]).reshape(-1)
+        window = padded_flat.index_select(0, rows)[:, None] + offsets[None, :]
+        return lows[window].min(dim=1).values, highs[window].max(dim=1).values
 
     def _choose(
         self, key: _Keyframe, geo: _FrameGeometry, baseline: float, only: torch.Tensor | None
