@@ -496,11 +496,9 @@ class DepthFilter:
 
         LSD-SLAM: only where the gradient has a component along the epipolar line. REMODE:
         converged pixels this frame cannot improve are left alone. Whole-range searches only
-        from frames with ``seed_parallax`` and ``seed_attempts`` left, at most ``seed_budget``
-        of the candidates per frame, the strongest gradients along the line first (the rest
-        keep their attempts for the next frames). Pixels without a prior are searched from
-        the middle of the range (``mu`` holds it: :meth:`_fresh_state`), so their projection
-        only gives the epipolar direction.
+        from frames with ``seed_parallax`` and ``seed_attempts`` left. Pixels without a prior
+        are searched from the middle of the range (``mu`` holds it: :meth:`_fresh_state`), so
+        their projection only gives the epipolar direction.
         """
         c = self.config
         st = key.state
@@ -516,15 +514,6 @@ class DepthFilter:
         if only is not None:
             want &= only
         seeds = want & fresh
-        if seeding and c.seed_budget < 1.0:
-            budget = max(1, math.ceil(c.seed_budget * key.flat.numel()))
-            count = int(seeds.sum())
-            if count > budget:
-                strength = torch.where(seeds, geo.along, torch.full_like(geo.along, -1.0))
-                keep = torch.zeros_like(seeds)
-                keep[torch.topk(strength, budget, sorted=False).indices] = True
-                want &= estimates | keep
-                seeds &= keep
         key.attempts += seeds.long()
         n_estimates = float(estimates.sum())
         seen = float((geo.visible & estimates).sum()) / n_estimates if n_estimates > 0 else 1.0

@@ -186,17 +186,19 @@ def search_interval(
 def search_buckets(config: FilterConfig) -> tuple[tuple[int, int, bool], ...]:
     """``(samples, refine, distinctiveness)`` of the search buckets, by increasing interval.
 
-    ``verify`` (a converged estimate at the +-2 px floor), ``short`` (an estimate), ``medium``
-    (a whole-range or wide search of at most ``medium_samples - 1`` px: one sample a pixel,
-    no refinement) and ``long`` (coarse samples, then ``refine_samples`` each side of the best).
-    The samples stay about ``max_step_px`` apart wherever the interval allows: more would
-    only sample the same cost basin again.
+    ``verify`` (a converged estimate at the ``min_search_px`` floor), ``short`` (an
+    estimate), ``medium`` (at most ``medium_samples - 1`` px: one sample a pixel, no
+    refinement), ``coarse`` (``medium_samples`` samples at most ``coarse_step_px`` apart, then
+    ``refine_samples`` each side of the best) and ``long`` (``long_samples``, then the
+    refinement). Wherever the interval allows, the samples are no denser than the cost's basin
+    needs: more would only sample the same basin again.
     """
     c = config
     return (
         (c.verify_samples, 0, False),
         (c.short_samples, 0, False),
         (c.medium_samples, 0, True),
+        (c.medium_samples, c.refine_samples, True),
         (c.long_samples, c.refine_samples, True),
     )
 
@@ -204,21 +206,21 @@ def search_buckets(config: FilterConfig) -> tuple[tuple[int, int, bool], ...]:
 def plan_buckets(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterConfig) -> torch.Tensor:
     """Bucket index (into :func:`search_buckets`) of each search from its interval length in px.
 
-    ``span_px``: the interval's length along the epipolar line (the largest epipolar motion at
-    its ends times its length, so no sample step exceeds it); ``fresh``: pixels without an
-    estimate, which always get a distinctiveness test (``medium`` or ``long``).
+    ``span_px``: the interval's length along the epipolar line (for a whole-range search the
+    largest epipolar motion at its ends times its length, so no sample step exceeds it);
+    ``fresh``: pixels without an estimate, which always get a distinctiveness test.
     """
     c = config
-    tolerance = 1.0 + 1e-4  # the +-2 px floor, computed, lands a rounding error above 4 px
+    tolerance = 1.0 + 1e-4  # the floor, computed, lands a rounding error above its length
     off = torch.zeros_like(fresh)
     verify = (
-        (~fresh & (span_px <= (c.verify_samples - 1) * c.max_step_px * tolerance))
-        if c.verify_samples
-        else off
+        ~fresh & (span_px <= (c.verify_samples - 1) * c.max_step_px * tolerance) if c.verify_samples else off
     )
     short = ~fresh & (span_px <= c.short_samples * c.max_step_px)
-    medium = (span_px <= (c.medium_samples - 1) * c.max_step_px * tolerance) if c.medium_samples else off
-    bucket = torch.full_like(span_px, 3, dtype=torch.long)
+    medium = span_px <= (c.medium_samples - 1) * c.max_step_px * tolerance if c.medium_samples else off
+    coarse = span_px <= (c.medium_samples - 1) * c.coarse_step_px * tolerance if c.medium_samples else off
+    bucket = torch.full_like(span_px, 4, dtype=torch.long)
+    bucket = torch.where(coarse, 3, bucket)
     bucket = torch.where(medium, 2, bucket)
     bucket = torch.where(short, 1, bucket)
     return torch.where(verify, 0, bucket)
