@@ -47,24 +47,24 @@ def _descriptors(width: int = 80, height: int = 60) -> torch.Tensor:
 def test_frame_cost_is_the_sweeps_cost_for_one_frame():
     key, rays = _random_rays(500)
     desc = _descriptors()
-    rho = torch.linspace(0.1, 3.0, 12)[:, None].expand(12, 500).contiguous()  # samples-first
+    rho = torch.linspace(0.1, 3.0, 12)[None, :].expand(500, 12).contiguous()
     ours = frame_cost(key, desc, rays, rho)
-    reference, count = sample_cost(key, desc, rays, rho.T.contiguous())
+    reference, count = sample_cost(key, desc, rays, rho)
     reference = torch.where(count >= 0.5, reference, torch.full_like(reference, math.inf))
-    seen = torch.isfinite(reference.T)
+    seen = torch.isfinite(reference)
     assert torch.equal(torch.isfinite(ours), seen) and seen.float().mean() > 0.3
-    assert torch.allclose(ours[seen], reference.T[seen], atol=1e-5)
+    assert torch.allclose(ours[seen], reference[seen], atol=1e-5)
 
 
 def test_distinctiveness_is_the_second_best_local_minimum_ratio():
     gen = torch.Generator().manual_seed(2)
-    cost = torch.rand(9, 300, generator=gen) + 0.1  # samples-first
-    cost[:, :5] = torch.linspace(0.2, 1.0, 9)[:, None]  # a single basin: falls back to the largest
-    cost[4, 5] = math.inf  # an invisible sample
-    c1, best = cost.min(dim=0)
+    cost = torch.rand(300, 9, generator=gen) + 0.1
+    cost[:5] = torch.linspace(0.2, 1.0, 9)[None, :]  # a single basin: falls back to the largest
+    cost[5, 4] = math.inf  # an invisible sample
+    c1, best = cost.min(dim=1)
     ours = _distinctiveness(cost, best, c1)
-    for r in range(cost.shape[1]):
-        col = cost[:, r].tolist()
+    for r in range(cost.shape[0]):
+        col = cost[r].tolist()
         padded = [math.inf, *col, math.inf]
         minima = [
             col[s]

@@ -16,7 +16,8 @@ For each posed frame, in stream order (:meth:`DepthFilter.process`):
    variance at least ``min_information`` x the frame's measurement variance (REMODE), a
    whole-range search only from frames with ``seed_parallax`` and ``seed_attempts`` left.
    Those are searched along their epipolar line within ``mu +- search_sigmas sigma`` (at
-   least +-2 px; the whole range for a pixel without a prior), ``filter_search``; the match
+   least +-``min_search_px``; the neighbours' range or the whole range for a pixel without a
+   prior), ``filter_search``; the match
    gives a measurement ``x`` with variance ``tau^2 = (pixel_sigma / J)^2`` (+ the pose noise
    term), ``J`` the epipolar motion per unit inverse depth (one pixel of matching error
    back-propagated, as the sweep's geometric score). Then the Gaussian x uniform update; a
@@ -71,7 +72,6 @@ class _Keyframe:
     flat: torch.Tensor  # (M,) long pixel index v * W + u
     us: torch.Tensor
     vs: torch.Tensor
-    pix: torch.Tensor  # (M, 3) homogeneous pixel (u, v, 1), for the frames' epipolar rays
     key_desc: torch.Tensor  # (C, M)
     grad: torch.Tensor  # (2, M) grey gradient (gx, gy) per px after the matching blur
     state: BetaGaussian
@@ -242,7 +242,6 @@ class DepthFilter:
             flat,
             us.float(),
             vs.float(),
-            torch.stack((us.float(), vs.float(), torch.ones_like(us, dtype=torch.float32)), dim=1),
             desc[0, :channels][:, vs, us],
             grad,
             state,
@@ -590,7 +589,8 @@ def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, mar
     K = np.asarray(camera.K, dtype=np.float64)
     H = K @ T_fk[:3, :3] @ np.linalg.inv(K)  # pixel-to-pixel homography at infinity
     dev = key.us.device
-    a = key.pix @ torch.as_tensor(H.T, dtype=torch.float32, device=dev)
+    h = torch.as_tensor(H.T, dtype=torch.float32, device=dev)  # rows: H's columns
+    a = torch.addcmul(torch.addcmul(h[2], key.us[:, None], h[0]), key.vs[:, None], h[1])  # H (u, v, 1)
     b = torch.as_tensor(K @ T_fk[:3, 3], dtype=torch.float32, device=dev)
     rho = key.state.mu
     a0, a1, a2 = a.unbind(1)
