@@ -112,23 +112,21 @@ def test_buckets_follow_the_interval_length():
     span = torch.tensor([2.5, 2.5, 7.0, 7.0, 14.0, 14.0, 100.0, 100.0])
     fresh = torch.tensor([False, True, False, True, False, True, False, True])
     bucket = plan_buckets(span, fresh, c).tolist()
-    # verify (floor of a converged estimate), short, medium, long (coarse: up to 30 px); a new
-    # pixel: never without the distinctiveness test (medium, coarse or long).
-    assert bucket == [0, 2, 1, 2, 2, 2, 4, 4]
-    assert plan_buckets(torch.tensor([25.0]), torch.tensor([True]), c).tolist() == [3]  # coarse
+    # verify (floor of a converged estimate), short, medium, long; a new pixel: never without
+    # the distinctiveness test (medium or long).
+    assert bucket == [0, 2, 1, 2, 2, 2, 3, 3]
     assert [s for s, _, _ in search_buckets(c)] == [
         c.verify_samples,
         c.short_samples,
         c.medium_samples,
-        c.medium_samples,
         c.long_samples,
     ]
     off = FilterConfig(verify_samples=0, medium_samples=0)
-    assert plan_buckets(span, fresh, off).tolist() == [1, 4, 1, 4, 4, 4, 4, 4]
+    assert plan_buckets(span, fresh, off).tolist() == [1, 3, 1, 3, 3, 3, 3, 3]
     with pytest.raises(ValueError, match=r'filter\.medium_samples'):
         FilterConfig(medium_samples=4).validate()
-    with pytest.raises(ValueError, match=r'filter\.coarse_step_px'):
-        FilterConfig(coarse_step_px=0.5).validate()
+    with pytest.raises(ValueError, match=r'filter\.verify_samples'):
+        FilterConfig(verify_samples=9).validate()
 
 
 def _long_rows_and_accuracy(seq, radius: int, monkeypatch) -> tuple[int, float]:

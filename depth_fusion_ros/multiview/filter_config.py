@@ -67,9 +67,6 @@ class FilterConfig:
     #: ``(medium_samples - 1) x max_step_px`` px: already about a pixel apart, so no refinement
     #: (0 = off: ``long_samples`` and the refinement).
     medium_samples: int = 16
-    #: A search spanning at most ``(medium_samples - 1) x coarse_step_px`` px gets
-    #: ``medium_samples`` samples, then the refinement (the long search's steps, fewer of them).
-    coarse_step_px: float = 2.0
     #: Fine samples on each side of the best coarse sample of a long search.
     refine_samples: int = 2
     #: Long searches a pixel without an estimate gets per keyframe (texture-less pixels never match).
@@ -148,7 +145,6 @@ class FilterConfig:
                 self.medium_samples == 0 or self.short_samples < self.medium_samples <= self.long_samples,
                 '0 or in (filter.short_samples, filter.long_samples]',
             ),
-            ('coarse_step_px', self.coarse_step_px >= self.max_step_px, '>= filter.max_step_px'),
             ('seed_radius', self.seed_radius >= 0, '>= 0'),
             ('refine_samples', self.refine_samples >= 1, '>= 1'),
             ('seed_parallax', self.seed_parallax >= 0, '>= 0'),

@@ -197,17 +197,17 @@ def search_buckets(config: FilterConfig) -> tuple[tuple[int, int, bool], ...]:
 
     ``verify`` (a converged estimate at the ``min_search_px`` floor), ``short`` (an
     estimate), ``medium`` (at most ``medium_samples - 1`` px: one sample a pixel, no
-    refinement), ``coarse`` (``medium_samples`` samples at most ``coarse_step_px`` apart, then
-    ``refine_samples`` each side of the best) and ``long`` (``long_samples``, then the
-    refinement). Wherever the interval allows, the samples are no denser than the cost's basin
-    needs: more would only sample the same basin again.
+    refinement) and ``long`` (``long_samples``, then ``refine_samples`` each side of the best).
+    Wherever the interval allows, the samples are no denser than the cost's basin needs: more
+    would only sample the same basin again. Each bucket is one ``grid_sample``: more buckets
+    would save samples but add a fixed cost per frame (tried: a 16-sample refined bucket up to
+    30 px saved 1.5 % of the samples).
     """
     c = config
     return (
         (c.verify_samples, 0, False),
         (c.short_samples, 0, False),
         (c.medium_samples, 0, True),
-        (c.medium_samples, c.refine_samples, True),
         (c.long_samples, c.refine_samples, True),
     )
 
@@ -227,9 +227,7 @@ def plan_buckets(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterConfi
     )
     short = ~fresh & (span_px <= c.short_samples * c.max_step_px)
     medium = span_px <= (c.medium_samples - 1) * c.max_step_px * tolerance if c.medium_samples else off
-    coarse = span_px <= (c.medium_samples - 1) * c.coarse_step_px * tolerance if c.medium_samples else off
-    bucket = torch.full_like(span_px, 4, dtype=torch.long)
-    bucket = torch.where(coarse, 3, bucket)
+    bucket = torch.full_like(span_px, 3, dtype=torch.long)
     bucket = torch.where(medium, 2, bucket)
     bucket = torch.where(short, 1, bucket)
     return torch.where(verify, 0, bucket)

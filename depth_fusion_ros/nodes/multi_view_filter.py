@@ -39,7 +39,6 @@ FILTER_LIMITS: dict[str, Any] = {
     'max_step_px': (0.05, 100.0),
     'verify_samples': (0, 256),
     'medium_samples': (0, 4096),
-    'coarse_step_px': (0.05, 100.0),
     'seed_radius': (0, 50),
     'refine_samples': (1, 64),
     'seed_parallax': (0.0, None),
