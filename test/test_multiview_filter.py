@@ -118,7 +118,9 @@ def test_new_keyframe_pixels_get_a_prior_from_carried_neighbours(synthetic_seque
     seq = synthetic_sequence
     priors = {}
     for radius in (0, FilterConfig().fill_radius):
-        f = DepthFilter(seq.camera, FilterConfig(fill_radius=radius))
+        # Whole-range seeding (seed_radius=0): with the neighbours' bracket the pixels that only
+        # filling reaches are those whose bracketed first search failed (a harder subset).
+        f = DepthFilter(seq.camera, FilterConfig(fill_radius=radius, seed_radius=0))
         i = 0
         while f.stats.keyframes < 2:
             f.process(seq.frames[i].gray, seq.frames[i].pose)

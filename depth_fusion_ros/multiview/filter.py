@@ -16,7 +16,8 @@ For each posed frame, in stream order (:meth:`DepthFilter.process`):
    variance at least ``min_information`` x the frame's measurement variance (REMODE), a
    whole-range search only from frames with ``seed_parallax`` and ``seed_attempts`` left.
    Those are searched along their epipolar line within ``mu +- search_sigmas sigma`` (at
-   least +-2 px; the whole range for a pixel without a prior), ``filter_search``; the match
+   least +-``min_search_px``; the neighbours' range or the whole range for a pixel without a
+   prior), ``filter_search``; the match
    gives a measurement ``x`` with variance ``tau^2 = (pixel_sigma / J)^2`` (+ the pose noise
    term), ``J`` the epipolar motion per unit inverse depth (one pixel of matching error
    back-propagated, as the sweep's geometric score). Then the Gaussian x uniform update; a
@@ -47,11 +48,11 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
 from ..geometry import relative_pose, rotation_angle, validate_pose
-from .cost_volume import EpipolarRays, epipolar_rays, gaussian_blur, patch_reach, stage_descriptors
+from .cost_volume import EpipolarRays, gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
 from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
-from .filter_search import search_interval
+from .filter_search import plan_buckets, search_buckets, search_interval
 from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
 from .semidense import MultiViewConfig, candidate_mask
 from .views import _as_gray
@@ -129,10 +130,10 @@ class DepthFilter:
         T_wf = validate_pose(pose, 'frame pose')
         image = torch.as_tensor(_as_gray(gray, 'frame image', self.camera), device=self.device)
         self.stats.frames += 1
+        describe = lambda: stage_descriptors(image[None], self.matching)  # noqa: E731
         with torch.no_grad():
-            desc = stage_descriptors(image[None], self.matching)
             if self.key is None:
-                self.key = self._new_keyframe(image, desc, T_wf)
+                self.key = self._new_keyframe(image, describe(), T_wf)
                 self.stats.keyframes += 1
                 return KEYFRAME
             key = self.key
@@ -141,6 +142,8 @@ class DepthFilter:
             parallax = float(np.linalg.norm(T_fk[:3, 3])) / self._scene
             rotation = math.degrees(rotation_angle(T_fk[:3, :3]))
             usable = parallax >= self.config.min_parallax and rotation <= self.config.max_rotation_deg
+            # A skipped frame needs no descriptors unless it becomes the keyframe.
+            desc = describe() if usable else None
             seen = self._update(key, desc, T_fk) if usable else self._visible_fraction(key, T_fk)
             switch = (
                 parallax >= self.config.keyframe_parallax
@@ -148,7 +151,7 @@ class DepthFilter:
                 or seen < self.config.keyframe_min_visible
             )
             if switch:
-                self.key = self._propagate(key, image, desc, T_wf)
+                self.key = self._propagate(key, image, describe() if desc is None else desc, T_wf)
                 self.stats.keyframes += 1
                 return KEYFRAME
         if usable:
@@ -200,7 +203,9 @@ class DepthFilter:
         if self.key is not None:
             has = self.key.updates > 0
             if int(has.sum()) >= 50:
-                return float(1.0 / torch.median(self.key.state.mu[has]))
+                # Every 4th pixel: a scale for the parallax tests, at a quarter of the sort.
+                mu = self.key.state.mu[::4][has[::4]]
+                return float(1.0 / torch.median(mu if mu.numel() > 0 else self.key.state.mu[has]))
         return self.config.scene_depth
 
     # --- steps --------------------------------------------------------------------------------
@@ -362,59 +367,197 @@ class DepthFilter:
     ) -> float:
         """One frame's measurements for the pixels of ``key`` it can teach something, in place.
 
-        Cheap per-pixel tests on every pixel first (projection of the prior mean, gradient along
-        the epipolar line, expected information, seeding budget), then the searches and the
+        Cheap per-pixel tests on every pixel first (:meth:`_choose`), then the searches and the
         update on the chosen rows only, scattered back: the frame's cost follows the pixels
         that still need it, not the candidate count. Returns the fraction of the estimates
         that project into the frame (the keyframe-switch test), from the same projection.
         """
         c = self.config
         rho_min, rho_max = self.rho_range
-        cam = self.camera
         st = key.state
-        rays = epipolar_rays(key.us, key.vs, cam.K, T_fk[None], cam.size, self.device)
-        fresh = ~key.prior
         baseline = max(float(np.linalg.norm(T_fk[:3, 3])), 1e-9)
-        prior = torch.where(fresh, torch.full_like(st.mu, 0.5 * (rho_min + rho_max)), st.mu)
-        pu, pv, front = (t[0, :, 0] for t in rays.project(prior[:, None]))
-        m = self.margin
-        visible = front & (pu >= m) & (pu <= cam.width - 1 - m) & (pv >= m) & (pv <= cam.height - 1 - m)
-        du, dv = (t[0] for t in rays.motion(prior))
-        j_mu = torch.hypot(du, dv)
-        # LSD-SLAM: only where the gradient has a component along the epipolar line.
-        along = (key.grad[0] * du + key.grad[1] * dv).abs() / torch.clamp(j_mu, min=1e-9)
-        want = (along >= c.min_epipolar_gradient) & (fresh | visible)
-        # REMODE: converged pixels this frame cannot improve are left alone.
-        want &= fresh | (st.var >= c.min_information * self._tau2(st.mu, j_mu, baseline))
+        geo = _frame_geometry(key, self.camera, T_fk, self.margin)
+        rows, seen = self._choose(key, geo, baseline, only)
+        if rows.numel() == 0:
+            return seen
+        # Everything below runs on the chosen rows only (index_select: several times faster
+        # on CPU than advanced indexing).
+        pick = lambda t: t.index_select(0, rows)  # noqa: E731
+        a_r, j_r = pick(geo.a), pick(geo.j)
+        mu_r, var_r, f_r = pick(st.mu), pick(st.var), pick(~key.prior)
+        floor = c.min_search_px / torch.clamp(j_r, min=1e-9)
+        half = torch.maximum(c.search_sigmas * torch.sqrt(var_r), floor)
+        lo = torch.where(f_r, torch.full_like(mu_r, rho_min), torch.clamp(mu_r - half, rho_min, rho_max))
+        hi = torch.where(f_r, torch.full_like(mu_r, rho_max), torch.clamp(mu_r + half, rho_min, rho_max))
+        bracketed = self._bracket(key, rows, f_r, a_r, geo.b, lo, hi)
+        x, cost, valid = self._search(key, rows, desc, a_r, geo.b, lo, hi, j_r, f_r)
+        if bracketed is not None:
+            # A bracket's best match on its edge: the minimum lies outside, not a measurement.
+            j_end = _motion(a_r, geo.b, x)
+            inside = ((x - lo) * j_end >= 0.5) & ((hi - x) * j_end >= 0.5)
+            valid &= ~bracketed | inside
+        valid &= (x >= rho_min) & (x <= rho_max)
+        xr = torch.where(valid, x, mu_r)
+        j_x = _motion(a_r, geo.b, xr)
+        valid &= j_x > 1e-6
+        tau2 = self._tau2(xr, j_x, baseline)
+        init, upd = f_r & valid, ~f_r & valid
+        fail = ~f_r & ~valid  # visible (chosen above) but nothing matched: an outlier vote
+        a_old, b_old = pick(st.a), pick(st.b)
+        post = gaussian_uniform_update(
+            BetaGaussian(mu_r, var_r, a_old, b_old),
+            torch.where(upd, x, mu_r),
+            torch.where(upd, tau2, var_r),
+            self.rho_range,
+        )
+        mu_n = torch.where(init, x, torch.where(upd, post.mu, mu_r))
+        var_n = torch.where(init, tau2, torch.where(upd, post.var, var_r))
+        a_n = torch.where(init, torch.full_like(a_old, c.init_a), torch.where(upd, post.a, a_old))
+        voted = outlier_vote(BetaGaussian(mu_r, var_r, a_old, b_old), fail).b
+        b_n = torch.where(init, torch.full_like(b_old, c.init_b), torch.where(upd, post.b, voted))
+        n_n = pick(key.updates) + (init | upd).long()
+        # Outliers: a pixel that keeps failing is reset to "no estimate" (it may be re-seeded).
+        drop = ~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio)
+        reset, _, _ = self._fresh_state(int(rows.numel()))
+        measured = init | upd
+        for target, value in (
+            (st.mu, torch.where(drop, reset.mu, mu_n)),
+            (st.var, torch.where(drop, reset.var, var_n)),
+            (st.a, torch.where(drop, reset.a, a_n)),
+            (st.b, torch.where(drop, reset.b, b_n)),
+            (key.updates, torch.where(drop, torch.zeros_like(n_n), n_n)),
+            (key.prior, (~f_r | init) & ~drop),
+            (key.cost, torch.where(measured, cost, pick(key.cost))),
+        ):
+            target.index_copy_(0, rows, value)
+        return seen
+
+    def _bracket(
+        self,
+        key: _Keyframe,
+        rows: torch.Tensor,
+        fresh: torch.Tensor,
+        a_r: torch.Tensor,
+        b: torch.Tensor,
+        lo: torch.Tensor,
+        hi: torch.Tensor,
+    ) -> torch.Tensor | None:
+        """First attempt of a pixel without an estimate: its neighbours' range, not the whole range.
+
+        A new pixel next to measured ones (within ``seed_radius`` px) most likely lies on
+        their surface: its first search spans the neighbours' inverse depths, widened by
+        ``2 min_search_px`` px each side, a few samples instead of a whole-range search
+        (its second attempt, if this one fails, is a whole-range one). ``lo``, ``hi`` are
+        narrowed in place; returns which rows were bracketed (None: none).
+        """
+        c = self.config
+        if c.seed_radius <= 0:
+            return None
+        first = fresh & (key.attempts.index_select(0, rows) == 1)  # _choose counted this attempt
+        if not bool(first.any()) or not bool((key.updates > 0).any()):
+            return None
+        sel = torch.nonzero(first, as_tuple=True)[0]
+        n_lo, n_hi = self._neighbour_range(key, rows.index_select(0, sel))
+        near = torch.isfinite(n_lo)
+        sel, n_lo, n_hi = sel[near], n_lo[near], n_hi[near]
+        a_s = a_r.index_select(0, sel)
+        rho_min, rho_max = self.rho_range
+        pad = 2.0 * c.min_search_px
+        lo.index_copy_(
+            0, sel, torch.clamp(n_lo - pad / torch.clamp(_motion(a_s, b, n_lo), min=1e-9), rho_min, rho_max)
+        )
+        hi.index_copy_(
+            0, sel, torch.clamp(n_hi + pad / torch.clamp(_motion(a_s, b, n_hi), min=1e-9), rho_min, rho_max)
+        )
+        use = torch.zeros_like(first)
+        use[sel] = True
+        return use
+
+    def _neighbour_range(self, key: _Keyframe, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Lowest and highest measured inverse depth within ``seed_radius`` px of each row's
+        pixel (``inf``, ``-inf`` where none): one gather of the (2r + 1)^2 window per row."""
+        r = self.config.seed_radius
+        h, w = self.camera.height, self.camera.width
+        wp = w + 2 * r
+        has = key.updates > 0
+        padded_flat = (key.vs.long() + r) * wp + key.us.long() + r
+        size = (h + 2 * r) * wp
+        mu = key.state.mu
+        lows = torch.full((size,), math.inf, device=self.device)
+        lows.index_copy_(0, padded_flat, torch.where(has, mu, math.inf))
+        highs = torch.full((size,), -math.inf, device=self.device)
+        highs.index_copy_(0, padded_flat, torch.where(has, mu, -math.inf))
+        d = torch.arange(-r, r + 1, device=self.device)
+        offsets = (d[:, None] * wp + d[None, :]).reshape(-1)
+        window = padded_flat.index_select(0, rows)[:, None] + offsets[None, :]
+        return lows[window].min(dim=1).values, highs[window].max(dim=1).values
+
+    def _choose(
+        self, key: _Keyframe, geo: _FrameGeometry, baseline: float, only: torch.Tensor | None
+    ) -> tuple[torch.Tensor, float]:
+        """Rows this frame searches, and the fraction of the estimates it sees.
+
+        LSD-SLAM: only where the gradient has a component along the epipolar line. REMODE:
+        converged pixels this frame cannot improve are left alone. Whole-range searches only
+        from frames with ``seed_parallax`` and ``seed_attempts`` left. Pixels without a prior
+        are searched from the middle of the range (``mu`` holds it: :meth:`_fresh_state`), so
+        their projection only gives the epipolar direction.
+        """
+        c = self.config
+        st = key.state
+        fresh = ~key.prior
+        estimates = key.prior  # a measured, carried or filled prior
+        want = (geo.along >= c.min_epipolar_gradient) & (fresh | geo.visible)
+        want &= fresh | (st.var >= c.min_information * self._tau2(st.mu, geo.j, baseline))
         seeding = baseline / self._scene >= c.seed_parallax
-        want &= ~fresh | ((key.attempts < c.seed_attempts) & seeding)
+        if seeding:
+            want &= estimates | (key.attempts < c.seed_attempts)
+        else:
+            want &= estimates
         if only is not None:
             want &= only
-        key.attempts = key.attempts + (want & fresh).long()
-        estimates = ~fresh
+        seeds = want & fresh
+        key.attempts += seeds.long()
         n_estimates = float(estimates.sum())
-        seen = float((visible & estimates).sum()) / n_estimates if n_estimates > 0 else 1.0
-        half = torch.maximum(c.search_sigmas * torch.sqrt(st.var), 2.0 / torch.clamp(j_mu, min=1e-9))
-        lo = torch.where(fresh, torch.full_like(st.mu, rho_min), torch.clamp(st.mu - half, rho_min, rho_max))
-        hi = torch.where(fresh, torch.full_like(st.mu, rho_max), torch.clamp(st.mu + half, rho_min, rho_max))
-        # Interval length in pixels, to first order (the epipolar motion at the prior mean).
-        short = ~fresh & (j_mu * (hi - lo) <= c.short_samples * c.max_step_px)
-        x = torch.full_like(st.mu, math.nan)
-        cost = torch.full_like(st.mu, math.inf)
+        seen = float((geo.visible & estimates).sum()) / n_estimates if n_estimates > 0 else 1.0
+        return torch.nonzero(want, as_tuple=True)[0], seen
+
+    def _search(
+        self,
+        key: _Keyframe,
+        rows: torch.Tensor,
+        desc: torch.Tensor,
+        a_r: torch.Tensor,
+        b: torch.Tensor,
+        lo: torch.Tensor,
+        hi: torch.Tensor,
+        j_r: torch.Tensor,
+        fresh: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Search each chosen row in ``[lo, hi]``, in buckets by sample count (``plan_buckets``).
+
+        Returns the match ``x``, its cost and whether it passed ``max_cost`` (and, in the
+        buckets with a distinctiveness test, ``min_distinctiveness``), per row.
+        """
+        c = self.config
+        x = torch.full_like(lo, math.nan)
+        cost = torch.full_like(lo, math.inf)
         valid = torch.zeros_like(fresh)
-        for mask, samples, refine, distinct in (
-            (want & short, c.short_samples, 0, False),
-            (want & ~short, c.long_samples, c.refine_samples, True),
-        ):
-            idx = torch.nonzero(mask, as_tuple=True)[0]
-            if idx.numel() == 0:
+        # Interval length in px: to first order at the prior mean for an estimate (as the
+        # +-2 px floor is set); a whole-range search takes the larger motion of its two ends.
+        ends = torch.maximum(_motion(a_r, b, lo), _motion(a_r, b, hi))
+        span = torch.where(fresh, ends, j_r) * (hi - lo)
+        bucket = plan_buckets(span, fresh, c)
+        for index, (samples, refine, distinct) in enumerate(search_buckets(c)):
+            at = torch.nonzero(bucket == index, as_tuple=True)[0]
+            if at.numel() == 0:
                 continue
             found = search_interval(
-                key.key_desc[:, idx],
+                key.key_desc.index_select(1, rows.index_select(0, at)),
                 desc,
-                EpipolarRays(rays.a[:, idx], rays.b, rays.width, rays.height),
-                lo[idx],
-                hi[idx],
+                EpipolarRays(a_r.index_select(0, at)[None], b[None], self.camera.width, self.camera.height),
+                lo.index_select(0, at),
+                hi.index_select(0, at),
                 samples,
                 refine,
                 self.matching.chunk_elements,
@@ -423,49 +566,61 @@ class DepthFilter:
             good = found.ok & (found.cost <= c.max_cost)
             if distinct:
                 good &= found.distinct >= c.min_distinctiveness
-            x[idx], cost[idx], valid[idx] = found.rho, found.cost, good
-        rows = torch.nonzero(want, as_tuple=True)[0]
-        if rows.numel() == 0:
-            return seen
-        valid &= (x >= rho_min) & (x <= rho_max)
-        xr = torch.where(valid, x, st.mu)
-        j_x = torch.hypot(*(t[0] for t in rays.motion(xr)))
-        valid &= j_x > 1e-6
-        tau2 = self._tau2(xr, j_x, baseline)[rows]
-        f_r, mu_r, var_r, valid, x, cost = (
-            fresh[rows],
-            st.mu[rows],
-            st.var[rows],
-            valid[rows],
-            x[rows],
-            cost[rows],
-        )
-        init, upd = f_r & valid, ~f_r & valid
-        fail = ~f_r & ~valid  # visible (chosen above) but nothing matched: an outlier vote
-        a_r, b_r = st.a[rows], st.b[rows]
-        post = gaussian_uniform_update(
-            BetaGaussian(mu_r, var_r, a_r, b_r),
-            torch.where(upd, x, mu_r),
-            torch.where(upd, tau2, var_r),
-            self.rho_range,
-        )
-        mu_n = torch.where(init, x, torch.where(upd, post.mu, mu_r))
-        var_n = torch.where(init, tau2, torch.where(upd, post.var, var_r))
-        a_n = torch.where(init, torch.full_like(a_r, c.init_a), torch.where(upd, post.a, a_r))
-        voted = outlier_vote(BetaGaussian(mu_r, var_r, a_r, b_r), fail).b
-        b_n = torch.where(init, torch.full_like(b_r, c.init_b), torch.where(upd, post.b, voted))
-        n_n = key.updates[rows] + (init | upd).long()
-        # Outliers: a pixel that keeps failing is reset to "no estimate" (it may be re-seeded).
-        drop = ~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio)
-        reset, _, _ = self._fresh_state(int(rows.numel()))
-        st.mu[rows] = torch.where(drop, reset.mu, mu_n)
-        st.var[rows] = torch.where(drop, reset.var, var_n)
-        st.a[rows] = torch.where(drop, reset.a, a_n)
-        st.b[rows] = torch.where(drop, reset.b, b_n)
-        key.updates[rows] = torch.where(drop, torch.zeros_like(n_n), n_n)
-        key.prior[rows] = (key.prior[rows] | init) & ~drop
-        key.cost[rows] = torch.where(init | upd, cost, key.cost[rows])
-        return seen
+            x.index_copy_(0, at, found.rho)
+            cost.index_copy_(0, at, found.cost)
+            valid.index_copy_(0, at, good)
+        return x, cost, valid
+
+
+@dataclass
+class _FrameGeometry:
+    """One frame's epipolar geometry for every keyframe pixel, at the pixel's prior mean."""
+
+    a: torch.Tensor  # (M, 3) K R_fk x_n: the projection at inverse depth rho is a + rho b
+    b: torch.Tensor  # (3,) K t_fk
+    j: torch.Tensor  # (M,) epipolar motion (px per unit inverse depth) at the prior mean
+    along: torch.Tensor  # (M,) |grey gradient . unit epipolar direction|
+    visible: torch.Tensor  # (M,) bool: the prior mean projects in front, inside the matching margin
+
+
+def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, margin: float) -> _FrameGeometry:
+    """``EpipolarRays`` of one frame, its ``project`` and ``motion`` at the prior means, fused.
+
+    With ``w = a_2 + rho b_2``: ``u = (a_0 + rho b_0) / w`` and ``du/drho = (b_0 a_2 - a_0 b_2) / w^2``;
+    the numerators of the motion do not depend on ``rho``, so the epipolar direction (the
+    gradient test) costs two products per pixel, and everything is a handful of (M,) ops.
+    """
+    K = np.asarray(camera.K, dtype=np.float64)
+    H = K @ T_fk[:3, :3] @ np.linalg.inv(K)  # pixel-to-pixel homography at infinity
+    dev = key.us.device
+    h = torch.as_tensor(H.T, dtype=torch.float32, device=dev)  # rows: H's columns
+    a = torch.addcmul(torch.addcmul(h[2], key.us[:, None], h[0]), key.vs[:, None], h[1])  # H (u, v, 1)
+    b = torch.as_tensor(K @ T_fk[:3, 3], dtype=torch.float32, device=dev)
+    rho = key.state.mu
+    a0, a1, a2 = a.unbind(1)
+    w = a2 + rho * b[2]
+    nu = b[0] * a2 - a0 * b[2]
+    nv = b[1] * a2 - a1 * b[2]
+    norm = torch.hypot(nu, nv)
+    w2 = torch.clamp(w * w, min=1e-12)
+    j = norm / w2
+    along = (key.grad[0] * nu + key.grad[1] * nv).abs() / torch.clamp(norm, min=1e-9)
+    front = w > 1e-9
+    wc = torch.clamp(w, min=1e-9)
+    cu, cv = 0.5 * (camera.width - 1), 0.5 * (camera.height - 1)
+    visible = (
+        front
+        & (((a0 + rho * b[0]) / wc - cu).abs() <= cu - margin)
+        & (((a1 + rho * b[1]) / wc - cv).abs() <= cv - margin)
+    )
+    return _FrameGeometry(a, b, j, along, visible)
+
+
+def _motion(a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
+    """``|d p / d rho|`` (R,) of rows ``a`` (R, 3) at inverse depths ``rho`` (``EpipolarRays.parallax``)."""
+    a0, a1, a2 = a.unbind(1)
+    w = a2 + rho * b[2]
+    return torch.hypot(b[0] * a2 - a0 * b[2], b[1] * a2 - a1 * b[2]) / torch.clamp(w * w, min=1e-12)
 
 
 def _box_sum(maps: torch.Tensor, r: int) -> torch.Tensor:

@@ -46,18 +46,35 @@ class FilterConfig:
     #: something: prior variance / predicted measurement variance at least this (REMODE stops
     #: updating converged seeds). Saves searches once estimates have converged.
     min_information: float = 0.1
-    #: Search interval: the prior mean +- ``search_sigmas`` standard deviations.
+    #: Search interval: the prior mean +- ``search_sigmas`` standard deviations (at least
+    #: ``min_search_px``).
     search_sigmas: float = 2.0
+    #: The search interval spans at least +- this many pixels along the epipolar line: a
+    #: converged estimate is still checked, so a wrong one can fail (2 before 2026-11-23:
+    #: +-1.25 px at the same sample spacing is as accurate on the synthetic rooms, 25 % cheaper).
+    min_search_px: float = 1.25
     #: Samples of a short search (a pixel with an estimate; the parabola goes through them).
     short_samples: int = 8
     #: Samples of a long search (a pixel without an estimate: the whole inverse-depth range).
     long_samples: int = 32
     #: A search is short when its interval spans at most this many pixels per sample.
     max_step_px: float = 1.0
+    #: Samples of a search whose interval spans at most ``(verify_samples - 1) x max_step_px``
+    #: px: a converged estimate at the ``min_search_px`` floor, whose search checks that the
+    #: patch is still where the estimate says (0 = off: ``short_samples``).
+    verify_samples: int = 6
+    #: Samples of a search (whole-range or wide prior) whose interval spans at most
+    #: ``(medium_samples - 1) x max_step_px`` px: already about a pixel apart, so no refinement
+    #: (0 = off: ``long_samples`` and the refinement).
+    medium_samples: int = 16
     #: Fine samples on each side of the best coarse sample of a long search.
     refine_samples: int = 2
     #: Long searches a pixel without an estimate gets per keyframe (texture-less pixels never match).
     seed_attempts: int = 2
+    #: The first search of a pixel without an estimate spans the inverse depths of the measured
+    #: pixels within this radius (px; widened by ``2 min_search_px`` px each side) instead of the
+    #: whole range; the second, if it fails, the whole range. 0 = always the whole range.
+    seed_radius: int = 3
     #: A pixel without an estimate is searched over the whole range only in frames with at least
     #: this baseline / scene depth: from a short baseline the whole range spans a few pixels,
     #: and a wrong first measurement is then confirmed by the short searches around it.
@@ -114,9 +131,21 @@ class FilterConfig:
             ('pose_sigma', self.pose_sigma >= 0 and math.isfinite(self.pose_sigma), '>= 0'),
             ('min_information', self.min_information >= 0, '>= 0'),
             ('search_sigmas', self.search_sigmas > 0, 'positive'),
+            ('min_search_px', self.min_search_px > 0, 'positive'),
             ('short_samples', self.short_samples >= 3, '>= 3'),
             ('long_samples', self.long_samples >= 3, '>= 3'),
             ('max_step_px', self.max_step_px > 0, 'positive'),
+            (
+                'verify_samples',
+                self.verify_samples == 0 or 3 <= self.verify_samples <= self.short_samples,
+                '0 or in [3, filter.short_samples]',
+            ),
+            (
+                'medium_samples',
+                self.medium_samples == 0 or self.short_samples < self.medium_samples <= self.long_samples,
+                '0 or in (filter.short_samples, filter.long_samples]',
+            ),
+            ('seed_radius', self.seed_radius >= 0, '>= 0'),
             ('refine_samples', self.refine_samples >= 1, '>= 1'),
             ('seed_parallax', self.seed_parallax >= 0, '>= 0'),
             ('seed_attempts', self.seed_attempts >= 1, '>= 1'),

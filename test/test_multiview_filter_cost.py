@@ -1,0 +1,161 @@
+"""What makes the depth filter's frame cheap: the search kernel, its buckets and the seed bracket.
+
+Each is checked against what it replaces: the kernel against the sweep's own cost
+(``cost_volume.sample_cost``) and a plain second-best loop, the buckets against the intervals
+they are planned for, the bracket against whole-range seeding on the synthetic room.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import depth_fusion_ros.multiview.filter as filter_module
+from depth_fusion_ros.multiview.cost_volume import EpipolarRays, sample_cost
+from depth_fusion_ros.multiview.filter import DepthFilter
+from depth_fusion_ros.multiview.filter_config import FilterConfig
+from depth_fusion_ros.multiview.filter_search import (
+    _distinctiveness,
+    frame_cost,
+    plan_buckets,
+    search_buckets,
+    search_interval,
+)
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+
+def _random_rays(rows: int, width: int = 80, height: int = 60) -> tuple[torch.Tensor, EpipolarRays]:
+    gen = torch.Generator().manual_seed(0)
+    u = torch.rand(rows, generator=gen) * (width - 10) + 5
+    v = torch.rand(rows, generator=gen) * (height - 10) + 5
+    a = torch.stack((u, v, torch.ones(rows)), dim=1)[None]
+    key = torch.randn(6, rows, generator=gen)
+    return key / key.norm(dim=0), EpipolarRays(a, torch.tensor([[30.0, 3.0, 0.5]]), width, height)
+
+
+def _descriptors(width: int = 80, height: int = 60) -> torch.Tensor:
+    desc = torch.randn(1, 7, height, width, generator=torch.Generator().manual_seed(1))
+    desc[0, 6] = 0.0
+    desc[0, 6, 3:-3, 3:-3] = 1.0  # the visibility band, as patch_descriptors makes it
+    return desc
+
+
+def test_frame_cost_is_the_sweeps_cost_for_one_frame():
+    key, rays = _random_rays(500)
+    desc = _descriptors()
+    rho = torch.linspace(0.1, 3.0, 12)[None, :].expand(500, 12).contiguous()
+    ours = frame_cost(key, desc, rays, rho)
+    reference, count = sample_cost(key, desc, rays, rho)
+    reference = torch.where(count >= 0.5, reference, torch.full_like(reference, math.inf))
+    seen = torch.isfinite(reference)
+    assert torch.equal(torch.isfinite(ours), seen) and seen.float().mean() > 0.3
+    assert torch.allclose(ours[seen], reference[seen], atol=1e-5)
+
+
+def test_distinctiveness_is_the_second_best_local_minimum_ratio():
+    gen = torch.Generator().manual_seed(2)
+    cost = torch.rand(300, 9, generator=gen) + 0.1
+    cost[:5] = torch.linspace(0.2, 1.0, 9)[None, :]  # a single basin: falls back to the largest
+    cost[5, 4] = math.inf  # an invisible sample
+    c1, best = cost.min(dim=1)
+    ours = _distinctiveness(cost, best, c1)
+    for r in range(cost.shape[0]):
+        col = cost[r].tolist()
+        padded = [math.inf, *col, math.inf]
+        minima = [
+            col[s]
+            for s in range(len(col))
+            if col[s] <= padded[s] and col[s] <= padded[s + 2] and abs(s - int(best[r])) > 1
+        ]
+        c2 = min(minima, default=math.inf)
+        if not math.isfinite(c2):
+            c2 = max(c for c in col if math.isfinite(c))
+        expected = min(max(1.0 - float(c1[r]) / max(c2, 1e-6), 0.0), 1.0)
+        assert float(ours[r]) == pytest.approx(expected, abs=1e-6), r
+
+
+def test_search_finds_a_planted_minimum_in_every_bucket():
+    """A cost with one sharp minimum along each row's line: every bucket's search finds it."""
+    rows, width, height = 200, 80, 60
+    key, rays = _random_rays(rows, width, height)
+    desc = _descriptors(width, height)
+    # Plant the key descriptor at each row's true match (rho_true), so the ZNCC peaks there.
+    rho_true = torch.full((rows,), 0.8)
+    u, v, _ = (t[0, :, 0] for t in rays.project(rho_true[:, None]))
+    ui, vi = u.round().long(), v.round().long()
+    inside = (ui > 4) & (ui < width - 5) & (vi > 4) & (vi < height - 5)
+    desc[0, :6, vi[inside], ui[inside]] = key[:, inside]
+    rho_true = rays_rho_at_pixel(rays, ui.float(), rho_true)
+    for samples, refine, distinct in search_buckets(FilterConfig()):
+        found = search_interval(
+            key, desc, rays, rho_true - 0.05, rho_true + 0.05, samples, refine, 1 << 22, distinct
+        )
+        ok = found.ok & inside
+        assert ok.float().mean() > 0.5 * inside.float().mean(), samples
+        err = (found.rho - rho_true)[ok].abs() * torch.hypot(*(t[0] for t in rays.motion(rho_true)))[ok]
+        assert float(torch.median(err)) < 0.75, (samples, float(torch.median(err)))  # px along the line
+
+
+def rays_rho_at_pixel(rays: EpipolarRays, u: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
+    """Inverse depth at which each row's line reaches column ``u`` (the planted pixel)."""
+    a, b = rays.a[0], rays.b[0]
+    # u = (a0 + rho b0) / (a2 + rho b2)  =>  rho = (u a2 - a0) / (b0 - u b2)
+    return (u * a[:, 2] - a[:, 0]) / (b[0] - u * b[2])
+
+
+def test_buckets_follow_the_interval_length():
+    c = FilterConfig()
+    span = torch.tensor([2.5, 2.5, 7.0, 7.0, 14.0, 14.0, 100.0, 100.0])
+    fresh = torch.tensor([False, True, False, True, False, True, False, True])
+    bucket = plan_buckets(span, fresh, c).tolist()
+    # verify (floor of a converged estimate), short, medium, long; a new pixel: never without
+    # the distinctiveness test (medium or long).
+    assert bucket == [0, 2, 1, 2, 2, 2, 3, 3]
+    assert [s for s, _, _ in search_buckets(c)] == [
+        c.verify_samples,
+        c.short_samples,
+        c.medium_samples,
+        c.long_samples,
+    ]
+    off = FilterConfig(verify_samples=0, medium_samples=0)
+    assert plan_buckets(span, fresh, off).tolist() == [1, 3, 1, 3, 3, 3, 3, 3]
+    with pytest.raises(ValueError, match=r'filter\.medium_samples'):
+        FilterConfig(medium_samples=4).validate()
+    with pytest.raises(ValueError, match=r'filter\.verify_samples'):
+        FilterConfig(verify_samples=9).validate()
+
+
+def _long_rows_and_accuracy(seq, radius: int, monkeypatch) -> tuple[int, float]:
+    """Whole-range (long) search rows over the first frames, and the median AbsRel of the
+    published estimates after them (warped into the last frame)."""
+    counted = []
+    real = filter_module.search_interval
+    config = FilterConfig(seed_radius=radius)
+
+    def counting(key_desc, desc, rays, lo, hi, samples, *args, **kwargs):
+        if samples == config.long_samples:
+            counted.append(key_desc.shape[1])
+        return real(key_desc, desc, rays, lo, hi, samples, *args, **kwargs)
+
+    monkeypatch.setattr(filter_module, 'search_interval', counting)
+    f = DepthFilter(seq.camera, config)
+    frames = seq.frames[:14]  # two keyframe switches
+    for fr in frames:
+        f.process(fr.gray, fr.pose)
+    r = f.result(frames[-1].pose)
+    gt = seq.gt_depth_working(len(frames) - 1)
+    ok = np.isfinite(r.depth) & np.isfinite(gt) & (gt > 0)
+    return sum(counted), float(np.median(np.abs(r.depth[ok] - gt[ok]) / gt[ok]))
+
+
+def test_bracketed_seeds_save_whole_range_searches(synthetic_sequence, monkeypatch):
+    """A new pixel next to measured ones is first searched over their range: fewer
+    whole-range searches for estimates as accurate."""
+    long_off, err_off = _long_rows_and_accuracy(synthetic_sequence, 0, monkeypatch)
+    long_on, err_on = _long_rows_and_accuracy(synthetic_sequence, FilterConfig().seed_radius, monkeypatch)
+    assert long_on < 0.95 * long_off, (long_on, long_off)
+    assert err_on < 1.1 * err_off + 1e-3, (err_on, err_off)
