@@ -88,8 +88,9 @@ def test_params_file_is_accepted_by_every_node_and_descriptors_are_set(model_pat
         ]
         try:
             fusion = nodes[2]
-            # the node's defaults that differ from the core's: real-time mode, compiled kernels
-            assert fusion.config == FusionConfig(mode='fast', compile_kernel=True)
+            # the node's defaults that differ from the core's: real-time mode, compiled kernels,
+            # a bounded Ω (the filter's stage 1 sends every estimate)
+            assert fusion.config == FusionConfig(mode='fast', compile_kernel=True, max_points=4096)
             descriptor = fusion.describe_parameter('fusion.sigma1')
             assert 'proximity' in descriptor.description and descriptor.read_only
             assert descriptor.floating_point_range[0].from_value > 0

@@ -61,7 +61,10 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'ransac_min_inliers': 'stage 2: fewer inliers than this is no consensus (single-view depth published)',
     'seed': 'seed of the RANSAC sampling and of the max_points subsampling (deterministic output)',
     'align_scale': "map s <- a s + b before fusing; 'auto': only for non-metric single-view sources",
-    'max_points': 'fuse at most this many points of omega (seeded subsample); auto: all of them',
+    'max_points': (
+        'fuse at most this many points of omega (a seeded uniform subsample: the cost is '
+        'pixels x |omega|); -1 or auto: all of them'
+    ),
     'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
 

@@ -115,7 +115,11 @@ FUSION_SKIP = ('device',)
 #: The node runs in real time by default: the fast mode (``fusion.mode: exact`` for the paper's
 #: full sum) with compiled kernels (about 4x faster than eager on CPU; compiled once at start-up,
 #: eager if no compiler works).
-FUSION_NODE_DEFAULTS = {'mode': 'fast', 'compile_kernel': True}
+#: The node's fusion: fast mode, compiled, and at most 4096 points of Ω. The fusion costs
+#: pixels x |Ω|; the sweep's Ω stays below 4096 at 320x240 (25 % of a 10-14 % density), the
+#: filter sends every estimate (10-40k on the synthetic and real sequences), and a uniform
+#: subsample keeps their spread (rotation stress case: fused MAE 0.334 m capped, 0.333 m all).
+FUSION_NODE_DEFAULTS = {'mode': 'fast', 'compile_kernel': True, 'max_points': 4096}
 
 REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
 #: How many closed keyframe stamps are remembered to recognise late parts.
