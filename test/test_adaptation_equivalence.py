@@ -85,16 +85,15 @@ def _ref_loss(adapter: Adapter, batch) -> torch.Tensor:
 
 
 @torch.no_grad()
-def _ref_guard_error(forward, samples) -> float:
+def _ref_guard_error(forward, samples) -> list[torch.Tensor]:
     usable = [s for s in samples if s.n_holdout > 0]
     if not usable:
-        return float('nan')
+        return []
     log_depth = forward(torch.cat([s.x for s in usable]))
-    errors = [
-        (sample_map(log_depth[i : i + 1], s.holdout_uv, s.width, s.height) - s.holdout_log).abs().mean()
+    return [
+        (sample_map(log_depth[i : i + 1], s.holdout_uv, s.width, s.height) - s.holdout_log).abs()
         for i, s in enumerate(usable)
     ]
-    return float(torch.stack(errors).mean())
 
 
 def _ref_observe(adapter: Adapter, sample) -> tuple[str, list[float], float, float]:
@@ -117,13 +116,13 @@ def _ref_observe(adapter: Adapter, sample) -> tuple[str, list[float], float, flo
         adapter.optimizer.step()
         losses.append(float(loss.detach()))
     after = _ref_guard_error(adapter._eval_forward, guard_set)
-    verdict = judge(before, after, cfg.guard_tolerance, sum(s.n_holdout > 0 for s in guard_set))
+    verdict = judge(before, after, cfg.guard_tolerance, cfg.guard_z)
     if verdict.rolled_back:
         adapter.net.load_state_dict(snap[0])
         adapter.optimizer.load_state_dict(snap[1])
-        return 'rolled_back', losses, before, after
+        return 'rolled_back', losses, verdict.before, verdict.after
     adapter.buffer.add(prepared)
-    return 'updated', losses, before, after
+    return 'updated', losses, verdict.before, verdict.after
 
 
 # --- fixtures ------------------------------------------------------------------------------------

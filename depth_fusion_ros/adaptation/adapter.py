@@ -34,7 +34,7 @@ from ..singleview.metadata import ModelMetadata
 from ..singleview.predictor import DepthPredictor, predictor_from_network, resolve_device
 from .batch import batch_loss
 from .config import AdaptConfig
-from .guard import GuardVerdict, guard_errors, judge
+from .guard import GuardVerdict, guard_point_errors, judge
 from .inference_copies import InferenceCopies
 from .prepared import PreparedSample
 from .replay import ReplayBuffer
@@ -183,18 +183,16 @@ class Adapter:
         """Mean over the batch of the weighted self-supervised terms (``batch.batch_loss``)."""
         return batch_loss(self.net(torch.cat([s.x for s in batch])), batch, self.config)
 
-    def _guard(self, samples: list[PreparedSample]) -> float:
-        """Mean held-out error of ``samples`` with the current weights (NaN without held-out
-        points). Per-sample errors already computed for these weights are reused: after an
-        update the next keyframe's guard runs the network on the new keyframe only."""
+    def _guard(self, samples: list[PreparedSample]) -> list[torch.Tensor]:
+        """Held-out point errors of ``samples`` that have held-out points, with the current
+        weights (empty without any). Errors already computed for these weights are reused:
+        after an update the next keyframe's guard runs the network on the new keyframe only."""
         usable = [s for s in samples if s.n_holdout > 0]
-        if not usable:
-            return float('nan')
         missing = [s for s in usable if self._token not in s.guard_errors]
         if missing:
-            for s, error in zip(missing, guard_errors(self._eval_forward, missing), strict=True):
+            for s, error in zip(missing, guard_point_errors(self._eval_forward, missing), strict=True):
                 s.guard_errors[self._token] = error
-        return float(torch.stack([s.guard_errors[self._token] for s in usable]).mean())
+        return [s.guard_errors[self._token] for s in usable]
 
     def _rollback(self, token: int) -> None:
         """Restore the weights and optimiser state saved before this update."""
@@ -241,7 +239,7 @@ class Adapter:
             return self._skip(sample.key, 'non_finite_loss', t0)
         self.counters.steps += len(values)
         after = self._guard(guard_set)
-        verdict = judge(before, after, cfg.guard_tolerance, sum(s.n_holdout > 0 for s in guard_set))
+        verdict = judge(before, after, cfg.guard_tolerance, cfg.guard_z)
         report = UpdateReport(
             key=sample.key,
             status='rolled_back' if verdict.rolled_back else 'updated',
@@ -255,10 +253,12 @@ class Adapter:
             self._rollback(start)
             self.counters.rolled_back += 1
             log.warning(
-                'adaptation: update on keyframe %d rolled back (held-out error %.4f -> %.4f, %d keyframes)',
+                'adaptation: update on keyframe %d rolled back (held-out error %.4f -> %.4f, '
+                'standard error %.4f, %d keyframes)',
                 sample.key,
-                before,
-                after,
+                verdict.before,
+                verdict.after,
+                verdict.se,
                 verdict.keyframes,
             )
         else:

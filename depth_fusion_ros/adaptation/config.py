@@ -42,8 +42,13 @@ class AdaptConfig:
     min_points: int = 30
     #: Recent replay keyframes whose held-out points the guard checks with the new keyframe's.
     guard_keyframes: int = 4
-    #: An update is rolled back when the guard error grows by more than this fraction.
+    #: An update is rolled back when the guard error grows by more than this fraction (and
+    #: the held-out points show it, see guard_z).
     guard_tolerance: float = 0.02
+    #: Standard errors (of the paired per-point before/after change) by which the growth must
+    #: exceed guard_tolerance to roll back: a one-sided test, 2.33 = 1 % false rollbacks;
+    #: 0 = the bare threshold.
+    guard_z: float = 2.33
     #: Gradient norm clipping (0: none).
     grad_clip: float = 1.0
     #: Keep BatchNorm statistics frozen (eval-mode normalisation while training).
@@ -65,6 +70,7 @@ class AdaptConfig:
             'smoothness_weight',
             'guard_keyframes',
             'guard_tolerance',
+            'guard_z',
             'grad_clip',
             'min_points',
         )

@@ -85,7 +85,8 @@ class PreparedSample:
         #: (N, 2) grid_sample coordinates of the points (as ``losses.sample_map`` makes them).
         self.train_grid = point_grid(self.train_uv, self.width, self.height)
         self.holdout_grid = point_grid(self.holdout_uv, self.width, self.height)
-        #: The guard's held-out error of this keyframe, by weights token (see ``Adapter``).
+        #: The guard's (n_holdout,) held-out point errors of this keyframe, by weights token
+        #: (see ``Adapter``).
         self.guard_errors: dict[int, torch.Tensor] = {}
         self._grid: dict[tuple[int, int, float], GridTensors] = {}
         self._image: dict[tuple[int, int], torch.Tensor] = {}

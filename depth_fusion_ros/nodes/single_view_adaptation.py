@@ -47,6 +47,7 @@ ADAPT_LIMITS: dict[str, Any] = {
     'min_points': (0, None),
     'guard_keyframes': (0, 1000),
     'guard_tolerance': (0.0, None),
+    'guard_z': (0.0, None),
     'grad_clip': (0.0, None),
     'seed': (0, None),
 }
