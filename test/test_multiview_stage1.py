@@ -7,7 +7,7 @@ import pytest
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.multiview.filter_result import FilterResult
-from depth_fusion_ros.multiview.semidense import MultiViewResult
+from depth_fusion_ros.multiview.semidense import MultiViewResult, empty_result
 from depth_fusion_ros.multiview.stage1 import resolve_rule, stage1_mask
 
 
@@ -19,17 +19,9 @@ def _maps(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _result(cls: type, depth: np.ndarray, score: np.ndarray) -> MultiViewResult:
-    nan = np.full_like(depth, np.nan)
-    return cls(
-        depth=depth,
-        depth_std=nan,
-        photometric_score=nan,
-        geometric_score=nan,
-        score=score,
-        cost=nan,
-        candidates=np.isfinite(depth),
-        camera=PinholeCamera(40, 30, 30.0, 30.0, 19.5, 14.5),
-    )
+    """A result of class ``cls`` with these maps (every other map empty)."""
+    empty = empty_result(PinholeCamera(40, 30, 30.0, 30.0, 19.5, 14.5))
+    return cls(**{**vars(empty), 'depth': depth, 'score': score, 'candidates': np.isfinite(depth)})
 
 
 def test_rules_resolve_by_method_and_fraction_keeps_the_best_scores():

@@ -13,7 +13,7 @@ from std_msgs.msg import String
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
-from depth_fusion_ros.multiview.semidense import select_best_fraction
+from depth_fusion_ros.multiview.stage1 import best_fraction_mask
 from depth_fusion_ros.nodes.fusion_node import FusionNode
 from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.testing import RosHarness
@@ -100,7 +100,7 @@ def _fusion_node(ros: RosHarness, **params) -> FusionNode:
 
 
 def _offline(scene: SimpleNamespace, output_kind: str = 'metric_depth') -> np.ndarray:
-    stage1 = select_best_fraction(SimpleNamespace(depth=scene.mv, score=scene.score), 0.25)
+    stage1 = best_fraction_mask(scene.mv, scene.score, 0.25)
     return fuse_keyframe(scene.single, scene.mv, stage1, FusionConfig(mode='fast'), output_kind).depth
 
 
@@ -198,17 +198,32 @@ def test_missing_parts_and_bad_inputs_are_dropped_and_counted():
     }, snap.summary()
 
 
+def _fused_after_announcement(
+    ros: RosHarness, scene: SimpleNamespace, topic: str, value: str, heard, stamp_ns: int
+) -> tuple[FusionNode, np.ndarray, object]:
+    """A fusion node hears ``value`` on the latched ``topic`` (``heard(node)`` says when), then
+    fuses one keyframe of ``scene``: the node, the fused depth and the announcing publisher."""
+    node = _fusion_node(ros, publish_points=False)
+    depths = ros.collect(Image, '/depth_fusion/fused/depth')
+    announcer = ros.publisher(String, topic, latched_qos())
+    announcer.publish(String(data=value))
+    assert ros.wait_for(lambda: heard(node), 10.0)
+    _Inputs(ros).keyframe(scene, stamp_ns)
+    assert ros.wait_for(lambda: len(depths) == 1, 20.0)
+    return node, m.image_to_numpy(depths[0]), announcer
+
+
 def test_announced_output_kind_switches_on_alignment():
     scene = _scene(3)
     with RosHarness() as ros:
-        node = _fusion_node(ros, publish_points=False)
-        depths = ros.collect(Image, '/depth_fusion/fused/depth')
-        kind = ros.publisher(String, '/depth_fusion/single_view/output_kind', latched_qos())
-        kind.publish(String(data='relative_depth'))
-        assert ros.wait_for(lambda: node.output_kind == 'relative_depth', 10.0)
-        _Inputs(ros).keyframe(scene, 3_000_000_000)
-        assert ros.wait_for(lambda: len(depths) == 1, 20.0)
-    fused = m.image_to_numpy(depths[0])
+        _, fused, _ = _fused_after_announcement(
+            ros,
+            scene,
+            '/depth_fusion/single_view/output_kind',
+            'relative_depth',
+            lambda node: node.output_kind == 'relative_depth',
+            3_000_000_000,
+        )
     np.testing.assert_allclose(fused, _offline(scene, 'relative_depth'), rtol=1e-5, atol=1e-5)
     # aligned by the RANSAC line first, so the fused depth is close to the truth everywhere
     assert np.nanmedian(np.abs(fused - scene.gt)) < 0.05
@@ -218,19 +233,19 @@ def test_announced_filter_method_sends_every_estimate_to_stage_two():
     """multi_view_node announces ``filter`` (latched): stage 1 keeps every estimate, not 25 %."""
     scene = _scene(4)
     with RosHarness() as ros:
-        node = _fusion_node(ros, publish_points=False)
-        depths = ros.collect(Image, '/depth_fusion/fused/depth')
-        method = ros.publisher(String, '/depth_fusion/multi_view/method', latched_qos())
-        method.publish(String(data='filter'))
-        assert ros.wait_for(lambda: node.announced_method == 'filter', 10.0)
-        _Inputs(ros).keyframe(scene, 5_000_000_000)
-        assert ros.wait_for(lambda: len(depths) == 1, 20.0)
+        node, fused, method = _fused_after_announcement(
+            ros,
+            scene,
+            '/depth_fusion/multi_view/method',
+            'filter',
+            lambda node: node.announced_method == 'filter',
+            5_000_000_000,
+        )
         method.publish(String(data='bundle_adjustment'))
         assert ros.wait_for(lambda: node.stats.snapshot().dropped.get('bad_multi_view_method') == 1, 10.0)
         assert node.announced_method == 'filter'
     every = np.isfinite(scene.mv)
     expected = fuse_keyframe(scene.single, scene.mv, every, FusionConfig(mode='fast')).depth
-    fused = m.image_to_numpy(depths[0])
     np.testing.assert_allclose(fused, expected, rtol=1e-5, atol=1e-5)
     assert not np.allclose(fused, _offline(scene), atol=1e-3)  # not the paper's best 25 %
 

@@ -9,12 +9,11 @@ split and the selection use the multi-view depth and its score only.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from types import SimpleNamespace
 
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..multiview.semidense import select_best_fraction
+from ..multiview.stage1 import best_fraction_mask
 
 
 @dataclass
@@ -82,7 +81,7 @@ def make_sample(
         )
     with np.errstate(invalid='ignore'):
         depth = np.where(mv_depth > 0, mv_depth, np.nan).astype(np.float32)
-    mask = select_best_fraction(SimpleNamespace(depth=depth, score=mv_score), select_fraction)
+    mask = best_fraction_mask(depth, mv_score, select_fraction)
     rows, cols = np.nonzero(mask)
     uv = np.stack([cols, rows], axis=1).astype(np.float32)
     values = depth[rows, cols].astype(np.float32)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -42,7 +43,7 @@ class FilterResult(MultiViewResult):
     variance: np.ndarray | None = None
     inlier_ratio: np.ndarray | None = None
     updates: np.ndarray | None = None
-    method: str = 'filter'
+    method: ClassVar[str] = 'filter'
 
 
 def assemble_result(

@@ -39,6 +39,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -56,7 +57,7 @@ from .cost_volume import (
     stage_descriptors,
     zero_mean_basis,
 )
-from .stage1 import resolve_rule, stage1_mask
+from .stage1 import best_fraction_mask, resolve_rule, stage1_mask
 from .views import prepare_views
 
 log = logging.getLogger(__name__)
@@ -151,7 +152,7 @@ class MultiViewResult:
     #: Frame indices of the neighbours used, when the caller knows them.
     neighbours: tuple[int, ...] = ()
     #: The method that produced it (``multi_view.method``): decides the stage-1 rule.
-    method: str = 'sweep'
+    method: ClassVar[str] = 'sweep'
 
     @property
     def valid(self) -> np.ndarray:
@@ -179,19 +180,7 @@ class MultiViewResult:
 def select_best_fraction(result: MultiViewResult, fraction: float = 0.25) -> np.ndarray:
     """Stage 1 of the point selection (paper §III-D): the best ``fraction`` of the estimates by
     ``photometric x geometric`` score, as a bool mask. At least one point is kept when any exists."""
-    if not (0 < fraction <= 1):
-        raise ValueError(f'select_fraction must be in (0, 1], got {fraction}')
-    valid = np.isfinite(result.depth) & np.isfinite(result.score)
-    count = int(valid.sum())
-    mask = np.zeros(result.depth.shape, dtype=bool)
-    if count == 0:
-        return mask
-    keep = max(1, round(fraction * count))
-    flat = np.flatnonzero(valid)
-    scores = result.score.ravel()[flat]
-    best = flat[np.argpartition(-scores, keep - 1)[:keep]] if keep < count else flat
-    mask.ravel()[best] = True
-    return mask
+    return best_fraction_mask(result.depth, result.score, fraction)
 
 
 def empty_result(camera: PinholeCamera) -> MultiViewResult:

@@ -37,18 +37,25 @@ def resolve_rule(rule: str, method: str | None) -> str:
 
 def stage1_mask(depth: np.ndarray, score: np.ndarray, rule: str, fraction: float) -> np.ndarray:
     """Bool mask of the stage-1 points under a resolved rule (``fraction`` or ``all``)."""
-    from .semidense import select_best_fraction
-
     if rule == 'all':
         return np.isfinite(depth) & (depth > 0)
     if rule != 'fraction':
         raise ValueError(f'stage1 rule must be resolved to fraction or all, got {rule!r}')
-    return select_best_fraction(_Estimate(depth, score), fraction)
+    return best_fraction_mask(depth, score, fraction)
 
 
-class _Estimate:
-    """The two maps :func:`select_best_fraction` reads."""
-
-    def __init__(self, depth: np.ndarray, score: np.ndarray) -> None:
-        self.depth = depth
-        self.score = score
+def best_fraction_mask(depth: np.ndarray, score: np.ndarray, fraction: float = 0.25) -> np.ndarray:
+    """The paper's rule on the two maps it reads (``semidense.select_best_fraction`` of a result)."""
+    if not (0 < fraction <= 1):
+        raise ValueError(f'select_fraction must be in (0, 1], got {fraction}')
+    valid = np.isfinite(depth) & np.isfinite(score)
+    count = int(valid.sum())
+    mask = np.zeros(depth.shape, dtype=bool)
+    if count == 0:
+        return mask
+    keep = max(1, round(fraction * count))
+    flat = np.flatnonzero(valid)
+    scores = score.ravel()[flat]
+    best = flat[np.argpartition(-scores, keep - 1)[:keep]] if keep < count else flat
+    mask.ravel()[best] = True
+    return mask
