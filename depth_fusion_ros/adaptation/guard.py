@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import torch
 
 from .batch import point_batch
+from .losses import sparse_point_errors
 from .prepared import PreparedSample
 
 
@@ -50,10 +51,7 @@ def guard_point_errors(
     at its held-out points, in one forward pass; left on the device (no host sync)."""
     log_depth = forward(torch.cat([s.x for s in samples]))
     points = point_batch([s.holdout_grid for s in samples], [s.holdout_log for s in samples])
-    values = torch.nn.functional.grid_sample(
-        log_depth, points.grid[:, None], mode='bilinear', padding_mode='border', align_corners=False
-    ).reshape(len(samples), -1)
-    error = (values - points.target).abs()
+    error = sparse_point_errors(log_depth, points.grid, points.target)
     return [error[b, : s.n_holdout] for b, s in enumerate(samples)]
 
 

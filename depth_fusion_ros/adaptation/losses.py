@@ -66,11 +66,16 @@ def sparse_batch(
     ``log_depth`` (B, 1, h, w); ``grid`` (B, M, 2) point coordinates (:func:`point_grid`),
     ``target`` (B, M) log depths and ``mask`` (B, M) which of the M slots are points.
     """
+    error = torch.where(mask, sparse_point_errors(log_depth, grid, target), 0.0)
+    return error.sum(dim=1) / mask.sum(dim=1).clamp_min(1)
+
+
+def sparse_point_errors(log_depth: torch.Tensor, grid: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B, M) ``|log z_pred - log z_mv|`` at every point slot (padding slots included)."""
     values = F.grid_sample(
         log_depth, grid[:, None], mode='bilinear', padding_mode='border', align_corners=False
     ).reshape(grid.shape[0], -1)
-    error = torch.where(mask, (values - target).abs(), 0.0)
-    return error.sum(dim=1) / mask.sum(dim=1).clamp_min(1)
+    return (values - target).abs()
 
 
 def ssim_error(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

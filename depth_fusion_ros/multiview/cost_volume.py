@@ -266,13 +266,7 @@ class EpipolarRays:
 
         From ``u = (a0 + rho b0) / (a2 + rho b2)``: ``du/drho = (b0 a2 - a0 b2) / (a2 + rho b2)^2``.
         """
-        a = self.a
-        b = self.b[:, None, :]
-        w = a[..., 2] + rho[None, :] * b[..., 2]
-        w2 = torch.clamp(w * w, min=1e-12)
-        du = (b[..., 0] * a[..., 2] - a[..., 0] * b[..., 2]) / w2
-        dv = (b[..., 1] * a[..., 2] - a[..., 1] * b[..., 2]) / w2
-        return du, dv
+        return epipolar_motion(self.a, self.b[:, None, :], rho[None, :])
 
     def parallax(self, rho: torch.Tensor) -> torch.Tensor:
         """``|d p_o / d rho|`` (n, M): pixels moved along each epipolar line per unit inverse depth.
@@ -281,6 +275,16 @@ class EpipolarRays:
         """
         du, dv = self.motion(rho)
         return torch.sqrt(du * du + dv * dv)
+
+
+def epipolar_motion(a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(du/drho, dv/drho)`` of homogeneous projections ``a + rho b`` (``a``, ``b`` (..., 3) and
+    ``rho`` broadcasting): :meth:`EpipolarRays.motion` and the filter's per-row geometry."""
+    w = a[..., 2] + rho * b[..., 2]
+    w2 = torch.clamp(w * w, min=1e-12)
+    du = (b[..., 0] * a[..., 2] - a[..., 0] * b[..., 2]) / w2
+    dv = (b[..., 1] * a[..., 2] - a[..., 1] * b[..., 2]) / w2
+    return du, dv
 
 
 def epipolar_rays(

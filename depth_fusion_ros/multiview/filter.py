@@ -48,7 +48,7 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
 from ..geometry import relative_pose, rotation_angle, validate_pose
-from .cost_volume import EpipolarRays, gaussian_blur, patch_reach, stage_descriptors
+from .cost_volume import EpipolarRays, epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
 from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
@@ -618,9 +618,7 @@ def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, mar
 
 def _motion(a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
     """``|d p / d rho|`` (R,) of rows ``a`` (R, 3) at inverse depths ``rho`` (``EpipolarRays.parallax``)."""
-    a0, a1, a2 = a.unbind(1)
-    w = a2 + rho * b[2]
-    return torch.hypot(b[0] * a2 - a0 * b[2], b[1] * a2 - a1 * b[2]) / torch.clamp(w * w, min=1e-12)
+    return torch.hypot(*epipolar_motion(a, b, rho))
 
 
 def _box_sum(maps: torch.Tensor, r: int) -> torch.Tensor:
