@@ -3,10 +3,11 @@ result, neighbours and ground truth once, so that adaptation variants can be com
 minutes (scripts/diag/adapt_prequential.py).
 
     python scripts/diag/adapt_cache.py SEQ_DIR OUT.pkl FRAMES [RGB_CAMERA_YAML]
+    PARAMS='{"multi_view": {"method": "filter"}}' ...   per-stage overrides (as --set)
 
 Write OUT under an ignored folder (eval_out/): it holds data of the sequence.
 """
-import pickle, sys, time
+import json, os, pickle, sys, time
 import numpy as np
 from depth_fusion_ros.evaluation.context import EvalOptions, KeyframeContext
 from depth_fusion_ros.evaluation.harness import load_evaluation_sequence
@@ -15,7 +16,8 @@ import depth_fusion_ros.evaluation.methods  # noqa register
 
 path, out, frames = sys.argv[1], sys.argv[2], int(sys.argv[3])
 rgbcam = sys.argv[4] if len(sys.argv) > 4 else None
-opts = EvalOptions(frames=frames, rgb_cameras={'*': rgbcam} if rgbcam else {})
+params = json.loads(os.environ.get('PARAMS', '{}'))
+opts = EvalOptions(frames=frames, rgb_cameras={'*': rgbcam} if rgbcam else {}, params=params)
 seq = load_evaluation_sequence(path, opts)
 shared = {}
 rows = []
