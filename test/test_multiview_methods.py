@@ -34,6 +34,24 @@ def test_semi_dense_methods_on_the_synthetic_room(synthetic_sequence):
     assert selected['n_selected'] > 0
 
 
+def test_selected_row_scores_the_points_the_fusion_takes(synthetic_sequence):
+    """``multi_view_selected`` follows ``fusion.stage1_fraction`` (one mask with stage 1 of
+    ``fused``), and ``multi_view.select_fraction`` is the same setting seen from the other side."""
+    from depth_fusion_ros.evaluation.methods.fusion import _stage1, fusion_settings
+
+    counts = {}
+    for stage, key in (('fusion', 'stage1_fraction'), ('multi_view', 'select_fraction')):
+        for fraction in (0.25, 0.5):
+            options = EvalOptions(frames=24, stride=12, params={stage: {key: fraction}})
+            ctx = KeyframeContext(synthetic_sequence, 12, options, {})
+            selected = get_method('multi_view_selected').fn(ctx)
+            mask = _stage1(ctx, multi_view_result(ctx), fusion_settings(ctx)[1])
+            assert selected.extras['n_selected'] == mask.sum() > 0
+            counts[stage, fraction] = int(mask.sum())
+    for stage in ('fusion', 'multi_view'):
+        assert counts[stage, 0.5] == pytest.approx(2 * counts[stage, 0.25], abs=1)
+
+
 def test_result_and_neighbours_are_shared_and_options_honoured(synthetic_sequence):
     shared: dict = {}
     options = EvalOptions(

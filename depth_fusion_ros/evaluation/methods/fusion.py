@@ -47,8 +47,6 @@ from ..registry import MethodOutput, register_method
 STAGE = 'fusion'
 GUARD_STAGE = 'guard'
 CONSISTENCY_STAGE = 'consistency'
-#: Stage-1 fraction of the paper (best 25 % by photometric x geometric score).
-DEFAULT_STAGE1_FRACTION = 0.25
 #: The paper's oracle: multi-view points whose error against ground truth is below 10 cm.
 DEFAULT_ORACLE_THRESHOLD = 0.10
 #: Evaluation defaults that differ from ``FusionConfig``'s.
@@ -58,10 +56,14 @@ EVALUATION_DEFAULTS: dict[str, Any] = {'compile_kernel': True}
 def fusion_settings(ctx: KeyframeContext, **forced: Any) -> tuple[FusionConfig, dict[str, Any]]:
     """``FusionConfig`` from the evaluation defaults, ``--set fusion.*`` and ``forced``; plus
     the method-level settings (``stage1_fraction``, ``stage1``, ``oracle_threshold``)."""
+    from .multi_view import multi_view_config
+
     params = {'device': ctx.options.device, 'seed': int(ctx.options.seed), **EVALUATION_DEFAULTS}
     params.update(ctx.stage_params(STAGE))
+    # multi_view.select_fraction is the same setting seen from the multi-view side (the
+    # node's fusion.stage1_fraction defaults to it too): fusion.stage1_fraction wins.
     extra = {
-        'stage1_fraction': float(params.pop('stage1_fraction', DEFAULT_STAGE1_FRACTION)),
+        'stage1_fraction': float(params.pop('stage1_fraction', multi_view_config(ctx).select_fraction)),
         'oracle_threshold': float(params.pop('oracle_threshold', DEFAULT_ORACLE_THRESHOLD)),
         'stage1': str(params.pop('stage1', 'auto')),
     }

@@ -175,9 +175,13 @@ def multi_view(ctx: KeyframeContext) -> MethodOutput:
     sparse=True,
 )
 def multi_view_selected(ctx: KeyframeContext) -> MethodOutput:
+    """The points the fusion's stage 1 passes on, under the same ``--set fusion.stage1*``
+    settings the ``fused`` method uses (one cached mask for both, so the row scores what was
+    fused)."""
+    from .fusion import _stage1, fusion_settings
+
     result = multi_view_result(ctx)
-    rule = str(ctx.stage_params('fusion').get('stage1', 'auto'))
-    mask = result.stage1_mask(rule, multi_view_config(ctx).select_fraction)
+    mask = _stage1(ctx, result, fusion_settings(ctx)[1])
     depth = np.where(mask, result.depth, np.float32(np.nan)).astype(np.float32)
     return MethodOutput(depth, {'n_selected': float(mask.sum())})
 
