@@ -32,7 +32,15 @@ class MapConfig:
     #: Voxels along each edge of a block.
     block_size: int = 8
     #: Pixels whose confidence is below this are left out; the rest are weighted by confidence.
-    min_confidence: float = 0.3
+    #: 0: the consistency test below decides which pixels enter, the confidence only weights them.
+    min_confidence: float = 0.0
+    #: Keyframes before and after each keyframe that its depth is checked against
+    #: (mapping/consistency.py); the map lags this many keyframes. 0: no check.
+    consistency_span: int = 2
+    #: A pixel agrees with another keyframe when the depth there is within this fraction of its own.
+    consistency_tolerance: float = 0.05
+    #: Other keyframes that must agree before a pixel is integrated.
+    consistency_views: int = 1
     #: A voxel's weight stops growing here, so a changed scene can still overwrite it.
     max_weight: float = 50.0
     #: Surface extraction keeps voxels observed with at least this accumulated weight.
@@ -69,6 +77,10 @@ class MapConfig:
             ('max_blocks', self.max_blocks >= 1, 'must be >= 1'),
             ('block_size', 2 <= self.block_size <= 32, 'must be in [2, 32]'),
             ('min_confidence', 0 <= self.min_confidence <= 1, 'must be in [0, 1]'),
+            ('consistency_span', 0 <= self.consistency_span <= 10, 'must be in [0, 10]'),
+            ('consistency_tolerance', 0 < self.consistency_tolerance < 1, 'must be in (0, 1)'),
+            ('consistency_views', 1 <= self.consistency_views <= 2 * max(1, self.consistency_span),
+             'must be in [1, 2 x consistency_span]'),
             ('max_weight', self.max_weight > 0, 'must be > 0'),
             ('min_weight', self.min_weight >= 0, 'must be >= 0'),
             ('allocation_stride', self.allocation_stride >= 1, 'must be >= 1'),
@@ -90,7 +102,12 @@ MAP_PARAMETER_DESCRIPTIONS = {
     'farthest from the camera are evicted',
     'block_size': 'voxels along each edge of a block',
     'min_confidence': 'pixels whose fused confidence is below this are left out; the rest are weighted '
-    'by their confidence',
+    'by their confidence (0: the consistency test decides which pixels enter)',
+    'consistency_span': 'keyframes before and after each keyframe that its depth is checked against before '
+    'integration (the map lags this many keyframes; save_map and shutdown integrate the rest); 0 = off',
+    'consistency_tolerance': 'a pixel agrees with another keyframe when the depth it lands on there is '
+    'within this fraction of its own',
+    'consistency_views': 'other keyframes that must agree before a pixel is integrated',
     'max_weight': 'a voxel weight stops growing here (a changed scene can still overwrite it)',
     'min_weight': 'surface extraction keeps voxels observed with at least this accumulated weight',
     'allocation_stride': 'pixel stride of the block allocation pass',

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from .config import MapConfig
+from .consistency import ConsistentMap
 from .open3d_tsdf import Open3DTSDF, open3d_available
 from .surface import SurfaceMesh
 from .torch_tsdf import TorchTSDF
@@ -43,8 +44,14 @@ class TSDFMap(Protocol):
     def mesh(self) -> SurfaceMesh: ...
 
 
-def make_map(config: MapConfig) -> tuple[TSDFMap, str]:
-    """The engine ``config.engine`` asks for, or the torch engine with the reason it fell back."""
+def make_map(config: MapConfig) -> tuple[ConsistentMap, str]:
+    """The engine ``config.engine`` asks for (or the torch engine with the reason it fell
+    back), behind the multi-keyframe consistency test (``consistency_span`` 0: none)."""
+    engine, note = _make_engine(config)
+    return ConsistentMap(engine, config), note
+
+
+def _make_engine(config: MapConfig) -> tuple[TSDFMap, str]:
     config.validate()
     wanted = config.engine
     if wanted == 'torch':

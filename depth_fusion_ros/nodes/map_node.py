@@ -5,9 +5,10 @@ the keyframe's camera-to-world pose from ``multi_view_node`` (``depth_fusion/key
 each on its own topic with the keyframe's stamp, so the node pairs them by **exact stamp**
 (as the fusion node pairs its inputs; the keyframe image, when it has come, colours the map).
 A complete keyframe goes to the worker, which integrates it into the map (core:
-``depth_fusion_ros.mapping``): pixels below ``map.min_confidence`` are left out, the others
-are weighted by their confidence. The map is bounded (``map.max_blocks``), so memory is
-capped whatever the replay length.
+``depth_fusion_ros.mapping``) once ``map.consistency_span`` later keyframes have come: only
+the pixels that agree with the keyframes around them enter (mapping/consistency.py), weighted
+by their confidence (and none below ``map.min_confidence``). The map is bounded
+(``map.max_blocks``), so memory is capped whatever the replay length.
 
 Outputs: the surface as a PointCloud2 (``depth_fusion/map/points``, world frame = the pose's
 frame, xyz + rgb) every ``1 / points_rate`` seconds when it changed, and the mesh as a binary
@@ -58,6 +59,9 @@ MAP_LIMITS: dict[str, Any] = {
     'max_blocks': (1, 10_000_000),
     'block_size': (2, 32),
     'min_confidence': (0.0, 1.0),
+    'consistency_span': (0, 10),
+    'consistency_tolerance': (1e-3, 0.999),
+    'consistency_views': (1, 20),
     'max_weight': (1e-6, None),
     'min_weight': (0.0, None),
     'allocation_stride': (1, 64),
@@ -239,7 +243,9 @@ class MapNode(DepthFusionNode):
         """The map's size against its cap on ``/diagnostics``: a robot can watch it stay bounded."""
         config = self.map.config
         return {
-            'keyframes integrated': self._integrated,
+            'keyframes integrated': self._integrated - self.map.pending,
+            'keyframes waiting for the consistency test': self.map.pending,
+            'pixels left out by the consistency test': self.map.pixels_rejected,
             'blocks': self.map.n_blocks,
             'blocks evicted': self.map.evicted_blocks,
             'voxel storage MiB': round(self.map.memory_bytes / 2**20, 2),
@@ -248,12 +254,17 @@ class MapNode(DepthFusionNode):
 
     @property
     def integrated(self) -> int:
-        """Keyframes integrated so far."""
+        """Keyframes taken into the map so far (the last ``map.consistency_span`` of them wait
+        for their successors before they are integrated)."""
         return self._integrated
 
-    def extract(self) -> tuple[SurfaceMesh, str]:
-        """The current mesh and the world frame it is in (thread-safe)."""
+    def extract(self, flush: bool = False) -> tuple[SurfaceMesh, str]:
+        """The current mesh and the world frame it is in (thread-safe). ``flush``: integrate
+        the keyframes still waiting for the consistency test's successors first (for a saved
+        mesh; the published points just lag ``map.consistency_span`` keyframes)."""
         with self._lock:
+            if flush:
+                self.map.flush()
             return self.map.mesh(), self._world_frame or 'world'
 
     def _publish_points(self) -> None:
@@ -276,10 +287,11 @@ class MapNode(DepthFusionNode):
         ``ValueError`` when the map is still empty: an empty file would look like a map.
         """
         path = Path(path or str(self.params['save_path']))
-        mesh, _ = self.extract()
+        mesh, _ = self.extract(flush=True)
         if mesh.is_empty:
             raise ValueError(
-                f'the map is empty ({self._integrated} keyframes integrated): nothing written to {path}'
+                f'the map is empty ({self._integrated} keyframes taken, {self.map.pixels_rejected} pixels '
+                f'left out by the consistency test): nothing written to {path}'
             )
         write_ply(path, mesh)
         return path, len(mesh.vertices), len(mesh.triangles)

@@ -1,7 +1,8 @@
 """Evaluation methods of the mapping stage: TSDF maps spanning the keyframes (registered on import).
 
 * ``map`` — the fused depth of every keyframe (automatic selection, as ``fused``), weighted by
-  its confidence, integrated with the ground-truth poses;
+  its confidence, integrated with the ground-truth poses where it agrees with the keyframes
+  around it (``map.consistency_*``, mapping/consistency.py);
 * ``map_single_view`` — the single-view depth alone (weight 1);
 * ``map_multi_view`` — the semi-dense multi-view depth alone (weight 1).
 
@@ -24,7 +25,8 @@ from typing import Any
 import numpy as np
 
 from ...mapping.config import MapConfig
-from ...mapping.engine import TSDFMap, make_map
+from ...mapping.consistency import ConsistentMap
+from ...mapping.engine import make_map
 from ...mapping.render import map_figure
 from ...mapping.scoring import score_map
 from ..context import KeyframeContext, SequenceContext
@@ -46,9 +48,13 @@ def map_config(ctx: KeyframeContext | SequenceContext) -> MapConfig:
     return MapConfig(**params).validate()
 
 
-def _map(ctx: KeyframeContext, label: str) -> TSDFMap:
-    """The sequence's map called ``label`` (created on first use)."""
-    return ctx.shared_cached(f'map:{label}', lambda: make_map(map_config(ctx))[0])
+def _map(ctx: KeyframeContext, label: str) -> ConsistentMap:
+    """The sequence's map called ``label`` (created on first use). The ground-truth reference
+    takes every pixel (no consistency test: it is the surface the others are scored against)."""
+    config = map_config(ctx)
+    if label == REFERENCE:
+        config = dataclasses.replace(config, consistency_span=0)
+    return ctx.shared_cached(f'map:{label}', lambda: make_map(config)[0])
 
 
 def _integrate(ctx: KeyframeContext, label: str, depth: np.ndarray, confidence: np.ndarray | None) -> None:
@@ -119,6 +125,7 @@ def _meshes(seq: SequenceContext) -> dict[str, Any]:
         if key.startswith('map:') and hasattr(engine, 'mesh'):
             label = key[len('map:') :]
             if label not in meshes:
+                engine.flush()  # the keyframes still waiting for successors that never came
                 meshes[label] = engine.mesh()
     return dict(sorted(meshes.items(), key=lambda kv: kv[0] != REFERENCE))
 
