@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
 from .config import MapConfig
@@ -58,32 +59,39 @@ def consistent_views(
     its point lands on a depth within ``tolerance`` (relative to the projected depth).
 
     Nearest-pixel lookup; points behind the other camera or outside its image count as not
-    consistent (no evidence either way, and none is taken).
+    consistent (no evidence either way, and none is taken). Only pixels with depth are
+    projected: per other keyframe one (N, 3) product, one nearest ``grid_sample`` and a
+    handful of elementwise passes.
     """
     dev = torch.device(device)
     d = torch.as_tensor(np.asarray(depth, np.float32), device=dev)
     h, w = d.shape
-    v, u = torch.meshgrid(
-        torch.arange(h, device=dev, dtype=torch.float32),
-        torch.arange(w, device=dev, dtype=torch.float32),
-        indexing='ij',
-    )
-    rays = torch.stack(((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, torch.ones_like(u)), -1)
+    count = torch.zeros(h * w, dtype=torch.int32, device=dev)
+    flat = torch.nonzero((d > 0).reshape(-1)).squeeze(1)  # NaN > 0 is False
+    if flat.numel() == 0 or not others:
+        return count.reshape(h, w).cpu().numpy()
+    z_k = d.reshape(-1)[flat]
+    u = (flat % w).to(torch.float32)
+    v = torch.div(flat, w, rounding_mode='floor').to(torch.float32)
+    points = torch.stack(((u - camera.cx) * (z_k / camera.fx), (v - camera.cy) * (z_k / camera.fy), z_k), 1)
     T_k = torch.as_tensor(np.asarray(T_wc, np.float64), device=dev)
-    count = torch.zeros((h, w), dtype=torch.int32, device=dev)
+    # Pixel -> grid_sample's [-1, 1] (align_corners: -1 and 1 are the first and last pixel
+    # centres); 'nearest' is the nearest-pixel lookup, and outside the image it reads 0, which
+    # agrees with no positive depth.
+    scale = torch.tensor([2 * camera.fx / (w - 1), 2 * camera.fy / (h - 1)], device=dev)
+    shift = torch.tensor([2 * camera.cx / (w - 1) - 1, 2 * camera.cy / (h - 1) - 1], device=dev)
     for other_depth, other_T in others:
         T_j = torch.as_tensor(np.asarray(other_T, np.float64), device=dev)
         rel = (torch.linalg.inv(T_j) @ T_k).to(torch.float32)  # keyframe -> other camera
-        points = (rays * d[..., None]) @ rel[:3, :3].T + rel[:3, 3]
-        z = points[..., 2]
-        uj = torch.round(points[..., 0] / z * camera.fx + camera.cx)
-        vj = torch.round(points[..., 1] / z * camera.fy + camera.cy)
-        inside = (z > 0) & (uj >= 0) & (uj <= w - 1) & (vj >= 0) & (vj <= h - 1)
-        index = (vj.clamp(0, h - 1) * w + uj.clamp(0, w - 1)).nan_to_num(0).long()
-        seen = torch.as_tensor(np.asarray(other_depth, np.float32), device=dev).reshape(-1)[index]
-        agree = inside & ((seen - z).abs() <= tolerance * z)  # NaN compares False
-        count += agree.to(torch.int32)
-    return count.cpu().numpy()
+        q = torch.addmm(rel[:3, 3], points, rel[:3, :3].T)
+        z = q[:, 2:]
+        grid = torch.addcmul(shift, q[:, :2] / z, scale)
+        image = torch.as_tensor(np.asarray(other_depth, np.float32), device=dev)[None, None]
+        seen = F.grid_sample(image, grid[None, None], mode='nearest', align_corners=True).reshape(-1)
+        z = z.squeeze(1)
+        agree = (z > 0) & ((seen - z).abs() <= tolerance * z)  # NaN compares False
+        count.index_add_(0, flat, agree.to(torch.int32))
+    return count.reshape(h, w).cpu().numpy()
 
 
 class ConsistentMap:
