@@ -62,7 +62,7 @@ def test_distinctiveness_is_the_second_best_local_minimum_ratio():
     cost[:5] = torch.linspace(0.2, 1.0, 9)[None, :]  # a single basin: falls back to the largest
     cost[5, 4] = math.inf  # an invisible sample
     c1, best = cost.min(dim=1)
-    ours = _distinctiveness(cost, best, c1)
+    ours = _distinctiveness(cost.T.contiguous(), best, c1)  # the search works samples-first
     for r in range(cost.shape[0]):
         col = cost[r].tolist()
         padded = [math.inf, *col, math.inf]

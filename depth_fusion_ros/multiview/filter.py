@@ -556,8 +556,9 @@ class DepthFilter:
         bucket = plan_buckets(span, fresh, c)
         # Rows sorted by bucket once: each bucket is then a slice (views, no gather per bucket),
         # and the results go back in one scatter.
-        order = torch.argsort(bucket, stable=True)
-        counts = torch.bincount(bucket, minlength=len(search_buckets(c))).tolist()
+        members = [torch.nonzero(bucket == k, as_tuple=True)[0] for k in range(len(search_buckets(c)))]
+        order = torch.cat(members)  # a counting sort: torch.argsort is several times slower on CPU
+        counts = [int(m.numel()) for m in members]
         desc_o = key.key_desc.index_select(1, rows.index_select(0, order))
         a_o, lo_o, hi_o = a_r.index_select(0, order), lo.index_select(0, order), hi.index_select(0, order)
         xs, costs, goods = [], [], []
