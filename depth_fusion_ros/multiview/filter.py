@@ -52,7 +52,7 @@ from .cost_volume import EpipolarRays, epipolar_motion, gaussian_blur, patch_rea
 from .filter_config import FilterConfig
 from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
-from .filter_search import plan_buckets, search_buckets, search_interval
+from .filter_search import normalised_rows, plan_buckets, search_buckets, search_interval
 from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
 from .semidense import MultiViewConfig, candidate_mask
 from .views import _as_gray
@@ -391,16 +391,16 @@ class DepthFilter:
         hi = torch.where(f_r, torch.full_like(mu_r, rho_max), torch.clamp(mu_r + half, rho_min, rho_max))
         bracketed = self._bracket(key, rows, f_r, a_r, geo.b, lo, hi)
         x, cost, valid = self._search(key, rows, desc, a_r, geo.b, lo, hi, j_r, f_r)
+        # The epipolar motion at the match: the bracket's edge test and the measurement
+        # variance (only read where the match is valid, so one evaluation at x serves both).
+        j_x = _motion(a_r, geo.b, x)
         if bracketed is not None:
             # A bracket's best match on its edge: the minimum lies outside, not a measurement.
-            j_end = _motion(a_r, geo.b, x)
-            inside = ((x - lo) * j_end >= 0.5) & ((hi - x) * j_end >= 0.5)
+            inside = ((x - lo) * j_x >= 0.5) & ((hi - x) * j_x >= 0.5)
             valid &= ~bracketed | inside
         valid &= (x >= rho_min) & (x <= rho_max)
-        xr = torch.where(valid, x, mu_r)
-        j_x = _motion(a_r, geo.b, xr)
         valid &= j_x > 1e-6
-        tau2 = self._tau2(xr, j_x, baseline)
+        tau2 = self._tau2(x, j_x, baseline)
         init, upd = f_r & valid, ~f_r & valid
         fail = ~f_r & ~valid  # visible (chosen above) but nothing matched: an outlier vote
         a_old, b_old = pick(st.a), pick(st.b)
@@ -560,7 +560,11 @@ class DepthFilter:
         order = torch.cat(members)  # a counting sort: torch.argsort is several times slower on CPU
         counts = [int(m.numel()) for m in members]
         desc_o = key.key_desc.index_select(1, rows.index_select(0, order))
-        a_o, lo_o, hi_o = a_r.index_select(0, order), lo.index_select(0, order), hi.index_select(0, order)
+        lo_o, hi_o = lo.index_select(0, order), hi.index_select(0, order)
+        # The rays normalised once for the frame, not once per bucket.
+        a_o, b_o = normalised_rows(
+            EpipolarRays(a_r.index_select(0, order)[None], b[None], self.camera.width, self.camera.height)
+        )
         xs, costs, goods = [], [], []
         start = 0
         for (samples, refine, distinct), n in zip(search_buckets(c), counts, strict=True):
@@ -570,7 +574,7 @@ class DepthFilter:
             found = search_interval(
                 desc_o[:, start:stop],
                 desc,
-                EpipolarRays(a_o[None, start:stop], b[None], self.camera.width, self.camera.height),
+                (a_o[:, start:stop], b_o),
                 lo_o[start:stop],
                 hi_o[start:stop],
                 samples,

@@ -105,18 +105,24 @@ def _frame_cost(
     return cost.div_(count >= 0.5)
 
 
+def normalised_rows(rays: EpipolarRays) -> tuple[torch.Tensor, torch.Tensor]:
+    """One frame's rays as the search takes them: ``a`` (3, R) and ``b`` (3,) rescaled to
+    ``grid_sample``'s [-1, 1] (``EpipolarRays._normalised``), rows along the contiguous axis."""
+    a, b = rays._normalised()
+    return a[0].T.contiguous(), b[0]
+
+
 def _search_rows(
     key_desc: torch.Tensor,
     frame_desc: torch.Tensor,
-    rays: EpipolarRays,
+    a: torch.Tensor,
+    b: torch.Tensor,
     lo: torch.Tensor,
     hi: torch.Tensor,
     samples: int,
     refine: int,
     with_distinctiveness: bool,
 ) -> SearchResult:
-    a, b = rays._normalised()
-    a, b = a[0].T.contiguous(), b[0]
     k = torch.arange(samples, device=lo.device, dtype=lo.dtype)
     step = (hi - lo) / (samples - 1)
     grid = torch.addcmul(lo[None, :], step[None, :], k[:, None])  # (S, R)
@@ -133,7 +139,7 @@ def _search_rows(
     # c1): only the others are looked up.
     sides = _frame_cost(key_desc, frame_desc, a, b, torch.cat((fine[:refine], fine[refine + 1 :])))
     fcost = torch.cat((sides[:refine], c1[None, :], sides[refine:]))
-    j = fcost.argmin(dim=0).clamp(1, 2 * refine - 1)
+    j = fcost.min(dim=0).indices.clamp(1, 2 * refine - 1)  # argmin over dim 0 is far slower on CPU
     return _parabola(fine, j, fine_step, *_three(fcost, j), c1, distinct)
 
 
@@ -171,7 +177,7 @@ def _parabola(
 def search_interval(
     key_desc: torch.Tensor,
     frame_desc: torch.Tensor,
-    rays: EpipolarRays,
+    rays: EpipolarRays | tuple[torch.Tensor, torch.Tensor],
     lo: torch.Tensor,
     hi: torch.Tensor,
     samples: int,
@@ -182,7 +188,9 @@ def search_interval(
     """Best inverse depth of each pixel in ``[lo, hi]`` (M,) against one frame.
 
     ``key_desc`` (C, M) keyframe descriptors, ``frame_desc`` (1, C + 1, H, W) the frame's
-    descriptors with their visibility channel, ``rays`` the pixels' epipolar rays into it.
+    descriptors with their visibility channel, ``rays`` the pixels' epipolar rays into it
+    (or :func:`normalised_rows` of them, which a caller searching several buckets of one frame
+    computes once).
     ``refine`` fine samples on each side of the best coarse one (0: the parabola goes through
     the coarse samples themselves). Memory is bounded by ``chunk_elements`` as in the sweep.
     ``with_distinctiveness=False`` skips the second-best ratio (``distinct`` is then undefined):
@@ -192,12 +200,14 @@ def search_interval(
     if m == 0:
         empty = lo.new_zeros(0)
         return SearchResult(empty, empty, empty, torch.zeros(0, dtype=torch.bool, device=lo.device))
+    a, b = normalised_rows(rays) if isinstance(rays, EpipolarRays) else rays
     chunk = rows_per_chunk(1, key_desc.shape[0] + 1, samples, chunk_elements)
     parts = [
         _search_rows(
             key_desc[:, s : s + chunk],
             frame_desc,
-            rays.chunk(s, s + chunk),
+            a[:, s : s + chunk],
+            b,
             lo[s : s + chunk],
             hi[s : s + chunk],
             samples,
