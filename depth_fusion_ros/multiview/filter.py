@@ -79,6 +79,9 @@ class _Keyframe:
     prior: torch.Tensor  # (M,) bool: mu, var hold a prior (measured, carried or filled): short searches
     cost: torch.Tensor  # (M,) last matching cost
     attempts: torch.Tensor  # (M,) long searches spent on a pixel without an estimate
+    # (padded image,) long: the row at each pixel of the image padded by seed_radius, M where
+    # none (built on first use: the seed bracket's neighbour lookups)
+    padded_rows: torch.Tensor | None = None
 
 
 @dataclass
@@ -488,27 +491,29 @@ class DepthFilter:
 
     def _neighbour_range(self, key: _Keyframe, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Lowest and highest measured inverse depth within ``seed_radius`` px of each row's
-        pixel (``inf``, ``-inf`` where none): one gather of the (2r + 1)^2 window per row."""
+        pixel (``inf``, ``-inf`` where none): the (2r + 1)^2 window of each row, gathered
+        through the keyframe's padded pixel-to-row map, so the cost follows the rows asked
+        for, not the image."""
         r = self.config.seed_radius
         h, w = self.camera.height, self.camera.width
         wp = w + 2 * r
-        has = key.updates > 0
+        m = int(key.flat.numel())
         padded_flat = (key.vs.long() + r) * wp + key.us.long() + r
-        size = (h + 2 * r) * wp
-        mu = key.state.mu
-        # One (size, 2) table of (low, high), gathered by index_select (rows of two floats:
-        # several times faster on CPU than advanced indexing of two maps).
-        table = torch.empty((size, 2), device=self.device)
-        table[:, 0] = math.inf
-        table[:, 1] = -math.inf
-        table.index_copy_(
-            0, padded_flat, torch.stack((torch.where(has, mu, math.inf), torch.where(has, mu, -math.inf)), 1)
-        )
+        if key.padded_rows is None:
+            key.padded_rows = torch.full(((h + 2 * r) * wp,), m, dtype=torch.long, device=self.device)
+            key.padded_rows.index_copy_(0, padded_flat, torch.arange(m, device=self.device))
         d = torch.arange(-r, r + 1, device=self.device)
         offsets = (d[:, None] * wp + d[None, :]).reshape(-1)
-        window = padded_flat.index_select(0, rows)[:, None] + offsets[None, :]
-        near = table.index_select(0, window.reshape(-1)).view(window.shape[0], window.shape[1], 2)
-        return near[..., 0].amin(dim=1), near[..., 1].amax(dim=1)
+        window = (padded_flat.index_select(0, rows)[:, None] + offsets[None, :]).reshape(-1)
+        near = key.padded_rows.index_select(0, window)  # rows, m for "no candidate there"
+        # One spare entry at m: "no estimate" for the pixels without a candidate.
+        mu = torch.cat((key.state.mu, key.state.mu.new_zeros(1))).index_select(0, near)
+        none = torch.zeros(1, dtype=torch.bool, device=self.device)
+        has = torch.cat((key.updates > 0, none)).index_select(0, near)
+        shape = (int(rows.numel()), int(offsets.numel()))
+        lows = torch.where(has, mu, math.inf).view(shape).amin(dim=1)
+        highs = torch.where(has, mu, -math.inf).view(shape).amax(dim=1)
+        return lows, highs
 
     def _choose(
         self, key: _Keyframe, geo: _FrameGeometry, baseline: float, only: torch.Tensor | None
