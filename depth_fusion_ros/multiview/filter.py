@@ -50,6 +50,7 @@ from ..camera import PinholeCamera
 from ..geometry import relative_pose, rotation_angle, validate_pose
 from .cost_volume import EpipolarRays, epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
+from .filter_profile import StageClock
 from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
 from .filter_search import normalised_rows, plan_buckets, search_buckets, search_interval
@@ -115,6 +116,8 @@ class DepthFilter:
         self.key: _Keyframe | None = None
         self._scene = self.config.scene_depth  # scene_depth() of the frame being processed
         self.stats = FilterStats()
+        #: Seconds per stage of :meth:`process` (``clock.enabled = True`` to record; the bench does).
+        self.clock = StageClock(self.device)
         self._candidates = dataclasses.replace(
             self.matching,
             max_candidate_fraction=self.config.max_candidate_fraction,
@@ -130,6 +133,13 @@ class DepthFilter:
         rotation) or ``'keyframe'`` (it became the filter's keyframe). Bad inputs raise
         ``ValueError`` naming them.
         """
+        self.clock.switch('other')
+        try:
+            return self._process(gray, pose)
+        finally:
+            self.clock.stop()
+
+    def _process(self, gray: np.ndarray, pose: np.ndarray) -> str:
         T_wf = validate_pose(pose, 'frame pose')
         image = torch.as_tensor(_as_gray(gray, 'frame image', self.camera), device=self.device)
         self.stats.frames += 1
@@ -223,8 +233,11 @@ class DepthFilter:
         fifth cheaper (same numbers: only the memory layout changes), for one copy of the
         image's descriptors per frame. On CUDA the layout is left as it is (not measured).
         """
+        left = self.clock.switch('descriptors')
         desc = stage_descriptors(image[None], self.matching)
-        return desc.contiguous(memory_format=torch.channels_last) if desc.device.type == 'cpu' else desc
+        desc = desc.contiguous(memory_format=torch.channels_last) if desc.device.type == 'cpu' else desc
+        self.clock.switch(left)
+        return desc
 
     def _published(self, key: _Keyframe) -> torch.Tensor:
         c, st = self.config, key.state
@@ -291,6 +304,7 @@ class DepthFilter:
         self, old: _Keyframe, image: torch.Tensor, desc: torch.Tensor, T_wn: np.ndarray
     ) -> _Keyframe:
         """New keyframe at this frame: carried estimates where they land, first measurements elsewhere."""
+        left = self.clock.switch('propagation')
         new = self._new_keyframe(image, desc, T_wn)
         c = self.config
         rows = torch.nonzero(old.updates > 0, as_tuple=True)[0]
@@ -336,6 +350,7 @@ class DepthFilter:
             filled,
             int(new.flat.numel()),
         )
+        self.clock.switch(left)
         return new
 
     def _fill_holes(self, new: _Keyframe, target: torch.Tensor, rho: torch.Tensor, var: torch.Tensor) -> int:
@@ -387,7 +402,20 @@ class DepthFilter:
         update on the chosen rows only, scattered back: the frame's cost follows the pixels
         that still need it, not the candidate count. Returns the fraction of the estimates
         that project into the frame (the keyframe-switch test), from the same projection.
+        ``only``: the new keyframe's first measurements at a switch (its stages are the
+        ``seed`` ones of :attr:`clock`).
         """
+        prefix = 'seed ' if only is not None else ''
+        left = self.clock.switch(prefix + 'selection')
+        try:
+            return self._update_rows(key, desc, T_fk, only, prefix)
+        finally:
+            self.clock.switch(left)
+
+    def _update_rows(
+        self, key: _Keyframe, desc: torch.Tensor, T_fk: np.ndarray, only: torch.Tensor | None, prefix: str
+    ) -> float:
+        """:meth:`_update`'s work; ``prefix`` names its stages."""
         c = self.config
         rho_min, rho_max = self.rho_range
         st = key.state
@@ -406,7 +434,9 @@ class DepthFilter:
         lo = torch.where(f_r, torch.full_like(mu_r, rho_min), torch.clamp(mu_r - half, rho_min, rho_max))
         hi = torch.where(f_r, torch.full_like(mu_r, rho_max), torch.clamp(mu_r + half, rho_min, rho_max))
         bracketed = self._bracket(key, rows, f_r, a_r, geo.b, lo, hi)
+        self.clock.switch(prefix + 'search')
         x, cost, valid = self._search(key, rows, desc, a_r, geo.b, lo, hi, j_r, f_r)
+        self.clock.switch(prefix + 'update')
         # The epipolar motion at the match: the bracket's edge test and the measurement
         # variance (only read where the match is valid, so one evaluation at x serves both).
         j_x = _motion(a_r, geo.b, x)
