@@ -8,6 +8,7 @@ they are planned for, the bracket against whole-range seeding on the synthetic r
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -62,7 +63,7 @@ def test_distinctiveness_is_the_second_best_local_minimum_ratio():
     cost[:5] = torch.linspace(0.2, 1.0, 9)[None, :]  # a single basin: falls back to the largest
     cost[5, 4] = math.inf  # an invisible sample
     c1, best = cost.min(dim=1)
-    ours = _distinctiveness(cost, best, c1)
+    ours = _distinctiveness(cost.T.contiguous(), best, c1)  # the search works samples-first
     for r in range(cost.shape[0]):
         col = cost[r].tolist()
         padded = [math.inf, *col, math.inf]
@@ -159,3 +160,28 @@ def test_bracketed_seeds_save_whole_range_searches(synthetic_sequence, monkeypat
     long_on, err_on = _long_rows_and_accuracy(synthetic_sequence, FilterConfig().seed_radius, monkeypatch)
     assert long_on < 0.95 * long_off, (long_on, long_off)
     assert err_on < 1.1 * err_off + 1e-3, (err_on, err_off)
+
+
+def test_stage_clock_splits_the_frame_and_changes_nothing(synthetic_sequence):
+    """The bench's per-stage breakdown: the stages of every frame add up to the frame, a
+    keyframe switch charges its propagation and seeding separately, and switching the clock
+    on leaves every estimate bit for bit as it was."""
+    frames = synthetic_sequence.frames[:8]
+    plain = DepthFilter(synthetic_sequence.camera)
+    timed = DepthFilter(synthetic_sequence.camera)
+    timed.clock.enabled = True
+    spent = 0.0
+    for frame in frames:
+        plain.process(frame.gray, frame.pose)
+        before = sum(timed.clock.seconds.values())
+        t0 = time.process_time()
+        timed.process(frame.gray, frame.pose)
+        spent += time.process_time() - t0
+        assert sum(timed.clock.seconds.values()) >= before
+    seconds = timed.clock.seconds
+    assert {'descriptors', 'selection', 'search', 'update', 'other'} <= set(seconds)
+    if timed.stats.keyframes > 1:
+        assert {'propagation', 'seed search'} <= set(seconds)
+    assert sum(seconds.values()) == pytest.approx(spent, rel=0.05, abs=5e-3)
+    assert torch.equal(plain.key.state.mu, timed.key.state.mu)
+    assert torch.equal(plain.key.updates, timed.key.updates)

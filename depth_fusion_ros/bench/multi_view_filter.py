@@ -62,6 +62,35 @@ def _stream_seconds(seq: Sequence, device: str) -> tuple[list[float], list[float
     return wall, cpu, f
 
 
+def _stage_rows(label: str, seq: Sequence, device: str) -> list[BenchRow]:
+    """Where a filter frame's time goes: one more pass with the filter's stage clock on
+    (``multiview/filter_profile.py``), per frame after the first, and each stage's share.
+
+    ``selection``: the per-pixel tests that choose the rows a frame searches (geometry,
+    REMODE and epipolar-gradient tests, the seed bracket); ``search``: the epipolar searches;
+    ``update``: the posterior update and its scatter; ``propagation``: a new keyframe (its
+    candidates, the warp and the hole filling); ``seed *``: the first measurements of the new
+    keyframe's pixels from the previous keyframe image; ``descriptors``: the frame's matching
+    descriptors; ``other``: the rest (pose tests, scene depth).
+    """
+    f = DepthFilter(seq.camera, device=device)
+    for i, frame in enumerate(seq.frames):
+        f.clock.enabled = i > 0  # the first frame only makes the first keyframe
+        f.process(frame.gray, frame.pose)
+    frames = max(1, len(seq) - 1)
+    total = sum(f.clock.seconds.values())
+    unit = 'CPU' if f.device.type == 'cpu' else 'wall, synchronised'
+    return [
+        BenchRow(
+            f'{label}: filter stage {stage} per frame ({unit})',
+            seconds / frames * 1e3,
+            'ms',
+            _note(f'{seconds / total:.0%} of the frame'),
+        )
+        for stage, seconds in sorted(f.clock.seconds.items(), key=lambda item: -item[1])
+    ]
+
+
 def _sweep_seconds(seq: Sequence, key: int, device: str, repeats: int) -> tuple[float, float]:
     """Median wall-clock and CPU seconds of the sweep of keyframe ``key``."""
     args = _keyframe_inputs(seq, key)
@@ -106,7 +135,7 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
             _note('target <= 0.2'),
         ),
     ]
-    return rows, f
+    return rows + _stage_rows(label, seq, opts.device), f
 
 
 def _accuracy(depth: np.ndarray, gt: np.ndarray, selected: np.ndarray) -> tuple[float, float]:

@@ -50,9 +50,10 @@ from ..camera import PinholeCamera
 from ..geometry import relative_pose, rotation_angle, validate_pose
 from .cost_volume import EpipolarRays, epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
+from .filter_profile import StageClock
 from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
-from .filter_search import plan_buckets, search_buckets, search_interval
+from .filter_search import normalised_rows, plan_buckets, search_buckets, search_interval
 from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
 from .semidense import MultiViewConfig, candidate_mask
 from .views import _as_gray
@@ -79,6 +80,9 @@ class _Keyframe:
     prior: torch.Tensor  # (M,) bool: mu, var hold a prior (measured, carried or filled): short searches
     cost: torch.Tensor  # (M,) last matching cost
     attempts: torch.Tensor  # (M,) long searches spent on a pixel without an estimate
+    # (padded image,) long: the row at each pixel of the image padded by seed_radius, M where
+    # none (built on first use: the seed bracket's neighbour lookups)
+    padded_rows: torch.Tensor | None = None
 
 
 @dataclass
@@ -112,6 +116,8 @@ class DepthFilter:
         self.key: _Keyframe | None = None
         self._scene = self.config.scene_depth  # scene_depth() of the frame being processed
         self.stats = FilterStats()
+        #: Seconds per stage of :meth:`process` (``clock.enabled = True`` to record; the bench does).
+        self.clock = StageClock(self.device)
         self._candidates = dataclasses.replace(
             self.matching,
             max_candidate_fraction=self.config.max_candidate_fraction,
@@ -127,10 +133,17 @@ class DepthFilter:
         rotation) or ``'keyframe'`` (it became the filter's keyframe). Bad inputs raise
         ``ValueError`` naming them.
         """
+        self.clock.switch('other')
+        try:
+            return self._process(gray, pose)
+        finally:
+            self.clock.stop()
+
+    def _process(self, gray: np.ndarray, pose: np.ndarray) -> str:
         T_wf = validate_pose(pose, 'frame pose')
         image = torch.as_tensor(_as_gray(gray, 'frame image', self.camera), device=self.device)
         self.stats.frames += 1
-        describe = lambda: stage_descriptors(image[None], self.matching)  # noqa: E731
+        describe = lambda: self._describe(image)  # noqa: E731
         with torch.no_grad():
             if self.key is None:
                 self.key = self._new_keyframe(image, describe(), T_wf)
@@ -210,6 +223,22 @@ class DepthFilter:
 
     # --- steps --------------------------------------------------------------------------------
 
+    def _describe(self, image: torch.Tensor) -> torch.Tensor:
+        """The frame's matching descriptors (``stage_descriptors``, as the sweep's), on CPU
+        stored channels-last.
+
+        Why channels-last: every search sample reads all channels at its four bilinear taps;
+        stored channel after channel those are seven planes apart, interleaved they share a
+        cache line or two. On the searches of TUM fr1_xyz that makes ``grid_sample`` about a
+        fifth cheaper (same numbers: only the memory layout changes), for one copy of the
+        image's descriptors per frame. On CUDA the layout is left as it is (not measured).
+        """
+        left = self.clock.switch('descriptors')
+        desc = stage_descriptors(image[None], self.matching)
+        desc = desc.contiguous(memory_format=torch.channels_last) if desc.device.type == 'cpu' else desc
+        self.clock.switch(left)
+        return desc
+
     def _published(self, key: _Keyframe) -> torch.Tensor:
         c, st = self.config, key.state
         return (
@@ -275,6 +304,7 @@ class DepthFilter:
         self, old: _Keyframe, image: torch.Tensor, desc: torch.Tensor, T_wn: np.ndarray
     ) -> _Keyframe:
         """New keyframe at this frame: carried estimates where they land, first measurements elsewhere."""
+        left = self.clock.switch('propagation')
         new = self._new_keyframe(image, desc, T_wn)
         c = self.config
         rows = torch.nonzero(old.updates > 0, as_tuple=True)[0]
@@ -320,6 +350,7 @@ class DepthFilter:
             filled,
             int(new.flat.numel()),
         )
+        self.clock.switch(left)
         return new
 
     def _fill_holes(self, new: _Keyframe, target: torch.Tensor, rho: torch.Tensor, var: torch.Tensor) -> int:
@@ -371,7 +402,20 @@ class DepthFilter:
         update on the chosen rows only, scattered back: the frame's cost follows the pixels
         that still need it, not the candidate count. Returns the fraction of the estimates
         that project into the frame (the keyframe-switch test), from the same projection.
+        ``only``: the new keyframe's first measurements at a switch (its stages are the
+        ``seed`` ones of :attr:`clock`).
         """
+        prefix = 'seed ' if only is not None else ''
+        left = self.clock.switch(prefix + 'selection')
+        try:
+            return self._update_rows(key, desc, T_fk, only, prefix)
+        finally:
+            self.clock.switch(left)
+
+    def _update_rows(
+        self, key: _Keyframe, desc: torch.Tensor, T_fk: np.ndarray, only: torch.Tensor | None, prefix: str
+    ) -> float:
+        """:meth:`_update`'s work; ``prefix`` names its stages."""
         c = self.config
         rho_min, rho_max = self.rho_range
         st = key.state
@@ -390,17 +434,19 @@ class DepthFilter:
         lo = torch.where(f_r, torch.full_like(mu_r, rho_min), torch.clamp(mu_r - half, rho_min, rho_max))
         hi = torch.where(f_r, torch.full_like(mu_r, rho_max), torch.clamp(mu_r + half, rho_min, rho_max))
         bracketed = self._bracket(key, rows, f_r, a_r, geo.b, lo, hi)
+        self.clock.switch(prefix + 'search')
         x, cost, valid = self._search(key, rows, desc, a_r, geo.b, lo, hi, j_r, f_r)
+        self.clock.switch(prefix + 'update')
+        # The epipolar motion at the match: the bracket's edge test and the measurement
+        # variance (only read where the match is valid, so one evaluation at x serves both).
+        j_x = _motion(a_r, geo.b, x)
         if bracketed is not None:
             # A bracket's best match on its edge: the minimum lies outside, not a measurement.
-            j_end = _motion(a_r, geo.b, x)
-            inside = ((x - lo) * j_end >= 0.5) & ((hi - x) * j_end >= 0.5)
+            inside = ((x - lo) * j_x >= 0.5) & ((hi - x) * j_x >= 0.5)
             valid &= ~bracketed | inside
         valid &= (x >= rho_min) & (x <= rho_max)
-        xr = torch.where(valid, x, mu_r)
-        j_x = _motion(a_r, geo.b, xr)
         valid &= j_x > 1e-6
-        tau2 = self._tau2(xr, j_x, baseline)
+        tau2 = self._tau2(x, j_x, baseline)
         init, upd = f_r & valid, ~f_r & valid
         fail = ~f_r & ~valid  # visible (chosen above) but nothing matched: an outlier vote
         a_old, b_old = pick(st.a), pick(st.b)
@@ -418,13 +464,13 @@ class DepthFilter:
         n_n = pick(key.updates) + (init | upd).long()
         # Outliers: a pixel that keeps failing is reset to "no estimate" (it may be re-seeded).
         drop = ~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio)
-        reset, _, _ = self._fresh_state(int(rows.numel()))
         measured = init | upd
+        mid, span2 = 0.5 * (rho_min + rho_max), (rho_max - rho_min) ** 2  # _fresh_state's values
         for target, value in (
-            (st.mu, torch.where(drop, reset.mu, mu_n)),
-            (st.var, torch.where(drop, reset.var, var_n)),
-            (st.a, torch.where(drop, reset.a, a_n)),
-            (st.b, torch.where(drop, reset.b, b_n)),
+            (st.mu, torch.where(drop, mid, mu_n)),
+            (st.var, torch.where(drop, span2, var_n)),
+            (st.a, torch.where(drop, float(c.init_a), a_n)),
+            (st.b, torch.where(drop, float(c.init_b), b_n)),
             (key.updates, torch.where(drop, torch.zeros_like(n_n), n_n)),
             (key.prior, (~f_r | init) & ~drop),
             (key.cost, torch.where(measured, cost, pick(key.cost))),
@@ -475,22 +521,29 @@ class DepthFilter:
 
     def _neighbour_range(self, key: _Keyframe, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Lowest and highest measured inverse depth within ``seed_radius`` px of each row's
-        pixel (``inf``, ``-inf`` where none): one gather of the (2r + 1)^2 window per row."""
+        pixel (``inf``, ``-inf`` where none): the (2r + 1)^2 window of each row, gathered
+        through the keyframe's padded pixel-to-row map, so the cost follows the rows asked
+        for, not the image."""
         r = self.config.seed_radius
         h, w = self.camera.height, self.camera.width
         wp = w + 2 * r
-        has = key.updates > 0
+        m = int(key.flat.numel())
         padded_flat = (key.vs.long() + r) * wp + key.us.long() + r
-        size = (h + 2 * r) * wp
-        mu = key.state.mu
-        lows = torch.full((size,), math.inf, device=self.device)
-        lows.index_copy_(0, padded_flat, torch.where(has, mu, math.inf))
-        highs = torch.full((size,), -math.inf, device=self.device)
-        highs.index_copy_(0, padded_flat, torch.where(has, mu, -math.inf))
+        if key.padded_rows is None:
+            key.padded_rows = torch.full(((h + 2 * r) * wp,), m, dtype=torch.long, device=self.device)
+            key.padded_rows.index_copy_(0, padded_flat, torch.arange(m, device=self.device))
         d = torch.arange(-r, r + 1, device=self.device)
         offsets = (d[:, None] * wp + d[None, :]).reshape(-1)
-        window = padded_flat.index_select(0, rows)[:, None] + offsets[None, :]
-        return lows[window].min(dim=1).values, highs[window].max(dim=1).values
+        window = (padded_flat.index_select(0, rows)[:, None] + offsets[None, :]).reshape(-1)
+        near = key.padded_rows.index_select(0, window)  # rows, m for "no candidate there"
+        # One spare entry at m: "no estimate" for the pixels without a candidate.
+        mu = torch.cat((key.state.mu, key.state.mu.new_zeros(1))).index_select(0, near)
+        none = torch.zeros(1, dtype=torch.bool, device=self.device)
+        has = torch.cat((key.updates > 0, none)).index_select(0, near)
+        shape = (int(rows.numel()), int(offsets.numel()))
+        lows = torch.where(has, mu, math.inf).view(shape).amin(dim=1)
+        highs = torch.where(has, mu, -math.inf).view(shape).amax(dim=1)
+        return lows, highs
 
     def _choose(
         self, key: _Keyframe, geo: _FrameGeometry, baseline: float, only: torch.Tensor | None
@@ -540,24 +593,38 @@ class DepthFilter:
         buckets with a distinctiveness test, ``min_distinctiveness``), per row.
         """
         c = self.config
-        x = torch.full_like(lo, math.nan)
-        cost = torch.full_like(lo, math.inf)
-        valid = torch.zeros_like(fresh)
         # Interval length in px: to first order at the prior mean for an estimate (as the
         # +-2 px floor is set); a whole-range search takes the larger motion of its two ends.
-        ends = torch.maximum(_motion(a_r, b, lo), _motion(a_r, b, hi))
-        span = torch.where(fresh, ends, j_r) * (hi - lo)
+        span = j_r * (hi - lo)
+        seeds = torch.nonzero(fresh, as_tuple=True)[0]
+        if seeds.numel() > 0:
+            a_s, lo_s, hi_s = a_r.index_select(0, seeds), lo.index_select(0, seeds), hi.index_select(0, seeds)
+            ends = torch.maximum(_motion(a_s, b, lo_s), _motion(a_s, b, hi_s))
+            span.index_copy_(0, seeds, ends * (hi_s - lo_s))
         bucket = plan_buckets(span, fresh, c)
-        for index, (samples, refine, distinct) in enumerate(search_buckets(c)):
-            at = torch.nonzero(bucket == index, as_tuple=True)[0]
-            if at.numel() == 0:
+        # Rows sorted by bucket once: each bucket is then a slice (views, no gather per bucket),
+        # and the results go back in one scatter.
+        members = [torch.nonzero(bucket == k, as_tuple=True)[0] for k in range(len(search_buckets(c)))]
+        order = torch.cat(members)  # a counting sort: torch.argsort is several times slower on CPU
+        counts = [int(m.numel()) for m in members]
+        desc_o = key.key_desc.index_select(1, rows.index_select(0, order))
+        lo_o, hi_o = lo.index_select(0, order), hi.index_select(0, order)
+        # The rays normalised once for the frame, not once per bucket.
+        a_o, b_o = normalised_rows(
+            EpipolarRays(a_r.index_select(0, order)[None], b[None], self.camera.width, self.camera.height)
+        )
+        xs, costs, goods = [], [], []
+        start = 0
+        for (samples, refine, distinct), n in zip(search_buckets(c), counts, strict=True):
+            if n == 0:
                 continue
+            stop = start + n
             found = search_interval(
-                key.key_desc.index_select(1, rows.index_select(0, at)),
+                desc_o[:, start:stop],
                 desc,
-                EpipolarRays(a_r.index_select(0, at)[None], b[None], self.camera.width, self.camera.height),
-                lo.index_select(0, at),
-                hi.index_select(0, at),
+                (a_o[:, start:stop], b_o),
+                lo_o[start:stop],
+                hi_o[start:stop],
                 samples,
                 refine,
                 self.matching.chunk_elements,
@@ -566,9 +633,13 @@ class DepthFilter:
             good = found.ok & (found.cost <= c.max_cost)
             if distinct:
                 good &= found.distinct >= c.min_distinctiveness
-            x.index_copy_(0, at, found.rho)
-            cost.index_copy_(0, at, found.cost)
-            valid.index_copy_(0, at, good)
+            xs.append(found.rho)
+            costs.append(found.cost)
+            goods.append(good)
+            start = stop
+        x = torch.empty_like(lo).index_copy_(0, order, torch.cat(xs))
+        cost = torch.empty_like(lo).index_copy_(0, order, torch.cat(costs))
+        valid = torch.empty_like(fresh).index_copy_(0, order, torch.cat(goods))
         return x, cost, valid
 
 

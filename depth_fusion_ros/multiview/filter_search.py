@@ -31,27 +31,25 @@ class SearchResult:
     ok: torch.Tensor
 
 
-def _gather(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """``t[r, idx[r]]`` of a rows-first (R, S) tensor."""
-    return torch.gather(t, 1, idx[:, None])[:, 0]
-
-
 def _distinctiveness(cost: torch.Tensor, best: torch.Tensor, c1: torch.Tensor) -> torch.Tensor:
     """Modified second-best ratio ``1 - c1 / c2`` over local minima more than one sample away.
 
-    ``cost`` is (R, S). ``c2`` is the lowest local minimum outside the best sample and its two
-    neighbours, or the largest finite cost when there is none (a single basin). A dozen
-    whole-tensor ops (one padding for the neighbour comparisons, a scatter for the exclusion):
-    this runs on every whole-range search, where the sampling itself is not much more.
+    ``cost`` is samples-first (S, R). ``c2`` is the lowest local minimum outside the best
+    sample and its two neighbours, or the largest finite cost when there is none (a single
+    basin). A dozen whole-tensor ops (one padding for the neighbour comparisons, a scatter for
+    the exclusion): this runs on every whole-range search, where the sampling itself is not
+    much more.
     """
     inf = math.inf
-    padded = F.pad(cost, (1, 1), value=inf)
-    is_min = (cost <= padded[:, :-2]) & (cost <= padded[:, 2:])
-    near = (best[:, None] + torch.arange(-1, 2, device=cost.device)[None, :]).clamp_(0, cost.shape[1] - 1)
-    others = cost.masked_fill(~is_min, inf).scatter_(1, near, inf)
-    c2 = others.min(dim=1).values
+    padded = F.pad(cost, (0, 0, 1, 1), value=inf)
+    is_min = (cost <= padded[:-2]) & (cost <= padded[2:])
+    near = (best[None, :] + torch.arange(-1, 2, device=cost.device)[:, None]).clamp_(0, cost.shape[0] - 1)
+    # Costs are > 0 (frame_cost), so dividing by ``is_min`` sends the other samples to inf
+    # (cheaper on CPU than masked_fill; amin / amax skip the indices min / max compute).
+    others = (cost / is_min).scatter_(0, near, inf)
+    c2 = others.amin(dim=0)
     # Costs are >= 0, so -1 stands for "no finite cost" (the ratio is then 0, as c1 is inf).
-    largest = torch.nan_to_num(cost, posinf=-1.0).max(dim=1).values
+    largest = torch.nan_to_num(cost, posinf=-1.0).amax(dim=0)
     c2 = torch.where(torch.isfinite(c2), c2, largest)
     return torch.clamp(1.0 - c1 / torch.clamp(c2, min=1e-6), 0.0, 1.0)
 
@@ -64,67 +62,96 @@ def frame_cost(
 
     ``cost_volume.sample_cost`` for a single neighbour (same numbers), without the sum over
     neighbours: one ``grid_sample`` and one contraction over the descriptor channels, the
-    rest in place. Rows-first: a row's samples lie along one short stretch of its epipolar
-    line, so consecutive lookups hit the same cache lines (faster than samples-first here).
+    rest in place. The search works samples-first (:func:`_frame_cost`); this rows-first
+    wrapper is the sweep's layout, for comparison.
     """
     a, b = rays._normalised()
-    return _frame_cost(key_desc, frame_desc, a[0], b[0], rho)
+    return _frame_cost(key_desc, frame_desc, a[0].T.contiguous(), b[0], rho.T.contiguous()).T
 
 
 def _grid(a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
-    """``EpipolarRays.grid`` (1, R, S, 2) of one frame from its normalised rows ``a`` (R, 3) and
-    ``b`` (3,), normalised once per search instead of once per lookup."""
-    w = torch.addcmul(a[:, 2:3], rho, b[2]).clamp_(min=1e-4)
+    """``EpipolarRays.grid`` (1, S, R, 2) of one frame from its normalised rows ``a`` (3, R) and
+    ``b`` (3,) at inverse depths ``rho`` (S, R), normalised once per search instead of once per
+    lookup."""
+    w = torch.addcmul(a[2], rho, b[2]).clamp_(min=1e-4)
     out = torch.empty((1, *rho.shape, 2), dtype=rho.dtype, device=rho.device)
     for k in range(2):
-        torch.div(torch.addcmul(a[:, k : k + 1], rho, b[k]), w, out=out[0, ..., k])
+        torch.div(torch.addcmul(a[k], rho, b[k]), w, out=out[0, ..., k])
     return out
 
 
 def _frame_cost(
     key_desc: torch.Tensor, frame_desc: torch.Tensor, a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor
 ) -> torch.Tensor:
+    """Samples-first cost (S, R): rows ``a`` (3, R), ``rho`` (S, R), ``key_desc`` (C, R).
+
+    Samples-first because the per-row factors (the rows' projections, their descriptors)
+    then broadcast along the contiguous rows: on CPU every elementwise op runs vectorised over
+    R instead of over S (6-32) at a time, and ``grid_sample`` is as fast (rows come in raster
+    order, so neighbouring outputs still read neighbouring pixels).
+    """
     channels = key_desc.shape[0]
     sampled = F.grid_sample(
         frame_desc, _grid(a, b, rho), mode='bilinear', padding_mode='zeros', align_corners=True
     )[0]
     count = sampled[channels]
-    zncc = sampled[0] * key_desc[0, :, None]
+    zncc = sampled[0] * key_desc[0]
     for c in range(1, channels):
-        zncc.addcmul_(sampled[c], key_desc[c, :, None])
+        zncc.addcmul_(sampled[c], key_desc[c])
     cost = zncc.neg_().add_(count).add_(1e-3).div_(count + 1e-3)  # (count - zncc + 1e-3) / (count + 1e-3)
-    return torch.where(count >= 0.5, cost, math.inf)
+    # inf where the frame does not see the sample: the cost is > 0 (|zncc| <= count for the
+    # normalised descriptors), so a division by the visibility test gives it (x / 1 = x
+    # exactly) at a third of ``where``'s cost on CPU.
+    return cost.div_(count >= 0.5)
+
+
+def normalised_rows(rays: EpipolarRays) -> tuple[torch.Tensor, torch.Tensor]:
+    """One frame's rays as the search takes them: ``a`` (3, R) and ``b`` (3,) rescaled to
+    ``grid_sample``'s [-1, 1] (``EpipolarRays._normalised``), rows along the contiguous axis."""
+    a, b = rays._normalised()
+    return a[0].T.contiguous(), b[0]
 
 
 def _search_rows(
     key_desc: torch.Tensor,
     frame_desc: torch.Tensor,
-    rays: EpipolarRays,
+    a: torch.Tensor,
+    b: torch.Tensor,
     lo: torch.Tensor,
     hi: torch.Tensor,
     samples: int,
     refine: int,
     with_distinctiveness: bool,
 ) -> SearchResult:
-    a, b = rays._normalised()
-    a, b = a[0], b[0]
     k = torch.arange(samples, device=lo.device, dtype=lo.dtype)
     step = (hi - lo) / (samples - 1)
-    grid = torch.addcmul(lo[:, None], step[:, None], k[None, :])  # (R, S)
+    grid = torch.addcmul(lo[None, :], step[None, :], k[:, None])  # (S, R)
     cost = _frame_cost(key_desc, frame_desc, a, b, grid)
-    c1, best = cost.min(dim=1)
+    c1, best = cost.min(dim=0)
     distinct = _distinctiveness(cost, best, c1) if with_distinctiveness else c1
     if refine == 0:  # the samples are already about a pixel apart: the parabola goes through them
         j = best.clamp(1, samples - 2)
-        cm, c0, cp = _gather(cost, j - 1), _gather(cost, j), _gather(cost, j + 1)
-        return _parabola(grid, j, step, cm, c0, cp, c1, distinct)
+        return _parabola(grid, j, step, *_three(cost, j), c1, distinct)
     fine_step = step / refine
     offsets = torch.arange(-refine, refine + 1, device=lo.device, dtype=lo.dtype)
-    fine = torch.addcmul(_gather(grid, best)[:, None], fine_step[:, None], offsets[None, :])
-    fcost = _frame_cost(key_desc, frame_desc, a, b, fine)
-    j = fcost.argmin(dim=1).clamp(1, 2 * refine - 1)
-    cm, c0, cp = _gather(fcost, j - 1), _gather(fcost, j), _gather(fcost, j + 1)
-    return _parabola(fine, j, fine_step, cm, c0, cp, c1, distinct)
+    fine = torch.addcmul(_gather(grid, best)[None, :], fine_step[None, :], offsets[:, None])
+    # The middle fine sample is the best coarse one (offset 0: the same rho, the same cost
+    # c1): only the others are looked up.
+    sides = _frame_cost(key_desc, frame_desc, a, b, torch.cat((fine[:refine], fine[refine + 1 :])))
+    fcost = torch.cat((sides[:refine], c1[None, :], sides[refine:]))
+    j = fcost.min(dim=0).indices.clamp(1, 2 * refine - 1)  # argmin over dim 0 is far slower on CPU
+    return _parabola(fine, j, fine_step, *_three(fcost, j), c1, distinct)
+
+
+def _gather(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``t[idx[r], r]`` of a samples-first (S, R) tensor."""
+    return torch.gather(t, 0, idx[None, :])[0]
+
+
+def _three(cost: torch.Tensor, j: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``cost[j - 1, r]``, ``cost[j, r]``, ``cost[j + 1, r]`` of a samples-first (S, R) tensor, one gather."""
+    near = j[None, :] + torch.arange(-1, 2, device=j.device)[:, None]
+    return torch.gather(cost, 0, near).unbind(0)
 
 
 def _parabola(
@@ -137,7 +164,7 @@ def _parabola(
     c1: torch.Tensor,
     distinct: torch.Tensor,
 ) -> SearchResult:
-    """Sub-sample minimum of the parabola through samples ``j - 1, j, j + 1`` of ``grid`` (R, S)."""
+    """Sub-sample minimum of the parabola through samples ``j - 1, j, j + 1`` of ``grid`` (S, R)."""
     curvature = cm - 2.0 * c0 + cp
     ok = torch.isfinite(curvature) & (curvature > 0) & torch.isfinite(c1)
     safe = torch.where(ok, curvature, torch.ones_like(curvature))
@@ -150,7 +177,7 @@ def _parabola(
 def search_interval(
     key_desc: torch.Tensor,
     frame_desc: torch.Tensor,
-    rays: EpipolarRays,
+    rays: EpipolarRays | tuple[torch.Tensor, torch.Tensor],
     lo: torch.Tensor,
     hi: torch.Tensor,
     samples: int,
@@ -161,7 +188,9 @@ def search_interval(
     """Best inverse depth of each pixel in ``[lo, hi]`` (M,) against one frame.
 
     ``key_desc`` (C, M) keyframe descriptors, ``frame_desc`` (1, C + 1, H, W) the frame's
-    descriptors with their visibility channel, ``rays`` the pixels' epipolar rays into it.
+    descriptors with their visibility channel, ``rays`` the pixels' epipolar rays into it
+    (or :func:`normalised_rows` of them, which a caller searching several buckets of one frame
+    computes once).
     ``refine`` fine samples on each side of the best coarse one (0: the parabola goes through
     the coarse samples themselves). Memory is bounded by ``chunk_elements`` as in the sweep.
     ``with_distinctiveness=False`` skips the second-best ratio (``distinct`` is then undefined):
@@ -171,12 +200,14 @@ def search_interval(
     if m == 0:
         empty = lo.new_zeros(0)
         return SearchResult(empty, empty, empty, torch.zeros(0, dtype=torch.bool, device=lo.device))
+    a, b = normalised_rows(rays) if isinstance(rays, EpipolarRays) else rays
     chunk = rows_per_chunk(1, key_desc.shape[0] + 1, samples, chunk_elements)
     parts = [
         _search_rows(
             key_desc[:, s : s + chunk],
             frame_desc,
-            rays.chunk(s, s + chunk),
+            a[:, s : s + chunk],
+            b,
             lo[s : s + chunk],
             hi[s : s + chunk],
             samples,
