@@ -60,8 +60,7 @@ def consistent_views(
 
     Nearest-pixel lookup; points behind the other camera or outside its image count as not
     consistent (no evidence either way, and none is taken). Only pixels with depth are
-    projected: per other keyframe one (N, 3) product, one nearest ``grid_sample`` and a
-    handful of elementwise passes.
+    projected: per other keyframe a dozen elementwise passes and one nearest ``grid_sample``.
     """
     dev = torch.device(device)
     d = torch.as_tensor(np.asarray(depth, np.float32), device=dev)
@@ -71,27 +70,35 @@ def consistent_views(
     if flat.numel() == 0 or not others:
         return count.reshape(h, w).cpu().numpy()
     z_k = d.reshape(-1)[flat]
-    u = (flat % w).to(torch.float32)
-    v = torch.div(flat, w, rounding_mode='floor').to(torch.float32)
-    points = torch.stack(((u - camera.cx) * (z_k / camera.fx), (v - camera.cy) * (z_k / camera.fy), z_k), 1)
-    T_k = torch.as_tensor(np.asarray(T_wc, np.float64), device=dev)
+    x_k = ((flat % w).to(torch.float32) - camera.cx).mul_(z_k).div_(camera.fx)
+    y_k = (torch.div(flat, w, rounding_mode='floor').to(torch.float32) - camera.cy).mul_(z_k).div_(camera.fy)
+    T_k = np.asarray(T_wc, np.float64)
     # Pixel -> grid_sample's [-1, 1] (align_corners: -1 and 1 are the first and last pixel
     # centres); 'nearest' is the nearest-pixel lookup, and outside the image it reads 0, which
     # agrees with no positive depth.
-    scale = torch.tensor([2 * camera.fx / (w - 1), 2 * camera.fy / (h - 1)], device=dev)
-    shift = torch.tensor([2 * camera.cx / (w - 1) - 1, 2 * camera.cy / (h - 1) - 1], device=dev)
+    sx, sy = 2 * camera.fx / (w - 1), 2 * camera.fy / (h - 1)
+    ox, oy = 2 * camera.cx / (w - 1) - 1, 2 * camera.cy / (h - 1) - 1
+    grid = torch.empty((1, 1, flat.numel(), 2), dtype=torch.float32, device=dev)
+    agreeing = torch.zeros(flat.numel(), dtype=torch.int32, device=dev)
     for other_depth, other_T in others:
-        T_j = torch.as_tensor(np.asarray(other_T, np.float64), device=dev)
-        rel = (torch.linalg.inv(T_j) @ T_k).to(torch.float32)  # keyframe -> other camera
-        q = torch.addmm(rel[:3, 3], points, rel[:3, :3].T)
-        z = q[:, 2:]
-        grid = torch.addcmul(shift, q[:, :2] / z, scale)
+        rel = np.linalg.inv(np.asarray(other_T, np.float64)) @ T_k  # keyframe -> other camera
+        # Rows of the rigid motion as scalars: three contiguous (N,) passes per coordinate
+        # (a (N, 3) x (3, 3) product is slower on CPU than these).
+        qx, qy, z = (_affine(rel[i], x_k, y_k, z_k) for i in range(3))
+        grid[0, 0, :, 0] = qx.div_(z).mul_(sx).add_(ox)
+        grid[0, 0, :, 1] = qy.div_(z).mul_(sy).add_(oy)
         image = torch.as_tensor(np.asarray(other_depth, np.float32), device=dev)[None, None]
-        seen = F.grid_sample(image, grid[None, None], mode='nearest', align_corners=True).reshape(-1)
-        z = z.squeeze(1)
-        agree = (z > 0) & ((seen - z).abs() <= tolerance * z)  # NaN compares False
-        count.index_add_(0, flat, agree.to(torch.int32))
+        seen = F.grid_sample(image, grid, mode='nearest', align_corners=True).reshape(-1)
+        agree = (z > 0) & ((seen - z).abs_() <= tolerance * z)  # NaN compares False
+        agreeing += agree
+    count[flat] = agreeing
     return count.reshape(h, w).cpu().numpy()
+
+
+def _affine(row: np.ndarray, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """``row[0] x + row[1] y + row[2] z + row[3]`` (one row of a 4x4 rigid motion)."""
+    out = torch.mul(x, float(row[0])).add_(y, alpha=float(row[1])).add_(z, alpha=float(row[2]))
+    return out.add_(float(row[3]))
 
 
 class ConsistentMap:
