@@ -334,14 +334,16 @@ def _offsets_at(
     """Exact offsets and support distances of ``pixels`` (1-D samples) against Ω.
 
     Chunks have a fixed size (the last one padded by repeating a pixel) so a compiled kernel
-    sees one pixel-count shape per |Ω|. Rows whose weights are all equal (the min-subtracted
-    sum vanishes next to the plain sum ``ΣW' + |Ω|·min``; always when |Ω| = 1) are redone
-    with plain normalisation.
+    sees one pixel-count shape per |Ω|; the size is balanced (never above the kernel's) so
+    the padding is under one pixel per chunk (8192-pixel chunks would pad 76,800 pixels to
+    81,920). Rows whose weights are all equal (the min-subtracted sum vanishes next to the
+    plain sum ``ΣW' + |Ω|·min``; always when |Ω| = 1) are redone with plain normalisation.
     """
     n = pixels.x.numel()
     n_points = points.x.numel()
     block = max(1, chunk_elements // max(1, n_points))  # rows of one (rows, Ω) weight block
     chunk = int(max(1, min(n, getattr(kernel, 'rows', None) or block)))
+    chunk = -(-n // -(-n // chunk))  # as many chunks, of equal size: the padding is < one per chunk
     q = points.row()
     offsets = torch.empty(n, dtype=v.dtype, device=v.device)
     support = torch.empty(n, dtype=v.dtype, device=v.device)
