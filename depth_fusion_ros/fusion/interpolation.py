@@ -114,40 +114,33 @@ def _chunk_sums_inplace(
     return w @ v, w.sum(dim=1), w.mul_(distance).sum(dim=1), low.squeeze(1)
 
 
-#: exp(r) = 1 + r + r² q(r) on |r| <= ln(2)/2: q's coefficients, a degree-6 minimax fit of the
-#: relative error (truncation 3e-9; float32 evaluation 1.2e-7 relative, float32's own exp 6e-8).
-_EXP_MINIMAX = (0.4999999403953552, 0.1666652113199234, 0.04166838899254799, 0.008368710055947304,
-                0.001381461275741458)
+#: exp(r) on |r| <= ln(2)/2: degree-6 minimax coefficients of the relative error, c0..c6
+#: (truncation 3e-9; float32 evaluation 1e-7 relative, float32's own exp 6e-8).
+_EXP_MINIMAX = (1.0, 1.0, 0.4999999403953552, 0.1666652113199234, 0.04166838899254799,
+                0.008368710055947304, 0.001381461275741458)
 #: ln 2 split so ``k * _LN2_HI`` is exact in float32 for the ``|k| <= 87`` used here (Cody-Waite).
 _LN2_HI = 0.693359375
 _LN2_LO = -2.12194440e-4
-#: 1.5 * 2**23: ``y + _ROUND_MAGIC`` (|y| < 2**22) rounds y to the nearest integer k, which then
-#: sits in the low mantissa bits; the float's bits are ``_ROUND_MAGIC_BITS + k``.
-_ROUND_MAGIC = 12582912.0
-_ROUND_MAGIC_BITS = 0x4B400000
 
 
 def _exp_nonpositive(x: torch.Tensor) -> torch.Tensor:
     """``exp(x)`` for float32 ``x`` in ``[-MAX_EXPONENT, 0]`` to < 3e-7 relative, in plain
     tensor operations that ``torch.compile`` fuses into the kernel's loop.
 
-    ``exp(x) = 2**k exp(r)``: ``t = x / ln 2 + 1.5·2**23`` rounds ``k`` into the low mantissa
-    bits of ``t`` (one fused multiply-add, no round or int conversion), ``r = x - k ln 2``
-    (two-part ln 2, so ``r`` is accurate to float32 rounding) by a degree-6 minimax
-    polynomial evaluated Estrin-style (short dependency chains: the compiled loop is
-    latency-bound), and ``2**k`` is applied by adding ``k << 23`` to the exponent bits
-    (``exp(r)`` is in [0.7, 1.42] and ``k >= -87``: the sum stays a normal float; GCC and
-    Triton shift negative integers as two's complement).
+    ``exp(x) = 2**k exp(r)``: ``k = round(x / ln 2)`` goes straight into the exponent bits,
+    ``r = x - k ln 2`` (two-part ln 2, so ``r`` is accurate to float32 rounding) by a degree-6
+    minimax polynomial (Horner: six fused multiply-adds once compiled with FMA). Measured on
+    2 threads, this form beat Estrin's scheme and a magic-number rounding with exponent-bit
+    addition, which were as fast or faster on one thread (docs/performance.md).
     """
-    t = x * 1.4426950408889634 + _ROUND_MAGIC
-    k = t - _ROUND_MAGIC
+    k = torch.round(x * 1.4426950408889634)
     r = (x - k * _LN2_HI) - k * _LN2_LO
-    c2, c3, c4, c5, c6 = _EXP_MINIMAX
-    r2 = r * r
-    q = (c2 + c3 * r) + r2 * ((c4 + c5 * r) + r2 * c6)
-    poly = (r + 1.0) + r2 * q
-    exponent = (t.view(torch.int32) - _ROUND_MAGIC_BITS) << 23
-    return (poly.view(torch.int32) + exponent).view(torch.float32)
+    poly = torch.full_like(r, _EXP_MINIMAX[-1])
+    for c in reversed(_EXP_MINIMAX[:-1]):
+        poly = poly * r + c
+    # k in [-87, 0] here, so 127 + k is a normal exponent field: 2**k exactly.
+    scale = ((k.to(torch.int32) + 127) << 23).view(torch.float32)
+    return poly * scale
 
 
 def _at_least(x: torch.Tensor, low: float) -> torch.Tensor:
