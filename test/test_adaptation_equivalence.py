@@ -185,10 +185,20 @@ def test_observe_learns_the_same_weights_as_the_reference(tiny_model, samples):
     assert 'updated' in statuses
     # Adam divides each gradient by its running magnitude, so a rounding difference in a
     # near-zero gradient becomes a difference of a fraction of the learning rate in that
-    # weight (measured: at most 0.25 x lr in one weight, 4e-8 on average): weights agree to
-    # within half a step, the depth they predict to ~2e-6.
-    for (name, a), b in zip(fast.net.state_dict().items(), ref.net.state_dict().values(), strict=True):
-        torch.testing.assert_close(a, b, rtol=0, atol=0.5 * config.lr, msg=name)
+    # weight, and the size of that rounding depends on the CPU's kernels (measured: at most
+    # 0.25 x lr in one weight and 4e-8 on average on one machine; 1.8 x lr in one weight, 7 of
+    # 457k weights beyond half a step and 1.2e-7 on average on an AMD EPYC). So: a handful of
+    # weights may differ by a few steps, the bulk by far less than one, and the depth they
+    # predict agrees to ~3e-6 (checked below), which is what the equivalence is for.
+    diffs = torch.cat(
+        [
+            (a.float() - b.float()).abs().flatten()
+            for a, b in zip(fast.net.state_dict().values(), ref.net.state_dict().values(), strict=True)
+        ]
+    )
+    assert float(diffs.max()) <= 4 * config.lr
+    assert float((diffs > 0.5 * config.lr).float().mean()) <= 1e-4
+    assert float(diffs.mean()) <= 1e-3 * config.lr
     for s in samples[:2]:
         np.testing.assert_allclose(fast.predictor().predict(s.rgb), ref.predictor().predict(s.rgb), rtol=2e-5)
     fast_state, ref_state = fast.optimizer.state_dict()['state'], ref.optimizer.state_dict()['state']
