@@ -47,6 +47,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
+from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
 from .cost_volume import EpipolarRays, epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
@@ -111,6 +112,10 @@ class DepthFilter:
         self.matching = matching or MultiViewConfig()
         self.matching.validate()
         self.device = torch.device(device)
+        #: The search's chunk budget: ``multi_view.chunk_elements`` on CPU, at least
+        #: ``CUDA_CHUNK_ELEMENTS`` on an accelerator, as the sweep's (kernel launches dominate
+        #: there; the results do not depend on the chunk size).
+        self._chunk_elements = effective_chunk_elements(self.matching.chunk_elements, self.device)
         self.rho_range = self.matching.rho_range
         self.margin = float(patch_reach(self.matching.patch, self.matching.patch_stride))
         self.key: _Keyframe | None = None
@@ -627,7 +632,7 @@ class DepthFilter:
                 hi_o[start:stop],
                 samples,
                 refine,
-                self.matching.chunk_elements,
+                self._chunk_elements,
                 with_distinctiveness=distinct,
             )
             good = found.ok & (found.cost <= c.max_cost)
