@@ -190,7 +190,14 @@ class DepthFilter:
         if key is None:
             none = torch.zeros(0, device=self.device)
             return assemble_result(
-                cam, none.long(), none, none, none, none, none, torch.zeros(shape, dtype=torch.bool)
+                cam,
+                none.long(),
+                none,
+                none,
+                none,
+                none,
+                none,
+                torch.zeros(shape, dtype=torch.bool, device=self.device),
             )
         rows = torch.nonzero(self._published(key), as_tuple=True)[0]
         st = key.state
