@@ -1,8 +1,14 @@
 """The hot paths on CUDA give the CPU's results (skipped where torch sees no CUDA device).
 
 CI has no GPU, so these run only on a machine with one (``./scripts/test.sh -k cuda`` there,
-once per change to a hot path). The chunk-size test runs everywhere: a GPU uses other chunk
+once per change to a hot path). The chunk-size tests run everywhere: a GPU uses other chunk
 sizes than the CPU (``depth_fusion_ros.chunking``), which must not change any result.
+
+Both multi-view methods are covered: the temporal filter (the default ``multi_view.method``)
+and the paper's sweep. The filter's CUDA cases were written without a GPU to run them on
+(none was available to the project): their tolerances are a first guess, looser than the
+sweep's because the filter's per-pixel decisions (bucket, inlier ratio, publication) are
+thresholds applied frame after frame, where a float difference can flip a pixel.
 """
 
 from __future__ import annotations
@@ -14,6 +20,8 @@ import torch
 from depth_fusion_ros.chunking import CUDA_CHUNK_ELEMENTS, effective_chunk_elements
 from depth_fusion_ros.fusion.interpolation import interpolate
 from depth_fusion_ros.fusion.scenes import planes_and_boxes
+from depth_fusion_ros.multiview.filter import DepthFilter
+from depth_fusion_ros.multiview.filter_result import FilterResult
 from depth_fusion_ros.multiview.neighbours import select_neighbours
 from depth_fusion_ros.multiview.semidense import MultiViewConfig, estimate_semidense
 from depth_fusion_ros.multiview.tv import TVConfig, estimate_tv
@@ -57,6 +65,26 @@ def test_chunk_size_does_not_change_results(synthetic_sequence):
     np.testing.assert_allclose(a.offset, b.offset, atol=1e-5, equal_nan=True)
 
 
+def filter_result(
+    seq, device: str, last: int = 12, chunk_elements: int = 1 << 22, profile: bool = False
+) -> tuple[FilterResult, DepthFilter]:
+    """The filter fed frames ``0..last`` of ``seq``, read in frame ``last``."""
+    f = DepthFilter(seq.camera, matching=MultiViewConfig(chunk_elements=chunk_elements), device=device)
+    f.clock.enabled = profile
+    for frame in seq.frames[: last + 1]:
+        f.process(frame.gray, frame.pose)
+    return f.result(seq.frames[last].pose), f
+
+
+def test_filter_chunk_size_does_not_change_results(synthetic_sequence):
+    """The filter's searches in many chunks or one (a GPU's budget), same numbers."""
+    small, _ = filter_result(synthetic_sequence, 'cpu', chunk_elements=1 << 18)
+    large, _ = filter_result(synthetic_sequence, 'cpu', chunk_elements=1 << 26)
+    assert small.density > 0.05
+    np.testing.assert_array_equal(np.isfinite(small.depth), np.isfinite(large.depth))
+    np.testing.assert_allclose(small.depth, large.depth, rtol=1e-6, equal_nan=True)
+
+
 def agreement(cpu: np.ndarray, gpu: np.ndarray) -> tuple[float, float]:
     """(share of pixels valid in exactly one, median relative difference where both are)."""
     both = np.isfinite(cpu) & np.isfinite(gpu)
@@ -73,6 +101,38 @@ def test_semidense_on_cuda_matches_cpu(synthetic_sequence):
     only_one, median_rel = agreement(cpu.depth, gpu.depth)
     assert only_one < 0.002 and median_rel < 1e-5
     assert abs(gpu.density - cpu.density) < 0.002
+
+
+@needs_cuda
+def test_filter_on_cuda_matches_cpu(synthetic_sequence):
+    """The default multi-view method on the GPU: the same estimates as on the CPU, with the
+    stage clock's CUDA path (synchronise, wall clock) exercised."""
+    cpu, _ = filter_result(synthetic_sequence, 'cpu')
+    gpu, gpu_filter = filter_result(synthetic_sequence, 'cuda', profile=True)
+    assert gpu_filter.key is not None and gpu_filter.key.state.mu.device.type == 'cuda'
+    assert sum(gpu_filter.clock.seconds.values()) > 0
+    only_one, median_rel = agreement(cpu.depth, gpu.depth)
+    assert only_one < 0.01 and median_rel < 1e-4
+    assert abs(gpu.density - cpu.density) < 0.01 and cpu.density > 0.05
+    gt = synthetic_sequence.frames[12].depth
+    valid = np.isfinite(gpu.depth) & np.isfinite(gt)
+    assert np.median(np.abs(gpu.depth[valid] - gt[valid]) / gt[valid]) < 0.04
+
+
+@needs_cuda
+def test_default_evaluation_method_on_cuda_matches_cpu(synthetic_sequence):
+    """``depth-fusion evaluate --device cuda`` with the default multi-view method (the filter,
+    fixed-lag offline read) gives the CPU's multi-view depth."""
+    from depth_fusion_ros.evaluation.context import EvalOptions, KeyframeContext
+    from depth_fusion_ros.evaluation.methods.multi_view import multi_view_result
+
+    results = {}
+    for device in ('cpu', 'cuda'):
+        ctx = KeyframeContext(synthetic_sequence, 12, EvalOptions(frames=24, stride=12, device=device), {})
+        results[device] = multi_view_result(ctx)
+    assert results['cuda'].method == 'filter'
+    only_one, median_rel = agreement(results['cpu'].depth, results['cuda'].depth)
+    assert only_one < 0.01 and median_rel < 1e-4
 
 
 @needs_cuda

@@ -147,3 +147,39 @@ def test_no_scale_from_untrusted_points(truth):
 def test_bad_thresholds_raise(field, value):
     with pytest.raises(ValueError, match=f'guard.{field}'):
         GuardConfig(**{field: value})
+
+
+def _local_deviation_loop(points, residual, radius, min_neighbours):
+    """The per-point loop ``guard._local_deviation`` replaced: the reference it must match."""
+    from scipy.spatial import cKDTree
+
+    neighbours = cKDTree(points).query_ball_point(points, r=radius)
+    out = np.full(len(points), np.nan)
+    counts = np.zeros(len(points))
+    for i, idx in enumerate(neighbours):
+        others = [j for j in idx if j != i]
+        counts[i] = len(others)
+        if len(others) >= min_neighbours:
+            out[i] = abs(residual[i] - np.median(residual[others]))
+    return out, float(np.median(counts))
+
+
+@pytest.mark.parametrize('density', [0.02, 0.4])
+def test_local_deviation_is_the_per_point_median_exactly(density, monkeypatch):
+    """Vectorised and blocked (a tiny block budget: many blocks), the same numbers as the loop,
+    on pixel points (sparse and isolated ones, dense ones, duplicates, even and odd counts)."""
+    from depth_fusion_ros.fusion import guard
+
+    rng = np.random.default_rng(7)
+    rows, cols = np.nonzero(rng.random((60, 80)) < density)
+    points = np.stack((cols, rows), axis=1).astype(np.float64)
+    points = np.concatenate((points, points[:5]))  # duplicates: distance 0, still neighbours
+    residual = rng.normal(0.0, 0.2, len(points))
+    expected = _local_deviation_loop(points, residual, 12.0, 2)
+    monkeypatch.setattr(guard, 'DEVIATION_BLOCK_ELEMENTS', 1000)
+    got = guard._local_deviation(points, residual, 12.0, 2)
+    np.testing.assert_array_equal(got[0], expected[0])
+    assert got[1] == expected[1]
+    assert np.isfinite(got[0]).any()
+    empty = guard._local_deviation(np.zeros((0, 2)), np.zeros(0), 12.0, 2)
+    assert empty[0].shape == (0,) and empty[1] == 0.0

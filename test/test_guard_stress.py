@@ -2,7 +2,8 @@
 
 Each case (data/synthetic/stress.py) is rendered small (160x120, a handful of frames) and
 evaluated like ``depth-fusion evaluate --single-view simulated`` on one or two keyframes:
-semi-dense multi-view depth, the simulated CNN prior, the fusion with its guard.
+semi-dense multi-view depth, the simulated CNN prior, the fusion with its guard. Every case
+runs with both multi-view methods: the filter (the default) and the paper's sweep (pinned).
 """
 
 from __future__ import annotations
@@ -30,13 +31,18 @@ def _steps(poses: np.ndarray) -> tuple[float, float]:
 
 
 #: Every case with seed 0, plus a rotation seed whose low-parallax points are consistent and
-#: 20 % too near everywhere (the global scale they give made it 1.34x the single-view MAE).
-CASES = [(name, 0) for name in sorted(STRESS_CASES)] + [('rotation', 5)]
+#: 20 % too near everywhere (the global scale they give made it 1.34x the single-view MAE);
+#: each with the filter (the default multi-view method) and the sweep.
+CASES = [
+    (name, seed, method)
+    for name, seed in [(name, 0) for name in sorted(STRESS_CASES)] + [('rotation', 5)]
+    for method in ('filter', 'sweep')
+]
 
 
-@pytest.fixture(scope='module', params=CASES, ids=[f'{n}-{s}' for n, s in CASES])
+@pytest.fixture(scope='module', params=CASES, ids=[f'{n}-{s}-{m}' for n, s, m in CASES])
 def evaluated(request):
-    name, seed = request.param
+    name, seed, method = request.param
     cfg = stress_config(name, width=W, height=H, frames=FRAMES, seed=seed)
     sequence = render_sequence(cfg)
     options = EvalOptions(
@@ -45,10 +51,10 @@ def evaluated(request):
         single_view='simulated',
         width=W,
         height=H,
-        params={'fusion': {'compile_kernel': False, 'mode': 'fast'}},
+        params={'fusion': {'compile_kernel': False, 'mode': 'fast'}, 'multi_view': {'method': method}},
     )
     result = evaluate_sequence(sequence, METHODS, options, show_progress=False)
-    return name, cfg, sequence, result
+    return name, cfg, sequence, result, f'{name}-{seed}-{method}'
 
 
 def test_stress_motions_have_the_reported_steps():
@@ -67,24 +73,28 @@ def test_wrong_focal_tells_the_pipeline_wrong_intrinsics():
     assert sequence.camera.cx == sequence.gt_camera.cx
 
 
-#: Cases the guard does not catch yet (docs/fusion.md), bounded so that they cannot get
-#: worse: none since the corrections fade with the distance to their points (``guard.reach``).
-KNOWN_MISSES: dict[str, float] = {}
+#: Cases the guard does not catch yet (docs/fusion.md), by case id, bounded so that they
+#: cannot get worse. With the sweep: none since the corrections fade with the distance to
+#: their points (``guard.reach``). With the filter (the default since 2026-11-25): rotation
+#: seed 5, where the filter publishes 45 points on the keyframe and the guard fuses them
+#: (``full``): 0.4316 m against the single-view 0.4291 m (+0.6 %); the sweep has none there
+#: and the guard keeps the single-view depth.
+KNOWN_MISSES: dict[str, float] = {'rotation-5-filter': 1.01}
 
 
 def test_fused_is_never_worse_than_single_view(evaluated):
-    name, _, _, result = evaluated
+    _, _, _, result, case = evaluated
     single = result.records['single_view_simulated'].all.summary()['mae']
     fused = result.records['fused'].all.summary()['mae']
-    if name in KNOWN_MISSES:
-        assert fused <= KNOWN_MISSES[name] * single, (name, fused, single)
+    if case in KNOWN_MISSES:
+        assert fused <= KNOWN_MISSES[case] * single, (case, fused, single)
         if fused > single:
-            pytest.xfail(f'{name}: fused MAE {fused:.3f} > single-view {single:.3f} (known miss)')
-    assert fused <= single, (name, fused, single)
+            pytest.xfail(f'{case}: fused MAE {fused:.3f} > single-view {single:.3f} (known miss)')
+    assert fused <= single, (case, fused, single)
 
 
 def test_decisions_are_recorded_and_reported(evaluated):
-    name, _, sequence, result = evaluated
+    name, _, sequence, result, _ = evaluated
     levels = result.records['fused'].extras['decision']
     assert len(levels) == 1 and 0 <= levels[0] < len(DECISIONS)
     if name == 'translation':  # the good case keeps per-point fusion

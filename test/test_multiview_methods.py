@@ -1,4 +1,9 @@
-"""Evaluation methods multi_view, multi_view_selected and tv on the synthetic room sequence."""
+"""Evaluation methods multi_view, multi_view_selected and tv on the synthetic room sequence.
+
+The default method is the temporal filter (checked here); the sweep-specific checks pin
+``multi_view.method=sweep`` so that the paper's method stays covered. The filter's own
+accuracy is in test_multiview_filter.py.
+"""
 
 from __future__ import annotations
 
@@ -7,11 +12,19 @@ import pytest
 
 from depth_fusion_ros.evaluation.context import EvalOptions, KeyframeContext
 from depth_fusion_ros.evaluation.harness import evaluate_sequence
-from depth_fusion_ros.evaluation.methods.multi_view import multi_view_result, neighbour_indices
+from depth_fusion_ros.evaluation.methods.multi_view import (
+    DEFAULT_METHOD,
+    multi_view_method,
+    multi_view_result,
+    neighbour_indices,
+)
 from depth_fusion_ros.evaluation.registry import get_method
 from depth_fusion_ros.metrics import high_gradient_mask
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+#: ``--set multi_view.method=sweep``: the paper's sweep (the default is the filter).
+SWEEP = {'method': 'sweep'}
 
 
 def test_methods_are_registered_with_their_kind():
@@ -21,7 +34,7 @@ def test_methods_are_registered_with_their_kind():
 
 
 def test_semi_dense_methods_on_the_synthetic_room(synthetic_sequence):
-    options = EvalOptions(frames=24, stride=12)
+    options = EvalOptions(frames=24, stride=12, params={'multi_view': SWEEP})
     result = evaluate_sequence(
         synthetic_sequence, ['multi_view', 'multi_view_selected'], options, show_progress=False
     )
@@ -42,7 +55,9 @@ def test_selected_row_scores_the_points_the_fusion_takes(synthetic_sequence):
     counts = {}
     for stage, key in (('fusion', 'stage1_fraction'), ('multi_view', 'select_fraction')):
         for fraction in (0.25, 0.5):
-            options = EvalOptions(frames=24, stride=12, params={stage: {key: fraction}})
+            params = {'multi_view': dict(SWEEP)}
+            params.setdefault(stage, {})[key] = fraction
+            options = EvalOptions(frames=24, stride=12, params=params)
             ctx = KeyframeContext(synthetic_sequence, 12, options, {})
             selected = get_method('multi_view_selected').fn(ctx)
             mask = _stage1(ctx, multi_view_result(ctx), fusion_settings(ctx)[1])
@@ -55,7 +70,7 @@ def test_selected_row_scores_the_points_the_fusion_takes(synthetic_sequence):
 def test_result_and_neighbours_are_shared_and_options_honoured(synthetic_sequence):
     shared: dict = {}
     options = EvalOptions(
-        neighbour_mode='online', num_neighbours=2, params={'multi_view': {'num_samples': 40}}
+        neighbour_mode='online', num_neighbours=2, params={'multi_view': {**SWEEP, 'num_samples': 40}}
     )
     ctx = KeyframeContext(synthetic_sequence, 10, options, shared)
     indices = neighbour_indices(ctx)
@@ -68,6 +83,18 @@ def test_result_and_neighbours_are_shared_and_options_honoured(synthetic_sequenc
     # The first keyframe has no past frame online: an all-NaN estimate, not an error.
     first = multi_view_result(KeyframeContext(synthetic_sequence, 0, options, shared))
     assert not np.isfinite(first.depth).any()
+
+
+def test_the_default_method_is_the_filter(synthetic_sequence):
+    """No ``multi_view.method``: the temporal filter, whose stage 1 passes every estimate on."""
+    ctx = KeyframeContext(synthetic_sequence, 12, EvalOptions(frames=24, stride=12), {})
+    assert DEFAULT_METHOD == multi_view_method(ctx) == 'filter'
+    result = multi_view_result(ctx)
+    assert result.method == 'filter' and result.valid.mean() > 0.05
+    selected = get_method('multi_view_selected').fn(ctx)
+    assert selected.extras['n_selected'] == result.valid.sum()
+    sweep = KeyframeContext(synthetic_sequence, 12, EvalOptions(params={'multi_view': SWEEP}), {})
+    assert multi_view_method(sweep) == 'sweep' and multi_view_result(sweep).method == 'sweep'
 
 
 def test_unknown_or_mistyped_override_is_reported(synthetic_sequence):

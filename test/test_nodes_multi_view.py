@@ -1,4 +1,8 @@
-"""multi_view_node over real DDS: poses from a separate stream, keyframes, accuracy, bad inputs."""
+"""multi_view_node over real DDS: poses from a separate stream, keyframes, accuracy, bad inputs.
+
+The accuracy test compares the node with the paper's sweep run offline, so it pins
+``multi_view.method: sweep`` (the default is the filter: test_nodes_multi_view_filter.py).
+"""
 
 from __future__ import annotations
 
@@ -10,13 +14,14 @@ import pytest
 from geometry_msgs.msg import PoseStamped
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.geometry import interpolate_poses
 from depth_fusion_ros.multiview.neighbours import NeighbourConfig, select_neighbours
 from depth_fusion_ros.multiview.semidense import MultiViewConfig, estimate_semidense
 from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
-from depth_fusion_ros.nodes.qos import qos_profile
+from depth_fusion_ros.nodes.qos import latched_qos, qos_profile
 from depth_fusion_ros.nodes.testing import RosHarness
 
 K = m.RCLPY
@@ -62,7 +67,7 @@ def _stamps(messages: list) -> list[int]:
 def test_slam_rate_poses_are_interpolated_and_depth_is_accurate(synthetic_sequence, tmp_path):
     """Poses at 2.5x the image rate, at other stamps than the images (but the first), published
     after the image (as a SLAM system would); parameters from a --params-file that changes the
-    keyframe stride."""
+    keyframe stride and picks the sweep."""
     seq = synthetic_sequence
     stamps = [m.sec_to_ns(s) for s in seq.stamps]
     pose_stamps = np.concatenate(
@@ -73,12 +78,15 @@ def test_slam_rate_poses_are_interpolated_and_depth_is_accurate(synthetic_sequen
     params = tmp_path / 'params.yaml'
     params.write_text(
         'multi_view_node:\n  ros__parameters:\n    keyframe_every: 6\n    queue_size: 8\n    qos_depth: 100\n'
+        "    multi_view.method: 'sweep'\n"
     )
 
     with RosHarness(args=['--ros-args', '--params-file', str(params)]) as ros:
         node = ros.add(MultiViewNode(context=ros.context))
         assert node.params['keyframe_every'] == 6  # the default is 5
+        assert node.filter_feed is None  # the sweep, from the file (the default is the filter)
         out = _collect_outputs(ros)
+        methods = ros.collect(String, '/depth_fusion/multi_view/method', latched_qos())
         cam = _Camera(ros)
         first_pose = 0
         for i, frame in enumerate(seq.frames):
@@ -98,6 +106,7 @@ def test_slam_rate_poses_are_interpolated_and_depth_is_accurate(synthetic_sequen
         snap = node.stats.snapshot()
 
     assert snap.dropped == {}, snap.summary()
+    assert [msg.data for msg in methods] == ['sweep']  # fusion_node's stage 1 follows it
     assert snap.received['pose'] == cam.poses_published and node.posed_count == len(seq.frames)
     key_stamps = [stamps[k] for k in expected_keys]
     for name in ('depth', 'score', 'keyframe', 'keyframe_info'):

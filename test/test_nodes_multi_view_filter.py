@@ -1,4 +1,5 @@
-"""multi_view_node with multi_view.method=filter over real DDS: every posed frame feeds the filter."""
+"""multi_view_node with multi_view.method=filter (the default) over real DDS: every posed frame
+feeds the filter."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ from depth_fusion_ros.nodes.testing import RosHarness
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 
-def test_filter_method_publishes_accurate_keyframe_depth(synthetic_sequence):
+def test_default_filter_method_publishes_accurate_keyframe_depth(synthetic_sequence):
+    """No ``multi_view.method`` given: the node runs the filter and announces it."""
     seq = synthetic_sequence
     stamps = [m.sec_to_ns(s) for s in seq.stamps]
     with RosHarness() as ros:
@@ -28,14 +30,13 @@ def test_filter_method_publishes_accurate_keyframe_depth(synthetic_sequence):
             MultiViewNode(
                 context=ros.context,
                 parameter_overrides=[
-                    Parameter('multi_view.method', value='filter'),
                     Parameter('keyframe_every', value=6),
                     Parameter('queue_size', value=8),
                     Parameter('qos_depth', value=100),
                 ],
             )
         )
-        assert node.filter_feed is not None
+        assert node.params['multi_view.method'] == 'filter' and node.filter_feed is not None
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         score_msgs = ros.collect(Image, '/depth_fusion/multi_view/score')
         ros.collect(CameraInfo, '/depth_fusion/keyframe/camera_info')

@@ -70,7 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         action='append',
         default=[],
         metavar='STAGE.KEY=VALUE',
-        help='override a stage parameter, e.g. --set fusion.mode=fast (repeatable)',
+        help='override a stage parameter, e.g. --set fusion.mode=fast, or --set multi_view.method=sweep '
+        "for the paper's multi-view sweep instead of the default temporal filter (repeatable)",
     )
     p.add_argument(
         '--rgb-camera',

@@ -186,21 +186,51 @@ class GuardVerdict:
         return DECISIONS.index(self.decision)
 
 
+#: Largest (points x neighbours) block of :func:`_local_deviation`'s sorted neighbour residuals.
+DEVIATION_BLOCK_ELEMENTS = 1 << 22
+
+
 def _local_deviation(
     points: np.ndarray, residual: np.ndarray, radius: float, min_neighbours: int
 ) -> tuple[np.ndarray, float]:
     """|residual - median residual of the other points within ``radius``| per point (NaN when
-    fewer than ``min_neighbours`` neighbours), and the median number of neighbours."""
-    tree = cKDTree(points)
-    neighbours = tree.query_ball_point(points, r=radius)
-    out = np.full(len(points), np.nan)
-    counts = np.zeros(len(points))
-    for i, idx in enumerate(neighbours):
-        others = [j for j in idx if j != i]
-        counts[i] = len(others)
-        if len(others) >= min_neighbours:
-            out[i] = abs(residual[i] - np.median(residual[others]))
-    return out, float(np.median(counts)) if len(counts) else 0.0
+    fewer than ``min_neighbours`` neighbours), and the median number of neighbours.
+
+    Vectorised, because its cost follows |Ω|: the temporal filter sends 6-40k points per
+    keyframe (a per-point Python loop took 0.9 s of a 1.5 s fusion at 15k points). The
+    neighbour pairs come from one ``query_pairs`` (the same "distance at most ``radius``" as
+    ``query_ball_point``); each point's neighbour residuals are sorted in a padded row and the
+    median is the middle element, or the mean of the middle two, exactly as ``np.median``
+    computes it (same numbers as the loop, tested). Rows are processed in blocks of at most
+    :data:`DEVIATION_BLOCK_ELEMENTS` so memory stays bounded however dense Ω is.
+    """
+    n = len(points)
+    out = np.full(n, np.nan)
+    if n == 0:
+        return out, 0.0
+    pairs = cKDTree(points).query_pairs(r=radius, output_type='ndarray')
+    src = np.concatenate((pairs[:, 0], pairs[:, 1]))
+    dst = np.concatenate((pairs[:, 1], pairs[:, 0]))
+    order = np.argsort(src, kind='stable')
+    src, values = src[order], residual[dst[order]]
+    counts = np.bincount(src, minlength=n)
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    checked = np.flatnonzero(counts >= max(min_neighbours, 1))
+    width = int(counts.max()) if len(src) else 0
+    rows_per_block = max(1, DEVIATION_BLOCK_ELEMENTS // max(width, 1))
+    for b in range(0, len(checked), rows_per_block):
+        rows = checked[b : b + rows_per_block]
+        c = counts[rows]
+        block = np.full((len(rows), width), np.inf)
+        owner = np.repeat(np.arange(len(rows)), c)
+        first = np.repeat(starts[rows], c)
+        column = np.arange(len(owner)) - np.repeat(np.cumsum(c) - c, c)
+        block[owner, column] = values[first + column]
+        block.sort(axis=1)
+        at = np.arange(len(rows))
+        median = (block[at, (c - 1) // 2] + block[at, c // 2]) / 2.0
+        out[rows] = np.abs(residual[rows] - median)
+    return out, float(np.median(counts.astype(np.float64)))
 
 
 def assess(

@@ -47,6 +47,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
+from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
 from .cost_volume import EpipolarRays, epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
@@ -111,6 +112,10 @@ class DepthFilter:
         self.matching = matching or MultiViewConfig()
         self.matching.validate()
         self.device = torch.device(device)
+        #: The search's chunk budget: ``multi_view.chunk_elements`` on CPU, at least
+        #: ``CUDA_CHUNK_ELEMENTS`` on an accelerator, as the sweep's (kernel launches dominate
+        #: there; the results do not depend on the chunk size).
+        self._chunk_elements = effective_chunk_elements(self.matching.chunk_elements, self.device)
         self.rho_range = self.matching.rho_range
         self.margin = float(patch_reach(self.matching.patch, self.matching.patch_stride))
         self.key: _Keyframe | None = None
@@ -185,7 +190,14 @@ class DepthFilter:
         if key is None:
             none = torch.zeros(0, device=self.device)
             return assemble_result(
-                cam, none.long(), none, none, none, none, none, torch.zeros(shape, dtype=torch.bool)
+                cam,
+                none.long(),
+                none,
+                none,
+                none,
+                none,
+                none,
+                torch.zeros(shape, dtype=torch.bool, device=self.device),
             )
         rows = torch.nonzero(self._published(key), as_tuple=True)[0]
         st = key.state
@@ -627,7 +639,7 @@ class DepthFilter:
                 hi_o[start:stop],
                 samples,
                 refine,
-                self.matching.chunk_elements,
+                self._chunk_elements,
                 with_distinctiveness=distinct,
             )
             good = found.ok & (found.cost <= c.max_cost)

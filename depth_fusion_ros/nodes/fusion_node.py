@@ -1,7 +1,7 @@
 """``fusion_node``: single-view + multi-view depth of one keyframe -> fused depth, confidence, cloud.
 
 The single-view and multi-view results of a keyframe arrive on separate topics at different
-times (the network and the plane sweep run in parallel in other nodes), so the node pairs
+times (the network and the multi-view estimate run in parallel in other nodes), so the node pairs
 them by **exact header stamp**, together with the keyframe's camera_info (and its image, when
 it has come, to colour the points). A pairing waits at most ``pair_timeout`` seconds; because every upstream
 stream is in stamp order, a pairing that misses a part which its stream has already passed
@@ -9,7 +9,7 @@ is hopeless and dropped at once. Both bounds keep memory flat whatever the input
 
 A complete pairing goes to the worker: stage 1 of the point selection (``fusion.stage1``:
 the best ``fusion.stage1_fraction`` of the sweep's points by score, every estimate of the
-filter, as multi_view_node announces its method on a latched topic), then the core's
+filter (the default method), as multi_view_node announces its method on a latched topic), then the core's
 ``fuse_keyframe`` (stage 2 RANSAC, the weighted interpolation, fallbacks). The fused depth
 (32FC1, metres), its confidence (32FC1) and the keyframe's camera_info are published with
 the source header, and optionally a PointCloud2 in the camera frame for RViz.

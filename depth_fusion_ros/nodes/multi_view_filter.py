@@ -67,9 +67,10 @@ FILTER_LIMITS: dict[str, Any] = {
 FILTER_PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'multi_view.method',
-        'sweep',
-        "sweep: the paper's per-keyframe inverse-depth sweep over the neighbours; filter: a temporal "
-        'Gaussian x uniform inverse-depth filter updated by every posed frame (filter.* parameters)',
+        'filter',
+        'filter (default): a temporal Gaussian x uniform inverse-depth filter updated by every posed '
+        "frame (filter.* parameters); sweep: the paper's per-keyframe inverse-depth sweep over the "
+        'neighbours',
         choices=MULTI_VIEW_METHODS,
     ),
     ParamSpec(

@@ -15,7 +15,8 @@ gives the same keyframes as the offline evaluation with the same stride.
 
 A keyframe is announced on ``depth_fusion/keyframe/image`` (rgb8, undistorted, working grid)
 and ``depth_fusion/keyframe/camera_info`` with the source header when the worker takes it,
-before the plane sweep: the single-view node then runs the network in parallel. A keyframe
+before the multi-view estimate (``multi_view.method``: the temporal filter by default, or the
+paper's sweep): the single-view node then runs the network in parallel. A keyframe
 dropped from the work queue (latest-wins) is never announced, so every announced keyframe
 gets a multi-view depth (possibly without estimates) and the fusion node never waits for
 one that will not come.
@@ -135,7 +136,7 @@ NEIGHBOUR_LIMITS: dict[str, Any] = {
 MULTI_VIEW_SKIP = ('select_fraction',)
 
 PARAMETERS: tuple[ParamSpec, ...] = (
-    ParamSpec('device', 'cpu', 'torch device of the plane sweep: cpu, cuda, cuda:1, ...'),
+    ParamSpec('device', 'cpu', 'torch device of the multi-view estimate (filter or sweep): cpu, cuda, ...'),
     *working_grid_parameters(),
     *robot_inputs.PARAMETERS,
     ParamSpec(

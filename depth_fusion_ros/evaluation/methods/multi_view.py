@@ -11,8 +11,11 @@ The fusion methods reuse the per-keyframe result through :func:`multi_view_resul
 neighbours through :func:`neighbour_indices`. Options honoured: ``--neighbour-mode``,
 ``--neighbours``, ``--device``, and ``--set multi_view.<field>=...`` (``MultiViewConfig``),
 ``--set neighbours.<field>=...`` (``NeighbourConfig``), ``--set tv.<field>=...`` (``TVConfig``),
-``--set multi_view.method=filter`` (the temporal depth filter run over *every* frame of the
-sequence up to each keyframe, in order; ``--set filter.<field>=...``, ``FilterConfig``).
+``--set multi_view.method=filter|sweep``: ``filter``, the default, is the temporal depth filter
+run over *every* frame of the sequence up to each keyframe, in order (``--set
+filter.<field>=...``, ``FilterConfig``); ``sweep`` is the paper's per-keyframe search over the
+selected neighbours. The filter is the default because its fused depth is better on every
+sequence we hold (docs/multi_view.md, "Verdict").
 """
 
 from __future__ import annotations
@@ -39,7 +42,9 @@ TV_STAGE = 'tv'
 FILTER_STAGE = 'filter'
 #: ``--set multi_view.method=sweep|filter``: not a ``MultiViewConfig`` field, read here.
 METHOD_PARAM = 'method'
-DEFAULT_METHOD = 'sweep'
+#: The filter: better fused depth than the sweep on every sequence we hold (docs/multi_view.md,
+#: "Verdict"); the same default as ``multi_view_node``'s ``multi_view.method``.
+DEFAULT_METHOD = 'filter'
 #: ``--neighbour-mode offline``: the filter's estimate of frame k is read after frame
 #: k + ``neighbours.window`` (warped back into k), as the sweep then takes its neighbours from
 #: ``window`` frames on both sides; online: causal.
@@ -157,7 +162,8 @@ def multi_view_result(ctx: KeyframeContext) -> MultiViewResult:
 
 @register_method(
     'multi_view',
-    'semi-dense multi-view depth (ZNCC inverse-depth sweep over the selected neighbours)',
+    'semi-dense multi-view depth (multi_view.method: filter, the temporal inverse-depth filter, '
+    'default; sweep, the ZNCC inverse-depth sweep over the selected neighbours)',
     sparse=True,
 )
 def multi_view(ctx: KeyframeContext) -> MethodOutput:
