@@ -140,9 +140,36 @@ def test_no_scale_from_untrusted_points(truth):
     assert result.keyframe_confidence == 0.0
 
 
+def test_weak_stage2_support_keeps_the_single_view_depth(truth):
+    """Points that agree with each other but not with most of stage 1 (a biased subset
+    surviving among wrong estimates) are not fused, nor is their scale used."""
+    single = _single(truth, 6)
+    rng = np.random.default_rng(7)
+    multi = _multi(truth, 6, density=0.06, noise=0.0)
+    wrong = np.isfinite(multi) & (rng.random(truth.shape) < 0.7)  # 70 % of the estimates far off
+    # independent and far off (factor e^±0.5 to e^±1.6): no single fit explains them
+    factor = np.exp(rng.choice([-1.0, 1.0], truth.shape) * rng.uniform(0.5, 1.6, truth.shape))
+    multi[wrong] = (truth * factor)[wrong]
+    guarded = fuse_keyframe(single, multi, None, FusionConfig(mode='fast'))
+    assert guarded.evidence['inlier_ratio'] < GuardConfig().min_inlier_ratio, guarded.evidence
+    assert guarded.decision == 'single_view' and 'stage 2 kept' in guarded.decision_reason
+    np.testing.assert_array_equal(guarded.depth, single)
+    assert guarded.keyframe_confidence == 0.0
+    relaxed = fuse_keyframe(
+        single, multi, None, FusionConfig(mode='fast'), guard_config=GuardConfig(min_inlier_ratio=0.0)
+    )
+    assert relaxed.decision != 'single_view' or 'stage 2 kept' not in relaxed.decision_reason
+
+
 @pytest.mark.parametrize(
     ('field', 'value'),
-    [('local_tolerance', 0.0), ('full_fraction', 1.5), ('min_trusted_points', 0), ('reach', -1.0)],
+    [
+        ('local_tolerance', 0.0),
+        ('full_fraction', 1.5),
+        ('min_trusted_points', 0),
+        ('reach', -1.0),
+        ('min_inlier_ratio', 1.2),
+    ],
 )
 def test_bad_thresholds_raise(field, value):
     with pytest.raises(ValueError, match=f'guard.{field}'):
