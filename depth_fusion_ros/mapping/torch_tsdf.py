@@ -58,6 +58,9 @@ class TorchTSDF:
     """Sparse block TSDF on a torch device. ``integrate`` per keyframe, ``mesh`` to extract."""
 
     name = 'torch'
+    #: ``integrate`` takes tensors on ``config.device`` as well as numpy (the consistency test
+    #: hands its masked depth over as a tensor).
+    accepts_tensors = True
 
     def __init__(self, config: MapConfig) -> None:
         self.config = config.validate()
