@@ -75,8 +75,6 @@ class TorchTSDF:
         #: (block_size³, 3) voxel offsets inside a block.
         self.local = local.reshape(-1, 3).to(self.device)
         self._local_metric = self.local.to(torch.float32) * self.voxel
-        #: Offsets of the three colour planes of a block in the flattened colour storage.
-        self._planes = torch.arange(3, device=self.device) * self.block_voxels
         self.n_blocks = 0
         self.evicted_blocks = 0
         self.integrated = 0
@@ -273,14 +271,15 @@ class TorchTSDF:
         tsdf.scatter_(0, flat, (tsdf.index_select(0, flat) * w_old + obs * wi) / w_new)
         weight.scatter_(0, flat, w_new.clamp(max=self.config.max_weight))
         if colour is not None:
-            seen = colour.new_zeros((3, height + 2, width + 2))
-            seen[:, 1:-1, 1:-1] = colour
-            seen = seen.view(3, -1).index_select(1, pix.index_select(0, idx))  # (3, n)
-            planes = (row * (3 * V) + local)[None] + self._planes[:, None]  # (3, n)
-            planes = planes.view(-1)
+            # One channel at a time: (n,) passes, which on a CPU are several times faster than
+            # the (3, n) x (n,) broadcasts of all three at once.
+            seen_pix = pix.index_select(0, idx)
+            base = row * (3 * V) + local
             flat_c = self.colour.view(-1)
-            old = flat_c.index_select(0, planes).view(3, -1)
-            flat_c.scatter_(0, planes, ((old * w_old + seen * wi) / w_new).view(-1))
+            for c in range(3):
+                seen = _bordered(colour[c]).index_select(0, seen_pix)
+                at = base + c * V if c else base
+                flat_c.scatter_(0, at, (flat_c.index_select(0, at) * w_old + seen * wi) / w_new)
         return int(idx.numel())
 
     # --- extraction -------------------------------------------------------------------------------
@@ -321,9 +320,9 @@ def _distinct(cells: torch.Tensor) -> torch.Tensor:
     lo = cells.amin(dim=0)
     local = cells - lo
     ext = local.amax(dim=0) + 1
-    ny, nz = int(ext[1]), int(ext[2])
+    nx, ny, nz = ext.tolist()  # one device sync
     linear = (local[:, 0] * ny + local[:, 1]) * nz + local[:, 2]
-    marks = torch.zeros(int(ext[0]) * ny * nz, dtype=torch.bool, device=cells.device)
+    marks = torch.zeros(nx * ny * nz, dtype=torch.bool, device=cells.device)
     marks.scatter_(0, linear, True)
     at = torch.nonzero(marks).squeeze(1)
     x, rest = torch.div(at, ny * nz, rounding_mode='floor'), at % (ny * nz)
