@@ -250,10 +250,12 @@ class TorchTSDF:
         # u, v hold pixel + 0.5: inside the image iff in [0, size), and there the pixel is their
         # floor. Clamped to [-1, size] they index an image with a one-pixel zero border, where
         # everything outside lands; a voxel behind the camera is sent to the border pixel 0.
-        col = u.add_(camera.cx + 0.5).floor_().clamp_(-1, width)
-        pix = v.add_(camera.cy + 0.5).floor_().clamp_(-1, height).add_(1).mul_(width + 2).add_(col).add_(1)
-        pix.mul_(torch.sub(z, 1e-6).sign_().clamp_(min=0.0))
-        pix = pix.to(torch.int32)
+        # Column and row of the bordered image are small integers, exact in float32; the pixel
+        # index is formed in int32, exact for any image size.
+        front = torch.sub(z, 1e-6).sign_().clamp_(min=0.0)  # 1 in front of the camera, else 0
+        col = u.add_(camera.cx + 0.5).floor_().clamp_(-1, width).add_(1).mul_(front).to(torch.int32)
+        row = v.add_(camera.cy + 0.5).floor_().clamp_(-1, height).add_(1).mul_(front).to(torch.int32)
+        pix = row.mul_(width + 2).add_(col)
         obs_w = _bordered(w).index_select(0, pix)
         sdf = _bordered(torch.nan_to_num(d, nan=0.0)).index_select(0, pix).sub_(z)
         idx = torch.nonzero((obs_w > 0) & (sdf > -self.trunc)).squeeze(1)
@@ -316,11 +318,14 @@ def _distinct(cells: torch.Tensor) -> torch.Tensor:
     They are marked in a dense grid over their bounding box and read back with one
     ``nonzero``: a keyframe's ~15 k allocation points fall in a few hundred blocks, and its
     box is bounded by ``max_depth`` (about 40³ blocks at 6 m), so this is cheaper than the
-    sort that ``unique`` does."""
+    sort that ``unique`` does. A box with far more cells than points falls back to ``unique``
+    so the grid's memory stays bounded whatever the configuration."""
     lo = cells.amin(dim=0)
     local = cells - lo
     ext = local.amax(dim=0) + 1
     nx, ny, nz = ext.tolist()  # one device sync
+    if nx * ny * nz > max(1 << 20, 64 * cells.shape[0]):  # a sparse spread (a far max_depth, fine voxels)
+        return torch.unique(cells, dim=0)  # rows in lexicographic order = pack order
     linear = (local[:, 0] * ny + local[:, 1]) * nz + local[:, 2]
     marks = torch.zeros(nx * ny * nz, dtype=torch.bool, device=cells.device)
     marks.scatter_(0, linear, True)
