@@ -253,9 +253,9 @@ class TorchTSDF:
         # Column and row of the bordered image are small integers, exact in float32; the pixel
         # index is formed in int32, exact for any image size.
         front = torch.sub(z, 1e-6).sign_().clamp_(min=0.0)  # 1 in front of the camera, else 0
-        col = u.add_(camera.cx + 0.5).floor_().clamp_(-1, width).add_(1).mul_(front).to(torch.int32)
-        row = v.add_(camera.cy + 0.5).floor_().clamp_(-1, height).add_(1).mul_(front).to(torch.int32)
-        pix = row.mul_(width + 2).add_(col)
+        px_col = u.add_(camera.cx + 0.5).floor_().clamp_(-1, width).add_(1).mul_(front).to(torch.int32)
+        px_row = v.add_(camera.cy + 0.5).floor_().clamp_(-1, height).add_(1).mul_(front).to(torch.int32)
+        pix = px_row.mul_(width + 2).add_(px_col)
         obs_w = _bordered(w).index_select(0, pix)
         sdf = _bordered(torch.nan_to_num(d, nan=0.0)).index_select(0, pix).sub_(z)
         idx = torch.nonzero((obs_w > 0) & (sdf > -self.trunc)).squeeze(1)
