@@ -135,3 +135,69 @@ def test_open3d_engine_agrees_with_torch(room):
         o3d_map.integrate(seq.gt_depth_working(i), seq.frames[i].pose, seq.camera, rgb=seq.frames[i].rgb)
     dist = room_surface_distance(scene, o3d_map.mesh().vertices.astype(np.float64))
     assert np.median(dist) < 0.01
+
+
+def _reference_update(tsdf: TorchTSDF, depth, weights, rgb, T_wc, camera) -> tuple:
+    """Per voxel, in float64 numpy: the projective TSDF update the engine's docstring states
+    (nearest pixel, ``sdf = depth - z``, kept where ``sdf > -truncation`` and the pixel has
+    weight), from an empty map: expected (tsdf, weight, colour) of every allocated voxel."""
+    b, n = tsdf.n_blocks, tsdf.config.block_size
+    coords = (tsdf.block_coords[:b, None, :] * n + tsdf.local[None]).reshape(-1, 3).numpy()
+    world = coords * tsdf.voxel
+    cam = (world - T_wc[:3, 3]) @ T_wc[:3, :3]
+    z = cam[:, 2]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        u = np.floor(cam[:, 0] / z * camera.fx + camera.cx + 0.5)
+        v = np.floor(cam[:, 1] / z * camera.fy + camera.cy + 0.5)
+    inside = (z > 1e-6) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    pix = np.where(inside, v * camera.width + u, 0).astype(np.int64)
+    obs_w = np.where(inside, weights.reshape(-1)[pix], 0.0)
+    sdf = np.nan_to_num(depth.reshape(-1)[pix], nan=0.0) - z
+    upd = (obs_w > 0) & (sdf > -tsdf.trunc)
+    t = np.where(upd, np.minimum(1.0, sdf / tsdf.trunc), 1.0)
+    c = np.where(upd[:, None], rgb.reshape(-1, 3)[pix].astype(np.float64), 0.0)
+    return upd, t, np.where(upd, obs_w, 0.0), c, z
+
+
+def test_integration_matches_the_per_voxel_formula_at_image_edges_and_behind_the_camera():
+    """A wall at 0.25 m, tilted camera, NaN holes and varying confidence: the blocks reach
+    behind the camera and past every image edge, where the vectorised lookups must read
+    nothing (the bordered image, the voxels behind sent to its corner)."""
+    rng = np.random.default_rng(3)
+    camera = PinholeCamera(48, 36, 40.0, 40.0, 23.5, 17.5)
+    depth = np.full((36, 48), 0.25, np.float32) + rng.uniform(0, 0.3, (36, 48)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.1] = np.nan
+    confidence = rng.uniform(0.0, 1.0, depth.shape).astype(np.float32)
+    rgb = rng.integers(0, 256, (36, 48, 3), dtype=np.uint8)
+    angle = 0.3
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+    T[:3, 3] = [0.1, -0.05, 0.02]
+    tsdf = TorchTSDF(MapConfig(engine='torch', voxel_size=0.05, min_depth=0.1, min_weight=0.0))
+    updated = tsdf.integrate(depth, T, camera, confidence=confidence, rgb=rgb)
+    weights = np.where((depth >= 0.1) & (depth <= 6.0), confidence, 0.0)
+    upd, t, w, c, z = _reference_update(tsdf, depth, weights, rgb, T, camera)
+    b = tsdf.n_blocks
+    got_w = tsdf.weight[:b].reshape(-1).numpy()
+    assert updated == upd.sum() > 300 and (~upd).sum() > 3000
+    assert (z < 0).any() and (z > 0).any()  # some allocated voxels are behind the camera
+    np.testing.assert_array_equal(got_w > 0, upd)
+    np.testing.assert_allclose(got_w, w, atol=1e-6)
+    np.testing.assert_allclose(tsdf.tsdf[:b].reshape(-1).numpy(), t, atol=1e-5)
+    np.testing.assert_allclose(tsdf.colour[:b].transpose(1, 2).reshape(-1, 3).numpy(), c, atol=1e-3)
+
+
+def test_block_deduplication_gives_the_distinct_cells_in_key_order():
+    import torch
+
+    from depth_fusion_ros.mapping.keys import pack
+    from depth_fusion_ros.mapping.torch_tsdf import _distinct
+
+    generator = torch.Generator().manual_seed(0)
+    cells = torch.randint(-30, 30, (5000, 3), generator=generator) * torch.tensor([1, 2, 1])
+    got = _distinct(cells)
+    want = torch.unique(cells, dim=0)
+    assert torch.equal(pack(got), torch.sort(pack(want)).values)
+    assert torch.equal(_distinct(cells[:1]), cells[:1])
+    wide = cells * 40  # a box of 2400³ cells: the sort fallback, same answer
+    assert torch.equal(pack(_distinct(wide)), torch.sort(pack(torch.unique(wide, dim=0))).values)

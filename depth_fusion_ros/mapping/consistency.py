@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class _Keyframe:
-    depth: np.ndarray
+    depth: torch.Tensor  # on the map's device, converted once and reused by every check
     T_wc: np.ndarray
     camera: PinholeCamera
     confidence: np.ndarray | None
@@ -59,46 +59,69 @@ def consistent_views(
     its point lands on a depth within ``tolerance`` (relative to the projected depth).
 
     Nearest-pixel lookup; points behind the other camera or outside its image count as not
-    consistent (no evidence either way, and none is taken). Only pixels with depth are
-    projected: per other keyframe a dozen elementwise passes and one nearest ``grid_sample``.
-    """
+    consistent (no evidence either way, and none is taken); pixels without depth count 0."""
     dev = torch.device(device)
-    d = torch.as_tensor(np.asarray(depth, np.float32), device=dev)
+    d = torch.as_tensor(depth, dtype=torch.float32, device=dev)
+    views = [(torch.as_tensor(o, dtype=torch.float32, device=dev), T) for o, T in others]
+    return agreeing_views(d, T_wc, views, camera, tolerance).cpu().numpy()
+
+
+def agreeing_views(
+    d: torch.Tensor,
+    T_wc: np.ndarray,
+    others: list[tuple[torch.Tensor, np.ndarray]],
+    camera: PinholeCamera,
+    tolerance: float,
+) -> torch.Tensor:
+    """:func:`consistent_views` on tensors already on the device: ``(H, W)`` int32 counts.
+
+    Every pixel is projected (a fused keyframe has depth almost everywhere, so selecting the
+    pixels with depth first costs more than it saves) and those without depth are zeroed at
+    the end. Per other keyframe a dozen elementwise passes; one batched nearest
+    ``grid_sample`` and one comparison for all of them."""
     h, w = d.shape
-    count = torch.zeros(h * w, dtype=torch.int32, device=dev)
-    flat = torch.nonzero((d > 0).reshape(-1)).squeeze(1)  # NaN > 0 is False
-    if flat.numel() == 0 or not others:
-        return count.reshape(h, w).cpu().numpy()
-    z_k = d.reshape(-1)[flat]
-    x_k = ((flat % w).to(torch.float32) - camera.cx).mul_(z_k).div_(camera.fx)
-    y_k = (torch.div(flat, w, rounding_mode='floor').to(torch.float32) - camera.cy).mul_(z_k).div_(camera.fy)
+    dev = d.device
+    if not others:
+        return torch.zeros((h, w), dtype=torch.int32, device=dev)
+    n = h * w
+    z_k = d.reshape(-1)
+    u = torch.arange(w, device=dev, dtype=torch.float32).sub_(camera.cx)
+    v = torch.arange(h, device=dev, dtype=torch.float32).sub_(camera.cy)
+    x_k = (u[None] * d).div_(camera.fx).reshape(-1)
+    y_k = (v[:, None] * d).div_(camera.fy).reshape(-1)
     T_k = np.asarray(T_wc, np.float64)
     # Pixel -> grid_sample's [-1, 1] (align_corners: -1 and 1 are the first and last pixel
     # centres); 'nearest' is the nearest-pixel lookup, and outside the image it reads 0, which
     # agrees with no positive depth.
     sx, sy = 2 * camera.fx / (w - 1), 2 * camera.fy / (h - 1)
     ox, oy = 2 * camera.cx / (w - 1) - 1, 2 * camera.cy / (h - 1) - 1
-    grid = torch.empty((1, 1, flat.numel(), 2), dtype=torch.float32, device=dev)
-    agreeing = torch.zeros(flat.numel(), dtype=torch.int32, device=dev)
-    for other_depth, other_T in others:
+    k = len(others)
+    planes = torch.empty((k, 2, n), dtype=torch.float32, device=dev)  # grid x and y, planar
+    z = torch.empty((k, n), dtype=torch.float32, device=dev)
+    for i, (_, other_T) in enumerate(others):
         rel = np.linalg.inv(np.asarray(other_T, np.float64)) @ T_k  # keyframe -> other camera
         # Rows of the rigid motion as scalars: three contiguous (N,) passes per coordinate
         # (a (N, 3) x (3, 3) product is slower on CPU than these).
-        qx, qy, z = (_affine(rel[i], x_k, y_k, z_k) for i in range(3))
-        grid[0, 0, :, 0] = qx.div_(z).mul_(sx).add_(ox)
-        grid[0, 0, :, 1] = qy.div_(z).mul_(sy).add_(oy)
-        image = torch.as_tensor(np.asarray(other_depth, np.float32), device=dev)[None, None]
-        seen = F.grid_sample(image, grid, mode='nearest', align_corners=True).reshape(-1)
-        agree = (z > 0) & ((seen - z).abs_() <= tolerance * z)  # NaN compares False
-        agreeing += agree
-    count[flat] = agreeing
-    return count.reshape(h, w).cpu().numpy()
+        _affine(rel[2], x_k, y_k, z_k, out=z[i])
+        torch.div(_affine(rel[0], x_k, y_k, z_k, out=planes[i, 0]), z[i], out=planes[i, 0])
+        torch.div(_affine(rel[1], x_k, y_k, z_k, out=planes[i, 1]), z[i], out=planes[i, 1])
+        planes[i, 0].mul_(sx).add_(ox)
+        planes[i, 1].mul_(sy).add_(oy)
+    images = torch.stack([o for o, _ in others])[:, None]  # (K, 1, H, W)
+    # The (K, 1, N, 2) grid as a strided view of the planes: grid_sample reads it in place.
+    grid = planes.permute(0, 2, 1)[:, None]
+    seen = F.grid_sample(images, grid, mode='nearest', align_corners=True).reshape(k, n)
+    agree = (z > 0) & ((seen - z).abs_() <= tolerance * z)  # NaN compares False
+    count = agree.sum(dim=0, dtype=torch.int32)
+    return count.mul_(z_k > 0).reshape(h, w)  # NaN > 0 is False
 
 
-def _affine(row: np.ndarray, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    """``row[0] x + row[1] y + row[2] z + row[3]`` (one row of a 4x4 rigid motion)."""
-    out = torch.mul(x, float(row[0])).add_(y, alpha=float(row[1])).add_(z, alpha=float(row[2]))
-    return out.add_(float(row[3]))
+def _affine(
+    row: np.ndarray, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, out: torch.Tensor
+) -> torch.Tensor:
+    """``row[0] x + row[1] y + row[2] z + row[3]`` (one row of a 4x4 rigid motion), into ``out``."""
+    torch.mul(x, float(row[0]), out=out)
+    return out.add_(y, alpha=float(row[1])).add_(z, alpha=float(row[2])).add_(float(row[3]))
 
 
 class ConsistentMap:
@@ -118,6 +141,10 @@ class ConsistentMap:
         #: Pixels with depth that the check left out, and that it kept, over the run.
         self.pixels_rejected = 0
         self.pixels_kept = 0
+        self._device = torch.device(config.device)
+        #: The torch engine takes the masked depth as a tensor on the device (no host round
+        #: trip); any other engine gets numpy.
+        self._tensors = bool(getattr(engine, 'accepts_tensors', False))
 
     def __getattr__(self, name: str) -> object:  # n_blocks, memory_bytes, evicted_blocks, name...
         return getattr(self.engine, name)
@@ -140,13 +167,13 @@ class ConsistentMap:
         With ``consistency_span`` 0 the keyframe goes straight to the engine, every pixel."""
         if self.span == 0:
             return self.engine.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb)
-        depth = np.asarray(depth, np.float32)
-        if depth.shape != (camera.height, camera.width):
+        d = torch.as_tensor(depth, dtype=torch.float32, device=self._device)
+        if d.shape != (camera.height, camera.width):
             size = f'{camera.width}x{camera.height}'
-            raise ValueError(f'depth is {depth.shape[1]}x{depth.shape[0]}, camera is {size}')
+            raise ValueError(f'depth is {d.shape[1]}x{d.shape[0]}, camera is {size}')
         if len(self._window) == self._window.maxlen and not self._window[0].integrated:
             self._integrate_at(0)  # about to leave the window: integrate with what it had
-        self._window.append(_Keyframe(depth, np.asarray(T_wc, np.float64), camera, confidence, rgb))
+        self._window.append(_Keyframe(d, np.asarray(T_wc, np.float64), camera, confidence, rgb))
         target = len(self._window) - 1 - self.span
         return self._integrate_at(target) if target >= 0 else 0
 
@@ -168,17 +195,18 @@ class ConsistentMap:
         if others:
             need = min(int(self.config.consistency_views), len(others))
             cfg = self.config
-            count = consistent_views(
-                depth, keyframe.T_wc, others, keyframe.camera, cfg.consistency_tolerance, cfg.device
-            )
-            valid = np.isfinite(depth) & (depth > 0)
+            count = agreeing_views(depth, keyframe.T_wc, others, keyframe.camera, cfg.consistency_tolerance)
+            valid = (depth > 0) & (depth < float('inf'))  # finite and positive
             keep = valid & (count >= need)
-            self.pixels_kept += int(keep.sum())
-            self.pixels_rejected += int((valid & ~keep).sum())
-            depth = np.where(keep, depth, np.float32(np.nan))
+            kept, with_depth = torch.stack((keep.sum(), valid.sum())).tolist()  # one device sync
+            self.pixels_kept += kept
+            self.pixels_rejected += with_depth - kept
+            depth = torch.where(keep, depth, float('nan'))
         else:
             self.unchecked += 1
             log.info('map: a keyframe with no other keyframe to check it against is integrated unchecked')
+        if not self._tensors:
+            depth = depth.cpu().numpy()
         return self.engine.integrate(
             depth, keyframe.T_wc, keyframe.camera, confidence=keyframe.confidence, rgb=keyframe.rgb
         )

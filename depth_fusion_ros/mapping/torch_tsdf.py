@@ -6,8 +6,9 @@ does, and weights every pixel by the fused confidence (docs/mapping.md has the m
 
 Layout: voxel blocks of ``block_size``³ voxels, allocated where depth is observed. Block ``b``
 holds rows ``b`` of ``tsdf``/``weight`` (``(capacity, block_size³)``) and ``colour``
-(``(capacity, block_size³, 3)``); the block coordinates are looked up by binary search in a
-sorted key table (:mod:`.keys`). Voxel ``i`` of the integer grid has its centre at
+(``(capacity, 3, block_size³)``, one plane per channel so the colour update is three
+contiguous passes, not a stride-3 one); the block coordinates are looked up by binary search
+in a sorted key table (:mod:`.keys`). Voxel ``i`` of the integer grid has its centre at
 ``i * voxel_size`` in the world frame.
 
 Integration of one keyframe (projective TSDF, as KinectFusion / Open3D):
@@ -16,6 +17,15 @@ Integration of one keyframe (projective TSDF, as KinectFusion / Open3D):
 2. project the voxels of those blocks into the depth image (nearest pixel);
 3. ``sdf = depth - z``; voxels with ``sdf > -truncation`` get ``tsdf = min(1, sdf/truncation)``
    averaged with weight = pixel confidence (capped at ``max_weight``).
+
+Cost (docs/mapping.md has the profile): on a CPU the per-element work is cheap and what costs
+is the irregular work, so the voxels are gathered and written with ``index_select`` and
+``scatter_`` (several times faster than advanced indexing, ``index_put_`` or ``index_copy_``
+here, and free of their multi-thread slowdown), the image lookups go to a zero-bordered copy of
+each image (a voxel outside the image, or behind the camera, reads the border: weight 0) so one
+``nonzero`` picks the updated voxels, and the blocks a keyframe touches are deduplicated by
+marking a dense grid over their bounding box, not by sorting. Every step is a torch op, the
+same on CPU and CUDA.
 
 Memory is bounded by ``max_blocks``: when a keyframe needs more blocks than are free, the
 blocks farthest from its camera are evicted (counted in ``evicted_blocks``).
@@ -27,10 +37,11 @@ import logging
 
 import numpy as np
 import torch
+import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
 from .config import MapConfig
-from .keys import SortedKeys, pack
+from .keys import SortedKeys, pack, unpack
 from .surface import SurfaceMesh, VoxelSet, extract_mesh
 
 log = logging.getLogger(__name__)
@@ -38,11 +49,18 @@ log = logging.getLogger(__name__)
 #: Initial block capacity; doubled as needed up to ``max_blocks``.
 INITIAL_CAPACITY = 256
 
+#: An image as numpy (the node, the evaluation) or as a tensor already on the map's device
+#: (the consistency test hands its masked depth over without a round trip through the host).
+Image = np.ndarray | torch.Tensor
+
 
 class TorchTSDF:
     """Sparse block TSDF on a torch device. ``integrate`` per keyframe, ``mesh`` to extract."""
 
     name = 'torch'
+    #: ``integrate`` takes tensors on ``config.device`` as well as numpy (the consistency test
+    #: hands its masked depth over as a tensor).
+    accepts_tensors = True
 
     def __init__(self, config: MapConfig) -> None:
         self.config = config.validate()
@@ -70,7 +88,7 @@ class TorchTSDF:
         self.block_coords = torch.zeros((capacity, 3), dtype=torch.int64, device=dev)
         self.tsdf = torch.ones((capacity, v), dtype=torch.float32, device=dev)
         self.weight = torch.zeros((capacity, v), dtype=torch.float32, device=dev)
-        self.colour = torch.zeros((capacity, v, 3), dtype=torch.float32, device=dev)
+        self.colour = torch.zeros((capacity, 3, v), dtype=torch.float32, device=dev)
 
     def _grow(self, needed: int) -> None:
         capacity = self.block_coords.shape[0]
@@ -104,11 +122,11 @@ class TorchTSDF:
 
     def integrate(
         self,
-        depth: np.ndarray,
+        depth: Image,
         T_wc: np.ndarray,
         camera: PinholeCamera,
-        confidence: np.ndarray | None = None,
-        rgb: np.ndarray | None = None,
+        confidence: Image | None = None,
+        rgb: Image | None = None,
     ) -> int:
         """Fuse one depth image (z-depth, metres, NaN = none) seen from camera-to-world ``T_wc``.
 
@@ -116,7 +134,7 @@ class TorchTSDF:
         weight 1). Returns the number of voxels updated.
         """
         dev = self.device
-        d = torch.as_tensor(np.asarray(depth, dtype=np.float32), device=dev)
+        d = torch.as_tensor(depth, dtype=torch.float32, device=dev)
         if d.shape != (camera.height, camera.width):
             raise ValueError(f'depth is {d.shape[1]}x{d.shape[0]}, camera is {camera.width}x{camera.height}')
         w = self._pixel_weights(d, confidence)
@@ -127,21 +145,26 @@ class TorchTSDF:
             return 0
         colour = None
         if rgb is not None:
-            colour = torch.as_tensor(np.asarray(rgb), device=dev).to(torch.float32).reshape(-1, 3)
+            # (3, H, W) planes, like the storage.
+            colour = torch.as_tensor(rgb, device=dev).to(torch.float32).reshape((*d.shape, 3))
+            colour = colour.permute(2, 0, 1)
         return self._update(rows, d, w, T, camera, colour)
 
-    def _pixel_weights(self, d: torch.Tensor, confidence: np.ndarray | None) -> torch.Tensor:
-        """Per-pixel integration weight: 0 where the pixel is not integrated."""
+    def _pixel_weights(self, d: torch.Tensor, confidence: Image | None) -> torch.Tensor:
+        """Per-pixel integration weight: 0 where the pixel is not integrated.
+
+        NaN and ±inf fail the depth range comparisons, so no separate finiteness test."""
         cfg = self.config
-        valid = torch.isfinite(d) & (d >= cfg.min_depth) & (d <= cfg.max_depth)
+        valid = (d >= cfg.min_depth) & (d <= cfg.max_depth)
         if confidence is None:
             return valid.to(torch.float32)
-        c = torch.as_tensor(np.asarray(confidence, dtype=np.float32), device=d.device)
+        c = torch.as_tensor(confidence, dtype=torch.float32, device=d.device)
         if c.shape != d.shape:
             raise ValueError(f'confidence is {tuple(c.shape)}, depth is {tuple(d.shape)}')
         c = torch.nan_to_num(c, nan=0.0).clamp_(0.0, 1.0)
         valid &= c >= cfg.min_confidence
-        return torch.where(valid & (c > 0), c, torch.zeros_like(c))
+        # c in [0, 1] times 0 or 1 is exact: the weight is c where valid and 0 elsewhere.
+        return c.mul_(valid)
 
     def _allocate(
         self, d: torch.Tensor, w: torch.Tensor, T: torch.Tensor, camera: PinholeCamera
@@ -162,7 +185,7 @@ class TorchTSDF:
         points = rays[:, None, :] * zz[..., None]  # camera frame
         world = points.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
         blocks = torch.floor(world / self.config.block_m).to(torch.int64)
-        keys = torch.unique(pack(blocks))
+        keys = pack(_distinct(blocks))
         rows, found = self._index.lookup(keys)
         new_keys = keys[~found]
         if new_keys.numel():
@@ -178,8 +201,6 @@ class TorchTSDF:
         centre: torch.Tensor,
     ) -> torch.Tensor:
         """Add ``new_keys`` (evicting far blocks past ``max_blocks``); rows of all ``keys``."""
-        from .keys import unpack
-
         cap = self.config.max_blocks
         new_coords = unpack(new_keys)
         if new_coords.shape[0] > cap:  # a single frame larger than the map: keep its nearest blocks
@@ -214,51 +235,54 @@ class TorchTSDF:
         colour: torch.Tensor | None,
     ) -> int:
         R, t = T[:3, :3], T[:3, 3]
+        width, height = camera.width, camera.height
         # Camera coordinates of every voxel of the blocks, per axis: rotated block origin plus
         # rotated local offset, broadcast (B, 1) + (1, V), instead of transforming B*V points.
-        origins = ((self.block_coords[rows].to(torch.float32) * self.config.block_m - t) @ R).T
+        corners = self.block_coords.index_select(0, rows).to(torch.float32) * self.config.block_m
+        origins = ((corners - t) @ R).T
         offsets = self._local_metric @ R
         z = (origins[2][:, None] + offsets[:, 2][None]).reshape(-1)
-        front = z > 1e-6
-        inv_z = 1.0 / torch.where(front, z, torch.ones_like(z))
-        u = (
-            (origins[0][:, None] + offsets[:, 0][None])
-            .reshape(-1)
-            .mul_(inv_z)
-            .mul_(camera.fx)
-            .add_(camera.cx + 0.5)
-        )
-        v = (
-            (origins[1][:, None] + offsets[:, 1][None])
-            .reshape(-1)
-            .mul_(inv_z)
-            .mul_(camera.fy)
-            .add_(camera.cy + 0.5)
-        )
-        # u, v hold pixel + 0.5: inside the image iff in [0, size).
-        inside = front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-        cand = torch.nonzero(inside, as_tuple=True)[0]
-        pix = v[cand].to(torch.int64) * camera.width + u[cand].to(torch.int64)  # truncation = floor here
-        obs_w = w.reshape(-1)[pix]
-        sdf = torch.nan_to_num(d.reshape(-1)[pix], nan=0.0) - z[cand]
-        upd = (obs_w > 0) & (sdf > -self.trunc)
-        keep = torch.nonzero(upd, as_tuple=True)[0]
-        if keep.numel() == 0:
+        # 1/z where z > 1e-6 (in front of the camera); behind it 1e6, finite, and sent to the
+        # border pixel below.
+        inv_z = torch.clamp(z, min=1e-6).reciprocal_()
+        u = (origins[0][:, None] + offsets[:, 0][None]).reshape(-1).mul_(inv_z).mul_(camera.fx)
+        v = (origins[1][:, None] + offsets[:, 1][None]).reshape(-1).mul_(inv_z).mul_(camera.fy)
+        # u, v hold pixel + 0.5: inside the image iff in [0, size), and there the pixel is their
+        # floor. Clamped to [-1, size] they index an image with a one-pixel zero border, where
+        # everything outside lands; a voxel behind the camera is sent to the border pixel 0.
+        # Column and row of the bordered image are small integers, exact in float32; the pixel
+        # index is formed in int32, exact for any image size.
+        front = torch.sub(z, 1e-6).sign_().clamp_(min=0.0)  # 1 in front of the camera, else 0
+        px_col = u.add_(camera.cx + 0.5).floor_().clamp_(-1, width).add_(1).mul_(front).to(torch.int32)
+        px_row = v.add_(camera.cy + 0.5).floor_().clamp_(-1, height).add_(1).mul_(front).to(torch.int32)
+        pix = px_row.mul_(width + 2).add_(px_col)
+        obs_w = _bordered(w).index_select(0, pix)
+        sdf = _bordered(torch.nan_to_num(d, nan=0.0)).index_select(0, pix).sub_(z)
+        idx = torch.nonzero((obs_w > 0) & (sdf > -self.trunc)).squeeze(1)
+        if idx.numel() == 0:
             return 0
-        local_idx = cand[keep]
-        pix, wi = pix[keep], obs_w[keep]
-        obs = (sdf[keep] / self.trunc).clamp(max=1.0)
+        wi = obs_w.index_select(0, idx)
+        obs = sdf.index_select(0, idx).div_(self.trunc).clamp_(max=1.0)
         V = self.block_voxels
-        flat = rows[local_idx // V] * V + local_idx % V  # into the flattened storage
+        block, local = _divmod(idx, V)
+        row = rows.index_select(0, block)
+        flat = row * V + local  # into the flattened tsdf / weight storage
         tsdf, weight = self.tsdf.view(-1), self.weight.view(-1)
-        w_old = weight[flat]
+        w_old = weight.index_select(0, flat)
         w_new = w_old + wi
-        tsdf[flat] = (tsdf[flat] * w_old + obs * wi) / w_new
-        weight[flat] = w_new.clamp(max=self.config.max_weight)
+        tsdf.scatter_(0, flat, (tsdf.index_select(0, flat) * w_old + obs * wi) / w_new)
+        weight.scatter_(0, flat, w_new.clamp(max=self.config.max_weight))
         if colour is not None:
-            flat_c = self.colour.view(-1, 3)
-            flat_c[flat] = (flat_c[flat] * w_old[:, None] + colour[pix] * wi[:, None]) / w_new[:, None]
-        return int(flat.numel())
+            # One channel at a time: (n,) passes, which on a CPU are several times faster than
+            # the (3, n) x (n,) broadcasts of all three at once.
+            seen_pix = pix.index_select(0, idx)
+            base = row * (3 * V) + local
+            flat_c = self.colour.view(-1)
+            for c in range(3):
+                seen = _bordered(colour[c]).index_select(0, seen_pix)
+                at = base + c * V if c else base
+                flat_c.scatter_(0, at, (flat_c.index_select(0, at) * w_old + seen * wi) / w_new)
+        return int(idx.numel())
 
     # --- extraction -------------------------------------------------------------------------------
 
@@ -267,8 +291,44 @@ class TorchTSDF:
         n, b = self.config.block_size, self.n_blocks
         keep = self.weight[:b] >= max(self.config.min_weight, 1e-9)
         coords = self.block_coords[:b][:, None, :] * n + self.local[None]
-        return VoxelSet(coords[keep], self.tsdf[:b][keep], self.colour[:b][keep], self.voxel)
+        colour = self.colour[:b].transpose(1, 2)
+        return VoxelSet(coords[keep], self.tsdf[:b][keep], colour[keep], self.voxel)
 
     def mesh(self) -> SurfaceMesh:
         """The zero level set as a triangle mesh (surface nets), world frame, metres."""
         return extract_mesh(self.voxels())
+
+
+def _bordered(image: torch.Tensor) -> torch.Tensor:
+    """``(H, W)`` -> flattened ``(H + 2) * (W + 2)`` with a one-pixel border of zeros."""
+    return F.pad(image, (1, 1, 1, 1)).view(-1)
+
+
+def _divmod(index: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(index // n, index % n)`` for non-negative ``index``; shifts when ``n`` is a power of 2
+    (the default 8³ blocks), as integer division is several times slower on a CPU."""
+    if n & (n - 1) == 0:
+        return index >> (n.bit_length() - 1), index & (n - 1)
+    return torch.div(index, n, rounding_mode='floor'), index % n
+
+
+def _distinct(cells: torch.Tensor) -> torch.Tensor:
+    """The distinct rows of ``(N, 3)`` integer ``cells``, in :func:`pack` order (x, y, z).
+
+    They are marked in a dense grid over their bounding box and read back with one
+    ``nonzero``: a keyframe's ~15 k allocation points fall in a few hundred blocks, and its
+    box is bounded by ``max_depth`` (about 40³ blocks at 6 m), so this is cheaper than the
+    sort that ``unique`` does. A box with far more cells than points falls back to ``unique``
+    so the grid's memory stays bounded whatever the configuration."""
+    lo = cells.amin(dim=0)
+    local = cells - lo
+    ext = local.amax(dim=0) + 1
+    nx, ny, nz = ext.tolist()  # one device sync
+    if nx * ny * nz > max(1 << 20, 64 * cells.shape[0]):  # a sparse spread (a far max_depth, fine voxels)
+        return torch.unique(cells, dim=0)  # rows in lexicographic order = pack order
+    linear = (local[:, 0] * ny + local[:, 1]) * nz + local[:, 2]
+    marks = torch.zeros(nx * ny * nz, dtype=torch.bool, device=cells.device)
+    marks.scatter_(0, linear, True)
+    at = torch.nonzero(marks).squeeze(1)
+    x, rest = torch.div(at, ny * nz, rounding_mode='floor'), at % (ny * nz)
+    return torch.stack((x, torch.div(rest, nz, rounding_mode='floor'), rest % nz), dim=-1) + lo
