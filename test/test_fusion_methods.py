@@ -56,15 +56,6 @@ def test_stage_parameters_are_honoured_and_checked(sequence) -> None:
         fusion_settings(_context(sequence, sigma4=1.0))
 
 
-def test_evaluation_caps_omega_as_the_node_does_unless_told(sequence) -> None:
-    from depth_fusion_ros.fusion.pipeline import GRAPH_MAX_POINTS
-
-    assert fusion_settings(_context(sequence))[0].max_points == GRAPH_MAX_POINTS
-    for every in (-1, 'auto'):
-        assert fusion_settings(_context(sequence, max_points=every))[0].max_points is None
-    assert fusion_settings(_context(sequence, max_points=100))[0].max_points == 100
-
-
 def test_oracle_mask_keeps_points_within_the_threshold() -> None:
     gt = np.array([[1.0, 2.0, np.nan, 0.0]], np.float32)
     mv = np.array([[1.05, 2.5, 1.0, 1.0]], np.float32)

@@ -356,12 +356,6 @@ def _fallback(s: np.ndarray, stage1: np.ndarray, n_stage1: int, reason: str) -> 
     )
 
 
-#: The graph's cap on Ω (``fusion_node`` and ``evaluate``'s default; the core's default is no
-#: cap): the fusion costs pixels x |Ω|, the filter passes 6-40k points per 320x240 keyframe,
-#: and 4096 points spread over the image fuse as well as all of them (docs/fusion.md).
-GRAPH_MAX_POINTS = 4096
-
-
 def _cap_points(omega: np.ndarray, max_points: int | None, seed: int) -> np.ndarray:
     """At most ``max_points`` points of Ω, spread over the image (bounds the cost).
 

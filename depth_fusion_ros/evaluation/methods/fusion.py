@@ -39,7 +39,7 @@ import numpy as np
 
 from ...fusion.consistency import ConsistencyConfig
 from ...fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence
-from ...fusion.pipeline import GRAPH_MAX_POINTS, FusionConfig, FusionResult, fuse_keyframe
+from ...fusion.pipeline import FusionConfig, FusionResult, fuse_keyframe
 from ...multiview.params import apply_overrides
 from ..context import KeyframeContext
 from ..registry import MethodOutput, register_method
@@ -49,9 +49,8 @@ GUARD_STAGE = 'guard'
 CONSISTENCY_STAGE = 'consistency'
 #: The paper's oracle: multi-view points whose error against ground truth is below 10 cm.
 DEFAULT_ORACLE_THRESHOLD = 0.10
-#: Evaluation defaults that differ from ``FusionConfig``'s: the graph's cap on Ω, so that
-#: ``fused`` selects the points ``fusion_node`` fuses (``--set fusion.max_points=-1``: all).
-EVALUATION_DEFAULTS: dict[str, Any] = {'compile_kernel': True, 'max_points': GRAPH_MAX_POINTS}
+#: Evaluation defaults that differ from ``FusionConfig``'s.
+EVALUATION_DEFAULTS: dict[str, Any] = {'compile_kernel': True}
 
 
 def fusion_settings(ctx: KeyframeContext, **forced: Any) -> tuple[FusionConfig, dict[str, Any]]:
@@ -69,10 +68,6 @@ def fusion_settings(ctx: KeyframeContext, **forced: Any) -> tuple[FusionConfig, 
         'stage1': str(params.pop('stage1', 'auto')),
     }
     params.update(forced)
-    if params.get('max_points') == 'auto' or (
-        isinstance(params.get('max_points'), int) and params['max_points'] < 0
-    ):
-        params['max_points'] = None  # as the node's parameter: negative or auto = every point
     known = {f.name for f in dataclasses.fields(FusionConfig)}
     unknown = sorted(set(params) - known)
     if unknown:
