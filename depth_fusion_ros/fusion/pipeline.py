@@ -62,8 +62,8 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'seed': 'seed of the RANSAC sampling and of the max_points subsampling (deterministic output)',
     'align_scale': "map s <- a s + b before fusing; 'auto': only for non-metric single-view sources",
     'max_points': (
-        'fuse at most this many points of omega (seeded, spread over the image: one per grid cell, '
-        'then at random; the cost is pixels x |omega|); -1 or auto: all of them'
+        'fuse at most this many points of omega (a seeded uniform subsample: the cost is '
+        'pixels x |omega|); -1 or auto: all of them'
     ),
     'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
