@@ -182,23 +182,6 @@ def test_max_points_caps_omega_deterministically() -> None:
     assert a.n_omega == 30 and np.array_equal(a.omega_mask, b.omega_mask)
 
 
-def test_max_points_spreads_the_kept_points_over_the_image() -> None:
-    """A dense cluster and a sparse rest: the cap keeps the sparse points (they are the only
-    evidence for their half of the image) and thins the cluster, where a uniform random
-    subsample would keep the cluster's share."""
-    from depth_fusion_ros.fusion.pipeline import _cap_points
-
-    omega = np.zeros((60, 80), dtype=bool)
-    omega[:, :40] = True  # 2400 points on the left half
-    omega[::6, 48::6] = True  # 10 x 6 = 60 points on the right half, none in a cell with the left
-    capped = _cap_points(omega, 400, seed=3)
-    assert capped.sum() == 400 and not (capped & ~omega).any()
-    assert capped[:, 40:].sum() == omega[:, 40:].sum()  # every sparse point kept (random: ~10)
-    left_rows, left_cols = np.nonzero(capped[:, :40])
-    assert np.ptp(left_rows) > 50 and np.ptp(left_cols) > 35  # the cluster thinned evenly
-    np.testing.assert_array_equal(capped, _cap_points(omega, 400, seed=3))
-
-
 def _reference_sums(p: Samples, q: Samples, v: torch.Tensor, params: WeightParams) -> tuple:
     """``(ΣW'v, ΣW', ΣW'd, min W̃)`` straight from the formulas of ``fusion.weights``."""
     dx = q.x - p.x

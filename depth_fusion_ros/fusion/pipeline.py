@@ -357,37 +357,14 @@ def _fallback(s: np.ndarray, stage1: np.ndarray, n_stage1: int, reason: str) -> 
 
 
 def _cap_points(omega: np.ndarray, max_points: int | None, seed: int) -> np.ndarray:
-    """At most ``max_points`` points of Ω, spread over the image (bounds the cost).
-
-    The interpolation weights points by their distance, so what a pixel gets depends on how
-    near the nearest points are, not on how many there are in a cluster. A uniform random
-    subsample keeps Ω's clusters (where the filter has tracked longest) as dense as before
-    relative to the rest; this keeps one random point per cell of the finest square grid whose
-    occupied cells fit the budget, then fills the budget at random from the others.
-    Measured against the random subsample at 4096 points (docs/fusion.md): better on every
-    sequence tried, and better than no cap on the stress cases.
-    """
+    """At most ``max_points`` points of Ω, a seeded uniform subsample (bounds the cost)."""
     count = int(omega.sum())
     if max_points is None or count <= max_points:
         return omega
-    rows, cols = np.nonzero(omega)
-    order = np.random.default_rng(seed).permutation(count)
-    rows, cols = rows[order], cols[order]
-    cell = 1
-    while True:
-        ids = (rows // cell) * (omega.shape[1] // cell + 1) + cols // cell
-        _, first = np.unique(ids, return_index=True)  # the first in random order: a random point per cell
-        if len(first) <= max_points:
-            break
-        cell += 1
-    keep = np.zeros(count, dtype=bool)
-    keep[first] = True
-    keep[np.flatnonzero(~keep)[: max_points - len(first)]] = True
+    keep = np.random.default_rng(seed).choice(np.flatnonzero(omega), size=max_points, replace=False)
     capped = np.zeros_like(omega)
-    capped[rows[keep], cols[keep]] = True
-    log.debug(
-        'omega capped from %d to %d points (one per %d px cell, then at random)', count, max_points, cell
-    )
+    capped.ravel()[keep] = True
+    log.debug('omega capped from %d to %d points', count, max_points)
     return capped
 
 
