@@ -51,7 +51,7 @@ def _ms(values: list[float]) -> str:
     return f'{1e3 * min(values):.1f}-{1e3 * max(values):.1f} ms'
 
 
-def _pass(engine_name: str, seq, config: MapConfig, device: str) -> tuple[list[float], object]:
+def _pass(seq, config: MapConfig, device: str) -> tuple[list[float], object]:
     """One pass over the sequence: seconds of each steady-state ``integrate`` call, and the map."""
     tsdf, _ = make_map(config)
     confidence = np.full((seq.camera.height, seq.camera.width), 0.8, np.float32)
@@ -73,7 +73,7 @@ def _pass(engine_name: str, seq, config: MapConfig, device: str) -> tuple[list[f
 
 def _consistency_times(seq, config: MapConfig, device: str) -> list[float]:
     """Seconds of the consistency test alone, on the windows of the steady-state calls."""
-    span, dev = config.consistency_span, torch.device(device)
+    span, dev, tolerance = config.consistency_span, torch.device(device), config.consistency_tolerance
     if span == 0:
         return []
     depths = [
@@ -85,7 +85,6 @@ def _consistency_times(seq, config: MapConfig, device: str) -> list[float]:
         others = [(depths[j], seq.frames[j].pose) for j in range(last - 2 * span, last + 1) if j != target]
         _sync(device)
         t0 = time.perf_counter()
-        tolerance = config.consistency_tolerance
         agreeing_views(depths[target], seq.frames[target].pose, others, seq.camera, tolerance)
         _sync(device)
         times.append(time.perf_counter() - t0)
@@ -112,7 +111,7 @@ def _engine_rows(engine_name: str, seq, opts: BenchOptions) -> list[BenchRow]:
             load_before = _load()
             per_pass, check_pass = [], []
             for _ in range(passes):
-                steady, tsdf = _pass(engine_name, seq, config, opts.device)
+                steady, tsdf = _pass(seq, config, opts.device)
                 per_pass.append(steady)
                 check_pass.append(_consistency_times(seq, config, opts.device))
             load = f'load {load_before:.1f} -> {_load():.1f} on {os.cpu_count()} cores'
