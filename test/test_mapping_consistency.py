@@ -4,16 +4,23 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from map_geometry import room_surface_distance
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data.synthetic import SynthConfig, build_world, render_sequence
 from depth_fusion_ros.mapping import MapConfig, make_map
-from depth_fusion_ros.mapping.consistency import consistent_views
+from depth_fusion_ros.mapping.consistency import agreeing_views
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 CAMERA = PinholeCamera(160, 120, 131.25, 131.25, 79.5, 59.5)
+
+
+def consistent_views(depth, T_wc, others, camera, tolerance) -> np.ndarray:
+    """:func:`agreeing_views` on numpy images, on the CPU."""
+    views = [(torch.as_tensor(o), T) for o, T in others]
+    return agreeing_views(torch.as_tensor(depth), T_wc, views, camera, tolerance).numpy()
 
 
 def _pose(x: float) -> np.ndarray:

@@ -47,25 +47,6 @@ class _Keyframe:
     integrated: bool = False
 
 
-def consistent_views(
-    depth: np.ndarray,
-    T_wc: np.ndarray,
-    others: list[tuple[np.ndarray, np.ndarray]],
-    camera: PinholeCamera,
-    tolerance: float,
-    device: str = 'cpu',
-) -> np.ndarray:
-    """Per pixel of ``depth``: in how many of ``others`` (``(depth, T_wc)`` of the same camera)
-    its point lands on a depth within ``tolerance`` (relative to the projected depth).
-
-    Nearest-pixel lookup; points behind the other camera or outside its image count as not
-    consistent (no evidence either way, and none is taken); pixels without depth count 0."""
-    dev = torch.device(device)
-    d = torch.as_tensor(depth, dtype=torch.float32, device=dev)
-    views = [(torch.as_tensor(o, dtype=torch.float32, device=dev), T) for o, T in others]
-    return agreeing_views(d, T_wc, views, camera, tolerance).cpu().numpy()
-
-
 def agreeing_views(
     d: torch.Tensor,
     T_wc: np.ndarray,
@@ -73,7 +54,12 @@ def agreeing_views(
     camera: PinholeCamera,
     tolerance: float,
 ) -> torch.Tensor:
-    """:func:`consistent_views` on tensors already on the device: ``(H, W)`` int32 counts.
+    """Per pixel of ``d``: in how many of ``others`` (``(depth, T_wc)`` of the same camera, on
+    the same device) its point lands on a depth within ``tolerance`` (relative to the projected
+    depth): ``(H, W)`` int32 counts.
+
+    Nearest-pixel lookup; points behind the other camera or outside its image count as not
+    consistent (no evidence either way, and none is taken); pixels without depth count 0.
 
     Every pixel is projected (a fused keyframe has depth almost everywhere, so selecting the
     pixels with depth first costs more than it saves) and those without depth are zeroed at
