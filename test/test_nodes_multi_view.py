@@ -291,3 +291,36 @@ def test_images_waiting_for_poses_stay_bounded(synthetic_sequence):
         snap = node.stats.snapshot()
         assert received > 5 and len(node.pending) == 5
     assert snap.dropped == {'pose_wait_overflow': received - 5}
+
+
+def test_a_quiet_tick_waits_for_one_more_round_before_giving_up(synthetic_sequence):
+    """End of stream (no input for pose_wait): the waiting images are dropped as no_pose, but
+    only on a second tick with no input in between. On a loaded machine the executor serves
+    the ready timer before a pose already queued for it; that pose must still land."""
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        node = ros.add(
+            MultiViewNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('width', value=80),
+                    Parameter('height', value=60),
+                    Parameter('pose_wait', value=100.0),  # the node's own timer never gives up here
+                ],
+            )
+        )
+        cam = _Camera(ros)
+        cam.publish_image(seq.frames[0].rgb, m.sec_to_ns(seq.stamps[0]), seq.camera)
+        assert ros.wait_for(lambda: len(node.pending) == 1, 10.0)
+        node.params['pose_wait'] = 0.5
+        node._last_input -= 1.0  # quiet for a second, as if the executor had been starved
+        node._give_up_pending()
+        assert len(node.pending) == 1  # first quiet tick: wait a round
+        node._last_input = time.monotonic()  # an input came in between (the late pose)
+        node._last_input -= 1.0
+        node._give_up_pending()
+        assert len(node.pending) == 1  # quiet again, but not across a whole round
+        node._give_up_pending()  # a second tick with nothing in between: the end of the stream
+        snap = node.stats.snapshot()
+        assert len(node.pending) == 0
+    assert snap.dropped == {'no_pose': 1}

@@ -257,6 +257,8 @@ class MultiViewNode(DepthFusionNode):
         self._pose_stamps = StampGuard('pose')
         self._newest_image_ns: int | None = None
         self._last_input = time.monotonic()
+        #: ``_last_input`` as a timer tick last found it quiet for ``pose_wait`` (``_give_up_pending``).
+        self._quiet_mark: float | None = None
         #: frame_id of the pose stream (the world frame the keyframe poses are published in).
         self._world_frame = 'world'
 
@@ -385,6 +387,12 @@ class MultiViewNode(DepthFusionNode):
             return
         quiet = time.monotonic() - self._last_input
         if not reason and quiet <= float(self.params['pose_wait']):
+            return
+        if not reason and self._quiet_mark != self._last_input:
+            # Quiet on this tick. A starved executor (a loaded machine) serves a ready timer
+            # before the messages already waiting for it, so a pose may be queued behind this
+            # very call: decide on a later tick, once a whole executor round brought no input.
+            self._quiet_mark = self._last_input
             return
         span = self.pose_buffer.span
         why = reason or f'no input for {quiet:.1f} s'
