@@ -229,3 +229,28 @@ def test_a_namespace_moves_every_topic_of_a_node():
         '/robot1/depth_fusion/ready',
     ]
     assert all(topic.startswith('/robot1/depth_fusion/') for topic in subscribed), subscribed
+
+
+def test_a_ctrl_c_as_the_node_finishes_building_still_destroys_it_with_its_final_counters():
+    """The signal lands just after the node's "ready" line, before ``run_node`` holds the node
+    (a KeyboardInterrupt there left nothing to destroy: exit 0 without final counters)."""
+    import os
+
+    from depth_fusion_ros.nodes.base import run_node
+    from depth_fusion_ros.nodes.map_node import MapNode
+
+    destroyed = []
+
+    class _Node(MapNode):
+        def destroy_node(self) -> None:
+            destroyed.append(self.stats.snapshot().summary())
+            super().destroy_node()
+
+    def build() -> MapNode:
+        node = _Node()
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the constructor returns
+        return node
+
+    assert run_node(build, []) == 0
+    assert len(destroyed) == 1
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored

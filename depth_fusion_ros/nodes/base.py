@@ -260,16 +260,26 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     """Console entry point body: init, build the node, spin until Ctrl-C/SIGTERM, clean up.
 
     rclpy's own signal handler would shut the context down at once, so the final counters
-    could no longer reach ``/rosout``; instead SIGINT (KeyboardInterrupt) and SIGTERM end the
-    spin loop, the node is destroyed while the context is still valid (workers joined, final
-    counters logged), then rclpy shuts down. Returns the process exit code: 0 on a normal stop,
-    2 when a parameter is invalid (the message names it; no traceback: it is the user's to fix).
+    could no longer reach ``/rosout``; instead SIGINT and SIGTERM end the spin loop, the node
+    is destroyed while the context is still valid (workers joined, final counters logged),
+    then rclpy shuts down. The signals set a flag rather than raise: a KeyboardInterrupt that
+    lands while the constructor finishes (just after its "ready" line) would leave no node to
+    destroy and no final counters. A second Ctrl-C interrupts at once (a constructor that
+    hangs). Returns the process exit code: 0 on a normal stop, 2 when a parameter is invalid
+    (the message names it; no traceback: it is the user's to fix).
     """
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     stop = threading.Event()
-    previous_term = signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+
+    def on_signal(signum: int, frame: object) -> None:
+        if signum == signal.SIGINT and stop.is_set():
+            raise KeyboardInterrupt  # the second Ctrl-C
+        stop.set()
+
+    previous_term = signal.signal(signal.SIGTERM, on_signal)
+    previous_int = signal.signal(signal.SIGINT, on_signal)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     code = 0
@@ -289,4 +299,5 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
             node.destroy_node()
         rclpy.try_shutdown()
         signal.signal(signal.SIGTERM, previous_term)
+        signal.signal(signal.SIGINT, previous_int)
     return code
