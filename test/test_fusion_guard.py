@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from depth_fusion_ros.fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence, assess
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
@@ -176,16 +177,20 @@ def test_bad_thresholds_raise(field, value):
         GuardConfig(**{field: value})
 
 
-def _local_deviation_loop(points, residual, radius, min_neighbours):
-    """The per-point loop ``guard._local_deviation`` replaced: the reference it must match."""
+def _local_deviation_loop(points, residual, radius, min_neighbours, max_neighbours=None):
+    """The per-point loop ``guard._local_deviation`` replaced: the reference it must match
+    (the nearest ``max_neighbours`` within the radius; every one when None)."""
     from scipy.spatial import cKDTree
 
     neighbours = cKDTree(points).query_ball_point(points, r=radius)
     out = np.full(len(points), np.nan)
     counts = np.zeros(len(points))
     for i, idx in enumerate(neighbours):
-        others = [j for j in idx if j != i]
+        others = np.array([j for j in idx if j != i], dtype=int)
         counts[i] = len(others)
+        if max_neighbours is not None:
+            order = np.argsort(np.hypot(*(points[others] - points[i]).T), kind='stable')
+            others = others[order[:max_neighbours]]
         if len(others) >= min_neighbours:
             out[i] = abs(residual[i] - np.median(residual[others]))
     return out, float(np.median(counts))
@@ -194,7 +199,8 @@ def _local_deviation_loop(points, residual, radius, min_neighbours):
 @pytest.mark.parametrize('density', [0.02, 0.4])
 def test_local_deviation_is_the_per_point_median_exactly(density):
     """Vectorised, the same numbers as the loop, on pixel points (sparse and isolated ones,
-    dense ones, duplicates, even and odd counts, tied residuals)."""
+    dense ones, duplicates, even and odd counts, tied residuals), with a cap above every
+    point's neighbour count."""
     from depth_fusion_ros.fusion import guard
 
     rng = np.random.default_rng(7)
@@ -204,9 +210,27 @@ def test_local_deviation_is_the_per_point_median_exactly(density):
     residual = rng.normal(0.0, 0.2, len(points))
     residual[::7] = residual[0]  # ties: the median must not depend on their order
     expected = _local_deviation_loop(points, residual, 12.0, 2)
-    got = guard._local_deviation(points, residual, 12.0, 2)
+    got = guard._local_deviation(points, residual, 12.0, 2, max_neighbours=500)
     np.testing.assert_array_equal(got[0], expected[0])
     assert got[1] == expected[1]
     assert np.isfinite(got[0]).any()
-    empty = guard._local_deviation(np.zeros((0, 2)), np.zeros(0), 12.0, 2)
+    empty = guard._local_deviation(np.zeros((0, 2)), np.zeros(0), 12.0, 2, 32)
     assert empty[0].shape == (0,) and empty[1] == 0.0
+
+
+def test_local_deviation_takes_the_nearest_neighbours_and_counts_every_one():
+    """Dense points (the filter's): the median is over the nearest ``max_neighbours`` within
+    the radius, the support counts all of them (a strided sample beyond SUPPORT_SAMPLE points)."""
+    from depth_fusion_ros.fusion import guard
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(0.0, 60.0, (1500, 2))  # ~110 neighbours within 12 px: no distance ties
+    residual = 0.1 * np.sin(points[:, 0] / 9.0) + rng.normal(0.0, 0.05, len(points))
+    expected = _local_deviation_loop(points, residual, 12.0, 2, max_neighbours=16)
+    got = guard._local_deviation(points, residual, 12.0, 2, max_neighbours=16)
+    np.testing.assert_allclose(got[0], expected[0], rtol=0, atol=1e-15)
+    assert got[1] == expected[1] and got[1] > 16
+    many = rng.uniform(0.0, 200.0, (3 * guard.SUPPORT_SAMPLE, 2))
+    _, support = guard._local_deviation(many, np.zeros(len(many)), 12.0, 2, max_neighbours=8)
+    exact = np.median(cKDTree(many).query_ball_point(many, r=12.0, return_length=True) - 1)
+    assert abs(support - exact) <= 0.05 * exact

@@ -92,6 +92,7 @@ FUSION_LIMITS: dict[str, Any] = {
 GUARD_LIMITS: dict[str, Any] = {
     'neighbourhood_px': (1e-3, None),
     'min_neighbours': (1, None),
+    'max_neighbours': (1, 10000),
     'local_tolerance': (1e-6, None),
     'max_relative_std': (1e-6, None),
     'min_agreement': (0.0, 1.0),
