@@ -108,7 +108,7 @@ def test_slam_rate_poses_are_interpolated_and_depth_is_accurate(synthetic_sequen
         snap = node.stats.snapshot()
 
     assert snap.dropped == {}, snap.summary()
-    assert [msg.data for msg in methods] == ['sweep']  # fusion_node's stage 1 follows it
+    assert {msg.data for msg in methods} == {'sweep'}  # fusion_node's stage 1 follows it (announce.py)
     assert snap.received['pose'] == cam.poses_published and node.posed_count == len(seq.frames)
     key_stamps = [stamps[k] for k in expected_keys]
     for name in ('depth', 'score', 'keyframe', 'keyframe_info'):

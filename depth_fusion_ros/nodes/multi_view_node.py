@@ -34,7 +34,6 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
-from std_msgs.msg import String
 
 from ..camera import PinholeCamera
 from ..data import messages
@@ -45,6 +44,7 @@ from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
 from . import robot_inputs
+from .announce import announce
 from .base import DepthFusionNode, run_node
 from .diagnostics import Requirement
 from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, GraphEvents
@@ -60,7 +60,7 @@ from .image_input import (
 from .info_wait import AwaitingCalibration
 from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
-from .qos import latched_qos, qos_profile
+from .qos import qos_profile
 
 NODE_NAME = 'multi_view_node'
 
@@ -267,8 +267,7 @@ class MultiViewNode(DepthFusionNode):
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
         self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
-        self._method_pub = self.create_publisher(String, TOPIC_METHOD, latched_qos())
-        self._method_pub.publish(String(data=str(p['multi_view.method'])))
+        self._method_pub = announce(self, TOPIC_METHOD, str(p['multi_view.method']))
         self.events = GraphEvents(self)
         self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), int(p['max_pending_images']))
         self.worker = self.make_worker('multi_view', self._process, on_lost=self._on_keyframe_lost)

@@ -30,14 +30,13 @@ from typing import Any
 
 import numpy as np
 from sensor_msgs.msg import CameraInfo, Image
-from std_msgs.msg import String
 
 from ..data import messages
+from .announce import announce
 from .base import DepthFusionNode, run_node
 from .graph_events import GraphEvents
 from .image_input import CameraInput, InputError, StampGuard, WorkingImage, working_grid_parameters
 from .params import ParamSpec
-from .qos import latched_qos
 from .single_view_adaptation import ADAPTATION_PARAMETERS, NodeAdaptation, adaptation_wanted
 
 NODE_NAME = 'single_view_node'
@@ -92,8 +91,7 @@ class SingleViewNode(DepthFusionNode):
             self.predictor.predict(np.zeros((int(p['height']), int(p['width']), 3), dtype=np.uint8))
         self._stamps = StampGuard('image')
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
-        self._kind_pub = self.create_publisher(String, TOPIC_OUTPUT_KIND, latched_qos())
-        self._kind_pub.publish(String(data=self.output_kind))
+        self._kind_pub = announce(self, TOPIC_OUTPUT_KIND, self.output_kind)
         self.worker = self.make_worker('single_view', self._process)
         self.adaptation: NodeAdaptation | None = None
         if adaptation_wanted(p):
