@@ -123,6 +123,55 @@ def test_guard_rolls_back_a_poisoned_update_and_restores_weights_and_optimiser(s
     assert adapter.observe(_gt_sample(small_sequence, 5)).status == 'updated'
 
 
+def test_a_step_that_raises_leaves_the_weights_and_optimiser_as_before(
+    small_sequence, tiny_model, monkeypatch
+):
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict({**FAST, 'steps_per_keyframe': 3}))
+    assert adapter.observe(_gt_sample(small_sequence, 0)).status == 'updated'
+    weights = {k: v.clone() for k, v in adapter.net.state_dict().items()}
+    moments = adapter.optimizer.state_dict()['state'][0]['exp_avg'].clone()
+    real_step, calls = adapter.optimizer.step, []
+
+    def failing_step():  # two good steps, then one that fails half-way
+        calls.append(1)
+        real_step()
+        if len(calls) == 3:
+            raise RuntimeError('injected')
+
+    monkeypatch.setattr(adapter.optimizer, 'step', failing_step)
+    with pytest.raises(RuntimeError, match='injected'):
+        adapter.observe(_gt_sample(small_sequence, 1))
+    for key, value in adapter.net.state_dict().items():
+        assert torch.equal(value, weights[key]), key
+    assert torch.equal(adapter.optimizer.state_dict()['state'][0]['exp_avg'], moments)
+
+
+def test_a_compile_session_in_another_thread_does_not_break_the_optimiser_step(small_sequence, tiny_model):
+    """torch's compile flag is process-wide: a session starting or ending during Adam's grouped
+    step gave it tensors and floats (TypeError in the composed graph). Sessions run inside
+    COMPILE_LOCK (the compiled calls hold it), so the adaptation step never sees one change."""
+    import threading
+
+    from depth_fusion_ros.compile_lock import COMPILE_LOCK
+
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict({**FAST, 'steps_per_keyframe': 4}))
+    stop = threading.Event()
+
+    def compiler() -> None:  # what a compiled call does: flag up and down under the lock
+        while not stop.is_set():
+            with COMPILE_LOCK, torch.compiler._compile_session_context():
+                pass
+
+    thread = threading.Thread(target=compiler, daemon=True)
+    thread.start()
+    try:
+        reports = [adapter.observe(_gt_sample(small_sequence, i)) for i in range(4)]
+    finally:
+        stop.set()
+        thread.join()
+    assert all(r.status == 'updated' for r in reports), [r.status for r in reports]
+
+
 def test_too_few_points_is_skipped_and_counted(small_sequence, tiny_model):
     adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict({**FAST, 'min_points': 10_000}))
     report = adapter.observe(_gt_sample(small_sequence, 0))

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..compile_lock import COMPILE_LOCK
 from ..singleview.metadata import ModelMetadata
 from ..singleview.predictor import DepthPredictor, predictor_from_network, resolve_device
 from .batch import batch_loss
@@ -199,6 +200,27 @@ class Adapter:
         self._weights.restore()
         self._token = token
 
+    def _steps(self, prepared: PreparedSample, abort: Callable[[], bool] | None) -> list[torch.Tensor] | None:
+        """``steps_per_keyframe`` optimiser steps on ``prepared`` and replayed keyframes: their
+        losses (on the device), or None when ``abort`` said stop between two steps."""
+        cfg = self.config
+        losses = []
+        seed = [int(cfg.seed), int(self.counters.observed)]
+        for step in range(cfg.steps_per_keyframe):
+            if abort is not None and abort():
+                return None
+            rng = np.random.default_rng([*seed, step])
+            batch = [prepared, *self.buffer.draw(cfg.replay_per_step, rng)]
+            loss = self.loss(batch)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.grad_clip > 0:
+                nn.utils.clip_grad_norm_(self.net.parameters(), cfg.grad_clip)
+            with COMPILE_LOCK:  # Adam's step reads torch's global compile flag (compile_lock.py)
+                self.optimizer.step()
+            losses.append(loss.detach())
+        return losses
+
     def observe(self, sample: AdaptSample, abort: Callable[[], bool] | None = None) -> UpdateReport:
         """Train on ``sample`` (+ replay); keep the update only if the guard allows it.
 
@@ -217,21 +239,14 @@ class Adapter:
         before = self._guard(guard_set)
         start = self._token
         self._weights.save()
-        losses = []
-        seed = [int(cfg.seed), int(self.counters.observed)]
-        for step in range(cfg.steps_per_keyframe):
-            if abort is not None and abort():
-                self._rollback(start)
-                return self._skip(sample.key, 'stopped', t0)
-            rng = np.random.default_rng([*seed, step])
-            batch = [prepared, *self.buffer.draw(cfg.replay_per_step, rng)]
-            loss = self.loss(batch)
-            self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if cfg.grad_clip > 0:
-                nn.utils.clip_grad_norm_(self.net.parameters(), cfg.grad_clip)
-            self.optimizer.step()
-            losses.append(loss.detach())
+        try:
+            losses = self._steps(prepared, abort)
+        except BaseException:
+            self._rollback(start)  # a failed step leaves no half-applied update behind
+            raise
+        if losses is None:
+            self._rollback(start)
+            return self._skip(sample.key, 'stopped', t0)
         self._token = next(self._tokens)
         values = torch.stack(losses).tolist()  # the steps' only wait for the device
         if not all(math.isfinite(v) for v in values):

@@ -83,7 +83,7 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'neighbourhood_px': 'radius (px) of the Ω neighbourhood a point is checked against',
     'min_neighbours': 'Ω neighbours within the radius a point needs to be checked (else it is not trusted)',
     'max_neighbours': 'the median a point is checked against is over its nearest this many Ω neighbours '
-    'within the radius (bounds the cost at the filter\'s dense points)',
+    "within the radius (bounds the cost at the filter's dense points)",
     'local_tolerance': 'a point whose log residual deviates from its neighbours by more is inconsistent',
     'max_relative_std': 'points whose depth_std / depth (1 px of matching error) is above this: untrusted',
     'min_agreement': 'points confirmed by a smaller fraction of the neighbour frames are untrusted',

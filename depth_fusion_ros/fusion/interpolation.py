@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from ..chunking import effective_chunk_elements
+from ..compile_lock import serialised
 from .weights import (
     MAX_EXPONENT,
     Samples,
@@ -286,7 +287,8 @@ def _maybe_compiled(
         return eager
     key = (name, params, device.type)
     if key not in _COMPILED:
-        _COMPILED[key] = torch.compile(eager, dynamic=True, options=_inductor_options())
+        # serialised: a compile session flips a process-wide flag other threads read (compile_lock.py)
+        _COMPILED[key] = serialised(torch.compile(eager, dynamic=True, options=_inductor_options()))
     compiled = _COMPILED[key]
 
     backup = fallback or eager
