@@ -36,6 +36,22 @@ def test_ransac_is_deterministic_for_a_seed() -> None:
     assert (a.a, a.b) == (b.a, b.b) and np.array_equal(a.inliers, b.inliers)
 
 
+def test_many_points_are_scored_on_a_subsample_and_every_point_is_judged(monkeypatch) -> None:
+    """Beyond SCORE_POINTS the hypotheses are ranked on a seeded subsample (the filter's
+    20-40k points): the same line as ranking on every point, inliers over all of them."""
+    from depth_fusion_ros.fusion import selection
+
+    s, m, truth = _line_with_outliers(n=30_000, n_out=9_000, seed=4)
+    fit = fit_ransac(s, m, threshold=0.1, seed=3)
+    again = fit_ransac(s, m, threshold=0.1, seed=3)
+    assert (fit.a, fit.b) == (again.a, again.b) and np.array_equal(fit.inliers, again.inliers)
+    monkeypatch.setattr(selection, 'SCORE_POINTS', 10**9)  # every point scored: the old way
+    full = fit_ransac(s, m, threshold=0.1, seed=3)
+    assert fit.a == pytest.approx(full.a, rel=1e-3) and fit.b == pytest.approx(full.b, abs=1e-3)
+    assert fit.inliers.size == 30_000 and (fit.inliers != full.inliers).sum() <= 30
+    assert (fit.inliers & ~truth).sum() <= 0.01 * truth.sum()
+
+
 def test_inverse_depth_model() -> None:
     rng = np.random.default_rng(1)
     depth = rng.uniform(0.8, 4.0, 200)

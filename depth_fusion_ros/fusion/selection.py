@@ -17,8 +17,9 @@ Single-view sources announce an *output kind*:
 
 Residuals are always measured in metres of depth, so the threshold means the same for every
 kind. Hypotheses come from seeded random pairs (deterministic for a seed), are scored with
-the truncated quadratic loss (MSAC) and the best one is refined by least squares on its
-inliers until the inlier set stops changing.
+the truncated quadratic loss (MSAC; on a seeded subsample of ``SCORE_POINTS`` points when
+there are more) and the best one is refined by least squares on its inliers (all points)
+until the inlier set stops changing.
 """
 
 from __future__ import annotations
@@ -38,6 +39,12 @@ MIN_DEPTH = 1e-2
 RESIDUAL_BLOCK = 1 << 22
 #: Least-squares refinements of the best hypothesis at most.
 REFINEMENTS = 5
+#: Hypotheses are scored on at most this many points (a seeded subsample beyond; the inliers
+#: and the refinement always use every point). The temporal filter sends 20-40k points per
+#: keyframe: scoring 200 hypotheses on all of them took 40-200 ms of the fusion node's
+#: keyframe, while the MSAC cost of 4096 random points ranks the hypotheses as well (its
+#: relative standard error is below 2 %); the refinement then settles on the same line.
+SCORE_POINTS = 4096
 
 
 def check_output_kind(output_kind: str) -> None:
@@ -172,11 +179,15 @@ def fit_ransac(
         return failed_fit(n, inverse, 'no_consensus')
 
     best_cost, best = np.inf, -1
-    block = max(1, RESIDUAL_BLOCK // idx.size)
+    scored = np.arange(idx.size)
+    if idx.size > SCORE_POINTS:  # its own stream: the hypotheses stay those of every point count
+        scored = np.sort(np.random.default_rng([seed, 1]).choice(idx.size, SCORE_POINTS, replace=False))
+    s_scored, m_scored = su[scored], mu[scored]
+    block = max(1, RESIDUAL_BLOCK // scored.size)
     for start in range(0, a.size, block):
         sl = slice(start, start + block)
-        r = _residuals(a[sl], b[sl], su, mu, inverse)
-        t = _thresholds(a[sl], b[sl], su, threshold, relative, inverse)
+        r = _residuals(a[sl], b[sl], s_scored, m_scored, inverse)
+        t = _thresholds(a[sl], b[sl], s_scored, threshold, relative, inverse)
         cost = np.minimum(r / t, 1.0) ** 2
         cost = cost.sum(axis=1)
         k = int(np.argmin(cost))
