@@ -243,7 +243,11 @@ class MultiViewNode(DepthFusionNode):
         self.device = str(p['device'])
         try:
             self.filter_feed = FilterFeed.from_parameters(
-                p, self.config, self.device, lambda message: self.stats.dropped('filter_behind', message)
+                p,
+                self.config,
+                self.device,
+                lambda message: self.stats.dropped('filter_behind', message),
+                lambda message: self.stats.dropped('filter_error', message),
             )
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
@@ -434,22 +438,25 @@ class MultiViewNode(DepthFusionNode):
         if not self._destroyed:
             self._give_up_pending('node shutting down')
         super().destroy_node()
+        if self.filter_feed is not None:
+            self.filter_feed.close()
 
     def _on_posed_frame(self, pending: _Pending, T_wc: np.ndarray) -> None:
         image = pending.image
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
-        if self.filter_feed is not None:
-            self.filter_feed.append(frame)  # the filter sees every posed frame
+        job = None
         if self._is_keyframe_candidate(frame):
             neighbours = self._select_neighbours(frame, image.camera)
             if len(neighbours) >= int(self.params['min_neighbours']):
-                self.keyframes_decided += 1
-                self._last_keyframe_pose = T_wc
-                self.events.event(image.stamp_ns, EVENT_CHOSEN)
-                self.worker.submit(
-                    _KeyframeJob(frame, neighbours, image.camera, image.header, pending.received_at)
-                )
+                job = _KeyframeJob(frame, neighbours, image.camera, image.header, pending.received_at)
+        if self.filter_feed is not None:  # the filter sees every posed frame, as it comes
+            self.filter_feed.append(frame, image.camera, keyframe=job is not None)
+        if job is not None:
+            self.keyframes_decided += 1
+            self._last_keyframe_pose = T_wc
+            self.events.event(image.stamp_ns, EVENT_CHOSEN)
+            self.worker.submit(job)
         self.frames.append(frame)
 
     # --- keyframe policy ----------------------------------------------------------------------------
@@ -483,6 +490,8 @@ class MultiViewNode(DepthFusionNode):
 
     def _on_keyframe_lost(self, job: _KeyframeJob, reason: str) -> None:
         """A chosen keyframe the worker dropped before announcing it: the graph must hear of it."""
+        if self.filter_feed is not None:
+            self.filter_feed.discard(job.key.index)
         self.events.dropped(header_stamp_ns(job), reason)
 
     # --- worker (heavy) -----------------------------------------------------------------------------

@@ -1,0 +1,67 @@
+"""The multi-view node's filter feed: every frame fed as it comes, keyframe estimates handed over."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from depth_fusion_ros.multiview.filter import DepthFilter
+from depth_fusion_ros.multiview.filter_config import FilterConfig
+from depth_fusion_ros.multiview.semidense import MultiViewConfig
+from depth_fusion_ros.nodes.multi_view_filter import FilterFeed
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+
+def _feed(max_queued: int = 100) -> tuple[FilterFeed, list[str], list[str]]:
+    drops, errors = [], []
+    feed = FilterFeed(FilterConfig(), MultiViewConfig(), 'cpu', max_queued, drops.append, errors.append)
+    return feed, drops, errors
+
+
+def test_keyframe_estimates_are_those_of_feeding_up_to_the_keyframe(small_sequence):
+    """Frames after a keyframe, fed before the worker asks, do not change its estimate."""
+    seq = small_sequence
+    feed, drops, errors = _feed()
+    keys = {2, 4}
+    try:
+        for frame in seq.frames:
+            feed.append(frame, seq.camera, keyframe=frame.index in keys)
+        got = {k: feed.result_for(seq.frames[k], seq.camera) for k in sorted(keys)}
+        deadline = time.monotonic() + 30.0
+        while not feed.idle() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert feed.fed == len(seq.frames)  # the frames after the last keyframe too
+    finally:
+        feed.close()
+    reference = DepthFilter(seq.camera, FilterConfig(), MultiViewConfig(), 'cpu')
+    for frame in seq.frames[: max(keys) + 1]:
+        reference.process(frame.gray, frame.pose)
+        if frame.index in keys:
+            expected = reference.result(frame.pose)
+            np.testing.assert_array_equal(got[frame.index].depth, expected.depth)
+            assert np.isfinite(expected.depth).any()
+    assert drops == [] and errors == []
+
+
+def test_a_discarded_keyframe_is_not_kept_and_a_dropped_frame_fails_its_job(small_sequence):
+    seq = small_sequence
+    feed, drops, _ = _feed(max_queued=1)
+    feed.close()  # no feed thread: the queue only fills
+    feed.append(seq.frames[0], seq.camera, keyframe=True)
+    feed.append(seq.frames[1], seq.camera)  # pushes the keyframe out: counted, its job fails
+    assert len(drops) == 1 and 'dropped' in drops[0]
+    with pytest.raises(RuntimeError, match='dropped'):
+        feed.result_for(seq.frames[0], seq.camera)
+    feed.discard(7)  # lost before the filter got there: never kept
+    feed._keep(7, RuntimeError('late'))
+    assert 7 not in feed._results
+
+
+def test_a_closed_feed_fails_a_waiting_worker_at_once(small_sequence):
+    feed, _, _ = _feed()
+    feed.close()
+    with pytest.raises(RuntimeError, match='shutting down'):
+        feed.result_for(small_sequence.frames[3], small_sequence.camera)
