@@ -460,3 +460,50 @@ def test_same_instant_messages_play_calibration_first():
     stored = [('img', 1, 'a'), ('info', 1, 'b'), ('pose', 1, 'c'), ('img', 2, 'd'), ('pose', 2, 'e')]
     played = list(calibration_first(iter(stored), types.get))
     assert [(c, t) for c, t, _ in played] == [('info', 1), ('pose', 1), ('img', 1), ('pose', 2), ('img', 2)]
+
+
+def test_wait_warm_holds_the_replay_until_a_warming_node_is_warm(context, bag):
+    """A node ready while it warms up (fusion kernels compiling) says ``warm: false``; with
+    ``wait_warm`` the replayer plays only after its warm line; the watcher keeps both."""
+    from sensor_msgs.msg import Image
+
+    from depth_fusion_ros.nodes.graph_events import GraphEvents, ReadyStatus
+
+    warming = rclpy.create_node(f'warming_{os.getpid()}', context=context)
+    warming.create_subscription(Image, IMAGE, lambda m: None, QoSProfile(depth=10))
+    events = GraphEvents(warming)
+    listener = Listener(context, {IMAGE: Image})
+    replayer = make_replayer(context, bag, rate=4.0, wait_ready=[warming.get_name()], wait_warm=30.0)
+    warm_at: list[float] = []
+
+    def warm_later() -> None:
+        time.sleep(1.5)
+        warm_at.append(time.monotonic())
+        events.warm('kernels built: warm')
+
+    with Spinning(context, listener.node, replayer, warming):
+        status = events.ready(warm=False)
+        assert not status.warm and ReadyStatus.from_json(status.to_json()) == status
+        threading.Thread(target=warm_later, daemon=True).start()
+        replayer.start()
+        assert replayer.finished.wait(30.0), 'replayer did not finish'
+        listener.settle()
+        name = warming.get_fully_qualified_name()
+        assert replayer.pacer.ready.statuses[name].warm is False  # the ready line stays the first
+        assert replayer.pacer.ready.warm_statuses[name].warm and not replayer.pacer.ready.cold([name])
+    assert replayer.error is None and len(listener.got[IMAGE]) == 20
+    assert listener.got[IMAGE][0][0] >= warm_at[0]  # not one image before the warm line
+
+
+def test_ready_lines_without_warm_are_warm_and_a_warm_line_before_ready_makes_it_warm(context):
+    from depth_fusion_ros.nodes.graph_events import GraphEvents, ReadyStatus
+
+    legacy = ReadyStatus.from_json('{"node": "/n", "subscribes": ["/a"], "seconds": 1.5}')
+    assert legacy.warm and legacy.subscribes == ('/a',)
+    node = rclpy.create_node(f'early_{os.getpid()}', context=context)
+    try:
+        events = GraphEvents(node)
+        assert events.warm() is None  # nothing published before the ready line
+        assert events.ready(subscribes=['/a'], warm=False).warm  # the warm-up finished first
+    finally:
+        node.destroy_node()

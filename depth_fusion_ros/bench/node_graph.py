@@ -202,6 +202,15 @@ def measure_run(
     ]
     rows += [
         BenchRow(
+            f'{mode}: time to warm, {n.removesuffix("_node")}',
+            t,
+            's',
+            'ready before, at eager speed; the replayer waits for this (bag_replayer.wait_warm)',
+        )
+        for n, t in result.warm_seconds.items()
+    ]
+    rows += [
+        BenchRow(
             f'{mode}: keyframes chosen', len(result.chosen), 'kf', f'{expected} expected of {images} frames'
         ),
         BenchRow(

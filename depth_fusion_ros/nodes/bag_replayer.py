@@ -94,6 +94,15 @@ REPLAYER_PARAMS: tuple[ParamSpec, ...] = (
         "replayer's publishers are matched with their subscriptions (empty or ['']: do not wait)",
     ),
     ParamSpec(
+        'wait_warm',
+        0.0,
+        'then wait up to this many seconds for the wait_ready nodes that warm up in the background '
+        '(fusion_node compiling its kernels) to say they are warm, so the replay meets the graph at '
+        'full speed; then play anyway, with a warning (0: play as soon as they are ready)',
+        0.0,
+        600.0,
+    ),
+    ParamSpec(
         'pace',
         False,
         'paced replay: before each image of pace_topic, wait while the graph is busy (see '
@@ -560,11 +569,30 @@ class BagReplayer(Node):
             missing = self._not_ready(pubs, wait_topics or set(played), count, nodes)
             missing = missing or self._not_ready_nodes(played, ready_nodes)
             if not missing:
+                self._wait_warm(ready_nodes)
                 return
             if deadline is not None and time.monotonic() > deadline:
                 self.get_logger().warning(f'waited {timeout:g} s for subscribers, playing anyway: {missing}')
                 return
             self._stop.wait(0.05)
+
+    def _wait_warm(self, nodes: list[str]) -> None:
+        """Up to ``wait_warm`` s for the ready ``nodes`` still warming up to say they are warm."""
+        limit = float(self.params['wait_warm'])
+        if limit <= 0 or not nodes or self.pacer is None:
+            return
+        cold = self.pacer.ready.cold(nodes)
+        if not cold:
+            return
+        self.get_logger().info(f'waiting up to {limit:g} s for {", ".join(cold)} to warm up before playing')
+        start = time.monotonic()
+        while not self._stop.is_set() and (cold := self.pacer.ready.cold(nodes)):
+            if time.monotonic() - start > limit:
+                self.get_logger().warning(f'{", ".join(cold)} not warm after {limit:g} s: playing anyway')
+                return
+            self._stop.wait(0.05)
+        if not cold:
+            self.get_logger().info(f'graph warm after {time.monotonic() - start:.1f} s: playing')
 
     def _not_ready_nodes(self, pubs: dict[str, Any], nodes: list[str]) -> str:
         """What is missing before the ``wait_ready`` nodes can be fed ('' when nothing): their

@@ -259,7 +259,7 @@ class FusionNode(DepthFusionNode):
             f'fusion ({self.config.mode} mode) on {p["device"]}: {self.resolve_topic_name(TOPIC_SINGLE)} + '
             f'{self.resolve_topic_name(TOPIC_MV_DEPTH)} -> {self.resolve_topic_name(TOPIC_FUSED_DEPTH)}'
         )
-        self.events.ready()
+        self.events.ready(warm=self.kernels_ready.is_set())  # not warm while compiling in the background
 
     # --- callbacks: collect parts by stamp ------------------------------------------------------------
 

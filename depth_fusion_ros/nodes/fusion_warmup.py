@@ -40,6 +40,7 @@ def start_kernels(node: Any, config: FusionConfig, background: bool) -> FusionCo
             warm_up(config)
         except Exception as exc:  # eager stays in use: slower, never wrong
             node.get_logger().warning(f'compiling the fusion kernels failed ({exc!r}); staying eager')
+            _say_warm(node, 'fusion kernels stay eager: warm')  # no faster state is coming
             return
         if getattr(node, '_destroyed', False):
             return
@@ -48,10 +49,18 @@ def start_kernels(node: Any, config: FusionConfig, background: bool) -> FusionCo
         node.get_logger().info(
             f'fusion kernels compiled in the background in {time.monotonic() - start:.1f} s; switched'
         )
+        _say_warm(node, 'fusion kernels compiled: warm')
 
     node.compile_thread = threading.Thread(target=compile_then_switch, name=COMPILE_THREAD, daemon=True)
     node.compile_thread.start()
     return dataclasses.replace(config, compile_kernel=False)
+
+
+def _say_warm(node: Any, what: str) -> None:
+    """The node's warm line (``graph_events``: a replayer may wait for it before playing)."""
+    events = getattr(node, 'events', None)
+    if events is not None:
+        events.warm(what)
 
 
 def finish_compiling(node: Any, timeout: float) -> bool:

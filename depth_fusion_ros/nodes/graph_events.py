@@ -73,22 +73,27 @@ def ready_qos(depth: int = 1) -> QoSProfile:
 
 @dataclass(frozen=True)
 class ReadyStatus:
-    """One node's ready line: its name, the topics it subscribes to, seconds its start took."""
+    """One node's ready line: its name, the topics it subscribes to, seconds its start took,
+    and whether it is *warm*: at full speed (false while kernels compile in the background: it
+    processes inputs already, slower; a second line says warm when they are built)."""
 
     node: str
     subscribes: tuple[str, ...]
     seconds: float
+    warm: bool = True
 
     def to_json(self) -> str:
-        return json.dumps({'node': self.node, 'subscribes': list(self.subscribes), 'seconds': self.seconds})
+        doc = {'node': self.node, 'subscribes': list(self.subscribes), 'seconds': self.seconds}
+        return json.dumps({**doc, 'warm': self.warm})
 
     @classmethod
     def from_json(cls, text: str) -> ReadyStatus:
-        """Parse a ready line; ``ValueError`` when it is not one."""
+        """Parse a ready line; ``ValueError`` when it is not one (no ``warm``: warm)."""
         try:
             doc = json.loads(text)
-            return cls(str(doc['node']), tuple(str(t) for t in doc['subscribes']), float(doc['seconds']))
-        except (ValueError, KeyError, TypeError) as exc:
+            subscribes = tuple(str(t) for t in doc['subscribes'])
+            return cls(str(doc['node']), subscribes, float(doc['seconds']), bool(doc.get('warm', True)))
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
             raise ValueError(f'not a ready status: {text[:80]!r} ({exc})') from None
 
 
@@ -109,6 +114,8 @@ class GraphEvents:
         self._ready = node.create_publisher(String, TOPIC_READY, ready_qos())
         self._lock = threading.Lock()
         self.started = time.monotonic()
+        self._subscribes: tuple[str, ...] | None = None  # set by ready()
+        self._warm_early = False
 
     def event(self, stamp_ns: int, event: str) -> None:
         """Publish one event about the image / keyframe stamped ``stamp_ns``."""
@@ -122,16 +129,35 @@ class GraphEvents:
         """``dropped:multi_view.worker_queue_full``: which node gave the keyframe up, and why."""
         self.event(stamp_ns, f'{DROPPED}{self._node.get_name().removesuffix("_node")}.{reason}')
 
-    def ready(self, subscribes: Iterable[str] | None = None) -> ReadyStatus:
-        """Tell the graph this node processes inputs from now on; logs the one "ready" line."""
+    def ready(self, subscribes: Iterable[str] | None = None, warm: bool = True) -> ReadyStatus:
+        """Tell the graph this node processes inputs from now on; logs the one "ready" line.
+        ``warm=False``: still warming up in the background; :meth:`warm` follows (any thread)."""
         node = self._node
         if subscribes is None:
             subscribes = sorted({s.topic_name for s in node.subscriptions})
-        seconds = time.monotonic() - self.started
-        status = ReadyStatus(node.get_fully_qualified_name(), tuple(subscribes), seconds)
-        self._ready.publish(self._string_cls(data=status.to_json()))
-        node.get_logger().info(f'ready ({status.seconds:.1f} s after start)')
+        with self._lock:
+            self._subscribes = tuple(subscribes)
+            warm = warm or self._warm_early
+            status = ReadyStatus(node.get_fully_qualified_name(), self._subscribes, self._age(), warm)
+            self._ready.publish(self._string_cls(data=status.to_json()))
+        node.get_logger().info(f'ready ({status.seconds:.1f} s after start{"" if warm else ", warming up"})')
         return status
+
+    def warm(self, what: str = 'warm') -> ReadyStatus | None:
+        """Tell the graph the background warm-up is over: the ready line again, ``warm``. Before
+        :meth:`ready` it only makes the ready line say warm."""
+        node = self._node
+        with self._lock:
+            if self._subscribes is None:
+                self._warm_early = True
+                return None
+            status = ReadyStatus(node.get_fully_qualified_name(), self._subscribes, self._age(), True)
+            self._ready.publish(self._string_cls(data=status.to_json()))
+        node.get_logger().info(f'{what} ({status.seconds:.1f} s after start)')
+        return status
+
+    def _age(self) -> float:
+        return time.monotonic() - self.started
 
 
 def header_stamp(msg: Any) -> int:
@@ -217,6 +243,9 @@ class ReadyWatcher:
         self._lock = threading.Lock()
         self.statuses: dict[str, ReadyStatus] = {}
         self.arrival: dict[str, float] = {}
+        #: Each node's first warm status (its ready line when it was warm at once), and when.
+        self.warm_statuses: dict[str, ReadyStatus] = {}
+        self.warm_arrival: dict[str, float] = {}
         self.errors: list[str] = []
 
     def on_ready(self, msg: Any) -> None:
@@ -227,14 +256,23 @@ class ReadyWatcher:
                 self.errors.append(str(exc))
             return
         with self._lock:
-            self.statuses[status.node] = status
+            self.statuses.setdefault(status.node, status)  # the ready line (a warm line repeats it)
             self.arrival.setdefault(status.node, time.monotonic())
+            if status.warm:
+                self.warm_statuses.setdefault(status.node, status)
+                self.warm_arrival.setdefault(status.node, time.monotonic())
 
     def missing(self, nodes: Sequence[str]) -> list[str]:
         """Of ``nodes`` (names, with or without the leading '/'), those not ready yet."""
         with self._lock:
             have = set(self.statuses)
         return [n for n in nodes if _full_name(n) not in have]
+
+    def cold(self, nodes: Sequence[str]) -> list[str]:
+        """Of ``nodes``, those that are ready but have not said they are warm yet."""
+        with self._lock:
+            ready = [n for n in nodes if _full_name(n) in self.arrival]
+            return [n for n in ready if _full_name(n) not in self.warm_arrival]
 
     def subscribers_of(self, topic: str, nodes: Sequence[str]) -> int:
         """How many of the ready ``nodes`` subscribe to ``topic``."""

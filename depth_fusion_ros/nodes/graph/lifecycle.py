@@ -466,6 +466,13 @@ class GraphRun:
                 for n in self.graph_nodes
                 if (st := self.ready.statuses.get('/' + n)) is not None
             },
+            warm_seconds={
+                n: warm.seconds
+                for n in self.graph_nodes
+                if (st := self.ready.statuses.get('/' + n)) is not None
+                and not st.warm
+                and (warm := self.ready.warm_statuses.get('/' + n)) is not None
+            },
             missing=self.pending_keyframes(),
             recorded=None,
             counts=dict(self.recorder.counts),

@@ -49,6 +49,9 @@ class RunOptions:
     threads_per_node: int | None = None
     #: Processes: seconds for the nodes to start (torch import, model load) before giving up.
     startup_timeout: float = 120.0
+    #: Seconds the replayer waits, once the nodes are ready, for those warming up in the
+    #: background (fusion kernels compiling) to be warm; then it plays anyway (0: at once).
+    warm_timeout: float = 60.0
     executor_threads: int = 4
     #: Processes: folder for each child's log (``None``: children log to this terminal).
     log_dir: Path | None = None
@@ -102,6 +105,9 @@ class RunResult:
     images_handled: int = 0
     #: Per node, of those the seconds its constructor took (the rest: interpreter, imports).
     constructor_seconds: dict[str, float] = field(default_factory=dict)
+    #: Nodes that were ready before warm (kernels compiling in the background): seconds from
+    #: their start to their warm line.
+    warm_seconds: dict[str, float] = field(default_factory=dict)
     #: The ROS domain the graph ran on.
     domain_id: int | None = None
     #: ``--save-map``: the mesh file written, and its vertex and triangle counts; or why not.

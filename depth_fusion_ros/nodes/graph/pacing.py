@@ -9,7 +9,10 @@
 
 Either way the replayer starts once every node said it is ready (``wait_ready``, see
 :mod:`depth_fusion_ros.nodes.graph_events`) and its publishers are matched with the
-subscriptions the nodes named: no fixed delay and no graph introspection.
+subscriptions the nodes named: no fixed delay and no graph introspection. Then it waits up to
+``warm_timeout`` s (``wait_warm``) for a node that warms up in the background (the fusion
+node compiling its kernels) to say it is warm: a replay then meets the graph at full speed
+instead of sharing the cores with the compiler for its first seconds.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ def paced_overrides(options: RunOptions, overrides: dict[str, dict[str, Any]]) -
         ('wait_for_nodes', ['']),  # replaced by the nodes' own ready lines
         ('start_delay', 0.0),
         ('wait_timeout', float(options.startup_timeout)),
+        ('wait_warm', float(options.warm_timeout)),
         ('pace', paced),
     ):
         if unset(REPLAYER[0], name):
