@@ -106,6 +106,9 @@ def generate_launch_description() -> LaunchDescription:
                 # play only once every node said it is ready (its /depth_fusion/ready line),
                 # so the first frames are not lost
                 'wait_ready': ['multi_view_node', 'single_view_node', 'fusion_node'],
+                # and up to 60 s for fusion_node's kernels (compiled in the background) to be
+                # built, so the replay meets the graph at full speed (as depth-fusion run does)
+                'wait_warm': 60.0,
             },
         ],
         condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
