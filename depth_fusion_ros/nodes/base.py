@@ -26,6 +26,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from . import diagnostics as diag
+from .gil import set_switch_interval
 from .input_watch import InputWatch
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
@@ -271,6 +272,11 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
+    try:
+        set_switch_interval()  # the node's threads hand the GIL over sooner (gil.py)
+    except ValueError as exc:
+        rclpy.logging.get_logger('depth_fusion').error(str(exc))
+        return 2
     stop = threading.Event()
 
     def on_signal(signum: int, frame: object) -> None:

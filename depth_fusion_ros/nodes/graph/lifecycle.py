@@ -27,12 +27,14 @@ import logging
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ..gil import set_switch_interval
 from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
 from .dds import apply_fastdds_profile
 from .inputs import check_inputs
@@ -75,6 +77,7 @@ class GraphRun:
         self._spin_thread: threading.Thread | None = None
         self._logs: list[Any] = []
         self._torch_threads_before: int | None = None
+        self._switch_interval_before: float | None = None
         self._wall_start = time.time()
         self.exit_codes: dict[str, int | None] = {}
         self.executor_error: BaseException | None = None
@@ -188,6 +191,7 @@ class GraphRun:
             return [Parameter(k, value=v) for k, v in overrides.get(node, {}).items()]
 
         self._set_composed_threads()
+        self._switch_interval_before = set_switch_interval()  # the graph's threads share one GIL
 
         for name, (_, module) in self.graph_nodes.items():
             cls = node_class(importlib.import_module(module))
@@ -518,6 +522,8 @@ class GraphRun:
             import torch
 
             torch.set_num_threads(self._torch_threads_before)
+        if self._switch_interval_before is not None:
+            sys.setswitchinterval(self._switch_interval_before)
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
