@@ -65,3 +65,16 @@ def test_a_closed_feed_fails_a_waiting_worker_at_once(small_sequence):
     feed.close()
     with pytest.raises(RuntimeError, match='shutting down'):
         feed.result_for(small_sequence.frames[3], small_sequence.camera)
+
+
+def test_a_live_stream_that_outruns_the_filter_skips_old_frames_but_never_a_keyframe(small_sequence):
+    seq = small_sequence
+    drops, skips = [], []
+    config, matching = FilterConfig(), MultiViewConfig()
+    feed = FilterFeed(config, matching, 'cpu', 100, drops.append, max_lag=3, on_skip=skips.append)
+    feed.close()  # no feed thread: the queue only fills, as behind a live camera
+    for frame in seq.frames:  # 6 frames, frame 1 a keyframe
+        feed.append(frame, seq.camera, keyframe=frame.index == 1)
+    waiting = [(f.index, key) for f, _, key in feed._frames]
+    assert waiting == [(1, True), (4, False), (5, False)]  # the keyframe stays, the newest follow
+    assert len(skips) == 3 and all('skipped' in s for s in skips) and drops == []

@@ -10,7 +10,10 @@ longer includes the updates of the frames since the last one (4 of 5 at the defa
 policy; 100-140 ms of the node's 160-190 ms per keyframe on 2 cores). A keyframe the worker
 drops (latest-wins) loses no frame: the filter saw them all. Frames beyond
 ``filter.max_queued_frames`` (a feed far behind) are dropped oldest first and counted; a
-keyframe among them fails its job (``processing_error``) instead of waiting.
+keyframe among them fails its job (``processing_error``) instead of waiting. Before that, a
+live stream that outruns the filter makes it skip frames: beyond ``filter.max_lag_frames``
+waiting frames the oldest non-keyframes are skipped (counted as ``filter_skipped``), so the
+keyframes still come out in time; a paced replay (``depth-fusion run``) sets 0, never skip.
 """
 
 from __future__ import annotations
@@ -84,6 +87,16 @@ FILTER_PARAMETERS: tuple[ParamSpec, ...] = (
         1,
         100000,
     ),
+    ParamSpec(
+        'filter.max_lag_frames',
+        5,
+        'filter: when more frames than this wait for the filter, the oldest ones that are not '
+        'keyframes are skipped (counted, filter_skipped): with a live camera the filter keeps up by '
+        'updating with fewer frames, and keyframes still come out in time; keyframes are never '
+        'skipped. 0: never skip (depth-fusion run sets it for paced replays)',
+        0,
+        100000,
+    ),
     *dataclass_specs(FilterConfig, 'filter', {}, FILTER_LIMITS),
 )
 
@@ -106,13 +119,17 @@ class FilterFeed:
         max_queued: int,
         on_drop: Callable[[str], None],
         on_error: Callable[[str], None] | None = None,
+        max_lag: int = 0,
+        on_skip: Callable[[str], None] | None = None,
     ) -> None:
         config.validate()
         self.config, self.matching, self.device = config, matching, device
         self._frames: deque[tuple[Frame, PinholeCamera, bool]] = deque()
         self._max_queued = int(max_queued)
+        self._max_lag = int(max_lag)
         self._on_drop = on_drop
         self._on_error = on_error or on_drop
+        self._on_skip = on_skip or on_drop
         self._cond = threading.Condition()
         #: Keyframe index -> its estimate, or the error that prevented it.
         self._results: dict[int, FilterResult | Exception] = {}
@@ -133,17 +150,21 @@ class FilterFeed:
         device: str,
         on_drop: Callable[[str], None],
         on_error: Callable[[str], None] | None = None,
+        on_skip: Callable[[str], None] | None = None,
     ) -> FilterFeed | None:
         """The feed when ``multi_view.method`` is ``filter``, else ``None`` (the sweep)."""
         if params['multi_view.method'] != 'filter':
             return None
         config = build_dataclass(FilterConfig, params, 'filter')
-        return cls(config, matching, device, int(params['filter.max_queued_frames']), on_drop, on_error)
+        queued, lag = int(params['filter.max_queued_frames']), int(params['filter.max_lag_frames'])
+        return cls(config, matching, device, queued, on_drop, on_error, lag, on_skip)
 
     def append(self, frame: Frame, camera: PinholeCamera, keyframe: bool = False) -> None:
         """Queue one posed frame (callback thread); ``keyframe``: the worker will ask for its estimate."""
         with self._cond:
             self._frames.append((frame, camera, keyframe))
+            if self._max_lag > 0 and len(self._frames) > self._max_lag:
+                self._skip_behind()
             while len(self._frames) > self._max_queued:
                 old, _, was_key = self._frames.popleft()
                 message = f'filter frame {old.stamp:.3f} dropped: the filter is behind'
@@ -151,6 +172,21 @@ class FilterFeed:
                     self._keep(old.index, RuntimeError(message))
                 self._on_drop(message)
             self._cond.notify_all()
+
+    def _skip_behind(self) -> None:
+        """Skip the oldest non-keyframes until at most ``max_lag`` frames wait (lock held)."""
+        excess = len(self._frames) - self._max_lag
+        kept: deque[tuple[Frame, PinholeCamera, bool]] = deque()
+        skipped = []
+        for item in self._frames:
+            if excess > 0 and not item[2]:
+                skipped.append(item[0])
+                excess -= 1
+            else:
+                kept.append(item)
+        self._frames = kept
+        for frame in skipped:
+            self._on_skip(f'filter frame {frame.stamp:.3f} skipped: the filter is behind a live stream')
 
     def result_for(self, key: Frame, camera: PinholeCamera) -> FilterResult:
         """The estimate in keyframe ``key`` once the filter has seen it (worker thread)."""

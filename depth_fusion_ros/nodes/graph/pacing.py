@@ -54,4 +54,6 @@ def paced_overrides(options: RunOptions, overrides: dict[str, dict[str, Any]]) -
         for node in GRAPH_NODES:
             if unset(node, 'queue_policy'):
                 out.setdefault(node, {})['queue_policy'] = 'block'
+        if unset('multi_view_node', 'filter.max_lag_frames'):  # the filter sees every frame
+            out.setdefault('multi_view_node', {})['filter.max_lag_frames'] = 0
     return out
