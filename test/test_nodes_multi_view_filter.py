@@ -33,6 +33,7 @@ def test_default_filter_method_publishes_accurate_keyframe_depth(synthetic_seque
                     Parameter('keyframe_every', value=6),
                     Parameter('queue_size', value=8),
                     Parameter('qos_depth', value=100),
+                    Parameter('filter.max_lag_frames', value=0),  # every frame, as a paced replay
                 ],
             )
         )

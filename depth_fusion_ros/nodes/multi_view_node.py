@@ -248,7 +248,7 @@ class MultiViewNode(DepthFusionNode):
                 self.device,
                 lambda message: self.stats.dropped('filter_behind', message),
                 lambda message: self.stats.dropped('filter_error', message),
-                lambda message: self.stats.dropped('filter_skipped', message),
+                lambda message: self.stats.noted('filter_skipped', message),  # no output lost
             )
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
