@@ -304,3 +304,32 @@ def test_publishes_the_guard_decision_per_keyframe_and_counts_it():
     assert snap.noted.get(f'guard_{verdicts[1]["decision"]}') == 1
     bad_confidence = m.image_to_numpy(confidences[1])
     assert float(bad_confidence.max()) <= verdicts[1]['confidence'] + 1e-6
+
+
+def test_depth_std_part_gives_the_guard_its_parallax_evidence():
+    """multi_view_node publishes each estimate's depth std before its depth; the guard then
+    judges with the parallax evidence as ``evaluate`` does: a keyframe whose every point has a
+    relative std above ``guard.max_relative_std`` is not fused per point. Without the std
+    the same keyframe is fused (the evidence is optional: another multi-view source may lack it)."""
+    import json
+
+    scene = _scene(0)
+    a, b = 4_000_000_000, 4_033_333_333
+    with RosHarness() as ros:
+        node = _fusion_node(ros, publish_points=False)
+        decisions = ros.collect(String, '/depth_fusion/fused/decision')
+        std_pub = ros.publisher(Image, '/depth_fusion/multi_view/depth_std')
+        inputs = _Inputs(ros)
+        assert ros.wait_for_subscribers([std_pub])
+        inputs.keyframe(scene, a)  # no std: fused as before
+        assert ros.wait_for(lambda: len(decisions) == 1, 20.0), node.stats.snapshot().summary()
+        wide = np.where(np.isfinite(scene.mv), 0.5 * scene.mv, np.nan).astype(np.float32)  # 50 % std
+        std_pub.publish(m.image_msg(wide, '32FC1', m.header_msg(b, FRAME, kind=K), kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('mv_std') == 1, 10.0)
+        inputs.keyframe(scene, b)
+        assert ros.wait_for(lambda: len(decisions) == 2, 20.0), node.stats.snapshot().summary()
+
+    first, second = (json.loads(msg.data) for msg in decisions)
+    assert first['decision'] in ('full', 'fewer_points') and 'median_relative_std' not in first['evidence']
+    assert second['evidence']['median_relative_std'] == pytest.approx(0.5, rel=1e-3)
+    assert second['decision'] in ('single_scaled', 'single_view'), second

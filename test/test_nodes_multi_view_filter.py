@@ -40,6 +40,7 @@ def test_default_filter_method_publishes_accurate_keyframe_depth(synthetic_seque
         assert node.params['multi_view.method'] == 'filter' and node.filter_feed is not None
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         score_msgs = ros.collect(Image, '/depth_fusion/multi_view/score')
+        std_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth_std')
         ros.collect(CameraInfo, '/depth_fusion/keyframe/camera_info')
         # latched: a fusion_node that starts later still learns the method (its stage-1 rule)
         methods = ros.collect(String, '/depth_fusion/multi_view/method', latched_qos())
@@ -61,6 +62,10 @@ def test_default_filter_method_publishes_accurate_keyframe_depth(synthetic_seque
     assert _stamps(depth_msgs) == [stamps[k] for k in expected_keys]
     # The filter saw every posed frame as it came, not only the keyframes (nor only up to the last).
     assert isinstance(filt, DepthFilter) and filt.stats.frames == len(seq.frames)
+    assert _stamps(std_msgs) == _stamps(depth_msgs)  # the guard's parallax evidence, per keyframe
+    for depth_msg, std_msg in zip(depth_msgs, std_msgs, strict=True):
+        depth, std = m.image_to_numpy(depth_msg), m.image_to_numpy(std_msg)
+        assert np.array_equal(np.isfinite(std), np.isfinite(depth)) and np.nanmin(std) > 0
     for k, depth_msg, score_msg in zip(expected_keys, depth_msgs, score_msgs, strict=True):
         depth, score = m.image_to_numpy(depth_msg), m.image_to_numpy(score_msg)
         gt = seq.frames[k].depth

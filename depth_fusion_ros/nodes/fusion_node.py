@@ -39,7 +39,7 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..fusion import pipeline as fusion_pipeline
 from ..fusion.consistency import CONSISTENCY_PARAMETER_DESCRIPTIONS, ConsistencyConfig
-from ..fusion.guard import GUARD_PARAMETER_DESCRIPTIONS, GuardConfig
+from ..fusion.guard import GUARD_PARAMETER_DESCRIPTIONS, GuardConfig, MultiViewEvidence
 from ..fusion.interpolation import MODES as FUSION_MODES
 from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
 from ..fusion.weights import WEIGHT_SETS
@@ -59,6 +59,8 @@ TOPIC_SINGLE = 'depth_fusion/single_view/depth'
 TOPIC_OUTPUT_KIND = 'depth_fusion/single_view/output_kind'
 TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
+#: Optional part: the multi-view depth std (the guard's parallax evidence) when it came first.
+TOPIC_MV_DEPTH_STD = 'depth_fusion/multi_view/depth_std'
 TOPIC_MV_METHOD = 'depth_fusion/multi_view/method'
 TOPIC_KEYFRAME_IMAGE = 'depth_fusion/keyframe/image'
 TOPIC_KEYFRAME_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
@@ -229,7 +231,7 @@ class FusionNode(DepthFusionNode):
         self._closed: OrderedDict[int, None] = OrderedDict()
         self.required = REQUIRED_PARTS
         self.want_rgb = bool(p['publish_points'] and p['points_color'])
-        self._stamp_guards = {part: StampGuard(part) for part in (*REQUIRED_PARTS, 'rgb')}
+        self._stamp_guards = {part: StampGuard(part) for part in (*REQUIRED_PARTS, 'rgb', 'mv_std')}
 
         self._depth_pub = self.create_publisher(Image, TOPIC_FUSED_DEPTH, self.output_qos)
         self._confidence_pub = self.create_publisher(Image, TOPIC_FUSED_CONFIDENCE, self.output_qos)
@@ -253,6 +255,7 @@ class FusionNode(DepthFusionNode):
         self.subscribe(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
         self.subscribe(Image, TOPIC_MV_DEPTH, lambda m: self._on_depth(m, 'mv_depth'), q)
         self.subscribe(Image, TOPIC_MV_SCORE, lambda m: self._on_depth(m, 'mv_score'), q)
+        self.subscribe(Image, TOPIC_MV_DEPTH_STD, lambda m: self._on_depth(m, 'mv_std'), q)
         self.subscribe(Image, TOPIC_SINGLE, lambda m: self._on_depth(m, 'single'), q)
         self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
         self.get_logger().info(
@@ -410,6 +413,7 @@ class FusionNode(DepthFusionNode):
             self.active_config,
             output_kind=self.output_kind,
             guard_config=self.guard_config,
+            evidence=_evidence(parts.get('mv_std'), mv_depth),
             consistency_config=self.consistency_config,
         )
         stamp = messages.ns_to_sec(job.pairing.stamp_ns)
@@ -460,6 +464,15 @@ class FusionNode(DepthFusionNode):
         if rgb is not None and rgb.shape[:2] == depth.shape:
             colours = rgb[::stride, ::stride].reshape(-1, 3)[keep]
         return messages.pointcloud2_msg(points[keep], header, kind=messages.RCLPY, rgb=colours)
+
+
+def _evidence(std: np.ndarray | None, mv_depth: np.ndarray) -> MultiViewEvidence | None:
+    """The guard's parallax evidence (``depth_std / depth``) from the optional std part, as
+    ``evaluate`` gives it; None without one (the guard then judges on the other evidence)."""
+    if std is None or std.shape != mv_depth.shape:
+        return None
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return MultiViewEvidence(relative_std=(std / mv_depth).astype(np.float32))
 
 
 def decision_json(result: Any, stamp: float) -> str:

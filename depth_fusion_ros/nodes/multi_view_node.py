@@ -71,6 +71,8 @@ TOPIC_KEYFRAME_IMAGE = 'depth_fusion/keyframe/image'
 TOPIC_KEYFRAME_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
 TOPIC_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_SCORE = 'depth_fusion/multi_view/score'
+#: Per-estimate depth standard deviation (m, 32FC1): the fusion guard's parallax evidence.
+TOPIC_DEPTH_STD = 'depth_fusion/multi_view/depth_std'
 #: The keyframe's interpolated camera-to-world pose, with its stamp (map_node pairs it by stamp).
 TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
 #: Latched: the multi-view method (``sweep`` or ``filter``); fusion_node's stage 1 follows it.
@@ -271,6 +273,7 @@ class MultiViewNode(DepthFusionNode):
         self._kf_info_pub = self.create_publisher(CameraInfo, TOPIC_KEYFRAME_CAMERA_INFO, self.output_qos)
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
+        self._std_pub = self.create_publisher(Image, TOPIC_DEPTH_STD, self.output_qos)
         self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
         self._method_pub = announce(self, TOPIC_METHOD, str(p['multi_view.method']))
         self.events = GraphEvents(self)
@@ -522,10 +525,13 @@ class MultiViewNode(DepthFusionNode):
         try:
             result = self._estimate(job)
             depth, score = result.depth, result.score.astype(np.float32)
+            std = np.asarray(result.depth_std, dtype=np.float32)
         except Exception as exc:  # the keyframe is announced: downstream must still hear of it
             self.stats.dropped('processing_error', f'multi-view search failed: {type(exc).__name__}: {exc}')
             self.get_logger().debug(traceback.format_exc())
-            depth = score = np.full((job.camera.height, job.camera.width), np.nan, dtype=np.float32)
+            depth = score = std = np.full((job.camera.height, job.camera.width), np.nan, dtype=np.float32)
+        # before the depth, so the fusion node has it when the depth completes the keyframe
+        self._std_pub.publish(messages.image_msg(std, '32FC1', job.header, kind=kind))
         self._depth_pub.publish(messages.depth_image_msg(depth, job.header, kind=kind))
         self._score_pub.publish(messages.image_msg(score, '32FC1', job.header, kind=kind))
         self.stats.published('depth')
