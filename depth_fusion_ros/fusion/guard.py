@@ -161,17 +161,23 @@ class MultiViewEvidence:
     agreement: np.ndarray | None = None
 
     @classmethod
-    def from_result(cls, result: object) -> MultiViewEvidence:
-        """From a ``MultiViewResult`` (or anything with ``depth``/``depth_std``, optional ``agreement``)."""
-        depth = getattr(result, 'depth', None)
-        std = getattr(result, 'depth_std', None)
+    def from_depth_std(
+        cls, depth: np.ndarray | None, std: np.ndarray | None, agreement: np.ndarray | None = None
+    ) -> MultiViewEvidence:
+        """From the multi-view depth and its standard deviation (either None: no parallax evidence)."""
         rel = None
         if depth is not None and std is not None:
             with np.errstate(invalid='ignore', divide='ignore'):
                 rel = (np.asarray(std, dtype=np.float32) / np.asarray(depth, dtype=np.float32)).astype(
                     np.float32
                 )
-        return cls(relative_std=rel, agreement=getattr(result, 'agreement', None))
+        return cls(relative_std=rel, agreement=agreement)
+
+    @classmethod
+    def from_result(cls, result: object) -> MultiViewEvidence:
+        """From a ``MultiViewResult`` (or anything with ``depth``/``depth_std``, optional ``agreement``)."""
+        depth, std = getattr(result, 'depth', None), getattr(result, 'depth_std', None)
+        return cls.from_depth_std(depth, std, getattr(result, 'agreement', None))
 
 
 @dataclass

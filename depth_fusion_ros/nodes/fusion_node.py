@@ -413,7 +413,8 @@ class FusionNode(DepthFusionNode):
             self.active_config,
             output_kind=self.output_kind,
             guard_config=self.guard_config,
-            evidence=_evidence(parts.get('mv_std'), mv_depth),
+            # the parallax evidence evaluate gives the guard, when the optional std part came
+            evidence=MultiViewEvidence.from_depth_std(mv_depth, _same_shape(parts.get('mv_std'), mv_depth)),
             consistency_config=self.consistency_config,
         )
         stamp = messages.ns_to_sec(job.pairing.stamp_ns)
@@ -466,13 +467,9 @@ class FusionNode(DepthFusionNode):
         return messages.pointcloud2_msg(points[keep], header, kind=messages.RCLPY, rgb=colours)
 
 
-def _evidence(std: np.ndarray | None, mv_depth: np.ndarray) -> MultiViewEvidence | None:
-    """The guard's parallax evidence (``depth_std / depth``) from the optional std part, as
-    ``evaluate`` gives it; None without one (the guard then judges on the other evidence)."""
-    if std is None or std.shape != mv_depth.shape:
-        return None
-    with np.errstate(invalid='ignore', divide='ignore'):
-        return MultiViewEvidence(relative_std=(std / mv_depth).astype(np.float32))
+def _same_shape(part: np.ndarray | None, like: np.ndarray) -> np.ndarray | None:
+    """An optional image part, or None when it is missing or of another size."""
+    return part if part is not None and part.shape == like.shape else None
 
 
 def decision_json(result: Any, stamp: float) -> str:

@@ -13,11 +13,8 @@ each: 3.0-3.1 kf/s against 2.3-2.4, median latency 491-558 ms against 592-602 ms
 
 from __future__ import annotations
 
-import logging
 import os
 import sys
-
-log = logging.getLogger(__name__)
 
 #: The interval the graph's processes use unless ``DEPTH_FUSION_GIL_SWITCH_S`` says otherwise.
 SWITCH_INTERVAL_S = 0.0005
@@ -29,12 +26,13 @@ def configured_interval() -> float:
     text = os.environ.get(ENV, '').strip()
     if not text:
         return SWITCH_INTERVAL_S
+    message = f'{ENV} must be a positive number of seconds, got {text!r}'
     try:
         value = float(text)
     except ValueError:
-        value = -1.0
+        raise ValueError(message) from None
     if not value > 0:
-        raise ValueError(f'{ENV} must be a positive number of seconds, got {text!r}')
+        raise ValueError(message)
     return value
 
 

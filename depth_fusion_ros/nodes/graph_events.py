@@ -137,27 +137,28 @@ class GraphEvents:
             subscribes = sorted({s.topic_name for s in node.subscriptions})
         with self._lock:
             self._subscribes = tuple(subscribes)
-            warm = warm or self._warm_early
-            status = ReadyStatus(node.get_fully_qualified_name(), self._subscribes, self._age(), warm)
-            self._ready.publish(self._string_cls(data=status.to_json()))
-        node.get_logger().info(f'ready ({status.seconds:.1f} s after start{"" if warm else ", warming up"})')
+            status = self._publish_status(warm or self._warm_early)
+        warming = '' if status.warm else ', warming up'
+        node.get_logger().info(f'ready ({status.seconds:.1f} s after start{warming})')
         return status
 
     def warm(self, what: str = 'warm') -> ReadyStatus | None:
         """Tell the graph the background warm-up is over: the ready line again, ``warm``. Before
         :meth:`ready` it only makes the ready line say warm."""
-        node = self._node
         with self._lock:
             if self._subscribes is None:
                 self._warm_early = True
                 return None
-            status = ReadyStatus(node.get_fully_qualified_name(), self._subscribes, self._age(), True)
-            self._ready.publish(self._string_cls(data=status.to_json()))
-        node.get_logger().info(f'{what} ({status.seconds:.1f} s after start)')
+            status = self._publish_status(True)
+        self._node.get_logger().info(f'{what} ({status.seconds:.1f} s after start)')
         return status
 
-    def _age(self) -> float:
-        return time.monotonic() - self.started
+    def _publish_status(self, warm: bool) -> ReadyStatus:
+        """Publish this node's ready line (lock held, after :meth:`ready` set the subscriptions)."""
+        seconds = time.monotonic() - self.started
+        status = ReadyStatus(self._node.get_fully_qualified_name(), self._subscribes, seconds, warm)
+        self._ready.publish(self._string_cls(data=status.to_json()))
+        return status
 
 
 def header_stamp(msg: Any) -> int:
@@ -243,9 +244,8 @@ class ReadyWatcher:
         self._lock = threading.Lock()
         self.statuses: dict[str, ReadyStatus] = {}
         self.arrival: dict[str, float] = {}
-        #: Each node's first warm status (its ready line when it was warm at once), and when.
+        #: Each node's first warm status (its ready line when it was warm at once).
         self.warm_statuses: dict[str, ReadyStatus] = {}
-        self.warm_arrival: dict[str, float] = {}
         self.errors: list[str] = []
 
     def on_ready(self, msg: Any) -> None:
@@ -260,7 +260,6 @@ class ReadyWatcher:
             self.arrival.setdefault(status.node, time.monotonic())
             if status.warm:
                 self.warm_statuses.setdefault(status.node, status)
-                self.warm_arrival.setdefault(status.node, time.monotonic())
 
     def missing(self, nodes: Sequence[str]) -> list[str]:
         """Of ``nodes`` (names, with or without the leading '/'), those not ready yet."""
@@ -271,8 +270,8 @@ class ReadyWatcher:
     def cold(self, nodes: Sequence[str]) -> list[str]:
         """Of ``nodes``, those that are ready but have not said they are warm yet."""
         with self._lock:
-            ready = [n for n in nodes if _full_name(n) in self.arrival]
-            return [n for n in ready if _full_name(n) not in self.warm_arrival]
+            ready = [n for n in nodes if _full_name(n) in self.statuses]
+            return [n for n in ready if _full_name(n) not in self.warm_statuses]
 
     def subscribers_of(self, topic: str, nodes: Sequence[str]) -> int:
         """How many of the ready ``nodes`` subscribe to ``topic``."""
