@@ -52,9 +52,10 @@ class _Inputs:
         self.mv = ros.publisher(Image, '/depth_fusion/multi_view/depth')
         self.score = ros.publisher(Image, '/depth_fusion/multi_view/score')
         self.single = ros.publisher(Image, '/depth_fusion/single_view/depth')
-        assert ros.wait_for_subscribers([self.info, self.image, self.mv, self.score, self.single])
+        self.std = ros.publisher(Image, '/depth_fusion/multi_view/depth_std')  # optional part
+        assert ros.wait_for_subscribers([self.info, self.image, self.mv, self.score, self.single, self.std])
         #: messages sent per node counter (``received`` in the node's stats)
-        self.sent = {'camera_info': 0, 'mv_depth': 0, 'mv_score': 0, 'single': 0}
+        self.sent = {'camera_info': 0, 'mv_depth': 0, 'mv_score': 0, 'single': 0, 'mv_std': 0}
 
     def send(self, part: str, msg: object) -> None:
         publisher, counter = {
@@ -63,6 +64,7 @@ class _Inputs:
             'mv': (self.mv, 'mv_depth'),
             'score': (self.score, 'mv_score'),
             'single': (self.single, 'single'),
+            'std': (self.std, 'mv_std'),
         }[part]
         if counter:
             self.sent[counter] += 1
@@ -97,6 +99,12 @@ def _fusion_node(ros: RosHarness, **params) -> FusionNode:
     params = {'fusion.compile_kernel': False, **params}
     overrides = [Parameter('queue_size', value=8), *(Parameter(k, value=v) for k, v in params.items())]
     return ros.add(FusionNode(context=ros.context, parameter_overrides=overrides))
+
+
+def _guarded_node(ros: RosHarness) -> tuple[FusionNode, list, _Inputs]:
+    """A fusion node, the guard decisions it publishes, and publishers of its inputs."""
+    node = _fusion_node(ros, publish_points=False)
+    return node, ros.collect(String, '/depth_fusion/fused/decision'), _Inputs(ros)
 
 
 def _offline(scene: SimpleNamespace, output_kind: str = 'metric_depth') -> np.ndarray:
@@ -282,10 +290,8 @@ def test_publishes_the_guard_decision_per_keyframe_and_counts_it():
     bad.mv = (bad.mv * noise).astype(np.float32)
     a, b = 3_000_000_000, 3_033_333_333
     with RosHarness() as ros:
-        node = _fusion_node(ros, publish_points=False)
-        decisions = ros.collect(String, '/depth_fusion/fused/decision')
         confidences = ros.collect(Image, '/depth_fusion/fused/confidence')
-        inputs = _Inputs(ros)
+        node, decisions, inputs = _guarded_node(ros)
         inputs.keyframe(good, a)
         inputs.keyframe(bad, b)
         assert ros.wait_for(lambda: len(decisions) == 2 and len(confidences) == 2, 20.0), (
@@ -316,16 +322,12 @@ def test_depth_std_part_gives_the_guard_its_parallax_evidence():
     scene = _scene(0)
     a, b = 4_000_000_000, 4_033_333_333
     with RosHarness() as ros:
-        node = _fusion_node(ros, publish_points=False)
-        decisions = ros.collect(String, '/depth_fusion/fused/decision')
-        std_pub = ros.publisher(Image, '/depth_fusion/multi_view/depth_std')
-        inputs = _Inputs(ros)
-        assert ros.wait_for_subscribers([std_pub])
+        node, decisions, inputs = _guarded_node(ros)
         inputs.keyframe(scene, a)  # no std: fused as before
         assert ros.wait_for(lambda: len(decisions) == 1, 20.0), node.stats.snapshot().summary()
         wide = np.where(np.isfinite(scene.mv), 0.5 * scene.mv, np.nan).astype(np.float32)  # 50 % std
-        std_pub.publish(m.image_msg(wide, '32FC1', m.header_msg(b, FRAME, kind=K), kind=K))
-        assert ros.wait_for(lambda: node.stats.snapshot().received.get('mv_std') == 1, 10.0)
+        inputs.send('std', m.image_msg(wide, '32FC1', m.header_msg(b, FRAME, kind=K), kind=K))
+        inputs.delivered(ros, node)
         inputs.keyframe(scene, b)
         assert ros.wait_for(lambda: len(decisions) == 2, 20.0), node.stats.snapshot().summary()
 

@@ -28,6 +28,13 @@ K = m.RCLPY
 FRAME = 'camera_rgb_optical_frame'
 
 
+def _mv_node(ros: RosHarness, **params) -> MultiViewNode:
+    """A multi_view_node in ``ros`` with these parameter overrides (dotted names as keywords:
+    ``**{'filter.max_lag_frames': 0}``)."""
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    return ros.add(MultiViewNode(context=ros.context, parameter_overrides=overrides))
+
+
 class _Camera:
     """Publishers of what a camera driver and a SLAM system publish."""
 
@@ -275,17 +282,7 @@ def test_images_waiting_for_poses_stay_bounded(synthetic_sequence):
     """An image stream without poses (SLAM not started): at most max_pending_images are kept."""
     seq = synthetic_sequence
     with RosHarness() as ros:
-        node = ros.add(
-            MultiViewNode(
-                context=ros.context,
-                parameter_overrides=[
-                    Parameter('width', value=80),
-                    Parameter('height', value=60),
-                    Parameter('max_pending_images', value=5),
-                    Parameter('pose_wait', value=100.0),
-                ],
-            )
-        )
+        node = _mv_node(ros, width=80, height=60, max_pending_images=5, pose_wait=100.0)
         cam = _Camera(ros)
         for i, frame in enumerate(seq.frames):
             cam.publish_image(frame.rgb, m.sec_to_ns(seq.stamps[i]), seq.camera)
@@ -302,16 +299,7 @@ def test_a_quiet_tick_waits_for_one_more_round_before_giving_up(synthetic_sequen
     the ready timer before a pose already queued for it; that pose must still land."""
     seq = synthetic_sequence
     with RosHarness() as ros:
-        node = ros.add(
-            MultiViewNode(
-                context=ros.context,
-                parameter_overrides=[
-                    Parameter('width', value=80),
-                    Parameter('height', value=60),
-                    Parameter('pose_wait', value=100.0),  # the node's own timer never gives up here
-                ],
-            )
-        )
+        node = _mv_node(ros, width=80, height=60, pose_wait=100.0)  # its own timer never gives up here
         cam = _Camera(ros)
         cam.publish_image(seq.frames[0].rgb, m.sec_to_ns(seq.stamps[0]), seq.camera)
         assert ros.wait_for(lambda: len(node.pending) == 1, 10.0)

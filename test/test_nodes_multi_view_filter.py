@@ -10,7 +10,7 @@ import pytest
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
-from test_nodes_multi_view import _Camera, _stamps
+from test_nodes_multi_view import _Camera, _mv_node, _stamps
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.multiview.filter import DepthFilter
@@ -26,17 +26,9 @@ def test_default_filter_method_publishes_accurate_keyframe_depth(synthetic_seque
     seq = synthetic_sequence
     stamps = [m.sec_to_ns(s) for s in seq.stamps]
     with RosHarness() as ros:
-        node = ros.add(
-            MultiViewNode(
-                context=ros.context,
-                parameter_overrides=[
-                    Parameter('keyframe_every', value=6),
-                    Parameter('queue_size', value=8),
-                    Parameter('qos_depth', value=100),
-                    Parameter('filter.max_lag_frames', value=0),  # every frame, as a paced replay
-                ],
-            )
-        )
+        # every frame to the filter (filter.max_lag_frames 0), as a paced replay
+        params = {'keyframe_every': 6, 'queue_size': 8, 'qos_depth': 100, 'filter.max_lag_frames': 0}
+        node = _mv_node(ros, **params)
         assert node.params['multi_view.method'] == 'filter' and node.filter_feed is not None
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         score_msgs = ros.collect(Image, '/depth_fusion/multi_view/score')
