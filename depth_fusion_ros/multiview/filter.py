@@ -49,12 +49,12 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
-from .cost_volume import EpipolarRays, epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
+from .cost_volume import epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
 from .filter_profile import StageClock
 from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
-from .filter_search import normalised_rows, plan_buckets, search_buckets, search_interval
+from .filter_search import plan_buckets, search_buckets, search_interval
 from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
 from .semidense import MultiViewConfig, candidate_mask
 from .views import _as_gray
@@ -439,7 +439,7 @@ class DepthFilter:
         # Everything below runs on the chosen rows only (index_select: several times faster
         # on CPU than advanced indexing).
         pick = lambda t: t.index_select(0, rows)  # noqa: E731
-        a_r, j_r = pick(geo.a), pick(geo.j)
+        a_r, j_r = geo.a.index_select(1, rows), pick(geo.j)
         mu_r, var_r, f_r = pick(st.mu), pick(st.var), pick(~key.prior)
         floor = c.min_search_px / torch.clamp(j_r, min=1e-9)
         half = torch.maximum(c.search_sigmas * torch.sqrt(var_r), floor)
@@ -518,7 +518,7 @@ class DepthFilter:
         n_lo, n_hi = self._neighbour_range(key, rows.index_select(0, sel))
         near = torch.isfinite(n_lo)
         sel, n_lo, n_hi = sel[near], n_lo[near], n_hi[near]
-        a_s = a_r.index_select(0, sel)
+        a_s = a_r.index_select(1, sel)
         rho_min, rho_max = self.rho_range
         pad = 2.0 * c.min_search_px
         lo.index_copy_(
@@ -610,7 +610,7 @@ class DepthFilter:
         span = j_r * (hi - lo)
         seeds = torch.nonzero(fresh, as_tuple=True)[0]
         if seeds.numel() > 0:
-            a_s, lo_s, hi_s = a_r.index_select(0, seeds), lo.index_select(0, seeds), hi.index_select(0, seeds)
+            a_s, lo_s, hi_s = a_r.index_select(1, seeds), lo.index_select(0, seeds), hi.index_select(0, seeds)
             ends = torch.maximum(_motion(a_s, b, lo_s), _motion(a_s, b, hi_s))
             span.index_copy_(0, seeds, ends * (hi_s - lo_s))
         bucket = plan_buckets(span, fresh, c)
@@ -622,9 +622,7 @@ class DepthFilter:
         desc_o = key.key_desc.index_select(1, rows.index_select(0, order))
         lo_o, hi_o = lo.index_select(0, order), hi.index_select(0, order)
         # The rays normalised once for the frame, not once per bucket.
-        a_o, b_o = normalised_rows(
-            EpipolarRays(a_r.index_select(0, order)[None], b[None], self.camera.width, self.camera.height)
-        )
+        a_o, b_o = _normalised_rows(a_r.index_select(1, order), b, self.camera.width, self.camera.height)
         xs, costs, goods = [], [], []
         start = 0
         for (samples, refine, distinct), n in zip(search_buckets(c), counts, strict=True):
@@ -659,7 +657,7 @@ class DepthFilter:
 class _FrameGeometry:
     """One frame's epipolar geometry for every keyframe pixel, at the pixel's prior mean."""
 
-    a: torch.Tensor  # (M, 3) K R_fk x_n: the projection at inverse depth rho is a + rho b
+    a: torch.Tensor  # (3, M) K R_fk x_n, coordinate-first: the projection at inverse depth rho is a + rho b
     b: torch.Tensor  # (3,) K t_fk
     j: torch.Tensor  # (M,) epipolar motion (px per unit inverse depth) at the prior mean
     along: torch.Tensor  # (M,) |grey gradient . unit epipolar direction|
@@ -672,15 +670,20 @@ def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, mar
     With ``w = a_2 + rho b_2``: ``u = (a_0 + rho b_0) / w`` and ``du/drho = (b_0 a_2 - a_0 b_2) / w^2``;
     the numerators of the motion do not depend on ``rho``, so the epipolar direction (the
     gradient test) costs two products per pixel, and everything is a handful of (M,) ops.
+    ``a`` is coordinate-first (3, M): each coordinate is then a contiguous row, so every op
+    below runs vectorised over the pixels (pixel-first, the columns were strided: the same
+    numbers at about twice the cost), and the searches gather their rows with one
+    ``index_select`` straight into the layout ``grid`` takes.
     """
     K = np.asarray(camera.K, dtype=np.float64)
     H = K @ T_fk[:3, :3] @ np.linalg.inv(K)  # pixel-to-pixel homography at infinity
     dev = key.us.device
     h = torch.as_tensor(H.T, dtype=torch.float32, device=dev)  # rows: H's columns
-    a = torch.addcmul(torch.addcmul(h[2], key.us[:, None], h[0]), key.vs[:, None], h[1])  # H (u, v, 1)
+    # H (u, v, 1), one row per coordinate
+    a = torch.addcmul(torch.addcmul(h[2][:, None], h[0][:, None], key.us), h[1][:, None], key.vs)
     b = torch.as_tensor(K @ T_fk[:3, 3], dtype=torch.float32, device=dev)
     rho = key.state.mu
-    a0, a1, a2 = a.unbind(1)
+    a0, a1, a2 = a.unbind(0)
     w = a2 + rho * b[2]
     nu = b[0] * a2 - a0 * b[2]
     nv = b[1] * a2 - a1 * b[2]
@@ -700,8 +703,21 @@ def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, mar
 
 
 def _motion(a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
-    """``|d p / d rho|`` (R,) of rows ``a`` (R, 3) at inverse depths ``rho`` (``EpipolarRays.parallax``)."""
-    return torch.hypot(*epipolar_motion(a, b, rho))
+    """``|d p / d rho|`` (R,) of coordinate-first rows ``a`` (3, R) at inverse depths ``rho``
+    (``EpipolarRays.parallax``)."""
+    return torch.hypot(*epipolar_motion(a.T, b, rho))
+
+
+def _normalised_rows(
+    a: torch.Tensor, b: torch.Tensor, width: int, height: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``filter_search.normalised_rows`` of coordinate-first rows ``a`` (3, R), in place in ``a``
+    (the caller's own gathered copy): the same numbers (``EpipolarRays._normalised``) without
+    the pixel-first round trip (scale, concatenation, transposed copy)."""
+    scale = torch.tensor([2.0 / (width - 1), 2.0 / (height - 1), 1.0], dtype=a.dtype, device=a.device)
+    a[:2].mul_(scale[:2, None]).sub_(a[2])  # (a_k s_k) - a_2; a_2 s_2 = a_2 exactly
+    b = b * scale
+    return a, torch.cat((b[:2] - b[2:], b[2:]))
 
 
 def _box_sum(maps: torch.Tensor, r: int) -> torch.Tensor:
