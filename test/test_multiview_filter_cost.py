@@ -185,3 +185,19 @@ def test_stage_clock_splits_the_frame_and_changes_nothing(synthetic_sequence):
     assert sum(seconds.values()) == pytest.approx(spent, rel=0.05, abs=5e-3)
     assert torch.equal(plain.key.state.mu, timed.key.state.mu)
     assert torch.equal(plain.key.updates, timed.key.updates)
+
+
+def test_first_minimum_matches_torch_min():
+    """``_min0`` (amin, compare, amax) gives ``min(dim=0)``'s values and first indices: ties,
+    all-inf columns and NaN included."""
+    from depth_fusion_ros.multiview.filter_search import _min0
+
+    torch.manual_seed(0)
+    cost = torch.rand(6, 500).mul_(4).round_()  # many ties
+    cost[:, :20] = math.inf
+    cost[2, 20:40] = math.inf
+    for c in (cost, torch.cat((cost, torch.full((6, 1), math.nan)), dim=1)):
+        ref = c.min(dim=0)
+        values, first = _min0(c)
+        assert torch.equal(values.nan_to_num(-1.0), ref.values.nan_to_num(-1.0))
+        assert torch.equal(first, ref.indices)

@@ -42,7 +42,10 @@ def _distinctiveness(cost: torch.Tensor, best: torch.Tensor, c1: torch.Tensor) -
     """
     inf = math.inf
     padded = F.pad(cost, (0, 0, 1, 1), value=inf)
-    is_min = (cost <= padded[:-2]) & (cost <= padded[2:])
+    # 1.0 / 0.0 rather than bool: comparisons into floats and arithmetic with them are
+    # several times cheaper on CPU than with bool tensors.
+    is_min = torch.le(cost, padded[:-2], out=torch.empty_like(cost))
+    is_min.mul_(torch.le(cost, padded[2:], out=torch.empty_like(cost)))
     near = (best[None, :] + torch.arange(-1, 2, device=cost.device)[:, None]).clamp_(0, cost.shape[0] - 1)
     # Costs are > 0 (frame_cost), so dividing by ``is_min`` sends the other samples to inf
     # (cheaper on CPU than masked_fill; amin / amax skip the indices min / max compute).
@@ -74,10 +77,10 @@ def _grid(a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
     ``b`` (3,) at inverse depths ``rho`` (S, R), normalised once per search instead of once per
     lookup."""
     w = torch.addcmul(a[2], rho, b[2]).clamp_(min=1e-4)
-    out = torch.empty((1, *rho.shape, 2), dtype=rho.dtype, device=rho.device)
-    for k in range(2):
-        torch.div(torch.addcmul(a[k], rho, b[k]), w, out=out[0, ..., k])
-    return out
+    # Both coordinates in one product and one division, coordinate-first; grid_sample reads
+    # the (1, S, R, 2) view of it as well as a contiguous grid (same numbers, 2 ops fewer).
+    out = torch.addcmul(a[:2, None, :], rho, b[:2, None, None]).div_(w)
+    return out.permute(1, 2, 0)[None]
 
 
 def _frame_cost(
@@ -98,11 +101,15 @@ def _frame_cost(
     zncc = sampled[0] * key_desc[0]
     for c in range(1, channels):
         zncc.addcmul_(sampled[c], key_desc[c])
-    cost = zncc.neg_().add_(count).add_(1e-3).div_(count + 1e-3)  # (count - zncc + 1e-3) / (count + 1e-3)
-    # inf where the frame does not see the sample: the cost is > 0 (|zncc| <= count for the
-    # normalised descriptors), so a division by the visibility test gives it (x / 1 = x
-    # exactly) at a third of ``where``'s cost on CPU.
-    return cost.div_(count >= 0.5)
+    # (count - zncc + 1e-3) / (count + 1e-3), and inf where the frame does not see the sample:
+    # the numerator is > 0 (|zncc| <= count for the normalised descriptors), so a denominator
+    # multiplied by the visibility test gives it (x / (d * 1) = x / d exactly, x / 0 = inf),
+    # at a third of ``where``'s cost on CPU and one pass fewer than dividing by it afterwards.
+    # (The test is written into a float tensor: a comparison into bool, and arithmetic with
+    # a bool operand, run several times slower on CPU than the same into and with floats.)
+    visible = torch.ge(count, 0.5, out=torch.empty_like(count))
+    denominator = torch.add(count, 1e-3).mul_(visible)
+    return torch.sub(count, zncc, out=zncc).add_(1e-3).div_(denominator)
 
 
 def normalised_rows(rays: EpipolarRays) -> tuple[torch.Tensor, torch.Tensor]:
@@ -127,7 +134,7 @@ def _search_rows(
     step = (hi - lo) / (samples - 1)
     grid = torch.addcmul(lo[None, :], step[None, :], k[:, None])  # (S, R)
     cost = _frame_cost(key_desc, frame_desc, a, b, grid)
-    c1, best = cost.min(dim=0)
+    c1, best = _min0(cost)
     distinct = _distinctiveness(cost, best, c1) if with_distinctiveness else c1
     if refine == 0:  # the samples are already about a pixel apart: the parabola goes through them
         j = best.clamp(1, samples - 2)
@@ -139,8 +146,26 @@ def _search_rows(
     # c1): only the others are looked up.
     sides = _frame_cost(key_desc, frame_desc, a, b, torch.cat((fine[:refine], fine[refine + 1 :])))
     fcost = torch.cat((sides[:refine], c1[None, :], sides[refine:]))
-    j = fcost.min(dim=0).indices.clamp(1, 2 * refine - 1)  # argmin over dim 0 is far slower on CPU
+    j = _min0(fcost)[1].clamp(1, 2 * refine - 1)
     return _parabola(fine, j, fine_step, *_three(fcost, j), c1, distinct)
+
+
+def _min0(cost: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``cost.min(dim=0)`` of a samples-first (S, R) tensor (values and first indices).
+
+    Why not ``min(dim=0)``: on CPU its indices make it some 20x slower than ``amin`` over
+    short columns. The first index of the minimum is the largest of ``S - s`` over the
+    samples equal to it, so an ``amin``, a comparison (into floats: into bool it is several
+    times slower) and an ``amax`` give the same values and indices at a fraction of the cost.
+    """
+    samples = cost.shape[0]
+    c1 = cost.amin(dim=0)
+    if bool(torch.isnan(c1).any()):  # a NaN equals nothing: min's own semantics (rare, degenerate rays)
+        return cost.min(dim=0)
+    weight = torch.arange(samples, 0, -1, dtype=cost.dtype, device=cost.device)[:, None]
+    hit = torch.eq(cost, c1, out=torch.empty_like(cost))
+    first = samples - hit.mul_(weight).amax(dim=0).long()
+    return c1, first
 
 
 def _gather(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
