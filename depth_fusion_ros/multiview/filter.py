@@ -403,7 +403,10 @@ class DepthFilter:
         """Measurement variance: one ``pixel_sigma`` of matching error back-propagated through the
         epipolar motion ``j``, plus the pose noise as a relative error ``pose_sigma / baseline``."""
         c = self.config
-        return (c.pixel_sigma / torch.clamp(j, min=1e-6)) ** 2 + (rho * (c.pose_sigma / baseline)) ** 2
+        tau2 = (c.pixel_sigma / torch.clamp(j, min=1e-6)) ** 2
+        if c.pose_sigma == 0.0:  # the default: the term is + 0 (its three passes were a tenth of an update)
+            return tau2
+        return tau2 + (rho * (c.pose_sigma / baseline)) ** 2
 
     def _update(
         self, key: _Keyframe, desc: torch.Tensor, T_fk: np.ndarray, only: torch.Tensor | None = None
@@ -440,14 +443,18 @@ class DepthFilter:
         # on CPU than advanced indexing).
         pick = lambda t: t.index_select(0, rows)  # noqa: E731
         a_r, j_r = geo.a.index_select(1, rows), pick(geo.j)
-        mu_r, var_r, f_r = pick(st.mu), pick(st.var), pick(~key.prior)
+        mu_r, var_r, f_r = pick(st.mu), pick(st.var), ~pick(key.prior)
+        # The rows without a prior, once: the whole-range bounds, the search's spans and the
+        # first measurements are index ops on these few rows instead of where over all rows
+        # (torch.where is several times slower than arithmetic on CPU).
+        seeds = torch.nonzero(f_r, as_tuple=True)[0]
         floor = c.min_search_px / torch.clamp(j_r, min=1e-9)
         half = torch.maximum(c.search_sigmas * torch.sqrt(var_r), floor)
-        lo = torch.where(f_r, torch.full_like(mu_r, rho_min), torch.clamp(mu_r - half, rho_min, rho_max))
-        hi = torch.where(f_r, torch.full_like(mu_r, rho_max), torch.clamp(mu_r + half, rho_min, rho_max))
+        lo = torch.clamp(mu_r - half, rho_min, rho_max).index_fill_(0, seeds, rho_min)
+        hi = torch.clamp(mu_r + half, rho_min, rho_max).index_fill_(0, seeds, rho_max)
         bracketed = self._bracket(key, rows, f_r, a_r, geo.b, lo, hi)
         self.clock.switch(prefix + 'search')
-        x, cost, valid = self._search(key, rows, desc, a_r, geo.b, lo, hi, j_r, f_r)
+        x, cost, valid = self._search(key, rows, desc, a_r, geo.b, lo, hi, j_r, f_r, seeds)
         self.clock.switch(prefix + 'update')
         # The epipolar motion at the match: the bracket's edge test and the measurement
         # variance (only read where the match is valid, so one evaluation at x serves both).
@@ -459,33 +466,46 @@ class DepthFilter:
         valid &= (x >= rho_min) & (x <= rho_max)
         valid &= j_x > 1e-6
         tau2 = self._tau2(x, j_x, baseline)
-        init, upd = f_r & valid, ~f_r & valid
         fail = ~f_r & ~valid  # visible (chosen above) but nothing matched: an outlier vote
         a_old, b_old = pick(st.a), pick(st.b)
-        post = gaussian_uniform_update(
-            BetaGaussian(mu_r, var_r, a_old, b_old),
-            torch.where(upd, x, mu_r),
-            torch.where(upd, tau2, var_r),
-            self.rho_range,
-        )
-        mu_n = torch.where(init, x, torch.where(upd, post.mu, mu_r))
-        var_n = torch.where(init, tau2, torch.where(upd, post.var, var_r))
-        a_n = torch.where(init, torch.full_like(a_old, c.init_a), torch.where(upd, post.a, a_old))
-        voted = outlier_vote(BetaGaussian(mu_r, var_r, a_old, b_old), fail).b
-        b_n = torch.where(init, torch.full_like(b_old, c.init_b), torch.where(upd, post.b, voted))
-        n_n = pick(key.updates) + (init | upd).long()
+        prior = BetaGaussian(mu_r, var_r, a_old, b_old)
+        # The posterior of every row; only the valid ones keep it (the others' inputs, and so
+        # their posterior, are not read), and a valid row without a prior takes its first
+        # measurement instead, below.
+        post = gaussian_uniform_update(prior, x, tau2, self.rho_range)
+        mu_n = torch.where(valid, post.mu, mu_r)
+        var_n = torch.where(valid, post.var, var_r)
+        a_n = torch.where(valid, post.a, a_old)
+        b_n = torch.where(valid, post.b, outlier_vote(prior, fail).b)
+        born = seeds.masked_select(valid.index_select(0, seeds))  # first measurements
+        if born.numel() > 0:
+            mu_n.index_copy_(0, born, x.index_select(0, born))
+            var_n.index_copy_(0, born, tau2.index_select(0, born))
+            a_n.index_fill_(0, born, c.init_a)
+            b_n.index_fill_(0, born, c.init_b)
+        n_n = pick(key.updates) + valid.long()
+        prior_n = ~f_r | valid
         # Outliers: a pixel that keeps failing is reset to "no estimate" (it may be re-seeded).
-        drop = ~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio)
-        measured = init | upd
-        mid, span2 = 0.5 * (rho_min + rho_max), (rho_max - rho_min) ** 2  # _fresh_state's values
+        gone = torch.nonzero(~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio), as_tuple=True)[0]
+        if gone.numel() > 0:
+            mid, span2 = 0.5 * (rho_min + rho_max), (rho_max - rho_min) ** 2  # _fresh_state's values
+            for value, fill in (
+                (mu_n, mid),
+                (var_n, span2),
+                (a_n, c.init_a),
+                (b_n, c.init_b),
+                (n_n, 0),
+                (prior_n, False),
+            ):
+                value.index_fill_(0, gone, fill)
         for target, value in (
-            (st.mu, torch.where(drop, mid, mu_n)),
-            (st.var, torch.where(drop, span2, var_n)),
-            (st.a, torch.where(drop, float(c.init_a), a_n)),
-            (st.b, torch.where(drop, float(c.init_b), b_n)),
-            (key.updates, torch.where(drop, torch.zeros_like(n_n), n_n)),
-            (key.prior, (~f_r | init) & ~drop),
-            (key.cost, torch.where(measured, cost, pick(key.cost))),
+            (st.mu, mu_n),
+            (st.var, var_n),
+            (st.a, a_n),
+            (st.b, b_n),
+            (key.updates, n_n),
+            (key.prior, prior_n),
+            (key.cost, torch.where(valid, cost, pick(key.cost))),
         ):
             target.index_copy_(0, rows, value)
         return seen
@@ -598,6 +618,7 @@ class DepthFilter:
         hi: torch.Tensor,
         j_r: torch.Tensor,
         fresh: torch.Tensor,
+        seeds: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Search each chosen row in ``[lo, hi]``, in buckets by sample count (``plan_buckets``).
 
@@ -608,8 +629,7 @@ class DepthFilter:
         # Interval length in px: to first order at the prior mean for an estimate (as the
         # +-2 px floor is set); a whole-range search takes the larger motion of its two ends.
         span = j_r * (hi - lo)
-        seeds = torch.nonzero(fresh, as_tuple=True)[0]
-        if seeds.numel() > 0:
+        if seeds.numel() > 0:  # the rows of ``fresh``
             a_s, lo_s, hi_s = a_r.index_select(1, seeds), lo.index_select(0, seeds), hi.index_select(0, seeds)
             ends = torch.maximum(_motion(a_s, b, lo_s), _motion(a_s, b, hi_s))
             span.index_copy_(0, seeds, ends * (hi_s - lo_s))
