@@ -131,6 +131,18 @@ def stage_descriptors(images: torch.Tensor, config: Any) -> torch.Tensor:
     )
 
 
+_BASES: dict[tuple[str, int, torch.dtype, torch.device], torch.Tensor] = {}
+
+
+def _basis(patch: str, channels: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """:func:`zero_mean_basis` as a tensor, built once per layout, dtype and device: the filter
+    describes every frame, and building it (numpy, a sort, a copy) was a tenth of that."""
+    key = (patch, int(channels), dtype, torch.device(device))
+    if key not in _BASES:
+        _BASES[key] = torch.as_tensor(zero_mean_basis(patch, channels), dtype=dtype, device=device)
+    return _BASES[key]
+
+
 def patch_descriptors(
     images: torch.Tensor,
     patch: str = 'box',
@@ -167,7 +179,7 @@ def patch_descriptors(
         ],
         dim=1,
     )
-    basis = torch.as_tensor(zero_mean_basis(patch, channels), dtype=images.dtype, device=images.device)
+    basis = _basis(patch, channels, images.dtype, images.device)
     channels = basis.shape[0]
     extra = 0 if visibility_margin is None else 1
     out = torch.empty((b, channels + extra, h, w), dtype=images.dtype, device=images.device)
@@ -175,7 +187,7 @@ def patch_descriptors(
     projected = torch.matmul(basis, stack.reshape(b, len(offsets), h * w)).reshape(b, channels, h, w)
     # (d * d).sum beats linalg.vector_norm over the channel dimension by far on CPU; the
     # division writes straight into the output (one pass, no copy first).
-    norm = torch.sqrt(projected.square().sum(dim=1, keepdim=True) + len(offsets) * eps * eps)
+    norm = torch.sqrt((projected * projected).sum(dim=1, keepdim=True) + len(offsets) * eps * eps)
     torch.div(projected, norm, out=desc)
     if visibility_margin is not None:
         m = int(visibility_margin)
