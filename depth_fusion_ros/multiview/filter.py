@@ -84,6 +84,7 @@ class _Keyframe:
     # (padded image,) long: the row at each pixel of the image padded by seed_radius, M where
     # none (built on first use: the seed bracket's neighbour lookups)
     padded_rows: torch.Tensor | None = None
+    padded_flat: torch.Tensor | None = None  # (M,) long: each row's index in that padded image
 
 
 @dataclass
@@ -452,7 +453,7 @@ class DepthFilter:
         half = torch.maximum(c.search_sigmas * torch.sqrt(var_r), floor)
         lo = torch.clamp(mu_r - half, rho_min, rho_max).index_fill_(0, seeds, rho_min)
         hi = torch.clamp(mu_r + half, rho_min, rho_max).index_fill_(0, seeds, rho_max)
-        bracketed = self._bracket(key, rows, f_r, a_r, geo.b, lo, hi)
+        bracketed = self._bracket(key, rows, seeds, f_r, a_r, geo.b, lo, hi)
         self.clock.switch(prefix + 'search')
         x, cost, valid = self._search(key, rows, desc, a_r, geo.b, lo, hi, j_r, f_r, seeds)
         self.clock.switch(prefix + 'update')
@@ -514,6 +515,7 @@ class DepthFilter:
         self,
         key: _Keyframe,
         rows: torch.Tensor,
+        seeds: torch.Tensor,
         fresh: torch.Tensor,
         a_r: torch.Tensor,
         b: torch.Tensor,
@@ -526,15 +528,16 @@ class DepthFilter:
         their surface: its first search spans the neighbours' inverse depths, widened by
         ``2 min_search_px`` px each side, a few samples instead of a whole-range search
         (its second attempt, if this one fails, is a whole-range one). ``lo``, ``hi`` are
-        narrowed in place; returns which rows were bracketed (None: none).
+        narrowed in place; returns which rows were bracketed (None: none). ``seeds``: the rows
+        of ``fresh`` (the first attempts are among them: tested on those few rows only).
         """
         c = self.config
-        if c.seed_radius <= 0:
+        if c.seed_radius <= 0 or seeds.numel() == 0:
             return None
-        first = fresh & (key.attempts.index_select(0, rows) == 1)  # _choose counted this attempt
-        if not bool(first.any()) or not bool((key.updates > 0).any()):
+        # _choose counted this attempt
+        sel = seeds.masked_select(key.attempts.index_select(0, rows.index_select(0, seeds)) == 1)
+        if sel.numel() == 0 or not bool(key.updates.any()):  # updates >= 0: any() is "any > 0"
             return None
-        sel = torch.nonzero(first, as_tuple=True)[0]
         n_lo, n_hi = self._neighbour_range(key, rows.index_select(0, sel))
         near = torch.isfinite(n_lo)
         sel, n_lo, n_hi = sel[near], n_lo[near], n_hi[near]
@@ -547,7 +550,7 @@ class DepthFilter:
         hi.index_copy_(
             0, sel, torch.clamp(n_hi + pad / torch.clamp(_motion(a_s, b, n_hi), min=1e-9), rho_min, rho_max)
         )
-        use = torch.zeros_like(first)
+        use = torch.zeros_like(fresh)
         use[sel] = True
         return use
 
@@ -560,18 +563,19 @@ class DepthFilter:
         h, w = self.camera.height, self.camera.width
         wp = w + 2 * r
         m = int(key.flat.numel())
-        padded_flat = (key.vs.long() + r) * wp + key.us.long() + r
-        if key.padded_rows is None:
+        if key.padded_rows is None or key.padded_flat is None:  # once per keyframe
+            key.padded_flat = (key.vs.long() + r) * wp + key.us.long() + r
             key.padded_rows = torch.full(((h + 2 * r) * wp,), m, dtype=torch.long, device=self.device)
-            key.padded_rows.index_copy_(0, padded_flat, torch.arange(m, device=self.device))
+            key.padded_rows.index_copy_(0, key.padded_flat, torch.arange(m, device=self.device))
         d = torch.arange(-r, r + 1, device=self.device)
         offsets = (d[:, None] * wp + d[None, :]).reshape(-1)
-        window = (padded_flat.index_select(0, rows)[:, None] + offsets[None, :]).reshape(-1)
+        window = (key.padded_flat.index_select(0, rows)[:, None] + offsets[None, :]).reshape(-1)
         near = key.padded_rows.index_select(0, window)  # rows, m for "no candidate there"
-        # One spare entry at m: "no estimate" for the pixels without a candidate.
-        mu = torch.cat((key.state.mu, key.state.mu.new_zeros(1))).index_select(0, near)
-        none = torch.zeros(1, dtype=torch.bool, device=self.device)
-        has = torch.cat((key.updates > 0, none)).index_select(0, near)
+        # Gathered first, then "no estimate" where there is no candidate (near == m): the
+        # window's entries only, not a copy of the keyframe's state with a spare entry.
+        inside = near.clamp(max=m - 1)
+        mu = key.state.mu.index_select(0, inside)
+        has = (key.updates.index_select(0, inside) > 0) & (near < m)
         shape = (int(rows.numel()), int(offsets.numel()))
         lows = torch.where(has, mu, math.inf).view(shape).amin(dim=1)
         highs = torch.where(has, mu, -math.inf).view(shape).amax(dim=1)
