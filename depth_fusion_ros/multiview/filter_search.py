@@ -36,24 +36,29 @@ def _distinctiveness(cost: torch.Tensor, best: torch.Tensor, c1: torch.Tensor) -
 
     ``cost`` is samples-first (S, R). ``c2`` is the lowest local minimum outside the best
     sample and its two neighbours, or the largest finite cost when there is none (a single
-    basin). A dozen whole-tensor ops (one padding for the neighbour comparisons, a scatter for
-    the exclusion): this runs on every whole-range search, where the sampling itself is not
-    much more.
+    basin). A dozen whole-tensor ops (two comparisons between neighbouring samples, a
+    scatter for the exclusion): this runs on every whole-range search, where the sampling
+    itself is not much more.
     """
     inf = math.inf
-    padded = F.pad(cost, (0, 0, 1, 1), value=inf)
-    # 1.0 / 0.0 rather than bool: comparisons into floats and arithmetic with them are
-    # several times cheaper on CPU than with bool tensors.
-    is_min = torch.le(cost, padded[:-2], out=torch.empty_like(cost))
-    is_min.mul_(torch.le(cost, padded[2:], out=torch.empty_like(cost)))
+    # A local minimum is no higher than either neighbour (beyond the ends: inf, which every
+    # cost but NaN passes, and a NaN fails its other comparison anyway): compared between
+    # the samples themselves, without a padded copy. 1.0 / 0.0 rather than bool: comparisons
+    # into floats and arithmetic with them are several times cheaper on CPU than with bool.
+    is_min = torch.empty_like(cost)
+    torch.le(cost[:-1], cost[1:], out=is_min[:-1])
+    is_min[-1] = 1.0
+    is_min[1:].mul_(torch.le(cost[1:], cost[:-1], out=torch.empty_like(cost[1:])))
     near = (best[None, :] + torch.arange(-1, 2, device=cost.device)[:, None]).clamp_(0, cost.shape[0] - 1)
     # Costs are > 0 (frame_cost), so dividing by ``is_min`` sends the other samples to inf
     # (cheaper on CPU than masked_fill; amin / amax skip the indices min / max compute).
-    others = (cost / is_min).scatter_(0, near, inf)
-    c2 = others.amin(dim=0)
+    c2 = (cost / is_min).scatter_(0, near, inf).amin(dim=0)
+    # A single basin (no other minimum): the largest finite cost instead, for those rows only.
     # Costs are >= 0, so -1 stands for "no finite cost" (the ratio is then 0, as c1 is inf).
-    largest = torch.nan_to_num(cost, posinf=-1.0).amax(dim=0)
-    c2 = torch.where(torch.isfinite(c2), c2, largest)
+    single = torch.nonzero(~torch.isfinite(c2), as_tuple=True)[0]
+    if single.numel() > 0:
+        largest = torch.nan_to_num(cost.index_select(1, single), posinf=-1.0).amax(dim=0)
+        c2.index_copy_(0, single, largest)
     return torch.clamp(1.0 - c1 / torch.clamp(c2, min=1e-6), 0.0, 1.0)
 
 
@@ -191,11 +196,13 @@ def _parabola(
 ) -> SearchResult:
     """Sub-sample minimum of the parabola through samples ``j - 1, j, j + 1`` of ``grid`` (S, R)."""
     curvature = cm - 2.0 * c0 + cp
-    ok = torch.isfinite(curvature) & (curvature > 0) & torch.isfinite(c1)
-    safe = torch.where(ok, curvature, torch.ones_like(curvature))
-    delta = torch.clamp(0.5 * (cm - cp) / safe, -1.0, 1.0)
+    # finite and > 0 (NaN fails both comparisons, -inf the first): one test fewer than isfinite
+    ok = (curvature > 0) & (curvature < math.inf) & torch.isfinite(c1)
+    safe = torch.where(ok, curvature, 1.0)
+    slope = cm - cp
+    delta = torch.clamp(0.5 * slope / safe, -1.0, 1.0)
     rho = _gather(grid, j) + delta * step
-    best_cost = torch.where(ok, c0 - 0.25 * (cm - cp) * delta, torch.full_like(c0, math.inf))
+    best_cost = torch.where(ok, c0 - 0.25 * slope * delta, math.inf)
     return SearchResult(rho, best_cost, distinct, ok)
 
 
