@@ -229,7 +229,10 @@ def candidate_mask(
     threshold = config.min_gradient
     cap = int(config.max_candidate_fraction * h * w)
     if int((grad >= threshold).sum()) > cap:
-        threshold = max(threshold, float(torch.topk(grad.flatten(), max(cap, 1)).values[-1]))
+        # The cap-th largest gradient: kthvalue (a selection) finds the same value several
+        # times faster than topk's partial sort when the cap is a large fraction (the filter's 60 %).
+        flat = grad.flatten()
+        threshold = max(threshold, float(torch.kthvalue(flat, flat.numel() - max(cap, 1) + 1).values))
     mask[margin:-margin, margin:-margin] = grad >= threshold
     return mask
 
