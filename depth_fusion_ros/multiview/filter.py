@@ -275,12 +275,19 @@ class DepthFilter:
         smooth = gaussian_blur(image[None], self.matching.blur_sigma)[0]
         cand = candidate_mask(image, self._candidates, smooth=smooth)
         vs, us = torch.nonzero(cand, as_tuple=True)
-        # Candidates lie away from the border, so the central differences stay inside.
-        grad = torch.stack(
-            ((smooth[vs, us + 1] - smooth[vs, us - 1]) * 0.5, (smooth[vs + 1, us] - smooth[vs - 1, us]) * 0.5)
-        )
-        flat = vs * self.camera.width + us
+        width = self.camera.width
+        flat = vs * width + us
+        # Candidates lie away from the border, so the central differences stay inside. Flat
+        # index_select gathers: the same values as 2-D advanced indexing, several times cheaper.
+        pixels = smooth.reshape(-1)
+        at = lambda offset: pixels.index_select(0, flat + offset)  # noqa: E731
+        grad = torch.stack(((at(1) - at(-1)) * 0.5, (at(width) - at(-width)) * 0.5))
         channels = desc.shape[1] - 1
+        if desc.is_contiguous(memory_format=torch.channels_last):  # CPU (_describe): channels adjoin
+            key_desc = desc[0].permute(1, 2, 0).reshape(-1, channels + 1).index_select(0, flat)
+            key_desc = key_desc[:, :channels].T.contiguous()
+        else:
+            key_desc = desc[0, :channels].reshape(channels, -1).index_select(1, flat)
         state, updates, cost = self._fresh_state(int(flat.numel()))
         return _Keyframe(
             T_wk,
@@ -288,7 +295,7 @@ class DepthFilter:
             flat,
             us.float(),
             vs.float(),
-            desc[0, :channels][:, vs, us],
+            key_desc,
             grad,
             state,
             updates,
@@ -334,23 +341,26 @@ class DepthFilter:
         position = torch.full(
             (self.camera.width * self.camera.height,), -1, dtype=torch.long, device=self.device
         )
-        position[new.flat] = torch.arange(new.flat.numel(), device=self.device)
-        at = position[warped.target]
-        landed = at >= 0
-        at, src, rho = at[landed], rows[warped.source[landed]], warped.rho[landed]
-        scale4 = warped.scale[landed] ** 4
+        position.index_copy_(0, new.flat, torch.arange(new.flat.numel(), device=self.device))
+        # Reads by index_select (the same values as advanced indexing, several times cheaper on
+        # CPU); the writes stay index_put_, as before (a tie in the z-buffer can repeat a target).
+        at = position.index_select(0, warped.target)
+        landed = torch.nonzero(at >= 0, as_tuple=True)[0]
+        sources = rows.index_select(0, warped.source)
+        kept = lambda t: t.index_select(0, landed)  # noqa: E731
+        at, src, rho, scale4 = kept(at), kept(sources), kept(warped.rho), kept(warped.scale) ** 4
+        old_at = lambda t: t.index_select(0, src)  # noqa: E731
         st = new.state
         st.mu[at] = rho
-        st.var[at] = (
-            old.state.var[src] * scale4 * c.propagation_inflation + (c.propagation_relative_sigma * rho) ** 2
-        )
-        st.a[at] = old.state.a[src]
-        st.b[at] = old.state.b[src]
-        new.updates[at] = old.updates[src]
+        inflated = old_at(old.state.var) * scale4 * c.propagation_inflation
+        st.var[at] = inflated + (c.propagation_relative_sigma * rho) ** 2
+        st.a[at] = old_at(old.state.a)
+        st.b[at] = old_at(old.state.b)
+        new.updates[at] = old_at(old.updates)
         new.prior[at] = True
-        new.cost[at] = old.cost[src]
+        new.cost[at] = old_at(old.cost)
         filled = self._fill_holes(
-            new, warped.target, warped.rho, old.state.var[rows[warped.source]] * warped.scale**4
+            new, warped.target, warped.rho, old.state.var.index_select(0, sources) * warped.scale**4
         )
         # Pixels without a prior: a first measurement from the previous keyframe image.
         T_ok = relative_pose(T_wn, old.pose)
@@ -385,7 +395,7 @@ class DepthFilter:
         maps[1, target] = rho
         maps[2, target] = rho * rho
         maps[3, target] = var
-        sums = _box_sum(maps.view(4, h, w), c.fill_radius).view(4, h * w)[:, new.flat]
+        sums = _box_sum(maps.view(4, h, w), c.fill_radius).view(4, h * w).index_select(1, new.flat)
         n = sums[0]
         hole = ~new.prior & (n >= c.fill_min_neighbours)
         n = torch.clamp(n, min=1.0)
@@ -749,5 +759,11 @@ def _box_sum(maps: torch.Tensor, r: int) -> torch.Tensor:
     shifted slices, several times faster on CPU than ``avg_pool2d`` for these small windows."""
     h, w = maps.shape[-2:]
     padded = F.pad(maps, (r, r, r, r))
-    rows = sum(padded[:, :, k : k + w] for k in range(2 * r + 1))
-    return sum(rows[:, k : k + h, :] for k in range(2 * r + 1))
+    # Accumulated in place, in the order (and so to the bits) of the sum of the slices.
+    rows = padded[:, :, 0:w].clone()
+    for k in range(1, 2 * r + 1):
+        rows.add_(padded[:, :, k : k + w])
+    out = rows[:, 0:h, :].clone()
+    for k in range(1, 2 * r + 1):
+        out.add_(rows[:, k : k + h, :])
+    return out

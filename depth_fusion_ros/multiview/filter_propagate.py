@@ -59,11 +59,13 @@ def warp_estimates(
     rho_t = rho / zs  # 1 / z' = rho / (rho z')
     keep = front & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
     keep &= (rho_t >= rho_range[0]) & (rho_t <= rho_range[1])
+    # Gathers by index_select: the same values as advanced / boolean-mask indexing, several
+    # times cheaper on CPU.
     source = torch.nonzero(keep, as_tuple=True)[0]
-    target = (v[source] * w + u[source]).long()
-    rho_t = rho_t[source]
+    target = (v.index_select(0, source) * w + u.index_select(0, source)).long()
+    rho_t = rho_t.index_select(0, source)
     nearest = torch.full((h * w,), -1.0, dtype=dtype, device=dev)
     nearest.scatter_reduce_(0, target, rho_t, reduce='amax')
-    win = rho_t >= nearest[target]
-    source, target, rho_t = source[win], target[win], rho_t[win]
-    return Warped(target, source, rho_t, rho_t / rho[source])
+    win = torch.nonzero(rho_t >= nearest.index_select(0, target), as_tuple=True)[0]
+    source, target, rho_t = (t.index_select(0, win) for t in (source, target, rho_t))
+    return Warped(target, source, rho_t, rho_t / rho.index_select(0, source))
