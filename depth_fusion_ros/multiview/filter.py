@@ -49,7 +49,7 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
-from .cost_volume import epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
+from .cost_volume import gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
 from .filter_profile import StageClock
 from .filter_propagate import warp_estimates
@@ -463,13 +463,13 @@ class DepthFilter:
         half = torch.maximum(c.search_sigmas * torch.sqrt(var_r), floor)
         lo = torch.clamp(mu_r - half, rho_min, rho_max).index_fill_(0, seeds, rho_min)
         hi = torch.clamp(mu_r + half, rho_min, rho_max).index_fill_(0, seeds, rho_max)
-        bracketed = self._bracket(key, rows, seeds, f_r, a_r, geo.b, lo, hi)
+        bracketed = self._bracket(key, rows, seeds, f_r, a_r, geo.bs, lo, hi)
         self.clock.switch(prefix + 'search')
-        x, cost, valid = self._search(key, rows, desc, a_r, geo.b, lo, hi, j_r, f_r, seeds)
+        x, cost, valid = self._search(key, rows, desc, a_r, geo, lo, hi, j_r, f_r, seeds)
         self.clock.switch(prefix + 'update')
         # The epipolar motion at the match: the bracket's edge test and the measurement
         # variance (only read where the match is valid, so one evaluation at x serves both).
-        j_x = _motion(a_r, geo.b, x)
+        j_x = _motion(a_r, geo.bs, x)
         if bracketed is not None:
             # A bracket's best match on its edge: the minimum lies outside, not a measurement.
             inside = ((x - lo) * j_x >= 0.5) & ((hi - x) * j_x >= 0.5)
@@ -528,7 +528,7 @@ class DepthFilter:
         seeds: torch.Tensor,
         fresh: torch.Tensor,
         a_r: torch.Tensor,
-        b: torch.Tensor,
+        b: tuple[float, float, float],
         lo: torch.Tensor,
         hi: torch.Tensor,
     ) -> torch.Tensor | None:
@@ -627,7 +627,7 @@ class DepthFilter:
         rows: torch.Tensor,
         desc: torch.Tensor,
         a_r: torch.Tensor,
-        b: torch.Tensor,
+        geo: _FrameGeometry,
         lo: torch.Tensor,
         hi: torch.Tensor,
         j_r: torch.Tensor,
@@ -645,7 +645,7 @@ class DepthFilter:
         span = j_r * (hi - lo)
         if seeds.numel() > 0:  # the rows of ``fresh``
             a_s, lo_s, hi_s = a_r.index_select(1, seeds), lo.index_select(0, seeds), hi.index_select(0, seeds)
-            ends = torch.maximum(_motion(a_s, b, lo_s), _motion(a_s, b, hi_s))
+            ends = torch.maximum(_motion(a_s, geo.bs, lo_s), _motion(a_s, geo.bs, hi_s))
             span.index_copy_(0, seeds, ends * (hi_s - lo_s))
         bucket = plan_buckets(span, fresh, c)
         # Rows sorted by bucket once: each bucket is then a slice (views, no gather per bucket),
@@ -656,7 +656,7 @@ class DepthFilter:
         desc_o = key.key_desc.index_select(1, rows.index_select(0, order))
         lo_o, hi_o = lo.index_select(0, order), hi.index_select(0, order)
         # The rays normalised once for the frame, not once per bucket.
-        a_o, b_o = _normalised_rows(a_r.index_select(1, order), b, self.camera.width, self.camera.height)
+        a_o, b_o = _normalised_rows(a_r.index_select(1, order), geo.b, self.camera.width, self.camera.height)
         xs, costs, goods = [], [], []
         start = 0
         for (samples, refine, distinct), n in zip(search_buckets(c), counts, strict=True):
@@ -693,6 +693,7 @@ class _FrameGeometry:
 
     a: torch.Tensor  # (3, M) K R_fk x_n, coordinate-first: the projection at inverse depth rho is a + rho b
     b: torch.Tensor  # (3,) K t_fk
+    bs: tuple[float, float, float]  # b's float32 values as numbers (the per-row motion's factors)
     j: torch.Tensor  # (M,) epipolar motion (px per unit inverse depth) at the prior mean
     along: torch.Tensor  # (M,) |grey gradient . unit epipolar direction|
     visible: torch.Tensor  # (M,) bool: the prior mean projects in front, inside the matching margin
@@ -715,12 +716,16 @@ def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, mar
     h = torch.as_tensor(H.T, dtype=torch.float32, device=dev)  # rows: H's columns
     # H (u, v, 1), one row per coordinate
     a = torch.addcmul(torch.addcmul(h[2][:, None], h[0][:, None], key.us), h[1][:, None], key.vs)
-    b = torch.as_tensor(K @ T_fk[:3, 3], dtype=torch.float32, device=dev)
+    b_np = (K @ T_fk[:3, 3]).astype(np.float32)
+    b = torch.as_tensor(b_np, device=dev)
+    # The same float32 values as Python numbers: as operands they are cast back to float32
+    # (the same products), without a 0-d tensor select per use.
+    b0, b1, b2 = (float(v) for v in b_np)
     rho = key.state.mu
     a0, a1, a2 = a.unbind(0)
-    w = a2 + rho * b[2]
-    nu = b[0] * a2 - a0 * b[2]
-    nv = b[1] * a2 - a1 * b[2]
+    w = a2 + rho * b2
+    nu = b0 * a2 - a0 * b2
+    nv = b1 * a2 - a1 * b2
     norm = torch.hypot(nu, nv)
     w2 = torch.clamp(w * w, min=1e-12)
     j = norm / w2
@@ -730,16 +735,21 @@ def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, mar
     cu, cv = 0.5 * (camera.width - 1), 0.5 * (camera.height - 1)
     visible = (
         front
-        & (((a0 + rho * b[0]) / wc - cu).abs() <= cu - margin)
-        & (((a1 + rho * b[1]) / wc - cv).abs() <= cv - margin)
+        & (((a0 + rho * b0) / wc - cu).abs() <= cu - margin)
+        & (((a1 + rho * b1) / wc - cv).abs() <= cv - margin)
     )
-    return _FrameGeometry(a, b, j, along, visible)
+    return _FrameGeometry(a, b, (b0, b1, b2), j, along, visible)
 
 
-def _motion(a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
+def _motion(a: torch.Tensor, b: tuple[float, float, float], rho: torch.Tensor) -> torch.Tensor:
     """``|d p / d rho|`` (R,) of coordinate-first rows ``a`` (3, R) at inverse depths ``rho``
-    (``EpipolarRays.parallax``)."""
-    return torch.hypot(*epipolar_motion(a.T, b, rho))
+    (``EpipolarRays.parallax``; ``cost_volume.epipolar_motion``'s arithmetic in its order, with
+    ``b`` as numbers: a third of its ops, which were mostly selects of ``a`` and ``b``)."""
+    b0, b1, b2 = b
+    a0, a1, a2 = a.unbind(0)
+    w = a2 + rho * b2
+    w2 = torch.clamp(w * w, min=1e-12)
+    return torch.hypot((b0 * a2 - a0 * b2) / w2, (b1 * a2 - a1 * b2) / w2)
 
 
 def _normalised_rows(

@@ -102,10 +102,11 @@ def _frame_cost(
     sampled = F.grid_sample(
         frame_desc, _grid(a, b, rho), mode='bilinear', padding_mode='zeros', align_corners=True
     )[0]
-    count = sampled[channels]
-    zncc = sampled[0] * key_desc[0]
+    planes, keys = sampled.unbind(0), key_desc.unbind(0)  # one op each instead of a select per channel
+    count = planes[channels]
+    zncc = planes[0] * keys[0]
     for c in range(1, channels):
-        zncc.addcmul_(sampled[c], key_desc[c])
+        zncc.addcmul_(planes[c], keys[c])
     # (count - zncc + 1e-3) / (count + 1e-3), and inf where the frame does not see the sample:
     # the numerator is > 0 (|zncc| <= count for the normalised descriptors), so a denominator
     # multiplied by the visibility test gives it (x / (d * 1) = x / d exactly, x / 0 = inf),

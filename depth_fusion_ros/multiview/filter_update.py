@@ -44,13 +44,19 @@ def gaussian_uniform_update(
     s2 = 1.0 / (1.0 / var + 1.0 / tau2)
     m = s2 * (mu / var + x / tau2)
     total = var + tau2
-    c1 = a / (a + b) * torch.exp(-0.5 * (x - mu) ** 2 / total) / torch.sqrt(2.0 * math.pi * total)
-    c2 = b / (a + b) / (rho_range[1] - rho_range[0])
+    # The repeated subexpressions (a + b, a + 1, ...) once each: the same operations in the
+    # same order, so the same numbers, in about a third fewer passes.
+    ab = a + b
+    c1 = a / ab * torch.exp(-0.5 * (x - mu) ** 2 / total) / torch.sqrt(2.0 * math.pi * total)
+    c2 = b / ab / (rho_range[1] - rho_range[0])
     norm = c1 + c2
     c1, c2 = c1 / norm, c2 / norm
-    ab1 = a + b + 1.0
-    f = c1 * (a + 1.0) / ab1 + c2 * a / ab1
-    e = c1 * (a + 1.0) * (a + 2.0) / (ab1 * (ab1 + 1.0)) + c2 * a * (a + 1.0) / (ab1 * (ab1 + 1.0))
+    ab1 = ab + 1.0
+    a1 = a + 1.0
+    c1a1, c2a = c1 * a1, c2 * a
+    f = c1a1 / ab1 + c2a / ab1
+    ab12 = ab1 * (ab1 + 1.0)
+    e = c1a1 * (a + 2.0) / ab12 + c2a * a1 / ab12
     mu_new = c1 * m + c2 * mu
     var_new = c1 * (s2 + m * m) + c2 * (var + mu * mu) - mu_new * mu_new
     a_new = (e - f) / (f - e / f)
