@@ -182,12 +182,16 @@ def test_max_points_caps_omega_deterministically() -> None:
     assert a.n_omega == 30 and np.array_equal(a.omega_mask, b.omega_mask)
 
 
-def _reference_sums(p: Samples, q: Samples, v: torch.Tensor, params: WeightParams) -> tuple:
+def _reference_sums(
+    p: Samples, q: Samples, v: torch.Tensor, params: WeightParams, lw: torch.Tensor | None = None
+) -> tuple:
     """``(ΣW'v, ΣW', ΣW'd, min W̃)`` straight from the formulas of ``fusion.weights``."""
     dx = q.x - p.x
     dy = q.y - p.y
     distance = torch.sqrt(dx * dx + dy * dy)
     w = proximity_weights(distance, params)
+    if lw is not None:
+        w = w * torch.exp(lw)
     if params.weights != 'w1':
         w = w * structure_weights(p, q, params, dx, dy)
     low = w.amin(dim=1, keepdim=True)
@@ -195,9 +199,11 @@ def _reference_sums(p: Samples, q: Samples, v: torch.Tensor, params: WeightParam
     return shifted @ v, shifted.sum(dim=1), (shifted * distance).sum(dim=1), low.squeeze(1)
 
 
+@pytest.mark.parametrize('point_weights', [False, True])
 @pytest.mark.parametrize('weights', ['w1', 'w1w2', 'all'])
-def test_compiled_and_eager_kernels_compute_the_same_sums(weights: str) -> None:
-    """The weights' formulas (functional) and the in-place eager kernel agree."""
+def test_compiled_and_eager_kernels_compute_the_same_sums(weights: str, point_weights: bool) -> None:
+    """The weights' formulas (functional) and the in-place eager kernel agree, with and
+    without each point's own weight (a factor exp(lw))."""
     g = torch.Generator().manual_seed(0)
 
     def samples(n: int) -> Samples:
@@ -206,8 +212,10 @@ def test_compiled_and_eager_kernels_compute_the_same_sums(weights: str) -> None:
         return Samples(x, y, s, torch.randn(n, generator=g) * 0.05, torch.randn(n, generator=g) * 0.05)
 
     p, q, v = samples(64).column(), samples(300).row(), torch.randn(300, generator=g)
+    lw = torch.log(0.05 + torch.rand(1, 300, generator=g)).clamp_max(0) if point_weights else None
     params = WeightParams(weights=weights)
-    for a, b in zip(_reference_sums(p, q, v, params), _chunk_sums_inplace(p, q, v, params), strict=True):
+    reference = _reference_sums(p, q, v, params, lw)
+    for a, b in zip(reference, _chunk_sums_inplace(p, q, v, lw, params), strict=True):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-5 * float(a.abs().max()))
 
 
@@ -231,9 +239,10 @@ def test_polynomial_exp_keeps_its_accuracy_when_compiled() -> None:
     assert float(((compiled.double() - ref) / ref).abs().max()) < 3e-7
 
 
+@pytest.mark.parametrize('point_weights', [False, True])
 @pytest.mark.parametrize('weights', ['w1', 'w1w2', 'all'])
 @pytest.mark.parametrize('n_points', [1, 3, 300])
-def test_one_pass_sums_equal_the_two_pass_kernel(weights: str, n_points: int) -> None:
+def test_one_pass_sums_equal_the_two_pass_kernel(weights: str, n_points: int, point_weights: bool) -> None:
     """Σ(W̃ - min)·x = ΣW̃·x - min·Σx: the one-pass kernel (what the compiled path runs) gives the
     two-pass sums, including rows where the minimum is not negligible (tiny Ω: redone two-pass)."""
     g = torch.Generator().manual_seed(n_points)
@@ -245,11 +254,12 @@ def test_one_pass_sums_equal_the_two_pass_kernel(weights: str, n_points: int) ->
         return Samples(x, y, s, torch.randn(n, generator=g) * 0.05, torch.randn(n, generator=g) * 0.05)
 
     p, q, v = samples(64).column(), samples(n_points).row(), torch.randn(n_points, generator=g)
+    lw = torch.log(0.05 + torch.rand(1, n_points, generator=g)).clamp_max(0) if point_weights else None
     params = WeightParams(weights=weights)
     one_pass = _one_pass_kernel(lambda *a: _chunk_sums_one_pass(*a, params), params, chunk_elements=50)
     no_compiler = _one_pass_kernel(_no_one_pass, params, chunk_elements=50)  # two-pass in blocks
     for kernel in (one_pass, no_compiler):
-        for a, b in zip(kernel(p, q, v), _chunk_sums_inplace(p, q, v, params), strict=True):
+        for a, b in zip(kernel(p, q, v, lw), _chunk_sums_inplace(p, q, v, lw, params), strict=True):
             assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(b.abs().max()))
 
 

@@ -57,6 +57,10 @@ log = logging.getLogger(__name__)
 CORNER_SHARPNESS = 2.0
 MODES = ('exact', 'fast')
 
+#: Smallest point log weight: a point weighs at least exp(-20) = 2e-9 of the paper's weight,
+#: so its exponent stays far inside MAX_EXPONENT's range.
+MAX_POINT_LOG_WEIGHT = 20.0
+
 #: Default pixel-point pairs per chunk: 8 MB per float32 weight block.
 DEFAULT_CHUNK_ELEMENTS = 1 << 21
 
@@ -89,18 +93,21 @@ def confidence_from_support(support_distance: np.ndarray, sigma1: float) -> np.n
 
 
 def _chunk_sums_inplace(
-    p: Samples, q: Samples, v: torch.Tensor, params: WeightParams
+    p: Samples, q: Samples, v: torch.Tensor, lw: torch.Tensor | None, params: WeightParams
 ) -> tuple[torch.Tensor, ...]:
     """Pixels ``p`` (C, 1) against points ``q`` (1, Q), with ``W' = W̃ - min W̃`` and
     ``d = ‖p - q‖``: ``(ΣW'v, ΣW', ΣW'd, min W̃)`` per pixel, in place on two (C, Q) buffers.
 
     The formulas of :mod:`.weights` (a test compares them), streamed through memory as few
-    times as eager torch allows.
+    times as eager torch allows. ``lw``: the points' log weights (1, Q), or None (all 1).
     """
     dx = q.x - p.x
     dy = q.y - p.y
     distance = torch.hypot(dx, dy)
-    w = torch.mul(distance, -1.0 / params.sigma1).clamp_(min=-MAX_EXPONENT).exp_()
+    w = torch.mul(distance, -1.0 / params.sigma1)
+    if lw is not None:
+        w.add_(lw)
+    w = w.clamp_(min=-MAX_EXPONENT).exp_()
     if params.use_w2:
         t = torch.sub(q.gx, p.gx).abs_().add_(params.sigma2)
         w.div_(t.mul_(torch.sub(q.gy, p.gy).abs_().add_(params.sigma2)))
@@ -117,8 +124,15 @@ def _chunk_sums_inplace(
 
 #: exp(r) on |r| <= ln(2)/2: degree-6 minimax coefficients of the relative error, c0..c6
 #: (truncation 3e-9; float32 evaluation 1e-7 relative, float32's own exp 6e-8).
-_EXP_MINIMAX = (1.0, 1.0, 0.4999999403953552, 0.1666652113199234, 0.04166838899254799,
-                0.008368710055947304, 0.001381461275741458)
+_EXP_MINIMAX = (
+    1.0,
+    1.0,
+    0.4999999403953552,
+    0.1666652113199234,
+    0.04166838899254799,
+    0.008368710055947304,
+    0.001381461275741458,
+)
 #: ln 2 split so ``k * _LN2_HI`` is exact in float32 for the ``|k| <= 87`` used here (Cody-Waite).
 _LN2_HI = 0.693359375
 _LN2_LO = -2.12194440e-4
@@ -150,7 +164,7 @@ def _at_least(x: torch.Tensor, low: float) -> torch.Tensor:
 
 
 def _chunk_sums_one_pass(
-    p: Samples, q: Samples, v: torch.Tensor, params: WeightParams
+    p: Samples, q: Samples, v: torch.Tensor, lw: torch.Tensor | None, params: WeightParams
 ) -> tuple[torch.Tensor, ...]:
     """``(ΣW̃v, ΣW̃, ΣW̃d, min W̃, Σd)`` per pixel in ONE pass over Ω (what torch.compile
     turns into a single loop with five accumulators, nothing of size (C, Q) in memory).
@@ -167,7 +181,10 @@ def _chunk_sums_one_pass(
     dy = q.y - p.y
     distance = torch.sqrt(dx * dx + dy * dy)
     distance_sum = distance.sum(dim=1)
-    w = _exp_nonpositive(_at_least(distance * (-1.0 / params.sigma1), -MAX_EXPONENT))
+    exponent = distance * (-1.0 / params.sigma1)
+    if lw is not None:  # the point's own weight folded into W1's exponential: one add
+        exponent = exponent + lw
+    w = _exp_nonpositive(_at_least(exponent, -MAX_EXPONENT))
     if params.use_w34:
         offset = p.s - q.s
         w3 = _exp_nonpositive(_at_least(-torch.abs(offset + p.gx * dx), -MAX_EXPONENT)) + params.sigma3
@@ -197,17 +214,17 @@ def _one_pass_kernel(
     sums: Callable, params: WeightParams, chunk_elements: int, n_points: int = 1
 ) -> Callable:
     """The ``(ΣW'v, ΣW', ΣW'd, min W̃)`` kernel of :func:`_offsets_at` from the one-pass sums
-    ``sums(p, q, v)`` (compiled), its shaky rows redone by :func:`_chunk_sums_inplace` in
+    ``sums(p, q, v, lw)`` (compiled), its shaky rows redone by :func:`_chunk_sums_inplace` in
     blocks of ``chunk_elements`` pairs. ``kernel.rows`` tells :func:`_offsets_at` its chunk:
     ``ONE_PASS_ROWS``, or ``chunk_elements / n_points`` (|Ω|) where that is more."""
 
-    def kernel(p: Samples, q: Samples, v: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def kernel(p: Samples, q: Samples, v: torch.Tensor, lw: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
         n_q = q.x.shape[-1]
         block = max(1, chunk_elements // max(1, n_q))
-        one_pass = sums(p, q, v)
+        one_pass = sums(p, q, v, lw)
         if one_pass is None:  # the compiler failed: two passes, in blocks of bounded memory
             parts = [
-                _chunk_sums_inplace(p.take(slice(i, i + block)), q, v, params)
+                _chunk_sums_inplace(p.take(slice(i, i + block)), q, v, lw, params)
                 for i in range(0, len(p.x), block)
             ]
             return tuple(torch.cat(column) for column in zip(*parts, strict=True))
@@ -218,7 +235,7 @@ def _one_pass_kernel(
         shaky = torch.nonzero(n_q * low > ONE_PASS_MIN_RTOL * w).squeeze(1)
         for start in range(0, shaky.numel(), block):
             rows = shaky[start : start + block]
-            exact = _chunk_sums_inplace(Samples(*(t[rows] for t in p)), q, v, params)
+            exact = _chunk_sums_inplace(Samples(*(t[rows] for t in p)), q, v, lw, params)
             for out, value in zip((num, den, dist), exact[:3], strict=True):
                 out[rows] = value
         return num, den, dist, low
@@ -307,11 +324,11 @@ def _maybe_compiled(
 
 
 def _plain_normalisation(
-    p: Samples, q: Samples, v: torch.Tensor, params: WeightParams
+    p: Samples, q: Samples, v: torch.Tensor, lw: torch.Tensor | None, params: WeightParams
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Offsets and support distances with ``W̃ / Σ W̃`` (the guard of eq. (9)); equal weights
     where even ``Σ W̃`` is 0 (every weight underflowed, only possible with σ3 = 0)."""
-    w = unnormalised_weights(p, q, params)
+    w = unnormalised_weights(p, q, params, lw)
     distance = torch.sqrt((q.x - p.x) ** 2 + (q.y - p.y) ** 2)
     w = torch.where(w.sum(dim=1, keepdim=True) > 0, w, torch.ones_like(w))
     total = w.sum(dim=1)
@@ -322,11 +339,13 @@ def _offsets_at(
     pixels: Samples,
     points: Samples,
     v: torch.Tensor,
+    lw: torch.Tensor | None,
     kernel: Callable,
     chunk_elements: int,
     params: WeightParams,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Exact offsets and support distances of ``pixels`` (1-D samples) against Ω.
+    """Exact offsets and support distances of ``pixels`` (1-D samples) against Ω, whose
+    log weights are ``lw`` (1, |Ω|; None: all points weigh 1).
 
     Chunks have a fixed size (the last one padded by repeating a pixel) so a compiled kernel
     sees one pixel-count shape per |Ω|; the size is balanced (never above the kernel's) so
@@ -345,7 +364,7 @@ def _offsets_at(
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
         index = torch.arange(start, start + chunk, device=v.device).clamp_max(n - 1)
-        num, den, dist, low = kernel(pixels.take(index).column(), q, v)
+        num, den, dist, low = kernel(pixels.take(index).column(), q, v, lw)
         offsets[start:stop] = (num / den)[: stop - start]
         support[start:stop] = (dist / den)[: stop - start]
         plain = den + n_points * low
@@ -354,7 +373,7 @@ def _offsets_at(
             equal_rows = index[: stop - start][equal]
             for first in range(0, equal_rows.numel(), block):
                 rows = equal_rows[first : first + block]
-                off, sup = _plain_normalisation(pixels.take(rows).column(), q, v, params)
+                off, sup = _plain_normalisation(pixels.take(rows).column(), q, v, lw, params)
                 offsets[rows] = off
                 support[rows] = sup
     return offsets, support
@@ -372,13 +391,16 @@ def interpolate(
     chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
     device: str | torch.device = 'cpu',
     compile_kernel: bool = False,
+    point_weight: np.ndarray | None = None,
 ) -> Interpolation:
     """Offset field ``f - s`` of the fusion of ``s`` with the points ``omega`` of ``m``.
 
     ``s``: single-view depth in metres (HxW, NaN = none); ``m``: multi-view depth (HxW);
     ``omega``: bool HxW mask of the selected points (points where ``s`` or ``m`` is not
-    finite are ignored). Returns NaN offsets everywhere when Ω is empty — the caller decides
-    the fallback.
+    finite are ignored). ``point_weight``: optional HxW factor in (0, 1] that multiplies
+    every weight of a point of Ω (its precision, :func:`precision_weights`; NaN = 1); None
+    gives the paper's weights. Returns NaN offsets everywhere when Ω is empty — the caller
+    decides the fallback.
     """
     params = params or WeightParams()
     s = np.asarray(s, dtype=np.float32)
@@ -413,6 +435,7 @@ def interpolate(
     point_index = torch.from_numpy(np.flatnonzero(points_mask)).to(dev)
     points = samples_at(point_index, width, s_t, gx, gy)
     v = torch.from_numpy((m - s)[points_mask].astype(np.float32)).to(dev)
+    lw = _point_log_weights(point_weight, points_mask, dev)
     # Eager: the in-place two-pass kernel (fewer passes over memory); compiled: the one-pass
     # sums fused into one loop over Ω.
     if compile_kernel and dev.type not in _COMPILE_FAILED:
@@ -428,7 +451,7 @@ def interpolate(
     if mode == 'exact' or fast_stride == 1:
         pixel_index = torch.from_numpy(np.flatnonzero(valid_s)).to(dev)
         off, sup = _offsets_at(
-            samples_at(pixel_index, width, s_t, gx, gy), points, v, kernel, chunk_elements, params
+            samples_at(pixel_index, width, s_t, gx, gy), points, v, lw, kernel, chunk_elements, params
         )
         offset.ravel()[valid_s.ravel()] = off.cpu().numpy()
         support.ravel()[valid_s.ravel()] = sup.cpu().numpy()
@@ -441,6 +464,7 @@ def interpolate(
         gy,
         points,
         v,
+        lw,
         params,
         kernel,
         chunk_elements,
@@ -453,6 +477,27 @@ def interpolate(
     offset[~valid_s] = np.nan
     support[~valid_s] = np.nan
     return Interpolation(offset, support)
+
+
+def _point_log_weights(
+    point_weight: np.ndarray | None, points_mask: np.ndarray, device: torch.device
+) -> torch.Tensor | None:
+    """``log point_weight`` of the points of Ω as a (1, |Ω|) row (NaN: weight 1), or None.
+
+    A log weight joins W1's exponent (``exp(-d/σ1 + log c) = c·W1``), so the kernels weigh
+    a point by its precision for one addition per pixel-point pair.
+    """
+    if point_weight is None:
+        return None
+    c = np.asarray(point_weight, dtype=np.float32)
+    if c.shape != points_mask.shape:
+        raise ValueError(f'point_weight {c.shape} must be HxW like omega {points_mask.shape}')
+    c = c[points_mask]
+    c = np.where(np.isfinite(c), c, 1.0)
+    if (c <= 0).any() or (c > 1).any():
+        raise ValueError('point_weight must be in (0, 1] on the points of omega')
+    lw = np.maximum(np.log(c), -MAX_POINT_LOG_WEIGHT).astype(np.float32)
+    return torch.from_numpy(lw).to(device).reshape(1, -1)
 
 
 def coarse_axis(size: int, stride: int) -> np.ndarray:
@@ -547,6 +592,7 @@ def _fast_offsets(
     gy: torch.Tensor,
     points: Samples,
     v: torch.Tensor,
+    lw: torch.Tensor | None,
     params: WeightParams,
     kernel: Callable,
     chunk_elements: int,
@@ -563,7 +609,8 @@ def _fast_offsets(
     coarse_support = torch.full((grid.coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
     if coarse_valid.any():
         idx = torch.from_numpy(grid.coarse_flat[coarse_valid]).to(dev)
-        off, sup = _offsets_at(samples_at(idx, width, s, gx, gy), points, v, kernel, chunk_elements, params)
+        pixels = samples_at(idx, width, s, gx, gy)
+        off, sup = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params)
         sel = torch.from_numpy(np.flatnonzero(coarse_valid)).to(dev)
         coarse_offset[sel] = off
         coarse_support[sel] = sup
@@ -588,7 +635,8 @@ def _fast_offsets(
     log.debug('fast fusion: %d of %d pixels computed exactly', int(fix.sum()), fix.numel())
     if bool(fix.any()):
         idx = torch.nonzero(fix).squeeze(1)
-        off, sup = _offsets_at(samples_at(idx, width, s, gx, gy), points, v, kernel, chunk_elements, params)
+        pixels = samples_at(idx, width, s, gx, gy)
+        off, sup = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params)
         offset[idx] = off
         support[idx] = sup
     return offset, support

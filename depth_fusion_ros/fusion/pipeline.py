@@ -33,6 +33,7 @@ from .consistency import ConsistencyConfig, consistent_points, stage3_candidates
 from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
 from .guard_apply import guarded_depth, limit_reach
 from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
+from .precision import check_half_weight, precision_weights
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
 from .valid_depth import sanitize_depth
 from .weights import WeightParams, check_weight_params
@@ -65,6 +66,10 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
         'fuse at most this many points of omega (a seeded uniform subsample: the cost is '
         'pixels x |omega|); -1 or auto: all of them'
     ),
+    'std_half_weight': (
+        "each point's weight times h^2 / (h^2 + r^2), r its multi-view relative depth std, "
+        'h this (a point with r = h counts half; 0: off, the paper)'
+    ),
     'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
 
@@ -94,6 +99,8 @@ class FusionConfig:
     seed: int = 0
     align_scale: bool | None = None
     max_points: int | None = None
+    #: Precision weight of each point from its multi-view std (``precision.py``; 0: off).
+    std_half_weight: float = 0.0
     #: Check the evidence per keyframe and degrade gracefully (``guard.py``, ``GuardConfig``).
     guard: bool = True
     device: str = 'cpu'
@@ -119,6 +126,7 @@ class FusionConfig:
             raise ValueError(
                 f'metric_scale_range must be a finite number >= 1, got {self.metric_scale_range}'
             )
+        check_half_weight(self.std_half_weight)
         if self.max_points is not None and self.max_points < 1:
             raise ValueError(f'max_points must be >= 1 or None, got {self.max_points}')
 
@@ -264,6 +272,7 @@ def fuse_keyframe(
         chunk_elements=config.chunk_elements,
         device=config.device,
         compile_kernel=config.compile_kernel,
+        point_weight=precision_weights(evidence.relative_std if evidence else None, config.std_half_weight),
     )
     with np.errstate(invalid='ignore'):
         depth = np.maximum(base + interp.offset, MIN_DEPTH).astype(np.float32)

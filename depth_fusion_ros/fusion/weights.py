@@ -134,23 +134,31 @@ def samples_at(
     return Samples(x, y, s[flat_index], gx[flat_index], gy[flat_index])
 
 
-def unnormalised_weights(p: Samples, q: Samples, params: WeightParams) -> torch.Tensor:
+def unnormalised_weights(
+    p: Samples, q: Samples, params: WeightParams, lw: torch.Tensor | None = None
+) -> torch.Tensor:
     """``W̃ = W1·W2·W3·W4`` (or the chosen subset) for every broadcast pair of ``p`` and ``q``.
 
     Reference formulation of the paper's factors; :mod:`.interpolation` evaluates it in
-    chunks (optionally compiled into one fused loop).
+    chunks (optionally compiled into one fused loop). ``lw``: the points' log weights
+    (broadcast like ``q``; None: 1), a factor ``exp(lw)`` of each point's weight.
     """
     dx = q.x - p.x
     dy = q.y - p.y
-    w1 = proximity_weights(torch.sqrt(dx * dx + dy * dy), params)
+    w1 = proximity_weights(torch.sqrt(dx * dx + dy * dy), params, lw)
     if params.weights == 'w1':
         return w1
     return w1 * structure_weights(p, q, params, dx, dy)
 
 
-def proximity_weights(distance: torch.Tensor, params: WeightParams) -> torch.Tensor:
-    """W1 of pixel distances."""
-    return torch.exp(-(distance * (1.0 / params.sigma1)).clamp_max(MAX_EXPONENT))
+def proximity_weights(
+    distance: torch.Tensor, params: WeightParams, lw: torch.Tensor | None = None
+) -> torch.Tensor:
+    """W1 of pixel distances (times ``exp(lw)``, the points' own weights, when given)."""
+    exponent = distance * (1.0 / params.sigma1)
+    if lw is not None:
+        exponent = exponent - lw
+    return torch.exp(-exponent.clamp_max(MAX_EXPONENT))
 
 
 def structure_weights(

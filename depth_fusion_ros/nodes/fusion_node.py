@@ -89,6 +89,7 @@ FUSION_LIMITS: dict[str, Any] = {
     'max_points': (-1, None),
     'ransac_model': tuple(getattr(fusion_pipeline, 'RANSAC_MODELS', ())),
     'metric_scale_range': (1.0, None),
+    'std_half_weight': (0.0, None),
 }
 #: Ranges of the ``guard.*`` parameters (``GuardConfig``).
 GUARD_LIMITS: dict[str, Any] = {

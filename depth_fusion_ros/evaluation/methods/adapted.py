@@ -125,16 +125,27 @@ def single_view_adapted(ctx: KeyframeContext) -> MethodOutput:
     'fusion (automatic selection) on the online-adapted single-view depth, prequential',
 )
 def fused_adapted(ctx: KeyframeContext) -> MethodOutput:
+    from ...fusion.guard import MultiViewEvidence
     from ...fusion.pipeline import fuse_keyframe
-    from .fusion import _output, _stage1, fusion_settings
+    from .fusion import _output, _stage1, consistency_settings, fusion_settings, guard_settings
     from .multi_view import multi_view_result
 
     config, extra = fusion_settings(ctx)
     prediction, report = adapted_prediction(ctx)
     mv = multi_view_result(ctx)
     stage1 = _stage1(ctx, mv, extra)
+    # as `fused` and the node: the guard's --set thresholds and the multi-view std (evidence, weights)
     out = _output(
-        fuse_keyframe(prediction.depth, mv.depth, stage1, config, output_kind=prediction.output_kind)
+        fuse_keyframe(
+            prediction.depth,
+            mv.depth,
+            stage1,
+            config,
+            output_kind=prediction.output_kind,
+            guard_config=guard_settings(ctx),
+            evidence=MultiViewEvidence.from_result(mv),
+            consistency_config=consistency_settings(ctx),
+        )
     )
     out.extras.update(_extras(report))
     return out
