@@ -308,3 +308,19 @@ def test_bad_parameters_and_inputs_raise(synthetic_sequence):
         f.process(np.zeros((10, 10), np.float32), seq.frames[0].pose)
     with pytest.raises(ValueError, match='frame pose'):
         f.process(seq.frames[0].gray, np.full((4, 4), np.nan))
+
+
+def test_dense_neighbour_range_matches_the_window_gather(synthetic_sequence):
+    """The seed bracket's two paths (window gather for a few rows, min / max filters over the
+    image for many) give the same ranges, to the bit."""
+    seq = synthetic_sequence
+    f = DepthFilter(seq.camera)
+    for frame in seq.frames[:8]:
+        f.process(frame.gray, frame.pose)
+    key = f.key
+    rows = torch.arange(int(key.flat.numel()))
+    lo_dense, hi_dense = f._neighbour_range_dense(key, rows)
+    parts = [f._neighbour_range(key, rows[s : s + 500]) for s in range(0, int(rows.numel()), 500)]
+    lo_gather, hi_gather = (torch.cat([p[i] for p in parts]) for i in (0, 1))
+    assert torch.isfinite(lo_dense).any() and torch.isinf(lo_dense).any()
+    assert torch.equal(lo_dense, lo_gather) and torch.equal(hi_dense, hi_gather)

@@ -518,7 +518,7 @@ class DepthFilter:
             (key.prior, prior_n),
             (key.cost, torch.where(valid, cost, pick(key.cost))),
         ):
-            target.index_copy_(0, rows, value)
+            target.scatter_(0, rows, value)  # rows are distinct: index_copy_'s result, a third cheaper
         return seen
 
     def _bracket(
@@ -571,6 +571,8 @@ class DepthFilter:
         for, not the image."""
         r = self.config.seed_radius
         h, w = self.camera.height, self.camera.width
+        if int(rows.numel()) * (2 * r + 1) ** 2 > h * w:
+            return self._neighbour_range_dense(key, rows)
         wp = w + 2 * r
         m = int(key.flat.numel())
         if key.padded_rows is None or key.padded_flat is None:  # once per keyframe
@@ -590,6 +592,27 @@ class DepthFilter:
         lows = torch.where(has, mu, math.inf).view(shape).amin(dim=1)
         highs = torch.where(has, mu, -math.inf).view(shape).amax(dim=1)
         return lows, highs
+
+    def _neighbour_range_dense(self, key: _Keyframe, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`_neighbour_range` through a min and a max filter over the whole image, for many
+        rows (a new keyframe's seeds): its windows would gather more entries than the image
+        has pixels. Minima and maxima are exact, so the numbers are the same."""
+        r = self.config.seed_radius
+        h, w = self.camera.height, self.camera.width
+        has = key.updates > 0
+        ranges = []
+        for empty, pick in ((math.inf, torch.minimum), (-math.inf, torch.maximum)):
+            image = torch.full((h * w,), empty, dtype=key.state.mu.dtype, device=self.device)
+            image.scatter_(0, key.flat, torch.where(has, key.state.mu, empty))
+            padded = F.pad(image.view(1, h, w), (r, r, r, r), value=empty)[0]
+            across = padded[:, 0:w].clone()
+            for k in range(1, 2 * r + 1):
+                across = pick(across, padded[:, k : k + w], out=across)
+            window = across[0:h].clone()
+            for k in range(1, 2 * r + 1):
+                window = pick(window, across[k : k + h], out=window)
+            ranges.append(window.view(-1).index_select(0, key.flat.index_select(0, rows)))
+        return ranges[0], ranges[1]
 
     def _choose(
         self, key: _Keyframe, geo: _FrameGeometry, baseline: float, only: torch.Tensor | None
@@ -681,9 +704,9 @@ class DepthFilter:
             costs.append(found.cost)
             goods.append(good)
             start = stop
-        x = torch.empty_like(lo).index_copy_(0, order, torch.cat(xs))
-        cost = torch.empty_like(lo).index_copy_(0, order, torch.cat(costs))
-        valid = torch.empty_like(fresh).index_copy_(0, order, torch.cat(goods))
+        x = torch.empty_like(lo).scatter_(0, order, torch.cat(xs))
+        cost = torch.empty_like(lo).scatter_(0, order, torch.cat(costs))
+        valid = torch.empty_like(fresh).scatter_(0, order, torch.cat(goods))
         return x, cost, valid
 
 

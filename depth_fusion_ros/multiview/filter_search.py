@@ -166,12 +166,22 @@ def _min0(cost: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """
     samples = cost.shape[0]
     c1 = cost.amin(dim=0)
-    if bool(torch.isnan(c1).any()):  # a NaN equals nothing: min's own semantics (rare, degenerate rays)
-        return cost.min(dim=0)
-    weight = torch.arange(samples, 0, -1, dtype=cost.dtype, device=cost.device)[:, None]
     hit = torch.eq(cost, c1, out=torch.empty_like(cost))
-    first = samples - hit.mul_(weight).amax(dim=0).long()
+    first = samples - hit.mul_(_weights(samples, cost.dtype, cost.device)).amax(dim=0).long()
+    if int(first.max()) == samples:  # a NaN minimum equals nothing: min's own semantics (degenerate rays)
+        return cost.min(dim=0)
     return c1, first
+
+
+_WEIGHTS: dict[tuple[int, torch.dtype, torch.device], torch.Tensor] = {}
+
+
+def _weights(samples: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``S, S - 1, ..., 1`` as an (S, 1) column, built once per sample count (:func:`_min0`)."""
+    key = (samples, dtype, device)
+    if key not in _WEIGHTS:
+        _WEIGHTS[key] = torch.arange(samples, 0, -1, dtype=dtype, device=device)[:, None]
+    return _WEIGHTS[key]
 
 
 def _gather(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
