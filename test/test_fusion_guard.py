@@ -234,3 +234,32 @@ def test_local_deviation_takes_the_nearest_neighbours_and_counts_every_one():
     _, support = guard._local_deviation(many, np.zeros(len(many)), 12.0, 2, max_neighbours=8)
     exact = np.median(cKDTree(many).query_ball_point(many, r=12.0, return_length=True) - 1)
     assert abs(support - exact) <= 0.05 * exact
+
+
+@pytest.mark.parametrize('case', ['consistent', 'bad_region', 'wrong_matches'])
+def test_a_sampled_guard_decides_as_the_full_one(truth, case):
+    """With ``max_points`` the guard checks 2 x max_points of Ω (pipeline.GUARD_SAMPLE_FACTOR):
+    the same decision as checking every point, counts scaled to all of Ω, trust only in the sample."""
+    single = _single(truth, 5)
+    bad = np.zeros(truth.shape, dtype=bool)
+    bad[:, : W // 2] = True
+    density, noise, region = {
+        'consistent': (0.3, 0.01, None),
+        'bad_region': (0.3, 0.35, bad),
+        'wrong_matches': (0.3, 0.5, None),
+    }[case]
+    multi = _multi(truth, 5, density=density, noise=noise, region=region)
+    omega = np.isfinite(multi)
+    guard = GuardConfig(full_fraction=0.8)
+    full = assess(single, multi, omega, int(omega.sum()), guard)
+    sampled = assess(single, multi, omega, int(omega.sum()), guard, sample=800, seed=3)
+    assert sampled.decision == full.decision, (sampled.evidence, full.evidence)
+    assert sampled.evidence['n_checked'] == 800 and full.evidence['n_checked'] == omega.sum()
+    assert sampled.evidence['inlier_ratio'] == full.evidence['inlier_ratio']
+    assert abs(sampled.evidence['trusted_fraction'] - full.evidence['trusted_fraction']) < 0.08
+    n_omega = int(omega.sum())
+    assert abs(sampled.evidence['n_trusted'] - full.evidence['n_trusted']) < 0.08 * n_omega
+    if sampled.decision == 'fewer_points':
+        assert sampled.trusted.sum() <= 800 and not (sampled.trusted & ~omega).any()
+    capped = fuse_keyframe(single, multi, None, FusionConfig(mode='fast', max_points=400), guard_config=guard)
+    assert capped.decision == full.decision and capped.evidence['n_checked'] <= 800

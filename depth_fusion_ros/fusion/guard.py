@@ -251,11 +251,19 @@ def assess(
     n_stage1: int,
     config: GuardConfig | None = None,
     evidence: MultiViewEvidence | None = None,
+    *,
+    sample: int | None = None,
+    seed: int = 0,
 ) -> GuardVerdict:
     """Judge the multi-view evidence of one keyframe (all maps HxW on the working grid).
 
     ``base``: the single-view depth the fusion starts from (metres); ``m``: multi-view depth;
     ``omega``: the stage-2 points; ``n_stage1``: how many stage-1 points stage 2 saw.
+    ``sample``: check at most this many points of Ω, a seeded uniform subsample (the fusion
+    node fuses only ``max_points`` anyway; the local test's cost follows the points checked).
+    Counts then stand for all of Ω: the trusted count and the neighbour support are scaled
+    by ``|Ω| / sample``, the inlier ratio is Ω's own, and ``fewer_points`` trusts points of
+    the sample only.
     """
     config = config or GuardConfig()
     with np.errstate(invalid='ignore'):
@@ -267,7 +275,13 @@ def assess(
         return GuardVerdict('single_view', f'only {n_omega} stage-2 points', empty, 0.0, 1.0, stats)
 
     rows, cols = np.nonzero(usable)
-    residual = np.log(m[usable].astype(np.float64)) - np.log(base[usable].astype(np.float64))
+    if sample is not None and n_omega > sample:
+        pick = np.sort(np.random.default_rng(seed).choice(n_omega, size=int(sample), replace=False))
+        rows, cols = rows[pick], cols[pick]
+    n_checked = len(rows)
+    thin = n_omega / n_checked  # each checked point stands for this many points of Ω
+    stats['n_checked'] = float(n_checked)
+    residual = np.log(m[rows, cols].astype(np.float64)) - np.log(base[rows, cols].astype(np.float64))
     deviation, support = _local_deviation(
         np.stack((cols, rows), axis=1).astype(np.float64),
         residual,
@@ -275,14 +289,15 @@ def assess(
         config.min_neighbours,
         config.max_neighbours,
     )
+    support *= thin
     checked = np.isfinite(deviation)
     good = checked & (deviation <= config.local_tolerance)
     if evidence is not None and evidence.relative_std is not None:
-        rel = evidence.relative_std[usable]
+        rel = evidence.relative_std[rows, cols]
         stats['median_relative_std'] = float(np.nanmedian(rel)) if np.isfinite(rel).any() else float('nan')
         good &= np.nan_to_num(rel, nan=np.inf) <= config.max_relative_std
     if evidence is not None and evidence.agreement is not None:
-        agree = evidence.agreement[usable]
+        agree = evidence.agreement[rows, cols]
         stats['median_agreement'] = float(np.nanmedian(agree)) if np.isfinite(agree).any() else float('nan')
         good &= np.nan_to_num(agree, nan=0.0) >= config.min_agreement
     mv_noise = MAD_TO_SIGMA * float(np.median(deviation[checked])) / np.sqrt(2.0) if checked.any() else np.inf
@@ -293,10 +308,10 @@ def assess(
     # which is what remains of the fit residual's spread once the multi-view noise is removed.
     effective_noise = mv_noise / np.sqrt(support + 1.0)
     single_error = float(np.sqrt(max(fit_spread**2 - mv_noise**2, 0.0)))
-    n_trusted = int(good.sum())
+    n_trusted = round(int(good.sum()) * thin)  # of all Ω
     trusted = np.zeros(omega.shape, dtype=bool)
     trusted[rows[good], cols[good]] = True
-    trusted_fraction = n_trusted / n_omega
+    trusted_fraction = float(good.mean())
     scale_points = residual[good] if n_trusted >= config.min_scale_points else residual
     scale_log = float(np.median(scale_points))
     scale_error = fit_spread / np.sqrt(max(len(scale_points), 1))
