@@ -30,7 +30,9 @@ and a flat cost of about 1: they produce no distinct minimum and so low photomet
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -131,16 +133,11 @@ def stage_descriptors(images: torch.Tensor, config: Any) -> torch.Tensor:
     )
 
 
-_BASES: dict[tuple[str, int, torch.dtype, torch.device], torch.Tensor] = {}
-
-
+@functools.lru_cache(maxsize=16)
 def _basis(patch: str, channels: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """:func:`zero_mean_basis` as a tensor, built once per layout, dtype and device: the filter
     describes every frame, and building it (numpy, a sort, a copy) was a tenth of that."""
-    key = (patch, int(channels), dtype, torch.device(device))
-    if key not in _BASES:
-        _BASES[key] = torch.as_tensor(zero_mean_basis(patch, channels), dtype=dtype, device=device)
-    return _BASES[key]
+    return torch.as_tensor(zero_mean_basis(patch, channels), dtype=dtype, device=device)
 
 
 def patch_descriptors(
@@ -278,7 +275,7 @@ class EpipolarRays:
 
         From ``u = (a0 + rho b0) / (a2 + rho b2)``: ``du/drho = (b0 a2 - a0 b2) / (a2 + rho b2)^2``.
         """
-        return epipolar_motion(self.a, self.b[:, None, :], rho[None, :])
+        return epipolar_motion(self.a.unbind(-1), self.b[:, None, :].unbind(-1), rho[None, :])
 
     def parallax(self, rho: torch.Tensor) -> torch.Tensor:
         """``|d p_o / d rho|`` (n, M): pixels moved along each epipolar line per unit inverse depth.
@@ -289,13 +286,18 @@ class EpipolarRays:
         return torch.sqrt(du * du + dv * dv)
 
 
-def epipolar_motion(a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(du/drho, dv/drho)`` of homogeneous projections ``a + rho b`` (``a``, ``b`` (..., 3) and
-    ``rho`` broadcasting): :meth:`EpipolarRays.motion` and the filter's per-row geometry."""
-    w = a[..., 2] + rho * b[..., 2]
+def epipolar_motion(
+    a: Sequence[torch.Tensor], b: Sequence[torch.Tensor | float], rho: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(du/drho, dv/drho)`` of homogeneous projections ``a + rho b``, given by their three
+    coordinates (``a0, a1, a2`` and ``b0, b1, b2`` broadcasting with ``rho``; ``b``'s may be
+    numbers): :meth:`EpipolarRays.motion` and the filter's per-row motion."""
+    a0, a1, a2 = a
+    b0, b1, b2 = b
+    w = a2 + rho * b2
     w2 = torch.clamp(w * w, min=1e-12)
-    du = (b[..., 0] * a[..., 2] - a[..., 0] * b[..., 2]) / w2
-    dv = (b[..., 1] * a[..., 2] - a[..., 1] * b[..., 2]) / w2
+    du = (b0 * a2 - a0 * b2) / w2
+    dv = (b1 * a2 - a1 * b2) / w2
     return du, dv
 
 

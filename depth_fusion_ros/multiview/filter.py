@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,7 +50,7 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
-from .cost_volume import gaussian_blur, patch_reach, stage_descriptors
+from .cost_volume import epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
 from .filter_profile import StageClock
 from .filter_propagate import warp_estimates
@@ -463,13 +464,13 @@ class DepthFilter:
         half = torch.maximum(c.search_sigmas * torch.sqrt(var_r), floor)
         lo = torch.clamp(mu_r - half, rho_min, rho_max).index_fill_(0, seeds, rho_min)
         hi = torch.clamp(mu_r + half, rho_min, rho_max).index_fill_(0, seeds, rho_max)
-        bracketed = self._bracket(key, rows, seeds, f_r, a_r, geo.bs, lo, hi)
+        bracketed = self._bracket(key, rows, seeds, f_r, a_r, geo.b, lo, hi)
         self.clock.switch(prefix + 'search')
         x, cost, valid = self._search(key, rows, desc, a_r, geo, lo, hi, j_r, f_r, seeds)
         self.clock.switch(prefix + 'update')
         # The epipolar motion at the match: the bracket's edge test and the measurement
         # variance (only read where the match is valid, so one evaluation at x serves both).
-        j_x = _motion(a_r, geo.bs, x)
+        j_x = _motion(a_r, geo.b, x)
         if bracketed is not None:
             # A bracket's best match on its edge: the minimum lies outside, not a measurement.
             inside = ((x - lo) * j_x >= 0.5) & ((hi - x) * j_x >= 0.5)
@@ -605,12 +606,7 @@ class DepthFilter:
             image = torch.full((h * w,), empty, dtype=key.state.mu.dtype, device=self.device)
             image.scatter_(0, key.flat, torch.where(has, key.state.mu, empty))
             padded = F.pad(image.view(1, h, w), (r, r, r, r), value=empty)[0]
-            across = padded[:, 0:w].clone()
-            for k in range(1, 2 * r + 1):
-                across = pick(across, padded[:, k : k + w], out=across)
-            window = across[0:h].clone()
-            for k in range(1, 2 * r + 1):
-                window = pick(window, across[k : k + h], out=window)
+            window = _window_reduce(padded, r, lambda acc, x, pick=pick: pick(acc, x, out=acc))
             ranges.append(window.view(-1).index_select(0, key.flat.index_select(0, rows)))
         return ranges[0], ranges[1]
 
@@ -668,7 +664,7 @@ class DepthFilter:
         span = j_r * (hi - lo)
         if seeds.numel() > 0:  # the rows of ``fresh``
             a_s, lo_s, hi_s = a_r.index_select(1, seeds), lo.index_select(0, seeds), hi.index_select(0, seeds)
-            ends = torch.maximum(_motion(a_s, geo.bs, lo_s), _motion(a_s, geo.bs, hi_s))
+            ends = torch.maximum(_motion(a_s, geo.b, lo_s), _motion(a_s, geo.b, hi_s))
             span.index_copy_(0, seeds, ends * (hi_s - lo_s))
         bucket = plan_buckets(span, fresh, c)
         # Rows sorted by bucket once: each bucket is then a slice (views, no gather per bucket),
@@ -715,8 +711,7 @@ class _FrameGeometry:
     """One frame's epipolar geometry for every keyframe pixel, at the pixel's prior mean."""
 
     a: torch.Tensor  # (3, M) K R_fk x_n, coordinate-first: the projection at inverse depth rho is a + rho b
-    b: torch.Tensor  # (3,) K t_fk
-    bs: tuple[float, float, float]  # b's float32 values as numbers (the per-row motion's factors)
+    b: tuple[float, float, float]  # K t_fk's float32 values as numbers (operands without selects)
     j: torch.Tensor  # (M,) epipolar motion (px per unit inverse depth) at the prior mean
     along: torch.Tensor  # (M,) |grey gradient . unit epipolar direction|
     visible: torch.Tensor  # (M,) bool: the prior mean projects in front, inside the matching margin
@@ -739,11 +734,9 @@ def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, mar
     h = torch.as_tensor(H.T, dtype=torch.float32, device=dev)  # rows: H's columns
     # H (u, v, 1), one row per coordinate
     a = torch.addcmul(torch.addcmul(h[2][:, None], h[0][:, None], key.us), h[1][:, None], key.vs)
-    b_np = (K @ T_fk[:3, 3]).astype(np.float32)
-    b = torch.as_tensor(b_np, device=dev)
-    # The same float32 values as Python numbers: as operands they are cast back to float32
+    # K t_fk's float32 values as Python numbers: as operands they are cast back to float32
     # (the same products), without a 0-d tensor select per use.
-    b0, b1, b2 = (float(v) for v in b_np)
+    b0, b1, b2 = (float(v) for v in (K @ T_fk[:3, 3]).astype(np.float32))
     rho = key.state.mu
     a0, a1, a2 = a.unbind(0)
     w = a2 + rho * b2
@@ -761,42 +754,45 @@ def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, mar
         & (((a0 + rho * b0) / wc - cu).abs() <= cu - margin)
         & (((a1 + rho * b1) / wc - cv).abs() <= cv - margin)
     )
-    return _FrameGeometry(a, b, (b0, b1, b2), j, along, visible)
+    return _FrameGeometry(a, (b0, b1, b2), j, along, visible)
 
 
 def _motion(a: torch.Tensor, b: tuple[float, float, float], rho: torch.Tensor) -> torch.Tensor:
     """``|d p / d rho|`` (R,) of coordinate-first rows ``a`` (3, R) at inverse depths ``rho``
-    (``EpipolarRays.parallax``; ``cost_volume.epipolar_motion``'s arithmetic in its order, with
-    ``b`` as numbers: a third of its ops, which were mostly selects of ``a`` and ``b``)."""
-    b0, b1, b2 = b
-    a0, a1, a2 = a.unbind(0)
-    w = a2 + rho * b2
-    w2 = torch.clamp(w * w, min=1e-12)
-    return torch.hypot((b0 * a2 - a0 * b2) / w2, (b1 * a2 - a1 * b2) / w2)
+    (``EpipolarRays.parallax``), ``b`` as numbers: contiguous rows and no per-use selects of
+    ``b`` (a third of the ops of the pixel-last form)."""
+    return torch.hypot(*epipolar_motion(a.unbind(0), b, rho))
 
 
 def _normalised_rows(
-    a: torch.Tensor, b: torch.Tensor, width: int, height: int
+    a: torch.Tensor, b: tuple[float, float, float], width: int, height: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``filter_search.normalised_rows`` of coordinate-first rows ``a`` (3, R), in place in ``a``
     (the caller's own gathered copy): the same numbers (``EpipolarRays._normalised``) without
     the pixel-first round trip (scale, concatenation, transposed copy)."""
     scale = torch.tensor([2.0 / (width - 1), 2.0 / (height - 1), 1.0], dtype=a.dtype, device=a.device)
     a[:2].mul_(scale[:2, None]).sub_(a[2])  # (a_k s_k) - a_2; a_2 s_2 = a_2 exactly
-    b = b * scale
+    b = torch.tensor(b, dtype=a.dtype, device=a.device) * scale
     return a, torch.cat((b[:2] - b[2:], b[2:]))
 
 
 def _box_sum(maps: torch.Tensor, r: int) -> torch.Tensor:
     """Sum of each ``(C, H, W)`` map over the ``(2r + 1)^2`` window (zeros outside): separable
     shifted slices, several times faster on CPU than ``avg_pool2d`` for these small windows."""
-    h, w = maps.shape[-2:]
-    padded = F.pad(maps, (r, r, r, r))
-    # Accumulated in place, in the order (and so to the bits) of the sum of the slices.
-    rows = padded[:, :, 0:w].clone()
+    return _window_reduce(F.pad(maps, (r, r, r, r)), r, lambda acc, x: acc.add_(x))
+
+
+def _window_reduce(
+    padded: torch.Tensor, r: int, combine: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+) -> torch.Tensor:
+    """``combine`` (in place into its first argument) over each ``(2r + 1)^2`` window of the
+    ``(..., H + 2r, W + 2r)`` padded maps, separably: along the rows, then the columns, in the
+    order (and so to the bits) of combining the shifted slices one after the other."""
+    h, w = padded.shape[-2] - 2 * r, padded.shape[-1] - 2 * r
+    across = padded[..., :, 0:w].clone()
     for k in range(1, 2 * r + 1):
-        rows.add_(padded[:, :, k : k + w])
-    out = rows[:, 0:h, :].clone()
+        combine(across, padded[..., :, k : k + w])
+    out = across[..., 0:h, :].clone()
     for k in range(1, 2 * r + 1):
-        out.add_(rows[:, k : k + h, :])
+        combine(out, across[..., k : k + h, :])
     return out

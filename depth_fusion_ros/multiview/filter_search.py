@@ -11,6 +11,7 @@ update per posed frame affordable. The cost is the sweep's (``cost_volume.sample
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -173,15 +174,10 @@ def _min0(cost: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return c1, first
 
 
-_WEIGHTS: dict[tuple[int, torch.dtype, torch.device], torch.Tensor] = {}
-
-
+@functools.lru_cache(maxsize=32)
 def _weights(samples: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """``S, S - 1, ..., 1`` as an (S, 1) column, built once per sample count (:func:`_min0`)."""
-    key = (samples, dtype, device)
-    if key not in _WEIGHTS:
-        _WEIGHTS[key] = torch.arange(samples, 0, -1, dtype=dtype, device=device)[:, None]
-    return _WEIGHTS[key]
+    return torch.arange(samples, 0, -1, dtype=dtype, device=device)[:, None]
 
 
 def _gather(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
