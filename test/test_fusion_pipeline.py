@@ -29,15 +29,21 @@ from depth_fusion_ros.fusion.weights import (
 )
 
 
-def _dense_reference(s: np.ndarray, m: np.ndarray, omega: np.ndarray, params: WeightParams) -> np.ndarray:
-    """Eq. (2) straight from the formulas: the full (pixels x Ω) matrix, normalised, summed."""
+def _dense_reference(
+    s: np.ndarray, m: np.ndarray, omega: np.ndarray, params: WeightParams, c: np.ndarray | None = None
+) -> np.ndarray:
+    """Eq. (2) straight from the formulas: the full (pixels x Ω) matrix, normalised, summed;
+    with ``c`` (HxW), every weight of point q times c_q before the normalisation."""
     gx, gy = (torch.from_numpy(g.ravel()) for g in depth_gradients(s))
     st = torch.from_numpy(s.ravel())
     width = s.shape[1]
     pixels = samples_at(torch.arange(s.size), width, st, gx, gy).column()
     q_index = torch.from_numpy(np.flatnonzero(omega))
     points = samples_at(q_index, width, st, gx, gy).row()
-    w = normalise_weights(unnormalised_weights(pixels, points, params).double())
+    w = unnormalised_weights(pixels, points, params).double()
+    if c is not None:
+        w = w * torch.from_numpy(c[omega].astype(np.float64))[None, :]
+    w = normalise_weights(w)
     terms = torch.from_numpy(m.ravel()[q_index.numpy()]).double()[None, :] + (st[:, None] - points.s).double()
     return (w * terms).sum(dim=1).reshape(s.shape).numpy()
 
@@ -51,6 +57,28 @@ def test_exact_mode_equals_the_formula_and_ignores_chunking(weights: str) -> Non
     for chunk in (7, 1 << 20):
         got = sc.single + interpolate(sc.single, sc.multi, omega, params, chunk_elements=chunk).offset
         assert np.allclose(got, reference, atol=2e-5)
+
+
+@pytest.mark.parametrize('mode', ['exact', 'fast'])
+def test_point_weights_multiply_each_points_weights(mode: str) -> None:
+    """``point_weight`` (fusion/precision.py) multiplies every weight of its point, in the
+    exact and the fast path's exact sums; NaN means weight 1."""
+    sc = make_scene(40, 30, n_points=25)
+    omega = np.isfinite(sc.multi)
+    c = np.random.default_rng(1).uniform(0.02, 1.0, sc.single.shape).astype(np.float32)
+    reference = _dense_reference(sc.single, sc.multi, omega, WeightParams(), c)
+    for chunk in (7, 1 << 20):
+        got = (
+            sc.single
+            + interpolate(
+                sc.single, sc.multi, omega, mode=mode, fast_stride=1, chunk_elements=chunk, point_weight=c
+            ).offset
+        )
+        assert np.allclose(got, reference, atol=2e-5)
+    plain = interpolate(sc.single, sc.multi, omega).offset
+    ones = interpolate(sc.single, sc.multi, omega, point_weight=np.full_like(c, np.nan)).offset
+    assert np.array_equal(plain, ones, equal_nan=True)  # NaN: no evidence, weight 1
+    assert not np.allclose(reference, sc.single + plain, atol=1e-3)
 
 
 def test_wrong_scale_and_offset_pulled_onto_the_true_surface() -> None:
@@ -189,9 +217,7 @@ def _reference_sums(
     dx = q.x - p.x
     dy = q.y - p.y
     distance = torch.sqrt(dx * dx + dy * dy)
-    w = proximity_weights(distance, params)
-    if lw is not None:
-        w = w * torch.exp(lw)
+    w = proximity_weights(distance, params, lw)
     if params.weights != 'w1':
         w = w * structure_weights(p, q, params, dx, dy)
     low = w.amin(dim=1, keepdim=True)

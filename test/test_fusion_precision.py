@@ -1,57 +1,16 @@
-"""Each point's precision weight in the interpolation (fusion/precision.py, issue 11)."""
+"""Each point's precision weight (fusion/precision.py, issue 11); the kernels' handling of it is
+tested against the formulas in test_fusion_pipeline.py."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from depth_fusion_ros.fusion.guard import MultiViewEvidence
 from depth_fusion_ros.fusion.interpolation import interpolate
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
 from depth_fusion_ros.fusion.precision import precision_weights
 from depth_fusion_ros.fusion.scenes import make_scene
-from depth_fusion_ros.fusion.weights import (
-    WeightParams,
-    depth_gradients,
-    normalise_weights,
-    samples_at,
-    unnormalised_weights,
-)
-
-
-def _weighted_reference(s: np.ndarray, m: np.ndarray, omega: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Eq. (2) with every weight of point q times c_q, from the formulas (dense, float64)."""
-    gx, gy = (torch.from_numpy(g.ravel()) for g in depth_gradients(s))
-    st = torch.from_numpy(s.ravel())
-    width = s.shape[1]
-    pixels = samples_at(torch.arange(s.size), width, st, gx, gy).column()
-    q_index = torch.from_numpy(np.flatnonzero(omega))
-    points = samples_at(q_index, width, st, gx, gy).row()
-    w = unnormalised_weights(pixels, points, WeightParams()).double()
-    w = normalise_weights(w * torch.from_numpy(c[omega].astype(np.float64))[None, :])
-    terms = torch.from_numpy(m.ravel()[q_index.numpy()]).double()[None, :] + (st[:, None] - points.s).double()
-    return (w * terms).sum(dim=1).reshape(s.shape).numpy()
-
-
-@pytest.mark.parametrize('mode', ['exact', 'fast'])
-def test_point_weights_multiply_each_points_weights(mode: str) -> None:
-    sc = make_scene(40, 30, n_points=25)
-    omega = np.isfinite(sc.multi)
-    c = np.random.default_rng(1).uniform(0.02, 1.0, sc.single.shape).astype(np.float32)
-    reference = _weighted_reference(sc.single, sc.multi, omega, c)
-    for chunk in (7, 1 << 20):
-        got = (
-            sc.single
-            + interpolate(
-                sc.single, sc.multi, omega, mode=mode, fast_stride=1, chunk_elements=chunk, point_weight=c
-            ).offset
-        )
-        assert np.allclose(got, reference, atol=2e-5)
-    plain = interpolate(sc.single, sc.multi, omega).offset
-    ones = interpolate(sc.single, sc.multi, omega, point_weight=np.full_like(c, np.nan)).offset
-    assert np.array_equal(plain, ones, equal_nan=True)  # NaN: no evidence, weight 1
-    assert not np.allclose(reference, sc.single + plain, atol=1e-3)
 
 
 def test_precision_weights_halve_at_the_half_weight_and_switch_off() -> None:

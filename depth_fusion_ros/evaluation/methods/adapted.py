@@ -125,27 +125,9 @@ def single_view_adapted(ctx: KeyframeContext) -> MethodOutput:
     'fusion (automatic selection) on the online-adapted single-view depth, prequential',
 )
 def fused_adapted(ctx: KeyframeContext) -> MethodOutput:
-    from ...fusion.guard import MultiViewEvidence
-    from ...fusion.pipeline import fuse_keyframe
-    from .fusion import _output, _stage1, consistency_settings, fusion_settings, guard_settings
-    from .multi_view import multi_view_result
+    from .fusion import _output, fuse_automatic
 
-    config, extra = fusion_settings(ctx)
     prediction, report = adapted_prediction(ctx)
-    mv = multi_view_result(ctx)
-    stage1 = _stage1(ctx, mv, extra)
-    # as `fused` and the node: the guard's --set thresholds and the multi-view std (evidence, weights)
-    out = _output(
-        fuse_keyframe(
-            prediction.depth,
-            mv.depth,
-            stage1,
-            config,
-            output_kind=prediction.output_kind,
-            guard_config=guard_settings(ctx),
-            evidence=MultiViewEvidence.from_result(mv),
-            consistency_config=consistency_settings(ctx),
-        )
-    )
+    out = _output(fuse_automatic(ctx, prediction.depth, prediction.output_kind))
     out.extras.update(_extras(report))
     return out

@@ -133,31 +133,23 @@ def fused_automatic(ctx: KeyframeContext, **forced: Any) -> MethodOutput:
     return _output(fused_result(ctx, **forced))
 
 
-def fused_result(ctx: KeyframeContext, **forced: Any) -> FusionResult:
-    """The automatic fusion of this keyframe (memoised without ``forced``: ``map`` reuses it)."""
+def fuse_automatic(
+    ctx: KeyframeContext,
+    single: np.ndarray,
+    kind: str,
+    stage3: bool | None = None,
+    **forced: Any,
+) -> FusionResult:
+    """The automatic fusion of ``single`` (``kind`` units) with this keyframe's multi-view
+    result, as the fusion node does it: the ``--set`` fusion, guard and stage-3 settings
+    (``stage3`` overrides ``consistency.enabled``) and the multi-view evidence (its std)."""
+    from .multi_view import multi_view_result
 
-    def compute() -> FusionResult:
-        config, extra = fusion_settings(ctx, **forced)
-        single, kind, mv = _inputs(ctx)
-        stage1 = _stage1(ctx, mv, extra)
-        return fuse_keyframe(
-            single,
-            mv.depth,
-            stage1,
-            config,
-            output_kind=kind,
-            guard_config=guard_settings(ctx),
-            evidence=MultiViewEvidence.from_result(mv),
-            consistency_config=consistency_settings(ctx),
-        )
-
-    return ctx.cached('fusion:automatic', compute) if not forced else compute()
-
-
-def fused_consistent(ctx: KeyframeContext) -> FusionResult:
-    """``fused`` with stage 3 of the selection switched on (``--set consistency.*`` still apply)."""
-    config, extra = fusion_settings(ctx)
-    single, kind, mv = _inputs(ctx)
+    config, extra = fusion_settings(ctx, **forced)
+    mv = multi_view_result(ctx)
+    consistency = consistency_settings(ctx)
+    if stage3 is not None:
+        consistency = dataclasses.replace(consistency, enabled=stage3)
     return fuse_keyframe(
         single,
         mv.depth,
@@ -166,8 +158,24 @@ def fused_consistent(ctx: KeyframeContext) -> FusionResult:
         output_kind=kind,
         guard_config=guard_settings(ctx),
         evidence=MultiViewEvidence.from_result(mv),
-        consistency_config=dataclasses.replace(consistency_settings(ctx), enabled=True),
+        consistency_config=consistency,
     )
+
+
+def fused_result(ctx: KeyframeContext, **forced: Any) -> FusionResult:
+    """The automatic fusion of this keyframe (memoised without ``forced``: ``map`` reuses it)."""
+
+    def compute() -> FusionResult:
+        single, kind, _ = _inputs(ctx)
+        return fuse_automatic(ctx, single, kind, **forced)
+
+    return ctx.cached('fusion:automatic', compute) if not forced else compute()
+
+
+def fused_consistent(ctx: KeyframeContext) -> FusionResult:
+    """``fused`` with stage 3 of the selection switched on (``--set consistency.*`` still apply)."""
+    single, kind, _ = _inputs(ctx)
+    return fuse_automatic(ctx, single, kind, stage3=True)
 
 
 def fused_oracle(ctx: KeyframeContext, **forced: Any) -> MethodOutput:
