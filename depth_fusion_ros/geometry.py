@@ -13,7 +13,10 @@ Conventions used everywhere in the package:
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+
+# scipy.spatial is imported where it is used (matrix_to_quat, interpolate_poses): importing it
+# costs about 0.3 s of CPU, and every node process imports this module before it can say
+# ready (issue 13's time to ready); quat_to_matrix, on every pose message, is plain numpy.
 
 #: Tolerance on ``R^T R - I`` (max abs) above which a rotation is rejected as not orthonormal.
 ORTHONORMAL_TOL = 1e-3
@@ -40,11 +43,20 @@ def quat_to_matrix(q_xyzw: np.ndarray, *, normalise: bool = True) -> np.ndarray:
         raise PoseError('quaternion has zero norm')
     if not normalise and abs(norm - 1.0) > QUAT_NORM_TOL:
         raise PoseError(f'quaternion is not normalised (|q| = {norm:.6f})')
-    return Rotation.from_quat(q / norm).as_matrix()
+    x, y, z, w = q / norm
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """``(x, y, z, w)`` quaternion of a rotation matrix, with ``w >= 0``."""
+    from scipy.spatial.transform import Rotation
+
     q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
     return q if q[3] >= 0 else -q
 
@@ -130,6 +142,8 @@ def interpolate_poses(
     idx = np.clip(np.searchsorted(stamps, q, side='right') - 1, 0, len(stamps) - 2)
     alpha = (q - stamps[idx]) / (stamps[idx + 1] - stamps[idx])
     t = poses[idx, :3, 3] * (1 - alpha)[:, None] + poses[idx + 1, :3, 3] * alpha[:, None]
+    from scipy.spatial.transform import Rotation, Slerp
+
     rots = Rotation.from_matrix(poses[:, :3, :3])
     R = Slerp(stamps, rots)(q).as_matrix()
     T = np.tile(np.eye(4), (len(q), 1, 1))

@@ -32,6 +32,28 @@ def test_quaternion_round_trip():
         assert np.allclose(matrix_to_quat(quat_to_matrix(q)), q, atol=1e-12)
 
 
+def test_quat_to_matrix_matches_scipy_for_unnormalised_quaternions():
+    # quat_to_matrix is plain numpy (no scipy import on the nodes' start path): same matrices
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        q = rng.normal(size=4) * rng.uniform(0.1, 3.0)
+        expected = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+        assert np.allclose(quat_to_matrix(q), expected, atol=1e-12)
+
+
+def test_node_modules_start_without_scipy():
+    # scipy.spatial costs ~0.3 s of CPU per node process before it can say ready (issue 13)
+    import subprocess
+    import sys
+
+    code = (
+        'import sys; import depth_fusion_ros.nodes.fusion_node, depth_fusion_ros.nodes.multi_view_node; '
+        'print("scipy.spatial" in sys.modules)'
+    )
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == 'False'
+
+
 def test_bad_quaternions_raise():
     with pytest.raises(PoseError, match='non-finite'):
         quat_to_matrix([np.nan, 0, 0, 1])

@@ -62,7 +62,6 @@ import logging
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 log = logging.getLogger(__name__)
 
@@ -224,6 +223,8 @@ def _local_deviation(
     out = np.full(n, np.nan)
     if n == 0:
         return out, 0.0
+    from scipy.spatial import cKDTree  # here, not at the top: ~0.3 s off the fusion node's start
+
     tree = cKDTree(points)
     k = min(int(max_neighbours) + 1, n)
     # query's bound is strict, query_ball_point's (the support) is not: pixels at exactly 12 px count
