@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -23,6 +24,23 @@ def test_fastdds_profile_is_shipped_and_kept_when_user_set_one(tmp_path):
     assert env['FASTRTPS_DEFAULT_PROFILES_FILE'] == env['FASTDDS_DEFAULT_PROFILES_FILE'] == str(path)
     mine = {'FASTRTPS_DEFAULT_PROFILES_FILE': str(tmp_path / 'mine.xml')}
     assert launcher.apply_fastdds_profile(mine) == str(tmp_path / 'mine.xml')
+
+
+def test_fastdds_profile_parses_and_announces_fast(tmp_path):
+    # Fast DDS ignores a profile it cannot parse (only a log line says so): the nodes would then
+    # lose the 10 MB segment and the 0.5 s announcements (time to ready) without failing.
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(launcher.fastdds_profile_path()).getroot()
+    ns = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    period = root.find('.//p:discovery_config/p:leaseAnnouncement', ns)
+    assert period is not None and float(period.find('p:nanosec', ns).text) == 5e8
+    code = 'import rclpy; rclpy.init(); rclpy.create_node("profile_check").destroy_node(); rclpy.shutdown()'
+    env = dict(os.environ, ROS_DOMAIN_ID='231', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    env.update({name: str(launcher.fastdds_profile_path()) for name in launcher.PROFILE_ENV})
+    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert 'XMLPARSER' not in out.stdout + out.stderr, out.stderr
 
 
 def test_topic_names_match_the_nodes():
