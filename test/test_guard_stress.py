@@ -73,6 +73,19 @@ def test_wrong_focal_tells_the_pipeline_wrong_intrinsics():
     assert sequence.camera.cx == sequence.gt_camera.cx
 
 
+def test_pose_noise_jitters_the_told_poses_only():
+    cfg = stress_config('pose_noise', width=32, height=24, frames=4)
+    noisy = render_sequence(cfg)
+    exact = render_sequence(stress_config('translation', width=32, height=24, frames=4))
+    offsets = [relative_pose(a.pose, b.pose) for a, b in zip(noisy.frames, exact.frames, strict=True)]
+    moved = [float(np.linalg.norm(T[:3, 3])) for T in offsets]
+    turned = [float(np.degrees(rotation_angle(T[:3, :3]))) for T in offsets]
+    assert all(0 < m < 0.02 for m in moved) and all(0 < t < 1.0 for t in turned)
+    for a, b in zip(noisy.frames, exact.frames, strict=True):  # rendered at the true poses
+        assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
+    assert np.array_equal(render_sequence(cfg).frames[2].pose, noisy.frames[2].pose)  # seeded
+
+
 #: Cases the guard does not catch yet (docs/fusion.md), by case id, bounded so that they
 #: cannot get worse. None: with the sweep since the corrections fade with the distance to
 #: their points (``guard.reach``); with the filter (the default since 2026-11-25) since the

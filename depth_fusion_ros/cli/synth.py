@@ -135,6 +135,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         f'default {d.focal_error:g})',
     )
     p.add_argument(
+        '--pose-noise-m',
+        type=float,
+        default=d.pose_noise_m,
+        help='std of a per-frame jitter (m) of the poses written to groundtruth.txt (rendering uses '
+        f'the true ones; default {d.pose_noise_m:g})',
+    )
+    p.add_argument(
+        '--pose-noise-deg',
+        type=float,
+        default=d.pose_noise_deg,
+        help=f'the same jitter of the rotations, degrees (default {d.pose_noise_deg:g})',
+    )
+    p.add_argument(
         '--stress',
         choices=tuple(STRESS_CASES),
         default=None,
@@ -179,6 +192,8 @@ def config_from_args(args: argparse.Namespace):
         step_rotation_deg=pick('step_rotation_deg', args.step_rotation_deg),
         texture_contrast=pick('texture_contrast', args.texture_contrast),
         focal_error=pick('focal_error', args.focal_error),
+        pose_noise_m=pick('pose_noise_m', args.pose_noise_m),
+        pose_noise_deg=pick('pose_noise_deg', args.pose_noise_deg),
     )
 
 

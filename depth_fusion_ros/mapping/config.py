@@ -79,8 +79,11 @@ class MapConfig:
             ('min_confidence', 0 <= self.min_confidence <= 1, 'must be in [0, 1]'),
             ('consistency_span', 0 <= self.consistency_span <= 10, 'must be in [0, 10]'),
             ('consistency_tolerance', 0 < self.consistency_tolerance < 1, 'must be in (0, 1)'),
-            ('consistency_views', 1 <= self.consistency_views <= 2 * max(1, self.consistency_span),
-             'must be in [1, 2 x consistency_span]'),
+            (
+                'consistency_views',
+                1 <= self.consistency_views <= 2 * max(1, self.consistency_span),
+                'must be in [1, 2 x consistency_span]',
+            ),
             ('max_weight', self.max_weight > 0, 'must be > 0'),
             ('min_weight', self.min_weight >= 0, 'must be >= 0'),
             ('allocation_stride', self.allocation_stride >= 1, 'must be >= 1'),

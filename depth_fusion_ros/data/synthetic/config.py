@@ -60,6 +60,12 @@ class SynthConfig:
     #: Relative error of the focal lengths *given to the pipeline* (camera.yaml, ``Sequence.camera``);
     #: rendering always uses the true ones (``camera()``). 0.1 = the pipeline's fx, fy are 10 % long.
     focal_error: float = 0.0
+    #: Std of a per-frame jitter of the poses *given to the pipeline* (groundtruth.txt,
+    #: ``Frame.pose``): translation in metres and rotation in degrees, independent per frame
+    #: (a SLAM or odometry source's frame-to-frame noise); rendering and the ground-truth depth
+    #: always use the true poses. 0 = exact poses.
+    pose_noise_m: float = 0.0
+    pose_noise_deg: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ValueError:
@@ -101,6 +107,10 @@ class SynthConfig:
             raise bad('texture_contrast', 'expected a contrast in (0, 1]')
         if not -0.5 < self.focal_error < 0.5:
             raise bad('focal_error', 'expected a relative error in (-0.5, 0.5)')
+        if not 0 <= self.pose_noise_m <= 0.5:
+            raise bad('pose_noise_m', 'expected a translation std of 0..0.5 m')
+        if not 0 <= self.pose_noise_deg <= 10.0:
+            raise bad('pose_noise_deg', 'expected a rotation std of 0..10 degrees')
 
     def camera(self) -> PinholeCamera:
         """Intrinsics: principal point at the image centre ((W - 1) / 2 with pixel-centre

@@ -10,6 +10,8 @@ data with exact ground truth:
 ``keyframes``      a SLAM keyframe stream: 15 cm and 6.7 deg between frames 0.67 s apart
 ``low_texture``    most surfaces flat, the rest faint (texture contrast 0.25); lateral sweep
 ``wrong_focal``    the lateral sweep, but camera.yaml's focal lengths are 10 % too long
+``pose_noise``     the lateral sweep, but every pose the pipeline is told has a jitter of 2 mm and
+                   0.1 deg (std, independent per frame): a SLAM or odometry pose source
 =================  ==========================================================================
 
 ``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
@@ -34,6 +36,7 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
     },
     'low_texture': {'parallax': 'high', 'sweep': 1.0, 'textureless_fraction': 0.85, 'texture_contrast': 0.25},
     'wrong_focal': {'parallax': 'high', 'sweep': 1.0, 'focal_error': 0.10},
+    'pose_noise': {'parallax': 'high', 'sweep': 1.0, 'pose_noise_m': 0.002, 'pose_noise_deg': 0.1},
 }
 
 

@@ -32,7 +32,7 @@ from .trajectory import Trajectory, make_trajectory
 log = logging.getLogger(__name__)
 
 #: Random-stream ids under the seed (numpy SeedSequence entropy ``[seed, stream, ...]``).
-_ROOM_STREAM, _TRAJECTORY_STREAM, _NOISE_STREAM = 0, 1, 2
+_ROOM_STREAM, _TRAJECTORY_STREAM, _NOISE_STREAM, _POSE_NOISE_STREAM = 0, 1, 2, 3
 #: Poses per trajectory used to keep furniture off the camera path (independent of frames).
 _KEEP_OUT_SAMPLES = 64
 #: Sub-stream of the trajectory stream drawn by the stress motions.
@@ -43,7 +43,32 @@ def sequence_name(cfg: SynthConfig) -> str:
     name = f'synth_s{cfg.seed}_{cfg.parallax if cfg.motion == "parallax" else cfg.motion}'
     if cfg.focal_error:
         name += f'_focal{cfg.focal_error:+g}'
+    if cfg.pose_noise_m or cfg.pose_noise_deg:
+        name += f'_posenoise{cfg.pose_noise_m * 1000:g}mm{cfg.pose_noise_deg:g}deg'
     return name
+
+
+def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
+    """The camera-to-world poses the pipeline is given: the true ones with the config's
+    per-frame jitter (``pose_noise_m``, ``pose_noise_deg``), a copy of them without.
+
+    Each frame draws a translation offset (isotropic Gaussian) and a rotation about a random
+    axis by a Gaussian angle, from its own random stream, so frame ``i``'s jitter does not
+    depend on how many frames there are.
+    """
+    out = np.array(poses, dtype=np.float64, copy=True)
+    if not (cfg.pose_noise_m or cfg.pose_noise_deg):
+        return out
+    for i in range(len(out)):
+        rng = np.random.default_rng([cfg.seed, _POSE_NOISE_STREAM, i])
+        axis = rng.normal(size=3)
+        axis /= max(np.linalg.norm(axis), 1e-12)
+        angle = np.deg2rad(cfg.pose_noise_deg) * rng.normal()
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        jitter = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)  # Rodrigues
+        out[i, :3, :3] = out[i, :3, :3] @ jitter
+        out[i, :3, 3] += cfg.pose_noise_m * rng.normal(size=3)
+    return out
 
 
 def build_world(cfg: SynthConfig) -> tuple[Scene, Trajectory]:
@@ -84,17 +109,18 @@ def iter_frames(
     trajectory: Trajectory | None = None,
     show_progress: bool = False,
 ) -> Iterator[tuple[int, RenderedFrame, np.ndarray]]:
-    """Yield ``(index, rendered frame, T_wc)`` for every frame of the config, lazily."""
+    """Yield ``(index, rendered frame, T_wc)`` for every frame of the config, lazily; ``T_wc`` is
+    the pose the pipeline is told (:func:`told_poses`), the frame is rendered at the true one."""
     if scene is None or trajectory is None:
         scene, trajectory = build_world(cfg)
     camera = cfg.camera()
+    told = told_poses(cfg, trajectory.poses)
     for i in progress(range(cfg.frames), desc='render', unit='frame', disable=not show_progress):
         rng = np.random.default_rng([cfg.seed, _NOISE_STREAM, i])
-        pose = trajectory.poses[i]
         frame = render_frame(
-            scene, camera, pose, noise_sigma=cfg.noise_sigma, rng=rng, antialias=cfg.antialias
+            scene, camera, trajectory.poses[i], noise_sigma=cfg.noise_sigma, rng=rng, antialias=cfg.antialias
         )
-        yield i, frame, pose
+        yield i, frame, told[i]
 
 
 def render_sequence(cfg: SynthConfig, show_progress: bool = False) -> Sequence:
@@ -102,7 +128,8 @@ def render_sequence(cfg: SynthConfig, show_progress: bool = False) -> Sequence:
 
     rgb and ground-truth depth (float32 z-depth in metres, exact at pixel centres, no invalid
     pixels) share the config's size. ``gt_camera`` is the true camera; ``camera`` is what the
-    pipeline is told (the same unless ``focal_error``).
+    pipeline is told (the same unless ``focal_error``); frame poses are the ones the pipeline is
+    told (the true ones unless ``pose_noise_m`` / ``pose_noise_deg``).
     """
     frames = [
         Frame(index=i, stamp=cfg.stamp(i), rgb=f.rgb, pose=pose.copy(), depth=f.depth)

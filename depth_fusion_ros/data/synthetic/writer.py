@@ -11,7 +11,7 @@ import yaml
 
 from ..tum_writer import write_tum_folder
 from .config import SynthConfig
-from .world import build_world, iter_frames, sequence_name
+from .world import build_world, iter_frames, sequence_name, told_poses
 
 
 def _motion(cfg: SynthConfig) -> str:
@@ -29,6 +29,16 @@ def _focal_note(cfg: SynthConfig) -> str:
     )
 
 
+def _pose_note(cfg: SynthConfig) -> str:
+    if not (cfg.pose_noise_m or cfg.pose_noise_deg):
+        return ''
+    return (
+        f'\n**groundtruth.txt is deliberately noisy**: every pose has an independent jitter of '
+        f'{cfg.pose_noise_m * 1000:g} mm and {cfg.pose_noise_deg:g} deg (std) against the poses used '
+        'for rendering, a pose-source-noise stress case; the depth images stay exact.'
+    )
+
+
 def source_markdown(cfg: SynthConfig, out_dir: Path) -> str:
     """SOURCE.md text: how to regenerate the folder and what its ground truth is."""
     command = shlex.join(['depth-fusion', 'synth', str(out_dir), *cfg.cli_args()])
@@ -37,7 +47,7 @@ def source_markdown(cfg: SynthConfig, out_dir: Path) -> str:
 
 Rendered by depth_fusion_ros (`depth_fusion_ros/data/synthetic/`): numpy ray casting of a
 procedural room (floor, walls, ceiling, boxes, tables) with textured and texture-less
-Lambertian materials, camera motion {_motion(cfg)}, seed {cfg.seed}.{_focal_note(cfg)}
+Lambertian materials, camera motion {_motion(cfg)}, seed {cfg.seed}.{_focal_note(cfg)}{_pose_note(cfg)}
 No external data: free to use and redistribute.
 
 Regenerate (bit-identical with the same package version):
@@ -45,8 +55,8 @@ Regenerate (bit-identical with the same package version):
     {command}
 
 Ground truth: `depth/*.png` is the exact z-depth at pixel centres quantised to 1/5000 m
-(0 = invalid, none here); `groundtruth.txt` holds the exact camera-to-world poses at the
-same stamps as the images (no association error). Images are undistorted (zero plumb_bob
+(0 = invalid, none here); `groundtruth.txt` holds the camera-to-world poses (exact unless
+said above) at the same stamps as the images (no association error). Images are undistorted (zero plumb_bob
 distortion in `camera.yaml`); colour has Gaussian sensor noise of {cfg.noise_sigma:g} grey levels.
 
 Config:
@@ -75,7 +85,7 @@ def write_synthetic_sequence(
         stamps,
         (rgb for rgb, _ in for_rgb),
         (depth for _, depth in for_depth),
-        trajectory.poses,
+        told_poses(cfg, trajectory.poses),
         name=sequence_name(cfg),
         source_md=source_markdown(cfg, out_dir),
         overwrite=overwrite,
