@@ -151,7 +151,7 @@ def test_bad_camera_from_pose_frame_is_a_one_line_error():
 def test_auto_pose_type_switches_to_another_process_odometry_and_maps_bag_types():
     """auto starts on PoseStamped (no pose lost at start-up) and switches when the publisher, in
     another process (participant), is an Odometry; the launcher helper names the bag's type."""
-    with RosHarness() as ros, RosHarness() as other:
+    with RosHarness() as ros, RosHarness(domain_id=ros.domain_id) as other:  # another participant
         node = _node(ros, pose_type='auto')
         assert node.pose_input.subscribed_type == 'pose_stamped' and node.pose_input.pose_type is None
         odometry = other.publisher(Odometry, POSE, DEEP)
@@ -166,7 +166,7 @@ def test_auto_pose_type_switches_to_another_process_odometry_and_maps_bag_types(
 
 
 def test_auto_pose_type_warns_once_when_publishers_disagree():
-    with RosHarness() as ros, RosHarness() as other:
+    with RosHarness() as ros, RosHarness(domain_id=ros.domain_id) as other:  # another participant
         node = _node(ros, pose_type='auto')
         stamped = ros.publisher(PoseStamped, POSE)
         assert ros.wait_for(lambda: node.pose_input.pose_type == 'pose_stamped')

@@ -110,3 +110,21 @@ def test_two_concurrent_runs_record_only_their_own_bag(synthetic_tum_dir, tmp_pa
         assert fused, f'run {name} recorded nothing:\n{outputs[name]}'
         assert fused <= stamps[name], f'run {name} recorded foreign stamps {sorted(fused - stamps[name])}'
         assert not fused & stamps[other]
+
+
+def test_two_test_harnesses_never_hear_each_other():
+    # Each RosHarness takes a free domain of its own: a latched line published in one (a ready
+    # line, an announced output kind) must not reach the nodes under test in another.
+    from std_msgs.msg import String
+
+    from depth_fusion_ros.nodes.graph_events import ready_qos
+    from depth_fusion_ros.nodes.testing import RosHarness
+
+    with RosHarness() as first, RosHarness() as second:
+        assert first.domain_id != second.domain_id
+        announcer = first.publisher(String, '/depth_fusion/single_view/output_kind', ready_qos())
+        announcer.publish(String(data='relative_depth'))
+        own = first.collect(String, '/depth_fusion/single_view/output_kind', ready_qos())
+        other = second.collect(String, '/depth_fusion/single_view/output_kind', ready_qos())
+        assert first.wait_for(lambda: len(own) == 1, 10.0)
+        assert not second.wait_for(lambda: len(other) > 0, 2.0)  # four announcement periods

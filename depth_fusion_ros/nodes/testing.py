@@ -5,6 +5,13 @@ their own :class:`rclpy.context.Context`, spun by a ``MultiThreadedExecutor`` on
 background thread, and talk to them through a helper node in the same context. Messages
 still go through DDS (rclpy has no intra-process shortcut), so this exercises the real
 transport without the seconds-long start-up of a subprocess per node.
+
+Each harness takes a **ROS domain of its own** (a free one of :data:`TEST_DOMAINS`, locked and
+probed as ``depth-fusion run`` picks its domain, held until :meth:`RosHarness.close`), so
+a participant another test left behind, still shutting down, or a second test run on the
+same machine cannot publish into it: latched topics (an announced output kind, a ready
+line) from elsewhere would otherwise reach the nodes under test as soon as discovery finds
+them, which with the package's 0.5 s announcements is well within a test.
 """
 
 from __future__ import annotations
@@ -22,17 +29,30 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.signals import SignalHandlerOptions
 
+from .graph.isolation import pick_free_domain
 from .qos import qos_profile
+
+#: Domains a harness picks from: the test suite's range (``depth-fusion run`` takes 101 and
+#: 215-232, graph/isolation.py).
+TEST_DOMAINS = tuple(range(1, 101))
 
 
 class RosHarness:
     """A context + executor thread + a ``probe`` node that publishes inputs and collects outputs."""
 
-    def __init__(self, args: Sequence[str] | None = None, threads: int = 4) -> None:
+    def __init__(
+        self, args: Sequence[str] | None = None, threads: int = 4, domain_id: int | None = None
+    ) -> None:
+        """``domain_id``: join that domain (e.g. to meet node processes) instead of a private one."""
+        self._domain_lock = None
+        if domain_id is None:
+            domain_id, self._domain_lock = pick_free_domain(TEST_DOMAINS)
+        self.domain_id = domain_id
         self.context = Context()
         rclpy.init(
             args=list(args) if args else None,
             context=self.context,
+            domain_id=domain_id,
             signal_handler_options=SignalHandlerOptions.NO,
         )
         self.executor = MultiThreadedExecutor(num_threads=threads, context=self.context)
@@ -102,6 +122,9 @@ class RosHarness:
         self.executor.shutdown(timeout_sec=5.0)
         self.context.try_shutdown()
         self._thread.join(5.0)
+        if self._domain_lock is not None:
+            self._domain_lock.close()
+            self._domain_lock = None
 
     def __enter__(self) -> RosHarness:
         return self
