@@ -43,6 +43,19 @@ def test_fastdds_profile_parses_and_announces_fast(tmp_path):
     assert 'XMLPARSER' not in out.stdout + out.stderr, out.stderr
 
 
+def test_a_node_started_on_its_own_takes_the_package_profile_unless_one_is_set(tmp_path):
+    from depth_fusion_ros.nodes.graph.dds import profile_for_console_node
+
+    env: dict[str, str] = {}
+    line = profile_for_console_node(env)
+    assert env['FASTRTPS_DEFAULT_PROFILES_FILE'] == str(launcher.fastdds_profile_path())
+    assert "the package's" in line and 'FASTDDS_DEFAULT_PROFILES_FILE' in line
+    mine = {'FASTDDS_DEFAULT_PROFILES_FILE': str(tmp_path / 'mine.xml')}
+    line = profile_for_console_node(mine)
+    assert 'yours' in line and str(tmp_path / 'mine.xml') in line
+    assert mine == {'FASTDDS_DEFAULT_PROFILES_FILE': str(tmp_path / 'mine.xml')}
+
+
 def test_topic_names_match_the_nodes():
     from depth_fusion_ros.nodes import fusion_node, multi_view_node, single_view_node
 

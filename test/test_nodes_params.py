@@ -196,6 +196,7 @@ def test_console_scripts_start_with_the_params_file_and_stop_on_signals(model_pa
             code = procs[name].finish()
             assert code == 0, f'{name} exited with {code}:\n{procs[name].output}'
             assert 'final counters' in procs[name].output, procs[name].output
+            assert 'Fast DDS profile: ' in procs[name].output, procs[name].output  # said at start
             assert 'Traceback' not in procs[name].output, procs[name].output
             assert 'context is invalid' not in procs[name].output, procs[
                 name

@@ -645,7 +645,11 @@ def main(args: list[str] | None = None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
+    from .graph.dds import profile_for_console_node
+
+    profile_line = profile_for_console_node()  # before rclpy.init: Fast DDS reads it once
     rclpy.init(args=args)
+    rclpy.logging.get_logger('bag_replayer').info(profile_line)
     node = None
     try:
         node = BagReplayer()

@@ -27,6 +27,7 @@ from rclpy.node import Node
 
 from . import diagnostics as diag
 from .gil import set_switch_interval
+from .graph.dds import profile_for_console_node
 from .input_watch import InputWatch
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
@@ -286,7 +287,9 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
 
     previous_term = signal.signal(signal.SIGTERM, on_signal)
     previous_int = signal.signal(signal.SIGINT, on_signal)
+    profile_line = profile_for_console_node()  # before rclpy.init: Fast DDS reads it once
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    rclpy.logging.get_logger('depth_fusion').info(profile_line)
     node = None
     code = 0
     try:

@@ -43,6 +43,27 @@ def apply_fastdds_profile(env: MutableMapping[str, str] | None = None) -> str:
     return path
 
 
+def profile_for_console_node(env: MutableMapping[str, str] | None = None) -> str:
+    """What a node started on its own (console script, launch file) tells its user about Fast
+    DDS, after applying the package's profile unless one is set (:func:`apply_fastdds_profile`).
+
+    Without it, between processes a best-effort 640x480 image does not fit Fast DDS's default
+    0.5 MB shared-memory segment: measured here, 12 of 60 images at 30 Hz arrived, against 60
+    of 60 with the profile (reliable ones arrive either way). A camera driver publishes best
+    effort, and ``input_qos: sensor_data`` then loses most frames silently. Must run before
+    ``rclpy.init``. Returns the one line to log.
+    """
+    env = os.environ if env is None else env
+    own = any(env.get(name) for name in PROFILE_ENV)
+    path = apply_fastdds_profile(env)
+    if own:
+        return f'Fast DDS profile: {path} (yours, from the environment)'
+    return (
+        f"Fast DDS profile: {path} (the package's: 10 MB shared-memory segments for images, "
+        '0.5 s discovery announcements; set FASTDDS_DEFAULT_PROFILES_FILE to use your own)'
+    )
+
+
 #: A participant's own segment (``fastrtps_<16 hex>``) and its lock file. Port segments
 #: (``fastrtps_port<N>``) and their mutexes are shared by every participant on that port and
 #: managed by Fast DDS itself, so they are never judged here.
