@@ -13,6 +13,8 @@ import importlib
 import logging
 import sys
 
+from ..malloc_tuning import keep_freed_memory
+
 #: Subcommands in the order ``--help`` lists them.
 SUBCOMMANDS = ('demo', 'synth', 'convert', 'evaluate', 'train', 'adapt', 'export', 'run', 'bench')
 
@@ -52,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, 'func', None):
         parser.print_help()
         return 2
+    keep_freed_memory()  # the hot loops' tensors stop page-faulting in every keyframe
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

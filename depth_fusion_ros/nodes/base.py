@@ -25,6 +25,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from ..malloc_tuning import keep_freed_memory
 from . import diagnostics as diag
 from .gil import set_switch_interval
 from .graph.dds import profile_for_console_node
@@ -288,6 +289,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     previous_term = signal.signal(signal.SIGTERM, on_signal)
     previous_int = signal.signal(signal.SIGINT, on_signal)
     profile_line = profile_for_console_node()  # before rclpy.init: Fast DDS reads it once
+    keep_freed_memory()  # the hot loops' tensors stop page-faulting in every keyframe
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     rclpy.logging.get_logger('depth_fusion').info(profile_line)
     node = None
