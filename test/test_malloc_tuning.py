@@ -1,4 +1,5 @@
-"""The allocator tuning (malloc_tuning.py): applied once on glibc, off on request, the user's settings win."""
+"""The allocator tuning (malloc_tuning.py): off by default, applied once on glibc when asked,
+the user's settings win."""
 
 from __future__ import annotations
 
@@ -36,10 +37,10 @@ def _probe(**env: str) -> str:
     return out.stdout.strip()
 
 
-def test_the_tuning_applies_once_on_glibc():
-    assert _probe() == 'True True'
+def test_off_by_default_and_applied_once_when_asked():
+    assert _probe(DEPTH_FUSION_MALLOC_TUNING='') == 'False True'
+    assert _probe(DEPTH_FUSION_MALLOC_TUNING='1') == 'True True'
 
 
-def test_switch_off_and_the_users_own_settings_win():
-    assert _probe(DEPTH_FUSION_MALLOC_TUNING='0') == 'False True'
-    assert _probe(MALLOC_TRIM_THRESHOLD_='131072') == 'False True'
+def test_the_users_own_settings_win():
+    assert _probe(DEPTH_FUSION_MALLOC_TUNING='1', MALLOC_TRIM_THRESHOLD_='131072') == 'False True'
