@@ -15,12 +15,11 @@ is too.
 
 **Off by default, opt in with ``DEPTH_FUSION_MALLOC_TUNING=1``.** With it on, 2 of 5
 ``evaluate`` runs of the synthetic room gave a different multi-view result in the fifth
-digit (fused 0.36033 against 0.36065; off, 3 of 3 runs gave 0.36065): reused heap memory
-holds old data where fresh pages are zero, so some code path (in the multi-view stage, not
-yet found) reads memory it did not write first. Until that is found the default keeps the
-results reproducible. ``depth-fusion`` and every node's entry point call
-:func:`keep_freed_memory`; a ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` you
-set wins (then nothing is changed here).
+digit (fused 0.36033 against 0.36065; off, 3 of 3 runs gave 0.36065). The package's own
+``torch.empty`` buffers were ruled out (filled with NaN: the same depth maps); the cause is
+not found. Until it is, the default keeps the allocator as glibc has it. ``depth-fusion``
+and every node's entry point call :func:`keep_freed_memory`; a ``MALLOC_MMAP_THRESHOLD_``
+or ``MALLOC_TRIM_THRESHOLD_`` you set wins (then nothing is changed here).
 """
 
 from __future__ import annotations
