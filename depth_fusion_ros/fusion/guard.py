@@ -63,6 +63,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .subsample import seeded_subsample
+
 log = logging.getLogger(__name__)
 
 DECISIONS = ('full', 'fewer_points', 'scale_only', 'single_scaled', 'single_view')
@@ -277,7 +279,7 @@ def assess(
 
     rows, cols = np.nonzero(usable)
     if sample is not None and n_omega > sample:
-        pick = np.sort(np.random.default_rng(seed).choice(n_omega, size=int(sample), replace=False))
+        pick = seeded_subsample(n_omega, sample, seed)
         rows, cols = rows[pick], cols[pick]
     n_checked = len(rows)
     thin = n_omega / n_checked  # each checked point stands for this many points of Ω

@@ -35,6 +35,7 @@ from .guard_apply import guarded_depth, limit_reach
 from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
 from .precision import check_half_weight, precision_weights
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
+from .subsample import seeded_subsample
 from .valid_depth import sanitize_depth
 from .weights import WeightParams, check_weight_params
 
@@ -375,7 +376,7 @@ def _cap_points(omega: np.ndarray, max_points: int | None, seed: int) -> np.ndar
     count = int(omega.sum())
     if max_points is None or count <= max_points:
         return omega
-    keep = np.random.default_rng(seed).choice(np.flatnonzero(omega), size=max_points, replace=False)
+    keep = np.flatnonzero(omega)[seeded_subsample(count, max_points, seed)]
     capped = np.zeros_like(omega)
     capped.ravel()[keep] = True
     log.debug('omega capped from %d to %d points', count, max_points)

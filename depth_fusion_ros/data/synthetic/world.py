@@ -56,18 +56,19 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     axis by a Gaussian angle, from its own random stream, so frame ``i``'s jitter does not
     depend on how many frames there are.
     """
+    from scipy.spatial.transform import Rotation
+
     out = np.array(poses, dtype=np.float64, copy=True)
     if not (cfg.pose_noise_m or cfg.pose_noise_deg):
         return out
-    for i in range(len(out)):
+    rotvecs, offsets = np.empty((len(out), 3)), np.empty((len(out), 3))
+    for i in range(len(out)):  # one stream per frame; the draws only, the algebra is batched
         rng = np.random.default_rng([cfg.seed, _POSE_NOISE_STREAM, i])
         axis = rng.normal(size=3)
-        axis /= max(np.linalg.norm(axis), 1e-12)
-        angle = np.deg2rad(cfg.pose_noise_deg) * rng.normal()
-        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        jitter = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)  # Rodrigues
-        out[i, :3, :3] = out[i, :3, :3] @ jitter
-        out[i, :3, 3] += cfg.pose_noise_m * rng.normal(size=3)
+        rotvecs[i] = axis / max(np.linalg.norm(axis), 1e-12) * (np.deg2rad(cfg.pose_noise_deg) * rng.normal())
+        offsets[i] = cfg.pose_noise_m * rng.normal(size=3)
+    out[:, :3, :3] = out[:, :3, :3] @ Rotation.from_rotvec(rotvecs).as_matrix()
+    out[:, :3, 3] += offsets
     return out
 
 

@@ -53,10 +53,8 @@ def profile_for_console_node(env: MutableMapping[str, str] | None = None) -> str
     effort, and ``input_qos: sensor_data`` then loses most frames silently. Must run before
     ``rclpy.init``. Returns the one line to log.
     """
-    env = os.environ if env is None else env
-    own = any(env.get(name) for name in PROFILE_ENV)
     path = apply_fastdds_profile(env)
-    if own:
+    if path != str(fastdds_profile_path()):
         return f'Fast DDS profile: {path} (yours, from the environment)'
     return (
         f"Fast DDS profile: {path} (the package's: 10 MB shared-memory segments for images, "
