@@ -156,8 +156,8 @@ class PoseSubscription:
                 node.get_logger().debug(f'no provisional PoseStamped subscription: {exc}')
             self._timer = node.create_wall_timer(period, self.discover)
         else:
-            self._subscribe(pose_type)
             self.pose_type = pose_type
+            self._subscribe(pose_type)
 
     @property
     def resolved_topic(self) -> str:
@@ -198,9 +198,11 @@ class PoseSubscription:
             )
         if self.pose_type is None and supported:
             found = pose_type_of(supported[0]) or self.PROVISIONAL
+            # Decided before subscribing: a publisher that matches the new subscription (on
+            # another thread, at once) must already find the type it was matched for.
+            self.pose_type = found
             if found != self.subscribed_type:
                 self._subscribe(found)
-            self.pose_type = found
             self.node.get_logger().info(f'pose_type auto: {self.resolved_topic} is {supported[0]}')
             self.node.destroy_timer(self._timer)
             self._timer = self.node.create_wall_timer(self.SLOW_PERIOD, self.discover)
