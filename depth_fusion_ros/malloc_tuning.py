@@ -13,11 +13,14 @@ keeps the pages: measured on 2 cores, the sweep went from 41.7 to 34.8 ms a keyf
 used (its peak) instead of shrinking after it; every buffer here is bounded, so that peak
 is too.
 
-**Off by default, opt in with ``DEPTH_FUSION_MALLOC_TUNING=1``.** With it on, 2 of 5
-``evaluate`` runs of the synthetic room gave a different multi-view result in the fifth
-digit (fused 0.36033 against 0.36065; off, 3 of 3 runs gave 0.36065). The package's own
-``torch.empty`` buffers were ruled out (filled with NaN: the same depth maps); the cause is
-not found. Until it is, the default keeps the allocator as glibc has it. ``depth-fusion``
+**On by default; ``DEPTH_FUSION_MALLOC_TUNING=0`` turns it off.** It was opt-in for a day
+because with it on 2 of 5 ``evaluate`` runs of the synthetic room gave a different
+multi-view result in the fifth digit (fused 0.36033 against 0.36065). The allocator was not
+the cause: the first parallel ``torch.sqrt`` of a process could run MKL VML's low-accuracy
+kernel on one thread's half (a dispatch race in oneMKL 2024.2, pytorch/pytorch#188792, seen
+with the tuning off too; the tuning only changed how often the threads collided), now
+resolved up front by :mod:`.vml_warmup`; with that, five runs with the tuning and three
+without gave the same numbers to the last digit. ``depth-fusion``
 and every node's entry point call :func:`keep_freed_memory`; a ``MALLOC_MMAP_THRESHOLD_``
 or ``MALLOC_TRIM_THRESHOLD_`` you set wins (then nothing is changed here).
 """
@@ -57,8 +60,8 @@ def keep_freed_memory() -> bool:
     if _applied is not None:
         return _applied
     _applied = False
-    if os.environ.get(ENV_SWITCH, '0') != '1':
-        log.debug('allocator tuning off (%s is not 1)', ENV_SWITCH)
+    if os.environ.get(ENV_SWITCH, '1') == '0':
+        log.debug('allocator tuning off (%s=0)', ENV_SWITCH)
         return False
     if any(os.environ.get(name) for name in USER_ENV):
         log.debug('allocator tuning left to the environment (%s)', ', '.join(USER_ENV))

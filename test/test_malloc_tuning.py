@@ -1,5 +1,5 @@
-"""The allocator tuning (malloc_tuning.py): off by default, applied once on glibc when asked,
-the user's settings win."""
+"""The allocator tuning (malloc_tuning.py): on by default, off with DEPTH_FUSION_MALLOC_TUNING=0,
+applied once on glibc, the user's settings win."""
 
 from __future__ import annotations
 
@@ -37,9 +37,10 @@ def _probe(**env: str) -> str:
     return out.stdout.strip()
 
 
-def test_off_by_default_and_applied_once_when_asked():
-    assert _probe(DEPTH_FUSION_MALLOC_TUNING='') == 'False True'
+def test_on_by_default_applied_once_and_off_when_asked():
+    assert _probe(DEPTH_FUSION_MALLOC_TUNING='') == 'True True'
     assert _probe(DEPTH_FUSION_MALLOC_TUNING='1') == 'True True'
+    assert _probe(DEPTH_FUSION_MALLOC_TUNING='0') == 'False True'
 
 
 def test_the_users_own_settings_win():

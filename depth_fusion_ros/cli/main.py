@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, 'func', None):
         parser.print_help()
         return 2
-    keep_freed_memory()  # opt-in (DEPTH_FUSION_MALLOC_TUNING=1): freed tensor memory reused, malloc_tuning.py
+    keep_freed_memory()  # freed tensor memory reused (DEPTH_FUSION_MALLOC_TUNING=0: off), malloc_tuning.py
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the first parallel sqrt / exp)
 from .alignment import AlignedDepth, apply_alignment, fit_alignment
 from .consistency import ConsistencyConfig, consistent_points, stage3_candidates
 from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess

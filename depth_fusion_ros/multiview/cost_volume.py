@@ -40,6 +40,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
+from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the first parallel sqrt)
+
 #: Patch layouts (offsets in units of the patch stride): cost per lookup grows with the size.
 PATCH_OFFSETS: dict[str, tuple[tuple[int, int], ...]] = {
     'cross': ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)),

@@ -289,7 +289,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     previous_term = signal.signal(signal.SIGTERM, on_signal)
     previous_int = signal.signal(signal.SIGINT, on_signal)
     profile_line = profile_for_console_node()  # before rclpy.init: Fast DDS reads it once
-    keep_freed_memory()  # opt-in (DEPTH_FUSION_MALLOC_TUNING=1): freed tensor memory reused, malloc_tuning.py
+    keep_freed_memory()  # freed tensor memory reused (DEPTH_FUSION_MALLOC_TUNING=0: off), malloc_tuning.py
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     rclpy.logging.get_logger('depth_fusion').info(profile_line)
     node = None

@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the first parallel exp)
 from .architectures import model_input_size
 from .metadata import ModelMetadata, read_metadata_yaml, write_metadata_yaml
 from .metadata import metadata_path_for as _metadata_path_for
