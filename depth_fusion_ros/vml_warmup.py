@@ -9,10 +9,11 @@ them can run the low-accuracy AVX2 ``EP`` kernel for its whole chunk despite ``V
 ``torch.sqrt`` of a process, the descriptor norm of the filter's first frame
 (``cost_volume.patch_descriptors``): half of that frame's norms ~1e-4 off (up to ~4000 ulp),
 matching the EP kernel bit for bit, so the whole filter run, and the evaluate MAEs, came out
-different in roughly one process in 10-30 (more often with ``DEPTH_FUSION_MALLOC_TUNING=1``,
-which changes the threads' timing; seen without it too). A one-element call per function and
-dtype runs on the calling thread only (below ATen's grain size), resolves the dispatch, and
-every later call, parallel or not, then runs the requested high-accuracy kernel.
+different in about 3 % of processes (more often with the allocator tuning of
+:mod:`.malloc_tuning`, which changes the threads' timing; seen without it too). A
+one-element call per function and dtype runs on the calling thread only (below ATen's grain
+size), resolves the dispatch, and every later call, parallel or not, then runs the requested
+high-accuracy kernel.
 """
 
 from __future__ import annotations
