@@ -266,17 +266,28 @@ _INDUCTOR_OPTIONS = {
     'realize_reads_threshold': 1 << 20,
 }
 
+#: On a CPU the kernel is called through inductor's C++ wrapper: the default Python wrapper's
+#: binding holds the GIL while the C++ loop runs (40-95 ms a keyframe), so in the composed graph
+#: every other node's Python waited for it; the C++ wrapper releases it around the call. Measured
+#: (docs/performance.md, 2026-11-27): composed paced median latency 480-510 -> 434-440 ms, the
+#: multi-view node's mean 217-222 -> 121-148 ms; the same offsets bit for bit; a cold compile
+#: takes longer (~14 s against ~5 s on 2 cores), a warm disk cache the same 4.6 s.
+_CPU_INDUCTOR_OPTIONS = {'cpp_wrapper': True}
 
-def _inductor_options() -> dict[str, object]:
-    """The :data:`_INDUCTOR_OPTIONS` this torch knows (names move between releases; an
-    unknown one would make ``torch.compile`` raise)."""
+
+def _inductor_options(device: torch.device) -> dict[str, object]:
+    """The :data:`_INDUCTOR_OPTIONS` (and on a CPU :data:`_CPU_INDUCTOR_OPTIONS`) this torch
+    knows (names move between releases; an unknown one would make ``torch.compile`` raise)."""
     try:
         import torch._inductor.config as inductor_config
 
         known = inductor_config.get_config_copy()
     except Exception:  # no inductor at all: compiling fails later and falls back to eager
         return {}
-    return {name: value for name, value in _INDUCTOR_OPTIONS.items() if name in known}
+    options = dict(_INDUCTOR_OPTIONS)
+    if device.type == 'cpu':
+        options.update(_CPU_INDUCTOR_OPTIONS)
+    return {name: value for name, value in options.items() if name in known}
 
 
 def _maybe_compiled(
@@ -305,7 +316,7 @@ def _maybe_compiled(
     key = (name, params, device.type)
     if key not in _COMPILED:
         # serialised: a compile session flips a process-wide flag other threads read (compile_lock.py)
-        _COMPILED[key] = serialised(torch.compile(eager, dynamic=True, options=_inductor_options()))
+        _COMPILED[key] = serialised(torch.compile(eager, dynamic=True, options=_inductor_options(device)))
     compiled = _COMPILED[key]
 
     backup = fallback or eager
