@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the first parallel sqrt / exp)
+from .agreement import agreement
 from .alignment import AlignedDepth, apply_alignment, fit_alignment
 from .consistency import ConsistencyConfig, consistent_points, stage3_candidates
 from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
@@ -76,6 +77,11 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
         "each point's weight times h^2 / (h^2 + r^2), r its multi-view relative depth std, "
         'h this (a point with r = h counts half; 0: off, the paper)'
     ),
+    'agreement_tau': (
+        'confidence times exp(-spread / (tau x depth)), spread the std of the offsets of the points '
+        'within agreement_sigma px (a pixel whose points disagree by tau of its depth: x0.37; 0: off)'
+    ),
+    'agreement_sigma': 'window (Gaussian sigma, working-grid pixels) of the points agreement_tau reads',
     'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
 
@@ -107,6 +113,10 @@ class FusionConfig:
     max_points: int | None = None
     #: Precision weight of each point from its multi-view std (``precision.py``; 0: off).
     std_half_weight: float = 0.0
+    #: The confidence's agreement factor (``agreement.py``): relative spread of the nearby
+    #: points' offsets that divides it by e (0: off, the support confidence alone), and its window.
+    agreement_tau: float = 0.05
+    agreement_sigma: float = 8.0
     #: Check the evidence per keyframe and degrade gracefully (``guard.py``, ``GuardConfig``).
     guard: bool = True
     device: str = 'cpu'
@@ -122,6 +132,12 @@ class FusionConfig:
             raise ValueError(f'ransac_min_inliers must be >= 2, got {self.ransac_min_inliers}')
         if not (np.isfinite(self.ransac_threshold) and self.ransac_threshold > 0):
             raise ValueError(f'ransac_threshold must be positive, got {self.ransac_threshold}')
+        if not (np.isfinite(self.agreement_tau) and self.agreement_tau >= 0):
+            raise ValueError(f'agreement_tau must be >= 0 (0: off), got {self.agreement_tau}')
+        if not (np.isfinite(self.agreement_sigma) and self.agreement_sigma > 0):
+            raise ValueError(
+                f'agreement_sigma must be a positive number of pixels, got {self.agreement_sigma}'
+            )
         if not 0.0 <= self.fast_refine <= 1.0:
             raise ValueError(f'fast_refine must be in [0, 1], got {self.fast_refine}')
         if self.ransac_model not in (None, *RANSAC_MODELS):
@@ -290,6 +306,7 @@ def fuse_keyframe(
         verdict.evidence['coverage'] = coverage
     depth, _ = sanitize_depth(depth)
     confidence = confidence_from_support(interp.support_distance, config.sigma1)
+    confidence *= agreement(depth, base, m, omega, config.agreement_sigma, config.agreement_tau)
     confidence[~np.isfinite(depth)] = 0.0
     if verdict is not None:
         confidence *= np.float32(verdict.confidence)

@@ -43,8 +43,9 @@ class MapConfig:
     consistency_views: int = 1
     #: A voxel's weight stops growing here, so a changed scene can still overwrite it.
     max_weight: float = 50.0
-    #: Surface extraction keeps voxels observed with at least this accumulated weight.
-    min_weight: float = 0.5
+    #: Surface extraction keeps voxels observed with at least this accumulated weight (the fused
+    #: confidence, times the agreement factor since 2026-11-27: docs/mapping.md).
+    min_weight: float = 0.05
     #: Pixel stride of the block allocation pass: 4 px are 9 cm at 6 m (320 px wide, 60° field of
     #: view), well inside one 32 cm block, so no block is missed.
     allocation_stride: int = 4

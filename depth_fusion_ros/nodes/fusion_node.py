@@ -90,6 +90,8 @@ FUSION_LIMITS: dict[str, Any] = {
     'ransac_model': tuple(getattr(fusion_pipeline, 'RANSAC_MODELS', ())),
     'metric_scale_range': (1.0, None),
     'std_half_weight': (0.0, None),
+    'agreement_tau': (0.0, None),
+    'agreement_sigma': (1e-3, 1000.0),
 }
 #: Ranges of the ``guard.*`` parameters (``GuardConfig``).
 GUARD_LIMITS: dict[str, Any] = {
