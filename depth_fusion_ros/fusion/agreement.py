@@ -9,7 +9,7 @@ scatter, the fused depth follows whichever point is nearest and is wrong by abou
 scatter; where they agree, it is right. So the confidence is multiplied by
 ``exp(-spread_p / (τ · depth_p))``, ``spread_p`` the standard deviation of the nearby offsets
 (a Gaussian window of ``sigma`` pixels, normalised over the points in it: one normalised
-convolution, OpenCV, ~1 ms at 320x240). A pixel with no point within the window keeps its
+convolution, OpenCV, ~3 ms at 320x240). A pixel with no point within the window keeps its
 support confidence (factor 1; that confidence is already small there).
 """
 
@@ -26,12 +26,13 @@ _EMPTY = 1e-12
 def offset_spread(offsets: np.ndarray, points: np.ndarray, sigma: float) -> np.ndarray:
     """Standard deviation of ``offsets`` at ``points`` (bool mask) in a Gaussian window of
     ``sigma`` pixels around every pixel; 0 where the window holds no point."""
-    w = (points & np.isfinite(offsets)).astype(np.float64)
+    w = (points & np.isfinite(offsets)).astype(np.float32)
     if not w.any():
         return np.zeros(offsets.shape, dtype=np.float32)
-    # Centred on the points' median and summed in float64: E[v²] - E[v]² cancels otherwise
-    # (0.3 m offsets that all agree gave a 0.2 mm "spread" in float32).
-    v = np.where(w > 0, offsets - np.median(offsets[w > 0]), 0.0)
+    # Centred on the points' median: E[v²] - E[v]² cancels otherwise (0.3 m offsets that all
+    # agree gave a 0.2 mm "spread" in float32). float32 after centring: 3.2 ms a 320x240
+    # keyframe against 7.0 ms in float64, the spread the same to 1e-7 m.
+    v = np.where(w > 0, offsets - np.median(offsets[w > 0]), 0.0).astype(np.float32)
 
     def blur(x: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(x, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_CONSTANT)
