@@ -84,7 +84,9 @@ def confidence_from_support(support_distance: np.ndarray, sigma1: float) -> np.n
     ``D_p`` is the distance to Ω averaged with the pixel's own normalised fusion weights, so
     it grows both when the points are far and when the near points have another structure
     (W2..W4 then move the weight to farther points): 1 on a point of Ω, 0.37 when the
-    support is σ1 pixels away on average. A consumer thresholds it (e.g. ≥ 0.3).
+    support is σ1 pixels away on average. The published confidence is this times the points'
+    agreement (:mod:`.agreement`): nearness alone put the pixels on the points, which carry
+    each point's own error, at the top.
     """
     d = np.asarray(support_distance, dtype=np.float64)
     with np.errstate(invalid='ignore'):
