@@ -32,8 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch.nn import functional
 
+from .gaussian import gaussian_kernel, gaussian_sum
 from .selection import LinearFit, inliers_of
 
 CANDIDATE_SCOPES = ('omega', 'band', 'all')
@@ -89,22 +89,6 @@ class ConsistencyConfig:
             raise ValueError(f'consistency.iterations must be >= 1, got {self.iterations}')
 
 
-def _gaussian_kernel(sigma: float, device: torch.device) -> tuple[torch.Tensor, float]:
-    radius = max(1, int(np.ceil(3.0 * sigma)))
-    x = torch.arange(-radius, radius + 1, dtype=torch.float32, device=device)
-    g = torch.exp(-0.5 * (x / sigma) ** 2)
-    return g, float(g[radius])
-
-
-def _blur(image: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Separable Gaussian sum (zero padding) of an HxW tensor."""
-    r = (g.numel() - 1) // 2
-    x = image[None, None]
-    x = functional.conv2d(x, g.view(1, 1, 1, -1), padding=(0, r))
-    x = functional.conv2d(x, g.view(1, 1, -1, 1), padding=(r, 0))
-    return x[0, 0]
-
-
 def local_reference(
     residual: torch.Tensor, reference: torch.Tensor, g: torch.Tensor, g0: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -113,8 +97,8 @@ def local_reference(
     ref = reference.to(residual.dtype)
     values = torch.where(reference, residual, torch.zeros_like(residual))
     centre = g0 * g0
-    num = _blur(values, g) - centre * values
-    den = _blur(ref, g) - centre * ref
+    num = gaussian_sum(values, g) - centre * values
+    den = gaussian_sum(ref, g) - centre * ref
     den = torch.clamp(den, min=0.0)
     mean = num / torch.clamp(den, min=1e-12)
     return mean, den
@@ -143,7 +127,7 @@ def consistent_points(
     r = torch.from_numpy(residual.astype(np.float32)).to(dev)
     omega_t = torch.from_numpy(omega & finite).to(dev)
     cand_t = torch.from_numpy((candidates | omega) & finite).to(dev)
-    g, g0 = _gaussian_kernel(config.sigma_px, dev)
+    g, g0 = gaussian_kernel(config.sigma_px, dev)
     reference = cand_t
     kept = omega_t
     for _ in range(int(config.iterations)):

@@ -272,8 +272,8 @@ _INDUCTOR_OPTIONS = {
 #: binding holds the GIL while the C++ loop runs (40-95 ms a keyframe), so in the composed graph
 #: every other node's Python waited for it; the C++ wrapper releases it around the call. Measured
 #: (docs/performance.md, 2026-11-27): composed paced median latency 480-510 -> 434-440 ms, the
-#: multi-view node's mean 217-222 -> 121-148 ms; the same offsets bit for bit; a cold compile
-#: takes longer (~14 s against ~5 s on 2 cores), a warm disk cache the same 4.6 s.
+#: multi-view node's mean 217-222 -> 121-138 ms; the same offsets bit for bit; the compile about
+#: as long (``warm_up`` with an empty cache 15.5 against 14.6 s on 2 cores, a warm one 4.8 / 4.7 s).
 _CPU_INDUCTOR_OPTIONS = {'cpp_wrapper': True}
 
 

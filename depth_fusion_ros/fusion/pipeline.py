@@ -306,7 +306,9 @@ def fuse_keyframe(
         verdict.evidence['coverage'] = coverage
     depth, _ = sanitize_depth(depth)
     confidence = confidence_from_support(interp.support_distance, config.sigma1)
-    confidence *= agreement(depth, base, m, omega, config.agreement_sigma, config.agreement_tau)
+    confidence *= agreement(
+        depth, base, m, omega, config.agreement_sigma, config.agreement_tau, config.device
+    )
     confidence[~np.isfinite(depth)] = 0.0
     if verdict is not None:
         confidence *= np.float32(verdict.confidence)
