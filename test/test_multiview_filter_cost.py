@@ -101,6 +101,34 @@ def test_search_finds_a_planted_minimum_in_every_bucket():
         assert float(torch.median(err)) < 0.75, (samples, float(torch.median(err)))  # px along the line
 
 
+def test_a_minimum_outside_the_interval_is_no_measurement(monkeypatch):
+    """A cost whose minimum lies below some rows' intervals: their best sample is the interval's
+    lower end. With ``reject_edges`` that is not ``ok`` (the filter takes it as an outlier vote);
+    without, the parabola clamped to the end passed it as a match (the old behaviour). Rows
+    whose minimum lies inside are found either way. Every bucket (refined or not)."""
+    import depth_fusion_ros.multiview.filter_search as search_module
+
+    rows = 100
+    key, rays = _random_rays(rows)
+    truth = torch.full((rows,), 1.0)
+    truth[::2] = 0.5  # below [0.8, 1.2] for the even rows
+    # A smooth basin around each row's truth (samples-first, as the kernel computes it).
+    monkeypatch.setattr(
+        search_module,
+        '_frame_cost',
+        lambda kd, fd, a, b, rho: 0.05 + (rho - truth[None, : rho.shape[1]]) ** 2,
+    )
+    lo, hi = torch.full((rows,), 0.8), torch.full((rows,), 1.2)
+    outside = truth < lo
+    for samples, refine, distinct in search_buckets(FilterConfig()):
+        args = (key, _descriptors(), rays, lo, hi, samples, refine, 1 << 22, distinct)
+        old = search_interval(*args)
+        new = search_interval(*args, reject_edges=True)
+        assert bool(old.ok[outside].all()) and not bool(new.ok[outside].any()), samples
+        assert bool(new.ok[~outside].all()), samples
+        assert torch.allclose(new.rho[~outside], truth[~outside], atol=1e-4), samples
+
+
 def rays_rho_at_pixel(rays: EpipolarRays, u: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
     """Inverse depth at which each row's line reaches column ``u`` (the planted pixel)."""
     a, b = rays.a[0], rays.b[0]

@@ -656,7 +656,8 @@ class DepthFilter:
         """Search each chosen row in ``[lo, hi]``, in buckets by sample count (``plan_buckets``).
 
         Returns the match ``x``, its cost and whether it passed ``max_cost`` (and, in the
-        buckets with a distinctiveness test, ``min_distinctiveness``), per row.
+        buckets with a distinctiveness test, ``min_distinctiveness``; with
+        ``reject_edge_minima``, lay inside its interval), per row.
         """
         c = self.config
         # Interval length in px: to first order at the prior mean for an estimate (as the
@@ -692,6 +693,7 @@ class DepthFilter:
                 refine,
                 self._chunk_elements,
                 with_distinctiveness=distinct,
+                reject_edges=c.reject_edge_minima,
             )
             good = found.ok & (found.cost <= c.max_cost)
             if distinct:

@@ -83,6 +83,12 @@ class FilterConfig:
     max_cost: float = 0.4
     #: New pixels (long search) need a distinct minimum: modified second-best ratio at least this.
     min_distinctiveness: float = 0.1
+    #: A search whose best sample lies at either end of its interval measured nothing: the
+    #: minimum is outside. A pixel with an estimate takes it as an outlier vote (its prior is
+    #: off, or the patch is gone), a new pixel is not born from it. Off: the parabola is
+    #: clamped to the end sample and counted as a measurement (before 2026-11-27), which let a
+    #: wrong estimate confirm itself at its interval's edge frame after frame.
+    reject_edge_minima: bool = True
     #: Beta prior ``a`` of a new pixel's inlier ratio (10 as SVO).
     init_a: float = 10.0
     #: Beta prior ``b`` of a new pixel's inlier ratio (10 as SVO).

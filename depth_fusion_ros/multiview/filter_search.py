@@ -136,6 +136,7 @@ def _search_rows(
     samples: int,
     refine: int,
     with_distinctiveness: bool,
+    reject_edges: bool,
 ) -> SearchResult:
     k = torch.arange(samples, device=lo.device, dtype=lo.dtype)
     step = (hi - lo) / (samples - 1)
@@ -145,9 +146,29 @@ def _search_rows(
     distinct = _distinctiveness(cost, best, c1) if with_distinctiveness else c1
     if refine == 0:  # the samples are already about a pixel apart: the parabola goes through them
         j = best.clamp(1, samples - 2)
-        return _parabola(grid, j, step, *_three(cost, j), c1, distinct)
+        found = _parabola(grid, j, step, *_three(cost, j), c1, distinct)
+    else:
+        found = _refined(key_desc, frame_desc, a, b, grid, step, best, c1, distinct, refine)
+    if reject_edges:  # the best sample at an end: the minimum lies outside the interval
+        found.ok &= (best > 0) & (best < samples - 1)
+    return found
+
+
+def _refined(
+    key_desc: torch.Tensor,
+    frame_desc: torch.Tensor,
+    a: torch.Tensor,
+    b: torch.Tensor,
+    grid: torch.Tensor,
+    step: torch.Tensor,
+    best: torch.Tensor,
+    c1: torch.Tensor,
+    distinct: torch.Tensor,
+    refine: int,
+) -> SearchResult:
+    """``refine`` finer samples each side of the best coarse one, then the parabola through them."""
     fine_step = step / refine
-    offsets = torch.arange(-refine, refine + 1, device=lo.device, dtype=lo.dtype)
+    offsets = torch.arange(-refine, refine + 1, device=grid.device, dtype=grid.dtype)
     fine = torch.addcmul(_gather(grid, best)[None, :], fine_step[None, :], offsets[:, None])
     # The middle fine sample is the best coarse one (offset 0: the same rho, the same cost
     # c1): only the others are looked up.
@@ -223,6 +244,7 @@ def search_interval(
     refine: int,
     chunk_elements: int = 1 << 22,
     with_distinctiveness: bool = True,
+    reject_edges: bool = False,
 ) -> SearchResult:
     """Best inverse depth of each pixel in ``[lo, hi]`` (M,) against one frame.
 
@@ -233,7 +255,8 @@ def search_interval(
     ``refine`` fine samples on each side of the best coarse one (0: the parabola goes through
     the coarse samples themselves). Memory is bounded by ``chunk_elements`` as in the sweep.
     ``with_distinctiveness=False`` skips the second-best ratio (``distinct`` is then undefined):
-    a short search around a converged estimate does not use it.
+    a short search around a converged estimate does not use it. ``reject_edges``: a best
+    coarse sample at either end of the interval is not ``ok`` (the minimum lies outside it).
     """
     m = int(lo.numel())
     if m == 0:
@@ -252,6 +275,7 @@ def search_interval(
             samples,
             refine,
             with_distinctiveness,
+            reject_edges,
         )
         for s in range(0, m, chunk)
     ]
