@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from depth_fusion_ros.fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence, assess, point_thresholds
+from depth_fusion_ros.fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence, assess
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
 from depth_fusion_ros.fusion.scenes import planes_and_boxes
 
@@ -64,36 +64,6 @@ def test_independent_wrong_matches_step_down_and_never_hurt(truth):
     assert _mae(guarded.depth, truth) <= _mae(single, truth)
     assert _mae(guarded.depth, truth) <= _mae(unguarded.depth, truth)
     assert float(np.nanmax(guarded.confidence)) <= guarded.keyframe_confidence < 1.0
-
-
-def test_a_sliver_of_consistent_but_biased_points_is_not_trusted(truth):
-    """Points on under 1 % of the image, all 25 % too near together (the noise-selected tail a
-    low-parallax filter publishes): consistent with each other, so only their count against
-    the image (``min_trusted_density``) marks them. The default keeps the single-view depth;
-    without the floor they were fused and made it worse."""
-    single = _single(truth, 5)
-    rng = np.random.default_rng(7)
-    multi = np.full(truth.shape, np.nan, dtype=np.float32)
-    pick = rng.random(truth.shape) < 0.007  # ~75 points of 10 800: more than min_trusted_points
-    multi[pick] = 0.8 * truth[pick]
-    config = FusionConfig(mode='fast')
-    guarded = fuse_keyframe(single, multi, None, config)
-    assert guarded.decision == 'single_view', (guarded.decision, guarded.decision_reason)
-    assert 'trusted points <' in guarded.decision_reason
-    np.testing.assert_array_equal(guarded.depth, single)
-    floorless = fuse_keyframe(single, multi, None, config, guard_config=GuardConfig(min_trusted_density=0.0))
-    assert floorless.decision == 'full', floorless.decision_reason
-    assert _mae(floorless.depth, truth) > _mae(single, truth)
-
-
-def test_the_point_floor_follows_the_image_size():
-    config = GuardConfig()
-    assert point_thresholds(config, 40 * 30) == (config.min_trusted_points, config.min_scale_points)
-    assert point_thresholds(config, 120 * 90) == (108, 108)
-    assert point_thresholds(config, 320 * 240) == (768, 768)
-    assert point_thresholds(GuardConfig(min_trusted_density=0.0), 320 * 240) == (40, 20)
-    with pytest.raises(ValueError, match='min_trusted_density'):
-        GuardConfig(min_trusted_density=1.5)
 
 
 def test_a_bad_region_is_dropped_and_the_rest_fused(truth):

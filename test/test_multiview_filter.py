@@ -271,6 +271,37 @@ def test_edge_minima_are_outlier_votes_not_confirmations(synthetic_sequence):
     assert (new <= 0.1).sum() > 0.95 * (old <= 0.1).sum()
 
 
+def test_a_noise_selected_sliver_is_not_published(synthetic_sequence):
+    """Rotation-heavy motion at 160x120, 7 frames: few estimates reach the precision test,
+    and those that do are the ones their noise made too near (the test divides by their own
+    mu). With ``min_published_fraction`` 0 that sliver is published, biased together; by
+    default nothing is. On the high-parallax room the rule changes nothing."""
+    from depth_fusion_ros.data.synthetic import render_sequence, stress_config
+
+    seq = render_sequence(stress_config('rotation', width=160, height=120, frames=7, seed=0))
+    published = {}
+    for fraction in (0.0, FilterConfig().min_published_fraction):
+        f = DepthFilter(seq.camera, FilterConfig(min_published_fraction=fraction))
+        for fr in seq.frames:
+            f.process(fr.gray, fr.pose)
+        assert f.stats.keyframes == 1
+        measured = (f.key.updates >= 2).sum()
+        published[fraction] = f.result()
+    sliver = published[0.0]
+    valid = np.isfinite(sliver.depth)
+    assert 0 < valid.sum() < 0.05 * int(measured)
+    gt = seq.gt_depth_working(0)
+    signed = (sliver.depth[valid] - gt[valid]) / gt[valid]
+    assert np.median(signed) < -0.1  # too near, together
+    assert published[FilterConfig().min_published_fraction].density == 0.0
+    for fraction in (0.0, 0.05):
+        f = DepthFilter(synthetic_sequence.camera, FilterConfig(min_published_fraction=fraction))
+        for fr in synthetic_sequence.frames[:10]:
+            f.process(fr.gray, fr.pose)
+        published[('room', fraction)] = f.result().density
+    assert published[('room', 0.0)] == published[('room', 0.05)] > 0.1
+
+
 def test_frames_without_baseline_are_skipped(synthetic_sequence):
     seq = synthetic_sequence
     f = DepthFilter(seq.camera)

@@ -92,9 +92,6 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'full_fraction': 'share of Ω that must be trusted to fuse every point (else only the trusted ones)',
     'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
     'min_scale_points': 'fewer trusted points than this: no regional or global scale correction',
-    'min_trusted_density': 'both point thresholds above are at least this share of the image pixels: '
-    'when the multi-view stage publishes only a sliver of the image, what it publishes is the tail its '
-    'own noise selected (biased together), not a sample of the scene',
     'min_inlier_ratio': 'stage-2 support: when stage 2 keeps a smaller share of the stage-1 points, '
     'they disagree more than they agree and the keyframe keeps its single-view depth',
     'scale_sigma_px': 'scale_only: proximity scale (px) of the smooth scale correction',
@@ -122,7 +119,6 @@ class GuardConfig:
     full_fraction: float = 0.5
     min_trusted_points: int = 40
     min_scale_points: int = 20
-    min_trusted_density: float = 0.01
     min_inlier_ratio: float = 0.5
     scale_sigma_px: float = 60.0
     reach: float = 0.3
@@ -142,7 +138,7 @@ class GuardConfig:
         for name in positive:
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f'guard.{name} must be a positive number, got {getattr(self, name)}')
-        for name in ('min_agreement', 'full_fraction', 'min_inlier_ratio', 'min_trusted_density'):
+        for name in ('min_agreement', 'full_fraction', 'min_inlier_ratio'):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f'guard.{name} must be in [0, 1], got {getattr(self, name)}')
         for name in ('min_neighbours', 'max_neighbours', 'min_trusted_points', 'min_scale_points'):
@@ -251,22 +247,6 @@ def _local_deviation(
     return out, float(np.median(np.asarray(within, dtype=np.float64)))
 
 
-def point_thresholds(config: GuardConfig, pixels: int) -> tuple[int, int]:
-    """``min_trusted_points`` and ``min_scale_points``, each at least ``min_trusted_density`` of
-    the image's ``pixels``.
-
-    Why a share of the image: the filter publishes an estimate once its relative precision
-    ``sigma / mu`` is small, and an estimate whose noise made it too near (``mu`` too large)
-    passes that test sooner. Where most of the image lacks the parallax, the few estimates
-    that pass are that noise-selected tail: on the rotation stress case at 160x120 (7 frames,
-    seeds 0-8), the estimates with two measurements were 1-3 % too near in the median, the
-    published ones 5-69 % too near on the five seeds that published 1 % or less of them.
-    What marks such a keyframe is a count small against the image, not against a fixed number.
-    """
-    floor = int(np.ceil(config.min_trusted_density * pixels))
-    return max(config.min_trusted_points, floor), max(config.min_scale_points, floor)
-
-
 def assess(
     base: np.ndarray,
     m: np.ndarray,
@@ -289,13 +269,12 @@ def assess(
     the sample only.
     """
     config = config or GuardConfig()
-    min_trusted, min_scale = point_thresholds(config, omega.size)
     with np.errstate(invalid='ignore'):
         usable = omega & np.isfinite(base) & np.isfinite(m) & (base > 0) & (m > 0)
     n_omega = int(usable.sum())
     stats: dict[str, float] = {'n_omega': float(n_omega), 'inlier_ratio': n_omega / max(n_stage1, 1)}
     empty = np.zeros(omega.shape, dtype=bool)
-    if n_omega < config.min_scale_points:  # too few to judge at all (the density floor is applied below)
+    if n_omega < config.min_scale_points:
         return GuardVerdict('single_view', f'only {n_omega} stage-2 points', empty, 0.0, 1.0, stats)
 
     rows, cols = np.nonzero(usable)
@@ -336,7 +315,7 @@ def assess(
     trusted = np.zeros(omega.shape, dtype=bool)
     trusted[rows[good], cols[good]] = True
     trusted_fraction = float(good.mean())
-    scale_points = residual[good] if n_trusted >= min_scale else residual
+    scale_points = residual[good] if n_trusted >= config.min_scale_points else residual
     scale_log = float(np.median(scale_points))
     scale_error = fit_spread / np.sqrt(max(len(scale_points), 1))
     stats.update(
@@ -364,7 +343,7 @@ def assess(
         reason = f'stage 2 kept {n_omega} of {n_stage1} stage-1 points (< {config.min_inlier_ratio:g})'
         return verdict('single_view', reason, empty)
     noisy = effective_noise > min(config.max_mv_noise, single_error)
-    if not noisy and n_trusted >= min_trusted:
+    if not noisy and n_trusted >= config.min_trusted_points:
         if trusted_fraction >= config.full_fraction:
             return verdict('full', 'consistent multi-view points', usable.copy())
         return verdict(
@@ -376,11 +355,11 @@ def assess(
         f'averaged multi-view noise {effective_noise:.3f} > '
         f'min({config.max_mv_noise:g}, single-view {single_error:.3f})'
         if noisy
-        else f'{n_trusted} trusted points < {min_trusted}'
+        else f'{n_trusted} trusted points < {config.min_trusted_points}'
     )
-    if n_trusted >= min_scale and not noisy:
+    if n_trusted >= config.min_scale_points and not noisy:
         return verdict('scale_only', why, trusted)
-    if n_trusted < min_scale:
+    if n_trusted < config.min_scale_points:
         # The scale would come from the points the evidence rejected. Their errors are not
         # independent (rotation-dominant motion biases every low-parallax depth the same
         # way: 15-25 % too near on the stress cases), so their small scatter says nothing.

@@ -255,13 +255,18 @@ class DepthFilter:
 
     def _published(self, key: _Keyframe) -> torch.Tensor:
         c, st = self.config, key.state
-        return (
-            (key.updates >= c.min_updates)
-            & (st.inlier_ratio >= c.publish_inlier_ratio)
+        measured = (key.updates >= c.min_updates) & (st.inlier_ratio >= c.publish_inlier_ratio)
+        published = (
+            measured
             & (torch.sqrt(st.var) <= c.max_relative_sigma * st.mu)
             & (st.mu >= self.rho_range[0])
             & (st.mu <= self.rho_range[1])
         )
+        # A sliver passing the precision test is the tail the noise selected (min_published_fraction).
+        count = float(published.sum())
+        if 0 < count < c.min_published_fraction * float(measured.sum()):
+            return torch.zeros_like(published)
+        return published
 
     def _fresh_state(self, m: int) -> tuple[BetaGaussian, torch.Tensor, torch.Tensor]:
         lo, hi = self.rho_range

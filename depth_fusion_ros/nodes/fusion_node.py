@@ -105,7 +105,6 @@ GUARD_LIMITS: dict[str, Any] = {
     'full_fraction': (0.0, 1.0),
     'min_trusted_points': (1, None),
     'min_scale_points': (1, None),
-    'min_trusted_density': (0.0, 1.0),
     'min_inlier_ratio': (0.0, 1.0),
     'scale_sigma_px': (1e-3, None),
     'reach': (0.0, None),
