@@ -40,7 +40,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,13 +49,16 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
-from .cost_volume import epipolar_motion, gaussian_blur, patch_reach, stage_descriptors
+from .cost_volume import gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
+from .filter_geometry import FrameGeometry, frame_geometry, normalised_rows, row_motion
+from .filter_keyframe import FilterKeyframe
 from .filter_profile import StageClock
 from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
 from .filter_search import plan_buckets, search_buckets, search_interval
 from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
+from .filter_window import box_sum, window_reduce
 from .semidense import MultiViewConfig, candidate_mask
 from .views import _as_gray
 
@@ -64,28 +66,6 @@ log = logging.getLogger(__name__)
 
 #: What :meth:`DepthFilter.process` did with a frame.
 UPDATED, SKIPPED, KEYFRAME = 'updated', 'skipped', 'keyframe'
-
-
-@dataclass
-class _Keyframe:
-    """The filter's keyframe: image descriptors, candidate pixels and their posterior."""
-
-    pose: np.ndarray  # T_wk
-    desc: torch.Tensor  # (1, C + 1, H, W) descriptors of the whole image (the next keyframe's observation)
-    flat: torch.Tensor  # (M,) long pixel index v * W + u
-    us: torch.Tensor
-    vs: torch.Tensor
-    key_desc: torch.Tensor  # (C, M)
-    grad: torch.Tensor  # (2, M) grey gradient (gx, gy) per px after the matching blur
-    state: BetaGaussian
-    updates: torch.Tensor  # (M,) measurements fused (0 = no estimate yet)
-    prior: torch.Tensor  # (M,) bool: mu, var hold a prior (measured, carried or filled): short searches
-    cost: torch.Tensor  # (M,) last matching cost
-    attempts: torch.Tensor  # (M,) long searches spent on a pixel without an estimate
-    # (padded image,) long: the row at each pixel of the image padded by seed_radius, M where
-    # none (built on first use: the seed bracket's neighbour lookups)
-    padded_rows: torch.Tensor | None = None
-    padded_flat: torch.Tensor | None = None  # (M,) long: each row's index in that padded image
 
 
 @dataclass
@@ -120,7 +100,7 @@ class DepthFilter:
         self._chunk_elements = effective_chunk_elements(self.matching.chunk_elements, self.device)
         self.rho_range = self.matching.rho_range
         self.margin = float(patch_reach(self.matching.patch, self.matching.patch_stride))
-        self.key: _Keyframe | None = None
+        self.key: FilterKeyframe | None = None
         self._scene = self.config.scene_depth  # scene_depth() of the frame being processed
         self.stats = FilterStats()
         #: Seconds per stage of :meth:`process` (``clock.enabled = True`` to record; the bench does).
@@ -180,7 +160,7 @@ class DepthFilter:
         self.stats.skipped += 1
         return SKIPPED
 
-    def result(self, pose: np.ndarray | None = None, keyframe: _Keyframe | None = None) -> FilterResult:
+    def result(self, pose: np.ndarray | None = None, keyframe: FilterKeyframe | None = None) -> FilterResult:
         """Published estimates in the filter's keyframe, or warped into the camera at ``pose``.
 
         ``keyframe``: an earlier keyframe state (``self.key`` as it was before a switch) instead
@@ -253,7 +233,7 @@ class DepthFilter:
         self.clock.switch(left)
         return desc
 
-    def _published(self, key: _Keyframe) -> torch.Tensor:
+    def _published(self, key: FilterKeyframe) -> torch.Tensor:
         c, st = self.config, key.state
         measured = (key.updates >= c.min_updates) & (st.inlier_ratio >= c.publish_inlier_ratio)
         published = (
@@ -276,7 +256,7 @@ class DepthFilter:
         )
         return state, torch.zeros(m, dtype=torch.long, device=self.device), full(math.nan)
 
-    def _new_keyframe(self, image: torch.Tensor, desc: torch.Tensor, T_wk: np.ndarray) -> _Keyframe:
+    def _new_keyframe(self, image: torch.Tensor, desc: torch.Tensor, T_wk: np.ndarray) -> FilterKeyframe:
         # One blur for the candidate test and the gradients (candidate_mask's own smoothing).
         smooth = gaussian_blur(image[None], self.matching.blur_sigma)[0]
         cand = candidate_mask(image, self._candidates, smooth=smooth)
@@ -295,7 +275,7 @@ class DepthFilter:
         else:
             key_desc = desc[0, :channels].reshape(channels, -1).index_select(1, flat)
         state, updates, cost = self._fresh_state(int(flat.numel()))
-        return _Keyframe(
+        return FilterKeyframe(
             T_wk,
             desc,
             flat,
@@ -310,7 +290,7 @@ class DepthFilter:
             torch.zeros_like(updates),
         )
 
-    def _visible_fraction(self, key: _Keyframe, T_fk: np.ndarray) -> float:
+    def _visible_fraction(self, key: FilterKeyframe, T_fk: np.ndarray) -> float:
         has = torch.nonzero(key.updates > 0, as_tuple=True)[0]
         if has.numel() == 0:
             return 1.0
@@ -327,8 +307,8 @@ class DepthFilter:
         return float(warped.source.numel()) / float(has.numel())
 
     def _propagate(
-        self, old: _Keyframe, image: torch.Tensor, desc: torch.Tensor, T_wn: np.ndarray
-    ) -> _Keyframe:
+        self, old: FilterKeyframe, image: torch.Tensor, desc: torch.Tensor, T_wn: np.ndarray
+    ) -> FilterKeyframe:
         """New keyframe at this frame: carried estimates where they land, first measurements elsewhere."""
         left = self.clock.switch('propagation')
         new = self._new_keyframe(image, desc, T_wn)
@@ -382,7 +362,9 @@ class DepthFilter:
         self.clock.switch(left)
         return new
 
-    def _fill_holes(self, new: _Keyframe, target: torch.Tensor, rho: torch.Tensor, var: torch.Tensor) -> int:
+    def _fill_holes(
+        self, new: FilterKeyframe, target: torch.Tensor, rho: torch.Tensor, var: torch.Tensor
+    ) -> int:
         """A prior for new pixels among carried estimates: the mean of those within ``fill_radius``.
 
         LSD-SLAM fills the holes that nearest-pixel propagation leaves (rounding, new
@@ -401,7 +383,7 @@ class DepthFilter:
         maps[1, target] = rho
         maps[2, target] = rho * rho
         maps[3, target] = var
-        sums = _box_sum(maps.view(4, h, w), c.fill_radius).view(4, h * w).index_select(1, new.flat)
+        sums = box_sum(maps.view(4, h, w), c.fill_radius).view(4, h * w).index_select(1, new.flat)
         n = sums[0]
         hole = ~new.prior & (n >= c.fill_min_neighbours)
         n = torch.clamp(n, min=1.0)
@@ -426,7 +408,7 @@ class DepthFilter:
         return tau2 + (rho * (c.pose_sigma / baseline)) ** 2
 
     def _update(
-        self, key: _Keyframe, desc: torch.Tensor, T_fk: np.ndarray, only: torch.Tensor | None = None
+        self, key: FilterKeyframe, desc: torch.Tensor, T_fk: np.ndarray, only: torch.Tensor | None = None
     ) -> float:
         """One frame's measurements for the pixels of ``key`` it can teach something, in place.
 
@@ -445,14 +427,19 @@ class DepthFilter:
             self.clock.switch(left)
 
     def _update_rows(
-        self, key: _Keyframe, desc: torch.Tensor, T_fk: np.ndarray, only: torch.Tensor | None, prefix: str
+        self,
+        key: FilterKeyframe,
+        desc: torch.Tensor,
+        T_fk: np.ndarray,
+        only: torch.Tensor | None,
+        prefix: str,
     ) -> float:
         """:meth:`_update`'s work; ``prefix`` names its stages."""
         c = self.config
         rho_min, rho_max = self.rho_range
         st = key.state
         baseline = max(float(np.linalg.norm(T_fk[:3, 3])), 1e-9)
-        geo = _frame_geometry(key, self.camera, T_fk, self.margin)
+        geo = frame_geometry(key, self.camera, T_fk, self.margin)
         rows, seen = self._choose(key, geo, baseline, only)
         if rows.numel() == 0:
             return seen
@@ -475,7 +462,7 @@ class DepthFilter:
         self.clock.switch(prefix + 'update')
         # The epipolar motion at the match: the bracket's edge test and the measurement
         # variance (only read where the match is valid, so one evaluation at x serves both).
-        j_x = _motion(a_r, geo.b, x)
+        j_x = row_motion(a_r, geo.b, x)
         if bracketed is not None:
             # A bracket's best match on its edge: the minimum lies outside, not a measurement.
             inside = ((x - lo) * j_x >= 0.5) & ((hi - x) * j_x >= 0.5)
@@ -529,7 +516,7 @@ class DepthFilter:
 
     def _bracket(
         self,
-        key: _Keyframe,
+        key: FilterKeyframe,
         rows: torch.Tensor,
         seeds: torch.Tensor,
         fresh: torch.Tensor,
@@ -561,16 +548,20 @@ class DepthFilter:
         rho_min, rho_max = self.rho_range
         pad = 2.0 * c.min_search_px
         lo.index_copy_(
-            0, sel, torch.clamp(n_lo - pad / torch.clamp(_motion(a_s, b, n_lo), min=1e-9), rho_min, rho_max)
+            0,
+            sel,
+            torch.clamp(n_lo - pad / torch.clamp(row_motion(a_s, b, n_lo), min=1e-9), rho_min, rho_max),
         )
         hi.index_copy_(
-            0, sel, torch.clamp(n_hi + pad / torch.clamp(_motion(a_s, b, n_hi), min=1e-9), rho_min, rho_max)
+            0,
+            sel,
+            torch.clamp(n_hi + pad / torch.clamp(row_motion(a_s, b, n_hi), min=1e-9), rho_min, rho_max),
         )
         use = torch.zeros_like(fresh)
         use[sel] = True
         return use
 
-    def _neighbour_range(self, key: _Keyframe, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _neighbour_range(self, key: FilterKeyframe, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Lowest and highest measured inverse depth within ``seed_radius`` px of each row's
         pixel (``inf``, ``-inf`` where none): the (2r + 1)^2 window of each row, gathered
         through the keyframe's padded pixel-to-row map, so the cost follows the rows asked
@@ -599,7 +590,9 @@ class DepthFilter:
         highs = torch.where(has, mu, -math.inf).view(shape).amax(dim=1)
         return lows, highs
 
-    def _neighbour_range_dense(self, key: _Keyframe, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _neighbour_range_dense(
+        self, key: FilterKeyframe, rows: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`_neighbour_range` through a min and a max filter over the whole image, for many
         rows (a new keyframe's seeds): its windows would gather more entries than the image
         has pixels. Minima and maxima are exact, so the numbers are the same."""
@@ -611,12 +604,12 @@ class DepthFilter:
             image = torch.full((h * w,), empty, dtype=key.state.mu.dtype, device=self.device)
             image.scatter_(0, key.flat, torch.where(has, key.state.mu, empty))
             padded = F.pad(image.view(1, h, w), (r, r, r, r), value=empty)[0]
-            window = _window_reduce(padded, r, lambda acc, x, pick=pick: pick(acc, x, out=acc))
+            window = window_reduce(padded, r, lambda acc, x, pick=pick: pick(acc, x, out=acc))
             ranges.append(window.view(-1).index_select(0, key.flat.index_select(0, rows)))
         return ranges[0], ranges[1]
 
     def _choose(
-        self, key: _Keyframe, geo: _FrameGeometry, baseline: float, only: torch.Tensor | None
+        self, key: FilterKeyframe, geo: FrameGeometry, baseline: float, only: torch.Tensor | None
     ) -> tuple[torch.Tensor, float]:
         """Rows this frame searches, and the fraction of the estimates it sees.
 
@@ -647,11 +640,11 @@ class DepthFilter:
 
     def _search(
         self,
-        key: _Keyframe,
+        key: FilterKeyframe,
         rows: torch.Tensor,
         desc: torch.Tensor,
         a_r: torch.Tensor,
-        geo: _FrameGeometry,
+        geo: FrameGeometry,
         lo: torch.Tensor,
         hi: torch.Tensor,
         j_r: torch.Tensor,
@@ -670,7 +663,7 @@ class DepthFilter:
         span = j_r * (hi - lo)
         if seeds.numel() > 0:  # the rows of ``fresh``
             a_s, lo_s, hi_s = a_r.index_select(1, seeds), lo.index_select(0, seeds), hi.index_select(0, seeds)
-            ends = torch.maximum(_motion(a_s, geo.b, lo_s), _motion(a_s, geo.b, hi_s))
+            ends = torch.maximum(row_motion(a_s, geo.b, lo_s), row_motion(a_s, geo.b, hi_s))
             span.index_copy_(0, seeds, ends * (hi_s - lo_s))
         bucket = plan_buckets(span, fresh, c)
         # Rows sorted by bucket once: each bucket is then a slice (views, no gather per bucket),
@@ -681,7 +674,7 @@ class DepthFilter:
         desc_o = key.key_desc.index_select(1, rows.index_select(0, order))
         lo_o, hi_o = lo.index_select(0, order), hi.index_select(0, order)
         # The rays normalised once for the frame, not once per bucket.
-        a_o, b_o = _normalised_rows(a_r.index_select(1, order), geo.b, self.camera.width, self.camera.height)
+        a_o, b_o = normalised_rows(a_r.index_select(1, order), geo.b, self.camera.width, self.camera.height)
         xs, costs, goods = [], [], []
         start = 0
         for (samples, refine, distinct), n in zip(search_buckets(c), counts, strict=True):
@@ -711,95 +704,3 @@ class DepthFilter:
         cost = torch.empty_like(lo).scatter_(0, order, torch.cat(costs))
         valid = torch.empty_like(fresh).scatter_(0, order, torch.cat(goods))
         return x, cost, valid
-
-
-@dataclass
-class _FrameGeometry:
-    """One frame's epipolar geometry for every keyframe pixel, at the pixel's prior mean."""
-
-    a: torch.Tensor  # (3, M) K R_fk x_n, coordinate-first: the projection at inverse depth rho is a + rho b
-    b: tuple[float, float, float]  # K t_fk's float32 values as numbers (operands without selects)
-    j: torch.Tensor  # (M,) epipolar motion (px per unit inverse depth) at the prior mean
-    along: torch.Tensor  # (M,) |grey gradient . unit epipolar direction|
-    visible: torch.Tensor  # (M,) bool: the prior mean projects in front, inside the matching margin
-
-
-def _frame_geometry(key: _Keyframe, camera: PinholeCamera, T_fk: np.ndarray, margin: float) -> _FrameGeometry:
-    """``EpipolarRays`` of one frame, its ``project`` and ``motion`` at the prior means, fused.
-
-    With ``w = a_2 + rho b_2``: ``u = (a_0 + rho b_0) / w`` and ``du/drho = (b_0 a_2 - a_0 b_2) / w^2``;
-    the numerators of the motion do not depend on ``rho``, so the epipolar direction (the
-    gradient test) costs two products per pixel, and everything is a handful of (M,) ops.
-    ``a`` is coordinate-first (3, M): each coordinate is then a contiguous row, so every op
-    below runs vectorised over the pixels (pixel-first, the columns were strided: the same
-    numbers at about twice the cost), and the searches gather their rows with one
-    ``index_select`` straight into the layout ``grid`` takes.
-    """
-    K = np.asarray(camera.K, dtype=np.float64)
-    H = K @ T_fk[:3, :3] @ np.linalg.inv(K)  # pixel-to-pixel homography at infinity
-    dev = key.us.device
-    h = torch.as_tensor(H.T, dtype=torch.float32, device=dev)  # rows: H's columns
-    # H (u, v, 1), one row per coordinate
-    a = torch.addcmul(torch.addcmul(h[2][:, None], h[0][:, None], key.us), h[1][:, None], key.vs)
-    # K t_fk's float32 values as Python numbers: as operands they are cast back to float32
-    # (the same products), without a 0-d tensor select per use.
-    b0, b1, b2 = (float(v) for v in (K @ T_fk[:3, 3]).astype(np.float32))
-    rho = key.state.mu
-    a0, a1, a2 = a.unbind(0)
-    w = a2 + rho * b2
-    nu = b0 * a2 - a0 * b2
-    nv = b1 * a2 - a1 * b2
-    norm = torch.hypot(nu, nv)
-    w2 = torch.clamp(w * w, min=1e-12)
-    j = norm / w2
-    along = (key.grad[0] * nu + key.grad[1] * nv).abs() / torch.clamp(norm, min=1e-9)
-    front = w > 1e-9
-    wc = torch.clamp(w, min=1e-9)
-    cu, cv = 0.5 * (camera.width - 1), 0.5 * (camera.height - 1)
-    visible = (
-        front
-        & (((a0 + rho * b0) / wc - cu).abs() <= cu - margin)
-        & (((a1 + rho * b1) / wc - cv).abs() <= cv - margin)
-    )
-    return _FrameGeometry(a, (b0, b1, b2), j, along, visible)
-
-
-def _motion(a: torch.Tensor, b: tuple[float, float, float], rho: torch.Tensor) -> torch.Tensor:
-    """``|d p / d rho|`` (R,) of coordinate-first rows ``a`` (3, R) at inverse depths ``rho``
-    (``EpipolarRays.parallax``), ``b`` as numbers: contiguous rows and no per-use selects of
-    ``b`` (a third of the ops of the pixel-last form)."""
-    return torch.hypot(*epipolar_motion(a.unbind(0), b, rho))
-
-
-def _normalised_rows(
-    a: torch.Tensor, b: tuple[float, float, float], width: int, height: int
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``filter_search.normalised_rows`` of coordinate-first rows ``a`` (3, R), in place in ``a``
-    (the caller's own gathered copy): the same numbers (``EpipolarRays._normalised``) without
-    the pixel-first round trip (scale, concatenation, transposed copy)."""
-    scale = torch.tensor([2.0 / (width - 1), 2.0 / (height - 1), 1.0], dtype=a.dtype, device=a.device)
-    a[:2].mul_(scale[:2, None]).sub_(a[2])  # (a_k s_k) - a_2; a_2 s_2 = a_2 exactly
-    b = torch.tensor(b, dtype=a.dtype, device=a.device) * scale
-    return a, torch.cat((b[:2] - b[2:], b[2:]))
-
-
-def _box_sum(maps: torch.Tensor, r: int) -> torch.Tensor:
-    """Sum of each ``(C, H, W)`` map over the ``(2r + 1)^2`` window (zeros outside): separable
-    shifted slices, several times faster on CPU than ``avg_pool2d`` for these small windows."""
-    return _window_reduce(F.pad(maps, (r, r, r, r)), r, lambda acc, x: acc.add_(x))
-
-
-def _window_reduce(
-    padded: torch.Tensor, r: int, combine: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-) -> torch.Tensor:
-    """``combine`` (in place into its first argument) over each ``(2r + 1)^2`` window of the
-    ``(..., H + 2r, W + 2r)`` padded maps, separably: along the rows, then the columns, in the
-    order (and so to the bits) of combining the shifted slices one after the other."""
-    h, w = padded.shape[-2] - 2 * r, padded.shape[-1] - 2 * r
-    across = padded[..., :, 0:w].clone()
-    for k in range(1, 2 * r + 1):
-        combine(across, padded[..., :, k : k + w])
-    out = across[..., 0:h, :].clone()
-    for k in range(1, 2 * r + 1):
-        combine(out, across[..., k : k + h, :])
-    return out

@@ -1,0 +1,37 @@
+"""The temporal filter's keyframe: its image descriptors, candidate pixels and their posterior.
+
+One object per filter keyframe (``filter.DepthFilter.key``); propagation makes the next one
+(``filter.DepthFilter._propagate``). Plain tensors, so the state moves to any device with
+the filter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .filter_update import BetaGaussian
+
+
+@dataclass
+class FilterKeyframe:
+    """The filter's keyframe: image descriptors, candidate pixels and their posterior."""
+
+    pose: np.ndarray  # T_wk
+    desc: torch.Tensor  # (1, C + 1, H, W) descriptors of the whole image (the next keyframe's observation)
+    flat: torch.Tensor  # (M,) long pixel index v * W + u
+    us: torch.Tensor
+    vs: torch.Tensor
+    key_desc: torch.Tensor  # (C, M)
+    grad: torch.Tensor  # (2, M) grey gradient (gx, gy) per px after the matching blur
+    state: BetaGaussian
+    updates: torch.Tensor  # (M,) measurements fused (0 = no estimate yet)
+    prior: torch.Tensor  # (M,) bool: mu, var hold a prior (measured, carried or filled): short searches
+    cost: torch.Tensor  # (M,) last matching cost
+    attempts: torch.Tensor  # (M,) long searches spent on a pixel without an estimate
+    # (padded image,) long: the row at each pixel of the image padded by seed_radius, M where
+    # none (built on first use: the seed bracket's neighbour lookups)
+    padded_rows: torch.Tensor | None = None
+    padded_flat: torch.Tensor | None = None  # (M,) long: each row's index in that padded image
