@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from torch.nn import functional
+
+from ..separable import separable_sum
 
 
 def gaussian_kernel(sigma: float, device: torch.device) -> tuple[torch.Tensor, float]:
@@ -21,21 +22,6 @@ def gaussian_kernel(sigma: float, device: torch.device) -> tuple[torch.Tensor, f
 
 
 def gaussian_sum(images: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Separable Gaussian sum (zero padding) of an ``(H, W)`` or ``(N, H, W)`` tensor.
-
-    A sum of shifted slices, as ``multiview.cost_volume.gaussian_blur``: on one CPU thread
-    2.2x faster than two ``conv2d`` passes for the 49 taps of sigma 8 (3.4 against 7.6 ms for
-    three 320x240 images), and it runs unchanged on CUDA.
-    """
-    r = (g.numel() - 1) // 2
-    h, w = images.shape[-2:]
-    taps = g.tolist()
-    padded = functional.pad(images, (r, r, 0, 0))
-    rows = padded[..., :w] * taps[0]
-    for k in range(1, len(taps)):
-        rows.add_(padded[..., k : k + w], alpha=taps[k])
-    padded = functional.pad(rows, (0, 0, r, r))
-    out = padded[..., :h, :] * taps[0]
-    for k in range(1, len(taps)):
-        out.add_(padded[..., k : k + h, :], alpha=taps[k])
-    return out
+    """Separable Gaussian sum (zero padding) of an ``(H, W)`` or ``(N, H, W)`` tensor with the
+    taps ``g`` (``separable.separable_sum``)."""
+    return separable_sum(images, g.tolist())

@@ -51,7 +51,7 @@ from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
 from .cost_volume import gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
-from .filter_geometry import FrameGeometry, frame_geometry, normalised_rows, row_motion
+from .filter_geometry import FrameGeometry, frame_geometry, grid_rows_in_place, row_motion
 from .filter_keyframe import FilterKeyframe
 from .filter_profile import StageClock
 from .filter_propagate import warp_estimates
@@ -674,7 +674,9 @@ class DepthFilter:
         desc_o = key.key_desc.index_select(1, rows.index_select(0, order))
         lo_o, hi_o = lo.index_select(0, order), hi.index_select(0, order)
         # The rays normalised once for the frame, not once per bucket.
-        a_o, b_o = normalised_rows(a_r.index_select(1, order), geo.b, self.camera.width, self.camera.height)
+        a_o, b_o = grid_rows_in_place(
+            a_r.index_select(1, order), geo.b, self.camera.width, self.camera.height
+        )
         xs, costs, goods = [], [], []
         start = 0
         for (samples, refine, distinct), n in zip(search_buckets(c), counts, strict=True):

@@ -77,7 +77,7 @@ def row_motion(a: torch.Tensor, b: tuple[float, float, float], rho: torch.Tensor
     return torch.hypot(*epipolar_motion(a.unbind(0), b, rho))
 
 
-def normalised_rows(
+def grid_rows_in_place(
     a: torch.Tensor, b: tuple[float, float, float], width: int, height: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``filter_search.normalised_rows`` of coordinate-first rows ``a`` (3, R), in place in ``a``
