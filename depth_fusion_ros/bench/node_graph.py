@@ -6,7 +6,10 @@ through the whole graph with the nodes' default parameters, in several runs (mod
 rate; ``DEPTH_FUSION_BENCH_GRAPH_RUNS``, default ``processes:paced:1,processes:realtime:1,
 composed:paced:1,composed:realtime:1,processes:paced:10``: the last one plays 10x faster than
 recorded, paced, so the graph runs flat out: its throughput is the highest sustainable
-keyframe rate). Per run it reports:
+keyframe rate). ``DEPTH_FUSION_BENCH_GRAPH_SET`` overrides node parameters for every run, as
+``run --set`` does (comma-separated ``NODE.PARAM=VALUE``, checked the same way), e.g.
+``multi_view_node.keyframe_every=1`` for issue 13's "every frame a keyframe" on a GPU. Per run
+it reports:
 
 * time-to-ready of each node (start -> its "ready" line);
 * keyframes the policy chose, fused, and dropped by node and reason (the run's summary);
@@ -47,6 +50,7 @@ DEFAULT_RUNS = (
     'processes:paced:1,processes:realtime:1,composed:paced:1,composed:realtime:1,processes:paced:10'
 )
 MODEL_ENV = 'DEPTH_FUSION_BENCH_MODEL'
+SET_ENV = 'DEPTH_FUSION_BENCH_GRAPH_SET'
 #: Keyframe spacing of the multi-view node's defaults (read from its table at run time).
 FRAMES = 100
 
@@ -92,13 +96,31 @@ def bench_bag(opts: BenchOptions) -> tuple[Path, str]:
     return bag, name
 
 
+def env_overrides() -> dict[str, dict[str, object]]:
+    """Node parameters from ``DEPTH_FUSION_BENCH_GRAPH_SET`` (checked like ``run --set``: a typo
+    is an error, not a silently ignored override)."""
+    from ..cli.overrides import check_node_overrides, parse_overrides
+
+    items = [i.strip() for i in os.environ.get(SET_ENV, '').split(',') if i.strip()]
+    try:
+        overrides = parse_overrides(items, 'NODE')
+        check_node_overrides(overrides)
+    except ValueError as exc:
+        raise ValueError(f'{SET_ENV}: {exc}') from None
+    return overrides
+
+
 def keyframe_every() -> int:
-    """The multi-view node's default keyframe spacing, read from its parameter table's YAML
-    (importing the node would load torch into the runner and inflate its memory figure)."""
+    """The multi-view node's keyframe spacing: ``DEPTH_FUSION_BENCH_GRAPH_SET``'s, else the
+    default read from its parameter table's YAML (importing the node would load torch into the
+    runner and inflate its memory figure)."""
     import yaml
 
     from ..nodes.config_yaml import find_config_file
 
+    every = env_overrides().get('multi_view_node', {}).get('keyframe_every')
+    if every is not None:
+        return int(every)
     try:
         doc = yaml.safe_load(find_config_file().read_text())
         return int(doc['multi_view_node']['ros__parameters']['keyframe_every'])
@@ -156,6 +178,8 @@ def graph_options(opts: BenchOptions, bag: Path, processes: bool, **extra):
     overrides = {
         name: {'stats_period': 0.0} for name in ('single_view_node', 'multi_view_node', 'fusion_node')
     }
+    for node, values in env_overrides().items():
+        overrides.setdefault(node, {}).update(values)
     return RunOptions(
         bag=bag,
         processes=processes,
@@ -409,6 +433,8 @@ def run(opts: BenchOptions) -> list[BenchRow]:
     # Processes first: the runner then holds no torch and no composed nodes, so its own memory
     # (counted in the processes' peak) is the runner's alone.
     rows = [BenchRow(f'bag: {name}', image_count(bag), 'frames', str(bag))]
+    if os.environ.get(SET_ENV):
+        rows.append(BenchRow(f'node parameters: {os.environ[SET_ENV]}', float('nan'), '', SET_ENV))
     for mode, pacing, rate in graph_runs(opts):
         rows += measure_run(opts, bag, mode == 'processes', pacing == 'realtime', rate)
     seconds = float(getattr(opts, 'soak_seconds', 0.0) or os.environ.get(SOAK_ENV, 0) or 0)

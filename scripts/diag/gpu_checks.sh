@@ -1,19 +1,74 @@
 #!/usr/bin/env bash
-# The GPU checks of issues 11, 13, 14 and 15 in one go, for a machine with CUDA torch and
-# no ROS (the kernel benches and the CUDA tests import no ROS package):
+# The GPU checks of issues 11, 13, 14 and 15 in one go, for a machine with CUDA torch:
 #   OUT=out_dir bash scripts/diag/gpu_checks.sh
-# Writes OUT/cuda_tests.log, OUT/bench_*.log and OUT/bench_*.json. Each step has its own time
-# limit so a slow one cannot take the others with it.
+# Steps, most important first, each with its own time limit, inside one overall budget
+# (GPU_CHECKS_BUDGET seconds, default 420; a step that would start past it is skipped and
+# says so), so a slow step cannot take the others with it:
+#   1. pytest test/test_cuda.py (CPU vs CUDA equivalence; skipped on CPU-only CI);
+#   2. with ROS wheels in .whl/ (cp312 manylinux wheels of the ros-jazzy-* packages and rosbags,
+#      downloaded with `pip download --no-deps`: docs/performance.md "GPU"), the composed node
+#      graph on --device cuda over real DDS (`bench --only node_graph`), every frame a keyframe
+#      (multi_view_node.keyframe_every=1) of the bench's 100-frame synthetic bag: once at the
+#      recorded 30 Hz (real time: drops are reported) and once paced at 10x (saturating: the
+#      highest keyframe rate the graph sustains);
+#   3. `depth-fusion bench --only SECTION --device cuda` for the filter, the sweep, the fusion
+#      and the TSDF.
+# The ROS wheels go into a venv under /tmp that sees the machine's torch through a .pth file
+# (pip --target would drop the wheels' data files: their C libraries). Logs end up in
+# OUT/logs.tar.gz and a table of steps in OUT/summary.txt (the device tool returns 8 files).
 set -uo pipefail
 OUT=${OUT:-gpu_out}
 mkdir -p "$OUT"
+LOGS=$(mktemp -d)
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1
 PY=${PYTHON:-python3}
-nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
-$PY -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), torch.cuda.get_device_name(0))"
-timeout 110 $PY -m pytest test/test_cuda.py -q -p no:cacheprovider -rs 2>&1 | tee "$OUT/cuda_tests.log"
-for section in fusion multi_view multi_view_filter mapping single_view adaptation; do
-  echo "== bench $section"
-  timeout 70 $PY -m depth_fusion_ros.cli.main bench --only "$section" --device cuda --repeats 3 \
-    --json "$OUT/bench_$section.json" 2>&1 | grep -v "it/s\]" | tee "$OUT/bench_$section.log"
+BUDGET=${GPU_CHECKS_BUDGET:-420}
+WHEELS=${ROS_WHEELS:-.whl}
+DEVICE=${DEVICE:-cuda}  # DEVICE=cpu tries the script itself on a machine without a GPU
+start=$SECONDS
+
+step() {  # step NAME LIMIT_S CMD...: run CMD with a time limit, log it, note rc and seconds
+  local name=$1 limit=$2
+  shift 2
+  local left=$((BUDGET - (SECONDS - start)))
+  if [ "$left" -lt 20 ]; then
+    echo "$name: skipped, overall budget spent" | tee -a "$OUT/summary.txt"
+    return 0
+  fi
+  [ "$limit" -gt "$left" ] && limit=$left
+  echo "== $name (limit ${limit} s)"
+  local t0=$SECONDS
+  timeout "$limit" "$@" >"$LOGS/$name.log" 2>&1
+  local rc=$?
+  echo "$name: rc=$rc in $((SECONDS - t0)) s" | tee -a "$OUT/summary.txt"
+  grep -v -E "it/s\]|frame/s\]" "$LOGS/$name.log" | tail -n "${TAIL:-12}"
+}
+
+{ nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv,noheader || echo "no nvidia-smi"; } | tee "$OUT/summary.txt"
+$PY -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else '')" | tee -a "$OUT/summary.txt"
+
+TAIL=6 step cuda_tests 150 $PY -m pytest test/test_cuda.py -q -p no:cacheprovider -rs
+
+if [ -d "$WHEELS" ]; then
+  RV=/tmp/ros_venv
+  $PY -m venv --without-pip "$RV" \
+    && $PY -m pip install -q --no-index --no-deps --no-compile --ignore-installed --prefix "$RV" "$WHEELS"/*.whl \
+    && $PY -c 'import site; print(site.getsitepackages()[0])' >"$(ls -d "$RV"/lib/python3*)/site-packages/zz_machine.pth"
+  export AMENT_PREFIX_PATH=$RV
+  ROSPY=$RV/bin/python
+  $ROSPY -c "import rclpy, torch, rosbags; print('ROS venv: rclpy', rclpy.__file__, 'torch', torch.__version__)" | tee -a "$OUT/summary.txt"
+  # Every frame a keyframe of the recorded 30 Hz (drops reported), then paced at 10x (flat out).
+  TAIL=40 step bench_node_graph 240 env DEPTH_FUSION_BENCH_GRAPH_SET=multi_view_node.keyframe_every=1 \
+    DEPTH_FUSION_BENCH_GRAPH_RUNS=composed:realtime:1,composed:paced:10 \
+    $ROSPY -m depth_fusion_ros.cli.main bench --only node_graph --device "$DEVICE" --json "$LOGS/bench_node_graph.json"
+else
+  echo "node graph: skipped, no ROS wheels in $WHEELS" | tee -a "$OUT/summary.txt"
+fi
+
+for section in multi_view_filter multi_view fusion mapping; do
+  TAIL=14 step "bench_$section" 75 $PY -m depth_fusion_ros.cli.main bench --only "$section" --device "$DEVICE" \
+    --repeats 3 --json "$LOGS/bench_$section.json"
 done
+tar -czf "$OUT/logs.tar.gz" -C "$LOGS" .
+echo "== summary"
+cat "$OUT/summary.txt"
