@@ -210,7 +210,8 @@ def measure_run(
     result.exit_codes = dict(graph.exit_codes)  # which processes ran: only their logs count
     spans = {'run': run_span(graph.recorder.stamp_logs, TOPIC_IMAGE, TOPIC_FUSED_DEPTH)}
     images = image_count(bag)
-    expected = len([i for i in range(images) if i % keyframe_every() == 0 and i > 0])
+    every = keyframe_every()
+    expected = len([i for i in range(images) if i % every == 0 and i > 0])
     play_seconds = images / 30.0
     latencies = np.array(sorted(result.latencies.values())) * 1e3
     reasons = drop_reasons(result)

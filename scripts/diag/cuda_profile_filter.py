@@ -1,6 +1,6 @@
 """Kernels and GPU busy time per frame of the temporal filter (and the fusion kernels) on CUDA.
 
-    python scripts/diag/cuda_profile_filter.py
+    python scripts/diag/cuda_profile_filter.py [--fusion]
 
 ``torch.profiler`` over the filter's frames of the bench's synthetic room (after two warm-up
 passes), and over a fast and an exact fusion of one keyframe: CUDA kernel launches per frame,
@@ -10,6 +10,7 @@ kernels. What it tells: whether a stage is launch-bound (busy << wall), the issu
 
 from __future__ import annotations
 
+import sys
 import time
 
 import numpy as np
@@ -20,6 +21,7 @@ from depth_fusion_ros.bench.multi_view import _synthetic_sequence
 from depth_fusion_ros.fusion.interpolation import interpolate
 from depth_fusion_ros.fusion.scenes import make_scene
 from depth_fusion_ros.multiview.filter import DepthFilter
+from depth_fusion_ros.multiview.filter_config import FilterConfig
 
 
 def _kernels(prof: profile) -> tuple[int, float, list[tuple[str, float]]]:
@@ -33,28 +35,69 @@ def _kernels(prof: profile) -> tuple[int, float, list[tuple[str, float]]]:
     return len(events), total, top
 
 
-def filter_profile() -> None:
-    seq = _synthetic_sequence(False)
-    for _ in range(2):  # warm-up: allocator, cuDNN/cuBLAS handles
-        f = DepthFilter(seq.camera, device='cuda')
-        for frame in seq.frames:
-            f.process(frame.gray, frame.pose)
-    torch.cuda.synchronize()
-    f = DepthFilter(seq.camera, device='cuda')
-    start = time.perf_counter()
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-        for frame in seq.frames:
-            f.process(frame.gray, frame.pose)
+#: Host-device synchronisations: a scalar read (.item(), float(), int(), bool()), a nonzero or
+#: masked select (data-dependent size), an explicit synchronise.
+SYNC_OPS = ('aten::_local_scalar_dense', 'aten::nonzero', 'aten::masked_select', 'cudaStreamSynchronize')
+
+
+def _syncs(prof: profile) -> dict[str, int]:
+    counts = dict.fromkeys(SYNC_OPS, 0)
+    for e in prof.events():
+        if e.name in counts:
+            counts[e.name] += 1
+    return counts
+
+
+DEVICE = 'cuda' if torch.cuda.is_available() else 'cpu'  # cpu: tries the script, no kernels
+
+
+def _sync() -> None:
+    if DEVICE == 'cuda':
         torch.cuda.synchronize()
-    wall = (time.perf_counter() - start) * 1e3 / len(seq.frames)
-    n, busy, top = _kernels(prof)
-    frames = len(seq.frames)
-    print(
-        f'filter, synthetic room, {frames} frames: {n / frames:.0f} kernels/frame, '
-        f'GPU busy {busy / frames:.2f} ms of {wall:.2f} ms wall per frame (profiled)'
-    )
-    for name, ms in top:
-        print(f'    {ms / frames:7.3f} ms/frame  {name[:90]}')
+
+
+def _frame_times(seq, config: FilterConfig) -> np.ndarray:
+    f = DepthFilter(seq.camera, config, device=DEVICE)
+    times = []
+    for frame in seq.frames:
+        _sync()
+        start = time.perf_counter()
+        f.process(frame.gray, frame.pose)
+        _sync()
+        times.append(time.perf_counter() - start)
+    return np.array(times) * 1e3
+
+
+def filter_profile(variants: dict[str, dict] | None = None) -> None:
+    """Per variant of the filter's config: unprofiled wall per frame (mean and median over the
+    room's frames, synchronised), then the profiled kernels, GPU busy time and host syncs."""
+    seq = _synthetic_sequence(False)
+    variants = variants or {'default': {}}
+    for _ in range(2):  # warm-up: allocator, cuDNN/cuBLAS handles
+        _frame_times(seq, FilterConfig())
+    for label, fields in variants.items():
+        config = FilterConfig(**fields)
+        times = np.concatenate([_frame_times(seq, config) for _ in range(2)])
+        f = DepthFilter(seq.camera, config, device=DEVICE)
+        start = time.perf_counter()
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            for frame in seq.frames:
+                f.process(frame.gray, frame.pose)
+            _sync()
+        wall = (time.perf_counter() - start) * 1e3 / len(seq.frames)
+        n, busy, top = _kernels(prof)
+        frames = len(seq.frames)
+        syncs = ', '.join(f'{k.split("::")[-1]} {v / frames:.1f}' for k, v in _syncs(prof).items())
+        print(
+            f'filter [{label}], synthetic room, {frames} frames: wall {times.mean():.2f} ms mean, '
+            f'{np.median(times):.2f} median (unprofiled); {n / frames:.0f} kernels/frame, GPU busy '
+            f'{busy / frames:.2f} ms of {wall:.2f} ms wall (profiled); per frame: {syncs}'
+        )
+        for name, ms in top[:3]:
+            print(f'    {ms / frames:7.3f} ms/frame  {name[:90]}')
+        if label == next(iter(variants)):
+            table = prof.key_averages().table(sort_by='self_cpu_time_total', row_limit=12)
+            print(table)
 
 
 def fusion_profile() -> None:
@@ -80,6 +123,13 @@ def fusion_profile() -> None:
 
 
 if __name__ == '__main__':
-    print(torch.__version__, torch.cuda.get_device_name(0))
-    filter_profile()
-    fusion_profile()
+    print(torch.__version__, torch.cuda.get_device_name(0) if DEVICE == 'cuda' else 'cpu')
+    filter_profile(
+        {
+            'default': {},
+            'reject_edge_minima off': {'reject_edge_minima': False},
+            'min_published_fraction 0': {'min_published_fraction': 0.0},
+        }
+    )
+    if '--fusion' in sys.argv:
+        fusion_profile()
