@@ -14,7 +14,7 @@ from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
 from depth_fusion_ros.multiview.stage1 import best_fraction_mask
-from depth_fusion_ros.nodes.fusion_node import FusionNode
+from depth_fusion_ros.nodes.fusion_node import FusionNode, under_load
 from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.testing import RosHarness
 
@@ -335,3 +335,34 @@ def test_depth_std_part_gives_the_guard_its_parallax_evidence():
     assert first['decision'] in ('full', 'fewer_points') and 'median_relative_std' not in first['evidence']
     assert second['evidence']['median_relative_std'] == pytest.approx(0.5, rel=1e-3)
     assert second['decision'] in ('single_scaled', 'single_view'), second
+
+
+def test_under_load_reduces_the_points_only_while_keyframes_wait():
+    """The policy itself: full config when nothing waits, when off, or when already smaller."""
+    config = FusionConfig(mode='fast', max_points=4096)
+    assert under_load(config, 0, 2048) == (config, False)
+    assert under_load(config, 3, 0) == (config, False)
+    assert under_load(FusionConfig(max_points=1000), 1, 2048)[1] is False
+    reduced, changed = under_load(config, 1, 2048)
+    assert changed and reduced.max_points == 2048 and reduced.mode == 'fast'
+    assert under_load(FusionConfig(max_points=None), 2, 2048)[0].max_points == 2048
+
+
+def test_a_keyframe_fused_while_another_waits_uses_load_max_points_and_is_counted(monkeypatch):
+    """With a keyframe queued behind it, the node fuses with ``load_max_points`` points of Ω:
+    the published depth is the offline fusion at that cap, and the reduction is counted."""
+    scene = _scene(5)
+    with RosHarness() as ros:
+        node = _fusion_node(ros, publish_points=False, load_max_points=100)
+        # as if the next keyframe already waited (the node's worker is the only one here)
+        monkeypatch.setattr(type(node.worker), 'pending', property(lambda self: 1))
+        depths = ros.collect(Image, '/depth_fusion/fused/depth')
+        _Inputs(ros).keyframe(scene, 6_000_000_000)
+        assert ros.wait_for(lambda: len(depths) == 1, 20.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+    stage1 = best_fraction_mask(scene.mv, scene.score, 0.25)
+    assert int(stage1.sum()) > 100  # the cap bites
+    expected = fuse_keyframe(scene.single, scene.mv, stage1, FusionConfig(mode='fast', max_points=100)).depth
+    np.testing.assert_allclose(m.image_to_numpy(depths[0]), expected, rtol=1e-5, atol=1e-5)
+    assert not np.allclose(expected, _offline(scene), atol=1e-4)  # a different fusion than uncapped
+    assert snap.noted.get('reduced_under_load') == 1
