@@ -263,3 +263,20 @@ def test_a_sampled_guard_decides_as_the_full_one(truth, case):
         assert sampled.trusted.sum() <= 800 and not (sampled.trusted & ~omega).any()
     capped = fuse_keyframe(single, multi, None, FusionConfig(mode='fast', max_points=400), guard_config=guard)
     assert capped.decision == full.decision and capped.evidence['n_checked'] <= 800
+
+
+@pytest.mark.parametrize('radius', [12.0, 7.5, 3.0, 0.5])
+def test_grid_counts_are_the_ball_query_counts_on_pixels(radius):
+    """The support's row-span counts equal the k-d tree's ball counts on pixel positions
+    (duplicates, points on the border, a sample of them), and decline anything else."""
+    from depth_fusion_ros.fusion import guard
+
+    rng = np.random.default_rng(11)
+    rows, cols = np.nonzero(rng.random((50, 70)) < 0.3)
+    points = np.stack((cols, rows), axis=1).astype(np.float64)
+    points = np.concatenate((points, points[:9], [[0.0, 0.0], [69.0, 49.0]]))
+    sample = points[::3]
+    expected = cKDTree(points).query_ball_point(sample, r=radius, return_length=True)
+    np.testing.assert_array_equal(guard.grid_counts(points, sample, radius), expected)
+    assert guard.grid_counts(points + 0.25, sample + 0.25, radius) is None
+    assert guard.grid_counts(points - 1.0, sample - 1.0, radius) is None
