@@ -75,6 +75,8 @@ class GraphRun:
         self._context: Any = None
         self._executor: Any = None
         self._spin_thread: threading.Thread | None = None
+        #: Composed: each graph node's own single-threaded executor and spin thread.
+        self._node_executors: dict[str, tuple[Any, threading.Thread]] = {}
         self._logs: list[Any] = []
         self._torch_threads_before: int | None = None
         self._switch_interval_before: float | None = None
@@ -171,9 +173,9 @@ class GraphRun:
         threads = self.options.executor_threads if not self.options.processes else 2
         return MultiThreadedExecutor(num_threads=threads, context=self._context)
 
-    def _spin(self) -> None:
+    def _spin(self, executor: Any = None) -> None:
         try:
-            self._executor.spin()
+            (executor or self._executor).spin()
         except Exception as exc:
             # The context is shut down under the executor at the end: nothing to report then.
             if self._context.ok():
@@ -200,13 +202,29 @@ class GraphRun:
             node = cls(context=self._context, parameter_overrides=params(name))
             self.ready_seconds[name] = time.monotonic() - started
             self.nodes[name] = node
-            self._executor.add_node(node)
+            self._spin_composed(name, node)
         replayer = BagReplayer(
             context=self._context, parameter_overrides=params(REPLAYER[0]), autostart=False
         )
         self.nodes[REPLAYER[0]] = replayer
-        self._executor.add_node(replayer)
+        self._spin_composed(REPLAYER[0], replayer)
         replayer.start()
+
+    def _spin_composed(self, name: str, node: Any) -> None:
+        """Each composed node on its own single-threaded executor and thread, as each runs in
+        its own process: rclpy's executors rebuild their wait set in Python at every wake-up,
+        over every entity they hold, so one executor for the whole graph did the bookkeeping
+        of all nodes for each message of any one."""
+        if os.environ.get('DEPTH_FUSION_SHARED_EXECUTOR'):
+            self._executor.add_node(node)
+            return
+        from rclpy.executors import SingleThreadedExecutor
+
+        executor = SingleThreadedExecutor(context=self._context)
+        executor.add_node(node)
+        thread = threading.Thread(target=self._spin, args=(executor,), name=f'executor-{name}', daemon=True)
+        self._node_executors[name] = (executor, thread)
+        thread.start()
 
     def _set_composed_threads(self) -> None:
         """One torch thread per op unless told otherwise: three workers each running ops on a
@@ -499,8 +517,9 @@ class GraphRun:
         if replayer is not None:
             replayer.stop()
         for name in reversed(list(self.nodes)):
+            executor = self._node_executors.get(name, (self._executor, None))[0]
             with contextlib.suppress(Exception):
-                self._executor.remove_node(self.nodes[name])
+                executor.remove_node(self.nodes[name])
             try:
                 self.nodes[name].destroy_node()
             except Exception as exc:  # one node's failure must not leave the others running
@@ -510,12 +529,17 @@ class GraphRun:
                 with contextlib.suppress(Exception):
                     self.recorder.close(success=False)
             self.recorder.destroy_node()
+        for executor, _ in self._node_executors.values():
+            with contextlib.suppress(Exception):
+                executor.shutdown(timeout_sec=5.0)
         if self._executor is not None:
             self._executor.shutdown(timeout_sec=5.0)
         if self._context is not None:
             self._context.try_shutdown()
         if self._spin_thread is not None:
             self._spin_thread.join(5.0)
+        for _, thread in self._node_executors.values():
+            thread.join(5.0)
         for f in self._logs:
             f.close()
         if self._torch_threads_before is not None:  # the caller's process gets its pool back

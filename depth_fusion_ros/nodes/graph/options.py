@@ -52,6 +52,8 @@ class RunOptions:
     #: Seconds the replayer waits, once the nodes are ready, for those warming up in the
     #: background (fusion kernels compiling) to be warm; then it plays anyway (0: at once).
     warm_timeout: float = 60.0
+    #: Threads of the runner's own executor (its recorder; composed nodes each spin on their
+    #: own single-threaded executor, as they do in their own processes).
     executor_threads: int = 4
     #: Processes: folder for each child's log (``None``: children log to this terminal).
     log_dir: Path | None = None
