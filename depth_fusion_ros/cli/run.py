@@ -12,11 +12,11 @@ of the bag it waits until every announced keyframe has its fused output (or --fl
 closes the recording, stops the nodes and exits 0. Ctrl-C stops everything (exit 130) and leaves
 the partial recording in OUT.partial/.
 
-By default the nodes run composed in this process (one executor); --processes starts the console
-scripts (bag_replayer, single_view_node, multi_view_node, fusion_node) as separate processes with
-the same params file. A Fast DDS profile with a 10 MB shared-memory segment is applied (to this
-process and the children) so 640x480 images are not lost between processes; set
-FASTRTPS_DEFAULT_PROFILES_FILE yourself to use another.
+By default the nodes run composed in this process (each on its own executor thread);
+--processes starts the console scripts (bag_replayer, single_view_node, multi_view_node,
+fusion_node) as separate processes with the same params file. A Fast DDS profile with a 10 MB
+shared-memory segment is applied (to this process and the children) so 640x480 images are not
+lost between processes; set FASTRTPS_DEFAULT_PROFILES_FILE yourself to use another.
 
 recorded topics (--record): /depth_fusion/fused/{depth,confidence,camera_info},
 /depth_fusion/multi_view/depth, /depth_fusion/single_view/depth, /depth_fusion/keyframe/{image,pose};
