@@ -357,9 +357,16 @@ def test_a_keyframe_fused_while_another_waits_uses_load_max_points_and_is_counte
         # as if the next keyframe already waited (the node's worker is the only one here)
         monkeypatch.setattr(type(node.worker), 'pending', property(lambda self: 1))
         depths = ros.collect(Image, '/depth_fusion/fused/depth')
+        decisions = ros.collect(String, '/depth_fusion/fused/decision')
         _Inputs(ros).keyframe(scene, 6_000_000_000)
-        assert ros.wait_for(lambda: len(depths) == 1, 20.0), node.stats.snapshot().summary()
+        assert ros.wait_for(lambda: len(depths) == 1 and len(decisions) == 1, 20.0), (
+            node.stats.snapshot().summary()
+        )
         snap = node.stats.snapshot()
+    import json
+
+    verdict = json.loads(decisions[0].data)
+    assert verdict['reduced_under_load'] is True and verdict['n_points'] <= 100
     stage1 = best_fraction_mask(scene.mv, scene.score, 0.25)
     assert int(stage1.sum()) > 100  # the cap bites
     expected = fuse_keyframe(scene.single, scene.mv, stage1, FusionConfig(mode='fast', max_points=100)).depth

@@ -475,7 +475,7 @@ class FusionNode(DepthFusionNode):
                 f'the {self.output_kind} source aligned to a non-positive depth (published as NaN)',
             )
         self.stats.count('decision', result.decision)
-        self._decision_pub.publish(String(data=decision_json(result, stamp)))
+        self._decision_pub.publish(String(data=decision_json(result, stamp, reduced)))
         kind = messages.RCLPY
         self._depth_pub.publish(messages.depth_image_msg(result.depth, header, kind=kind))
         confidence = np.asarray(result.confidence, dtype=np.float32)
@@ -513,8 +513,9 @@ def _same_shape(part: np.ndarray | None, like: np.ndarray) -> np.ndarray | None:
     return part if part is not None and part.shape == like.shape else None
 
 
-def decision_json(result: Any, stamp: float) -> str:
-    """The guard's verdict for one keyframe as one JSON line (``fused/decision``)."""
+def decision_json(result: Any, stamp: float, reduced_under_load: bool = False) -> str:
+    """The guard's verdict for one keyframe as one JSON line (``fused/decision``), and whether
+    the keyframe was fused with ``load_max_points`` points because another one waited."""
     evidence = {k: (round(v, 4) if np.isfinite(v) else None) for k, v in result.evidence.items()}
     return json.dumps(
         {
@@ -525,6 +526,7 @@ def decision_json(result: Any, stamp: float) -> str:
             'n_stage1': int(result.n_stage1),
             'n_points': int(result.n_omega),
             'fallback': result.fallback,
+            'reduced_under_load': bool(reduced_under_load),
             'evidence': evidence,
         }
     )
