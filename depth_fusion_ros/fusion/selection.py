@@ -237,9 +237,15 @@ def _hypotheses(
 
 
 def least_squares_scale(x: np.ndarray, y: np.ndarray) -> tuple[float, float] | None:
-    """``y ≈ a·x`` by least squares, as ``(a, 0)``; None without a usable point."""
-    xx = float(np.dot(x, x))
-    return (float(np.dot(x, y)) / xx, 0.0) if x.size and xx > 0 else None
+    """``y ≈ a·x`` by least squares, as ``(a, 0)``; None without a usable point.
+
+    ``einsum``, not ``np.dot``: the dot goes to OpenBLAS, whose worker threads (one per core
+    unless OMP_NUM_THREADS says otherwise, as in a composed graph or ``evaluate``) now and then
+    take milliseconds to wake on a busy machine: a 13k-point fit took 14-16 ms on average
+    against 8.6 ms with ``einsum`` (the medians 8.1 / 7.5 ms), for the same scale to 1e-15.
+    """
+    xx = float(np.einsum('i,i->', x, x))
+    return (float(np.einsum('i,i->', x, y)) / xx, 0.0) if x.size and xx > 0 else None
 
 
 def inliers_of(fit: LinearFit, s: np.ndarray, m: np.ndarray, threshold: float, relative: bool) -> np.ndarray:
