@@ -279,3 +279,6 @@ def test_run_cli_is_paced_unless_realtime(tmp_path):
     r = paced_overrides(live, {'fusion_node': {'queue_policy': 'drop_new'}})
     assert r['bag_replayer']['pace'] is False and r['fusion_node']['queue_policy'] == 'drop_new'
     assert 'queue_policy' not in r.get('multi_view_node', {})
+    # a paced replay fuses every keyframe with all its points; a live one may shed them
+    assert p['fusion_node']['load_max_points'] == 0
+    assert 'load_max_points' not in r.get('fusion_node', {})

@@ -3,7 +3,9 @@
 * **paced** (default): the replayer follows the graph's progress (``pace``): it sends the next
   images only while fewer than ``max_keyframes_in_flight`` chosen keyframes are unfinished, so
   a slow machine fuses every keyframe, later. The nodes' work queues block instead of dropping
-  (``queue_policy: block``) as a second guard: with pacing they never fill in practice.
+  (``queue_policy: block``) as a second guard: with pacing they never fill in practice. Nothing
+  trades quality for time either: the filter sees every frame (``filter.max_lag_frames: 0``)
+  and the fusion keeps all its points while a keyframe waits (``load_max_points: 0``).
 * **real time** (``--realtime``): the bag plays at its recorded rate whatever the graph does,
   with the nodes' own queue policies; what is lost is counted and reported by reason.
 
@@ -56,4 +58,6 @@ def paced_overrides(options: RunOptions, overrides: dict[str, dict[str, Any]]) -
                 out.setdefault(node, {})['queue_policy'] = 'block'
         if unset('multi_view_node', 'filter.max_lag_frames'):  # the filter sees every frame
             out.setdefault('multi_view_node', {})['filter.max_lag_frames'] = 0
+        if unset('fusion_node', 'load_max_points'):  # nothing is lost by waiting: full quality
+            out.setdefault('fusion_node', {})['load_max_points'] = 0
     return out
