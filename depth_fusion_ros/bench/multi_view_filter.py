@@ -26,6 +26,7 @@ import torch
 from ..data.sequence import Sequence
 from ..metrics import good_density
 from ..multiview.filter import DepthFilter
+from ..multiview.filter_config import FilterConfig
 from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
 from . import BenchOptions, BenchRow
 from .multi_view import (
@@ -47,9 +48,12 @@ def _note(extra: str = '') -> str:
     return f'{extra}; {base}' if extra else base
 
 
-def _stream_seconds(seq: Sequence, device: str) -> tuple[list[float], list[float], DepthFilter]:
-    """Wall-clock and CPU seconds of each frame of one pass of the filter over ``seq``."""
-    f = DepthFilter(seq.camera, device=device)
+def stream_seconds(
+    seq: Sequence, device: str, config: FilterConfig | None = None
+) -> tuple[list[float], list[float], DepthFilter]:
+    """Wall-clock and CPU seconds of each frame of one pass of the filter (``config``, default
+    the defaults) over ``seq``, synchronised on CUDA (also ``scripts/diag/cuda_profile_filter.py``)."""
+    f = DepthFilter(seq.camera, config, device=device)
     wall, cpu = [], []
     for frame in seq.frames:
         gray, pose = frame.gray, frame.pose
@@ -112,10 +116,10 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
     The filter's figure is the median over ``opts.repeats`` passes of its mean per frame
     (every frame after the first, keyframe switches included), after one warm-up pass.
     """
-    _stream_seconds(seq, opts.device)  # warm-up (allocations, first descriptors)
+    stream_seconds(seq, opts.device)  # warm-up (allocations, first descriptors)
     walls, cpus = [], []
     for _ in range(max(1, opts.repeats)):
-        wall, cpu, f = _stream_seconds(seq, opts.device)
+        wall, cpu, f = stream_seconds(seq, opts.device)
         walls.append(statistics.fmean(wall[1:]))  # the first frame only makes the first keyframe
         cpus.append(statistics.fmean(cpu[1:]))
     sweep_wall, sweep_cpu = _sweep_seconds(seq, len(seq) // 2, opts.device, opts.repeats)

@@ -28,6 +28,7 @@ buffers really are bounded.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import re
@@ -99,9 +100,15 @@ def bench_bag(opts: BenchOptions) -> tuple[Path, str]:
 def env_overrides() -> dict[str, dict[str, object]]:
     """Node parameters from ``DEPTH_FUSION_BENCH_GRAPH_SET`` (checked like ``run --set``: a typo
     is an error, not a silently ignored override)."""
+    return _parsed_overrides(os.environ.get(SET_ENV, ''))
+
+
+@functools.lru_cache(maxsize=4)
+def _parsed_overrides(spec: str) -> dict[str, dict[str, object]]:
+    """Parsed and checked once per value (the check reads every node's parameter table)."""
     from ..cli.overrides import check_node_overrides, parse_overrides
 
-    items = [i.strip() for i in os.environ.get(SET_ENV, '').split(',') if i.strip()]
+    items = [i.strip() for i in spec.split(',') if i.strip()]
     try:
         overrides = parse_overrides(items, 'NODE')
         check_node_overrides(overrides)

@@ -59,6 +59,7 @@ see docs/fusion.md.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -273,19 +274,9 @@ def grid_counts(points: np.ndarray, sample: np.ndarray, radius: float) -> np.nda
     counts = np.zeros(len(sample), dtype=np.int64)
     cols, rows = spix[:, 0] + r + 1, spix[:, 1] + r
     for dy in range(-r, r + 1):
-        half = _isqrt_floor(radius * radius - dy * dy)
+        half = math.isqrt(int(radius * radius - dy * dy))  # largest h with h^2 <= r^2 - dy^2
         counts += cumulative[rows + dy, cols + half] - cumulative[rows + dy, cols - half - 1]
     return counts
-
-
-def _isqrt_floor(value: float) -> int:
-    """The largest integer ``h`` with ``h * h <= value`` (exact where ``sqrt`` rounds)."""
-    h = int(np.floor(np.sqrt(max(value, 0.0))))
-    while (h + 1) * (h + 1) <= value:
-        h += 1
-    while h > 0 and h * h > value:
-        h -= 1
-    return h
 
 
 def assess(

@@ -439,14 +439,13 @@ class FusionNode(DepthFusionNode):
         rule = resolve_rule(str(self.params['fusion.stage1']), self.announced_method)
         stage1 = stage1_mask(mv_depth, mv_score, rule, float(self.params['fusion.stage1_fraction']))
         stamp = messages.ns_to_sec(job.pairing.stamp_ns)
-        config, reduced = under_load(
-            self.active_config, self.worker.pending, int(self.params['load_max_points'])
-        )
+        waiting = self.worker.pending
+        config, reduced = under_load(self.active_config, waiting, int(self.params['load_max_points']))
         if reduced:
             self.stats.noted(
                 'reduced_under_load',
                 f'keyframe {stamp:.3f}: fused with at most {config.max_points} points, '
-                f'{self.worker.pending} more waiting (load_max_points)',
+                f'{waiting} more waiting (load_max_points)',
             )
         result = fuse_keyframe(
             single,

@@ -18,6 +18,7 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 from depth_fusion_ros.bench.multi_view import _synthetic_sequence
+from depth_fusion_ros.bench.multi_view_filter import stream_seconds
 from depth_fusion_ros.fusion.interpolation import interpolate
 from depth_fusion_ros.fusion.scenes import make_scene
 from depth_fusion_ros.multiview.filter import DepthFilter
@@ -57,15 +58,8 @@ def _sync() -> None:
 
 
 def _frame_times(seq, config: FilterConfig) -> np.ndarray:
-    f = DepthFilter(seq.camera, config, device=DEVICE)
-    times = []
-    for frame in seq.frames:
-        _sync()
-        start = time.perf_counter()
-        f.process(frame.gray, frame.pose)
-        _sync()
-        times.append(time.perf_counter() - start)
-    return np.array(times) * 1e3
+    """Milliseconds of every frame of one pass (the bench's own timing, first frame included)."""
+    return np.array(stream_seconds(seq, DEVICE, config)[0]) * 1e3
 
 
 def filter_profile(variants: dict[str, dict] | None = None) -> None:
