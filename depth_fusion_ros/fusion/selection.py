@@ -241,8 +241,9 @@ def least_squares_scale(x: np.ndarray, y: np.ndarray) -> tuple[float, float] | N
 
     ``einsum``, not ``np.dot``: the dot goes to OpenBLAS, whose worker threads (one per core
     unless OMP_NUM_THREADS says otherwise, as in a composed graph or ``evaluate``) now and then
-    take milliseconds to wake on a busy machine: a 13k-point fit took 14-16 ms on average
-    against 8.6 ms with ``einsum`` (the medians 8.1 / 7.5 ms), for the same scale to 1e-15.
+    take milliseconds to wake when another process holds a core: a 13k-point fit then took
+    14-16 ms on average against 8.6 ms with ``einsum``; on a quiet machine both take 7.3 ms,
+    with the same scale to 1e-15.
     """
     xx = float(np.einsum('i,i->', x, x))
     return (float(np.einsum('i,i->', x, y)) / xx, 0.0) if x.size and xx > 0 else None

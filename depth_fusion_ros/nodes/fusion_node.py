@@ -130,9 +130,9 @@ FUSION_SKIP = ('device',)
 FUSION_NODE_DEFAULTS = {'mode': 'fast', 'compile_kernel': True, 'max_points': 4096}
 
 #: Points of Ω a keyframe is fused with while another one waits (``load_max_points``). The
-#: fusion costs pixels x |Ω|: half the node's 4096 takes about half the time (TUM fr1_xyz,
-#: fast mode, one thread: interpolation 49-101 ms against 85-317 ms a keyframe, fused MAE
-#: 0.1373 against 0.1360 m, `scripts/diag/profile_fusion.py`).
+#: fusion costs pixels x |Ω|: half the node's 4096 takes about two thirds of the time (TUM
+#: fr1_xyz, fast mode, one thread: a keyframe's median ~53 against ~80 ms, the interpolation
+#: 24-38 against 35-61 ms; fused MAE 0.1373 against 0.1360 m, `scripts/diag/profile_fusion.py`).
 LOAD_MAX_POINTS = 2048
 
 REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
@@ -173,7 +173,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         LOAD_MAX_POINTS,
         'under load (another keyframe already waits in the fusion queue when one starts), fuse it with at '
         'most this many points of Omega instead of fusion.max_points, so a node that falls behind a live '
-        'camera catches up instead of dropping keyframes (counted as reduced_under_load); 0: never',
+        'camera catches up sooner (counted as reduced_under_load); 0: never (a paced replay sets 0)',
         0,
     ),
     ParamSpec('publish_points', True, f'publish the fused depth as a PointCloud2 on {TOPIC_FUSED_POINTS}'),
