@@ -141,6 +141,26 @@ def test_no_scale_from_untrusted_points(truth):
     assert result.keyframe_confidence == 0.0
 
 
+def test_a_relative_source_with_untrusted_points_is_withheld(truth):
+    """The same untrusted points with a relative source: there is no depth in metres to pass
+    on, so the keyframe has none (NaN), flagged, instead of the rejected fit's numbers."""
+    single = _single(truth, 7)
+    multi = _multi(truth, 7, density=0.08, noise=0.01) * np.float32(0.8)
+    omega = np.isfinite(multi)
+    evidence = MultiViewEvidence(relative_std=np.where(omega, 0.5, np.nan).astype(np.float32))
+    relative = 3.0 * single + 0.7  # affine in depth: what a relative model gives
+    result = fuse_keyframe(
+        relative, multi, None, FusionConfig(mode='fast'), 'relative_depth', evidence=evidence
+    )
+    assert result.decision == 'single_view' and result.fallback is None and result.withheld
+    assert np.isnan(result.depth).all() and np.all(result.confidence == 0)
+    assert 'scale untrusted' in result.decision_reason and 'withheld' in result.decision_reason
+    trusted = fuse_keyframe(
+        relative, multi / np.float32(0.8), None, FusionConfig(mode='fast'), 'relative_depth'
+    )
+    assert not trusted.withheld and np.isfinite(trusted.depth).mean() > 0.9
+
+
 def test_weak_stage2_support_keeps_the_single_view_depth(truth):
     """Points that agree with each other but not with most of stage 1 (a biased subset
     surviving among wrong estimates) are not fused, nor is their scale used."""

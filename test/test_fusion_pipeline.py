@@ -148,6 +148,21 @@ def test_fast_and_exact_agree_on_small_inputs() -> None:
     assert abs(mae_fast - mae_exact) <= 0.02 * mae_exact + 1e-4
 
 
+@pytest.mark.parametrize('kind', ['relative_depth', 'inverse_depth'])
+def test_a_source_that_needs_the_fit_is_withheld_when_it_fails(kind: str) -> None:
+    """A relative map passed on as metres (or mapped by a fit the guard rejected) would be
+    numbers that look like depth: such a keyframe gets NaN, confidence 0 and the reason."""
+    sc = make_scene(40, 30, n_points=5)
+    s = sc.single if kind == 'relative_depth' else 1.0 / sc.single
+    res = fuse_keyframe(s, sc.multi, None, FusionConfig(ransac_min_inliers=10), kind)
+    assert res.fallback == 'too_few_points' and res.decision == 'single_view' and res.withheld
+    assert np.isnan(res.depth).all() and np.all(res.confidence == 0)
+    assert 'withheld' in res.decision_reason and kind in res.decision_reason
+    # align_scale on a metric source (monocular SLAM units): the same
+    scaled = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(ransac_min_inliers=10, align_scale=True))
+    assert scaled.withheld and np.isnan(scaled.depth).all()
+
+
 @pytest.mark.parametrize('mode', ['exact', 'fast'])
 def test_fused_output_is_finite_wherever_s_is(mode: str) -> None:
     sc = make_scene(64, 48, n_points=60, seed=4)
@@ -171,9 +186,10 @@ def test_confidence_is_high_near_points_and_low_far_away() -> None:
 
 def test_fallbacks_publish_the_single_view_depth_flagged() -> None:
     sc = make_scene(40, 30, n_points=5)
-    res = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(ransac_min_inliers=10), 'relative_depth')
+    res = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(ransac_min_inliers=10), 'metric_depth')
     assert res.fallback == 'too_few_points' and res.n_stage1 == 5 and res.n_omega == 0
     assert np.array_equal(res.depth, sc.single) and np.all(res.confidence == 0)
+    assert not res.withheld
     rng = np.random.default_rng(0)
     junk = np.where(np.isfinite(make_scene(40, 30, n_points=200).multi), rng.uniform(1, 9, (30, 40)), np.nan)
     cfg = FusionConfig(ransac_threshold=0.005, ransac_min_inliers=50)

@@ -1,8 +1,9 @@
 """The guard's part of the evaluation report: decisions per sequence and per keyframe.
 
 * :func:`decision_table` — for each sequence, how many keyframes took each step of the ladder
-  (``fusion.guard.DECISIONS``), the mean keyframe confidence, and the MAE of the single-view
-  depth, of ``fused`` and (when it ran) of ``fused_unguarded``;
+  (``fusion.guard.DECISIONS``), how many of them were withheld (no depth: a relative source
+  without a trusted alignment, scored on no pixel), the mean keyframe confidence, and the MAE
+  of the single-view depth, of ``fused`` and (when it ran) of ``fused_unguarded``;
 * :func:`decision_figure` — ``guard_decisions.png``: per keyframe, the points the fusion used
   and the decision taken, against the keyframe index (time), one panel per sequence.
 
@@ -30,7 +31,7 @@ def _fmt(value: Any) -> str:
 
 def decision_table(doc: dict[str, Any]) -> str | None:
     """Markdown table of the guard's decisions per sequence (None when ``fused`` did not run)."""
-    header = ['sequence', *DECISIONS, 'kf confidence', 'MAE single', 'MAE fused', 'MAE unguarded']
+    header = ['sequence', *DECISIONS, 'withheld', 'kf confidence', 'MAE single', 'MAE fused', 'MAE unguarded']
     rows = []
     for name, seq in doc['sequences'].items():
         methods = seq['methods']
@@ -44,6 +45,7 @@ def decision_table(doc: dict[str, Any]) -> str | None:
             [
                 name,
                 *counts,
+                str(int(sum(fused['per_frame_extras'].get('withheld', [])))),
                 _fmt(fused.get('keyframe_confidence')),
                 _fmt(single.get('mae')),
                 _fmt(fused.get('mae')),

@@ -22,6 +22,7 @@ source needs aligning), ``no_consensus`` (no line with ``ransac_min_inliers`` in
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -200,6 +201,10 @@ class FusionResult:
     keyframe_confidence: float = 1.0
     #: The evidence the guard measured (``guard.GuardVerdict.evidence``).
     evidence: dict[str, float] = field(default_factory=dict)
+    #: True when the keyframe has no depth at all (every pixel NaN) because the single-view
+    #: source needs an alignment (relative or inverse depth, or ``align_scale``) and none was
+    #: trusted: see :func:`withheld`.
+    withheld: bool = False
 
 
 def fuse_keyframe(
@@ -227,6 +232,7 @@ def fuse_keyframe(
     """
     config = config or FusionConfig()
     check_output_kind(output_kind)
+    needs_fit = _needs_fit(config, output_kind)
     s = _image(single_depth, 'single-view depth')
     m = _image(mv_depth, 'multi-view depth')
     if m.shape != s.shape:
@@ -239,19 +245,19 @@ def fuse_keyframe(
     t0 = time.perf_counter()
 
     if not np.isfinite(s).any():
-        return _fallback(s, stage1, n_stage1, 'no_single_view')
+        return _fallback(s, stage1, n_stage1, 'no_single_view', needs_fit)
     if omega_mask is not None:
         omega = _mask(omega_mask, s.shape, 'omega_mask') & usable
         if not omega.any():
-            return _fallback(s, stage1, n_stage1, 'empty_omega')
+            return _fallback(s, stage1, n_stage1, 'empty_omega', needs_fit)
         fit = fit_alignment(s[omega], m[omega], output_kind, config, robust=False)
         if not fit.ok and config.aligns(output_kind):
-            return _fallback(s, stage1, n_stage1, 'too_few_points')
+            return _fallback(s, stage1, n_stage1, 'too_few_points', needs_fit)
     else:
         fit = fit_alignment(s[stage1], m[stage1], output_kind, config)
         if not fit.ok:
             log.debug('stage 2 failed (%s) on %d stage-1 points', fit.reason, n_stage1)
-            return _fallback(s, stage1, n_stage1, fit.reason or 'no_consensus')
+            return _fallback(s, stage1, n_stage1, fit.reason or 'no_consensus', needs_fit)
         omega = np.zeros(s.shape, dtype=bool)
         omega[stage1] = fit.inliers
     t_select = time.perf_counter() - t0
@@ -279,7 +285,7 @@ def fuse_keyframe(
         verdict = assess(base, m, omega, n_stage1, guard_config, evidence, sample=sample, seed=config.seed)
         verdict.evidence.update(stage3)
         if verdict.decision not in ('full', 'fewer_points'):
-            return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config)
+            return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config, output_kind)
         omega = verdict.trusted
     omega = _cap_points(omega, config.max_points, config.seed)
     omega &= np.isfinite(base)
@@ -346,15 +352,22 @@ def _guarded(
     verdict: GuardVerdict,
     config: FusionConfig,
     guard_config: GuardConfig,
+    output_kind: str,
 ) -> FusionResult:
     """A keyframe the guard stepped down to ``scale_only``, ``single_scaled`` or ``single_view``.
 
     It starts from ``aligned.depth``: ``s`` itself, or ``s`` mapped by the fit when aligning (a
-    non-metric source must be in metres whatever the decision)."""
+    non-metric source must be in metres whatever the decision). ``single_view`` of a source
+    that needs the fit is withheld (:func:`withheld`): the guard has just said the fit's
+    points cannot be trusted, so nothing is in metres."""
     base = aligned.depth
     depth, confidence = guarded_depth(base, m, verdict, config, guard_config)
     depth, _ = sanitize_depth(depth)
     confidence[~np.isfinite(depth)] = 0.0
+    withhold = verdict.decision == 'single_view' and config.aligns(output_kind)
+    if withhold:
+        depth, confidence, reason = withheld(depth.shape, verdict.reason, output_kind)
+        verdict = dataclasses.replace(verdict, reason=reason)
     return FusionResult(
         depth=depth,
         confidence=confidence,
@@ -365,16 +378,44 @@ def _guarded(
         n_omega=int(verdict.trusted.sum()),
         single_aligned=base,
         n_nonpositive=aligned.n_nonpositive,
+        withheld=withhold,
         **_verdict_fields(verdict),
     )
 
 
-def _fallback(s: np.ndarray, stage1: np.ndarray, n_stage1: int, reason: str) -> FusionResult:
-    """The single-view depth unchanged, confidence 0, flagged with ``reason``."""
+def withheld(shape: tuple[int, ...], reason: str, output_kind: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """No depth (NaN), confidence 0 and the reason, for a keyframe whose source needs an
+    alignment that this keyframe does not have.
+
+    Why not the single-view map as it is: a relative or inverse-depth output is in no unit
+    (and with ``align_scale`` the poses are not in metres), so passing it on, or mapping it by
+    a fit the guard rejected, publishes numbers that look like depth and are not (7-Scenes,
+    ``simulated_relative``: 2.3 and 4.2 m MAE on the three keyframes concerned, against
+    0.24 m for the rest). A consumer gets NaN, the decision ``single_view`` and this reason.
+    """
+    nan = np.full(shape, np.nan, dtype=np.float32)
+    note = f'{reason}; depth withheld: the {output_kind} source needs an alignment and has no trusted one'
+    return nan, np.zeros(shape, dtype=np.float32), note
+
+
+def _needs_fit(config: FusionConfig, output_kind: str) -> str | None:
+    """``output_kind`` when the source is only usable through the fit, else None."""
+    return output_kind if config.aligns(output_kind) else None
+
+
+def _fallback(
+    s: np.ndarray, stage1: np.ndarray, n_stage1: int, reason: str, needs_fit: str | None
+) -> FusionResult:
+    """The single-view depth unchanged, confidence 0, flagged with ``reason``; withheld
+    (:func:`withheld`) when the source needs the alignment that just failed (``needs_fit``:
+    its output kind)."""
     log.debug('fusion fallback: %s', reason)
     depth, invalid = sanitize_depth(s)  # a fallback passes s on: never its inf / negative codes
     if invalid:
         log.debug('fusion fallback %s: %d non-finite or non-positive depths set to NaN', reason, invalid)
+    note = reason
+    if needs_fit:
+        depth, _, note = withheld(s.shape, reason, needs_fit)
     return FusionResult(
         depth=depth,
         confidence=np.zeros(s.shape, dtype=np.float32),
@@ -386,8 +427,9 @@ def _fallback(s: np.ndarray, stage1: np.ndarray, n_stage1: int, reason: str) -> 
         fallback=reason,
         single_aligned=s,
         decision='single_view',
-        decision_reason=reason,
+        decision_reason=note,
         keyframe_confidence=0.0,
+        withheld=needs_fit is not None,
     )
 
 

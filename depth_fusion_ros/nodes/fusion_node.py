@@ -458,6 +458,10 @@ class FusionNode(DepthFusionNode):
             evidence=MultiViewEvidence.from_depth_std(mv_depth, _same_shape(parts.get('mv_std'), mv_depth)),
             consistency_config=self.consistency_config,
         )
+        if result.withheld:
+            self.stats.noted(
+                'withheld', f'keyframe {stamp:.3f}: no depth published ({result.decision_reason})'
+            )
         if result.fallback:
             self.stats.noted(
                 f'fallback_{result.fallback}', f'keyframe {stamp:.3f}: fell back ({result.fallback})'
@@ -525,6 +529,7 @@ def decision_json(result: Any, stamp: float, reduced_under_load: bool = False) -
             'n_stage1': int(result.n_stage1),
             'n_points': int(result.n_omega),
             'fallback': result.fallback,
+            'withheld': bool(result.withheld),
             'reduced_under_load': bool(reduced_under_load),
             'evidence': evidence,
         }

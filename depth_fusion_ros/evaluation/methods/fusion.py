@@ -21,7 +21,9 @@ runs hundreds of keyframes, so the one-off compile pays for itself many times.
 Per-frame extras: ``n_stage1``, ``n_omega`` (the points fused), ``fallback`` (1 when the
 frame fell back to the single-view depth), ``scale_a``/``offset_b`` (the stage-2 line),
 ``n_nonpositive`` (pixels the alignment of a relative source mapped to a non-positive depth:
-NaN, uncovered), and the guard's ``decision`` (index into ``guard.DECISIONS``: 0 full ... 4 single-view) and
+NaN, uncovered), ``withheld`` (1 when the keyframe has no depth at all: a source that needs
+the alignment and has no trusted one; it is then scored on no pixel, and the report's guard
+table counts it), and the guard's ``decision`` (index into ``guard.DECISIONS``: 0 full ... 4 single-view) and
 ``keyframe_confidence``. ``--set guard.<GuardConfig field>=...`` sets its thresholds; the
 automatic methods give it the multi-view result's per-pixel evidence (``depth_std``, and the
 neighbour agreement when the multi-view stage provides one). ``--set consistency.<field>=...``
@@ -124,6 +126,7 @@ def _output(result: FusionResult) -> MethodOutput:
         'n_nonpositive': float(result.n_nonpositive),
         'decision': float(DECISIONS.index(result.decision)),
         'keyframe_confidence': float(result.keyframe_confidence),
+        'withheld': float(result.withheld),
     }
     return MethodOutput(result.depth, extras)
 
