@@ -296,6 +296,24 @@ def test_images_waiting_for_poses_stay_bounded(synthetic_sequence):
     assert snap.dropped == {'pose_wait_overflow': received - 5}
 
 
+def test_an_overflow_says_how_far_the_poses_are_behind(synthetic_sequence):
+    """Poses that stall while images flow (a publisher of large raw images with Fast DDS
+    defaults): the drop message gives the pose stream's lag and the usual cause."""
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        node = _mv_node(ros, width=80, height=60, max_pending_images=3, pose_wait=100.0)
+        cam = _Camera(ros)
+        cam.publish_pose(seq.poses[0], m.sec_to_ns(seq.stamps[0]))
+        assert ros.wait_for(lambda: node.pose_buffer.span is not None, 10.0)
+        for i in range(1, 8):
+            cam.publish_image(seq.frames[i].rgb, m.sec_to_ns(seq.stamps[i]), seq.camera)
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('image', 0) == 7, 10.0)
+        assert node.stats.snapshot().dropped.get('pose_wait_overflow', 0) == 4
+        hint = node._pose_lag_hint()
+    lag = seq.stamps[7] - seq.stamps[0]
+    assert f'{lag:.1f} s behind the newest image' in hint and 'compressed' in hint
+
+
 def test_a_quiet_tick_waits_for_one_more_round_before_giving_up(synthetic_sequence):
     """End of stream (no input for pose_wait): the waiting images are dropped as no_pose, but
     only on a second tick with no input in between. On a loaded machine the executor serves

@@ -350,10 +350,24 @@ class MultiViewNode(DepthFusionNode):
             self.stats.dropped(
                 'pose_wait_overflow',
                 f'image {messages.ns_to_sec(old.image.stamp_ns):.3f} dropped: more than '
-                f'{self.params["max_pending_images"]} images waiting for poses',
+                f'{self.params["max_pending_images"]} images waiting for poses{self._pose_lag_hint()}',
             )
             self.events.event(old.image.stamp_ns, EVENT_IMAGE)
         self._resolve_pending()
+
+    def _pose_lag_hint(self) -> str:
+        """How far the pose stream is behind the images, and the usual cause when it stalls
+        while images flow: one process publishing raw images larger than Fast DDS's default
+        0.5 MB shared-memory segment (its other topics stall for the reliability repair)."""
+        span = self.pose_buffer.span
+        if span is None or self._newest_image_ns is None:
+            return ''
+        lag = messages.ns_to_sec(self._newest_image_ns) - span[1]
+        return (
+            f'; the latest pose is {lag:.1f} s behind the newest image (raw images over 0.5 MB from a '
+            'publisher with Fast DDS defaults stall the other topics of its process: publish them '
+            'compressed or give it the package profile, docs/nodes.md "Large raw images")'
+        )
 
     def _resolve_pending(self) -> None:
         """Pose every waiting image the buffer now covers, in stamp order; drop the hopeless ones."""

@@ -19,7 +19,7 @@ baseline the fusion must beat.
     python scripts/diag/live_client.py ../shared/data/tum_fr1_xyz_37 --depth-factor 5000
     # 7-Scenes: colour camera from the project's calibration, depth camera from the folder
     python scripts/diag/live_client.py ../shared/data/7scenes_redkitchen_000_499 --frames 150 \
-        --camera config/cameras/7scenes_rgb.yaml --depth-factor 1000
+        --camera config/cameras/7scenes_rgb.yaml --depth-factor 5000
 
 Prints one JSON line: frames sent, keyframes fused, fused and single-view MAE over the fused
 keyframes, and the latency image sent -> fused received.
@@ -40,7 +40,7 @@ import rclpy
 import yaml
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 
 def read_list(path: Path) -> list[tuple[float, list[str]]]:
@@ -72,7 +72,12 @@ class Client:
         reliable = QoSProfile(
             depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
         )
-        self.image_pub = node.create_publisher(Image, '/camera/rgb/image_color', reliable)
+        if args.compressed:  # image_transport's convention: <image>/compressed, format 'jpeg'
+            self.image_pub = node.create_publisher(
+                CompressedImage, '/camera/rgb/image_color/compressed', reliable
+            )
+        else:
+            self.image_pub = node.create_publisher(Image, '/camera/rgb/image_color', reliable)
         self.info_pub = node.create_publisher(CameraInfo, '/camera/rgb/camera_info', reliable)
         self.pose_pub = node.create_publisher(PoseStamped, '/camera/pose', reliable)
         self.fused: dict[int, tuple[np.ndarray, float]] = {}
@@ -111,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--frames', type=int, default=0, help='first N frames (0: all)')
     p.add_argument('--rate', type=float, default=30.0, help='images per second')
     p.add_argument('--start-delay', type=float, default=3.0, help='s after discovery, then play')
+    p.add_argument('--compressed', action='store_true', help='publish JPEG CompressedImage (image_transport)')
     p.add_argument('--drain', type=float, default=8.0, help='seconds without a fused depth that end the wait')
     args = p.parse_args(argv)
     seq = args.sequence
@@ -159,9 +165,13 @@ def main(argv: list[str] | None = None) -> int:
             client.pose_pub.publish(msg)
             continue
         bgr = cv2.imread(str(seq / payload), cv2.IMREAD_COLOR)
-        img = Image(height=bgr.shape[0], width=bgr.shape[1], encoding='bgr8', step=bgr.shape[1] * 3)
+        if args.compressed:
+            img = CompressedImage(format='bgr8; jpeg compressed bgr8')
+            img.data = cv2.imencode('.jpg', bgr, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+        else:
+            img = Image(height=bgr.shape[0], width=bgr.shape[1], encoding='bgr8', step=bgr.shape[1] * 3)
+            img.data = bgr.tobytes()
         img.header.stamp, img.header.frame_id = stamp_of(t), 'camera_rgb_optical_frame'
-        img.data = bgr.tobytes()
         info.header = img.header
         client.info_pub.publish(info)
         client.image_pub.publish(img)
@@ -183,7 +193,9 @@ def main(argv: list[str] | None = None) -> int:
         if abs(depth_times[near] - t) > 0.03 or client.fused_k is None:
             continue
         gt_png = cv2.imread(str(seq / depths[near][1][0]), cv2.IMREAD_UNCHANGED)
-        gt_raw = gt_png.astype(np.float32) / args.depth_factor
+        gt_raw = (
+            np.where(gt_png == 65535, 0, gt_png).astype(np.float32) / args.depth_factor
+        )  # 65535: no depth
         gh, gw = fused.shape
         map_x, map_y = cv2.initUndistortRectifyMap(dk, dd, np.eye(3), client.fused_k, (gw, gh), cv2.CV_32FC1)
         gt = cv2.remap(gt_raw, map_x, map_y, cv2.INTER_NEAREST, borderValue=0.0)
