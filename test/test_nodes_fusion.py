@@ -346,6 +346,11 @@ def test_under_load_reduces_the_points_only_while_keyframes_wait():
     reduced, changed = under_load(config, 1, 2048)
     assert changed and reduced.max_points == 2048 and reduced.mode == 'fast'
     assert under_load(FusionConfig(max_points=None), 2, 2048)[0].max_points == 2048
+    # while the compiled kernels are built the eager ones stand in: a smaller cap, only when behind
+    assert under_load(config, 1, 2048, 512)[0].max_points == 512
+    assert under_load(config, 0, 2048, 512) == (config, False)
+    assert under_load(config, 1, 0, 512) == (config, False)  # load_max_points 0 still means never
+    assert under_load(config, 1, 256, 512)[0].max_points == 256
 
 
 def test_a_keyframe_fused_while_another_waits_uses_load_max_points_and_is_counted(monkeypatch):

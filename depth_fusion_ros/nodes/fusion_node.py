@@ -134,6 +134,14 @@ FUSION_NODE_DEFAULTS = {'mode': 'fast', 'compile_kernel': True, 'max_points': 40
 #: fr1_xyz, fast mode, one thread: a keyframe's median ~53 against ~80 ms, the interpolation
 #: 24-38 against 35-61 ms; fused MAE 0.1373 against 0.1360 m, `scripts/diag/profile_fusion.py`).
 LOAD_MAX_POINTS = 2048
+#: The same while the compiled kernels are still being built (``compile_in_background``): the
+#: eager kernel costs ~5.7x the compiled one per pixel-point pair (TUM fr1_xyz keyframes, fast
+#: mode, one thread: 625 against 109 ms at 4096 points), so 512 eager points (68 ms) cost less
+#: than the compiled 4096. Measured live (2026-11-27, scripts/diag/live_client.py, 7-Scenes at
+#: 30 Hz, 2 cores): a stream that began before the 6-8 s compile ran eagerly at 2048 points, fell
+#: behind and stayed behind (17-23 of 29 keyframes fused, latency 0.6-0.8 s), while one that began
+#: after it fused 29 of 29 at 0.2 s.
+WARMING_MAX_POINTS = 512
 
 REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
 #: How many closed keyframe stamps are remembered to recognise late parts.
@@ -174,6 +182,13 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'under load (another keyframe already waits in the fusion queue when one starts), fuse it with at '
         'most this many points of Omega instead of fusion.max_points, so a node that falls behind a live '
         'camera catches up sooner (counted as reduced_under_load); 0: never (a paced replay sets 0)',
+        0,
+    ),
+    ParamSpec(
+        'warming_max_points',
+        WARMING_MAX_POINTS,
+        'load_max_points while the compiled kernels are still being built (the eager kernel is ~6x slower '
+        'per point); the smaller of the two applies; 0: load_max_points alone',
         0,
     ),
     ParamSpec('publish_points', True, f'publish the fused depth as a PointCloud2 on {TOPIC_FUSED_POINTS}'),
@@ -232,15 +247,21 @@ class _FusionJob:
     received_at: float
 
 
-def under_load(config: FusionConfig, waiting: int, load_max_points: int) -> tuple[FusionConfig, bool]:
+def under_load(
+    config: FusionConfig, waiting: int, load_max_points: int, warming_max_points: int = 0
+) -> tuple[FusionConfig, bool]:
     """The config a keyframe is fused with: ``config``, or with at most ``load_max_points``
     points of Ω when ``waiting`` keyframes already queue behind it (and that is fewer than
     ``config.max_points``). Why: a live camera does not wait, and a node that keeps its full
     cost while behind drops every keyframe the queue cannot hold; a cheaper fusion of each
-    (about 1 % more error at half the points) lets it catch up. Returns whether it reduced.
+    (about 1 % more error at half the points) lets it catch up. ``warming_max_points`` (> 0
+    while the eager kernels stand in for the compiling ones) lowers the cap further. Returns
+    whether it reduced.
     """
     if load_max_points <= 0 or waiting <= 0:
         return config, False
+    if warming_max_points > 0:
+        load_max_points = min(load_max_points, warming_max_points)
     if config.max_points is not None and config.max_points <= load_max_points:
         return config, False
     return dataclasses.replace(config, max_points=load_max_points), True
@@ -440,12 +461,15 @@ class FusionNode(DepthFusionNode):
         stage1 = stage1_mask(mv_depth, mv_score, rule, float(self.params['fusion.stage1_fraction']))
         stamp = messages.ns_to_sec(job.pairing.stamp_ns)
         waiting = self.worker.pending
-        config, reduced = under_load(self.active_config, waiting, int(self.params['load_max_points']))
+        warming = 0 if self.kernels_ready.is_set() else int(self.params['warming_max_points'])
+        config, reduced = under_load(
+            self.active_config, waiting, int(self.params['load_max_points']), warming
+        )
         if reduced:
             self.stats.noted(
                 'reduced_under_load',
                 f'keyframe {stamp:.3f}: fused with at most {config.max_points} points, '
-                f'{waiting} more waiting (load_max_points)',
+                f'{waiting} more waiting (load_max_points{", kernels still compiling" if warming else ""})',
             )
         result = fuse_keyframe(
             single,
