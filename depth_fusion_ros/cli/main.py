@@ -16,7 +16,7 @@ import sys
 from ..malloc_tuning import keep_freed_memory
 
 #: Subcommands in the order ``--help`` lists them.
-SUBCOMMANDS = ('demo', 'synth', 'convert', 'evaluate', 'train', 'adapt', 'export', 'run', 'bench')
+SUBCOMMANDS = ('demo', 'synth', 'convert', 'evaluate', 'train', 'adapt', 'export', 'kernels', 'run', 'bench')
 
 DESCRIPTION = """\
 depth_fusion_ros: dense monocular depth by fusing single-view CNN depth with semi-dense

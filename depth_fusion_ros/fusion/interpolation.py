@@ -315,6 +315,11 @@ def _maybe_compiled(
 
     if not compile_kernel or device.type in _COMPILE_FAILED:
         return eager
+    from . import aot_kernels  # a package built ahead of time (depth-fusion kernels) needs no compile
+
+    built = aot_kernels.kernel(name, params, device)
+    if built is not None:
+        return _with_fallback(built, fallback or eager, name)
     key = (name, params, device.type)
     if key not in _COMPILED:
         # serialised: a compile session flips a process-wide flag other threads read (compile_lock.py)
@@ -334,6 +339,22 @@ def _maybe_compiled(
             return backup(*args)
 
     return guarded
+
+
+def _with_fallback(kernel: Callable, backup: Callable, name: str) -> Callable:
+    """``kernel``, or ``backup`` from its first failure on (logged once)."""
+    failed: list[bool] = []
+
+    def call(*args: object) -> tuple[torch.Tensor, ...]:
+        if not failed:
+            try:
+                return kernel(*args)
+            except Exception as exc:  # a package that rejects these inputs: the same numbers, slower
+                failed.append(True)
+                log.warning('the ahead-of-time fusion kernel %s failed (%s); using the fallback', name, exc)
+        return backup(*args)
+
+    return call
 
 
 def _plain_normalisation(

@@ -1,0 +1,46 @@
+"""``depth-fusion kernels``: build the fusion kernels ahead of time so fusion nodes are warm at start."""
+
+from __future__ import annotations
+
+import argparse
+
+DESCRIPTION = """\
+Compile the fusion node's kernels once, ahead of time (torch.export + AOTInductor), into the
+user cache (~/.cache/depth_fusion_ros/aot). A fusion node, run or evaluate that finds them is
+warm within a second of starting, instead of after a 5-9 s torch.compile in every process
+(docs/running.md, "Warm at start"). Run it again after upgrading torch; nodes whose weight
+parameters (fusion.sigma1..3, fusion.weights) differ from the defaults compile as before.
+
+example:
+  depth-fusion kernels          # ~20 s on 2 cores, once
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        'kernels',
+        help='build the fusion kernels ahead of time (fusion nodes are then warm at start)',
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from ..fusion import aot_kernels
+    from ..fusion.pipeline import FusionConfig
+
+    params = FusionConfig().weight_params
+    cpu = torch.device('cpu')
+    if not aot_kernels.enabled(cpu):
+        print(f'{aot_kernels.ENV_SWITCH}=0 is set: the kernels would be built but never used; unset it')
+        return 2
+    seconds = aot_kernels.build(params, 'cpu')
+    for name, took in seconds.items():
+        print(f'{name}: built in {took:.1f} s -> {aot_kernels.package_path(name, params, cpu)}')
+    if not aot_kernels.available(params, 'cpu'):
+        print('the kernels were built but cannot be found in the cache: see the log above')
+        return 1
+    return 0

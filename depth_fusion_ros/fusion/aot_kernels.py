@@ -1,0 +1,212 @@
+"""The fusion kernels compiled ahead of time (AOTInductor), kept on disk, loaded in milliseconds.
+
+Why: ``torch.compile`` traces the kernels again in every process, with or without its own
+disk cache: a fusion node is warm 5.5-9 s after it starts on 2 cores, and until then it fuses
+with the eager kernels (~5.7x slower), so a live camera that starts with the node falls behind
+(docs/performance.md, "Live from an independent client"). ``torch.export`` plus AOTInductor
+turns the same functions into a shared library once (``depth-fusion kernels``, ~20-40 s on 2
+cores); every process after that loads it in a few milliseconds and runs the same generated
+loops (the same numbers to float rounding: ``test/test_fusion_aot.py``).
+
+A package is specific to the torch version, the device type, the CPU's feature flags, the
+weight parameters and the kernels' source, all in its file name, so a changed setting or a
+new release simply misses the cache and the node compiles as before. CPU only: the CUDA path
+keeps ``torch.compile`` (not measured with AOTInductor). ``DEPTH_FUSION_AOT=0`` ignores the
+cache.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import logging
+import os
+import platform
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from . import interpolation, weights
+from .weights import Samples, WeightParams
+
+log = logging.getLogger(__name__)
+
+KERNELS = ('sums', 'blend')
+ENV_SWITCH = 'DEPTH_FUSION_AOT'
+#: Dynamic sizes the packages accept (pixels per chunk, points of Ω, pixels of a keyframe).
+_MAX_SIZE = 1 << 24
+
+
+def cache_dir() -> Path:
+    base = os.environ.get('XDG_CACHE_HOME') or str(Path.home() / '.cache')
+    return Path(base) / 'depth_fusion_ros' / 'aot'
+
+
+def enabled(device: torch.device) -> bool:
+    return device.type == 'cpu' and os.environ.get(ENV_SWITCH, '1').strip().lower() not in (
+        '0',
+        'false',
+        'off',
+    )
+
+
+@functools.cache
+def _cpu_flags() -> str:
+    try:
+        for line in Path('/proc/cpuinfo').read_text().splitlines():
+            if line.startswith('flags'):
+                return line
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+@functools.cache
+def _source_digest() -> str:
+    digest = hashlib.sha256()
+    for module in (interpolation, weights):
+        digest.update(Path(module.__file__).read_bytes())
+    return digest.hexdigest()
+
+
+def package_path(name: str, params: WeightParams, device: torch.device) -> Path:
+    """Where the package of kernel ``name`` for these parameters lives (whether or not built)."""
+    digest = hashlib.sha256()
+    for part in (
+        torch.__version__,
+        name,
+        repr(params),
+        device.type,
+        _cpu_flags(),
+        _source_digest(),
+        # the options as written, not as this torch filters them: no inductor import on a lookup
+        repr(sorted(interpolation._INDUCTOR_OPTIONS.items())),
+        repr(sorted(interpolation._CPU_INDUCTOR_OPTIONS.items())) if device.type == 'cpu' else '',
+    ):
+        digest.update(str(part).encode())
+    return cache_dir() / f'fusion_{name}_{digest.hexdigest()[:20]}.pt2'
+
+
+def _sums_module(params: WeightParams) -> torch.nn.Module:
+    class Sums(torch.nn.Module):
+        def forward(self, px, py, ps, pgx, pgy, qx, qy, qs, qgx, qgy, v, lw):
+            p, q = Samples(px, py, ps, pgx, pgy), Samples(qx, qy, qs, qgx, qgy)
+            return interpolation._chunk_sums_one_pass(p, q, v, lw, params)
+
+    return Sums()
+
+
+def _blend_module(params: WeightParams) -> torch.nn.Module:
+    class Blend(torch.nn.Module):
+        def forward(self, zero, ps, pgx, pgy, cs, cgx, cgy, dx, dy, bilinear, offset, support):
+            pixels, corners = Samples(zero, zero, ps, pgx, pgy), Samples(zero, zero, cs, cgx, cgy)
+            return interpolation._blend_corners(pixels, corners, dx, dy, bilinear, offset, support, params)
+
+    return Blend()
+
+
+def _examples(name: str) -> tuple[tuple[torch.Tensor, ...], tuple[dict[int, object], ...]]:
+    """Example inputs (sizes above 1, so export keeps them dynamic) and their dynamic dims."""
+    g = torch.Generator().manual_seed(0)
+    rand = lambda *shape: torch.rand(*shape, generator=g) + 0.5  # noqa: E731
+    if name == 'sums':
+        c, q = (
+            torch.export.Dim('pixels', min=2, max=_MAX_SIZE),
+            torch.export.Dim('points', min=2, max=_MAX_SIZE),
+        )
+        args = (*(rand(64, 1) for _ in range(5)), *(rand(1, 32) for _ in range(5)), rand(32), -rand(1, 32))
+        return args, (*([{0: c}] * 5), *([{1: q}] * 5), {0: q}, {1: q})
+    n = torch.export.Dim('pixels', min=2, max=_MAX_SIZE)
+    args = (torch.zeros(1, 1), *(rand(64, 1) for _ in range(3)), *(rand(64, 4) for _ in range(8)))
+    return args, ({}, *([{0: n}] * 3), *([{0: n}] * 8))
+
+
+def build(params: WeightParams, device: torch.device | str = 'cpu') -> dict[str, float]:
+    """Compile both kernels for ``params`` into the cache; returns the seconds each took."""
+    device = torch.device(device)
+    if device.type != 'cpu':
+        raise ValueError(f'ahead-of-time fusion kernels are built for the CPU only, not {device}')
+    modules = {'sums': _sums_module(params), 'blend': _blend_module(params)}
+    seconds = {}
+    for name in KERNELS:
+        start = time.perf_counter()
+        args, dynamic = _examples(name)
+        program = torch.export.export(modules[name], args, dynamic_shapes=dynamic)
+        target = package_path(name, params, device)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix='.pt2', dir=target.parent)
+        os.close(fd)
+        try:
+            torch._inductor.aoti_compile_and_package(
+                program, package_path=tmp, inductor_configs=interpolation._inductor_options(device)
+            )
+            os.replace(tmp, target)  # atomic: a process loading meanwhile never sees half a file
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        seconds[name] = time.perf_counter() - start
+        log.info('AOT fusion kernel %s built in %.1f s: %s', name, seconds[name], target)
+    _load.cache_clear()
+    return seconds
+
+
+def available(params: WeightParams, device: torch.device | str = 'cpu') -> bool:
+    """Whether every kernel of ``params`` is built (then a node is warm when it starts)."""
+    device = torch.device(device)
+    return enabled(device) and all(package_path(n, params, device).exists() for n in KERNELS)
+
+
+@functools.cache
+def _load(name: str, params: WeightParams, device_type: str) -> Callable | None:
+    path = package_path(name, params, torch.device(device_type))
+    if not path.exists():
+        return None
+    try:
+        return _c_loader(path)
+    except Exception as exc:  # a broken or foreign file: compile as if there were none
+        log.warning('ignoring the AOT fusion kernel %s (%s)', path, exc)
+        return None
+
+
+def _c_loader(path: Path) -> Callable:
+    """The package's C++ runner, called with the flat tensors: loads in ~2 ms. Where this torch
+    has no such binding, ``aoti_load_package`` (the same runner behind a Python wrapper whose
+    load takes ~1.4 s)."""
+    binding = getattr(getattr(torch._C, '_aoti', None), 'AOTIModelPackageLoader', None)
+    if binding is None:
+        return torch._inductor.aoti_load_package(str(path))
+    runner = binding(str(path), 'model', False, 1, -1)
+    return lambda *tensors: runner.run(list(tensors))
+
+
+def kernel(name: str, params: WeightParams, device: torch.device) -> Callable | None:
+    """The loaded kernel ``name`` with the call signature of its ``interpolation`` function
+    (without ``params``), or None when it is not built or not used here."""
+    if not enabled(device):
+        return None
+    loaded = _load(name, params, device.type)
+    if loaded is None:
+        return None
+    if name == 'sums':
+
+        def sums(
+            p: Samples, q: Samples, v: torch.Tensor, lw: torch.Tensor | None
+        ) -> tuple[torch.Tensor, ...]:
+            if p.x.shape[0] < 2 or q.x.shape[-1] < 2:
+                return interpolation._no_one_pass()  # sizes the package does not take: two passes
+            lw = torch.zeros_like(q.x) if lw is None else lw  # + 0 leaves every exponent as it was
+            return tuple(loaded(*p, *q, v, lw))
+
+        return sums
+
+    def blend(
+        pixels: Samples, corners: Samples, dx: torch.Tensor, dy: torch.Tensor, *rest: torch.Tensor
+    ) -> tuple[torch.Tensor, ...]:
+        return tuple(
+            loaded(pixels.x, pixels.s, pixels.gx, pixels.gy, corners.s, corners.gx, corners.gy, dx, dy, *rest)
+        )
+
+    return blend

@@ -1,0 +1,84 @@
+"""Fusion kernels built ahead of time (fusion/aot_kernels.py): found, used, same numbers, safe."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from depth_fusion_ros.fusion import aot_kernels
+from depth_fusion_ros.fusion.interpolation import interpolate
+from depth_fusion_ros.fusion.scenes import make_scene
+from depth_fusion_ros.fusion.weights import WeightParams
+
+PARAMS = WeightParams()
+CPU = torch.device('cpu')
+
+
+@pytest.fixture(scope='module')
+def built_cache(tmp_path_factory):
+    """Both kernels built once into a private cache (~20 s on 2 cores)."""
+    root = tmp_path_factory.mktemp('cache')
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv('XDG_CACHE_HOME', str(root))
+        mp.delenv(aot_kernels.ENV_SWITCH, raising=False)
+        aot_kernels._load.cache_clear()
+        seconds = aot_kernels.build(PARAMS, 'cpu')
+    aot_kernels._load.cache_clear()
+    return root, seconds
+
+
+@pytest.fixture()
+def cache(built_cache, monkeypatch):
+    root, _ = built_cache
+    monkeypatch.setenv('XDG_CACHE_HOME', str(root))
+    monkeypatch.delenv(aot_kernels.ENV_SWITCH, raising=False)
+    aot_kernels._load.cache_clear()
+    yield root
+    aot_kernels._load.cache_clear()
+
+
+def _fuse(scene, compile_kernel: bool, mode: str = 'fast'):
+    return interpolate(
+        scene.single, scene.multi, np.isfinite(scene.multi), PARAMS, mode=mode, compile_kernel=compile_kernel
+    )
+
+
+def test_built_kernels_are_found_and_give_the_eager_numbers(cache, built_cache):
+    assert set(built_cache[1]) == set(aot_kernels.KERNELS)
+    assert aot_kernels.available(PARAMS, CPU)
+    assert all(aot_kernels.kernel(name, PARAMS, CPU) is not None for name in aot_kernels.KERNELS)
+    scene = make_scene(96, 72, n_points=300, seed=3)
+    for mode in ('fast', 'exact'):
+        ahead, eager = _fuse(scene, True, mode), _fuse(scene, False, mode)
+        finite = np.isfinite(eager.offset)
+        assert np.array_equal(finite, np.isfinite(ahead.offset))
+        np.testing.assert_allclose(ahead.offset[finite], eager.offset[finite], atol=2e-5)
+        np.testing.assert_allclose(ahead.support_distance[finite], eager.support_distance[finite], rtol=1e-4)
+
+
+def test_one_point_and_other_parameters_take_the_other_paths(cache):
+    """|Ω| = 1 is below the package's smallest size (two passes); other weight parameters
+    have no package (the usual compile)."""
+    scene = make_scene(40, 30, n_points=1, seed=1)
+    np.testing.assert_allclose(
+        _fuse(scene, True).offset, _fuse(scene, False).offset, atol=2e-5, equal_nan=True
+    )
+    other = WeightParams(sigma1=9.0)
+    assert not aot_kernels.available(other, CPU) and aot_kernels.kernel('sums', other, CPU) is None
+
+
+def test_switched_off_or_broken_packages_are_not_used(cache, monkeypatch, caplog):
+    monkeypatch.setenv(aot_kernels.ENV_SWITCH, '0')
+    assert aot_kernels.kernel('sums', PARAMS, CPU) is None and not aot_kernels.available(PARAMS, CPU)
+    monkeypatch.delenv(aot_kernels.ENV_SWITCH)
+    other = WeightParams(sigma2=0.2)
+    broken = aot_kernels.package_path('sums', other, CPU)
+    broken.write_bytes(b'not a package')
+    try:
+        assert aot_kernels.kernel('sums', other, CPU) is None
+        assert 'ignoring the AOT fusion kernel' in caplog.text
+    finally:
+        broken.unlink()
+    with pytest.raises(ValueError, match='CPU only'):
+        aot_kernels.build(PARAMS, 'cuda')
