@@ -68,6 +68,33 @@ def test_one_point_and_other_parameters_take_the_other_paths(cache):
     assert not aot_kernels.available(other, CPU) and aot_kernels.kernel('sums', other, CPU) is None
 
 
+def test_a_fusion_node_with_built_kernels_only_loads_them(cache):
+    """fusion_warmup: the background warm-up finds the packages, says so and gets warm."""
+    from depth_fusion_ros.fusion.pipeline import FusionConfig
+    from depth_fusion_ros.nodes.fusion_warmup import start_kernels
+
+    lines: list[str] = []
+
+    class Logger:
+        def info(self, text: str) -> None:
+            lines.append(text)
+
+        warning = info
+
+    class Node:
+        def get_logger(self) -> Logger:
+            return Logger()
+
+    node = Node()
+    config = FusionConfig(mode='fast', compile_kernel=True, max_points=512)
+    first = start_kernels(node, config, background=True)
+    assert first.compile_kernel is False  # eager until the thread is done
+    node.compile_thread.join(120)
+    assert node.kernels_ready.is_set() and node.active_config == config
+    assert any('built ahead of time found' in line for line in lines), lines
+    assert any('loaded (built ahead of time)' in line for line in lines), lines
+
+
 def test_switched_off_or_broken_packages_are_not_used(cache, monkeypatch, caplog):
     monkeypatch.setenv(aot_kernels.ENV_SWITCH, '0')
     assert aot_kernels.kernel('sums', PARAMS, CPU) is None and not aot_kernels.available(PARAMS, CPU)
