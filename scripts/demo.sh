@@ -13,4 +13,6 @@ if [ "${DEPTH_FUSION_TORCH:-cpu}" = cuda ] && ! python -c 'import sys, torch; sy
   echo "scripts/demo.sh: --cuda: torch $(python -c 'import torch; print(torch.__version__)') sees no CUDA device (driver missing or too old for CUDA 13?)" >&2
   exit 1
 fi
+# The fusion kernels built ahead of time (CPU), once: every later fusion node is warm at start.
+if [ "${DEPTH_FUSION_TORCH:-cpu}" != cuda ]; then depth-fusion kernels --if-missing; fi
 depth-fusion demo "${args[@]}"

@@ -95,6 +95,13 @@ def test_a_fusion_node_with_built_kernels_only_loads_them(cache):
     assert any('loaded (built ahead of time)' in line for line in lines), lines
 
 
+def test_the_cli_builds_only_when_missing(cache, capsys):
+    from depth_fusion_ros.cli.main import main
+
+    assert main(['kernels', '--if-missing']) == 0
+    assert 'already in' in capsys.readouterr().out
+
+
 def test_switched_off_or_broken_packages_are_not_used(cache, monkeypatch, caplog):
     monkeypatch.setenv(aot_kernels.ENV_SWITCH, '0')
     assert aot_kernels.kernel('sums', PARAMS, CPU) is None and not aot_kernels.available(PARAMS, CPU)

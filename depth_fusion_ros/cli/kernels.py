@@ -11,8 +11,9 @@ warm within a second of starting, instead of after a 5-9 s torch.compile in ever
 (docs/running.md, "Warm at start"). Run it again after upgrading torch; nodes whose weight
 parameters (fusion.sigma1..3, fusion.weights) differ from the defaults compile as before.
 
-example:
-  depth-fusion kernels          # ~20 s on 2 cores, once
+examples:
+  depth-fusion kernels                # ~17 s on 2 cores
+  depth-fusion kernels --if-missing   # what scripts/demo.sh runs: nothing when already built
 """
 
 
@@ -22,6 +23,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help='build the fusion kernels ahead of time (fusion nodes are then warm at start)',
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        '--if-missing',
+        action='store_true',
+        help='build only when the kernels for this torch, CPU and source are not in the cache yet',
     )
     p.set_defaults(func=run)
 
@@ -37,6 +43,13 @@ def run(args: argparse.Namespace) -> int:
     if not aot_kernels.enabled(cpu):
         print(f'{aot_kernels.ENV_SWITCH}=0 is set: the kernels would be built but never used; unset it')
         return 2
+    if args.if_missing and aot_kernels.available(params, cpu):
+        print(f'fusion kernels built ahead of time: already in {aot_kernels.cache_dir()}')
+        return 0
+    print(
+        'building the fusion kernels ahead of time (once; fusion nodes are then warm at start) ...',
+        flush=True,
+    )
     seconds = aot_kernels.build(params, 'cpu')
     for name, took in seconds.items():
         print(f'{name}: built in {took:.1f} s -> {aot_kernels.package_path(name, params, cpu)}')
