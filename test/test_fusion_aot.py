@@ -48,6 +48,8 @@ def test_built_kernels_are_found_and_give_the_eager_numbers(cache, built_cache):
     assert set(built_cache[1]) == set(aot_kernels.KERNELS)
     assert aot_kernels.available(PARAMS, CPU)
     assert all(aot_kernels.kernel(name, PARAMS, CPU) is not None for name in aot_kernels.KERNELS)
+    # through ctypes, which lets go of the GIL during the call (torch's runners hold it)
+    assert all(hasattr(aot_kernels._load(n, PARAMS, 'cpu'), 'container') for n in aot_kernels.KERNELS)
     scene = make_scene(96, 72, n_points=300, seed=3)
     for mode in ('fast', 'exact'):
         ahead, eager = _fuse(scene, True, mode), _fuse(scene, False, mode)
