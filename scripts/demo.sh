@@ -14,5 +14,7 @@ if [ "${DEPTH_FUSION_TORCH:-cpu}" = cuda ] && ! python -c 'import sys, torch; sy
   exit 1
 fi
 # The fusion kernels built ahead of time (CPU), once: every later fusion node is warm at start.
-if [ "${DEPTH_FUSION_TORCH:-cpu}" != cuda ]; then depth-fusion kernels --if-missing; fi
+if [ "${DEPTH_FUSION_TORCH:-cpu}" != cuda ]; then
+  depth-fusion kernels --if-missing || echo "scripts/demo.sh: the fusion kernels could not be built ahead of time (see above); fusion nodes compile at start instead" >&2
+fi
 depth-fusion demo "${args[@]}"

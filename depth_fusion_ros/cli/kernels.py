@@ -50,7 +50,13 @@ def run(args: argparse.Namespace) -> int:
         'building the fusion kernels ahead of time (once; fusion nodes are then warm at start) ...',
         flush=True,
     )
-    seconds = aot_kernels.build(params, 'cpu')
+    try:
+        seconds = aot_kernels.build(params, 'cpu')
+    except Exception as exc:  # no C++ compiler, an export this torch cannot do: say it in one line
+        print(
+            f'depth-fusion kernels: building failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})'
+        )
+        return 1
     for name, took in seconds.items():
         print(f'{name}: built in {took:.1f} s -> {aot_kernels.package_path(name, params, cpu)}')
     if not aot_kernels.available(params, 'cpu'):
