@@ -59,7 +59,4 @@ def run(args: argparse.Namespace) -> int:
         return 1
     for name, took in seconds.items():
         print(f'{name}: built in {took:.1f} s -> {aot_kernels.package_path(name, params, cpu)}')
-    if not aot_kernels.available(params, 'cpu'):
-        print('the kernels were built but cannot be found in the cache: see the log above')
-        return 1
     return 0

@@ -8,9 +8,10 @@ turns the same functions into a shared library once (``depth-fusion kernels``, ~
 cores); every process after that loads it in a few milliseconds and runs the same generated
 loops (the same numbers to float rounding: ``test/test_fusion_aot.py``).
 
-A package is specific to the torch version, the device type, the CPU's feature flags, the
-weight parameters and the kernels' source, all in its file name, so a changed setting or a
-new release simply misses the cache and the node compiles as before. CPU only: the CUDA path
+Only the package's model library is kept, and called through ctypes. It is specific to the
+torch version, the device type, the CPU's feature flags, the weight parameters and the
+kernels' source, all in its file name, so a changed setting or a new release simply misses
+the cache and the node compiles as before. CPU only: the CUDA path
 keeps ``torch.compile`` (not measured with AOTInductor). ``DEPTH_FUSION_AOT=0`` ignores the
 cache.
 """
@@ -75,7 +76,7 @@ def _source_digest() -> str:
 
 
 def package_path(name: str, params: WeightParams, device: torch.device) -> Path:
-    """Where the package of kernel ``name`` for these parameters lives (whether or not built)."""
+    """Where the model library of kernel ``name`` for these parameters lives (built or not)."""
     digest = hashlib.sha256()
     for part in (
         torch.__version__,
@@ -89,7 +90,7 @@ def package_path(name: str, params: WeightParams, device: torch.device) -> Path:
         repr(sorted(interpolation._CPU_INDUCTOR_OPTIONS.items())) if device.type == 'cpu' else '',
     ):
         digest.update(str(part).encode())
-    return cache_dir() / f'fusion_{name}_{digest.hexdigest()[:20]}.pt2'
+    return cache_dir() / f'fusion_{name}_{digest.hexdigest()[:20]}.so'
 
 
 def _sums_module(params: WeightParams) -> torch.nn.Module:
@@ -139,17 +140,13 @@ def build(params: WeightParams, device: torch.device | str = 'cpu') -> dict[str,
         program = torch.export.export(modules[name], args, dynamic_shapes=dynamic)
         target = package_path(name, params, device)
         target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(suffix='.pt2', dir=target.parent)
-        os.close(fd)
-        try:
-            torch._inductor.aoti_compile_and_package(
-                program, package_path=tmp, inductor_configs=interpolation._inductor_options(device)
+        with tempfile.TemporaryDirectory(dir=target.parent) as work:
+            package = torch._inductor.aoti_compile_and_package(
+                program,
+                package_path=str(Path(work) / 'kernel.pt2'),
+                inductor_configs=interpolation._inductor_options(device),
             )
-            os.replace(tmp, target)  # atomic: a process loading meanwhile never sees half a file
-            target.with_suffix('.so').unlink(missing_ok=True)  # the library taken out of the old one
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+            _take_library(Path(package), target)
         seconds[name] = time.perf_counter() - start
         log.info('AOT fusion kernel %s built in %.1f s: %s', name, seconds[name], target)
     _load.cache_clear()
@@ -168,53 +165,36 @@ def _load(name: str, params: WeightParams, device_type: str) -> Callable | None:
     if not path.exists():
         return None
     try:
-        return _c_loader(path)
+        return _ctypes_runner(path)
     except Exception as exc:  # a broken or foreign file: compile as if there were none
         log.warning('ignoring the AOT fusion kernel %s (%s)', path, exc)
         return None
 
 
-def _c_loader(path: Path) -> Callable:
-    """The package's model library called through ctypes, which lets go of the GIL for the
-    call (the composed graph's other nodes run meanwhile; torch's own runners hold it for
-    the whole 40-100 ms); else torch's C++ runner (~2 ms to load, GIL held); else
-    ``aoti_load_package`` (~1.4 s to load)."""
-    try:
-        return _ctypes_runner(path)
-    except Exception as exc:  # private torch API or symbols moved: torch's own runners
-        log.info("AOT fusion kernel %s through torch's runner (%s)", path.name, exc)
-    binding = getattr(getattr(torch._C, '_aoti', None), 'AOTIModelPackageLoader', None)
-    if binding is None:
-        return torch._inductor.aoti_load_package(str(path))
-    runner = binding(str(path), 'model', False, 1, -1)
-    return lambda *tensors: runner.run(list(tensors))
-
-
-def _model_library(path: Path) -> Path:
-    """The model's shared library, taken out of the package once (beside it, atomically)."""
-    target = path.with_suffix('.so')
-    if not target.exists():
-        with zipfile.ZipFile(path) as archive:
-            names = [n for n in archive.namelist() if n.endswith('.so')]
-            if len(names) != 1:
-                raise ValueError(f'{len(names)} shared libraries in the package')
-            fd, tmp = tempfile.mkstemp(suffix='.so', dir=path.parent)
-            with os.fdopen(fd, 'wb') as out:
-                out.write(archive.read(names[0]))
-        os.replace(tmp, target)
-    return target
+def _take_library(package: Path, target: Path) -> None:
+    """The package's one model library, the only part the runner needs, moved to ``target``
+    (renamed into place: a process loading meanwhile never sees half a file)."""
+    with zipfile.ZipFile(package) as archive:
+        names = [n for n in archive.namelist() if n.endswith('.so')]
+        if len(names) != 1:
+            raise ValueError(f'{package}: {len(names)} shared libraries in the package, expected 1')
+        staged = package.with_suffix('.so')
+        staged.write_bytes(archive.read(names[0]))
+    os.replace(staged, target)
 
 
 def _ctypes_runner(path: Path) -> Callable:
-    """``AOTInductorModelContainerRun`` of the package's library (aoti_runtime/interface.h):
-    input handles are given up to the call, output handles taken back as tensors."""
+    """``AOTInductorModelContainerRun`` of the model library (aoti_runtime/interface.h), called
+    through ctypes, which lets go of the GIL for the call: the composed graph's other nodes run
+    meanwhile (torch's own pybind runner holds it for the whole 40-100 ms). Input handles are
+    given up to the call, output handles taken back as tensors."""
     aoti = torch._C._aoti
     handle_type = ctypes.c_void_p
     capsule_pointer = ctypes.pythonapi.PyCapsule_GetPointer
     capsule_pointer.restype, capsule_pointer.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
     capsule = ctypes.pythonapi.PyCapsule_New
     capsule.restype, capsule.argtypes = ctypes.py_object, [ctypes.c_void_p, ctypes.c_char_p, ctypes.c_void_p]
-    lib = ctypes.CDLL(str(_model_library(path)))
+    lib = ctypes.CDLL(str(path))
     create = lib.AOTInductorModelContainerCreateWithDevice
     create.restype = ctypes.c_int32
     create.argtypes = [ctypes.POINTER(handle_type), ctypes.c_size_t, ctypes.c_char_p, ctypes.c_char_p]

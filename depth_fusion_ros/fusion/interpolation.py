@@ -317,14 +317,16 @@ def _maybe_compiled(
         return eager
     from . import aot_kernels  # a package built ahead of time (depth-fusion kernels) needs no compile
 
-    built = aot_kernels.kernel(name, params, device)
-    if built is not None:
-        return _with_fallback(built, fallback or eager, name)
-    key = (name, params, device.type)
-    if key not in _COMPILED:
-        # serialised: a compile session flips a process-wide flag other threads read (compile_lock.py)
-        _COMPILED[key] = serialised(torch.compile(eager, dynamic=True, options=_inductor_options(device)))
-    compiled = _COMPILED[key]
+    compiled = aot_kernels.kernel(name, params, device)
+    what = (
+        'the ahead-of-time fusion kernels' if compiled is not None else 'torch.compile of the fusion kernels'
+    )
+    if compiled is None:
+        key = (name, params, device.type)
+        if key not in _COMPILED:
+            # serialised: a compile session flips a process-wide flag other threads read (compile_lock.py)
+            _COMPILED[key] = serialised(torch.compile(eager, dynamic=True, options=_inductor_options(device)))
+        compiled = _COMPILED[key]
 
     backup = fallback or eager
 
@@ -335,26 +337,10 @@ def _maybe_compiled(
             return compiled(*args)
         except Exception as exc:  # the compiler stack raises many types; any failure means eager
             _COMPILE_FAILED.add(device.type)
-            log.warning('torch.compile of the fusion kernels failed on %s (%s); using eager', device, exc)
+            log.warning('%s failed on %s (%s); using eager', what, device, exc)
             return backup(*args)
 
     return guarded
-
-
-def _with_fallback(kernel: Callable, backup: Callable, name: str) -> Callable:
-    """``kernel``, or ``backup`` from its first failure on (logged once)."""
-    failed: list[bool] = []
-
-    def call(*args: object) -> tuple[torch.Tensor, ...]:
-        if not failed:
-            try:
-                return kernel(*args)
-            except Exception as exc:  # a package that rejects these inputs: the same numbers, slower
-                failed.append(True)
-                log.warning('the ahead-of-time fusion kernel %s failed (%s); using the fallback', name, exc)
-        return backup(*args)
-
-    return call
 
 
 def _plain_normalisation(

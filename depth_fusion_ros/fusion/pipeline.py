@@ -285,7 +285,7 @@ def fuse_keyframe(
         verdict = assess(base, m, omega, n_stage1, guard_config, evidence, sample=sample, seed=config.seed)
         verdict.evidence.update(stage3)
         if verdict.decision not in ('full', 'fewer_points'):
-            return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config, output_kind)
+            return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config, needs_fit)
         omega = verdict.trusted
     omega = _cap_points(omega, config.max_points, config.seed)
     omega &= np.isfinite(base)
@@ -352,21 +352,21 @@ def _guarded(
     verdict: GuardVerdict,
     config: FusionConfig,
     guard_config: GuardConfig,
-    output_kind: str,
+    needs_fit: str | None,
 ) -> FusionResult:
     """A keyframe the guard stepped down to ``scale_only``, ``single_scaled`` or ``single_view``.
 
     It starts from ``aligned.depth``: ``s`` itself, or ``s`` mapped by the fit when aligning (a
     non-metric source must be in metres whatever the decision). ``single_view`` of a source
-    that needs the fit is withheld (:func:`withheld`): the guard has just said the fit's
-    points cannot be trusted, so nothing is in metres."""
+    that needs the fit (``needs_fit``: its output kind) is withheld (:func:`withheld`): the
+    guard has just said the fit's points cannot be trusted, so nothing is in metres."""
     base = aligned.depth
     depth, confidence = guarded_depth(base, m, verdict, config, guard_config)
     depth, _ = sanitize_depth(depth)
     confidence[~np.isfinite(depth)] = 0.0
-    withhold = verdict.decision == 'single_view' and config.aligns(output_kind)
+    withhold = verdict.decision == 'single_view' and needs_fit is not None
     if withhold:
-        depth, confidence, reason = withheld(depth.shape, verdict.reason, output_kind)
+        depth, confidence, reason = withheld(depth.shape, verdict.reason, needs_fit)
         verdict = dataclasses.replace(verdict, reason=reason)
     return FusionResult(
         depth=depth,

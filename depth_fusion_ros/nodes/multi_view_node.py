@@ -345,12 +345,14 @@ class MultiViewNode(DepthFusionNode):
             return
         self._newest_image_ns = image.stamp_ns
         self.pending.append(_Pending(image, received_at))
-        while len(self.pending) > int(self.params['max_pending_images']):
+        limit = int(self.params['max_pending_images'])
+        hint = self._pose_lag_hint() if len(self.pending) > limit else ''
+        while len(self.pending) > limit:
             old = self.pending.popleft()
             self.stats.dropped(
                 'pose_wait_overflow',
                 f'image {messages.ns_to_sec(old.image.stamp_ns):.3f} dropped: more than '
-                f'{self.params["max_pending_images"]} images waiting for poses{self._pose_lag_hint()}',
+                f'{limit} images waiting for poses{hint}',
             )
             self.events.event(old.image.stamp_ns, EVENT_IMAGE)
         self._resolve_pending()

@@ -184,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         if len(client.fused) != seen:
             seen, last = len(client.fused), time.monotonic()
 
-    fused_err, single_err, worse, latencies, n_scored = [], [], 0, [], 0
+    fused_err, single_err, worse, latencies = [], [], 0, []
+    maps: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}  # the depth camera -> fused grid
     for key, (fused, received) in sorted(client.fused.items()):
         latencies.append(received - client.sent_at.get(key, received))
         t = key / 1e9
@@ -193,26 +194,27 @@ def main(argv: list[str] | None = None) -> int:
         if abs(depth_times[near] - t) > 0.03 or client.fused_k is None:
             continue
         gt_png = cv2.imread(str(seq / depths[near][1][0]), cv2.IMREAD_UNCHANGED)
-        gt_raw = (
-            np.where(gt_png == 65535, 0, gt_png).astype(np.float32) / args.depth_factor
-        )  # 65535: no depth
+        gt_raw = np.where(gt_png == 65535, 0, gt_png).astype(np.float32) / args.depth_factor  # 65535: none
         gh, gw = fused.shape
-        map_x, map_y = cv2.initUndistortRectifyMap(dk, dd, np.eye(3), client.fused_k, (gw, gh), cv2.CV_32FC1)
-        gt = cv2.remap(gt_raw, map_x, map_y, cv2.INTER_NEAREST, borderValue=0.0)
+        if (gh, gw) not in maps:  # the fused camera is the same for every keyframe of a stream
+            maps[gh, gw] = cv2.initUndistortRectifyMap(
+                dk, dd, np.eye(3), client.fused_k, (gw, gh), cv2.CV_32FC1
+            )
+        gt = cv2.remap(gt_raw, *maps[gh, gw], cv2.INTER_NEAREST, borderValue=0.0)
         valid = (gt > 0) & np.isfinite(fused)
         single = client.single.get(key)
-        if single is not None and single.shape == fused.shape:
+        paired = single is not None and single.shape == fused.shape
+        if paired:
             valid &= np.isfinite(single)
             single_err.append(float(np.abs(single - gt)[valid].mean()))
         fused_err.append(float(np.abs(fused - gt)[valid].mean()))
-        worse += single is not None and single.shape == fused.shape and fused_err[-1] > single_err[-1]
-        n_scored += 1
+        worse += paired and fused_err[-1] > single_err[-1]
     summary = {
         'sequence': seq.name,
         'frames_sent': len(images),
         'stream_seconds': round(stream_s, 2),
         'fused_received': len(client.fused),
-        'scored': n_scored,
+        'scored': len(fused_err),
         'fused_mae_m': round(float(np.mean(fused_err)), 4) if fused_err else None,
         'single_view_mae_m': round(float(np.mean(single_err)), 4) if single_err else None,
         'fused_worse_keyframes': int(worse),
