@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -87,6 +88,43 @@ def test_keyframe_depth_has_source_header_and_bad_inputs_are_dropped(torchscript
         assert (msg.width, msg.height) == (320, 240)
         expected = reference.predict(good[m.stamp_to_ns(msg.header.stamp)])
         np.testing.assert_allclose(m.image_to_numpy(msg), expected, rtol=1e-5)
+
+
+def test_keyframes_sent_while_the_network_loads_are_processed_after(torchscript_model):
+    """A live stream that begins while the node still loads its network loses no keyframe:
+    the node subscribes first, DDS keeps what comes, the loaded network processes it."""
+    sent = threading.Event()
+
+    class _SlowLoad(SingleViewNode):
+        def _load_predictor(self, spec, device):
+            assert sent.wait(20.0), 'the keyframes were never sent'
+            return super()._load_predictor(spec, device)
+
+    with RosHarness() as ros:
+        images = ros.publisher(Image, '/depth_fusion/keyframe/image')
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        stamps = [2_000_000_000 + i * 200_000_000 for i in range(3)]
+
+        def stream() -> None:
+            if ros.wait_for_subscribers([images], timeout=20.0):
+                for i, stamp in enumerate(stamps):
+                    images.publish(_image(_rgb(i), stamp))
+                    time.sleep(0.1)
+                time.sleep(0.3)  # delivered to the subscription's history
+            sent.set()
+
+        sender = threading.Thread(target=stream, daemon=True)
+        sender.start()
+        node = ros.add(
+            _SlowLoad(
+                context=ros.context, parameter_overrides=[Parameter('model', value=str(torchscript_model))]
+            )
+        )
+        sender.join(5.0)
+        assert ros.wait_for(lambda: len(depths) >= 3, timeout=20.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+    assert [m.stamp_to_ns(d.header.stamp) for d in depths] == stamps
+    assert snap.dropped == {}
 
 
 def test_raw_camera_input_is_undistorted_and_output_kind_is_latched(torchscript_model):

@@ -85,6 +85,7 @@ class SingleViewNode(DepthFusionNode):
         p = self.params
         self.events = GraphEvents(self)
         self.camera_input = CameraInput.from_parameters(p, rectified=bool(p['input_rectified']))
+        self._subscribe_inputs()
         self.predictor = self._load_predictor(str(p['model']), str(p['device']))
         self.output_kind = str(getattr(self.predictor, 'output_kind', 'metric_depth'))
         if p['warmup']:
@@ -96,13 +97,24 @@ class SingleViewNode(DepthFusionNode):
         self.adaptation: NodeAdaptation | None = None
         if adaptation_wanted(p):
             self.adaptation = NodeAdaptation(self, self.predictor)
-        self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
-        self.subscribe(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
         self.get_logger().info(
             f'single-view model {p["model"]!r} ({self.output_kind}) on {p["device"]}; '
             f'{self.resolve_topic_name(TOPIC_IMAGE)} -> {self.resolve_topic_name(TOPIC_DEPTH)}'
         )
         self.events.ready()
+
+    def _subscribe_inputs(self) -> None:
+        """Subscribe before the network loads (~1 s), so keyframes that come meanwhile wait.
+
+        The multi-view node publishes its first keyframes as soon as a stream begins; a live
+        stream that begins while this node still loads its network would otherwise lose them
+        (the fusion node then drops them as ``unpaired``). DDS keeps what arrives in the
+        subscription's history (``qos_depth``) until the node spins, which it does only after
+        this constructor has loaded and warmed the network: the callbacks never see a node
+        without its predictor, and the queued keyframes are processed first.
+        """
+        self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
+        self.subscribe(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
 
     def _load_predictor(self, spec: str, device: str) -> Any:
         from ..singleview.predictor import load_predictor
