@@ -277,3 +277,17 @@ def test_second_publisher_and_interleaved_streams_are_noticed():
         warn = lambda: [s for s in _statuses(arrays, 'multi_view_node') if 'interleaved' in s.message]  # noqa: E731
         assert ros.wait_for(warn, 10.0)
         assert warn()[-1].level == DiagnosticStatus.WARN
+
+
+@pytest.mark.parametrize(('transport', 'published'), [('raw', 'compressed'), ('compressed', 'raw')])
+def test_images_on_the_other_transport_are_named_with_the_fix(transport, published):
+    """Images only on ``<topic>/compressed`` while the node reads raw (or the reverse): one warning
+    naming both topics and the parameter, and the finding in the diagnostics."""
+    with RosHarness() as ros:
+        node = _node(ros, image_transport=transport)
+        topic = IMAGE + ('/compressed' if published == 'compressed' else '')
+        ros.publisher(CompressedImage if published == 'compressed' else Image, topic)
+        key = f'{IMAGE}{"/compressed" if transport == "compressed" else ""} transport'
+        assert ros.wait_for(lambda: key in node.input_watch.findings, 10.0), node.input_watch.findings
+        finding = node.input_watch.findings[key]
+    assert f'but 1 on {topic}' in finding and f'image_transport:={published}' in finding

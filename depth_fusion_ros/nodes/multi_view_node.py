@@ -45,7 +45,7 @@ from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
 from . import robot_inputs
 from .announce import announce
-from .base import DepthFusionNode, run_node
+from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode, run_node
 from .diagnostics import Requirement
 from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, GraphEvents
 from .image_input import (
@@ -287,6 +287,8 @@ class MultiViewNode(DepthFusionNode):
         self.image_topic = robot_inputs.subscribe_image(
             self, TOPIC_IMAGE, self._on_image, self.input_qos, str(p['image_transport'])
         )
+        self.transport_check = robot_inputs.TransportCheck(self, TOPIC_IMAGE, str(p['image_transport']))
+        self.create_wall_timer(PUBLISHER_CHECK_PERIOD, self.transport_check.check)
         self.create_wall_timer(0.25, self._give_up_pending)
         self.get_logger().info(
             f'multi-view on {self.device}, keyframes {p["keyframe_policy"]}'

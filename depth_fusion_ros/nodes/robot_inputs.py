@@ -96,6 +96,42 @@ def subscribe_image(node: Any, topic: str, callback: Callable[[Any], None], qos:
     return name
 
 
+class TransportCheck:
+    """Warns once when the images come on the other transport's topic.
+
+    A graph subscribed to ``/camera/image`` (raw) while the camera publishes only
+    ``/camera/image/compressed`` (or the reverse) receives camera_info and poses and no image,
+    and would otherwise say nothing but ``received 0``: the most common set-up slip with
+    image_transport, whose plugins ROS 2 nodes pick by parameter, not by discovery.
+    """
+
+    def __init__(self, node: Any, topic: str, transport: str) -> None:
+        self.node = node
+        self.topic = topic
+        self.transport = transport
+        #: the warning once it was given (also listed in the node's diagnostics)
+        self.finding: str | None = None
+
+    def check(self) -> None:
+        """One look at the publishers of both transports' topics (a timer calls it)."""
+        if self.finding is not None:
+            return
+        mine = self.node.resolve_topic_name(image_topic_for(self.topic, self.transport))
+        if self.node.count_publishers(mine) > 0:
+            return
+        other_transport = 'raw' if self.transport == 'compressed' else 'compressed'
+        other = self.node.resolve_topic_name(image_topic_for(self.topic, other_transport))
+        found = self.node.count_publishers(other)
+        if found == 0:
+            return
+        self.finding = (
+            f'no publisher on {mine} ({self.transport}) but {found} on {other}: images are '
+            f'not received; set image_transport:={other_transport}, or remap the image topic'
+        )
+        self.node.input_watch.findings[f'{mine} transport'] = self.finding
+        self.node.get_logger().warning(self.finding)
+
+
 def pose_message_class(pose_type: str) -> type:
     return messages.RCLPY.message_class(POSE_MESSAGE_TYPES[pose_type])
 
