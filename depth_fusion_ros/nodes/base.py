@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import signal
+import sys
 import threading
 import time
 import traceback
@@ -29,6 +30,7 @@ from ..malloc_tuning import keep_freed_memory
 from . import diagnostics as diag
 from .gil import set_switch_interval
 from .graph.dds import profile_for_console_node
+from .graph.dds_readers import resolved_topic
 from .input_watch import InputWatch
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
@@ -259,7 +261,12 @@ class DepthFusionNode(Node):
         super().destroy_node()
 
 
-def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+def run_node(
+    factory: Callable[[], Node],
+    args: Sequence[str] | None = None,
+    udp_image_topics: Sequence[str] = (),
+    node_name: str = '',
+) -> int:
     """Console entry point body: init, build the node, spin until Ctrl-C/SIGTERM, clean up.
 
     rclpy's own signal handler would shut the context down at once, so the final counters
@@ -269,7 +276,9 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     lands while the constructor finishes (just after its "ready" line) would leave no node to
     destroy and no final counters. A second Ctrl-C interrupts at once (a constructor that
     hangs). Returns the process exit code: 0 on a normal stop, 2 when a parameter is invalid
-    (the message names it; no traceback: it is the user's to fix).
+    (the message names it; no traceback: it is the user's to fix). ``udp_image_topics``: the
+    node's camera image topics (as declared, resolved here with the command line's remaps for
+    ``node_name``), read over UDP (graph/dds_readers.py).
     """
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -288,7 +297,9 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
 
     previous_term = signal.signal(signal.SIGTERM, on_signal)
     previous_int = signal.signal(signal.SIGINT, on_signal)
-    profile_line = profile_for_console_node()  # before rclpy.init: Fast DDS reads it once
+    argv = list(sys.argv if args is None else args)
+    readers = [resolved_topic(t, node_name, argv) for t in udp_image_topics]
+    profile_line = profile_for_console_node(udp_readers=readers)  # before rclpy.init: read once
     keep_freed_memory()  # freed tensor memory reused (DEPTH_FUSION_MALLOC_TUNING=0: off), malloc_tuning.py
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     rclpy.logging.get_logger('depth_fusion').info(profile_line)

@@ -368,9 +368,10 @@ class MultiViewNode(DepthFusionNode):
             return ''
         lag = messages.ns_to_sec(self._newest_image_ns) - span[1]
         return (
-            f'; the latest pose is {lag:.1f} s behind the newest image (raw images over 0.5 MB from a '
-            'publisher with Fast DDS defaults stall the other topics of its process: publish them '
-            'compressed or give it the package profile, docs/nodes.md "Large raw images")'
+            f'; the latest pose is {lag:.1f} s behind the newest image (raw images over 0.5 MB sent '
+            'through shared memory by a publisher with Fast DDS defaults stall the other topics of '
+            'its process; the package profile reads the image topic over UDP to prevent it: is '
+            'another profile set? docs/nodes.md "Large raw images")'
         )
 
     def _resolve_pending(self) -> None:
@@ -558,7 +559,8 @@ class MultiViewNode(DepthFusionNode):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point: ``multi_view_node --ros-args --params-file config/depth_fusion.yaml``."""
-    return run_node(MultiViewNode, args)
+    images = (TOPIC_IMAGE, robot_inputs.image_topic_for(TOPIC_IMAGE, 'compressed'))
+    return run_node(MultiViewNode, args, udp_image_topics=images, node_name=NODE_NAME)
 
 
 if __name__ == '__main__':

@@ -43,7 +43,9 @@ def apply_fastdds_profile(env: MutableMapping[str, str] | None = None) -> str:
     return path
 
 
-def profile_for_console_node(env: MutableMapping[str, str] | None = None) -> str:
+def profile_for_console_node(
+    env: MutableMapping[str, str] | None = None, udp_readers: Sequence[str] = ()
+) -> str:
     """What a node started on its own (console script, launch file) tells its user about Fast
     DDS, after applying the package's profile unless one is set (:func:`apply_fastdds_profile`).
 
@@ -51,14 +53,30 @@ def profile_for_console_node(env: MutableMapping[str, str] | None = None) -> str
     0.5 MB shared-memory segment: measured here, 12 of 60 images at 30 Hz arrived, against 60
     of 60 with the profile (reliable ones arrive either way). A camera driver publishes best
     effort, and ``input_qos: sensor_data`` then loses most frames silently. Must run before
-    ``rclpy.init``. Returns the one line to log.
+    ``rclpy.init``. ``udp_readers``: the node's fully resolved camera image topics, read over
+    UDP (:mod:`.dds_readers`; a copy of the profile names them when the package's does not).
+    Returns the one line to log.
     """
+    from .dds_readers import profile_with_udp_readers, reader_topics
+
+    env = os.environ if env is None else env
+    if not any(env.get(name) for name in PROFILE_ENV):
+        derived = str(profile_with_udp_readers(fastdds_profile_path(), udp_readers))
+        for name in PROFILE_ENV:
+            env[name] = derived
     path = apply_fastdds_profile(env)
-    if path != str(fastdds_profile_path()):
+    ours = path == str(fastdds_profile_path()) or Path(path).parent.parts[-2:] == (
+        'depth_fusion_ros',
+        'fastdds',
+    )
+    if not ours:
         return f'Fast DDS profile: {path} (yours, from the environment)'
+    named = reader_topics(Path(path).read_text())
+    over_udp = [t for t in udp_readers if t in named]
+    readers = f'; camera images of {", ".join(over_udp)} read over UDP' if over_udp else ''
     return (
         f"Fast DDS profile: {path} (the package's: 10 MB shared-memory segments for images, "
-        '0.5 s discovery announcements; set FASTDDS_DEFAULT_PROFILES_FILE to use your own)'
+        f'0.5 s discovery announcements{readers}; set FASTDDS_DEFAULT_PROFILES_FILE to use your own)'
     )
 
 
