@@ -16,7 +16,8 @@ By default the nodes run composed in this process (each on its own executor thre
 --processes starts the console scripts (bag_replayer, single_view_node, multi_view_node,
 fusion_node) as separate processes with the same params file. A Fast DDS profile with a 10 MB
 shared-memory segment is applied (to this process and the children) so 640x480 images are not
-lost between processes; set FASTRTPS_DEFAULT_PROFILES_FILE yourself to use another.
+lost between processes, the camera image topics read over UDP (docs/nodes.md, "Large raw
+images"); set FASTRTPS_DEFAULT_PROFILES_FILE yourself to use another.
 
 recorded topics (--record): /depth_fusion/fused/{depth,confidence,camera_info},
 /depth_fusion/multi_view/depth, /depth_fusion/single_view/depth, /depth_fusion/keyframe/{image,pose};
