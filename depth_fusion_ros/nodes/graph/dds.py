@@ -57,7 +57,7 @@ def profile_for_console_node(
     UDP (:mod:`.dds_readers`; a copy of the profile names them when the package's does not).
     Returns the one line to log.
     """
-    from .dds_readers import profile_with_udp_readers, reader_topics
+    from .dds_readers import derived_profile_dir, profile_with_udp_readers, reader_topics
 
     env = os.environ if env is None else env
     if not any(env.get(name) for name in PROFILE_ENV):
@@ -65,10 +65,7 @@ def profile_for_console_node(
         for name in PROFILE_ENV:
             env[name] = derived
     path = apply_fastdds_profile(env)
-    ours = path == str(fastdds_profile_path()) or Path(path).parent.parts[-2:] == (
-        'depth_fusion_ros',
-        'fastdds',
-    )
+    ours = path == str(fastdds_profile_path()) or Path(path).parent == derived_profile_dir()
     if not ours:
         return f'Fast DDS profile: {path} (yours, from the environment)'
     named = reader_topics(Path(path).read_text())
