@@ -103,11 +103,17 @@ def reader_topics(profile_text: str) -> set[str]:
     return set(_READER_NAME.findall(profile_text))
 
 
+def derived_profile_dir() -> Path:
+    """Where the copies naming other image topics are written (the user's cache)."""
+    root = Path(os.environ.get('XDG_CACHE_HOME') or Path.home() / '.cache')
+    return root / 'depth_fusion_ros' / 'fastdds'
+
+
 def profile_with_udp_readers(profile: Path, topics: Iterable[str], cache: Path | None = None) -> Path:
     """``profile``, or a copy of it that also names ``topics`` as UDP readers.
 
-    The copy lives under ``cache`` (default ``$XDG_CACHE_HOME/depth_fusion_ros/fastdds``), named
-    by its content, so every node with the same topics reuses one file.
+    The copy lives under ``cache`` (default :func:`derived_profile_dir`), named by its content,
+    so every node with the same topics reuses one file.
     """
     text = profile.read_text()
     missing = [t for t in dict.fromkeys(topics) if t not in reader_topics(text)]
@@ -116,10 +122,7 @@ def profile_with_udp_readers(profile: Path, topics: Iterable[str], cache: Path |
     extra = ''.join(READER_TEMPLATE.format(topic=t) for t in missing)
     head, tail = text.rsplit('</profiles>', 1)
     derived = head + extra + '</profiles>' + tail
-    root = (
-        cache
-        or Path(os.environ.get('XDG_CACHE_HOME') or Path.home() / '.cache') / 'depth_fusion_ros' / 'fastdds'
-    )
+    root = cache or derived_profile_dir()
     root.mkdir(parents=True, exist_ok=True)
     path = root / f'profile_{hashlib.sha1(derived.encode()).hexdigest()[:12]}.xml'
     if not path.is_file() or path.read_text() != derived:
