@@ -26,11 +26,13 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from ..data import messages
 from ..malloc_tuning import keep_freed_memory
 from . import diagnostics as diag
 from .gil import set_switch_interval
 from .graph.dds import profile_for_console_node
 from .graph.dds_readers import resolved_topic
+from .image_input import StampGuard
 from .input_watch import InputWatch
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
@@ -66,12 +68,24 @@ COMMON_PARAMETERS: tuple[ParamSpec, ...] = (
         'one) or block (the callback waits: nothing lost, the input is slowed)',
         choices=POLICIES,
     ),
+    ParamSpec(
+        'stream_restart_jump',
+        1.0,
+        'an input stamp this many seconds older than the previous one begins a new stream (a bag '
+        'played again, a restarted client): the node starts over instead of dropping it as out of '
+        'order (0: never)',
+        0.0,
+        None,
+    ),
     ParamSpec('stats_period', 10.0, 'seconds between counter log lines (0: only at shutdown)', 0.0, 86400.0),
     ParamSpec(
         'warn_throttle', 5.0, 'minimum seconds between two warnings for the same drop reason', 0.0, 3600.0
     ),
     *diag.PARAMETERS,
 )
+
+#: Input restarts closer together than this (s) are counted as one new stream.
+RESTART_NOTE_GAP = 2.0
 
 #: Seconds between two looks at the number of publishers of each input topic.
 PUBLISHER_CHECK_PERIOD = 2.0
@@ -127,6 +141,27 @@ class DepthFusionNode(Node):
                 DiagnosticArray, diag.TOPIC_DIAGNOSTICS, qos_profile('reliable', 10)
             )
             self.create_wall_timer(float(self.params['diagnostics_period']), self.publish_diagnostics)
+
+    def stamp_guard(self, stream: str) -> StampGuard:
+        """A :class:`StampGuard` for ``stream`` that takes a jump back of
+        ``stream_restart_jump`` seconds for a new stream."""
+        return StampGuard(stream, float(self.params['stream_restart_jump']))
+
+    def note_stream_restart(self, stream: str, stamp_ns: int, what: str) -> None:
+        """Count (note ``stream_restart``, with its throttled warning) that ``stream`` began again.
+
+        The inputs of one new stream restart one after the other (image, pose, each keyframe
+        part): restarts within ``RESTART_NOTE_GAP`` seconds of the first are one restart.
+        """
+        now = time.monotonic()
+        if now - getattr(self, '_last_restart_note', -float('inf')) < RESTART_NOTE_GAP:
+            return
+        self._last_restart_note = now
+        message = (
+            f'{stream} stamps jumped back to {messages.ns_to_sec(stamp_ns):.3f} s: a new stream (a bag '
+            f'played again, a restarted client); {what}'
+        )
+        self.stats.noted('stream_restart', message)
 
     def subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None], qos: Any) -> Any:
         """``create_subscription`` whose callback can never take the node down.

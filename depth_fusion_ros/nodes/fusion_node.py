@@ -50,7 +50,7 @@ from .base import DepthFusionNode, run_node
 from .diagnostics import Requirement
 from .fusion_warmup import exit_now_if_compiling, finish_compiling, start_kernels
 from .graph_events import EVENT_FUSED, GraphEvents
-from .image_input import InputError, StampGuard, depth_from_message, header_stamp_ns
+from .image_input import InputError, depth_from_message, header_stamp_ns
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .qos import latched_qos
 
@@ -284,7 +284,7 @@ class FusionNode(DepthFusionNode):
         self._closed: OrderedDict[int, None] = OrderedDict()
         self.required = REQUIRED_PARTS
         self.want_rgb = bool(p['publish_points'] and p['points_color'])
-        self._stamp_guards = {part: StampGuard(part) for part in (*REQUIRED_PARTS, 'rgb', 'mv_std')}
+        self._stamp_guards = {part: self.stamp_guard(part) for part in (*REQUIRED_PARTS, 'rgb', 'mv_std')}
 
         self._depth_pub = self.create_publisher(Image, TOPIC_FUSED_DEPTH, self.output_qos)
         self._confidence_pub = self.create_publisher(Image, TOPIC_FUSED_CONFIDENCE, self.output_qos)
@@ -369,7 +369,12 @@ class FusionNode(DepthFusionNode):
         received_at = time.monotonic()
         stamp_ns = header_stamp_ns(msg)
         try:
-            self._stamp_guards[part].check(stamp_ns)
+            if self._stamp_guards[part].check(stamp_ns):
+                # the closed stamps were the previous stream's: the new one may use them again
+                self._closed.clear()
+                self.note_stream_restart(
+                    part, stamp_ns, 'the keyframes of the previous one still waiting time out'
+                )
         except InputError as exc:
             self.stats.dropped(exc.reason, str(exc))
             return
@@ -382,6 +387,9 @@ class FusionNode(DepthFusionNode):
             return
         self._drop_passed(part, stamp_ns)
         pairing = self.pending.get(stamp_ns)
+        if pairing is not None and part in pairing.parts:  # a new stream reuses an old keyframe's stamp
+            self._close(stamp_ns, 'stream_restart', 'replaced by a new stream with the same stamp')
+            pairing = None
         if pairing is None:
             pairing = self.pending[stamp_ns] = _Pairing(stamp_ns, received_at, header=msg.header)
             self._limit_pending()

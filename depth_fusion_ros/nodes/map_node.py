@@ -130,6 +130,12 @@ class MapNode(DepthFusionNode):
             max_pending=int(p['max_pending_keyframes']),
             on_complete=lambda pairing: self.worker.submit(pairing),
             on_drop=self.stats.dropped,
+            restart_after=float(p['stream_restart_jump']),
+            on_restart=lambda part, stamp_ns: self.note_stream_restart(
+                part,
+                stamp_ns,
+                'integrated into the same map (for another scene, save it and start map_node again)',
+            ),
         )
         self._points_pub = self.create_publisher(PointCloud2, TOPIC_MAP_POINTS, self.output_qos)
         self.worker = self.make_worker('map', self._integrate)

@@ -137,6 +137,8 @@ class FilterFeed:
         self._discarded: set[int] = set()
         self._closed = False
         self._busy = False
+        #: from this frame index on the filter starts over (a new stream), once
+        self._restart_at: int | None = None
         self.filter: DepthFilter | None = None
         #: Frames the filter has been given (the feed thread's progress).
         self.fed = 0
@@ -173,6 +175,12 @@ class FilterFeed:
                     self._keep(old.index, RuntimeError(message))
                 self._on_drop(message)
             self._cond.notify_all()
+
+    def restart(self, first_index: int) -> None:
+        """A new stream begins at frame ``first_index``: the filter starts over there (callback
+        thread). The frames before it, queued or not, still update the previous keyframe."""
+        with self._cond:
+            self._restart_at = int(first_index)
 
     def _skip_behind(self) -> None:
         """Skip the oldest non-keyframes until at most ``max_lag`` frames wait (lock held)."""
@@ -230,6 +238,8 @@ class FilterFeed:
                 if self._closed:
                     return
                 frame, camera, keyframe = self._frames.popleft()
+                if self._restart_at is not None and frame.index >= self._restart_at:
+                    self.filter, self._restart_at = None, None  # built again below
                 self._busy = True
             outcome: FilterResult | Exception | None = None
             try:

@@ -51,7 +51,6 @@ from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, GraphEvents
 from .image_input import (
     CameraInput,
     InputError,
-    StampGuard,
     WorkingImage,
     header_stamp_ns,
     pose_from_message,
@@ -260,8 +259,10 @@ class MultiViewNode(DepthFusionNode):
         self.posed_count = 0
         self.keyframes_decided = 0
         self._last_keyframe_pose: np.ndarray | None = None
-        self._image_stamps = StampGuard('image')
-        self._pose_stamps = StampGuard('pose')
+        self._image_stamps = self.stamp_guard('image')
+        self._pose_stamps = self.stamp_guard('pose')
+        #: index of the first posed frame of the current stream (the every_k phase restarts there)
+        self._stream_first_index = 0
         self._newest_image_ns: int | None = None
         self._last_input = time.monotonic()
         #: ``_last_input`` as a timer tick last found it quiet for ``pose_wait`` (``_give_up_pending``).
@@ -317,7 +318,8 @@ class MultiViewNode(DepthFusionNode):
         try:
             T_wc = pose_from_message(msg) @ self.T_pose_cam
             stamp_ns = header_stamp_ns(msg)
-            self._pose_stamps.check(stamp_ns)
+            if self._pose_stamps.check(stamp_ns):
+                self._start_over('pose', stamp_ns)
         except InputError as exc:
             self.stats.dropped(exc.reason, str(exc))
             return
@@ -335,7 +337,8 @@ class MultiViewNode(DepthFusionNode):
             self.stats.received('image')
         try:
             image = self.camera_input.working_image(msg)
-            self._image_stamps.check(image.stamp_ns)
+            if self._image_stamps.check(image.stamp_ns):
+                self._start_over('image', image.stamp_ns)
         except InputError as exc:
             if exc.reason == 'no_camera_info':
                 for stamp_ns, _ in self.awaiting_info.hold(header_stamp_ns(msg), msg):
@@ -358,6 +361,34 @@ class MultiViewNode(DepthFusionNode):
             )
             self.events.event(old.image.stamp_ns, EVENT_IMAGE)
         self._resolve_pending()
+
+    def _start_over(self, stream: str, stamp_ns: int) -> None:
+        """A new stream began (``stream`` jumped back): forget what the previous one left.
+
+        Its poses would be interpolated into the new images, its frames chosen as neighbours and
+        its filter estimates propagated into the new keyframes, all in another trajectory (a
+        replayed sequence starts where the camera was then, another sequence in another world).
+        Images of it still waiting for a pose are dropped (``stream_restart``); keyframes
+        already chosen are finished. The other input's guard starts over too, so its first
+        message of the new stream is taken as it comes.
+        """
+        (self._pose_stamps if stream == 'image' else self._image_stamps).reset()
+        self.pose_buffer = PoseBuffer(
+            capacity=int(self.params['pose_buffer_size']), max_gap=float(self.params['max_pose_gap'])
+        )
+        while self.pending:
+            old = self.pending.popleft()
+            self.stats.dropped(
+                'stream_restart', f'image {messages.ns_to_sec(old.image.stamp_ns):.3f}: its stream ended'
+            )
+            self.events.event(old.image.stamp_ns, EVENT_IMAGE)
+        self._newest_image_ns = None
+        self.frames.clear()
+        self._last_keyframe_pose = None
+        self._stream_first_index = self.posed_count
+        if self.filter_feed is not None:
+            self.filter_feed.restart(self.posed_count)
+        self.note_stream_restart(stream, stamp_ns, 'poses, frame history and filter start over')
 
     def _pose_lag_hint(self) -> str:
         """How far the pose stream is behind the images, and the usual cause when it stalls
@@ -486,7 +517,7 @@ class MultiViewNode(DepthFusionNode):
 
     def _is_keyframe_candidate(self, frame: Frame) -> bool:
         if self.params['keyframe_policy'] == 'every_k':
-            return frame.index % int(self.params['keyframe_every']) == 0
+            return (frame.index - self._stream_first_index) % int(self.params['keyframe_every']) == 0
         if self._last_keyframe_pose is None:
             return True
         delta = invert_pose(self._last_keyframe_pose) @ frame.pose

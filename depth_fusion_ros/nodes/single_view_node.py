@@ -35,7 +35,7 @@ from ..data import messages
 from .announce import announce
 from .base import DepthFusionNode, run_node
 from .graph_events import GraphEvents
-from .image_input import CameraInput, InputError, StampGuard, WorkingImage, working_grid_parameters
+from .image_input import CameraInput, InputError, WorkingImage, working_grid_parameters
 from .params import ParamSpec
 from .single_view_adaptation import ADAPTATION_PARAMETERS, NodeAdaptation, adaptation_wanted
 
@@ -90,7 +90,7 @@ class SingleViewNode(DepthFusionNode):
         self.output_kind = str(getattr(self.predictor, 'output_kind', 'metric_depth'))
         if p['warmup']:
             self.predictor.predict(np.zeros((int(p['height']), int(p['width']), 3), dtype=np.uint8))
-        self._stamps = StampGuard('image')
+        self._stamps = self.stamp_guard('image')
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._kind_pub = announce(self, TOPIC_OUTPUT_KIND, self.output_kind)
         self.worker = self.make_worker('single_view', self._process)
@@ -133,7 +133,8 @@ class SingleViewNode(DepthFusionNode):
         self.stats.received('image')
         try:
             image = self.camera_input.working_image(msg)
-            self._stamps.check(image.stamp_ns)
+            if self._stamps.check(image.stamp_ns):
+                self.note_stream_restart('image', image.stamp_ns, 'its keyframes are processed as they come')
         except InputError as exc:
             self.stats.dropped(exc.reason, str(exc))
             return

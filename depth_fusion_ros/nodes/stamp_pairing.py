@@ -4,8 +4,10 @@ Every upstream stream is in stamp order, so a pending keyframe still missing a p
 stream has already passed its stamp will never get it and is dropped at once (``unpaired``);
 the others wait at most ``timeout`` seconds (``pair_timeout``) and at most ``max_pending``
 keyframes wait (``pair_overflow``). Stragglers of a closed keyframe are counted
-(``late_part``). Memory stays bounded whatever the input. No ROS import: callers pass the
-message header.
+(``late_part``). A part whose stamps jump back by ``restart_after`` seconds begins a new stream
+(a bag played again): accepted, the closed stamps forgotten, and a pending keyframe whose stamp
+the new stream reuses is replaced (``stream_restart``). Memory stays bounded whatever the
+input. No ROS import: callers pass the message header.
 """
 
 from __future__ import annotations
@@ -44,6 +46,8 @@ class StampPairer:
         max_pending: int,
         on_complete: Callable[[Pairing], None],
         on_drop: Callable[[str, str], None],
+        restart_after: float = 0.0,
+        on_restart: Callable[[str, int], None] | None = None,
     ) -> None:
         self.required = tuple(required)
         self.known = set(required) | set(optional)
@@ -54,6 +58,9 @@ class StampPairer:
         self.pending: dict[int, Pairing] = {}
         self._closed: OrderedDict[int, None] = OrderedDict()
         self._last: dict[str, int] = {}
+        #: a part whose stamps jump back this many seconds begins a new stream (0: never)
+        self.restart_after = float(restart_after)
+        self.on_restart = on_restart
         self._lock = threading.Lock()
 
     def add(self, header: Any, part: str, value: Any) -> None:
@@ -64,12 +71,15 @@ class StampPairer:
         complete = None
         with self._lock:
             last = self._last.get(part)
-            if last is not None and stamp_ns <= last:
+            restarted = self._restarts(last, stamp_ns)
+            if last is not None and stamp_ns <= last and not restarted:
                 reason = 'duplicate_stamp' if stamp_ns == last else 'stamp_out_of_order'
                 self.on_drop(
                     f'{reason}_{part}', f'{part} stamp {messages.ns_to_sec(stamp_ns):.3f} is not newer'
                 )
                 return
+            if restarted:  # the closed stamps were the previous stream's: the new one reuses them
+                self._closed.clear()
             self._last[part] = stamp_ns
             if stamp_ns in self._closed:
                 if part in self.required:
@@ -80,6 +90,9 @@ class StampPairer:
             if part in self.required:
                 self._drop_passed(part, stamp_ns)
             pairing = self.pending.get(stamp_ns)
+            if pairing is not None and part in pairing.parts:  # a new stream reuses an old stamp
+                self._close(stamp_ns, 'stream_restart', 'replaced by a new stream with the same stamp')
+                pairing = None
             if pairing is None:
                 pairing = self.pending[stamp_ns] = Pairing(stamp_ns, time.monotonic(), header)
                 while len(self.pending) > self.max_pending:
@@ -89,6 +102,12 @@ class StampPairer:
                 complete = self._close(stamp_ns)
         if complete is not None:
             self.on_complete(complete)
+        if restarted and self.on_restart is not None:
+            self.on_restart(part, stamp_ns)
+
+    def _restarts(self, last: int | None, stamp_ns: int) -> bool:
+        """Whether ``stamp_ns`` jumps back from ``last`` far enough to begin a new stream."""
+        return last is not None and self.restart_after > 0 and (last - stamp_ns) * 1e-9 >= self.restart_after
 
     def expire(self, now: float) -> None:
         """Drop the keyframes that waited longer than ``timeout``."""
