@@ -74,22 +74,24 @@ def test_unknown_method_is_refused():
         )
 
 
-def test_a_sequence_played_again_starts_over_instead_of_being_dropped(synthetic_sequence):
-    """The same stamps again (a bag played twice, a client restarted): the node takes the jump
-    back for a new stream, once, and its keyframes come out as the first time's, from a filter
-    that started over."""
+@pytest.mark.parametrize('shift_s', [0.0, 30.0])
+def test_a_sequence_played_again_starts_over_instead_of_being_dropped(synthetic_sequence, shift_s):
+    """The same stamps again (a bag played twice, a client restarted), or later ones after a
+    long gap (another sequence played after this one): the node takes it for a new stream,
+    once, and its keyframes come out as the first time's, from a filter that started over."""
     seq = synthetic_sequence
     stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    second = [s + m.sec_to_ns(shift_s) for s in stamps]
     expected_keys = [6, 12, 18]
     with RosHarness() as ros:
         params = {'keyframe_every': 6, 'queue_size': 8, 'qos_depth': 100, 'filter.max_lag_frames': 0}
         node = _mv_node(ros, stream_restart_jump=0.5, **params)  # the sequence lasts 0.8 s
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         cam = _Camera(ros)
-        for n_pass in (1, 2):
+        for n_pass, pass_stamps in ((1, stamps), (2, second)):
             for i, frame in enumerate(seq.frames):
-                cam.publish_pose(frame.pose, stamps[i])
-                cam.publish_image(frame.rgb, stamps[i], seq.camera)
+                cam.publish_pose(frame.pose, pass_stamps[i])
+                cam.publish_image(frame.rgb, pass_stamps[i], seq.camera)
                 time.sleep(0.02)
             count = n_pass * len(expected_keys)
             assert ros.wait_for(lambda c=count: len(depth_msgs) == c, 120.0), node.stats.snapshot().summary()
@@ -98,7 +100,7 @@ def test_a_sequence_played_again_starts_over_instead_of_being_dropped(synthetic_
         frames_seen = node.filter_feed.filter.stats.frames
 
     assert snap.dropped == {} and snap.noted.get('stream_restart') == 1, snap.summary()
-    assert _stamps(depth_msgs) == [stamps[k] for k in expected_keys] * 2
+    assert _stamps(depth_msgs) == [stamps[k] for k in expected_keys] + [second[k] for k in expected_keys]
     assert frames_seen == len(seq.frames)  # the filter of the second pass saw only its frames
     for k, depth_msg in zip(expected_keys * 2, depth_msgs, strict=True):
         depth, gt = m.image_to_numpy(depth_msg), seq.frames[k].depth

@@ -263,6 +263,10 @@ class MultiViewNode(DepthFusionNode):
         self._pose_stamps = self.stamp_guard('pose')
         #: index of the first posed frame of the current stream (the every_k phase restarts there)
         self._stream_first_index = 0
+        #: the first posed frame stamped at or after this begins a new stream (None: none due)
+        self._restart_from_ns: int | None = None
+        #: recent image periods (s), to tell a new stream's gap from the stream's own rhythm
+        self._image_periods: deque[float] = deque(maxlen=10)
         self._newest_image_ns: int | None = None
         self._last_input = time.monotonic()
         #: ``_last_input`` as a timer tick last found it quiet for ``pose_wait`` (``_give_up_pending``).
@@ -337,8 +341,11 @@ class MultiViewNode(DepthFusionNode):
             self.stats.received('image')
         try:
             image = self.camera_input.working_image(msg)
+            previous_ns = self._image_stamps.last_ns
             if self._image_stamps.check(image.stamp_ns):
                 self._start_over('image', image.stamp_ns)
+            elif previous_ns is not None:
+                self._check_gap(previous_ns, image.stamp_ns)
         except InputError as exc:
             if exc.reason == 'no_camera_info':
                 for stamp_ns, _ in self.awaiting_info.hold(header_stamp_ns(msg), msg):
@@ -383,12 +390,40 @@ class MultiViewNode(DepthFusionNode):
             )
             self.events.event(old.image.stamp_ns, EVENT_IMAGE)
         self._newest_image_ns = None
+        self._image_periods.clear()
+        self._restart_from_ns = 0  # the next posed frame, whatever its stamp
+        self.note_stream_restart(stream, stamp_ns, 'poses, frame history and filter start over')
+
+    def _check_gap(self, previous_ns: int, stamp_ns: int) -> None:
+        """A gap in the images far longer than the stream's rhythm (at least
+        ``stream_restart_jump`` s and 10 of its recent periods) begins a new stream too: another
+        sequence played after this one, with later stamps. Its frames must not update this
+        one's keyframe, nor be chosen as neighbours of it. The poses are kept (their own
+        ``max_pose_gap`` keeps frames across the gap apart)."""
+        period = messages.ns_to_sec(stamp_ns - previous_ns)
+        limit = float(self.params['stream_restart_jump'])
+        if limit > 0 and len(self._image_periods) >= 3:
+            usual = float(np.median(self._image_periods))
+            if period >= max(limit, 10.0 * usual):
+                self._image_periods.clear()
+                self._restart_from_ns = stamp_ns
+                self.note_stream_restart(
+                    'image',
+                    stamp_ns,
+                    f'after {period:.1f} s without images: frame history and filter start over',
+                )
+                return
+        self._image_periods.append(period)
+
+    def _restart_frames(self) -> None:
+        """The frame history, the keyframe phase and the filter of a new stream (at its first
+        posed frame: images of the previous one still waiting for their pose belong to it)."""
         self.frames.clear()
         self._last_keyframe_pose = None
         self._stream_first_index = self.posed_count
         if self.filter_feed is not None:
             self.filter_feed.restart(self.posed_count)
-        self.note_stream_restart(stream, stamp_ns, 'poses, frame history and filter start over')
+        self._restart_from_ns = None
 
     def _pose_lag_hint(self) -> str:
         """How far the pose stream is behind the images, and the usual cause when it stalls
@@ -497,6 +532,8 @@ class MultiViewNode(DepthFusionNode):
 
     def _on_posed_frame(self, pending: _Pending, T_wc: np.ndarray) -> None:
         image = pending.image
+        if self._restart_from_ns is not None and image.stamp_ns >= self._restart_from_ns:
+            self._restart_frames()
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
         job = None
