@@ -37,6 +37,7 @@ from .input_watch import InputWatch
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
 from .stats import NodeStats
+from .threads import apply_node_threads
 from .worker import POLICIES, BoundedWorker
 
 #: Parameters every processing node declares (before its own).
@@ -335,9 +336,11 @@ def run_node(
     argv = list(sys.argv if args is None else args)
     readers = [resolved_topic(t, node_name, argv) for t in udp_image_topics]
     profile_line = profile_for_console_node(udp_readers=readers)  # before rclpy.init: read once
+    threads_line = apply_node_threads()
     keep_freed_memory()  # freed tensor memory reused (DEPTH_FUSION_MALLOC_TUNING=0: off), malloc_tuning.py
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     rclpy.logging.get_logger('depth_fusion').info(profile_line)
+    rclpy.logging.get_logger('depth_fusion').info(threads_line)
     node = None
     code = 0
     try:
