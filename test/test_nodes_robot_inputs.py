@@ -291,3 +291,22 @@ def test_images_on_the_other_transport_are_named_with_the_fix(transport, publish
         assert ros.wait_for(lambda: key in node.input_watch.findings, 10.0), node.input_watch.findings
         finding = node.input_watch.findings[key]
     assert f'but 1 on {topic}' in finding and f'image_transport:={published}' in finding
+
+
+def test_compressed_images_follow_a_remapped_image_topic():
+    """``-r camera/rgb/image_color:=/my_cam/image_raw`` with ``image_transport: compressed``: the
+    node reads ``/my_cam/image_raw/compressed``, as image_transport derives it from the base."""
+    with RosHarness() as ros:
+        node = ros.add(
+            MultiViewNode(
+                context=ros.context,
+                parameter_overrides=[Parameter('image_transport', value='compressed')],
+                cli_args=['--ros-args', '-r', 'camera/rgb/image_color:=/my_cam/image_raw'],
+            )
+        )
+        subscribed = node.resolve_topic_name(node.image_topic)
+        ros.publisher(Image, '/my_cam/image_raw')  # raw only: named with the fix
+        key = '/my_cam/image_raw/compressed transport'
+        assert ros.wait_for(lambda: key in node.input_watch.findings, 10.0), node.input_watch.findings
+    assert subscribed == '/my_cam/image_raw/compressed'
+    assert 'image_transport:=raw' in node.input_watch.findings[key]

@@ -36,6 +36,7 @@ from .image_input import StampGuard
 from .input_watch import InputWatch
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
+from .robot_inputs import image_topic_for
 from .stats import NodeStats
 from .threads import apply_node_threads
 from .worker import POLICIES, BoundedWorker
@@ -314,7 +315,7 @@ def run_node(
     hangs). Returns the process exit code: 0 on a normal stop, 2 when a parameter is invalid
     (the message names it; no traceback: it is the user's to fix). ``udp_image_topics``: the
     node's camera image topics (as declared, resolved here with the command line's remaps for
-    ``node_name``), read over UDP (graph/dds_readers.py).
+    ``node_name``), read over UDP with their ``/compressed`` (graph/dds_readers.py).
     """
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -334,7 +335,8 @@ def run_node(
     previous_term = signal.signal(signal.SIGTERM, on_signal)
     previous_int = signal.signal(signal.SIGINT, on_signal)
     argv = list(sys.argv if args is None else args)
-    readers = [resolved_topic(t, node_name, argv) for t in udp_image_topics]
+    bases = [resolved_topic(t, node_name, argv) for t in udp_image_topics]
+    readers = [name for base in bases for name in (base, image_topic_for(base, 'compressed'))]
     profile_line = profile_for_console_node(udp_readers=readers)  # before rclpy.init: read once
     threads_line = apply_node_threads()
     keep_freed_memory()  # freed tensor memory reused (DEPTH_FUSION_MALLOC_TUNING=0: off), malloc_tuning.py

@@ -627,8 +627,7 @@ class MultiViewNode(DepthFusionNode):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point: ``multi_view_node --ros-args --params-file config/depth_fusion.yaml``."""
-    images = (TOPIC_IMAGE, robot_inputs.image_topic_for(TOPIC_IMAGE, 'compressed'))
-    return run_node(MultiViewNode, args, udp_image_topics=images, node_name=NODE_NAME)
+    return run_node(MultiViewNode, args, udp_image_topics=(TOPIC_IMAGE,), node_name=NODE_NAME)
 
 
 if __name__ == '__main__':

@@ -90,8 +90,14 @@ def image_message_class(transport: str) -> type:
 
 
 def subscribe_image(node: Any, topic: str, callback: Callable[[Any], None], qos: Any, transport: str) -> str:
-    """Subscribe ``callback`` to the images of ``transport``; returns the topic subscribed."""
-    name = image_topic_for(topic, transport)
+    """Subscribe ``callback`` to the images of ``transport``; returns the topic subscribed.
+
+    As image_transport does, the compressed topic hangs off the *resolved* base topic: with
+    ``-r camera/rgb/image_color:=/my_cam/image_raw`` the node reads
+    ``/my_cam/image_raw/compressed`` (a remap matches whole names, so the relative
+    ``camera/rgb/image_color/compressed`` would have stayed where it was).
+    """
+    name = image_topic_for(node.resolve_topic_name(topic), transport)
     node.subscribe(image_message_class(transport), name, callback, qos)
     return name
 
@@ -116,11 +122,12 @@ class TransportCheck:
         """One look at the publishers of both transports' topics (a timer calls it)."""
         if self.finding is not None:
             return
-        mine = self.node.resolve_topic_name(image_topic_for(self.topic, self.transport))
+        base = self.node.resolve_topic_name(self.topic)
+        mine = self.node.resolve_topic_name(image_topic_for(base, self.transport))
         if self.node.count_publishers(mine) > 0:
             return
         other_transport = 'raw' if self.transport == 'compressed' else 'compressed'
-        other = self.node.resolve_topic_name(image_topic_for(self.topic, other_transport))
+        other = self.node.resolve_topic_name(image_topic_for(base, other_transport))
         found = self.node.count_publishers(other)
         if found == 0:
             return
