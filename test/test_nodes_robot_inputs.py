@@ -310,3 +310,26 @@ def test_compressed_images_follow_a_remapped_image_topic():
         assert ros.wait_for(lambda: key in node.input_watch.findings, 10.0), node.input_watch.findings
     assert subscribed == '/my_cam/image_raw/compressed'
     assert 'image_transport:=raw' in node.input_watch.findings[key]
+
+
+def test_a_calibration_published_once_latched_before_the_node_started_is_used(synthetic_sequence):
+    """A client that publishes camera_info once, transient local, before the graph starts: the
+    node still gets it (its latched subscription) and processes the images."""
+    from depth_fusion_ros.nodes.qos import latched_qos
+
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        info = ros.publisher(CameraInfo, INFO, latched_qos())
+        info.publish(m.camera_info_msg(seq.camera, _header(1), kind=K))
+        node = _node(ros)
+        image, pose = ros.publisher(Image, IMAGE, DEEP), ros.publisher(PoseStamped, POSE, DEEP)
+        depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        assert ros.wait_for_subscribers([image, pose])
+        for i, frame in enumerate(seq.frames[:11]):
+            stamp = m.sec_to_ns(seq.stamps[i])
+            pose.publish(m.pose_stamped_msg(frame.pose, _header(stamp, 'world'), kind=K))
+            image.publish(m.rgb_image_msg(frame.rgb, _header(stamp), kind=K))
+            time.sleep(0.02)
+        assert ros.wait_for(lambda: len(depths) >= 2, 60.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+    assert 'no_camera_info' not in snap.dropped and snap.received.get('camera_info', 0) >= 1

@@ -59,7 +59,7 @@ from .image_input import (
 from .info_wait import AwaitingCalibration
 from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
-from .qos import qos_profile
+from .qos import latched_qos, qos_profile
 
 NODE_NAME = 'multi_view_node'
 
@@ -285,6 +285,10 @@ class MultiViewNode(DepthFusionNode):
         self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), int(p['max_pending_images']))
         self.worker = self.make_worker('multi_view', self._process, on_lost=self._on_keyframe_lost)
         self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
+        # A client that publishes its calibration once, latched (transient local), sent it before
+        # this node existed: only a transient-local subscription gets that sample, and it does not
+        # match the usual volatile publisher, so both are kept (a latched one then arrives twice).
+        self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, latched_qos())
         pose_qos = qos_profile(str(p['input_qos']), int(p['pose_qos_depth']))
         self.pose_input = robot_inputs.PoseSubscription(
             self, TOPIC_POSE, str(p['pose_type']), self._on_pose, pose_qos
