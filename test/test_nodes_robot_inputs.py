@@ -333,3 +333,31 @@ def test_a_calibration_published_once_latched_before_the_node_started_is_used(sy
         assert ros.wait_for(lambda: len(depths) >= 2, 60.0), node.stats.snapshot().summary()
         snap = node.stats.snapshot()
     assert 'no_camera_info' not in snap.dropped and snap.received.get('camera_info', 0) >= 1
+
+
+def test_best_effort_publishers_are_followed_instead_of_never_matched(synthetic_sequence):
+    """A client publishing everything with qos_profile_sensor_data (best effort) to a node left
+    at input_qos: reliable: each input steps down to best effort once (a counted note) and the
+    keyframes come out; no other subscription complains."""
+    from rclpy.qos import qos_profile_sensor_data
+
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        node = _node(ros)
+        image = ros.publisher(Image, IMAGE, qos_profile_sensor_data)
+        info = ros.publisher(CameraInfo, INFO, qos_profile_sensor_data)
+        pose = ros.publisher(PoseStamped, POSE, qos_profile_sensor_data)
+        depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        assert ros.wait_for(lambda: node.stats.snapshot().noted.get('qos_best_effort', 0) == 3, 10.0), (
+            node.stats.snapshot().summary()
+        )
+        assert ros.wait_for_subscribers([image, info, pose])
+        for i, frame in enumerate(seq.frames[:11]):
+            stamp = m.sec_to_ns(seq.stamps[i])
+            pose.publish(m.pose_stamped_msg(frame.pose, _header(stamp, 'world'), kind=K))
+            info.publish(m.camera_info_msg(seq.camera, _header(stamp), kind=K))
+            image.publish(m.rgb_image_msg(frame.rgb, _header(stamp), kind=K))
+            time.sleep(0.03)
+        assert ros.wait_for(lambda: len(depths) >= 2, 60.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+    assert snap.noted['qos_best_effort'] == 3 and not snap.dropped, snap.summary()

@@ -165,7 +165,24 @@ class DepthFusionNode(Node):
         )
         self.stats.noted('stream_restart', message)
 
-    def subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None], qos: Any) -> Any:
+    def subscribe_input(self, msg_type: type, topic: str, callback: Callable[[Any], None], qos: Any) -> Any:
+        """:meth:`subscribe` for an input from outside the graph (a camera, a SLAM): made again
+        best effort if a best-effort publisher cannot match it (reliability.py). Returns the
+        :class:`~.reliability.FollowsBestEffort` holding the subscription."""
+        from .reliability import FollowsBestEffort
+
+        return FollowsBestEffort(
+            self, topic, qos, lambda q, events: self.subscribe(msg_type, topic, callback, q, events)
+        )
+
+    def subscribe(
+        self,
+        msg_type: type,
+        topic: str,
+        callback: Callable[[Any], None],
+        qos: Any,
+        event_callbacks: Any = None,
+    ) -> Any:
         """``create_subscription`` whose callback can never take the node down.
 
         An exception escaping a callback ends ``spin`` and so the node. Every expected problem
@@ -184,7 +201,7 @@ class DepthFusionNode(Node):
                 self.stats.dropped('callback_error', f'{topic}: {type(exc).__name__}: {exc}')
                 self.get_logger().debug(traceback.format_exc())
 
-        return self.create_subscription(msg_type, topic, guarded, qos)
+        return self.create_subscription(msg_type, topic, guarded, qos, event_callbacks=event_callbacks)
 
     def create_wall_timer(self, period: float, callback: Callable[[], None]) -> Any:
         """A timer on the steady clock: with ``use_sim_time`` a paused or finished bag stops ROS

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from rclpy.qos import DurabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
 from ..camera import PinholeCamera
@@ -60,6 +61,7 @@ from .info_wait import AwaitingCalibration
 from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .qos import latched_qos, qos_profile
+from .reliability import ignore_incompatible
 
 NODE_NAME = 'multi_view_node'
 
@@ -284,11 +286,9 @@ class MultiViewNode(DepthFusionNode):
         self.events = GraphEvents(self)
         self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), int(p['max_pending_images']))
         self.worker = self.make_worker('multi_view', self._process, on_lost=self._on_keyframe_lost)
-        self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
-        # A client that publishes its calibration once, latched (transient local), sent it before
-        # this node existed: only a transient-local subscription gets that sample, and it does not
-        # match the usual volatile publisher, so both are kept (a latched one then arrives twice).
-        self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, latched_qos())
+        self.subscribe_input(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
+        self._latched_info: Any = None
+        self._latched_info_timer = self.create_wall_timer(0.25, self._follow_latched_info)
         pose_qos = qos_profile(str(p['input_qos']), int(p['pose_qos_depth']))
         self.pose_input = robot_inputs.PoseSubscription(
             self, TOPIC_POSE, str(p['pose_type']), self._on_pose, pose_qos
@@ -319,6 +319,24 @@ class MultiViewNode(DepthFusionNode):
             return
         for _, image_msg in self.awaiting_info.release():
             self._on_image(image_msg, counted=True)
+
+    def _follow_latched_info(self) -> None:
+        """Also subscribe transient local once a latched camera_info publisher shows up.
+
+        A client that publishes its calibration once, latched, sent it before this node
+        existed: only a transient-local subscription gets that sample. Such a subscription does
+        not match the usual volatile publisher, whose process would then warn about an
+        incompatible QoS at every start, so it is made only for a latched publisher (its
+        sample then arrives twice, which changes nothing).
+        """
+        topic = self.resolve_topic_name(TOPIC_CAMERA_INFO)
+        infos = self.get_publishers_info_by_topic(topic)
+        if not any(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos):
+            return
+        self._latched_info_timer.cancel()
+        self._latched_info = self.subscribe(
+            CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, latched_qos(), ignore_incompatible()
+        )
 
     def _on_pose(self, msg: Any) -> None:
         self.stats.received('pose')

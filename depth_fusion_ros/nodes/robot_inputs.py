@@ -98,7 +98,7 @@ def subscribe_image(node: Any, topic: str, callback: Callable[[Any], None], qos:
     ``camera/rgb/image_color/compressed`` would have stayed where it was).
     """
     name = image_topic_for(node.resolve_topic_name(topic), transport)
-    node.subscribe(image_message_class(transport), name, callback, qos)
+    node.subscribe_input(image_message_class(transport), name, callback, qos)
     return name
 
 
@@ -213,10 +213,11 @@ class PoseSubscription:
 
     def _subscribe(self, pose_type: str) -> None:
         if self._subscription is not None:
-            self.node.destroy_subscription(self._subscription)
+            self.qos = self._subscription.qos  # a step down to best effort stays
+            self._subscription.close()
             self._subscription = self.subscribed_type = None
         self.subscribed_type = pose_type
-        self._subscription = self.node.subscribe(
+        self._subscription = self.node.subscribe_input(
             pose_message_class(pose_type), self.topic, self.callback, self.qos
         )
 

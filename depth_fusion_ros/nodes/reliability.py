@@ -1,0 +1,98 @@
+"""Inputs that follow a best-effort publisher instead of never matching it.
+
+A reliable subscription does not match a best-effort publisher (DDS: the offered reliability
+must be at least the requested one). Camera drivers, and many clients, publish images with
+``qos_profile_sensor_data`` (best effort); with the nodes' default ``input_qos: reliable`` such
+a topic delivered nothing, and the only sign was rmw's warning about an incompatible QoS. A
+best-effort subscription matches both kinds but gives up the repair of lost samples, so the
+nodes keep asking for reliable delivery and step down only when a publisher cannot give it:
+on the incompatible-QoS event (reliability) of an input subscription, it is made again best
+effort, once, with a warning and a counted note (``qos_best_effort``).
+
+The swap runs on a timer, not in the event callback: the event belongs to the subscription
+being replaced.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy
+
+#: seconds between looks for subscriptions to step down (the swap's timer)
+SWAP_PERIOD = 0.2
+
+
+def best_effort(qos: QoSProfile) -> QoSProfile:
+    """``qos`` with best-effort reliability (history, depth and durability kept)."""
+    return QoSProfile(
+        history=qos.history,
+        depth=qos.depth,
+        reliability=ReliabilityPolicy.BEST_EFFORT,
+        durability=qos.durability,
+    )
+
+
+def ignore_incompatible() -> SubscriptionEventCallbacks:
+    """Event callbacks that say nothing about an incompatible publisher (a subscription that
+    is meant to match only some publishers, e.g. the latched twin of a volatile one)."""
+    return SubscriptionEventCallbacks(incompatible_qos=lambda status: None)
+
+
+class FollowsBestEffort:
+    """Watches one input subscription and makes it again best effort when a best-effort
+    publisher cannot match it.
+
+    ``make(qos, event_callbacks)`` creates the subscription (and returns it); ``replace(old)``
+    is called with the previous subscription to destroy before the new one is made.
+    """
+
+    def __init__(
+        self,
+        node: Any,
+        topic: str,
+        qos: QoSProfile,
+        make: Callable[[QoSProfile, SubscriptionEventCallbacks], Any],
+    ) -> None:
+        self.node = node
+        self.topic = topic
+        self.qos = qos
+        self._make = make
+        self._step_down = False
+        self.subscription = make(qos, self.event_callbacks())
+        self._timer = node.create_wall_timer(SWAP_PERIOD, self._swap) if self.reliable else None
+
+    @property
+    def reliable(self) -> bool:
+        return self.qos.reliability == ReliabilityPolicy.RELIABLE
+
+    def event_callbacks(self) -> SubscriptionEventCallbacks:
+        return SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible)
+
+    def _on_incompatible(self, status: Any) -> None:
+        if self.reliable and status.last_policy_kind == QoSPolicyKind.RELIABILITY:
+            self._step_down = True
+
+    def _swap(self) -> None:
+        if not self._step_down:
+            return
+        self._step_down = False
+        self.node.destroy_subscription(self.subscription)
+        self.qos = best_effort(self.qos)
+        self.subscription = self._make(self.qos, self.event_callbacks())
+        if self._timer is not None:
+            self._timer.cancel()
+        message = (
+            f'{self.node.resolve_topic_name(self.topic)}: a publisher offers best effort only, which a '
+            'reliable subscription never matches; subscribed best effort (input_qos: sensor_data does '
+            'so from the start)'
+        )
+        self.node.stats.noted('qos_best_effort', message)
+
+    def close(self) -> None:
+        """Destroy the subscription (and stop watching it)."""
+        if self._timer is not None:
+            self._timer.cancel()
+        self.node.destroy_subscription(self.subscription)
