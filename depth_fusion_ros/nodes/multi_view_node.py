@@ -329,6 +329,9 @@ class MultiViewNode(DepthFusionNode):
         incompatible QoS at every start, so it is made only for a latched publisher (its
         sample then arrives twice, which changes nothing).
         """
+        if self.camera_input.calibration is not None:  # a calibration came: nothing to wait for
+            self._latched_info_timer.cancel()
+            return
         topic = self.resolve_topic_name(TOPIC_CAMERA_INFO)
         infos = self.get_publishers_info_by_topic(topic)
         if not any(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos):
