@@ -282,15 +282,8 @@ def test_run_cli_is_paced_unless_realtime(tmp_path):
     # a paced replay fuses every keyframe with all its points; a live one may shed them
     assert p['fusion_node']['load_max_points'] == 0
     assert 'load_max_points' not in r.get('fusion_node', {})
-    # composed, one keyframe in flight; as processes the replayer's own default; what the user
-    # set is applied later, over these, and is not replaced here
-    assert p['bag_replayer']['max_keyframes_in_flight'] == 1
-    assert 'max_keyframes_in_flight' not in r['bag_replayer']
-    for extra, expected in (
-        (['--processes'], None),
-        (['--set', 'bag_replayer.max_keyframes_in_flight=3'], None),
-    ):
-        o = paced_overrides(
-            run_cli.options_from_args(parser.parse_args(['run', '--bag', 'x.bag', *extra])), {}
-        )
-        assert o['bag_replayer'].get('max_keyframes_in_flight') == expected
+    # the replayer's own default (one keyframe in flight) unless the runner is told otherwise
+    assert 'max_keyframes_in_flight' not in p['bag_replayer']
+    from depth_fusion_ros.nodes.bag_replayer import REPLAYER_PARAMS
+
+    assert {s.name: s.default for s in REPLAYER_PARAMS}['max_keyframes_in_flight'] == 1

@@ -45,6 +45,9 @@ log = logging.getLogger(__name__)
 
 BENCH_DIR = Path('artifacts') / 'bench'
 SOAK_ENV = 'DEPTH_FUSION_BENCH_SOAK_SECONDS'
+#: Keyframes in flight of a flat-out run (paced, faster than recorded): its figure is the
+#: highest sustainable rate, which two pipelined keyframes raise (a replay's default is one).
+FLAT_OUT_KEYFRAMES_IN_FLIGHT = 2
 MODES_ENV = 'DEPTH_FUSION_BENCH_GRAPH_MODES'
 RUNS_ENV = 'DEPTH_FUSION_BENCH_GRAPH_RUNS'
 DEFAULT_RUNS = (
@@ -212,6 +215,12 @@ def measure_run(
     options = graph_options(opts, bag, processes, on_progress=sampler, progress_period=0.5)
     options.realtime = realtime
     options.rate = rate
+    if (
+        rate > 1.0
+        and not realtime
+        and 'max_keyframes_in_flight' not in env_overrides().get('bag_replayer', {})
+    ):
+        options.max_keyframes_in_flight = FLAT_OUT_KEYFRAMES_IN_FLIGHT
     graph = GraphRun(options)
     result = graph.run()
     result.exit_codes = dict(graph.exit_codes)  # which processes ran: only their logs count

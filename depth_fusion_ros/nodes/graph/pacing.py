@@ -25,13 +25,6 @@ from .options import RunOptions
 from .param_merge import param_from_file, read_params_file
 from .topics import GRAPH_NODES, REPLAYER, graph_nodes
 
-#: Chosen keyframes in flight in a paced composed replay when the user set none (the
-#: replayer's own default, 2, stays for processes). In one process the nodes share the cores
-#: and one interpreter lock, and a second keyframe in flight mostly waits in the fusion node's
-#: queue: median latency 333-346 against 197-205 ms, for 5.0-5.2 against 4.3-4.4 keyframes/s
-#: (docs/performance.md, "One keyframe in flight when composed").
-COMPOSED_KEYFRAMES_IN_FLIGHT = 1
-
 
 def paced_overrides(options: RunOptions, overrides: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """``overrides`` with the replayer's start and pacing settings and the nodes' queue policy.
@@ -59,8 +52,6 @@ def paced_overrides(options: RunOptions, overrides: dict[str, dict[str, Any]]) -
             replayer[name] = value
     if paced and options.max_keyframes_in_flight is not None:
         replayer['max_keyframes_in_flight'] = int(options.max_keyframes_in_flight)
-    elif paced and not options.processes and unset(REPLAYER[0], 'max_keyframes_in_flight'):
-        replayer['max_keyframes_in_flight'] = COMPOSED_KEYFRAMES_IN_FLIGHT
     if paced:
         for node in GRAPH_NODES:
             if unset(node, 'queue_policy'):
