@@ -352,12 +352,19 @@ def test_best_effort_publishers_are_followed_instead_of_never_matched(synthetic_
             node.stats.snapshot().summary()
         )
         assert ros.wait_for_subscribers([image, info, pose])
-        for i, frame in enumerate(seq.frames[:11]):
-            stamp = m.sec_to_ns(seq.stamps[i])
-            pose.publish(m.pose_stamped_msg(frame.pose, _header(stamp, 'world'), kind=K))
-            info.publish(m.camera_info_msg(seq.camera, _header(stamp), kind=K))
-            image.publish(m.rgb_image_msg(frame.rgb, _header(stamp), kind=K))
-            time.sleep(0.03)
-        assert ros.wait_for(lambda: len(depths) >= 2, 60.0), node.stats.snapshot().summary()
+        # Best effort repairs nothing: what is sent before the new subscriptions know the
+        # publishers is lost (a loaded CI machine once lost a whole pass), so the stream goes
+        # on, as a camera's would, until keyframes come out (each pass later: a new stream).
+        for n_pass in range(4):
+            for i, frame in enumerate(seq.frames[:11]):
+                stamp = m.sec_to_ns(seq.stamps[i] + 10.0 * n_pass)
+                pose.publish(m.pose_stamped_msg(frame.pose, _header(stamp, 'world'), kind=K))
+                info.publish(m.camera_info_msg(seq.camera, _header(stamp), kind=K))
+                image.publish(m.rgb_image_msg(frame.rgb, _header(stamp), kind=K))
+                time.sleep(0.03)
+            if ros.wait_for(lambda: len(depths) >= 2, 20.0):
+                break
+        assert len(depths) >= 2, node.stats.snapshot().summary()
         snap = node.stats.snapshot()
-    assert snap.noted['qos_best_effort'] == 3 and not snap.dropped, snap.summary()
+    assert snap.noted['qos_best_effort'] == 3 and snap.received.get('image', 0) >= 11, snap.summary()
+    assert set(snap.dropped) <= {'no_pose', 'pose_gap'}, snap.summary()  # a pass cut short by loss
