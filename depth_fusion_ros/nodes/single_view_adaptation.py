@@ -210,9 +210,10 @@ class NodeAdaptation:
                 'multi-view term only while this lasts (said once)'
             )
         if not self.online.submit(sample):
-            self.node.stats.dropped(
-                'adapt_queue_full', 'training fell behind: oldest keyframe not trained on'
-            )
+            # A note, not a drop: the keyframe's depth was published; only its training is
+            # skipped (as a drop it made the node's drop share, and its diagnostics, read as if
+            # most keyframes were lost whenever training on 2 cores fell behind).
+            self.node.stats.noted('adapt_queue_full', 'training fell behind: oldest keyframe not trained on')
 
     # --- results --------------------------------------------------------------------------------
 
