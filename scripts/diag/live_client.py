@@ -118,6 +118,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--start-delay', type=float, default=3.0, help='s after discovery, then play')
     p.add_argument('--compressed', action='store_true', help='publish JPEG CompressedImage (image_transport)')
     p.add_argument('--drain', type=float, default=8.0, help='seconds without a fused depth that end the wait')
+    p.add_argument(
+        '--no-wait-output',
+        dest='wait_output',
+        action='store_false',
+        help='start as soon as the graph subscribes to the images, before this client sees the fused output',
+    )
     args = p.parse_args(argv)
     seq = args.sequence
     width, height, k, d, model = camera(args.camera or seq / 'camera.yaml')
@@ -135,7 +141,15 @@ def main(argv: list[str] | None = None) -> int:
     node = rclpy.create_node('independent_live_client')
     client = Client(node, args)
     deadline = time.monotonic() + 30.0
-    while client.image_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+
+    def matched() -> bool:
+        # the graph subscribed to the images, and this client knows the fusion node's writer
+        # (without the second, its first fused depths can be published before it listens)
+        return client.image_pub.get_subscription_count() > 0 and (
+            not args.wait_output or node.count_publishers('/depth_fusion/fused/depth') > 0
+        )
+
+    while not matched() and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.1)
     end_delay = time.monotonic() + args.start_delay
     while time.monotonic() < end_delay:
