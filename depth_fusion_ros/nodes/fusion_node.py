@@ -5,7 +5,8 @@ times (the network and the multi-view estimate run in parallel in other nodes), 
 them by **exact header stamp**, together with the keyframe's camera_info (and its image, when
 it has come, to colour the points). A pairing waits at most ``pair_timeout`` seconds; because every upstream
 stream is in stamp order, a pairing that misses a part which its stream has already passed
-is hopeless and dropped at once. Both bounds keep memory flat whatever the input.
+is hopeless and dropped at once. Both bounds keep memory flat whatever the input. The pairing
+is ``map_node``'s too (``nodes/stamp_pairing.py``).
 
 A complete pairing goes to the worker: stage 1 of the point selection (``fusion.stage1``:
 the best ``fusion.stage1_fraction`` of the sweep's points by score, every estimate of the
@@ -27,9 +28,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -50,9 +50,10 @@ from .base import DepthFusionNode, run_node
 from .diagnostics import Requirement
 from .fusion_warmup import exit_now_if_compiling, finish_compiling, start_kernels
 from .graph_events import EVENT_FUSED, GraphEvents
-from .image_input import InputError, depth_from_message, header_stamp_ns
+from .image_input import InputError, depth_from_message
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .qos import latched_qos
+from .stamp_pairing import Pairing, StampPairer
 
 NODE_NAME = 'fusion_node'
 
@@ -144,9 +145,6 @@ LOAD_MAX_POINTS = 2048
 WARMING_MAX_POINTS = 512
 
 REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
-#: How many closed keyframe stamps are remembered to recognise late parts.
-CLOSED_MEMORY = 256
-
 #: Common parameter defaults of this node: a completed pairing holds the work of two nodes,
 #: so a few are kept rather than one dropped.
 COMMON_DEFAULTS = {'queue_size': 4}
@@ -232,18 +230,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
 
 
 @dataclass
-class _Pairing:
-    """The parts of one keyframe received so far."""
-
-    stamp_ns: int
-    first_seen: float
-    parts: dict[str, Any] = field(default_factory=dict)
-    header: Any = None
-
-
-@dataclass
 class _FusionJob:
-    pairing: _Pairing
+    pairing: Pairing
     received_at: float
 
 
@@ -279,12 +267,21 @@ class FusionNode(DepthFusionNode):
         self.consistency_config = build_dataclass(ConsistencyConfig, p, 'consistency')
         self.announced_kind: str | None = None
         self.announced_method: str | None = None
-        self.pending: dict[int, _Pairing] = {}
-        #: Stamps of keyframes already fused or dropped (the most recent ``CLOSED_MEMORY``).
-        self._closed: OrderedDict[int, None] = OrderedDict()
         self.required = REQUIRED_PARTS
         self.want_rgb = bool(p['publish_points'] and p['points_color'])
-        self._stamp_guards = {part: self.stamp_guard(part) for part in (*REQUIRED_PARTS, 'rgb', 'mv_std')}
+        self.pairer = StampPairer(
+            REQUIRED_PARTS,
+            ('rgb', 'mv_std'),
+            timeout=float(p['pair_timeout']),
+            max_pending=int(p['max_pending_keyframes']),
+            on_complete=lambda pairing: self.worker.submit(_FusionJob(pairing, time.monotonic())),
+            on_drop=self.stats.dropped,
+            restart_after=float(p['stream_restart_jump']),
+            on_restart=lambda part, stamp_ns: self.note_stream_restart(
+                part, stamp_ns, 'the keyframes of the previous one still waiting time out'
+            ),
+            on_dropped_keyframe=lambda stamp_ns, reason: self.events.dropped(stamp_ns, reason),
+        )
 
         self._depth_pub = self.create_publisher(Image, TOPIC_FUSED_DEPTH, self.output_qos)
         self._confidence_pub = self.create_publisher(Image, TOPIC_FUSED_CONFIDENCE, self.output_qos)
@@ -365,72 +362,16 @@ class FusionNode(DepthFusionNode):
             return
         self._add_part(msg, part, depth)
 
+    @property
+    def pending(self) -> dict[int, Pairing]:
+        """Keyframes waiting for a part, by stamp (the pairer's)."""
+        return self.pairer.pending
+
     def _add_part(self, msg: Any, part: str, value: Any) -> None:
-        received_at = time.monotonic()
-        stamp_ns = header_stamp_ns(msg)
-        try:
-            if self._stamp_guards[part].check(stamp_ns):
-                # the closed stamps were the previous stream's: the new one may use them again
-                self._closed.clear()
-                self.note_stream_restart(
-                    part, stamp_ns, 'the keyframes of the previous one still waiting time out'
-                )
-        except InputError as exc:
-            self.stats.dropped(exc.reason, str(exc))
-            return
-        if stamp_ns in self._closed:
-            # Its keyframe was fused or given up already: a straggler must not open a new pairing.
-            if part in self.required:
-                self.stats.dropped(
-                    'late_part', f'{part} of keyframe {messages.ns_to_sec(stamp_ns):.3f} came too late'
-                )
-            return
-        self._drop_passed(part, stamp_ns)
-        pairing = self.pending.get(stamp_ns)
-        if pairing is not None and part in pairing.parts:  # a new stream reuses an old keyframe's stamp
-            self._close(stamp_ns, 'stream_restart', 'replaced by a new stream with the same stamp')
-            pairing = None
-        if pairing is None:
-            pairing = self.pending[stamp_ns] = _Pairing(stamp_ns, received_at, header=msg.header)
-            self._limit_pending()
-        pairing.parts[part] = value
-        if all(k in pairing.parts for k in self.required):
-            self._close(stamp_ns)
-            self.worker.submit(_FusionJob(pairing, received_at))
-
-    def _close(self, stamp_ns: int, reason: str = '', message: str = '') -> _Pairing:
-        """Take a pairing out of the pending set (completed, or dropped for ``reason``)."""
-        pairing = self.pending.pop(stamp_ns)
-        self._closed[stamp_ns] = None
-        while len(self._closed) > CLOSED_MEMORY:
-            self._closed.popitem(last=False)
-        if reason:
-            self.stats.dropped(
-                reason, f'keyframe {messages.ns_to_sec(stamp_ns):.3f} {message}: {self._missing(pairing)}'
-            )
-            self.events.dropped(stamp_ns, reason)
-        return pairing
-
-    def _drop_passed(self, part: str, stamp_ns: int) -> None:
-        """Pairings older than ``stamp_ns`` still missing ``part`` will never get it: drop them now."""
-        if part not in self.required:
-            return
-        for old in sorted(s for s, pr in self.pending.items() if s < stamp_ns and part not in pr.parts):
-            self._close(old, 'unpaired', f'will not get its {part}')
-
-    def _limit_pending(self) -> None:
-        while len(self.pending) > int(self.params['max_pending_keyframes']):
-            self._close(min(self.pending), 'pair_overflow', 'dropped: too many keyframes waiting')
+        self.pairer.add(msg.header, part, value)
 
     def _expire(self) -> None:
-        now = time.monotonic()
-        timeout = float(self.params['pair_timeout'])
-        for stamp_ns in [s for s, pr in self.pending.items() if now - pr.first_seen > timeout]:
-            self._close(stamp_ns, 'pair_timeout', f'waited {timeout:g} s')
-
-    def _missing(self, pairing: _Pairing) -> str:
-        missing = [k for k in self.required if k not in pairing.parts]
-        return 'missing ' + ', '.join(missing) if missing else 'complete'
+        self.pairer.expire(time.monotonic())
 
     def diagnostic_requirements(self) -> list[Requirement]:
         """Each half of a keyframe needs the other (a dead single-view or multi-view node)."""

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..data import messages
+from .image_input import InputError, StampGuard
 
 #: How many closed keyframe stamps are remembered to recognise late parts.
 CLOSED_MEMORY = 256
@@ -48,6 +49,7 @@ class StampPairer:
         on_drop: Callable[[str, str], None],
         restart_after: float = 0.0,
         on_restart: Callable[[str, int], None] | None = None,
+        on_dropped_keyframe: Callable[[int, str], None] | None = None,
     ) -> None:
         self.required = tuple(required)
         self.known = set(required) | set(optional)
@@ -57,10 +59,12 @@ class StampPairer:
         self.on_drop = on_drop
         self.pending: dict[int, Pairing] = {}
         self._closed: OrderedDict[int, None] = OrderedDict()
-        self._last: dict[str, int] = {}
-        #: a part whose stamps jump back this many seconds begins a new stream (0: never)
-        self.restart_after = float(restart_after)
+        #: one stamp guard per part: order, duplicates, and a jump back of ``restart_after`` s
+        #: taken for a new stream (0: never)
+        self._guards = {part: StampGuard(part, restart_after) for part in self.known}
         self.on_restart = on_restart
+        #: told ``(stamp_ns, reason)`` of every keyframe given up (a graph runner's bookkeeping)
+        self.on_dropped_keyframe = on_dropped_keyframe
         self._lock = threading.Lock()
 
     def add(self, header: Any, part: str, value: Any) -> None:
@@ -70,17 +74,13 @@ class StampPairer:
         stamp_ns = messages.stamp_to_ns(header.stamp)
         complete = None
         with self._lock:
-            last = self._last.get(part)
-            restarted = self._restarts(last, stamp_ns)
-            if last is not None and stamp_ns <= last and not restarted:
-                reason = 'duplicate_stamp' if stamp_ns == last else 'stamp_out_of_order'
-                self.on_drop(
-                    f'{reason}_{part}', f'{part} stamp {messages.ns_to_sec(stamp_ns):.3f} is not newer'
-                )
+            try:
+                restarted = self._guards[part].check(stamp_ns)
+            except InputError as exc:
+                self.on_drop(exc.reason, str(exc))
                 return
             if restarted:  # the closed stamps were the previous stream's: the new one reuses them
                 self._closed.clear()
-            self._last[part] = stamp_ns
             if stamp_ns in self._closed:
                 if part in self.required:
                     self.on_drop(
@@ -105,10 +105,6 @@ class StampPairer:
         if restarted and self.on_restart is not None:
             self.on_restart(part, stamp_ns)
 
-    def _restarts(self, last: int | None, stamp_ns: int) -> bool:
-        """Whether ``stamp_ns`` jumps back from ``last`` far enough to begin a new stream."""
-        return last is not None and self.restart_after > 0 and (last - stamp_ns) * 1e-9 >= self.restart_after
-
     def expire(self, now: float) -> None:
         """Drop the keyframes that waited longer than ``timeout``."""
         with self._lock:
@@ -130,4 +126,6 @@ class StampPairer:
                 reason,
                 f'keyframe {messages.ns_to_sec(stamp_ns):.3f} {message}: missing {missing}',
             )
+            if self.on_dropped_keyframe is not None:
+                self.on_dropped_keyframe(stamp_ns, reason)
         return pairing
