@@ -32,6 +32,7 @@ from pathlib import Path
 
 import torch
 
+from ..user_cache import user_cache
 from . import interpolation, weights
 from .weights import Samples, WeightParams
 
@@ -44,8 +45,7 @@ _MAX_SIZE = 1 << 24
 
 
 def cache_dir() -> Path:
-    base = os.environ.get('XDG_CACHE_HOME') or str(Path.home() / '.cache')
-    return Path(base) / 'depth_fusion_ros' / 'aot'
+    return user_cache('aot')
 
 
 def enabled(device: torch.device) -> bool:

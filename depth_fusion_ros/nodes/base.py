@@ -124,6 +124,7 @@ class DepthFusionNode(Node):
         self.input_qos = qos_profile(str(self.params['input_qos']), int(self.params['qos_depth']))
         self.output_qos = qos_profile(str(self.params['output_qos']), int(self.params['qos_depth']))
         self._workers: list[BoundedWorker] = []
+        self._last_restart_note = -float('inf')  # note_stream_restart: one note per new stream
         self._destroyed = False
         period = float(self.params['stats_period'])
         if period > 0:
@@ -156,7 +157,7 @@ class DepthFusionNode(Node):
         part): restarts within ``RESTART_NOTE_GAP`` seconds of the first are one restart.
         """
         now = time.monotonic()
-        if now - getattr(self, '_last_restart_note', -float('inf')) < RESTART_NOTE_GAP:
+        if now - self._last_restart_note < RESTART_NOTE_GAP:
             return
         self._last_restart_note = now
         message = (

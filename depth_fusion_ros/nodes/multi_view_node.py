@@ -405,9 +405,7 @@ class MultiViewNode(DepthFusionNode):
         message of the new stream is taken as it comes.
         """
         (self._pose_stamps if stream == 'image' else self._image_stamps).reset()
-        self.pose_buffer = PoseBuffer(
-            capacity=int(self.params['pose_buffer_size']), max_gap=float(self.params['max_pose_gap'])
-        )
+        self.pose_buffer.clear()
         while self.pending:
             old = self.pending.popleft()
             self.stats.dropped(

@@ -60,9 +60,9 @@ class FollowsBestEffort:
         self.topic = topic
         self.qos = qos
         self._make = make
-        self._step_down = False
+        #: the one-shot timer of a pending step down (none while nothing is incompatible)
+        self._timer: Any = None
         self.subscription = make(qos, self.event_callbacks())
-        self._timer = node.create_wall_timer(SWAP_PERIOD, self._swap) if self.reliable else None
 
     @property
     def reliable(self) -> bool:
@@ -72,18 +72,21 @@ class FollowsBestEffort:
         return SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible)
 
     def _on_incompatible(self, status: Any) -> None:
-        if self.reliable and status.last_policy_kind == QoSPolicyKind.RELIABILITY:
-            self._step_down = True
+        reliability = status.last_policy_kind == QoSPolicyKind.RELIABILITY
+        if self.reliable and reliability and self._timer is None:
+            self._timer = self.node.create_wall_timer(SWAP_PERIOD, self._swap)
+
+    def _cancel_timer(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self.node.destroy_timer(self._timer)
+            self._timer = None
 
     def _swap(self) -> None:
-        if not self._step_down:
-            return
-        self._step_down = False
+        self._cancel_timer()
         self.node.destroy_subscription(self.subscription)
         self.qos = best_effort(self.qos)
         self.subscription = self._make(self.qos, self.event_callbacks())
-        if self._timer is not None:
-            self._timer.cancel()
         message = (
             f'{self.node.resolve_topic_name(self.topic)}: a publisher offers best effort only, which a '
             'reliable subscription never matches; subscribed best effort (input_qos: sensor_data does '
@@ -92,7 +95,6 @@ class FollowsBestEffort:
         self.node.stats.noted('qos_best_effort', message)
 
     def close(self) -> None:
-        """Destroy the subscription (and stop watching it)."""
-        if self._timer is not None:
-            self._timer.cancel()
+        """Destroy the subscription (and a pending step down)."""
+        self._cancel_timer()
         self.node.destroy_subscription(self.subscription)

@@ -27,6 +27,8 @@ import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+from ...user_cache import user_cache
+
 #: What a reader profile for one topic looks like (the package profile holds the defaults').
 READER_TEMPLATE = """  <data_reader profile_name="{topic}">
     <unicastLocatorList>
@@ -105,8 +107,7 @@ def reader_topics(profile_text: str) -> set[str]:
 
 def derived_profile_dir() -> Path:
     """Where the copies naming other image topics are written (the user's cache)."""
-    root = Path(os.environ.get('XDG_CACHE_HOME') or Path.home() / '.cache')
-    return root / 'depth_fusion_ros' / 'fastdds'
+    return user_cache('fastdds')
 
 
 def profile_with_udp_readers(profile: Path, topics: Iterable[str], cache: Path | None = None) -> Path:

@@ -36,6 +36,7 @@ from typing import Any
 
 from ..gil import set_switch_interval
 from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
+from ..threads import node_threads
 from .dds import apply_fastdds_profile
 from .inputs import check_inputs
 from .isolation import Isolation, isolate
@@ -242,8 +243,8 @@ class GraphRun:
         env = os.environ.copy()
         env.setdefault('PYTHONUNBUFFERED', '1')
         threads = self.options.threads_per_node
-        if threads is None and 'OMP_NUM_THREADS' not in env:
-            threads = max(1, (os.cpu_count() or 1) // len(GRAPH_NODES))
+        if threads is None:
+            threads = node_threads(env)  # the share a node script takes (None: OMP_NUM_THREADS)
         if threads is not None:
             env['OMP_NUM_THREADS'] = str(threads)
         for name, (script, module) in self.graph_nodes.items():
