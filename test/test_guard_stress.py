@@ -30,12 +30,16 @@ def _steps(poses: np.ndarray) -> tuple[float, float]:
     )
 
 
-#: Every case with seed 0, plus a rotation seed whose low-parallax points are consistent and
-#: 20 % too near everywhere (the global scale they give made it 1.34x the single-view MAE);
-#: each with the filter (the default multi-view method) and the sweep.
+#: Every case with seed 0, plus rotation seeds where the filter's few precise estimates were
+#: biased together: seed 5 (consistent, 20 % too near everywhere: the global scale they gave
+#: made it 1.34x the single-view MAE), seeds 2 and 29 (9-10 % of the measured estimates passed
+#: the precision test, half of them the front surface's depth carried across its outline: 1.09x
+#: and 1.23x with ``filter.min_published_fraction`` 0.05); each with the filter (the default
+#: multi-view method) and the sweep.
 CASES = [
     (name, seed, method)
-    for name, seed in [(name, 0) for name in sorted(STRESS_CASES)] + [('rotation', 5)]
+    for name, seed in [(name, 0) for name in sorted(STRESS_CASES)]
+    + [('rotation', 5), ('rotation', 2), ('rotation', 29)]
     for method in ('filter', 'sweep')
 ]
 
