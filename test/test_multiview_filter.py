@@ -216,6 +216,29 @@ def test_estimates_are_propagated_into_the_next_keyframe(synthetic_sequence):
     assert np.median(_abs_rel(r.depth, gt, many)) < 0.03
 
 
+def test_the_streams_first_keyframe_asks_one_measurement_more(synthetic_sequence):
+    """In the first keyframe nothing is carried: an estimate is published after
+    ``first_keyframe_min_updates`` measurements; a later keyframe keeps ``min_updates``."""
+    seq = synthetic_sequence
+    f = DepthFilter(seq.camera)
+    i = 0
+    while f.stats.updated < 2:  # two measuring frames: estimates with 2 measurements at most
+        f.process(seq.frames[i].gray, seq.frames[i].pose)
+        i += 1
+    assert f.key.first and int((f.key.updates >= 2).sum()) > 0
+    updates = np.nan_to_num(f.result().updates)
+    assert (f.result().density == 0.0) or updates[updates > 0].min() >= 3
+    off = DepthFilter(seq.camera, FilterConfig(first_keyframe_min_updates=1))
+    for fr in seq.frames[:i]:
+        off.process(fr.gray, fr.pose)
+    assert np.nanmin(off.result().updates) == 2
+    while f.stats.keyframes < 2:
+        f.process(seq.frames[i].gray, seq.frames[i].pose)
+        i += 1
+    assert not f.key.first  # estimates were carried into it
+    assert np.nanmin(f.result().updates) < FilterConfig().first_keyframe_min_updates
+
+
 def test_outliers_lower_the_inlier_ratio():
     mu, var = torch.tensor([0.5, 0.5]), torch.tensor([1e-4, 1e-4])
     prior = BetaGaussian(mu, var, torch.tensor([10.0, 10.0]), torch.tensor([10.0, 10.0]))

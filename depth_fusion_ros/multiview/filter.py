@@ -134,6 +134,7 @@ class DepthFilter:
         with torch.no_grad():
             if self.key is None:
                 self.key = self._new_keyframe(image, describe(), T_wf)
+                self.key.first = True
                 self.stats.keyframes += 1
                 return KEYFRAME
             key = self.key
@@ -235,7 +236,8 @@ class DepthFilter:
 
     def _published(self, key: FilterKeyframe) -> torch.Tensor:
         c, st = self.config, key.state
-        measured = (key.updates >= c.min_updates) & (st.inlier_ratio >= c.publish_inlier_ratio)
+        need = max(c.min_updates, c.first_keyframe_min_updates) if key.first else c.min_updates
+        measured = (key.updates >= need) & (st.inlier_ratio >= c.publish_inlier_ratio)
         published = (
             measured
             & (torch.sqrt(st.var) <= c.max_relative_sigma * st.mu)
@@ -314,6 +316,7 @@ class DepthFilter:
         new = self._new_keyframe(image, desc, T_wn)
         c = self.config
         rows = torch.nonzero(old.updates > 0, as_tuple=True)[0]
+        new.first = old.first and rows.numel() == 0  # nothing to carry: still the stream's first
         T_nk = relative_pose(old.pose, T_wn)
         warped = warp_estimates(
             old.us[rows],

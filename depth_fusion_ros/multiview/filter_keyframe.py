@@ -31,6 +31,9 @@ class FilterKeyframe:
     prior: torch.Tensor  # (M,) bool: mu, var hold a prior (measured, carried or filled): short searches
     cost: torch.Tensor  # (M,) last matching cost
     attempts: torch.Tensor  # (M,) long searches spent on a pixel without an estimate
+    #: The stream's first keyframe (or the first after a restart): nothing was carried into it,
+    #: so every estimate was born here (``filter.first_keyframe_min_updates``).
+    first: bool = False
     # (padded image,) long: the row at each pixel of the image padded by seed_radius, M where
     # none (built on first use: the seed bracket's neighbour lookups)
     padded_rows: torch.Tensor | None = None

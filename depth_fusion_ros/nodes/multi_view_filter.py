@@ -57,6 +57,7 @@ FILTER_LIMITS: dict[str, Any] = {
     'min_inlier_ratio': (0.0, 1.0),
     'publish_inlier_ratio': (0.0, 1.0),
     'min_updates': (1, 100000),
+    'first_keyframe_min_updates': (1, 100000),
     'score_relative_power': (0.0, 10.0),
     'max_relative_sigma': (1e-6, None),
     'min_published_fraction': (0.0, 1.0),
