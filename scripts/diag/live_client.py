@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         if len(client.fused) != seen:
             seen, last = len(client.fused), time.monotonic()
 
-    fused_err, single_err, worse, latencies = [], [], 0, []
+    fused_err, single_err, worse, latencies, ratios = [], [], 0, [], []
     maps: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}  # the depth camera -> fused grid
     for key, (fused, received) in sorted(client.fused.items()):
         latencies.append(received - client.sent_at.get(key, received))
@@ -223,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
             single_err.append(float(np.abs(single - gt)[valid].mean()))
         fused_err.append(float(np.abs(fused - gt)[valid].mean()))
         worse += paired and fused_err[-1] > single_err[-1]
+        if paired and single_err[-1] > 0:
+            ratios.append(round(fused_err[-1] / single_err[-1], 3))
     summary = {
         'sequence': seq.name,
         'frames_sent': len(images),
@@ -232,6 +234,8 @@ def main(argv: list[str] | None = None) -> int:
         'fused_mae_m': round(float(np.mean(fused_err)), 4) if fused_err else None,
         'single_view_mae_m': round(float(np.mean(single_err)), 4) if single_err else None,
         'fused_worse_keyframes': int(worse),
+        # fused / single-view MAE per paired keyframe, in stream order (1.0: the single view as it is)
+        'fused_over_single': ratios,
         'latency_median_s': round(float(np.median(latencies)), 3) if latencies else None,
     }
     print(json.dumps(summary))
