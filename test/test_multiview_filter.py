@@ -317,6 +317,10 @@ def test_a_noise_selected_sliver_is_not_published(synthetic_sequence):
     signed = (sliver.depth[valid] - gt[valid]) / gt[valid]
     assert np.median(signed) < -0.1  # too near, together
     assert published[FilterConfig().min_published_fraction].density == 0.0
+    # and says so (multi_view_node notes it as filter_minority)
+    share = published[FilterConfig().min_published_fraction].withheld_fraction
+    assert share is not None and 0 < share < FilterConfig().min_published_fraction
+    assert published[0.0].withheld_fraction is None
     default = FilterConfig().min_published_fraction
     for fraction in (0.0, default):
         f = DepthFilter(synthetic_sequence.camera, FilterConfig(min_published_fraction=fraction))
@@ -324,6 +328,7 @@ def test_a_noise_selected_sliver_is_not_published(synthetic_sequence):
             f.process(fr.gray, fr.pose)
         published[('room', fraction)] = f.result().density
     assert published[('room', 0.0)] == published[('room', default)] > 0.1
+    assert f.result().withheld_fraction is None
 
 
 def test_frames_without_baseline_are_skipped(synthetic_sequence):

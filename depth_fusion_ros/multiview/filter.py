@@ -101,6 +101,9 @@ class DepthFilter:
         self.rho_range = self.matching.rho_range
         self.margin = float(patch_reach(self.matching.patch, self.matching.patch_stride))
         self.key: FilterKeyframe | None = None
+        #: Share of the measured estimates that passed the precision test when the last read
+        #: published nothing for being under ``min_published_fraction`` (None otherwise).
+        self.withheld_fraction: float | None = None
         self._scene = self.config.scene_depth  # scene_depth() of the frame being processed
         self.stats = FilterStats()
         #: Seconds per stage of :meth:`process` (``clock.enabled = True`` to record; the bench does).
@@ -183,6 +186,7 @@ class DepthFilter:
                 torch.zeros(shape, dtype=torch.bool, device=self.device),
             )
         rows = torch.nonzero(self._published(key), as_tuple=True)[0]
+        withheld = self.withheld_fraction
         st = key.state
         mu, var = st.mu[rows], st.var[rows]
         T_tk = None if pose is None else relative_pose(key.pose, validate_pose(pose, 'result pose'))
@@ -194,7 +198,7 @@ class DepthFilter:
             target, mu, var = warped.target, warped.rho, var[warped.source] * warped.scale**4
         candidates = torch.zeros(shape, dtype=torch.bool, device=self.device)
         candidates[target] = True
-        return assemble_result(
+        result = assemble_result(
             cam,
             target,
             mu,
@@ -205,6 +209,8 @@ class DepthFilter:
             candidates,
             self.config.score_relative_power,
         )
+        result.withheld_fraction = withheld
+        return result
 
     def scene_depth(self) -> float:
         """Median depth of the current estimates (m), or ``filter.scene_depth`` before any exists."""
@@ -246,7 +252,9 @@ class DepthFilter:
         )
         # A sliver passing the precision test is the tail the noise selected (min_published_fraction).
         count = float(published.sum())
+        self.withheld_fraction = None
         if 0 < count < c.min_published_fraction * float(measured.sum()):
+            self.withheld_fraction = count / float(measured.sum())
             return torch.zeros_like(published)
         return published
 

@@ -43,6 +43,9 @@ class FilterResult(MultiViewResult):
     variance: np.ndarray | None = None
     inlier_ratio: np.ndarray | None = None
     updates: np.ndarray | None = None
+    #: Set when nothing was published because under ``filter.min_published_fraction`` of the
+    #: measured estimates passed the precision test: that share (the node notes it).
+    withheld_fraction: float | None = None
     method: ClassVar[str] = 'filter'
 
 

@@ -625,6 +625,16 @@ class MultiViewNode(DepthFusionNode):
             neighbours=[f.index for f in job.neighbours],
         )
 
+    def _note_withheld(self, result: Any) -> None:
+        """Say why a filter keyframe has no multi-view depth when the minority rule withheld it."""
+        share = getattr(result, 'withheld_fraction', None)
+        if share is not None:
+            self.stats.noted(
+                'filter_minority',
+                f'only {share:.0%} of the measured estimates passed the precision test '
+                f'(< filter.min_published_fraction): no multi-view depth for this keyframe',
+            )
+
     def _process(self, job: _KeyframeJob) -> None:
         kind = messages.RCLPY
         self._kf_info_pub.publish(messages.camera_info_msg(job.camera, job.header, kind=kind))
@@ -634,6 +644,7 @@ class MultiViewNode(DepthFusionNode):
         self.stats.published('keyframe')
         try:
             result = self._estimate(job)
+            self._note_withheld(result)
             depth, score = result.depth, result.score.astype(np.float32)
             std = np.asarray(result.depth_std, dtype=np.float32)
         except Exception as exc:  # the keyframe is announced: downstream must still hear of it
