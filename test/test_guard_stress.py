@@ -70,6 +70,12 @@ def test_stress_motions_have_the_reported_steps():
     step, deg = _steps(build_world(cfg)[1].poses)
     assert step == pytest.approx(0.15, rel=0.02) and deg == pytest.approx(6.7, rel=0.02)
     assert cfg.stamp(1) - cfg.stamp(0) == pytest.approx(1 / 1.5, abs=1e-5)
+    _, forward = build_world(stress_config('forward', width=32, height=24, frames=5))
+    step, deg = _steps(forward.poses)
+    assert step == pytest.approx(0.015, rel=1e-6) and deg < 0.2
+    ahead = forward.poses[1][:3, 3] - forward.poses[0][:3, 3]
+    # ahead, along the view (pitched down to the look-at target)
+    assert np.dot(ahead / np.linalg.norm(ahead), forward.poses[0][:3, 2]) > 0.9
 
 
 def test_wrong_focal_tells_the_pipeline_wrong_intrinsics():

@@ -106,8 +106,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--motion',
         choices=MOTIONS,
         default=d.motion,
-        help="'parallax': the --parallax trajectory; 'rotation_sweep', 'keyframe_stream': stress motions "
-        'with fixed per-frame steps (default parallax)',
+        help="'parallax': the --parallax trajectory; 'rotation_sweep', 'keyframe_stream', 'forward': "
+        'stress motions with fixed per-frame steps (default parallax)',
     )
     p.add_argument(
         '--step-translation',

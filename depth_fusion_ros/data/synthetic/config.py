@@ -13,7 +13,7 @@ from ...camera import PinholeCamera
 PARALLAX_MODES = ('high', 'low')
 #: Camera motions: ``parallax`` = the ``parallax`` mode's trajectory; the others are the
 #: stress motions of ``motions.py`` (fixed per-frame translation and rotation steps).
-MOTIONS = ('parallax', 'rotation_sweep', 'keyframe_stream')
+MOTIONS = ('parallax', 'rotation_sweep', 'keyframe_stream', 'forward')
 
 #: Focal length at 640x480 (Kinect-like); other sizes scale it.
 DEFAULT_FOCAL_640 = 525.0

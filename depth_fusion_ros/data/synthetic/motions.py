@@ -1,4 +1,4 @@
-"""Stress camera motions: the hand-held and keyframe-stream regimes where multi-view depth fails.
+"""Stress camera motions: hand-held, keyframe-stream and driving regimes hard for multi-view depth.
 
 Both are parametrised by the translation and rotation *between consecutive frames*
 (``SynthConfig.step_translation``, ``step_rotation_deg``), because that is what a user
@@ -12,6 +12,9 @@ reports and what decides the multi-view geometry:
   consecutive frames (0.67 s apart). The camera orbits a point in front of it (a radius
   that makes the two steps consistent: ``R = step / angle``) back and forth over +-5 steps,
   so every neighbour is at least one wide step away.
+* ``forward`` — a ground robot driving ahead (e.g. 1.5 cm per frame at 30 Hz) with a slight
+  heading wobble: the epipole lies in the image, so the pixels around it see almost no
+  parallax however far it drives.
 
 Poses are camera-to-world (optical frame: x right, y down, z forward), in the room frame of
 ``trajectory.py`` (z up, camera near the ``y = -D/2`` wall looking along ``+y``).
@@ -96,4 +99,38 @@ def keyframe_stream(
     return Trajectory(poses, base, target)
 
 
-MOTION_FUNCTIONS = {'rotation_sweep': rotation_sweep, 'keyframe_stream': keyframe_stream}
+def forward_drive(
+    frames: int,
+    room: np.ndarray,
+    base: np.ndarray,
+    target: np.ndarray,
+    rng: np.random.Generator,
+    step: float,
+    step_deg: float,
+) -> Trajectory:
+    """A ground robot driving ahead: ``step`` m per frame along the viewing direction, so the
+    epipole lies in the image and the pixels around it see almost no parallax; the heading
+    wobbles by up to ``step_deg`` x 10 degrees (3 s period), a slightly steered drive."""
+    k = np.arange(frames, dtype=np.float64)
+    ahead = target - base
+    ahead[2] = 0.0
+    ahead /= np.linalg.norm(ahead)
+    positions = base[None, :] + (step * k)[:, None] * ahead[None, :]
+    heading0 = float(np.arctan2(ahead[1], ahead[0]))
+    heading = heading0 + np.deg2rad(10.0 * step_deg) * np.sin(2 * np.pi * (k / 90.0 + rng.uniform()))
+    rel = target - base
+    pitch = np.arctan2(rel[2], np.hypot(rel[0], rel[1]))
+    dist = float(np.linalg.norm(rel))
+    directions = np.stack(
+        (np.cos(heading) * np.cos(pitch), np.sin(heading) * np.cos(pitch), np.full(frames, np.sin(pitch))),
+        axis=1,
+    )
+    poses = np.stack([look_at(p, p + d * dist) for p, d in zip(positions, directions, strict=True)])
+    return Trajectory(poses, base, target)
+
+
+MOTION_FUNCTIONS = {
+    'rotation_sweep': rotation_sweep,
+    'keyframe_stream': keyframe_stream,
+    'forward': forward_drive,
+}

@@ -12,6 +12,9 @@ data with exact ground truth:
 ``wrong_focal``    the lateral sweep, but camera.yaml's focal lengths are 10 % too long
 ``pose_noise``     the lateral sweep, but every pose the pipeline is told has a jitter of 2 mm and
                    0.1 deg (std, independent per frame): a SLAM or odometry pose source
+``forward``        a ground robot driving ahead, 1.5 cm per frame along the view (0.45 m/s at
+                   30 Hz), heading wobbling by 2 deg: the epipole is in the image, and the
+                   pixels around it see almost no parallax however far the robot drives
 =================  ==========================================================================
 
 ``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
@@ -37,6 +40,7 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
     'low_texture': {'parallax': 'high', 'sweep': 1.0, 'textureless_fraction': 0.85, 'texture_contrast': 0.25},
     'wrong_focal': {'parallax': 'high', 'sweep': 1.0, 'focal_error': 0.10},
     'pose_noise': {'parallax': 'high', 'sweep': 1.0, 'pose_noise_m': 0.002, 'pose_noise_deg': 0.1},
+    'forward': {'motion': 'forward', 'step_translation': 0.015, 'step_rotation_deg': 0.2},
 }
 
 
