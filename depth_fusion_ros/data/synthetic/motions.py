@@ -1,6 +1,6 @@
 """Stress camera motions: hand-held, keyframe-stream and driving regimes hard for multi-view depth.
 
-Both are parametrised by the translation and rotation *between consecutive frames*
+All are parametrised by the translation and rotation *between consecutive frames*
 (``SynthConfig.step_translation``, ``step_rotation_deg``), because that is what a user
 reports and what decides the multi-view geometry:
 
