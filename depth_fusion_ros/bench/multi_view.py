@@ -1,7 +1,8 @@
 """Multi-view benchmark: semi-dense keyframes/s, TV seconds per keyframe, accuracy, memory bound.
 
 The issue's reference load: 320x240 keyframes with n = 4 neighbours, default parameters;
-targets are semi-dense >= 10 keyframes/s and TV <= 3 s per keyframe on 2 CPU cores. The
+targets are semi-dense >= 10 keyframes/s (the design card's; issue 13 raised it to >= 25) and
+TV <= 3 s per keyframe on 2 CPU cores. The
 scene is the synthetic room (``data.synthetic``, high parallax) and, with ``--sequence``,
 the first frames of real TUM-layout folders (real images have other gradient statistics,
 hence another candidate count). Each time is the median of ``repeats`` runs after a warm-up.
@@ -108,7 +109,7 @@ def _semi_dense_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[Benc
     gt = seq.gt_depth_working(key)
     selected = select_best_fraction(result, config.select_fraction)
     return [
-        BenchRow(f'{label}: semi-dense keyframes/s', 1.0 / seconds, 'kf/s', _note('target >= 10')),
+        BenchRow(f'{label}: semi-dense keyframes/s', 1.0 / seconds, 'kf/s', _note('target >= 25 (issue 13)')),
         BenchRow(f'{label}: semi-dense per keyframe', seconds * 1e3, 'ms', _note()),
         BenchRow(f'{label}: semi-dense keyframes/s, 1 thread', 1.0 / seconds_one, 'kf/s', _note()),
         profile_row,
