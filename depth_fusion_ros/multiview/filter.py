@@ -101,9 +101,6 @@ class DepthFilter:
         self.rho_range = self.matching.rho_range
         self.margin = float(patch_reach(self.matching.patch, self.matching.patch_stride))
         self.key: FilterKeyframe | None = None
-        #: Share of the measured estimates that passed the precision test when the last read
-        #: published nothing for being under ``min_published_fraction`` (None otherwise).
-        self.withheld_fraction: float | None = None
         self._scene = self.config.scene_depth  # scene_depth() of the frame being processed
         self.stats = FilterStats()
         #: Seconds per stage of :meth:`process` (``clock.enabled = True`` to record; the bench does).
@@ -185,8 +182,8 @@ class DepthFilter:
                 none,
                 torch.zeros(shape, dtype=torch.bool, device=self.device),
             )
-        rows = torch.nonzero(self._published(key), as_tuple=True)[0]
-        withheld = self.withheld_fraction
+        published, withheld = self._published(key)
+        rows = torch.nonzero(published, as_tuple=True)[0]
         st = key.state
         mu, var = st.mu[rows], st.var[rows]
         T_tk = None if pose is None else relative_pose(key.pose, validate_pose(pose, 'result pose'))
@@ -240,7 +237,10 @@ class DepthFilter:
         self.clock.switch(left)
         return desc
 
-    def _published(self, key: FilterKeyframe) -> torch.Tensor:
+    def _published(self, key: FilterKeyframe) -> tuple[torch.Tensor, float | None]:
+        """The estimates to publish, and the share of the measured ones that passed the
+        precision test when that share was under ``min_published_fraction`` (then nothing is
+        published; None otherwise)."""
         c, st = self.config, key.state
         need = max(c.min_updates, c.first_keyframe_min_updates) if key.first else c.min_updates
         measured = (key.updates >= need) & (st.inlier_ratio >= c.publish_inlier_ratio)
@@ -251,12 +251,10 @@ class DepthFilter:
             & (st.mu <= self.rho_range[1])
         )
         # A sliver passing the precision test is the tail the noise selected (min_published_fraction).
-        count = float(published.sum())
-        self.withheld_fraction = None
-        if 0 < count < c.min_published_fraction * float(measured.sum()):
-            self.withheld_fraction = count / float(measured.sum())
-            return torch.zeros_like(published)
-        return published
+        count, total = float(published.sum()), float(measured.sum())
+        if 0 < count < c.min_published_fraction * total:
+            return torch.zeros_like(published), count / total
+        return published, None
 
     def _fresh_state(self, m: int) -> tuple[BetaGaussian, torch.Tensor, torch.Tensor]:
         lo, hi = self.rho_range

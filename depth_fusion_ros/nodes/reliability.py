@@ -45,8 +45,8 @@ class FollowsBestEffort:
     """Watches one input subscription and makes it again best effort when a best-effort
     publisher cannot match it.
 
-    ``make(qos, event_callbacks)`` creates the subscription (and returns it); ``replace(old)``
-    is called with the previous subscription to destroy before the new one is made.
+    ``make(qos, event_callbacks)`` creates the subscription (and returns it); a step down
+    destroys the current subscription and calls ``make`` again with best-effort QoS.
     """
 
     def __init__(

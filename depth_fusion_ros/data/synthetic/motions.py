@@ -37,6 +37,25 @@ def _triangle(k: np.ndarray, half_period: int) -> np.ndarray:
     return np.where(phase <= 2 * half_period, up, phase - 4 * half_period) - half_period // 2
 
 
+def _headed_poses(
+    positions: np.ndarray, heading: np.ndarray, base: np.ndarray, target: np.ndarray
+) -> np.ndarray:
+    """Camera-to-world poses at ``positions`` looking along ``heading`` (radians, per frame,
+    about the room's z axis), pitched as the nominal view from ``base`` to ``target``."""
+    rel = target - base
+    dist = float(np.linalg.norm(rel))
+    pitch = np.arctan2(rel[2], np.hypot(rel[0], rel[1]))
+    directions = np.stack(
+        (
+            np.cos(heading) * np.cos(pitch),
+            np.sin(heading) * np.cos(pitch),
+            np.full(len(heading), np.sin(pitch)),
+        ),
+        axis=1,
+    )
+    return np.stack([look_at(p, p + d * dist) for p, d in zip(positions, directions, strict=True)])
+
+
 def rotation_sweep(
     frames: int,
     room: np.ndarray,
@@ -55,18 +74,10 @@ def rotation_sweep(
     positions = np.stack((x, np.full(frames, base[1]), np.full(frames, base[2])), axis=1)
     positions[:, 2] += 0.01 * np.sin(2 * np.pi * (k / 90.0 + rng.uniform()))  # a slow bob, 3 s period
     rel = target - base
-    dist = float(np.linalg.norm(rel))
-    heading0 = np.arctan2(rel[1], rel[0])
-    pitch = np.arctan2(rel[2], np.hypot(rel[0], rel[1]))
     # Moving towards +x and turning right (clockwise seen from above, heading decreasing):
     # translation and rotation then move the image the same way.
-    heading = heading0 - direction * np.deg2rad(step_deg) * k
-    directions = np.stack(
-        (np.cos(heading) * np.cos(pitch), np.sin(heading) * np.cos(pitch), np.full(frames, np.sin(pitch))),
-        axis=1,
-    )
-    poses = np.stack([look_at(p, p + d * dist) for p, d in zip(positions, directions, strict=True)])
-    return Trajectory(poses, base, target)
+    heading = np.arctan2(rel[1], rel[0]) - direction * np.deg2rad(step_deg) * k
+    return Trajectory(_headed_poses(positions, heading, base, target), base, target)
 
 
 def keyframe_stream(
@@ -118,15 +129,7 @@ def forward_drive(
     positions = base[None, :] + (step * k)[:, None] * ahead[None, :]
     heading0 = float(np.arctan2(ahead[1], ahead[0]))
     heading = heading0 + np.deg2rad(10.0 * step_deg) * np.sin(2 * np.pi * (k / 90.0 + rng.uniform()))
-    rel = target - base
-    pitch = np.arctan2(rel[2], np.hypot(rel[0], rel[1]))
-    dist = float(np.linalg.norm(rel))
-    directions = np.stack(
-        (np.cos(heading) * np.cos(pitch), np.sin(heading) * np.cos(pitch), np.full(frames, np.sin(pitch))),
-        axis=1,
-    )
-    poses = np.stack([look_at(p, p + d * dist) for p, d in zip(positions, directions, strict=True)])
-    return Trajectory(poses, base, target)
+    return Trajectory(_headed_poses(positions, heading, base, target), base, target)
 
 
 MOTION_FUNCTIONS = {
