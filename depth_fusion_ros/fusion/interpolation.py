@@ -389,8 +389,9 @@ def _offsets_at(
         support[start:stop] = (dist / den)[: stop - start]
         plain = den + n_points * low
         equal = (den <= (EQUAL_WEIGHTS_RTOL * n_points) * plain)[: stop - start]
-        if bool(equal.any()):
-            equal_rows = index[: stop - start][equal]
+        # One host round trip (the nonzero), not two (an any() then a masked select).
+        equal_rows = torch.nonzero(equal).squeeze(1).add_(start)
+        if equal_rows.numel():
             for first in range(0, equal_rows.numel(), block):
                 rows = equal_rows[first : first + block]
                 off, sup = _plain_normalisation(pixels.take(rows).column(), q, v, lw, params)
@@ -652,9 +653,11 @@ def _fast_offsets(
     # Pixels the corners cannot represent (no usable corner, or a structure unlike all of
     # them: depth edges of s, thin objects between coarse pixels): compute them exactly.
     fix = ((total <= 0) | (best < refine_below)) & torch.from_numpy(valid_s.ravel()).to(dev)
-    log.debug('fast fusion: %d of %d pixels computed exactly', int(fix.sum()), fix.numel())
-    if bool(fix.any()):
-        idx = torch.nonzero(fix).squeeze(1)
+    # One host round trip (the nonzero): the count for the debug line comes from it, and an
+    # any() before it would be a second one.
+    idx = torch.nonzero(fix).squeeze(1)
+    log.debug('fast fusion: %d of %d pixels computed exactly', idx.numel(), fix.numel())
+    if idx.numel():
         pixels = samples_at(idx, width, s, gx, gy)
         off, sup = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params)
         offset[idx] = off

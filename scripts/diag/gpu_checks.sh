@@ -16,6 +16,8 @@
 # The ROS wheels go into a venv under /tmp that sees the machine's torch through a .pth file
 # (pip --target would drop the wheels' data files: their C libraries). Logs end up in
 # OUT/logs.tar.gz and a table of steps in OUT/summary.txt (the device tool returns 8 files).
+# SECTIONS (default: multi_view_filter multi_view fusion mapping) picks the bench sections, in
+# order, SECTION_LIMIT (default 75) their seconds each; CUDA_TESTS=0 skips step 1.
 set -uo pipefail
 OUT=${OUT:-gpu_out}
 mkdir -p "$OUT"
@@ -47,7 +49,9 @@ step() {  # step NAME LIMIT_S CMD...: run CMD with a time limit, log it, note rc
 { nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv,noheader || echo "no nvidia-smi"; } | tee "$OUT/summary.txt"
 $PY -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else '')" | tee -a "$OUT/summary.txt"
 
-TAIL=6 step cuda_tests 150 $PY -m pytest test/test_cuda.py -q -p no:cacheprovider -rs
+if [ "${CUDA_TESTS:-1}" != 0 ]; then
+  TAIL=6 step cuda_tests 150 $PY -m pytest test/test_cuda.py -q -p no:cacheprovider -rs
+fi
 
 if [ -d "$WHEELS" ]; then
   RV=/tmp/ros_venv
@@ -65,8 +69,8 @@ else
   echo "node graph: skipped, no ROS wheels in $WHEELS" | tee -a "$OUT/summary.txt"
 fi
 
-for section in multi_view_filter multi_view fusion mapping; do
-  TAIL=14 step "bench_$section" 75 $PY -m depth_fusion_ros.cli.main bench --only "$section" --device "$DEVICE" \
+for section in ${SECTIONS:-multi_view_filter multi_view fusion mapping}; do
+  TAIL=14 step "bench_$section" "${SECTION_LIMIT:-75}" $PY -m depth_fusion_ros.cli.main bench --only "$section" --device "$DEVICE" \
     --repeats 3 --json "$LOGS/bench_$section.json"
 done
 tar -czf "$OUT/logs.tar.gz" -C "$LOGS" .
