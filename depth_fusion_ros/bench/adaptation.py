@@ -7,9 +7,14 @@ terms, two posed neighbours each), and whole keyframe updates per second with th
 keeps up with 6 keyframes/s (a fast graph on a GPU). Synthetic keyframes (a rendered room),
 so it needs no data; figures, never assertions.
 
-Timing starts once the replay buffer holds ``guard_keyframes`` keyframes: from then on every
-update has the same batch shapes, as in a long run (the first updates of a run have smaller
-batches, and a GPU library tunes itself to each new shape once).
+Timing starts once the replay buffer holds ``guard_keyframes`` accepted keyframes, and three
+updates after that: from then on every update has the same batch shapes, as in a long run.
+The first updates of a run have smaller batches and a GPU library prepares its kernels for
+each new shape once, which on an H200 took 2-9 s an update (``scripts/diag/adapt_update_times.py``,
+docs/performance.md "GPU"); counting warm-up by keyframes observed, as this bench did until
+2026-11-27, timed two such updates whenever the guard rolled one back during warm-up (a
+rolled-back keyframe does not enter the buffer): 1.15 s a keyframe against 0.2 s steady. The
+slowest warm-up update is its own row.
 """
 
 from __future__ import annotations
@@ -45,6 +50,31 @@ def _samples(count: int):
     return out
 
 
+#: Most keyframes observed before timing (a guard that rolls back many updates fills the
+#: buffer slowly; timing starts anyway after these, and the row says how full it was).
+WARM_MAX = 16
+#: Updates observed once the buffer is full, before timing: the guard's first full-size
+#: evaluations and the replay's full draws happen in them.
+WARM_AFTER_FULL = 3
+
+
+def _warm_up(adapter, samples: list, full: int, sync) -> tuple[int, float]:
+    """Observe ``samples`` until the buffer holds ``full`` accepted keyframes and
+    ``WARM_AFTER_FULL`` more updates ran: (keyframes used, slowest update in seconds)."""
+    after_full, slowest = 0, 0.0
+    for i, s in enumerate(samples):
+        sync()
+        t0 = time.perf_counter()
+        adapter.observe(s)
+        sync()
+        slowest = max(slowest, time.perf_counter() - t0)
+        if len(adapter.buffer) >= full:
+            after_full += 1
+            if after_full > WARM_AFTER_FULL:
+                return i + 1, slowest
+    return len(samples), slowest
+
+
 def run(opts: BenchOptions) -> list[BenchRow]:
     import torch
 
@@ -52,20 +82,19 @@ def run(opts: BenchOptions) -> list[BenchRow]:
     from ..adaptation.config import AdaptConfig
 
     config = AdaptConfig()
-    warm = 1 + max(config.guard_keyframes, config.replay_per_step)
+    full = max(config.guard_keyframes, config.replay_per_step)  # buffer size of the full batch shapes
     timed = 3 if opts.quick else 7
-    samples = _samples(warm + timed)
+    samples = _samples(WARM_MAX + timed)
     threads = torch.get_num_threads() if torch.device(opts.device).type != 'cpu' else 2
     rows: list[BenchRow] = []
     with _torch_threads(threads):
         adapter = Adapter.from_spec('default', config, opts.device)
-        for s in samples[:warm]:  # warm-up: allocations, every batch shape, cuDNN autotuning
-            adapter.observe(s)
         sync = torch.cuda.synchronize if adapter.device.type == 'cuda' else (lambda: None)
+        warm, slowest = _warm_up(adapter, samples[:WARM_MAX], full, sync)
         sync()
         start = time.perf_counter()
         steps_before = adapter.counters.steps
-        for s in samples[warm:]:
+        for s in samples[warm : warm + timed]:
             adapter.observe(s)
         sync()
         seconds = time.perf_counter() - start
@@ -98,6 +127,14 @@ def run(opts: BenchOptions) -> list[BenchRow]:
                 'x',
                 f'{keeps_up}; when it does not, the node trains on the newest keyframes and '
                 'counts the rest (adapt_queue_full)',
+            )
+        )
+        rows.append(
+            BenchRow(
+                'slowest warm-up update (first use of a batch shape)',
+                slowest,
+                's',
+                f'{warm} warm-up keyframes until the buffer held {full} (not timed above)',
             )
         )
         rows.append(

@@ -1,0 +1,59 @@
+"""Seconds of every adaptation update, in the bench's order, and where the host time goes.
+
+    python scripts/diag/adapt_update_times.py [--device cuda]
+
+``depth-fusion bench --only adaptation --device cuda`` gave 1.15 s a keyframe update on an
+H200 (2026-11-27) while ``cuda_host_split.py`` gave 0.16 s for the same update repeated on
+keyframes already seen. This replays the bench (same samples, same warm-up of 5, then 7 new
+keyframes) with every update synchronised and timed, then the same 7 again, with cProfile
+over the first pass of the timed keyframes (own time, top 25).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import pstats
+import time
+
+import torch
+
+from depth_fusion_ros.adaptation.adapter import Adapter
+from depth_fusion_ros.adaptation.config import AdaptConfig
+from depth_fusion_ros.bench.adaptation import _samples
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--device', default='cuda' if torch.cuda.is_available() else 'cpu')
+    a = ap.parse_args()
+    sync = torch.cuda.synchronize if a.device.startswith('cuda') else (lambda: None)
+    config = AdaptConfig()
+    warm = 1 + max(config.guard_keyframes, config.replay_per_step)
+    samples = _samples(warm + 7)
+    adapter = Adapter.from_spec('default', config, a.device)
+
+    def observe(s, tag: str) -> None:
+        sync()
+        t0 = time.perf_counter()
+        r = adapter.observe(s)
+        sync()
+        print(f'{tag} key {s.key}: {1e3 * (time.perf_counter() - t0):8.1f} ms  {r.status}', flush=True)
+
+    for s in samples[:warm]:
+        observe(s, 'warm')
+    pr = cProfile.Profile()
+    pr.enable()
+    for s in samples[warm:]:
+        observe(s, 'timed')
+    pr.disable()
+    for s in samples[warm:]:
+        observe(s, 'again')
+    out = io.StringIO()
+    pstats.Stats(pr, stream=out).sort_stats('tottime').print_stats(25)
+    print('\n'.join(ln[:160] for ln in out.getvalue().splitlines() if ln.strip())[-6000:])
+
+
+if __name__ == '__main__':
+    main()
