@@ -43,11 +43,18 @@ def _scene(width: int, height: int, n_points: int, seed: int = 0) -> tuple[np.nd
     return depth, single, multi, omega
 
 
-def _timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """(first call, median of ``repeats`` further calls) in seconds."""
+def _timed(fn: Callable[[], object], repeats: int, warmup: int = 0) -> tuple[float, float]:
+    """(first call, median of ``repeats`` further calls after ``warmup`` untimed ones) in seconds.
+
+    On CUDA the calls after the first still meet kernels used for the first time (the fast
+    mode's fix-up chunks have their own shapes): on an H200, 2026-11-27, three repeats right
+    after the first call gave a fast compiled median of 7.7 ms where 30 after three warm-up
+    calls gave 3.4 ms (docs/performance.md "GPU"), so the CUDA rows warm up twice more."""
     t0 = time.perf_counter()
     fn()
     first = time.perf_counter() - t0
+    for _ in range(warmup):
+        fn()
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -87,7 +94,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
                             single, multi, omega, mode=mode, device=opts.device, compile_kernel=compiled
                         )
 
-                    first, median = _timed(call, repeats)
+                    first, median = _timed(call, repeats, warmup=2 if opts.device.startswith('cuda') else 0)
                     rows.append(BenchRow(f'{mode} {tag}: s/keyframe', median, 's', _note(size)))
                     if mode == 'exact':
                         pairs = float(np.isfinite(single).sum()) * int(omega.sum())
