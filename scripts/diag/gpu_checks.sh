@@ -16,8 +16,11 @@
 # The ROS wheels go into a venv under /tmp that sees the machine's torch through a .pth file
 # (pip --target would drop the wheels' data files: their C libraries). Logs end up in
 # OUT/logs.tar.gz and a table of steps in OUT/summary.txt (the device tool returns 8 files).
-# SECTIONS (default: multi_view_filter multi_view fusion mapping) picks the bench sections, in
-# order, SECTION_LIMIT (default 75) their seconds each; CUDA_TESTS=0 skips step 1.
+# SECTIONS (unset: multi_view_filter multi_view fusion mapping; empty: none) picks the bench sections, in
+# order, SECTION_LIMIT (default 75) their seconds each; CUDA_TESTS=0 skips step 1. PROFILES=1
+# adds, last, where each keyframe's host time goes (scripts/diag/cuda_host_split.py: fusion,
+# map, adaptation) and every adaptation update timed in the bench's order
+# (scripts/diag/adapt_update_times.py), about 100 s together on an H200.
 set -uo pipefail
 OUT=${OUT:-gpu_out}
 mkdir -p "$OUT"
@@ -69,10 +72,14 @@ else
   echo "node graph: skipped, no ROS wheels in $WHEELS" | tee -a "$OUT/summary.txt"
 fi
 
-for section in ${SECTIONS:-multi_view_filter multi_view fusion mapping}; do
+for section in ${SECTIONS-multi_view_filter multi_view fusion mapping}; do
   TAIL=14 step "bench_$section" "${SECTION_LIMIT:-75}" $PY -m depth_fusion_ros.cli.main bench --only "$section" --device "$DEVICE" \
     --repeats 3 --json "$LOGS/bench_$section.json"
 done
+if [ "${PROFILES:-0}" = 1 ]; then
+  TAIL=12 step host_split 150 $PY scripts/diag/cuda_host_split.py --device "$DEVICE" --repeats 30
+  TAIL=25 step adapt_update_times 100 $PY scripts/diag/adapt_update_times.py --device "$DEVICE"
+fi
 tar -czf "$OUT/logs.tar.gz" -C "$LOGS" .
 echo "== summary"
 cat "$OUT/summary.txt"
