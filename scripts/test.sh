@@ -4,5 +4,5 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck disable=SC1091
 . scripts/venv.sh
-ruff check depth_fusion_ros test launch
+ruff check depth_fusion_ros test launch scripts
 python -m pytest test -q "$@"

@@ -7,12 +7,17 @@ minutes (scripts/diag/adapt_prequential.py).
 
 Write OUT under an ignored folder (eval_out/): it holds data of the sequence.
 """
-import json, os, pickle, sys, time
-import numpy as np
+
+import json
+import os
+import pickle
+import sys
+import time
+
+import depth_fusion_ros.evaluation.methods  # noqa register
 from depth_fusion_ros.evaluation.context import EvalOptions, KeyframeContext
 from depth_fusion_ros.evaluation.harness import load_evaluation_sequence
 from depth_fusion_ros.evaluation.methods.multi_view import multi_view_result, neighbour_indices
-import depth_fusion_ros.evaluation.methods  # noqa register
 
 path, out, frames = sys.argv[1], sys.argv[2], int(sys.argv[3])
 rgbcam = sys.argv[4] if len(sys.argv) > 4 else None
@@ -25,7 +30,17 @@ t0 = time.time()
 for i in range(len(seq)):
     ctx = KeyframeContext(seq, i, opts, shared)
     mv = multi_view_result(ctx)
-    rows.append(dict(i=i, rgb=ctx.frame.rgb, pose=ctx.frame.pose, depth=mv.depth, score=mv.score,
-                     nb=list(neighbour_indices(ctx)), gt=ctx.gt_depth))
+    rows.append(
+        dict(
+            i=i,
+            rgb=ctx.frame.rgb,
+            pose=ctx.frame.pose,
+            depth=mv.depth,
+            score=mv.score,
+            nb=list(neighbour_indices(ctx)),
+            gt=ctx.gt_depth,
+        )
+    )
     print(i, time.time() - t0, flush=True)
-pickle.dump(dict(camera=seq.camera, rows=rows, name=seq.name), open(out, 'wb'))
+with open(out, 'wb') as fh:
+    pickle.dump(dict(camera=seq.camera, rows=rows, name=seq.name), fh)
