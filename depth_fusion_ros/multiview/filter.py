@@ -195,7 +195,7 @@ class DepthFilter:
             target, mu, var = warped.target, warped.rho, var[warped.source] * warped.scale**4
         candidates = torch.zeros(shape, dtype=torch.bool, device=self.device)
         candidates[target] = True
-        result = assemble_result(
+        return assemble_result(
             cam,
             target,
             mu,
@@ -205,9 +205,8 @@ class DepthFilter:
             key.cost[rows],
             candidates,
             self.config.score_relative_power,
+            withheld_fraction=withheld,
         )
-        result.withheld_fraction = withheld
-        return result
 
     def scene_depth(self) -> float:
         """Median depth of the current estimates (m), or ``filter.scene_depth`` before any exists."""

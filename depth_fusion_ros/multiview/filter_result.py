@@ -59,8 +59,10 @@ def assemble_result(
     cost: torch.Tensor,
     candidates: torch.Tensor,
     relative_power: float = 0.0,
+    withheld_fraction: float | None = None,
 ) -> FilterResult:
-    """Scatter published estimates (flat pixel indices ``target``) into NaN-filled (H, W) maps."""
+    """Scatter published estimates (flat pixel indices ``target``) into NaN-filled (H, W) maps;
+    ``withheld_fraction`` as :attr:`FilterResult.withheld_fraction`."""
     shape = (camera.height, camera.width)
     idx = target.cpu().numpy()
 
@@ -85,6 +87,7 @@ def assemble_result(
         variance=image(var),
         inlier_ratio=image(inlier),
         updates=image(updates.to(mu.dtype)),
+        withheld_fraction=withheld_fraction,
     )
 
 

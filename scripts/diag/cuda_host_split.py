@@ -23,6 +23,9 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+
+# The filter profiler's kernel and host-sync counting (run as a script, this folder is on the path).
+from cuda_profile_filter import _kernels, _syncs
 from torch.profiler import ProfilerActivity, profile
 
 from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
@@ -30,8 +33,6 @@ from depth_fusion_ros.fusion.interpolation import interpolate
 from depth_fusion_ros.fusion.scenes import make_scene
 from depth_fusion_ros.mapping.config import MapConfig
 from depth_fusion_ros.mapping.engine import make_map
-
-SYNC_OPS = ('aten::_local_scalar_dense', 'aten::nonzero', 'aten::masked_select', 'aten::item')
 
 
 def _sync(device: str) -> None:
@@ -56,19 +57,18 @@ def _report(name: str, calls: list[Callable[[], object]], device: str) -> None:
         for call in calls:
             call()
         _sync(device)
-    kernels = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
-    busy = sum(e.device_time for e in kernels) / 1e3 / n
+    n_kernels, busy, _ = _kernels(prof)
     ops = [
         e
         for e in prof.events()
         if e.device_type == torch.autograd.DeviceType.CPU and e.name.startswith('aten::')
     ]
-    syncs = {k.split('::')[-1]: sum(e.name == k for e in prof.events()) / n for k in SYNC_OPS}
+    syncs = _syncs(prof)
     print(
         f'== {name}: wall {1e3 * statistics.median(times):.2f} ms median ({1e3 * min(times):.2f}-'
-        f'{1e3 * max(times):.2f}), {len(kernels) / n:.0f} kernels, {len(ops) / n:.0f} aten calls, '
-        f'GPU busy {busy:.2f} ms per call; syncs per call: '
-        + ', '.join(f'{k} {v:.1f}' for k, v in syncs.items())
+        f'{1e3 * max(times):.2f}), {n_kernels / n:.0f} kernels, {len(ops) / n:.0f} aten calls, '
+        f'GPU busy {busy / n:.2f} ms per call; syncs per call: '
+        + ', '.join(f'{k.split("::")[-1]} {v / n:.1f}' for k, v in syncs.items())
     )
     pr = cProfile.Profile()
     pr.enable()

@@ -37,6 +37,13 @@ def _triangle(k: np.ndarray, half_period: int) -> np.ndarray:
     return np.where(phase <= 2 * half_period, up, phase - 4 * half_period) - half_period // 2
 
 
+def _level_ahead(base: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Unit vector of the nominal view from ``base`` to ``target`` in the floor plane."""
+    ahead = target - base
+    ahead[2] = 0.0
+    return ahead / np.linalg.norm(ahead)
+
+
 def _headed_poses(
     positions: np.ndarray, heading: np.ndarray, base: np.ndarray, target: np.ndarray
 ) -> np.ndarray:
@@ -93,10 +100,7 @@ def keyframe_stream(
     and ``step_deg`` deg from the previous one."""
     angle_step = np.deg2rad(max(step_deg, 1e-3))
     radius = step / (2.0 * np.sin(angle_step / 2.0)) if step > 0 else 0.0
-    forward = target - base
-    forward[2] = 0.0
-    forward /= np.linalg.norm(forward)
-    centre = base + forward * radius
+    centre = base + _level_ahead(base, target) * radius
     centre[2] = target[2]
     start = float(np.arctan2(base[1] - centre[1], base[0] - centre[0]))
     k = _triangle(np.arange(frames), STREAM_HALF_PERIOD) * float(rng.choice((-1.0, 1.0)))
@@ -123,9 +127,7 @@ def forward_drive(
     epipole lies in the image and the pixels around it see almost no parallax; the heading
     wobbles by up to ``step_deg`` x 10 degrees (3 s period), a slightly steered drive."""
     k = np.arange(frames, dtype=np.float64)
-    ahead = target - base
-    ahead[2] = 0.0
-    ahead /= np.linalg.norm(ahead)
+    ahead = _level_ahead(base, target)
     positions = base[None, :] + (step * k)[:, None] * ahead[None, :]
     heading0 = float(np.arctan2(ahead[1], ahead[0]))
     heading = heading0 + np.deg2rad(10.0 * step_deg) * np.sin(2 * np.pi * (k / 90.0 + rng.uniform()))
