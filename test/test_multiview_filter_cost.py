@@ -20,6 +20,7 @@ from depth_fusion_ros.multiview.filter import DepthFilter
 from depth_fusion_ros.multiview.filter_config import FilterConfig
 from depth_fusion_ros.multiview.filter_search import (
     _distinctiveness,
+    _lookup,
     frame_cost,
     plan_buckets,
     search_buckets,
@@ -55,6 +56,24 @@ def test_frame_cost_is_the_sweeps_cost_for_one_frame():
     seen = torch.isfinite(reference)
     assert torch.equal(torch.isfinite(ours), seen) and seen.float().mean() > 0.3
     assert torch.allclose(ours[seen], reference[seen], atol=1e-5)
+
+
+@pytest.mark.parametrize('samples', [6, 7, 12])
+def test_lookups_split_over_threads_are_bit_identical(samples):
+    """The frame's lookups split into one batch per thread (ATen's CPU grid_sample spreads
+    over batches only) give the very numbers of one batch, in the same order; an odd sample
+    count that two threads cannot split falls back to one batch."""
+    desc = _descriptors()
+    grid = torch.rand(1, samples, 300, 2, generator=torch.Generator().manual_seed(2)) * 2.2 - 1.1
+    single = torch.nn.functional.grid_sample(desc, grid, mode='bilinear', align_corners=True)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        split = _lookup(desc, grid)
+    finally:
+        torch.set_num_threads(before)
+    assert split.shape[0] == (1 if samples % 2 else 2)
+    assert torch.equal(split.transpose(0, 1).reshape(single.shape[1:])[None], single)
 
 
 def test_distinctiveness_is_the_second_best_local_minimum_ratio():
