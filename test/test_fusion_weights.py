@@ -79,8 +79,61 @@ def test_depth_gradients_are_metres_per_pixel_and_hole_safe() -> None:
         ({'sigma2': -1}, 'sigma2'),
         ({'sigma3': -1}, 'sigma3'),
         ({'weights': 'w3'}, 'weights'),
+        ({'structure_scale': 0.0}, 'structure_scale'),
+        ({'structure_scale': float('nan')}, 'structure_scale'),
     ],
 )
 def test_bad_parameters_are_named(kwargs: dict, name: str) -> None:
     with pytest.raises(ValueError, match=name):
         WeightParams(**kwargs)
+
+
+def _box_on_a_wall(width: int = 96, height: int = 72) -> tuple[np.ndarray, ...]:
+    """A box 1.5 m away in front of a wall at 2.5 m; the single view right on the wall and 10 %
+    too far on the box; multi-view points all over the box (its texture) and on the wall only
+    along the image border, 12 px and more from the box."""
+    s = np.full((height, width), 2.5, dtype=np.float32)
+    box = np.zeros((height, width), dtype=bool)
+    box[24:48, 30:60] = True
+    s[box] = 1.65
+    m = np.where(box, 1.5, 2.5).astype(np.float32)
+    border = np.ones((height, width), dtype=bool)
+    border[12:60, 18:72] = False
+    omega = (box | border) & (np.indices(s.shape).sum(axis=0) % 3 == 0)
+    return s, m, omega, box
+
+
+@pytest.mark.parametrize('mode', ['exact', 'fast'])
+def test_a_finer_structure_scale_keeps_corrections_on_their_surface(mode: str) -> None:
+    """The box's correction (-0.15 m) must not bend the wall next to it: with the paper's
+    metres (W3, W4 fall to 1/e only a metre off a pixel's plane) the nearby box points
+    outweigh the far wall points there; at 0.3 m (the default) the wall's own points win,
+    and the box is corrected as well."""
+    from depth_fusion_ros.fusion.interpolation import interpolate
+
+    s, m, omega, box = _box_on_a_wall()
+    near_wall = np.zeros(box.shape, dtype=bool)  # the wall within 6 px of the box
+    near_wall[18:54, 24:66] = True
+    near_wall &= ~box
+    leak, box_error = {}, {}
+    for scale in (1.0, 0.3):
+        off = interpolate(s, m, omega, WeightParams(structure_scale=scale), mode=mode).offset
+        leak[scale] = float(np.abs(off[near_wall]).mean())
+        box_error[scale] = float(np.abs(s[box] + off[box] - 1.5).mean())
+    assert leak[0.3] < 0.5 * leak[1.0], leak
+    assert box_error[0.3] < min(0.02, box_error[1.0]), box_error
+
+
+def test_the_structure_scale_is_the_paper_kernel_on_rescaled_depths() -> None:
+    """At scale u the interpolation is the paper's on s / u and m / u, its offset times u
+    (W1 does not see depth, the offsets are linear in it): exact mode, to float rounding."""
+    from depth_fusion_ros.fusion.interpolation import interpolate
+
+    rng = np.random.default_rng(4)
+    s = (2.0 + 0.3 * rng.random((40, 50))).astype(np.float32)
+    m = (s * (1.0 + 0.1 * rng.standard_normal(s.shape))).astype(np.float32)
+    omega = rng.random(s.shape) < 0.05
+    u = 0.3
+    scaled = interpolate(s, m, omega, WeightParams(structure_scale=u)).offset
+    direct = u * interpolate(s / u, m / u, omega, WeightParams()).offset
+    np.testing.assert_allclose(scaled, direct, rtol=1e-5, atol=1e-6)

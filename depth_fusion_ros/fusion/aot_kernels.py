@@ -19,6 +19,7 @@ cache.
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import functools
 import hashlib
 import logging
@@ -76,12 +77,16 @@ def _source_digest() -> str:
 
 
 def package_path(name: str, params: WeightParams, device: torch.device) -> Path:
-    """Where the model library of kernel ``name`` for these parameters lives (built or not)."""
+    """Where the model library of kernel ``name`` for these parameters lives (built or not).
+
+    The structure scale is not part of it: the interpolation divides the depths by it before
+    the kernels see them (``interpolation.interpolate``), so every scale shares one build.
+    """
     digest = hashlib.sha256()
     for part in (
         torch.__version__,
         name,
-        repr(params),
+        repr(dataclasses.replace(params, structure_scale=1.0)),
         device.type,
         _cpu_flags(),
         _source_digest(),

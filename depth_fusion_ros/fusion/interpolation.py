@@ -30,6 +30,7 @@ from which :func:`confidence_from_support` derives the confidence.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 from collections.abc import Callable
@@ -426,6 +427,30 @@ def interpolate(
     params = params or WeightParams()
     s = np.asarray(s, dtype=np.float32)
     m = np.asarray(m, dtype=np.float32)
+    unit = np.float32(params.structure_scale)
+    if unit != 1.0:
+        # The weights' structure factors compare depths and depth gradients in metres (the
+        # paper's W2-W4 as written); in units of ``structure_scale`` they are that much
+        # sharper. W1 does not see depth, and the offsets are linear in it, so the scaled
+        # interpolation is the same kernel on ``s / unit`` and ``m / unit``, its offset
+        # times ``unit``. The fast mode's ``fast_refine`` is a threshold on those factors at
+        # the paper's scale; sharpened, W3·W4 is its own ``1 / unit``-th power, so the
+        # threshold follows it and the fast mode computes about the same pixels exactly (at
+        # 0.3 m with 0.3 unchanged it computed twice the time's worth, for the same depth).
+        scaled = interpolate(
+            s / unit,
+            m / unit,
+            omega,
+            dataclasses.replace(params, structure_scale=1.0),
+            mode=mode,
+            fast_stride=fast_stride,
+            fast_refine=float(fast_refine) ** (1.0 / float(unit)),
+            chunk_elements=chunk_elements,
+            device=device,
+            compile_kernel=compile_kernel,
+            point_weight=point_weight,
+        )
+        return Interpolation((scaled.offset * unit).astype(np.float32), scaled.support_distance)
     omega = np.asarray(omega, dtype=bool)
     if s.ndim != 2 or s.shape != m.shape or s.shape != omega.shape:
         raise ValueError(

@@ -40,7 +40,7 @@ from .precision import check_half_weight, precision_weights
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
 from .subsample import seeded_subsample
 from .valid_depth import sanitize_depth
-from .weights import WeightParams, check_weight_params
+from .weights import WeightParams, check_structure_scale, check_weight_params
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,7 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'sigma2': 'floor of the gradient differences in W2 (metres per pixel); bounds W2 by 1/sigma2^2',
     'sigma3': 'floor added to W3 and W4 so no point of omega gets a vanishing weight',
     'weights': "weight factors: 'w1' (proximity), 'w1w2' (+ gradients), 'all' (+ planes, the paper)",
+    'structure_scale': 'length (m) in which W2-W4 compare depths and depth gradients; 1 = the paper',
     'mode': "'exact': every pixel against every point; 'fast': exact on a coarse grid, guided upsampling",
     'fast_stride': 'fast mode: exact offsets every fast_stride pixels in x and y',
     'fast_refine': 'fast mode: pixels whose structure matches no coarse neighbour this well (0..1) are exact',
@@ -91,13 +92,17 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
 class FusionConfig:
     """Parameters of :func:`fuse_keyframe` (also the ``fusion.*`` ROS parameters).
 
-    Paper values: σ1 = 15 px, σ2 = 0.1, σ3 = 1e-3, all four weights.
+    Paper values: σ1 = 15 px, σ2 = 0.1, σ3 = 1e-3, all four weights, depths in metres
+    (``structure_scale`` 1; the default 0.3 sharpens W2-W4, docs/fusion.md).
     """
 
     sigma1: float = 15.0
     sigma2: float = 0.1
     sigma3: float = 1e-3
     weights: str = 'all'
+    #: Length (m) in which W2-W4 measure depths and depth gradients (1: the paper's metres;
+    #: 0.3: a point 30 cm off a pixel's plane weighs 1/e, docs/fusion.md "Structure scale").
+    structure_scale: float = 0.3
     mode: str = 'exact'
     fast_stride: int = 4
     fast_refine: float = 0.3
@@ -124,6 +129,7 @@ class FusionConfig:
 
     def __post_init__(self) -> None:
         check_weight_params(self.sigma1, self.sigma2, self.sigma3, self.weights)
+        check_structure_scale(self.structure_scale)
         if self.mode not in MODES:
             raise ValueError(f'mode must be one of {", ".join(MODES)}, got {self.mode!r}')
         for name in ('fast_stride', 'chunk_elements', 'ransac_iterations'):
@@ -155,7 +161,7 @@ class FusionConfig:
 
     @property
     def weight_params(self) -> WeightParams:
-        return WeightParams(self.sigma1, self.sigma2, self.sigma3, self.weights)
+        return WeightParams(self.sigma1, self.sigma2, self.sigma3, self.weights, self.structure_scale)
 
     def model(self, output_kind: str) -> str:
         """Stage-2 model: as configured, else ``scale`` for metric sources (``affine`` otherwise)."""

@@ -38,15 +38,18 @@ MAX_EXPONENT = 60.0
 
 @dataclass(frozen=True)
 class WeightParams:
-    """σ1 (pixels), σ2 (metres per pixel), σ3 (dimensionless) and the weight set."""
+    """σ1 (pixels), σ2 (metres per pixel), σ3 (dimensionless), the weight set, and the
+    structure scale: the length (m) in which W2-W4 measure depths (1: the paper's metres)."""
 
     sigma1: float = 15.0
     sigma2: float = 0.1
     sigma3: float = 1e-3
     weights: str = 'all'
+    structure_scale: float = 1.0
 
     def __post_init__(self) -> None:
         check_weight_params(self.sigma1, self.sigma2, self.sigma3, self.weights)
+        check_structure_scale(self.structure_scale)
 
     @property
     def use_w2(self) -> bool:
@@ -81,6 +84,12 @@ def check_weight_params(sigma1: float, sigma2: float, sigma3: float, weights: st
         raise ValueError(f'sigma3 must be >= 0, got {sigma3}')
     if weights not in WEIGHT_SETS:
         raise ValueError(f'weights must be one of {", ".join(WEIGHT_SETS)}, got {weights!r}')
+
+
+def check_structure_scale(scale: float) -> None:
+    """Raise a ``ValueError`` unless the structure scale is a positive length in metres."""
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f'structure_scale must be a positive length in metres, got {scale}')
 
 
 def depth_gradients(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -80,6 +80,7 @@ FUSION_LIMITS: dict[str, Any] = {
     'sigma1': (1e-6, None),
     'sigma2': (0.0, None),
     'sigma3': (0.0, None),
+    'structure_scale': (1e-6, None),
     'weights': WEIGHT_SETS,
     'mode': tuple(FUSION_MODES),
     'fast_stride': (1, 64),

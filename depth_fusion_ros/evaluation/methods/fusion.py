@@ -3,10 +3,12 @@
 * ``fused`` — the paper's method: stage-1 (best ``stage1_fraction`` by score) and stage-2
   (RANSAC) point selection, then the interpolation with all four weights;
 * ``fused_fast`` — the same in the fast mode (the harness then measures fast vs exact);
-* ``fused_unguarded`` — ``fused`` without the guard (``fusion.guard=false``): the paper's
-  fusion as it was, to compare with;
+* ``fused_unguarded`` — ``fused`` without the guard (``fusion.guard=false``) and with the
+  paper's weights as written (``fusion.structure_scale=1``): the paper's fusion as it was,
+  to compare with;
 * ``fused_oracle`` — Ω = the multi-view points within ``oracle_threshold`` (10 cm) of the
-  ground truth, as the paper's right-hand table (an upper bound of the selection);
+  ground truth, as the paper's right-hand table (an upper bound of the selection), with the
+  paper's weights as written (``structure_scale`` 1: the oracle of issue 11's targets);
 * ``fused_w1``, ``fused_w1w2`` — oracle points with the weights W1, W1·W2 only (Table III;
   ``fused_oracle`` is its "all four" column).
 
@@ -213,6 +215,7 @@ _register(
     'as fused without the guard (fusion.guard=false): every stage-2 point bends the depth',
     fused_automatic,
     guard=False,
+    structure_scale=1.0,
 )
 _register(
     'fused_consistent',
@@ -224,16 +227,19 @@ _register(
     'fusion with oracle points (multi-view error < 10 cm against ground truth), all four weights',
     fused_oracle,
     weights='all',
+    structure_scale=1.0,
 )
 _register(
     'fused_w1',
     'fusion with oracle points and the proximity weight W1 only (Table III)',
     fused_oracle,
     weights='w1',
+    structure_scale=1.0,
 )
 _register(
     'fused_w1w2',
     'fusion with oracle points and the weights W1·W2 only (Table III)',
     fused_oracle,
     weights='w1w2',
+    structure_scale=1.0,
 )
