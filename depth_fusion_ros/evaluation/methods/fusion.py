@@ -212,7 +212,7 @@ _register(
 )
 _register(
     'fused_unguarded',
-    'as fused without the guard (fusion.guard=false): every stage-2 point bends the depth',
+    "as fused without the guard and in the paper's metres: every stage-2 point bends the depth",
     fused_automatic,
     guard=False,
     structure_scale=1.0,
@@ -224,7 +224,8 @@ _register(
 )
 _register(
     'fused_oracle',
-    'fusion with oracle points (multi-view error < 10 cm against ground truth), all four weights',
+    'fusion with oracle points (multi-view error < 10 cm against ground truth), all four weights, '
+    "the paper's metres (structure_scale 1)",
     fused_oracle,
     weights='all',
     structure_scale=1.0,
