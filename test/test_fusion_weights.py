@@ -137,3 +137,6 @@ def test_the_structure_scale_is_the_paper_kernel_on_rescaled_depths() -> None:
     scaled = interpolate(s, m, omega, WeightParams(structure_scale=u)).offset
     direct = u * interpolate(s / u, m / u, omega, WeightParams()).offset
     np.testing.assert_allclose(scaled, direct, rtol=1e-5, atol=1e-6)
+    # arguments are checked as given, before the rescaling (not as the derived threshold)
+    with pytest.raises(ValueError, match=r'fast_refine must be in \[0, 1\], got 1.5'):
+        interpolate(s, m, omega, WeightParams(structure_scale=u), mode='fast', fast_refine=1.5)

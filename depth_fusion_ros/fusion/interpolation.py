@@ -427,6 +427,19 @@ def interpolate(
     params = params or WeightParams()
     s = np.asarray(s, dtype=np.float32)
     m = np.asarray(m, dtype=np.float32)
+    omega = np.asarray(omega, dtype=bool)
+    if s.ndim != 2 or s.shape != m.shape or s.shape != omega.shape:
+        raise ValueError(
+            f'single-view {s.shape}, multi-view {m.shape} and omega {omega.shape} must be HxW of one size'
+        )
+    if mode not in MODES:
+        raise ValueError(f'mode must be one of {", ".join(MODES)}, got {mode!r}')
+    if chunk_elements < 1:
+        raise ValueError(f'chunk_elements must be >= 1, got {chunk_elements}')
+    if fast_stride < 1:
+        raise ValueError(f'fast_stride must be >= 1, got {fast_stride}')
+    if not 0.0 <= fast_refine <= 1.0:
+        raise ValueError(f'fast_refine must be in [0, 1], got {fast_refine}')
     unit = np.float32(params.structure_scale)
     if unit != 1.0:
         # The weights' structure factors compare depths and depth gradients in metres (the
@@ -451,19 +464,6 @@ def interpolate(
             point_weight=point_weight,
         )
         return Interpolation((scaled.offset * unit).astype(np.float32), scaled.support_distance)
-    omega = np.asarray(omega, dtype=bool)
-    if s.ndim != 2 or s.shape != m.shape or s.shape != omega.shape:
-        raise ValueError(
-            f'single-view {s.shape}, multi-view {m.shape} and omega {omega.shape} must be HxW of one size'
-        )
-    if mode not in MODES:
-        raise ValueError(f'mode must be one of {", ".join(MODES)}, got {mode!r}')
-    if chunk_elements < 1:
-        raise ValueError(f'chunk_elements must be >= 1, got {chunk_elements}')
-    if fast_stride < 1:
-        raise ValueError(f'fast_stride must be >= 1, got {fast_stride}')
-    if not 0.0 <= fast_refine <= 1.0:
-        raise ValueError(f'fast_refine must be in [0, 1], got {fast_refine}')
     width = s.shape[1]
     valid_s = np.isfinite(s)
     points_mask = omega & valid_s & np.isfinite(m)

@@ -4,9 +4,11 @@
 
 ``depth-fusion bench --only adaptation --device cuda`` gave 1.15 s a keyframe update on an
 H200 (2026-11-27) while ``cuda_host_split.py`` gave 0.16 s for the same update repeated on
-keyframes already seen. This replays the bench (same samples, same warm-up of 5, then 7 new
-keyframes) with every update synchronised and timed, then the same 7 again, with cProfile
-over the first pass of the timed keyframes (own time, top 25).
+keyframes already seen. This replays the bench as it was then (same samples, a fixed warm-up
+of 5 keyframes observed, then 7 new keyframes: the order that showed the artefact; the bench
+now warms up with ``bench.adaptation._warm_up``) with every update synchronised and timed,
+then the same 7 again, with cProfile over the first pass of the timed keyframes (own time,
+top 25).
 """
 
 from __future__ import annotations

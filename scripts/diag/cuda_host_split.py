@@ -125,16 +125,16 @@ def mapping(device: str, repeats: int) -> None:
 def adaptation(device: str, repeats: int) -> None:
     from depth_fusion_ros.adaptation.adapter import Adapter
     from depth_fusion_ros.adaptation.config import AdaptConfig
-    from depth_fusion_ros.bench.adaptation import _samples
+    from depth_fusion_ros.bench.adaptation import WARM_MAX, _samples, _warm_up
 
     config = AdaptConfig()
-    warm = 1 + max(config.guard_keyframes, config.replay_per_step)
     n = max(3, repeats // 8)
-    samples = _samples(warm + 4)
+    samples = _samples(WARM_MAX + 4)
     adapter = Adapter.from_spec('default', config, device)
-    for s in samples[:warm]:
-        adapter.observe(s)
-    it = itertools.cycle(samples[warm:])
+    # The bench's own warm-up: until the replay buffer gives every update its full batch shapes.
+    full = max(config.guard_keyframes, config.replay_per_step)
+    warm, _ = _warm_up(adapter, samples[:WARM_MAX], full, lambda: _sync(device))
+    it = itertools.cycle(samples[warm : warm + 4])
     _report(
         f'adaptation observe ({config.steps_per_keyframe} steps + guard, batch {1 + config.replay_per_step})',
         [lambda: adapter.observe(next(it))] * n,
