@@ -337,3 +337,31 @@ def test_a_quiet_tick_waits_for_one_more_round_before_giving_up(synthetic_sequen
         snap = node.stats.snapshot()
         assert len(node.pending) == 0
     assert snap.dropped == {'no_pose': 1}
+
+
+def test_a_pose_time_offset_is_applied_before_the_pose_lookup(synthetic_sequence):
+    """``pose_time_offset``: a pose source whose clock runs 20 ms ahead of the camera's stamps
+    image ``i``'s pose at ``t_i + 0.02``; with the offset declared, every keyframe gets exactly
+    that pose (not one interpolated between two frames), and the first image is posed
+    although it is older than the first pose stamp."""
+    seq = synthetic_sequence
+    offset = 0.02
+    stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    with RosHarness() as ros:
+        node = _mv_node(ros, pose_time_offset=offset, queue_size=8, qos_depth=100)
+        poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')
+        cam = _Camera(ros)
+        for i, frame in enumerate(seq.frames):
+            cam.publish_pose(frame.pose, stamps[i] + m.sec_to_ns(offset))
+        for i, frame in enumerate(seq.frames):
+            cam.publish_image(frame.rgb, stamps[i], seq.camera)
+            time.sleep(0.01)
+        assert ros.wait_for(lambda: node.posed_count == len(seq.frames) and len(poses) >= 2, 60.0), (
+            node.stats.snapshot().summary()
+        )
+        snap = node.stats.snapshot()
+    assert snap.dropped == {}, snap.summary()
+    index = {s: i for i, s in enumerate(stamps)}
+    for msg in poses:
+        k = index[m.stamp_to_ns(msg.header.stamp)]  # stamped as its image, on the camera's clock
+        np.testing.assert_allclose(m.pose_stamped_to_matrix(msg), seq.frames[k].pose, atol=1e-6)

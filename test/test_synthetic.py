@@ -277,3 +277,44 @@ def test_fixtures_have_their_parallax(
     assert step_high.mean() > 0.02  # >= 2 cm between consecutive frames
     assert step_low.mean() < 0.005
     assert not np.array_equal(low.frames[0].rgb, high.frames[0].rgb)
+
+
+def test_time_offset_moves_the_told_poses_along_the_path():
+    """``pose_time_offset``: each told pose is the camera's pose that much later (earlier when
+    negative), at the velocity of its step; the images stay those of the true poses."""
+    from scipy.spatial.transform import Rotation
+
+    from depth_fusion_ros.data.synthetic.world import shifted_poses
+
+    poses = np.repeat(np.eye(4)[None], 4, axis=0)
+    poses[:, 0, 3] = [0.0, 0.01, 0.02, 0.03]  # 1 cm per frame along x, turning 0.5 deg per frame
+    poses[:, :3, :3] = Rotation.from_euler('y', [[0.0], [0.5], [1.0], [1.5]], degrees=True).as_matrix()
+    for frames in (0.3, -0.3):
+        moved = shifted_poses(poses, frames)
+        np.testing.assert_allclose(moved[:, 0, 3], poses[:, 0, 3] + 0.01 * frames, atol=1e-12)
+        yaw = Rotation.from_matrix(moved[:, :3, :3]).as_euler('xyz', degrees=True)[:, 1]
+        np.testing.assert_allclose(yaw, [0.0, 0.5, 1.0, 1.5] + 0.5 * np.array(frames), atol=1e-9)
+    np.testing.assert_array_equal(shifted_poses(poses, 0.0), poses)
+
+    cfg = SynthConfig(width=32, height=24, frames=3, pose_time_offset=0.01)  # 0.3 frame at 30 Hz
+    late, exact = render_sequence(cfg), render_sequence(SynthConfig(width=32, height=24, frames=3))
+    assert 'timeoffset+10ms' in late.name
+    for a, b in zip(late.frames, exact.frames, strict=True):
+        assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
+        assert (
+            0
+            < np.linalg.norm(a.pose[:3, 3] - b.pose[:3, 3])
+            < np.linalg.norm(exact.frames[1].pose[:3, 3] - exact.frames[0].pose[:3, 3])
+        )
+    with pytest.raises(ValueError, match='pose_time_offset'):
+        SynthConfig(pose_time_offset=0.05)  # more than one frame period at 30 Hz
+
+
+def test_cli_synth_time_offset_is_recorded(tmp_path):
+    from depth_fusion_ros.cli.main import main
+
+    out = tmp_path / 'late'
+    args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
+    assert main([*args, '--pose-time-offset', '-0.02']) == 0
+    text = (out / 'SOURCE.md').read_text()
+    assert '--pose-time-offset -0.02' in text and 'out of sync' in text and '-20 ms' in text

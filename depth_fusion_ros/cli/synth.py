@@ -148,6 +148,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f'the same jitter of the rotations, degrees (default {d.pose_noise_deg:g})',
     )
     p.add_argument(
+        '--pose-time-offset',
+        type=float,
+        default=d.pose_time_offset,
+        help='seconds: the poses written to groundtruth.txt are the true ones this much later, a camera / '
+        f'pose-source time offset (at most one frame period; default {d.pose_time_offset:g})',
+    )
+    p.add_argument(
         '--stress',
         choices=tuple(STRESS_CASES),
         default=None,
@@ -194,6 +201,7 @@ def config_from_args(args: argparse.Namespace):
         focal_error=pick('focal_error', args.focal_error),
         pose_noise_m=pick('pose_noise_m', args.pose_noise_m),
         pose_noise_deg=pick('pose_noise_deg', args.pose_noise_deg),
+        pose_time_offset=pick('pose_time_offset', args.pose_time_offset),
     )
 
 

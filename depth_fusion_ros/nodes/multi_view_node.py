@@ -184,6 +184,15 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         0.0,
     ),
     ParamSpec(
+        'pose_time_offset',
+        0.0,
+        "seconds: the pose source's clock minus the camera's (an image stamped t takes the pose "
+        'interpolated at t + this); at 0.35 m/s, 10 ms out of sync moves a pose by a third of a '
+        '30 Hz frame-to-frame baseline (docs/nodes.md "Clocks out of sync")',
+        -1.0,
+        1.0,
+    ),
+    ParamSpec(
         'pose_wait',
         1.0,
         'an image newer than the latest pose waits until the image stream is this many seconds (stamp '
@@ -466,9 +475,10 @@ class MultiViewNode(DepthFusionNode):
     def _resolve_pending(self) -> None:
         """Pose every waiting image the buffer now covers, in stamp order; drop the hopeless ones."""
         wait_ns = messages.sec_to_ns(float(self.params['pose_wait']))
+        offset = float(self.params['pose_time_offset'])
         while self.pending:
             head = self.pending[0]
-            stamp = messages.ns_to_sec(head.image.stamp_ns)
+            stamp = messages.ns_to_sec(head.image.stamp_ns) + offset  # on the pose source's clock
             span = self.pose_buffer.span
             if span is None or stamp > span[1]:
                 # The pose of this image may still come; give up once the stream is pose_wait ahead.

@@ -66,6 +66,11 @@ class SynthConfig:
     #: always use the true poses. 0 = exact poses.
     pose_noise_m: float = 0.0
     pose_noise_deg: float = 0.0
+    #: The poses *given to the pipeline* are the true ones this many seconds later (a pose
+    #: source whose clock runs ahead of the camera's, or a camera stamp taken late; negative:
+    #: the other way), constant-velocity between neighbouring frames: a time offset between
+    #: camera and pose source. At most one frame period either way. 0 = in sync.
+    pose_time_offset: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ValueError:
@@ -111,6 +116,8 @@ class SynthConfig:
             raise bad('pose_noise_m', 'expected a translation std of 0..0.5 m')
         if not 0 <= self.pose_noise_deg <= 10.0:
             raise bad('pose_noise_deg', 'expected a rotation std of 0..10 degrees')
+        if not abs(self.pose_time_offset) * self.fps <= 1.0:
+            raise bad('pose_time_offset', f'expected at most one frame period (1 / fps = {1 / self.fps:g} s)')
 
     def camera(self) -> PinholeCamera:
         """Intrinsics: principal point at the image centre ((W - 1) / 2 with pixel-centre

@@ -45,12 +45,42 @@ def sequence_name(cfg: SynthConfig) -> str:
         name += f'_focal{cfg.focal_error:+g}'
     if cfg.pose_noise_m or cfg.pose_noise_deg:
         name += f'_posenoise{cfg.pose_noise_m * 1000:g}mm{cfg.pose_noise_deg:g}deg'
+    if cfg.pose_time_offset:
+        name += f'_timeoffset{cfg.pose_time_offset * 1000:+g}ms'
     return name
 
 
+def shifted_poses(poses: np.ndarray, frames: float) -> np.ndarray:
+    """Each pose moved ``frames`` frame periods along the trajectory (``|frames| <= 1``), at the
+    constant velocity of its step to the next frame (to the previous one for the last frame
+    or a negative shift): translation and rotation vector scaled linearly.
+
+    What a time offset between camera and pose source does to the poses a pipeline is told:
+    every pose is where the camera was a little earlier or later, off along the motion.
+    """
+    from scipy.spatial.transform import Rotation
+
+    out = np.array(poses, dtype=np.float64, copy=True)
+    n = len(out)
+    if n < 2 or frames == 0.0:
+        return out
+    step = 1 if frames > 0 else -1
+    nxt = np.clip(np.arange(n) + step, 0, n - 1)
+    nxt[nxt == np.arange(n)] -= step  # the end of the path: the step from the other side, reversed
+    sign = np.where(nxt - np.arange(n) == step, 1.0, -1.0)
+    rel = np.linalg.inv(out) @ out[nxt]  # T_i^-1 T_j: the step in the camera frame
+    f = abs(frames) * sign
+    rot = Rotation.from_rotvec(Rotation.from_matrix(rel[:, :3, :3]).as_rotvec() * f[:, None]).as_matrix()
+    move = np.repeat(np.eye(4)[None], n, axis=0)
+    move[:, :3, :3] = rot
+    move[:, :3, 3] = rel[:, :3, 3] * f[:, None]
+    return out @ move
+
+
 def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
-    """The camera-to-world poses the pipeline is given: the true ones with the config's
-    per-frame jitter (``pose_noise_m``, ``pose_noise_deg``), a copy of them without.
+    """The camera-to-world poses the pipeline is given: the true ones moved by the config's time
+    offset (``pose_time_offset``, :func:`shifted_poses`), with its per-frame jitter
+    (``pose_noise_m``, ``pose_noise_deg``); a copy of the true ones without either.
 
     Each frame draws a translation offset (isotropic Gaussian) and a rotation about a random
     axis by a Gaussian angle, from its own random stream, so frame ``i``'s jitter does not
@@ -58,7 +88,7 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     """
     from scipy.spatial.transform import Rotation
 
-    out = np.array(poses, dtype=np.float64, copy=True)
+    out = shifted_poses(poses, cfg.pose_time_offset * cfg.fps)
     if not (cfg.pose_noise_m or cfg.pose_noise_deg):
         return out
     rotvecs, offsets = np.empty((len(out), 3)), np.empty((len(out), 3))

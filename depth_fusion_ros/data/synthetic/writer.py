@@ -30,13 +30,20 @@ def _focal_note(cfg: SynthConfig) -> str:
 
 
 def _pose_note(cfg: SynthConfig) -> str:
-    if not (cfg.pose_noise_m or cfg.pose_noise_deg):
-        return ''
-    return (
-        f'\n**groundtruth.txt is deliberately noisy**: every pose has an independent jitter of '
-        f'{cfg.pose_noise_m * 1000:g} mm and {cfg.pose_noise_deg:g} deg (std) against the poses used '
-        'for rendering, a pose-source-noise stress case; the depth images stay exact.'
-    )
+    note = ''
+    if cfg.pose_noise_m or cfg.pose_noise_deg:
+        note += (
+            f'\n**groundtruth.txt is deliberately noisy**: every pose has an independent jitter of '
+            f'{cfg.pose_noise_m * 1000:g} mm and {cfg.pose_noise_deg:g} deg (std) against the poses used '
+            'for rendering, a pose-source-noise stress case; the depth images stay exact.'
+        )
+    if cfg.pose_time_offset:
+        note += (
+            f"\n**groundtruth.txt is deliberately out of sync**: every pose is the camera's pose "
+            f"{cfg.pose_time_offset * 1000:+g} ms from its image's stamp, a camera / pose-source time "
+            'offset stress case; the depth images stay exact.'
+        )
+    return note
 
 
 def source_markdown(cfg: SynthConfig, out_dir: Path) -> str:
