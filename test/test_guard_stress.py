@@ -13,6 +13,7 @@ import pytest
 
 from depth_fusion_ros.data.synthetic import STRESS_CASES, build_world, render_sequence, stress_config
 from depth_fusion_ros.evaluation.context import EvalOptions
+from depth_fusion_ros.evaluation.distance_bands import band_table
 from depth_fusion_ros.evaluation.guard_report import decision_table
 from depth_fusion_ros.evaluation.harness import evaluate_sequence, results_document
 from depth_fusion_ros.fusion.guard import DECISIONS
@@ -126,6 +127,8 @@ def test_decisions_are_recorded_and_reported(evaluated):
     doc = results_document([result], METHODS, EvalOptions())
     table = decision_table(doc)
     assert table is not None and sequence.name in table
+    bands = band_table(doc)  # the fused errors by distance to Ω, recorded with the decision
+    assert bands is not None and sequence.name in bands
 
 
 def test_a_causal_streams_first_keyframe_is_never_worse():

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .adaptation_report import adaptation_table
+from .distance_bands import band_table
 from .guard_report import decision_table
 
 if TYPE_CHECKING:
@@ -145,6 +146,11 @@ def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> st
         ('Weight ablation on oracle points (paper Table III)', ablation_table(doc)),
         ('Median error by image gradient (paper Table I, threshold 0.35)', gradient_table(doc)),
         ("The fusion's guard: decisions per sequence (keyframes)", decision_table(doc)),
+        (
+            'Where the fusion helps: fused / single-view MAE by distance to the nearest fused point '
+            '(working grid; evaluation/distance_bands.py)',
+            band_table(doc),
+        ),
         ('Online adaptation, prequential (figure adaptation_mae.png)', adaptation_table(doc)),
     ]
     for title, table in sections:

@@ -46,6 +46,7 @@ from ...fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence
 from ...fusion.pipeline import FusionConfig, FusionResult, fuse_keyframe
 from ...multiview.params import apply_overrides
 from ..context import KeyframeContext
+from ..distance_bands import band_sums
 from ..registry import MethodOutput, register_method
 
 STAGE = 'fusion'
@@ -134,8 +135,15 @@ def _output(result: FusionResult) -> MethodOutput:
 
 
 def fused_automatic(ctx: KeyframeContext, **forced: Any) -> MethodOutput:
-    """Fusion with the paper's automatic two-stage selection."""
-    return _output(fused_result(ctx, **forced))
+    """Fusion with the paper's automatic two-stage selection; its extras also hold the errors
+    by distance to the nearest point of Ω (``evaluation.distance_bands``)."""
+    result = fused_result(ctx, **forced)
+    out = _output(result)
+    gt = ctx.gt_depth_working
+    if gt is not None:
+        single = result.single_aligned if result.single_aligned is not None else _inputs(ctx)[0]
+        out.extras.update(band_sums(single, result.depth, gt, result.omega_mask))
+    return out
 
 
 def fuse_automatic(
