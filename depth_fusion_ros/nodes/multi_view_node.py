@@ -234,6 +234,13 @@ class _KeyframeJob:
     received_at: float
 
 
+def _image_name(stamp_ns: int, offset: float) -> str:
+    """``image <stamp>`` for drop messages, with the pose-clock time it was looked up at when
+    ``pose_time_offset`` is set (the pose span they quote is on that clock)."""
+    stamp = messages.ns_to_sec(stamp_ns)
+    return f'image {stamp:.3f}' if offset == 0.0 else f'image {stamp:.3f} (pose time {stamp + offset:.3f})'
+
+
 class MultiViewNode(DepthFusionNode):
     """Poses images by stamp, decides keyframes and runs the semi-dense search on a worker."""
 
@@ -464,7 +471,7 @@ class MultiViewNode(DepthFusionNode):
         span = self.pose_buffer.span
         if span is None or self._newest_image_ns is None:
             return ''
-        lag = messages.ns_to_sec(self._newest_image_ns) - span[1]
+        lag = messages.ns_to_sec(self._newest_image_ns) + float(self.params['pose_time_offset']) - span[1]
         return (
             f'; the latest pose is {lag:.1f} s behind the newest image (raw images over 0.5 MB sent '
             'through shared memory by a publisher with Fast DDS defaults stall the other topics of '
@@ -479,6 +486,7 @@ class MultiViewNode(DepthFusionNode):
         while self.pending:
             head = self.pending[0]
             stamp = messages.ns_to_sec(head.image.stamp_ns) + offset  # on the pose source's clock
+            what = _image_name(head.image.stamp_ns, offset)
             span = self.pose_buffer.span
             if span is None or stamp > span[1]:
                 # The pose of this image may still come; give up once the stream is pose_wait ahead.
@@ -488,17 +496,17 @@ class MultiViewNode(DepthFusionNode):
                 ):
                     self.pending.popleft()
                     newest = 'no pose yet' if span is None else f'latest pose {span[1]:.3f}'
-                    self.stats.dropped('no_pose', f'image {stamp:.3f} has no pose ({newest}); dropped')
+                    self.stats.dropped('no_pose', f'{what} has no pose ({newest}); dropped')
                     self.events.event(head.image.stamp_ns, EVENT_IMAGE)
                     continue
                 return
             self.pending.popleft()
             if stamp < span[0]:
-                self.stats.dropped('no_pose', f'image {stamp:.3f} is older than the first pose {span[0]:.3f}')
+                self.stats.dropped('no_pose', f'{what} is older than the first pose {span[0]:.3f}')
             else:
                 lookup = self.pose_buffer.lookup(stamp)
                 if lookup.pose is None:
-                    self.stats.dropped('pose_gap', f'image {stamp:.3f}: {lookup.reason}')
+                    self.stats.dropped('pose_gap', f'{what}: {lookup.reason}')
                 else:
                     self._on_posed_frame(head, lookup.pose)
             # After 'chosen' (same writer): a replayer seeing this ack knows the decision.
