@@ -10,7 +10,10 @@ on the incompatible-QoS event (reliability) of an input subscription, it is made
 effort, once, with a warning and a counted note (``qos_best_effort``).
 
 The swap runs on a timer, not in the event callback: the event belongs to the subscription
-being replaced.
+being replaced. The event can also fail to come (discovery under load: a fresh-clone CI run
+saw one of three inputs step down in 30 s), so the graph is also looked at every
+``GRAPH_CHECK_PERIOD`` seconds: a best-effort publisher listed on the topic steps the input
+down the same way.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy
 
 #: seconds between looks for subscriptions to step down (the swap's timer)
 SWAP_PERIOD = 0.2
+#: seconds between looks at the topic's publishers, in case the incompatible-QoS event is lost
+GRAPH_CHECK_PERIOD = 1.0
 
 
 def best_effort(qos: QoSProfile) -> QoSProfile:
@@ -63,6 +68,10 @@ class FollowsBestEffort:
         #: the one-shot timer of a pending step down (none while nothing is incompatible)
         self._timer: Any = None
         self.subscription = make(qos, self.event_callbacks())
+        #: the periodic look at the topic's publishers (while the input is still reliable)
+        self._graph_timer: Any = (
+            node.create_wall_timer(GRAPH_CHECK_PERIOD, self._check_graph) if self.reliable else None
+        )
 
     @property
     def reliable(self) -> bool:
@@ -76,14 +85,33 @@ class FollowsBestEffort:
         if self.reliable and reliability and self._timer is None:
             self._timer = self.node.create_wall_timer(SWAP_PERIOD, self._swap)
 
+    def _check_graph(self) -> None:
+        """Step down when a publisher of the topic offers best effort only (the graph says so
+        even when the incompatible-QoS event never came)."""
+        if not self.reliable or self._timer is not None:
+            return
+        try:
+            infos = self.node.get_publishers_info_by_topic(self.node.resolve_topic_name(self.topic))
+        except Exception:  # a graph query failing is no reason to stop the node
+            return
+        if any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in infos):
+            self._timer = self.node.create_wall_timer(SWAP_PERIOD, self._swap)
+
     def _cancel_timer(self) -> None:
         if self._timer is not None:
             self._timer.cancel()
             self.node.destroy_timer(self._timer)
             self._timer = None
 
+    def _cancel_graph_timer(self) -> None:
+        if self._graph_timer is not None:
+            self._graph_timer.cancel()
+            self.node.destroy_timer(self._graph_timer)
+            self._graph_timer = None
+
     def _swap(self) -> None:
         self._cancel_timer()
+        self._cancel_graph_timer()
         self.node.destroy_subscription(self.subscription)
         self.qos = best_effort(self.qos)
         self.subscription = self._make(self.qos, self.event_callbacks())
@@ -97,4 +125,5 @@ class FollowsBestEffort:
     def close(self) -> None:
         """Destroy the subscription (and a pending step down)."""
         self._cancel_timer()
+        self._cancel_graph_timer()
         self.node.destroy_subscription(self.subscription)
