@@ -295,6 +295,10 @@ def test_time_offset_moves_the_told_poses_along_the_path():
         yaw = Rotation.from_matrix(moved[:, :3, :3]).as_euler('xyz', degrees=True)[:, 1]
         np.testing.assert_allclose(yaw, [0.0, 0.5, 1.0, 1.5] + 0.5 * np.array(frames), atol=1e-9)
     np.testing.assert_array_equal(shifted_poses(poses, 0.0), poses)
+    from depth_fusion_ros.geometry import interpolate_poses
+
+    inside, valid = interpolate_poses(np.arange(4.0), poses, np.arange(4.0) + 0.3)  # the same, inside
+    np.testing.assert_allclose(shifted_poses(poses, 0.3)[valid], inside[valid], atol=1e-12)
 
     cfg = SynthConfig(width=32, height=24, frames=3, pose_time_offset=0.01)  # 0.3 frame at 30 Hz
     late, exact = render_sequence(cfg), render_sequence(SynthConfig(width=32, height=24, frames=3))

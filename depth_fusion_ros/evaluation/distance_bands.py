@@ -42,9 +42,8 @@ def band_sums(single: np.ndarray, fused: np.ndarray, gt: np.ndarray, omega: np.n
 
     with np.errstate(invalid='ignore'):
         valid = np.isfinite(single) & np.isfinite(fused) & np.isfinite(gt) & (gt > 0)
+        err_single, err_fused = np.abs(single - gt), np.abs(fused - gt)  # read on valid pixels only
     distance = distance_transform_edt(~omega) if omega.any() else np.full(omega.shape, np.inf)
-    err_single = np.abs(np.where(valid, single, 0.0) - np.where(valid, gt, 0.0))
-    err_fused = np.abs(np.where(valid, fused, 0.0) - np.where(valid, gt, 0.0))
     out: dict[str, float] = {}
     for i, (lo, hi) in enumerate(itertools.pairwise(BAND_EDGES)):
         sel = valid & (distance >= lo) & ((distance < hi) if np.isfinite(hi) else True)

@@ -81,37 +81,34 @@ class FollowsBestEffort:
         return SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible)
 
     def _on_incompatible(self, status: Any) -> None:
-        reliability = status.last_policy_kind == QoSPolicyKind.RELIABILITY
-        if self.reliable and reliability and self._timer is None:
-            self._timer = self.node.create_wall_timer(SWAP_PERIOD, self._swap)
+        if status.last_policy_kind == QoSPolicyKind.RELIABILITY:
+            self._step_down_soon()
 
     def _check_graph(self) -> None:
         """Step down when a publisher of the topic offers best effort only (the graph says so
         even when the incompatible-QoS event never came)."""
-        if not self.reliable or self._timer is not None:
-            return
         try:
             infos = self.node.get_publishers_info_by_topic(self.node.resolve_topic_name(self.topic))
         except Exception:  # a graph query failing is no reason to stop the node
             return
         if any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in infos):
+            self._step_down_soon()
+
+    def _step_down_soon(self) -> None:
+        """Schedule the swap (once; both triggers end here), off the caller's callback."""
+        if self.reliable and self._timer is None:
             self._timer = self.node.create_wall_timer(SWAP_PERIOD, self._swap)
 
-    def _cancel_timer(self) -> None:
-        if self._timer is not None:
-            self._timer.cancel()
-            self.node.destroy_timer(self._timer)
-            self._timer = None
-
-    def _cancel_graph_timer(self) -> None:
-        if self._graph_timer is not None:
-            self._graph_timer.cancel()
-            self.node.destroy_timer(self._graph_timer)
-            self._graph_timer = None
+    def _stop_timers(self) -> None:
+        """Destroy the pending swap and the graph look (a best-effort input needs neither)."""
+        for timer in (self._timer, self._graph_timer):
+            if timer is not None:
+                timer.cancel()
+                self.node.destroy_timer(timer)
+        self._timer = self._graph_timer = None
 
     def _swap(self) -> None:
-        self._cancel_timer()
-        self._cancel_graph_timer()
+        self._stop_timers()
         self.node.destroy_subscription(self.subscription)
         self.qos = best_effort(self.qos)
         self.subscription = self._make(self.qos, self.event_callbacks())
@@ -124,6 +121,5 @@ class FollowsBestEffort:
 
     def close(self) -> None:
         """Destroy the subscription (and a pending step down)."""
-        self._cancel_timer()
-        self._cancel_graph_timer()
+        self._stop_timers()
         self.node.destroy_subscription(self.subscription)

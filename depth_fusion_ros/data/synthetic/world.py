@@ -57,6 +57,9 @@ def shifted_poses(poses: np.ndarray, frames: float) -> np.ndarray:
 
     What a time offset between camera and pose source does to the poses a pipeline is told:
     every pose is where the camera was a little earlier or later, off along the motion.
+    Inside the path this is ``geometry.interpolate_poses`` at the shifted stamps (linear
+    translation, slerp; tested); it is written as one step scaling because the end frame
+    needs the same motion extrapolated, which ``interpolate_poses`` refuses on purpose.
     """
     from scipy.spatial.transform import Rotation
 
