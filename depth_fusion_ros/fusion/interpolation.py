@@ -24,6 +24,9 @@ per pixel (``ΣW̃v``, ``ΣW̃``, ``ΣW̃d``, ``min W̃`` and ``Σd`` in one loo
 afterwards, which is exact algebra) with a polynomial exp as accurate as float32's own: it is
 bound by the three exponentials per weight, and nothing of size (pixels, Ω) touches memory.
 
+With ``certainty_floor`` > 0 every offset is also multiplied by ``ΣW̃ / (ΣW̃ + κ)``
+(:func:`certainty_share`), in the exact sums, so the fast mode blends faded offsets.
+
 Besides the offset, both modes return the support distance ``Σ_q W_pq ‖p - q‖`` per pixel,
 from which :func:`confidence_from_support` derives the confidence.
 """
@@ -364,9 +367,13 @@ def _offsets_at(
     kernel: Callable,
     chunk_elements: int,
     params: WeightParams,
+    floor: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact offsets and support distances of ``pixels`` (1-D samples) against Ω, whose
     log weights are ``lw`` (1, |Ω|; None: all points weigh 1).
+
+    ``floor`` (κ, in weight units): every offset times ``ΣW̃ / (ΣW̃ + κ)`` (the certainty
+    fade, :func:`certainty_share`); 0 leaves the paper's normalised offsets.
 
     Chunks have a fixed size (the last one padded by repeating a pixel) so a compiled kernel
     sees one pixel-count shape per |Ω|; the size is balanced (never above the kernel's) so
@@ -386,9 +393,10 @@ def _offsets_at(
         stop = min(start + chunk, n)
         index = torch.arange(start, start + chunk, device=v.device).clamp_max(n - 1)
         num, den, dist, low = kernel(pixels.take(index).column(), q, v, lw)
-        offsets[start:stop] = (num / den)[: stop - start]
-        support[start:stop] = (dist / den)[: stop - start]
         plain = den + n_points * low
+        share = certainty_share(plain, floor)[: stop - start]
+        offsets[start:stop] = (num / den)[: stop - start] * share
+        support[start:stop] = (dist / den)[: stop - start]
         equal = (den <= (EQUAL_WEIGHTS_RTOL * n_points) * plain)[: stop - start]
         # One host round trip (the nonzero), not two (an any() then a masked select).
         equal_rows = torch.nonzero(equal).squeeze(1).add_(start)
@@ -396,9 +404,25 @@ def _offsets_at(
             for first in range(0, equal_rows.numel(), block):
                 rows = equal_rows[first : first + block]
                 off, sup = _plain_normalisation(pixels.take(rows).column(), q, v, lw, params)
-                offsets[rows] = off
+                offsets[rows] = off * share[rows - start]
                 support[rows] = sup
     return offsets, support
+
+
+def certainty_share(mass: torch.Tensor, floor: float) -> torch.Tensor:
+    """``ΣW̃ / (ΣW̃ + κ)``: the share of its normalised correction a pixel keeps.
+
+    The paper's weights are normalised, so a pixel that no point resembles (far from all of
+    them, or of another structure under W2-W4) still takes a full weighted average of their
+    offsets, though its single-view error has nothing to do with theirs. A pseudo
+    observation "no correction" of weight κ at every pixel (normalised convolution with a
+    certainty floor) keeps the full correction where the points' total weight dwarfs κ and
+    fades it to none where it is far below (docs/fusion.md "Certainty floor"). ``floor`` 0:
+    all ones (the paper).
+    """
+    if floor <= 0:
+        return torch.ones_like(mass)
+    return mass / (mass + floor)
 
 
 def interpolate(
@@ -414,6 +438,7 @@ def interpolate(
     device: str | torch.device = 'cpu',
     compile_kernel: bool = False,
     point_weight: np.ndarray | None = None,
+    certainty_floor: float = 0.0,
 ) -> Interpolation:
     """Offset field ``f - s`` of the fusion of ``s`` with the points ``omega`` of ``m``.
 
@@ -421,8 +446,10 @@ def interpolate(
     ``omega``: bool HxW mask of the selected points (points where ``s`` or ``m`` is not
     finite are ignored). ``point_weight``: optional HxW factor in (0, 1] that multiplies
     every weight of a point of Ω (its precision, :func:`precision_weights`; NaN = 1); None
-    gives the paper's weights. Returns NaN offsets everywhere when Ω is empty — the caller
-    decides the fallback.
+    gives the paper's weights. ``certainty_floor``: κ as a fraction of one point's largest
+    weight (:attr:`WeightParams.max_weight`); every offset is faded by ``ΣW̃ / (ΣW̃ + κ)``
+    (:func:`certainty_share`; 0: the paper). Returns NaN offsets everywhere when Ω is empty
+    — the caller decides the fallback.
     """
     params = params or WeightParams()
     s = np.asarray(s, dtype=np.float32)
@@ -440,6 +467,7 @@ def interpolate(
         raise ValueError(f'fast_stride must be >= 1, got {fast_stride}')
     if not 0.0 <= fast_refine <= 1.0:
         raise ValueError(f'fast_refine must be in [0, 1], got {fast_refine}')
+    check_certainty_floor(certainty_floor)
     unit = np.float32(params.structure_scale)
     if unit != 1.0:
         # The weights' structure factors compare depths and depth gradients in metres (the
@@ -462,6 +490,7 @@ def interpolate(
             device=device,
             compile_kernel=compile_kernel,
             point_weight=point_weight,
+            certainty_floor=certainty_floor,
         )
         return Interpolation((scaled.offset * unit).astype(np.float32), scaled.support_distance)
     width = s.shape[1]
@@ -482,6 +511,7 @@ def interpolate(
     points = samples_at(point_index, width, s_t, gx, gy)
     v = torch.from_numpy((m - s)[points_mask].astype(np.float32)).to(dev)
     lw = _point_log_weights(point_weight, points_mask, dev)
+    floor = float(certainty_floor) * params.max_weight
     # Eager: the in-place two-pass kernel (fewer passes over memory); compiled: the one-pass
     # sums fused into one loop over Ω.
     if compile_kernel and dev.type not in _COMPILE_FAILED:
@@ -497,7 +527,7 @@ def interpolate(
     if mode == 'exact' or fast_stride == 1:
         pixel_index = torch.from_numpy(np.flatnonzero(valid_s)).to(dev)
         off, sup = _offsets_at(
-            samples_at(pixel_index, width, s_t, gx, gy), points, v, lw, kernel, chunk_elements, params
+            samples_at(pixel_index, width, s_t, gx, gy), points, v, lw, kernel, chunk_elements, params, floor
         )
         offset.ravel()[valid_s.ravel()] = off.cpu().numpy()
         support.ravel()[valid_s.ravel()] = sup.cpu().numpy()
@@ -517,6 +547,7 @@ def interpolate(
         fast_stride,
         fast_refine,
         _maybe_compiled('blend', _blend_corners, params, compile_kernel, dev),
+        floor,
     )
     offset.ravel()[:] = off_t.cpu().numpy()
     support.ravel()[:] = support_t.cpu().numpy()
@@ -544,6 +575,12 @@ def _point_log_weights(
         raise ValueError('point_weight must be in (0, 1] on the points of omega')
     lw = np.maximum(np.log(c), -MAX_POINT_LOG_WEIGHT).astype(np.float32)
     return torch.from_numpy(lw).to(device).reshape(1, -1)
+
+
+def check_certainty_floor(value: float) -> None:
+    """``certainty_floor`` is a finite fraction in [0, 1] of one point's largest weight."""
+    if not (np.isfinite(value) and 0.0 <= value <= 1.0):
+        raise ValueError(f'certainty_floor must be in [0, 1] (0: off), got {value}')
 
 
 def coarse_axis(size: int, stride: int) -> np.ndarray:
@@ -645,8 +682,13 @@ def _fast_offsets(
     stride: int,
     refine_below: float,
     blend: Callable,
+    floor: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Exact offsets on a coarse grid, structure-guided bilinear upsampling, exact fix-ups."""
+    """Exact offsets on a coarse grid, structure-guided bilinear upsampling, exact fix-ups.
+
+    With a certainty ``floor`` the coarse offsets are already faded, so the blend carries
+    the fade with them (the blend of faded offsets, not the fade of blended masses: the
+    two differ only where the corners' masses differ, and the corners are 4 px apart)."""
     height, width = valid_s.shape
     dev = s.device
     grid = _coarse_grid(height, width, stride, dev)
@@ -656,7 +698,7 @@ def _fast_offsets(
     if coarse_valid.any():
         idx = torch.from_numpy(grid.coarse_flat[coarse_valid]).to(dev)
         pixels = samples_at(idx, width, s, gx, gy)
-        off, sup = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params)
+        off, sup = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params, floor)
         sel = torch.from_numpy(np.flatnonzero(coarse_valid)).to(dev)
         coarse_offset[sel] = off
         coarse_support[sel] = sup
@@ -684,7 +726,7 @@ def _fast_offsets(
     log.debug('fast fusion: %d of %d pixels computed exactly', idx.numel(), fix.numel())
     if idx.numel():
         pixels = samples_at(idx, width, s, gx, gy)
-        off, sup = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params)
+        off, sup = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params, floor)
         offset[idx] = off
         support[idx] = sup
     return offset, support

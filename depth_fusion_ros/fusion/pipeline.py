@@ -35,7 +35,13 @@ from .alignment import AlignedDepth, apply_alignment, fit_alignment
 from .consistency import ConsistencyConfig, consistent_points, stage3_candidates
 from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
 from .guard_apply import guarded_depth, limit_reach
-from .interpolation import DEFAULT_CHUNK_ELEMENTS, MODES, confidence_from_support, interpolate
+from .interpolation import (
+    DEFAULT_CHUNK_ELEMENTS,
+    MODES,
+    check_certainty_floor,
+    confidence_from_support,
+    interpolate,
+)
 from .precision import check_half_weight, precision_weights
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
 from .subsample import seeded_subsample
@@ -84,6 +90,11 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
         'within agreement_sigma px (a pixel whose points disagree by tau of its depth: x0.37; 0: off)'
     ),
     'agreement_sigma': 'window (Gaussian sigma, working-grid pixels) of the points agreement_tau reads',
+    'certainty_floor': (
+        'every correction times M / (M + k), M the total weight of the points at the pixel, k this '
+        "times one point's largest weight (as if from all of omega, not the max_points subsample); "
+        'fades corrections where no point resembles the pixel (0: off, the paper)'
+    ),
     'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
 
@@ -123,6 +134,9 @@ class FusionConfig:
     #: points' offsets that divides it by e (0: off, the support confidence alone), and its window.
     agreement_tau: float = 0.05
     agreement_sigma: float = 8.0
+    #: Certainty floor κ of the interpolation (``interpolation.certainty_share``), as a
+    #: fraction of one point's largest weight, for the whole Ω (0: off, the paper).
+    certainty_floor: float = 0.1
     #: Check the evidence per keyframe and degrade gracefully (``guard.py``, ``GuardConfig``).
     guard: bool = True
     device: str = 'cpu'
@@ -156,6 +170,7 @@ class FusionConfig:
                 f'metric_scale_range must be a finite number >= 1, got {self.metric_scale_range}'
             )
         check_half_weight(self.std_half_weight)
+        check_certainty_floor(self.certainty_floor)
         if self.max_points is not None and self.max_points < 1:
             raise ValueError(f'max_points must be >= 1 or None, got {self.max_points}')
 
@@ -293,8 +308,12 @@ def fuse_keyframe(
         if verdict.decision not in ('full', 'fewer_points'):
             return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config, needs_fit)
         omega = verdict.trusted
+    uncapped = int(np.count_nonzero(omega & np.isfinite(base)))
     omega = _cap_points(omega, config.max_points, config.seed)
     omega &= np.isfinite(base)
+    # A subsample of Ω has that share of its weight: the floor follows, so the fade is the
+    # whole Ω's whatever max_points (or the load) keeps.
+    floor = config.certainty_floor * np.count_nonzero(omega) / max(uncapped, 1)
     t1 = time.perf_counter()
     interp = interpolate(
         base,
@@ -308,6 +327,7 @@ def fuse_keyframe(
         device=config.device,
         compile_kernel=config.compile_kernel,
         point_weight=precision_weights(evidence.relative_std if evidence else None, config.std_half_weight),
+        certainty_floor=floor,
     )
     with np.errstate(invalid='ignore'):
         depth = np.maximum(base + interp.offset, MIN_DEPTH).astype(np.float32)

@@ -95,6 +95,7 @@ FUSION_LIMITS: dict[str, Any] = {
     'std_half_weight': (0.0, None),
     'agreement_tau': (0.0, None),
     'agreement_sigma': (1e-3, 1000.0),
+    'certainty_floor': (0.0, 1.0),
 }
 #: Ranges of the ``guard.*`` parameters (``GuardConfig``).
 GUARD_LIMITS: dict[str, Any] = {
