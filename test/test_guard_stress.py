@@ -132,6 +132,26 @@ def test_decisions_are_recorded_and_reported(evaluated):
     assert bands is not None and sequence.name in bands
 
 
+def _causal_ratio(sequence, keyframe: int, fusion: dict, **stages: dict) -> float:
+    """Fused / single-view MAE of one keyframe read causally, as the node reads the stream
+    (online filter), with the node's fast fusion of at most 4096 points plus ``fusion`` and
+    any other ``stage={...}`` parameters."""
+    options = EvalOptions(
+        frames=len(sequence),
+        keyframes=[keyframe],
+        single_view='simulated',
+        width=320,
+        height=240,
+        neighbour_mode='online',
+        params={'fusion': {'compile_kernel': False, 'mode': 'fast', 'max_points': 4096, **fusion}, **stages},
+    )
+    result = evaluate_sequence(sequence, ['single_view_simulated', 'fused'], options, show_progress=False)
+    return (
+        result.records['fused'].all.summary()['mae']
+        / result.records['single_view_simulated'].all.summary()['mae']
+    )
+
+
 def test_a_causal_streams_first_keyframe_is_never_worse():
     """The node's view (causal filter, no look-ahead): rotation-heavy motion at 320x240, the
     first keyframe of the stream (frame 5). Every estimate there was born in the filter's
@@ -139,32 +159,12 @@ def test_a_causal_streams_first_keyframe_is_never_worse():
     (``first_keyframe_min_updates`` 2) they were biased together and the fusion made the depth
     1.33x worse than its single-view input; with the default it is not. (The certainty floor
     alone brings the biased case down to 1.02x; it is off here, to test the filter.)"""
-    cfg = stress_config('rotation', width=320, height=240, frames=8, seed=2)
-    sequence = render_sequence(cfg)
+    sequence = render_sequence(stress_config('rotation', width=320, height=240, frames=8, seed=2))
 
     def ratio(first_keyframe_min_updates: int) -> float:
-        options = EvalOptions(
-            frames=8,
-            keyframes=[5],
-            single_view='simulated',
-            width=320,
-            height=240,
-            neighbour_mode='online',
-            params={
-                'fusion': {
-                    'compile_kernel': False,
-                    'mode': 'fast',
-                    'max_points': 4096,
-                    'stage1': 'all',
-                    'certainty_floor': 0.0,
-                },
-                'filter': {'first_keyframe_min_updates': first_keyframe_min_updates},
-            },
-        )
-        result = evaluate_sequence(sequence, ['single_view_simulated', 'fused'], options, show_progress=False)
-        return (
-            result.records['fused'].all.summary()['mae']
-            / result.records['single_view_simulated'].all.summary()['mae']
+        fusion = {'stage1': 'all', 'certainty_floor': 0.0}
+        return _causal_ratio(
+            sequence, 5, fusion, filter={'first_keyframe_min_updates': first_keyframe_min_updates}
         )
 
     assert ratio(2) > 1.2
@@ -181,29 +181,5 @@ def test_a_realistic_low_texture_streams_late_keyframe_is_never_worse():
     (default) the correction fades where the points' total weight is small, and it is not
     worse."""
     sequence = render_sequence(stress_config('low_texture', width=320, height=240, frames=71, seed=0))
-
-    def ratio(certainty_floor: float) -> float:
-        options = EvalOptions(
-            frames=71,
-            keyframes=[70],
-            single_view='simulated',
-            width=320,
-            height=240,
-            neighbour_mode='online',
-            params={
-                'fusion': {
-                    'compile_kernel': False,
-                    'mode': 'fast',
-                    'max_points': 4096,
-                    'certainty_floor': certainty_floor,
-                },
-            },
-        )
-        result = evaluate_sequence(sequence, ['single_view_simulated', 'fused'], options, show_progress=False)
-        return (
-            result.records['fused'].all.summary()['mae']
-            / result.records['single_view_simulated'].all.summary()['mae']
-        )
-
-    assert ratio(0.0) > 1.1
-    assert ratio(FusionConfig().certainty_floor) <= 1.0
+    assert _causal_ratio(sequence, 70, {'certainty_floor': 0.0}) > 1.1
+    assert _causal_ratio(sequence, 70, {'certainty_floor': FusionConfig().certainty_floor}) <= 1.0

@@ -26,6 +26,9 @@ from depth_fusion_ros.data.synthetic import STRESS_CASES, SynthConfig, render_se
 from depth_fusion_ros.evaluation.context import EvalOptions
 from depth_fusion_ros.evaluation.harness import evaluate_sequence
 
+sys.path.insert(0, str(Path(__file__).parent))
+from stress_sweep import value  # the same --set parser (scripts/diag is no package)
+
 
 def streams(text: str) -> list[tuple[str, int]]:
     """``rooms:0-5`` or ``low_texture:0,2``."""
@@ -36,15 +39,6 @@ def streams(text: str) -> list[tuple[str, int]]:
         lo, hi = seeds.split('-')
         return [(name, s) for s in range(int(lo), int(hi) + 1)]
     return [(name, int(s)) for s in seeds.split(',')]
-
-
-def value(text: str) -> object:
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
 
 
 def config(name: str, seed: int, frames: int) -> SynthConfig:
