@@ -97,3 +97,24 @@ def test_a_bad_floor_is_named(value: float) -> None:
     s = np.ones((10, 10), np.float32)
     with pytest.raises(ValueError, match='certainty_floor'):
         interpolate(s, s, s > 0, certainty_floor=value)
+
+
+def test_the_share_kept_is_reported_per_keyframe() -> None:
+    """``Interpolation.kept``: the mean share of the correction kept (1 without a floor; the
+    fast mode's is its coarse grid's), and ``FusionResult.evidence['certainty']`` carries it
+    with the guard on or off (the node's decision JSON and the report's extras read it)."""
+    s = np.full((60, 80), 2.0, np.float32)
+    m = np.full_like(s, np.nan)
+    m[11:13, 11:13] = 2.4
+    omega = np.isfinite(m)
+    assert interpolate(s, m, omega).kept == 1.0
+    exact = interpolate(s, m, omega, certainty_floor=0.1)
+    assert exact.kept == pytest.approx(float(np.mean(exact.offset / 0.4)), rel=1e-4)
+    assert 0.1 < exact.kept < 0.9
+    assert interpolate(s, m, omega, mode='fast', certainty_floor=0.1).kept == pytest.approx(
+        exact.kept, abs=0.03
+    )
+    sc = make_scene(80, 60, n_points=100, scale=1.0, offset=0.3)
+    for guard in (True, False):
+        result = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(guard=guard), 'metric_depth')
+        assert 0.0 < result.evidence['certainty'] < 1.0

@@ -80,6 +80,9 @@ class Interpolation:
 
     offset: np.ndarray
     support_distance: np.ndarray
+    #: Mean share of the correction the certainty floor kept (:func:`certainty_share`) over
+    #: the pixels computed exactly (the coarse grid in the fast mode); 1 without a floor.
+    kept: float = 1.0
 
 
 def confidence_from_support(support_distance: np.ndarray, sigma1: float) -> np.ndarray:
@@ -368,12 +371,12 @@ def _offsets_at(
     chunk_elements: int,
     params: WeightParams,
     floor: float = 0.0,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Exact offsets and support distances of ``pixels`` (1-D samples) against Ω, whose
-    log weights are ``lw`` (1, |Ω|; None: all points weigh 1).
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Exact offsets, support distances and kept shares of ``pixels`` (1-D samples) against
+    Ω, whose log weights are ``lw`` (1, |Ω|; None: all points weigh 1).
 
-    ``floor`` (κ, in weight units): every offset times ``ΣW̃ / (ΣW̃ + κ)`` (the certainty
-    fade, :func:`certainty_share`); 0 leaves the paper's normalised offsets.
+    ``floor`` (κ, in weight units): every offset times its share ``ΣW̃ / (ΣW̃ + κ)`` (the
+    certainty fade, :func:`certainty_share`); 0 leaves the paper's normalised offsets.
 
     Chunks have a fixed size (the last one padded by repeating a pixel) so a compiled kernel
     sees one pixel-count shape per |Ω|; the size is balanced (never above the kernel's) so
@@ -389,6 +392,7 @@ def _offsets_at(
     q = points.row()
     offsets = torch.empty(n, dtype=v.dtype, device=v.device)
     support = torch.empty(n, dtype=v.dtype, device=v.device)
+    kept = torch.empty(n, dtype=v.dtype, device=v.device)
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
         index = torch.arange(start, start + chunk, device=v.device).clamp_max(n - 1)
@@ -396,6 +400,7 @@ def _offsets_at(
         plain = den + n_points * low
         share = certainty_share(plain, floor)[: stop - start]
         offsets[start:stop] = (num / den)[: stop - start] * share
+        kept[start:stop] = share
         support[start:stop] = (dist / den)[: stop - start]
         equal = (den <= (EQUAL_WEIGHTS_RTOL * n_points) * plain)[: stop - start]
         # One host round trip (the nonzero), not two (an any() then a masked select).
@@ -406,7 +411,7 @@ def _offsets_at(
                 off, sup = _plain_normalisation(pixels.take(rows).column(), q, v, lw, params)
                 offsets[rows] = off * share[rows - start]
                 support[rows] = sup
-    return offsets, support
+    return offsets, support, kept
 
 
 def certainty_share(mass: torch.Tensor, floor: float) -> torch.Tensor:
@@ -492,7 +497,7 @@ def interpolate(
             point_weight=point_weight,
             certainty_floor=certainty_floor,
         )
-        return Interpolation((scaled.offset * unit).astype(np.float32), scaled.support_distance)
+        return Interpolation((scaled.offset * unit).astype(np.float32), scaled.support_distance, scaled.kept)
     width = s.shape[1]
     valid_s = np.isfinite(s)
     points_mask = omega & valid_s & np.isfinite(m)
@@ -526,14 +531,14 @@ def interpolate(
 
     if mode == 'exact' or fast_stride == 1:
         pixel_index = torch.from_numpy(np.flatnonzero(valid_s)).to(dev)
-        off, sup = _offsets_at(
+        off, sup, kept = _offsets_at(
             samples_at(pixel_index, width, s_t, gx, gy), points, v, lw, kernel, chunk_elements, params, floor
         )
         offset.ravel()[valid_s.ravel()] = off.cpu().numpy()
         support.ravel()[valid_s.ravel()] = sup.cpu().numpy()
-        return Interpolation(offset, support)
+        return Interpolation(offset, support, float(kept.mean()))
 
-    off_t, support_t = _fast_offsets(
+    off_t, support_t, kept = _fast_offsets(
         valid_s,
         s_t,
         gx,
@@ -553,7 +558,7 @@ def interpolate(
     support.ravel()[:] = support_t.cpu().numpy()
     offset[~valid_s] = np.nan
     support[~valid_s] = np.nan
-    return Interpolation(offset, support)
+    return Interpolation(offset, support, kept)
 
 
 def _point_log_weights(
@@ -683,8 +688,9 @@ def _fast_offsets(
     refine_below: float,
     blend: Callable,
     floor: float = 0.0,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Exact offsets on a coarse grid, structure-guided bilinear upsampling, exact fix-ups.
+) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Exact offsets on a coarse grid, structure-guided bilinear upsampling, exact fix-ups;
+    the mean kept share is the coarse grid's (a uniform sample of the image).
 
     With a certainty ``floor`` the coarse offsets are already faded, so the blend carries
     the fade with them (the blend of faded offsets, not the fade of blended masses: the
@@ -695,10 +701,12 @@ def _fast_offsets(
     coarse_valid = valid_s.ravel()[grid.coarse_flat]
     coarse_offset = torch.full((grid.coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
     coarse_support = torch.full((grid.coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
+    kept = 1.0
     if coarse_valid.any():
         idx = torch.from_numpy(grid.coarse_flat[coarse_valid]).to(dev)
         pixels = samples_at(idx, width, s, gx, gy)
-        off, sup = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params, floor)
+        off, sup, share = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params, floor)
+        kept = float(share.mean())
         sel = torch.from_numpy(np.flatnonzero(coarse_valid)).to(dev)
         coarse_offset[sel] = off
         coarse_support[sel] = sup
@@ -726,7 +734,7 @@ def _fast_offsets(
     log.debug('fast fusion: %d of %d pixels computed exactly', idx.numel(), fix.numel())
     if idx.numel():
         pixels = samples_at(idx, width, s, gx, gy)
-        off, sup = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params, floor)
+        off, sup, _ = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params, floor)
         offset[idx] = off
         support[idx] = sup
-    return offset, support
+    return offset, support, kept

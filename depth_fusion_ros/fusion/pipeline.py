@@ -220,7 +220,8 @@ class FusionResult:
     decision: str = 'full'
     decision_reason: str = ''
     keyframe_confidence: float = 1.0
-    #: The evidence the guard measured (``guard.GuardVerdict.evidence``).
+    #: The evidence the guard measured (``guard.GuardVerdict.evidence``) and, whenever the
+    #: keyframe was interpolated, ``certainty``: the share of the correction the floor kept.
     evidence: dict[str, float] = field(default_factory=dict)
     #: True when the keyframe has no depth at all (every pixel NaN) because the single-view
     #: source needs an alignment (relative or inverse depth, or ``align_scale``) and none was
@@ -344,7 +345,7 @@ def fuse_keyframe(
     confidence[~np.isfinite(depth)] = 0.0
     if verdict is not None:
         confidence *= np.float32(verdict.confidence)
-    return FusionResult(
+    result = FusionResult(
         depth=depth,
         confidence=confidence,
         omega_mask=omega,
@@ -357,6 +358,9 @@ def fuse_keyframe(
         timings={'selection_s': t_select, 'interpolation_s': time.perf_counter() - t1},
         **_verdict_fields(verdict),
     )
+    # With the guard or without: how much of the correction the certainty floor kept.
+    result.evidence['certainty'] = interp.kept
+    return result
 
 
 def _verdict_fields(verdict: GuardVerdict | None) -> dict:

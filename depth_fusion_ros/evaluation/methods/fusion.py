@@ -8,9 +8,10 @@
   to compare with;
 * ``fused_oracle`` — Ω = the multi-view points within ``oracle_threshold`` (10 cm) of the
   ground truth, as the paper's right-hand table (an upper bound of the selection), with the
-  paper's weights as written (``structure_scale`` 1: the oracle of issue 11's targets);
+  paper's weights as written (``structure_scale`` 1, no ``certainty_floor``: the oracle of
+  issue 11's targets);
 * ``fused_w1``, ``fused_w1w2`` — oracle points with the weights W1, W1·W2 only (Table III;
-  ``fused_oracle`` is its "all four" column).
+  ``fused_oracle`` is its "all four" column), the paper's normalisation as written.
 
 The single-view source is the run's ``--single-view`` (``ctx.options.single_view``). The
 ``fusion`` stage parameters (``--set fusion.KEY=VALUE``) override ``FusionConfig`` fields,
@@ -25,10 +26,12 @@ frame fell back to the single-view depth), ``scale_a``/``offset_b`` (the stage-2
 ``n_nonpositive`` (pixels the alignment of a relative source mapped to a non-positive depth:
 NaN, uncovered), ``withheld`` (1 when the keyframe has no depth at all: a source that needs
 the alignment and has no trusted one; it is then scored on no pixel, and the report's guard
-table counts it), and the guard's ``decision`` (index into ``guard.DECISIONS``: 0 full ... 4 single-view) and
-``keyframe_confidence``. ``--set guard.<GuardConfig field>=...`` sets its thresholds; the
-automatic methods give it the multi-view result's per-pixel evidence (``depth_std``, and the
-neighbour agreement when the multi-view stage provides one). ``--set consistency.<field>=...``
+table counts it), the guard's ``decision`` (index into ``guard.DECISIONS``: 0 full ... 4
+single-view) and ``keyframe_confidence``, and ``certainty`` (the mean share of the correction
+the certainty floor kept; NaN where the keyframe was not interpolated). ``--set
+guard.<GuardConfig field>=...`` sets its thresholds; the automatic methods give it the
+multi-view result's per-pixel evidence (``depth_std``, and the neighbour agreement when the
+multi-view stage provides one). ``--set consistency.<field>=...``
 sets stage 3 of the selection (``fusion/consistency.py``; off by default, the paper's two
 stages); ``fused_consistent`` is ``fused`` with it on.
 """
@@ -130,6 +133,7 @@ def _output(result: FusionResult) -> MethodOutput:
         'decision': float(DECISIONS.index(result.decision)),
         'keyframe_confidence': float(result.keyframe_confidence),
         'withheld': float(result.withheld),
+        'certainty': float(result.evidence.get('certainty', np.nan)),
     }
     return MethodOutput(result.depth, extras)
 
@@ -224,6 +228,7 @@ _register(
     fused_automatic,
     guard=False,
     structure_scale=1.0,
+    certainty_floor=0.0,
 )
 _register(
     'fused_consistent',
@@ -237,6 +242,7 @@ _register(
     fused_oracle,
     weights='all',
     structure_scale=1.0,
+    certainty_floor=0.0,
 )
 _register(
     'fused_w1',
@@ -244,6 +250,7 @@ _register(
     fused_oracle,
     weights='w1',
     structure_scale=1.0,
+    certainty_floor=0.0,
 )
 _register(
     'fused_w1w2',
@@ -251,4 +258,5 @@ _register(
     fused_oracle,
     weights='w1w2',
     structure_scale=1.0,
+    certainty_floor=0.0,
 )
