@@ -1,4 +1,5 @@
-"""FollowsBestEffort without DDS: the graph look steps an input down when the event never came."""
+"""FollowsBestEffort without DDS: the graph look steps an input down when the event never came,
+and the replaced subscription is made inert, not destroyed, until the input closes."""
 
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ class _Node:
         self.publishers = publishers
         self.timers: list[_Timer] = []
         self.notes: list[str] = []
+        self.destroyed: list = []
         self.stats = SimpleNamespace(noted=lambda reason, message: self.notes.append(reason))
 
     def create_wall_timer(self, period: float, callback) -> _Timer:
@@ -34,7 +36,7 @@ class _Node:
         self.timers.remove(timer)
 
     def destroy_subscription(self, subscription) -> None:
-        pass
+        self.destroyed.append(subscription)
 
     def resolve_topic_name(self, topic: str) -> str:
         return '/' + topic
@@ -46,9 +48,14 @@ class _Node:
 def test_the_graph_steps_an_input_down_when_the_event_is_lost():
     node = _Node([ReliabilityPolicy.RELIABLE])
     made: list[QoSProfile] = []
-    follow = FollowsBestEffort(
-        node, 'camera/image', QoSProfile(depth=5), lambda qos, events: made.append(qos) or len(made)
-    )
+    subscriptions: list[SimpleNamespace] = []
+
+    def make(qos: QoSProfile, events) -> SimpleNamespace:
+        made.append(qos)
+        subscriptions.append(SimpleNamespace(qos=qos, callback=lambda msg: None))
+        return subscriptions[-1]
+
+    follow = FollowsBestEffort(node, 'camera/image', QoSProfile(depth=5), make)
     (graph,) = node.timers
     graph.callback()  # a reliable publisher only: nothing to do
     assert follow.reliable and len(node.timers) == 1 and node.notes == []
@@ -58,5 +65,11 @@ def test_the_graph_steps_an_input_down_when_the_event_is_lost():
     swap.callback()  # the step down, as the event path does it
     assert not follow.reliable and made[-1].reliability == ReliabilityPolicy.BEST_EFFORT
     assert node.notes == ['qos_best_effort'] and node.timers == []  # once, and nothing left polling
-    best = FollowsBestEffort(node, 'x', made[-1], lambda qos, events: 0)
+    # The replaced subscription is inert, not destroyed: an executor may still hold its QoS
+    # event handler (destroyed, rclpy raised InvalidHandle out of spin); it goes at close.
+    old, new = subscriptions
+    assert node.destroyed == [] and follow.subscription is new and old.callback('msg') is None
+    follow.close()
+    assert node.destroyed == [old, new]
+    best = FollowsBestEffort(node, 'x', made[-1], make)
     assert best._graph_timer is None and node.timers == []  # already best effort: no look

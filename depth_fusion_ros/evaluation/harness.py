@@ -54,7 +54,8 @@ class MethodRecord:
             'low': self.low_gradient.summary(),
         }
         for key, values in self.extras.items():
-            out[key] = float(np.nanmean(values)) if len(values) else float('nan')
+            # NaN where no keyframe has the value (e.g. certainty where none was interpolated)
+            out[key] = float(np.nanmean(values)) if np.isfinite(values).any() else float('nan')
         if self.extras:
             out['per_frame_extras'] = {k: [_finite_or_none(v) for v in vs] for k, vs in self.extras.items()}
         out['seconds_per_frame'] = float(np.mean(self.seconds)) if self.seconds else float('nan')
@@ -63,7 +64,8 @@ class MethodRecord:
     def _sequence_json(self) -> dict[str, Any]:
         out: dict[str, Any] = dict(self.sequence_output.metrics if self.sequence_output else {})
         for key, values in self.extras.items():
-            out[key] = float(np.nanmean(values)) if len(values) else float('nan')
+            # NaN where no keyframe has the value (e.g. certainty where none was interpolated)
+            out[key] = float(np.nanmean(values)) if np.isfinite(values).any() else float('nan')
         out['seconds_per_frame'] = float(np.mean(self.seconds)) if self.seconds else float('nan')
         return out
 

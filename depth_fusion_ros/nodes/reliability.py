@@ -10,8 +10,16 @@ on the incompatible-QoS event (reliability) of an input subscription, it is made
 effort, once, with a warning and a counted note (``qos_best_effort``).
 
 The swap runs on a timer, not in the event callback: the event belongs to the subscription
-being replaced. The event can also fail to come (discovery under load: a fresh-clone CI run
-saw one of three inputs step down in 30 s), so the graph is also looked at every
+being replaced. The replaced subscription is not destroyed while the node spins, only made
+inert (its callback discards): destroying it also destroys its QoS event handler, which an
+executor may still hold from the wait set it is iterating, and rclpy then raises
+``InvalidHandle`` out of ``spin`` and the node stops for good (seen under load: the graph
+received nothing after the first step down). An inert reliable subscription matches only
+reliable publishers: on a topic that has both kinds, their samples are taken there and
+discarded (the best-effort subscription delivers them once). The retired subscriptions are
+destroyed with the input (:meth:`FollowsBestEffort.close`).
+
+The event can also fail to come (discovery under load), so the graph is also looked at every
 ``GRAPH_CHECK_PERIOD`` seconds: a best-effort publisher listed on the topic steps the input
 down the same way.
 """
@@ -68,6 +76,8 @@ class FollowsBestEffort:
         #: the one-shot timer of a pending step down (none while nothing is incompatible)
         self._timer: Any = None
         self.subscription = make(qos, self.event_callbacks())
+        #: replaced subscriptions, inert until ``close`` (see the module docstring)
+        self._retired: list[Any] = []
         #: the periodic look at the topic's publishers (while the input is still reliable)
         self._graph_timer: Any = (
             node.create_wall_timer(GRAPH_CHECK_PERIOD, self._check_graph) if self.reliable else None
@@ -109,7 +119,8 @@ class FollowsBestEffort:
 
     def _swap(self) -> None:
         self._stop_timers()
-        self.node.destroy_subscription(self.subscription)
+        self.subscription.callback = _discard  # inert, not destroyed (module docstring)
+        self._retired.append(self.subscription)
         self.qos = best_effort(self.qos)
         self.subscription = self._make(self.qos, self.event_callbacks())
         message = (
@@ -120,6 +131,12 @@ class FollowsBestEffort:
         self.node.stats.noted('qos_best_effort', message)
 
     def close(self) -> None:
-        """Destroy the subscription (and a pending step down)."""
+        """Destroy the subscription, the ones it replaced and a pending step down."""
         self._stop_timers()
-        self.node.destroy_subscription(self.subscription)
+        for subscription in (*self._retired, self.subscription):
+            self.node.destroy_subscription(subscription)
+        self._retired.clear()
+
+
+def _discard(msg: Any) -> None:
+    """The callback of a replaced subscription: nothing arrives there twice."""

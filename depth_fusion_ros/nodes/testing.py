@@ -16,9 +16,9 @@ them, which with the package's 0.5 s announcements is well within a test.
 
 from __future__ import annotations
 
-import contextlib
 import threading
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -64,8 +64,13 @@ class RosHarness:
 
     def _spin(self) -> None:
         # The context is shut down while spinning when the harness closes: nothing to report.
-        with contextlib.suppress(Exception):
+        # Anything else that stops the executor would leave a test waiting on a dead graph, so
+        # it is printed.
+        try:
             self.executor.spin()
+        except Exception:
+            if self.context.ok():
+                traceback.print_exc()
 
     def add(self, node: Node) -> Node:
         """Spin ``node`` (created with ``context=harness.context``) on the harness executor."""
