@@ -54,8 +54,7 @@ class MethodRecord:
             'low': self.low_gradient.summary(),
         }
         for key, values in self.extras.items():
-            # NaN where no keyframe has the value (e.g. certainty where none was interpolated)
-            out[key] = float(np.nanmean(values)) if np.isfinite(values).any() else float('nan')
+            out[key] = _mean_extra(values)
         if self.extras:
             out['per_frame_extras'] = {k: [_finite_or_none(v) for v in vs] for k, vs in self.extras.items()}
         out['seconds_per_frame'] = float(np.mean(self.seconds)) if self.seconds else float('nan')
@@ -64,8 +63,7 @@ class MethodRecord:
     def _sequence_json(self) -> dict[str, Any]:
         out: dict[str, Any] = dict(self.sequence_output.metrics if self.sequence_output else {})
         for key, values in self.extras.items():
-            # NaN where no keyframe has the value (e.g. certainty where none was interpolated)
-            out[key] = float(np.nanmean(values)) if np.isfinite(values).any() else float('nan')
+            out[key] = _mean_extra(values)
         out['seconds_per_frame'] = float(np.mean(self.seconds)) if self.seconds else float('nan')
         return out
 
@@ -141,6 +139,12 @@ def evaluate_sequence(
         if spec.finish is not None:
             records[spec.name].sequence_output = spec.finish(whole)
     return SequenceResult(sequence.name, path, keyframes, records, sequence)
+
+
+def _mean_extra(values: list[float]) -> float:
+    """Mean of a per-frame extra over the frames that have it; NaN where none has (e.g.
+    ``certainty`` where no keyframe was interpolated)."""
+    return float(np.nanmean(values)) if np.isfinite(values).any() else float('nan')
 
 
 def _score(rec: MethodRecord, depth: np.ndarray, gt: np.ndarray, high: np.ndarray) -> None:

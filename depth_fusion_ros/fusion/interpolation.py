@@ -372,11 +372,12 @@ def _offsets_at(
     params: WeightParams,
     floor: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Exact offsets, support distances and kept shares of ``pixels`` (1-D samples) against
-    Ω, whose log weights are ``lw`` (1, |Ω|; None: all points weigh 1).
+    """Exact offsets and support distances of ``pixels`` (1-D samples) against Ω, whose log
+    weights are ``lw`` (1, |Ω|; None: all points weigh 1), and the mean kept share (0-d).
 
     ``floor`` (κ, in weight units): every offset times its share ``ΣW̃ / (ΣW̃ + κ)`` (the
-    certainty fade, :func:`certainty_share`); 0 leaves the paper's normalised offsets.
+    certainty fade, :func:`certainty_share`); 0 leaves the paper's normalised offsets (no
+    multiply, a share of 1).
 
     Chunks have a fixed size (the last one padded by repeating a pixel) so a compiled kernel
     sees one pixel-count shape per |Ω|; the size is balanced (never above the kernel's) so
@@ -392,15 +393,13 @@ def _offsets_at(
     q = points.row()
     offsets = torch.empty(n, dtype=v.dtype, device=v.device)
     support = torch.empty(n, dtype=v.dtype, device=v.device)
-    kept = torch.empty(n, dtype=v.dtype, device=v.device)
+    kept = torch.zeros((), dtype=torch.float64, device=v.device)
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
         index = torch.arange(start, start + chunk, device=v.device).clamp_max(n - 1)
         num, den, dist, low = kernel(pixels.take(index).column(), q, v, lw)
         plain = den + n_points * low
-        share = certainty_share(plain, floor)[: stop - start]
-        offsets[start:stop] = (num / den)[: stop - start] * share
-        kept[start:stop] = share
+        offsets[start:stop] = (num / den)[: stop - start]
         support[start:stop] = (dist / den)[: stop - start]
         equal = (den <= (EQUAL_WEIGHTS_RTOL * n_points) * plain)[: stop - start]
         # One host round trip (the nonzero), not two (an any() then a masked select).
@@ -409,9 +408,13 @@ def _offsets_at(
             for first in range(0, equal_rows.numel(), block):
                 rows = equal_rows[first : first + block]
                 off, sup = _plain_normalisation(pixels.take(rows).column(), q, v, lw, params)
-                offsets[rows] = off * share[rows - start]
+                offsets[rows] = off
                 support[rows] = sup
-    return offsets, support, kept
+        if floor > 0:  # after the plain-normalisation redo, which fades the same way
+            share = certainty_share(plain[: stop - start], floor)
+            offsets[start:stop] *= share
+            kept += share.sum(dtype=torch.float64)
+    return offsets, support, kept / n if floor > 0 else torch.ones((), dtype=torch.float64)
 
 
 def certainty_share(mass: torch.Tensor, floor: float) -> torch.Tensor:
@@ -425,9 +428,7 @@ def certainty_share(mass: torch.Tensor, floor: float) -> torch.Tensor:
     fades it to none where it is far below (docs/fusion.md "Certainty floor"). ``floor`` 0:
     all ones (the paper).
     """
-    if floor <= 0:
-        return torch.ones_like(mass)
-    return mass / (mass + floor)
+    return mass / (mass + floor) if floor > 0 else torch.ones_like(mass)
 
 
 def interpolate(
@@ -536,7 +537,7 @@ def interpolate(
         )
         offset.ravel()[valid_s.ravel()] = off.cpu().numpy()
         support.ravel()[valid_s.ravel()] = sup.cpu().numpy()
-        return Interpolation(offset, support, float(kept.mean()))
+        return Interpolation(offset, support, float(kept))
 
     off_t, support_t, kept = _fast_offsets(
         valid_s,
@@ -558,7 +559,7 @@ def interpolate(
     support.ravel()[:] = support_t.cpu().numpy()
     offset[~valid_s] = np.nan
     support[~valid_s] = np.nan
-    return Interpolation(offset, support, kept)
+    return Interpolation(offset, support, float(kept))
 
 
 def _point_log_weights(
@@ -688,7 +689,7 @@ def _fast_offsets(
     refine_below: float,
     blend: Callable,
     floor: float = 0.0,
-) -> tuple[torch.Tensor, torch.Tensor, float]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Exact offsets on a coarse grid, structure-guided bilinear upsampling, exact fix-ups;
     the mean kept share is the coarse grid's (a uniform sample of the image).
 
@@ -701,12 +702,11 @@ def _fast_offsets(
     coarse_valid = valid_s.ravel()[grid.coarse_flat]
     coarse_offset = torch.full((grid.coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
     coarse_support = torch.full((grid.coarse_flat.size,), float('nan'), dtype=s.dtype, device=dev)
-    kept = 1.0
+    kept = torch.ones((), dtype=torch.float64)  # a 0-d tensor: read once, with the output
     if coarse_valid.any():
         idx = torch.from_numpy(grid.coarse_flat[coarse_valid]).to(dev)
         pixels = samples_at(idx, width, s, gx, gy)
-        off, sup, share = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params, floor)
-        kept = float(share.mean())
+        off, sup, kept = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params, floor)
         sel = torch.from_numpy(np.flatnonzero(coarse_valid)).to(dev)
         coarse_offset[sel] = off
         coarse_support[sel] = sup

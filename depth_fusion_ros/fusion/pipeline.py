@@ -309,9 +309,9 @@ def fuse_keyframe(
         if verdict.decision not in ('full', 'fewer_points'):
             return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config, needs_fit)
         omega = verdict.trusted
-    uncapped = int(np.count_nonzero(omega & np.isfinite(base)))
+    omega = omega & np.isfinite(base)
+    uncapped = int(np.count_nonzero(omega))
     omega = _cap_points(omega, config.max_points, config.seed)
-    omega &= np.isfinite(base)
     # A subsample of Ω has that share of its weight: the floor follows, so the fade is the
     # whole Ω's whatever max_points (or the load) keeps.
     floor = config.certainty_floor * np.count_nonzero(omega) / max(uncapped, 1)

@@ -16,9 +16,9 @@ them, which with the package's 0.5 s announcements is well within a test.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
-import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -31,6 +31,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from .graph.isolation import pick_free_domain
 from .qos import qos_profile
+
+log = logging.getLogger(__name__)
 
 #: Domains a harness picks from: the test suite's range (``depth-fusion run`` takes 101 and
 #: 215-232, graph/isolation.py).
@@ -70,7 +72,7 @@ class RosHarness:
             self.executor.spin()
         except Exception:
             if self.context.ok():
-                traceback.print_exc()
+                log.exception('the test harness executor stopped; the graph no longer spins')
 
     def add(self, node: Node) -> Node:
         """Spin ``node`` (created with ``context=harness.context``) on the harness executor."""

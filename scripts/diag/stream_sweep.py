@@ -27,7 +27,7 @@ from depth_fusion_ros.evaluation.context import EvalOptions
 from depth_fusion_ros.evaluation.harness import evaluate_sequence
 
 sys.path.insert(0, str(Path(__file__).parent))
-from stress_sweep import value  # the same --set parser (scripts/diag is no package)
+from stress_sweep import apply_sets  # the same --set handling (scripts/diag is no package)
 
 
 def streams(text: str) -> list[tuple[str, int]]:
@@ -69,10 +69,7 @@ def main() -> int:
         'fusion': {'compile_kernel': False, 'mode': 'fast', 'max_points': 4096},
         'multi_view': {'method': 'filter'},
     }
-    for item in args.set:
-        key, _, text = item.partition('=')
-        stage, _, field = key.partition('.')
-        params.setdefault(stage, {})[field] = value(text)
+    apply_sets(params, args.set)
     everything: list[float] = []
     for name, seed in [s for group in args.streams for s in group]:
         seq = sequence(name, seed, args.frames, args.cache)

@@ -43,6 +43,14 @@ def value(text: str) -> object:
     return text
 
 
+def apply_sets(params: dict[str, dict[str, object]], items: list[str]) -> None:
+    """``--set STAGE.FIELD=VALUE`` items into the stage parameters (numbers parsed)."""
+    for item in items:
+        key, _, text = item.partition('=')
+        stage, _, field = key.partition('.')
+        params.setdefault(stage, {})[field] = value(text)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('cases', help=f"comma-separated, or 'all' ({', '.join(sorted(STRESS_CASES))})")
@@ -58,10 +66,7 @@ def main() -> int:
         'fusion': {'compile_kernel': False, 'mode': 'fast'},
         'multi_view': {'method': 'filter'},
     }
-    for item in args.set:
-        key, _, text = item.partition('=')
-        stage, _, field = key.partition('.')
-        params.setdefault(stage, {})[field] = value(text)
+    apply_sets(params, args.set)
     names = sorted(STRESS_CASES) if args.cases == 'all' else args.cases.split(',')
     keyframe = args.frames // 2 if args.keyframe is None else args.keyframe
     ratios = []
