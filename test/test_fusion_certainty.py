@@ -3,12 +3,15 @@ times ``ΣW̃ / (ΣW̃ + κ)``, exact and fast, whatever share of Ω ``max_point
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
-from depth_fusion_ros.fusion.interpolation import interpolate
-from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
+from depth_fusion_ros.fusion.guard import GuardVerdict
+from depth_fusion_ros.fusion.interpolation import MAX_CERTAINTY_FLOOR, interpolate
+from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe, keyframe_floor
 from depth_fusion_ros.fusion.scenes import make_scene
 from depth_fusion_ros.fusion.weights import (
     WeightParams,
@@ -92,11 +95,13 @@ def test_a_subsample_of_omega_fades_like_the_whole() -> None:
 
 @pytest.mark.parametrize('value', [-0.1, 1.5, float('nan')])
 def test_a_bad_floor_is_named(value: float) -> None:
+    """The configured floor is in [0, 1]; the one a keyframe's evidence raised it to (what
+    ``interpolate`` is given) at most ``MAX_CERTAINTY_FLOOR``."""
     with pytest.raises(ValueError, match='certainty_floor'):
         FusionConfig(certainty_floor=value)
     s = np.ones((10, 10), np.float32)
     with pytest.raises(ValueError, match='certainty_floor'):
-        interpolate(s, s, s > 0, certainty_floor=value)
+        interpolate(s, s, s > 0, certainty_floor=value if value != 1.5 else MAX_CERTAINTY_FLOOR + 1)
 
 
 def test_the_share_kept_is_reported_per_keyframe() -> None:
@@ -118,3 +123,61 @@ def test_the_share_kept_is_reported_per_keyframe() -> None:
     for guard in (True, False):
         result = fuse_keyframe(sc.single, sc.multi, None, FusionConfig(guard=guard), 'metric_depth')
         assert 0.0 < result.evidence['certainty'] < 1.0
+
+
+def _verdict(mv_noise: float, single_error: float) -> GuardVerdict:
+    evidence = {'mv_noise': mv_noise, 'single_error': single_error}
+    return GuardVerdict('full', 'test', np.zeros((2, 2), bool), 1.0, 1.0, evidence)
+
+
+def test_the_floor_follows_the_single_views_precision_against_the_points() -> None:
+    """``certainty_gain``: κ is at least gain × (mv_noise / single_error)², the single-view
+    depth's precision relative to a point's, as the guard measured them; never below
+    ``certainty_floor``, never above ``MAX_CERTAINTY_FLOOR``, the fixed floor where the
+    guard measured nothing (off, or too few points)."""
+    config = FusionConfig(certainty_floor=0.1, certainty_gain=30.0)
+    # A network 10x the points' noise (the paper's regime): the floor as configured.
+    assert keyframe_floor(config, _verdict(0.02, 0.2)) == pytest.approx(0.3)
+    assert keyframe_floor(dataclasses.replace(config, certainty_gain=5.0), _verdict(0.02, 0.2)) == 0.1
+    # One 2.5x the points' noise (adapted to the scene, or a good metric model): 4.8.
+    assert keyframe_floor(config, _verdict(0.02, 0.05)) == pytest.approx(4.8)
+    # As precise as the points, or the fit spread all noise: the cap.
+    assert keyframe_floor(config, _verdict(0.02, 0.01)) == MAX_CERTAINTY_FLOOR
+    assert keyframe_floor(config, _verdict(0.02, 0.0)) == MAX_CERTAINTY_FLOOR
+    assert keyframe_floor(config, None) == 0.1
+    assert keyframe_floor(config, _verdict(float('nan'), 0.1)) == 0.1
+    assert keyframe_floor(dataclasses.replace(config, certainty_gain=0.0), _verdict(0.02, 0.01)) == 0.1
+
+
+@pytest.mark.parametrize('value', [-1.0, float('inf'), float('nan')])
+def test_a_bad_gain_is_named(value: float) -> None:
+    with pytest.raises(ValueError, match='certainty_gain'):
+        FusionConfig(certainty_gain=value)
+
+
+def test_the_keyframes_floor_is_reported_and_fades_a_precise_priors_corrections() -> None:
+    """The floor a keyframe used is in its evidence (``certainty_floor``); a single-view depth
+    that the points barely correct (its error about their noise) keeps more of itself."""
+    sc = make_scene(80, 60, n_points=300, scale=1.0, offset=0.0)
+    rng = np.random.default_rng(0)
+    multi = sc.multi * np.exp(rng.normal(0.0, 0.02, sc.multi.shape)).astype(np.float32)
+    single = sc.single * np.exp(rng.normal(0.0, 0.03, sc.single.shape)).astype(np.float32)
+    plain = fuse_keyframe(single, multi, None, FusionConfig(certainty_gain=0.0), 'metric_depth')
+    raised = fuse_keyframe(single, multi, None, FusionConfig(certainty_gain=30.0), 'metric_depth')
+    assert plain.evidence['certainty_floor'] == FusionConfig().certainty_floor
+    assert raised.evidence['certainty_floor'] > 1.0
+    assert raised.evidence['certainty'] < plain.evidence['certainty']
+
+
+def test_a_single_view_off_by_one_global_factor_keeps_the_fixed_floor() -> None:
+    """The single-view error counts its global scale against the points: a network precise
+    about the fit but off by a factor of two everywhere (the shipped one on TUM fr1_xyz) is
+    far off, and its corrections must reach the whole image."""
+    config = FusionConfig(certainty_floor=0.1, certainty_gain=30.0)
+    off = GuardVerdict(
+        'full', 'test', np.zeros((2, 2), bool), 1.0, 2.0, {'mv_noise': 0.02, 'single_error': 0.02}
+    )
+    assert keyframe_floor(config, off) == pytest.approx(
+        max(0.1, 30.0 * (0.02 / np.hypot(0.02, np.log(2.0))) ** 2)
+    )
+    assert keyframe_floor(config, off) < 0.1 + 1e-9

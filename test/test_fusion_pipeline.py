@@ -109,7 +109,8 @@ def test_planted_outliers_are_rejected_before_fusing() -> None:
 @pytest.mark.parametrize('mode', ['exact', 'fast'])
 def test_empty_single_and_pair_of_points(mode: str) -> None:
     sc = make_scene(40, 30, n_points=2, scale=1.0, offset=0.0)
-    cfg = FusionConfig(mode=mode, fast_stride=3, certainty_floor=0.0)  # eq. (9) as the paper has it
+    # eq. (9) as the paper has it
+    cfg = FusionConfig(mode=mode, fast_stride=3, certainty_floor=0.0, certainty_gain=0.0)
     s = sc.single
     none = interpolate(s, sc.multi, np.zeros(s.shape, bool), mode=mode)
     assert np.all(np.isnan(none.offset)) and np.all(np.isnan(none.support_distance))

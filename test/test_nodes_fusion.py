@@ -334,6 +334,7 @@ def test_depth_std_part_gives_the_guard_its_parallax_evidence():
     first, second = (json.loads(msg.data) for msg in decisions)
     assert first['decision'] in ('full', 'fewer_points') and 'median_relative_std' not in first['evidence']
     assert 0.0 < first['evidence']['certainty'] <= 1.0  # the share the certainty floor kept
+    assert first['evidence']['certainty_floor'] >= 0.1  # the floor this keyframe used
     assert second['evidence']['median_relative_std'] == pytest.approx(0.5, rel=1e-3)
     assert second['decision'] in ('single_scaled', 'single_view'), second
 

@@ -65,6 +65,11 @@ MODES = ('exact', 'fast')
 #: so its exponent stays far inside MAX_EXPONENT's range.
 MAX_POINT_LOG_WEIGHT = 20.0
 
+#: Largest κ (in units of one point's largest weight) a keyframe's evidence may raise the floor
+#: to (``FusionConfig.certainty_gain``): a correction then needs the weight of ten close
+#: points to be half kept.
+MAX_CERTAINTY_FLOOR = 10.0
+
 #: Default pixel-point pairs per chunk: 8 MB per float32 weight block.
 DEFAULT_CHUNK_ELEMENTS = 1 << 21
 
@@ -473,7 +478,7 @@ def interpolate(
         raise ValueError(f'fast_stride must be >= 1, got {fast_stride}')
     if not 0.0 <= fast_refine <= 1.0:
         raise ValueError(f'fast_refine must be in [0, 1], got {fast_refine}')
-    check_certainty_floor(certainty_floor)
+    check_certainty_floor(certainty_floor, MAX_CERTAINTY_FLOOR)
     unit = np.float32(params.structure_scale)
     if unit != 1.0:
         # The weights' structure factors compare depths and depth gradients in metres (the
@@ -583,10 +588,11 @@ def _point_log_weights(
     return torch.from_numpy(lw).to(device).reshape(1, -1)
 
 
-def check_certainty_floor(value: float) -> None:
-    """``certainty_floor`` is a finite fraction in [0, 1] of one point's largest weight."""
-    if not (np.isfinite(value) and 0.0 <= value <= 1.0):
-        raise ValueError(f'certainty_floor must be in [0, 1] (0: off), got {value}')
+def check_certainty_floor(value: float, upper: float = 1.0) -> None:
+    """``certainty_floor`` is a finite fraction in [0, ``upper``] of one point's largest weight
+    (the configured floor: 1; the one a keyframe's evidence raised it to: ``MAX_CERTAINTY_FLOOR``)."""
+    if not (np.isfinite(value) and 0.0 <= value <= upper):
+        raise ValueError(f'certainty_floor must be in [0, {upper:g}] (0: off), got {value}')
 
 
 def coarse_axis(size: int, stride: int) -> np.ndarray:

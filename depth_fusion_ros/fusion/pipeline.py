@@ -37,6 +37,7 @@ from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
 from .guard_apply import guarded_depth, limit_reach
 from .interpolation import (
     DEFAULT_CHUNK_ELEMENTS,
+    MAX_CERTAINTY_FLOOR,
     MODES,
     check_certainty_floor,
     confidence_from_support,
@@ -95,6 +96,11 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
         "times one point's largest weight (as if from all of omega, not the max_points subsample); "
         'fades corrections where no point resembles the pixel (0: off, the paper)'
     ),
+    'certainty_gain': (
+        'raises k per keyframe to this x (mv_noise / e)^2 when that is larger, e the single-view error '
+        "at the points (the guard's single_error and global scale): a single-view depth nearly as "
+        'precise as the points keeps more of itself (0: off)'
+    ),
     'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
 
@@ -137,6 +143,9 @@ class FusionConfig:
     #: Certainty floor κ of the interpolation (``interpolation.certainty_share``), as a
     #: fraction of one point's largest weight, for the whole Ω (0: off, the paper).
     certainty_floor: float = 0.1
+    #: κ also follows the single-view depth's precision against the points' (guard evidence):
+    #: at least this × (mv_noise / e)², e its error at the points (0: off, the fixed floor alone).
+    certainty_gain: float = 30.0
     #: Check the evidence per keyframe and degrade gracefully (``guard.py``, ``GuardConfig``).
     guard: bool = True
     device: str = 'cpu'
@@ -171,6 +180,10 @@ class FusionConfig:
             )
         check_half_weight(self.std_half_weight)
         check_certainty_floor(self.certainty_floor)
+        if not (np.isfinite(self.certainty_gain) and self.certainty_gain >= 0):
+            raise ValueError(
+                f'certainty_gain must be a finite number >= 0 (0: off), got {self.certainty_gain}'
+            )
         if self.max_points is not None and self.max_points < 1:
             raise ValueError(f'max_points must be >= 1 or None, got {self.max_points}')
 
@@ -314,7 +327,8 @@ def fuse_keyframe(
     omega = _cap_points(omega, config.max_points, config.seed)
     # A subsample of Ω has that share of its weight: the floor follows, so the fade is the
     # whole Ω's whatever max_points (or the load) keeps.
-    floor = config.certainty_floor * np.count_nonzero(omega) / max(uncapped, 1)
+    kappa = keyframe_floor(config, verdict)
+    floor = kappa * np.count_nonzero(omega) / max(uncapped, 1)
     t1 = time.perf_counter()
     interp = interpolate(
         base,
@@ -360,7 +374,34 @@ def fuse_keyframe(
     )
     # With the guard or without: how much of the correction the certainty floor kept.
     result.evidence['certainty'] = interp.kept
+    result.evidence['certainty_floor'] = kappa
     return result
+
+
+def keyframe_floor(config: FusionConfig, verdict: GuardVerdict | None) -> float:
+    """κ of this keyframe, in units of one point's largest weight: ``certainty_floor``, raised
+    to ``certainty_gain × (mv_noise / e)²`` when the guard measured both, ``e`` the single-view
+    error at the points (``single_error`` and the log of the global scale, in quadrature).
+
+    Normalised convolution with a certainty floor weighs "no correction" against the points;
+    the floor's right size is the single-view depth's precision relative to a point's. A
+    network whose error at the points is a few times the points' noise (adapted to this
+    scene, or a good metric model) earns a floor of its own: corrections then stay where many
+    points agree, and do not spread the points' residual error over the pixels between them
+    (docs/fusion.md "Certainty floor"). Capped at ``MAX_CERTAINTY_FLOOR``.
+    """
+    kappa = config.certainty_floor
+    if config.certainty_gain <= 0 or verdict is None:
+        return kappa
+    noise = verdict.evidence.get('mv_noise', np.nan)
+    # The single-view error at the points: its spread about the fit (``single_error``) and
+    # the global scale the points give it (a network off by one factor everywhere, as the
+    # shipped one is on TUM fr1_xyz, is precise about the fit and still far off).
+    error = float(np.hypot(verdict.evidence.get('single_error', np.nan), np.log(verdict.scale)))
+    if not (np.isfinite(noise) and np.isfinite(error)):
+        return kappa
+    ratio = noise / error if error > 0 else np.inf
+    return float(min(max(kappa, config.certainty_gain * ratio * ratio), MAX_CERTAINTY_FLOOR))
 
 
 def _verdict_fields(verdict: GuardVerdict | None) -> dict:

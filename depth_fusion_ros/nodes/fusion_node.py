@@ -96,6 +96,7 @@ FUSION_LIMITS: dict[str, Any] = {
     'agreement_tau': (0.0, None),
     'agreement_sigma': (1e-3, 1000.0),
     'certainty_floor': (0.0, 1.0),
+    'certainty_gain': (0.0, 1e6),
 }
 #: Ranges of the ``guard.*`` parameters (``GuardConfig``).
 GUARD_LIMITS: dict[str, Any] = {

@@ -8,8 +8,8 @@
   to compare with;
 * ``fused_oracle`` — Ω = the multi-view points within ``oracle_threshold`` (10 cm) of the
   ground truth, as the paper's right-hand table (an upper bound of the selection), with the
-  paper's weights as written (``structure_scale`` 1, no ``certainty_floor``: the oracle of
-  issue 11's targets);
+  paper's weights as written (``structure_scale`` 1, no ``certainty_floor`` or
+  ``certainty_gain``: the oracle of issue 11's targets);
 * ``fused_w1``, ``fused_w1w2`` — oracle points with the weights W1, W1·W2 only (Table III;
   ``fused_oracle`` is its "all four" column), the paper's normalisation as written.
 
@@ -27,8 +27,9 @@ frame fell back to the single-view depth), ``scale_a``/``offset_b`` (the stage-2
 NaN, uncovered), ``withheld`` (1 when the keyframe has no depth at all: a source that needs
 the alignment and has no trusted one; it is then scored on no pixel, and the report's guard
 table counts it), the guard's ``decision`` (index into ``guard.DECISIONS``: 0 full ... 4
-single-view) and ``keyframe_confidence``, and ``certainty`` (the mean share of the correction
-the certainty floor kept; NaN where the keyframe was not interpolated). ``--set
+single-view) and ``keyframe_confidence``, ``certainty`` (the mean share of the correction
+the certainty floor kept) and ``certainty_floor`` (the κ this keyframe used, in units of one
+point's largest weight; both NaN where the keyframe was not interpolated). ``--set
 guard.<GuardConfig field>=...`` sets its thresholds; the automatic methods give it the
 multi-view result's per-pixel evidence (``depth_std``, and the neighbour agreement when the
 multi-view stage provides one). ``--set consistency.<field>=...``
@@ -134,6 +135,7 @@ def _output(result: FusionResult) -> MethodOutput:
         'keyframe_confidence': float(result.keyframe_confidence),
         'withheld': float(result.withheld),
         'certainty': float(result.evidence.get('certainty', np.nan)),
+        'certainty_floor': float(result.evidence.get('certainty_floor', np.nan)),
     }
     return MethodOutput(result.depth, extras)
 
@@ -229,6 +231,7 @@ _register(
     guard=False,
     structure_scale=1.0,
     certainty_floor=0.0,
+    certainty_gain=0.0,
 )
 _register(
     'fused_consistent',
@@ -243,6 +246,7 @@ _register(
     weights='all',
     structure_scale=1.0,
     certainty_floor=0.0,
+    certainty_gain=0.0,
 )
 _register(
     'fused_w1',
@@ -251,6 +255,7 @@ _register(
     weights='w1',
     structure_scale=1.0,
     certainty_floor=0.0,
+    certainty_gain=0.0,
 )
 _register(
     'fused_w1w2',
@@ -259,4 +264,5 @@ _register(
     weights='w1w2',
     structure_scale=1.0,
     certainty_floor=0.0,
+    certainty_gain=0.0,
 )
