@@ -125,9 +125,9 @@ def test_the_share_kept_is_reported_per_keyframe() -> None:
         assert 0.0 < result.evidence['certainty'] < 1.0
 
 
-def _verdict(mv_noise: float, single_error: float) -> GuardVerdict:
+def _verdict(mv_noise: float, single_error: float, scale: float = 1.0) -> GuardVerdict:
     evidence = {'mv_noise': mv_noise, 'single_error': single_error}
-    return GuardVerdict('full', 'test', np.zeros((2, 2), bool), 1.0, 1.0, evidence)
+    return GuardVerdict('full', 'test', np.zeros((2, 2), bool), 1.0, scale, evidence)
 
 
 def test_the_floor_follows_the_single_views_precision_against_the_points() -> None:
@@ -174,9 +174,7 @@ def test_a_single_view_off_by_one_global_factor_keeps_the_fixed_floor() -> None:
     about the fit but off by a factor of two everywhere (the shipped one on TUM fr1_xyz) is
     far off, and its corrections must reach the whole image."""
     config = FusionConfig(certainty_floor=0.1, certainty_gain=30.0)
-    off = GuardVerdict(
-        'full', 'test', np.zeros((2, 2), bool), 1.0, 2.0, {'mv_noise': 0.02, 'single_error': 0.02}
-    )
+    off = _verdict(0.02, 0.02, scale=2.0)
     assert keyframe_floor(config, off) == pytest.approx(
         max(0.1, 30.0 * (0.02 / np.hypot(0.02, np.log(2.0))) ** 2)
     )

@@ -234,7 +234,8 @@ class FusionResult:
     decision_reason: str = ''
     keyframe_confidence: float = 1.0
     #: The evidence the guard measured (``guard.GuardVerdict.evidence``) and, whenever the
-    #: keyframe was interpolated, ``certainty``: the share of the correction the floor kept.
+    #: keyframe was interpolated, ``certainty`` (the share of the correction the floor kept)
+    #: and ``certainty_floor`` (the κ it used, :func:`keyframe_floor`).
     evidence: dict[str, float] = field(default_factory=dict)
     #: True when the keyframe has no depth at all (every pixel NaN) because the single-view
     #: source needs an alignment (relative or inverse depth, or ``align_scale``) and none was

@@ -65,14 +65,16 @@ class RosHarness:
         self._thread.start()
 
     def _spin(self) -> None:
-        # The context is shut down while spinning when the harness closes: nothing to report.
-        # Anything else that stops the executor would leave a test waiting on a dead graph, so
-        # it is printed.
+        # The context is shut down while spinning when the harness closes: expected, logged at
+        # debug. Anything else that stops the executor would leave a test waiting on a dead
+        # graph, so it is printed with its traceback.
         try:
             self.executor.spin()
         except Exception:
             if self.context.ok():
                 log.exception('the test harness executor stopped; the graph no longer spins')
+            else:
+                log.debug('the test harness executor stopped with its context', exc_info=True)
 
     def add(self, node: Node) -> Node:
         """Spin ``node`` (created with ``context=harness.context``) on the harness executor."""
