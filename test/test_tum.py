@@ -255,6 +255,41 @@ def test_undistortion_moves_points_to_their_pinhole_projection():
     assert np.isnan(depth).any() and set(np.unique(depth[np.isfinite(depth)])) == {1.0}
 
 
+def test_undistorter_box_filters_a_large_camera_first_where_the_geometry_says():
+    """A 1296x972 camera for a 320x240 grid is box-filtered to 648x486 before the undistortion
+    (the cost of a 640x480 camera, docs/nodes.md); dots still land where the ideal pinhole
+    camera of the working grid projects them, and the picture matches the full-size
+    undistortion followed by an area resize to within a grey level on average."""
+    s = 1296 / 640
+    cam = PinholeCamera(1296, 972, 517.3 * s, 516.5 * s, (318.6 + 0.5) * s - 0.5, (255.3 + 0.5) * s - 0.5)
+    D = np.array([0.2624, -0.9531, -0.0054, 0.0026, 1.1633])
+    und = Undistorter(cam, 'plumb_bob', D, 320, 240)
+    assert und.shrink == 2
+    vga = PinholeCamera(640, 480, 517.3, 516.5, 318.6, 255.3)
+    assert Undistorter(vga, 'plumb_bob', D, 320, 240).shrink == 1  # the evaluation's data: as before
+    points = np.array([[0.4, 0.3, 1.0], [-0.5, -0.35, 1.0], [0.1, -0.2, 1.0], [0.0, 0.0, 1.0]])
+    raw_px, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), cam.K, D)
+    raw = np.zeros((972, 1296, 3), np.uint8)
+    for x, y in raw_px.reshape(-1, 2):
+        cv2.circle(raw, (round(x * 256), round(y * 256)), 16 * 256, (255, 255, 255), -1, cv2.LINE_AA, 8)
+    out = und.rgb(raw)
+    assert out.shape == (240, 320, 3)
+    grey = out[..., 0].astype(np.float64)
+    ideal, _ = und.camera.project(points)
+    for u, v in ideal:
+        y0, x0 = round(v), round(u)
+        win = grey[y0 - 8 : y0 + 9, x0 - 8 : x0 + 9]
+        yy, xx = np.mgrid[-8:9, -8:9]
+        cy, cx = (win * yy).sum() / win.sum(), (win * xx).sum() / win.sum()
+        assert abs(cx - (u - x0)) < 0.15 and abs(cy - (v - y0)) < 0.15, (u, v, cx, cy)
+    maps = cv2.initUndistortRectifyMap(cam.K, D, None, cam.K, cam.size, cv2.CV_32FC1)
+    full = cv2.resize(cv2.remap(raw, *maps, cv2.INTER_LINEAR), (320, 240), interpolation=cv2.INTER_AREA)
+    assert np.abs(full.astype(np.float64) - out).mean() < 1.0
+    # the ground-truth depth keeps the full-size maps (built when first asked for)
+    depth = und.depth(np.ones((972, 1296), np.float32))
+    assert depth.shape == (972, 1296) and np.isnan(depth).any()
+
+
 def test_undistorter_cache_and_errors():
     cam = PinholeCamera(64, 48, 50, 50, 32, 24)
     calib = CameraCalibration(cam, 'plumb_bob', (0.1, 0, 0, 0, 0))

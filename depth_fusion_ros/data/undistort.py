@@ -92,6 +92,23 @@ def _undistort_maps(calib: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
     return cv2.initUndistortRectifyMap(K, calib.D_array, None, K, size, cv2.CV_32FC1)
 
 
+def shrink_factor(raw_size: tuple[int, int], out_size: tuple[int, int]) -> int:
+    """The largest power of two ``k`` that leaves the raw image at least twice the working
+    grid in both directions (1 when it is less than four times as large).
+
+    Why: undistorting a 1296x972 image at full size and then area-resizing it to 320x240
+    spends 14 ms a frame on pixels the working grid averages away; a 2x2 box filter first
+    (0.3 ms) leaves 648x486, which costs what a 640x480 camera does (4 ms in all). Images up
+    to four times the grid (640x480 for 320x240, the data the evaluation tables use) are
+    resampled exactly as before.
+    """
+    (width, height), (out_width, out_height) = raw_size, out_size
+    k = 1
+    while width // (2 * k) >= 2 * out_width and height // (2 * k) >= 2 * out_height:
+        k *= 2
+    return k
+
+
 class Undistorter:
     """Precomputed undistortion (and downscaling) of one raw camera to a working grid.
 
@@ -115,11 +132,19 @@ class Undistorter:
         self.calibration = CameraCalibration(native_camera, distortion_model, tuple(np.ravel(D)))
         self.native_camera = native_camera
         self.camera = native_camera.scaled(out_width, out_height)
+        #: Colour is first box-filtered by this factor (a power of two, 1: not at all).
+        self.shrink = shrink_factor(native_camera.size, (out_width, out_height))
+        self._shrunk_size = (native_camera.width // self.shrink, native_camera.height // self.shrink)
         self._rgb_maps: tuple[np.ndarray, np.ndarray] | None = None
         self._depth_maps: tuple[np.ndarray, np.ndarray] | None = None
         if self.calibration.is_distorted:
-            map_x, map_y = _undistort_maps(self.calibration)
-            self._depth_maps = (map_x, map_y)
+            rgb_calibration = self.calibration
+            if self.shrink > 1:
+                shrunk = native_camera.scaled(*self._shrunk_size)
+                rgb_calibration = CameraCalibration(shrunk, distortion_model, self.calibration.D)
+            map_x, map_y = _undistort_maps(rgb_calibration)
+            if self.shrink == 1:
+                self._depth_maps = (map_x, map_y)
             # Fixed-point maps make bilinear remapping of colour about twice as fast.
             self._rgb_maps = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
             logger.debug('undistortion maps built for %s', self.calibration)
@@ -142,8 +167,11 @@ class Undistorter:
             raise ValueError(f'{what} image is {w}x{h}, the camera calibration is {cam.width}x{cam.height}')
 
     def rgb(self, img: np.ndarray) -> np.ndarray:
-        """Undistorted colour (or grey) image at the working resolution (bilinear + area)."""
+        """Undistorted colour (or grey) image at the working resolution (box filter when the
+        image is 4x the working grid or more, then bilinear + area)."""
         self._check_size(img, 'colour')
+        if self.shrink > 1:
+            img = cv2.resize(img, self._shrunk_size, interpolation=cv2.INTER_AREA)
         if self._rgb_maps is not None:
             img = cv2.remap(img, *self._rgb_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         if img.shape[:2] != (self.camera.height, self.camera.width):
@@ -153,6 +181,8 @@ class Undistorter:
     def depth(self, img: np.ndarray, keep_resolution: bool = True) -> np.ndarray:
         """Undistorted depth (nearest sampling); pixels that map outside become NaN (or 0)."""
         self._check_size(img, 'depth')
+        if self._depth_maps is None and self.is_distorted:  # built here when colour is shrunk first
+            self._depth_maps = _undistort_maps(self.calibration)
         if self._depth_maps is not None:
             border = np.nan if np.issubdtype(img.dtype, np.floating) else 0
             img = cv2.remap(

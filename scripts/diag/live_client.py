@@ -117,6 +117,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--rate', type=float, default=30.0, help='images per second')
     p.add_argument('--start-delay', type=float, default=3.0, help='s after discovery, then play')
     p.add_argument('--compressed', action='store_true', help='publish JPEG CompressedImage (image_transport)')
+    p.add_argument(
+        '--upscale',
+        type=float,
+        default=1.0,
+        help='resize the colour images by this factor (and the camera with them) before streaming: '
+        'a larger camera than the sequence was recorded with (e.g. 2.025: 1296x972)',
+    )
     p.add_argument('--drain', type=float, default=8.0, help='seconds without a fused depth that end the wait')
     p.add_argument(
         '--no-wait-output',
@@ -127,6 +134,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     seq = args.sequence
     width, height, k, d, model = camera(args.camera or seq / 'camera.yaml')
+    if args.upscale != 1.0:  # pixel centres at integers: x' = (x + 0.5) f - 0.5
+        width, height = round(width * args.upscale), round(height * args.upscale)
+        k = k.copy()
+        k[0, 0] *= args.upscale
+        k[1, 1] *= args.upscale
+        k[0, 2] = (k[0, 2] + 0.5) * args.upscale - 0.5
+        k[1, 2] = (k[1, 2] + 0.5) * args.upscale - 0.5
     _, _, dk, dd, _ = camera(args.depth_camera or seq / 'camera.yaml')
     images = read_list(seq / 'rgb.txt')
     if args.frames:
@@ -163,6 +177,15 @@ def main(argv: list[str] | None = None) -> int:
     proj[:, :3] = k
     info.p = proj.ravel().tolist()
     events = [(t, 'pose', v) for t, v in poses] + [(t, 'image', rest[0]) for t, rest in images]
+    loaded = {}  # read, resized and encoded before the stream: the client's own cost stays out of it
+    for _, rest in images:
+        bgr = cv2.imread(str(seq / rest[0]), cv2.IMREAD_COLOR)
+        if args.upscale != 1.0:
+            bgr = cv2.resize(bgr, (width, height), interpolation=cv2.INTER_LINEAR)
+        if args.compressed:
+            loaded[rest[0]] = cv2.imencode('.jpg', bgr, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+        else:
+            loaded[rest[0]] = bgr
     events.sort(key=lambda e: (e[0], e[1] == 'image'))
     start_wall, start_stamp = time.monotonic(), images[0][0]
     for t, kind, payload in events:
@@ -178,11 +201,11 @@ def main(argv: list[str] | None = None) -> int:
             msg.pose.orientation.z, msg.pose.orientation.w = qz, qw
             client.pose_pub.publish(msg)
             continue
-        bgr = cv2.imread(str(seq / payload), cv2.IMREAD_COLOR)
         if args.compressed:
             img = CompressedImage(format='bgr8; jpeg compressed bgr8')
-            img.data = cv2.imencode('.jpg', bgr, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+            img.data = loaded[payload]
         else:
+            bgr = loaded[payload]
             img = Image(height=bgr.shape[0], width=bgr.shape[1], encoding='bgr8', step=bgr.shape[1] * 3)
             img.data = bgr.tobytes()
         img.header.stamp, img.header.frame_id = stamp_of(t), 'camera_rgb_optical_frame'
