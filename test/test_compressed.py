@@ -46,6 +46,43 @@ def test_png_round_trip_is_exact_and_jpeg_is_close() -> None:
     assert decode_compressed(grey).shape == (24, 32, 3)
 
 
+def test_a_large_jpeg_camera_is_decoded_at_half_size_and_matches_the_full_decode() -> None:
+    """A 1296x972 JPEG camera (four times the 320x240 grid) is decoded at 648x486 by JPEG's
+    reduced decoding and undistorted from there (docs/nodes.md, "Cameras larger than
+    640x480"): the working image matches the full decode's within a grey level on average;
+    a PNG of the same camera, and a JPEG of a 640x480 camera, take the full decode exactly."""
+    from depth_fusion_ros.data.undistort import Undistorter
+    from depth_fusion_ros.nodes.image_input import CameraInput, decode_colour
+
+    yy, xx = np.mgrid[0:972, 0:1296]
+    smooth = np.dstack([(xx * 255 // 1295), (yy * 255 // 971), ((xx + yy) % 256)]).astype(np.uint8)
+    header = m.header_msg(5, 'cam', kind=m.RCLPY)
+    cases = [((1296, 972), 'jpeg', False), ((1296, 972), 'png', True), ((640, 480), 'jpeg', True)]
+    for (w, h), fmt, exact in cases:
+        image = np.ascontiguousarray(smooth[:h, :w])
+        msg = compressed_image_msg(image, header, kind=m.RCLPY, fmt=fmt, jpeg_quality=95)
+        s = w / 640
+        info = SimpleNamespace(
+            width=w,
+            height=h,
+            distortion_model='plumb_bob',
+            k=[517.3 * s, 0.0, 319.1 * s - 0.5, 0.0, 516.5 * s, 255.8 * s - 0.5, 0.0, 0.0, 1.0],
+            d=[0.2624, -0.9531, -0.0054, 0.0026, 1.1633],
+            header=header,
+        )
+        camera = CameraInput(320, 240)
+        camera.update(info)
+        got = camera.working_image(msg)
+        undistorter = Undistorter.for_calibration(camera.calibration, 320, 240)
+        full = undistorter.rgb(decode_colour(msg))
+        assert got.rgb.shape == (240, 320, 3) and got.camera == undistorter.camera
+        if exact:
+            np.testing.assert_array_equal(got.rgb, full)
+        else:
+            assert undistorter.shrink == 2
+            assert np.abs(got.rgb.astype(float) - full).mean() < 1.0
+
+
 @pytest.mark.parametrize(
     ('fmt', 'data', 'match'),
     [

@@ -172,6 +172,24 @@ class Undistorter:
         self._check_size(img, 'colour')
         if self.shrink > 1:
             img = cv2.resize(img, self._shrunk_size, interpolation=cv2.INTER_AREA)
+        return self._rgb_shrunk(img)
+
+    @property
+    def shrunk_size(self) -> tuple[int, int]:
+        """``(width, height)`` of the colour image after the box filter (the raw size when
+        ``shrink`` is 1)."""
+        return self._shrunk_size
+
+    def rgb_from_shrunk(self, img: np.ndarray) -> np.ndarray:
+        """:meth:`rgb` of an image already reduced to :attr:`shrunk_size` by its source (a
+        JPEG decoded at 1/``shrink`` of its size, which skips most of the decoding)."""
+        h, w = img.shape[:2]
+        if (w, h) != self._shrunk_size:
+            want = 'x'.join(map(str, self._shrunk_size))
+            raise ValueError(f'colour image is {w}x{h}, expected {want}')
+        return self._rgb_shrunk(img)
+
+    def _rgb_shrunk(self, img: np.ndarray) -> np.ndarray:
         if self._rgb_maps is not None:
             img = cv2.remap(img, *self._rgb_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         if img.shape[:2] != (self.camera.height, self.camera.width):

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..data import messages
-from ..data.compressed import decode_compressed
+from ..data.compressed import decode_compressed, is_jpeg
 from ..data.undistort import CameraCalibration, Undistorter, check_distortion
 from ..geometry import PoseError
 from .params import ParamSpec
@@ -217,6 +217,9 @@ class CameraInput:
 
     def working_image(self, msg: Any) -> WorkingImage:
         """Decode, undistort and resize an image message (Image or CompressedImage) to the working grid."""
+        reduced = self._reduced_jpeg(msg)
+        if reduced is not None:
+            return reduced
         raw = decode_colour(msg)
         height, width = raw.shape[:2]
         if width == 0 or height == 0:
@@ -226,11 +229,37 @@ class CameraInput:
         rgb = np.ascontiguousarray(undistorter.rgb(raw))
         return WorkingImage(header_stamp_ns(msg), rgb, undistorter.camera, msg.header)
 
+    def _reduced_jpeg(self, msg: Any) -> WorkingImage | None:
+        """A compressed image of a camera_info camera four times the working grid or more,
+        decoded straight at the size its undistorter box-filters to (JPEG's own reduced
+        decoding); None where that does not apply (raw, PNG, fixed intrinsics, no camera_info
+        yet, a size the camera_info does not describe): the full decode then says what is wrong."""
+        calib = self.calibration
+        if not _is_compressed(msg) or calib is None or self.fixed_intrinsics is not None or not is_jpeg(msg):
+            return None
+        undistorter = Undistorter.for_calibration(calib, self.width, self.height)
+        k = undistorter.shrink
+        if k == 1 or calib.camera.width % k or calib.camera.height % k:
+            return None
+        try:
+            small = decode_compressed(msg, reduce=k)
+        except ValueError as exc:
+            raise InputError('bad_compressed', f'compressed image: {exc}') from None
+        if small.shape[1::-1] != undistorter.shrunk_size:  # not this camera's size: said by the full decode
+            return None
+        rgb = np.ascontiguousarray(undistorter.rgb_from_shrunk(small))
+        return WorkingImage(header_stamp_ns(msg), rgb, undistorter.camera, msg.header)
+
+
+def _is_compressed(msg: Any) -> bool:
+    """A ``CompressedImage`` (it has ``format`` and no ``encoding``)."""
+    return hasattr(msg, 'format') and not hasattr(msg, 'encoding')
+
 
 def decode_colour(msg: Any) -> np.ndarray:
     """RGB of a ``sensor_msgs/Image`` or ``CompressedImage`` (it has ``format``), or ``InputError``:
     ``bad_encoding`` / ``bad_image`` for raw images, ``bad_compressed`` for undecodable ones."""
-    if hasattr(msg, 'format') and not hasattr(msg, 'encoding'):
+    if _is_compressed(msg):
         try:
             return decode_compressed(msg)
         except ValueError as exc:
