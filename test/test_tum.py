@@ -237,22 +237,33 @@ def test_undistortion_moves_points_to_their_pinhole_projection():
     und = Undistorter(cam, 'plumb_bob', D, 640, 480)
     points = np.array([[0.4, 0.3, 1.0], [-0.5, -0.35, 1.0], [0.1, -0.2, 1.0]])
     raw_px, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), cam.K, D)
-    raw = np.zeros((480, 640, 3), np.uint8)
-    for x, y in raw_px.reshape(-1, 2):
-        # sub-pixel centre (8 fractional bits) so rounding does not blur the check
-        cv2.circle(raw, (round(x * 256), round(y * 256)), 4 * 256, (255, 255, 255), -1, cv2.LINE_AA, 8)
-    out = und.rgb(raw)[..., 0].astype(np.float64)
+    raw = _dots((480, 640), raw_px, 4)
     ideal, _ = cam.project(points)
-    for u, v in ideal:
-        y0, x0 = round(v), round(u)
-        win = out[y0 - 8 : y0 + 9, x0 - 8 : x0 + 9]
-        yy, xx = np.mgrid[-8:9, -8:9]
-        cy, cx = (win * yy).sum() / win.sum(), (win * xx).sum() / win.sum()
-        assert abs(cx - (u - x0)) < 0.3 and abs(cy - (v - y0)) < 0.3, (u, v, cx, cy)
+    _assert_dots_at(und.rgb(raw), ideal, 0.3)
     # the raw dots were far from the ideal positions (so the test is meaningful)
     assert np.max(np.abs(raw_px.reshape(-1, 2) - ideal)) > 5
     depth = und.depth(np.ones((480, 640), np.float32))
     assert np.isnan(depth).any() and set(np.unique(depth[np.isfinite(depth)])) == {1.0}
+
+
+def _dots(shape: tuple[int, int], centres: np.ndarray, radius: int) -> np.ndarray:
+    """White anti-aliased discs on black at sub-pixel ``centres`` (8 fractional bits, so
+    rounding does not blur the check)."""
+    raw = np.zeros((*shape, 3), np.uint8)
+    for x, y in centres.reshape(-1, 2):
+        cv2.circle(raw, (round(x * 256), round(y * 256)), radius * 256, (255, 255, 255), -1, cv2.LINE_AA, 8)
+    return raw
+
+
+def _assert_dots_at(image: np.ndarray, ideal: np.ndarray, tolerance: float) -> None:
+    """Each dot's intensity centroid (17 px window) is within ``tolerance`` px of ``ideal``."""
+    grey = image[..., 0].astype(np.float64)
+    yy, xx = np.mgrid[-8:9, -8:9]
+    for u, v in ideal:
+        y0, x0 = round(v), round(u)
+        win = grey[y0 - 8 : y0 + 9, x0 - 8 : x0 + 9]
+        cy, cx = (win * yy).sum() / win.sum(), (win * xx).sum() / win.sum()
+        assert abs(cx - (u - x0)) < tolerance and abs(cy - (v - y0)) < tolerance, (u, v, cx, cy)
 
 
 def test_undistorter_box_filters_a_large_camera_first_where_the_geometry_says():
@@ -269,19 +280,11 @@ def test_undistorter_box_filters_a_large_camera_first_where_the_geometry_says():
     assert Undistorter(vga, 'plumb_bob', D, 320, 240).shrink == 1  # the evaluation's data: as before
     points = np.array([[0.4, 0.3, 1.0], [-0.5, -0.35, 1.0], [0.1, -0.2, 1.0], [0.0, 0.0, 1.0]])
     raw_px, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), cam.K, D)
-    raw = np.zeros((972, 1296, 3), np.uint8)
-    for x, y in raw_px.reshape(-1, 2):
-        cv2.circle(raw, (round(x * 256), round(y * 256)), 16 * 256, (255, 255, 255), -1, cv2.LINE_AA, 8)
+    raw = _dots((972, 1296), raw_px, 16)
     out = und.rgb(raw)
     assert out.shape == (240, 320, 3)
-    grey = out[..., 0].astype(np.float64)
     ideal, _ = und.camera.project(points)
-    for u, v in ideal:
-        y0, x0 = round(v), round(u)
-        win = grey[y0 - 8 : y0 + 9, x0 - 8 : x0 + 9]
-        yy, xx = np.mgrid[-8:9, -8:9]
-        cy, cx = (win * yy).sum() / win.sum(), (win * xx).sum() / win.sum()
-        assert abs(cx - (u - x0)) < 0.15 and abs(cy - (v - y0)) < 0.15, (u, v, cx, cy)
+    _assert_dots_at(out, ideal, 0.15)
     maps = cv2.initUndistortRectifyMap(cam.K, D, None, cam.K, cam.size, cv2.CV_32FC1)
     full = cv2.resize(cv2.remap(raw, *maps, cv2.INTER_LINEAR), (320, 240), interpolation=cv2.INTER_AREA)
     assert np.abs(full.astype(np.float64) - out).mean() < 1.0
