@@ -41,6 +41,7 @@ import yaml
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import String
 
 
 def read_list(path: Path) -> list[tuple[float, list[str]]]:
@@ -87,6 +88,8 @@ class Client:
         node.create_subscription(Image, '/depth_fusion/fused/depth', self._on_fused, reliable)
         node.create_subscription(Image, '/depth_fusion/single_view/depth', self._on_single, reliable)
         node.create_subscription(CameraInfo, '/depth_fusion/fused/camera_info', self._on_info, reliable)
+        self.decisions: dict[int, dict] = {}
+        node.create_subscription(String, '/depth_fusion/fused/decision', self._on_decision, reliable)
 
     @staticmethod
     def _key(msg) -> int:
@@ -102,6 +105,18 @@ class Client:
 
     def _on_single(self, msg: Image) -> None:
         self.single[self._key(msg)] = self._depth(msg)
+
+    def _on_decision(self, msg: String) -> None:
+        try:
+            verdict = json.loads(msg.data)
+            stamp = verdict.get('stamp')
+            if isinstance(stamp, dict):
+                key = int(stamp['sec']) * 1_000_000_000 + int(stamp['nanosec'])
+            else:
+                key = round(float(stamp) * 1e9)
+            self.decisions[key] = verdict
+        except (ValueError, KeyError, TypeError) as exc:
+            print(f'unreadable decision: {exc}', file=sys.stderr)
 
     def _on_info(self, msg: CameraInfo) -> None:
         self.fused_k = np.array(msg.k, dtype=np.float64).reshape(3, 3)
@@ -123,6 +138,9 @@ def main(argv: list[str] | None = None) -> int:
         default=1.0,
         help='resize the colour images by this factor (and the camera with them) before streaming: '
         'a larger camera than the sequence was recorded with (e.g. 2.025: 1296x972)',
+    )
+    p.add_argument(
+        '--decisions', action='store_true', help='print each scored keyframe with its fusion decision'
     )
     p.add_argument('--drain', type=float, default=8.0, help='seconds without a fused depth that end the wait')
     p.add_argument(
@@ -246,6 +264,11 @@ def main(argv: list[str] | None = None) -> int:
             single_err.append(float(np.abs(single - gt)[valid].mean()))
         fused_err.append(float(np.abs(fused - gt)[valid].mean()))
         worse += paired and fused_err[-1] > single_err[-1]
+        if args.decisions and paired:
+            near = min(client.decisions, key=lambda k: abs(k - key), default=None)
+            verdict = client.decisions.get(near) if near is not None and abs(near - key) < 1_000_000 else None
+            ratio = fused_err[-1] / single_err[-1]
+            print(json.dumps({'keyframe': t, 'ratio': ratio, 'decision': verdict}))
         if paired and single_err[-1] > 0:
             ratios.append(round(fused_err[-1] / single_err[-1], 3))
     summary = {
