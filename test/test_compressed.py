@@ -47,7 +47,7 @@ def test_png_round_trip_is_exact_and_jpeg_is_close() -> None:
 
 
 def test_a_large_jpeg_camera_is_decoded_at_half_size_and_matches_the_full_decode() -> None:
-    """A 1296x972 JPEG camera (four times the 320x240 grid) is decoded at 648x486 by JPEG's
+    """A 1296x972 JPEG camera (over three times the 320x240 grid) is decoded at 648x486 by JPEG's
     reduced decoding and undistorted from there (docs/nodes.md, "Cameras larger than
     640x480"): the working image matches the full decode's within a grey level on average;
     a PNG of the same camera, and a JPEG of a 640x480 camera, take the full decode exactly."""

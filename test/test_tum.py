@@ -266,21 +266,22 @@ def _assert_dots_at(image: np.ndarray, ideal: np.ndarray, tolerance: float) -> N
         assert abs(cx - (u - x0)) < tolerance and abs(cy - (v - y0)) < tolerance, (u, v, cx, cy)
 
 
-def test_undistorter_box_filters_a_large_camera_first_where_the_geometry_says():
-    """A 1296x972 camera for a 320x240 grid is box-filtered to 648x486 before the undistortion
-    (the cost of a 640x480 camera, docs/nodes.md); dots still land where the ideal pinhole
-    camera of the working grid projects them, and the picture matches the full-size
-    undistortion followed by an area resize to within a grey level on average."""
-    s = 1296 / 640
-    cam = PinholeCamera(1296, 972, 517.3 * s, 516.5 * s, (318.6 + 0.5) * s - 0.5, (255.3 + 0.5) * s - 0.5)
+@pytest.mark.parametrize('size', [(1296, 972), (1280, 720)])
+def test_undistorter_box_filters_a_large_camera_first_where_the_geometry_says(size):
+    """A 1296x972 or 1280x720 camera for a 320x240 grid is box-filtered by 2 before the
+    undistortion (the cost of a 640x480 camera, docs/nodes.md); dots still land where the
+    ideal pinhole camera of the working grid projects them, and the picture matches the
+    full-size undistortion followed by an area resize to within a grey level on average."""
+    width, height = size
+    vga = PinholeCamera(640, 480, 517.3, 516.5, 318.6, 255.3)
+    cam = vga.scaled(width, height)
     D = np.array([0.2624, -0.9531, -0.0054, 0.0026, 1.1633])
     und = Undistorter(cam, 'plumb_bob', D, 320, 240)
-    assert und.shrink == 2
-    vga = PinholeCamera(640, 480, 517.3, 516.5, 318.6, 255.3)
+    assert und.shrink == 2 and und.shrunk_size == (width // 2, height // 2)
     assert Undistorter(vga, 'plumb_bob', D, 320, 240).shrink == 1  # the evaluation's data: as before
     points = np.array([[0.4, 0.3, 1.0], [-0.5, -0.35, 1.0], [0.1, -0.2, 1.0], [0.0, 0.0, 1.0]])
     raw_px, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), cam.K, D)
-    raw = _dots((972, 1296), raw_px, 16)
+    raw = _dots((height, width), raw_px, 16)
     out = und.rgb(raw)
     assert out.shape == (240, 320, 3)
     ideal, _ = und.camera.project(points)
@@ -289,8 +290,8 @@ def test_undistorter_box_filters_a_large_camera_first_where_the_geometry_says():
     full = cv2.resize(cv2.remap(raw, *maps, cv2.INTER_LINEAR), (320, 240), interpolation=cv2.INTER_AREA)
     assert np.abs(full.astype(np.float64) - out).mean() < 1.0
     # the ground-truth depth keeps the full-size maps (built when first asked for)
-    depth = und.depth(np.ones((972, 1296), np.float32))
-    assert depth.shape == (972, 1296) and np.isnan(depth).any()
+    depth = und.depth(np.ones((height, width), np.float32))
+    assert depth.shape == (height, width) and np.isnan(depth).any()
 
 
 def test_undistorter_cache_and_errors():

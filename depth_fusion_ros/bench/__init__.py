@@ -1,7 +1,7 @@
 """Benchmarks printed by ``depth-fusion bench`` (figures, never assertions).
 
-One module per stage (``multi_view``, ``multi_view_filter``, ``single_view``, ``adaptation``,
-``fusion``, ``synthetic``, ``node_graph``), each exposing::
+One module per stage (``synthetic``, ``image_input``, ``multi_view``, ``multi_view_filter``,
+``single_view``, ``adaptation``, ``fusion``, ``mapping``, ``node_graph``), each exposing::
 
     TITLE: str
     def run(opts: BenchOptions) -> list[BenchRow]
@@ -37,6 +37,7 @@ class BenchRow:
 
 SECTIONS = (
     'synthetic',
+    'image_input',
     'multi_view',
     'multi_view_filter',
     'single_view',

@@ -230,7 +230,7 @@ class CameraInput:
         return WorkingImage(header_stamp_ns(msg), rgb, undistorter.camera, msg.header)
 
     def _reduced_jpeg(self, msg: Any) -> WorkingImage | None:
-        """A compressed image of a camera_info camera four times the working grid or more,
+        """A compressed image of a camera_info camera three times the working grid or more,
         decoded straight at the size its undistorter box-filters to (JPEG's own reduced
         decoding); None where that does not apply (raw, PNG, fixed intrinsics, no camera_info
         yet, a size the camera_info does not describe): the full decode then says what is wrong."""
