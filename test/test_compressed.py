@@ -208,3 +208,18 @@ def test_run_takes_the_transport_and_pose_type_from_the_bag(tmp_path) -> None:
     params.write_text('multi_view_node:\n  ros__parameters:\n    image_transport: raw\n    pose_type: auto\n')
     mv = node_overrides(RunOptions(bag=out, params_file=params), bag_topic_types(out))['multi_view_node']
     assert 'image_transport' not in mv and 'pose_type' not in mv
+
+
+def test_the_image_path_bench_times_raw_and_jpeg_images() -> None:
+    """``depth-fusion bench --only image_input`` (quick): a figure per size and transport."""
+    from depth_fusion_ros.bench import BenchOptions, image_input
+
+    rows = image_input.run(BenchOptions(quick=True))
+    names = [row.name for row in rows]
+    assert names == [
+        '640x480 bgr8: image -> working grid',
+        '640x480 JPEG: image -> working grid',
+        '1296x972 bgr8: image -> working grid',
+        '1296x972 JPEG: image -> working grid',
+    ]
+    assert all(row.unit == 'ms' and 0 < row.value < 10_000 for row in rows)
