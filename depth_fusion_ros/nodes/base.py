@@ -12,13 +12,12 @@ the documented ``/depth_fusion/...`` names and a ``namespace`` moves the whole g
 
 from __future__ import annotations
 
-import dataclasses
 import signal
 import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
@@ -56,9 +55,12 @@ COMMON_PARAMETERS: tuple[ParamSpec, ...] = (
         choices=QOS_CHOICES,
     ),
     ParamSpec('qos_depth', 10, 'history depth (KEEP_LAST) of every subscription and publisher', 1, 1000),
+    # Four, in every node: a keyframe waiting costs little (the multi-view node's feed computes a
+    # queued keyframe's estimate anyway; a completed pairing holds two nodes' work), and one slot
+    # lost keyframes live (docs/performance.md, "A four-keyframe queue in the multi-view node").
     ParamSpec(
         'queue_size',
-        1,
+        4,
         'work items waiting for the worker thread; more are dropped by queue_policy (memory stays bounded)',
         1,
         100,
@@ -93,33 +95,12 @@ RESTART_NOTE_GAP = 2.0
 PUBLISHER_CHECK_PERIOD = 2.0
 
 
-def common_parameters(defaults: Mapping[str, Any] | None = None) -> tuple[ParamSpec, ...]:
-    """:data:`COMMON_PARAMETERS` with a node's own defaults (e.g. a deeper work queue)."""
-    defaults = dict(defaults or {})
-    unknown = set(defaults) - {spec.name for spec in COMMON_PARAMETERS}
-    if unknown:
-        raise ValueError(f'no common parameter named {sorted(unknown)}')
-    return tuple(
-        dataclasses.replace(spec, default=defaults[spec.name]) if spec.name in defaults else spec
-        for spec in COMMON_PARAMETERS
-    )
-
-
 class DepthFusionNode(Node):
-    """An rclpy node with validated parameters, counters, a bounded worker and clean shutdown.
+    """An rclpy node with validated parameters, counters, a bounded worker and clean shutdown."""
 
-    ``common_defaults`` changes the defaults of :data:`COMMON_PARAMETERS` for this node.
-    """
-
-    def __init__(
-        self,
-        node_name: str,
-        specs: Sequence[ParamSpec],
-        common_defaults: Mapping[str, Any] | None = None,
-        **kwargs: Any,
-    ) -> None:
+    def __init__(self, node_name: str, specs: Sequence[ParamSpec], **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
-        self.params = declare_parameters(self, [*common_parameters(common_defaults), *specs])
+        self.params = declare_parameters(self, [*COMMON_PARAMETERS, *specs])
         self.stats = NodeStats(self.get_logger().warning, throttle=float(self.params['warn_throttle']))
         self.input_qos = qos_profile(str(self.params['input_qos']), int(self.params['qos_depth']))
         self.output_qos = qos_profile(str(self.params['output_qos']), int(self.params['qos_depth']))

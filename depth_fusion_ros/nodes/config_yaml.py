@@ -26,8 +26,7 @@ NODE_TABLES: dict[str, tuple[str, str]] = {
     'map_node': ('depth_fusion_ros.nodes.map_node', 'PARAMETERS'),
     'bag_replayer': ('depth_fusion_ros.nodes.bag_replayer', 'REPLAYER_PARAMS'),
 }
-#: Nodes built on ``base.DepthFusionNode`` also declare ``base.COMMON_PARAMETERS`` (with the
-#: node module's ``COMMON_DEFAULTS``).
+#: Nodes built on ``base.DepthFusionNode`` also declare ``base.COMMON_PARAMETERS``.
 PROCESSING_NODES = ('multi_view_node', 'single_view_node', 'fusion_node', 'map_node')
 
 HEADER = """\
@@ -48,9 +47,9 @@ def node_parameters(node_name: str) -> tuple[ParamSpec, ...]:
     module = importlib.import_module(module_name)
     table = tuple(getattr(module, attribute))
     if node_name in PROCESSING_NODES:
-        from .base import common_parameters
+        from .base import COMMON_PARAMETERS
 
-        return (*common_parameters(getattr(module, 'COMMON_DEFAULTS', None)), *table)
+        return (*COMMON_PARAMETERS, *table)
     return table
 
 

@@ -148,10 +148,6 @@ LOAD_MAX_POINTS = 2048
 WARMING_MAX_POINTS = 512
 
 REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
-#: Common parameter defaults of this node: a completed pairing holds the work of two nodes,
-#: so a few are kept rather than one dropped.
-COMMON_DEFAULTS = {'queue_size': 4}
-
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('device', 'cpu', 'torch device of the fusion: cpu, cuda, cuda:1, ...'),
     ParamSpec(
@@ -262,7 +258,7 @@ class FusionNode(DepthFusionNode):
     """Pairs keyframe results by stamp and fuses them on a worker thread."""
 
     def __init__(self, node_name: str = NODE_NAME, own_process: bool = False, **kwargs: Any) -> None:
-        super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
+        super().__init__(node_name, PARAMETERS, **kwargs)
         self._own_process = own_process
         p = self.params
         self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))

@@ -68,9 +68,6 @@ MAP_LIMITS: dict[str, Any] = {
     'engine': ENGINES,
 }
 
-#: Integration is fast: a few keyframes may wait rather than be dropped.
-COMMON_DEFAULTS = {'queue_size': 4}
-
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('device', 'cpu', 'torch (or Open3D) device of the TSDF: cpu, cuda, cuda:1, ...'),
     *dataclass_specs(MapConfig, 'map', MAP_PARAMETER_DESCRIPTIONS, MAP_LIMITS, skip=('device',)),
@@ -105,7 +102,7 @@ class MapNode(DepthFusionNode):
     """Pairs fused keyframes with their poses by stamp and integrates them into a TSDF."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
-        super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
+        super().__init__(node_name, PARAMETERS, **kwargs)
         self.events = GraphEvents(self)  # the ready line a graph runner waits for
         p = self.params
         try:

@@ -241,19 +241,11 @@ def _image_name(stamp_ns: int, offset: float) -> str:
     return f'image {stamp:.3f}' if offset == 0.0 else f'image {stamp:.3f} (pose time {stamp + offset:.3f})'
 
 
-#: Common parameter defaults of this node. Four waiting keyframes, not one: with the filter (the
-#: default method) a queued keyframe costs nothing, the feed thread computes its estimate
-#: anyway (it skips frames, never keyframes, to keep up), so a keyframe dropped from a one-slot
-#: queue threw that work away. Measured live on 2 cores (docs/performance.md, "A four-keyframe
-#: queue in the multi-view node"): 27 of 29 keyframes fused instead of 19-23.
-COMMON_DEFAULTS = {'queue_size': 4}
-
-
 class MultiViewNode(DepthFusionNode):
     """Poses images by stamp, decides keyframes and runs the semi-dense search on a worker."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
-        super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
+        super().__init__(node_name, PARAMETERS, **kwargs)
         p = self.params
         self.config: MultiViewConfig = build_dataclass(MultiViewConfig, p, 'multi_view')
         self.neighbour_config: NeighbourConfig = build_dataclass(NeighbourConfig, p, 'neighbours')

@@ -46,10 +46,6 @@ TOPIC_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
 TOPIC_DEPTH = 'depth_fusion/single_view/depth'
 TOPIC_OUTPUT_KIND = 'depth_fusion/single_view/output_kind'
 
-#: Common parameter defaults of this node: keyframes come one at a time from the multi-view
-#: node, and a burst of a few must not lose keyframes already announced.
-COMMON_DEFAULTS = {'queue_size': 4}
-
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'model',
@@ -81,7 +77,7 @@ class SingleViewNode(DepthFusionNode):
     """Subscribes to an image stream and publishes the network's depth for each image."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
-        super().__init__(node_name, PARAMETERS, COMMON_DEFAULTS, **kwargs)
+        super().__init__(node_name, PARAMETERS, **kwargs)
         p = self.params
         self.events = GraphEvents(self)
         self.camera_input = CameraInput.from_parameters(p, rectified=bool(p['input_rectified']))
