@@ -136,13 +136,14 @@ class Undistorter:
         self.camera = native_camera.scaled(out_width, out_height)
         #: Colour is first box-filtered by this factor (a power of two, 1: not at all).
         self.shrink = shrink_factor(native_camera.size, (out_width, out_height))
-        self._shrunk_size = (native_camera.width // self.shrink, native_camera.height // self.shrink)
+        #: ``(width, height)`` of the colour image after the box filter (the raw size when 1).
+        self.shrunk_size = (native_camera.width // self.shrink, native_camera.height // self.shrink)
         self._rgb_maps: tuple[np.ndarray, np.ndarray] | None = None
         self._depth_maps: tuple[np.ndarray, np.ndarray] | None = None
         if self.calibration.is_distorted:
             rgb_calibration = self.calibration
             if self.shrink > 1:
-                shrunk = native_camera.scaled(*self._shrunk_size)
+                shrunk = native_camera.scaled(*self.shrunk_size)
                 rgb_calibration = CameraCalibration(shrunk, distortion_model, self.calibration.D)
             map_x, map_y = _undistort_maps(rgb_calibration)
             if self.shrink == 1:
@@ -173,21 +174,15 @@ class Undistorter:
         image is 3x the working grid or more, then bilinear + area)."""
         self._check_size(img, 'colour')
         if self.shrink > 1:
-            img = cv2.resize(img, self._shrunk_size, interpolation=cv2.INTER_AREA)
+            img = cv2.resize(img, self.shrunk_size, interpolation=cv2.INTER_AREA)
         return self._rgb_shrunk(img)
-
-    @property
-    def shrunk_size(self) -> tuple[int, int]:
-        """``(width, height)`` of the colour image after the box filter (the raw size when
-        ``shrink`` is 1)."""
-        return self._shrunk_size
 
     def rgb_from_shrunk(self, img: np.ndarray) -> np.ndarray:
         """:meth:`rgb` of an image already reduced to :attr:`shrunk_size` by its source (a
         JPEG decoded at 1/``shrink`` of its size, which skips most of the decoding)."""
         h, w = img.shape[:2]
-        if (w, h) != self._shrunk_size:
-            want = 'x'.join(map(str, self._shrunk_size))
+        if (w, h) != self.shrunk_size:
+            want = 'x'.join(map(str, self.shrunk_size))
             raise ValueError(f'colour image is {w}x{h}, expected {want}')
         return self._rgb_shrunk(img)
 

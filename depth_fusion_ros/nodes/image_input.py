@@ -219,20 +219,22 @@ class CameraInput:
         """Decode, undistort and resize an image message (Image or CompressedImage) to the working grid."""
         reduced = self._reduced_jpeg(msg)
         if reduced is not None:
-            return reduced
-        raw = decode_colour(msg)
-        height, width = raw.shape[:2]
-        if width == 0 or height == 0:
-            raise InputError('bad_image', 'image is empty')
-        calib = self._calibration_for(width, height)
-        undistorter = Undistorter.for_calibration(calib, self.width, self.height)
-        rgb = np.ascontiguousarray(undistorter.rgb(raw))
-        return WorkingImage(header_stamp_ns(msg), rgb, undistorter.camera, msg.header)
+            small, undistorter = reduced
+            rgb = undistorter.rgb_from_shrunk(small)
+        else:
+            raw = decode_colour(msg)
+            height, width = raw.shape[:2]
+            if width == 0 or height == 0:
+                raise InputError('bad_image', 'image is empty')
+            calib = self._calibration_for(width, height)
+            undistorter = Undistorter.for_calibration(calib, self.width, self.height)
+            rgb = undistorter.rgb(raw)
+        return WorkingImage(header_stamp_ns(msg), np.ascontiguousarray(rgb), undistorter.camera, msg.header)
 
-    def _reduced_jpeg(self, msg: Any) -> WorkingImage | None:
-        """A compressed image of a camera_info camera three times the working grid or more,
-        decoded straight at the size its undistorter box-filters to (JPEG's own reduced
-        decoding); None where that does not apply (raw, PNG, fixed intrinsics, no camera_info
+    def _reduced_jpeg(self, msg: Any) -> tuple[np.ndarray, Undistorter] | None:
+        """A JPEG of a camera_info camera three times the working grid or more, decoded straight
+        at the size its undistorter box-filters to (JPEG's own reduced decoding), with that
+        undistorter; None where that does not apply (raw, PNG, fixed intrinsics, no camera_info
         yet, a size the camera_info does not describe): the full decode then says what is wrong."""
         calib = self.calibration
         if not _is_compressed(msg) or calib is None or self.fixed_intrinsics is not None or not is_jpeg(msg):
@@ -241,14 +243,10 @@ class CameraInput:
         k = undistorter.shrink
         if k == 1 or calib.camera.width % k or calib.camera.height % k:
             return None
-        try:
-            small = decode_compressed(msg, reduce=k)
-        except ValueError as exc:
-            raise InputError('bad_compressed', f'compressed image: {exc}') from None
+        small = decode_colour(msg, reduce=k)
         if small.shape[1::-1] != undistorter.shrunk_size:  # not this camera's size: said by the full decode
             return None
-        rgb = np.ascontiguousarray(undistorter.rgb_from_shrunk(small))
-        return WorkingImage(header_stamp_ns(msg), rgb, undistorter.camera, msg.header)
+        return small, undistorter
 
 
 def _is_compressed(msg: Any) -> bool:
@@ -256,12 +254,13 @@ def _is_compressed(msg: Any) -> bool:
     return hasattr(msg, 'format') and not hasattr(msg, 'encoding')
 
 
-def decode_colour(msg: Any) -> np.ndarray:
+def decode_colour(msg: Any, reduce: int = 1) -> np.ndarray:
     """RGB of a ``sensor_msgs/Image`` or ``CompressedImage`` (it has ``format``), or ``InputError``:
-    ``bad_encoding`` / ``bad_image`` for raw images, ``bad_compressed`` for undecodable ones."""
+    ``bad_encoding`` / ``bad_image`` for raw images, ``bad_compressed`` for undecodable ones.
+    ``reduce``: a JPEG is decoded at that fraction of its size (``decode_compressed``)."""
     if _is_compressed(msg):
         try:
-            return decode_compressed(msg)
+            return decode_compressed(msg, reduce)
         except ValueError as exc:
             raise InputError('bad_compressed', f'compressed image: {exc}') from None
     if msg.encoding not in COLOUR_ENCODINGS:
