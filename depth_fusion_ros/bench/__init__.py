@@ -11,6 +11,10 @@ so ``depth-fusion bench --only fusion`` runs one section.
 
 from __future__ import annotations
 
+import os
+import statistics
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 
@@ -46,3 +50,25 @@ SECTIONS = (
     'mapping',
     'node_graph',
 )
+
+
+def load_note(extra: str = '') -> str:
+    """``extra`` and the 1-minute load average: runs share the CPU, so figures need it beside them."""
+    try:
+        load = f'load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores'
+    except OSError:
+        load = ''
+    return '; '.join(s for s in (extra, load) if s)
+
+
+def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 1) -> float:
+    """Median wall time of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones (caches,
+    first-call allocations and compiled kernels are then out of the figure)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(max(1, repeats)):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)

@@ -10,12 +10,9 @@ the sizes users' cameras have, for the 320x240 working grid.
 
 from __future__ import annotations
 
-import os
-import time
-
 import numpy as np
 
-from . import BenchOptions, BenchRow
+from . import BenchOptions, BenchRow, load_note, median_seconds
 
 TITLE = 'image path per frame (decode, undistort, resize to 320x240; CameraInput.working_image)'
 
@@ -24,13 +21,6 @@ TITLE = 'image path per frame (decode, undistort, resize to 320x240; CameraInput
 SIZES = ((640, 480), (1280, 720), (1296, 972))
 #: TUM fr1's distortion (plumb_bob), scaled with the image: every size is undistorted.
 DISTORTION = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
-
-
-def _load_note() -> str:
-    try:
-        return f'load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores'
-    except OSError:
-        return ''
 
 
 def _picture(width: int, height: int) -> np.ndarray:
@@ -61,16 +51,8 @@ def _messages(width: int, height: int) -> tuple[object, object, object]:
     return info, raw, jpeg
 
 
-def _per_call(fn, repeats: int) -> float:
-    fn()  # the undistortion maps are built (and cached) by the first call
-    start = time.perf_counter()
-    for _ in range(repeats):
-        fn()
-    return (time.perf_counter() - start) / repeats
-
-
 def run(opts: BenchOptions) -> list[BenchRow]:
-    """Seconds per ``working_image`` call, raw and JPEG, at each of ``SIZES`` (one thread:
+    """Milliseconds per ``working_image`` call (median), raw and JPEG, at each of ``SIZES`` (one thread:
     OpenCV's own, the node's callback thread)."""
     from ..nodes.image_input import CameraInput
 
@@ -82,7 +64,8 @@ def run(opts: BenchOptions) -> list[BenchRow]:
         camera = CameraInput(320, 240)
         camera.update(info)
         for label, msg in (('bgr8', raw), ('JPEG', jpeg)):
-            seconds = _per_call(lambda c=camera, m=msg: c.working_image(m), repeats)
+            # the first call builds (and caches) the undistortion maps: warm-up
+            seconds = median_seconds(lambda c=camera, m=msg: c.working_image(m), repeats)
             name = f'{width}x{height} {label}: image -> working grid'
-            rows.append(BenchRow(name, seconds * 1e3, 'ms', f'{repeats} calls; {_load_note()}'))
+            rows.append(BenchRow(name, seconds * 1e3, 'ms', load_note(f'median of {repeats} calls')))
     return rows

@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import os
 import resource
-import statistics
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -30,7 +28,7 @@ from ..multiview.neighbours import select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
 from ..multiview.tv import TVConfig, estimate_tv
 from ..multiview.views import prepare_views
-from . import BenchOptions, BenchRow
+from . import BenchOptions, BenchRow, median_seconds
 
 TITLE = 'multi_view (semi-dense sweep, TV baseline; the temporal filter: multi_view_filter)'
 
@@ -42,16 +40,6 @@ def _note(extra: str = '') -> str:
     load = os.getloadavg()[0]
     base = f'load {load:.1f}, {torch.get_num_threads()} threads'
     return f'{extra}; {base}' if extra else base
-
-
-def _median_time(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def _synthetic_sequence(quick: bool) -> Sequence:
@@ -96,11 +84,11 @@ def _semi_dense_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[Benc
     def run() -> object:
         return estimate_semidense(*inputs, config, device=opts.device)
 
-    seconds = _median_time(run, opts.repeats)
+    seconds = median_seconds(run, opts.repeats)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        seconds_one = _median_time(run, opts.repeats)
+        seconds_one = median_seconds(run, opts.repeats)
     finally:
         torch.set_num_threads(threads)
     result = estimate_semidense(*inputs, config, device=opts.device)
@@ -139,7 +127,7 @@ def _descriptor_seconds(inputs: tuple, config: MultiViewConfig, opts: BenchOptio
         views = prepare_views(key_gray, key_pose, grays, poses, camera, opts.device)
         return stage_descriptors(views.grays, config)
 
-    return _median_time(run, opts.repeats)
+    return median_seconds(run, opts.repeats)
 
 
 def _profile_row(label: str, run: Callable[[], object]) -> BenchRow:
@@ -173,7 +161,7 @@ def _tv_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
     key = len(seq) // 2
     inputs = _keyframe_inputs(seq, key)
     config = TVConfig()
-    seconds = _median_time(lambda: estimate_tv(*inputs, config, device=opts.device), 1 if opts.quick else 2)
+    seconds = median_seconds(lambda: estimate_tv(*inputs, config, device=opts.device), 1 if opts.quick else 2)
     depth = estimate_tv(*inputs, config, device=opts.device)
     gt = seq.gt_depth_working(key)
     return [
@@ -200,7 +188,7 @@ def _memory_rows(seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
     for samples in (48, 768):
         config = MultiViewConfig(num_samples=samples)
         before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        seconds = _median_time(lambda c=config: estimate_semidense(*inputs, c, device=opts.device), 1)
+        seconds = median_seconds(lambda c=config: estimate_semidense(*inputs, c, device=opts.device), 1)
         grown = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024.0
         bound = config.chunk_elements * 4 / 2**20
         note = f'largest intermediate <= {bound:.0f} MiB; peak RSS grew {grown:.0f} MiB'

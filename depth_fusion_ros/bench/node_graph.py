@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import BenchOptions, BenchRow
+from . import BenchOptions, BenchRow, load_note
 
 TITLE = 'node graph (replayer -> multi-view + single-view -> fusion, real DDS)'
 
@@ -57,13 +57,6 @@ MODEL_ENV = 'DEPTH_FUSION_BENCH_MODEL'
 SET_ENV = 'DEPTH_FUSION_BENCH_GRAPH_SET'
 #: Keyframe spacing of the multi-view node's defaults (read from its table at run time).
 FRAMES = 100
-
-
-def _load_note() -> str:
-    try:
-        return f'load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores'
-    except OSError:
-        return ''
 
 
 def rss_mb(pid: int | str = 'self', field: str = 'VmRSS') -> float:
@@ -258,7 +251,7 @@ def measure_run(
             f'{mode}: keyframes fused',
             len(result.fused),
             'kf',
-            f'{100.0 * len(result.fused) / max(len(result.chosen), 1):.0f} % of chosen; {_load_note()}',
+            f'{100.0 * len(result.fused) / max(len(result.chosen), 1):.0f} % of chosen; {load_note()}',
         ),
         BenchRow(
             f'{mode}: keyframes dropped',
@@ -411,7 +404,7 @@ def soak(opts: BenchOptions, bag: Path, seconds: float) -> list[BenchRow]:
             'soak: looped replay',
             seconds,
             's',
-            f'{len(result.fused)} keyframes fused; {_load_note()}; curve in {curve}',
+            f'{len(result.fused)} keyframes fused; {load_note()}; curve in {curve}',
         ),
         BenchRow('soak: resident memory at start', float(rss[0]), 'MB', f't={t[0]:.0f} s'),
         BenchRow(

@@ -12,28 +12,18 @@ than 1 when both cores are busy, because OpenMP waits at every barrier).
 from __future__ import annotations
 
 import contextlib
-import os
-import statistics
-import time
-from collections.abc import Callable, Iterator
+import functools
+from collections.abc import Iterator
 
 import numpy as np
 
-from . import BenchOptions, BenchRow
+from . import BenchOptions, BenchRow, load_note, median_seconds
 from .model_hosts import host_rows
 
 TITLE = 'single-view CNN inference (depth_fusion_ros.singleview)'
 
 #: A reduced Eigen network for --quick smoke runs (the real one is 218 M parameters).
 QUICK_EIGEN = {'vgg_widths': [8, 16, 16, 32, 32], 'fc_dim': 64}
-
-
-def _load_note(extra: str = '') -> str:
-    try:
-        load = f'load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores'
-    except OSError:
-        load = ''
-    return '; '.join(s for s in (extra, load) if s)
 
 
 @contextlib.contextmanager
@@ -46,17 +36,6 @@ def _torch_threads(n: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
-
-
-def _median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(max(1, repeats)):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def _compact_predictor(device: str):
@@ -93,9 +72,9 @@ def _eigen_rows(
     rows = [BenchRow('eigen: parameters', count_parameters(net), '', note)]
     for threads in thread_counts:
         with _torch_threads(threads):
-            sec = _median_seconds(lambda: eigen.predict(rgb), repeats, warmup=1)
+            sec = median_seconds(lambda: eigen.predict(rgb), repeats, warmup=1)
             rows.append(BenchRow(f'eigen 320x240 (net {size}) predict ({threads} threads)', sec, 's',
-                                 _load_note(f'{1 / sec:.2f} Hz on {opts.device}')))  # fmt: skip
+                                 load_note(f'{1 / sec:.2f} Hz on {opts.device}')))  # fmt: skip
     return rows
 
 
@@ -121,19 +100,27 @@ def run(opts: BenchOptions) -> list[BenchRow]:
         )
     for threads in thread_counts:
         with _torch_threads(threads):
-            sec = _median_seconds(lambda: compact.predict(rgb), repeats * 4)
+            sec = median_seconds(lambda: compact.predict(rgb), repeats * 4, warmup=2)
             rows.append(BenchRow(f'compact 320x240 predict ({threads} threads)', 1 / sec, 'Hz',
-                                 _load_note(f'{sec * 1e3:.1f} ms on {opts.device}')))  # fmt: skip
+                                 load_note(f'{sec * 1e3:.1f} ms on {opts.device}')))  # fmt: skip
     with _torch_threads(thread_counts[0]):
         batch = [rgb] * 4
-        sec = _median_seconds(lambda: compact.predict_batch(batch), repeats)
+        sec = median_seconds(lambda: compact.predict_batch(batch), repeats, warmup=2)
         rows.append(BenchRow(f'compact 320x240 batch of 4 ({thread_counts[0]} threads)', 4 / sec, 'img/s',
-                             _load_note()))  # fmt: skip
+                             load_note()))  # fmt: skip
 
-    rows += host_rows(opts, rgb, repeats, thread_counts, _torch_threads, _median_seconds, _load_note)
+    rows += host_rows(
+        opts,
+        rgb,
+        repeats,
+        thread_counts,
+        _torch_threads,
+        functools.partial(median_seconds, warmup=2),
+        load_note,
+    )
     rows += _eigen_rows(opts, rgb, repeats, thread_counts)  # the 870 MB network is freed on return
 
     gt = 1.0 + 3.0 * rng.random((240, 320)).astype(np.float32)
-    sec = _median_seconds(lambda: simulate_prior(gt, rgb, seed=0), repeats)
-    rows.append(BenchRow('simulated prior 320x240', sec * 1e3, 'ms', _load_note('numpy, single thread')))
+    sec = median_seconds(lambda: simulate_prior(gt, rgb, seed=0), repeats, warmup=2)
+    rows.append(BenchRow('simulated prior 320x240', sec * 1e3, 'ms', load_note('numpy, single thread')))
     return rows

@@ -6,17 +6,9 @@ import os
 import tempfile
 import time
 
-from . import BenchOptions, BenchRow
+from . import BenchOptions, BenchRow, load_note
 
 TITLE = 'synthetic sequences (numpy ray casting, depth_fusion_ros.data.synthetic)'
-
-
-def _load_note() -> str:
-    """The 1-minute load average: renders share the CPU, so figures need it alongside."""
-    try:
-        return f'load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores'
-    except OSError:
-        return ''
 
 
 def run(opts: BenchOptions) -> list[BenchRow]:
@@ -39,13 +31,13 @@ def run(opts: BenchOptions) -> list[BenchRow]:
     for _ in iter_frames(cfg, scene, trajectory):
         pass
     render = time.perf_counter() - start
-    rows.append(BenchRow('render 640x480', render / frames, 's/frame', _load_note()))
+    rows.append(BenchRow('render 640x480', render / frames, 's/frame', load_note()))
     rows.append(BenchRow(f'render {frames} frames 640x480', render, 's'))
 
     with tempfile.TemporaryDirectory(prefix='bench_synth_') as tmp:
         start = time.perf_counter()
         write_synthetic_sequence(os.path.join(tmp, 'seq'), cfg)
         total = time.perf_counter() - start
-    rows.append(BenchRow(f'synth {frames} frames to TUM folder (total)', total, 's', _load_note()))
+    rows.append(BenchRow(f'synth {frames} frames to TUM folder (total)', total, 's', load_note()))
     rows.append(BenchRow('synth to TUM folder', total / frames, 's/frame'))
     return rows
