@@ -213,6 +213,11 @@ def _register(name: str, description: str, fn: Callable[..., MethodOutput], **fo
     register_method(name, description)(lambda ctx: fn(ctx, **forced))
 
 
+#: The paper's interpolation as written, for the methods that reproduce its tables: depths and
+#: gradients in metres (no structure scale) and normalised weights with no certainty floor,
+#: fixed or raised by the single view's precision.
+PAPER_AS_WRITTEN = {'structure_scale': 1.0, 'certainty_floor': 0.0, 'certainty_gain': 0.0}
+
 _register(
     'fused',
     'fusion with automatic point selection (stage 1 score + stage 2 RANSAC), paper §III',
@@ -229,9 +234,7 @@ _register(
     "as fused without the guard and in the paper's metres: every stage-2 point bends the depth",
     fused_automatic,
     guard=False,
-    structure_scale=1.0,
-    certainty_floor=0.0,
-    certainty_gain=0.0,
+    **PAPER_AS_WRITTEN,
 )
 _register(
     'fused_consistent',
@@ -244,25 +247,19 @@ _register(
     "the paper's metres (structure_scale 1)",
     fused_oracle,
     weights='all',
-    structure_scale=1.0,
-    certainty_floor=0.0,
-    certainty_gain=0.0,
+    **PAPER_AS_WRITTEN,
 )
 _register(
     'fused_w1',
     'fusion with oracle points and the proximity weight W1 only (Table III)',
     fused_oracle,
     weights='w1',
-    structure_scale=1.0,
-    certainty_floor=0.0,
-    certainty_gain=0.0,
+    **PAPER_AS_WRITTEN,
 )
 _register(
     'fused_w1w2',
     'fusion with oracle points and the weights W1·W2 only (Table III)',
     fused_oracle,
     weights='w1w2',
-    structure_scale=1.0,
-    certainty_floor=0.0,
-    certainty_gain=0.0,
+    **PAPER_AS_WRITTEN,
 )
