@@ -51,7 +51,8 @@ def test_a_large_jpeg_camera_is_decoded_at_half_size_and_matches_the_full_decode
     reduced decoding and undistorted from there (docs/nodes.md, "Cameras larger than
     640x480"): the working image matches the full decode's within a grey level on average;
     a PNG of the same camera, and a JPEG of a 640x480 camera, take the full decode exactly."""
-    from depth_fusion_ros.data.undistort import Undistorter
+    from depth_fusion_ros.camera import PinholeCamera
+    from depth_fusion_ros.data.undistort import CameraCalibration, Undistorter
     from depth_fusion_ros.nodes.image_input import CameraInput, decode_colour
 
     yy, xx = np.mgrid[0:972, 0:1296]
@@ -61,17 +62,10 @@ def test_a_large_jpeg_camera_is_decoded_at_half_size_and_matches_the_full_decode
     for (w, h), fmt, exact in cases:
         image = np.ascontiguousarray(smooth[:h, :w])
         msg = compressed_image_msg(image, header, kind=m.RCLPY, fmt=fmt, jpeg_quality=95)
-        s = w / 640
-        info = SimpleNamespace(
-            width=w,
-            height=h,
-            distortion_model='plumb_bob',
-            k=[517.3 * s, 0.0, 319.1 * s - 0.5, 0.0, 516.5 * s, 255.8 * s - 0.5, 0.0, 0.0, 1.0],
-            d=[0.2624, -0.9531, -0.0054, 0.0026, 1.1633],
-            header=header,
-        )
+        tum = PinholeCamera(640, 480, 517.3, 516.5, 318.6, 255.3).scaled(w, h)
+        calibration = CameraCalibration(tum, 'plumb_bob', (0.2624, -0.9531, -0.0054, 0.0026, 1.1633))
         camera = CameraInput(320, 240)
-        camera.update(info)
+        camera.update(m.camera_info_msg(calibration, header, kind=m.RCLPY))
         got = camera.working_image(msg)
         undistorter = Undistorter.for_calibration(camera.calibration, 320, 240)
         full = undistorter.rgb(decode_colour(msg))
