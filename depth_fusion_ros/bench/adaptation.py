@@ -23,8 +23,8 @@ import time
 
 import numpy as np
 
-from . import BenchOptions, BenchRow
-from .single_view import _load_note, _torch_threads
+from . import BenchOptions, BenchRow, load_note
+from .single_view import _torch_threads
 
 TITLE = 'online self-supervised adaptation (depth_fusion_ros.adaptation)'
 #: The keyframe rate the adaptation should keep up with.
@@ -107,7 +107,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
                 f'adaptation steps (batch {batch}, 320x240, photometric)',
                 steps / seconds,
                 'steps/s',
-                _load_note(where),
+                load_note(where),
             )
         )
         rate = updates / seconds
@@ -116,7 +116,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
                 f'keyframe updates ({config.steps_per_keyframe} steps + guard)',
                 rate,
                 'keyframes/s',
-                _load_note(f'{seconds / updates * 1e3:.0f} ms per keyframe'),
+                load_note(f'{seconds / updates * 1e3:.0f} ms per keyframe'),
             )
         )
         keeps_up = 'keeps up' if rate >= TARGET_KEYFRAMES_PER_S else 'does not keep up'

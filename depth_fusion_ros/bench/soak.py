@@ -30,8 +30,8 @@ import time
 
 import numpy as np
 
-from . import BenchOptions, BenchRow
-from .node_graph import BENCH_DIR, _load_note, bench_bag, graph_options, rss_mb
+from . import BenchOptions, BenchRow, load_note
+from .node_graph import BENCH_DIR, bench_bag, graph_options, rss_mb
 
 TITLE = 'soak (looped replay as processes, resident memory over time)'
 SECONDS_ENV = 'DEPTH_FUSION_SOAK_SECONDS'
@@ -110,7 +110,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
             'soak: looped replay as processes',
             t[-1],
             's',
-            f'{name}; {len(result.fused)} keyframes fused; {_load_note()}; curve in {curve}',
+            f'{name}; {len(result.fused)} keyframes fused; {load_note()}; curve in {curve}',
         ),
         BenchRow('soak: graph RSS after warm-up', warm, 'MB', f'runner + {len(names) - 1} node processes'),
         BenchRow('soak: graph RSS at end', end, 'MB'),
