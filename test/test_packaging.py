@@ -49,6 +49,18 @@ def test_cli_help_lists_subcommands():
         assert sub in out
 
 
+def test_every_bench_module_imports_and_every_section_runs_by_name():
+    """Each ``depth_fusion_ros/bench/*.py`` imports (sections share helpers: one that imported a
+    helper since removed broke ``depth-fusion bench`` and no other test), and every name in
+    ``SECTIONS`` has the ``TITLE`` and ``run`` the CLI calls."""
+    from depth_fusion_ros import bench
+
+    modules = sorted(p.stem for p in Path(bench.__file__).parent.glob('*.py') if p.stem != '__init__')
+    loaded = {name: importlib.import_module(f'depth_fusion_ros.bench.{name}') for name in modules}
+    for name in bench.SECTIONS:
+        assert isinstance(loaded[name].TITLE, str) and callable(loaded[name].run)
+
+
 @pytest.mark.skipif(
     shutil.which('colcon') is None, reason='colcon is not installed (pip install colcon-common-extensions)'
 )
