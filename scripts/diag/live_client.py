@@ -83,11 +83,16 @@ class Client:
         self.pose_pub = node.create_publisher(PoseStamped, '/camera/pose', reliable)
         self.fused: dict[int, tuple[np.ndarray, float]] = {}
         self.single: dict[int, np.ndarray] = {}
+        #: arrival time of each stage's output per keyframe stamp: where the latency is spent
+        self.arrivals: dict[str, dict[int, float]] = {'multi_view': {}, 'single_view': {}}
         self.fused_k: np.ndarray | None = None
         self.sent_at: dict[int, float] = {}
         node.create_subscription(Image, '/depth_fusion/fused/depth', self._on_fused, reliable)
         node.create_subscription(Image, '/depth_fusion/single_view/depth', self._on_single, reliable)
         node.create_subscription(CameraInfo, '/depth_fusion/fused/camera_info', self._on_info, reliable)
+        node.create_subscription(
+            Image, '/depth_fusion/multi_view/depth', lambda m: self._arrived('multi_view', m), reliable
+        )
         self.decisions: dict[int, dict] = {}
         node.create_subscription(String, '/depth_fusion/fused/decision', self._on_decision, reliable)
 
@@ -105,6 +110,10 @@ class Client:
 
     def _on_single(self, msg: Image) -> None:
         self.single[self._key(msg)] = self._depth(msg)
+        self._arrived('single_view', msg)
+
+    def _arrived(self, stage: str, msg) -> None:
+        self.arrivals[stage].setdefault(self._key(msg), time.monotonic())
 
     def _on_decision(self, msg: String) -> None:
         try:
@@ -120,6 +129,16 @@ class Client:
 
     def _on_info(self, msg: CameraInfo) -> None:
         self.fused_k = np.array(msg.k, dtype=np.float64).reshape(3, 3)
+
+
+def stage_latencies(client: Client) -> dict[str, float]:
+    """Median seconds from an image sent to each stage's output seen here (keyframes that got one)."""
+    out = {}
+    for stage, at in client.arrivals.items():
+        delays = [t - client.sent_at[k] for k, t in at.items() if k in client.sent_at]
+        if delays:
+            out[stage] = round(float(np.median(delays)), 3)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -283,6 +302,8 @@ def main(argv: list[str] | None = None) -> int:
         # fused / single-view MAE per paired keyframe, in stream order (1.0: the single view as it is)
         'fused_over_single': ratios,
         'latency_median_s': round(float(np.median(latencies)), 3) if latencies else None,
+        # image sent -> each stage's output seen here, median over the keyframes that reached it
+        'stage_latency_median_s': stage_latencies(client),
     }
     print(json.dumps(summary))
     node.destroy_node()
