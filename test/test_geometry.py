@@ -117,3 +117,16 @@ def test_camera_scaling_matches_resize_convention():
     uv, z = half.project(pts)
     u, v = half.pixel_grid()
     assert np.allclose(uv[..., 0], u) and np.allclose(uv[..., 1], v) and np.allclose(z, 2.0)
+
+
+def test_strided_backprojection_is_the_full_one_sliced():
+    """The fusion node's cloud backprojects every 2nd pixel only; the points must be the
+    ones the full image would give at those pixels, bit for bit, also where H or W is not a
+    multiple of the stride."""
+    cam = PinholeCamera(321, 239, 260.0, 262.0, 160.3, 119.7)
+    depth = np.random.default_rng(0).uniform(0.5, 4.0, (239, 321)).astype(np.float32)
+    full = cam.backproject(depth)
+    for stride in (1, 2, 3, 7):
+        assert np.array_equal(cam.backproject(depth, stride), full[::stride, ::stride])
+    with pytest.raises(ValueError, match='stride'):
+        cam.backproject(depth, 0)

@@ -472,7 +472,7 @@ class FusionNode(DepthFusionNode):
     ) -> PointCloud2:
         """The fused depth as camera-frame points (every ``points_stride``-th pixel, filtered)."""
         stride = int(self.params['points_stride'])
-        points = camera.backproject(depth)[::stride, ::stride].reshape(-1, 3)
+        points = camera.backproject(depth, stride).reshape(-1, 3)
         z = points[:, 2]
         with np.errstate(invalid='ignore'):
             keep = np.isfinite(z) & (z > 0) & (z <= float(self.params['points_max_depth']))
