@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -140,9 +141,13 @@ def test_launch_file_starts_map_node_only_with_map_true():
 class _Process:
     """A console script with its merged output collected by a thread."""
 
-    def __init__(self, *args: str) -> None:
+    def __init__(self, *args: str, env: dict[str, str] | None = None) -> None:
         self.proc = subprocess.Popen(
-            [str(BIN / args[0]), *args[1:]], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+            [str(BIN / args[0]), *args[1:]],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=None if env is None else {**os.environ, **env},
         )
         self.lines: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -197,6 +202,7 @@ def test_console_scripts_start_with_the_params_file_and_stop_on_signals(model_pa
             assert code == 0, f'{name} exited with {code}:\n{procs[name].output}'
             assert 'final counters' in procs[name].output, procs[name].output
             assert 'Fast DDS profile: ' in procs[name].output, procs[name].output  # said at start
+            assert 'executor: events' in procs[name].output, procs[name].output  # console_executor.py
             assert 'Traceback' not in procs[name].output, procs[name].output
             assert 'context is invalid' not in procs[name].output, procs[
                 name
@@ -258,3 +264,25 @@ def test_a_ctrl_c_as_the_node_finishes_building_still_destroys_it_with_its_final
     assert run_node(build, []) == 0
     assert len(destroyed) == 1
     assert signal.getsignal(signal.SIGINT) is before  # restored
+
+
+def test_a_bad_executor_choice_is_a_one_line_error_and_single_still_runs():
+    """``DEPTH_FUSION_EXECUTOR`` picks the console node's executor; a typo stops the node at
+    once with exit code 2 and a line naming the variable, and ``single`` (the rclpy default
+    before the events executor) still runs the node and stops it cleanly."""
+    args = ['--ros-args', '--params-file', str(CONFIG)]
+    bad = _Process('fusion_node', *args, env={'DEPTH_FUSION_EXECUTOR': 'evnets'})
+    single = _Process('fusion_node', *args, env={'DEPTH_FUSION_EXECUTOR': 'single'})
+    try:
+        assert bad.finish(60.0) == 2, bad.output
+        assert "DEPTH_FUSION_EXECUTOR='evnets': must be one of events, single" in bad.output, bad.output
+        assert 'Traceback' not in bad.output, bad.output
+        assert single.wait_for_output('fusion (fast mode)', 90.0), single.output
+        assert 'executor: single-threaded' in single.output, single.output
+        single.proc.send_signal(signal.SIGINT)
+        assert single.finish() == 0, single.output
+        assert 'final counters' in single.output, single.output
+    finally:
+        for p in (bad, single):
+            if p.proc.poll() is None:
+                p.proc.kill()

@@ -28,6 +28,7 @@ from rclpy.node import Node
 from ..data import messages
 from ..malloc_tuning import keep_freed_memory
 from . import diagnostics as diag
+from .console_executor import executor_choice, make_console_executor
 from .gil import set_switch_interval
 from .graph.dds import profile_for_console_node
 from .graph.dds_readers import resolved_topic
@@ -316,11 +317,12 @@ def run_node(
     node's camera image topics (as declared, resolved here with the command line's remaps for
     ``node_name``), read over UDP with their ``/compressed`` (graph/dds_readers.py).
     """
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
     try:
         set_switch_interval()  # the node's threads hand the GIL over sooner (gil.py)
+        choice = executor_choice()  # a bad DEPTH_FUSION_EXECUTOR fails now, in one line
     except ValueError as exc:
         rclpy.logging.get_logger('depth_fusion').error(str(exc))
         return 2
@@ -346,7 +348,8 @@ def run_node(
     code = 0
     try:
         node = factory()
-        executor = SingleThreadedExecutor()
+        executor, executor_line = make_console_executor(choice)
+        rclpy.logging.get_logger('depth_fusion').info(executor_line)
         executor.add_node(node)
         while rclpy.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=0.2)  # returns often enough to notice a signal
