@@ -202,7 +202,7 @@ def test_console_scripts_start_with_the_params_file_and_stop_on_signals(model_pa
             assert code == 0, f'{name} exited with {code}:\n{procs[name].output}'
             assert 'final counters' in procs[name].output, procs[name].output
             assert 'Fast DDS profile: ' in procs[name].output, procs[name].output  # said at start
-            assert 'executor: events' in procs[name].output, procs[name].output  # console_executor.py
+            assert 'executor: events' in procs[name].output, procs[name].output  # node_executor.py
             assert 'Traceback' not in procs[name].output, procs[name].output
             assert 'context is invalid' not in procs[name].output, procs[
                 name

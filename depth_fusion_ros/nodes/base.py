@@ -28,12 +28,12 @@ from rclpy.node import Node
 from ..data import messages
 from ..malloc_tuning import keep_freed_memory
 from . import diagnostics as diag
-from .console_executor import executor_choice, make_console_executor
 from .gil import set_switch_interval
 from .graph.dds import profile_for_console_node
 from .graph.dds_readers import resolved_topic
 from .image_input import StampGuard
 from .input_watch import InputWatch
+from .node_executor import executor_choice, make_node_executor
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
 from .robot_inputs import image_topic_for
@@ -348,7 +348,7 @@ def run_node(
     code = 0
     try:
         node = factory()
-        executor, executor_line = make_console_executor(choice)
+        executor, executor_line = make_node_executor(choice)
         rclpy.logging.get_logger('depth_fusion').info(executor_line)
         executor.add_node(node)
         while rclpy.ok() and not stop.is_set():

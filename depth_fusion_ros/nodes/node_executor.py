@@ -10,8 +10,11 @@ ready events is kept in C++; the three nodes saved about 0.18 of a core between 
 
 The events executor is in rclpy since Jazzy 7.1.4 (backported from Rolling) and still in
 ``rclpy.experimental``. ``DEPTH_FUSION_EXECUTOR=single`` gives the
-``SingleThreadedExecutor`` back (a one-line log says which one runs). Composed graphs
-(``depth-fusion run`` without ``--processes``) keep their multi-threaded executor.
+``SingleThreadedExecutor`` back (a one-line log says which one runs). The composed graph
+(``depth-fusion run`` without ``--processes``, several nodes and executors in one process)
+keeps its single-threaded
+executors: there, an events executor per node spun both cores at 100 % and did not stop on
+SIGTERM (tried 2026-11-28; not investigated further).
 """
 
 from __future__ import annotations
@@ -32,9 +35,10 @@ def executor_choice(environ: dict[str, str] | None = None) -> str:
     return value
 
 
-def make_console_executor(choice: str) -> tuple[Any, str]:
-    """The executor for ``choice``, and the line to log. Falls back to the single-threaded one
-    (said in the line) where this rclpy has no events executor."""
+def make_node_executor(choice: str, context: Any = None) -> tuple[Any, str]:
+    """The executor for ``choice`` (in ``context``, default rclpy's), and the line to log.
+    Falls back to the single-threaded one (said in the line) where this rclpy has no events
+    executor."""
     from rclpy.executors import SingleThreadedExecutor
 
     if choice == 'events':
@@ -42,6 +46,7 @@ def make_console_executor(choice: str) -> tuple[Any, str]:
             from rclpy.experimental import EventsExecutor
         except ImportError:
             why = f'this rclpy has no rclpy.experimental.EventsExecutor; {ENV}=events ignored'
-            return SingleThreadedExecutor(), f'executor: single-threaded ({why})'
-        return EventsExecutor(), f'executor: events (rclpy.experimental; {ENV}=single: single-threaded)'
-    return SingleThreadedExecutor(), f'executor: single-threaded ({ENV}=single)'
+            return SingleThreadedExecutor(context=context), f'executor: single-threaded ({why})'
+        line = f'executor: events (rclpy.experimental; {ENV}=single: single-threaded)'
+        return EventsExecutor(context=context), line
+    return SingleThreadedExecutor(context=context), f'executor: single-threaded ({ENV}=single)'
