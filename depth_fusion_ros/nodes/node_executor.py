@@ -12,9 +12,8 @@ The events executor is in rclpy since Jazzy 7.1.4 (backported from Rolling) and 
 ``rclpy.experimental``. ``DEPTH_FUSION_EXECUTOR=single`` gives the
 ``SingleThreadedExecutor`` back (a one-line log says which one runs). The composed graph
 (``depth-fusion run`` without ``--processes``, several nodes and executors in one process)
-keeps its single-threaded
-executors: there, an events executor per node spun both cores at 100 % and did not stop on
-SIGTERM (tried 2026-11-28; not investigated further).
+keeps its single-threaded executors: there, an events executor per node spun both cores at
+100 % and did not stop on SIGTERM (tried 2026-11-28; not investigated further).
 """
 
 from __future__ import annotations
