@@ -5,7 +5,7 @@ wake-up (``_wait_for_ready_callbacks``: each subscription, timer, service and gu
 condition re-added, ``can_execute`` asked of each), and a camera node wakes 90 times a
 second at 30 Hz (image, camera_info, pose). Measured on the live 7-Scenes stream (2 cores,
 docs/performance.md "The events executor"): the multi-view node's executor thread used 3.2 s
-of CPU over the stream, 1.9 s with ``rclpy.experimental.EventsExecutor``, whose queue of
+of CPU over the stream, 1.2-1.9 s with ``rclpy.experimental.EventsExecutor``, whose queue of
 ready events is kept in C++; the three nodes saved about 0.18 of a core between them.
 
 The events executor is in rclpy since Jazzy 7.1.4 (backported from Rolling) and still in
@@ -26,18 +26,18 @@ ENV = 'DEPTH_FUSION_EXECUTOR'
 CHOICES = ('events', 'single')
 
 
-def executor_choice(environ: dict[str, str] | None = None) -> str:
+def executor_choice() -> str:
     """``events`` or ``single`` from :data:`ENV`; ``ValueError`` naming the variable otherwise."""
-    value = (os.environ if environ is None else environ).get(ENV, 'events').strip().lower() or 'events'
+    value = os.environ.get(ENV, 'events').strip().lower() or 'events'
     if value not in CHOICES:
         raise ValueError(f'{ENV}={value!r}: must be one of {", ".join(CHOICES)}')
     return value
 
 
-def make_node_executor(choice: str, context: Any = None) -> tuple[Any, str]:
-    """The executor for ``choice`` (in ``context``, default rclpy's), and the line to log.
-    Falls back to the single-threaded one (said in the line) where this rclpy has no events
-    executor."""
+def make_node_executor(choice: str) -> tuple[Any, str]:
+    """The executor for ``choice`` in rclpy's default context, and the line to log. Falls back
+    to the single-threaded one (said in the line) where this rclpy has no events executor (a
+    ROS install older than Jazzy's rclpy 7.1.4, not the pinned wheels)."""
     from rclpy.executors import SingleThreadedExecutor
 
     if choice == 'events':
@@ -45,7 +45,7 @@ def make_node_executor(choice: str, context: Any = None) -> tuple[Any, str]:
             from rclpy.experimental import EventsExecutor
         except ImportError:
             why = f'this rclpy has no rclpy.experimental.EventsExecutor; {ENV}=events ignored'
-            return SingleThreadedExecutor(context=context), f'executor: single-threaded ({why})'
+            return SingleThreadedExecutor(), f'executor: single-threaded ({why})'
         line = f'executor: events (rclpy.experimental; {ENV}=single: single-threaded)'
-        return EventsExecutor(context=context), line
-    return SingleThreadedExecutor(context=context), f'executor: single-threaded ({ENV}=single)'
+        return EventsExecutor(), line
+    return SingleThreadedExecutor(), f'executor: single-threaded ({ENV}=single)'

@@ -118,12 +118,7 @@ class Client:
     def _on_decision(self, msg: String) -> None:
         try:
             verdict = json.loads(msg.data)
-            stamp = verdict.get('stamp')
-            if isinstance(stamp, dict):
-                key = int(stamp['sec']) * 1_000_000_000 + int(stamp['nanosec'])
-            else:
-                key = round(float(stamp) * 1e9)
-            self.decisions[key] = verdict
+            self.decisions[round(float(verdict['stamp']) * 1e9)] = verdict  # seconds (decision_json)
         except (ValueError, KeyError, TypeError) as exc:
             print(f'unreadable decision: {exc}', file=sys.stderr)
 
