@@ -61,6 +61,22 @@ def test_inverse_depth_model() -> None:
     assert np.allclose(fit.predict(s), depth, rtol=1e-4)
 
 
+@pytest.mark.parametrize('seed', range(12))
+def test_inverse_fit_survives_hypotheses_that_put_points_at_infinity(seed: int) -> None:
+    """Random two-point lines through outliers predict a non-positive inverse depth (a depth
+    at infinity) for some points. Those points are outliers of that line; their residual
+    (inf / inf) once made the whole hypothesis' cost NaN, ``argmin`` then returned that NaN
+    row and RANSAC kept whatever line came last: 11 of 30 such fits failed before the fix."""
+    rng = np.random.default_rng(seed)
+    s = rng.uniform(0.2, 1.0, 3000)  # a disparity-like output: 1 / depth = 2 s + 0.1
+    depth = 1.0 / (2.0 * s + 0.1)
+    bad = rng.random(s.size) < 0.6
+    depth[bad] = rng.uniform(0.3, 5.0, int(bad.sum()))
+    fit = fit_ransac(s, depth, threshold=0.1, relative=True, inverse=True, seed=seed)
+    assert fit.ok and fit.a == pytest.approx(2.0, rel=0.02) and fit.b == pytest.approx(0.1, abs=0.01)
+    assert fit.inliers[~bad].mean() > 0.99
+
+
 def test_degenerate_inputs_fail_with_a_reason() -> None:
     assert fit_ransac(np.array([1.0]), np.array([1.0]), min_inliers=2).reason == 'too_few_points'
     assert fit_ransac(np.ones(5), np.arange(5.0) + 1, min_inliers=10).reason == 'too_few_points'
