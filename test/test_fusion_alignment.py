@@ -80,9 +80,11 @@ def test_fusion_of_an_inverse_depth_model_matches_the_metric_one_and_reports_non
 def test_simulated_relative_is_made_metric_by_the_fusion_on_synthetic_rooms(synthetic_sequence):
     """The issue's property on synthetic rooms: a disparity-like source with a random scale and
     shift per keyframe, once aligned and fused, is metric and better than the metric prior it
-    came from. On TUM fr1_xyz and 7-Scenes its fused MAE is within 10 % of (below) the metric
-    prior's fused MAE (docs/fusion.md); on these rooms it is about 1.36x, a gap the
-    inverse-depth affine model leaves on scenes with a wide depth range (bounded here).
+    came from, and within the issue's 10 % of the metric prior's own fused MAE (0.77x here
+    since the inverse fit's RANSAC was fixed, 0.90x before; docs/fusion.md).
+
+    The two sources share the keyframe's multi-view result, not its fusion: the fusion is
+    cached per keyframe under one key, and a shared cache once scored the metric fusion twice.
 
     With the paper's sweep (pinned): the property is the alignment's, and the default
     filter's 20k points per keyframe make the six exact fusions 8x slower (49 s against 6 s
@@ -101,7 +103,7 @@ def test_simulated_relative_is_made_metric_by_the_fusion_on_synthetic_rooms(synt
             )
             ctx = KeyframeContext(synthetic_sequence, index, options, {})
             if memo is not None:  # the same keyframe: the multi-view result is computed once
-                ctx._memo = memo
+                ctx._memo = {key: value for key, value in memo.items() if not key.startswith('fusion:')}
             memo = ctx._memo
             out = fused_automatic(ctx)
             gt = ctx.gt_depth_working
@@ -112,4 +114,4 @@ def test_simulated_relative_is_made_metric_by_the_fusion_on_synthetic_rooms(synt
         maes['prior'].append(float(np.abs(prior - gt)[valid].mean()))
     sim, rel, prior = (float(np.mean(maes[k])) for k in ('simulated', 'simulated_relative', 'prior'))
     assert rel < prior, (rel, prior)
-    assert rel <= 1.5 * sim, (sim, rel)
+    assert rel <= 1.1 * sim, (sim, rel)
