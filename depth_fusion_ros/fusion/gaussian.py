@@ -39,4 +39,6 @@ def gaussian_sum(images: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 
 def _sep_filter(plane: np.ndarray, taps: np.ndarray) -> np.ndarray:
     """One plane's zero-padded separable sum (``anchor`` the centre tap, no delta, no scaling)."""
-    return cv2.sepFilter2D(np.ascontiguousarray(plane), cv2.CV_32F, taps, taps, borderType=cv2.BORDER_CONSTANT)
+    return cv2.sepFilter2D(
+        np.ascontiguousarray(plane), cv2.CV_32F, taps, taps, borderType=cv2.BORDER_CONSTANT
+    )
