@@ -115,3 +115,23 @@ def test_table_covers_every_keyframe():
     assert sorted(table) == list(range(12))
     assert table[0] == []
     assert all(len(v) == 2 for k, v in table.items() if k >= 2)
+
+
+def test_batched_candidates_match_one_by_one():
+    """``describe_candidates`` describes the whole window in one batch; each candidate equals
+    its own relative pose's parallax, rotation and lattice overlap."""
+    from depth_fusion_ros.geometry import relative_pose, rotation_angle
+    from depth_fusion_ros.multiview.neighbours import describe_candidates
+
+    rng = np.random.default_rng(5)
+    angles, shifts = rng.uniform(-40, 40, 31), rng.normal(0, 0.3, (31, 3))
+    poses = np.stack([yaw(a, tuple(t)) for a, t in zip(angles, shifts, strict=True)])
+    config = NeighbourConfig()
+    described = describe_candidates(poses, 30, list(range(30)), CAMERA, config)
+    for c in described:
+        T_ok = relative_pose(poses[30], poses[c.index])
+        assert c.overlap == overlap_fraction(T_ok, CAMERA, config.scene_depth)
+        assert c.rotation_deg == pytest.approx(np.degrees(rotation_angle(T_ok[:3, :3])), abs=1e-9)
+        baseline = np.linalg.norm(poses[c.index][:3, 3] - poses[30][:3, 3])
+        assert c.parallax == pytest.approx(baseline / config.scene_depth, rel=1e-12)
+    assert {round(c.overlap, 3) for c in described} != {1.0}  # the window mixes seen and unseen frames
