@@ -12,3 +12,23 @@ def test_a_node_takes_a_third_of_the_usable_cores_unless_omp_num_threads_is_set(
     assert threads.node_threads({}) == 5
     assert threads.node_threads({'OMP_NUM_THREADS': '3'}) is None  # torch follows it
     assert threads.usable_cores  # the real one: this process's affinity
+
+
+def test_opencv_and_the_guard_queries_take_the_nodes_share(monkeypatch):
+    """OpenCV's pool and the guard's k-d tree queries follow the node's torch threads."""
+    import cv2
+    import torch
+
+    from depth_fusion_ros.fusion import guard
+
+    before_torch, before_cv = torch.get_num_threads(), cv2.getNumThreads()
+    monkeypatch.delenv('OMP_NUM_THREADS', raising=False)
+    monkeypatch.setattr(threads, 'usable_cores', lambda: 2)
+    try:
+        line = threads.apply_node_threads()
+        assert line.startswith('torch and OpenCV threads: 1')
+        assert torch.get_num_threads() == 1 and cv2.getNumThreads() == 1
+        assert guard._query_workers() == 1
+    finally:
+        torch.set_num_threads(before_torch)
+        cv2.setNumThreads(before_cv)

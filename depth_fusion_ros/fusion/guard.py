@@ -232,7 +232,8 @@ def _local_deviation(
     k = min(int(max_neighbours) + 1, n)
     # query's bound is strict, query_ball_point's (the support) is not: pixels at exactly 12 px count
     bound = radius * (1.0 + 1e-9)
-    distance, index = tree.query(points, k=k, distance_upper_bound=bound, workers=-1)
+    workers = _query_workers()
+    distance, index = tree.query(points, k=k, distance_upper_bound=bound, workers=workers)
     distance, index = distance.reshape(n, k), index.reshape(n, k)
     keep = np.isfinite(distance) & (index != np.arange(n)[:, None])
     keep[keep.sum(axis=1) == k, -1] = False  # the point itself was not among them: drop the farthest
@@ -246,8 +247,18 @@ def _local_deviation(
     sample = points[:: max(1, -(-n // SUPPORT_SAMPLE))]
     within = grid_counts(points, sample, radius)
     if within is None:  # not pixel positions: the tree's ball query
-        within = tree.query_ball_point(sample, r=radius, return_length=True, workers=-1)
+        within = tree.query_ball_point(sample, r=radius, return_length=True, workers=workers)
     return out, float(np.median(np.asarray(within, dtype=np.float64) - 1))
+
+
+def _query_workers() -> int:
+    """Threads for the k-d tree queries: the process's torch threads. A node process started on
+    its own gets one (``nodes/threads.py``: three processes share the cores), and a query split
+    over two threads on a core another process holds waits for the descheduled half; ``evaluate``
+    keeps one per core."""
+    import torch  # the fusion imports it anyway; here to keep this module's import light
+
+    return max(1, torch.get_num_threads())
 
 
 def grid_counts(points: np.ndarray, sample: np.ndarray, radius: float) -> np.ndarray | None:
