@@ -12,6 +12,8 @@ Conventions used everywhere in the package:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 # scipy.spatial is imported where it is used (matrix_to_quat, interpolate_poses): importing it
@@ -96,14 +98,29 @@ def validate_pose(T: np.ndarray, what: str = 'pose') -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
         raise PoseError(f'{what}: expected a 4x4 matrix, got shape {T.shape}')
-    if not np.all(np.isfinite(T)):
-        raise PoseError(f'{what}: contains NaN or infinite values')
-    if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > 1e-9:
-        raise PoseError(f'{what}: last row is {T[3].tolist()}, expected [0, 0, 0, 1]')
-    R = T[:3, :3]
-    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    if err > ORTHONORMAL_TOL or np.linalg.det(R) <= 0:
-        raise PoseError(f'{what}: rotation is not orthonormal (max |R^T R - I| = {err:.2e})')
+    return validate_poses(T[None], [what])[0]
+
+
+def validate_poses(T: np.ndarray, what: Sequence[str]) -> np.ndarray:
+    """``validate_pose`` of a stack of poses (K, 4, 4) in one batch, ``what[k]`` naming pose k
+    in the error: the first bad one raises. One set of checks for one pose or a window of them
+    (neighbour selection asks for 30 per keyframe)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise PoseError(f'poses: expected (K, 4, 4) matrices, got shape {T.shape}')
+    finite = np.isfinite(T).all(axis=(1, 2))
+    R = np.where(finite[:, None, None], T[:, :3, :3], np.eye(3))  # checked only where finite
+    last_row = np.abs(T[:, 3] - (0.0, 0.0, 0.0, 1.0)).max(axis=1) <= 1e-9
+    err = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+    proper = (err <= ORTHONORMAL_TOL) & (np.linalg.det(R) > 0)
+    bad = np.flatnonzero(~(finite & last_row & proper))
+    if bad.size:
+        k = int(bad[0])
+        if not finite[k]:
+            raise PoseError(f'{what[k]}: contains NaN or infinite values')
+        if not last_row[k]:
+            raise PoseError(f'{what[k]}: last row is {T[k, 3].tolist()}, expected [0, 0, 0, 1]')
+        raise PoseError(f'{what[k]}: rotation is not orthonormal (max |R^T R - I| = {err[k]:.2e})')
     return T
 
 

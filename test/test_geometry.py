@@ -16,6 +16,7 @@ from depth_fusion_ros.geometry import (
     quat_to_matrix,
     relative_pose,
     validate_pose,
+    validate_poses,
 )
 from depth_fusion_ros.pose_buffer import PoseBuffer
 
@@ -82,6 +83,19 @@ def test_validate_pose_rejects_nan_and_shear():
     S[0, 1] = 0.2
     with pytest.raises(PoseError, match='orthonormal'):
         validate_pose(S)
+
+
+def test_a_stack_of_poses_names_its_first_bad_one():
+    """``validate_poses`` checks a window at once, as ``validate_pose`` checks one."""
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    assert np.array_equal(validate_poses(poses, ['a', 'b', 'c', 'd']), poses)
+    poses[2, 3] = (0.0, 0.0, 1.0, 1.0)
+    poses[3, 0, 0] = np.inf
+    with pytest.raises(PoseError, match=r'^c: last row'):
+        validate_poses(poses, ['a', 'b', 'c', 'd'])
+    poses[1, :3, :3] = -np.eye(3)  # orthonormal, but a reflection
+    with pytest.raises(PoseError, match=r'^b: rotation is not orthonormal'):
+        validate_poses(poses, ['a', 'b', 'c', 'd'])
 
 
 def test_interpolation_midpoint_and_span():

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..geometry import ORTHONORMAL_TOL, validate_pose
+from ..geometry import validate_pose, validate_poses
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +131,7 @@ def describe_candidates(
     T_wk = validate_pose(poses[key], f'pose of keyframe {key}')
     if not indices:
         return []
-    others = _validated(poses, indices)
+    others = validate_poses(np.asarray(poses)[indices], [f'pose of frame {i}' for i in indices])
     R_wo, t_wo = others[:, :3, :3], others[:, :3, 3]
     R_ow = np.swapaxes(R_wo, 1, 2)
     R_ok = R_ow @ T_wk[:3, :3]  # T_ok = inv(T_wo) @ T_wk
@@ -149,22 +149,6 @@ def describe_candidates(
         )
         for j, i in enumerate(indices)
     ]
-
-
-def _validated(poses: np.ndarray, indices: list[int]) -> np.ndarray:
-    """The candidates' poses (K, 4, 4), float64, checked as ``validate_pose`` checks one: in one
-    batch, and on a failure the first bad frame again through ``validate_pose`` for its error."""
-    others = np.asarray(poses, dtype=np.float64)[indices]
-    R = others[:, :3, :3]
-    with np.errstate(invalid='ignore'):
-        finite = np.isfinite(others).all(axis=(1, 2))
-        last_row = np.abs(others[:, 3] - (0.0, 0.0, 0.0, 1.0)).max(axis=1) <= 1e-9
-        orthonormal = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2)) <= ORTHONORMAL_TOL
-        proper = np.linalg.det(np.where(finite[:, None, None], R, np.eye(3))) > 0
-    good = finite & last_row & orthonormal & proper
-    for j in np.flatnonzero(~good):
-        validate_pose(poses[indices[j]], f'pose of frame {indices[j]}')  # raises with the reason
-    return others
 
 
 def _pick_spread(
