@@ -37,18 +37,18 @@ def node_threads(env: Mapping[str, str] | None = None) -> int | None:
 
 
 def apply_node_threads() -> str:
-    """Set the torch threads of this node process (:func:`node_threads`); the line to log."""
+    """Set the torch threads of this node process (:func:`node_threads`), and OpenCV's to the
+    same share (its own pool otherwise starts one thread per core and waits for each at every
+    call: colour conversion, resizing, the window sums); the line to log."""
     threads = node_threads()
     import cv2
     import torch
 
+    if threads is not None:
+        torch.set_num_threads(threads)
+    cv2.setNumThreads(torch.get_num_threads())
     if threads is None:
-        cv2.setNumThreads(torch.get_num_threads())
         return f'torch and OpenCV threads: {torch.get_num_threads()} (OMP_NUM_THREADS)'
-    torch.set_num_threads(threads)
-    # OpenCV's own pool (colour conversion, resizing, the fusion's window sums) takes the same
-    # share: by default it starts one thread per core and waits for each at every call.
-    cv2.setNumThreads(threads)
     return (
         f'torch and OpenCV threads: {threads} (usable cores {usable_cores()} / {GRAPH_PROCESSES} node '
         'processes; set OMP_NUM_THREADS to choose)'
