@@ -151,6 +151,7 @@ def test_a_compile_session_in_another_thread_does_not_break_the_optimiser_step(s
     step gave it tensors and floats (TypeError in the composed graph). Sessions run inside
     COMPILE_LOCK (the compiled calls hold it), so the adaptation step never sees one change."""
     import threading
+    import time
 
     from depth_fusion_ros.compile_lock import COMPILE_LOCK
 
@@ -158,9 +159,13 @@ def test_a_compile_session_in_another_thread_does_not_break_the_optimiser_step(s
     stop = threading.Event()
 
     def compiler() -> None:  # what a compiled call does: flag up and down under the lock
+        # Other threads run both while the flag is up and while the lock is free: a thread
+        # that took the lock again at once (Python's lock is not fair) starved the step for a
+        # minute, and one that only yielded with the flag down never changed it under a step.
         while not stop.is_set():
             with COMPILE_LOCK, torch.compiler._compile_session_context():
-                pass
+                time.sleep(0)
+            time.sleep(0)
 
     thread = threading.Thread(target=compiler, daemon=True)
     thread.start()
