@@ -197,8 +197,10 @@ def run(args: argparse.Namespace) -> int:
 
     from ..nodes.graph import GraphError, run_graph
     from ..nodes.graph.summary import keyframe_summary
+    from ..nodes.node_executor import executor_choice
 
     options = options_from_args(args)
+    executor_choice()  # a bad DEPTH_FUSION_EXECUTOR is a one-line error before the graph starts
     if args.single_view is not None:
         from ..singleview.predictor import check_model
 

@@ -33,7 +33,7 @@ from .graph.dds import profile_for_console_node
 from .graph.dds_readers import resolved_topic
 from .image_input import StampGuard
 from .input_watch import InputWatch
-from .node_executor import executor_choice, make_node_executor
+from .node_executor import executor_choice, make_node_executor, spin_until
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
 from .robot_inputs import image_topic_for
@@ -351,8 +351,7 @@ def run_node(
         executor, executor_line = make_node_executor(choice)
         rclpy.logging.get_logger('depth_fusion').info(executor_line)
         executor.add_node(node)
-        while rclpy.ok() and not stop.is_set():
-            executor.spin_once(timeout_sec=0.2)  # returns often enough to notice a signal
+        spin_until(executor, lambda: rclpy.ok() and not stop.is_set())  # notices a signal within 0.2 s
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, FileNotFoundError) as exc:

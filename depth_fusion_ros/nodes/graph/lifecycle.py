@@ -36,6 +36,7 @@ from typing import Any
 
 from ..gil import set_switch_interval
 from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
+from ..node_executor import executor_choice, make_node_executor, spin_until
 from ..threads import node_threads
 from .dds import apply_fastdds_profile
 from .inputs import check_inputs
@@ -76,8 +77,10 @@ class GraphRun:
         self._context: Any = None
         self._executor: Any = None
         self._spin_thread: threading.Thread | None = None
-        #: Composed: each graph node's own single-threaded executor and spin thread.
+        #: Composed: each graph node's own executor (``DEPTH_FUSION_EXECUTOR``) and spin thread,
+        #: which spins while ``_node_spin_stop`` is clear.
         self._node_executors: dict[str, tuple[Any, threading.Thread]] = {}
+        self._node_spin_stop = threading.Event()
         self._logs: list[Any] = []
         self._torch_threads_before: int | None = None
         self._switch_interval_before: float | None = None
@@ -212,20 +215,33 @@ class GraphRun:
         replayer.start()
 
     def _spin_composed(self, name: str, node: Any) -> None:
-        """Each composed node on its own single-threaded executor and thread, as each runs in
-        its own process: rclpy's executors rebuild their wait set in Python at every wake-up,
-        over every entity they hold, so one executor for the whole graph did the bookkeeping
-        of all nodes for each message of any one."""
+        """Each composed node on its own executor and thread, as each runs in its own process:
+        rclpy's executors rebuild their wait set in Python at every wake-up, over every entity
+        they hold, so one executor for the whole graph did the bookkeeping of all nodes for
+        each message of any one. The executor is the console nodes' choice (the events
+        executor unless ``DEPTH_FUSION_EXECUTOR=single``), spun one callback at a time
+        (``node_executor.spin_until``: its ``spin()`` would hold the GIL)."""
         if os.environ.get('DEPTH_FUSION_SHARED_EXECUTOR'):
             self._executor.add_node(node)
             return
-        from rclpy.executors import SingleThreadedExecutor
-
-        executor = SingleThreadedExecutor(context=self._context)
+        executor, line = make_node_executor(executor_choice(), self._context)
+        if not self._node_executors:
+            log.info('composed graph: %s', line)
         executor.add_node(node)
-        thread = threading.Thread(target=self._spin, args=(executor,), name=f'executor-{name}', daemon=True)
+        thread = threading.Thread(
+            target=self._spin_node, args=(executor,), name=f'executor-{name}', daemon=True
+        )
         self._node_executors[name] = (executor, thread)
         thread.start()
+
+    def _spin_node(self, executor: Any) -> None:
+        """A composed node's spin thread: until the run stops it or the context ends."""
+        try:
+            spin_until(executor, lambda: self._context.ok() and not self._node_spin_stop.is_set())
+        except Exception as exc:
+            if self._context.ok() and not self._node_spin_stop.is_set():
+                log.error('executor stopped: %r', exc, exc_info=True)
+                self.executor_error = exc
 
     def _set_composed_threads(self) -> None:
         """One torch thread per op unless told otherwise: three workers each running ops on a
@@ -517,6 +533,11 @@ class GraphRun:
         replayer = self.nodes.get(REPLAYER[0])
         if replayer is not None:
             replayer.stop()
+        # The composed nodes' spin loops end first (each within its 0.2 s wait and the
+        # callback in hand), so no node is removed or destroyed under a spinning executor.
+        self._node_spin_stop.set()
+        for _, thread in self._node_executors.values():
+            thread.join(5.0)
         for name in reversed(list(self.nodes)):
             executor = self._node_executors.get(name, (self._executor, None))[0]
             with contextlib.suppress(Exception):
