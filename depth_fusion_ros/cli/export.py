@@ -16,7 +16,7 @@ examples:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..singleview.export import FORMATS
+    from ..singleview.export_formats import FORMATS
 
     p = sub.add_parser(
         'export',

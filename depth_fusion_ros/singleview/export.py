@@ -15,15 +15,13 @@ from pathlib import Path
 import torch
 
 from .checkpoint import load_checkpoint
+from .export_formats import FORMATS
 from .metadata import ModelMetadata, write_metadata_yaml
-from .onnx_model import ONNX_SUFFIX, export_onnx
-from .pt2_model import PT2_SUFFIX, export_pt2
+from .onnx_model import export_onnx
+from .pt2_model import export_pt2
 from .torchscript_model import MetricDepthHead, export_torchscript
 
 log = logging.getLogger(__name__)
-
-#: Format name -> the file suffix ``load_predictor`` recognises it by.
-FORMATS = {'onnx': ONNX_SUFFIX, 'pt2': PT2_SUFFIX, 'torchscript': '.pt'}
 
 
 def format_for(out: Path, fmt: str | None) -> str:

@@ -36,7 +36,6 @@ from .metadata import ModelMetadata, check_input_size, metadata_path_for, read_m
 
 log = logging.getLogger(__name__)
 
-ONNX_SUFFIX = '.onnx'
 #: Input element types we can feed (numpy dtype per ONNX type string).
 INPUT_TYPES = {'tensor(float)': np.float32, 'tensor(float16)': np.float16, 'tensor(double)': np.float64}
 

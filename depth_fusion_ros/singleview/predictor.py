@@ -30,9 +30,10 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from torch import nn
 
 from .checkpoint import is_torchscript_file, load_checkpoint
+from .export_formats import ONNX_SUFFIX, PT2_SUFFIX
 from .metadata import ModelMetadata
-from .onnx_model import ONNX_SUFFIX, load_onnx
-from .pt2_model import PT2_SUFFIX, load_pt2
+from .onnx_model import load_onnx
+from .pt2_model import load_pt2
 from .torchscript_model import MetricDepthHead, load_torchscript
 
 log = logging.getLogger(__name__)

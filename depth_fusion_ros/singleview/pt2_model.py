@@ -24,8 +24,6 @@ from .metadata import ModelMetadata, check_input_size, metadata_path_for, read_m
 
 log = logging.getLogger(__name__)
 
-PT2_SUFFIX = '.pt2'
-
 
 class ExportedDepthModule(nn.Module):
     """An exported program's module behind the call interface ``DepthPredictor`` uses.

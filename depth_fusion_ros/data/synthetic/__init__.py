@@ -18,14 +18,49 @@ module split is an implementation detail.
 
 from __future__ import annotations
 
-from .config import DEFAULT_FOCAL_640, MOTIONS, PARALLAX_MODES, SynthConfig
-from .motions import MOTION_FUNCTIONS
-from .render import RenderedFrame, render_frame
-from .scene import Scene, build_scene
-from .stress import STRESS_CASES, stress_config
-from .trajectory import Trajectory, look_at, make_trajectory
-from .world import build_world, iter_frames, render_sequence, sequence_name
-from .writer import source_markdown, write_synthetic_sequence
+import importlib
+from typing import Any
+
+#: Each public name and the submodule that defines it. The submodules are imported on first
+#: use (PEP 562), so ``from depth_fusion_ros.data.synthetic import SynthConfig`` costs the
+#: config alone: the renderer pulls in scipy, and ``depth-fusion --help`` builds the ``synth``
+#: parser from these names (0.6 s of imports at every command before).
+_SOURCES = {
+    'DEFAULT_FOCAL_640': 'config',
+    'MOTIONS': 'config',
+    'PARALLAX_MODES': 'config',
+    'SynthConfig': 'config',
+    'MOTION_FUNCTIONS': 'motions',
+    'RenderedFrame': 'render',
+    'render_frame': 'render',
+    'Scene': 'scene',
+    'build_scene': 'scene',
+    'STRESS_CASES': 'stress',
+    'stress_config': 'stress',
+    'Trajectory': 'trajectory',
+    'look_at': 'trajectory',
+    'make_trajectory': 'trajectory',
+    'build_world': 'world',
+    'iter_frames': 'world',
+    'render_sequence': 'world',
+    'sequence_name': 'world',
+    'source_markdown': 'writer',
+    'write_synthetic_sequence': 'writer',
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _SOURCES.get(name)
+    if module is None:
+        raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+    value = getattr(importlib.import_module(f'.{module}', __name__), name)
+    globals()[name] = value  # looked up once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_SOURCES])
+
 
 __all__ = [
     'DEFAULT_FOCAL_640',
