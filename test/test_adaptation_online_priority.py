@@ -17,6 +17,10 @@ class _RecordingAdapter:
 
     def __init__(self) -> None:
         self.seen: list[int] = []
+        self.warmed: list[int] = []
+
+    def warm_up(self):
+        self.warmed.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
 
     def observe(self, sample, abort):
         self.seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
@@ -34,6 +38,7 @@ def test_training_runs_at_lower_priority_and_the_caller_does_not():
     finally:
         assert online.stop(10.0)
     assert adapter.seen == [min(19, own + 10)]
+    assert adapter.warmed == [min(19, own + 10)]  # the optimiser's first-use cost, niced too
     assert online.thread_nice == min(19, own + 10)
     # the thread that submitted (inference's) kept its priority
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == own

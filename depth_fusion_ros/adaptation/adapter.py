@@ -20,6 +20,7 @@ import copy
 import itertools
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -108,13 +109,13 @@ class Adapter:
         ]
         if bias and self.config.scale_lr > 0:
             groups.append({'params': bias, 'lr': self.config.scale_lr})
-        # foreach: one grouped kernel per update rule instead of one per parameter (the default
-        # on CUDA already; on the CPU it halves the step's optimiser time).
-        self.optimizer = torch.optim.Adam(groups, foreach=True)
+        self._groups = groups
+        self._optimizer: torch.optim.Optimizer | None = None
+        self._snapshot: WeightSnapshot | None = None
+        self._optimizer_lock = threading.Lock()
         self.buffer: ReplayBuffer[PreparedSample] = ReplayBuffer(self.config.buffer_size)
         self.counters = AdapterCounters()
         self.version = 0
-        self._weights = WeightSnapshot(self.net, self.optimizer)
         self._copies = InferenceCopies(self.net)
         # Names the current weights: guard errors computed under a token stay valid while it
         # is current (a rollback restores the token of the weights it restores).
@@ -122,6 +123,35 @@ class Adapter:
         self._token = 0
         # Preprocessing (resize, normalisation) exactly as the inference predictor does it.
         self._preprocessor = predictor_from_network(nn.Identity(), metadata, self.device)
+
+    def _built(self) -> tuple[torch.optim.Optimizer, WeightSnapshot]:
+        """Adam over the network's parameter groups and the rollback snapshot of the weights and
+        its state, built on first use (:meth:`warm_up`).
+
+        Building any torch optimiser imports ``torch._dynamo`` (``Optimizer.__init__`` is
+        wrapped by ``torch._disable_dynamo``): 3.6 s of a 2-core CPU, which the single-view
+        node spent in its constructor, before it was ready. Its training thread now builds it,
+        off the inference path. ``foreach``: one grouped kernel per update rule instead of one
+        per parameter (the default on CUDA already; on the CPU it halves the step's optimiser
+        time).
+        """
+        with self._optimizer_lock:
+            if self._optimizer is None or self._snapshot is None:
+                self._optimizer = torch.optim.Adam(self._groups, foreach=True)
+                self._snapshot = WeightSnapshot(self.net, self._optimizer)
+            return self._optimizer, self._snapshot
+
+    @property
+    def optimizer(self) -> torch.optim.Optimizer:
+        return self._built()[0]
+
+    @property
+    def _weights(self) -> WeightSnapshot:
+        return self._built()[1]
+
+    def warm_up(self) -> None:
+        """Pay the optimiser's first-use cost now (the training thread calls it at start)."""
+        self._built()
 
     # --- construction -------------------------------------------------------------------------
 

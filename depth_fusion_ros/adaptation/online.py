@@ -122,6 +122,10 @@ class OnlineAdaptation:
 
     def _run(self) -> None:
         self._lower_priority()
+        try:
+            self.adapter.warm_up()  # at the thread's priority, before the first keyframe comes
+        except Exception:
+            log.exception('adaptation warm-up failed (the first update pays for it)')
         while True:
             with self._cond:
                 while not self._queue and not self._stop:
