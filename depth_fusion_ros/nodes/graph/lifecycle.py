@@ -81,6 +81,7 @@ class GraphRun:
         #: which spins while ``_node_spin_stop`` is clear.
         self._node_executors: dict[str, tuple[Any, threading.Thread]] = {}
         self._node_spin_stop = threading.Event()
+        self._runner_spin_stop = threading.Event()  # the runner's own executor (recorder, events)
         self._logs: list[Any] = []
         self._torch_threads_before: int | None = None
         self._switch_interval_before: float | None = None
@@ -172,17 +173,22 @@ class GraphRun:
         self._spin_thread.start()
 
     def _make_executor(self) -> Any:
+        """The runner's executor (its recorder and keyframe events): the nodes' choice, one
+        thread; rclpy's multi-threaded one only for ``DEPTH_FUSION_SHARED_EXECUTOR`` (every
+        composed node on it, a diagnostic)."""
         from rclpy.executors import MultiThreadedExecutor
 
+        if not os.environ.get('DEPTH_FUSION_SHARED_EXECUTOR'):
+            return make_node_executor(executor_choice(), self._context)[0]
         threads = self.options.executor_threads if not self.options.processes else 2
         return MultiThreadedExecutor(num_threads=threads, context=self._context)
 
-    def _spin(self, executor: Any = None) -> None:
+    def _spin(self) -> None:
         try:
-            (executor or self._executor).spin()
+            spin_until(self._executor, lambda: self._context.ok() and not self._runner_spin_stop.is_set())
         except Exception as exc:
             # The context is shut down under the executor at the end: nothing to report then.
-            if self._context.ok():
+            if self._context.ok() and not self._runner_spin_stop.is_set():
                 log.error('executor stopped: %r', exc, exc_info=True)
                 self.executor_error = exc
 
@@ -546,6 +552,10 @@ class GraphRun:
                 self.nodes[name].destroy_node()
             except Exception as exc:  # one node's failure must not leave the others running
                 log.error('%s: destroy_node failed: %r', name, exc)
+        # The runner's loop ends before its recorder is destroyed (as the nodes' loops above).
+        self._runner_spin_stop.set()
+        if self._spin_thread is not None:
+            self._spin_thread.join(5.0)
         if self.recorder is not None:
             if not self.recorder.closed:
                 with contextlib.suppress(Exception):
@@ -558,8 +568,6 @@ class GraphRun:
             self._executor.shutdown(timeout_sec=5.0)
         if self._context is not None:
             self._context.try_shutdown()
-        if self._spin_thread is not None:
-            self._spin_thread.join(5.0)
         for _, thread in self._node_executors.values():
             thread.join(5.0)
         for f in self._logs:
