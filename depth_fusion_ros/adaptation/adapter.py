@@ -110,9 +110,8 @@ class Adapter:
         if bias and self.config.scale_lr > 0:
             groups.append({'params': bias, 'lr': self.config.scale_lr})
         self._groups = groups
-        self._optimizer: torch.optim.Optimizer | None = None
-        self._snapshot: WeightSnapshot | None = None
-        self._optimizer_lock = threading.Lock()
+        self._snapshot: WeightSnapshot | None = None  # holds the optimiser, built on first use
+        self._snapshot_lock = threading.Lock()
         self.buffer: ReplayBuffer[PreparedSample] = ReplayBuffer(self.config.buffer_size)
         self.counters = AdapterCounters()
         self.version = 0
@@ -124,9 +123,9 @@ class Adapter:
         # Preprocessing (resize, normalisation) exactly as the inference predictor does it.
         self._preprocessor = predictor_from_network(nn.Identity(), metadata, self.device)
 
-    def _built(self) -> tuple[torch.optim.Optimizer, WeightSnapshot]:
-        """Adam over the network's parameter groups and the rollback snapshot of the weights and
-        its state, built on first use (:meth:`warm_up`).
+    def _built(self) -> WeightSnapshot:
+        """The rollback snapshot of the weights and of the optimiser's state, with the optimiser
+        (Adam over the network's parameter groups), built on first use (:meth:`warm_up`).
 
         Building any torch optimiser imports ``torch._dynamo`` (``Optimizer.__init__`` is
         wrapped by ``torch._disable_dynamo``): 3.6 s of a 2-core CPU, which the single-view
@@ -135,19 +134,18 @@ class Adapter:
         per parameter (the default on CUDA already; on the CPU it halves the step's optimiser
         time).
         """
-        with self._optimizer_lock:
-            if self._optimizer is None or self._snapshot is None:
-                self._optimizer = torch.optim.Adam(self._groups, foreach=True)
-                self._snapshot = WeightSnapshot(self.net, self._optimizer)
-            return self._optimizer, self._snapshot
+        with self._snapshot_lock:
+            if self._snapshot is None:
+                self._snapshot = WeightSnapshot(self.net, torch.optim.Adam(self._groups, foreach=True))
+            return self._snapshot
 
     @property
     def optimizer(self) -> torch.optim.Optimizer:
-        return self._built()[0]
+        return self._built().optimizer
 
     @property
     def _weights(self) -> WeightSnapshot:
-        return self._built()[1]
+        return self._built()
 
     def warm_up(self) -> None:
         """Pay the optimiser's first-use cost now (the training thread calls it at start)."""

@@ -169,7 +169,8 @@ class GraphRun:
         self._event_subs = subscribe_events(self.recorder, self.ledger, self.ready)
         self._executor = self._make_executor()
         self._executor.add_node(self.recorder)
-        self._spin_thread = threading.Thread(target=self._spin, name='graph-executor', daemon=True)
+        args = (self._executor, self._runner_spin_stop)
+        self._spin_thread = threading.Thread(target=self._spin, args=args, name='graph-executor', daemon=True)
         self._spin_thread.start()
 
     def _make_executor(self) -> Any:
@@ -183,12 +184,14 @@ class GraphRun:
         threads = self.options.executor_threads if not self.options.processes else 2
         return MultiThreadedExecutor(num_threads=threads, context=self._context)
 
-    def _spin(self) -> None:
+    def _spin(self, executor: Any, stop: threading.Event) -> None:
+        """One executor's spin thread (the runner's, or a composed node's): until ``stop`` is
+        set or the context ends."""
         try:
-            spin_until(self._executor, lambda: self._context.ok() and not self._runner_spin_stop.is_set())
+            spin_until(executor, lambda: self._context.ok() and not stop.is_set())
         except Exception as exc:
             # The context is shut down under the executor at the end: nothing to report then.
-            if self._context.ok() and not self._runner_spin_stop.is_set():
+            if self._context.ok() and not stop.is_set():
                 log.error('executor stopped: %r', exc, exc_info=True)
                 self.executor_error = exc
 
@@ -235,19 +238,10 @@ class GraphRun:
             log.info('composed graph: %s', line)
         executor.add_node(node)
         thread = threading.Thread(
-            target=self._spin_node, args=(executor,), name=f'executor-{name}', daemon=True
+            target=self._spin, args=(executor, self._node_spin_stop), name=f'executor-{name}', daemon=True
         )
         self._node_executors[name] = (executor, thread)
         thread.start()
-
-    def _spin_node(self, executor: Any) -> None:
-        """A composed node's spin thread: until the run stops it or the context ends."""
-        try:
-            spin_until(executor, lambda: self._context.ok() and not self._node_spin_stop.is_set())
-        except Exception as exc:
-            if self._context.ok() and not self._node_spin_stop.is_set():
-                log.error('executor stopped: %r', exc, exc_info=True)
-                self.executor_error = exc
 
     def _set_composed_threads(self) -> None:
         """One torch thread per op unless told otherwise: three workers each running ops on a
@@ -568,8 +562,6 @@ class GraphRun:
             self._executor.shutdown(timeout_sec=5.0)
         if self._context is not None:
             self._context.try_shutdown()
-        for _, thread in self._node_executors.values():
-            thread.join(5.0)
         for f in self._logs:
             f.close()
         if self._torch_threads_before is not None:  # the caller's process gets its pool back
