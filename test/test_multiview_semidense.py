@@ -205,3 +205,32 @@ def test_pixels_leaving_most_neighbours_get_no_estimate(planes_views):
     )
     assert not result.valid[:, :30].any()
     assert result.valid[:, 60:].sum() > 1000
+
+
+@pytest.mark.parametrize(
+    'config',
+    [
+        MultiViewConfig(),  # more pixels pass min_gradient than the cap: the cap-th gradient is the threshold
+        MultiViewConfig(min_gradient=0.15),  # fewer pass: min_gradient is the threshold
+        MultiViewConfig(max_candidate_fraction=0.03, chunk_elements=1 << 16),  # several chunks
+    ],
+    ids=['capped', 'thresholded', 'chunked'],
+)
+def test_the_capturable_sweep_gives_the_eager_estimates(planes_views, config):
+    """The sweep a CUDA graph records (a fixed number of pixels, the candidates chosen on the
+    device without reading back) must give the eager sweep's candidates and estimates; run
+    here eagerly on the CPU, the same code."""
+    from depth_fusion_ros.multiview import semidense_graph
+    from depth_fusion_ros.multiview.views import prepare_views
+
+    grays, _, poses = planes_views
+    args = (grays[0], poses[0], grays[1:], poses[1:], CAMERA)
+    eager = estimate_semidense(*args, config, neighbours=(1, 2, 3, 4))
+    views = prepare_views(*args, 'cpu')
+    recorded = semidense_graph.estimate(views, config, 2, (1, 2, 3, 4), graph=False)
+    assert 0 < eager.candidates.sum() <= semidense_graph.candidate_capacity(config, CAMERA)
+    assert np.array_equal(eager.candidates, recorded.candidates)
+    assert np.array_equal(eager.valid, recorded.valid) and eager.valid.sum() > 0
+    np.testing.assert_allclose(recorded.depth[eager.valid], eager.depth[eager.valid], rtol=1e-5)
+    np.testing.assert_allclose(recorded.score[eager.valid], eager.score[eager.valid], rtol=1e-4, atol=1e-6)
+    assert recorded.neighbours == eager.neighbours

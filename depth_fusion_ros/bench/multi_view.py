@@ -164,7 +164,7 @@ def _tv_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
     seconds = median_seconds(lambda: estimate_tv(*inputs, config, device=opts.device), 1 if opts.quick else 2)
     depth = estimate_tv(*inputs, config, device=opts.device)
     gt = seq.gt_depth_working(key)
-    return [
+    rows = [
         BenchRow(
             f'{label}: TV per keyframe', seconds, 's', _note(f'target <= 3; {config.iterations} iterations')
         ),
@@ -175,6 +175,15 @@ def _tv_rows(label: str, seq: Sequence, opts: BenchOptions) -> list[BenchRow]:
             _note(),
         ),
     ]
+    if torch.device(opts.device).type == 'cuda':  # what the CUDA graph of the iterations saves
+        eager = TVConfig(cuda_graph=False)
+        seconds = median_seconds(
+            lambda: estimate_tv(*inputs, eager, device=opts.device), 1 if opts.quick else 3
+        )
+        rows.append(
+            BenchRow(f'{label}: TV per keyframe, eager iterations', seconds, 's', _note('no CUDA graph'))
+        )
+    return rows
 
 
 def _memory_rows(seq: Sequence, opts: BenchOptions) -> list[BenchRow]:

@@ -134,6 +134,13 @@ def _basis(patch: str, channels: int, dtype: torch.dtype, device: torch.device) 
     return torch.as_tensor(zero_mean_basis(patch, channels), dtype=dtype, device=device)
 
 
+@functools.lru_cache(maxsize=16)
+def _grid_scale(width: int, height: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """Pixel to ``grid_sample`` scale per coordinate, made once per size and device: a tensor
+    from host data is a copy, which a CUDA graph cannot record (``cuda_graph.py``)."""
+    return torch.tensor([2.0 / (width - 1), 2.0 / (height - 1), 1.0], dtype=dtype, device=device)
+
+
 def patch_descriptors(
     images: torch.Tensor,
     patch: str = 'box',
@@ -226,9 +233,7 @@ class EpipolarRays:
         ``x = u * 2 / (W - 1) - 1 = (sx num_u - w) / w``: folding the affine map into the
         rows costs O(M) instead of O(M x S) per sweep.
         """
-        scale = torch.tensor(
-            [2.0 / (self.width - 1), 2.0 / (self.height - 1), 1.0], dtype=self.a.dtype, device=self.a.device
-        )
+        scale = _grid_scale(self.width, self.height, self.a.dtype, self.a.device)
         a = self.a * scale
         b = self.b * scale
         a = torch.cat((a[..., :2] - a[..., 2:], a[..., 2:]), dim=-1)

@@ -99,6 +99,9 @@ class MultiViewConfig:
     select_fraction: float = 0.25
     #: Largest intermediate tensor, in float elements (bounded memory, about 4 bytes each).
     chunk_elements: int = 1 << 22
+    #: On a GPU, replay the sweep from a CUDA graph captured once per image size and neighbour
+    #: count (``semidense_graph.py``): the same estimates, without the launch overhead.
+    cuda_graph: bool = True
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad parameter."""
@@ -342,6 +345,13 @@ def estimate_semidense(
     views = prepare_views(key_gray, key_pose, neighbour_grays, neighbour_poses, camera, device)
     dev = views.device
     n = views.num_neighbours
+    min_views = max(1, math.ceil(config.min_view_fraction * n - 1e-9))
+    if dev.type == 'cuda' and config.cuda_graph and not config.all_pixels:
+        from .semidense_graph import estimate  # CUDA only
+
+        graphed = estimate(views, config, min_views, tuple(int(i) for i in neighbours))
+        if graphed is not None:
+            return graphed
     margin = patch_reach(config.patch, config.patch_stride)
     desc = stage_descriptors(views.grays, config)
     channels = desc.shape[1] - 1
@@ -352,7 +362,6 @@ def estimate_semidense(
     rays = epipolar_rays(us.float(), vs.float(), camera.K, views.T_ok, camera.size, dev)
     rho_min, rho_max = config.rho_range
     rho_grid = torch.linspace(rho_min, rho_max, config.num_samples, device=dev, dtype=torch.float32)
-    min_views = max(1, math.ceil(config.min_view_fraction * n - 1e-9))
     budget = effective_chunk_elements(config.chunk_elements, dev)
     chunk = rows_per_chunk(n, channels + 1, config.num_samples, budget)
 

@@ -81,6 +81,8 @@ class TVConfig:
     theta_decay: float = 0.85
     #: Largest intermediate tensor while building the cost volume, in float elements.
     chunk_elements: int = 1 << 22
+    #: On a GPU, replay the iterations from one captured CUDA graph (``tv_graph.py``).
+    cuda_graph: bool = True
 
     def validate(self) -> None:
         if not (0 < self.min_depth < self.max_depth) or not math.isfinite(self.max_depth):
@@ -168,20 +170,27 @@ def _div(px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
     return div
 
 
-def _point_search(weighted: torch.Tensor, d: torch.Tensor, theta: float, cost_range: float) -> torch.Tensor:
+def window_radius(theta: float, cost_range: float, samples: int) -> int:
+    """Half-width (samples) of the point search's window at ``theta``: DTAM's search-window bound.
+
+    Only samples with ``(d - a)^2 / (2 theta) <= cost_range`` can win; one sample of slack on
+    each side, and one more so the parabola needs no second lookup.
+    """
+    return math.ceil(math.sqrt(2.0 * theta * cost_range) * (samples - 1)) + 2
+
+
+def _point_search(weighted: torch.Tensor, d: torch.Tensor, theta: float, radius: int) -> torch.Tensor:
     """``argmin_a (d - a)^2 / (2 theta) + w C(a)`` per pixel, refined by a parabola.
 
     ``weighted`` is the (H*W, S) volume already multiplied by the per-pixel data weight ``w``;
-    ``cost_range`` the largest ``w * (max C - min C)``. Only samples with
-    ``(d - a)^2 / (2 theta) <= w * (max C - min C)`` can win (DTAM's search-window bound), so
-    the search looks at a window around ``d`` that shrinks with ``theta``: the late
-    iterations cost a few samples instead of the whole volume. The window has one extra
-    sample on each side so the parabola needs no second lookup.
+    ``radius`` the window's half-width (:func:`window_radius`): the search looks at a window
+    around ``d`` that shrinks with ``theta``, so the late iterations cost a few samples
+    instead of the whole volume. Every tensor it makes comes from a kernel (no host copy), so
+    the loop can be captured in a CUDA graph (``tv_graph.py``).
     """
     n, s = weighted.shape
     scale = 1.0 / (s - 1)
     pos = d.reshape(-1) * (s - 1)  # continuous sample index of d
-    radius = math.ceil(math.sqrt(2.0 * theta * cost_range) * (s - 1)) + 2
     if 2 * radius + 1 >= s:  # the whole volume: no gather needed
         start = torch.zeros(n, dtype=torch.long, device=d.device)
         offsets = torch.arange(s, device=d.device)
@@ -194,7 +203,8 @@ def _point_search(weighted: torch.Tensor, d: torch.Tensor, theta: float, cost_ra
     quad = ((pos - start)[:, None] - offsets[None, :]) * scale
     energy = torch.addcmul(costs, quad, quad, value=0.5 / theta)
     j = energy[:, 1:-1].argmin(dim=1, keepdim=True) + 1
-    e_m, e_0, e_p = torch.gather(energy, 1, j + torch.tensor([[-1, 0, 1]], device=d.device)).unbind(dim=1)
+    around = torch.arange(-1, 2, device=d.device)[None, :]
+    e_m, e_0, e_p = torch.gather(energy, 1, j + around).unbind(dim=1)
     curvature = e_m - 2.0 * e_0 + e_p
     delta = torch.where(
         curvature > 1e-12, 0.5 * (e_m - e_p) / curvature.clamp(min=1e-12), torch.zeros_like(e_0)
@@ -261,8 +271,47 @@ def _primal_dual_step_for(device: torch.device) -> Callable:
     return guarded
 
 
-def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> torch.Tensor:
-    """Normalised inverse depth ``d`` (H, W) in [0, 1] minimising the decoupled Huber-TV energy."""
+def theta_schedule(config: TVConfig) -> list[float]:
+    """``theta`` of each iteration: geometric from ``theta_start`` down to ``theta_end``."""
+    thetas, theta = [], config.theta_start
+    for _ in range(config.iterations):
+        thetas.append(theta)
+        theta = max(theta * config.theta_decay, config.theta_end)
+    return thetas
+
+
+def iterate(
+    weighted: torch.Tensor,
+    g: torch.Tensor,
+    a: torch.Tensor,
+    config: TVConfig,
+    radii: Sequence[int],
+    theta_t: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The coupled iterations from the start ``a``: one primal-dual step, one point search each.
+
+    ``radii`` are the point search's windows, one per iteration (:func:`window_radius`);
+    ``theta_t`` the schedule on the device (made here when None). Given ``theta_t``, it makes
+    no host copy or synchronisation and its shapes are fixed by the inputs and ``radii``:
+    capturable as one CUDA graph.
+    """
+    d = a.clone()
+    qx = torch.zeros_like(d)
+    qy = torch.zeros_like(d)
+    # Chambolle-Pock steps with sigma * tau * L^2 <= 1 for the weighted gradient (L^2 = 8 max g^2 <= 8).
+    sigma_q = tau_d = 1.0 / math.sqrt(8.0)
+    thetas = theta_schedule(config)
+    if theta_t is None:  # theta as a 0-d tensor each: a compiled step must not be specialised per value
+        theta_t = torch.tensor(thetas, dtype=d.dtype, device=d.device)
+    step = _primal_dual_step_for(weighted.device)
+    for i, (theta, radius) in enumerate(zip(thetas, radii, strict=True)):
+        qx, qy, d = step(qx, qy, d, a, g, sigma_q, tau_d, config.huber_eps, theta_t[i])
+        a = _point_search(weighted, d, theta, radius)
+    return a
+
+
+def _start(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> tuple[torch.Tensor, ...]:
+    """Edge weights ``g``, the weighted volume and the start ``a`` (each pixel's best sample)."""
     h, w = gray.shape
     g = edge_weights(gaussian_blur(gray[None], config.blur_sigma)[0], config.edge_alpha, config.edge_beta)
     s = volume.shape[1]
@@ -275,26 +324,26 @@ def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> to
         low = (confidence < config.min_confidence).reshape(h, w)
         if bool(low.any()) and not bool(low.all()):
             a = torch.where(low, a[~low].median(), a)
-    d = a.clone()
-    qx = torch.zeros_like(d)
-    qy = torch.zeros_like(d)
-    # Chambolle-Pock steps with sigma * tau * L^2 <= 1 for the weighted gradient (L^2 = 8 max g^2 <= 8).
-    sigma_q = tau_d = 1.0 / math.sqrt(8.0)
-    eps = config.huber_eps
-    theta = config.theta_start
-    weighted = volume * weight
+    return g, volume * weight, a
+
+
+def regularise(volume: torch.Tensor, gray: torch.Tensor, config: TVConfig) -> torch.Tensor:
+    """Normalised inverse depth ``d`` (H, W) in [0, 1] minimising the decoupled Huber-TV energy.
+
+    On a GPU the iterations are replayed from a CUDA graph (``config.cuda_graph``,
+    ``tv_graph.py``); elsewhere, and if capturing fails, they run eagerly.
+    """
+    g, weighted, a = _start(volume, gray, config)
+    if weighted.device.type == 'cuda' and config.cuda_graph:
+        from .tv_graph import run_graphed  # CUDA only
+
+        graphed = run_graphed(weighted, g, a, config)
+        if graphed is not None:
+            return graphed
     cost_range = float((weighted.max(dim=1).values - weighted.min(dim=1).values).max())
-    thetas = []
-    for _ in range(config.iterations):
-        thetas.append(theta)
-        theta = max(theta * config.theta_decay, config.theta_end)
-    # theta as a 0-d tensor: a compiled step must not be specialised (recompiled) per value.
-    theta_t = torch.tensor(thetas, dtype=d.dtype, device=d.device)
-    step = _primal_dual_step_for(volume.device)
-    for i, theta in enumerate(thetas):
-        qx, qy, d = step(qx, qy, d, a, g, sigma_q, tau_d, eps, theta_t[i])
-        a = _point_search(weighted, d, theta, cost_range)
-    return a
+    s = volume.shape[1]
+    radii = [window_radius(theta, cost_range, s) for theta in theta_schedule(config)]
+    return iterate(weighted, g, a, config, radii)
 
 
 def estimate_tv(

@@ -97,6 +97,8 @@ MULTI_VIEW_DESCRIPTIONS = {
     'max_cost': 'estimates whose best cost (1 - ZNCC) is above this are dropped',
     'second_min_exclusion': 'samples around the best ignored when looking for the second-best minimum',
     'chunk_elements': 'largest intermediate tensor in float elements (bounds memory)',
+    'cuda_graph': 'on a GPU (device: cuda), replay the sweep from a CUDA graph captured once per image '
+    'size and neighbour count: the same estimates without the launch overhead (method sweep only)',
 }
 MULTI_VIEW_LIMITS: dict[str, Any] = {
     'min_depth': (1e-3, None),
