@@ -150,11 +150,12 @@ def test_sweep_cuda_graph_gives_the_eager_sweep(synthetic_sequence):
     """The graphed sweep gives the eager CUDA sweep's estimates, for two keyframes through one capture."""
     from depth_fusion_ros.multiview import semidense_graph
 
+    before = len(semidense_graph.GRAPHS)
     for key in (12, 20):
         inputs = keyframe_inputs(synthetic_sequence, key)
         eager = estimate_semidense(*inputs, MultiViewConfig(cuda_graph=False), device='cuda')
         graphed = estimate_semidense(*inputs, MultiViewConfig(), device='cuda')
-        assert len(semidense_graph.GRAPHS) == 1  # the second keyframe replays the first one's graph
+        assert 1 <= len(semidense_graph.GRAPHS) <= before + 1  # the second keyframe replays the first's graph
         assert np.array_equal(eager.candidates, graphed.candidates)
         assert np.array_equal(eager.valid, graphed.valid) and eager.valid.sum() > 1000
         np.testing.assert_allclose(graphed.depth[eager.valid], eager.depth[eager.valid], rtol=1e-4)
@@ -165,11 +166,12 @@ def test_tv_cuda_graph_replays_the_eager_loop(synthetic_sequence):
     """The graphed iterations give the eager loop's depth, for two keyframes through one capture."""
     from depth_fusion_ros.multiview import tv_graph
 
+    before = len(tv_graph.GRAPHS)
     for key in (12, 20):
         inputs = keyframe_inputs(synthetic_sequence, key)
         eager = estimate_tv(*inputs, TVConfig(cuda_graph=False), device='cuda')
         graphed = estimate_tv(*inputs, TVConfig(), device='cuda')
-        assert len(tv_graph.GRAPHS) == 1  # the second keyframe replays the first one's graph
+        assert 1 <= len(tv_graph.GRAPHS) <= before + 1  # the second keyframe replays the first one's graph
         rel = np.abs(eager - graphed) / eager
         assert np.mean(rel > 1e-2) < 2e-3 and np.median(rel) < 1e-5  # as the CPU test of the windows
 

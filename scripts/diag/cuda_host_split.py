@@ -1,4 +1,5 @@
-"""Where the host time of a GPU keyframe goes: fusion (fast, exact), the TSDF map, adaptation.
+"""Where the host time of a GPU keyframe goes: fusion (fast, exact), the TSDF map, adaptation,
+and the sweep and TV with and without their CUDA graphs (``--only multi_view``).
 
     python scripts/diag/cuda_host_split.py [--device cuda] [--repeats 30]
 
@@ -142,11 +143,33 @@ def adaptation(device: str, repeats: int) -> None:
     )
 
 
+def multi_view(device: str, repeats: int) -> None:
+    """The semi-dense sweep and the TV iterations replayed from CUDA graphs against eager."""
+    from depth_fusion_ros.bench.multi_view import _keyframe_inputs, _synthetic_sequence
+    from depth_fusion_ros.multiview.semidense import MultiViewConfig, estimate_semidense
+    from depth_fusion_ros.multiview.tv import TVConfig, estimate_tv
+
+    seq = _synthetic_sequence(quick=False)
+    keys = [_keyframe_inputs(seq, k) for k in (8, 12, 16)]
+    for graph in (True, False):
+        config = MultiViewConfig(cuda_graph=graph)
+        calls = [
+            lambda i=i, c=config: estimate_semidense(*keys[i % 3], c, device=device) for i in range(repeats)
+        ]
+        _report(f'sweep, {"CUDA graph" if graph else "eager"}', calls, device)
+    for graph in (True, False):
+        tv = TVConfig(cuda_graph=graph)
+        calls = [
+            lambda i=i, c=tv: estimate_tv(*keys[i % 3], c, device=device) for i in range(max(6, repeats // 3))
+        ]
+        _report(f'TV, {"CUDA graph" if graph else "eager"} iterations', calls, device)
+
+
 if __name__ == '__main__':
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--device', default='cuda' if torch.cuda.is_available() else 'cpu')
     ap.add_argument('--repeats', type=int, default=30)
-    ap.add_argument('--only', default='fusion,mapping,adaptation')
+    ap.add_argument('--only', default='fusion,mapping,adaptation,multi_view')
     a = ap.parse_args()
     print(torch.__version__, torch.cuda.get_device_name(0) if a.device.startswith('cuda') else 'cpu')
     if 'fusion' in a.only:
@@ -155,3 +178,5 @@ if __name__ == '__main__':
         mapping(a.device, a.repeats)
     if 'adaptation' in a.only:
         adaptation(a.device, a.repeats)
+    if 'multi_view' in a.only:
+        multi_view(a.device, a.repeats)

@@ -16,7 +16,8 @@
 # The ROS wheels go into a venv under /tmp that sees the machine's torch through a .pth file
 # (pip --target would drop the wheels' data files: their C libraries). Logs end up in
 # OUT/logs.tar.gz and a table of steps in OUT/summary.txt (the device tool returns 8 files).
-# SECTIONS (unset: multi_view_filter multi_view fusion mapping; empty: none) picks the bench sections, in
+# STEPS (below) names the steps and their order explicitly; unset, SECTIONS (unset:
+# multi_view_filter multi_view fusion mapping; empty: none) picks the bench sections, in
 # order, SECTION_LIMIT (default 75) their seconds each; CUDA_TESTS=0 skips step 1. PROFILES=1
 # adds, last, where each keyframe's host time goes (scripts/diag/cuda_host_split.py: fusion,
 # map, adaptation) and every adaptation update timed in the bench's order
@@ -52,34 +53,55 @@ step() {  # step NAME LIMIT_S CMD...: run CMD with a time limit, log it, note rc
 { nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv,noheader || echo "no nvidia-smi"; } | tee "$OUT/summary.txt"
 $PY -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else '')" | tee -a "$OUT/summary.txt"
 
-if [ "${CUDA_TESTS:-1}" != 0 ]; then
-  TAIL=6 step cuda_tests 150 $PY -m pytest test/test_cuda.py -q -p no:cacheprovider -rs
-fi
+ros_venv() {  # the ROS wheels in a venv that sees the machine's torch; prints its python
+  local RV=/tmp/ros_venv
+  if [ ! -x "$RV/bin/python" ]; then
+    $PY -m venv --without-pip "$RV" \
+      && $PY -m pip install -q --no-index --no-deps --no-compile --ignore-installed --prefix "$RV" "$WHEELS"/*.whl \
+      && $PY -c 'import site; print(site.getsitepackages()[0])' >"$(ls -d "$RV"/lib/python3*)/site-packages/zz_machine.pth"
+  fi
+  echo "$RV/bin/python"
+}
 
-if [ -d "$WHEELS" ]; then
-  RV=/tmp/ros_venv
-  $PY -m venv --without-pip "$RV" \
-    && $PY -m pip install -q --no-index --no-deps --no-compile --ignore-installed --prefix "$RV" "$WHEELS"/*.whl \
-    && $PY -c 'import site; print(site.getsitepackages()[0])' >"$(ls -d "$RV"/lib/python3*)/site-packages/zz_machine.pth"
-  export AMENT_PREFIX_PATH=$RV
-  ROSPY=$RV/bin/python
+node_graph() {
+  if [ ! -d "$WHEELS" ]; then
+    echo "node graph: skipped, no ROS wheels in $WHEELS" | tee -a "$OUT/summary.txt"
+    return 0
+  fi
+  local ROSPY
+  ROSPY=$(ros_venv)
+  export AMENT_PREFIX_PATH=/tmp/ros_venv
   $ROSPY -c "import rclpy, torch, rosbags; print('ROS venv: rclpy', rclpy.__file__, 'torch', torch.__version__)" | tee -a "$OUT/summary.txt"
   # Every frame a keyframe of the recorded 30 Hz (drops reported), then paced at 10x (flat out).
-  TAIL=40 step bench_node_graph 240 env DEPTH_FUSION_BENCH_GRAPH_SET=multi_view_node.keyframe_every=1 \
-    DEPTH_FUSION_BENCH_GRAPH_RUNS=composed:realtime:1,composed:paced:10 \
+  TAIL=40 step node_graph "${NODE_GRAPH_LIMIT:-240}" env DEPTH_FUSION_BENCH_GRAPH_SET=multi_view_node.keyframe_every=1 \
+    DEPTH_FUSION_BENCH_GRAPH_RUNS="${NODE_GRAPH_RUNS:-composed:realtime:1,composed:paced:10}" \
     $ROSPY -m depth_fusion_ros.cli.main bench --only node_graph --device "$DEVICE" --json "$LOGS/bench_node_graph.json"
-else
-  echo "node graph: skipped, no ROS wheels in $WHEELS" | tee -a "$OUT/summary.txt"
-fi
+}
 
-for section in ${SECTIONS-multi_view_filter multi_view fusion mapping}; do
-  TAIL=14 step "bench_$section" "${SECTION_LIMIT:-75}" $PY -m depth_fusion_ros.cli.main bench --only "$section" --device "$DEVICE" \
-    --repeats 3 --json "$LOGS/bench_$section.json"
+# STEPS, in order: cuda_tests, node_graph, bench:SECTION, split:STAGES (cuda_host_split.py --only
+# STAGES), adapt_times. Unset: the order below (SECTIONS and PROFILES as described above).
+default_steps() {
+  [ "${CUDA_TESTS:-1}" != 0 ] && echo cuda_tests
+  echo node_graph
+  for section in ${SECTIONS-multi_view_filter multi_view fusion mapping}; do echo "bench:$section"; done
+  [ "${PROFILES:-0}" = 1 ] && echo split:fusion,mapping,adaptation,multi_view adapt_times
+  return 0
+}
+for item in ${STEPS:-$(default_steps)}; do
+  case "$item" in
+    cuda_tests) TAIL=8 step cuda_tests 150 $PY -m pytest test/test_cuda.py -q -p no:cacheprovider -rs ;;
+    node_graph) node_graph ;;
+    bench:*)
+      section=${item#bench:}
+      TAIL=16 step "bench_$section" "${SECTION_LIMIT:-75}" $PY -m depth_fusion_ros.cli.main bench --only "$section" \
+        --device "$DEVICE" --repeats 3 --json "$LOGS/bench_$section.json" ;;
+    split:*)
+      stages=${item#split:}
+      TAIL=40 step "split_${stages//,/_}" 150 $PY scripts/diag/cuda_host_split.py --device "$DEVICE" --repeats 30 --only "$stages" ;;
+    adapt_times) TAIL=25 step adapt_update_times 100 $PY scripts/diag/adapt_update_times.py --device "$DEVICE" ;;
+    *) echo "unknown step $item" | tee -a "$OUT/summary.txt" ;;
+  esac
 done
-if [ "${PROFILES:-0}" = 1 ]; then
-  TAIL=12 step host_split 150 $PY scripts/diag/cuda_host_split.py --device "$DEVICE" --repeats 30
-  TAIL=25 step adapt_update_times 100 $PY scripts/diag/adapt_update_times.py --device "$DEVICE"
-fi
 tar -czf "$OUT/logs.tar.gz" -C "$LOGS" .
 echo "== summary"
 cat "$OUT/summary.txt"
