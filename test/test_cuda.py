@@ -173,7 +173,8 @@ def test_tv_cuda_graph_replays_the_eager_loop(synthetic_sequence):
         graphed = estimate_tv(*inputs, TVConfig(), device='cuda')
         assert 1 <= len(tv_graph.GRAPHS) <= before + 1  # the second keyframe replays the first one's graph
         rel = np.abs(eager - graphed) / eager
-        assert np.mean(rel > 1e-2) < 2e-3 and np.median(rel) < 1e-5  # as the CPU test of the windows
+        # The wider windows move a few pixels (0.23 % by over 1 % on an H200), as in the CPU test of them.
+        assert np.mean(rel > 1e-2) < 5e-3 and np.median(rel) < 1e-5
 
 
 @needs_cuda

@@ -399,7 +399,6 @@ def _assemble(
     neighbours: tuple[int, ...],
 ) -> MultiViewResult:
     """Scatter the per-candidate estimates into NaN-filled (H, W) maps."""
-    shape = (camera.height, camera.width)
     names = ('ok', 'rho', 'parallax_sq', 'distinct', 'sharpness', 'cost')
     # One device-to-host copy for everything (each .cpu() is a synchronising round trip on CUDA).
     if parts:
@@ -408,9 +407,21 @@ def _assemble(
     else:
         packed = np.zeros((len(names) + 2, 0), dtype=np.float32)
     fields = dict(zip(names, packed[: len(names)], strict=True))
+    rows, cols = packed[len(names)].astype(np.intp), packed[len(names) + 1].astype(np.intp)
+    return result_from_fields(fields, rows, cols, camera, neighbours)
+
+
+def result_from_fields(
+    fields: dict[str, np.ndarray],
+    all_rows: np.ndarray,
+    all_cols: np.ndarray,
+    camera: PinholeCamera,
+    neighbours: tuple[int, ...],
+) -> MultiViewResult:
+    """The result from each candidate's fields (host arrays, ``_ChunkEstimate``'s names) at
+    pixels ``(all_rows, all_cols)``: NaN-filled (H, W) maps of the estimates that are ``ok``."""
+    shape = (camera.height, camera.width)
     ok = fields['ok'] > 0.5
-    all_rows = packed[len(names)].astype(np.intp)
-    all_cols = packed[len(names) + 1].astype(np.intp)
     candidates = np.zeros(shape, dtype=bool)
     candidates[all_rows, all_cols] = True
     rows, cols = all_rows[ok], all_cols[ok]

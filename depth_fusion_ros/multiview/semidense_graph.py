@@ -31,16 +31,15 @@ from .cost_volume import EpipolarRays, gaussian_blur, patch_reach, rows_per_chun
 from .semidense import (
     MultiViewConfig,
     MultiViewResult,
-    _assemble,
-    _ChunkEstimate,
     _search_chunk,
     gradient_magnitude,
+    result_from_fields,
 )
 from .views import Views
 
 GRAPHS = GraphCache('semi-dense sweep')
 
-#: Per-pixel fields packed for the one host copy, in ``_ChunkEstimate``'s order.
+#: Per-pixel fields packed for the one host copy (``_ChunkEstimate``'s names).
 FIELDS = ('rho', 'cost', 'distinct', 'sharpness', 'parallax_sq', 'ok')
 
 
@@ -127,10 +126,9 @@ def epipolar_inputs(views: Views) -> tuple[torch.Tensor, torch.Tensor]:
 def unpack(packed: np.ndarray, camera: PinholeCamera, neighbours: tuple[int, ...]) -> MultiViewResult:
     """The host copy of :func:`search`'s fields as a result: its candidates only, as the eager sweep's."""
     keep = packed[len(FIELDS) + 1] > 0.5
-    index = packed[len(FIELDS)][keep].astype(np.int64)
-    part = _ChunkEstimate(*(torch.from_numpy(np.ascontiguousarray(f[keep])) for f in packed[: len(FIELDS)]))
-    vs, us = torch.from_numpy(index // camera.width), torch.from_numpy(index % camera.width)
-    return _assemble([part], vs, us, camera, neighbours)
+    index = packed[len(FIELDS)][keep].astype(np.intp)
+    fields = {name: values[keep] for name, values in zip(FIELDS, packed, strict=False)}
+    return result_from_fields(fields, index // camera.width, index % camera.width, camera, neighbours)
 
 
 def estimate(
