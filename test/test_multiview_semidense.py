@@ -232,5 +232,7 @@ def test_the_capturable_sweep_gives_the_eager_estimates(planes_views, config):
     assert np.array_equal(eager.candidates, recorded.candidates)
     assert np.array_equal(eager.valid, recorded.valid) and eager.valid.sum() > 0
     np.testing.assert_allclose(recorded.depth[eager.valid], eager.depth[eager.valid], rtol=1e-5)
-    np.testing.assert_allclose(recorded.score[eager.valid], eager.score[eager.valid], rtol=1e-4, atol=1e-6)
+    for name in ('score', 'depth_std', 'geometric_score', 'distinctiveness', 'sharpness', 'cost'):
+        got, want = getattr(recorded, name)[eager.valid], getattr(eager, name)[eager.valid]
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6, err_msg=name)
     assert recorded.neighbours == eager.neighbours

@@ -11,8 +11,8 @@ with the highest gradient (``topk``), of which those at or above the eager thres
 candidates. That is the eager candidate set, except where gradients tie exactly at the
 threshold: the eager mask keeps every tied pixel, this one at most the cap. Each pixel's
 search is independent of the others, so the estimates are the eager ones. Everything from
-the descriptors to the packed per-pixel fields is recorded; the host copy of the packed
-fields and the scatter into images (``semidense._assemble``) follow the replay.
+the descriptors to the result's images is recorded; one host copy of the images follows
+the replay.
 
 ``all_pixels`` (a dense search, not the default) runs eagerly.
 """
@@ -33,14 +33,24 @@ from .semidense import (
     MultiViewResult,
     _search_chunk,
     gradient_magnitude,
-    result_from_fields,
 )
 from .views import Views
 
 GRAPHS = GraphCache('semi-dense sweep')
 
-#: Per-pixel fields packed for the one host copy (``_ChunkEstimate``'s names).
+#: Per-pixel fields of a searched pixel (``_ChunkEstimate``'s names).
 FIELDS = ('rho', 'cost', 'distinct', 'sharpness', 'parallax_sq', 'ok')
+#: The result's float maps, in the order :func:`search` stacks them (the candidates follow).
+MAPS = (
+    'depth',
+    'depth_std',
+    'photometric_score',
+    'geometric_score',
+    'score',
+    'cost',
+    'distinctiveness',
+    'sharpness',
+)
 
 
 def candidate_capacity(config: MultiViewConfig, camera: PinholeCamera) -> int:
@@ -75,8 +85,8 @@ def search(
     capacity: int,
     min_views: int,
 ) -> torch.Tensor:
-    """Packed fields ``(len(FIELDS) + 2, capacity)``: the estimates, the flat pixel index and the
-    candidate flag of each searched pixel. No host synchronisation: capturable.
+    """The result's maps ``(len(MAPS) + 1, H, W)`` (:func:`result_maps`). No host
+    synchronisation: capturable.
 
     ``h_inf`` (n, 3, 3) and ``b`` (n, 3) are ``epipolar_rays``' homography and ``K t_ok``.
     """
@@ -107,8 +117,38 @@ def search(
         )
         for s in range(0, capacity, chunk)
     ]
-    fields = [torch.cat([getattr(p, name) for p in parts]).float() for name in FIELDS]
-    return torch.stack([*fields, index.float(), candidate.float()])
+    fields = {name: torch.cat([getattr(p, name) for p in parts]) for name in FIELDS}
+    return result_maps(fields, index, candidate, h, w)
+
+
+def result_maps(
+    fields: dict[str, torch.Tensor], index: torch.Tensor, candidate: torch.Tensor, h: int, w: int
+) -> torch.Tensor:
+    """The result's (H, W) maps (:data:`MAPS`, NaN without an estimate; the candidates 1 or 0)
+    from the fields of the searched pixels at flat ``index``, built on the device: one copy
+    to the host of finished images, no scatter there (``semidense.result_from_fields``, in float32)."""
+    ok = fields['ok'] & candidate
+    rho = fields['rho']
+    sigma_rho = torch.rsqrt(fields['parallax_sq'].clamp(min=1e-24))
+    photometric = fields['distinct'] * fields['sharpness']
+    geometric = 1.0 / sigma_rho
+    values = torch.stack(
+        (
+            1.0 / rho,
+            sigma_rho / (rho * rho),
+            photometric,
+            geometric,
+            photometric * geometric,
+            fields['cost'],
+            fields['distinct'],
+            fields['sharpness'],
+        )
+    )
+    maps = torch.full((len(MAPS) + 1, h * w), math.nan, dtype=torch.float32, device=rho.device)
+    maps[: len(MAPS)].index_copy_(1, index, torch.where(ok, values, math.nan))
+    maps[len(MAPS)] = 0.0
+    maps[len(MAPS)].index_copy_(0, index, candidate.float())
+    return maps.reshape(len(MAPS) + 1, h, w)
 
 
 def epipolar_inputs(views: Views) -> tuple[torch.Tensor, torch.Tensor]:
@@ -123,12 +163,10 @@ def epipolar_inputs(views: Views) -> tuple[torch.Tensor, torch.Tensor]:
     )
 
 
-def unpack(packed: np.ndarray, camera: PinholeCamera, neighbours: tuple[int, ...]) -> MultiViewResult:
-    """The host copy of :func:`search`'s fields as a result: its candidates only, as the eager sweep's."""
-    keep = packed[len(FIELDS) + 1] > 0.5
-    index = packed[len(FIELDS)][keep].astype(np.intp)
-    fields = {name: values[keep] for name, values in zip(FIELDS, packed, strict=False)}
-    return result_from_fields(fields, index // camera.width, index % camera.width, camera, neighbours)
+def unpack(maps: np.ndarray, camera: PinholeCamera, neighbours: tuple[int, ...]) -> MultiViewResult:
+    """The host copy of :func:`search`'s maps as the eager sweep's result."""
+    named = dict(zip(MAPS, maps, strict=False))
+    return MultiViewResult(**named, candidates=maps[len(MAPS)] > 0.5, camera=camera, neighbours=neighbours)
 
 
 def estimate(
