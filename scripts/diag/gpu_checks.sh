@@ -73,7 +73,7 @@ node_graph() {
   export AMENT_PREFIX_PATH=/tmp/ros_venv
   $ROSPY -c "import rclpy, torch, rosbags; print('ROS venv: rclpy', rclpy.__file__, 'torch', torch.__version__)" | tee -a "$OUT/summary.txt"
   # Every frame a keyframe of the recorded 30 Hz (drops reported), then paced at 10x (flat out).
-  TAIL=40 step node_graph "${NODE_GRAPH_LIMIT:-240}" env DEPTH_FUSION_BENCH_GRAPH_SET=multi_view_node.keyframe_every=1 \
+  TAIL=40 step node_graph "${NODE_GRAPH_LIMIT:-240}" env DEPTH_FUSION_BENCH_GRAPH_SET="${NODE_GRAPH_SET:-multi_view_node.keyframe_every=1}" \
     DEPTH_FUSION_BENCH_GRAPH_RUNS="${NODE_GRAPH_RUNS:-composed:realtime:1,composed:paced:10}" \
     $ROSPY -m depth_fusion_ros.cli.main bench --only node_graph --device "$DEVICE" --json "$LOGS/bench_node_graph.json"
 }
