@@ -12,6 +12,17 @@ adaptation thread trains.
 Compiled calls (which compile when they meet a new shape) and optimiser steps therefore hold
 :data:`COMPILE_LOCK`. Neither is long (a kernel call is a chunk of one keyframe, a step a few
 grouped updates), and an uncontended lock costs nothing next to them.
+
+The first *import* of the compiler stack needs it too. ``torch.compile(fn)`` imports
+``torch._dynamo`` and ``torch._inductor`` when it is called, and so does building a torch
+optimiser (``Optimizer.__init__`` is wrapped by ``torch._disable_dynamo``). Two threads that
+import them for the first time at once see each other's partially initialised modules:
+measured on an H200 in the composed graph (2026-11-28), the fusion node's background compile
+and the adaptation thread's optimiser raised ``ImportError: cannot import name
+'IndentedBuffer' from partially initialized module 'torch._inductor.utils'``; the fusion
+stayed eager and every adaptation update failed (``torch._dynamo`` stayed broken in that
+process). So :func:`compile_serialised` makes compiled functions holding the lock, and the adapter
+builds its optimiser holding it.
 """
 
 from __future__ import annotations
@@ -36,3 +47,15 @@ def serialised(fn: Callable[..., T]) -> Callable[..., T]:
             return fn(*args, **kwargs)
 
     return call
+
+
+def compile_serialised(fn: Callable[..., T], **options: object) -> Callable[..., T]:
+    """``torch.compile(fn, **options)``, created and called holding :data:`COMPILE_LOCK`.
+
+    The only way the package compiles (``test_compile_lock.py`` checks): creating it imports
+    the compiler stack, which must not race another thread's first import (module docstring).
+    """
+    import torch
+
+    with COMPILE_LOCK:
+        return serialised(torch.compile(fn, **options))

@@ -132,9 +132,13 @@ class Adapter:
         node spent in its constructor, before it was ready. Its training thread now builds it,
         off the inference path. ``foreach``: one grouped kernel per update rule instead of one
         per parameter (the default on CUDA already; on the CPU it halves the step's optimiser
-        time).
+        time). Built holding ``COMPILE_LOCK``: that import must not race another thread's first
+        import of the compiler (compile_lock.py; the fusion node's compile in the composed graph).
         """
-        with self._snapshot_lock:
+        snapshot = self._snapshot
+        if snapshot is not None:
+            return snapshot
+        with COMPILE_LOCK, self._snapshot_lock:  # this order, as the step's (lock, then optimizer)
             if self._snapshot is None:
                 self._snapshot = WeightSnapshot(self.net, torch.optim.Adam(self._groups, foreach=True))
             return self._snapshot

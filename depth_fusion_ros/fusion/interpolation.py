@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from ..chunking import effective_chunk_elements
-from ..compile_lock import serialised
+from ..compile_lock import COMPILE_LOCK, compile_serialised
 from .weights import (
     MAX_EXPONENT,
     Samples,
@@ -336,8 +336,10 @@ def _maybe_compiled(
     if compiled is None:
         key = (name, params, device.type)
         if key not in _COMPILED:
-            # serialised: a compile session flips a process-wide flag other threads read (compile_lock.py)
-            _COMPILED[key] = serialised(torch.compile(eager, dynamic=True, options=_inductor_options(device)))
+            # Under the lock: a compile session flips a process-wide flag other threads read, and
+            # the compiler's first import must not race another thread's (compile_lock.py).
+            with COMPILE_LOCK:
+                _COMPILED[key] = compile_serialised(eager, dynamic=True, options=_inductor_options(device))
         compiled = _COMPILED[key]
 
     backup = fallback or eager

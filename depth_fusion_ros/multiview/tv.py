@@ -33,7 +33,7 @@ import torch
 
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
-from ..compile_lock import serialised
+from ..compile_lock import compile_serialised
 from .cost_volume import (
     check_patch,
     epipolar_rays,
@@ -255,7 +255,7 @@ def _primal_dual_step_for(device: torch.device) -> Callable:
     if device.type == 'cpu' or _COMPILED_STEP.get(device.type) is False:
         return _primal_dual_step
     if device.type not in _COMPILED_STEP:
-        _COMPILED_STEP[device.type] = serialised(torch.compile(_primal_dual_step, dynamic=False))
+        _COMPILED_STEP[device.type] = compile_serialised(_primal_dual_step, dynamic=False)
     compiled = _COMPILED_STEP[device.type]
 
     def guarded(*args: object) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
