@@ -145,36 +145,40 @@ def test_tv_on_cuda_matches_cpu(synthetic_sequence):
     assert np.nanmedian(rel) < 1e-3
 
 
-@needs_cuda
-def test_sweep_cuda_graph_gives_the_eager_sweep(synthetic_sequence):
-    """The graphed sweep gives the eager CUDA sweep's estimates, for two keyframes through one capture."""
-    from depth_fusion_ros.multiview import semidense_graph
+def _sweep_agrees(eager, graphed) -> None:
+    assert np.array_equal(eager.candidates, graphed.candidates)
+    assert np.array_equal(eager.valid, graphed.valid) and eager.valid.sum() > 1000
+    np.testing.assert_allclose(graphed.depth[eager.valid], eager.depth[eager.valid], rtol=1e-4)
 
-    before = len(semidense_graph.GRAPHS)
-    for key in (12, 20):
-        inputs = keyframe_inputs(synthetic_sequence, key)
-        eager = estimate_semidense(*inputs, MultiViewConfig(cuda_graph=False), device='cuda')
-        graphed = estimate_semidense(*inputs, MultiViewConfig(), device='cuda')
-        assert 1 <= len(semidense_graph.GRAPHS) <= before + 1  # the second keyframe replays the first's graph
-        assert np.array_equal(eager.candidates, graphed.candidates)
-        assert np.array_equal(eager.valid, graphed.valid) and eager.valid.sum() > 1000
-        np.testing.assert_allclose(graphed.depth[eager.valid], eager.depth[eager.valid], rtol=1e-4)
+
+def _tv_agrees(eager, graphed) -> None:
+    rel = np.abs(eager - graphed) / eager
+    # The wider windows move a few pixels (0.23 % by over 1 % on an H200), as in the CPU test of them.
+    assert np.mean(rel > 1e-2) < 5e-3 and np.median(rel) < 1e-5
 
 
 @needs_cuda
-def test_tv_cuda_graph_replays_the_eager_loop(synthetic_sequence):
-    """The graphed iterations give the eager loop's depth, for two keyframes through one capture."""
-    from depth_fusion_ros.multiview import tv_graph
+@pytest.mark.parametrize(
+    ('stage', 'estimate', 'config', 'agrees'),
+    [
+        ('semidense_graph', estimate_semidense, MultiViewConfig, _sweep_agrees),
+        ('tv_graph', estimate_tv, TVConfig, _tv_agrees),
+    ],
+    ids=['sweep', 'tv'],
+)
+def test_cuda_graph_replays_the_eager_code(synthetic_sequence, stage, estimate, config, agrees):
+    """The graphed sweep and TV iterations give the eager CUDA results, for two keyframes
+    through one capture (the second replays the first one's graph)."""
+    import importlib
 
-    before = len(tv_graph.GRAPHS)
+    graphs = importlib.import_module(f'depth_fusion_ros.multiview.{stage}').GRAPHS
+    before = len(graphs)
     for key in (12, 20):
         inputs = keyframe_inputs(synthetic_sequence, key)
-        eager = estimate_tv(*inputs, TVConfig(cuda_graph=False), device='cuda')
-        graphed = estimate_tv(*inputs, TVConfig(), device='cuda')
-        assert 1 <= len(tv_graph.GRAPHS) <= before + 1  # the second keyframe replays the first one's graph
-        rel = np.abs(eager - graphed) / eager
-        # The wider windows move a few pixels (0.23 % by over 1 % on an H200), as in the CPU test of them.
-        assert np.mean(rel > 1e-2) < 5e-3 and np.median(rel) < 1e-5
+        eager = estimate(*inputs, config(cuda_graph=False), device='cuda')
+        graphed = estimate(*inputs, config(), device='cuda')
+        assert 1 <= len(graphs) <= before + 1
+        agrees(eager, graphed)
 
 
 @needs_cuda
