@@ -44,17 +44,19 @@ def _as_tuple(out: torch.Tensor | Outputs) -> Outputs:
 def capture(fn: Callable[..., torch.Tensor | Outputs], inputs: tuple[torch.Tensor, ...]) -> _Captured:
     """Warm ``fn`` up on a side stream, then record it over static copies of ``inputs``."""
     device = inputs[0].device
-    static = tuple(t.clone() for t in inputs)
-    side = torch.cuda.Stream(device)
-    side.wait_stream(torch.cuda.current_stream(device))
-    with torch.cuda.stream(side):
-        for _ in range(WARMUP_RUNS):
-            fn(*static)
-    torch.cuda.current_stream(device).wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    # thread_local: another thread's CUDA calls (the graph's other nodes) must not break the capture.
-    with torch.cuda.graph(graph, capture_error_mode='thread_local'):
-        outputs = _as_tuple(fn(*static))
+    # The inputs' device made current: the capture records on a stream of the current device.
+    with torch.cuda.device(device):
+        static = tuple(t.clone() for t in inputs)
+        side = torch.cuda.Stream(device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):
+            for _ in range(WARMUP_RUNS):
+                fn(*static)
+        torch.cuda.current_stream(device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        # thread_local: another thread's CUDA calls (the graph's other nodes) must not break the capture.
+        with torch.cuda.graph(graph, capture_error_mode='thread_local'):
+            outputs = _as_tuple(fn(*static))
     return _Captured(graph, static, outputs)
 
 
@@ -83,7 +85,8 @@ class GraphCache:
                 return None
             for buffer, value in zip(captured.inputs, inputs, strict=True):
                 buffer.copy_(value)
-            captured.graph.replay()
+            with torch.cuda.device(captured.inputs[0].device):
+                captured.graph.replay()
             return tuple(t.clone() for t in captured.outputs)
 
     def _capture(
