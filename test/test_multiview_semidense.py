@@ -213,8 +213,9 @@ def test_pixels_leaving_most_neighbours_get_no_estimate(planes_views):
         MultiViewConfig(),  # more pixels pass min_gradient than the cap: the cap-th gradient is the threshold
         MultiViewConfig(min_gradient=0.15),  # fewer pass: min_gradient is the threshold
         MultiViewConfig(max_candidate_fraction=0.03, chunk_elements=1 << 16),  # several chunks
+        MultiViewConfig(patch='cross', descriptor_channels=0, num_samples=32, refine_samples=2),
     ],
-    ids=['capped', 'thresholded', 'chunked'],
+    ids=['capped', 'thresholded', 'chunked', 'cross_patch'],
 )
 def test_the_capturable_sweep_gives_the_eager_estimates(planes_views, config):
     """The sweep a CUDA graph records (a fixed number of pixels, the candidates chosen on the
