@@ -20,7 +20,6 @@ import copy
 import itertools
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -111,7 +110,6 @@ class Adapter:
             groups.append({'params': bias, 'lr': self.config.scale_lr})
         self._groups = groups
         self._snapshot: WeightSnapshot | None = None  # holds the optimiser, built on first use
-        self._snapshot_lock = threading.Lock()
         self.buffer: ReplayBuffer[PreparedSample] = ReplayBuffer(self.config.buffer_size)
         self.counters = AdapterCounters()
         self.version = 0
@@ -138,7 +136,7 @@ class Adapter:
         snapshot = self._snapshot
         if snapshot is not None:
             return snapshot
-        with COMPILE_LOCK, self._snapshot_lock:  # this order, as the step's (lock, then optimizer)
+        with COMPILE_LOCK:  # also one build only, whichever thread asks first
             if self._snapshot is None:
                 self._snapshot = WeightSnapshot(self.net, torch.optim.Adam(self._groups, foreach=True))
             return self._snapshot

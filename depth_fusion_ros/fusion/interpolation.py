@@ -291,12 +291,14 @@ _CPU_INDUCTOR_OPTIONS = {'cpp_wrapper': True}
 
 def _inductor_options(device: torch.device) -> dict[str, object]:
     """The :data:`_INDUCTOR_OPTIONS` (and on a CPU :data:`_CPU_INDUCTOR_OPTIONS`) this torch
-    knows (names move between releases; an unknown one would make ``torch.compile`` raise)."""
+    knows (names move between releases; an unknown one would make ``torch.compile`` raise).
+    Imports the compiler, so holding ``COMPILE_LOCK`` (compile_lock.py)."""
     try:
-        import torch._inductor.config as inductor_config
+        with COMPILE_LOCK:
+            import torch._inductor.config as inductor_config
 
-        known = inductor_config.get_config_copy()
-    except Exception:  # no inductor at all: compiling fails later and falls back to eager
+            known = inductor_config.get_config_copy()
+    except Exception:  # no inductor at all: compiling fails later (logged) and falls back to eager
         return {}
     options = dict(_INDUCTOR_OPTIONS)
     if device.type == 'cpu':
@@ -336,10 +338,9 @@ def _maybe_compiled(
     if compiled is None:
         key = (name, params, device.type)
         if key not in _COMPILED:
-            # Under the lock: a compile session flips a process-wide flag other threads read, and
-            # the compiler's first import must not race another thread's (compile_lock.py).
-            with COMPILE_LOCK:
-                _COMPILED[key] = compile_serialised(eager, dynamic=True, options=_inductor_options(device))
+            # Serialised: a compile session flips a process-wide flag other threads read, and the
+            # compiler's first import must not race another thread's (compile_lock.py).
+            _COMPILED[key] = compile_serialised(eager, dynamic=True, options=_inductor_options(device))
         compiled = _COMPILED[key]
 
     backup = fallback or eager

@@ -300,6 +300,33 @@ def epipolar_motion(
     return du, dv
 
 
+def epipolar_matrices(
+    K: np.ndarray, T_ok: np.ndarray, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per neighbour, the pixel-to-pixel homography at infinity ``K R_ok K^-1`` (n, 3, 3) and
+    ``K t_ok`` (n, 3), for relative poses ``T_ok`` (n, 4, 4), on ``device``."""
+    K = np.asarray(K, dtype=np.float64)
+    T_ok = np.asarray(T_ok, dtype=np.float64).reshape(-1, 4, 4)
+    H = K @ T_ok[:, :3, :3] @ np.linalg.inv(K)
+    b = np.einsum('ij,nj->ni', K, T_ok[:, :3, 3])
+    return (
+        torch.as_tensor(H, dtype=torch.float32, device=device),
+        torch.as_tensor(b, dtype=torch.float32, device=device),
+    )
+
+
+def rays_from(
+    h_inf: torch.Tensor, b: torch.Tensor, u: torch.Tensor, v: torch.Tensor, size: tuple[int, int]
+) -> EpipolarRays:
+    """Rays of keyframe pixels ``(u, v)`` (M,) from :func:`epipolar_matrices`; ``size`` = (W, H).
+    Tensor ops only (no host copy): a CUDA graph can record it (``semidense_graph.py``)."""
+    pix = torch.stack((u, v, torch.ones_like(u)), dim=-1).to(
+        device=h_inf.device, dtype=torch.float32
+    )  # (M, 3)
+    a = torch.einsum('nij,mj->nmi', h_inf, pix)
+    return EpipolarRays(a, b, int(size[0]), int(size[1]))
+
+
 def epipolar_rays(
     u: torch.Tensor,
     v: torch.Tensor,
@@ -309,14 +336,7 @@ def epipolar_rays(
     device: torch.device,
 ) -> EpipolarRays:
     """Rays of keyframe pixels ``(u, v)`` (M,) for relative poses ``T_ok`` (n, 4, 4); ``size`` = (W, H)."""
-    K = np.asarray(K, dtype=np.float64)
-    T_ok = np.asarray(T_ok, dtype=np.float64).reshape(-1, 4, 4)
-    H = K @ T_ok[:, :3, :3] @ np.linalg.inv(K)  # (n, 3, 3): pixel-to-pixel homography at infinity
-    b = np.einsum('ij,nj->ni', K, T_ok[:, :3, 3])
-    Ht = torch.as_tensor(H, dtype=torch.float32, device=device)
-    pix = torch.stack((u, v, torch.ones_like(u)), dim=-1).to(device=device, dtype=torch.float32)  # (M, 3)
-    a = torch.einsum('nij,mj->nmi', Ht, pix)
-    return EpipolarRays(a, torch.as_tensor(b, dtype=torch.float32, device=device), int(size[0]), int(size[1]))
+    return rays_from(*epipolar_matrices(K, T_ok, device), u, v, size)
 
 
 def sample_cost(

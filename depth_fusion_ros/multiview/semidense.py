@@ -212,6 +212,11 @@ def gradient_magnitude(gray: torch.Tensor) -> torch.Tensor:
     return g
 
 
+def candidate_margin(config: MultiViewConfig) -> int:
+    """Pixels along the border that are never candidates: the patch's reach, plus one."""
+    return patch_reach(config.patch, config.patch_stride) + 1
+
+
 def candidate_mask(
     gray: torch.Tensor, config: MultiViewConfig, smooth: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -219,7 +224,7 @@ def candidate_mask(
 
     ``smooth``: ``gray`` already blurred by ``config.blur_sigma``, when the caller has it."""
     h, w = gray.shape
-    margin = patch_reach(config.patch, config.patch_stride) + 1
+    margin = candidate_margin(config)
     mask = torch.zeros((h, w), dtype=torch.bool, device=gray.device)
     if h <= 2 * margin or w <= 2 * margin:
         return mask
@@ -380,7 +385,11 @@ def estimate_semidense(
                     float(margin),
                 )
             )
-    result = _assemble(parts, vs, us, camera, tuple(int(i) for i in neighbours))
+    # One device-to-host copy of finished maps (each .cpu() is a synchronising round trip on CUDA).
+    index = vs * camera.width + us
+    every = torch.ones_like(index, dtype=torch.bool)  # every searched pixel is a candidate
+    maps = result_maps(stacked_fields(parts, dev), index, every, camera.height, camera.width)
+    result = result_from_maps(maps.cpu().numpy(), camera, tuple(int(i) for i in neighbours))
     log.debug(
         'semi-dense: %d candidates, %d estimates (%.1f %%), %d neighbours',
         int(vs.numel()),
@@ -391,62 +400,67 @@ def estimate_semidense(
     return result
 
 
-def _assemble(
-    parts: list[_ChunkEstimate],
-    vs: torch.Tensor,
-    us: torch.Tensor,
-    camera: PinholeCamera,
-    neighbours: tuple[int, ...],
-) -> MultiViewResult:
-    """Scatter the per-candidate estimates into NaN-filled (H, W) maps."""
-    names = ('ok', 'rho', 'parallax_sq', 'distinct', 'sharpness', 'cost')
-    # One device-to-host copy for everything (each .cpu() is a synchronising round trip on CUDA).
-    if parts:
-        packed = torch.cat([torch.stack([getattr(p, n).float() for n in names]) for p in parts], dim=1)
-        packed = torch.cat((packed, torch.stack((vs, us)).float()), dim=0).cpu().numpy()
-    else:
-        packed = np.zeros((len(names) + 2, 0), dtype=np.float32)
-    fields = dict(zip(names, packed[: len(names)], strict=True))
-    rows, cols = packed[len(names)].astype(np.intp), packed[len(names) + 1].astype(np.intp)
-    return result_from_fields(fields, rows, cols, camera, neighbours)
+#: Fields of a searched pixel (``_ChunkEstimate``'s names).
+FIELDS = ('rho', 'cost', 'distinct', 'sharpness', 'parallax_sq', 'ok')
+#: The result's float maps, in the order :func:`result_maps` stacks them (the candidates follow).
+RESULT_MAPS = (
+    'depth',
+    'depth_std',
+    'photometric_score',
+    'geometric_score',
+    'score',
+    'cost',
+    'distinctiveness',
+    'sharpness',
+)
 
 
-def result_from_fields(
-    fields: dict[str, np.ndarray],
-    all_rows: np.ndarray,
-    all_cols: np.ndarray,
-    camera: PinholeCamera,
-    neighbours: tuple[int, ...],
-) -> MultiViewResult:
-    """The result from each candidate's fields (host arrays, ``_ChunkEstimate``'s names) at
-    pixels ``(all_rows, all_cols)``: NaN-filled (H, W) maps of the estimates that are ``ok``."""
-    shape = (camera.height, camera.width)
-    ok = fields['ok'] > 0.5
-    candidates = np.zeros(shape, dtype=bool)
-    candidates[all_rows, all_cols] = True
-    rows, cols = all_rows[ok], all_cols[ok]
-    rho = fields['rho'].astype(np.float64)[ok]
-    parallax_sq = fields['parallax_sq'].astype(np.float64)[ok]
-    sigma_rho = 1.0 / np.sqrt(np.maximum(parallax_sq, 1e-24))
-    distinct, sharpness = fields['distinct'][ok], fields['sharpness'][ok]
-    photometric = distinct * sharpness
+def stacked_fields(parts: list[_ChunkEstimate], device: torch.device) -> dict[str, torch.Tensor]:
+    """Each :data:`FIELDS` over every chunk, in pixel order."""
+    if not parts:
+        return {
+            n: torch.empty(0, dtype=torch.bool if n == 'ok' else torch.float32, device=device) for n in FIELDS
+        }
+    return {name: torch.cat([getattr(p, name) for p in parts]) for name in FIELDS}
+
+
+def result_maps(
+    fields: dict[str, torch.Tensor], index: torch.Tensor, candidate: torch.Tensor, h: int, w: int
+) -> torch.Tensor:
+    """The result's (H, W) maps (:data:`RESULT_MAPS`, NaN without an estimate; then the
+    candidates, 1 or 0) from the fields of the searched pixels at flat ``index``.
+
+    Built where the search ran: on a GPU the host then copies finished images once and
+    scatters nothing; tensor ops only, so a CUDA graph can record it (``semidense_graph.py``).
+    """
+    ok = fields['ok'] & candidate
+    rho = fields['rho']
+    sigma_rho = 1.0 / torch.sqrt(fields['parallax_sq'].clamp(min=1e-24))
+    photometric = fields['distinct'] * fields['sharpness']
     geometric = 1.0 / sigma_rho
+    values = torch.stack(
+        (
+            1.0 / rho,
+            sigma_rho / (rho * rho),
+            photometric,
+            geometric,
+            photometric * geometric,
+            fields['cost'],
+            fields['distinct'],
+            fields['sharpness'],
+        )
+    )
+    n = len(RESULT_MAPS)
+    maps = torch.full((n + 1, h * w), math.nan, dtype=torch.float32, device=rho.device)
+    maps[:n].index_copy_(1, index, torch.where(ok, values, math.nan))
+    maps[n] = 0.0
+    maps[n].index_copy_(0, index, candidate.float())
+    return maps.reshape(n + 1, h, w)
 
-    def image(values: np.ndarray) -> np.ndarray:
-        out = np.full(shape, np.nan, dtype=np.float32)
-        out[rows, cols] = values
-        return out
 
+def result_from_maps(maps: np.ndarray, camera: PinholeCamera, neighbours: tuple[int, ...]) -> MultiViewResult:
+    """The host copy of :func:`result_maps` as a result."""
+    named = dict(zip(RESULT_MAPS, maps, strict=False))
     return MultiViewResult(
-        depth=image(1.0 / rho),
-        depth_std=image(sigma_rho / (rho * rho)),
-        photometric_score=image(photometric),
-        geometric_score=image(geometric),
-        score=image(photometric * geometric),
-        cost=image(fields['cost'][ok]),
-        candidates=candidates,
-        camera=camera,
-        distinctiveness=image(distinct),
-        sharpness=image(sharpness),
-        neighbours=neighbours,
+        **named, candidates=maps[len(RESULT_MAPS)] > 0.5, camera=camera, neighbours=neighbours
     )

@@ -21,41 +21,37 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..cuda_graph import GraphCache
-from .cost_volume import EpipolarRays, gaussian_blur, patch_reach, rows_per_chunk, stage_descriptors
+from .cost_volume import (
+    epipolar_matrices,
+    gaussian_blur,
+    patch_reach,
+    rays_from,
+    rows_per_chunk,
+    stage_descriptors,
+)
 from .semidense import (
     MultiViewConfig,
     MultiViewResult,
     _search_chunk,
+    candidate_margin,
     gradient_magnitude,
+    result_from_maps,
+    result_maps,
+    stacked_fields,
 )
 from .views import Views
 
 GRAPHS = GraphCache('semi-dense sweep')
 
-#: Per-pixel fields of a searched pixel (``_ChunkEstimate``'s names).
-FIELDS = ('rho', 'cost', 'distinct', 'sharpness', 'parallax_sq', 'ok')
-#: The result's float maps, in the order :func:`search` stacks them (the candidates follow).
-MAPS = (
-    'depth',
-    'depth_std',
-    'photometric_score',
-    'geometric_score',
-    'score',
-    'cost',
-    'distinctiveness',
-    'sharpness',
-)
-
 
 def candidate_capacity(config: MultiViewConfig, camera: PinholeCamera) -> int:
     """Pixels searched: the eager cap on candidates (``semidense.candidate_mask``)."""
-    margin = patch_reach(config.patch, config.patch_stride) + 1
+    margin = candidate_margin(config)
     interior = max(0, camera.height - 2 * margin) * max(0, camera.width - 2 * margin)
     return max(1, min(int(config.max_candidate_fraction * camera.height * camera.width), interior))
 
@@ -66,7 +62,7 @@ def top_candidates(gray: torch.Tensor, config: MultiViewConfig, capacity: int) -
     The eager rule (``semidense.candidate_mask``) on the device, without reading anything back.
     """
     h, w = gray.shape
-    margin = patch_reach(config.patch, config.patch_stride) + 1
+    margin = candidate_margin(config)
     smooth = gaussian_blur(gray[None], config.blur_sigma)[0]
     grad = torch.full((h, w), -math.inf, dtype=gray.dtype, device=gray.device)
     grad[margin:-margin, margin:-margin] = gradient_magnitude(smooth)[margin:-margin, margin:-margin]
@@ -85,8 +81,7 @@ def search(
     capacity: int,
     min_views: int,
 ) -> torch.Tensor:
-    """The result's maps ``(len(MAPS) + 1, H, W)`` (:func:`result_maps`). No host
-    synchronisation: capturable.
+    """The result's maps (``semidense.result_maps``). No host synchronisation: capturable.
 
     ``h_inf`` (n, 3, 3) and ``b`` (n, 3) are ``epipolar_rays``' homography and ``K t_ok``.
     """
@@ -96,10 +91,7 @@ def search(
     channels = desc.shape[1] - 1
     index, candidate = top_candidates(grays[0], config, capacity)
     key_desc = desc[0, :channels].reshape(channels, -1)[:, index]
-    pix = torch.stack(
-        ((index % w).float(), (index // w).float(), torch.ones_like(index, dtype=torch.float32)), 1
-    )
-    rays = EpipolarRays(torch.einsum('nij,mj->nmi', h_inf, pix), b, w, h)
+    rays = rays_from(h_inf, b, (index % w).float(), (index // w).float(), (w, h))
     rho_grid = torch.linspace(*config.rho_range, config.num_samples, device=grays.device, dtype=torch.float32)
     chunk = rows_per_chunk(
         n, channels + 1, config.num_samples, effective_chunk_elements(config.chunk_elements, grays.device)
@@ -117,56 +109,7 @@ def search(
         )
         for s in range(0, capacity, chunk)
     ]
-    fields = {name: torch.cat([getattr(p, name) for p in parts]) for name in FIELDS}
-    return result_maps(fields, index, candidate, h, w)
-
-
-def result_maps(
-    fields: dict[str, torch.Tensor], index: torch.Tensor, candidate: torch.Tensor, h: int, w: int
-) -> torch.Tensor:
-    """The result's (H, W) maps (:data:`MAPS`, NaN without an estimate; the candidates 1 or 0)
-    from the fields of the searched pixels at flat ``index``, built on the device: one copy
-    to the host of finished images, no scatter there (``semidense.result_from_fields``, in float32)."""
-    ok = fields['ok'] & candidate
-    rho = fields['rho']
-    sigma_rho = torch.rsqrt(fields['parallax_sq'].clamp(min=1e-24))
-    photometric = fields['distinct'] * fields['sharpness']
-    geometric = 1.0 / sigma_rho
-    values = torch.stack(
-        (
-            1.0 / rho,
-            sigma_rho / (rho * rho),
-            photometric,
-            geometric,
-            photometric * geometric,
-            fields['cost'],
-            fields['distinct'],
-            fields['sharpness'],
-        )
-    )
-    maps = torch.full((len(MAPS) + 1, h * w), math.nan, dtype=torch.float32, device=rho.device)
-    maps[: len(MAPS)].index_copy_(1, index, torch.where(ok, values, math.nan))
-    maps[len(MAPS)] = 0.0
-    maps[len(MAPS)].index_copy_(0, index, candidate.float())
-    return maps.reshape(len(MAPS) + 1, h, w)
-
-
-def epipolar_inputs(views: Views) -> tuple[torch.Tensor, torch.Tensor]:
-    """``epipolar_rays``' per-neighbour homography at infinity and ``K t_ok``, on the device."""
-    K = np.asarray(views.camera.K, dtype=np.float64)
-    T_ok = np.asarray(views.T_ok, dtype=np.float64).reshape(-1, 4, 4)
-    h_inf = K @ T_ok[:, :3, :3] @ np.linalg.inv(K)
-    b = np.einsum('ij,nj->ni', K, T_ok[:, :3, 3])
-    return (
-        torch.as_tensor(h_inf, dtype=torch.float32, device=views.device),
-        torch.as_tensor(b, dtype=torch.float32, device=views.device),
-    )
-
-
-def unpack(maps: np.ndarray, camera: PinholeCamera, neighbours: tuple[int, ...]) -> MultiViewResult:
-    """The host copy of :func:`search`'s maps as the eager sweep's result."""
-    named = dict(zip(MAPS, maps, strict=False))
-    return MultiViewResult(**named, candidates=maps[len(MAPS)] > 0.5, camera=camera, neighbours=neighbours)
+    return result_maps(stacked_fields(parts, grays.device), index, candidate, h, w)
 
 
 def estimate(
@@ -176,7 +119,7 @@ def estimate(
     code), or None when capturing failed: the caller then runs the eager sweep."""
     camera = views.camera
     capacity = candidate_capacity(config, camera)
-    h_inf, b = epipolar_inputs(views)
+    h_inf, b = epipolar_matrices(camera.K, views.T_ok, views.device)
 
     def sweep(grays: torch.Tensor, h_inf: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return search(grays, h_inf, b, config, capacity, min_views)
@@ -190,4 +133,4 @@ def estimate(
             packed = out[0]
         else:
             packed = sweep(views.grays, h_inf, b)
-    return unpack(packed.cpu().numpy(), camera, neighbours)
+    return result_from_maps(packed.cpu().numpy(), camera, neighbours)

@@ -15,6 +15,7 @@ seen) runs the eager loop, logged.
 
 from __future__ import annotations
 
+import functools
 import logging
 
 import torch
@@ -32,6 +33,12 @@ def cost_bound(config: TVConfig) -> float:
     return 2.0 * config.data_weight
 
 
+@functools.lru_cache(maxsize=8)
+def _schedule_on(config: TVConfig, device: torch.device) -> torch.Tensor:
+    """The theta schedule on the device: a host copy, so made once (never while capturing)."""
+    return torch.tensor(theta_schedule(config), dtype=torch.float32, device=device)
+
+
 def run_graphed(
     weighted: torch.Tensor, g: torch.Tensor, a: torch.Tensor, config: TVConfig
 ) -> torch.Tensor | None:
@@ -46,8 +53,7 @@ def run_graphed(
         log.warning('tv: cost range %.4g over its bound %.4g; running eagerly', cost_range, bound)
         return None
     radii = [window_radius(theta, bound, weighted.shape[1]) for theta in theta_schedule(config)]
-    # The schedule on the device: a host copy, made before capturing (and kept as an input).
-    theta_t = torch.tensor(theta_schedule(config), dtype=a.dtype, device=a.device)
+    theta_t = _schedule_on(config, a.device)
     key = (weighted.device, tuple(weighted.shape), tuple(g.shape), config)
 
     def loop(*inputs: torch.Tensor) -> torch.Tensor:
