@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import interpolate_poses, validate_pose
+from .pose_jumps import PoseJump, PoseJumpLimits, find_jump
 
 
 @dataclass(frozen=True)
@@ -21,6 +22,9 @@ class PoseLookup:
 
     pose: np.ndarray | None
     reason: str = ''
+    #: Counter key of a failed look-up: ``pose_gap`` (tracking lost, or outside the buffer)
+    #: or ``pose_jump`` (between the two poses of a jump, :mod:`.pose_jumps`).
+    key: str = 'pose_gap'
 
 
 class PoseBuffer:
@@ -28,15 +32,22 @@ class PoseBuffer:
 
     ``max_gap`` (s) bounds the interval a query may be interpolated across: a SLAM that
     lost tracking for two seconds must not produce a pose by slerping over the gap.
+    ``jump_limits``: two consecutive poses further apart than these allow are a jump (a
+    relocalisation): nothing is interpolated between them (:mod:`.pose_jumps`).
     """
 
-    def __init__(self, capacity: int = 2000, max_gap: float = 0.5) -> None:
+    def __init__(
+        self, capacity: int = 2000, max_gap: float = 0.5, jump_limits: PoseJumpLimits | None = None
+    ) -> None:
         if capacity < 2:
             raise ValueError('pose buffer capacity must be at least 2')
         self.capacity = capacity
         self.max_gap = max_gap
+        self.jump_limits = jump_limits or PoseJumpLimits(0.0, 0.0)
         self._stamps: list[float] = []
         self._poses: list[np.ndarray] = []
+        #: Stamps of the poses that follow a jump: no interpolation from the pose before them.
+        self._after_jump: set[float] = set()
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -46,21 +57,44 @@ class PoseBuffer:
         """``(oldest, newest)`` stamp held, or ``None`` when empty."""
         return (self._stamps[0], self._stamps[-1]) if self._stamps else None
 
-    def insert(self, stamp: float, pose: np.ndarray) -> None:
+    def insert(self, stamp: float, pose: np.ndarray) -> PoseJump | None:
         """Add a pose (validated). Out-of-order stamps are placed in order; a duplicate stamp
-        replaces the earlier pose. Raises ``PoseError``/``ValueError`` on a bad pose or stamp."""
+        replaces the earlier pose. Raises ``PoseError``/``ValueError`` on a bad pose or stamp.
+
+        Returns the jump this pose makes from the pose before it (or, placed out of order, to
+        the pose after it), or ``None``.
+        """
         if not np.isfinite(stamp):
             raise ValueError(f'pose stamp is not finite: {stamp}')
         pose = validate_pose(pose, 'pose')
         i = bisect.bisect_left(self._stamps, stamp)
         if i < len(self._stamps) and self._stamps[i] == stamp:
             self._poses[i] = pose
-            return
+            return None
         self._stamps.insert(i, stamp)
         self._poses.insert(i, pose)
+        jump = self._check_jumps(i)
         if len(self._stamps) > self.capacity:
+            self._after_jump.discard(self._stamps[1])  # the pose before it goes
             del self._stamps[0]
             del self._poses[0]
+        return jump
+
+    def _check_jumps(self, i: int) -> PoseJump | None:
+        """Mark the jumps between the new pose ``i`` and its neighbours in time."""
+        found = None
+        if i + 1 < len(self._stamps):  # it splits the interval before the next pose
+            self._after_jump.discard(self._stamps[i + 1])
+        for a in (i - 1, i):
+            if a < 0 or a + 1 >= len(self._stamps):
+                continue
+            jump = find_jump(
+                self.jump_limits, self._stamps[a], self._poses[a], self._stamps[a + 1], self._poses[a + 1]
+            )
+            if jump is not None:
+                self._after_jump.add(self._stamps[a + 1])
+                found = found or jump
+        return found
 
     def lookup(self, stamp: float) -> PoseLookup:
         """Pose at ``stamp`` (linear translation, slerp rotation) or the reason there is none."""
@@ -77,6 +111,10 @@ class PoseBuffer:
         gap = self._stamps[i] - self._stamps[i - 1]
         if gap > self.max_gap:
             return PoseLookup(None, f'pose gap of {gap:.3f} s around stamp {stamp:.3f}')
+        if self._stamps[i] in self._after_jump:
+            before, after = self._stamps[i - 1], self._stamps[i]
+            reason = f'stamp {stamp:.3f} lies inside a pose jump ({before:.3f} -> {after:.3f} s)'
+            return PoseLookup(None, reason, 'pose_jump')
         T, _ = interpolate_poses(
             np.array(self._stamps[i - 1 : i + 1]), np.stack(self._poses[i - 1 : i + 1]), np.array([stamp])
         )
@@ -85,3 +123,4 @@ class PoseBuffer:
     def clear(self) -> None:
         self._stamps.clear()
         self._poses.clear()
+        self._after_jump.clear()

@@ -44,6 +44,7 @@ from ..multiview.cost_volume import PATCH_OFFSETS
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
+from ..pose_jumps import PoseJump, PoseJumpLimits
 from . import robot_inputs
 from .announce import announce
 from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode, run_node
@@ -186,6 +187,21 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         0.0,
     ),
     ParamSpec(
+        'max_pose_speed',
+        PoseJumpLimits.max_speed,
+        'm/s: two consecutive poses further apart than this speed allows (plus 2 cm of pose noise) are '
+        'a jump (the pose source relocalised or closed a loop): the images between them are dropped '
+        '(pose_jump) and the frame history and filter start over after it (0: off)',
+        0.0,
+    ),
+    ParamSpec(
+        'max_pose_angular_speed',
+        PoseJumpLimits.max_angular_speed_deg,
+        'degrees per second: two consecutive poses turned further apart than this allows (plus 2 '
+        'degrees) are a jump, as max_pose_speed (0: off)',
+        0.0,
+    ),
+    ParamSpec(
         'pose_time_offset',
         0.0,
         "seconds: the pose source's clock minus the camera's (an image stamped t takes the pose "
@@ -273,7 +289,10 @@ class MultiViewNode(DepthFusionNode):
             )
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
-        self.pose_buffer = PoseBuffer(capacity=int(p['pose_buffer_size']), max_gap=float(p['max_pose_gap']))
+        self.jump_limits = PoseJumpLimits(float(p['max_pose_speed']), float(p['max_pose_angular_speed']))
+        self.pose_buffer = PoseBuffer(
+            int(p['pose_buffer_size']), float(p['max_pose_gap']), jump_limits=self.jump_limits
+        )
         self.frames: deque[Frame] = deque(maxlen=self.neighbour_config.window)
         self.pending: deque[_Pending] = deque()
         self.posed_count = 0
@@ -371,10 +390,12 @@ class MultiViewNode(DepthFusionNode):
             self.stats.dropped(exc.reason, str(exc))
             return
         try:
-            self.pose_buffer.insert(messages.ns_to_sec(stamp_ns), T_wc)
+            jump = self.pose_buffer.insert(messages.ns_to_sec(stamp_ns), T_wc)
         except ValueError as exc:  # PoseError: not a rigid transform
             self.stats.dropped('bad_pose', f'pose: {exc}')
             return
+        if jump is not None:
+            self._on_pose_jump(jump)
         self._world_frame = msg.header.frame_id or self._world_frame
         self._resolve_pending()
 
@@ -434,6 +455,22 @@ class MultiViewNode(DepthFusionNode):
         self._image_periods.clear()
         self._restart_from_ns = 0  # the next posed frame, whatever its stamp
         self.note_stream_restart(stream, stamp_ns, 'poses, frame history and filter start over')
+
+    def _on_pose_jump(self, jump: PoseJump) -> None:
+        """The pose source jumped (relocalised, closed a loop): frames from before the jump are
+        in another world than those after it. Count it (note ``pose_jump``, a throttled
+        warning) and start the frame history and the filter over at the first frame after it,
+        so that no neighbour and no propagated estimate crosses it. The images between the two
+        poses are dropped when their turn comes (``pose_jump``: nothing to interpolate)."""
+        offset = float(self.params['pose_time_offset'])
+        after_ns = messages.sec_to_ns(jump.after - offset)  # on the camera's clock
+        if self._restart_from_ns is None or after_ns > self._restart_from_ns:
+            self._restart_from_ns = after_ns
+        self.stats.noted(
+            'pose_jump',
+            f'the pose jumped {jump.describe(self.jump_limits)} at {jump.after:.3f} s: the pose source '
+            'relocalised? frame history and filter start over (max_pose_speed, max_pose_angular_speed)',
+        )
 
     def _check_gap(self, previous_ns: int, stamp_ns: int) -> None:
         """A gap in the images far longer than the stream's rhythm (at least
@@ -508,7 +545,7 @@ class MultiViewNode(DepthFusionNode):
             else:
                 lookup = self.pose_buffer.lookup(stamp)
                 if lookup.pose is None:
-                    self.stats.dropped('pose_gap', f'{what}: {lookup.reason}')
+                    self.stats.dropped(lookup.key, f'{what}: {lookup.reason}')
                 else:
                     self._on_posed_frame(head, lookup.pose)
             # After 'chosen' (same writer): a replayer seeing this ack knows the decision.
