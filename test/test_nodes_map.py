@@ -62,12 +62,16 @@ def _map_node(ros: RosHarness, **params) -> MapNode:
     return ros.add(MapNode(context=ros.context, parameter_overrides=overrides))
 
 
-def _call_save(ros: RosHarness) -> Trigger.Response:
-    client = ros.probe.create_client(Trigger, '/map_node/save_map')
+def _call(ros: RosHarness, service: str) -> Trigger.Response:
+    client = ros.probe.create_client(Trigger, service)
     assert client.wait_for_service(timeout_sec=10.0)
     future = client.call_async(Trigger.Request())
     assert ros.wait_for(future.done, 30.0)
     return future.result()
+
+
+def _call_save(ros: RosHarness) -> Trigger.Response:
+    return _call(ros, '/map_node/save_map')
 
 
 def test_integrates_a_synthetic_room_and_saves_a_mesh_on_its_geometry(room, tmp_path):
@@ -113,6 +117,32 @@ def test_pairs_by_stamp_drops_incomplete_and_bad_keyframes_and_saves_on_shutdown
         assert dropped.get('bad_pose') == 1
         assert dropped.get('unpaired', 0) == 2  # keyframes 0 and 1 will never get their pose
     assert path.exists() and len(read_ply(path).vertices) > 100
+
+
+@pytest.mark.parametrize('clear', [False, True])
+def test_a_keyframe_pose_jump_is_noted_and_clears_the_map_when_asked(room, clear):
+    """A relocalised pose source: the keyframes after it are 1 m away from where the map put
+    the ones before. Noted either way; with ``clear_on_pose_jump`` the map starts again."""
+    _, seq = room
+    with RosHarness() as ros:
+        node = _map_node(ros, points_rate=0.0, clear_on_pose_jump=clear, **{'map.consistency_span': 0})
+        inputs = _Inputs(ros)
+        shift = np.eye(4)
+        shift[0, 3] = 1.0
+        for k in range(6):
+            stamp = T0 + k * 100_000_000
+            T = seq.frames[k].pose if k < 3 else shift @ seq.frames[k].pose
+            world = m.header_msg(stamp, 'world', kind=K)
+            inputs.keyframe(seq, k, stamp, pose=m.pose_stamped_msg(T, world, kind=K))
+        integrated = 3 if clear else 6
+        assert ros.wait_for(lambda: node.integrated == integrated and node.worker.idle(), 30.0), (
+            node.stats.snapshot().summary()
+        )
+        snap = node.stats.snapshot()
+        assert snap.noted.get('pose_jump') == 1 and snap.dropped == {}, snap.summary()
+        cleared = _call(ros, '/map_node/clear_map')
+        assert cleared.success and f'{integrated} keyframes' in cleared.message
+        assert node.integrated == 0 and node.extract()[0].is_empty
 
 
 def test_bad_parameters_fail_at_start():

@@ -13,7 +13,9 @@ by their confidence (and none below ``map.min_confidence``). The map is bounded
 Outputs: the surface as a PointCloud2 (``depth_fusion/map/points``, world frame = the pose's
 frame, xyz + rgb) every ``1 / points_rate`` seconds when it changed, and the mesh as a binary
 ``.ply`` at ``save_path`` on the ``~/save_map`` service (std_srvs/Trigger) and, with
-``save_on_shutdown``, when the node stops (what ``depth-fusion run --save-map`` uses).
+``save_on_shutdown``, when the node stops (what ``depth-fusion run --save-map`` uses);
+``~/clear_map`` empties it. A jump in the keyframe poses (a relocalised pose source,
+:mod:`..pose_jumps`) is noted, and clears the map with ``clear_on_pose_jump``.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from ..mapping.config import ENGINES, MAP_PARAMETER_DESCRIPTIONS, MapConfig
 from ..mapping.engine import make_map
 from ..mapping.ply import write_ply
 from ..mapping.surface import SurfaceMesh
+from ..pose_jumps import PoseJumpLimits, find_jump
 from .base import DepthFusionNode, run_node
 from .graph_events import GraphEvents
 from .image_input import InputError, depth_from_message, pose_from_message
@@ -95,6 +98,27 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'max_pending_keyframes', 16, 'keyframes waiting for their parts at most (oldest dropped)', 1, 1000
     ),
+    ParamSpec(
+        'max_pose_speed',
+        PoseJumpLimits.max_speed,
+        'm/s: two consecutive keyframe poses further apart than this speed allows (plus 2 cm) are a pose '
+        'jump (the pose source relocalised or closed a loop): noted, and the map cleared with '
+        'clear_on_pose_jump (0: off)',
+        0.0,
+    ),
+    ParamSpec(
+        'max_pose_angular_speed',
+        PoseJumpLimits.max_angular_speed_deg,
+        'degrees per second: two consecutive keyframe poses turned further apart than this allows (plus 2 '
+        'degrees) are a pose jump, as max_pose_speed (0: off)',
+        0.0,
+    ),
+    ParamSpec(
+        'clear_on_pose_jump',
+        False,
+        'clear the map at a pose jump: what was integrated before it is in the uncorrected world (false: '
+        'keep it, a small correction leaves a slightly doubled surface; ~/clear_map clears on request)',
+    ),
 )
 
 
@@ -118,6 +142,9 @@ class MapNode(DepthFusionNode):
         self._dirty = False
         self._world_frame = ''
         self._integrated = 0
+        self.jump_limits = PoseJumpLimits(float(p['max_pose_speed']), float(p['max_pose_angular_speed']))
+        #: Stamp (s) and pose of the last keyframe integrated, for the pose-jump test.
+        self._last_pose: tuple[float, np.ndarray] | None = None
         required = REQUIRED_PARTS
         optional = ('rgb',) if p['use_color'] else ()
         self.pairer = StampPairer(
@@ -144,6 +171,7 @@ class MapNode(DepthFusionNode):
         if p['use_color']:
             self.subscribe(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
         self.create_service(Trigger, '~/save_map', self._on_save)
+        self.create_service(Trigger, '~/clear_map', self._on_clear)
         self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
         if float(p['points_rate']) > 0:
             self.create_wall_timer(1.0 / float(p['points_rate']), self._publish_points)
@@ -229,6 +257,7 @@ class MapNode(DepthFusionNode):
                 )
                 return
             self._world_frame = self._world_frame or frame_id or 'world'
+            self._check_pose_jump(stamp, T_wc)
             evicted = self.map.evicted_blocks
             self.map.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb)
             if self.map.evicted_blocks > evicted:
@@ -239,6 +268,49 @@ class MapNode(DepthFusionNode):
             self._integrated += 1
         self.stats.published('integrated')
         self.stats.processed(time.monotonic() - pairing.first_seen)
+
+    def _check_pose_jump(self, stamp: float, T_wc: np.ndarray) -> None:
+        """Note a pose jump since the last keyframe integrated (``pose_jump``), and clear the
+        map there with ``clear_on_pose_jump``. Called holding ``_lock``."""
+        last, self._last_pose = self._last_pose, (stamp, T_wc)
+        if last is None or stamp <= last[0]:
+            return
+        jump = find_jump(self.jump_limits, last[0], last[1], stamp, T_wc)
+        if jump is None:
+            return
+        clear = bool(self.params['clear_on_pose_jump'])
+        what = (
+            f'map cleared ({self._integrated} keyframes)'
+            if clear
+            else 'the map before it stays in the uncorrected world (~/clear_map, or clear_on_pose_jump)'
+        )
+        self.stats.noted(
+            'pose_jump',
+            f'keyframe pose jumped {jump.describe(self.jump_limits)} at {stamp:.3f} s (the pose source '
+            f'relocalised?): {what}',
+        )
+        if clear:
+            self._clear()
+
+    def _clear(self) -> int:
+        """Start an empty map with the same settings (holding ``_lock``); returns the keyframes dropped."""
+        dropped = self._integrated
+        self.map, _ = make_map(self.map.config)
+        self._integrated = 0
+        self._dirty = True
+        return dropped
+
+    def clear_map(self) -> int:
+        """Empty the map (thread-safe); returns how many keyframes it held."""
+        with self._lock:
+            return self._clear()
+
+    def _on_clear(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        dropped = self.clear_map()
+        response.success = True
+        response.message = f'map cleared: {dropped} keyframes dropped'
+        self.get_logger().info(f'clear_map: {response.message}')
+        return response
 
     # --- outputs --------------------------------------------------------------------------------------
 
