@@ -78,3 +78,29 @@ def test_a_live_stream_that_outruns_the_filter_skips_old_frames_but_never_a_keyf
     waiting = [(f.index, key) for f, _, key in feed._frames]
     assert waiting == [(1, True), (4, False), (5, False)]  # the keyframe stays, the newest follow
     assert len(skips) == 3 and all('skipped' in s for s in skips) and drops == []
+
+
+def test_a_rate_cap_passes_over_frames_between_updates_but_never_a_keyframe(small_sequence):
+    """``filter.max_update_rate``: at 10 Hz a 30 Hz stream updates the filter with every third
+    frame, and every keyframe, whatever its stamp; the keyframe's estimate is that of the
+    frames actually fed."""
+    seq = small_sequence
+    stamps = [i / 30.0 for i in range(len(seq.frames))]
+    keys, drops = {4}, []
+    feed = FilterFeed(FilterConfig(), MultiViewConfig(), 'cpu', 100, drops.append, max_rate=10.0)
+    try:
+        for frame, stamp in zip(seq.frames, stamps, strict=True):
+            frame = type(frame)(frame.index, stamp, frame.rgb, frame.pose)
+            feed.append(frame, seq.camera, keyframe=frame.index in keys)
+        got = feed.result_for(seq.frames[4], seq.camera)
+        deadline = time.monotonic() + 30.0
+        while not feed.idle() and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        feed.close()
+    fed = [i for i in range(len(seq.frames)) if i % 3 == 0 or i in keys]
+    assert feed.fed == len(fed) and feed.rate_skipped == len(seq.frames) - len(fed) and drops == []
+    reference = DepthFilter(seq.camera, FilterConfig(), MultiViewConfig(), 'cpu')
+    for i in [i for i in fed if i <= 4]:
+        reference.process(seq.frames[i].gray, seq.frames[i].pose)
+    np.testing.assert_array_equal(got.depth, reference.result(seq.frames[4].pose).depth)

@@ -161,7 +161,13 @@ def test_ledger_first_final_event_wins_and_counts_in_flight():
 
 
 def _mv_node(ros: RosHarness, **params) -> MultiViewNode:
-    values = {'stats_period': 0.0, 'filter.max_lag_frames': 0, **SMALL, **params}
+    values = {
+        'stats_period': 0.0,
+        'filter.max_lag_frames': 0,
+        'filter.max_update_rate': 0.0,
+        **SMALL,
+        **params,
+    }
     return ros.add(
         MultiViewNode(
             context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]

@@ -161,6 +161,7 @@ def test_multi_view_node_publishes_each_keyframe_pose_with_its_stamp(room):
     with RosHarness() as ros:
         params = [Parameter('keyframe_every', value=3), Parameter('queue_size', value=8)]
         params.append(Parameter('filter.max_lag_frames', value=0))  # every frame, as a paced replay
+        params.append(Parameter('filter.max_update_rate', value=0.0))
         ros.add(MultiViewNode(context=ros.context, parameter_overrides=params))
         poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')
         keyframes = ros.collect(Image, '/depth_fusion/keyframe/image')

@@ -173,6 +173,7 @@ def test_bad_inputs_are_dropped_counted_and_processing_goes_on(synthetic_sequenc
                     # drop at once (the default waits for a late camera_info: test_graph_pacing)
                     Parameter('camera_info_wait', value=0.0),
                     Parameter('filter.max_lag_frames', value=0),  # every frame: its density is checked
+                    Parameter('filter.max_update_rate', value=0.0),
                 ],
             )
         )

@@ -36,7 +36,13 @@ def _play(seq, detect: bool, **extra) -> tuple[list, object, dict]:
     poses = _relocalised([f.pose for f in seq.frames])
     limits = {} if detect else {'max_pose_speed': 0.0, 'max_pose_angular_speed': 0.0}
     with RosHarness() as ros:
-        params = {'keyframe_every': 6, 'queue_size': 8, 'qos_depth': 100, 'filter.max_lag_frames': 0}
+        params = {
+            'keyframe_every': 6,
+            'queue_size': 8,
+            'qos_depth': 100,
+            'filter.max_lag_frames': 0,
+            'filter.max_update_rate': 0.0,
+        }
         node = _mv_node(ros, **params, **limits, **extra)
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         cam = _Camera(ros)

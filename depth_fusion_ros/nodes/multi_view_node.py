@@ -601,6 +601,11 @@ class MultiViewNode(DepthFusionNode):
             'pose type': self.pose_input.description,
             'posed frames': self.posed_count,
             'keyframes': self.keyframes_decided,
+            **(
+                {'filter frames passed over (filter.max_update_rate)': self.filter_feed.rate_skipped}
+                if self.filter_feed is not None
+                else {}
+            ),
         }
 
     def destroy_node(self) -> None:

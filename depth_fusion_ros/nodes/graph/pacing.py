@@ -56,8 +56,9 @@ def paced_overrides(options: RunOptions, overrides: dict[str, dict[str, Any]]) -
         for node in GRAPH_NODES:
             if unset(node, 'queue_policy'):
                 out.setdefault(node, {})['queue_policy'] = 'block'
-        if unset('multi_view_node', 'filter.max_lag_frames'):  # the filter sees every frame
-            out.setdefault('multi_view_node', {})['filter.max_lag_frames'] = 0
+        for name in ('filter.max_lag_frames', 'filter.max_update_rate'):  # the filter sees every frame
+            if unset('multi_view_node', name):
+                out.setdefault('multi_view_node', {})[name] = 0
         if unset('fusion_node', 'load_max_points'):  # nothing is lost by waiting: full quality
             out.setdefault('fusion_node', {})['load_max_points'] = 0
     return out
