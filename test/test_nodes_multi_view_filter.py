@@ -20,21 +20,22 @@ from depth_fusion_ros.nodes.testing import RosHarness
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
+#: Keyframes every 6th frame, and every frame to the filter, as a paced replay.
+EVERY_FRAME = {
+    'keyframe_every': 6,
+    'queue_size': 8,
+    'qos_depth': 100,
+    'filter.max_lag_frames': 0,
+    'filter.max_update_rate': 0.0,
+}
+
 
 def test_default_filter_method_publishes_accurate_keyframe_depth(synthetic_sequence):
     """No ``multi_view.method`` given: the node runs the filter and announces it."""
     seq = synthetic_sequence
     stamps = [m.sec_to_ns(s) for s in seq.stamps]
     with RosHarness() as ros:
-        # every frame to the filter (filter.max_lag_frames 0), as a paced replay
-        params = {
-            'keyframe_every': 6,
-            'queue_size': 8,
-            'qos_depth': 100,
-            'filter.max_lag_frames': 0,
-            'filter.max_update_rate': 0.0,
-        }
-        node = _mv_node(ros, **params)
+        node = _mv_node(ros, **EVERY_FRAME)
         assert node.params['multi_view.method'] == 'filter' and node.filter_feed is not None
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         score_msgs = ros.collect(Image, '/depth_fusion/multi_view/score')
@@ -90,14 +91,7 @@ def test_a_sequence_played_again_starts_over_instead_of_being_dropped(synthetic_
     second = [s + m.sec_to_ns(shift_s) for s in stamps]
     expected_keys = [6, 12, 18]
     with RosHarness() as ros:
-        params = {
-            'keyframe_every': 6,
-            'queue_size': 8,
-            'qos_depth': 100,
-            'filter.max_lag_frames': 0,
-            'filter.max_update_rate': 0.0,
-        }
-        node = _mv_node(ros, stream_restart_jump=0.5, **params)  # the sequence lasts 0.8 s
+        node = _mv_node(ros, stream_restart_jump=0.5, **EVERY_FRAME)  # the sequence lasts 0.8 s
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         cam = _Camera(ros)
         for n_pass, pass_stamps in ((1, stamps), (2, second)):

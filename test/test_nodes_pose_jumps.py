@@ -14,6 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import Image
 from test_nodes_multi_view import _Camera, _mv_node, _stamps
+from test_nodes_multi_view_filter import EVERY_FRAME
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.geometry import make_pose
@@ -36,14 +37,7 @@ def _play(seq, detect: bool, **extra) -> tuple[list, object, dict]:
     poses = _relocalised([f.pose for f in seq.frames])
     limits = {} if detect else {'max_pose_speed': 0.0, 'max_pose_angular_speed': 0.0}
     with RosHarness() as ros:
-        params = {
-            'keyframe_every': 6,
-            'queue_size': 8,
-            'qos_depth': 100,
-            'filter.max_lag_frames': 0,
-            'filter.max_update_rate': 0.0,
-        }
-        node = _mv_node(ros, **params, **limits, **extra)
+        node = _mv_node(ros, **EVERY_FRAME, **limits, **extra)
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         cam = _Camera(ros)
         for i, frame in enumerate(seq.frames):
