@@ -36,11 +36,12 @@ from ..mapping.config import ENGINES, MAP_PARAMETER_DESCRIPTIONS, MapConfig
 from ..mapping.engine import make_map
 from ..mapping.ply import write_ply
 from ..mapping.surface import SurfaceMesh
-from ..pose_jumps import PoseJumpLimits, find_jump
+from ..pose_jumps import find_jump
 from .base import DepthFusionNode, run_node
 from .graph_events import GraphEvents
 from .image_input import InputError, depth_from_message, pose_from_message
 from .params import ParamSpec, build_dataclass, dataclass_specs
+from .pose_jump_params import pose_jump_limits, pose_jump_parameters
 from .stamp_pairing import StampPairer
 
 NODE_NAME = 'map_node'
@@ -98,21 +99,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'max_pending_keyframes', 16, 'keyframes waiting for their parts at most (oldest dropped)', 1, 1000
     ),
-    ParamSpec(
-        'max_pose_speed',
-        PoseJumpLimits.max_speed,
-        'm/s: two consecutive keyframe poses further apart than this speed allows (plus 2 cm) are a pose '
-        'jump (the pose source relocalised or closed a loop): noted, and the map cleared with '
-        'clear_on_pose_jump (0: off)',
-        0.0,
-    ),
-    ParamSpec(
-        'max_pose_angular_speed',
-        PoseJumpLimits.max_angular_speed_deg,
-        'degrees per second: two consecutive keyframe poses turned further apart than this allows (plus 2 '
-        'degrees) are a pose jump, as max_pose_speed (0: off)',
-        0.0,
-    ),
+    *pose_jump_parameters('keyframe poses', 'noted, and the map cleared with clear_on_pose_jump'),
     ParamSpec(
         'clear_on_pose_jump',
         False,
@@ -142,7 +129,7 @@ class MapNode(DepthFusionNode):
         self._dirty = False
         self._world_frame = ''
         self._integrated = 0
-        self.jump_limits = PoseJumpLimits(float(p['max_pose_speed']), float(p['max_pose_angular_speed']))
+        self.jump_limits = pose_jump_limits(p)
         #: Stamp (s) and pose of the last keyframe integrated, for the pose-jump test.
         self._last_pose: tuple[float, np.ndarray] | None = None
         required = REQUIRED_PARTS

@@ -44,7 +44,7 @@ from ..multiview.cost_volume import PATCH_OFFSETS
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
-from ..pose_jumps import PoseJump, PoseJumpLimits
+from ..pose_jumps import PoseJump
 from . import robot_inputs
 from .announce import announce
 from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode, run_node
@@ -61,6 +61,7 @@ from .image_input import (
 from .info_wait import AwaitingCalibration
 from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
+from .pose_jump_params import pose_jump_limits, pose_jump_parameters
 from .qos import latched_qos, qos_profile
 from .reliability import ignore_incompatible
 
@@ -186,20 +187,10 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'seconds between two poses above which an image between them is not interpolated (tracking lost)',
         0.0,
     ),
-    ParamSpec(
-        'max_pose_speed',
-        PoseJumpLimits.max_speed,
-        'm/s: two consecutive poses further apart than this speed allows (plus 2 cm of pose noise) are '
-        'a jump (the pose source relocalised or closed a loop): the images between them are dropped '
-        '(pose_jump) and the frame history and filter start over after it (0: off)',
-        0.0,
-    ),
-    ParamSpec(
-        'max_pose_angular_speed',
-        PoseJumpLimits.max_angular_speed_deg,
-        'degrees per second: two consecutive poses turned further apart than this allows (plus 2 '
-        'degrees) are a jump, as max_pose_speed (0: off)',
-        0.0,
+    *pose_jump_parameters(
+        'poses',
+        'the images between them are dropped (pose_jump) and the frame history and filter start over '
+        'after it',
     ),
     ParamSpec(
         'pose_time_offset',
@@ -289,7 +280,7 @@ class MultiViewNode(DepthFusionNode):
             )
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
-        self.jump_limits = PoseJumpLimits(float(p['max_pose_speed']), float(p['max_pose_angular_speed']))
+        self.jump_limits = pose_jump_limits(p)
         self.pose_buffer = PoseBuffer(
             int(p['pose_buffer_size']), float(p['max_pose_gap']), jump_limits=self.jump_limits
         )
@@ -595,18 +586,16 @@ class MultiViewNode(DepthFusionNode):
         return not waiting, ', '.join(waiting)
 
     def diagnostic_extra(self) -> dict[str, Any]:
-        return {
+        extra = {
             'image topic': self.resolve_topic_name(self.image_topic),
             'pose topic': self.pose_input.resolved_topic,
             'pose type': self.pose_input.description,
             'posed frames': self.posed_count,
             'keyframes': self.keyframes_decided,
-            **(
-                {'filter frames passed over (filter.max_update_rate)': self.filter_feed.rate_skipped}
-                if self.filter_feed is not None
-                else {}
-            ),
         }
+        if self.filter_feed is not None:
+            extra['filter frames passed over (filter.max_update_rate)'] = self.filter_feed.rate_skipped
+        return extra
 
     def destroy_node(self) -> None:
         if not self._destroyed:
