@@ -8,12 +8,11 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
 from map_geometry import room_surface_distance
+from map_inputs import FRAME, T0, MapInputs, call, call_save, make_room, map_node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
-from std_srvs.srv import Trigger
 
 from depth_fusion_ros.data import messages as m
-from depth_fusion_ros.data.synthetic import SynthConfig, build_world, render_sequence
 from depth_fusion_ros.mapping import read_ply
 from depth_fusion_ros.nodes.map_node import MapNode
 from depth_fusion_ros.nodes.testing import RosHarness
@@ -21,74 +20,28 @@ from depth_fusion_ros.nodes.testing import RosHarness
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 K = m.RCLPY
-FRAME = 'camera_rgb_optical_frame'
-T0 = 1_000_000_000
 
 
 @pytest.fixture(scope='module')
 def room():
-    cfg = SynthConfig(width=160, height=120, frames=16, seed=7)
-    return build_world(cfg)[0], render_sequence(cfg)
-
-
-class _Inputs:
-    def __init__(self, ros: RosHarness) -> None:
-        self.depth = ros.publisher(Image, '/depth_fusion/fused/depth')
-        self.confidence = ros.publisher(Image, '/depth_fusion/fused/confidence')
-        self.info = ros.publisher(CameraInfo, '/depth_fusion/fused/camera_info')
-        self.pose = ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose')
-        self.image = ros.publisher(Image, '/depth_fusion/keyframe/image')
-        assert ros.wait_for_subscribers([self.depth, self.confidence, self.info, self.pose, self.image])
-
-    def keyframe(self, seq, i: int, stamp_ns: int, skip: tuple[str, ...] = (), pose=None) -> None:
-        header = m.header_msg(stamp_ns, FRAME, kind=K)
-        world = m.header_msg(stamp_ns, 'world', kind=K)
-        depth = seq.gt_depth_working(i)
-        confidence = np.full(depth.shape, 0.8, np.float32)
-        parts = {
-            'image': lambda: self.image.publish(m.rgb_image_msg(seq.frames[i].rgb, header, kind=K)),
-            'info': lambda: self.info.publish(m.camera_info_msg(seq.camera, header, kind=K)),
-            'depth': lambda: self.depth.publish(m.depth_image_msg(depth, header, kind=K)),
-            'confidence': lambda: self.confidence.publish(m.image_msg(confidence, '32FC1', header, kind=K)),
-            'pose': lambda: self.pose.publish(pose or m.pose_stamped_msg(seq.frames[i].pose, world, kind=K)),
-        }
-        for name, send in parts.items():
-            if name not in skip:
-                send()
-
-
-def _map_node(ros: RosHarness, **params) -> MapNode:
-    overrides = [Parameter('queue_size', value=16), *(Parameter(k, value=v) for k, v in params.items())]
-    return ros.add(MapNode(context=ros.context, parameter_overrides=overrides))
-
-
-def _call(ros: RosHarness, service: str) -> Trigger.Response:
-    client = ros.probe.create_client(Trigger, service)
-    assert client.wait_for_service(timeout_sec=10.0)
-    future = client.call_async(Trigger.Request())
-    assert ros.wait_for(future.done, 30.0)
-    return future.result()
-
-
-def _call_save(ros: RosHarness) -> Trigger.Response:
-    return _call(ros, '/map_node/save_map')
+    return make_room()
 
 
 def test_integrates_a_synthetic_room_and_saves_a_mesh_on_its_geometry(room, tmp_path):
     scene, seq = room
     path = tmp_path / 'room.ply'
     with RosHarness() as ros:
-        node = _map_node(ros, save_path=str(path), points_rate=5.0, **{'map.engine': 'torch'})
+        node = map_node(ros, save_path=str(path), points_rate=5.0, **{'map.engine': 'torch'})
         clouds = ros.collect(PointCloud2, '/depth_fusion/map/points')
-        empty = _call_save(ros)
+        empty = call_save(ros)
         assert not empty.success and 'empty' in empty.message and not path.exists()
-        inputs = _Inputs(ros)
+        inputs = MapInputs(ros)
         stamps = [T0 + k * 100_000_000 for k in range(8)]
         for k, stamp in enumerate(stamps):
             inputs.keyframe(seq, 2 * k, stamp)
         assert ros.wait_for(lambda: node.integrated == 8, 30.0), node.stats.snapshot().summary()
         assert ros.wait_for(lambda: len(clouds) > 0, 10.0)
-        saved = _call_save(ros)
+        saved = call_save(ros)
         assert saved.success, saved.message
         assert '8 keyframes' in saved.message
     mesh = read_ply(path)
@@ -105,8 +58,8 @@ def test_pairs_by_stamp_drops_incomplete_and_bad_keyframes_and_saves_on_shutdown
     _, seq = room
     path = tmp_path / 'shutdown.ply'
     with RosHarness() as ros:
-        node = _map_node(ros, save_path=str(path), save_on_shutdown=True, points_rate=0.0)
-        inputs = _Inputs(ros)
+        node = map_node(ros, save_path=str(path), save_on_shutdown=True, points_rate=0.0)
+        inputs = MapInputs(ros)
         inputs.keyframe(seq, 0, T0, skip=('pose',))  # the pose of this keyframe never comes
         bad = m.pose_stamped_msg(seq.frames[2].pose, m.header_msg(T0 + 10**8, 'world', kind=K), kind=K)
         bad.pose.orientation.w = float('nan')
@@ -125,8 +78,8 @@ def test_a_keyframe_pose_jump_is_noted_and_clears_the_map_when_asked(room, clear
     the ones before. Noted either way; with ``clear_on_pose_jump`` the map starts again."""
     _, seq = room
     with RosHarness() as ros:
-        node = _map_node(ros, points_rate=0.0, clear_on_pose_jump=clear, **{'map.consistency_span': 0})
-        inputs = _Inputs(ros)
+        node = map_node(ros, points_rate=0.0, clear_on_pose_jump=clear, **{'map.consistency_span': 0})
+        inputs = MapInputs(ros)
         shift = np.eye(4)
         shift[0, 3] = 1.0
         for k in range(6):
@@ -140,7 +93,7 @@ def test_a_keyframe_pose_jump_is_noted_and_clears_the_map_when_asked(room, clear
         )
         snap = node.stats.snapshot()
         assert snap.noted.get('pose_jump') == 1 and snap.dropped == {}, snap.summary()
-        cleared = _call(ros, '/map_node/clear_map')
+        cleared = call(ros, '/map_node/clear_map')
         assert cleared.success and f'{integrated} keyframes' in cleared.message
         assert node.integrated == 0 and node.extract()[0].is_empty
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +45,7 @@ class _Keyframe:
     camera: PinholeCamera
     confidence: np.ndarray | None
     rgb: np.ndarray | None
+    key: object = None
     integrated: bool = False
 
 
@@ -115,10 +117,14 @@ class ConsistentMap:
 
     It offers the engine's interface (``integrate``, ``mesh``, ``n_blocks``, ...); ``integrate``
     queues the keyframe and integrates the ones whose ``consistency_span`` successors are in.
+    ``on_integrated(key, depth, T_wc, camera, confidence, rgb)`` is told of every keyframe as it
+    goes into the engine (its depth after the test, numpy): what a rebuild at corrected poses
+    integrates again (mapping/keyframe_store.py).
     """
 
     def __init__(self, engine: object, config: MapConfig) -> None:
         self.engine = engine
+        self.on_integrated: Callable[..., None] | None = None
         self.config = config
         self.span = int(config.consistency_span)
         self._window: deque[_Keyframe] = deque(maxlen=2 * self.span + 1)
@@ -147,19 +153,21 @@ class ConsistentMap:
         camera: PinholeCamera,
         confidence: np.ndarray | None = None,
         rgb: np.ndarray | None = None,
+        key: object = None,
     ) -> int:
         """Queue one keyframe; integrate the one ``span`` keyframes back. Returns voxels updated.
 
-        With ``consistency_span`` 0 the keyframe goes straight to the engine, every pixel."""
+        With ``consistency_span`` 0 the keyframe goes straight to the engine, every pixel.
+        ``key`` (e.g. its stamp) is handed to ``on_integrated`` with it."""
         if self.span == 0:
-            return self.engine.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb)
+            return self._to_engine(key, depth, T_wc, camera, confidence, rgb)
         d = torch.as_tensor(depth, dtype=torch.float32, device=self._device)
         if d.shape != (camera.height, camera.width):
             size = f'{camera.width}x{camera.height}'
             raise ValueError(f'depth is {d.shape[1]}x{d.shape[0]}, camera is {size}')
         if len(self._window) == self._window.maxlen and not self._window[0].integrated:
             self._integrate_at(0)  # about to leave the window: integrate with what it had
-        self._window.append(_Keyframe(d, np.asarray(T_wc, np.float64), camera, confidence, rgb))
+        self._window.append(_Keyframe(d, np.asarray(T_wc, np.float64), camera, confidence, rgb, key))
         target = len(self._window) - 1 - self.span
         return self._integrate_at(target) if target >= 0 else 0
 
@@ -170,6 +178,32 @@ class ConsistentMap:
     def mesh(self) -> object:
         """The engine's mesh of what is integrated so far (waiting keyframes are not in it)."""
         return self.engine.mesh()
+
+    def window_keyframes(self) -> list[tuple[object, np.ndarray]]:
+        """``(key, T_wc)`` of the keyframes in the test's window (waiting, or checked against)."""
+        return [(k.key, k.T_wc) for k in self._window]
+
+    def move_window(self, pose_of: Callable[[object, np.ndarray], np.ndarray]) -> None:
+        """Give every keyframe of the window the pose ``pose_of(key, T_wc)`` (a corrected
+        trajectory moved it: the waiting ones are then checked and integrated there, against
+        the others where they now are)."""
+        for k in self._window:
+            k.T_wc = np.asarray(pose_of(k.key, k.T_wc), np.float64)
+
+    def _to_engine(
+        self,
+        key: object,
+        depth: np.ndarray | torch.Tensor,
+        T_wc: np.ndarray,
+        camera: PinholeCamera,
+        confidence: np.ndarray | None,
+        rgb: np.ndarray | None,
+    ) -> int:
+        updated = self.engine.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb)
+        if self.on_integrated is not None:
+            host = depth.cpu().numpy() if isinstance(depth, torch.Tensor) else depth
+            self.on_integrated(key, host, T_wc, camera, confidence, rgb)
+        return updated
 
     def _integrate_at(self, index: int) -> int:
         keyframe = self._window[index]
@@ -193,6 +227,6 @@ class ConsistentMap:
             log.info('map: a keyframe with no other keyframe to check it against is integrated unchecked')
         if not self._tensors:
             depth = depth.cpu().numpy()
-        return self.engine.integrate(
-            depth, keyframe.T_wc, keyframe.camera, confidence=keyframe.confidence, rgb=keyframe.rgb
+        return self._to_engine(
+            keyframe.key, depth, keyframe.T_wc, keyframe.camera, keyframe.confidence, keyframe.rgb
         )

@@ -47,11 +47,13 @@ class TSDFMap(Protocol):
 def make_map(config: MapConfig) -> tuple[ConsistentMap, str]:
     """The engine ``config.engine`` asks for (or the torch engine with the reason it fell
     back), behind the multi-keyframe consistency test (``consistency_span`` 0: none)."""
-    engine, note = _make_engine(config)
+    engine, note = make_engine(config)
     return ConsistentMap(engine, config), note
 
 
-def _make_engine(config: MapConfig) -> tuple[TSDFMap, str]:
+def make_engine(config: MapConfig) -> tuple[TSDFMap, str]:
+    """The bare engine (no consistency test) and the line saying which: also what a rebuild
+    at corrected poses integrates into (mapping/keyframe_store.py)."""
     config.validate()
     wanted = config.engine
     if wanted == 'torch':

@@ -15,7 +15,9 @@ frame, xyz + rgb) every ``1 / points_rate`` seconds when it changed, and the mes
 ``.ply`` at ``save_path`` on the ``~/save_map`` service (std_srvs/Trigger) and, with
 ``save_on_shutdown``, when the node stops (what ``depth-fusion run --save-map`` uses);
 ``~/clear_map`` empties it. A jump in the keyframe poses (a relocalised pose source,
-:mod:`..pose_jumps`) is noted, and clears the map with ``clear_on_pose_jump``.
+:mod:`..pose_jumps`) is noted, and clears the map with ``clear_on_pose_jump``. A corrected
+trajectory (a loop closure, ``camera/corrected_path``) rebuilds the map from the keyframes it
+kept at their corrected poses (:mod:`.map_corrections`).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
@@ -40,6 +43,8 @@ from ..pose_jumps import find_jump
 from .base import DepthFusionNode, run_node
 from .graph_events import GraphEvents
 from .image_input import InputError, depth_from_message, pose_from_message
+from .map_corrections import PARAMETERS as CORRECTION_PARAMETERS
+from .map_corrections import TOPIC_CORRECTED_PATH, MapCorrector
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
 from .stamp_pairing import StampPairer
@@ -106,6 +111,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'clear the map at a pose jump: what was integrated before it is in the uncorrected world (false: '
         'keep it, a small correction leaves a slightly doubled surface; ~/clear_map clears on request)',
     ),
+    *CORRECTION_PARAMETERS,
 )
 
 
@@ -125,6 +131,8 @@ class MapNode(DepthFusionNode):
             raise ValueError(f'{self.get_name()}: parameter save_path={str(save_path)!r} must end in .ply')
         self.map, engine_note = make_map(config)
         self.get_logger().info(engine_note)
+        self.corrector = MapCorrector(self)
+        self.map.on_integrated = self.corrector.keep
         self._lock = threading.Lock()
         self._dirty = False
         self._world_frame = ''
@@ -157,6 +165,7 @@ class MapNode(DepthFusionNode):
         self.subscribe(PoseStamped, TOPIC_KEYFRAME_POSE, self._on_pose, q)
         if p['use_color']:
             self.subscribe(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
+        self.subscribe(PathMsg, TOPIC_CORRECTED_PATH, self.corrector.on_path, q)
         self.create_service(Trigger, '~/save_map', self._on_save)
         self.create_service(Trigger, '~/clear_map', self._on_clear)
         self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
@@ -169,7 +178,9 @@ class MapNode(DepthFusionNode):
             f'depth {config.min_depth:g}-{config.max_depth:g} m, at most {config.max_blocks} blocks '
             f'({cap:.0f} MiB); {self.resolve_topic_name(TOPIC_FUSED_DEPTH)} + '
             f'{self.resolve_topic_name(TOPIC_KEYFRAME_POSE)} -> {self.resolve_topic_name(TOPIC_MAP_POINTS)}, '
-            f'mesh on {self.resolve_service_name("~/save_map")}'
+            f'mesh on {self.resolve_service_name("~/save_map")}; corrected trajectories on '
+            f'{self.resolve_topic_name(TOPIC_CORRECTED_PATH)} rebuild it from the last '
+            f'{self.corrector.store.max_keyframes} keyframes kept (thinned with age)'
         )
 
     # --- callbacks: collect parts by stamp ------------------------------------------------------------
@@ -246,7 +257,7 @@ class MapNode(DepthFusionNode):
             self._world_frame = self._world_frame or frame_id or 'world'
             self._check_pose_jump(stamp, T_wc)
             evicted = self.map.evicted_blocks
-            self.map.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb)
+            self.map.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb, key=stamp)
             if self.map.evicted_blocks > evicted:
                 self.stats.noted(
                     'blocks_evicted', f'map full ({self.map.config.max_blocks} blocks): evicted the farthest'
@@ -265,6 +276,7 @@ class MapNode(DepthFusionNode):
         jump = find_jump(self.jump_limits, last[0], last[1], stamp, T_wc)
         if jump is None:
             return
+        self.corrector.store.new_segment()  # a corrected trajectory never interpolates across it
         clear = bool(self.params['clear_on_pose_jump'])
         what = (
             f'map cleared ({self._integrated} keyframes)'
@@ -283,6 +295,8 @@ class MapNode(DepthFusionNode):
         """Start an empty map with the same settings (holding ``_lock``); returns the keyframes dropped."""
         dropped = self._integrated
         self.map, _ = make_map(self.map.config)
+        self.map.on_integrated = self.corrector.keep
+        self.corrector.clear()
         self._integrated = 0
         self._dirty = True
         return dropped
@@ -312,6 +326,7 @@ class MapNode(DepthFusionNode):
             'blocks evicted': self.map.evicted_blocks,
             'voxel storage MiB': round(self.map.memory_bytes / 2**20, 2),
             'cap MiB': round(config.max_blocks * config.bytes_per_block / 2**20, 2),
+            **self.corrector.diagnostics(),
         }
 
     @property
@@ -374,6 +389,8 @@ class MapNode(DepthFusionNode):
         """Finish the integrations in hand, then write the mesh if ``save_on_shutdown``."""
         if not self._destroyed and self.params['save_on_shutdown']:
             self.wait_idle(10.0)
+            if not self.corrector.wait(60.0):
+                self.get_logger().warning('map rebuild still running after 60 s: saving the map as it was')
             try:
                 path, nv, nt = self.save_map()
                 self.get_logger().info(f'map saved to {path} ({nv} vertices, {nt} triangles)')

@@ -1,0 +1,181 @@
+"""The keyframes a map was integrated from, kept so the map can be rebuilt at corrected poses.
+
+A TSDF cannot move what it holds: after a loop closure, the surface integrated at the old
+poses stays where it was. What can be done (as BundleFusion de-integrates and re-integrates)
+is to integrate the keyframes again at their corrected poses into a fresh map. So every
+keyframe the map takes is kept here as it went in (the depth after the consistency test,
+its confidence and colour), with its stamp and pose, and :meth:`KeyframeStore.correct` moves
+the poses a corrected trajectory implies (:mod:`.pose_corrections`); :func:`rebuild` then
+integrates them into a new engine.
+
+Bounded: a keyframe is kept at half resolution (every second pixel and row: at 320x240 a
+pixel of the stored depth spans 4 cm at 5 m, a voxel's edge) as float16 depth, 8-bit
+confidence and 8-bit colour, 115 KB at 320x240. When ``max_keyframes`` are held, every second
+keyframe of the older half is dropped (consecutive keyframes overlap almost entirely, so the
+map loses little): the store spans the whole run at a density that halves with age. The
+memory is ``max_keyframes`` times the size of one (:attr:`KeyframeStore.cap_bytes`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from .pose_corrections import corrected_poses
+
+
+@dataclass
+class StoredKeyframe:
+    """One keyframe as the map took it, at half resolution."""
+
+    seq: int  # order of arrival (never reused)
+    stamp: float  # s
+    segment: int  # pose-jump / stream-restart segment (a world of its own)
+    T_wc: np.ndarray
+    camera: PinholeCamera  # of the stored (half-resolution) images
+    depth: np.ndarray  # float16, NaN where not integrated
+    confidence: np.ndarray | None  # uint8, confidence x 255
+    rgb: np.ndarray | None  # uint8 (H, W, 3)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in (self.depth, self.confidence, self.rgb) if a is not None)
+
+    def images(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Depth (float32), confidence (float32 in [0, 1]) and colour, as an engine takes them."""
+        confidence = None if self.confidence is None else self.confidence.astype(np.float32) / 255.0
+        return self.depth.astype(np.float32), confidence, self.rgb
+
+
+def half_camera(camera: PinholeCamera) -> PinholeCamera:
+    """The camera of every second pixel and row: pixel ``i`` of the half image is pixel ``2i``."""
+    c = camera
+    return PinholeCamera((c.width + 1) // 2, (c.height + 1) // 2, c.fx / 2, c.fy / 2, c.cx / 2, c.cy / 2)
+
+
+@dataclass(frozen=True)
+class CorrectionSummary:
+    """What one corrected trajectory did to the store."""
+
+    corrected: int  # keyframes the path covered
+    moved: int  # of those, moved by at least the threshold
+    largest_m: float
+    largest_deg: float
+
+
+@dataclass
+class KeyframeStore:
+    """Bounded store of the integrated keyframes (``max_keyframes``, thinned with age)."""
+
+    max_keyframes: int
+    entries: list[StoredKeyframe] = field(default_factory=list)
+    #: Keyframes dropped to stay within ``max_keyframes`` (in the map, but a rebuild leaves them out).
+    thinned: int = 0
+    segment: int = 0
+    _next_seq: int = 0
+
+    def add(
+        self,
+        stamp: float,
+        depth: np.ndarray,
+        T_wc: np.ndarray,
+        camera: PinholeCamera,
+        confidence: np.ndarray | None = None,
+        rgb: np.ndarray | None = None,
+    ) -> StoredKeyframe | None:
+        """Keep one integrated keyframe (full-resolution images, as the engine took them)."""
+        if self.max_keyframes <= 0:
+            return None
+        if self.entries and stamp <= self.entries[-1].stamp and self.entries[-1].segment == self.segment:
+            self.segment += 1  # the stream restarted (stamps went back): a world of its own
+        d = np.asarray(depth, np.float32)[::2, ::2]
+        conf = None
+        if confidence is not None:
+            c = np.nan_to_num(np.asarray(confidence, np.float32)[::2, ::2], nan=0.0)
+            conf = np.clip(np.rint(c * 255.0), 0, 255).astype(np.uint8)
+        colour = None if rgb is None else np.ascontiguousarray(np.asarray(rgb, np.uint8)[::2, ::2])
+        entry = StoredKeyframe(
+            self._next_seq,
+            float(stamp),
+            self.segment,
+            np.asarray(T_wc, np.float64).copy(),
+            half_camera(camera),
+            d.astype(np.float16),
+            conf,
+            colour,
+        )
+        self._next_seq += 1
+        self.entries.append(entry)
+        if len(self.entries) > self.max_keyframes:
+            self._thin()
+        return entry
+
+    def new_segment(self) -> None:
+        """The poses that follow are in another world (a pose jump): never interpolated across."""
+        if self.entries and self.entries[-1].segment == self.segment:
+            self.segment += 1
+
+    def _thin(self) -> None:
+        """Drop every second keyframe of the older half (the newest half stays dense)."""
+        half = len(self.entries) // 2
+        older = self.entries[:half]
+        kept = older[::2] if len(older) > 1 else []
+        self.thinned += len(older) - len(kept)
+        self.entries = kept + self.entries[half:]
+
+    @property
+    def memory_bytes(self) -> int:
+        return sum(e.nbytes for e in self.entries)
+
+    def cap_bytes(self, camera: PinholeCamera, colour: bool = True) -> int:
+        """The most this store holds for keyframes of ``camera`` (full-resolution camera)."""
+        half = half_camera(camera)
+        pixels = half.width * half.height
+        return self.max_keyframes * pixels * (2 + 1 + (3 if colour else 0))
+
+    def correct(
+        self, path_stamps: np.ndarray, path_poses: np.ndarray, min_m: float, min_deg: float, max_gap: float
+    ) -> CorrectionSummary:
+        """Move the stored poses as the corrected trajectory says, segment by segment.
+
+        Only a move of at least ``min_m`` or ``min_deg`` counts as moved (a path that restates
+        the poses it already gave moves nothing, and asks for no rebuild)."""
+        corrected = moved = 0
+        largest_m = largest_deg = 0.0
+        for segment in sorted({e.segment for e in self.entries}):
+            here = [e for e in self.entries if e.segment == segment]
+            old = np.stack([e.T_wc for e in here])
+            fix = corrected_poses(np.array([e.stamp for e in here]), old, path_stamps, path_poses, max_gap)
+            metres, degrees = fix.moves(old)
+            big = fix.corrected & ((metres >= min_m) | (degrees >= min_deg))
+            corrected += int(fix.corrected.sum())
+            moved += int(big.sum())
+            if fix.corrected.any():
+                largest_m = max(largest_m, float(metres[fix.corrected].max()))
+                largest_deg = max(largest_deg, float(degrees[fix.corrected].max()))
+            for e, T, ok in zip(here, fix.poses, fix.corrected, strict=True):
+                if ok:
+                    e.T_wc = T
+        return CorrectionSummary(corrected, moved, largest_m, largest_deg)
+
+    def newer_than(self, seq: int) -> list[StoredKeyframe]:
+        """Keyframes that arrived after the one numbered ``seq``."""
+        return [e for e in self.entries if e.seq > seq]
+
+    @property
+    def last_seq(self) -> int:
+        return self.entries[-1].seq if self.entries else -1
+
+
+def rebuild(engine: object, entries: Iterable[StoredKeyframe]) -> int:
+    """Integrate ``entries`` at their (corrected) poses into ``engine`` (a fresh TSDF engine,
+    :func:`.engine.make_engine`); returns how many."""
+    n = 0
+    for e in entries:
+        depth, confidence, rgb = e.images()
+        engine.integrate(depth, e.T_wc, e.camera, confidence=confidence, rgb=rgb)
+        n += 1
+    return n

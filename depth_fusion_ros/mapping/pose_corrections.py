@@ -1,0 +1,106 @@
+"""Corrected keyframe poses from a pose source's corrected trajectory (a loop closure).
+
+A SLAM that closes a loop re-estimates its past poses and publishes the corrected trajectory
+(``nav_msgs/Path``: its own keyframes, each stamped). The map's keyframes are ours, at other
+stamps, so the path cannot be read off at them. What varies smoothly along a trajectory is
+the *correction* ``C(t) = T_new(t) T_old(t)^-1`` (a rigid motion of the world that a pose
+graph optimisation spreads along the loop). So the correction is computed at each path stamp,
+with the old pose there interpolated between our own keyframes' poses as they were
+integrated, and interpolated (translation linear, rotation slerp) to each of our keyframes.
+A keyframe at a path stamp takes the path's pose exactly.
+
+What is not corrected, and why:
+
+* keyframes after the path's last stamp: a pose source publishes after its correction in
+  the corrected world, so those are right already (correcting them again would move them twice);
+* keyframes before the path's first stamp: the path says nothing about them.
+
+One call corrects one *segment*: keyframes whose poses are in one world, stamps increasing.
+The map node starts a new segment at each pose jump it notes and at a stream restart, and
+corrects each on its own, so nothing is interpolated across a jump; a relocalised segment is
+then moved into the corrected world by the path's poses in its own time span.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import interpolate_poses, invert_pose, rotation_angle
+
+#: Stamps closer than this (s) are the same instant (a path pose at one of our keyframes).
+SAME_STAMP_S = 1e-4
+
+
+@dataclass(frozen=True)
+class Corrections:
+    """Per keyframe: its corrected pose (its old one where not corrected) and whether it was."""
+
+    poses: np.ndarray  # (N, 4, 4)
+    corrected: np.ndarray  # (N,) bool
+
+    def moves(self, old: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Translation (m) and rotation (degrees) of each keyframe's correction."""
+        delta = self.poses @ np.linalg.inv(np.asarray(old, np.float64))
+        metres = np.linalg.norm(self.poses[:, :3, 3] - np.asarray(old)[:, :3, 3], axis=1)
+        degrees = np.degrees([rotation_angle(d[:3, :3]) for d in delta]) if len(delta) else np.zeros(0)
+        return metres, np.asarray(degrees)
+
+
+def _old_at(
+    stamps: np.ndarray, poses: np.ndarray, query: np.ndarray, max_gap: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Our keyframes' (old) poses at ``query`` stamps: exact at a keyframe's stamp, else
+    interpolated; invalid where the bracketing keyframes are more than ``max_gap`` s apart
+    (the motion between them is not known well enough) or outside their span."""
+    out, valid = interpolate_poses(stamps, poses, query)
+    idx = np.clip(np.searchsorted(stamps, query, side='right') - 1, 0, len(stamps) - 1)
+    nxt = np.minimum(idx + 1, len(stamps) - 1)
+    valid &= stamps[nxt] - stamps[idx] <= max_gap
+    for cand in (nxt, idx):  # a path pose at one of our keyframes: that keyframe's pose itself
+        same = np.abs(stamps[cand] - query) <= SAME_STAMP_S
+        out[same] = poses[cand[same]]
+        valid |= same
+    return out, valid
+
+
+def corrected_poses(
+    stamps: np.ndarray,
+    poses: np.ndarray,
+    path_stamps: np.ndarray,
+    path_poses: np.ndarray,
+    max_gap: float = 2.0,
+) -> Corrections:
+    """One segment's keyframe poses after the corrections a corrected trajectory implies.
+
+    ``stamps`` (N,) strictly increasing (s), ``poses`` (N, 4, 4) camera-to-world as
+    integrated; ``path_stamps`` (P,) and ``path_poses`` (P, 4, 4) the corrected trajectory,
+    in any order. ``max_gap``: the longest gap (s) between two of our keyframes that an old
+    pose is interpolated across.
+    """
+    stamps = np.asarray(stamps, np.float64)
+    poses = np.asarray(poses, np.float64)
+    out = poses.copy()
+    corrected = np.zeros(len(stamps), dtype=bool)
+    if len(stamps) == 0 or len(path_stamps) == 0:
+        return Corrections(out, corrected)
+    order = np.argsort(path_stamps, kind='stable')
+    p_stamps = np.asarray(path_stamps, np.float64)[order]
+    p_poses = np.asarray(path_poses, np.float64)[order]
+    keep = np.concatenate(([True], np.diff(p_stamps) > SAME_STAMP_S))  # one pose per instant
+    old, valid = _old_at(stamps, poses, p_stamps[keep], max_gap)
+    p_stamps, p_poses, old = p_stamps[keep][valid], p_poses[keep][valid], old[valid]
+    if len(p_stamps) == 0:
+        return Corrections(out, corrected)
+    fix = p_poses @ np.stack([invert_pose(T) for T in old])  # C = T_new T_old^-1 at each path stamp
+    c, ok = interpolate_poses(p_stamps, fix, stamps)
+    out[ok] = c[ok] @ poses[ok]
+    corrected |= ok
+    # A keyframe at a path stamp takes the path's pose itself (not one rounded through C).
+    j = np.clip(np.searchsorted(p_stamps, stamps), 0, len(p_stamps) - 1)
+    for cand in (j, np.maximum(j - 1, 0)):
+        same = np.abs(p_stamps[cand] - stamps) <= SAME_STAMP_S
+        out[same] = p_poses[cand[same]]
+        corrected |= same
+    return Corrections(out, corrected)

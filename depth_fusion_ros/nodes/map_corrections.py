@@ -1,0 +1,227 @@
+"""map_node's loop-closure handling: a corrected trajectory moves the keyframes, and the map
+is rebuilt from them at their corrected poses, in the background.
+
+A SLAM that closes a loop publishes its corrected trajectory; here as ``nav_msgs/Path``
+(``camera/corrected_path``: one PoseStamped per pose, stamped, in the world frame of the
+keyframe poses; remap it to the SLAM's topic). The core (mapping/keyframe_store.py,
+mapping/pose_corrections.py) works out each kept keyframe's corrected pose; when one moved by
+at least ``correction_min_translation`` / ``correction_min_rotation_deg``, a thread integrates
+every kept keyframe again into a fresh engine, integrates the keyframes that came meanwhile,
+and swaps the map under the node's lock. Integration never waits for a rebuild, and the old
+map is served until the new one is whole.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..data import messages
+from ..mapping.engine import make_engine
+from ..mapping.keyframe_store import KeyframeStore, rebuild
+from ..mapping.pose_corrections import corrected_poses
+from .image_input import InputError, pose_from_message
+from .params import ParamSpec
+
+if TYPE_CHECKING:
+    from .map_node import MapNode
+
+TOPIC_CORRECTED_PATH = 'camera/corrected_path'
+
+PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec(
+        'reintegration_keyframes',
+        1000,
+        'keyframes kept (half resolution, ~115 KB each at 320x240; older ones thinned) to rebuild the map at '
+        f'the corrected poses of a trajectory on {TOPIC_CORRECTED_PATH} (0: none kept, corrections ignored)',
+        0,
+        1_000_000,
+    ),
+    ParamSpec(
+        'correction_min_translation',
+        0.01,
+        'a corrected trajectory rebuilds the map when it moves a kept keyframe by at least this (m) ...',
+        0.0,
+    ),
+    ParamSpec('correction_min_rotation_deg', 0.5, '... or by at least this (degrees)', 0.0, 180.0),
+    ParamSpec(
+        'correction_max_gap',
+        2.0,
+        'longest gap (s) between two keyframes that a pose of the corrected trajectory is compared across',
+        0.0,
+    ),
+)
+
+
+class MapCorrector:
+    """The kept keyframes of a :class:`MapNode`, their corrections and the background rebuild."""
+
+    def __init__(self, node: MapNode) -> None:
+        self.node = node
+        p = node.params
+        self.store = KeyframeStore(int(p['reintegration_keyframes']))
+        self.min_m = float(p['correction_min_translation'])
+        self.min_deg = float(p['correction_min_rotation_deg'])
+        self.max_gap = float(p['correction_max_gap'])
+        self.rebuilds = 0
+        self.last_rebuild_s = 0.0
+        self._thread: threading.Thread | None = None
+        self._again = False
+        self._generation = 0  # bumped when the map is cleared: a rebuild from before is not swapped in
+        self._state = threading.Lock()  # guards _thread and _again (node._lock guards the map and store)
+
+    # --- called holding node._lock ---------------------------------------------------------------------
+
+    def keep(
+        self, key: object, depth: np.ndarray, T_wc: np.ndarray, camera: Any, confidence: Any, rgb: Any
+    ) -> None:
+        """``ConsistentMap.on_integrated``: keep the keyframe as it went into the engine."""
+        self.store.add(float(key), depth, T_wc, camera, confidence, rgb)
+
+    def memory_bytes(self) -> int:
+        return self.store.memory_bytes
+
+    # --- the corrected trajectory ----------------------------------------------------------------------
+
+    def on_path(self, msg: Any) -> None:
+        """A corrected trajectory: move the kept (and waiting) keyframes, then rebuild if one moved."""
+        node = self.node
+        node.stats.received('corrected_path')
+        if self.store.max_keyframes <= 0:
+            node.stats.dropped(
+                'corrections_off', 'corrected trajectory ignored: reintegration_keyframes is 0 (nothing kept)'
+            )
+            return
+        stamps, poses, bad = self._parse(msg)
+        if bad:
+            node.stats.dropped('bad_pose', f'corrected trajectory: {bad} of {len(msg.poses)} poses unusable')
+        if len(stamps) == 0:
+            return
+        with node._lock:
+            world = node._world_frame
+            frame = msg.header.frame_id
+            if world and frame and frame != world:
+                node.stats.dropped('frame_mismatch', f'corrected trajectory in {frame!r}, map in {world!r}')
+                return
+            summary = self.store.correct(stamps, poses, self.min_m, self.min_deg, self.max_gap)
+            self._correct_pending(stamps, poses)
+        node.stats.published('corrections')
+        if summary.moved == 0:
+            node.get_logger().info(
+                f'corrected trajectory ({len(stamps)} poses): {summary.corrected} kept keyframes covered, '
+                f'none moved by {self.min_m:g} m or {self.min_deg:g} deg: map kept as it is'
+            )
+            return
+        node.get_logger().info(
+            f'corrected trajectory ({len(stamps)} poses) moved {summary.moved} of {len(self.store.entries)} '
+            f'kept keyframes (largest {summary.largest_m:.3f} m, {summary.largest_deg:.2f} deg): '
+            'rebuilding the map'
+        )
+        self._start_rebuild()
+
+    def _parse(self, msg: Any) -> tuple[np.ndarray, np.ndarray, int]:
+        stamps, poses, bad = [], [], 0
+        for stamped in msg.poses:
+            try:
+                poses.append(pose_from_message(stamped))
+            except InputError:
+                bad += 1
+                continue
+            stamps.append(messages.ns_to_sec(messages.stamp_to_ns(stamped.header.stamp)))
+        return np.asarray(stamps, np.float64), np.asarray(poses, np.float64).reshape(-1, 4, 4), bad
+
+    def _correct_pending(self, stamps: np.ndarray, poses: np.ndarray) -> None:
+        """The keyframes in the consistency test's window, and the pose-jump test's last pose,
+        move with the kept ones (holding node._lock)."""
+        node = self.node
+        window = node.map.window_keyframes()
+        keys = np.array([float(k) for k, _ in window])
+        order = np.argsort(keys, kind='stable')
+        if window and np.all(np.diff(keys[order]) > 0):  # (a restarted stream's window: left as it is)
+            old = np.stack([T for _, T in window])[order]
+            fix = corrected_poses(keys[order], old, stamps, poses, self.max_gap)
+            moved = {float(keys[order][i]): fix.poses[i] for i in range(len(order)) if fix.corrected[i]}
+            node.map.move_window(lambda key, T: moved.get(float(key), T))
+        last = node._last_pose
+        if last is not None:
+            fix = corrected_poses(np.array([last[0]]), last[1][None], stamps, poses, self.max_gap)
+            if fix.corrected[0]:
+                node._last_pose = (last[0], fix.poses[0])
+
+    # --- the rebuild thread ----------------------------------------------------------------------------
+
+    def _start_rebuild(self) -> None:
+        with self._state:
+            if self._thread is not None and self._thread.is_alive():
+                self._again = True  # the running rebuild is already out of date: once more after it
+                return
+            self._thread = threading.Thread(target=self._rebuild_loop, name='map_rebuild', daemon=True)
+            self._thread.start()
+
+    def _rebuild_loop(self) -> None:
+        while True:
+            try:
+                self._rebuild_once()
+            except Exception as exc:  # a failed rebuild keeps the old map; the node goes on
+                self.node.stats.dropped('rebuild_failed', f'map rebuild failed: {type(exc).__name__}: {exc}')
+            with self._state:
+                if not self._again:
+                    self._thread = None
+                    return
+                self._again = False
+
+    def _rebuild_once(self) -> None:
+        node = self.node
+        t0 = time.monotonic()
+        with node._lock:
+            entries = list(self.store.entries)
+            last = self.store.last_seq
+            config = node.map.config
+            generation = self._generation
+        engine, _ = make_engine(config)
+        rebuild(engine, entries)  # the long part, outside the lock: integration goes on meanwhile
+        with node._lock:
+            if generation != self._generation:
+                node.get_logger().info('map rebuild dropped: the map was cleared while it ran')
+                return
+            late = rebuild(engine, self.store.newer_than(last))
+            node.map.engine = engine
+            kept = len(self.store.entries)
+            node._integrated = kept + node.map.pending
+            node._dirty = True
+        self.rebuilds += 1
+        self.last_rebuild_s = time.monotonic() - t0
+        thinned = self.store.thinned
+        older = f'; {thinned} older keyframes thinned out of the store are no longer in it' if thinned else ''
+        node.get_logger().info(
+            f'map rebuilt at the corrected poses from {kept} keyframes ({late} came during it) in '
+            f'{self.last_rebuild_s:.1f} s{older}'
+        )
+        node.stats.published('rebuilds')
+
+    def busy(self) -> bool:
+        with self._state:
+            return self._thread is not None and self._thread.is_alive()
+
+    def wait(self, timeout: float) -> bool:
+        """Wait for a running rebuild (shutdown, tests); True when none is running."""
+        deadline = time.monotonic() + timeout
+        while self.busy() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return not self.busy()
+
+    def clear(self) -> None:
+        """The map was cleared: keep nothing from before (holding node._lock)."""
+        self.store.entries.clear()
+        self._generation += 1
+
+    def diagnostics(self) -> dict[str, Any]:
+        return {
+            'keyframes kept for a rebuild': len(self.store.entries),
+            'kept keyframes MiB': round(self.store.memory_bytes / 2**20, 2),
+            'keyframes thinned out of the store': self.store.thinned,
+            'rebuilds at corrected poses': self.rebuilds,
+        }

@@ -1,0 +1,127 @@
+"""A corrected trajectory (loop closure) moves the map's kept keyframes: core, no ROS."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from depth_fusion_ros.camera import PinholeCamera
+from depth_fusion_ros.mapping.config import MapConfig
+from depth_fusion_ros.mapping.engine import make_engine
+from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, half_camera, rebuild
+from depth_fusion_ros.mapping.pose_corrections import corrected_poses
+
+
+def _pose(t, rotvec=(0.0, 0.0, 0.0)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def _trajectory(stamps: np.ndarray) -> np.ndarray:
+    """A smooth handheld-like path: 0.3 m/s along x, swaying in y, yawing slowly."""
+    return np.stack([_pose((0.3 * s, 0.05 * np.sin(s), 0.0), (0.0, 0.1 * s, 0.0)) for s in stamps])
+
+
+def _drift(stamps: np.ndarray) -> np.ndarray:
+    """What a pose graph corrects: a drift that grows along the loop (2 cm and 0.6 deg a second)."""
+    return np.stack([_pose((0.02 * s, -0.01 * s, 0.0), (0.0, 0.0, np.radians(0.6) * s)) for s in stamps])
+
+
+def test_keyframes_between_the_paths_poses_get_the_interpolated_correction():
+    """Our keyframes every 0.2 s, the SLAM's corrected keyframes every 0.5 s at other stamps."""
+    ours = np.arange(0.0, 10.0, 0.2)
+    truth = _trajectory(ours)
+    drifted = _drift(ours) @ truth  # what was integrated
+    slam = np.arange(0.05, 10.0, 0.5)
+    fix = corrected_poses(ours, drifted, slam, _trajectory(slam))
+    inside = (ours >= slam[0]) & (ours <= slam[-1])
+    assert np.array_equal(fix.corrected, inside)
+    err = np.linalg.norm(fix.poses[inside, :3, 3] - truth[inside, :3, 3], axis=1)
+    before = np.linalg.norm(drifted[inside, :3, 3] - truth[inside, :3, 3], axis=1)
+    assert before.max() > 0.15 and err.max() < 0.005, (before.max(), err.max())
+    # outside the path's span: not moved (the newest are already in the corrected world)
+    assert np.array_equal(fix.poses[~inside], drifted[~inside])
+
+
+def test_a_keyframe_at_a_path_stamp_takes_the_paths_pose_and_an_unchanged_path_moves_nothing():
+    ours = np.arange(0.0, 4.0, 0.25)
+    poses = _trajectory(ours)
+    fix = corrected_poses(ours, poses, ours[::3], poses[::3])
+    metres, degrees = fix.moves(poses)
+    assert fix.corrected[: 3 * (len(ours[::3]) - 1) + 1].all()
+    assert metres.max() < 1e-9 and degrees.max() < 1e-6
+    moved = poses[::3].copy()
+    moved[:, 0, 3] += 0.1
+    fix = corrected_poses(ours, poses, ours[::3][::-1], moved[::-1])  # any order
+    assert np.allclose(fix.poses[::3][: len(moved)], moved)
+
+
+def test_no_old_pose_is_interpolated_across_a_gap_longer_than_max_gap():
+    ours = np.array([0.0, 0.2, 0.4, 5.0, 5.2])
+    poses = _trajectory(ours)
+    slam = np.array([2.0])  # falls in the 4.6 s gap: nothing known there
+    fix = corrected_poses(ours, poses, slam, _trajectory(slam) @ _pose((1.0, 0, 0)), max_gap=2.0)
+    assert not fix.corrected.any()
+
+
+def _room_keyframe(i: int, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """A camera 2 m in front of a wall (z = 2 in the world), sliding along x."""
+    depth = np.full((camera.height, camera.width), 2.0, np.float32)
+    return depth, _pose((0.05 * i, 0.0, 0.0))
+
+
+def test_store_keeps_half_resolution_thins_with_age_and_splits_segments():
+    camera = PinholeCamera(64, 48, 60.0, 60.0, 31.5, 23.5)
+    store = KeyframeStore(max_keyframes=8)
+    for i in range(20):
+        depth, T = _room_keyframe(i, camera)
+        store.add(
+            0.1 * i, depth, T, camera, np.full(depth.shape, 0.5, np.float32), np.zeros((48, 64, 3), np.uint8)
+        )
+    assert len(store.entries) <= 8 and store.thinned == 20 - len(store.entries)
+    assert store.entries[-1].seq == 19 and store.entries[0].seq == 0  # the whole run, denser at the end
+    e = store.entries[-1]
+    assert e.depth.shape == (24, 32) and e.depth.dtype == np.float16
+    assert e.camera == half_camera(camera) and e.camera.cx == pytest.approx(15.75)
+    assert store.memory_bytes == len(store.entries) * 24 * 32 * 6
+    assert store.memory_bytes <= store.cap_bytes(camera)
+    store.add(0.5, *_room_keyframe(0, camera), camera)  # stamps went back: a restarted stream
+    assert store.entries[-1].segment == 1
+    store.new_segment()
+    store.add(0.6, *_room_keyframe(1, camera), camera)
+    assert store.entries[-1].segment == 2
+
+
+def test_rebuild_at_corrected_poses_puts_the_wall_back_where_it_is():
+    """Keyframes of a wall at z = 2 m integrated with a 10 cm error in z from keyframe 5 on:
+    the map holds two walls. The corrected trajectory moves them back; the rebuilt map has one."""
+    camera = PinholeCamera(80, 60, 70.0, 70.0, 39.5, 29.5)
+    config = MapConfig(voxel_size=0.02, engine='torch', consistency_span=0)
+    store = KeyframeStore(max_keyframes=100)
+    stamps, truth = [], []
+    for i in range(10):
+        depth, T = _room_keyframe(i, camera)
+        wrong = T.copy()
+        if i >= 5:
+            wrong[2, 3] += 0.10
+        store.add(0.2 * i, depth, wrong, camera, None, None)
+        stamps.append(0.2 * i)
+        truth.append(T)
+
+    def wall_spread(engine) -> tuple[float, float]:
+        z = engine.mesh().vertices[:, 2]
+        return float(np.percentile(z, 5)), float(np.percentile(z, 95))
+
+    before, _ = make_engine(config)
+    rebuild(before, store.entries)
+    lo, hi = wall_spread(before)
+    assert hi - lo > 0.08  # two walls, 10 cm apart
+    summary = store.correct(np.array(stamps), np.stack(truth), 0.01, 0.5, 2.0)
+    assert summary.corrected == 10 and summary.moved == 5 and summary.largest_m == pytest.approx(0.10)
+    after, _ = make_engine(config)
+    assert rebuild(after, store.entries) == 10
+    lo, hi = wall_spread(after)
+    assert hi - lo < 0.03 and abs(0.5 * (lo + hi) - 2.0) < 0.02
