@@ -28,6 +28,19 @@ def test_package_xml_is_valid_format_3():
     assert {'rclpy', 'sensor_msgs', 'geometry_msgs', 'std_msgs', 'builtin_interfaces'} <= deps
 
 
+def test_every_ros_interface_package_the_code_imports_is_an_exec_depend():
+    """rosdep installs what package.xml names: a message package imported but not declared
+    works here (the pip wheels bring all of common_interfaces) and fails on a robot."""
+    import re
+
+    imported = set()
+    for path in (ROOT / 'depth_fusion_ros').rglob('*.py'):
+        imported |= set(re.findall(r'^\s*from (\w+_(?:msgs|srvs))\b', path.read_text(), flags=re.M))
+    text = (ROOT / 'package.xml').read_text()
+    declared = set(re.findall(r'<exec_depend>(\w+)</exec_depend>', text))
+    assert imported and imported <= declared, sorted(imported - declared)
+
+
 def test_console_scripts_resolve():
     from importlib.metadata import entry_points
 
