@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import interpolate_poses, validate_pose
+from .pose_corrections import corrected_poses
 from .pose_jumps import PoseJump, PoseJumpLimits, find_jump
 
 
@@ -119,6 +120,41 @@ class PoseBuffer:
             np.array(self._stamps[i - 1 : i + 1]), np.stack(self._poses[i - 1 : i + 1]), np.array([stamp])
         )
         return PoseLookup(T[0])
+
+    def correct(
+        self, path_stamps: np.ndarray, path_poses: np.ndarray, max_gap: float
+    ) -> tuple[float, float] | None:
+        """Move the poses as a corrected trajectory says (a loop closure:
+        :mod:`.pose_corrections`), so that images still to be posed get poses in the corrected
+        world. Each stretch between two jumps is a world of its own and is corrected on its own
+        (a loop closure's step is often a jump: the poses before it are the ones the path
+        moves, and the step goes). Returns how far (m, degrees) the newest pose the path covers
+        moved: the step between the frames posed before and those to come; ``None`` when it
+        covers none."""
+        bounds = sorted(self._stamps.index(s) for s in self._after_jump)
+        newest: tuple[float, tuple[float, float]] | None = None
+        for start, stop in zip([0, *bounds], [*bounds, len(self._stamps)], strict=True):
+            if stop <= start:
+                continue
+            old = np.stack(self._poses[start:stop])
+            stamps = np.array(self._stamps[start:stop])
+            ended = stop < len(self._stamps)
+            fix = corrected_poses(stamps, old, path_stamps, path_poses, max_gap, ended=ended)
+            if not fix.corrected.any():
+                continue
+            for i in np.nonzero(fix.corrected)[0]:
+                self._poses[start + i] = fix.poses[i]
+            metres, degrees = fix.moves(old)
+            last = int(np.nonzero(fix.corrected)[0][-1])
+            newest = (self._stamps[start + last], (float(metres[last]), float(degrees[last])))
+        if newest is None:
+            return None
+        self._after_jump.clear()  # the jumps again: a correction may remove a step (or make one)
+        for a in range(len(self._stamps) - 1):
+            pair = (self._stamps[a], self._poses[a], self._stamps[a + 1], self._poses[a + 1])
+            if find_jump(self.jump_limits, *pair) is not None:
+                self._after_jump.add(self._stamps[a + 1])
+        return newest[1]
 
     def clear(self) -> None:
         self._stamps.clear()

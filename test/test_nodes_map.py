@@ -104,6 +104,9 @@ def test_bad_parameters_fail_at_start():
             MapNode(context=ros.context, parameter_overrides=[Parameter('save_path', value='map.obj')])
         with pytest.raises(ValueError, match=r'map\.engine'):
             MapNode(context=ros.context, parameter_overrides=[Parameter('map.engine', value='nvblox')])
+        with pytest.raises(ValueError, match='camera_from_pose_frame'):
+            bad = Parameter('camera_from_pose_frame', value=[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0])
+            MapNode(context=ros.context, parameter_overrides=[bad])
 
 
 def test_multi_view_node_publishes_each_keyframe_pose_with_its_stamp(room):

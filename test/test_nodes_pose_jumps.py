@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+from nav_msgs.msg import Path as PathMsg
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import Image
 from test_nodes_multi_view import _Camera, _mv_node, _stamps
@@ -22,26 +23,48 @@ from depth_fusion_ros.nodes.testing import RosHarness
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
+K = m.RCLPY
 #: The frame whose pose is the first after the relocalisation.
 JUMP_AT = 9
 #: The correction: 0.4 m and 6 degrees, as a loop closure after a short drift could give.
 CORRECTION = make_pose([0.3, -0.2, 0.2], Rotation.from_euler('y', 6, degrees=True).as_quat())
 
 
-def _relocalised(poses: list[np.ndarray]) -> list[np.ndarray]:
-    return [T if i < JUMP_AT else CORRECTION @ T for i, T in enumerate(poses)]
+def _relocalised(poses: list[np.ndarray], correction: np.ndarray = CORRECTION) -> list[np.ndarray]:
+    return [T if i < JUMP_AT else correction @ T for i, T in enumerate(poses)]
 
 
-def _play(seq, detect: bool, **extra) -> tuple[list, object, dict]:
+def _corrected_path(poses: list[np.ndarray], stamps: list[int], correction: np.ndarray) -> PathMsg:
+    """What the SLAM publishes when it closes the loop: its keyframes (every third frame) before
+    the correction, in the corrected world."""
+    msg = PathMsg()
+    msg.header = m.header_msg(stamps[JUMP_AT], 'world', kind=K)
+    msg.poses = [
+        m.pose_stamped_msg(correction @ poses[i], m.header_msg(stamps[i], 'world', kind=K), kind=K)
+        for i in range(0, JUMP_AT, 3)
+    ]
+    return msg
+
+
+def _play(
+    seq, detect: bool, correction: np.ndarray = CORRECTION, with_path: bool = False, **extra
+) -> tuple[list, object, dict]:
     stamps = [m.sec_to_ns(s) for s in seq.stamps]
-    poses = _relocalised([f.pose for f in seq.frames])
+    truth = [f.pose for f in seq.frames]
+    poses = _relocalised(truth, correction)
     limits = {} if detect else {'max_pose_speed': 0.0, 'max_pose_angular_speed': 0.0}
     with RosHarness() as ros:
         node = _mv_node(ros, **EVERY_FRAME, **limits, **extra)
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         cam = _Camera(ros)
+        path = ros.publisher(PathMsg, '/camera/corrected_path')
+        assert ros.wait_for_subscribers([path])
         for i, frame in enumerate(seq.frames):
             cam.publish_pose(poses[i], stamps[i])
+            if with_path and i == JUMP_AT:  # the loop closed: the first corrected pose, then the path
+                time.sleep(0.05)
+                path.publish(_corrected_path(truth, stamps, correction))
+                time.sleep(0.05)
             cam.publish_image(frame.rgb, stamps[i], seq.camera)
             time.sleep(0.02)
         feed = node.filter_feed
@@ -80,3 +103,25 @@ def test_without_the_check_the_filter_carries_estimates_across_the_jump(syntheti
     first_after = next((k, msg) for k, msg in published if k >= JUMP_AT)
     error, _ = _abs_rel(synthetic_sequence, *first_after)
     assert error > 0.03, f'keyframe {first_after[0]}: AbsRel {error:.3f}'
+
+
+#: A loop closure's correction under the jump limits (6 cm and 2 degrees between two frames at
+#: 30 Hz is 1.8 m/s and 60 deg/s): the poses alone cannot tell it from motion.
+SMALL = make_pose([0.06, -0.03, 0.03], Rotation.from_euler('y', 2, degrees=True).as_quat())
+
+
+def test_a_corrected_trajectory_starts_the_filter_over_where_the_jump_test_cannot_see(synthetic_sequence):
+    """The SLAM says it corrected (its trajectory on camera/corrected_path): the buffered poses
+    move with it and the filter starts over, so the first keyframe after it is as accurate as
+    the others. Without the path the same correction goes unseen and that keyframe is worse."""
+    seq = synthetic_sequence
+    published, snap, _ = _play(seq, detect=True, correction=SMALL, with_path=True)
+    assert snap.noted.get('pose_correction') == 1 and 'pose_jump' not in snap.noted, snap.summary()
+    assert snap.dropped == {}, snap.summary()
+    errors = {k: _abs_rel(seq, k, msg)[0] for k, msg in published}
+    assert any(k >= JUMP_AT for k in errors), errors
+    assert max(errors.values()) < 0.0125, errors
+    unseen, snap, _ = _play(seq, detect=True, correction=SMALL)
+    assert 'pose_jump' not in snap.noted and 'pose_correction' not in snap.noted, snap.summary()
+    first_after = next((k, msg) for k, msg in unseen if k >= JUMP_AT)
+    assert _abs_rel(seq, *first_after)[0] > 0.014, first_after[0]

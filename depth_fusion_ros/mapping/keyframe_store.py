@@ -5,7 +5,7 @@ poses stays where it was. What can be done (as BundleFusion de-integrates and re
 is to integrate the keyframes again at their corrected poses into a fresh map. So every
 keyframe the map takes is kept here as it went in (the depth after the consistency test,
 its confidence and colour), with its stamp and pose, and :meth:`KeyframeStore.correct` moves
-the poses a corrected trajectory implies (:mod:`.pose_corrections`); :func:`rebuild` then
+the poses a corrected trajectory implies (:mod:`..pose_corrections`); :func:`rebuild` then
 integrates them into a new engine.
 
 Bounded: a keyframe is kept at half resolution (every second pixel and row: at 320x240 a
@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import PinholeCamera
-from .pose_corrections import corrected_poses
+from ..pose_corrections import CorrectionLimits, corrected_poses
 
 
 @dataclass
@@ -137,20 +137,24 @@ class KeyframeStore:
         return self.max_keyframes * pixels * (2 + 1 + (3 if colour else 0))
 
     def correct(
-        self, path_stamps: np.ndarray, path_poses: np.ndarray, min_m: float, min_deg: float, max_gap: float
+        self, path_stamps: np.ndarray, path_poses: np.ndarray, limits: CorrectionLimits
     ) -> CorrectionSummary:
         """Move the stored poses as the corrected trajectory says, segment by segment.
 
-        Only a move of at least ``min_m`` or ``min_deg`` counts as moved (a path that restates
-        the poses it already gave moves nothing, and asks for no rebuild)."""
+        Only a move that ``limits.counts`` counts as moved (a path that restates the poses it
+        already gave moves nothing, and asks for no rebuild); ``limits.max_gap``: the longest
+        gap between two kept keyframes that a path pose is compared across."""
         corrected = moved = 0
         largest_m = largest_deg = 0.0
-        for segment in sorted({e.segment for e in self.entries}):
+        segments = sorted({e.segment for e in self.entries})
+        for segment in segments:
             here = [e for e in self.entries if e.segment == segment]
             old = np.stack([e.T_wc for e in here])
-            fix = corrected_poses(np.array([e.stamp for e in here]), old, path_stamps, path_poses, max_gap)
+            stamps = np.array([e.stamp for e in here])
+            ended = segment != segments[-1] or segment != self.segment  # a jump or restart followed it
+            fix = corrected_poses(stamps, old, path_stamps, path_poses, limits.max_gap, ended=ended)
             metres, degrees = fix.moves(old)
-            big = fix.corrected & ((metres >= min_m) | (degrees >= min_deg))
+            big = fix.corrected & ((metres >= limits.min_m) | (degrees >= limits.min_deg))
             corrected += int(fix.corrected.sum())
             moved += int(big.sum())
             if fix.corrected.any():

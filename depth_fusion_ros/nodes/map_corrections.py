@@ -4,7 +4,7 @@ is rebuilt from them at their corrected poses, in the background.
 A SLAM that closes a loop publishes its corrected trajectory; here as ``nav_msgs/Path``
 (``camera/corrected_path``: one PoseStamped per pose, stamped, in the world frame of the
 keyframe poses; remap it to the SLAM's topic). The core (mapping/keyframe_store.py,
-mapping/pose_corrections.py) works out each kept keyframe's corrected pose; when one moved by
+pose_corrections.py) works out each kept keyframe's corrected pose; when one moved by
 at least ``correction_min_translation`` / ``correction_min_rotation_deg``, a thread integrates
 every kept keyframe again into a fresh engine, integrates the keyframes that came meanwhile,
 and swaps the map under the node's lock. Integration never waits for a rebuild, and the old
@@ -19,17 +19,21 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..data import messages
 from ..mapping.engine import make_engine
 from ..mapping.keyframe_store import KeyframeStore, rebuild
-from ..mapping.pose_corrections import corrected_poses
-from .image_input import InputError, pose_from_message
+from ..pose_corrections import corrected_poses
+from . import robot_inputs
+from .corrected_path import (
+    TOPIC_CORRECTED_PATH,
+    camera_from_pose_frame_parameter,
+    correction_limits,
+    correction_parameters,
+    path_from_message,
+)
 from .params import ParamSpec
 
 if TYPE_CHECKING:
     from .map_node import MapNode
-
-TOPIC_CORRECTED_PATH = 'camera/corrected_path'
 
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
@@ -40,19 +44,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         0,
         1_000_000,
     ),
-    ParamSpec(
-        'correction_min_translation',
-        0.01,
-        'a corrected trajectory rebuilds the map when it moves a kept keyframe by at least this (m) ...',
-        0.0,
-    ),
-    ParamSpec('correction_min_rotation_deg', 0.5, '... or by at least this (degrees)', 0.0, 180.0),
-    ParamSpec(
-        'correction_max_gap',
-        2.0,
-        'longest gap (s) between two keyframes that a pose of the corrected trajectory is compared across',
-        0.0,
-    ),
+    *correction_parameters('rebuilds the map there'),
+    camera_from_pose_frame_parameter(),
 )
 
 
@@ -63,9 +56,8 @@ class MapCorrector:
         self.node = node
         p = node.params
         self.store = KeyframeStore(int(p['reintegration_keyframes']))
-        self.min_m = float(p['correction_min_translation'])
-        self.min_deg = float(p['correction_min_rotation_deg'])
-        self.max_gap = float(p['correction_max_gap'])
+        self.limits = correction_limits(p)
+        self.T_pose_cam = robot_inputs.transform_from_parameter(p['camera_from_pose_frame'])
         self.rebuilds = 0
         self.last_rebuild_s = 0.0
         self._thread: threading.Thread | None = None
@@ -95,7 +87,7 @@ class MapCorrector:
                 'corrections_off', 'corrected trajectory ignored: reintegration_keyframes is 0 (nothing kept)'
             )
             return
-        stamps, poses, bad = self._parse(msg)
+        stamps, poses, bad = path_from_message(msg, self.T_pose_cam)
         if bad:
             node.stats.dropped('bad_pose', f'corrected trajectory: {bad} of {len(msg.poses)} poses unusable')
         if len(stamps) == 0:
@@ -106,13 +98,13 @@ class MapCorrector:
             if world and frame and frame != world:
                 node.stats.dropped('frame_mismatch', f'corrected trajectory in {frame!r}, map in {world!r}')
                 return
-            summary = self.store.correct(stamps, poses, self.min_m, self.min_deg, self.max_gap)
+            summary = self.store.correct(stamps, poses, self.limits)
             self._correct_pending(stamps, poses)
         node.stats.published('corrections')
         if summary.moved == 0:
             node.get_logger().info(
                 f'corrected trajectory ({len(stamps)} poses): {summary.corrected} kept keyframes covered, '
-                f'none moved by {self.min_m:g} m or {self.min_deg:g} deg: map kept as it is'
+                f'none moved by {self.limits.min_m:g} m or {self.limits.min_deg:g} deg: map kept as it is'
             )
             return
         node.get_logger().info(
@@ -121,17 +113,6 @@ class MapCorrector:
             'rebuilding the map'
         )
         self._start_rebuild()
-
-    def _parse(self, msg: Any) -> tuple[np.ndarray, np.ndarray, int]:
-        stamps, poses, bad = [], [], 0
-        for stamped in msg.poses:
-            try:
-                poses.append(pose_from_message(stamped))
-            except InputError:
-                bad += 1
-                continue
-            stamps.append(messages.ns_to_sec(messages.stamp_to_ns(stamped.header.stamp)))
-        return np.asarray(stamps, np.float64), np.asarray(poses, np.float64).reshape(-1, 4, 4), bad
 
     def _correct_pending(self, stamps: np.ndarray, poses: np.ndarray) -> None:
         """The keyframes in the consistency test's window, and the pose-jump test's last pose,
@@ -142,12 +123,12 @@ class MapCorrector:
         order = np.argsort(keys, kind='stable')
         if window and np.all(np.diff(keys[order]) > 0):  # (a restarted stream's window: left as it is)
             old = np.stack([T for _, T in window])[order]
-            fix = corrected_poses(keys[order], old, stamps, poses, self.max_gap)
+            fix = corrected_poses(keys[order], old, stamps, poses, self.limits.max_gap)
             moved = {float(keys[order][i]): fix.poses[i] for i in range(len(order)) if fix.corrected[i]}
             node.map.move_window(lambda key, T: moved.get(float(key), T))
         last = node._last_pose
         if last is not None:
-            fix = corrected_poses(np.array([last[0]]), last[1][None], stamps, poses, self.max_gap)
+            fix = corrected_poses(np.array([last[0]]), last[1][None], stamps, poses, self.limits.max_gap)
             if fix.corrected[0]:
                 node._last_pose = (last[0], fix.poses[0])
 

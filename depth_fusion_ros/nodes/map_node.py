@@ -41,10 +41,11 @@ from ..mapping.ply import write_ply
 from ..mapping.surface import SurfaceMesh
 from ..pose_jumps import find_jump
 from .base import DepthFusionNode, run_node
+from .corrected_path import TOPIC_CORRECTED_PATH
 from .graph_events import GraphEvents
 from .image_input import InputError, depth_from_message, pose_from_message
 from .map_corrections import PARAMETERS as CORRECTION_PARAMETERS
-from .map_corrections import TOPIC_CORRECTED_PATH, MapCorrector
+from .map_corrections import MapCorrector
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
 from .stamp_pairing import StampPairer
@@ -131,7 +132,10 @@ class MapNode(DepthFusionNode):
             raise ValueError(f'{self.get_name()}: parameter save_path={str(save_path)!r} must end in .ply')
         self.map, engine_note = make_map(config)
         self.get_logger().info(engine_note)
-        self.corrector = MapCorrector(self)
+        try:
+            self.corrector = MapCorrector(self)
+        except ValueError as exc:
+            raise ValueError(f'{self.get_name()}: {exc}') from None
         self.map.on_integrated = self.corrector.keep
         self._lock = threading.Lock()
         self._dirty = False

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path as PathMsg
 from rclpy.qos import DurabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
@@ -48,6 +49,7 @@ from ..pose_jumps import PoseJump
 from . import robot_inputs
 from .announce import announce
 from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode, run_node
+from .corrected_path import TOPIC_CORRECTED_PATH, correction_limits, correction_parameters, path_from_message
 from .diagnostics import Requirement
 from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, GraphEvents
 from .image_input import (
@@ -192,6 +194,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'the images between them are dropped (pose_jump) and the frame history and filter start over '
         'after it',
     ),
+    *correction_parameters('moves the buffered poses and starts the frame history and filter over'),
     ParamSpec(
         'pose_time_offset',
         0.0,
@@ -281,6 +284,7 @@ class MultiViewNode(DepthFusionNode):
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
         self.jump_limits = pose_jump_limits(p)
+        self.correction_limits = correction_limits(p)
         self.pose_buffer = PoseBuffer(
             int(p['pose_buffer_size']), float(p['max_pose_gap']), jump_limits=self.jump_limits
         )
@@ -324,6 +328,7 @@ class MultiViewNode(DepthFusionNode):
         self.image_topic = robot_inputs.subscribe_image(
             self, TOPIC_IMAGE, self._on_image, self.input_qos, str(p['image_transport'])
         )
+        self.subscribe(PathMsg, TOPIC_CORRECTED_PATH, self._on_corrected_path, self.input_qos)
         self.transport_check = robot_inputs.TransportCheck(self, TOPIC_IMAGE, str(p['image_transport']))
         self.create_wall_timer(PUBLISHER_CHECK_PERIOD, self.transport_check.check)
         self.create_wall_timer(0.25, self._give_up_pending)
@@ -388,6 +393,35 @@ class MultiViewNode(DepthFusionNode):
         if jump is not None:
             self._on_pose_jump(jump)
         self._world_frame = msg.header.frame_id or self._world_frame
+        self._resolve_pending()
+
+    def _on_corrected_path(self, msg: Any) -> None:
+        """A loop closure's corrected trajectory: the buffered poses move with it, so the images
+        still to be posed get corrected poses. When the newest pose it covers moved by
+        ``correction_min_*`` or more, the frames already posed are in the uncorrected world: the
+        frame history and the filter start over at the next posed frame (``pose_correction``),
+        as at a pose jump, so no neighbour and no propagated estimate crosses the correction,
+        however small it is against the jump limits."""
+        self.stats.received('corrected_path')
+        stamps, poses, bad = path_from_message(msg, self.T_pose_cam)
+        if bad:
+            self.stats.dropped('bad_pose', f'corrected trajectory: {bad} of {len(msg.poses)} poses unusable')
+        frame = msg.header.frame_id
+        if frame and self._world_frame and frame != self._world_frame:
+            self.stats.dropped(
+                'frame_mismatch', f'corrected trajectory in {frame!r}, poses in {self._world_frame!r}'
+            )
+            return
+        if len(stamps) == 0:
+            return
+        move = self.pose_buffer.correct(stamps, poses, self.correction_limits.max_gap)
+        if move is not None and self.correction_limits.counts(*move):
+            self._restart_from_ns = 0  # the next posed frame, whatever its stamp
+            self.stats.noted(
+                'pose_correction',
+                f'a corrected trajectory moved the newest pose it covers by {move[0]:.3f} m and '
+                f'{move[1]:.2f} deg: poses corrected, frame history and filter start over',
+            )
         self._resolve_pending()
 
     def _on_image(self, msg: Any, counted: bool = False) -> None:

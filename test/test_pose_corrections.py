@@ -1,4 +1,5 @@
-"""A corrected trajectory (loop closure) moves the map's kept keyframes: core, no ROS."""
+"""A corrected trajectory (loop closure) moves the poses: the map's kept keyframes and the
+multi-view node's pose buffer (core, no ROS)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.mapping.config import MapConfig
 from depth_fusion_ros.mapping.engine import make_engine
 from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, half_camera, rebuild
-from depth_fusion_ros.mapping.pose_corrections import corrected_poses
+from depth_fusion_ros.pose_buffer import PoseBuffer
+from depth_fusion_ros.pose_corrections import CorrectionLimits, corrected_poses
 
 
 def _pose(t, rotvec=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -67,6 +69,25 @@ def test_no_old_pose_is_interpolated_across_a_gap_longer_than_max_gap():
     assert not fix.corrected.any()
 
 
+def test_pose_buffer_takes_the_correction_and_the_step_it_removes_is_no_jump():
+    """Poses in the old world up to 2 s, in the corrected world after (a 30 cm step: a jump);
+    the corrected trajectory moves the old ones, and the jump mark goes with the step."""
+    from depth_fusion_ros.pose_jumps import PoseJumpLimits
+
+    stamps = np.arange(0.0, 3.0, 0.1)
+    truth = _trajectory(stamps)
+    step = _pose((0.3, 0.0, 0.0), (0.0, 0.05, 0.0))
+    buffer = PoseBuffer(100, 0.5, PoseJumpLimits(1.0, 90.0))
+    jumps = [buffer.insert(s, T if s < 2.0 else step @ T) for s, T in zip(stamps, truth, strict=True)]
+    assert sum(j is not None for j in jumps) == 1
+    assert buffer.lookup(1.95).key == 'pose_jump'
+    moved = buffer.correct(stamps[stamps < 2.0][::4], (step @ truth[stamps < 2.0])[::4], max_gap=1.0)
+    assert moved is not None and moved[0] > 0.25
+    assert buffer.lookup(1.95).pose is not None  # no step left to interpolate across
+    np.testing.assert_allclose(buffer.lookup(1.0).pose, step @ truth[10], atol=1e-6)
+    assert buffer.correct(np.array([10.0]), truth[:1], max_gap=1.0) is None  # covers nothing
+
+
 def _room_keyframe(i: int, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
     """A camera 2 m in front of a wall (z = 2 in the world), sliding along x."""
     depth = np.full((camera.height, camera.width), 2.0, np.float32)
@@ -119,7 +140,7 @@ def test_rebuild_at_corrected_poses_puts_the_wall_back_where_it_is():
     rebuild(before, store.entries)
     lo, hi = wall_spread(before)
     assert hi - lo > 0.08  # two walls, 10 cm apart
-    summary = store.correct(np.array(stamps), np.stack(truth), 0.01, 0.5, 2.0)
+    summary = store.correct(np.array(stamps), np.stack(truth), CorrectionLimits())
     assert summary.corrected == 10 and summary.moved == 5 and summary.largest_m == pytest.approx(0.10)
     after, _ = make_engine(config)
     assert rebuild(after, store.entries) == 10

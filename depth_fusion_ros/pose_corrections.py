@@ -12,7 +12,8 @@ A keyframe at a path stamp takes the path's pose exactly.
 What is not corrected, and why:
 
 * keyframes after the path's last stamp: a pose source publishes after its correction in
-  the corrected world, so those are right already (correcting them again would move them twice);
+  the corrected world, so those are right already (correcting them again would move them
+  twice); except in a segment that a pose jump ended (below), which is all in the old world;
 * keyframes before the path's first stamp: the path says nothing about them.
 
 One call corrects one *segment*: keyframes whose poses are in one world, stamps increasing.
@@ -27,10 +28,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import interpolate_poses, invert_pose, rotation_angle
+from .geometry import interpolate_poses, invert_pose, rotation_angle
 
 #: Stamps closer than this (s) are the same instant (a path pose at one of our keyframes).
 SAME_STAMP_S = 1e-4
+
+
+@dataclass(frozen=True)
+class CorrectionLimits:
+    """Which corrections count (the smallest move, in metres or degrees), and the longest gap
+    (s) between two of our poses that a pose of the corrected trajectory is compared across."""
+
+    min_m: float = 0.01
+    min_deg: float = 0.5
+    max_gap: float = 2.0
+
+    def counts(self, metres: float, degrees: float) -> bool:
+        return metres >= self.min_m or degrees >= self.min_deg
 
 
 @dataclass(frozen=True)
@@ -71,13 +85,16 @@ def corrected_poses(
     path_stamps: np.ndarray,
     path_poses: np.ndarray,
     max_gap: float = 2.0,
+    ended: bool = False,
 ) -> Corrections:
     """One segment's keyframe poses after the corrections a corrected trajectory implies.
 
     ``stamps`` (N,) strictly increasing (s), ``poses`` (N, 4, 4) camera-to-world as
     integrated; ``path_stamps`` (P,) and ``path_poses`` (P, 4, 4) the corrected trajectory,
     in any order. ``max_gap``: the longest gap (s) between two of our keyframes that an old
-    pose is interpolated across.
+    pose is interpolated across. ``ended``: a later segment follows this one (a pose jump
+    ended it: often the loop closure's own step), so all of it is in the old world and the
+    poses after the path's last stamp take the correction there too.
     """
     stamps = np.asarray(stamps, np.float64)
     poses = np.asarray(poses, np.float64)
@@ -95,6 +112,9 @@ def corrected_poses(
         return Corrections(out, corrected)
     fix = p_poses @ np.stack([invert_pose(T) for T in old])  # C = T_new T_old^-1 at each path stamp
     c, ok = interpolate_poses(p_stamps, fix, stamps)
+    if ended:
+        after = stamps > p_stamps[-1]
+        c[after], ok[after] = fix[-1], True
     out[ok] = c[ok] @ poses[ok]
     corrected |= ok
     # A keyframe at a path stamp takes the path's pose itself (not one rounded through C).

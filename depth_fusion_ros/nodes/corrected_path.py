@@ -1,0 +1,81 @@
+"""The corrected-trajectory input (a SLAM's loop closure), shared by ``multi_view_node`` and
+``map_node``: its topic, its parameters (one spelling and one range, each node saying what a
+correction makes it do) and the parsing of a ``nav_msgs/Path`` into stamps and poses."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from ..data import messages
+from ..pose_corrections import CorrectionLimits
+from . import robot_inputs
+from .image_input import InputError, pose_from_message
+from .params import ParamSpec
+
+#: ``nav_msgs/Path``: one PoseStamped per pose, at the pose source's own stamps, in the world
+#: frame of the poses (remap it to the SLAM's topic).
+TOPIC_CORRECTED_PATH = 'camera/corrected_path'
+
+
+def correction_parameters(consequence: str) -> tuple[ParamSpec, ...]:
+    """``correction_min_translation``, ``correction_min_rotation_deg`` and ``correction_max_gap``;
+    a correction at least that large has ``consequence`` (said in the description)."""
+    return (
+        ParamSpec(
+            'correction_min_translation',
+            CorrectionLimits.min_m,
+            f'a corrected trajectory on {TOPIC_CORRECTED_PATH} that moves a pose by at least this (m) '
+            f'{consequence} ...',
+            0.0,
+        ),
+        ParamSpec(
+            'correction_min_rotation_deg',
+            CorrectionLimits.min_deg,
+            '... or by at least this (degrees)',
+            0.0,
+            180.0,
+        ),
+        ParamSpec(
+            'correction_max_gap',
+            CorrectionLimits.max_gap,
+            'longest gap (s) between two of our poses that a pose of the corrected trajectory is compared '
+            'across',
+            0.0,
+        ),
+    )
+
+
+def camera_from_pose_frame_parameter() -> ParamSpec:
+    """``camera_from_pose_frame`` as ``multi_view_node`` declares it, for a node that takes the
+    corrected trajectory without the pose stream (``map_node``)."""
+    return next(spec for spec in robot_inputs.PARAMETERS if spec.name == 'camera_from_pose_frame')
+
+
+def correction_limits(params: Mapping[str, Any]) -> CorrectionLimits:
+    """The limits a node's declared parameters give."""
+    return CorrectionLimits(
+        float(params['correction_min_translation']),
+        float(params['correction_min_rotation_deg']),
+        float(params['correction_max_gap']),
+    )
+
+
+def path_from_message(msg: Any, T_pose_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Stamps (s), camera-to-world poses (P, 4, 4) and the number of unusable poses of a Path.
+
+    Its poses are of the pose stream's frame, as on ``camera/pose``: ``T_pose_cam``
+    (``camera_from_pose_frame``) makes them the optical frame's, as the keyframe poses are.
+    (The correction ``T_new T_old^-1`` is the same whichever frame both are of, but ours are
+    the camera's, so the path's must be too.)"""
+    stamps, poses, bad = [], [], 0
+    for stamped in msg.poses:
+        try:
+            poses.append(pose_from_message(stamped) @ T_pose_cam)
+        except InputError:
+            bad += 1
+            continue
+        stamps.append(messages.ns_to_sec(messages.stamp_to_ns(stamped.header.stamp)))
+    return np.asarray(stamps, np.float64), np.asarray(poses, np.float64).reshape(-1, 4, 4), bad
