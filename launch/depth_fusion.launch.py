@@ -3,7 +3,8 @@
     ros2 launch depth_fusion_ros depth_fusion.launch.py
     ros2 launch depth_fusion_ros depth_fusion.launch.py bag:=/data/room.mcap use_sim_time:=true
     ros2 launch depth_fusion_ros depth_fusion.launch.py image:=/camera/color/image_raw \\
-        camera_info:=/camera/color/camera_info pose:=/orb_slam3/camera_pose
+        camera_info:=/camera/color/camera_info pose:=/orb_slam3/camera_pose \\
+        corrected_path:=/orb_slam3/trajectory
     ros2 launch depth_fusion_ros depth_fusion.launch.py map:=true    # + map_node (TSDF map)
 
 Starts ``multi_view_node``, ``single_view_node`` and ``fusion_node`` with one parameter file
@@ -61,7 +62,13 @@ def generate_launch_description() -> LaunchDescription:
             default_value='/camera/pose',
             description='PoseStamped camera-to-world from SLAM or the bag',
         ),
+        DeclareLaunchArgument(
+            'corrected_path',
+            default_value='/camera/corrected_path',
+            description="nav_msgs/Path: the SLAM's corrected trajectory after a loop closure (optional)",
+        ),
     ]
+    corrected_path = ('camera/corrected_path', LaunchConfiguration('corrected_path'))
     multi_view = Node(
         package=PACKAGE,
         executable='multi_view_node',
@@ -72,6 +79,7 @@ def generate_launch_description() -> LaunchDescription:
             ('camera/rgb/image_color', LaunchConfiguration('image')),
             ('camera/rgb/camera_info', LaunchConfiguration('camera_info')),
             ('camera/pose', LaunchConfiguration('pose')),
+            corrected_path,
         ],
     )
     single_view = Node(
@@ -90,6 +98,7 @@ def generate_launch_description() -> LaunchDescription:
         name='map_node',
         output='screen',
         parameters=common,
+        remappings=[corrected_path],
         condition=IfCondition(LaunchConfiguration('map')),
     )
     replayer = Node(
