@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -154,3 +155,37 @@ def test_map_settings_of_a_graph_run(tmp_path):
     assert 'save_path' not in map_overrides(RunOptions(bag=tmp_path, map=True, realtime=True))
     with pytest.raises(ValueError, match='ply'):
         map_overrides(RunOptions(bag=tmp_path, save_map=Path('map.obj')))
+
+
+def test_the_surface_is_extracted_outside_the_maps_lock_and_a_slow_one_is_published_less_often(
+    room, monkeypatch
+):
+    """Extracting a large map takes seconds (0.35 ms a block): it must not hold the lock that
+    integration needs, and it may take at most a quarter of a core (``points_throttled``)."""
+    from depth_fusion_ros.nodes import map_points
+
+    _, seq = room
+    lock_free, real_extract = [], map_points.extract_mesh
+
+    def slow_extract(voxels):
+        lock_free.append(node._lock.acquire(timeout=0))  # integration could take it meanwhile
+        if lock_free[-1]:
+            node._lock.release()
+        time.sleep(0.3)
+        return real_extract(voxels)
+
+    monkeypatch.setattr(map_points, 'extract_mesh', slow_extract)
+    with RosHarness() as ros:
+        node = map_node(ros, points_rate=20.0, **{'map.consistency_span': 0})
+        clouds = ros.collect(PointCloud2, '/depth_fusion/map/points')
+        inputs = MapInputs(ros)
+        for k in range(4):
+            inputs.keyframe(seq, 2 * k, T0 + k * 100_000_000)
+            time.sleep(0.1)
+        assert ros.wait_for(lambda: node.integrated == 4 and len(clouds) > 0, 30.0), (
+            node.stats.snapshot().summary()
+        )
+        assert ros.wait_for(lambda: node.stats.snapshot().noted.get('points_throttled', 0) > 0, 10.0)
+        node.points.wait(5.0)
+    assert lock_free and all(lock_free)
+    assert node.points.last_seconds >= 0.3

@@ -46,6 +46,7 @@ from .graph_events import GraphEvents
 from .image_input import InputError, depth_from_message, pose_from_message
 from .map_corrections import PARAMETERS as CORRECTION_PARAMETERS
 from .map_corrections import MapCorrector
+from .map_points import MapPointsPublisher
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
 from .stamp_pairing import StampPairer
@@ -173,8 +174,11 @@ class MapNode(DepthFusionNode):
         self.create_service(Trigger, '~/save_map', self._on_save)
         self.create_service(Trigger, '~/clear_map', self._on_clear)
         self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
+        self.points = MapPointsPublisher(
+            self, self._points_pub, float(p['points_rate']), int(p['points_max'])
+        )
         if float(p['points_rate']) > 0:
-            self.create_wall_timer(1.0 / float(p['points_rate']), self._publish_points)
+            self.create_wall_timer(1.0 / float(p['points_rate']), self.points.tick)
         self.events.ready()
         cap = config.max_blocks * config.bytes_per_block / 2**20
         self.get_logger().info(
@@ -330,6 +334,7 @@ class MapNode(DepthFusionNode):
             'blocks evicted': self.map.evicted_blocks,
             'voxel storage MiB': round(self.map.memory_bytes / 2**20, 2),
             'cap MiB': round(config.max_blocks * config.bytes_per_block / 2**20, 2),
+            'surface extraction s': round(self.points.last_seconds, 3),
             **self.corrector.diagnostics(),
         }
 
@@ -347,20 +352,6 @@ class MapNode(DepthFusionNode):
             if flush:
                 self.map.flush()
             return self.map.mesh(), self._world_frame or 'world'
-
-    def _publish_points(self) -> None:
-        if not self._dirty:
-            return
-        self._dirty = False
-        mesh, frame = self.extract()
-        points, colours = mesh.vertices, mesh.colours
-        limit = int(self.params['points_max'])
-        if len(points) > limit:
-            keep = np.linspace(0, len(points) - 1, limit).astype(np.int64)
-            points, colours = points[keep], colours[keep]
-        header = messages.header_msg(self.get_clock().now().nanoseconds, frame, kind=messages.RCLPY)
-        self._points_pub.publish(messages.pointcloud2_msg(points, header, kind=messages.RCLPY, rgb=colours))
-        self.stats.published('points')
 
     def save_map(self, path: str | Path | None = None) -> tuple[Path, int, int]:
         """Write the mesh to ``path`` (default ``save_path``): (path, vertices, triangles).
@@ -391,6 +382,8 @@ class MapNode(DepthFusionNode):
 
     def destroy_node(self) -> None:
         """Finish the integrations in hand, then write the mesh if ``save_on_shutdown``."""
+        if not self._destroyed:
+            self.points.wait(10.0)  # a publication in flight finishes before the node goes
         if not self._destroyed and self.params['save_on_shutdown']:
             self.wait_idle(10.0)
             if not self.corrector.wait(60.0):
