@@ -165,16 +165,16 @@ def test_the_surface_is_extracted_outside_the_maps_lock_and_a_slow_one_is_publis
     from depth_fusion_ros.nodes import map_points
 
     _, seq = room
-    lock_free, real_extract = [], map_points.extract_mesh
+    lock_free, real_extract = [], map_points.block_mesh
 
-    def slow_extract(voxels):
+    def slow_extract(blocks):
         lock_free.append(node._lock.acquire(timeout=0))  # integration could take it meanwhile
         if lock_free[-1]:
             node._lock.release()
         time.sleep(0.3)
-        return real_extract(voxels)
+        return real_extract(blocks)
 
-    monkeypatch.setattr(map_points, 'extract_mesh', slow_extract)
+    monkeypatch.setattr(map_points, 'block_mesh', slow_extract)
     with RosHarness() as ros:
         node = map_node(ros, points_rate=20.0, **{'map.consistency_span': 0})
         clouds = ros.collect(PointCloud2, '/depth_fusion/map/points')

@@ -40,9 +40,10 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
+from .block_surface import BlockGrid, block_mesh
 from .config import MapConfig
 from .keys import SortedKeys, pack, unpack
-from .surface import SurfaceMesh, VoxelSet, extract_mesh
+from .surface import SurfaceMesh, VoxelSet
 
 log = logging.getLogger(__name__)
 
@@ -294,9 +295,22 @@ class TorchTSDF:
         colour = self.colour[:b].transpose(1, 2)
         return VoxelSet(coords[keep], self.tsdf[:b][keep], colour[keep], self.voxel)
 
+    def blocks(self) -> BlockGrid:
+        """The used blocks as views of the storage (``.clone()`` for a copy integration cannot change)."""
+        b, cfg = self.n_blocks, self.config
+        return BlockGrid(
+            self.block_coords[:b],
+            self.tsdf[:b],
+            self.weight[:b],
+            self.colour[:b],
+            cfg.block_size,
+            self.voxel,
+            cfg.min_weight,
+        )
+
     def mesh(self) -> SurfaceMesh:
-        """The zero level set as a triangle mesh (surface nets), world frame, metres."""
-        return extract_mesh(self.voxels())
+        """The zero level set as a triangle mesh (surface nets on the blocks), world frame, metres."""
+        return block_mesh(self.blocks())
 
 
 def _bordered(image: torch.Tensor) -> torch.Tensor:

@@ -1,14 +1,15 @@
 """map_node's published surface (``depth_fusion/map/points``), extracted without stalling the map.
 
-Extracting the surface costs about 0.35 ms per voxel block on 2 CPU cores (surface nets over
-every observed voxel: 0.12 s at 588 blocks, 2.3 s at 6601; ``scripts/diag/map_extraction.py``),
-so at the default cap of 10000 blocks one extraction takes seconds. Done on the executor
-thread holding the map's lock at ``points_rate`` (1 Hz), it held the lock all the time and
-integration waited behind it. So the voxels are copied under the lock (a masked gather, a
-fifteenth of the extraction) and the surface is extracted and published from a thread of its
-own; and a publication starts only when the last one's cost, spread over the time since it
-began, stays within ``MAX_SHARE`` of a core: a large map is published less often
-(``points_throttled`` is noted with the period it gets), never at the cost of integration.
+Extracting the surface costs about 0.15 ms per voxel block on 2 CPU cores (surface nets on
+the blocks, mapping/block_surface.py: 0.07 s at 588 blocks, 1.0 s at 6601;
+``scripts/diag/map_extraction.py``), so at the default cap of 10000 blocks one extraction
+takes more than a second. Done on the executor thread holding the map's lock at
+``points_rate`` (1 Hz), it held the lock most of the time and integration waited behind it.
+So the blocks are copied under the lock (a memory copy) and the surface is extracted and
+published from a thread of its own; and a publication starts only when the last one's cost,
+spread over the time since it began, stays within ``MAX_SHARE`` of a core: a large map is
+published less often (``points_throttled`` is noted with the period it gets), never at the
+cost of integration.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..data import messages
-from ..mapping.surface import SurfaceMesh, extract_mesh
+from ..mapping.block_surface import block_mesh
+from ..mapping.surface import SurfaceMesh
 
 if TYPE_CHECKING:
     from .map_node import MapNode
@@ -74,16 +76,16 @@ class MapPointsPublisher:
             )
 
     def _surface(self) -> tuple[SurfaceMesh, str]:
-        """The voxels copied under the lock, the surface extracted outside it (an engine
-        without a voxel copy is extracted under the lock)."""
+        """The blocks copied under the lock, the surface extracted outside it (an engine
+        without a block copy, Open3D's, is extracted under the lock)."""
         node = self.node
         with node._lock:
             frame = node._world_frame or 'world'
-            voxels = getattr(node.map.engine, 'voxels', None)
-            if voxels is None:
+            blocks = getattr(node.map.engine, 'blocks', None)
+            if blocks is None:
                 return node.map.mesh(), frame
-            snapshot = voxels()
-        return extract_mesh(snapshot), frame
+            snapshot = blocks().clone()
+        return block_mesh(snapshot), frame
 
     def _publish(self, mesh: SurfaceMesh, frame: str) -> None:
         points, colours = mesh.vertices, mesh.colours
