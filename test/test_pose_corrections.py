@@ -96,7 +96,7 @@ def _room_keyframe(i: int, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarra
 
 def test_store_keeps_half_resolution_thins_with_age_and_splits_segments():
     camera = PinholeCamera(64, 48, 60.0, 60.0, 31.5, 23.5)
-    store = KeyframeStore(max_keyframes=8)
+    store = KeyframeStore(max_bytes=8 * KeyframeStore.keyframe_bytes(camera))
     for i in range(20):
         depth, T = _room_keyframe(i, camera)
         store.add(
@@ -108,7 +108,7 @@ def test_store_keeps_half_resolution_thins_with_age_and_splits_segments():
     assert e.depth.shape == (24, 32) and e.depth.dtype == np.float16
     assert e.camera == half_camera(camera) and e.camera.cx == pytest.approx(15.75)
     assert store.memory_bytes == len(store.entries) * 24 * 32 * 6
-    assert store.memory_bytes <= store.cap_bytes(camera)
+    assert store.memory_bytes <= store.max_bytes
     store.add(0.5, *_room_keyframe(0, camera), camera)  # stamps went back: a restarted stream
     assert store.entries[-1].segment == 1
     store.new_segment()
@@ -121,7 +121,7 @@ def test_rebuild_at_corrected_poses_puts_the_wall_back_where_it_is():
     the map holds two walls. The corrected trajectory moves them back; the rebuilt map has one."""
     camera = PinholeCamera(80, 60, 70.0, 70.0, 39.5, 29.5)
     config = MapConfig(voxel_size=0.02, engine='torch', consistency_span=0)
-    store = KeyframeStore(max_keyframes=100)
+    store = KeyframeStore(max_bytes=2**20)
     stamps, truth = [], []
     for i in range(10):
         depth, T = _room_keyframe(i, camera)

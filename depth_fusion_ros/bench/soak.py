@@ -21,7 +21,7 @@ With ``DEPTH_FUSION_SOAK_MAP_BLOCKS=N`` the graph also runs ``map_node`` (``--ma
 ``map.max_blocks = N``: set N below what the scene needs and the map evicts blocks all along,
 so the run shows whether the map node's memory stays under its declared cap over the whole
 looped replay: N x ``MapConfig.bytes_per_block`` for the voxels, plus the keyframes it keeps
-for a rebuild at corrected poses (``reintegration_keyframes`` x 115 KB at 320x240).
+for a rebuild at corrected poses (``reintegration_max_mb``).
 """
 
 from __future__ import annotations
@@ -128,17 +128,15 @@ def run(opts: BenchOptions) -> list[BenchRow]:
 
 
 def map_rows(
-    t: np.ndarray, rss: np.ndarray, seconds: float, max_blocks: int, kept_keyframes: int = 1000
+    t: np.ndarray, rss: np.ndarray, seconds: float, max_blocks: int, kept_mb: float = 128.0
 ) -> list[BenchRow]:
     """map_node's memory against its declared cap: how far its RSS rose above the level after
     warm-up (torch, rclpy and the first keyframes), at most, compared with the voxel cap plus
-    the cap of the keyframes kept for a rebuild (the node's defaults, the 320x240 working grid)."""
-    from ..camera import PinholeCamera
+    the cap of the keyframes kept for a rebuild (``reintegration_max_mb``, the node's default)."""
     from ..mapping.config import MapConfig
-    from ..mapping.keyframe_store import KeyframeStore
 
     voxels = max_blocks * MapConfig().bytes_per_block / 2**20
-    kept = KeyframeStore(kept_keyframes).cap_bytes(PinholeCamera(320, 240, 1.0, 1.0, 0.0, 0.0)) / 2**20
+    kept = kept_mb
     cap = voxels + kept
     warm, end, _, _ = growth(t, rss, seconds)
     rise = float(np.nanmax(rss[steady_window(t, seconds)])) - warm
@@ -149,7 +147,7 @@ def map_rows(
             cap,
             'MB',
             f'voxels {voxels:.0f} MB (map.max_blocks={max_blocks}) + kept keyframes {kept:.0f} MB '
-            f'(reintegration_keyframes={kept_keyframes})',
+            f'(reintegration_max_mb={kept_mb:g})',
         ),
         BenchRow(
             'soak: map_node RSS largest rise after warm-up',

@@ -8,12 +8,12 @@ its confidence and colour), with its stamp and pose, and :meth:`KeyframeStore.co
 the poses a corrected trajectory implies (:mod:`..pose_corrections`); :func:`rebuild` then
 integrates them into a new engine.
 
-Bounded: a keyframe is kept at half resolution (every second pixel and row: at 320x240 a
-pixel of the stored depth spans 4 cm at 5 m, a voxel's edge) as float16 depth, 8-bit
-confidence and 8-bit colour, 115 KB at 320x240. When ``max_keyframes`` are held, every second
-keyframe of the older half is dropped (consecutive keyframes overlap almost entirely, so the
-map loses little): the store spans the whole run at a density that halves with age. The
-memory is ``max_keyframes`` times the size of one (:attr:`KeyframeStore.cap_bytes`).
+Bounded in memory, whatever the image size: a keyframe is kept at half resolution (every
+second pixel and row: at 320x240 a pixel of the stored depth spans 4 cm at 5 m, a voxel's
+edge) as float16 depth, 8-bit confidence and 8-bit colour, 115 KB at 320x240. When the
+keyframes held would take more than ``max_bytes``, every second keyframe of the older half is
+dropped (consecutive keyframes overlap almost entirely, so the map loses little): the store
+spans the whole run at a density that halves with age.
 """
 
 from __future__ import annotations
@@ -68,14 +68,15 @@ class CorrectionSummary:
 
 @dataclass
 class KeyframeStore:
-    """Bounded store of the integrated keyframes (``max_keyframes``, thinned with age)."""
+    """Bounded store of the integrated keyframes (``max_bytes``, thinned with age; 0: keeps none)."""
 
-    max_keyframes: int
+    max_bytes: int
     entries: list[StoredKeyframe] = field(default_factory=list)
-    #: Keyframes dropped to stay within ``max_keyframes`` (in the map, but a rebuild leaves them out).
+    #: Keyframes dropped to stay within ``max_bytes`` (in the map, but a rebuild leaves them out).
     thinned: int = 0
     segment: int = 0
     _next_seq: int = 0
+    _bytes: int = 0
 
     def add(
         self,
@@ -87,7 +88,7 @@ class KeyframeStore:
         rgb: np.ndarray | None = None,
     ) -> StoredKeyframe | None:
         """Keep one integrated keyframe (full-resolution images, as the engine took them)."""
-        if self.max_keyframes <= 0:
+        if self.max_bytes <= 0:
             return None
         if self.entries and stamp <= self.entries[-1].stamp and self.entries[-1].segment == self.segment:
             self.segment += 1  # the stream restarted (stamps went back): a world of its own
@@ -109,7 +110,8 @@ class KeyframeStore:
         )
         self._next_seq += 1
         self.entries.append(entry)
-        if len(self.entries) > self.max_keyframes:
+        self._bytes += entry.nbytes
+        while self._bytes > self.max_bytes and len(self.entries) > 1:
             self._thin()
         return entry
 
@@ -119,22 +121,28 @@ class KeyframeStore:
             self.segment += 1
 
     def _thin(self) -> None:
-        """Drop every second keyframe of the older half (the newest half stays dense)."""
-        half = len(self.entries) // 2
+        """Drop every second keyframe of the older half (the newest half stays dense; the first
+        keyframe stays while it has company)."""
+        half = max(1, len(self.entries) // 2)
         older = self.entries[:half]
         kept = older[::2] if len(older) > 1 else []
         self.thinned += len(older) - len(kept)
         self.entries = kept + self.entries[half:]
+        self._bytes = sum(e.nbytes for e in self.entries)
 
     @property
     def memory_bytes(self) -> int:
-        return sum(e.nbytes for e in self.entries)
+        return self._bytes
 
-    def cap_bytes(self, camera: PinholeCamera, colour: bool = True) -> int:
-        """The most this store holds for keyframes of ``camera`` (full-resolution camera)."""
+    def clear(self) -> None:
+        self.entries.clear()
+        self._bytes = 0
+
+    @staticmethod
+    def keyframe_bytes(camera: PinholeCamera, colour: bool = True) -> int:
+        """What one kept keyframe of ``camera`` (full-resolution camera) takes."""
         half = half_camera(camera)
-        pixels = half.width * half.height
-        return self.max_keyframes * pixels * (2 + 1 + (3 if colour else 0))
+        return half.width * half.height * (2 + 1 + (3 if colour else 0))
 
     def correct(
         self, path_stamps: np.ndarray, path_poses: np.ndarray, limits: CorrectionLimits

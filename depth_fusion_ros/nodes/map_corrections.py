@@ -37,12 +37,13 @@ if TYPE_CHECKING:
 
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
-        'reintegration_keyframes',
-        1000,
-        'keyframes kept (half resolution, ~115 KB each at 320x240; older ones thinned) to rebuild the map at '
-        f'the corrected poses of a trajectory on {TOPIC_CORRECTED_PATH} (0: none kept, corrections ignored)',
-        0,
-        1_000_000,
+        'reintegration_max_mb',
+        128.0,
+        'MiB of keyframes kept (half resolution: 115 KB each at 320x240, ~1100 in 128 MiB; beyond, every '
+        'second keyframe of the older half is dropped) to rebuild the map at the corrected poses of a '
+        f'trajectory on {TOPIC_CORRECTED_PATH} (0: none kept, corrections ignored)',
+        0.0,
+        1e6,
     ),
     *correction_parameters('rebuilds the map there'),
     camera_from_pose_frame_parameter(),
@@ -55,7 +56,7 @@ class MapCorrector:
     def __init__(self, node: MapNode) -> None:
         self.node = node
         p = node.params
-        self.store = KeyframeStore(int(p['reintegration_keyframes']))
+        self.store = KeyframeStore(int(float(p['reintegration_max_mb']) * 2**20))
         self.limits = correction_limits(p)
         self.T_pose_cam = robot_inputs.transform_from_parameter(p['camera_from_pose_frame'])
         self.rebuilds = 0
@@ -82,9 +83,9 @@ class MapCorrector:
         """A corrected trajectory: move the kept (and waiting) keyframes, then rebuild if one moved."""
         node = self.node
         node.stats.received('corrected_path')
-        if self.store.max_keyframes <= 0:
+        if self.store.max_bytes <= 0:
             node.stats.dropped(
-                'corrections_off', 'corrected trajectory ignored: reintegration_keyframes is 0 (nothing kept)'
+                'corrections_off', 'corrected trajectory ignored: reintegration_max_mb is 0 (nothing kept)'
             )
             return
         stamps, poses, bad = path_from_message(msg, self.T_pose_cam)
@@ -196,7 +197,7 @@ class MapCorrector:
 
     def clear(self) -> None:
         """The map was cleared: keep nothing from before (holding node._lock)."""
-        self.store.entries.clear()
+        self.store.clear()
         self._generation += 1
 
     def diagnostics(self) -> dict[str, Any]:

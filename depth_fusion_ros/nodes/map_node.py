@@ -187,8 +187,8 @@ class MapNode(DepthFusionNode):
             f'({cap:.0f} MiB); {self.resolve_topic_name(TOPIC_FUSED_DEPTH)} + '
             f'{self.resolve_topic_name(TOPIC_KEYFRAME_POSE)} -> {self.resolve_topic_name(TOPIC_MAP_POINTS)}, '
             f'mesh on {self.resolve_service_name("~/save_map")}; corrected trajectories on '
-            f'{self.resolve_topic_name(TOPIC_CORRECTED_PATH)} rebuild it from the last '
-            f'{self.corrector.store.max_keyframes} keyframes kept (thinned with age)'
+            f'{self.resolve_topic_name(TOPIC_CORRECTED_PATH)} rebuild it from the keyframes '
+            f'kept (at most {self.corrector.store.max_bytes / 2**20:g} MiB, thinned with age)'
         )
 
     # --- callbacks: collect parts by stamp ------------------------------------------------------------
