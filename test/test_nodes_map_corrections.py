@@ -85,3 +85,45 @@ def test_a_corrected_trajectory_rebuilds_the_map_at_the_corrected_poses(room, tm
     )
     assert diagnostics['keyframes kept for a rebuild'] == 8
     assert diagnostics['rebuilds at corrected poses'] == 1
+
+
+def test_a_relocalisation_with_its_corrected_trajectory_brings_the_old_keyframes_into_the_new_world(
+    room, tmp_path
+):
+    """The pose source jumps 0.8 m at keyframe 4 (a pose jump: noted) and then publishes the
+    corrected trajectory of its keyframes 0-2. Keyframe 3, after the path's end but before the
+    jump, is in the old world too and takes the last correction: the whole map ends up in the
+    new world, where the saved mesh lies on the room moved by the correction."""
+    scene, seq = room
+    path = tmp_path / 'room.ply'
+    shift = np.eye(4)
+    shift[:3, 3] = (0.8, 0.0, -0.3)
+    with RosHarness() as ros:
+        node = map_node(ros, save_path=str(path), points_rate=0.0, **{'map.engine': 'torch'})
+        inputs = MapInputs(ros)
+        fix = ros.publisher(PathMsg, '/camera/corrected_path')
+        assert ros.wait_for_subscribers([fix])
+        for k in range(8):
+            stamp = T0 + k * STEP
+            told = seq.frames[2 * k].pose if k < 4 else shift @ seq.frames[2 * k].pose
+            world = m.header_msg(stamp, 'world', kind=K)
+            inputs.keyframe(seq, 2 * k, stamp, pose=m.pose_stamped_msg(told, world, kind=K))
+        assert ros.wait_for(lambda: node.integrated == 8 and node.worker.idle(), 30.0)
+        fix.publish(_path([(T0 + k * STEP, shift @ seq.frames[2 * k].pose) for k in range(3)]))
+        assert ros.wait_for(lambda: node.corrector.rebuilds == 1 and not node.corrector.busy(), 60.0), (
+            node.stats.snapshot().summary()
+        )
+        assert node.stats.snapshot().noted.get('pose_jump') == 1
+        vertices = read_ply(_saved(ros, path)).vertices.astype(np.float64)
+    in_room = vertices - shift[:3, 3]  # back into the room's frame (the shift is a translation)
+    dist = room_surface_distance(scene, in_room)
+    assert np.median(dist) < 0.01 and np.percentile(dist, 90) < 0.03, (
+        np.median(dist),
+        np.percentile(dist, 90),
+    )
+
+
+def _saved(ros: RosHarness, path):
+    saved = call_save(ros)
+    assert saved.success, saved.message
+    return path

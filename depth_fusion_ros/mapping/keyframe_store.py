@@ -86,12 +86,20 @@ class KeyframeStore:
         camera: PinholeCamera,
         confidence: np.ndarray | None = None,
         rgb: np.ndarray | None = None,
+        segment: int | None = None,
     ) -> StoredKeyframe | None:
-        """Keep one integrated keyframe (full-resolution images, as the engine took them)."""
+        """Keep one integrated keyframe (full-resolution images, as the engine took them).
+
+        ``segment``: the one it belongs to, when the caller decided it earlier (map_node does
+        so as a keyframe enters the consistency test's window, since it is integrated later);
+        ``None``: the current one, or a new one when its stamp goes back (a restarted stream)."""
         if self.max_bytes <= 0:
             return None
-        if self.entries and stamp <= self.entries[-1].stamp and self.entries[-1].segment == self.segment:
-            self.segment += 1  # the stream restarted (stamps went back): a world of its own
+        if segment is None:
+            last = self.entries[-1] if self.entries else None
+            if last is not None and stamp <= last.stamp and last.segment == self.segment:
+                self.new_segment()  # the stream restarted (stamps went back): a world of its own
+            segment = self.segment
         d = np.asarray(depth, np.float32)[::2, ::2]
         conf = None
         if confidence is not None:
@@ -101,7 +109,7 @@ class KeyframeStore:
         entry = StoredKeyframe(
             self._next_seq,
             float(stamp),
-            self.segment,
+            segment,
             np.asarray(T_wc, np.float64).copy(),
             half_camera(camera),
             d.astype(np.float16),
@@ -115,10 +123,10 @@ class KeyframeStore:
             self._thin()
         return entry
 
-    def new_segment(self) -> None:
+    def new_segment(self) -> int:
         """The poses that follow are in another world (a pose jump): never interpolated across."""
-        if self.entries and self.entries[-1].segment == self.segment:
-            self.segment += 1
+        self.segment += 1
+        return self.segment
 
     def _thin(self) -> None:
         """Drop every second keyframe of the older half (the newest half stays dense; the first

@@ -64,6 +64,9 @@ class MapCorrector:
         self._thread: threading.Thread | None = None
         self._again = False
         self._generation = 0  # bumped when the map is cleared: a rebuild from before is not swapped in
+        #: The store's segment of each keyframe in the consistency test's window (by stamp).
+        self._segments: dict[float, int] = {}
+        self._last_key: float | None = None
         self._state = threading.Lock()  # guards _thread and _again (node._lock guards the map and store)
 
     # --- called holding node._lock ---------------------------------------------------------------------
@@ -71,8 +74,10 @@ class MapCorrector:
     def keep(
         self, key: object, depth: np.ndarray, T_wc: np.ndarray, camera: Any, confidence: Any, rgb: Any
     ) -> None:
-        """``ConsistentMap.on_integrated``: keep the keyframe as it went into the engine."""
-        self.store.add(float(key), depth, T_wc, camera, confidence, rgb)
+        """``ConsistentMap.on_integrated``: keep the keyframe as it went into the engine, in the
+        segment it entered the window in."""
+        segment = self._segments.get(float(key), self.store.segment)
+        self.store.add(float(key), depth, T_wc, camera, confidence, rgb, segment=segment)
 
     def memory_bytes(self) -> int:
         return self.store.memory_bytes
@@ -115,17 +120,37 @@ class MapCorrector:
         )
         self._start_rebuild()
 
+    def note_segment(self, key: float) -> None:
+        """The keyframe ``key`` enters the consistency test's window in the store's current
+        segment, or a new one when its stamp goes back (a restarted stream; a pose jump started
+        one already). Called after the pose-jump test, holding node._lock."""
+        key = float(key)
+        if self._last_key is not None and key <= self._last_key:
+            self.store.new_segment()
+        self._last_key = key
+        self._segments[key] = self.store.segment
+        window = {float(k) for k, _ in self.node.map.window_keyframes()} | {key}
+        for gone in [k for k in self._segments if k not in window]:
+            del self._segments[gone]
+
     def _correct_pending(self, stamps: np.ndarray, poses: np.ndarray) -> None:
         """The keyframes in the consistency test's window, and the pose-jump test's last pose,
-        move with the kept ones (holding node._lock)."""
+        move with the kept ones, segment by segment as the store (holding node._lock)."""
         node = self.node
-        window = node.map.window_keyframes()
-        keys = np.array([float(k) for k, _ in window])
-        order = np.argsort(keys, kind='stable')
-        if window and np.all(np.diff(keys[order]) > 0):  # (a restarted stream's window: left as it is)
-            old = np.stack([T for _, T in window])[order]
-            fix = corrected_poses(keys[order], old, stamps, poses, self.limits.max_gap)
-            moved = {float(keys[order][i]): fix.poses[i] for i in range(len(order)) if fix.corrected[i]}
+        window = sorted(((float(k), T) for k, T in node.map.window_keyframes()), key=lambda kt: kt[0])
+        segment_of = {k: self._segments.get(k, self.store.segment) for k, _ in window}
+        moved: dict[float, np.ndarray] = {}
+        for segment in sorted(set(segment_of.values())):
+            here = [(k, T) for k, T in window if segment_of[k] == segment]
+            keys = np.array([k for k, _ in here])
+            if len(keys) > 1 and not np.all(np.diff(keys) > 0):
+                continue  # a restarted stream's stamps: left as they are
+            ended = segment != self.store.segment
+            fix = corrected_poses(
+                keys, np.stack([T for _, T in here]), stamps, poses, self.limits.max_gap, ended
+            )
+            moved.update({k: T for k, T, ok in zip(keys, fix.poses, fix.corrected, strict=True) if ok})
+        if moved:
             node.map.move_window(lambda key, T: moved.get(float(key), T))
         last = node._last_pose
         if last is not None:

@@ -264,6 +264,7 @@ class MapNode(DepthFusionNode):
                 return
             self._world_frame = self._world_frame or frame_id or 'world'
             self._check_pose_jump(stamp, T_wc)
+            self.corrector.note_segment(stamp)
             evicted = self.map.evicted_blocks
             self.map.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb, key=stamp)
             if self.map.evicted_blocks > evicted:
