@@ -69,10 +69,13 @@ def test_a_corrected_trajectory_rebuilds_the_map_at_the_corrected_poses(room, tm
         slam.append((T0 + 7 * STEP, seq.frames[14].pose))
         fix.publish(_path(slam, frame='map'))  # another world frame: refused, the map untouched
         assert ros.wait_for(lambda: node.stats.snapshot().dropped.get('frame_mismatch') == 1, 10.0)
-        fix.publish(_path(slam))
+        with_bad = _path(slam)
+        with_bad.poses[3].pose.orientation.w = float('nan')  # one unusable pose: dropped, the rest used
+        fix.publish(with_bad)
         assert ros.wait_for(lambda: node.corrector.rebuilds == 1 and not node.corrector.busy(), 60.0), (
             node.stats.snapshot().summary()
         )
+        assert node.stats.snapshot().dropped.get('bad_pose') == 1
         corrected = _saved_distances(ros, scene, path)
         fix.publish(_path(slam))  # the same trajectory again: nothing moves, no rebuild
         assert ros.wait_for(lambda: node.stats.snapshot().published.get('corrections') == 2, 10.0)
