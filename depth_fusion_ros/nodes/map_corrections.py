@@ -79,9 +79,6 @@ class MapCorrector:
         segment = self._segments.get(float(key), self.store.segment)
         self.store.add(float(key), depth, T_wc, camera, confidence, rgb, segment=segment)
 
-    def memory_bytes(self) -> int:
-        return self.store.memory_bytes
-
     # --- the corrected trajectory ----------------------------------------------------------------------
 
     def on_path(self, msg: Any) -> None:
@@ -107,8 +104,8 @@ class MapCorrector:
             summary = self.store.correct(stamps, poses, self.limits)
             self._correct_pending(stamps, poses)
         node.stats.published('corrections')
-        if summary.moved == 0:
-            node.get_logger().info(
+        if summary.moved == 0:  # a pose source that republishes its trajectory: not worth a line each time
+            node.get_logger().debug(
                 f'corrected trajectory ({len(stamps)} poses): {summary.corrected} kept keyframes covered, '
                 f'none moved by {self.limits.min_m:g} m or {self.limits.min_deg:g} deg: map kept as it is'
             )
