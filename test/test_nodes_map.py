@@ -189,3 +189,33 @@ def test_the_surface_is_extracted_outside_the_maps_lock_and_a_slow_one_is_publis
         node.points.wait(5.0)
     assert lock_free and all(lock_free)
     assert node.points.last_seconds >= 0.3
+
+
+def test_a_map_file_keeps_the_map_across_a_restart(room, tmp_path):
+    """map_file: written beside the mesh by ~/save_map, loaded by the next map_node, which
+    serves and extends it; a file it cannot use stops the node at start with one line."""
+    scene, seq = room
+    map_file = tmp_path / 'room.tsdf'
+    with RosHarness() as ros:
+        node = map_node(ros, save_path=str(tmp_path / 'a.ply'), map_file=str(map_file), points_rate=0.0)
+        inputs = MapInputs(ros)
+        for k in range(4):
+            inputs.keyframe(seq, 2 * k, T0 + k * 100_000_000)
+        assert ros.wait_for(lambda: node.integrated == 4 and node.worker.idle(), 30.0)
+        saved = call_save(ros)
+        assert saved.success and f'map written to {map_file}' in saved.message, saved.message
+        blocks = node.map.n_blocks
+    assert map_file.exists()
+    with RosHarness() as ros:
+        node = map_node(ros, save_path=str(tmp_path / 'b.ply'), map_file=str(map_file), points_rate=0.0)
+        assert node.map.n_blocks == blocks and node.integrated == 0
+        saved = call_save(ros)  # the loaded map, before any keyframe
+        assert saved.success, saved.message
+        # A rebuild at corrected poses starts from the loaded map (its keyframes were not kept).
+        node.corrector._start_rebuild()
+        assert ros.wait_for(lambda: node.corrector.rebuilds == 1 and not node.corrector.busy(), 30.0)
+        assert node.map.n_blocks == blocks
+    dist = room_surface_distance(scene, read_ply(tmp_path / 'b.ply').vertices.astype(np.float64))
+    assert np.median(dist) < 0.015
+    with RosHarness() as ros, pytest.raises(ValueError, match=r'map_node: map file .*room.tsdf: 4 cm voxels'):
+        map_node(ros, map_file=str(map_file), **{'map.voxel_size': 0.05})

@@ -112,6 +112,28 @@ class TorchTSDF:
         self.colour[k : self.n_blocks] = 0.0
         self.n_blocks = k
 
+    def load_blocks(
+        self, coords: torch.Tensor, tsdf: torch.Tensor, weight: torch.Tensor, colour: torch.Tensor
+    ) -> None:
+        """Replace the map by these blocks (a saved map: mapping/map_file.py)."""
+        n, v = int(coords.shape[0]), self.block_voxels
+        shapes = (tuple(coords.shape), tuple(tsdf.shape), tuple(weight.shape), tuple(colour.shape))
+        if shapes != ((n, 3), (n, v), (n, v), (n, 3, v)):
+            raise ValueError(
+                f'blocks do not match: coords {tuple(coords.shape)}, tsdf {tuple(tsdf.shape)}, '
+                f'weight {tuple(weight.shape)}, colour {tuple(colour.shape)} for {v} voxels a block'
+            )
+        if n > self.config.max_blocks:
+            raise ValueError(f'{n} blocks, more than max_blocks={self.config.max_blocks}')
+        self._allocate_storage(max(n, min(INITIAL_CAPACITY, self.config.max_blocks)))
+        dev = self.device
+        self.block_coords[:n] = coords.to(dev, torch.int64)
+        self.tsdf[:n] = tsdf.to(dev, torch.float32)
+        self.weight[:n] = weight.to(dev, torch.float32)
+        self.colour[:n] = colour.to(dev, torch.float32)
+        self.n_blocks = n
+        self._index = SortedKeys(pack(self.block_coords[:n]))
+
     @property
     def memory_bytes(self) -> int:
         """Bytes held by the voxel storage now (capacity, not only used blocks)."""

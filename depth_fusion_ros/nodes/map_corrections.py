@@ -67,6 +67,9 @@ class MapCorrector:
         #: The store's segment of each keyframe in the consistency test's window (by stamp).
         self._segments: dict[float, int] = {}
         self._last_key: float | None = None
+        #: A map loaded from ``map_file`` (its blocks): a rebuild starts from it, since its
+        #: keyframes are not kept (it cannot be moved, only added to).
+        self.base: Any = None
         self._state = threading.Lock()  # guards _thread and _again (node._lock guards the map and store)
 
     # --- called holding node._lock ---------------------------------------------------------------------
@@ -185,7 +188,10 @@ class MapCorrector:
             last = self.store.last_seq
             config = node.map.config
             generation = self._generation
+            base = self.base
         engine, _ = make_engine(config)
+        if base is not None:
+            engine.load_blocks(base.coords, base.tsdf, base.weight, base.colour)
         rebuild(engine, entries)  # the long part, outside the lock: integration goes on meanwhile
         with node._lock:
             if generation != self._generation:

@@ -37,8 +37,10 @@ from std_srvs.srv import Trigger
 from ..data import messages
 from ..mapping.config import ENGINES, MAP_PARAMETER_DESCRIPTIONS, MapConfig
 from ..mapping.engine import make_map
+from ..mapping.map_file import load_tsdf, save_tsdf
 from ..mapping.ply import write_ply
 from ..mapping.surface import SurfaceMesh
+from ..mapping.torch_tsdf import TorchTSDF
 from ..pose_jumps import find_jump
 from .base import DepthFusionNode, run_node
 from .corrected_path import TOPIC_CORRECTED_PATH
@@ -93,7 +95,15 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'points_max', 200000, 'most points per published cloud (evenly subsampled beyond)', 1, 100_000_000
     ),
     ParamSpec('save_path', 'map.ply', 'where ~/save_map (and save_on_shutdown) write the mesh (.ply)'),
-    ParamSpec('save_on_shutdown', False, 'write the mesh to save_path when the node stops'),
+    ParamSpec(
+        'save_on_shutdown', False, 'write the mesh to save_path (and the map to map_file) when the node stops'
+    ),
+    ParamSpec(
+        'map_file',
+        '',
+        'the TSDF map itself (torch engine): loaded at start when the file exists, so a robot keeps its map '
+        "across restarts; written by ~/save_map and save_on_shutdown beside the mesh ('': none)",
+    ),
     ParamSpec(
         'use_color', True, f'colour the map with the keyframe image ({TOPIC_KEYFRAME_IMAGE}) when it came'
     ),
@@ -141,6 +151,8 @@ class MapNode(DepthFusionNode):
         self._lock = threading.Lock()
         self._dirty = False
         self._world_frame = ''
+        self.map_file = Path(str(p['map_file'])) if str(p['map_file']) else None
+        self._load_map_file()
         self._integrated = 0
         self.jump_limits = pose_jump_limits(p)
         #: Stamp (s) and pose of the last keyframe integrated, for the pose-jump test.
@@ -276,6 +288,28 @@ class MapNode(DepthFusionNode):
         self.stats.published('integrated')
         self.stats.processed(time.monotonic() - pairing.first_seen)
 
+    def _load_map_file(self) -> None:
+        """The map saved by an earlier run (``map_file``), when there is one: integration goes on
+        into it. A file that is not such a map, or does not fit the configuration, stops the
+        node with one line naming it (a robot told to keep its map must not start a new one)."""
+        if self.map_file is None:
+            return
+        if not isinstance(self.map.engine, TorchTSDF):
+            raise ValueError(f'{self.get_name()}: map_file needs the torch engine (map.engine: torch)')
+        if not self.map_file.exists():
+            self.get_logger().info(f'map_file {self.map_file} does not exist yet: starting an empty map')
+            return
+        try:
+            self._world_frame = load_tsdf(self.map.engine, self.map_file)
+        except ValueError as exc:
+            raise ValueError(f'{self.get_name()}: {exc}') from None
+        self.corrector.base = self.map.engine.blocks().clone()
+        self._dirty = True
+        frame = self._world_frame or '?'
+        self.get_logger().info(
+            f'map loaded from {self.map_file}: {self.map.n_blocks} blocks in frame {frame!r}'
+        )
+
     def _check_pose_jump(self, stamp: float, T_wc: np.ndarray) -> None:
         """Note a pose jump since the last keyframe integrated (``pose_jump``), and clear the
         map there with ``clear_on_pose_jump``. Called holding ``_lock``."""
@@ -306,6 +340,7 @@ class MapNode(DepthFusionNode):
         self.map, _ = make_map(self.map.config)
         self.map.on_integrated = self.corrector.keep
         self.corrector.clear()
+        self.corrector.base = None
         self._integrated = 0
         self._dirty = True
         return dropped
@@ -367,6 +402,9 @@ class MapNode(DepthFusionNode):
                 f'left out by the consistency test): nothing written to {path}'
             )
         write_ply(path, mesh)
+        if self.map_file is not None:
+            with self._lock:
+                save_tsdf(self.map.engine, self.map_file, self._world_frame)
         return path, len(mesh.vertices), len(mesh.triangles)
 
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -378,6 +416,8 @@ class MapNode(DepthFusionNode):
             return response
         response.success = True
         response.message = f'{path}: {nv} vertices, {nt} triangles from {self._integrated} keyframes'
+        if self.map_file is not None:
+            response.message += f'; map written to {self.map_file}'
         self.get_logger().info(f'save_map: {response.message}')
         return response
 

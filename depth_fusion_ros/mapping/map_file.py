@@ -1,0 +1,69 @@
+"""The TSDF map on disk, so a robot keeps its map across restarts (map_node's ``map_file``).
+
+A mesh (``~/save_map``'s ``.ply``) is for people and other tools; it cannot be integrated
+into again. This file is the map itself: the torch engine's used voxel blocks (coordinates,
+TSDF, weight, colour), its voxel and block size and truncation, and the world frame it is in,
+written with ``torch.save`` (tensors only, read back with ``weights_only=True``: loading a map
+runs no code) to a temporary file renamed over the old one, so a crash while saving never
+leaves half a map. Loading checks that the file is such a map and that it fits the node's
+configuration (same voxel and block size; at most ``max_blocks`` blocks), and says in one line
+what does not.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from .torch_tsdf import TorchTSDF
+
+FORMAT = 'depth_fusion_ros.tsdf/1'
+
+
+def save_tsdf(engine: TorchTSDF, path: str | Path, world_frame: str) -> int:
+    """Write the map's blocks to ``path`` (atomically); returns how many."""
+    path = Path(path)
+    blocks = engine.blocks()
+    state = {
+        'format': FORMAT,
+        'voxel_size': float(engine.config.voxel_size),
+        'block_size': int(engine.config.block_size),
+        'truncation': float(engine.trunc),
+        'world_frame': world_frame,
+        'coords': blocks.coords.cpu(),
+        'tsdf': blocks.tsdf.cpu(),
+        'weight': blocks.weight.cpu(),
+        'colour': blocks.colour.cpu(),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + '.tmp')
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return int(blocks.coords.shape[0])
+
+
+def load_tsdf(engine: TorchTSDF, path: str | Path) -> str:
+    """Fill the (empty) ``engine`` with the map in ``path``; returns its world frame.
+
+    ``ValueError`` naming the file and the reason when it is not a map this engine can take."""
+    path = Path(path)
+    try:
+        state = torch.load(path, map_location='cpu', weights_only=True)
+    except Exception as exc:  # a truncated, foreign or corrupt file: one line, not a traceback
+        raise ValueError(f'map file {path}: not readable as a map ({type(exc).__name__}: {exc})') from None
+    if not isinstance(state, dict) or state.get('format') != FORMAT:
+        raise ValueError(f'map file {path}: not a depth_fusion_ros TSDF map (format {FORMAT})')
+    cfg = engine.config
+    if abs(float(state['voxel_size']) - cfg.voxel_size) > 1e-9 or int(state['block_size']) != cfg.block_size:
+        raise ValueError(
+            f'map file {path}: {state["voxel_size"] * 100:g} cm voxels in blocks of {state["block_size"]}, '
+            f'map_node is configured for {cfg.voxel_size * 100:g} cm in blocks of {cfg.block_size} '
+            "(set map.voxel_size and map.block_size to the file's)"
+        )
+    n = int(state['coords'].shape[0])
+    if n > cfg.max_blocks:
+        raise ValueError(f'map file {path}: {n} blocks, more than map.max_blocks={cfg.max_blocks}')
+    engine.load_blocks(state['coords'], state['tsdf'], state['weight'], state['colour'])
+    return str(state.get('world_frame') or '')
