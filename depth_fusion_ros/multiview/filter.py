@@ -353,8 +353,15 @@ class DepthFilter:
         new.updates[at] = old_at(old.updates)
         new.prior[at] = True
         new.cost[at] = old_at(old.cost)
+        # Only estimates with fill_min_updates measurements fill holes: a young one may be wrong,
+        # and a prior filled from it is confirmed by the short searches around it.
+        mature = torch.nonzero(old.updates.index_select(0, sources) >= c.fill_min_updates, as_tuple=True)[0]
+        variance = old.state.var.index_select(0, sources) * warped.scale**4
         filled = self._fill_holes(
-            new, warped.target, warped.rho, old.state.var.index_select(0, sources) * warped.scale**4
+            new,
+            warped.target.index_select(0, mature),
+            warped.rho.index_select(0, mature),
+            variance.index_select(0, mature),
         )
         # Pixels without a prior: a first measurement from the previous keyframe image.
         T_ok = relative_pose(T_wn, old.pose)

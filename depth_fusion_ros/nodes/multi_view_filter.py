@@ -69,6 +69,7 @@ FILTER_LIMITS: dict[str, Any] = {
     'propagation_inflation': (1.0, None),
     'propagation_relative_sigma': (0.0, None),
     'fill_radius': (0, 50),
+    'fill_min_updates': (1, 1000),
     'fill_min_neighbours': (1, 10000),
     'scene_depth': (1e-3, None),
 }
