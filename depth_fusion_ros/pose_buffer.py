@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import interpolate_poses, validate_pose
-from .pose_corrections import corrected_poses
+from .pose_corrections import corrected_segments
 from .pose_jumps import PoseJump, PoseJumpLimits, find_jump
 
 
@@ -89,13 +89,17 @@ class PoseBuffer:
         for a in (i - 1, i):
             if a < 0 or a + 1 >= len(self._stamps):
                 continue
-            jump = find_jump(
-                self.jump_limits, self._stamps[a], self._poses[a], self._stamps[a + 1], self._poses[a + 1]
-            )
+            jump = self._jump_between(a)
             if jump is not None:
                 self._after_jump.add(self._stamps[a + 1])
                 found = found or jump
         return found
+
+    def _jump_between(self, a: int) -> PoseJump | None:
+        """The jump from pose ``a`` to pose ``a + 1``, or ``None``."""
+        return find_jump(
+            self.jump_limits, self._stamps[a], self._poses[a], self._stamps[a + 1], self._poses[a + 1]
+        )
 
     def lookup(self, stamp: float) -> PoseLookup:
         """Pose at ``stamp`` (linear translation, slerp rotation) or the reason there is none."""
@@ -131,30 +135,25 @@ class PoseBuffer:
         moves, and the step goes). Returns how far (m, degrees) the newest pose the path covers
         moved: the step between the frames posed before and those to come; ``None`` when it
         covers none."""
-        bounds = sorted(self._stamps.index(s) for s in self._after_jump)
-        newest: tuple[float, tuple[float, float]] | None = None
-        for start, stop in zip([0, *bounds], [*bounds, len(self._stamps)], strict=True):
-            if stop <= start:
-                continue
-            old = np.stack(self._poses[start:stop])
-            stamps = np.array(self._stamps[start:stop])
-            ended = stop < len(self._stamps)
-            fix = corrected_poses(stamps, old, path_stamps, path_poses, max_gap, ended=ended)
-            if not fix.corrected.any():
-                continue
-            for i in np.nonzero(fix.corrected)[0]:
-                self._poses[start + i] = fix.poses[i]
-            metres, degrees = fix.moves(old)
-            last = int(np.nonzero(fix.corrected)[0][-1])
-            newest = (self._stamps[start + last], (float(metres[last]), float(degrees[last])))
-        if newest is None:
+        if not self._stamps:
             return None
+        # Segment of each pose: how many jumps come at or before it.
+        after = np.isin(np.array(self._stamps), np.array(sorted(self._after_jump)))
+        segments = np.cumsum(after)
+        old = np.stack(self._poses)
+        fix = corrected_segments(
+            np.array(self._stamps), old, segments, int(segments[-1]), path_stamps, path_poses, max_gap
+        )
+        if not fix.corrected.any():
+            return None
+        self._poses = list(fix.poses)
         self._after_jump.clear()  # the jumps again: a correction may remove a step (or make one)
         for a in range(len(self._stamps) - 1):
-            pair = (self._stamps[a], self._poses[a], self._stamps[a + 1], self._poses[a + 1])
-            if find_jump(self.jump_limits, *pair) is not None:
+            if self._jump_between(a) is not None:
                 self._after_jump.add(self._stamps[a + 1])
-        return newest[1]
+        metres, degrees = fix.moves(old)
+        newest = int(np.nonzero(fix.corrected)[0][-1])
+        return float(metres[newest]), float(degrees[newest])
 
     def clear(self) -> None:
         self._stamps.clear()

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import interpolate_poses, invert_pose, rotation_angle
+from .geometry import interpolate_poses, invert_pose
 
 #: Stamps closer than this (s) are the same instant (a path pose at one of our keyframes).
 SAME_STAMP_S = 1e-4
@@ -43,8 +43,9 @@ class CorrectionLimits:
     min_deg: float = 0.5
     max_gap: float = 2.0
 
-    def counts(self, metres: float, degrees: float) -> bool:
-        return metres >= self.min_m or degrees >= self.min_deg
+    def counts(self, metres: float | np.ndarray, degrees: float | np.ndarray) -> bool | np.ndarray:
+        """Whether a move (or each of several, as arrays) is large enough to count."""
+        return (np.asarray(metres) >= self.min_m) | (np.asarray(degrees) >= self.min_deg)
 
 
 @dataclass(frozen=True)
@@ -55,11 +56,16 @@ class Corrections:
     corrected: np.ndarray  # (N,) bool
 
     def moves(self, old: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Translation (m) and rotation (degrees) of each keyframe's correction."""
-        delta = self.poses @ np.linalg.inv(np.asarray(old, np.float64))
-        metres = np.linalg.norm(self.poses[:, :3, 3] - np.asarray(old)[:, :3, 3], axis=1)
-        degrees = np.degrees([rotation_angle(d[:3, :3]) for d in delta]) if len(delta) else np.zeros(0)
-        return metres, np.asarray(degrees)
+        """Translation (m) and rotation (degrees) of each keyframe's correction, vectorised
+        (the angle of ``R_new R_old^T``, as ``geometry.rotation_angle`` gives one)."""
+        old = np.asarray(old, np.float64)
+        metres = np.linalg.norm(self.poses[:, :3, 3] - old[:, :3, 3], axis=1)
+        d = np.einsum('nij,nkj->nik', self.poses[:, :3, :3], old[:, :3, :3])  # R_new R_old^T
+        # atan2 of the axis part and the trace: exact near 0, where arccos of the trace is not
+        axis = np.stack((d[:, 2, 1] - d[:, 1, 2], d[:, 0, 2] - d[:, 2, 0], d[:, 1, 0] - d[:, 0, 1]), axis=1)
+        trace = np.einsum('nii->n', d)
+        degrees = np.degrees(np.arctan2(0.5 * np.linalg.norm(axis, axis=1), 0.5 * (trace - 1.0)))
+        return metres, degrees
 
 
 def _old_at(
@@ -123,4 +129,30 @@ def corrected_poses(
         same = np.abs(p_stamps[cand] - stamps) <= SAME_STAMP_S
         out[same] = p_poses[cand[same]]
         corrected |= same
+    return Corrections(out, corrected)
+
+
+def corrected_segments(
+    stamps: np.ndarray,
+    poses: np.ndarray,
+    segments: np.ndarray,
+    open_segment: int,
+    path_stamps: np.ndarray,
+    path_poses: np.ndarray,
+    max_gap: float,
+) -> Corrections:
+    """:func:`corrected_poses` of poses in several segments, each corrected on its own.
+
+    ``stamps`` increase within each segment (in any order across them); ``segments`` (N,) the
+    segment of each; ``open_segment`` the one still growing: every other segment was ended by
+    a jump or a restart, so it is all in the old world (``ended``)."""
+    out = np.asarray(poses, np.float64).copy()
+    corrected = np.zeros(len(out), dtype=bool)
+    segments = np.asarray(segments)
+    for segment in np.unique(segments):
+        rows = np.nonzero(segments == segment)[0]
+        fix = corrected_poses(
+            np.asarray(stamps)[rows], out[rows], path_stamps, path_poses, max_gap, segment != open_segment
+        )
+        out[rows], corrected[rows] = fix.poses, fix.corrected
     return Corrections(out, corrected)

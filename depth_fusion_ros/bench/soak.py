@@ -136,8 +136,7 @@ def map_rows(
     from ..mapping.config import MapConfig
 
     voxels = max_blocks * MapConfig().bytes_per_block / 2**20
-    kept = kept_mb
-    cap = voxels + kept
+    cap = voxels + kept_mb
     warm, end, _, _ = growth(t, rss, seconds)
     rise = float(np.nanmax(rss[steady_window(t, seconds)])) - warm
     verdict = 'under' if rise <= cap else 'OVER'
@@ -146,7 +145,7 @@ def map_rows(
             'soak: map_node declared cap',
             cap,
             'MB',
-            f'voxels {voxels:.0f} MB (map.max_blocks={max_blocks}) + kept keyframes {kept:.0f} MB '
+            f'voxels {voxels:.0f} MB (map.max_blocks={max_blocks}) + kept keyframes {kept_mb:.0f} MB '
             f'(reintegration_max_mb={kept_mb:g})',
         ),
         BenchRow(

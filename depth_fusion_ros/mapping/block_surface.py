@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import torch
 
 from .keys import SortedKeys, pack
-from .surface import _EDGES, TRUNCATED, SurfaceMesh, _orient, empty_mesh
+from .surface import TRUNCATED, SurfaceMesh, edge_vertices, empty_mesh, two_triangles
 
 
 @dataclass
@@ -144,21 +144,8 @@ def _cells(code: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
 def _vertices(
     corner_t: torch.Tensor, corner_src: torch.Tensor, colour: torch.Tensor, n: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Vertex of each cell (voxel units, from its min corner) and its colour: the mean zero
-    crossing of its sign-changing edges, as :func:`.surface._cell_vertices`."""
-    dev = corner_t.device
-    edges = _EDGES.to(dev)
-    corners = torch.tensor(
-        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], device=dev
-    )
-    ta, tb = corner_t[:, edges[:, 0]], corner_t[:, edges[:, 1]]  # (C, 12)
-    crossing = (ta >= 0) != (tb >= 0)
-    frac = torch.where(crossing, ta / (ta - tb).where(crossing, torch.ones_like(ta)), torch.zeros_like(ta))
-    pa = corners[edges[:, 0]].to(torch.float32)
-    pb = corners[edges[:, 1]].to(torch.float32)
-    points = pa[None] + frac[..., None] * (pb - pa)[None]
-    count = crossing.sum(dim=1, keepdim=True).clamp(min=1).to(torch.float32)
-    local = (points * crossing[..., None]).sum(dim=1) / count
+    """Vertex of each cell and its colour (:func:`.surface.edge_vertices`), the corners'
+    colours read from the storage through their source index (row * n^3 + local)."""
     v = n**3
     src = corner_src.clamp(min=0)  # every corner of a cell is usable, so it has a source
     flat = colour.reshape(-1)
@@ -166,10 +153,7 @@ def _vertices(
     rgb = torch.stack(
         [flat.index_select(0, (red + c * v).view(-1)).view(src.shape) for c in range(3)], dim=-1
     )
-    ca, cb = rgb[:, edges[:, 0]], rgb[:, edges[:, 1]]
-    cmix = ca + frac[..., None] * (cb - ca)
-    colours = (cmix * crossing[..., None]).sum(dim=1) / count
-    return local, colours
+    return edge_vertices(corner_t, rgb)
 
 
 def _shifted(tp: torch.Tensor, n: int, axis: int) -> torch.Tensor:
@@ -210,10 +194,8 @@ def _quads(
             continue
         quad = _around(ids, e, axis)
         ok = (quad >= 0).all(dim=1)
-        quad = quad[ok]
         towards_plus = far[e[:, 0], e[:, 1], e[:, 2], e[:, 3]][ok] >= 0
-        tri = torch.cat((quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]), dim=0)
-        triangles.append(_orient(tri, torch.cat((towards_plus, towards_plus)), axis, vertices))
+        triangles.append(two_triangles(quad[ok], towards_plus, axis, vertices))
     if not triangles:
         return torch.zeros((0, 3), dtype=torch.int64, device=tp.device)
     return torch.cat(triangles)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..pose_corrections import CorrectionLimits, corrected_poses
+from ..pose_corrections import CorrectionLimits, corrected_segments
 
 
 @dataclass
@@ -160,26 +160,22 @@ class KeyframeStore:
         Only a move that ``limits.counts`` counts as moved (a path that restates the poses it
         already gave moves nothing, and asks for no rebuild); ``limits.max_gap``: the longest
         gap between two kept keyframes that a path pose is compared across."""
-        corrected = moved = 0
-        largest_m = largest_deg = 0.0
-        segments = sorted({e.segment for e in self.entries})
-        for segment in segments:
-            here = [e for e in self.entries if e.segment == segment]
-            old = np.stack([e.T_wc for e in here])
-            stamps = np.array([e.stamp for e in here])
-            ended = segment != segments[-1] or segment != self.segment  # a jump or restart followed it
-            fix = corrected_poses(stamps, old, path_stamps, path_poses, limits.max_gap, ended=ended)
-            metres, degrees = fix.moves(old)
-            big = fix.corrected & ((metres >= limits.min_m) | (degrees >= limits.min_deg))
-            corrected += int(fix.corrected.sum())
-            moved += int(big.sum())
-            if fix.corrected.any():
-                largest_m = max(largest_m, float(metres[fix.corrected].max()))
-                largest_deg = max(largest_deg, float(degrees[fix.corrected].max()))
-            for e, T, ok in zip(here, fix.poses, fix.corrected, strict=True):
-                if ok:
-                    e.T_wc = T
-        return CorrectionSummary(corrected, moved, largest_m, largest_deg)
+        if not self.entries:
+            return CorrectionSummary(0, 0, 0.0, 0.0)
+        old = np.stack([e.T_wc for e in self.entries])
+        stamps = np.array([e.stamp for e in self.entries])
+        segments = np.array([e.segment for e in self.entries])
+        fix = corrected_segments(stamps, old, segments, self.segment, path_stamps, path_poses, limits.max_gap)
+        metres, degrees = fix.moves(old)
+        ok = fix.corrected
+        for e, T in zip([e for e, c in zip(self.entries, ok, strict=True) if c], fix.poses[ok], strict=True):
+            e.T_wc = T
+        if not ok.any():
+            return CorrectionSummary(0, 0, 0.0, 0.0)
+        moved = ok & limits.counts(metres, degrees)
+        return CorrectionSummary(
+            int(ok.sum()), int(moved.sum()), float(metres[ok].max()), float(degrees[ok].max())
+        )
 
     def newer_than(self, seq: int) -> list[StoredKeyframe]:
         """Keyframes that arrived after the one numbered ``seq``."""

@@ -92,9 +92,18 @@ def extract_mesh(voxels: VoxelSet) -> SurfaceMesh:
 def _cell_vertices(
     coords: torch.Tensor, t: torch.Tensor, colour: torch.Tensor, rows: torch.Tensor, corners: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Vertex of each cell (voxel units): mean zero crossing of its sign-changing edges."""
-    edges = _EDGES.to(coords.device)
-    ta, tb = t[rows[:, edges[:, 0]]], t[rows[:, edges[:, 1]]]  # (C, 12)
+    """Vertex of each cell (voxel units): its corners gathered, then :func:`edge_vertices`."""
+    local, colours = edge_vertices(t[rows], colour[rows])
+    return coords[rows[:, 0]].to(torch.float32) + local, colours
+
+
+def edge_vertices(corner_t: torch.Tensor, corner_rgb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each cell's vertex (voxel units from its minimum corner) and colour from its eight
+    corners' TSDF (C, 8) and colour (C, 8, 3), in ``_CORNERS`` order: the mean zero crossing of
+    its sign-changing edges, the colour interpolated alike (also mapping/block_surface.py)."""
+    dev = corner_t.device
+    edges, corners = _EDGES.to(dev), _CORNERS.to(dev)
+    ta, tb = corner_t[:, edges[:, 0]], corner_t[:, edges[:, 1]]  # (C, 12)
     crossing = (ta >= 0) != (tb >= 0)
     frac = torch.where(crossing, ta / (ta - tb).where(crossing, torch.ones_like(ta)), torch.zeros_like(ta))
     pa = corners[edges[:, 0]].to(torch.float32)  # (12, 3)
@@ -102,11 +111,19 @@ def _cell_vertices(
     points = pa[None] + frac[..., None] * (pb - pa)[None]  # (C, 12, 3)
     count = crossing.sum(dim=1, keepdim=True).clamp(min=1).to(torch.float32)
     local = (points * crossing[..., None]).sum(dim=1) / count
-    vertices = coords[rows[:, 0]].to(torch.float32) + local
-    ca, cb = colour[rows[:, edges[:, 0]]], colour[rows[:, edges[:, 1]]]  # (C, 12, 3)
+    ca, cb = corner_rgb[:, edges[:, 0]], corner_rgb[:, edges[:, 1]]  # (C, 12, 3)
     cmix = ca + frac[..., None] * (cb - ca)
     colours = (cmix * crossing[..., None]).sum(dim=1) / count
-    return vertices, colours
+    return local, colours
+
+
+def two_triangles(
+    quad: torch.Tensor, towards_plus: torch.Tensor, axis: int, vertices: torch.Tensor
+) -> torch.Tensor:
+    """The two triangles of each quad (four vertex indices around a sign-changing edge along
+    ``axis``), oriented towards positive TSDF when ``towards_plus`` (also block_surface.py)."""
+    tri = torch.cat((quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]), dim=0)
+    return _orient(tri, torch.cat((towards_plus, towards_plus)), axis, vertices)
 
 
 def _quads(
@@ -136,11 +153,7 @@ def _quads(
         ok = ok.all(dim=1)
         quad = quad[ok]
         # Normal towards positive TSDF: +axis when the far end is the positive one.
-        towards_plus = tb[e][ok] >= 0
-        tri = torch.cat((quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]), dim=0)
-        flip = torch.cat((towards_plus, towards_plus))
-        tri = _orient(tri, flip, axis, vertices)
-        triangles.append(tri)
+        triangles.append(two_triangles(quad, tb[e][ok] >= 0, axis, vertices))
     if not triangles:
         return torch.zeros((0, 3), dtype=torch.int64, device=dev)
     return torch.cat(triangles)

@@ -79,3 +79,20 @@ def path_from_message(msg: Any, T_pose_cam: np.ndarray) -> tuple[np.ndarray, np.
             continue
         stamps.append(messages.ns_to_sec(messages.stamp_to_ns(stamped.header.stamp)))
     return np.asarray(stamps, np.float64), np.asarray(poses, np.float64).reshape(-1, 4, 4), bad
+
+
+def read_path(
+    stats: Any, msg: Any, T_pose_cam: np.ndarray, world_frame: str
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """A corrected trajectory as a node takes it: received counted, unusable poses dropped
+    (``bad_pose``, the rest used), a path in another frame than ``world_frame`` dropped
+    (``frame_mismatch``; ``''``: not known yet, anything goes). ``None``: nothing to use."""
+    stats.received('corrected_path')
+    stamps, poses, bad = path_from_message(msg, T_pose_cam)
+    if bad:
+        stats.dropped('bad_pose', f'corrected trajectory: {bad} of {len(msg.poses)} poses unusable')
+    frame = msg.header.frame_id
+    if frame and world_frame and frame != world_frame:
+        stats.dropped('frame_mismatch', f'corrected trajectory in {frame!r}, poses in {world_frame!r}')
+        return None
+    return (stamps, poses) if len(stamps) else None

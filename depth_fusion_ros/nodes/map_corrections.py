@@ -21,14 +21,14 @@ import numpy as np
 
 from ..mapping.engine import make_engine
 from ..mapping.keyframe_store import KeyframeStore, rebuild
-from ..pose_corrections import corrected_poses
+from ..pose_corrections import corrected_poses, corrected_segments
 from . import robot_inputs
 from .corrected_path import (
     TOPIC_CORRECTED_PATH,
     camera_from_pose_frame_parameter,
     correction_limits,
     correction_parameters,
-    path_from_message,
+    read_path,
 )
 from .params import ParamSpec
 
@@ -87,23 +87,17 @@ class MapCorrector:
     def on_path(self, msg: Any) -> None:
         """A corrected trajectory: move the kept (and waiting) keyframes, then rebuild if one moved."""
         node = self.node
-        node.stats.received('corrected_path')
-        if self.store.max_bytes <= 0:
-            node.stats.dropped(
-                'corrections_off', 'corrected trajectory ignored: reintegration_max_mb is 0 (nothing kept)'
-            )
-            return
-        stamps, poses, bad = path_from_message(msg, self.T_pose_cam)
-        if bad:
-            node.stats.dropped('bad_pose', f'corrected trajectory: {bad} of {len(msg.poses)} poses unusable')
-        if len(stamps) == 0:
-            return
         with node._lock:
-            world = node._world_frame
-            frame = msg.header.frame_id
-            if world and frame and frame != world:
-                node.stats.dropped('frame_mismatch', f'corrected trajectory in {frame!r}, map in {world!r}')
+            path = read_path(node.stats, msg, self.T_pose_cam, node._world_frame)
+            if path is None:
                 return
+            if self.store.max_bytes <= 0:
+                node.stats.dropped(
+                    'corrections_off',
+                    'corrected trajectory ignored: reintegration_max_mb is 0 (nothing kept)',
+                )
+                return
+            stamps, poses = path
             summary = self.store.correct(stamps, poses, self.limits)
             self._correct_pending(stamps, poses)
         node.stats.published('corrections')
@@ -137,20 +131,15 @@ class MapCorrector:
         """The keyframes in the consistency test's window, and the pose-jump test's last pose,
         move with the kept ones, segment by segment as the store (holding node._lock)."""
         node = self.node
-        window = sorted(((float(k), T) for k, T in node.map.window_keyframes()), key=lambda kt: kt[0])
-        segment_of = {k: self._segments.get(k, self.store.segment) for k, _ in window}
-        moved: dict[float, np.ndarray] = {}
-        for segment in sorted(set(segment_of.values())):
-            here = [(k, T) for k, T in window if segment_of[k] == segment]
-            keys = np.array([k for k, _ in here])
-            if len(keys) > 1 and not np.all(np.diff(keys) > 0):
-                continue  # a restarted stream's stamps: left as they are
-            ended = segment != self.store.segment
-            fix = corrected_poses(
-                keys, np.stack([T for _, T in here]), stamps, poses, self.limits.max_gap, ended
+        window = node.map.window_keyframes()
+        if window:
+            keys = np.array([float(k) for k, _ in window])
+            segments = np.array([self._segments.get(k, self.store.segment) for k in keys])
+            old = np.stack([T for _, T in window])
+            fix = corrected_segments(
+                keys, old, segments, self.store.segment, stamps, poses, self.limits.max_gap
             )
-            moved.update({k: T for k, T, ok in zip(keys, fix.poses, fix.corrected, strict=True) if ok})
-        if moved:
+            moved = {k: T for k, T, ok in zip(keys, fix.poses, fix.corrected, strict=True) if ok}
             node.map.move_window(lambda key, T: moved.get(float(key), T))
         last = node._last_pose
         if last is not None:

@@ -49,7 +49,7 @@ from ..pose_jumps import PoseJump
 from . import robot_inputs
 from .announce import announce
 from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode, run_node
-from .corrected_path import TOPIC_CORRECTED_PATH, correction_limits, correction_parameters, path_from_message
+from .corrected_path import TOPIC_CORRECTED_PATH, correction_limits, correction_parameters, read_path
 from .diagnostics import Requirement
 from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, GraphEvents
 from .image_input import (
@@ -402,18 +402,11 @@ class MultiViewNode(DepthFusionNode):
         frame history and the filter start over at the next posed frame (``pose_correction``),
         as at a pose jump, so no neighbour and no propagated estimate crosses the correction,
         however small it is against the jump limits."""
-        self.stats.received('corrected_path')
-        stamps, poses, bad = path_from_message(msg, self.T_pose_cam)
-        if bad:
-            self.stats.dropped('bad_pose', f'corrected trajectory: {bad} of {len(msg.poses)} poses unusable')
-        frame = msg.header.frame_id
-        if frame and self._world_frame and frame != self._world_frame:
-            self.stats.dropped(
-                'frame_mismatch', f'corrected trajectory in {frame!r}, poses in {self._world_frame!r}'
-            )
+        world = self._world_frame if len(self.pose_buffer) else ''  # (its default until a pose came)
+        path = read_path(self.stats, msg, self.T_pose_cam, world)
+        if path is None:
             return
-        if len(stamps) == 0:
-            return
+        stamps, poses = path
         move = self.pose_buffer.correct(stamps, poses, self.correction_limits.max_gap)
         if move is not None and self.correction_limits.counts(*move):
             self._restart_from_ns = 0  # the next posed frame, whatever its stamp
