@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
 
-from depth_fusion_ros.fusion import aot_kernels
+from depth_fusion_ros.fusion import aot_background, aot_kernels
 from depth_fusion_ros.fusion.interpolation import interpolate
 from depth_fusion_ros.fusion.scenes import make_scene
 from depth_fusion_ros.fusion.weights import WeightParams
@@ -17,14 +19,18 @@ CPU = torch.device('cpu')
 
 @pytest.fixture(scope='module')
 def built_cache(tmp_path_factory):
-    """Both kernels built once into a private cache (~20 s on 2 cores)."""
+    """Both kernels built once into a private cache (~20-45 s on 2 cores), by the background
+    builder a fusion node starts (fusion/aot_background.py): its own process, its log."""
     root = tmp_path_factory.mktemp('cache')
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv('XDG_CACHE_HOME', str(root))
         mp.delenv(aot_kernels.ENV_SWITCH, raising=False)
         aot_kernels._load.cache_clear()
-        seconds = aot_kernels.build(PARAMS, 'cpu')
+        process = aot_background.spawn(PARAMS, aot_kernels.cache_dir())
+        assert process.wait(600) == 0
+        log = (aot_kernels.cache_dir() / aot_background.LOG_NAME).read_text()
     aot_kernels._load.cache_clear()
+    seconds = {m.group(1): float(m.group(2)) for m in re.finditer(r'^(\w+): built in ([\d.]+) s', log, re.M)}
     return root, seconds
 
 
@@ -118,3 +124,46 @@ def test_switched_off_or_broken_packages_are_not_used(cache, monkeypatch, caplog
         broken.unlink()
     with pytest.raises(ValueError, match='CPU only'):
         aot_kernels.build(PARAMS, 'cuda')
+
+
+def test_a_second_builder_gives_way_and_a_waiting_one_finds_the_kernels(cache):
+    """The cache's build lock: a builder that may not wait gives up (None) while another holds
+    the lock; one that waits then finds nothing missing ({})."""
+    with aot_kernels.build_lock(wait=True) as held:
+        assert held
+        assert aot_kernels.build_if_missing(PARAMS, wait=False) is None
+    assert aot_kernels.build_if_missing(PARAMS, wait=True) == {}
+
+
+def test_a_node_that_compiles_starts_the_builder_for_its_own_parameters(cache, monkeypatch):
+    """fusion_warmup.build_for_the_next_start: nothing when the kernels are built (or the cache
+    is off); otherwise the builder for the node's weight parameters, said in one line."""
+    from depth_fusion_ros.fusion.pipeline import FusionConfig
+    from depth_fusion_ros.nodes import fusion_warmup
+
+    lines: list[str] = []
+    started: list[WeightParams] = []
+
+    class Logger:
+        def info(self, text: str) -> None:
+            lines.append(text)
+
+        warning = info
+
+    class Node:
+        def get_logger(self) -> Logger:
+            return Logger()
+
+    class Process:
+        pid = 4242
+
+    monkeypatch.setattr(aot_background, 'spawn', lambda params, root: started.append(params) or Process())
+    assert not fusion_warmup.build_for_the_next_start(Node(), FusionConfig(compile_kernel=True))
+    other = FusionConfig(compile_kernel=True, sigma1=9.0)
+    monkeypatch.setenv(aot_kernels.ENV_SWITCH, '0')
+    assert not fusion_warmup.build_for_the_next_start(Node(), other)
+    monkeypatch.delenv(aot_kernels.ENV_SWITCH)
+    node = Node()
+    assert fusion_warmup.build_for_the_next_start(node, other)
+    assert started == [other.weight_params] and node.kernel_builder.pid == 4242
+    assert 'process 4242 at the lowest CPU priority' in lines[-1]

@@ -51,12 +51,19 @@ def run(args: argparse.Namespace) -> int:
         flush=True,
     )
     try:
-        seconds = aot_kernels.build(params, 'cpu')
+        if args.if_missing:  # another builder (a fusion node's background build) may finish first
+            seconds = aot_kernels.build_if_missing(params, wait=True) or {}
+        else:
+            with aot_kernels.build_lock(wait=True):
+                seconds = aot_kernels.build(params, 'cpu')
     except Exception as exc:  # no C++ compiler, an export this torch cannot do: say it in one line
         print(
             f'depth-fusion kernels: building failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})'
         )
         return 1
+    if not seconds:
+        where = aot_kernels.cache_dir()
+        print(f'fusion kernels built ahead of time: built meanwhile by another process, in {where}')
     for name, took in seconds.items():
         print(f'{name}: built in {took:.1f} s -> {aot_kernels.package_path(name, params, cpu)}')
     return 0

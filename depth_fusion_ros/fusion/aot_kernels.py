@@ -18,8 +18,10 @@ cache.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import dataclasses
+import fcntl
 import functools
 import hashlib
 import logging
@@ -28,7 +30,7 @@ import platform
 import tempfile
 import time
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import torch
@@ -156,6 +158,39 @@ def build(params: WeightParams, device: torch.device | str = 'cpu') -> dict[str,
         log.info('AOT fusion kernel %s built in %.1f s: %s', name, seconds[name], target)
     _load.cache_clear()
     return seconds
+
+
+@contextlib.contextmanager
+def build_lock(wait: bool) -> Iterator[bool]:
+    """The cache's build lock (an advisory ``flock`` on ``cache_dir()/build.lock``): yields
+    whether this process holds it. Two builders of the same kernels (``depth-fusion kernels``
+    and a fusion node's background build, or two nodes) would each spend ~45 s of CPU on the
+    same files; with the lock the second waits (``wait``) or gives up. The kernel files are
+    renamed into place, so a loader never needs the lock."""
+    path = cache_dir() / 'build.lock'
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, 'a+') as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def build_if_missing(params: WeightParams, wait: bool = True) -> dict[str, float] | None:
+    """:func:`build` under :func:`build_lock`, only when the kernels are not in the cache once
+    the lock is held (another builder may just have made them): the seconds each took, ``{}``
+    when nothing was missing, None when another process holds the lock and ``wait`` is False."""
+    with build_lock(wait) as held:
+        if not held:
+            return None
+        if available(params, 'cpu'):
+            return {}
+        return build(params, 'cpu')
 
 
 def available(params: WeightParams, device: torch.device | str = 'cpu') -> bool:

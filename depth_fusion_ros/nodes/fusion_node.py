@@ -174,6 +174,13 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'false: compile in the constructor, before subscribing',
     ),
     ParamSpec(
+        'build_kernels_for_next_start',
+        True,
+        'with fusion.compile_kernel on the CPU, where no kernels were built ahead of time (depth-fusion '
+        'kernels): besides compiling them, build them ahead of time in a separate process at the lowest CPU '
+        'priority (~45 s of idle CPU), so the next start is warm within seconds instead of compiling again',
+    ),
+    ParamSpec(
         'load_max_points',
         LOAD_MAX_POINTS,
         'under load (another keyframe already waits in the fusion queue when one starts), fuse it with at '
@@ -293,7 +300,9 @@ class FusionNode(DepthFusionNode):
         )
         self.events = GraphEvents(self)
         #: What the worker fuses with: eager until compiled kernels are ready (see fusion_warmup).
-        self.active_config = start_kernels(self, self.config, bool(p['compile_in_background']))
+        self.active_config = start_kernels(
+            self, self.config, bool(p['compile_in_background']), bool(p['build_kernels_for_next_start'])
+        )
         self.worker = self.make_worker(
             'fusion', self._process, on_lost=lambda job, why: self.events.dropped(job.pairing.stamp_ns, why)
         )

@@ -21,14 +21,21 @@ from ..fusion.pipeline import FusionConfig, warm_up
 COMPILE_THREAD = 'fusion-compile'
 
 
-def start_kernels(node: Any, config: FusionConfig, background: bool) -> FusionConfig:
+def start_kernels(
+    node: Any, config: FusionConfig, background: bool, build_for_next_start: bool = False
+) -> FusionConfig:
     """The config ``node`` fuses with from now on; compiles now, or on a thread that then sets
-    ``node.active_config = config`` (``node.kernels_ready`` is set when compiled kernels run)."""
+    ``node.active_config = config`` (``node.kernels_ready`` is set when compiled kernels run).
+    ``build_for_next_start``: where none were built ahead of time, also start the low-priority
+    builder of ``fusion/aot_background.py`` (at once, beside the compile: a short session may
+    end before the compile does), so the next start is warm."""
     node.kernels_ready = threading.Event()
     if not config.compile_kernel:
         node.kernels_ready.set()
         return config
     if not background:
+        if build_for_next_start and not _ahead_of_time(node, config):
+            build_for_the_next_start(node, config)
         seconds = warm_up(config)
         node.get_logger().info(f'fusion kernels ready (compiled in {seconds:.1f} s)')
         node.kernels_ready.set()
@@ -37,6 +44,8 @@ def start_kernels(node: Any, config: FusionConfig, background: bool) -> FusionCo
     def compile_then_switch() -> None:
         start = time.monotonic()
         ahead = _ahead_of_time(node, config)  # here, not in the constructor: it imports inductor (~1 s)
+        if build_for_next_start and not ahead:  # at once: a short session may end before the compile
+            build_for_the_next_start(node, config)
         try:
             warm_up(config)  # with kernels built ahead of time this only loads them
         except Exception as exc:  # eager stays in use: slower, never wrong
@@ -75,6 +84,31 @@ def _ahead_of_time(node: Any, config: FusionConfig) -> bool:
         "kernels' once to be warm within seconds of starting)"
     )
     return False
+
+
+def build_for_the_next_start(node: Any, config: FusionConfig) -> bool:
+    """Start the background builder of the kernels the node just compiled (CPU only, where the
+    cache is in use and they are still missing); logs one line either way. True when started."""
+    import torch
+
+    from ..fusion import aot_background, aot_kernels
+
+    device = torch.device(config.device)
+    params = config.weight_params
+    if not aot_kernels.enabled(device) or aot_kernels.available(params, device):
+        return False
+    try:
+        process = aot_background.spawn(params, aot_kernels.cache_dir())
+    except OSError as exc:
+        node.get_logger().warning(f'could not start building the fusion kernels for the next start ({exc})')
+        return False
+    node.get_logger().info(
+        f'building the fusion kernels ahead of time for the next start: process {process.pid} at the lowest '
+        f'CPU priority (~45 s of idle CPU; log {aot_kernels.cache_dir() / aot_background.LOG_NAME}); '
+        "'depth-fusion kernels' does the same by hand; build_kernels_for_next_start: false to skip"
+    )
+    node.kernel_builder = process
+    return True
 
 
 def _say_warm(node: Any, what: str) -> None:

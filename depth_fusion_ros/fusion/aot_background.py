@@ -1,0 +1,89 @@
+"""Building the fusion kernels ahead of time in the background, for the next start.
+
+A fusion node that finds no kernels built ahead of time (a machine where nobody ran
+``depth-fusion kernels``, or weight parameters other than the defaults) compiles them with
+``torch.compile`` at every start: on 2 cores it fuses with the eager kernels for 15-30 s, and a
+live camera started with it loses keyframes meanwhile (18 of 49 on a 7-Scenes stretch, against
+0 with the kernels built; docs/performance.md, "A cold machine"). Beside its own compile, the
+node starts this module as a separate process at the lowest CPU priority (``nice 19``): it
+builds the same kernels with AOTInductor into the user cache (~45 s of otherwise idle CPU), so
+every later start is warm within a few seconds. A separate process, because the build holds
+the GIL for seconds at a time, which a thread of the node would take from its callbacks.
+
+    python -m depth_fusion_ros.fusion.aot_background '{"sigma1": 15.0, ...}'
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from .weights import WeightParams
+
+#: The builder's output (one line per kernel, or the reason it failed), next to the kernels.
+LOG_NAME = 'background_build.log'
+
+
+def spawn(params: WeightParams, cache: Path) -> subprocess.Popen:
+    """Start the builder for ``params`` (a process of its own session: a Ctrl-C meant for the
+    graph does not stop it half-way, and a finished build is simply there at the next start).
+    Its output goes to ``cache / LOG_NAME``."""
+    cache.mkdir(parents=True, exist_ok=True)
+    with open(cache / LOG_NAME, 'ab') as log:
+        return subprocess.Popen(
+            [sys.executable, '-m', __name__, json.dumps(dataclasses.asdict(params))],
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+
+def _lowest_priority() -> None:
+    """This process and the compiler processes it starts at the lowest CPU priority there is:
+    nice 19 and ``SCHED_IDLE``, and, where the kernel groups processes by session
+    (``sched_autogroup``, the default on desktop Linux), the nice value of this process's own
+    session group, without which the builder would get as much CPU as the whole graph's
+    session (measured: 48 % of a core beside a live graph, with 17 keyframes lost to it).
+    Each step is best effort: a build at a higher priority is still a one-off."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(19)
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    with contextlib.suppress(OSError):
+        Path('/proc/self/autogroup').write_text('19')
+
+
+def main(argv: list[str]) -> int:
+    """Lowest priority first, then the build under the cache's lock (0 also when another
+    builder holds it or the kernels exist: nothing is missing then, or soon)."""
+    _lowest_priority()
+    if len(argv) != 2:
+        print(f'usage: python -m {__name__} WEIGHT_PARAMS_JSON', flush=True)
+        return 2
+    params = WeightParams(**json.loads(argv[1]))
+
+    import torch
+
+    from . import aot_kernels
+
+    try:
+        seconds = aot_kernels.build_if_missing(params, wait=False)
+    except Exception as exc:  # no C++ compiler, an export this torch cannot do: one line
+        print(f'background build failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})', flush=True)
+        return 1
+    if seconds is None:
+        print('another process is building the kernels: nothing to do', flush=True)
+    for name, took in (seconds or {}).items():
+        target = aot_kernels.package_path(name, params, torch.device('cpu'))
+        print(f'{name}: built in {took:.1f} s -> {target}', flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main(sys.argv))
