@@ -17,19 +17,51 @@ PARAMS = WeightParams()
 CPU = torch.device('cpu')
 
 
+class _Logger:
+    def __init__(self, lines: list[str]) -> None:
+        self.lines = lines
+
+    def info(self, text: str) -> None:
+        self.lines.append(text)
+
+    warning = info
+
+
+class _Node:
+    """What fusion_warmup needs of a node: a logger whose lines the test reads."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def get_logger(self) -> _Logger:
+        return _Logger(self.lines)
+
+
 @pytest.fixture(scope='module')
 def built_cache(tmp_path_factory):
-    """Both kernels built once into a private cache (~20-45 s on 2 cores), by the background
-    builder a fusion node starts (fusion/aot_background.py): its own process, its log."""
+    """Both kernels built once into a private, empty cache (~30-45 s on 2 cores) the way a
+    fusion node on a cold machine gets them (fusion_warmup, build_ahead): the background
+    builder of fusion/aot_background.py in a process of its own, waited for, then loaded."""
+    from depth_fusion_ros.fusion.pipeline import FusionConfig
+    from depth_fusion_ros.nodes.fusion_warmup import start_kernels
+
     root = tmp_path_factory.mktemp('cache')
+    node = _Node()
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv('XDG_CACHE_HOME', str(root))
         mp.delenv(aot_kernels.ENV_SWITCH, raising=False)
         aot_kernels._load.cache_clear()
-        process = aot_background.spawn(PARAMS, aot_kernels.cache_dir())
-        assert process.wait(600) == 0
+        config = FusionConfig(mode='fast', compile_kernel=True, max_points=512)
+        assert start_kernels(node, config, background=True, build_ahead=True).compile_kernel is False
+        node.compile_thread.join(600)
+        assert node.kernels_ready.is_set() and node.active_config == config
+        assert node.kernel_builder.returncode == 0
         log = (aot_kernels.cache_dir() / aot_background.LOG_NAME).read_text()
     aot_kernels._load.cache_clear()
+    assert any('building the fusion kernels ahead of time: process' in line for line in node.lines), (
+        node.lines
+    )
+    assert any('loaded (built ahead of time)' in line for line in node.lines), node.lines
     seconds = {m.group(1): float(m.group(2)) for m in re.finditer(r'^(\w+): built in ([\d.]+) s', log, re.M)}
     return root, seconds
 
@@ -81,26 +113,15 @@ def test_a_fusion_node_with_built_kernels_only_loads_them(cache):
     from depth_fusion_ros.fusion.pipeline import FusionConfig
     from depth_fusion_ros.nodes.fusion_warmup import start_kernels
 
-    lines: list[str] = []
-
-    class Logger:
-        def info(self, text: str) -> None:
-            lines.append(text)
-
-        warning = info
-
-    class Node:
-        def get_logger(self) -> Logger:
-            return Logger()
-
-    node = Node()
+    node = _Node()
     config = FusionConfig(mode='fast', compile_kernel=True, max_points=512)
-    first = start_kernels(node, config, background=True)
+    first = start_kernels(node, config, background=True, build_ahead=True)
     assert first.compile_kernel is False  # eager until the thread is done
     node.compile_thread.join(120)
     assert node.kernels_ready.is_set() and node.active_config == config
-    assert any('built ahead of time found' in line for line in lines), lines
-    assert any('loaded (built ahead of time)' in line for line in lines), lines
+    assert any('built ahead of time found' in line for line in node.lines), node.lines
+    assert any('loaded (built ahead of time)' in line for line in node.lines), node.lines
+    assert not hasattr(node, 'kernel_builder')  # nothing to build
 
 
 def test_the_cli_builds_only_when_missing(cache, capsys):
@@ -135,35 +156,32 @@ def test_a_second_builder_gives_way_and_a_waiting_one_finds_the_kernels(cache):
     assert aot_kernels.build_if_missing(PARAMS, wait=True) == {}
 
 
-def test_a_node_that_compiles_starts_the_builder_for_its_own_parameters(cache, monkeypatch):
-    """fusion_warmup.build_for_the_next_start: nothing when the kernels are built (or the cache
-    is off); otherwise the builder for the node's weight parameters, said in one line."""
+def test_the_builder_starts_only_where_kernels_are_missing_and_a_failed_build_means_compiling(
+    cache, monkeypatch
+):
+    """fusion_warmup.start_builder: nothing when the kernels are built or the cache is off;
+    otherwise the builder for the node's own weight parameters, said in one line. A build that
+    ends without kernels is said too, and the node compiles in its process instead."""
     from depth_fusion_ros.fusion.pipeline import FusionConfig
     from depth_fusion_ros.nodes import fusion_warmup
 
-    lines: list[str] = []
     started: list[WeightParams] = []
 
-    class Logger:
-        def info(self, text: str) -> None:
-            lines.append(text)
-
-        warning = info
-
-    class Node:
-        def get_logger(self) -> Logger:
-            return Logger()
-
-    class Process:
+    class Failed:
         pid = 4242
 
-    monkeypatch.setattr(aot_background, 'spawn', lambda params, root: started.append(params) or Process())
-    assert not fusion_warmup.build_for_the_next_start(Node(), FusionConfig(compile_kernel=True))
+        def wait(self) -> int:
+            return 1
+
+    monkeypatch.setattr(aot_background, 'spawn', lambda params, root: started.append(params) or Failed())
+    assert not fusion_warmup.start_builder(_Node(), FusionConfig(compile_kernel=True))
     other = FusionConfig(compile_kernel=True, sigma1=9.0)
     monkeypatch.setenv(aot_kernels.ENV_SWITCH, '0')
-    assert not fusion_warmup.build_for_the_next_start(Node(), other)
+    assert not fusion_warmup.start_builder(_Node(), other)
     monkeypatch.delenv(aot_kernels.ENV_SWITCH)
-    node = Node()
-    assert fusion_warmup.build_for_the_next_start(node, other)
+    node = _Node()
+    assert fusion_warmup.start_builder(node, other)
     assert started == [other.weight_params] and node.kernel_builder.pid == 4242
-    assert 'process 4242 at the lowest CPU priority' in lines[-1]
+    assert 'process 4242 at the lowest CPU priority' in node.lines[-1]
+    assert not fusion_warmup._wait_for_builder(node, other)
+    assert 'ended without them (exit 1' in node.lines[-1] and 'compiling in this process' in node.lines[-1]

@@ -1,14 +1,14 @@
 """Building the fusion kernels ahead of time in the background, for the next start.
 
 A fusion node that finds no kernels built ahead of time (a machine where nobody ran
-``depth-fusion kernels``, or weight parameters other than the defaults) compiles them with
-``torch.compile`` at every start: on 2 cores it fuses with the eager kernels for 15-30 s, and a
-live camera started with it loses keyframes meanwhile (18 of 49 on a 7-Scenes stretch, against
-0 with the kernels built; docs/performance.md, "A cold machine"). Beside its own compile, the
-node starts this module as a separate process at the lowest CPU priority (``nice 19``): it
-builds the same kernels with AOTInductor into the user cache (~45 s of otherwise idle CPU), so
-every later start is warm within a few seconds. A separate process, because the build holds
-the GIL for seconds at a time, which a thread of the node would take from its callbacks.
+``depth-fusion kernels``, or weight parameters other than the defaults) used to compile them
+with ``torch.compile`` in its own process at every start: on 2 cores 15-25 s during which the
+compile takes a core and, tracing in Python, the GIL from the node's worker, so a live camera
+started with it lost keyframes (18 of 49 on a 7-Scenes stretch, against 0 with the kernels
+built; docs/performance.md, "A cold machine"). Instead the node starts this module as a
+separate process at the lowest CPU priority: it builds the kernels with AOTInductor into the
+user cache (~45 s of otherwise idle CPU) while the node fuses with the eager kernels; the node
+then loads them, and every later start is warm within a few seconds.
 
     python -m depth_fusion_ros.fusion.aot_background '{"sigma1": 15.0, ...}'
 """
@@ -61,7 +61,7 @@ def _lowest_priority() -> None:
 
 def main(argv: list[str]) -> int:
     """Lowest priority first, then the build under the cache's lock (0 also when another
-    builder holds it or the kernels exist: nothing is missing then, or soon)."""
+    builder made the kernels meanwhile)."""
     _lowest_priority()
     if len(argv) != 2:
         print(f'usage: python -m {__name__} WEIGHT_PARAMS_JSON', flush=True)
@@ -73,12 +73,12 @@ def main(argv: list[str]) -> int:
     from . import aot_kernels
 
     try:
-        seconds = aot_kernels.build_if_missing(params, wait=False)
+        seconds = aot_kernels.build_if_missing(params, wait=True)  # a second node waits for the first's build
     except Exception as exc:  # no C++ compiler, an export this torch cannot do: one line
         print(f'background build failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})', flush=True)
         return 1
-    if seconds is None:
-        print('another process is building the kernels: nothing to do', flush=True)
+    if not seconds:
+        print('the kernels were built meanwhile by another process', flush=True)
     for name, took in (seconds or {}).items():
         target = aot_kernels.package_path(name, params, torch.device('cpu'))
         print(f'{name}: built in {took:.1f} s -> {target}', flush=True)

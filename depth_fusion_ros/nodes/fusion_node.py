@@ -174,11 +174,13 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'false: compile in the constructor, before subscribing',
     ),
     ParamSpec(
-        'build_kernels_for_next_start',
+        'build_kernels_ahead',
         True,
         'with fusion.compile_kernel on the CPU, where no kernels were built ahead of time (depth-fusion '
-        'kernels): besides compiling them, build them ahead of time in a separate process at the lowest CPU '
-        'priority (~45 s of idle CPU), so the next start is warm within seconds instead of compiling again',
+        'kernels): build them in a separate process at the lowest CPU priority (~45 s of idle CPU), fusing '
+        'with the eager kernels meanwhile, then load them; every later start is warm within seconds. false: '
+        'compile in this process at every start (torch.compile, 15-25 s on 2 cores, taking CPU and the GIL '
+        'from the live graph)',
     ),
     ParamSpec(
         'load_max_points',
@@ -301,7 +303,7 @@ class FusionNode(DepthFusionNode):
         self.events = GraphEvents(self)
         #: What the worker fuses with: eager until compiled kernels are ready (see fusion_warmup).
         self.active_config = start_kernels(
-            self, self.config, bool(p['compile_in_background']), bool(p['build_kernels_for_next_start'])
+            self, self.config, bool(p['compile_in_background']), bool(p['build_kernels_ahead'])
         )
         self.worker = self.make_worker(
             'fusion', self._process, on_lost=lambda job, why: self.events.dropped(job.pairing.stamp_ns, why)

@@ -22,20 +22,27 @@ COMPILE_THREAD = 'fusion-compile'
 
 
 def start_kernels(
-    node: Any, config: FusionConfig, background: bool, build_for_next_start: bool = False
+    node: Any, config: FusionConfig, background: bool, build_ahead: bool = False
 ) -> FusionConfig:
     """The config ``node`` fuses with from now on; compiles now, or on a thread that then sets
     ``node.active_config = config`` (``node.kernels_ready`` is set when compiled kernels run).
-    ``build_for_next_start``: where none were built ahead of time, also start the low-priority
-    builder of ``fusion/aot_background.py`` (at once, beside the compile: a short session may
-    end before the compile does), so the next start is warm."""
+
+    ``build_ahead``: where no kernels were built ahead of time (CPU), the background thread
+    starts the low-priority builder of ``fusion/aot_background.py`` and waits for it instead of
+    compiling in this process, then loads what it built. Measured on a cold machine, 7-Scenes
+    at 30 Hz with the three console nodes (docs/performance.md, "A cold machine"): 42-44 of 49
+    keyframes fused against 31-32 while compiling in the node (``torch.compile`` takes a core
+    and, tracing in Python, the GIL from the node's own worker for 15-25 s); and every later
+    start is warm. Without it (or when the build fails) the node compiles as before. In the
+    constructor (``background`` false) the node compiles and starts the builder for the next
+    start."""
     node.kernels_ready = threading.Event()
     if not config.compile_kernel:
         node.kernels_ready.set()
         return config
     if not background:
-        if build_for_next_start and not _ahead_of_time(node, config):
-            build_for_the_next_start(node, config)
+        if build_ahead and not _ahead_of_time(node, config):
+            start_builder(node, config)
         seconds = warm_up(config)
         node.get_logger().info(f'fusion kernels ready (compiled in {seconds:.1f} s)')
         node.kernels_ready.set()
@@ -44,8 +51,8 @@ def start_kernels(
     def compile_then_switch() -> None:
         start = time.monotonic()
         ahead = _ahead_of_time(node, config)  # here, not in the constructor: it imports inductor (~1 s)
-        if build_for_next_start and not ahead:  # at once: a short session may end before the compile
-            build_for_the_next_start(node, config)
+        if build_ahead and not ahead and start_builder(node, config):
+            ahead = _wait_for_builder(node, config)
         try:
             warm_up(config)  # with kernels built ahead of time this only loads them
         except Exception as exc:  # eager stays in use: slower, never wrong
@@ -65,6 +72,22 @@ def start_kernels(
     return dataclasses.replace(config, compile_kernel=False)
 
 
+def _wait_for_builder(node: Any, config: FusionConfig) -> bool:
+    """Wait for the builder ``start_builder`` started; True when its kernels are there."""
+    from ..fusion import aot_background, aot_kernels
+
+    code = node.kernel_builder.wait()
+    aot_kernels._load.cache_clear()  # a lookup before the build may have cached "not built"
+    if aot_kernels.available(config.weight_params, config.device):
+        return True
+    log = aot_kernels.cache_dir() / aot_background.LOG_NAME
+    node.get_logger().warning(
+        f'the background build of the fusion kernels ended without them (exit {code}; log {log}): '
+        'compiling in this process'
+    )
+    return False
+
+
 def _ahead_of_time(node: Any, config: FusionConfig) -> bool:
     """Whether ``depth-fusion kernels`` built this config's kernels (fusion/aot_kernels.py):
     then the warm-up below only loads them (~2 s, mostly importing the loader) instead of
@@ -80,15 +103,15 @@ def _ahead_of_time(node: Any, config: FusionConfig) -> bool:
         node.get_logger().info(f'fusion kernels built ahead of time found in {aot_kernels.cache_dir()}')
         return True
     node.get_logger().info(
-        "no fusion kernels built ahead of time for these weight parameters: compiling (run 'depth-fusion "
-        "kernels' once to be warm within seconds of starting)"
+        'no fusion kernels built ahead of time for these weight parameters (depth-fusion kernels builds them '
+        'once; then every fusion node is warm within seconds of starting)'
     )
     return False
 
 
-def build_for_the_next_start(node: Any, config: FusionConfig) -> bool:
-    """Start the background builder of the kernels the node just compiled (CPU only, where the
-    cache is in use and they are still missing); logs one line either way. True when started."""
+def start_builder(node: Any, config: FusionConfig) -> bool:
+    """Start the background builder of the node's kernels (CPU only, where the cache is in use
+    and they are still missing) as ``node.kernel_builder``; logs one line. True when started."""
     import torch
 
     from ..fusion import aot_background, aot_kernels
@@ -100,12 +123,12 @@ def build_for_the_next_start(node: Any, config: FusionConfig) -> bool:
     try:
         process = aot_background.spawn(params, aot_kernels.cache_dir())
     except OSError as exc:
-        node.get_logger().warning(f'could not start building the fusion kernels for the next start ({exc})')
+        node.get_logger().warning(f'could not start building the fusion kernels ahead of time ({exc})')
         return False
     node.get_logger().info(
-        f'building the fusion kernels ahead of time for the next start: process {process.pid} at the lowest '
-        f'CPU priority (~45 s of idle CPU; log {aot_kernels.cache_dir() / aot_background.LOG_NAME}); '
-        "'depth-fusion kernels' does the same by hand; build_kernels_for_next_start: false to skip"
+        f'building the fusion kernels ahead of time: process {process.pid} at the lowest CPU priority (~45 s '
+        f'of idle CPU; log {aot_kernels.cache_dir() / aot_background.LOG_NAME}); fusing with the eager '
+        'kernels until then; every later start is warm'
     )
     node.kernel_builder = process
     return True
