@@ -174,14 +174,14 @@ def test_the_builder_starts_only_where_kernels_are_missing_and_a_failed_build_me
             return 1
 
     monkeypatch.setattr(aot_background, 'spawn', lambda params, root: started.append(params) or Failed())
-    assert not fusion_warmup.start_builder(_Node(), FusionConfig(compile_kernel=True))
+    assert not fusion_warmup.start_builder(_Node(), FusionConfig(compile_kernel=True), 'eager')
     other = FusionConfig(compile_kernel=True, sigma1=9.0)
     monkeypatch.setenv(aot_kernels.ENV_SWITCH, '0')
-    assert not fusion_warmup.start_builder(_Node(), other)
+    assert not fusion_warmup.start_builder(_Node(), other, 'eager')
     monkeypatch.delenv(aot_kernels.ENV_SWITCH)
     node = _Node()
-    assert fusion_warmup.start_builder(node, other)
+    assert fusion_warmup.start_builder(node, other, 'eager meanwhile')
     assert started == [other.weight_params] and node.kernel_builder.pid == 4242
-    assert 'process 4242 at the lowest CPU priority' in node.lines[-1]
+    assert 'process 4242 at the lowest CPU priority' in node.lines[-1] and 'eager meanwhile' in node.lines[-1]
     assert not fusion_warmup._wait_for_builder(node, other)
     assert 'ended without them (exit 1' in node.lines[-1] and 'compiling in this process' in node.lines[-1]

@@ -30,7 +30,7 @@ def start_kernels(
     ``build_ahead``: where no kernels were built ahead of time (CPU), the background thread
     starts the low-priority builder of ``fusion/aot_background.py`` and waits for it instead of
     compiling in this process, then loads what it built. Measured on a cold machine, 7-Scenes
-    at 30 Hz with the three console nodes (docs/performance.md, "A cold machine"): 42-44 of 49
+    at 30 Hz with the three console nodes (docs/performance.md, "A cold machine"): 44-46 of 49
     keyframes fused against 31-32 while compiling in the node (``torch.compile`` takes a core
     and, tracing in Python, the GIL from the node's own worker for 15-25 s); and every later
     start is warm. Without it (or when the build fails) the node compiles as before. In the
@@ -41,8 +41,11 @@ def start_kernels(
         node.kernels_ready.set()
         return config
     if not background:
-        if build_ahead and not _ahead_of_time(node, config):
-            start_builder(node, config)
+        ahead = _ahead_of_time(node, config)
+        if build_ahead and not ahead and start_builder(node, config, 'compiling here too'):
+            # reaped when it ends (nothing here waits for it): no zombie left beside the node
+            reaper = threading.Thread(target=node.kernel_builder.wait, name='fusion-reaper', daemon=True)
+            reaper.start()
         seconds = warm_up(config)
         node.get_logger().info(f'fusion kernels ready (compiled in {seconds:.1f} s)')
         node.kernels_ready.set()
@@ -51,7 +54,8 @@ def start_kernels(
     def compile_then_switch() -> None:
         start = time.monotonic()
         ahead = _ahead_of_time(node, config)  # here, not in the constructor: it imports inductor (~1 s)
-        if build_ahead and not ahead and start_builder(node, config):
+        meanwhile = 'fusing with the eager kernels until then'
+        if build_ahead and not ahead and start_builder(node, config, meanwhile):
             ahead = _wait_for_builder(node, config)
         try:
             warm_up(config)  # with kernels built ahead of time this only loads them
@@ -109,9 +113,10 @@ def _ahead_of_time(node: Any, config: FusionConfig) -> bool:
     return False
 
 
-def start_builder(node: Any, config: FusionConfig) -> bool:
+def start_builder(node: Any, config: FusionConfig, meanwhile: str) -> bool:
     """Start the background builder of the node's kernels (CPU only, where the cache is in use
-    and they are still missing) as ``node.kernel_builder``; logs one line. True when started."""
+    and they are still missing) as ``node.kernel_builder``; logs one line, which says what the
+    node does ``meanwhile``. True when started."""
     import torch
 
     from ..fusion import aot_background, aot_kernels
@@ -127,8 +132,8 @@ def start_builder(node: Any, config: FusionConfig) -> bool:
         return False
     node.get_logger().info(
         f'building the fusion kernels ahead of time: process {process.pid} at the lowest CPU priority (~45 s '
-        f'of idle CPU; log {aot_kernels.cache_dir() / aot_background.LOG_NAME}); fusing with the eager '
-        'kernels until then; every later start is warm'
+        f'of idle CPU; log {aot_kernels.cache_dir() / aot_background.LOG_NAME}); {meanwhile}; every later '
+        'start is warm'
     )
     node.kernel_builder = process
     return True
