@@ -185,3 +185,25 @@ def test_the_builder_starts_only_where_kernels_are_missing_and_a_failed_build_me
     assert 'process 4242 at the lowest CPU priority' in node.lines[-1] and 'eager meanwhile' in node.lines[-1]
     assert not fusion_warmup._wait_for_builder(node, other)
     assert 'ended without them (exit 1' in node.lines[-1] and 'compiling in this process' in node.lines[-1]
+
+
+def test_shutdown_does_not_wait_for_a_builder_process():
+    """fusion_warmup.finish_compiling: a warm-up thread that only waits for the builder (a
+    process of its own, which goes on) holds no shutdown; one that compiles here is waited for."""
+    import threading
+
+    from depth_fusion_ros.nodes import fusion_warmup
+
+    release = threading.Event()
+    node = _Node()
+    node.compile_thread = threading.Thread(target=release.wait, daemon=True)
+    node.compile_thread.start()
+    try:
+        node.waiting_for_builder = True
+        assert fusion_warmup.finish_compiling(node, 30.0)
+        node.waiting_for_builder = False
+        assert not fusion_warmup.finish_compiling(node, 0.0)
+    finally:
+        release.set()
+    node.compile_thread.join(5)
+    assert fusion_warmup.finish_compiling(node, 0.0)

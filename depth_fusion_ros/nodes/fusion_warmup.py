@@ -56,7 +56,11 @@ def start_kernels(
         ahead = _ahead_of_time(node, config)  # here, not in the constructor: it imports inductor (~1 s)
         meanwhile = 'fusing with the eager kernels until then'
         if build_ahead and not ahead and start_builder(node, config, meanwhile):
+            node.waiting_for_builder = True  # only a waitpid: nothing to finish at shutdown
             ahead = _wait_for_builder(node, config)
+            node.waiting_for_builder = False
+            if getattr(node, '_destroyed', False):
+                return
         try:
             warm_up(config)  # with kernels built ahead of time this only loads them
         except Exception as exc:  # eager stays in use: slower, never wrong
@@ -149,9 +153,12 @@ def _say_warm(node: Any, what: str) -> None:
 def finish_compiling(node: Any, timeout: float) -> bool:
     """Wait up to ``timeout`` s for a background compilation still running at shutdown; True
     when none is left. (An interpreter that exits while torch compiles on another thread
-    aborts in torch's C++ teardown: see :func:`exit_now_if_compiling`.)"""
+    aborts in torch's C++ teardown: see :func:`exit_now_if_compiling`.) A thread that only
+    waits for the builder process is not compiling: nothing to wait for, the build goes on."""
     thread = getattr(node, 'compile_thread', None)
     if thread is None or not thread.is_alive():
+        return True
+    if getattr(node, 'waiting_for_builder', False):  # the build goes on in its own process
         return True
     if timeout > 0:
         node.get_logger().info(f'waiting up to {timeout:g} s for the background compilation to end')
