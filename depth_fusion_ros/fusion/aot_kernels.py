@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import dataclasses
-import fcntl
 import functools
 import hashlib
 import logging
@@ -34,6 +33,11 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import torch
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: builds are not serialised (each builds; the rename keeps files whole)
+    fcntl = None  # type: ignore[assignment]
 
 from ..user_cache import user_cache
 from . import interpolation, weights
@@ -169,6 +173,9 @@ def build_lock(wait: bool) -> Iterator[bool]:
     renamed into place, so a loader never needs the lock."""
     path = cache_dir() / 'build.lock'
     path.parent.mkdir(parents=True, exist_ok=True)
+    if fcntl is None:
+        yield True
+        return
     with open(path, 'a+') as handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
