@@ -1,4 +1,4 @@
-"""Building the fusion kernels ahead of time in the background, for the next start.
+"""Building the fusion kernels ahead of time in a process of its own, at the lowest CPU priority.
 
 A fusion node that finds no kernels built ahead of time (a machine where nobody ran
 ``depth-fusion kernels``, or weight parameters other than the defaults) used to compile them
@@ -64,7 +64,7 @@ def main(argv: list[str]) -> int:
     builder made the kernels meanwhile)."""
     _lowest_priority()
     if len(argv) != 2:
-        print(f'usage: python -m {__name__} WEIGHT_PARAMS_JSON', flush=True)
+        print('usage: python -m depth_fusion_ros.fusion.aot_background WEIGHT_PARAMS_JSON', flush=True)
         return 2
     params = WeightParams(**json.loads(argv[1]))
 
