@@ -10,9 +10,5 @@ python -m pytest test -q "$@"
 # later runs, built in a process of their own at the lowest CPU priority (fusion/aot_background.py),
 # so a fusion node started after this is warm; nothing when they are built. DEPTH_FUSION_AOT=0 skips it.
 if [ "${DEPTH_FUSION_TORCH:-cpu}" != cuda ] && [ "${DEPTH_FUSION_AOT:-1}" != 0 ]; then
-  python -c 'from depth_fusion_ros.fusion import aot_background as b, aot_kernels as k
-from depth_fusion_ros.fusion.weights import WeightParams as W
-if not k.available(W()):
-    p = b.spawn(W(), k.cache_dir())
-    print(f"scripts/test.sh: building the fusion kernels ahead of time for later runs: process {p.pid} at the lowest CPU priority (log {k.cache_dir() / b.LOG_NAME})")' || true
+  depth-fusion kernels --if-missing --background || true
 fi

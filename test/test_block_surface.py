@@ -40,3 +40,8 @@ def test_block_mesh_equals_the_voxel_list_mesh(block_size):
     assert _triangle_set(fast.vertices, fast.triangles) == _triangle_set(
         reference.vertices, reference.triangles
     )
+    # The point cloud's extraction (map_points.py): the same vertices and colours, no triangles.
+    points = block_mesh(tsdf.blocks(), triangles=False)
+    np.testing.assert_array_equal(points.vertices, fast.vertices)
+    np.testing.assert_array_equal(points.colours, fast.colours)
+    assert points.triangles.shape == (0, 3)

@@ -129,6 +129,25 @@ def test_the_cli_builds_only_when_missing(cache, capsys):
 
     assert main(['kernels', '--if-missing']) == 0
     assert 'already in' in capsys.readouterr().out
+    assert main(['kernels', '--if-missing', '--background']) == 0
+    assert 'already in' in capsys.readouterr().out
+
+
+def test_the_cli_can_start_the_background_builder(cache, capsys, monkeypatch):
+    """``depth-fusion kernels --background`` (scripts/test.sh): the builder a node starts, then
+    back at once."""
+    from depth_fusion_ros.cli.main import main
+    from depth_fusion_ros.fusion.pipeline import FusionConfig
+
+    started: list[WeightParams] = []
+
+    class Process:
+        pid = 4243
+
+    monkeypatch.setattr(aot_background, 'spawn', lambda params, root: started.append(params) or Process())
+    assert main(['kernels', '--background']) == 0
+    assert started == [FusionConfig().weight_params]  # the node's defaults
+    assert 'process 4243 at the lowest CPU priority' in capsys.readouterr().out
 
 
 def test_switched_off_or_broken_packages_are_not_used(cache, monkeypatch, caplog):

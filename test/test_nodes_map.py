@@ -167,12 +167,12 @@ def test_the_surface_is_extracted_outside_the_maps_lock_and_a_slow_one_is_publis
     _, seq = room
     lock_free, real_extract = [], map_points.block_mesh
 
-    def slow_extract(blocks):
+    def slow_extract(blocks, **options):
         lock_free.append(node._lock.acquire(timeout=0))  # integration could take it meanwhile
         if lock_free[-1]:
             node._lock.release()
         time.sleep(0.3)
-        return real_extract(blocks)
+        return real_extract(blocks, **options)
 
     monkeypatch.setattr(map_points, 'block_mesh', slow_extract)
     with RosHarness() as ros:

@@ -14,6 +14,7 @@ parameters (fusion.sigma1..3, fusion.weights) differ from the defaults compile a
 examples:
   depth-fusion kernels                # ~17 s on 2 cores
   depth-fusion kernels --if-missing   # what scripts/demo.sh runs: nothing when already built
+  depth-fusion kernels --if-missing --background   # what scripts/test.sh runs after the suite
 """
 
 
@@ -28,6 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--if-missing',
         action='store_true',
         help='build only when the kernels for this torch, CPU and source are not in the cache yet',
+    )
+    p.add_argument(
+        '--background',
+        action='store_true',
+        help='build in a process of its own at the lowest CPU priority and return at once (as a fusion '
+        "node that finds none does; scripts/test.sh runs it after the suite); output in the cache's log",
     )
     p.set_defaults(func=run)
 
@@ -45,6 +52,16 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.if_missing and aot_kernels.available(params, cpu):
         print(f'fusion kernels built ahead of time: already in {aot_kernels.cache_dir()}')
+        return 0
+    if args.background:
+        from ..fusion import aot_background
+
+        process = aot_background.spawn(params, aot_kernels.cache_dir())
+        log = aot_kernels.cache_dir() / aot_background.LOG_NAME
+        print(
+            f'building the fusion kernels ahead of time in the background: process {process.pid} at the '
+            f'lowest CPU priority (log {log})'
+        )
         return 0
     print(
         'building the fusion kernels ahead of time (once; fusion nodes are then warm at start) ...',

@@ -56,15 +56,24 @@ def _neighbour_rows(index: SortedKeys, coords: torch.Tensor, offset: tuple[int, 
     return torch.where(found, rows, -1)
 
 
+Step = tuple[int, int, int]
+
+
+def _neighbours(index: SortedKeys, coords: torch.Tensor, side: int) -> dict[Step, torch.Tensor]:
+    """:func:`_neighbour_rows` of the seven neighbours (and the block itself) on the ``side``
+    (+1 or -1) of every axis: looked up once, shared by every array padded on that side."""
+    return {step: _neighbour_rows(index, coords, step) for step in itertools.product((0, side), repeat=3)}
+
+
 def _padded(
-    values: torch.Tensor, index: SortedKeys, coords: torch.Tensor, n: int, side: int, fill: float
+    values: torch.Tensor, neighbours: dict[Step, torch.Tensor], n: int, side: int, fill: float
 ) -> torch.Tensor:
     """``values`` (B, n, n, n) with one more layer on the ``side`` (+1 or -1) of every axis,
-    taken from the neighbour blocks there (``fill`` where there is none): (B, n+1, n+1, n+1)."""
+    taken from the neighbour blocks there (``neighbours``, :func:`_neighbours` of that side;
+    ``fill`` where there is none): (B, n+1, n+1, n+1)."""
     b = values.shape[0]
     out = torch.full((b, n + 1, n + 1, n + 1), fill, dtype=values.dtype, device=values.device)
-    for step in itertools.product((0, side), repeat=3):
-        rows = _neighbour_rows(index, coords, step)
+    for step, rows in neighbours.items():
         # Along an axis: the block itself fills n layers; the neighbour, its nearest layer.
         if side > 0:
             dst = tuple(slice(0, n) if s == 0 else slice(n, n + 1) for s in step)
@@ -79,8 +88,11 @@ def _padded(
     return out
 
 
-def block_mesh(grid: BlockGrid) -> SurfaceMesh:
-    """Surface-nets mesh of the blocks (voxels with ``min_weight`` or more, ``|tsdf| <`` 0.999)."""
+def block_mesh(grid: BlockGrid, triangles: bool = True) -> SurfaceMesh:
+    """Surface-nets mesh of the blocks (voxels with ``min_weight`` or more, ``|tsdf| <`` 0.999).
+
+    ``triangles=False``: the vertices and their colours only (no triangles), for a point cloud
+    of the surface (nodes/map_points.py): a quarter of the work less."""
     n, dev = grid.block_size, grid.coords.device
     b = grid.coords.shape[0]
     if b == 0:
@@ -88,10 +100,11 @@ def block_mesh(grid: BlockGrid) -> SurfaceMesh:
     usable = (grid.weight >= max(grid.min_weight, 1e-9)) & (grid.tsdf.abs() < TRUNCATED)
     t = torch.where(usable, grid.tsdf, math.nan).view(b, n, n, n)
     index = SortedKeys(pack(grid.coords))
-    tp = _padded(t, index, grid.coords, n, +1, math.nan)  # corners at +1 come from the neighbours
+    plus = _neighbours(index, grid.coords, +1)
+    tp = _padded(t, plus, n, +1, math.nan)  # corners at +1 come from the neighbours
     # Where each padded voxel's colour lives in the storage (row * n^3 + local; -1: none).
     flat = torch.arange(b * n**3, device=dev, dtype=torch.int64).view(b, n, n, n)
-    source = _padded(flat, index, grid.coords, n, +1, -1)
+    source = _padded(flat, plus, n, +1, -1)
     code = _codes(tp)
     cell, corner_at = _cells(code, n)
     cells = torch.nonzero(cell)  # (C, 4): block, x, y, z (min corner)
@@ -105,12 +118,16 @@ def block_mesh(grid: BlockGrid) -> SurfaceMesh:
     local, colours = _vertices(corner_t, corner_src, grid.colour, n)
     voxel = grid.coords[cells[:, 0]] * n + cells[:, 1:]
     vertices = voxel.to(torch.float32) + local
-    ids = torch.full((b, n, n, n), -1, dtype=torch.int64, device=dev)
-    ids[cell] = torch.arange(cells.shape[0], device=dev)
-    triangles = _quads(tp, code, _padded(ids, index, grid.coords, n, -1, -1), n, vertices)
+    if triangles:
+        ids = torch.full((b, n, n, n), -1, dtype=torch.int64, device=dev)
+        ids[cell] = torch.arange(cells.shape[0], device=dev)
+        minus = _neighbours(index, grid.coords, -1)
+        faces = _quads(tp, code, _padded(ids, minus, n, -1, -1), n, vertices)
+    else:
+        faces = torch.zeros((0, 3), dtype=torch.int64, device=dev)
     return SurfaceMesh(
         (vertices * grid.voxel_size).cpu().numpy().astype('float32'),
-        triangles.cpu().numpy().astype('int64'),
+        faces.cpu().numpy().astype('int64'),
         colours.round().clamp(0, 255).to(torch.uint8).cpu().numpy(),
     )
 

@@ -168,8 +168,9 @@ class KeyframeStore:
         fix = corrected_segments(stamps, old, segments, self.segment, path_stamps, path_poses, limits.max_gap)
         metres, degrees = fix.moves(old)
         ok = fix.corrected
-        for e, T in zip([e for e, c in zip(self.entries, ok, strict=True) if c], fix.poses[ok], strict=True):
-            e.T_wc = T
+        for e, T, corrected in zip(self.entries, fix.poses, ok, strict=True):
+            if corrected:
+                e.T_wc = T
         if not ok.any():
             return CorrectionSummary(0, 0, 0.0, 0.0)
         moved = ok & limits.counts(metres, degrees)

@@ -85,7 +85,7 @@ class MapPointsPublisher:
             if blocks is None:
                 return node.map.mesh(), frame
             snapshot = blocks().clone()
-        return block_mesh(snapshot), frame
+        return block_mesh(snapshot, triangles=False), frame  # the cloud is the vertices
 
     def _publish(self, mesh: SurfaceMesh, frame: str) -> None:
         points, colours = mesh.vertices, mesh.colours
