@@ -39,8 +39,8 @@ def test_a_map_file_that_does_not_fit_is_a_one_line_error(saved_map, tmp_path):
     _, path, _ = saved_map
     with pytest.raises(ValueError, match=r'5 cm voxels .* configured for 4 cm'):
         load_tsdf(TorchTSDF(MapConfig(voxel_size=0.04, engine='torch')), path)
-    with pytest.raises(ValueError, match=r'more than map\.max_blocks=3'):
-        load_tsdf(TorchTSDF(MapConfig(voxel_size=0.05, engine='torch', max_blocks=3)), path)
+    with pytest.raises(ValueError, match=r'more than map\.max_blocks=3 with map\.archive off'):
+        load_tsdf(TorchTSDF(MapConfig(voxel_size=0.05, engine='torch', max_blocks=3, archive=False)), path)
     junk = tmp_path / 'junk.tsdf'
     junk.write_bytes(b'not a map')
     with pytest.raises(ValueError, match='not readable as a map'):

@@ -14,7 +14,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from depth_fusion_ros.data import messages as m
-from depth_fusion_ros.mapping import read_ply
+from depth_fusion_ros.mapping import MapConfig, make_map, read_ply
 from depth_fusion_ros.nodes.map_node import MapNode
 from depth_fusion_ros.nodes.testing import RosHarness
 
@@ -219,3 +219,58 @@ def test_a_map_file_keeps_the_map_across_a_restart(room, tmp_path):
     assert np.median(dist) < 0.015
     with RosHarness() as ros, pytest.raises(ValueError, match=r'map_node: map file .*room.tsdf: 4 cm voxels'):
         map_node(ros, map_file=str(map_file), **{'map.voxel_size': 0.05})
+
+
+def test_a_bounded_map_archives_what_it_evicts_and_saves_the_whole_map(room, tmp_path):
+    """map.max_blocks below what the room needs (each keyframe sees ~400 of its ~510 blocks): the
+    evicted blocks go to the disk archive and come back, so the saved mesh is the mesh of the
+    same keyframes mapped without a cap; beside it, a node with map.archive off counts the
+    blocks it loses. The archive's directory goes with the node."""
+    _, seq = room
+    archive = tmp_path / 'archive'
+    cap = {'map.engine': 'torch', 'map.max_blocks': 450}
+    with RosHarness() as ros:
+        node = map_node(
+            ros,
+            save_path=str(tmp_path / 'bounded.ply'),
+            points_rate=0.0,
+            **cap,
+            **{'map.archive_dir': str(archive)},
+        )
+        off = ros.add(
+            MapNode(
+                'map_off',
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter(k, value=v)
+                    for k, v in {'queue_size': 16, 'points_rate': 0.0, 'map.archive': False, **cap}.items()
+                ],
+            )
+        )
+        inputs = MapInputs(ros)
+        for k in range(8):
+            inputs.keyframe(seq, 2 * k, T0 + k * 100_000_000)
+        both = lambda: node.integrated == off.integrated == 8 and node.worker.idle() and off.worker.idle()  # noqa: E731
+        assert ros.wait_for(both, 30.0), node.stats.snapshot().summary()
+        saved = call_save(ros)
+        assert saved.success, saved.message
+        diagnostics = node.diagnostic_extra()
+        assert diagnostics['blocks evicted'] > 0 and diagnostics['blocks archived on disk'] > 0
+        assert diagnostics['blocks lost'] == diagnostics['blocks keyframes needed beyond the cap'] == 0
+        assert diagnostics['blocks'] <= 450 and any(archive.iterdir())
+        lost = off.diagnostic_extra()['blocks lost']
+        assert lost > 0 and off.stats.snapshot().dropped.get('blocks_lost', 0) == lost
+    assert not any(archive.iterdir())  # deleted with the node
+    uncapped, _ = make_map(MapConfig(engine='torch'))
+    for k in range(8):
+        depth = seq.gt_depth_working(2 * k)
+        confidence = np.full(depth.shape, 0.8, np.float32)
+        uncapped.integrate(
+            depth, seq.frames[2 * k].pose, seq.camera, confidence=confidence, rgb=seq.frames[2 * k].rgb
+        )
+    uncapped.flush()
+    expected, got = uncapped.mesh().vertices, read_ply(tmp_path / 'bounded.ply').vertices
+    assert uncapped.n_blocks > 450 and len(got) == len(expected) > 5000
+    np.testing.assert_allclose(
+        got[np.lexsort(got.T[::-1])], expected[np.lexsort(expected.T[::-1])], atol=1e-6
+    )

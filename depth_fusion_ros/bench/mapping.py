@@ -17,8 +17,9 @@ the figure is the median over all their calls, the note gives the range of the p
 medians and the load before and after. Also: mesh extraction time, blocks, the storage the map
 holds and its cap (``max_blocks``), and the Open3D engine when it is installed. And the cost
 of a loop closure: the map rebuilt from its kept keyframes at their (corrected) poses
-(mapping/keyframe_store.py), per keyframe, and what one kept keyframe holds. Figures, never
-assertions.
+(mapping/keyframe_store.py), per keyframe, and what one kept keyframe holds. And the disk
+archive of evicted blocks: a cap just above one keyframe's blocks, integration time and the
+whole map's mesh against the uncapped map. Figures, never assertions.
 """
 
 from __future__ import annotations
@@ -200,10 +201,55 @@ def _rebuild_rows(engine_name: str, seq, opts: BenchOptions) -> list[BenchRow]:
     ]
 
 
+def _archive_rows(seq, opts: BenchOptions) -> list[BenchRow]:
+    """The disk archive's cost: the same pass with a cap just above the blocks one keyframe
+    needs (the room's keyframes each see most of it), so the map evicts and restores as the
+    camera moves (mapping/block_archive.py), against the same pass uncapped; and whether the
+    saved mesh is the same."""
+    full_config = MapConfig(engine='torch', voxel_size=0.04, device=opts.device)
+    full_steady, full = _pass(seq, full_config, opts.device)
+    one = 0
+    for i, frame in enumerate(seq.frames):
+        alone, _ = make_engine(full_config)
+        alone.integrate(seq.gt_depth_working(i), frame.pose, seq.camera)
+        one = max(one, alone.n_blocks)
+    cap = min(full.n_blocks - 1, int(1.05 * one) + 1)
+    config = MapConfig(engine='torch', voxel_size=0.04, device=opts.device, max_blocks=cap)
+    steady, bounded = _pass(seq, config, opts.device)
+    t0 = time.perf_counter()
+    mesh = bounded.mesh()
+    extract = time.perf_counter() - t0
+    same = len(mesh.vertices) == len(full.mesh().vertices)
+    engine = bounded.engine
+    tag = f'torch on {opts.device}, {torch.get_num_threads()} threads, max_blocks {cap}'
+    note = (
+        f'{engine.evicted_blocks} blocks evicted, {engine.archive.restored} restored, '
+        f'{engine.archived_blocks} archived at the end ({engine.archive.disk_bytes / 2**20:.1f} MiB on '
+        f'disk), {engine.lost_blocks} lost, {engine.skipped_blocks} beyond the cap in one keyframe; '
+        f'uncapped ({full.n_blocks} blocks) {1e3 * statistics.median(full_steady):.1f} ms'
+    )
+    bounded.close()
+    return [
+        BenchRow(
+            f'{tag}: integrate ms/keyframe with the archive (median)',
+            1e3 * statistics.median(steady),
+            'ms',
+            note,
+        ),
+        BenchRow(f'{tag}: integrate ms/keyframe with the archive (max)', 1e3 * max(steady), 'ms', ''),
+        BenchRow(
+            f'{tag}: mesh of the whole map (archive read back)',
+            extract,
+            's',
+            f'{len(mesh.vertices)} vertices: {"the same as" if same else "DIFFERENT from"} the uncapped map',
+        ),
+    ]
+
+
 def run(opts: BenchOptions) -> list[BenchRow]:
     frames = 8 if opts.quick else 30
     seq = render_sequence(SynthConfig(width=320, height=240, frames=frames, seed=1))
-    rows = _engine_rows('torch', seq, opts) + _rebuild_rows('torch', seq, opts)
+    rows = _engine_rows('torch', seq, opts) + _rebuild_rows('torch', seq, opts) + _archive_rows(seq, opts)
     if open3d_available() is None:
         rows += _engine_rows('open3d', seq, opts)
     else:

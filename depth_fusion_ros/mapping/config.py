@@ -3,8 +3,9 @@
 A TSDF integrates depth along camera rays into a signed distance that is truncated at
 ``truncation`` metres around the surface. The map is *bounded*: depth outside
 ``[min_depth, max_depth]`` is ignored and at most ``max_blocks`` voxel blocks of
-``block_size``³ voxels are ever allocated (blocks farthest from the camera are evicted when a
-new keyframe needs room), so memory is capped whatever the replay length.
+``block_size``³ voxels are held in memory (blocks farthest from the camera are evicted when a
+new keyframe needs room), so memory is capped whatever the replay length. Evicted blocks go to
+a disk archive (``archive``, mapping/block_archive.py) and come back when the camera does.
 """
 
 from __future__ import annotations
@@ -51,6 +52,13 @@ class MapConfig:
     allocation_stride: int = 4
     #: ``auto``, ``torch`` or ``open3d``.
     engine: str = 'auto'
+    #: Evicted blocks go to a file on disk and come back when a keyframe needs them again; the
+    #: saved mesh and map file hold them (torch engine). False: evicted blocks are dropped.
+    archive: bool = True
+    #: Where the archive's directory is made ('': the system's temporary directory).
+    archive_dir: str = ''
+    #: Most disk the archive takes (MiB); blocks evicted past it are lost (counted).
+    archive_max_mb: float = 4096.0
     #: torch / Open3D device: ``cpu``, ``cuda``, ``cuda:1``.
     device: str = 'cpu'
 
@@ -89,6 +97,11 @@ class MapConfig:
             ('min_weight', self.min_weight >= 0, 'must be >= 0'),
             ('allocation_stride', self.allocation_stride >= 1, 'must be >= 1'),
             ('engine', self.engine in ENGINES, f'must be one of {", ".join(ENGINES)}'),
+            (
+                'archive_max_mb',
+                self.archive_max_mb >= 0 and math.isfinite(self.archive_max_mb),
+                'must be >= 0',
+            ),
         ]
         for name, ok, why in checks:
             if not ok:
@@ -102,8 +115,8 @@ MAP_PARAMETER_DESCRIPTIONS = {
     'truncation': 'TSDF truncation distance (m); 0 = 3 voxels',
     'min_depth': 'depth nearer than this (m) is not integrated',
     'max_depth': 'depth farther than this (m) is not integrated',
-    'max_blocks': 'most voxel blocks held at once (memory cap: 10 KiB each at 8^3 voxels); the blocks '
-    'farthest from the camera are evicted',
+    'max_blocks': 'most voxel blocks held in memory (the cap: 10 KiB each at 8^3 voxels); the blocks '
+    'farthest from the camera are evicted (to the archive)',
     'block_size': 'voxels along each edge of a block',
     'min_confidence': 'pixels whose fused confidence is below this are left out; the rest are weighted '
     'by their confidence (0: the consistency test decides which pixels enter)',
@@ -115,6 +128,11 @@ MAP_PARAMETER_DESCRIPTIONS = {
     'max_weight': 'a voxel weight stops growing here (a changed scene can still overwrite it)',
     'min_weight': 'surface extraction keeps voxels observed with at least this accumulated weight',
     'allocation_stride': 'pixel stride of the block allocation pass',
+    'archive': 'evicted blocks go to a file on disk and come back when a keyframe needs them again; '
+    '~/save_map and map_file hold them (torch engine; false: evicted blocks are dropped)',
+    'archive_dir': "where the archive's directory is made, deleted when the map goes ('': the system's "
+    'temporary directory)',
+    'archive_max_mb': 'most disk the archive takes (MiB); blocks evicted past it are lost (counted)',
     'engine': 'TSDF engine: auto (Open3D when installed, else torch), torch, or open3d (falls back to '
     'torch with one log line when Open3D is missing)',
 }

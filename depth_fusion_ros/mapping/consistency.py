@@ -141,6 +141,12 @@ class ConsistentMap:
     def __getattr__(self, name: str) -> object:  # n_blocks, memory_bytes, evicted_blocks, name...
         return getattr(self.engine, name)
 
+    def close(self) -> None:
+        """Release what the engine holds outside memory (the torch engine's disk archive)."""
+        close = getattr(self.engine, 'close', None)
+        if close is not None:
+            close()
+
     @property
     def pending(self) -> int:
         """Keyframes received and not yet integrated (waiting for their successors)."""

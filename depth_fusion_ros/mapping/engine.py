@@ -62,7 +62,8 @@ def make_engine(config: MapConfig) -> tuple[TSDFMap, str]:
     if wanted == 'auto' and missing is None and config.device.startswith('cuda') and not _open3d_cuda():
         return TorchTSDF(config), f'TSDF engine: torch on {config.device} (auto; this Open3D has no CUDA)'
     if missing is None:
-        return Open3DTSDF(config), f'TSDF engine: open3d (VoxelBlockGrid) on {config.device}'
+        archive = '; no archive: blocks evicted past map.max_blocks are lost' if config.archive else ''
+        return Open3DTSDF(config), f'TSDF engine: open3d (VoxelBlockGrid) on {config.device}{archive}'
     if wanted == 'auto':
         return TorchTSDF(config), f'TSDF engine: torch on {config.device} (auto; Open3D not installed)'
     return TorchTSDF(config), f'TSDF engine: open3d unavailable ({missing}); falling back to torch'

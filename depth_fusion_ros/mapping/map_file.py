@@ -5,9 +5,11 @@ into again. This file is the map itself: the torch engine's used voxel blocks (c
 TSDF, weight, colour), its voxel and block size and truncation, and the world frame it is in,
 written with ``torch.save`` (tensors only, read back with ``weights_only=True``: loading a map
 runs no code) to a temporary file renamed over the old one, so a crash while saving never
-leaves half a map. Loading checks that the file is such a map and that it fits the node's
-configuration (same voxel and block size; at most ``max_blocks`` blocks), and says in one line
-what does not.
+leaves half a map. It holds the whole map, the blocks archived on disk (mapping/block_archive.py)
+included, and where the camera last was. Loading checks that the file is such a map and that it
+fits the node's configuration (same voxel and block size; more than ``max_blocks`` blocks only
+with the archive on: the ones nearest the last camera position are held in memory, the rest
+archived), and says in one line what does not.
 """
 
 from __future__ import annotations
@@ -23,9 +25,10 @@ FORMAT = 'depth_fusion_ros.tsdf/1'
 
 
 def save_tsdf(engine: TorchTSDF, path: str | Path, world_frame: str) -> int:
-    """Write the map's blocks to ``path`` (atomically); returns how many."""
+    """Write the map's blocks, archived ones included, to ``path`` (atomically); returns how many."""
     path = Path(path)
-    blocks = engine.blocks()
+    blocks = engine.all_blocks()
+    camera = engine.camera_position
     state = {
         'format': FORMAT,
         'voxel_size': float(engine.config.voxel_size),
@@ -37,6 +40,8 @@ def save_tsdf(engine: TorchTSDF, path: str | Path, world_frame: str) -> int:
         'weight': blocks.weight.cpu(),
         'colour': blocks.colour.cpu(),
     }
+    if camera is not None:
+        state['camera_position'] = torch.as_tensor(camera, dtype=torch.float64)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + '.tmp')
     torch.save(state, tmp)
@@ -63,7 +68,13 @@ def load_tsdf(engine: TorchTSDF, path: str | Path) -> str:
             "(set map.voxel_size and map.block_size to the file's)"
         )
     n = int(state['coords'].shape[0])
-    if n > cfg.max_blocks:
-        raise ValueError(f'map file {path}: {n} blocks, more than map.max_blocks={cfg.max_blocks}')
-    engine.load_blocks(state['coords'], state['tsdf'], state['weight'], state['colour'])
+    if n > cfg.max_blocks and not cfg.archive:
+        raise ValueError(
+            f'map file {path}: {n} blocks, more than map.max_blocks={cfg.max_blocks} with map.archive off'
+        )
+    camera = state.get('camera_position')
+    centre = None if camera is None else camera.numpy()
+    engine.load_blocks(state['coords'], state['tsdf'], state['weight'], state['colour'], centre=centre)
+    if centre is not None:
+        engine.camera_position = centre.copy()
     return str(state.get('world_frame') or '')

@@ -28,7 +28,9 @@ marking a dense grid over their bounding box, not by sorting. Every step is a to
 same on CPU and CUDA.
 
 Memory is bounded by ``max_blocks``: when a keyframe needs more blocks than are free, the
-blocks farthest from its camera are evicted (counted in ``evicted_blocks``).
+blocks farthest from its camera are evicted (counted in ``evicted_blocks``) to the disk archive
+(:mod:`.block_archive`, ``archive``), which gives them back when a keyframe needs them again:
+``mesh`` and ``all_blocks`` are the whole map, archived blocks included.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
+from .block_archive import BlockArchive
 from .block_surface import BlockGrid, block_mesh
 from .config import MapConfig
 from .keys import SortedKeys, pack, unpack
@@ -78,7 +81,19 @@ class TorchTSDF:
         self._local_metric = self.local.to(torch.float32) * self.voxel
         self.n_blocks = 0
         self.evicted_blocks = 0
+        #: Blocks keyframes needed beyond ``max_blocks`` on their own (left out of those keyframes).
+        self.skipped_blocks = 0
         self.integrated = 0
+        #: Where evicted blocks go (None: ``archive`` off, they are dropped).
+        self.archive = (
+            BlockArchive(self.block_voxels, config.archive_dir, config.archive_max_mb * 2**20)
+            if config.archive
+            else None
+        )
+        self._dropped = 0
+        #: World position of the last keyframe's camera (saved with the map: a map larger than
+        #: ``max_blocks`` is loaded around it).
+        self.camera_position: np.ndarray | None = None
         self._allocate_storage(min(INITIAL_CAPACITY, config.max_blocks))
         self._index = SortedKeys(self.block_coords[:0].new_zeros((0,)))
 
@@ -113,9 +128,16 @@ class TorchTSDF:
         self.n_blocks = k
 
     def load_blocks(
-        self, coords: torch.Tensor, tsdf: torch.Tensor, weight: torch.Tensor, colour: torch.Tensor
+        self,
+        coords: torch.Tensor,
+        tsdf: torch.Tensor,
+        weight: torch.Tensor,
+        colour: torch.Tensor,
+        centre: np.ndarray | None = None,
     ) -> None:
-        """Replace the map by these blocks (a saved map: mapping/map_file.py)."""
+        """Replace the map by these blocks (a saved map: mapping/map_file.py). More than
+        ``max_blocks``: the ones nearest ``centre`` (the world origin by default) are held in
+        memory and the rest go to the archive (``ValueError`` without one)."""
         n, v = int(coords.shape[0]), self.block_voxels
         shapes = (tuple(coords.shape), tuple(tsdf.shape), tuple(weight.shape), tuple(colour.shape))
         if shapes != ((n, 3), (n, v), (n, v), (n, 3, v)):
@@ -123,8 +145,18 @@ class TorchTSDF:
                 f'blocks do not match: coords {tuple(coords.shape)}, tsdf {tuple(tsdf.shape)}, '
                 f'weight {tuple(weight.shape)}, colour {tuple(colour.shape)} for {v} voxels a block'
             )
-        if n > self.config.max_blocks:
-            raise ValueError(f'{n} blocks, more than max_blocks={self.config.max_blocks}')
+        cap = self.config.max_blocks
+        if n > cap and self.archive is None:
+            raise ValueError(f'{n} blocks, more than max_blocks={cap} (and map.archive is off)')
+        if self.archive is not None:
+            self.archive.close()  # the map is replaced: what was archived goes with it
+        if n > cap:
+            where = torch.zeros(3) if centre is None else torch.as_tensor(centre, dtype=torch.float32)
+            order = torch.argsort(self._block_distance(coords.cpu(), where))
+            rest = order[cap:]
+            self.archive.put(coords[rest], tsdf[rest], weight[rest], colour[rest])
+            first = order[:cap]
+            coords, tsdf, weight, colour, n = coords[first], tsdf[first], weight[first], colour[first], cap
         self._allocate_storage(max(n, min(INITIAL_CAPACITY, self.config.max_blocks)))
         dev = self.device
         self.block_coords[:n] = coords.to(dev, torch.int64)
@@ -133,6 +165,21 @@ class TorchTSDF:
         self.colour[:n] = colour.to(dev, torch.float32)
         self.n_blocks = n
         self._index = SortedKeys(pack(self.block_coords[:n]))
+
+    @property
+    def lost_blocks(self) -> int:
+        """Evicted blocks that are gone: not archived (``archive`` off, the archive full, a disk error)."""
+        return self._dropped + (self.archive.lost if self.archive is not None else 0)
+
+    @property
+    def archived_blocks(self) -> int:
+        """Blocks held in the disk archive now."""
+        return self.archive.n_blocks if self.archive is not None else 0
+
+    def close(self) -> None:
+        """Delete the archive (the map is being replaced or the node stops)."""
+        if self.archive is not None:
+            self.archive.close()
 
     @property
     def memory_bytes(self) -> int:
@@ -162,6 +209,7 @@ class TorchTSDF:
             raise ValueError(f'depth is {d.shape[1]}x{d.shape[0]}, camera is {camera.width}x{camera.height}')
         w = self._pixel_weights(d, confidence)
         T = torch.as_tensor(np.asarray(T_wc, dtype=np.float64), device=dev).to(torch.float32)
+        self.camera_position = np.asarray(T_wc, dtype=np.float64)[:3, 3].copy()
         rows = self._allocate(d, w, T, camera)
         self.integrated += 1
         if rows.numel() == 0:
@@ -223,26 +271,59 @@ class TorchTSDF:
         new_keys: torch.Tensor,
         centre: torch.Tensor,
     ) -> torch.Tensor:
-        """Add ``new_keys`` (evicting far blocks past ``max_blocks``); rows of all ``keys``."""
+        """Add ``new_keys`` (evicting far blocks past ``max_blocks``); rows of all ``keys``.
+
+        The blocks this keyframe touches are never the ones evicted for it (their observations
+        would be skipped); a keyframe that needs more blocks than the map holds keeps the
+        nearest and the rest are counted in ``skipped_blocks``."""
         cap = self.config.max_blocks
         new_coords = unpack(new_keys)
-        if new_coords.shape[0] > cap:  # a single frame larger than the map: keep its nearest blocks
+        touched = rows[found]
+        room = cap - touched.numel()
+        if new_coords.shape[0] > room:  # a single frame larger than the map: keep its nearest blocks
             dist = self._block_distance(new_coords, centre)
-            new_coords = new_coords[torch.argsort(dist)[:cap]]
-            self.evicted_blocks += new_keys.numel() - cap
+            new_coords = new_coords[torch.argsort(dist)[: max(room, 0)]]
+            self.skipped_blocks += new_keys.numel() - new_coords.shape[0]
         overflow = self.n_blocks + new_coords.shape[0] - cap
         if overflow > 0:
             dist = self._block_distance(self.block_coords[: self.n_blocks], centre)
-            keep = torch.argsort(dist)[: self.n_blocks - overflow]
+            dist[touched] = -1.0  # first in the order: kept
+            order = torch.argsort(dist)
+            self._evict(order[self.n_blocks - overflow :])
             self.evicted_blocks += int(overflow)
-            self._keep(torch.sort(keep).values)
+            self._keep(torch.sort(order[: self.n_blocks - overflow]).values)
         self._grow(self.n_blocks + new_coords.shape[0])
         start = self.n_blocks
         self.block_coords[start : start + new_coords.shape[0]] = new_coords
+        self._restore(new_coords, start)
         self.n_blocks += new_coords.shape[0]
         self._index = SortedKeys(pack(self.block_coords[: self.n_blocks]))
         rows, found = self._index.lookup(keys)
         return rows[found]
+
+    def _evict(self, rows: torch.Tensor) -> None:
+        """Blocks ``rows`` (nearest first) leave memory: to the archive, or dropped without one."""
+        if self.archive is None:
+            self._dropped += int(rows.numel())
+            return
+        self.archive.put(
+            self.block_coords.index_select(0, rows),
+            self.tsdf.index_select(0, rows),
+            self.weight.index_select(0, rows),
+            self.colour.index_select(0, rows),
+        )
+
+    def _restore(self, coords: torch.Tensor, start: int) -> None:
+        """The archived blocks among new blocks ``coords`` (rows from ``start``) come back."""
+        if self.archive is None or self.archive.n_blocks == 0:
+            return
+        found, tsdf, weight, colour = self.archive.take(coords)
+        if tsdf.shape[0] == 0:
+            return
+        rows = torch.nonzero(found).squeeze(1).to(self.device) + start
+        self.tsdf.index_copy_(0, rows, tsdf.to(self.device))
+        self.weight.index_copy_(0, rows, weight.to(self.device))
+        self.colour.index_copy_(0, rows, colour.to(self.device))
 
     def _block_distance(self, coords: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
         centres = (coords.to(torch.float32) + 0.5) * self.config.block_m
@@ -330,9 +411,28 @@ class TorchTSDF:
             cfg.min_weight,
         )
 
+    def all_blocks(self) -> BlockGrid:
+        """The whole map: the blocks in memory and, after them, the archived ones (read from
+        disk into memory on the map's device: a saved mesh or map file, on request)."""
+        grid = self.blocks()
+        if self.archive is None or self.archive.n_blocks == 0:
+            return grid
+        dev = self.device
+        coords, tsdf, weight, colour = (a.to(dev) for a in self.archive.read_all())
+        return BlockGrid(
+            torch.cat((grid.coords, coords)),
+            torch.cat((grid.tsdf, tsdf)),
+            torch.cat((grid.weight, weight)),
+            torch.cat((grid.colour, colour)),
+            grid.block_size,
+            grid.voxel_size,
+            grid.min_weight,
+        )
+
     def mesh(self) -> SurfaceMesh:
-        """The zero level set as a triangle mesh (surface nets on the blocks), world frame, metres."""
-        return block_mesh(self.blocks())
+        """The zero level set of the whole map (archived blocks included) as a triangle mesh
+        (surface nets on the blocks), world frame, metres."""
+        return block_mesh(self.all_blocks())
 
 
 def _bordered(image: torch.Tensor) -> torch.Tensor:

@@ -7,8 +7,10 @@ each on its own topic with the keyframe's stamp, so the node pairs them by **exa
 A complete keyframe goes to the worker, which integrates it into the map (core:
 ``depth_fusion_ros.mapping``) once ``map.consistency_span`` later keyframes have come: only
 the pixels that agree with the keyframes around them enter (mapping/consistency.py), weighted
-by their confidence (and none below ``map.min_confidence``). The map is bounded
-(``map.max_blocks``), so memory is capped whatever the replay length.
+by their confidence (and none below ``map.min_confidence``). The map in memory is bounded
+(``map.max_blocks``), so memory is capped whatever the replay length; the blocks it evicts go
+to a disk archive (``map.archive``) and come back when the camera does, so the saved mesh and
+map file are the whole map.
 
 Outputs: the surface as a PointCloud2 (``depth_fusion/map/points``, world frame = the pose's
 frame, xyz + rgb) every ``1 / points_rate`` seconds when it changed, and the mesh as a binary
@@ -79,6 +81,7 @@ MAP_LIMITS: dict[str, Any] = {
     'min_weight': (0.0, None),
     'allocation_stride': (1, 64),
     'engine': ENGINES,
+    'archive_max_mb': (0.0, None),
 }
 
 PARAMETERS: tuple[ParamSpec, ...] = (
@@ -196,12 +199,19 @@ class MapNode(DepthFusionNode):
         self.get_logger().info(
             f'map: {config.voxel_size * 100:g} cm voxels, truncation {config.truncation_m * 100:g} cm, '
             f'depth {config.min_depth:g}-{config.max_depth:g} m, at most {config.max_blocks} blocks '
-            f'({cap:.0f} MiB); {self.resolve_topic_name(TOPIC_FUSED_DEPTH)} + '
+            f'({cap:.0f} MiB) in memory, {self._archive_note(config)}; '
+            f'{self.resolve_topic_name(TOPIC_FUSED_DEPTH)} + '
             f'{self.resolve_topic_name(TOPIC_KEYFRAME_POSE)} -> {self.resolve_topic_name(TOPIC_MAP_POINTS)}, '
             f'mesh on {self.resolve_service_name("~/save_map")}; corrected trajectories on '
             f'{self.resolve_topic_name(TOPIC_CORRECTED_PATH)} rebuild it from the keyframes '
             f'kept (at most {self.corrector.store.max_bytes / 2**20:g} MiB, thinned with age)'
         )
+
+    def _archive_note(self, config: MapConfig) -> str:
+        if getattr(self.map.engine, 'archive', None) is None:
+            return 'the blocks evicted beyond them dropped (map.archive off or not this engine)'
+        where = config.archive_dir or 'the temporary directory'
+        return f'the blocks evicted beyond them archived in {where} (up to {config.archive_max_mb:g} MiB)'
 
     # --- callbacks: collect parts by stamp ------------------------------------------------------------
 
@@ -277,16 +287,42 @@ class MapNode(DepthFusionNode):
             self._world_frame = self._world_frame or frame_id or 'world'
             self._check_pose_jump(stamp, T_wc)
             self.corrector.note_segment(stamp)
-            evicted = self.map.evicted_blocks
+            before = (self.map.evicted_blocks, self._lost_blocks(), self._skipped_blocks())
             self.map.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb, key=stamp)
-            if self.map.evicted_blocks > evicted:
-                self.stats.noted(
-                    'blocks_evicted', f'map full ({self.map.config.max_blocks} blocks): evicted the farthest'
-                )
+            self._note_evictions(*before)
             self._dirty = True
             self._integrated += 1
         self.stats.published('integrated')
         self.stats.processed(time.monotonic() - pairing.first_seen)
+
+    def _lost_blocks(self) -> int:
+        return int(getattr(self.map, 'lost_blocks', self.map.evicted_blocks))
+
+    def _skipped_blocks(self) -> int:
+        return int(getattr(self.map, 'skipped_blocks', 0))
+
+    def _note_evictions(self, evicted: int, lost: int, skipped: int) -> None:
+        """Say when the map evicted blocks (to the archive) and when some were lost (no archive,
+        the archive full or refused by the disk). Called holding ``_lock``."""
+        if self.map.evicted_blocks > evicted:
+            archive = getattr(self.map.engine, 'archive', None)
+            where = f'to the archive {archive.path}' if archive is not None else 'dropped (map.archive off)'
+            self.stats.noted(
+                'blocks_evicted',
+                f'map full ({self.map.config.max_blocks} blocks): the farthest moved {where}',
+            )
+        over = self._skipped_blocks() - skipped
+        if over > 0:
+            self.stats.noted(
+                'keyframe_larger_than_map',
+                f'a keyframe needed {over} blocks more than map.max_blocks={self.map.config.max_blocks} '
+                'holds: its depth there was left out (raise map.max_blocks)',
+            )
+        gone = self._lost_blocks() - lost
+        if gone > 0:
+            self.stats.dropped(
+                'blocks_lost', f'{gone} evicted map blocks lost (see the map archive line above)', count=gone
+            )
 
     def _load_map_file(self) -> None:
         """The map saved by an earlier run (``map_file``), when there is one: integration goes on
@@ -303,11 +339,13 @@ class MapNode(DepthFusionNode):
             self._world_frame = load_tsdf(self.map.engine, self.map_file)
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
-        self.corrector.base = self.map.engine.blocks().clone()
+        self.corrector.base = self.map.engine.all_blocks().clone()
         self._dirty = True
         frame = self._world_frame or '?'
+        archived = self.map.engine.archived_blocks
         self.get_logger().info(
             f'map loaded from {self.map_file}: {self.map.n_blocks} blocks in frame {frame!r}'
+            + (f', {archived} more archived (beyond map.max_blocks)' if archived else '')
         )
 
     def _check_pose_jump(self, stamp: float, T_wc: np.ndarray) -> None:
@@ -337,6 +375,7 @@ class MapNode(DepthFusionNode):
     def _clear(self) -> int:
         """Start an empty map with the same settings (holding ``_lock``); returns the keyframes dropped."""
         dropped = self._integrated
+        self.map.close()  # its archive goes with it
         self.map, _ = make_map(self.map.config)
         self.map.on_integrated = self.corrector.keep
         self.corrector.clear()
@@ -368,6 +407,12 @@ class MapNode(DepthFusionNode):
             'pixels left out by the consistency test': self.map.pixels_rejected,
             'blocks': self.map.n_blocks,
             'blocks evicted': self.map.evicted_blocks,
+            'blocks archived on disk': int(getattr(self.map, 'archived_blocks', 0)),
+            'blocks restored from the archive': int(
+                getattr(getattr(self.map, 'archive', None), 'restored', 0)
+            ),
+            'blocks lost': self._lost_blocks(),
+            'blocks keyframes needed beyond the cap': self._skipped_blocks(),
             'voxel storage MiB': round(self.map.memory_bytes / 2**20, 2),
             'cap MiB': round(config.max_blocks * config.bytes_per_block / 2**20, 2),
             'surface extraction s': round(self.points.last_seconds, 3),
@@ -434,7 +479,11 @@ class MapNode(DepthFusionNode):
                 self.get_logger().info(f'map saved to {path} ({nv} vertices, {nt} triangles)')
             except (OSError, ValueError) as exc:
                 self.get_logger().error(f'map not saved: {exc}')
-        super().destroy_node()
+        closing = not self._destroyed
+        super().destroy_node()  # the worker stops first: nothing integrates into a closed archive
+        if closing:
+            with self._lock:
+                self.map.close()  # the archive's file goes with the node
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -1,0 +1,122 @@
+"""The disk archive of evicted map blocks: a bounded map that loses nothing (core, no ROS)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from depth_fusion_ros.camera import PinholeCamera
+from depth_fusion_ros.mapping.block_archive import BlockArchive
+from depth_fusion_ros.mapping.config import MapConfig
+from depth_fusion_ros.mapping.map_file import load_tsdf, save_tsdf
+from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+CAMERA = PinholeCamera(160, 120, 131.25, 131.25, 79.5, 59.5)
+WALL = np.full((CAMERA.height, CAMERA.width), 1.5, np.float32)
+#: Along a 6 m wall and back: about 300 blocks against a cap of 100.
+THERE_AND_BACK = [*np.linspace(0.0, 6.0, 13), *np.linspace(6.0, 0.0, 13)]
+
+
+def _slide(config: MapConfig, xs=THERE_AND_BACK) -> TorchTSDF:
+    tsdf = TorchTSDF(config)
+    for x in xs:
+        T = np.eye(4)
+        T[0, 3] = x
+        tsdf.integrate(WALL, T, CAMERA)
+        assert tsdf.n_blocks <= config.max_blocks
+    return tsdf
+
+
+def _sorted_vertices(mesh) -> np.ndarray:
+    v = mesh.vertices
+    return v[np.lexsort(v.T[::-1])]
+
+
+def _config(tmp_path, **kw) -> MapConfig:
+    return MapConfig(engine='torch', voxel_size=0.04, archive_dir=str(tmp_path / 'archive'), **kw)
+
+
+def test_a_bounded_map_with_its_archive_is_the_unbounded_map(tmp_path):
+    """Evicted blocks come back bit for bit when the camera returns, so the bounded map, archive
+    included, is exactly the map that never evicted; memory stays at the cap."""
+    bounded = _slide(_config(tmp_path, max_blocks=100))
+    unbounded = _slide(_config(tmp_path, max_blocks=100_000))
+    assert bounded.evicted_blocks > 200 and bounded.archive.restored > 200 and bounded.lost_blocks == 0
+    assert bounded.n_blocks == 100 and bounded.n_blocks + bounded.archived_blocks == unbounded.n_blocks
+    assert bounded.memory_bytes <= 100 * bounded.config.bytes_per_block + 100 * 3 * 8
+    np.testing.assert_array_equal(_sorted_vertices(bounded.mesh()), _sorted_vertices(unbounded.mesh()))
+    folder = bounded.archive.path.parent
+    assert folder.parent == tmp_path / 'archive' and folder.exists()
+    bounded.close()
+    assert not folder.exists()  # the spill area goes with the map
+
+
+def test_a_full_archive_loses_blocks_and_says_so(tmp_path, caplog):
+    bytes_per_block = 5 * 8**3 * 4
+    config = _config(tmp_path, max_blocks=100, archive_max_mb=50 * bytes_per_block / 2**20)
+    with caplog.at_level(logging.WARNING, logger='depth_fusion_ros.mapping.block_archive'):
+        tsdf = _slide(config, THERE_AND_BACK[:13])
+    assert tsdf.archived_blocks <= 50 and tsdf.lost_blocks > 0
+    # every evicted block is archived now, was restored, or is counted lost
+    assert tsdf.evicted_blocks == tsdf.lost_blocks + tsdf.archived_blocks + tsdf.archive.restored
+    assert 'lost: the archive is full (50 blocks' in caplog.text
+
+
+def test_a_disk_that_refuses_the_archive_loses_blocks_and_the_map_goes_on(tmp_path, caplog):
+    blocker = tmp_path / 'not_a_directory'
+    blocker.write_text('a file where the archive directory should be')
+    config = MapConfig(engine='torch', voxel_size=0.04, max_blocks=100, archive_dir=str(blocker / 'sub'))
+    with caplog.at_level(logging.WARNING, logger='depth_fusion_ros.mapping.block_archive'):
+        tsdf = _slide(config, THERE_AND_BACK[:13])
+    assert tsdf.archived_blocks == 0 and tsdf.lost_blocks == tsdf.evicted_blocks > 0
+    assert 'writing' in caplog.text and 'failed' in caplog.text
+    assert tsdf.n_blocks == 100 and not tsdf.mesh().is_empty
+
+
+def test_put_take_and_read_all_round_trip(tmp_path):
+    archive = BlockArchive(8, tmp_path)
+    coords = torch.tensor([[0, 0, 0], [1, -2, 3], [-5, 4, 0]])
+    tsdf, weight = torch.rand(3, 8), torch.rand(3, 8)
+    colour = torch.rand(3, 3, 8) * 255
+    assert archive.put(coords, tsdf, weight, colour) == 3 and archive.n_blocks == 3
+    c, t, w, col = archive.read_all()
+    order = [c.tolist().index(row) for row in coords.tolist()]
+    torch.testing.assert_close(t[order], tsdf, rtol=0, atol=0)
+    torch.testing.assert_close(col[order], colour, rtol=0, atol=0)
+    found, t, w, col = archive.take(torch.tensor([[9, 9, 9], [-5, 4, 0], [1, -2, 3]]))
+    assert found.tolist() == [False, True, True] and archive.n_blocks == 1
+    torch.testing.assert_close(w, weight[[2, 1]], rtol=0, atol=0)
+    torch.testing.assert_close(t, tsdf[[2, 1]], rtol=0, atol=0)
+    # Freed slots are reused: the file does not grow.
+    size = archive.disk_bytes
+    archive.put(coords[1:], tsdf[1:], weight[1:], colour[1:])
+    assert archive.disk_bytes == size and archive.n_blocks == 3
+    archive.close()
+    assert archive.n_blocks == 0 and archive.path is None
+
+
+def test_a_map_file_larger_than_the_cap_loads_around_the_last_camera(tmp_path):
+    """The map file holds the whole map (archive included) and where the camera last was; a node
+    with a smaller cap holds the blocks nearest that position and archives the rest."""
+    big = _slide(_config(tmp_path, max_blocks=100), THERE_AND_BACK[:13])  # ends at x = 6 m
+    path = tmp_path / 'wall.tsdf'
+    assert save_tsdf(big, path, 'map') == big.n_blocks + big.archived_blocks
+    loaded = TorchTSDF(_config(tmp_path, max_blocks=100))
+    assert load_tsdf(loaded, path) == 'map'
+    assert loaded.n_blocks == 100 and loaded.archived_blocks == big.archived_blocks
+    np.testing.assert_allclose(loaded.camera_position, [6.0, 0.0, 0.0])
+    centres = (loaded.blocks().coords.double() + 0.5) * loaded.config.block_m
+    assert centres[:, 0].min() > 3.0  # the blocks near the last camera are the ones in memory
+    np.testing.assert_array_equal(_sorted_vertices(loaded.mesh()), _sorted_vertices(big.mesh()))
+    with pytest.raises(ValueError, match=r'with map\.archive off'):
+        load_tsdf(TorchTSDF(_config(tmp_path, max_blocks=100, archive=False)), path)
+
+
+def test_a_negative_archive_cap_is_refused():
+    with pytest.raises(ValueError, match=r'map\.archive_max_mb'):
+        MapConfig(archive_max_mb=-1.0).validate()
