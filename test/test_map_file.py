@@ -5,11 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
 from depth_fusion_ros.mapping.config import MapConfig
-from depth_fusion_ros.mapping.map_file import load_tsdf, save_tsdf
+from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, rebuild
+from depth_fusion_ros.mapping.map_file import load_map, load_tsdf, save_tsdf
 from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
+from depth_fusion_ros.pose_corrections import CorrectionLimits
 
 
 @pytest.fixture(scope='module')
@@ -49,3 +52,52 @@ def test_a_map_file_that_does_not_fit_is_a_one_line_error(saved_map, tmp_path):
     torch.save({'weights': torch.zeros(3)}, other)
     with pytest.raises(ValueError, match='not a depth_fusion_ros TSDF map'):
         load_tsdf(TorchTSDF(MapConfig(voxel_size=0.05, engine='torch')), other)
+
+
+def test_the_kept_keyframes_travel_with_the_map_and_a_rebuild_after_a_restart_moves_them(tmp_path):
+    """A map file written with its keyframe store loads them back (poses, images, segments apart
+    from the new stream), so the map can still be rebuilt at corrected poses; a file without
+    them loads as a fixed base, as before."""
+    seq = render_sequence(SynthConfig(width=96, height=72, frames=4, seed=4))
+    config = MapConfig(voxel_size=0.05, engine='torch')
+    tsdf, store = TorchTSDF(config), KeyframeStore(max_bytes=2**20)
+    for i, frame in enumerate(seq.frames):
+        depth = seq.gt_depth_working(i)
+        tsdf.integrate(depth, frame.pose, seq.camera, rgb=frame.rgb)
+        store.add(float(i), depth, frame.pose, seq.camera, np.full(depth.shape, 0.5, np.float32), frame.rgb)
+    path = tmp_path / 'with_keyframes.tsdf'
+    save_tsdf(tsdf, path, 'world', store=store)
+    restored = KeyframeStore(max_bytes=2**20)
+    loaded = load_map(TorchTSDF(config), path, restored)
+    assert loaded.world_frame == 'world' and loaded.keyframes == 4 and loaded.base is None
+    for a, b in zip(store.entries, restored.entries, strict=True):
+        np.testing.assert_array_equal(a.T_wc, b.T_wc)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        assert a.confidence is not None and np.array_equal(a.confidence, b.confidence)
+        assert a.camera == b.camera and a.stamp == b.stamp
+    assert {e.segment for e in restored.entries} == {1} and restored.segment == 2  # what follows: a new world
+    # A correction of 0.3 m along x moves the rebuilt map by as much.
+    shift = np.eye(4)
+    shift[0, 3] = 0.3
+    restored.correct(
+        np.array([e.stamp for e in restored.entries]),
+        np.stack([shift @ e.T_wc for e in restored.entries]),
+        CorrectionLimits(max_gap=10.0),
+    )
+    rebuilt, at_old = TorchTSDF(config), TorchTSDF(config)
+    rebuild(rebuilt, restored.entries)
+    rebuild(at_old, store.entries)
+    old_surface = cKDTree(at_old.mesh().vertices)
+    moved = rebuilt.mesh().vertices
+    back, unmoved = old_surface.query(moved - [0.3, 0.0, 0.0])[0], old_surface.query(moved)[0]
+    assert np.percentile(back, 90) < 0.02 < 0.1 < np.percentile(unmoved, 90)  # on it, once moved back
+    # With a fixed base beside the keyframes, the base comes back as it was.
+    base = tsdf.blocks().clone()
+    save_tsdf(tsdf, path, 'world', store=store, base=base)
+    loaded = load_map(TorchTSDF(config), path, KeyframeStore(max_bytes=2**20))
+    torch.testing.assert_close(loaded.base.tsdf, base.tsdf, rtol=0, atol=0)
+    # Without keyframes (an older file, or no store): everything is the fixed base.
+    save_tsdf(tsdf, path, 'world')
+    loaded = load_map(TorchTSDF(config), path, KeyframeStore(max_bytes=2**20))
+    assert loaded.keyframes == 0 and loaded.base.coords.shape[0] == tsdf.n_blocks

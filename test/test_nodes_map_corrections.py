@@ -129,3 +129,36 @@ def _shifted_scene(scene, offset: np.ndarray):
     """The synthetic room moved by ``offset`` (its boxes' centres): where a map in the corrected
     world should lie."""
     return dataclasses.replace(scene, centres=scene.centres + offset)
+
+
+def test_a_corrected_trajectory_after_a_restart_moves_the_map_the_earlier_run_saved(room, tmp_path):
+    """A robot maps at drifting poses and stops (map_file written with the keyframes it kept);
+    the next map_node loads it, and the SLAM's corrected trajectory of the earlier keyframes
+    rebuilds it at the corrected poses: the saved mesh then lies on the room."""
+    scene, seq = room
+    map_file = tmp_path / 'room.tsdf'
+    with RosHarness() as ros:
+        node = map_node(ros, map_file=str(map_file), save_path=str(tmp_path / 'a.ply'), points_rate=0.0)
+        inputs = MapInputs(ros)
+        for k in range(8):
+            world = m.header_msg(T0 + k * STEP, 'world', kind=K)
+            pose = m.pose_stamped_msg(_drift(k) @ seq.frames[2 * k].pose, world, kind=K)
+            inputs.keyframe(seq, 2 * k, T0 + k * STEP, pose=pose)
+        assert ros.wait_for(lambda: node.integrated == 8 and node.worker.idle(), 30.0)
+        smeared = _saved_distances(ros, scene, tmp_path / 'a.ply')
+    with RosHarness() as ros:
+        path = tmp_path / 'b.ply'
+        node = map_node(ros, map_file=str(map_file), save_path=str(path), points_rate=0.0)
+        assert len(node.corrector.store.entries) == 8 and node.corrector.base is None
+        fix = ros.publisher(PathMsg, '/camera/corrected_path')
+        assert ros.wait_for_subscribers([fix])
+        fix.publish(_path([(T0 + k * STEP, seq.frames[2 * k].pose) for k in range(8)]))
+        assert ros.wait_for(lambda: node.corrector.rebuilds == 1 and not node.corrector.busy(), 60.0), (
+            node.stats.snapshot().summary()
+        )
+        corrected = _saved_distances(ros, scene, path)
+    assert np.percentile(smeared, 90) > 0.06
+    assert np.median(corrected) < 0.01 and np.percentile(corrected, 90) < 0.025, (
+        np.median(corrected),
+        np.percentile(corrected, 90),
+    )

@@ -22,6 +22,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
 from ..camera import PinholeCamera
 from ..pose_corrections import CorrectionLimits, corrected_segments
@@ -146,6 +147,60 @@ class KeyframeStore:
         self.entries.clear()
         self._bytes = 0
 
+    # --- on disk, with the map (mapping/map_file.py) --------------------------------------------------
+
+    def to_state(self) -> dict:
+        """The kept keyframes as tensors and numbers (what ``torch.load(weights_only=True)`` reads
+        back), so a map file carries what a rebuild at corrected poses needs after a restart."""
+
+        def tensor(a: np.ndarray | None) -> torch.Tensor | None:
+            return None if a is None else torch.from_numpy(np.ascontiguousarray(a))
+
+        return {
+            'thinned': int(self.thinned),
+            'keyframes': [
+                {
+                    'stamp': float(e.stamp),
+                    'segment': int(e.segment),
+                    'T_wc': torch.from_numpy(np.asarray(e.T_wc, np.float64).copy()),
+                    'camera': [float(v) for v in (e.camera.width, e.camera.height, *_intrinsics(e.camera))],
+                    'depth': tensor(e.depth),
+                    'confidence': tensor(e.confidence),
+                    'rgb': tensor(e.rgb),
+                }
+                for e in self.entries
+            ],
+        }
+
+    def restore(self, state: dict) -> int:
+        """Append the keyframes of :meth:`to_state` (a map loaded from its file) and start a new
+        segment for what follows: the restarted stream is another world until a corrected
+        trajectory says otherwise. Thinned to ``max_bytes`` as usual; returns how many came."""
+        if self.max_bytes <= 0:
+            return 0
+        first_segment = self.segment + 1
+        for k in state.get('keyframes', []):
+            width, height, fx, fy, cx, cy = k['camera']
+            entry = StoredKeyframe(
+                self._next_seq,
+                float(k['stamp']),
+                first_segment + int(k['segment']),
+                k['T_wc'].numpy().astype(np.float64),
+                PinholeCamera(int(width), int(height), fx, fy, cx, cy),
+                k['depth'].numpy().astype(np.float16),
+                None if k['confidence'] is None else k['confidence'].numpy().astype(np.uint8),
+                None if k['rgb'] is None else k['rgb'].numpy().astype(np.uint8),
+            )
+            self._next_seq += 1
+            self.entries.append(entry)
+            self._bytes += entry.nbytes
+            self.segment = max(self.segment, entry.segment)
+        self.thinned += int(state.get('thinned', 0))
+        while self._bytes > self.max_bytes and len(self.entries) > 1:
+            self._thin()
+        self.new_segment()
+        return len(state.get('keyframes', []))
+
     @staticmethod
     def keyframe_bytes(camera: PinholeCamera, colour: bool = True) -> int:
         """What one kept keyframe of ``camera`` (full-resolution camera) takes."""
@@ -185,6 +240,10 @@ class KeyframeStore:
     @property
     def last_seq(self) -> int:
         return self.entries[-1].seq if self.entries else -1
+
+
+def _intrinsics(camera: PinholeCamera) -> tuple[float, float, float, float]:
+    return camera.fx, camera.fy, camera.cx, camera.cy
 
 
 def rebuild(engine: object, entries: Iterable[StoredKeyframe]) -> int:

@@ -10,22 +10,52 @@ included, and where the camera last was. Loading checks that the file is such a 
 fits the node's configuration (same voxel and block size; more than ``max_blocks`` blocks only
 with the archive on: the ones nearest the last camera position are held in memory, the rest
 archived), and says in one line what does not.
+
+With the map come the keyframes it keeps for a rebuild at corrected poses
+(:class:`.keyframe_store.KeyframeStore`, half resolution, bounded) and the part of the map a
+rebuild cannot move (``base``: a map loaded before those keyframes were taken), so a corrected
+trajectory that arrives after a restart still moves what the earlier run mapped: the rebuild
+integrates the base and the kept keyframes of both runs at their corrected poses. A file
+without keyframes (an older one, or ``reintegration_max_mb`` 0) loads as a base that cannot
+move, as before.
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from .block_surface import BlockGrid
+from .keyframe_store import KeyframeStore
 from .torch_tsdf import TorchTSDF
 
 FORMAT = 'depth_fusion_ros.tsdf/1'
 
 
-def save_tsdf(engine: TorchTSDF, path: str | Path, world_frame: str) -> int:
-    """Write the map's blocks, archived ones included, to ``path`` (atomically); returns how many."""
+@dataclass
+class LoadedMap:
+    """What a map file gave besides the blocks now in the engine."""
+
+    world_frame: str
+    #: The blocks a rebuild at corrected poses starts from (coords, tsdf, weight, colour on the
+    #: CPU), or None: the kept keyframes are the whole map.
+    base: BlockGrid | None
+    #: Kept keyframes restored into the store.
+    keyframes: int
+
+
+def save_tsdf(
+    engine: TorchTSDF,
+    path: str | Path,
+    world_frame: str,
+    store: KeyframeStore | None = None,
+    base: BlockGrid | None = None,
+) -> int:
+    """Write the map's blocks, archived ones included, to ``path`` (atomically), with the kept
+    keyframes of ``store`` and the rebuild's ``base`` when given; returns how many blocks."""
     path = Path(path)
     blocks = engine.all_blocks()
     camera = engine.camera_position
@@ -42,6 +72,10 @@ def save_tsdf(engine: TorchTSDF, path: str | Path, world_frame: str) -> int:
     }
     if camera is not None:
         state['camera_position'] = torch.as_tensor(camera, dtype=torch.float64)
+    if store is not None:
+        state['store'] = store.to_state()
+        if base is not None:
+            state['base'] = {k: getattr(base, k).cpu() for k in ('coords', 'tsdf', 'weight', 'colour')}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + '.tmp')
     torch.save(state, tmp)
@@ -50,7 +84,12 @@ def save_tsdf(engine: TorchTSDF, path: str | Path, world_frame: str) -> int:
 
 
 def load_tsdf(engine: TorchTSDF, path: str | Path) -> str:
-    """Fill the (empty) ``engine`` with the map in ``path``; returns its world frame.
+    """Fill the (empty) ``engine`` with the map in ``path``; returns its world frame."""
+    return load_map(engine, path).world_frame
+
+
+def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = None) -> LoadedMap:
+    """Fill the (empty) ``engine`` with the map in ``path`` and ``store`` with its kept keyframes.
 
     ``ValueError`` naming the file and the reason when it is not a map this engine can take."""
     path = Path(path)
@@ -77,4 +116,20 @@ def load_tsdf(engine: TorchTSDF, path: str | Path) -> str:
     engine.load_blocks(state['coords'], state['tsdf'], state['weight'], state['colour'], centre=centre)
     if centre is not None:
         engine.camera_position = centre.copy()
-    return str(state.get('world_frame') or '')
+    world_frame = str(state.get('world_frame') or '')
+    kept = state.get('store')
+    if store is None or kept is None or not kept.get('keyframes') or store.max_bytes <= 0:
+        return LoadedMap(world_frame, engine.all_blocks().clone(), 0)  # nothing to rebuild from: fixed
+    restored = store.restore(kept)
+    base = state.get('base')
+    if base is not None:
+        base = BlockGrid(
+            base['coords'],
+            base['tsdf'],
+            base['weight'],
+            base['colour'],
+            cfg.block_size,
+            cfg.voxel_size,
+            cfg.min_weight,
+        )
+    return LoadedMap(world_frame, base, restored)

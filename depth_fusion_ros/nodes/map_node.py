@@ -39,7 +39,7 @@ from std_srvs.srv import Trigger
 from ..data import messages
 from ..mapping.config import ENGINES, MAP_PARAMETER_DESCRIPTIONS, MapConfig
 from ..mapping.engine import make_map
-from ..mapping.map_file import load_tsdf, save_tsdf
+from ..mapping.map_file import load_map, save_tsdf
 from ..mapping.ply import write_ply
 from ..mapping.surface import SurfaceMesh
 from ..mapping.torch_tsdf import TorchTSDF
@@ -104,8 +104,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'map_file',
         '',
-        'the TSDF map itself (torch engine): loaded at start when the file exists, so a robot keeps its map '
-        "across restarts; written by ~/save_map and save_on_shutdown beside the mesh ('': none)",
+        'the TSDF map itself (torch engine), with its archived blocks and the keyframes it keeps for a '
+        'rebuild at corrected poses: loaded at start when the file exists, so a robot keeps its map across restarts; '
+        "written by ~/save_map and save_on_shutdown beside the mesh ('': none)",
     ),
     ParamSpec(
         'use_color', True, f'colour the map with the keyframe image ({TOPIC_KEYFRAME_IMAGE}) when it came'
@@ -336,16 +337,24 @@ class MapNode(DepthFusionNode):
             self.get_logger().info(f'map_file {self.map_file} does not exist yet: starting an empty map')
             return
         try:
-            self._world_frame = load_tsdf(self.map.engine, self.map_file)
+            loaded = load_map(self.map.engine, self.map_file, self.corrector.store)
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
-        self.corrector.base = self.map.engine.all_blocks().clone()
+        self._world_frame = loaded.world_frame
+        self.corrector.base = loaded.base
         self._dirty = True
         frame = self._world_frame or '?'
         archived = self.map.engine.archived_blocks
+        movable = (
+            f'{loaded.keyframes} kept keyframes restored: a corrected trajectory rebuilds it'
+            + (' (with the part mapped before them fixed)' if loaded.base is not None else '')
+            if loaded.keyframes
+            else 'no kept keyframes in it: a corrected trajectory cannot move it'
+        )
         self.get_logger().info(
             f'map loaded from {self.map_file}: {self.map.n_blocks} blocks in frame {frame!r}'
             + (f', {archived} more archived (beyond map.max_blocks)' if archived else '')
+            + f'; {movable}'
         )
 
     def _check_pose_jump(self, stamp: float, T_wc: np.ndarray) -> None:
@@ -449,7 +458,13 @@ class MapNode(DepthFusionNode):
         write_ply(path, mesh)
         if self.map_file is not None:
             with self._lock:
-                save_tsdf(self.map.engine, self.map_file, self._world_frame)
+                save_tsdf(
+                    self.map.engine,
+                    self.map_file,
+                    self._world_frame,
+                    self.corrector.store,
+                    self.corrector.base,
+                )
         return path, len(mesh.vertices), len(mesh.triangles)
 
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
