@@ -105,8 +105,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'map_file',
         '',
         'the TSDF map itself (torch engine), with its archived blocks and the keyframes it keeps for a '
-        'rebuild at corrected poses: loaded at start when the file exists, so a robot keeps its map across restarts; '
-        "written by ~/save_map and save_on_shutdown beside the mesh ('': none)",
+        'rebuild at corrected poses: loaded at start when the file exists, so a robot keeps its map across '
+        "restarts; written by ~/save_map and save_on_shutdown beside the mesh ('': none)",
     ),
     ParamSpec(
         'use_color', True, f'colour the map with the keyframe image ({TOPIC_KEYFRAME_IMAGE}) when it came'
