@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import logging
+import os
 
 import numpy as np
 import pytest
 import torch
 
 from depth_fusion_ros.camera import PinholeCamera
-from depth_fusion_ros.mapping.block_archive import BlockArchive
+from depth_fusion_ros.mapping.block_archive import PREFIX, BlockArchive
 from depth_fusion_ros.mapping.config import MapConfig
 from depth_fusion_ros.mapping.map_file import load_tsdf, save_tsdf
 from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
@@ -120,3 +121,33 @@ def test_a_map_file_larger_than_the_cap_loads_around_the_last_camera(tmp_path):
 def test_a_negative_archive_cap_is_refused():
     with pytest.raises(ValueError, match=r'map\.archive_max_mb'):
         MapConfig(archive_max_mb=-1.0).validate()
+
+
+def test_archives_left_by_killed_processes_are_removed_by_the_next_one(tmp_path):
+    """A process killed before it could delete its archive leaves the directory; the next archive
+    made there removes it, and never one of a process that still runs."""
+    dead = tmp_path / f'{PREFIX}999999999_abc'  # above Linux's pid_max: no such process
+    alive = tmp_path / f'{PREFIX}{os.getpid()}_def'
+    for folder in (dead, alive):
+        folder.mkdir()
+        (folder / 'blocks.f32').write_bytes(b'\0' * 64)
+    archive = BlockArchive(8, tmp_path)
+    archive.put(
+        torch.zeros((1, 3), dtype=torch.int64), torch.zeros(1, 8), torch.zeros(1, 8), torch.zeros(1, 3, 8)
+    )
+    assert (
+        not dead.exists()
+        and alive.exists()
+        and archive.path.parent.name.startswith(f'{PREFIX}{os.getpid()}_')
+    )
+    archive.close()
+
+
+def test_map_node_archives_under_ros_home_by_default(monkeypatch, tmp_path):
+    """Not the temporary directory (memory on some systems): $ROS_HOME, ~/.ros by default."""
+    from depth_fusion_ros.nodes.map_node import default_archive_dir
+
+    monkeypatch.setenv('ROS_HOME', str(tmp_path))
+    assert default_archive_dir() == tmp_path / 'depth_fusion_ros' / 'map_archive'
+    monkeypatch.delenv('ROS_HOME')
+    assert default_archive_dir().parts[-3:] == ('.ros', 'depth_fusion_ros', 'map_archive')

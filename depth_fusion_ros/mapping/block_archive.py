@@ -13,13 +13,16 @@ doubling up to ``max_bytes`` and reused through a free list; a dict maps each bl
 key (:mod:`.keys`) to its slot. Blocks past ``max_bytes``, or that the disk refuses (full,
 read-only), are lost and counted (``lost``), never silently. The archive is a spill area of
 one map, not a storage format: it lives in a directory of its own, made on the first eviction
-and deleted with the map (``close``, or at exit). A map that must outlive the process is the
-map file (:mod:`.map_file`).
+and deleted with the map (``close``, or at exit). A process killed before it could delete its
+archive (SIGKILL, a power cut) leaves the directory behind; its name carries the process id, and
+the next archive made in the same parent deletes the ones whose process is gone. A map that
+must outlive the process is the map file (:mod:`.map_file`).
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import tempfile
 import weakref
@@ -34,6 +37,34 @@ log = logging.getLogger(__name__)
 
 #: Slots of the first file (10 KiB each at 8³ voxels): doubled as needed up to the cap.
 INITIAL_SLOTS = 256
+
+#: Prefix of an archive's directory; the owning process id follows it.
+PREFIX = 'depth_fusion_map_archive_'
+
+
+def remove_stale(parent: Path) -> int:
+    """Delete the archive directories in ``parent`` whose process no longer runs (a process
+    killed before it could delete its own); returns how many."""
+    removed = 0
+    for folder in parent.glob(f'{PREFIX}*_*'):
+        pid_text = folder.name[len(PREFIX) :].split('_', 1)[0]
+        if not pid_text.isdigit() or not folder.is_dir() or _running(int(pid_text)):
+            continue
+        shutil.rmtree(folder, ignore_errors=True)
+        removed += 1
+    if removed:
+        log.info('map archive: removed %d archives left by stopped processes in %s', removed, parent)
+    return removed
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: it runs
+        return True
+    return True
 
 
 class BlockArchive:
@@ -175,10 +206,10 @@ class BlockArchive:
     def _grow(self, needed: int) -> None:
         capacity = min(self.max_slots, max(needed, 2 * self._capacity, INITIAL_SLOTS))
         if self._path is None:
-            parent = self.directory or None
-            if parent is not None:
-                Path(parent).mkdir(parents=True, exist_ok=True)
-            folder = Path(tempfile.mkdtemp(prefix='depth_fusion_map_archive_', dir=parent))
+            parent = Path(self.directory or tempfile.gettempdir())
+            parent.mkdir(parents=True, exist_ok=True)
+            remove_stale(parent)
+            folder = Path(tempfile.mkdtemp(prefix=f'{PREFIX}{os.getpid()}_', dir=parent))
             self._finalizer = weakref.finalize(self, shutil.rmtree, folder, True)
             self._path = folder / 'blocks.f32'
             self._path.touch()

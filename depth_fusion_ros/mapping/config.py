@@ -55,7 +55,8 @@ class MapConfig:
     #: Evicted blocks go to a file on disk and come back when a keyframe needs them again; the
     #: saved mesh and map file hold them (torch engine). False: evicted blocks are dropped.
     archive: bool = True
-    #: Where the archive's directory is made ('': the system's temporary directory).
+    #: Where the archive's directory is made ('': the system's temporary directory; map_node
+    #: uses $ROS_HOME/depth_fusion_ros/map_archive instead).
     archive_dir: str = ''
     #: Most disk the archive takes (MiB); blocks evicted past it are lost (counted).
     archive_max_mb: float = 4096.0
@@ -130,8 +131,9 @@ MAP_PARAMETER_DESCRIPTIONS = {
     'allocation_stride': 'pixel stride of the block allocation pass',
     'archive': 'evicted blocks go to a file on disk and come back when a keyframe needs them again; '
     '~/save_map and map_file hold them (torch engine; false: evicted blocks are dropped)',
-    'archive_dir': "where the archive's directory is made, deleted when the map goes ('': the system's "
-    'temporary directory)',
+    'archive_dir': "where the archive's directory is made, deleted when the map goes ('': "
+    '$ROS_HOME/depth_fusion_ros/map_archive, ~/.ros by default: a disk, not the temporary directory that '
+    'some systems keep in memory)',
     'archive_max_mb': 'most disk the archive takes (MiB); blocks evicted past it are lost (counted)',
     'engine': 'TSDF engine: auto (Open3D when installed, else torch), torch, or open3d (falls back to '
     'torch with one log line when Open3D is missing)',

@@ -24,6 +24,7 @@ kept at their corrected poses (:mod:`.map_corrections`).
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Sequence
@@ -131,6 +132,14 @@ PARAMETERS: tuple[ParamSpec, ...] = (
 )
 
 
+def default_archive_dir() -> Path:
+    """Where map_node's archive goes unless ``map.archive_dir`` says: under ``$ROS_HOME``
+    (``~/.ros``, where ROS keeps its logs: a disk), not the temporary directory, which some
+    systems keep in memory (tmpfs) and which would then hold what ``max_blocks`` keeps out of it."""
+    home = os.environ.get('ROS_HOME') or str(Path.home() / '.ros')
+    return Path(home) / 'depth_fusion_ros' / 'map_archive'
+
+
 class MapNode(DepthFusionNode):
     """Pairs fused keyframes with their poses by stamp and integrates them into a TSDF."""
 
@@ -142,6 +151,7 @@ class MapNode(DepthFusionNode):
             config = build_dataclass(MapConfig, p, 'map', device=str(p['device'])).validate()
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
+        config.archive_dir = config.archive_dir or str(default_archive_dir())
         save_path = Path(str(p['save_path']))
         if save_path.suffix.lower() != '.ply':
             raise ValueError(f'{self.get_name()}: parameter save_path={str(save_path)!r} must end in .ply')
@@ -211,8 +221,10 @@ class MapNode(DepthFusionNode):
     def _archive_note(self, config: MapConfig) -> str:
         if getattr(self.map.engine, 'archive', None) is None:
             return 'the blocks evicted beyond them dropped (map.archive off or not this engine)'
-        where = config.archive_dir or 'the temporary directory'
-        return f'the blocks evicted beyond them archived in {where} (up to {config.archive_max_mb:g} MiB)'
+        return (
+            f'the blocks evicted beyond them archived in {config.archive_dir} '
+            f'(up to {config.archive_max_mb:g} MiB)'
+        )
 
     # --- callbacks: collect parts by stamp ------------------------------------------------------------
 
