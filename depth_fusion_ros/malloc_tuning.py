@@ -11,7 +11,11 @@ variables do, and the reason PyTorch's CPU tuning guides suggest jemalloc or tcm
 keeps the pages: measured on 2 cores, the sweep went from 41.7 to 34.8 ms a keyframe
 (docs/performance.md, "Allocator"). The cost is that a process keeps the memory it once
 used (its peak) instead of shrinking after it; every buffer here is bounded, so that peak
-is too.
+is too, **per malloc arena**. glibc gives threads arenas of their own (up to 8 per core), and
+each keeps its own peak: the map node, whose integration, surface extraction and rebuild run
+on threads of their own, grew from ~400 MB to 0.9-1.1 GB within 90 s of a looped replay
+(`DEPTH_FUSION_SOAK_MAP_BLOCKS=300 scripts/soak.sh`, 2026-11-29). So the arenas are capped at
+``ARENA_MAX`` (2, what ``MALLOC_ARENA_MAX=2`` does): the same run then held it at 400-500 MB.
 
 **On by default; ``DEPTH_FUSION_MALLOC_TUNING=0`` turns it off.** It was opt-in for a day
 because with it on 2 of 5 ``evaluate`` runs of the synthetic room gave a different
@@ -22,7 +26,8 @@ with the tuning off too; the tuning only changed how often the threads collided)
 resolved up front by :mod:`.vml_warmup`; with that, five runs with the tuning and three
 without gave the same numbers to the last digit. ``depth-fusion``
 and every node's entry point call :func:`keep_freed_memory`; a ``MALLOC_MMAP_THRESHOLD_``
-or ``MALLOC_TRIM_THRESHOLD_`` you set wins (then nothing is changed here).
+or ``MALLOC_TRIM_THRESHOLD_`` you set wins (then nothing is changed here), as does a
+``MALLOC_ARENA_MAX`` for the arena cap.
 """
 
 from __future__ import annotations
@@ -38,6 +43,9 @@ log = logging.getLogger(__name__)
 #: glibc's ``mallopt`` parameter numbers (malloc.h).
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
+M_ARENA_MAX = -8
+#: Most malloc arenas: threads share them, so the kept peak is held at most this many times.
+ARENA_MAX = 2
 #: Allocations up to this come from the heap, not from fresh mmap pages: glibc's largest
 #: allowed value on 64-bit (``DEFAULT_MMAP_THRESHOLD_MAX``), above the 16 MiB chunk budget.
 MMAP_THRESHOLD = 32 * 1024 * 1024
@@ -74,7 +82,8 @@ def keep_freed_memory() -> bool:
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
-    mmap_ok = bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD))
+    arenas_ok = bool(os.environ.get('MALLOC_ARENA_MAX')) or bool(mallopt(M_ARENA_MAX, ARENA_MAX))
+    mmap_ok = arenas_ok and bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD))
     _applied = mmap_ok and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
     log.debug('allocator tuning: %s', 'freed memory kept' if _applied else 'mallopt refused')
     return _applied
