@@ -87,3 +87,22 @@ def keep_freed_memory() -> bool:
     _applied = mmap_ok and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
     log.debug('allocator tuning: %s', 'freed memory kept' if _applied else 'mallopt refused')
     return _applied
+
+
+def release_free_memory() -> bool:
+    """Hand the heap's free memory back to the OS now (glibc's ``malloc_trim``); whether it ran.
+
+    For a bounded store that has just dropped much of what it held (map_node's kept keyframes,
+    thinned with age): under the raised trim threshold above, the freed chunks would stay in
+    the process, which then sat ~30 MB above the store's own cap. Rare (a thinning drops a
+    quarter of the store), and a few milliseconds each."""
+    if not sys.platform.startswith('linux') or platform.libc_ver()[0] != 'glibc':
+        return False
+    try:
+        trim = ctypes.CDLL('libc.so.6').malloc_trim
+    except (OSError, AttributeError):
+        return False
+    trim.argtypes = (ctypes.c_size_t,)
+    trim.restype = ctypes.c_int
+    trim(0)
+    return True

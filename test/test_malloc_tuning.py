@@ -45,3 +45,15 @@ def test_on_by_default_applied_once_and_off_when_asked():
 
 def test_the_users_own_settings_win():
     assert _probe(DEPTH_FUSION_MALLOC_TUNING='1', MALLOC_TRIM_THRESHOLD_='131072') == 'False True'
+
+
+def test_free_memory_can_be_handed_back():
+    """malloc_trim on glibc (what map_node calls after its keyframe store is thinned); a no-op
+    elsewhere."""
+    import platform
+    import sys
+
+    from depth_fusion_ros.malloc_tuning import release_free_memory
+
+    glibc = sys.platform.startswith('linux') and platform.libc_ver()[0] == 'glibc'
+    assert release_free_memory() is glibc

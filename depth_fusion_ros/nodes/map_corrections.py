@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..malloc_tuning import release_free_memory
 from ..mapping.engine import make_engine
 from ..mapping.keyframe_store import KeyframeStore, rebuild
 from ..pose_corrections import corrected_poses, corrected_segments
@@ -80,7 +81,12 @@ class MapCorrector:
         """``ConsistentMap.on_integrated``: keep the keyframe as it went into the engine, in the
         segment it entered the window in."""
         segment = self._segments.get(float(key), self.store.segment)
+        thinned = self.store.thinned
         self.store.add(float(key), depth, T_wc, camera, confidence, rgb, segment=segment)
+        if self.store.thinned > thinned:
+            # The dropped keyframes' memory goes back to the OS (the raised trim threshold of
+            # malloc_tuning.py would keep it): the node stays within reintegration_max_mb.
+            release_free_memory()
 
     # --- the corrected trajectory ----------------------------------------------------------------------
 
