@@ -74,14 +74,9 @@ def keep_freed_memory() -> bool:
     if any(os.environ.get(name) for name in USER_ENV):
         log.debug('allocator tuning left to the environment (%s)', ', '.join(USER_ENV))
         return False
-    if not sys.platform.startswith('linux') or platform.libc_ver()[0] != 'glibc':
+    mallopt = _glibc('mallopt', (ctypes.c_int, ctypes.c_int))
+    if mallopt is None:
         return False
-    try:
-        mallopt = ctypes.CDLL('libc.so.6').mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    mallopt.restype = ctypes.c_int
     arenas_ok = bool(os.environ.get('MALLOC_ARENA_MAX')) or bool(mallopt(M_ARENA_MAX, ARENA_MAX))
     mmap_ok = arenas_ok and bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD))
     _applied = mmap_ok and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
@@ -96,13 +91,21 @@ def release_free_memory() -> bool:
     thinned with age): under the raised trim threshold above, the freed chunks would stay in
     the process, which then sat ~30 MB above the store's own cap. Rare (a thinning drops a
     quarter of the store), and a few milliseconds each."""
-    if not sys.platform.startswith('linux') or platform.libc_ver()[0] != 'glibc':
+    trim = _glibc('malloc_trim', (ctypes.c_size_t,))
+    if trim is None:
         return False
-    try:
-        trim = ctypes.CDLL('libc.so.6').malloc_trim
-    except (OSError, AttributeError):
-        return False
-    trim.argtypes = (ctypes.c_size_t,)
-    trim.restype = ctypes.c_int
     trim(0)
     return True
+
+
+def _glibc(name: str, argtypes: tuple) -> ctypes._CFuncPtr | None:
+    """glibc's function ``name`` (returning int), or None on another C library or platform."""
+    if not sys.platform.startswith('linux') or platform.libc_ver()[0] != 'glibc':
+        return None
+    try:
+        function = getattr(ctypes.CDLL('libc.so.6'), name)
+    except (OSError, AttributeError):
+        return None
+    function.argtypes = argtypes
+    function.restype = ctypes.c_int
+    return function
