@@ -232,3 +232,32 @@ def test_map_on_cuda_matches_cpu(synthetic_sequence):
     # 0.99882 on an H100 (torch 2.11, 2026-11-26), the first run on a GPU: 0.1 % was a guess
     assert close.mean() > 0.998
     assert abs(vertices_c - vertices_g) <= 0.01 * vertices_c
+
+
+@needs_cuda
+def test_map_archive_on_cuda_gives_back_what_it_evicted(tmp_path):
+    """The disk archive on a CUDA map: blocks go to the host and back, and the bounded map with
+    its archive is the unbounded one (a wall slid along and back, cap 100 of ~300 blocks)."""
+    from depth_fusion_ros.camera import PinholeCamera
+    from depth_fusion_ros.mapping.config import MapConfig
+    from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
+
+    camera = PinholeCamera(160, 120, 131.25, 131.25, 79.5, 59.5)
+    wall = np.full((120, 160), 1.5, np.float32)
+    meshes = []
+    for cap in (100, 100_000):
+        tsdf = TorchTSDF(
+            MapConfig(
+                engine='torch', voxel_size=0.04, max_blocks=cap, device='cuda', archive_dir=str(tmp_path)
+            )
+        )
+        for x in [*np.linspace(0.0, 6.0, 13), *np.linspace(6.0, 0.0, 13)]:
+            T = np.eye(4)
+            T[0, 3] = x
+            tsdf.integrate(wall, T, camera)
+        if cap == 100:
+            assert tsdf.archive.restored > 0 and tsdf.lost_blocks == 0
+        v = tsdf.mesh().vertices
+        meshes.append(v[np.lexsort(v.T[::-1])])
+        tsdf.close()
+    np.testing.assert_array_equal(meshes[0], meshes[1])
