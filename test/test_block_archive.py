@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import logging
-import os
 
 import numpy as np
 import pytest
 import torch
 
 from depth_fusion_ros.camera import PinholeCamera
-from depth_fusion_ros.mapping.block_archive import PREFIX, BlockArchive
+from depth_fusion_ros.mapping.block_archive import LOCK_NAME, PREFIX, BlockArchive, remove_stale
 from depth_fusion_ros.mapping.config import MapConfig
 from depth_fusion_ros.mapping.map_file import load_tsdf, save_tsdf
 from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
@@ -124,23 +123,38 @@ def test_a_negative_archive_cap_is_refused():
 
 
 def test_archives_left_by_killed_processes_are_removed_by_the_next_one(tmp_path):
-    """A process killed before it could delete its archive leaves the directory; the next archive
-    made there removes it, and never one of a process that still runs."""
-    dead = tmp_path / f'{PREFIX}999999999_abc'  # above Linux's pid_max: no such process
-    alive = tmp_path / f'{PREFIX}{os.getpid()}_def'
+    """A process killed before it could delete its archive leaves the directory, its lock free;
+    the next archive made there removes it, and never one whose owner holds its lock (another
+    process, even one in another PID namespace)."""
+    import subprocess
+    import sys
+
+    holder = (
+        'import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT); '
+        'fcntl.flock(fd, fcntl.LOCK_EX); print("held", flush=True); time.sleep(60)'
+    )
+    dead, alive = tmp_path / f'{PREFIX}1_dead', tmp_path / f'{PREFIX}2_alive'
     for folder in (dead, alive):
         folder.mkdir()
         (folder / 'blocks.f32').write_bytes(b'\0' * 64)
-    archive = BlockArchive(8, tmp_path)
-    archive.put(
-        torch.zeros((1, 3), dtype=torch.int64), torch.zeros(1, 8), torch.zeros(1, 8), torch.zeros(1, 3, 8)
+        (folder / LOCK_NAME).touch()
+    owner = subprocess.Popen(
+        [sys.executable, '-c', holder, str(alive / LOCK_NAME)], stdout=subprocess.PIPE, text=True
     )
-    assert (
-        not dead.exists()
-        and alive.exists()
-        and archive.path.parent.name.startswith(f'{PREFIX}{os.getpid()}_')
-    )
-    archive.close()
+    try:
+        assert owner.stdout.readline().strip() == 'held'
+        archive = BlockArchive(8, tmp_path)
+        one = torch.zeros((1, 8))
+        archive.put(torch.zeros((1, 3), dtype=torch.int64), one, one, torch.zeros(1, 3, 8))
+        assert not dead.exists() and alive.exists()
+        mine = archive.path.parent
+        assert remove_stale(tmp_path) == 0 and mine.exists()  # its own lock is held too
+        archive.close()
+        assert not mine.exists()
+    finally:
+        owner.kill()
+        owner.wait()
+    assert remove_stale(tmp_path) == 1 and not alive.exists()  # its owner is gone now
 
 
 def test_map_node_archives_under_ros_home_by_default(monkeypatch, tmp_path):

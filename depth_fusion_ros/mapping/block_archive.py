@@ -14,9 +14,11 @@ key (:mod:`.keys`) to its slot. Blocks past ``max_bytes``, or that the disk refu
 read-only), are lost and counted (``lost``), never silently. The archive is a spill area of
 one map, not a storage format: it lives in a directory of its own, made on the first eviction
 and deleted with the map (``close``, or at exit). A process killed before it could delete its
-archive (SIGKILL, a power cut) leaves the directory behind; its name carries the process id, and
-the next archive made in the same parent deletes the ones whose process is gone. A map that
-must outlive the process is the map file (:mod:`.map_file`).
+archive (SIGKILL, a power cut) leaves the directory behind. Each archive holds an exclusive
+``flock`` on a lock file in its directory for its whole life (the kernel drops it when the
+process dies, whatever killed it, and it holds across PID namespaces: containers sharing
+``~/.ros``); the next archive made in the same parent deletes the directories whose lock it can
+take. A map that must outlive the process is the map file (:mod:`.map_file`).
 """
 
 from __future__ import annotations
@@ -42,14 +44,32 @@ INITIAL_SLOTS = 256
 PREFIX = 'depth_fusion_map_archive_'
 
 
+#: The lock file an archive holds (``flock``) while its process lives.
+LOCK_NAME = 'owner.lock'
+
+
 def remove_stale(parent: Path) -> int:
-    """Delete the archive directories in ``parent`` whose process no longer runs (a process
-    killed before it could delete its own); returns how many."""
+    """Delete the archive directories in ``parent`` whose owner is gone (a process killed before
+    it could delete its own: its lock is free); returns how many. POSIX only (``fcntl``)."""
+    try:
+        import fcntl
+    except ImportError:
+        return 0
     removed = 0
-    for folder in parent.glob(f'{PREFIX}*_*'):
-        pid_text = folder.name[len(PREFIX) :].split('_', 1)[0]
-        if not pid_text.isdigit() or not folder.is_dir() or _running(int(pid_text)):
+    for folder in parent.glob(f'{PREFIX}*'):
+        lock = folder / LOCK_NAME
+        if not folder.is_dir() or not lock.exists():  # not an archive, or one being made this moment
             continue
+        try:
+            fd = os.open(lock, os.O_RDWR)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # held: its process runs
+            continue
+        finally:
+            os.close(fd)
         shutil.rmtree(folder, ignore_errors=True)
         removed += 1
     if removed:
@@ -57,14 +77,21 @@ def remove_stale(parent: Path) -> int:
     return removed
 
 
-def _running(pid: int) -> bool:
+def _take_lock(folder: Path) -> int | None:
+    """Hold ``folder``'s lock file for the archive's life: the descriptor (None without fcntl)."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process: it runs
-        return True
-    return True
+        import fcntl
+    except ImportError:
+        return None
+    fd = os.open(folder / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    return fd
+
+
+def _remove(folder: Path, lock_fd: int | None) -> None:
+    shutil.rmtree(folder, ignore_errors=True)
+    if lock_fd is not None:
+        os.close(lock_fd)
 
 
 class BlockArchive:
@@ -210,7 +237,7 @@ class BlockArchive:
             parent.mkdir(parents=True, exist_ok=True)
             remove_stale(parent)
             folder = Path(tempfile.mkdtemp(prefix=f'{PREFIX}{os.getpid()}_', dir=parent))
-            self._finalizer = weakref.finalize(self, shutil.rmtree, folder, True)
+            self._finalizer = weakref.finalize(self, _remove, folder, _take_lock(folder))
             self._path = folder / 'blocks.f32'
             self._path.touch()
             log.info('map archive: evicted blocks go to %s', self._path)
