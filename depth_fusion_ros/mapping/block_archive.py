@@ -185,6 +185,18 @@ class BlockArchive:
         rows = torch.from_numpy(np.array(self._memmap[slots])) if slots else torch.zeros((0, self.record))
         return found, rows[:, :v], rows[:, v : 2 * v], rows[:, 2 * v :].reshape(-1, 3, v)
 
+    def coords(self) -> torch.Tensor:
+        """(N, 3) block coordinates of the archived blocks (no voxels read)."""
+        return unpack(torch.tensor(list(self._slots.keys()), dtype=torch.int64)).reshape(-1, 3)
+
+    def read(self, coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The voxels of archived blocks ``coords`` (all archived; left in the archive):
+        ``(tsdf, weight, colour)`` on the CPU, in their order."""
+        v = self.block_voxels
+        slots = [self._slots[k] for k in pack(coords.cpu()).tolist()]
+        rows = torch.from_numpy(np.array(self._memmap[slots])) if slots else torch.zeros((0, self.record))
+        return rows[:, :v], rows[:, v : 2 * v], rows[:, 2 * v :].reshape(-1, 3, v)
+
     def read_all(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Every archived block, left in the archive: ``(coords, tsdf, weight, colour)`` on the CPU
         (the whole archive in memory: for a saved mesh or map file, on request)."""

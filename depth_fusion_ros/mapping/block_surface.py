@@ -93,10 +93,18 @@ def block_mesh(grid: BlockGrid, triangles: bool = True) -> SurfaceMesh:
 
     ``triangles=False``: the vertices and their colours only (no triangles), for a point cloud
     of the surface (nodes/map_points.py): a quarter of the work less."""
+    return block_mesh_cells(grid, triangles)[0]
+
+
+def block_mesh_cells(grid: BlockGrid, triangles: bool = True) -> tuple[SurfaceMesh, torch.Tensor]:
+    """:func:`block_mesh` and the cell of each vertex: the integer voxel coordinates of its
+    cell's min corner, (V, 3) int64 (a vertex's identity across extractions of parts of a map,
+    mapping/slab_surface.py)."""
     n, dev = grid.block_size, grid.coords.device
     b = grid.coords.shape[0]
+    none = torch.zeros((0, 3), dtype=torch.int64)
     if b == 0:
-        return empty_mesh()
+        return empty_mesh(), none
     usable = (grid.weight >= max(grid.min_weight, 1e-9)) & (grid.tsdf.abs() < TRUNCATED)
     t = torch.where(usable, grid.tsdf, math.nan).view(b, n, n, n)
     index = SortedKeys(pack(grid.coords))
@@ -109,7 +117,7 @@ def block_mesh(grid: BlockGrid, triangles: bool = True) -> SurfaceMesh:
     cell, corner_at = _cells(code, n)
     cells = torch.nonzero(cell)  # (C, 4): block, x, y, z (min corner)
     if cells.shape[0] == 0:
-        return empty_mesh()
+        return empty_mesh(), none
     m = n + 1
     base = ((cells[:, 0] * m + cells[:, 1]) * m + cells[:, 2]) * m + cells[:, 3]
     at = base[:, None] + corner_at[None]  # (C, 8) into the padded arrays
@@ -125,11 +133,12 @@ def block_mesh(grid: BlockGrid, triangles: bool = True) -> SurfaceMesh:
         faces = _quads(tp, code, _padded(ids, minus, n, -1, -1), n, vertices)
     else:
         faces = torch.zeros((0, 3), dtype=torch.int64, device=dev)
-    return SurfaceMesh(
+    mesh = SurfaceMesh(
         (vertices * grid.voxel_size).cpu().numpy().astype('float32'),
         faces.cpu().numpy().astype('int64'),
         colours.round().clamp(0, 255).to(torch.uint8).cpu().numpy(),
     )
+    return mesh, voxel.cpu()
 
 
 def _corner_offsets(n: int, device: torch.device) -> torch.Tensor:

@@ -36,6 +36,7 @@ blocks farthest from its camera are evicted (counted in ``evicted_blocks``) to t
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -46,6 +47,7 @@ from .block_archive import BlockArchive
 from .block_surface import BlockGrid, block_mesh
 from .config import MapConfig
 from .keys import SortedKeys, pack, unpack
+from .slab_surface import slab_mesh
 from .surface import SurfaceMesh, VoxelSet
 
 log = logging.getLogger(__name__)
@@ -431,8 +433,35 @@ class TorchTSDF:
 
     def mesh(self) -> SurfaceMesh:
         """The zero level set of the whole map (archived blocks included) as a triangle mesh
-        (surface nets on the blocks), world frame, metres."""
-        return block_mesh(self.all_blocks())
+        (surface nets on the blocks), world frame, metres. With blocks archived it is extracted
+        in slabs of at most ``max_blocks`` blocks read back at a time (mapping/slab_surface.py),
+        so saving a map larger than memory stays within about twice the cap."""
+        if self.archive is None or self.archive.n_blocks == 0:
+            return block_mesh(self.blocks())
+        resident = self.block_coords[: self.n_blocks].cpu()
+        archived = self.archive.coords()
+        return slab_mesh(torch.cat((resident, archived)), self._rows_loader(archived), self.config.max_blocks)
+
+    def _rows_loader(self, archived: torch.Tensor) -> Callable[[torch.Tensor], BlockGrid]:
+        """``load(rows)`` for :func:`.slab_surface.slab_mesh`: rows below ``n_blocks`` are in memory,
+        the rest are ``archived`` (in its order), read from the archive."""
+        n, dev, cfg = self.n_blocks, self.device, self.config
+
+        def load(rows: torch.Tensor) -> BlockGrid:
+            mine = rows[rows < n].to(dev)
+            theirs = archived[rows[rows >= n] - n]
+            tsdf, weight, colour = self.archive.read(theirs)
+            return BlockGrid(
+                torch.cat((self.block_coords.index_select(0, mine), theirs.to(dev))),
+                torch.cat((self.tsdf.index_select(0, mine), tsdf.to(dev))),
+                torch.cat((self.weight.index_select(0, mine), weight.to(dev))),
+                torch.cat((self.colour.index_select(0, mine), colour.to(dev))),
+                cfg.block_size,
+                self.voxel,
+                cfg.min_weight,
+            )
+
+        return load
 
 
 def _bordered(image: torch.Tensor) -> torch.Tensor:
