@@ -32,6 +32,7 @@ def test_map_methods_report_accuracy_completeness_and_a_picture(tmp_path):
         assert all(key in scores[name] for key in MAP_KEYS), name
         assert 'mae' not in scores[name]  # the per-keyframe depth of a map method is not scored
     assert scores['map_single_view']['map_points'] > 100
+    assert scores['map']['map_lost_blocks'] == 0  # nothing evicted and lost: the scored map is whole
     assert 0.0 <= scores['map']['map_completeness_5cm'] <= scores['map']['map_completeness_10cm'] <= 1.0
     assert 'mae' in scores['single_view_simulated']  # ordinary methods are scored as before
     assert (tmp_path / f'{seq.name}_map.png').is_file()

@@ -112,6 +112,8 @@ def _finish(label: str) -> Callable[[SequenceContext], SequenceOutput]:
         engine = seq.shared[f'map:{label}']
         metrics['map_blocks'] = float(engine.n_blocks)
         metrics['map_evicted_blocks'] = float(engine.evicted_blocks)
+        # Evicted blocks that are gone (no archive, the archive full): the map scored lacks them.
+        metrics['map_lost_blocks'] = float(getattr(engine, 'lost_blocks', engine.evicted_blocks))
         figure = seq.shared.setdefault('map:figure', _figure(seq))
         return SequenceOutput(metrics, figure, {'mesh': meshes[label]})
 
