@@ -276,3 +276,18 @@ def test_a_bounded_map_archives_what_it_evicts_and_saves_the_whole_map(room, tmp
     np.testing.assert_allclose(
         got[np.lexsort(got.T[::-1])], expected[np.lexsort(expected.T[::-1])], atol=1e-6
     )
+
+
+def test_an_archive_directory_that_cannot_be_written_is_said_at_start(tmp_path):
+    """One warning line at start (the archive is made only when the map first evicts, so the
+    node still starts: the blocks it would evict are then counted as lost)."""
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('not a directory')
+    with RosHarness() as ros:
+        node = map_node(
+            ros, points_rate=0.0, **{'map.engine': 'torch', 'map.archive_dir': str(blocker / 'x')}
+        )
+        assert node.map.engine.archive is not None
+    from depth_fusion_ros.nodes.map_node import _writable
+
+    assert not _writable(blocker / 'x') and _writable(tmp_path / 'new' / 'dir')

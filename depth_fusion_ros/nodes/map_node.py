@@ -132,6 +132,15 @@ PARAMETERS: tuple[ParamSpec, ...] = (
 )
 
 
+def _writable(folder: Path) -> bool:
+    """Whether ``folder`` exists as a writable directory or could be made (its nearest existing
+    ancestor is a writable directory)."""
+    for candidate in (folder, *folder.parents):
+        if candidate.exists():
+            return candidate.is_dir() and os.access(candidate, os.W_OK | os.X_OK)
+    return False
+
+
 def default_archive_dir() -> Path:
     """Where map_node's archive goes unless ``map.archive_dir`` says: under ``$ROS_HOME``
     (``~/.ros``, where ROS keeps its logs: a disk), not the temporary directory, which some
@@ -221,6 +230,11 @@ class MapNode(DepthFusionNode):
     def _archive_note(self, config: MapConfig) -> str:
         if getattr(self.map.engine, 'archive', None) is None:
             return 'the blocks evicted beyond them dropped (map.archive off or not this engine)'
+        if not _writable(Path(config.archive_dir)):
+            self.get_logger().warning(
+                f'map.archive_dir {config.archive_dir} cannot be written: blocks evicted beyond '
+                f'map.max_blocks={config.max_blocks} will be lost (counted as blocks_lost)'
+            )
         return (
             f'the blocks evicted beyond them archived in {config.archive_dir} '
             f'(up to {config.archive_max_mb:g} MiB)'
