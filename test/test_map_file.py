@@ -101,3 +101,24 @@ def test_the_kept_keyframes_travel_with_the_map_and_a_rebuild_after_a_restart_mo
     save_tsdf(tsdf, path, 'world')
     loaded = load_map(TorchTSDF(config), path, KeyframeStore(max_bytes=2**20))
     assert loaded.keyframes == 0 and loaded.base.coords.shape[0] == tsdf.n_blocks
+
+
+def test_depth_fusion_mesh_writes_the_mesh_of_a_map_file(saved_map, tmp_path, capsys):
+    """`depth-fusion mesh`: the saved map's surface as ~/save_map would write it; an unreadable
+    file is a one-line error (2) and a map without surface writes nothing (1)."""
+    from depth_fusion_ros.cli.main import main
+    from depth_fusion_ros.mapping import read_ply
+
+    tsdf, path, _ = saved_map
+    out = tmp_path / 'offline.ply'
+    assert main(['mesh', str(path), '--out', str(out), '--max-blocks', '7']) == 0
+    expected, got = tsdf.mesh(), read_ply(out)
+    assert len(got.vertices) == len(expected.vertices) and len(got.triangles) == len(expected.triangles)
+    np.testing.assert_array_equal(np.sort(got.vertices, axis=0), np.sort(expected.vertices, axis=0))
+    assert f'{len(expected.vertices)} vertices' in capsys.readouterr().out
+    junk = tmp_path / 'junk.tsdf'
+    junk.write_bytes(b'not a map')
+    assert main(['mesh', str(junk), '--out', str(out)]) == 2
+    assert 'not readable as a map' in capsys.readouterr().err
+    assert main(['mesh', str(path), '--out', str(tmp_path / 'none.ply'), '--min-weight', '1e9']) == 1
+    assert 'has no surface' in capsys.readouterr().err and not (tmp_path / 'none.ply').exists()

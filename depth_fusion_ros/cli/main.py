@@ -16,7 +16,19 @@ import sys
 from ..malloc_tuning import keep_freed_memory
 
 #: Subcommands in the order ``--help`` lists them.
-SUBCOMMANDS = ('demo', 'synth', 'convert', 'evaluate', 'train', 'adapt', 'export', 'kernels', 'run', 'bench')
+SUBCOMMANDS = (
+    'demo',
+    'synth',
+    'convert',
+    'evaluate',
+    'train',
+    'adapt',
+    'export',
+    'kernels',
+    'run',
+    'mesh',
+    'bench',
+)
 
 DESCRIPTION = """\
 depth_fusion_ros: dense monocular depth by fusing single-view CNN depth with semi-dense
@@ -30,6 +42,7 @@ typical use:
   depth-fusion evaluate SEQ_DIR --methods tv,single_view,fused
   depth-fusion export --format onnx --out model.onnx   # the network as ONNX (+ model.yaml)
   depth-fusion adapt SEQ_DIR --out adapted.pt     # self-supervised adaptation to a scene
+  depth-fusion mesh lab.tsdf --out lab.ply        # the mesh of a map file saved by map_node
 """
 
 

@@ -88,10 +88,9 @@ def load_tsdf(engine: TorchTSDF, path: str | Path) -> str:
     return load_map(engine, path).world_frame
 
 
-def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = None) -> LoadedMap:
-    """Fill the (empty) ``engine`` with the map in ``path`` and ``store`` with its kept keyframes.
-
-    ``ValueError`` naming the file and the reason when it is not a map this engine can take."""
+def read_state(path: str | Path) -> dict:
+    """The saved map as ``torch.save`` wrote it (tensors and numbers; no code runs);
+    ``ValueError`` naming the file when it is not such a map."""
     path = Path(path)
     try:
         state = torch.load(path, map_location='cpu', weights_only=True)
@@ -99,6 +98,28 @@ def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = 
         raise ValueError(f'map file {path}: not readable as a map ({type(exc).__name__}: {exc})') from None
     if not isinstance(state, dict) or state.get('format') != FORMAT:
         raise ValueError(f'map file {path}: not a depth_fusion_ros TSDF map (format {FORMAT})')
+    return state
+
+
+def file_blocks(state: dict, min_weight: float) -> BlockGrid:
+    """The blocks of a :func:`read_state` map (CPU), surface voxels needing ``min_weight``."""
+    return BlockGrid(
+        state['coords'],
+        state['tsdf'],
+        state['weight'],
+        state['colour'],
+        int(state['block_size']),
+        float(state['voxel_size']),
+        float(min_weight),
+    )
+
+
+def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = None) -> LoadedMap:
+    """Fill the (empty) ``engine`` with the map in ``path`` and ``store`` with its kept keyframes.
+
+    ``ValueError`` naming the file and the reason when it is not a map this engine can take."""
+    path = Path(path)
+    state = read_state(path)
     cfg = engine.config
     if abs(float(state['voxel_size']) - cfg.voxel_size) > 1e-9 or int(state['block_size']) != cfg.block_size:
         raise ValueError(

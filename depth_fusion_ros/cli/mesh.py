@@ -1,0 +1,85 @@
+"""``depth-fusion mesh``: the mesh of a saved map file, without running map_node."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+DESCRIPTION = """\
+Write the surface of a map file (map_node's map_file: the TSDF with its archived blocks) as a
+binary .ply mesh, offline: what ~/save_map would write from that map. The surface is extracted
+in slabs of at most --max-blocks blocks (the map file itself is read whole).
+
+examples:
+  depth-fusion mesh ~/maps/lab.tsdf --out lab.ply
+  depth-fusion mesh ~/maps/lab.tsdf --out lab.ply --min-weight 0.5   # only well-observed voxels
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        'mesh',
+        help='the mesh (.ply) of a saved map file, offline',
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument('map_file', help='a map file written by map_node (map_file, ~/save_map)')
+    p.add_argument('--out', required=True, help='the .ply to write')
+    p.add_argument(
+        '--min-weight',
+        type=float,
+        default=None,
+        help='voxels observed with less accumulated weight are left out (default: map.min_weight)',
+    )
+    p.add_argument(
+        '--max-blocks', type=int, default=10000, help='most blocks extracted at once (default 10000)'
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from ..mapping.config import MapConfig
+    from ..mapping.map_file import file_blocks, read_state
+    from ..mapping.ply import write_ply
+    from ..mapping.slab_surface import slab_mesh
+
+    out = Path(args.out)
+    if out.suffix.lower() != '.ply':
+        print(f'depth-fusion mesh: --out {out} must end in .ply', file=sys.stderr)
+        return 2
+    if args.max_blocks < 1 or (args.min_weight is not None and args.min_weight < 0):
+        print('depth-fusion mesh: --max-blocks must be >= 1 and --min-weight >= 0', file=sys.stderr)
+        return 2
+    try:
+        state = read_state(args.map_file)
+    except (OSError, ValueError) as exc:
+        print(f'depth-fusion mesh: {exc}', file=sys.stderr)
+        return 2
+    min_weight = MapConfig().min_weight if args.min_weight is None else args.min_weight
+    grid = file_blocks(state, min_weight)
+
+    def load(rows):
+        return type(grid)(
+            grid.coords[rows],
+            grid.tsdf[rows],
+            grid.weight[rows],
+            grid.colour[rows],
+            grid.block_size,
+            grid.voxel_size,
+            grid.min_weight,
+        )
+
+    mesh = slab_mesh(grid.coords, load, args.max_blocks)
+    frame = state.get('world_frame') or '?'
+    if mesh.is_empty:
+        print(
+            f'depth-fusion mesh: the map in {args.map_file} ({grid.coords.shape[0]} blocks) has no surface '
+            f'with min weight {min_weight:g}: nothing written',
+            file=sys.stderr,
+        )
+        return 1
+    write_ply(out, mesh)
+    print(f'{out}: {len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles (frame {frame!r})')
+    return 0
