@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-from depth_fusion_ros.mapping.block_surface import BlockGrid, block_mesh
+from depth_fusion_ros.mapping.block_surface import block_mesh
 from depth_fusion_ros.mapping.config import MapConfig
 from depth_fusion_ros.mapping.slab_surface import slab_mesh
 from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
@@ -32,18 +32,7 @@ def test_slabs_join_into_the_whole_mesh(max_blocks):
         tsdf.integrate(seq.gt_depth_working(i), seq.frames[i].pose, seq.camera, rgb=seq.frames[i].rgb)
     grid = tsdf.blocks()
 
-    def load(rows):
-        return BlockGrid(
-            grid.coords[rows],
-            grid.tsdf[rows],
-            grid.weight[rows],
-            grid.colour[rows],
-            8,
-            grid.voxel_size,
-            grid.min_weight,
-        )
-
-    whole, slabs = block_mesh(grid), slab_mesh(grid.coords, load, max_blocks)
+    whole, slabs = block_mesh(grid), slab_mesh(grid.coords, grid.rows, max_blocks)
     assert len(whole.triangles) > 10_000
     assert len(slabs.vertices) == len(whole.vertices) and len(slabs.triangles) == len(whole.triangles)
     assert _canonical(slabs) == _canonical(whole)

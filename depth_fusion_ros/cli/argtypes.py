@@ -1,4 +1,5 @@
-"""argparse types whose errors name the option (``argument --frames: must be at least 1, got 0``)."""
+"""argparse types whose errors name the option (``argument --frames: must be at least 1, got 0``),
+and the sub-command parser every command shares."""
 
 from __future__ import annotations
 
@@ -21,3 +22,13 @@ def at_least(minimum: int, option: str = '') -> Callable[[str], int]:
 
     parse.__name__ = 'int'
     return parse
+
+
+def subcommand(
+    sub: argparse._SubParsersAction, name: str, help_text: str, description: str
+) -> argparse.ArgumentParser:
+    """The parser of ``depth-fusion NAME``: one ``--help`` line, and a description whose
+    examples keep their layout."""
+    return sub.add_parser(
+        name, help=help_text, description=description, formatter_class=argparse.RawDescriptionHelpFormatter
+    )

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .argtypes import at_least, subcommand
+
 DESCRIPTION = """\
 Write the surface of a map file (map_node's map_file: the TSDF with its archived blocks) as a
 binary .ply mesh, offline: what ~/save_map would write from that map. The surface is extracted
@@ -17,23 +19,13 @@ examples:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        'mesh',
-        help='the mesh (.ply) of a saved map file, offline',
-        description=DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = subcommand(sub, 'mesh', 'the mesh (.ply) of a saved map file, offline', DESCRIPTION)
     p.add_argument('map_file', help='a map file written by map_node (map_file, ~/save_map)')
     p.add_argument('--out', required=True, help='the .ply to write')
-    p.add_argument(
-        '--min-weight',
-        type=float,
-        default=None,
-        help='voxels observed with less accumulated weight are left out (default: map.min_weight)',
-    )
-    p.add_argument(
-        '--max-blocks', type=int, default=10000, help='most blocks extracted at once (default 10000)'
-    )
+    weight = 'voxels observed with less accumulated weight are left out (default: map.min_weight)'
+    p.add_argument('--min-weight', type=float, default=None, help=weight)
+    blocks = at_least(1, '--max-blocks')
+    p.add_argument('--max-blocks', type=blocks, default=10000, help='most blocks extracted at once (10000)')
     p.set_defaults(func=run)
 
 
@@ -49,8 +41,8 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() != '.ply':
         print(f'depth-fusion mesh: --out {out} must end in .ply', file=sys.stderr)
         return 2
-    if args.max_blocks < 1 or (args.min_weight is not None and args.min_weight < 0):
-        print('depth-fusion mesh: --max-blocks must be >= 1 and --min-weight >= 0', file=sys.stderr)
+    if args.min_weight is not None and not args.min_weight >= 0:
+        print(f'depth-fusion mesh: --min-weight must be >= 0, got {args.min_weight}', file=sys.stderr)
         return 2
     try:
         state = read_state(args.map_file)
@@ -60,18 +52,7 @@ def run(args: argparse.Namespace) -> int:
     min_weight = MapConfig().min_weight if args.min_weight is None else args.min_weight
     grid = file_blocks(state, min_weight)
 
-    def load(rows):
-        return type(grid)(
-            grid.coords[rows],
-            grid.tsdf[rows],
-            grid.weight[rows],
-            grid.colour[rows],
-            grid.block_size,
-            grid.voxel_size,
-            grid.min_weight,
-        )
-
-    mesh = slab_mesh(grid.coords, load, args.max_blocks)
+    mesh = slab_mesh(grid.coords, grid.rows, args.max_blocks)
     frame = state.get('world_frame') or '?'
     if mesh.is_empty:
         print(

@@ -35,6 +35,18 @@ class BlockGrid:
     voxel_size: float
     min_weight: float
 
+    def rows(self, rows: torch.Tensor) -> BlockGrid:
+        """The blocks ``rows`` (a loader of :func:`.slab_surface.slab_mesh` over blocks in memory)."""
+        return BlockGrid(
+            self.coords[rows],
+            self.tsdf[rows],
+            self.weight[rows],
+            self.colour[rows],
+            self.block_size,
+            self.voxel_size,
+            self.min_weight,
+        )
+
     def clone(self) -> BlockGrid:
         """A copy that the map's later integrations cannot change (map_node takes it under its lock)."""
         return BlockGrid(
