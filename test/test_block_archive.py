@@ -165,3 +165,22 @@ def test_map_node_archives_under_ros_home_by_default(monkeypatch, tmp_path):
     assert default_archive_dir() == tmp_path / 'depth_fusion_ros' / 'map_archive'
     monkeypatch.delenv('ROS_HOME')
     assert default_archive_dir().parts[-3:] == ('.ros', 'depth_fusion_ros', 'map_archive')
+
+
+def test_a_full_disk_loses_the_blocks_instead_of_killing_the_node(tmp_path, monkeypatch):
+    """The file's space is allocated before the memory map writes into it: on a full disk the
+    allocation fails with an OSError (counted), not a SIGBUS in the middle of a write."""
+    import errno
+    import os
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, 'No space left on device')
+
+    monkeypatch.setattr(os, 'posix_fallocate', full, raising=False)
+    archive = BlockArchive(8, tmp_path)
+    one = torch.ones((2, 8))
+    assert archive.put(torch.tensor([[0, 0, 0], [1, 0, 0]]), one, one, torch.ones((2, 3, 8))) == 0
+    assert archive.lost == 2 and archive.n_blocks == 0
+    monkeypatch.undo()
+    assert archive.put(torch.tensor([[0, 0, 0]]), one[:1], one[:1], torch.ones((1, 3, 8))) == 1  # space again
+    archive.close()

@@ -88,6 +88,17 @@ def _take_lock(folder: Path) -> int | None:
     return fd
 
 
+def _reserve(path: Path, size: int) -> None:
+    """Grow the file to ``size`` bytes with its disk space allocated now: a memory-mapped write
+    into a sparse file on a full disk is a SIGBUS that kills the process, while a failed
+    allocation here is an ``OSError`` the archive counts (its blocks lost) and survives."""
+    with open(path, 'r+b') as f:
+        if hasattr(os, 'posix_fallocate'):
+            os.posix_fallocate(f.fileno(), 0, size)
+        else:  # no such call here: a sparse file, as before
+            f.truncate(size)
+
+
 def _remove(folder: Path, lock_fd: int | None) -> None:
     shutil.rmtree(folder, ignore_errors=True)
     if lock_fd is not None:
@@ -253,8 +264,7 @@ class BlockArchive:
             self._path = folder / 'blocks.f32'
             self._path.touch()
             log.info('map archive: evicted blocks go to %s', self._path)
-        with open(self._path, 'r+b') as f:
-            f.truncate(capacity * self.record * 4)
+        _reserve(self._path, capacity * self.record * 4)
         self._memmap = np.memmap(self._path, dtype=np.float32, mode='r+', shape=(capacity, self.record))
         self._free.extend(range(capacity - 1, self._capacity - 1, -1))  # lowest slot popped first
         self._capacity = capacity
