@@ -50,14 +50,14 @@ def built_cache(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv('XDG_CACHE_HOME', str(root))
         mp.delenv(aot_kernels.ENV_SWITCH, raising=False)
-        aot_kernels._load.cache_clear()
+        aot_kernels.forget_loaded()
         config = FusionConfig(mode='fast', compile_kernel=True, max_points=512)
         assert start_kernels(node, config, background=True, build_ahead=True).compile_kernel is False
         node.compile_thread.join(600)
         assert node.kernels_ready.is_set() and node.active_config == config
         assert node.kernel_builder.returncode == 0
         log = (aot_kernels.cache_dir() / aot_background.LOG_NAME).read_text()
-    aot_kernels._load.cache_clear()
+    aot_kernels.forget_loaded()
     assert any('building the fusion kernels ahead of time: process' in line for line in node.lines), (
         node.lines
     )
@@ -71,9 +71,9 @@ def cache(built_cache, monkeypatch):
     root, _ = built_cache
     monkeypatch.setenv('XDG_CACHE_HOME', str(root))
     monkeypatch.delenv(aot_kernels.ENV_SWITCH, raising=False)
-    aot_kernels._load.cache_clear()
+    aot_kernels.forget_loaded()
     yield root
-    aot_kernels._load.cache_clear()
+    aot_kernels.forget_loaded()
 
 
 def _fuse(scene, compile_kernel: bool, mode: str = 'fast'):

@@ -160,7 +160,7 @@ def build(params: WeightParams, device: torch.device | str = 'cpu') -> dict[str,
             _take_library(Path(package), target)
         seconds[name] = time.perf_counter() - start
         log.info('AOT fusion kernel %s built in %.1f s: %s', name, seconds[name], target)
-    _load.cache_clear()
+    forget_loaded()
     return seconds
 
 
@@ -206,16 +206,31 @@ def available(params: WeightParams, device: torch.device | str = 'cpu') -> bool:
     return enabled(device) and all(package_path(n, params, device).exists() for n in KERNELS)
 
 
-@functools.cache
+#: Kernels loaded, by (name, parameters, device type, cache directory); None for a file that
+#: would not load. A kernel not built is not remembered: a build in another process (a fusion
+#: node's background builder) is found at the next lookup.
+_loaded: dict[tuple[str, WeightParams, str, str], Callable | None] = {}
+
+
+def forget_loaded() -> None:
+    """Look every kernel up again (after a build here, or a file replaced)."""
+    _loaded.clear()
+
+
 def _load(name: str, params: WeightParams, device_type: str) -> Callable | None:
+    key = (name, params, device_type, str(cache_dir()))
+    if key in _loaded:
+        return _loaded[key]
     path = package_path(name, params, torch.device(device_type))
     if not path.exists():
         return None
     try:
-        return _ctypes_runner(path)
+        runner = _ctypes_runner(path)
     except Exception as exc:  # a broken or foreign file: compile as if there were none
         log.warning('ignoring the AOT fusion kernel %s (%s)', path, exc)
-        return None
+        runner = None
+    _loaded[key] = runner
+    return runner
 
 
 def _take_library(package: Path, target: Path) -> None:

@@ -181,20 +181,19 @@ class BlockArchive:
         ``(found, tsdf, weight, colour)``, ``found`` a bool mask over ``coords`` and the voxels
         of the found blocks in its order (CPU float32)."""
         found = torch.zeros(int(coords.shape[0]), dtype=torch.bool)
-        v = self.block_voxels
-        if not self._slots or coords.shape[0] == 0:
-            empty = torch.zeros((0, v))
-            return found, empty, empty, torch.zeros((0, 3, v))
-        slots = []
+        slots: list[int] = []
+        if not self._slots:
+            return (found, *self._rows(slots))
+        hits = []
         for i, key in enumerate(pack(coords.cpu()).tolist()):
             slot = self._slots.pop(key, None)
             if slot is not None:
-                found[i] = True
+                hits.append(i)
                 slots.append(slot)
+        found[hits] = True
         self._free.extend(slots)
         self.restored += len(slots)
-        rows = torch.from_numpy(np.array(self._memmap[slots])) if slots else torch.zeros((0, self.record))
-        return found, rows[:, :v], rows[:, v : 2 * v], rows[:, 2 * v :].reshape(-1, 3, v)
+        return (found, *self._rows(slots))
 
     def coords(self) -> torch.Tensor:
         """(N, 3) block coordinates of the archived blocks (no voxels read)."""
@@ -203,24 +202,13 @@ class BlockArchive:
     def read(self, coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The voxels of archived blocks ``coords`` (all archived; left in the archive):
         ``(tsdf, weight, colour)`` on the CPU, in their order."""
-        v = self.block_voxels
-        slots = [self._slots[k] for k in pack(coords.cpu()).tolist()]
-        rows = torch.from_numpy(np.array(self._memmap[slots])) if slots else torch.zeros((0, self.record))
-        return rows[:, :v], rows[:, v : 2 * v], rows[:, 2 * v :].reshape(-1, 3, v)
+        return self._rows([self._slots[k] for k in pack(coords.cpu()).tolist()])
 
     def read_all(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Every archived block, left in the archive: ``(coords, tsdf, weight, colour)`` on the CPU
-        (the whole archive in memory: for a saved mesh or map file, on request)."""
-        v = self.block_voxels
-        keys = torch.tensor(list(self._slots.keys()), dtype=torch.int64)
-        slots = list(self._slots.values())
-        rows = torch.from_numpy(np.array(self._memmap[slots])) if slots else torch.zeros((0, self.record))
-        return (
-            unpack(keys).reshape(-1, 3),
-            rows[:, :v],
-            rows[:, v : 2 * v],
-            rows[:, 2 * v :].reshape(-1, 3, v),
-        )
+        (the whole archive in memory)."""
+        coords = self.coords()
+        return (coords, *self.read(coords))
 
     def close(self) -> None:
         """Delete the archive file and its directory (the map is going)."""
@@ -234,6 +222,12 @@ class BlockArchive:
         self._path = None
 
     # --- storage --------------------------------------------------------------------------------------
+
+    def _rows(self, slots: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The records of ``slots`` split into ``(tsdf, weight, colour)`` (CPU float32 copies)."""
+        v = self.block_voxels
+        rows = torch.from_numpy(np.array(self._memmap[slots])) if slots else torch.zeros((0, self.record))
+        return rows[:, :v], rows[:, v : 2 * v], rows[:, 2 * v :].reshape(-1, 3, v)
 
     def _lose(self, count: int, why: str) -> None:
         """Count lost blocks; warn once per kind of cause (the node counts and throttles the rest)."""

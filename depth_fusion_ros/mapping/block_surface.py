@@ -37,27 +37,24 @@ class BlockGrid:
 
     def rows(self, rows: torch.Tensor) -> BlockGrid:
         """The blocks ``rows`` (a loader of :func:`.slab_surface.slab_mesh` over blocks in memory)."""
-        return BlockGrid(
-            self.coords[rows],
-            self.tsdf[rows],
-            self.weight[rows],
-            self.colour[rows],
-            self.block_size,
-            self.voxel_size,
-            self.min_weight,
-        )
+        return self._with(*(a[rows] for a in self._arrays()))
+
+    def extended(
+        self, coords: torch.Tensor, tsdf: torch.Tensor, weight: torch.Tensor, colour: torch.Tensor
+    ) -> BlockGrid:
+        """These blocks followed by more (e.g. read back from the map's disk archive)."""
+        more = (coords, tsdf, weight, colour)
+        return self._with(*(torch.cat((a, b)) for a, b in zip(self._arrays(), more, strict=True)))
 
     def clone(self) -> BlockGrid:
         """A copy that the map's later integrations cannot change (map_node takes it under its lock)."""
-        return BlockGrid(
-            self.coords.clone(),
-            self.tsdf.clone(),
-            self.weight.clone(),
-            self.colour.clone(),
-            self.block_size,
-            self.voxel_size,
-            self.min_weight,
-        )
+        return self._with(*(a.clone() for a in self._arrays()))
+
+    def _arrays(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.coords, self.tsdf, self.weight, self.colour
+
+    def _with(self, *arrays: torch.Tensor) -> BlockGrid:
+        return BlockGrid(*arrays, self.block_size, self.voxel_size, self.min_weight)
 
 
 def _neighbour_rows(index: SortedKeys, coords: torch.Tensor, offset: tuple[int, int, int]) -> torch.Tensor:

@@ -143,9 +143,7 @@ class ConsistentMap:
 
     def close(self) -> None:
         """Release what the engine holds outside memory (the torch engine's disk archive)."""
-        close = getattr(self.engine, 'close', None)
-        if close is not None:
-            close()
+        self.engine.close()
 
     @property
     def pending(self) -> int:

@@ -24,7 +24,23 @@ class TSDFMap(Protocol):
     name: str
     config: MapConfig
     evicted_blocks: int
+    #: Blocks a keyframe needed beyond ``max_blocks`` on its own (left out of it).
+    skipped_blocks: int
     integrated: int
+    #: The disk archive of evicted blocks (mapping/block_archive.py), or None.
+    archive: object | None
+    camera_position: np.ndarray | None
+
+    @property
+    def lost_blocks(self) -> int: ...
+
+    @property
+    def archived_blocks(self) -> int: ...
+
+    @property
+    def restored_blocks(self) -> int: ...
+
+    def close(self) -> None: ...
 
     @property
     def n_blocks(self) -> int: ...

@@ -18,6 +18,7 @@ spans the whole run at a density that halves with age.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -163,7 +164,9 @@ class KeyframeStore:
                     'stamp': float(e.stamp),
                     'segment': int(e.segment),
                     'T_wc': torch.from_numpy(np.asarray(e.T_wc, np.float64).copy()),
-                    'camera': [float(v) for v in (e.camera.width, e.camera.height, *_intrinsics(e.camera))],
+                    'camera': [
+                        float(v) for v in dataclasses.astuple(e.camera)
+                    ],  # width, height, fx, fy, cx, cy
                     'depth': tensor(e.depth),
                     'confidence': tensor(e.confidence),
                     'rgb': tensor(e.rgb),
@@ -240,10 +243,6 @@ class KeyframeStore:
     @property
     def last_seq(self) -> int:
         return self.entries[-1].seq if self.entries else -1
-
-
-def _intrinsics(camera: PinholeCamera) -> tuple[float, float, float, float]:
-    return camera.fx, camera.fy, camera.cx, camera.cy
 
 
 def rebuild(engine: object, entries: Iterable[StoredKeyframe]) -> int:

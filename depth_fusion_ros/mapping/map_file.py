@@ -101,17 +101,12 @@ def read_state(path: str | Path) -> dict:
     return state
 
 
-def file_blocks(state: dict, min_weight: float) -> BlockGrid:
-    """The blocks of a :func:`read_state` map (CPU), surface voxels needing ``min_weight``."""
-    return BlockGrid(
-        state['coords'],
-        state['tsdf'],
-        state['weight'],
-        state['colour'],
-        int(state['block_size']),
-        float(state['voxel_size']),
-        float(min_weight),
-    )
+def file_blocks(state: dict, min_weight: float, part: str = '') -> BlockGrid:
+    """The blocks of a :func:`read_state` map (CPU), surface voxels needing ``min_weight``;
+    ``part='base'``: the fixed base saved beside the kept keyframes instead of the map."""
+    blocks = state[part] if part else state
+    arrays = (blocks['coords'], blocks['tsdf'], blocks['weight'], blocks['colour'])
+    return BlockGrid(*arrays, int(state['block_size']), float(state['voxel_size']), float(min_weight))
 
 
 def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = None) -> LoadedMap:
@@ -142,15 +137,5 @@ def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = 
     if store is None or kept is None or not kept.get('keyframes') or store.max_bytes <= 0:
         return LoadedMap(world_frame, engine.all_blocks().clone(), 0)  # nothing to rebuild from: fixed
     restored = store.restore(kept)
-    base = state.get('base')
-    if base is not None:
-        base = BlockGrid(
-            base['coords'],
-            base['tsdf'],
-            base['weight'],
-            base['colour'],
-            cfg.block_size,
-            cfg.voxel_size,
-            cfg.min_weight,
-        )
+    base = file_blocks(state, cfg.min_weight, 'base') if state.get('base') is not None else None
     return LoadedMap(world_frame, base, restored)

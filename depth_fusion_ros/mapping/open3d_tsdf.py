@@ -52,6 +52,20 @@ class Open3DTSDF:
         )
         self.evicted_blocks = 0
         self.integrated = 0
+        #: No disk archive here: every evicted block is lost (the engine's start line says so).
+        self.archive = None
+        self.skipped_blocks = 0
+        self.camera_position: np.ndarray | None = None
+
+    @property
+    def lost_blocks(self) -> int:
+        return self.evicted_blocks
+
+    archived_blocks = 0
+    restored_blocks = 0
+
+    def close(self) -> None:
+        """Nothing outside memory to release (the torch engine deletes its archive here)."""
 
     @property
     def n_blocks(self) -> int:

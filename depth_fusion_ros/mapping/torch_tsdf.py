@@ -178,6 +178,11 @@ class TorchTSDF:
         """Blocks held in the disk archive now."""
         return self.archive.n_blocks if self.archive is not None else 0
 
+    @property
+    def restored_blocks(self) -> int:
+        """Blocks read back from the archive so far."""
+        return self.archive.restored if self.archive is not None else 0
+
     def close(self) -> None:
         """Delete the archive (the map is being replaced or the node stops)."""
         if self.archive is not None:
@@ -415,21 +420,9 @@ class TorchTSDF:
 
     def all_blocks(self) -> BlockGrid:
         """The whole map: the blocks in memory and, after them, the archived ones (read from
-        disk into memory on the map's device: a saved mesh or map file, on request)."""
-        grid = self.blocks()
-        if self.archive is None or self.archive.n_blocks == 0:
-            return grid
-        dev = self.device
-        coords, tsdf, weight, colour = (a.to(dev) for a in self.archive.read_all())
-        return BlockGrid(
-            torch.cat((grid.coords, coords)),
-            torch.cat((grid.tsdf, tsdf)),
-            torch.cat((grid.weight, weight)),
-            torch.cat((grid.colour, colour)),
-            grid.block_size,
-            grid.voxel_size,
-            grid.min_weight,
-        )
+        disk into memory on the map's device: a map file, or a rebuild's base, on request)."""
+        coords, load = self._whole_map()
+        return load(torch.arange(coords.shape[0]))
 
     def mesh(self) -> SurfaceMesh:
         """The zero level set of the whole map (archived blocks included) as a triangle mesh
@@ -438,30 +431,25 @@ class TorchTSDF:
         so saving a map larger than memory stays within about twice the cap."""
         if self.archive is None or self.archive.n_blocks == 0:
             return block_mesh(self.blocks())
-        resident = self.block_coords[: self.n_blocks].cpu()
-        archived = self.archive.coords()
-        return slab_mesh(torch.cat((resident, archived)), self._rows_loader(archived), self.config.max_blocks)
+        return slab_mesh(*self._whole_map(), self.config.max_blocks)
 
-    def _rows_loader(self, archived: torch.Tensor) -> Callable[[torch.Tensor], BlockGrid]:
-        """``load(rows)`` for :func:`.slab_surface.slab_mesh`: rows below ``n_blocks`` are in memory,
-        the rest are ``archived`` (in its order), read from the archive."""
-        n, dev, cfg = self.n_blocks, self.device, self.config
+    def _whole_map(self) -> tuple[torch.Tensor, Callable[[torch.Tensor], BlockGrid]]:
+        """The coordinates of every block (CPU: those in memory, then the archived ones) and
+        ``load(rows)``, the blocks of those rows as a :class:`BlockGrid` on the map's device,
+        the archived ones read from disk."""
+        grid = self.blocks()
+        n = self.n_blocks
+        archived = self.archive.coords() if self.archive is not None else grid.coords.new_zeros((0, 3)).cpu()
 
         def load(rows: torch.Tensor) -> BlockGrid:
-            mine = rows[rows < n].to(dev)
+            mine = grid.rows(rows[rows < n].to(self.device))
             theirs = archived[rows[rows >= n] - n]
-            tsdf, weight, colour = self.archive.read(theirs)
-            return BlockGrid(
-                torch.cat((self.block_coords.index_select(0, mine), theirs.to(dev))),
-                torch.cat((self.tsdf.index_select(0, mine), tsdf.to(dev))),
-                torch.cat((self.weight.index_select(0, mine), weight.to(dev))),
-                torch.cat((self.colour.index_select(0, mine), colour.to(dev))),
-                cfg.block_size,
-                self.voxel,
-                cfg.min_weight,
-            )
+            if theirs.shape[0] == 0:
+                return mine
+            stored = (theirs, *self.archive.read(theirs))
+            return mine.extended(*(a.to(self.device) for a in stored))
 
-        return load
+        return torch.cat((grid.coords.cpu(), archived)), load
 
 
 def _bordered(image: torch.Tensor) -> torch.Tensor:

@@ -85,7 +85,6 @@ def _wait_for_builder(node: Any, config: FusionConfig) -> bool:
     from ..fusion import aot_background, aot_kernels
 
     code = node.kernel_builder.wait()
-    aot_kernels._load.cache_clear()  # a lookup before the build may have cached "not built"
     if aot_kernels.available(config.weight_params, config.device):
         return True
     log = aot_kernels.cache_dir() / aot_background.LOG_NAME

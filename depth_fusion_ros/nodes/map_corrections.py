@@ -184,7 +184,7 @@ class MapCorrector:
             config = node.map.config
             generation = self._generation
             base = self.base
-            centre = getattr(node.map.engine, 'camera_position', None)
+            centre = node.map.camera_position
         engine, _ = make_engine(config)
         if base is not None:  # more than max_blocks: the rest to the new engine's archive
             engine.load_blocks(base.coords, base.tsdf, base.weight, base.colour, centre=centre)
@@ -192,11 +192,11 @@ class MapCorrector:
         with node._lock:
             if generation != self._generation:
                 node.get_logger().info('map rebuild dropped: the map was cleared while it ran')
-                getattr(engine, 'close', lambda: None)()
+                engine.close()
                 return
             late = rebuild(engine, self.store.newer_than(last))
             old, node.map.engine = node.map.engine, engine
-            getattr(old, 'close', lambda: None)()  # its archive: blocks at the uncorrected poses
+            old.close()  # its archive: blocks at the uncorrected poses
             kept = len(self.store.entries)
             node._integrated = kept + node.map.pending
             node._dirty = True

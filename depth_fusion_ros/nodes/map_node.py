@@ -228,7 +228,7 @@ class MapNode(DepthFusionNode):
         )
 
     def _archive_note(self, config: MapConfig) -> str:
-        if getattr(self.map.engine, 'archive', None) is None:
+        if self.map.archive is None:
             return 'the blocks evicted beyond them dropped (map.archive off or not this engine)'
         if not _writable(Path(config.archive_dir)):
             self.get_logger().warning(
@@ -314,7 +314,7 @@ class MapNode(DepthFusionNode):
             self._world_frame = self._world_frame or frame_id or 'world'
             self._check_pose_jump(stamp, T_wc)
             self.corrector.note_segment(stamp)
-            before = (self.map.evicted_blocks, self._lost_blocks(), self._skipped_blocks())
+            before = (self.map.evicted_blocks, self.map.lost_blocks, self.map.skipped_blocks)
             self.map.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb, key=stamp)
             self._note_evictions(*before)
             self._dirty = True
@@ -322,30 +322,24 @@ class MapNode(DepthFusionNode):
         self.stats.published('integrated')
         self.stats.processed(time.monotonic() - pairing.first_seen)
 
-    def _lost_blocks(self) -> int:
-        return int(getattr(self.map, 'lost_blocks', self.map.evicted_blocks))
-
-    def _skipped_blocks(self) -> int:
-        return int(getattr(self.map, 'skipped_blocks', 0))
-
     def _note_evictions(self, evicted: int, lost: int, skipped: int) -> None:
         """Say when the map evicted blocks (to the archive) and when some were lost (no archive,
         the archive full or refused by the disk). Called holding ``_lock``."""
         if self.map.evicted_blocks > evicted:
-            archive = getattr(self.map.engine, 'archive', None)
+            archive = self.map.archive
             where = f'to the archive {archive.path}' if archive is not None else 'dropped (map.archive off)'
             self.stats.noted(
                 'blocks_evicted',
                 f'map full ({self.map.config.max_blocks} blocks): the farthest moved {where}',
             )
-        over = self._skipped_blocks() - skipped
+        over = self.map.skipped_blocks - skipped
         if over > 0:
             self.stats.noted(
                 'keyframe_larger_than_map',
                 f'a keyframe needed {over} blocks more than map.max_blocks={self.map.config.max_blocks} '
                 'holds: its depth there was left out (raise map.max_blocks)',
             )
-        gone = self._lost_blocks() - lost
+        gone = self.map.lost_blocks - lost
         if gone > 0:
             self.stats.dropped(
                 'blocks_lost', f'{gone} evicted map blocks lost (see the map archive line above)', count=gone
@@ -442,12 +436,10 @@ class MapNode(DepthFusionNode):
             'pixels left out by the consistency test': self.map.pixels_rejected,
             'blocks': self.map.n_blocks,
             'blocks evicted': self.map.evicted_blocks,
-            'blocks archived on disk': int(getattr(self.map, 'archived_blocks', 0)),
-            'blocks restored from the archive': int(
-                getattr(getattr(self.map, 'archive', None), 'restored', 0)
-            ),
-            'blocks lost': self._lost_blocks(),
-            'blocks keyframes needed beyond the cap': self._skipped_blocks(),
+            'blocks archived on disk': self.map.archived_blocks,
+            'blocks restored from the archive': self.map.restored_blocks,
+            'blocks lost': self.map.lost_blocks,
+            'blocks keyframes needed beyond the cap': self.map.skipped_blocks,
             'voxel storage MiB': round(self.map.memory_bytes / 2**20, 2),
             'cap MiB': round(config.max_blocks * config.bytes_per_block / 2**20, 2),
             'surface extraction s': round(self.points.last_seconds, 3),

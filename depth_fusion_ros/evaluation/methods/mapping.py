@@ -113,7 +113,7 @@ def _finish(label: str) -> Callable[[SequenceContext], SequenceOutput]:
         metrics['map_blocks'] = float(engine.n_blocks)
         metrics['map_evicted_blocks'] = float(engine.evicted_blocks)
         # Evicted blocks that are gone (no archive, the archive full): the map scored lacks them.
-        metrics['map_lost_blocks'] = float(getattr(engine, 'lost_blocks', engine.evicted_blocks))
+        metrics['map_lost_blocks'] = float(engine.lost_blocks)
         figure = seq.shared.setdefault('map:figure', _figure(seq))
         return SequenceOutput(metrics, figure, {'mesh': meshes[label]})
 
