@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ import torch
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.mapping.block_archive import LOCK_NAME, PREFIX, BlockArchive, remove_stale
 from depth_fusion_ros.mapping.config import MapConfig
+from depth_fusion_ros.mapping.keyframe_store import KeyframeStore
 from depth_fusion_ros.mapping.map_file import load_tsdf, save_tsdf
 from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
 
@@ -115,6 +117,79 @@ def test_a_map_file_larger_than_the_cap_loads_around_the_last_camera(tmp_path):
     np.testing.assert_array_equal(_sorted_vertices(loaded.mesh()), _sorted_vertices(big.mesh()))
     with pytest.raises(ValueError, match=r'with map\.archive off'):
         load_tsdf(TorchTSDF(_config(tmp_path, max_blocks=100, archive=False)), path)
+
+
+def _mapped_from(tensor: torch.Tensor, path) -> bool:
+    """Whether the tensor's memory is a mapping of the file ``path`` (Linux: /proc/self/maps)."""
+    address = tensor.data_ptr()
+    for line in Path('/proc/self/maps').read_text().splitlines():
+        fields = line.split()
+        low, high = (int(x, 16) for x in fields[0].split('-'))
+        if low <= address < high:
+            return len(fields) > 5 and fields[5] == str(path)
+    return False
+
+
+def test_a_map_larger_than_memory_goes_through_its_file_a_part_at_a_time(tmp_path, monkeypatch):
+    """Saving reads the archive back a chunk at a time and loading maps the file instead of
+    reading it: at most CHUNK blocks pass through memory at once either way, and the map that
+    comes back, its base included, is the one saved, bit for bit."""
+    import depth_fusion_ros.mapping.map_file as map_file
+    import depth_fusion_ros.mapping.torch_tsdf as torch_tsdf
+
+    monkeypatch.setattr(map_file, 'CHUNK', 16)
+    monkeypatch.setattr(torch_tsdf, 'LOAD_CHUNK', 16)
+    big = _slide(_config(tmp_path, max_blocks=100), THERE_AND_BACK[:13])
+    assert big.archived_blocks > 100
+    coords, load = big.whole_map()
+    asked: list[int] = []
+
+    def spy(rows: torch.Tensor):
+        asked.append(int(rows.numel()))
+        return load(rows)
+
+    monkeypatch.setattr(big, 'whole_map', lambda: (coords, spy))
+    puts: list[int] = []
+    path = tmp_path / 'wall.tsdf'
+    store = KeyframeStore(max_bytes=2**20)
+    store.add(1.0, WALL, np.eye(4), CAMERA)
+    base = big.blocks().clone()
+    assert map_file.save_tsdf(big, path, 'map', store=store, base=base) == coords.shape[0]
+    assert max(asked) == 16 and sum(asked) == coords.shape[0]
+    state = map_file.read_state(path)
+    assert state['format'] == map_file.FORMAT
+    assert _mapped_from(state['tsdf'], path)  # mapped, not read
+    loaded = TorchTSDF(_config(tmp_path, max_blocks=100))
+    original_put = loaded.archive.put
+    monkeypatch.setattr(
+        loaded.archive, 'put', lambda c, *a: puts.append(int(c.shape[0])) or original_put(c, *a)
+    )
+    result = map_file.load_map(loaded, path, KeyframeStore(max_bytes=2**20))
+    assert max(puts) <= 16 and sum(puts) == big.archived_blocks
+    np.testing.assert_array_equal(_sorted_vertices(loaded.mesh()), _sorted_vertices(big.mesh()))
+    assert result.keyframes == 1 and _mapped_from(result.base.tsdf, path)
+    torch.testing.assert_close(result.base.tsdf, base.tsdf, rtol=0, atol=0)
+    torch.testing.assert_close(result.base.coords, base.coords, rtol=0, atol=0)
+    # A truncated file is a one-line error, not a traceback or a map with holes.
+    cut = tmp_path / 'cut.tsdf'
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(ValueError, match='not readable as a map'):
+        map_file.read_state(cut)
+
+
+def test_a_format_1_map_file_still_loads(tmp_path):
+    """Files written before the streamed layout (one torch.save of the whole map) load as they did."""
+    from depth_fusion_ros.mapping.map_file import FORMAT_1
+
+    big = _slide(_config(tmp_path, max_blocks=100_000), THERE_AND_BACK[:5])
+    grid = big.blocks()
+    path = tmp_path / 'old.tsdf'
+    old = {'format': FORMAT_1, 'voxel_size': 0.04, 'block_size': 8, 'truncation': float(big.trunc)}
+    old.update(world_frame='odom', coords=grid.coords, tsdf=grid.tsdf, weight=grid.weight, colour=grid.colour)
+    torch.save(old, path)
+    loaded = TorchTSDF(_config(tmp_path, max_blocks=100_000))
+    assert load_tsdf(loaded, path) == 'odom' and loaded.n_blocks == big.n_blocks
+    np.testing.assert_array_equal(_sorted_vertices(loaded.mesh()), _sorted_vertices(big.mesh()))
 
 
 def test_a_negative_archive_cap_is_refused():

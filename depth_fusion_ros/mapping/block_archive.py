@@ -10,20 +10,24 @@ map file hold the whole map, archived blocks included.
 
 The file is a ``numpy.memmap`` of ``(slots, 5 · block_voxels)`` float32 records, grown by
 doubling up to ``max_bytes`` and reused through a free list; a dict maps each block's packed
-key (:mod:`.keys`) to its slot. Blocks past ``max_bytes``, or that the disk refuses (full,
-read-only), are lost and counted (``lost``), never silently. The archive is a spill area of
-one map, not a storage format: it lives in a directory of its own, made on the first eviction
-and deleted with the map (``close``, or at exit). A process killed before it could delete its
-archive (SIGKILL, a power cut) leaves the directory behind. Each archive holds an exclusive
-``flock`` on a lock file in its directory for its whole life (the kernel drops it when the
-process dies, whatever killed it, and it holds across PID namespaces: containers sharing
-``~/.ros``); the next archive made in the same parent deletes the directories whose lock it can
-take. A map that must outlive the process is the map file (:mod:`.map_file`).
+key (:mod:`.keys`) to its slot. The pages each read or write touched are unmapped from the
+process after it (they stay in the page cache, written back by the kernel): otherwise the
+process's resident set would grow with the archive's size, which it does not hold. Blocks past
+``max_bytes``, or that the disk refuses (full, read-only), are lost and counted (``lost``),
+never silently. The archive is a spill area of one map, not a storage format: it lives in a
+directory of its own, made on the first eviction and deleted with the map (``close``, or at
+exit). A process killed before it could delete its archive (SIGKILL, a power cut) leaves the
+directory behind. Each archive holds an exclusive ``flock`` on a lock file in its directory
+for its whole life (the kernel drops it when the process dies, whatever killed it, and it
+holds across PID namespaces: containers sharing ``~/.ros``); the next archive made in the same
+parent deletes the directories whose lock it can take. A map that must outlive the process is
+the map file (:mod:`.map_file`).
 """
 
 from __future__ import annotations
 
 import logging
+import mmap
 import os
 import shutil
 import tempfile
@@ -167,6 +171,7 @@ class BlockArchive:
         try:
             slots = self._slots_for(keys[:keep])
             self._memmap[slots] = rows.to('cpu', torch.float32).numpy()
+            self._unmap_pages()
         except OSError as exc:  # disk full, directory gone, read-only: the blocks are lost, said once
             for key in keys[:keep]:
                 slot = self._slots.pop(key, None)
@@ -227,7 +232,16 @@ class BlockArchive:
         """The records of ``slots`` split into ``(tsdf, weight, colour)`` (CPU float32 copies)."""
         v = self.block_voxels
         rows = torch.from_numpy(np.array(self._memmap[slots])) if slots else torch.zeros((0, self.record))
+        if slots:
+            self._unmap_pages()
         return rows[:, :v], rows[:, v : 2 * v], rows[:, 2 * v :].reshape(-1, 3, v)
+
+    def _unmap_pages(self) -> None:
+        """Drop the file's pages from the process (a shared mapping: the data stays in the page
+        cache and on disk; the next access maps them again)."""
+        mapping = getattr(self._memmap, '_mmap', None)
+        if mapping is not None and hasattr(mapping, 'madvise') and hasattr(mmap, 'MADV_DONTNEED'):
+            mapping.madvise(mmap.MADV_DONTNEED)
 
     def _lose(self, count: int, why: str) -> None:
         """Count lost blocks; warn once per kind of cause (the node counts and throttles the rest)."""

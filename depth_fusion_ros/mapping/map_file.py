@@ -3,9 +3,8 @@
 A mesh (``~/save_map``'s ``.ply``) is for people and other tools; it cannot be integrated
 into again. This file is the map itself: the torch engine's used voxel blocks (coordinates,
 TSDF, weight, colour), its voxel and block size and truncation, and the world frame it is in,
-written with ``torch.save`` (tensors only, read back with ``weights_only=True``: loading a map
-runs no code) to a temporary file renamed over the old one, so a crash while saving never
-leaves half a map. It holds the whole map, the blocks archived on disk (mapping/block_archive.py)
+written to a temporary file renamed over the old one, so a crash while saving never leaves half
+a map. It holds the whole map, the blocks archived on disk (mapping/block_archive.py)
 included, and where the camera last was. Loading checks that the file is such a map and that it
 fits the node's configuration (same voxel and block size; more than ``max_blocks`` blocks only
 with the archive on: the ones nearest the last camera position are held in memory, the rest
@@ -18,21 +17,52 @@ trajectory that arrives after a restart still moves what the earlier run mapped:
 integrates the base and the kept keyframes of both runs at their corrected poses. A file
 without keyframes (an older one, or ``reintegration_max_mb`` 0) loads as a base that cannot
 move, as before.
+
+**A map larger than memory goes through the file a part at a time** (format 2). The blocks
+are raw arrays at fixed offsets (coordinates int64, TSDF, weight and colour float32, the map's
+then the base's), written :data:`CHUNK` blocks at a time as the engine reads them back from its
+archive, and read back through a memory mapping, so neither saving nor loading holds the whole
+map in memory (format 1 was one ``torch.save`` of it all: a 4 GiB archive needed 4 GiB more
+to save). After them come the small things (sizes, frame, camera, kept keyframes) as one
+``torch.save`` (tensors only, read back with ``weights_only=True``: loading a map runs no
+code), and a trailer: that part's offset and :data:`MAGIC`. A base loaded from a file stays in
+that file's mapping (on Linux a file renamed over keeps its data while it is mapped). Format 1
+files still load.
 """
 
 from __future__ import annotations
 
+import io
+import mmap
 import os
+import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .block_surface import BlockGrid
 from .keyframe_store import KeyframeStore
 from .torch_tsdf import TorchTSDF
 
-FORMAT = 'depth_fusion_ros.tsdf/1'
+FORMAT = 'depth_fusion_ros.tsdf/2'
+#: The whole-file ``torch.save`` of earlier releases (still read).
+FORMAT_1 = 'depth_fusion_ros.tsdf/1'
+#: The file's last 8 bytes (after the header's offset, 8 bytes little-endian).
+MAGIC = b'DFTSDF2\n'
+#: Blocks written (and read) at a time: 10 MiB at 8³ voxels.
+CHUNK = 1024
+#: Every array starts at a multiple of this (cache lines; any page-aligned mapping is then cheap).
+ALIGN = 64
+#: The arrays of a part, in file order: (name, dtype, shape of one block's row given V voxels).
+ARRAYS: tuple[tuple[str, np.dtype, Callable[[int], tuple[int, ...]]], ...] = (
+    ('coords', np.dtype(np.int64), lambda v: (3,)),
+    ('tsdf', np.dtype(np.float32), lambda v: (v,)),
+    ('weight', np.dtype(np.float32), lambda v: (v,)),
+    ('colour', np.dtype(np.float32), lambda v: (3, v)),
+)
 
 
 @dataclass
@@ -41,10 +71,41 @@ class LoadedMap:
 
     world_frame: str
     #: The blocks a rebuild at corrected poses starts from (coords, tsdf, weight, colour on the
-    #: CPU), or None: the kept keyframes are the whole map.
+    #: CPU, read from the map file as needed), or None: the kept keyframes are the whole map.
     base: BlockGrid | None
     #: Kept keyframes restored into the store.
     keyframes: int
+
+
+#: Blocks by row (``BlockGrid.rows``, ``TorchTSDF.whole_map``'s loader).
+Loader = Callable[[torch.Tensor], BlockGrid]
+#: Where a part's arrays lie: ``{array: (offset, shape)}``.
+Arrays = dict[str, tuple[int, tuple[int, ...]]]
+
+
+def _layout(parts: dict[str, int], voxels: int) -> tuple[dict[str, Arrays], int]:
+    """Where each part's arrays lie (``{part: Arrays}``), and where they end."""
+    where: dict[str, Arrays] = {}
+    offset = 0
+    for part, n in parts.items():
+        where[part] = {}
+        for name, dtype, row in ARRAYS:
+            shape = (int(n), *row(voxels))
+            where[part][name] = (offset, shape)
+            offset += -(-int(np.prod(shape)) * dtype.itemsize // ALIGN) * ALIGN
+    return where, offset
+
+
+def _write_part(f: io.BufferedWriter, arrays: Arrays, n: int, load: Loader) -> None:
+    """The blocks ``load(rows)`` gives, CHUNK rows at a time, into their arrays."""
+    for start in range(0, n, CHUNK):
+        grid = load(torch.arange(start, min(start + CHUNK, n)))
+        tensors = (grid.coords, grid.tsdf, grid.weight, grid.colour)
+        for (name, dtype, _), tensor in zip(ARRAYS, tensors, strict=True):
+            offset = arrays[name][0]
+            a = np.ascontiguousarray(tensor.detach().cpu().numpy(), dtype=dtype)
+            f.seek(offset + start * (a.nbytes // max(1, a.shape[0])))
+            f.write(memoryview(a).cast('B'))
 
 
 def save_tsdf(
@@ -55,32 +116,41 @@ def save_tsdf(
     base: BlockGrid | None = None,
 ) -> int:
     """Write the map's blocks, archived ones included, to ``path`` (atomically), with the kept
-    keyframes of ``store`` and the rebuild's ``base`` when given; returns how many blocks."""
+    keyframes of ``store`` and the rebuild's ``base`` when given; returns how many blocks.
+    At most :data:`CHUNK` blocks are in memory at a time beyond the map's own."""
     path = Path(path)
-    blocks = engine.all_blocks()
-    camera = engine.camera_position
-    state = {
+    coords, load = engine.whole_map()
+    parts = {'': (coords, load)}
+    if store is not None and base is not None:
+        parts['base'] = (base.coords, base.rows)
+    header: dict = {
         'format': FORMAT,
         'voxel_size': float(engine.config.voxel_size),
         'block_size': int(engine.config.block_size),
         'truncation': float(engine.trunc),
         'world_frame': world_frame,
-        'coords': blocks.coords.cpu(),
-        'tsdf': blocks.tsdf.cpu(),
-        'weight': blocks.weight.cpu(),
-        'colour': blocks.colour.cpu(),
+        'parts': {name: int(c.shape[0]) for name, (c, _) in parts.items()},
     }
+    camera = engine.camera_position
     if camera is not None:
-        state['camera_position'] = torch.as_tensor(camera, dtype=torch.float64)
+        header['camera_position'] = torch.as_tensor(camera, dtype=torch.float64)
     if store is not None:
-        state['store'] = store.to_state()
-        if base is not None:
-            state['base'] = {k: getattr(base, k).cpu() for k in ('coords', 'tsdf', 'weight', 'colour')}
+        header['store'] = store.to_state()
+    layout, end = _layout(header['parts'], engine.block_voxels)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + '.tmp')
-    torch.save(state, tmp)
-    os.replace(tmp, path)
-    return int(blocks.coords.shape[0])
+    try:
+        with open(tmp, 'wb') as f:
+            for name, (c, rows) in parts.items():
+                _write_part(f, layout[name], int(c.shape[0]), rows)
+            f.seek(end)
+            torch.save(header, f)
+            f.write(struct.pack('<Q', end) + MAGIC)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a full disk: no half-written file left beside the map
+        raise
+    return int(coords.shape[0])
 
 
 def load_tsdf(engine: TorchTSDF, path: str | Path) -> str:
@@ -89,16 +159,74 @@ def load_tsdf(engine: TorchTSDF, path: str | Path) -> str:
 
 
 def read_state(path: str | Path) -> dict:
-    """The saved map as ``torch.save`` wrote it (tensors and numbers; no code runs);
-    ``ValueError`` naming the file when it is not such a map."""
+    """The saved map as a dict: the sizes, frame, camera and kept keyframes, and the blocks as
+    tensors mapped from the file (read as they are indexed; format 1: all read); ``ValueError``
+    naming the file when it is not such a map."""
     path = Path(path)
     try:
-        state = torch.load(path, map_location='cpu', weights_only=True)
+        state = _read_header(path)
     except Exception as exc:  # a truncated, foreign or corrupt file: one line, not a traceback
         raise ValueError(f'map file {path}: not readable as a map ({type(exc).__name__}: {exc})') from None
-    if not isinstance(state, dict) or state.get('format') != FORMAT:
+    if not isinstance(state, dict) or state.get('format') not in (FORMAT, FORMAT_1):
         raise ValueError(f'map file {path}: not a depth_fusion_ros TSDF map (format {FORMAT})')
+    if state['format'] == FORMAT:
+        try:
+            _map_blocks(path, state)
+        except (ValueError, OSError, KeyError, TypeError) as exc:
+            raise ValueError(f'map file {path}: its blocks do not match its header ({exc})') from None
     return state
+
+
+def _read_header(path: Path) -> object:
+    """Format 2: the ``torch.save`` part the trailer points at, with its offset as
+    ``header_offset``; otherwise the whole file (format 1)."""
+    with open(path, 'rb') as f:
+        size = f.seek(0, os.SEEK_END)
+        if size >= 16:
+            f.seek(size - 16)
+            trailer = f.read(16)
+            if trailer[8:] == MAGIC:
+                (offset,) = struct.unpack('<Q', trailer[:8])
+                if not 0 <= offset <= size - 16:
+                    raise ValueError(f'header offset {offset} outside the file ({size} bytes)')
+                f.seek(offset)
+                header = io.BytesIO(f.read(size - 16 - offset))
+                state = torch.load(header, map_location='cpu', weights_only=True)
+                if isinstance(state, dict):
+                    state['header_offset'] = offset
+                return state
+    return torch.load(path, map_location='cpu', weights_only=True)
+
+
+def _map_blocks(path: Path, state: dict) -> None:
+    """Put each part's arrays into ``state`` (the map's at the top, the base's under ``base``) as
+    tensors over a copy-on-write mapping of the file: nothing is read until it is indexed."""
+    voxels = int(state['block_size']) ** 3
+    state['mappings'] = []
+    layout, end = _layout(state['parts'], voxels)
+    if end > state['header_offset']:
+        raise ValueError(f'the blocks would end at byte {end}, past the header at {state["header_offset"]}')
+    for part, arrays in layout.items():
+        target = state if not part else state.setdefault(part, {})
+        for name, dtype, _ in ARRAYS:
+            offset, shape = arrays[name]
+            if shape[0] == 0:
+                target[name] = torch.from_numpy(np.zeros(shape, dtype))
+                continue
+            mapped = np.memmap(path, dtype=dtype, mode='c', offset=offset, shape=shape)
+            state['mappings'].append(mapped)
+            target[name] = torch.from_numpy(mapped)
+
+
+def unmap_pages(state: dict) -> None:
+    """Drop the pages of a :func:`read_state` map that reading touched from the process (its
+    mappings are copy-on-write and never written: the next read maps them from the file again).
+    After a load, the blocks are in the engine and its archive: the file's pages would
+    otherwise stay in the process's resident set, the size of the map."""
+    for mapped in state.get('mappings', ()):
+        mapping = getattr(mapped, '_mmap', None)
+        if mapping is not None and hasattr(mapping, 'madvise') and hasattr(mmap, 'MADV_DONTNEED'):
+            mapping.madvise(mmap.MADV_DONTNEED)
 
 
 def file_blocks(state: dict, min_weight: float, part: str = '') -> BlockGrid:
@@ -130,12 +258,14 @@ def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = 
     camera = state.get('camera_position')
     centre = None if camera is None else camera.numpy()
     engine.load_blocks(state['coords'], state['tsdf'], state['weight'], state['colour'], centre=centre)
+    unmap_pages(state)
     if centre is not None:
         engine.camera_position = centre.copy()
     world_frame = str(state.get('world_frame') or '')
     kept = state.get('store')
     if store is None or kept is None or not kept.get('keyframes') or store.max_bytes <= 0:
-        return LoadedMap(world_frame, engine.all_blocks().clone(), 0)  # nothing to rebuild from: fixed
+        # Nothing to rebuild from: all of it is the fixed base, which stays in the file's mapping.
+        return LoadedMap(world_frame, file_blocks(state, cfg.min_weight), 0)
     restored = store.restore(kept)
     base = file_blocks(state, cfg.min_weight, 'base') if state.get('base') is not None else None
     return LoadedMap(world_frame, base, restored)

@@ -30,7 +30,7 @@ same on CPU and CUDA.
 Memory is bounded by ``max_blocks``: when a keyframe needs more blocks than are free, the
 blocks farthest from its camera are evicted (counted in ``evicted_blocks``) to the disk archive
 (:mod:`.block_archive`, ``archive``), which gives them back when a keyframe needs them again:
-``mesh`` and ``all_blocks`` are the whole map, archived blocks included.
+``mesh`` and ``whole_map`` are the whole map, archived blocks included.
 """
 
 from __future__ import annotations
@@ -54,6 +54,9 @@ log = logging.getLogger(__name__)
 
 #: Initial block capacity; doubled as needed up to ``max_blocks``.
 INITIAL_CAPACITY = 256
+#: Blocks moved to the archive at a time when a map larger than ``max_blocks`` is loaded
+#: (10 MiB at 8³ voxels).
+LOAD_CHUNK = 1024
 
 #: An image as numpy (the node, the evaluation) or as a tensor already on the map's device
 #: (the consistency test hands its masked depth over without a round trip through the host).
@@ -155,8 +158,11 @@ class TorchTSDF:
         if n > cap:
             where = torch.zeros(3) if centre is None else torch.as_tensor(centre, dtype=torch.float32)
             order = torch.argsort(self._block_distance(coords.cpu(), where))
-            rest = order[cap:]
-            self.archive.put(coords[rest], tsdf[rest], weight[rest], colour[rest])
+            # The rest to the archive a part at a time: the blocks may be a map file's, read from
+            # disk as they are indexed (mapping/map_file.py), and larger than memory.
+            for rest in order[cap:].split(LOAD_CHUNK):
+                rest = rest.sort().values  # rows in file order: the reads go forward
+                self.archive.put(coords[rest], tsdf[rest], weight[rest], colour[rest])
             first = order[:cap]
             coords, tsdf, weight, colour, n = coords[first], tsdf[first], weight[first], colour[first], cap
         self._allocate_storage(max(n, min(INITIAL_CAPACITY, self.config.max_blocks)))
@@ -418,12 +424,6 @@ class TorchTSDF:
             cfg.min_weight,
         )
 
-    def all_blocks(self) -> BlockGrid:
-        """The whole map: the blocks in memory and, after them, the archived ones (read from
-        disk into memory on the map's device: a map file, or a rebuild's base, on request)."""
-        coords, load = self._whole_map()
-        return load(torch.arange(coords.shape[0]))
-
     def mesh(self) -> SurfaceMesh:
         """The zero level set of the whole map (archived blocks included) as a triangle mesh
         (surface nets on the blocks), world frame, metres. With blocks archived it is extracted
@@ -431,12 +431,13 @@ class TorchTSDF:
         so saving a map larger than memory stays within about twice the cap."""
         if self.archive is None or self.archive.n_blocks == 0:
             return block_mesh(self.blocks())
-        return slab_mesh(*self._whole_map(), self.config.max_blocks)
+        return slab_mesh(*self.whole_map(), self.config.max_blocks)
 
-    def _whole_map(self) -> tuple[torch.Tensor, Callable[[torch.Tensor], BlockGrid]]:
+    def whole_map(self) -> tuple[torch.Tensor, Callable[[torch.Tensor], BlockGrid]]:
         """The coordinates of every block (CPU: those in memory, then the archived ones) and
         ``load(rows)``, the blocks of those rows as a :class:`BlockGrid` on the map's device,
-        the archived ones read from disk."""
+        the archived ones read from disk: the whole map a part at a time (the slab mesh, the
+        map file), never all of it in memory at once."""
         grid = self.blocks()
         n = self.n_blocks
         archived = self.archive.coords() if self.archive is not None else grid.coords.new_zeros((0, 3)).cpu()
