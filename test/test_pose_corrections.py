@@ -3,6 +3,8 @@ multi-view node's pose buffer (core, no ROS)."""
 
 from __future__ import annotations
 
+import mmap
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -10,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.mapping.config import MapConfig
 from depth_fusion_ros.mapping.engine import make_engine
-from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, half_camera, rebuild
+from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, half_camera, mapped_bytes, rebuild
 from depth_fusion_ros.pose_buffer import PoseBuffer
 from depth_fusion_ros.pose_corrections import CorrectionLimits, corrected_poses
 
@@ -94,6 +96,13 @@ def _room_keyframe(i: int, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarra
     return depth, _pose((0.05 * i, 0.0, 0.0))
 
 
+def _mapping(array: np.ndarray) -> mmap.mmap | None:
+    """The anonymous mapping an array's memory belongs to (None: the heap)."""
+    while array is not None and not isinstance(array, mmap.mmap):
+        array = array.base.obj if isinstance(array.base, memoryview) else array.base
+    return array
+
+
 def test_store_keeps_half_resolution_thins_with_age_and_splits_segments():
     camera = PinholeCamera(64, 48, 60.0, 60.0, 31.5, 23.5)
     store = KeyframeStore(max_bytes=8 * KeyframeStore.keyframe_bytes(camera))
@@ -107,8 +116,11 @@ def test_store_keeps_half_resolution_thins_with_age_and_splits_segments():
     e = store.entries[-1]
     assert e.depth.shape == (24, 32) and e.depth.dtype == np.float16
     assert e.camera == half_camera(camera) and e.camera.cx == pytest.approx(15.75)
-    assert store.memory_bytes == len(store.entries) * 24 * 32 * 6
+    # What it holds is counted in whole pages: each keyframe's images share one mapping of their own.
+    assert store.memory_bytes == len(store.entries) * mapped_bytes(24 * 32 * 6) == len(store.entries) * 8192
     assert store.memory_bytes <= store.max_bytes
+    assert all(_mapping(a) is _mapping(e.depth) is not None for a in (e.confidence, e.rgb))
+    assert e.confidence[0, 0] == round(0.5 * 255) and not e.rgb.any()
     store.add(0.5, *_room_keyframe(0, camera), camera)  # stamps went back: a restarted stream
     assert store.entries[-1].segment == 1
     store.new_segment()
