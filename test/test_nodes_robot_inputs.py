@@ -96,7 +96,13 @@ def test_compressed_images_are_decoded_and_a_corrupt_one_is_counted(synthetic_se
                 corrupt = CompressedImage(header=_header(stamp + 1), format='rgb8; jpeg compressed bgr8')
                 corrupt.data = b'\xff\xd8\xff\xe0 truncated'
                 image.publish(corrupt)
-        assert ros.wait_for(lambda: len(scores) == 1, 60.0), node.stats.snapshot().summary()
+
+        # The keyframe is frame 5: its score can come before frame 6 is in, so wait for both.
+        def done() -> bool:
+            return len(scores) == 1 and node.stats.snapshot().received.get('image', 0) == len(stamps) + 1
+
+        assert ros.wait_for(done, 60.0), node.stats.snapshot().summary()
+        assert ros.wait_for(lambda: node.posed_count == len(stamps), 10.0), node.stats.snapshot().summary()
         snap = node.stats.snapshot()
     assert snap.dropped == {'bad_compressed': 1}
     assert snap.received['image'] == len(stamps) + 1 and node.posed_count == len(stamps)
