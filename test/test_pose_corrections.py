@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from depth_fusion_ros.camera import PinholeCamera
+from depth_fusion_ros.mapping import keyframe_store
 from depth_fusion_ros.mapping.config import MapConfig
 from depth_fusion_ros.mapping.engine import make_engine
 from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, half_camera, mapped_bytes, rebuild
@@ -126,6 +127,11 @@ def test_store_keeps_half_resolution_thins_with_age_and_splits_segments():
     store.new_segment()
     store.add(0.6, *_room_keyframe(1, camera), camera)
     assert store.entries[-1].segment == 2
+    # Past MAX_MAPPED_ENTRIES (the process's mappings are a limited resource) they go on the heap.
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(keyframe_store, 'MAX_MAPPED_ENTRIES', len(store.entries))
+        heap = store.add(9.0, *_room_keyframe(3, camera), camera, np.full(depth.shape, 0.5, np.float32))
+    assert _mapping(heap.depth) is None and heap.confidence[0, 0] == round(0.5 * 255)
 
 
 def test_rebuild_at_corrected_poses_puts_the_wall_back_where_it_is():

@@ -63,19 +63,26 @@ class StoredKeyframe:
         return self.depth.astype(np.float32), confidence, self.rgb
 
 
+#: Kept keyframes that get mappings of their own at most: each is one of the process's memory
+#: mappings (Linux allows 65 530 by default, ``vm.max_map_count``), which torch, DDS and the
+#: threads need too. A store of tiny keyframes with a large ``reintegration_max_mb`` keeps the
+#: rest on the heap.
+MAX_MAPPED_ENTRIES = 16384
+
+
 def mapped_bytes(nbytes: int) -> int:
     """``nbytes`` rounded up to whole pages: what :func:`own_pages` maps for them."""
     return -(-int(nbytes) // mmap.PAGESIZE) * mmap.PAGESIZE
 
 
-def own_pages(*arrays: np.ndarray | None) -> list[np.ndarray | None]:
+def own_pages(*arrays: np.ndarray | None, mapped: bool = True) -> list[np.ndarray | None]:
     """Copies of ``arrays`` (None stays None) in ONE private anonymous mapping of their own,
-    unmapped when the last of them is released; on the heap, as any array, when the system
-    refuses a mapping (``vm.max_map_count``)."""
+    unmapped when the last of them is released; on the heap, as any array, with ``mapped``
+    False or when the system refuses a mapping (``vm.max_map_count``)."""
     sizes = [0 if a is None else int(a.nbytes) for a in arrays]
     total = sum(sizes)
     try:
-        pages = mmap.mmap(-1, mapped_bytes(total), flags=mmap.MAP_PRIVATE) if total else None
+        pages = mmap.mmap(-1, mapped_bytes(total), flags=mmap.MAP_PRIVATE) if total and mapped else None
     except OSError:
         pages = None
     if pages is None:
@@ -156,7 +163,7 @@ class KeyframeStore:
             segment,
             np.asarray(T_wc, np.float64).copy(),
             half_camera(camera),
-            *own_pages(d.astype(np.float16), conf, colour),
+            *own_pages(d.astype(np.float16), conf, colour, mapped=len(self.entries) < MAX_MAPPED_ENTRIES),
         )
         self._next_seq += 1
         self.entries.append(entry)
@@ -234,6 +241,7 @@ class KeyframeStore:
                     k['depth'].numpy().astype(np.float16, copy=False),
                     None if k['confidence'] is None else k['confidence'].numpy().astype(np.uint8, copy=False),
                     None if k['rgb'] is None else k['rgb'].numpy().astype(np.uint8, copy=False),
+                    mapped=len(self.entries) < MAX_MAPPED_ENTRIES,
                 ),
             )
             self._next_seq += 1
