@@ -27,7 +27,6 @@ the map file (:mod:`.map_file`).
 from __future__ import annotations
 
 import logging
-import mmap
 import os
 import shutil
 import tempfile
@@ -37,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .file_pages import unmap_pages
 from .keys import pack, unpack
 
 log = logging.getLogger(__name__)
@@ -171,7 +171,7 @@ class BlockArchive:
         try:
             slots = self._slots_for(keys[:keep])
             self._memmap[slots] = rows.to('cpu', torch.float32).numpy()
-            self._unmap_pages()
+            unmap_pages(self._memmap)
         except OSError as exc:  # disk full, directory gone, read-only: the blocks are lost, said once
             for key in keys[:keep]:
                 slot = self._slots.pop(key, None)
@@ -233,15 +233,8 @@ class BlockArchive:
         v = self.block_voxels
         rows = torch.from_numpy(np.array(self._memmap[slots])) if slots else torch.zeros((0, self.record))
         if slots:
-            self._unmap_pages()
+            unmap_pages(self._memmap)
         return rows[:, :v], rows[:, v : 2 * v], rows[:, 2 * v :].reshape(-1, 3, v)
-
-    def _unmap_pages(self) -> None:
-        """Drop the file's pages from the process (a shared mapping: the data stays in the page
-        cache and on disk; the next access maps them again)."""
-        mapping = getattr(self._memmap, '_mmap', None)
-        if mapping is not None and hasattr(mapping, 'madvise') and hasattr(mmap, 'MADV_DONTNEED'):
-            mapping.madvise(mmap.MADV_DONTNEED)
 
     def _lose(self, count: int, why: str) -> None:
         """Count lost blocks; warn once per kind of cause (the node counts and throttles the rest)."""

@@ -33,7 +33,6 @@ files still load.
 from __future__ import annotations
 
 import io
-import mmap
 import os
 import struct
 from collections.abc import Callable
@@ -44,6 +43,7 @@ import numpy as np
 import torch
 
 from .block_surface import BlockGrid
+from .file_pages import unmap_pages
 from .keyframe_store import KeyframeStore
 from .torch_tsdf import TorchTSDF
 
@@ -218,15 +218,13 @@ def _map_blocks(path: Path, state: dict) -> None:
             target[name] = torch.from_numpy(mapped)
 
 
-def unmap_pages(state: dict) -> None:
+def unmap_file_pages(state: dict) -> None:
     """Drop the pages of a :func:`read_state` map that reading touched from the process (its
     mappings are copy-on-write and never written: the next read maps them from the file again).
     After a load, the blocks are in the engine and its archive: the file's pages would
     otherwise stay in the process's resident set, the size of the map."""
     for mapped in state.get('mappings', ()):
-        mapping = getattr(mapped, '_mmap', None)
-        if mapping is not None and hasattr(mapping, 'madvise') and hasattr(mmap, 'MADV_DONTNEED'):
-            mapping.madvise(mmap.MADV_DONTNEED)
+        unmap_pages(mapped)
 
 
 def file_blocks(state: dict, min_weight: float, part: str = '') -> BlockGrid:
@@ -258,7 +256,7 @@ def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = 
     camera = state.get('camera_position')
     centre = None if camera is None else camera.numpy()
     engine.load_blocks(state['coords'], state['tsdf'], state['weight'], state['colour'], centre=centre)
-    unmap_pages(state)
+    unmap_file_pages(state)
     if centre is not None:
         engine.camera_position = centre.copy()
     world_frame = str(state.get('world_frame') or '')
