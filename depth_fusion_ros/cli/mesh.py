@@ -10,7 +10,8 @@ from .argtypes import at_least, subcommand
 DESCRIPTION = """\
 Write the surface of a map file (map_node's map_file: the TSDF with its archived blocks) as a
 binary .ply mesh, offline: what ~/save_map would write from that map. The surface is extracted
-in slabs of at most --max-blocks blocks (the map file itself is read whole).
+in slabs of at most --max-blocks blocks, each read from the file as it is needed (map files
+written before format 2 are read whole).
 
 examples:
   depth-fusion mesh ~/maps/lab.tsdf --out lab.ply

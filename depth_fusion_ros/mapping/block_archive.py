@@ -110,7 +110,8 @@ def _remove(folder: Path, lock_fd: int | None) -> None:
 
 
 class BlockArchive:
-    """Evicted blocks on disk: ``put`` when evicted, ``take`` when needed again, ``read_all``."""
+    """Evicted blocks on disk: ``put`` when evicted, ``take`` when needed again, ``coords`` and
+    ``read`` for the whole map a part at a time."""
 
     def __init__(self, block_voxels: int, directory: str | Path = '', max_bytes: float = 4 * 2**30) -> None:
         self.block_voxels = int(block_voxels)
@@ -208,12 +209,6 @@ class BlockArchive:
         """The voxels of archived blocks ``coords`` (all archived; left in the archive):
         ``(tsdf, weight, colour)`` on the CPU, in their order."""
         return self._rows([self._slots[k] for k in pack(coords.cpu()).tolist()])
-
-    def read_all(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Every archived block, left in the archive: ``(coords, tsdf, weight, colour)`` on the CPU
-        (the whole archive in memory)."""
-        coords = self.coords()
-        return (coords, *self.read(coords))
 
     def close(self) -> None:
         """Delete the archive file and its directory (the map is going)."""

@@ -86,7 +86,7 @@ def own_pages(*arrays: np.ndarray | None, mapped: bool = True) -> list[np.ndarra
     except OSError:
         pages = None
     if pages is None:
-        return [None if a is None else np.ascontiguousarray(a).copy() for a in arrays]
+        return [None if a is None else np.array(a, order='C') for a in arrays]
     buffer = np.frombuffer(pages, dtype=np.uint8)
     out: list[np.ndarray | None] = []
     start = 0
@@ -163,7 +163,7 @@ class KeyframeStore:
             segment,
             np.asarray(T_wc, np.float64).copy(),
             half_camera(camera),
-            *own_pages(d.astype(np.float16), conf, colour, mapped=len(self.entries) < MAX_MAPPED_ENTRIES),
+            *own_pages(d.astype(np.float16), conf, colour, mapped=self._map_next),
         )
         self._next_seq += 1
         self.entries.append(entry)
@@ -186,6 +186,11 @@ class KeyframeStore:
         self.thinned += len(older) - len(kept)
         self.entries = kept + self.entries[half:]
         self._bytes = sum(e.nbytes for e in self.entries)
+
+    @property
+    def _map_next(self) -> bool:
+        """Whether the next keyframe gets a mapping of its own (:data:`MAX_MAPPED_ENTRIES`)."""
+        return len(self.entries) < MAX_MAPPED_ENTRIES
 
     @property
     def memory_bytes(self) -> int:
@@ -241,7 +246,7 @@ class KeyframeStore:
                     k['depth'].numpy().astype(np.float16, copy=False),
                     None if k['confidence'] is None else k['confidence'].numpy().astype(np.uint8, copy=False),
                     None if k['rgb'] is None else k['rgb'].numpy().astype(np.uint8, copy=False),
-                    mapped=len(self.entries) < MAX_MAPPED_ENTRIES,
+                    mapped=self._map_next,
                 ),
             )
             self._next_seq += 1

@@ -147,9 +147,8 @@ def save_tsdf(
             torch.save(header, f)
             f.write(struct.pack('<Q', end) + MAGIC)
         os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)  # a full disk: no half-written file left beside the map
-        raise
+    finally:
+        tmp.unlink(missing_ok=True)  # gone once renamed; after a failure (a full disk) no half file stays
     return int(coords.shape[0])
 
 

@@ -84,8 +84,9 @@ class MapCorrector:
         thinned = self.store.thinned
         self.store.add(float(key), depth, T_wc, camera, confidence, rgb, segment=segment)
         if self.store.thinned > thinned:
-            # The dropped keyframes' memory goes back to the OS (the raised trim threshold of
-            # malloc_tuning.py would keep it): the node stays within reintegration_max_mb.
+            # The dropped keyframes' own mappings went back with them (keyframe_store.own_pages);
+            # the heap's share (their small objects, and keyframes past MAX_MAPPED_ENTRIES) would
+            # stay under malloc_tuning.py's raised trim threshold: hand it back too.
             release_free_memory()
 
     # --- the corrected trajectory ----------------------------------------------------------------------
