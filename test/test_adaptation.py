@@ -248,3 +248,53 @@ def test_bad_settings_are_clear_errors():
         AdaptConfig.from_dict({'learning_rate': 1e-3})
     with pytest.raises(ValueError, match='simulated'):
         Adapter.from_spec('simulated')
+
+
+def test_an_update_made_while_behind_takes_the_shorter_steps(small_sequence, tiny_model):
+    """Keyframes faster than updates (a live node on a small CPU): the training thread sees
+    another keyframe waiting or one dropped, and that update takes ``steps_when_behind`` steps
+    with ``replay_when_behind`` replayed keyframes; one keyframe at a time keeps the full update."""
+    import threading
+
+    from depth_fusion_ros.adaptation.online import OnlineAdaptation, WeightSlot
+
+    config = AdaptConfig.from_dict({**FAST, 'steps_per_keyframe': 3, 'steps_when_behind': 1})
+    with pytest.raises(ValueError, match=r'adaptation\.steps_when_behind'):
+        AdaptConfig.from_dict({'steps_when_behind': 0})
+    adapter = Adapter.from_spec(tiny_model, config)
+    draws: list[int] = []
+    draw = adapter.buffer.draw
+    adapter.buffer.draw = lambda n, rng: draws.append(n) or draw(n, rng)
+    assert adapter.observe(_gt_sample(small_sequence, 0)).steps == 3
+    report = adapter.observe(_gt_sample(small_sequence, 1), behind=True)
+    assert report.status == 'updated' and report.behind and report.steps == 1
+    assert draws == [1, 1, 1, config.replay_when_behind]
+
+    reports, gate, entered = [], threading.Event(), threading.Event()
+    observe = adapter.observe
+
+    def held(sample, abort=None, behind=False):
+        entered.set()
+        gate.wait(30)
+        return observe(sample, abort, behind)
+
+    adapter.observe = held
+    slot = WeightSlot(adapter.predictor())
+    online = OnlineAdaptation(adapter, slot, queue_size=2, on_report=reports.append)
+    try:
+        online.submit(_gt_sample(small_sequence, 2))  # taken at once, held at the gate
+        assert entered.wait(30)
+        for i in (3, 4, 5):  # 3 is dropped for 5: the queue holds two
+            online.submit(_gt_sample(small_sequence, i))
+        gate.set()
+        assert online.wait_idle(60)
+        assert online.dropped == 1
+        # 2: nothing waited when it was taken; 4: 5 waited behind it (and 3 had been dropped);
+        # 5: the last one, nothing waiting or dropped since: caught up
+        assert [(r.key, r.behind) for r in reports] == [(2, False), (4, True), (5, False)]
+        assert online.behind_updates == 1 and reports[1].steps == 1
+        online.submit(_gt_sample(small_sequence, 0))  # caught up: the full update again
+        assert online.wait_idle(60)
+        assert reports[-1].key == 0 and not reports[-1].behind and reports[-1].steps == 3
+    finally:
+        online.stop()

@@ -22,7 +22,7 @@ class _RecordingAdapter:
     def warm_up(self):
         self.warmed.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
 
-    def observe(self, sample, abort):
+    def observe(self, sample, abort, behind=False):
         self.seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
         return SimpleNamespace(status='skipped')
 

@@ -61,6 +61,8 @@ class UpdateReport:
     version: int = 0
     seconds: float = 0.0
     photometric: bool = False
+    #: Trained with the ``*_when_behind`` steps and replay.
+    behind: bool = False
 
 
 @dataclass
@@ -83,6 +85,19 @@ def _output_bias(net: nn.Module) -> list[nn.Parameter]:
     return [scalars[-1][1]] if scalars else []
 
 
+def _training_layout(net: nn.Module) -> nn.Module:
+    """The training copy in channels-last layout on the CPU: oneDNN's depthwise and pointwise
+    convolutions, their backward passes and the batch norms run on NHWC without reordering.
+    A training step of the shipped network (batch 3, 320x240, one thread) takes 181 instead of
+    221 ms and a forward 18 instead of 25 ms, with the same outputs to 5e-7 (float rounding);
+    inference copies and saved weights inherit it (``load_state_dict`` copies values, whatever
+    the layout). On CUDA the layout stays as loaded (not measured there)."""
+    first = next(net.parameters(), None)
+    if first is not None and first.device.type == 'cpu':
+        net = net.to(memory_format=torch.channels_last)
+    return net
+
+
 class Adapter:
     """Online self-supervised training of one of our log-depth networks."""
 
@@ -99,7 +114,7 @@ class Adapter:
         self.device = resolve_device(device)
         self.metadata = metadata
         self.name = name or getattr(net, 'architecture', type(net).__name__)
-        self.net = copy.deepcopy(net).to(self.device)
+        self.net = _training_layout(copy.deepcopy(net).to(self.device))
         self._set_train_mode()
         bias = _output_bias(self.net)
         bias_ids = {id(p) for p in bias}
@@ -230,17 +245,26 @@ class Adapter:
         self._weights.restore()
         self._token = token
 
-    def _steps(self, prepared: PreparedSample, abort: Callable[[], bool] | None) -> list[torch.Tensor] | None:
-        """``steps_per_keyframe`` optimiser steps on ``prepared`` and replayed keyframes: their
-        losses (on the device), or None when ``abort`` said stop between two steps."""
+    def _steps(
+        self, prepared: PreparedSample, abort: Callable[[], bool] | None, behind: bool = False
+    ) -> list[torch.Tensor] | None:
+        """``steps_per_keyframe`` optimiser steps on ``prepared`` and ``replay_per_step``
+        replayed keyframes each (``steps_when_behind`` and ``replay_when_behind`` when
+        ``behind``): their losses (on the device), or None when ``abort`` said stop between two
+        steps."""
         cfg = self.config
+        steps, replay = (
+            (cfg.steps_when_behind, cfg.replay_when_behind)
+            if behind
+            else (cfg.steps_per_keyframe, cfg.replay_per_step)
+        )
         losses = []
         seed = [int(cfg.seed), int(self.counters.observed)]
-        for step in range(cfg.steps_per_keyframe):
+        for step in range(steps):
             if abort is not None and abort():
                 return None
             rng = np.random.default_rng([*seed, step])
-            batch = [prepared, *self.buffer.draw(cfg.replay_per_step, rng)]
+            batch = [prepared, *self.buffer.draw(replay, rng)]
             loss = self.loss(batch)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -251,8 +275,13 @@ class Adapter:
             losses.append(loss.detach())
         return losses
 
-    def observe(self, sample: AdaptSample, abort: Callable[[], bool] | None = None) -> UpdateReport:
+    def observe(
+        self, sample: AdaptSample, abort: Callable[[], bool] | None = None, behind: bool = False
+    ) -> UpdateReport:
         """Train on ``sample`` (+ replay); keep the update only if the guard allows it.
+
+        ``behind``: keyframes come faster than updates (the training thread says so); the
+        update takes the ``*_when_behind`` steps and replay instead.
 
         ``abort`` is checked between steps (a node shutting down): a true answer restores the
         weights and reports the keyframe as skipped (``stopped``). The steps never wait for the
@@ -270,7 +299,7 @@ class Adapter:
         start = self._token
         self._weights.save()
         try:
-            losses = self._steps(prepared, abort)
+            losses = self._steps(prepared, abort, behind)
         except BaseException:
             self._rollback(start)  # a failed step leaves no half-applied update behind
             raise
@@ -293,6 +322,7 @@ class Adapter:
             loss_last=values[-1],
             guard=verdict,
             photometric=sample.has_photometric and cfg.photometric_weight > 0,
+            behind=behind,
         )
         if verdict.rolled_back:
             self._rollback(start)

@@ -26,6 +26,14 @@ class AdaptConfig:
     buffer_size: int = 32
     #: Replayed keyframes in each step's batch, besides the new keyframe.
     replay_per_step: int = 2
+    #: Optimiser steps of an update made while training is behind: the training thread found
+    #: another keyframe waiting, or keyframes were dropped since it took its last one (a live
+    #: node on a small CPU: keyframes come faster than updates). The same CPU then reaches
+    #: more keyframes with fewer steps each (docs/adaptation.md, "On a CPU budget").
+    #: Offline (``evaluate``, ``depth-fusion adapt``) training is never behind.
+    steps_when_behind: int = 2
+    #: Replayed keyframes per step of such an update.
+    replay_when_behind: int = 1
     #: Weight of the sparse term: L1 of log depth at the selected multi-view points.
     sparse_weight: float = 1.0
     #: Weight of the photometric term (SSIM + L1 against the posed neighbours); 0 disables it.
@@ -58,13 +66,14 @@ class AdaptConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field."""
-        positive = ('lr', 'steps_per_keyframe', 'buffer_size')
+        positive = ('lr', 'steps_per_keyframe', 'steps_when_behind', 'buffer_size')
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f'adaptation.{name} must be positive, got {getattr(self, name)}')
         nonneg = (
             'scale_lr',
             'replay_per_step',
+            'replay_when_behind',
             'sparse_weight',
             'photometric_weight',
             'smoothness_weight',

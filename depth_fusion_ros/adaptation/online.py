@@ -3,7 +3,8 @@
 Inference must never wait for training. So training happens on a thread that owns the
 :class:`~.adapter.Adapter` (torch releases the GIL inside its operators, so both threads
 compute at once), samples reach it through a small bounded queue (``submit`` never blocks;
-when training falls behind the oldest waiting keyframe is dropped and counted), and each
+when training falls behind the oldest waiting keyframe is dropped and counted, and the
+updates made meanwhile are the adapter's shorter ``behind`` ones), and each
 accepted update produces a *new* predictor around a copy of the weights, published through a
 :class:`WeightSlot`. Inference takes the slot's current predictor with one locked read and
 runs it; training never touches a module that is predicting, and a swap never waits for a
@@ -83,6 +84,10 @@ class OnlineAdaptation:
         self.submitted = 0
         self.dropped = 0
         self.failed = 0
+        #: Updates made while behind (another keyframe waiting, or one dropped since the last
+        #: take): they take the adapter's ``*_when_behind`` steps and replay.
+        self.behind_updates = 0
+        self._dropped_at_take = 0
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -133,9 +138,12 @@ class OnlineAdaptation:
                 if self._stop:
                     return
                 sample = self._queue.popleft()
+                behind = bool(self._queue) or self.dropped > self._dropped_at_take
+                self._dropped_at_take = self.dropped
                 self._busy = True
             try:
-                report = self.adapter.observe(sample, abort=lambda: self._stop)
+                report = self.adapter.observe(sample, abort=lambda: self._stop, behind=behind)
+                self.behind_updates += behind
                 if report.status == 'updated':
                     self.slot.swap(self.adapter.predictor(), self.adapter.version)
                 if self.on_report is not None:

@@ -38,6 +38,8 @@ ADAPT_LIMITS: dict[str, Any] = {
     'steps_per_keyframe': (1, 1000),
     'buffer_size': (1, 10000),
     'replay_per_step': (0, 64),
+    'steps_when_behind': (1, 1000),
+    'replay_when_behind': (0, 64),
     'sparse_weight': (0.0, None),
     'photometric_weight': (0.0, None),
     'smoothness_weight': (0.0, None),
@@ -163,7 +165,9 @@ class NodeAdaptation:
         node.get_logger().info(
             f'adapting {self.adapter.name} online: lr {self.config.lr:g}, '
             f'{self.config.steps_per_keyframe} steps/keyframe, replay {self.config.replay_per_step} of '
-            f'{self.config.buffer_size}; signals {node.resolve_topic_name(TOPIC_MV_DEPTH)}, '
+            f'{self.config.buffer_size} ({self.config.steps_when_behind} steps, replay '
+            f'{self.config.replay_when_behind} while behind); '
+            f'signals {node.resolve_topic_name(TOPIC_MV_DEPTH)}, '
             f'{node.resolve_topic_name(TOPIC_KEYFRAME_POSE)}; checkpoint {self.checkpoint or "(none)"}'
         )
 
@@ -253,7 +257,8 @@ class NodeAdaptation:
         c = self.adapter.counters
         summary = (
             f'adaptation: {c.observed} keyframes, {c.updated} updates, {c.rolled_back} rolled back, '
-            f'{c.skipped} skipped, {self.online.dropped} dropped, {self.online.failed} failed'
+            f'{c.skipped} skipped, {self.online.dropped} dropped, {self.online.failed} failed, '
+            f'{self.online.behind_updates} trained while behind'
         )
         self.node.get_logger().info(summary)
         if self.checkpoint:

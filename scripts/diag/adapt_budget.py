@@ -1,0 +1,130 @@
+"""Online adaptation on a CPU budget, as a live node lives it (issue 14, diagnostic).
+
+``evaluate``'s ``single_view_adapted`` trains on every keyframe before the next one comes.
+A live node on 2 cores cannot: keyframes come at ~6 a second, an update takes 1.5-2 s of
+CPU, and the training thread gets what the other nodes leave (about 0.7 of a core in the
+live 7-Scenes run). The node trains on the newest keyframe whenever it is free and drops the
+rest (``adapt_queue_full``). This replays that in simulated time on a cache of
+scripts/diag/adapt_cache.py: keyframe k arrives at ``k * stride / fps``; the trainer, when
+free, takes the newest arrived keyframe; an update lasts its measured CPU time (one torch
+thread) divided by ``SHARE``; keyframe k is predicted with the weights of the last update
+that finished before it arrived. Prints the single-view MAE against the ground truth (read
+for the score only) over all keyframes and over the second half, and the update count:
+
+    python scripts/diag/adapt_budget.py CACHE.pkl '{"steps_per_keyframe": 3}'
+    STRIDE=5 FPS=30 SHARE=0.7 ...   the defaults
+"""
+
+import json
+import os
+import pickle
+import sys
+import time
+
+import cv2
+import numpy as np
+import torch
+
+from depth_fusion_ros.adaptation.adapter import Adapter
+from depth_fusion_ros.adaptation.config import AdaptConfig
+from depth_fusion_ros.adaptation.sample import Neighbour, make_sample
+from depth_fusion_ros.metrics import upsample_depth, valid_mask
+
+torch.set_num_threads(1)
+STRIDE = int(os.environ.get('STRIDE', '5'))
+FPS = float(os.environ.get('FPS', '30'))
+SHARE = float(os.environ.get('SHARE', '0.7'))
+QUEUE = int(os.environ.get('QUEUE', '2'))
+
+
+def sample_of(rows: list, r: dict, cam, cfg: AdaptConfig):
+    nb = [Neighbour(rows[j]['rgb'], rows[j]['pose']) for j in r['nb']]
+    return make_sample(
+        r['i'],
+        r['rgb'],
+        cam,
+        r['depth'],
+        r['score'],
+        select_fraction=cfg.select_fraction,
+        holdout_fraction=cfg.holdout_fraction,
+        seed=cfg.seed,
+        pose=r['pose'],
+        neighbours=nb,
+    )
+
+
+def abs_errors(pred, r: dict, cam) -> np.ndarray:
+    d = pred.predict(r['rgb'])
+    if d.shape[::-1] != (cam.width, cam.height):
+        d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_LINEAR)
+    gt = r['gt']
+    p = upsample_depth(d.astype(np.float32), gt.shape[1], gt.shape[0])
+    m = valid_mask(p, gt)
+    return np.abs(p[m].astype(np.float64) - gt[m])
+
+
+def main() -> None:
+    with open(sys.argv[1], 'rb') as fh:
+        data = pickle.load(fh)
+    over = json.loads(sys.argv[2]) if len(sys.argv) > 2 else {}
+    cam, rows = data['camera'], data['rows']
+    keys = rows[::STRIDE]
+    cfg = AdaptConfig.from_dict(over)
+    ad = Adapter.from_spec('default', cfg)
+    freeze = os.environ.get('FREEZE', '')
+    for name in filter(None, freeze.split(',')):
+        for prm in getattr(ad.net, name).parameters():
+            prm.requires_grad_(False)
+    ad.warm_up()
+    effective = [(0.0, ad.predictor())]  # (time the weights take effect, predictor)
+    behind_over = json.loads(os.environ.get('BEHIND', '{}'))
+    normal = {k: getattr(cfg, k) for k in behind_over}
+    t_free, queue, updates, cpu_total, dropped, dropped_at_take, behind_updates = 0.0, [], 0, 0.0, 0, 0, 0
+    errors = []
+    for k, r in enumerate(keys):
+        t_k = k * STRIDE / FPS
+        while queue and max(t_free, queue[0][0]) <= t_k:
+            arrival, row = queue.pop(0)  # the node's queue: oldest first
+            start = max(t_free, arrival)
+            behind = bool(queue) or dropped > dropped_at_take
+            dropped_at_take = dropped
+            for key, value in (behind_over if behind else normal).items():
+                setattr(ad.config, key, value)
+            behind_updates += behind and bool(behind_over)
+            c0 = time.process_time()
+            ad.observe(sample_of(rows, row, cam, cfg))
+            cpu = time.process_time() - c0
+            cpu_total += cpu
+            t_free = start + cpu / SHARE
+            updates += 1
+            effective.append((t_free, ad.predictor()))
+        pred = [p for t, p in effective if t <= t_k][-1]
+        e = abs_errors(pred, r, cam)
+        errors.append((e.sum(), e.size))
+        queue.append((t_k, r))
+        if len(queue) > QUEUE:
+            queue.pop(0)
+            dropped += 1
+    half = len(errors) // 2
+    mae = sum(s for s, _ in errors) / sum(n for _, n in errors)
+    mae2 = sum(s for s, _ in errors[half:]) / sum(n for _, n in errors[half:])
+    print(
+        json.dumps(
+            dict(
+                cache=os.path.basename(sys.argv[1]),
+                over=over,
+                share=SHARE,
+                keyframes=len(keys),
+                updates=updates,
+                behind_updates=behind_updates,
+                behind=behind_over,
+                cpu_per_update_s=round(cpu_total / max(updates, 1), 3),
+                mae=round(mae, 4),
+                mae_second_half=round(mae2, 4),
+            )
+        )
+    )
+
+
+if __name__ == '__main__':
+    main()
