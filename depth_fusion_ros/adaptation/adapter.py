@@ -85,19 +85,6 @@ def _output_bias(net: nn.Module) -> list[nn.Parameter]:
     return [scalars[-1][1]] if scalars else []
 
 
-def _training_layout(net: nn.Module) -> nn.Module:
-    """The training copy in channels-last layout on the CPU: oneDNN's depthwise and pointwise
-    convolutions, their backward passes and the batch norms run on NHWC without reordering.
-    A training step of the shipped network (batch 3, 320x240, one thread) takes 181 instead of
-    221 ms and a forward 18 instead of 25 ms, with the same outputs to 5e-7 (float rounding);
-    inference copies and saved weights inherit it (``load_state_dict`` copies values, whatever
-    the layout). On CUDA the layout stays as loaded (not measured there)."""
-    first = next(net.parameters(), None)
-    if first is not None and first.device.type == 'cpu':
-        net = net.to(memory_format=torch.channels_last)
-    return net
-
-
 class Adapter:
     """Online self-supervised training of one of our log-depth networks."""
 
@@ -114,7 +101,7 @@ class Adapter:
         self.device = resolve_device(device)
         self.metadata = metadata
         self.name = name or getattr(net, 'architecture', type(net).__name__)
-        self.net = _training_layout(copy.deepcopy(net).to(self.device))
+        self.net = copy.deepcopy(net).to(self.device)
         self._set_train_mode()
         bias = _output_bias(self.net)
         bias_ids = {id(p) for p in bias}
