@@ -80,7 +80,7 @@ def main() -> None:
     ad.warm_up()
     effective = [(0.0, ad.predictor())]  # (time the weights take effect, predictor)
     t_free, queue, updates, cpu_total, dropped, dropped_at_take, behind_updates = 0.0, [], 0, 0.0, 0, 0, 0
-    errors = []
+    errors, log_updates = [], []
     for k, r in enumerate(keys):
         t_k = k * STRIDE / FPS
         while queue and max(t_free, queue[0][0]) <= t_k:
@@ -90,7 +90,9 @@ def main() -> None:
             dropped_at_take = dropped
             behind_updates += behind
             c0 = time.process_time()
-            ad.observe(sample_of(rows, row, cam, cfg), behind=behind)
+            rep = ad.observe(sample_of(rows, row, cam, cfg), behind=behind)
+            g = rep.guard
+            log_updates.append((k, row['i'], rep.status, rep.reason, g.before if g else None, g.after if g else None))
             cpu = time.process_time() - c0
             cpu_total += cpu
             t_free = start + cpu / SHARE
@@ -103,6 +105,9 @@ def main() -> None:
         if len(queue) > QUEUE:
             queue.pop(0)
             dropped += 1
+    if os.environ.get('DUMP'):
+        with open(os.environ['DUMP'], 'w') as fh:
+            json.dump(dict(mae=[a / max(b, 1) for a, b in errors], updates=log_updates), fh)
     half = len(errors) // 2
     mae = sum(s for s, _ in errors) / sum(n for _, n in errors)
     mae2 = sum(s for s, _ in errors[half:]) / sum(n for _, n in errors[half:])
