@@ -61,7 +61,7 @@ class UpdateReport:
     version: int = 0
     seconds: float = 0.0
     photometric: bool = False
-    #: Trained with the ``*_when_behind`` steps and replay.
+    #: Trained with ``steps_when_behind`` steps.
     behind: bool = False
 
 
@@ -235,23 +235,18 @@ class Adapter:
     def _steps(
         self, prepared: PreparedSample, abort: Callable[[], bool] | None, behind: bool = False
     ) -> list[torch.Tensor] | None:
-        """``steps_per_keyframe`` optimiser steps on ``prepared`` and ``replay_per_step``
-        replayed keyframes each (``steps_when_behind`` and ``replay_when_behind`` when
-        ``behind``): their losses (on the device), or None when ``abort`` said stop between two
-        steps."""
+        """``steps_per_keyframe`` optimiser steps (``steps_when_behind`` when ``behind``) on
+        ``prepared`` and replayed keyframes: their losses (on the device), or None when
+        ``abort`` said stop between two steps."""
         cfg = self.config
-        steps, replay = (
-            (cfg.steps_when_behind, cfg.replay_when_behind)
-            if behind
-            else (cfg.steps_per_keyframe, cfg.replay_per_step)
-        )
+        steps = cfg.steps_when_behind if behind else cfg.steps_per_keyframe
         losses = []
         seed = [int(cfg.seed), int(self.counters.observed)]
         for step in range(steps):
             if abort is not None and abort():
                 return None
             rng = np.random.default_rng([*seed, step])
-            batch = [prepared, *self.buffer.draw(replay, rng)]
+            batch = [prepared, *self.buffer.draw(cfg.replay_per_step, rng)]
             loss = self.loss(batch)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -268,7 +263,7 @@ class Adapter:
         """Train on ``sample`` (+ replay); keep the update only if the guard allows it.
 
         ``behind``: keyframes come faster than updates (the training thread says so); the
-        update takes the ``*_when_behind`` steps and replay instead.
+        update takes ``steps_when_behind`` steps instead.
 
         ``abort`` is checked between steps (a node shutting down): a true answer restores the
         weights and reports the keyframe as skipped (``stopped``). The steps never wait for the

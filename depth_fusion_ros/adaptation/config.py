@@ -32,8 +32,6 @@ class AdaptConfig:
     #: more keyframes with fewer steps each (docs/adaptation.md, "On a CPU budget").
     #: Offline (``evaluate``, ``depth-fusion adapt``) training is never behind.
     steps_when_behind: int = 2
-    #: Replayed keyframes per step of such an update.
-    replay_when_behind: int = 1
     #: Weight of the sparse term: L1 of log depth at the selected multi-view points.
     sparse_weight: float = 1.0
     #: Weight of the photometric term (SSIM + L1 against the posed neighbours); 0 disables it.
@@ -73,7 +71,6 @@ class AdaptConfig:
         nonneg = (
             'scale_lr',
             'replay_per_step',
-            'replay_when_behind',
             'sparse_weight',
             'photometric_weight',
             'smoothness_weight',

@@ -85,7 +85,7 @@ class OnlineAdaptation:
         self.dropped = 0
         self.failed = 0
         #: Updates made while behind (another keyframe waiting, or one dropped since the last
-        #: take): they take the adapter's ``*_when_behind`` steps and replay.
+        #: take): they take the adapter's ``steps_when_behind`` steps.
         self.behind_updates = 0
         self._dropped_at_take = 0
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)

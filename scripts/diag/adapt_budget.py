@@ -6,14 +6,14 @@ CPU, and the niced training thread gets what the other nodes leave (a small shar
 during a 30 Hz stream). The node's training thread takes the oldest of the (two) keyframes
 queued and the newest replaces the oldest when the queue is full (``adapt_queue_full``);
 an update made while behind (another keyframe waiting, or one dropped since the last one
-taken) takes the adapter's ``*_when_behind`` steps and replay. This replays that in
+taken) takes the adapter's ``steps_when_behind`` steps. This replays that in
 simulated time on a cache of scripts/diag/adapt_cache.py: keyframe k arrives at
 ``k * STRIDE / FPS``; an update lasts its measured CPU time (one torch thread) divided by
 ``SHARE``; keyframe k is predicted with the weights of the last update that finished before
 it arrived. Prints the single-view MAE against the ground truth (read for the score only)
 over all keyframes and over the second half, and the update counts:
 
-    python scripts/diag/adapt_budget.py CACHE.pkl ['{"steps_when_behind": 6, "replay_when_behind": 2}']
+    python scripts/diag/adapt_budget.py CACHE.pkl ['{"steps_when_behind": 6}']
     STRIDE=5 FPS=30 SHARE=0.7 QUEUE=2 ...   the defaults
 """
 
@@ -92,7 +92,8 @@ def main() -> None:
             c0 = time.process_time()
             rep = ad.observe(sample_of(rows, row, cam, cfg), behind=behind)
             g = rep.guard
-            log_updates.append((k, row['i'], rep.status, rep.reason, g.before if g else None, g.after if g else None))
+            guard = (g.before, g.after) if g else (None, None)
+            log_updates.append((k, row['i'], rep.status, rep.reason, *guard))
             cpu = time.process_time() - c0
             cpu_total += cpu
             t_free = start + cpu / SHARE
