@@ -4,7 +4,8 @@ Figures: optimiser steps per second of the shipped compact network at 320x240 (a
 new keyframe plus ``replay_per_step`` replayed ones, sparse + photometric + smoothness
 terms, two posed neighbours each), and whole keyframe updates per second with the default
 ``steps_per_keyframe`` and the guard's two forward passes. The last row says whether that
-keeps up with 6 keyframes/s (a fast graph on a GPU). Synthetic keyframes (a rendered room),
+keeps up with 6 keyframes/s (a fast graph on a GPU), and the rate of the shorter updates a node
+makes while behind (``steps_when_behind``). Synthetic keyframes (a rendered room),
 so it needs no data; figures, never assertions.
 
 Timing starts once the replay buffer holds ``guard_keyframes`` accepted keyframes, and three
@@ -84,7 +85,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
     config = AdaptConfig()
     full = max(config.guard_keyframes, config.replay_per_step)  # buffer size of the full batch shapes
     timed = 3 if opts.quick else 7
-    samples = _samples(WARM_MAX + timed)
+    samples = _samples(WARM_MAX + 2 * timed)
     threads = torch.get_num_threads() if torch.device(opts.device).type != 'cpu' else 2
     rows: list[BenchRow] = []
     with _torch_threads(threads):
@@ -117,6 +118,22 @@ def run(opts: BenchOptions) -> list[BenchRow]:
                 rate,
                 'keyframes/s',
                 load_note(f'{seconds / updates * 1e3:.0f} ms per keyframe'),
+            )
+        )
+        start = time.perf_counter()
+        for s in samples[warm + timed : warm + 2 * timed]:
+            adapter.observe(s, behind=True)
+        sync()
+        behind_rate = timed / (time.perf_counter() - start)
+        rows.append(
+            BenchRow(
+                f'keyframe updates while behind ({config.steps_when_behind} steps + guard)',
+                behind_rate,
+                'keyframes/s',
+                load_note(
+                    f'{1e3 / behind_rate:.0f} ms per keyframe; what a node that cannot keep up makes '
+                    '(docs/adaptation.md, "On a CPU budget")'
+                ),
             )
         )
         keeps_up = 'keeps up' if rate >= TARGET_KEYFRAMES_PER_S else 'does not keep up'
