@@ -298,3 +298,33 @@ def test_an_update_made_while_behind_takes_the_shorter_steps(small_sequence, tin
         assert reports[-1].key == 0 and not reports[-1].behind and reports[-1].steps == 3
     finally:
         online.stop()
+
+
+def test_keyframes_skipped_while_behind_are_not_counted_as_trained():
+    """``behind_updates`` counts updates that trained (kept or rolled back), not keyframes the
+    adapter skipped without a step (too few points) while the queue was full."""
+    import threading
+    from types import SimpleNamespace
+
+    from depth_fusion_ros.adaptation.online import OnlineAdaptation, WeightSlot
+
+    gate, seen = threading.Event(), []
+
+    class Skipping:
+        def warm_up(self):
+            pass
+
+        def observe(self, sample, abort=None, behind=False):
+            gate.wait(30)
+            seen.append(behind)
+            return SimpleNamespace(status='skipped', behind=behind)
+
+    online = OnlineAdaptation(Skipping(), WeightSlot(predictor=None), queue_size=2)
+    try:
+        for i in range(4):
+            online.submit(i)
+        gate.set()
+        assert online.wait_idle(30)
+        assert True in seen and online.behind_updates == 0
+    finally:
+        assert online.stop(10.0)

@@ -84,8 +84,9 @@ class OnlineAdaptation:
         self.submitted = 0
         self.dropped = 0
         self.failed = 0
-        #: Updates made while behind (another keyframe waiting, or one dropped since the last
-        #: take): they take the adapter's ``steps_when_behind`` steps.
+        #: Updates trained while behind (another keyframe waiting, or one dropped since the last
+        #: take): they take the adapter's ``steps_when_behind`` steps (kept or rolled back;
+        #: keyframes skipped without training do not count).
         self.behind_updates = 0
         self._dropped_at_take = 0
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -143,7 +144,7 @@ class OnlineAdaptation:
                 self._busy = True
             try:
                 report = self.adapter.observe(sample, abort=lambda: self._stop, behind=behind)
-                self.behind_updates += behind
+                self.behind_updates += report.behind and report.status != 'skipped'
                 if report.status == 'updated':
                     self.slot.swap(self.adapter.predictor(), self.adapter.version)
                 if self.on_report is not None:
