@@ -55,14 +55,24 @@ def sample_of(rows: list, r: dict, cam, cfg: AdaptConfig):
     )
 
 
-def abs_errors(pred, r: dict, cam) -> np.ndarray:
-    d = pred.predict(r['rgb'])
+def working_prediction(pred, rgb: np.ndarray, cam) -> np.ndarray:
+    """The predictor's depth of ``rgb`` at the camera's (working) size."""
+    d = pred.predict(rgb)
     if d.shape[::-1] != (cam.width, cam.height):
         d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_LINEAR)
-    gt = r['gt']
+    return d
+
+
+def gt_errors(d: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """|depth - ground truth| where both are valid, ``d`` upsampled to the ground truth's
+    size; also the upsampled depth and the mask."""
     p = upsample_depth(d.astype(np.float32), gt.shape[1], gt.shape[0])
     m = valid_mask(p, gt)
-    return np.abs(p[m].astype(np.float64) - gt[m])
+    return np.abs(p[m].astype(np.float64) - gt[m]), p, m
+
+
+def abs_errors(pred, r: dict, cam) -> np.ndarray:
+    return gt_errors(working_prediction(pred, r['rgb'], cam), r['gt'])[0]
 
 
 def main() -> None:

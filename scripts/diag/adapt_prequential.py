@@ -27,7 +27,9 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from depth_fusion_ros.adaptation.adapter import Adapter
 from depth_fusion_ros.adaptation.config import AdaptConfig
 from depth_fusion_ros.adaptation.sample import Neighbour, make_sample
-from depth_fusion_ros.metrics import upsample_depth, valid_mask
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from adapt_budget import gt_errors, working_prediction  # scripts/diag is no package
 
 torch.set_num_threads(1)
 cache, out = sys.argv[1], sys.argv[2]
@@ -65,13 +67,9 @@ sum_abs = n = 0
 recs = []
 t0 = time.time()
 for r in rows[:MAXF]:
-    d = pred.predict(r['rgb'])
-    if d.shape[::-1] != (cam.width, cam.height):
-        d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_LINEAR)
+    d = working_prediction(pred, r['rgb'], cam)
     gt = r['gt']
-    p = upsample_depth(d.astype(np.float32), gt.shape[1], gt.shape[0])
-    m = valid_mask(p, gt)
-    e = np.abs(p[m].astype(np.float64) - gt[m])
+    e, p, m = gt_errors(d, gt)
     sum_abs += e.sum()
     n += e.size
     # gt log error for the network on this frame (scale)
