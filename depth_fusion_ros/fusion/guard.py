@@ -112,7 +112,7 @@ class GuardConfig:
 
     neighbourhood_px: float = 12.0
     min_neighbours: int = 2
-    max_neighbours: int = 32
+    max_neighbours: int = 16
     local_tolerance: float = 0.15
     max_relative_std: float = 0.15
     min_agreement: float = 0.5
