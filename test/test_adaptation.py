@@ -3,6 +3,8 @@ invariance, guarded rollback of a poisoned update, the replay buffer and the los
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 import torch
@@ -11,6 +13,7 @@ from depth_fusion_ros.adaptation.adapter import Adapter
 from depth_fusion_ros.adaptation.config import AdaptConfig
 from depth_fusion_ros.adaptation.keyframes import KeyframeAssembler
 from depth_fusion_ros.adaptation.losses import photometric
+from depth_fusion_ros.adaptation.online import OnlineAdaptation, WeightSlot
 from depth_fusion_ros.adaptation.replay import ReplayBuffer
 from depth_fusion_ros.adaptation.sample import Neighbour, make_sample
 from depth_fusion_ros.data.sequence import Frame, Sequence
@@ -150,7 +153,6 @@ def test_a_compile_session_in_another_thread_does_not_break_the_optimiser_step(s
     """torch's compile flag is process-wide: a session starting or ending during Adam's grouped
     step gave it tensors and floats (TypeError in the composed graph). Sessions run inside
     COMPILE_LOCK (the compiled calls hold it), so the adaptation step never sees one change."""
-    import threading
     import time
 
     from depth_fusion_ros.compile_lock import COMPILE_LOCK
@@ -254,10 +256,6 @@ def test_an_update_made_while_behind_takes_the_shorter_steps(small_sequence, tin
     """Keyframes faster than updates (a live node on a small CPU): the training thread sees
     another keyframe waiting or one dropped, and that update takes ``steps_when_behind`` steps
     (the same replay); one keyframe at a time keeps the full update."""
-    import threading
-
-    from depth_fusion_ros.adaptation.online import OnlineAdaptation, WeightSlot
-
     config = AdaptConfig.from_dict({**FAST, 'steps_per_keyframe': 3, 'steps_when_behind': 1})
     with pytest.raises(ValueError, match=r'adaptation\.steps_when_behind'):
         AdaptConfig.from_dict({'steps_when_behind': 0})
@@ -292,7 +290,7 @@ def test_an_update_made_while_behind_takes_the_shorter_steps(small_sequence, tin
         # 2: nothing waited when it was taken; 4: 5 waited behind it (and 3 had been dropped);
         # 5: the last one, nothing waiting or dropped since: caught up
         assert [(r.key, r.behind) for r in reports] == [(2, False), (4, True), (5, False)]
-        assert online.behind_updates == 1 and reports[1].steps == 1
+        assert adapter.counters.behind == 2 and reports[1].steps == 1  # keyframes 1 and 4
         online.submit(_gt_sample(small_sequence, 0))  # caught up: the full update again
         assert online.wait_idle(60)
         assert reports[-1].key == 0 and not reports[-1].behind and reports[-1].steps == 3
@@ -300,31 +298,10 @@ def test_an_update_made_while_behind_takes_the_shorter_steps(small_sequence, tin
         online.stop()
 
 
-def test_keyframes_skipped_while_behind_are_not_counted_as_trained():
-    """``behind_updates`` counts updates that trained (kept or rolled back), not keyframes the
-    adapter skipped without a step (too few points) while the queue was full."""
-    import threading
-    from types import SimpleNamespace
-
-    from depth_fusion_ros.adaptation.online import OnlineAdaptation, WeightSlot
-
-    gate, seen = threading.Event(), []
-
-    class Skipping:
-        def warm_up(self):
-            pass
-
-        def observe(self, sample, abort=None, behind=False):
-            gate.wait(30)
-            seen.append(behind)
-            return SimpleNamespace(status='skipped', behind=behind)
-
-    online = OnlineAdaptation(Skipping(), WeightSlot(predictor=None), queue_size=2)
-    try:
-        for i in range(4):
-            online.submit(i)
-        gate.set()
-        assert online.wait_idle(30)
-        assert True in seen and online.behind_updates == 0
-    finally:
-        assert online.stop(10.0)
+def test_keyframes_skipped_while_behind_are_not_counted_as_trained(small_sequence, tiny_model):
+    """``counters.behind`` counts updates that trained (kept or rolled back), not keyframes the
+    adapter skipped without a step (too few points) while training was behind."""
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict({**FAST, 'min_points': 10_000}))
+    report = adapter.observe(_gt_sample(small_sequence, 0), behind=True)
+    assert report.status == 'skipped' and adapter.counters.skipped == 1
+    assert adapter.counters.behind == 0

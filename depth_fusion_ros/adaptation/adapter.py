@@ -72,6 +72,8 @@ class AdapterCounters:
     rolled_back: int = 0
     skipped: int = 0
     steps: int = 0
+    #: Updates trained with ``steps_when_behind`` steps (kept or rolled back).
+    behind: int = 0
     train_seconds: float = 0.0
     reasons: dict[str, int] = field(default_factory=dict)
 
@@ -294,6 +296,7 @@ class Adapter:
             self._rollback(start)
             return self._skip(sample.key, 'non_finite_loss', t0)
         self.counters.steps += len(values)
+        self.counters.behind += behind
         after = self._guard(guard_set)
         verdict = judge(before, after, cfg.guard_tolerance, cfg.guard_z)
         report = UpdateReport(

@@ -84,10 +84,7 @@ class OnlineAdaptation:
         self.submitted = 0
         self.dropped = 0
         self.failed = 0
-        #: Updates trained while behind (another keyframe waiting, or one dropped since the last
-        #: take): they take the adapter's ``steps_when_behind`` steps (kept or rolled back;
-        #: keyframes skipped without training do not count).
-        self.behind_updates = 0
+        #: ``dropped`` when the training thread last took a keyframe: more since means behind.
         self._dropped_at_take = 0
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
@@ -144,7 +141,6 @@ class OnlineAdaptation:
                 self._busy = True
             try:
                 report = self.adapter.observe(sample, abort=lambda: self._stop, behind=behind)
-                self.behind_updates += report.behind and report.status != 'skipped'
                 if report.status == 'updated':
                     self.slot.swap(self.adapter.predictor(), self.adapter.version)
                 if self.on_report is not None:

@@ -76,6 +76,16 @@ def _warm_up(adapter, samples: list, full: int, sync) -> tuple[int, float]:
     return len(samples), slowest
 
 
+def _observe_seconds(adapter, samples: list, sync, behind: bool = False) -> float:
+    """Wall-clock seconds of observing ``samples`` one after the other (device synchronised)."""
+    sync()
+    start = time.perf_counter()
+    for s in samples:
+        adapter.observe(s, behind=behind)
+    sync()
+    return time.perf_counter() - start
+
+
 def run(opts: BenchOptions) -> list[BenchRow]:
     import torch
 
@@ -92,13 +102,8 @@ def run(opts: BenchOptions) -> list[BenchRow]:
         adapter = Adapter.from_spec('default', config, opts.device)
         sync = torch.cuda.synchronize if adapter.device.type == 'cuda' else (lambda: None)
         warm, slowest = _warm_up(adapter, samples[:WARM_MAX], full, sync)
-        sync()
-        start = time.perf_counter()
         steps_before = adapter.counters.steps
-        for s in samples[warm : warm + timed]:
-            adapter.observe(s)
-        sync()
-        seconds = time.perf_counter() - start
+        seconds = _observe_seconds(adapter, samples[warm : warm + timed], sync)
         steps = adapter.counters.steps - steps_before
         updates = timed
         batch = 1 + config.replay_per_step
@@ -120,11 +125,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
                 load_note(f'{seconds / updates * 1e3:.0f} ms per keyframe'),
             )
         )
-        start = time.perf_counter()
-        for s in samples[warm + timed : warm + 2 * timed]:
-            adapter.observe(s, behind=True)
-        sync()
-        behind_rate = timed / (time.perf_counter() - start)
+        behind_rate = timed / _observe_seconds(adapter, samples[warm + timed : warm + 2 * timed], sync, True)
         rows.append(
             BenchRow(
                 f'keyframe updates while behind ({config.steps_when_behind} steps + guard)',

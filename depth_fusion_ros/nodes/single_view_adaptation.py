@@ -256,7 +256,7 @@ class NodeAdaptation:
         summary = (
             f'adaptation: {c.observed} keyframes, {c.updated} updates, {c.rolled_back} rolled back, '
             f'{c.skipped} skipped, {self.online.dropped} dropped, {self.online.failed} failed, '
-            f'{self.online.behind_updates} trained while behind'
+            f'{c.behind} trained while behind'
         )
         self.node.get_logger().info(summary)
         if self.checkpoint:

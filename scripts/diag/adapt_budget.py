@@ -89,7 +89,7 @@ def main() -> None:
             prm.requires_grad_(False)
     ad.warm_up()
     effective = [(0.0, ad.predictor())]  # (time the weights take effect, predictor)
-    t_free, queue, updates, cpu_total, dropped, dropped_at_take, behind_updates = 0.0, [], 0, 0.0, 0, 0, 0
+    t_free, queue, updates, cpu_total, dropped, dropped_at_take = 0.0, [], 0, 0.0, 0, 0
     errors, log_updates = [], []
     for k, r in enumerate(keys):
         t_k = k * STRIDE / FPS
@@ -98,7 +98,6 @@ def main() -> None:
             start = max(t_free, arrival)
             behind = bool(queue) or dropped > dropped_at_take
             dropped_at_take = dropped
-            behind_updates += behind
             c0 = time.process_time()
             rep = ad.observe(sample_of(rows, row, cam, cfg), behind=behind)
             g = rep.guard
@@ -130,7 +129,7 @@ def main() -> None:
                 share=SHARE,
                 keyframes=len(keys),
                 updates=updates,
-                behind_updates=behind_updates,
+                behind_updates=ad.counters.behind,
                 cpu_per_update_s=round(cpu_total / max(updates, 1), 3),
                 mae=round(mae, 4),
                 mae_second_half=round(mae2, 4),
