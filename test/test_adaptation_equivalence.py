@@ -27,7 +27,14 @@ from depth_fusion_ros.adaptation.warp import pixel_rays
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
-CONFIG = {'steps_per_keyframe': 3, 'replay_per_step': 2, 'min_points': 5, 'guard_keyframes': 3}
+# Whole keyframes (photometric_window 1): the reference has no windows (test_adaptation_window.py).
+CONFIG = {
+    'steps_per_keyframe': 3,
+    'replay_per_step': 2,
+    'min_points': 5,
+    'guard_keyframes': 3,
+    'photometric_window': 1.0,
+}
 
 
 # --- the reference: the step as it was, one keyframe at a time ---------------------------------

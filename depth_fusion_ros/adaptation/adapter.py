@@ -41,6 +41,7 @@ from .prepared import PreparedSample
 from .replay import ReplayBuffer
 from .sample import AdaptSample
 from .snapshot import WeightSnapshot
+from .window import draw_windows
 
 log = logging.getLogger(__name__)
 
@@ -214,9 +215,17 @@ class Adapter:
     def prepare(self, sample: AdaptSample) -> PreparedSample:
         return PreparedSample(sample, self._preprocessor.preprocess, self.device)
 
-    def loss(self, batch: list[PreparedSample]) -> torch.Tensor:
-        """Mean over the batch of the weighted self-supervised terms (``batch.batch_loss``)."""
-        return batch_loss(self.net(torch.cat([s.x for s in batch])), batch, self.config)
+    def loss(self, batch: list[PreparedSample], rng: np.random.Generator | None = None) -> torch.Tensor:
+        """Mean over the batch of the weighted self-supervised terms (``batch.batch_loss``); with
+        ``rng``, the dense terms on windows of ``photometric_window`` of each side (``window.py``)."""
+        log_depth = self.net(torch.cat([s.x for s in batch]))
+        windows = None
+        fraction = self.config.photometric_window
+        if rng is not None and fraction < 1.0:
+            h, w = log_depth.shape[-2:]
+            size = (max(1, round(h * fraction)), max(1, round(w * fraction)))
+            windows = draw_windows(len(batch), (h, w), size, rng)
+        return batch_loss(log_depth, batch, self.config, windows)
 
     def _guard(self, samples: list[PreparedSample]) -> list[torch.Tensor]:
         """Held-out point errors of ``samples`` that have held-out points, with the current
@@ -249,7 +258,7 @@ class Adapter:
                 return None
             rng = np.random.default_rng([*seed, step])
             batch = [prepared, *self.buffer.draw(cfg.replay_per_step, rng)]
-            loss = self.loss(batch)
+            loss = self.loss(batch, rng)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.grad_clip > 0:

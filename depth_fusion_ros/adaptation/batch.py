@@ -19,7 +19,8 @@ import torch
 
 from .config import AdaptConfig
 from .losses import KeyStats, PhotometricBatch, photometric_batch, smoothness_batch, sparse_batch
-from .prepared import PreparedSample
+from .prepared import GridTensors, PhotometricTensors, PreparedSample
+from .window import Window, cut
 
 
 @dataclass
@@ -46,10 +47,9 @@ def point_batch(grids: Sequence[torch.Tensor], targets: Sequence[torch.Tensor]) 
     return PointBatch(grid, target, mask)
 
 
-def photometric_pairs(samples: Sequence[PreparedSample], height: int, width: int, alpha: float):
-    """The :class:`~.losses.PhotometricBatch` of ``samples`` on the (height, width) grid, or
-    None when none of them has posed neighbours."""
-    photos = [s.grid(height, width, alpha).photometric for s in samples]
+def photometric_pairs(photos: Sequence[PhotometricTensors | None]):
+    """The :class:`~.losses.PhotometricBatch` of a batch's keyframes (their photometric tensors
+    on the loss grid, or a window of it), or None when none of them has posed neighbours."""
     counts = [0 if p is None else int(p.neighbours.shape[0]) for p in photos]
     pairs = sum(counts)
     if pairs == 0:
@@ -95,21 +95,33 @@ def _pair_index(counts: tuple[int, ...], device: torch.device) -> tuple[torch.Te
 
 
 def batch_loss(
-    log_depth: torch.Tensor, samples: Sequence[PreparedSample], config: AdaptConfig
+    log_depth: torch.Tensor,
+    samples: Sequence[PreparedSample],
+    config: AdaptConfig,
+    windows: Sequence[Window] | None = None,
 ) -> torch.Tensor:
     """Mean over the batch of the weighted self-supervised terms of each keyframe, for the
-    network's output ``log_depth`` (B, 1, h, w) on ``samples`` (in that order)."""
+    network's output ``log_depth`` (B, 1, h, w) on ``samples`` (in that order).
+
+    ``windows`` (one per keyframe, ``window.py``): the photometric and smoothness terms are
+    computed on those windows of the output only; the sparse term reads every point.
+    """
     h, w = log_depth.shape[-2:]
     points = point_batch([s.train_grid for s in samples], [s.train_log for s in samples])
     per_keyframe = config.sparse_weight * sparse_batch(log_depth, points.grid, points.target, points.mask)
+    if config.photometric_weight <= 0 and config.smoothness_weight <= 0:
+        return per_keyframe.sum() / len(samples)
+    grids: list[GridTensors] = [s.grid(h, w, config.ssim_alpha) for s in samples]
+    if windows is not None:
+        grids = [win.grid(g, h, w) for win, g in zip(windows, grids, strict=True)]
+        log_depth = cut(log_depth, windows)
     if config.photometric_weight > 0:
-        pairs = photometric_pairs(samples, h, w, config.ssim_alpha)
+        pairs = photometric_pairs([g.photometric for g in grids])
         if pairs is not None:
             per_keyframe = per_keyframe + config.photometric_weight * photometric_batch(
                 log_depth, pairs, config.ssim_alpha
             )
     if config.smoothness_weight > 0:
-        grids = [s.grid(h, w, config.ssim_alpha) for s in samples]
         wx = torch.cat([g.weight_x for g in grids])
         wy = torch.cat([g.weight_y for g in grids])
         per_keyframe = per_keyframe + config.smoothness_weight * smoothness_batch(log_depth, wx, wy)

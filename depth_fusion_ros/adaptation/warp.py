@@ -36,11 +36,14 @@ def warp_neighbours(
     neighbour transforms. Returns the warped images (N, C, H, W) and a validity mask (N, 1, H, W):
     the point is in front of the neighbour and projects inside it.
 
-    Batched over keyframes too: ``depth`` may be (N, 1, H, W) (each image's own keyframe
-    depth), ``k`` (N, 3, 3) and ``rays`` (N, 3, H*W). ``rays`` (:func:`pixel_rays` of
+    The keyframe's grid may be a window of the neighbours' (``depth`` smaller than ``images``,
+    ``rays`` of the window's pixels in the whole grid's coordinates): the warp samples the
+    whole neighbour images. Batched over keyframes too: ``depth`` may be (N, 1, H, W) (each
+    image's own keyframe depth), ``k`` (N, 3, 3) and ``rays`` (N, 3, H*W). ``rays`` (:func:`pixel_rays` of
     ``K^-1``) are computed when not given; training passes them, computed once per keyframe.
     """
     n, _, height, width = images.shape
+    out_h, out_w = depth.shape[-2:]  # the keyframe's grid (a window of it: ``rays`` given)
     if rays is None:
         rays = pixel_rays(torch.linalg.inv(k), height, width)  # (3, HW)
     points = rays * depth.reshape(depth.shape[0], 1, -1)  # (1 or N, 3, HW)
@@ -52,8 +55,8 @@ def warp_neighbours(
     u = proj[:, 0] / safe_z[:, 0]
     v = proj[:, 1] / safe_z[:, 0]
     grid = torch.stack([(u + 0.5) / width * 2 - 1, (v + 0.5) / height * 2 - 1], dim=-1)
-    grid = grid.reshape(n, height, width, 2)
+    grid = grid.reshape(n, out_h, out_w, 2)
     warped = F.grid_sample(images, grid, mode='bilinear', padding_mode='border', align_corners=False)
     inside = (grid.abs() < 1).all(dim=-1, keepdim=True).permute(0, 3, 1, 2)
-    valid = inside & front.reshape(n, 1, height, width)
+    valid = inside & front.reshape(n, 1, out_h, out_w)
     return warped, valid

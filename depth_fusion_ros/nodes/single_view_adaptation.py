@@ -39,6 +39,7 @@ ADAPT_LIMITS: dict[str, Any] = {
     'buffer_size': (1, 10000),
     'replay_per_step': (0, 64),
     'steps_when_behind': (1, 1000),
+    'photometric_window': (0.05, 1.0),
     'sparse_weight': (0.0, None),
     'photometric_weight': (0.0, None),
     'smoothness_weight': (0.0, None),
@@ -164,7 +165,8 @@ class NodeAdaptation:
         node.get_logger().info(
             f'adapting {self.adapter.name} online: lr {self.config.lr:g}, '
             f'{self.config.steps_per_keyframe} steps/keyframe, replay {self.config.replay_per_step} of '
-            f'{self.config.buffer_size} ({self.config.steps_when_behind} steps while behind); '
+            f'{self.config.buffer_size} ({self.config.steps_when_behind} steps while behind), windows of '
+            f'{self.config.photometric_window:g} of each side; '
             f'signals {node.resolve_topic_name(TOPIC_MV_DEPTH)}, '
             f'{node.resolve_topic_name(TOPIC_KEYFRAME_POSE)}; checkpoint {self.checkpoint or "(none)"}'
         )
