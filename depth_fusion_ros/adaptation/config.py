@@ -27,10 +27,11 @@ class AdaptConfig:
     #: Replayed keyframes in each step's batch, besides the new keyframe.
     replay_per_step: int = 2
     #: Optimiser steps of an update made while training is behind: the training thread found
-    #: another keyframe waiting, or keyframes were dropped since it took its last one (a live
-    #: node on a small CPU: keyframes come faster than updates). The same CPU then reaches
-    #: more keyframes with fewer steps each (docs/adaptation.md, "On a CPU budget").
-    #: Offline (``evaluate``, ``depth-fusion adapt``) training is never behind.
+    #: another keyframe waiting, keyframes were dropped since it took its last one, or its last
+    #: update took longer than keyframes come (a live node on a small CPU); and its first
+    #: update. The same CPU then reaches more keyframes with fewer steps each
+    #: (docs/adaptation.md, "On a CPU budget"). Offline (``evaluate``, ``depth-fusion adapt``)
+    #: training is never behind.
     steps_when_behind: int = 2
     #: The photometric and smoothness terms of a training step are computed on a window of
     #: this fraction of each keyframe's height and width (drawn anew for every keyframe of

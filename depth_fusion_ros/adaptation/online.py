@@ -4,7 +4,7 @@ Inference must never wait for training. So training happens on a thread that own
 :class:`~.adapter.Adapter` (torch releases the GIL inside its operators, so both threads
 compute at once), samples reach it through a small bounded queue (``submit`` never blocks;
 when training falls behind the oldest waiting keyframe is dropped and counted, and the
-updates made meanwhile are the adapter's shorter ``behind`` ones), and each
+updates made meanwhile are the adapter's shorter ``behind`` ones: see :meth:`_behind`), and each
 accepted update produces a *new* predictor around a copy of the weights, published through a
 :class:`WeightSlot`. Inference takes the slot's current predictor with one locked read and
 runs it; training never touches a module that is predicting, and a swap never waits for a
@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
@@ -65,6 +66,7 @@ class OnlineAdaptation:
         on_report: Callable[[UpdateReport], None] | None = None,
         name: str = 'adaptation',
         nice: int = 0,
+        clock: Callable[[], float] = time.monotonic,
     ):
         if queue_size < 1:
             raise ValueError(f'adaptation queue size must be >= 1, got {queue_size}')
@@ -86,12 +88,22 @@ class OnlineAdaptation:
         self.failed = 0
         #: ``dropped`` when the training thread last took a keyframe: more since means behind.
         self._dropped_at_take = 0
+        self._clock = clock
+        self._last_submit: float | None = None
+        #: Seconds between the last two submitted keyframes (None before the second).
+        self._interval: float | None = None
+        #: Seconds the last update that trained took (None before the first).
+        self._last_update: float | None = None
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     def submit(self, sample: AdaptSample) -> bool:
         """Queue a keyframe for training; never blocks. False when an older one was dropped."""
         with self._cond:
+            now = self._clock()
+            if self._last_submit is not None:
+                self._interval = now - self._last_submit
+            self._last_submit = now
             self.submitted += 1
             dropped = len(self._queue) >= self._queue_size
             if dropped:
@@ -136,11 +148,13 @@ class OnlineAdaptation:
                 if self._stop:
                     return
                 sample = self._queue.popleft()
-                behind = bool(self._queue) or self.dropped > self._dropped_at_take
+                behind = self._behind()
                 self._dropped_at_take = self.dropped
                 self._busy = True
             try:
                 report = self.adapter.observe(sample, abort=lambda: self._stop, behind=behind)
+                if report.status != 'skipped':
+                    self._last_update = report.seconds
                 if report.status == 'updated':
                     self.slot.swap(self.adapter.predictor(), self.adapter.version)
                 if self.on_report is not None:
@@ -152,6 +166,22 @@ class OnlineAdaptation:
                 with self._cond:
                     self._busy = False
                     self._cond.notify_all()
+
+    def _behind(self) -> bool:
+        """Whether the keyframe just taken gets a short update (called holding the lock).
+
+        Behind: another keyframe waits, or keyframes were dropped since the last one taken; or,
+        before the queue shows it, the last update that trained took longer than keyframes
+        come (keyframes that are not trained on, e.g. too few multi-view points, empty the
+        queue without the thread keeping up); and the first update, before either is known: on
+        a starved CPU a full first update lasts seconds and every keyframe meanwhile is
+        predicted by the network as loaded (docs/adaptation.md, "On a CPU budget").
+        """
+        if self._queue or self.dropped > self._dropped_at_take:
+            return True
+        if self._last_update is None or self._interval is None:
+            return True
+        return self._last_update > self._interval
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Block until nothing is queued or training (tests, flushing before a save)."""

@@ -5,8 +5,10 @@ A live node on 2 cores cannot: keyframes come at ~6 a second, an update takes 0.
 CPU, and the niced training thread gets what the other nodes leave (a small share of a core
 during a 30 Hz stream). The node's training thread takes the oldest of the (two) keyframes
 queued and the newest replaces the oldest when the queue is full (``adapt_queue_full``);
-an update made while behind (another keyframe waiting, or one dropped since the last one
-taken) takes the adapter's ``steps_when_behind`` steps. This replays that in
+an update made while behind (another keyframe waiting, one dropped since the last one
+taken, or the last update that trained slower than keyframes come; and the first update)
+takes the adapter's ``steps_when_behind`` steps (``PACE=0``: the first two only, the rule
+before 2026-11-29). This replays that in
 simulated time on a cache of scripts/diag/adapt_cache.py: keyframe k arrives at
 ``k * STRIDE / FPS``; an update lasts its measured CPU time (one torch thread) divided by
 ``SHARE``; keyframe k is predicted with the weights of the last update that finished before
@@ -14,7 +16,7 @@ it arrived. Prints the single-view MAE against the ground truth (read for the sc
 over all keyframes and over the second half, and the update counts:
 
     python scripts/diag/adapt_budget.py CACHE.pkl ['{"steps_when_behind": 6}']
-    STRIDE=5 FPS=30 SHARE=0.7 QUEUE=2 ...   the defaults
+    STRIDE=5 FPS=30 SHARE=0.7 QUEUE=2 PACE=1 ...   the defaults
 """
 
 import json
@@ -37,6 +39,7 @@ STRIDE = int(os.environ.get('STRIDE', '5'))
 FPS = float(os.environ.get('FPS', '30'))
 SHARE = float(os.environ.get('SHARE', '0.7'))
 QUEUE = int(os.environ.get('QUEUE', '2'))
+PACE = bool(int(os.environ.get('PACE', '1')))
 
 
 def sample_of(rows: list, r: dict, cam, cfg: AdaptConfig):
@@ -91,12 +94,15 @@ def main() -> None:
     effective = [(0.0, ad.predictor())]  # (time the weights take effect, predictor)
     t_free, queue, updates, cpu_total, dropped, dropped_at_take = 0.0, [], 0, 0.0, 0, 0
     errors, log_updates = [], []
+    last_wall = None
     for k, r in enumerate(keys):
         t_k = k * STRIDE / FPS
         while queue and max(t_free, queue[0][0]) <= t_k:
             arrival, row = queue.pop(0)  # the node's queue: oldest first
             start = max(t_free, arrival)
             behind = bool(queue) or dropped > dropped_at_take
+            if PACE:  # the last update outlasted the keyframe interval (none yet: assume so)
+                behind = behind or last_wall is None or last_wall > STRIDE / FPS
             dropped_at_take = dropped
             c0 = time.process_time()
             rep = ad.observe(sample_of(rows, row, cam, cfg), behind=behind)
@@ -106,6 +112,8 @@ def main() -> None:
             cpu = time.process_time() - c0
             cpu_total += cpu
             t_free = start + cpu / SHARE
+            if rep.status != 'skipped':
+                last_wall = cpu / SHARE
             updates += 1
             effective.append((t_free, ad.predictor()))
         pred = [p for t, p in effective if t <= t_k][-1]
