@@ -36,8 +36,9 @@ class PhotometricTensors:
     neighbours: torch.Tensor  # (N, 3, h, w) in [0, 1], gain-matched to the keyframe
     k: torch.Tensor  # (3, 3) intrinsics of the (h, w) grid
     t_ok: torch.Tensor  # (N, 4, 4)
-    #: ``(fx, fy, cx, cy)`` of ``k`` on the host (to compare cameras without a device sync).
-    camera: tuple[float, float, float, float]
+    #: ``(fx, fy, cx, cy)`` of ``k`` on the host (to compare cameras without a device sync);
+    #: a window of the grid appends its ``(top, left)``: its rays are its own (``window.py``).
+    camera: tuple[float, ...]
     #: (3, h*w) rays ``K^-1 [u, v, 1]`` of the grid.
     rays: torch.Tensor
     #: SSIM statistics of the keyframe (constant: the keyframe is not warped).

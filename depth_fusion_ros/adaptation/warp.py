@@ -33,13 +33,14 @@ def warp_neighbours(
     """Warp ``images`` (N, C, H, W) into the keyframe whose depth is ``depth`` (1, 1, H, W).
 
     ``k`` is the (3, 3) intrinsic matrix of this grid, ``t_ok`` (N, 4, 4) the keyframe-to-
-    neighbour transforms. Returns the warped images (N, C, H, W) and a validity mask (N, 1, H, W):
-    the point is in front of the neighbour and projects inside it.
+    neighbour transforms. Returns the warped images and a validity mask (the point is in front
+    of the neighbour and projects inside it) on the keyframe's grid: (N, C, H, W), (N, 1, H, W).
 
-    The keyframe's grid may be a window of the neighbours' (``depth`` smaller than ``images``,
-    ``rays`` of the window's pixels in the whole grid's coordinates): the warp samples the
-    whole neighbour images. Batched over keyframes too: ``depth`` may be (N, 1, H, W) (each
-    image's own keyframe depth), ``k`` (N, 3, 3) and ``rays`` (N, 3, H*W). ``rays`` (:func:`pixel_rays` of
+    The keyframe's grid may be a window of the neighbours' (``depth`` (., 1, h, w) smaller than
+    ``images``, ``rays`` of the window's pixels in the whole grid's coordinates): the warp
+    samples the whole neighbour images, and the outputs are (N, C, h, w), (N, 1, h, w).
+    Batched over keyframes too: ``depth`` may be (N, 1, H, W) (each image's own keyframe
+    depth), ``k`` (N, 3, 3) and ``rays`` (N, 3, H*W). ``rays`` (:func:`pixel_rays` of
     ``K^-1``) are computed when not given; training passes them, computed once per keyframe.
     """
     n, _, height, width = images.shape
