@@ -46,7 +46,7 @@ def test_the_warp_of_a_window_is_the_window_of_the_whole_warp(tiny_model, room):
     h, w = log_depth.shape[-2:]
     photo = prepared.grid(h, w).photometric
     win = Window(top=5, left=9, height=h // 2, width=w // 2)
-    part = win.photometric(photo, h, w)
+    part = win.photometric(photo)
     depth = torch.exp(log_depth)
     whole, whole_ok = warp_neighbours(photo.neighbours, depth, photo.k, photo.t_ok, photo.rays)
     warped, ok = warp_neighbours(part.neighbours, win.of(depth), part.k, part.t_ok, part.rays)
@@ -65,18 +65,18 @@ def test_the_whole_grid_as_a_window_is_the_whole_loss_and_windows_cover_it(tiny_
     whole = batch_loss(log_depth, batch, adapter.config)
     as_window = batch_loss(log_depth, batch, adapter.config, [Window(0, 0, h, w)] * 3)
     assert float(as_window) == pytest.approx(float(whole), rel=1e-6)
-    windows = draw_windows(3, (h, w), (h // 2, w // 2), np.random.default_rng(0))
+    windows = draw_windows(3, (h, w), 0.5, np.random.default_rng(0))
     assert cut(log_depth, windows).shape == (3, 1, h // 2, w // 2)
     assert all(0 <= v.top <= h - h // 2 and 0 <= v.left <= w - w // 2 for v in windows)
     seen = np.zeros((h, w), bool)
     rng = np.random.default_rng(1)
     for _ in range(60):  # a keyframe's steps and replays: the windows cover all of it
-        for v in draw_windows(1, (h, w), (h // 2, w // 2), rng):
+        for v in draw_windows(1, (h, w), 0.5, rng):
             seen[v.top : v.top + v.height, v.left : v.left + v.width] = True
     assert seen.all()
 
 
-def test_a_windowed_update_is_cheaper_in_pixels_and_still_learns(tiny_model, room):
+def test_a_windowed_update_is_cheaper_in_pixels_and_still_learns(tiny_model, room, monkeypatch):
     config = AdaptConfig.from_dict({'steps_per_keyframe': 6, 'replay_per_step': 1, 'min_points': 5})
     assert config.photometric_window == 0.5
     for bad in (0.0, 1.5):
@@ -84,19 +84,13 @@ def test_a_windowed_update_is_cheaper_in_pixels_and_still_learns(tiny_model, roo
             AdaptConfig.from_dict({'photometric_window': bad})
     adapter = Adapter.from_spec(tiny_model, config)
     seen = []
-    import depth_fusion_ros.adaptation.adapter as adapter_module
-
-    real = adapter_module.batch_loss
 
     def recording(log_depth, samples, cfg, windows=None):
         seen.append(None if windows is None else {(v.height, v.width) for v in windows})
-        return real(log_depth, samples, cfg, windows)
+        return batch_loss(log_depth, samples, cfg, windows)
 
-    adapter_module.batch_loss = recording
-    try:
-        reports = [adapter.observe(_sample(room, i)) for i in (1, 2, 3, 4)]
-    finally:
-        adapter_module.batch_loss = real
+    monkeypatch.setattr('depth_fusion_ros.adaptation.adapter.batch_loss', recording)
+    reports = [adapter.observe(_sample(room, i)) for i in (1, 2, 3, 4)]
     assert seen and all(s == {(12, 16)} for s in seen)  # 24x32 output, halved
     # Each step's windows differ, so its loss is not comparable with the last step's; the
     # guard's held-out points (the same before and after) say whether the update learned.

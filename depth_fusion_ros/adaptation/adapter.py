@@ -219,12 +219,10 @@ class Adapter:
         """Mean over the batch of the weighted self-supervised terms (``batch.batch_loss``); with
         ``rng``, the dense terms on windows of ``photometric_window`` of each side (``window.py``)."""
         log_depth = self.net(torch.cat([s.x for s in batch]))
-        windows = None
         fraction = self.config.photometric_window
+        windows = None
         if rng is not None and fraction < 1.0:
-            h, w = log_depth.shape[-2:]
-            size = (max(1, round(h * fraction)), max(1, round(w * fraction)))
-            windows = draw_windows(len(batch), (h, w), size, rng)
+            windows = draw_windows(len(batch), tuple(log_depth.shape[-2:]), fraction, rng)
         return batch_loss(log_depth, batch, self.config, windows)
 
     def _guard(self, samples: list[PreparedSample]) -> list[torch.Tensor]:

@@ -113,7 +113,7 @@ def batch_loss(
         return per_keyframe.sum() / len(samples)
     grids: list[GridTensors] = [s.grid(h, w, config.ssim_alpha) for s in samples]
     if windows is not None:
-        grids = [win.grid(g, h, w) for win, g in zip(windows, grids, strict=True)]
+        grids = [win.grid(g) for win, g in zip(windows, grids, strict=True)]
         log_depth = cut(log_depth, windows)
     if config.photometric_weight > 0:
         pairs = photometric_pairs([g.photometric for g in grids])

@@ -4,7 +4,7 @@ Inference must never wait for training. So training happens on a thread that own
 :class:`~.adapter.Adapter` (torch releases the GIL inside its operators, so both threads
 compute at once), samples reach it through a small bounded queue (``submit`` never blocks;
 when training falls behind the oldest waiting keyframe is dropped and counted, and the
-updates made meanwhile are the adapter's shorter ``behind`` ones: see :meth:`_behind`), and each
+updates made meanwhile are the adapter's shorter ``behind`` ones: :func:`is_behind`), and each
 accepted update produces a *new* predictor around a copy of the weights, published through a
 :class:`WeightSlot`. Inference takes the slot's current predictor with one locked read and
 runs it; training never touches a module that is predicting, and a swap never waits for a
@@ -27,6 +27,22 @@ from .adapter import Adapter, UpdateReport
 from .sample import AdaptSample
 
 log = logging.getLogger(__name__)
+
+
+def is_behind(waiting: bool, dropped_since: bool, last_update: float | None, interval: float | None) -> bool:
+    """Whether the training thread's next update is a short one (the adapter's ``behind``).
+
+    Behind: another keyframe ``waiting``, or keyframes dropped since the last one taken; or,
+    before the queue shows it, the last update that trained took longer (``last_update``, s)
+    than keyframes come (``interval``, s): keyframes that are not trained on (too few
+    multi-view points) empty the queue without the thread keeping up; and the first update,
+    before either is known: on a starved CPU a full first update lasts seconds and every
+    keyframe meanwhile is predicted by the network as loaded (docs/adaptation.md, "On a CPU
+    budget"). One rule for the node's thread and ``scripts/diag/adapt_budget.py``.
+    """
+    if waiting or dropped_since or last_update is None or interval is None:
+        return True
+    return last_update > interval
 
 
 class WeightSlot:
@@ -168,20 +184,10 @@ class OnlineAdaptation:
                     self._cond.notify_all()
 
     def _behind(self) -> bool:
-        """Whether the keyframe just taken gets a short update (called holding the lock).
-
-        Behind: another keyframe waits, or keyframes were dropped since the last one taken; or,
-        before the queue shows it, the last update that trained took longer than keyframes
-        come (keyframes that are not trained on, e.g. too few multi-view points, empty the
-        queue without the thread keeping up); and the first update, before either is known: on
-        a starved CPU a full first update lasts seconds and every keyframe meanwhile is
-        predicted by the network as loaded (docs/adaptation.md, "On a CPU budget").
-        """
-        if self._queue or self.dropped > self._dropped_at_take:
-            return True
-        if self._last_update is None or self._interval is None:
-            return True
-        return self._last_update > self._interval
+        """:func:`is_behind` for the keyframe just taken (called holding the lock)."""
+        return is_behind(
+            bool(self._queue), self.dropped > self._dropped_at_take, self._last_update, self._interval
+        )
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Block until nothing is queued or training (tests, flushing before a save)."""

@@ -44,15 +44,13 @@ class Window:
         rows = slice(self.top, self.top + self.height - shrink_h)
         return t[..., rows, self.left : self.left + self.width - shrink_w]
 
-    def photometric(
-        self, p: PhotometricTensors | None, full_h: int, full_w: int
-    ) -> PhotometricTensors | None:
+    def photometric(self, p: PhotometricTensors | None) -> PhotometricTensors | None:
         """The keyframe side of ``p`` on the window; the neighbours (sampled wherever the warp
         lands) and the intrinsics stay whole."""
         if p is None:
             return None
         stats = KeyStats(*(self.of(t) for t in (p.stats.image, p.stats.mu, p.stats.mu_sq, p.stats.sigma)))
-        rays = self.of(p.rays.view(3, full_h, full_w)).reshape(3, -1)
+        rays = self.of(p.rays.view(3, *p.key.shape[-2:])).reshape(3, -1)  # the key is on the whole grid
         return dataclasses.replace(
             p,
             key=self.of(p.key),
@@ -62,25 +60,27 @@ class Window:
             identity=self.of(p.identity),
         )
 
-    def grid(self, g: GridTensors, full_h: int, full_w: int) -> GridTensors:
+    def grid(self, g: GridTensors) -> GridTensors:
         """``g`` on the window."""
         return GridTensors(
             weight_x=self.of(g.weight_x, shrink_w=1),
             weight_y=self.of(g.weight_y, shrink_h=1),
-            photometric=self.photometric(g.photometric, full_h, full_w),
+            photometric=self.photometric(g.photometric),
         )
 
 
 def draw_windows(
-    count: int, full: tuple[int, int], size: tuple[int, int], rng: np.random.Generator
+    count: int, full: tuple[int, int], fraction: float, rng: np.random.Generator
 ) -> list[Window]:
-    """``count`` windows of ``size`` (height, width) at random places of a ``full`` grid.
+    """``count`` windows of ``fraction`` of the height and width of a ``full`` grid (at least
+    one cell each), at random places.
 
     A place drawn uniformly among the windows that fit would cover a corner pixel only from
     one place of (H - h + 1)(W - w + 1): the offsets are drawn from half a window beyond each
     edge and clamped, so at half size a window touches each edge about a quarter of the time.
     """
-    (full_h, full_w), (h, w) = full, size
+    full_h, full_w = full
+    h, w = max(1, round(full_h * fraction)), max(1, round(full_w * fraction))
     tops = np.clip(rng.integers(-(h // 2), full_h - h + h // 2 + 1, size=count), 0, full_h - h)
     lefts = np.clip(rng.integers(-(w // 2), full_w - w + w // 2 + 1, size=count), 0, full_w - w)
     return [Window(int(t), int(left), h, w) for t, left in zip(tops, lefts, strict=True)]

@@ -7,8 +7,8 @@ during a 30 Hz stream). The node's training thread takes the oldest of the (two)
 queued and the newest replaces the oldest when the queue is full (``adapt_queue_full``);
 an update made while behind (another keyframe waiting, one dropped since the last one
 taken, or the last update that trained slower than keyframes come; and the first update)
-takes the adapter's ``steps_when_behind`` steps (``PACE=0``: the first two only, the rule
-before 2026-11-29). This replays that in
+takes the adapter's ``steps_when_behind`` steps (the node's own rule,
+``online.is_behind``). This replays that in
 simulated time on a cache of scripts/diag/adapt_cache.py: keyframe k arrives at
 ``k * STRIDE / FPS``; an update lasts its measured CPU time (one torch thread) divided by
 ``SHARE``; keyframe k is predicted with the weights of the last update that finished before
@@ -16,7 +16,7 @@ it arrived. Prints the single-view MAE against the ground truth (read for the sc
 over all keyframes and over the second half, and the update counts:
 
     python scripts/diag/adapt_budget.py CACHE.pkl ['{"steps_when_behind": 6}']
-    STRIDE=5 FPS=30 SHARE=0.7 QUEUE=2 PACE=1 ...   the defaults
+    STRIDE=5 FPS=30 SHARE=0.7 QUEUE=2 ...   the defaults
 """
 
 import json
@@ -31,6 +31,7 @@ import torch
 
 from depth_fusion_ros.adaptation.adapter import Adapter
 from depth_fusion_ros.adaptation.config import AdaptConfig
+from depth_fusion_ros.adaptation.online import is_behind
 from depth_fusion_ros.adaptation.sample import Neighbour, make_sample
 from depth_fusion_ros.metrics import upsample_depth, valid_mask
 
@@ -39,7 +40,6 @@ STRIDE = int(os.environ.get('STRIDE', '5'))
 FPS = float(os.environ.get('FPS', '30'))
 SHARE = float(os.environ.get('SHARE', '0.7'))
 QUEUE = int(os.environ.get('QUEUE', '2'))
-PACE = bool(int(os.environ.get('PACE', '1')))
 
 
 def sample_of(rows: list, r: dict, cam, cfg: AdaptConfig):
@@ -100,9 +100,7 @@ def main() -> None:
         while queue and max(t_free, queue[0][0]) <= t_k:
             arrival, row = queue.pop(0)  # the node's queue: oldest first
             start = max(t_free, arrival)
-            behind = bool(queue) or dropped > dropped_at_take
-            if PACE:  # the last update outlasted the keyframe interval (none yet: assume so)
-                behind = behind or last_wall is None or last_wall > STRIDE / FPS
+            behind = is_behind(bool(queue), dropped > dropped_at_take, last_wall, STRIDE / FPS)
             dropped_at_take = dropped
             c0 = time.process_time()
             rep = ad.observe(sample_of(rows, row, cam, cfg), behind=behind)
