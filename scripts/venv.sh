@@ -57,5 +57,11 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   python -m pip install -q --disable-pip-version-check --no-deps -e "$ROOT"
   echo "$want" > "$stamp"
 fi
+# The package's bytecode, compiled once here rather than by every process that imports it: an
+# editable install is not compiled by pip, and with PYTHONDONTWRITEBYTECODE (set on many CI and
+# container images) Python never writes it, so each node process would compile ~200 modules
+# at start, ~0.3 s of CPU, three times over on a graph's start (docs/performance.md, "Time to
+# ready"). Up-to-date files are skipped; a stale .pyc is ignored by Python, not trusted.
+python -m compileall -q -j 0 "$ROOT/depth_fusion_ros" > /dev/null
 # ament_index look-ups (ros2 run style) resolve against the venv prefix.
 export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"

@@ -248,3 +248,17 @@ def test_first_minimum_matches_torch_min():
         values, first = _min0(c)
         assert torch.equal(values.nan_to_num(-1.0), ref.values.nan_to_num(-1.0))
         assert torch.equal(first, ref.indices)
+
+
+@pytest.mark.parametrize('patch', ['box', 'cross'])
+def test_channels_last_descriptors_are_the_same_numbers(patch: str) -> None:
+    """The filter's frame descriptors are written channels-last by the projection itself (no
+    copy of the finished ones): the same values, visibility band included, in that layout."""
+    from depth_fusion_ros.multiview.cost_volume import patch_descriptors
+
+    images = torch.rand(2, 30, 40, generator=torch.Generator().manual_seed(3))
+    planar = patch_descriptors(images, patch, visibility_margin=3, channels=4)
+    last = patch_descriptors(images, patch, visibility_margin=3, channels=4, channels_last=True)
+    assert last.is_contiguous(memory_format=torch.channels_last)
+    assert not planar.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(last, planar, rtol=0, atol=0)

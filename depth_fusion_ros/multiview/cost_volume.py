@@ -112,7 +112,7 @@ def zero_mean_basis(patch: str, channels: int = 0) -> np.ndarray:
     return rows[: channels or taps - 1]
 
 
-def stage_descriptors(images: torch.Tensor, config: Any) -> torch.Tensor:
+def stage_descriptors(images: torch.Tensor, config: Any, channels_last: bool = False) -> torch.Tensor:
     """:func:`patch_descriptors` with a stage's matching settings (``MultiViewConfig`` or
     ``TVConfig``: ``patch``, ``patch_stride``, ``blur_sigma``, ``noise_floor``,
     ``descriptor_channels``), visibility band included, so both stages match the same way."""
@@ -124,6 +124,7 @@ def stage_descriptors(images: torch.Tensor, config: Any) -> torch.Tensor:
         config.noise_floor,
         patch_reach(config.patch, config.patch_stride),
         config.descriptor_channels,
+        channels_last,
     )
 
 
@@ -149,6 +150,7 @@ def patch_descriptors(
     eps: float = 0.01,
     visibility_margin: int | None = None,
     channels: int = 0,
+    channels_last: bool = False,
 ) -> torch.Tensor:
     """Normalised zero-mean patch descriptors ``(B, K, H, W)`` of grey ``(B, H, W)`` images.
 
@@ -158,7 +160,9 @@ def patch_descriptors(
     that ``eps`` (grey levels in [0, 1], the noise floor) shortens low-contrast descriptors so
     their ZNCC with anything is near 0. With ``visibility_margin`` the descriptors are zeroed
     in a border band of that width and a last channel, 1 inside the band, is appended: see
-    :func:`sample_cost`.
+    :func:`sample_cost`. ``channels_last``: the same numbers stored channels-last (the
+    filter's lookups read every channel of a tap at once), written so by the projection
+    itself instead of by a copy of the finished descriptors.
     """
     check_patch(patch, stride)
     blurred = gaussian_blur(images, blur_sigma)
@@ -180,11 +184,14 @@ def patch_descriptors(
     basis = _basis(patch, channels, images.dtype, images.device)
     channels = basis.shape[0]
     extra = 0 if visibility_margin is None else 1
-    out = torch.empty((b, channels + extra, h, w), dtype=images.dtype, device=images.device)
+    layout = torch.channels_last if channels_last else torch.contiguous_format
+    out = torch.empty((b, channels + extra, h, w), dtype=images.dtype, device=images.device, memory_format=layout)
     desc = out[:, :channels]
     projected = torch.matmul(basis, stack.reshape(b, len(offsets), h * w)).reshape(b, channels, h, w)
     # (d * d).sum beats linalg.vector_norm over the channel dimension by far on CPU; the
-    # division writes straight into the output (one pass, no copy first).
+    # division writes straight into the output (one pass, no copy first), in either layout
+    # (channels-last: 1.35 against 1.76 ms for a planar division and a copy, 320x240, one
+    # thread; projecting pixel-major instead makes the channel sum slower than the copy).
     norm = torch.sqrt((projected * projected).sum(dim=1, keepdim=True) + len(offsets) * eps * eps)
     torch.div(projected, norm, out=desc)
     if visibility_margin is not None:
