@@ -7,7 +7,7 @@ on that function's first call, and when that first call runs on two threads at o
 them can run the low-accuracy AVX2 ``EP`` kernel for its whole chunk despite ``VML_HA``
 (pytorch/pytorch#188791, #188792; fixed in oneMKL >= 2025.0). Here it hit the first
 ``torch.sqrt`` of a process, the descriptor norm of the filter's first frame
-(``cost_volume.patch_descriptors``): half of that frame's norms ~1e-4 off (up to ~4000 ulp),
+(``descriptors.patch_descriptors``): half of that frame's norms ~1e-4 off (up to ~4000 ulp),
 matching the EP kernel bit for bit, so the whole filter run, and the evaluate MAEs, came out
 different in about 3 % of processes (more often with the allocator tuning of
 :mod:`.malloc_tuning`, which changes the threads' timing; seen without it too). A

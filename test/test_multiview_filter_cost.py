@@ -254,7 +254,7 @@ def test_first_minimum_matches_torch_min():
 def test_channels_last_descriptors_are_the_same_numbers(patch: str) -> None:
     """The filter's frame descriptors are written channels-last by the projection itself (no
     copy of the finished ones): the same values, visibility band included, in that layout."""
-    from depth_fusion_ros.multiview.cost_volume import patch_descriptors
+    from depth_fusion_ros.multiview.descriptors import patch_descriptors
 
     images = torch.rand(2, 30, 40, generator=torch.Generator().manual_seed(3))
     planar = patch_descriptors(images, patch, visibility_margin=3, channels=4)

@@ -28,6 +28,7 @@ print('ok')
 
 ENTRY_MODULES = (
     'depth_fusion_ros.multiview.cost_volume',
+    'depth_fusion_ros.multiview.descriptors',
     'depth_fusion_ros.fusion.pipeline',
     'depth_fusion_ros.singleview.torchscript_model',
 )

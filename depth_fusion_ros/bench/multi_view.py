@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..data.sequence import Sequence
-from ..multiview.cost_volume import stage_descriptors
+from ..multiview.descriptors import stage_descriptors
 from ..multiview.neighbours import select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
 from ..multiview.tv import TVConfig, estimate_tv

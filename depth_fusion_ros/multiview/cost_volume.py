@@ -14,125 +14,23 @@ a ratio of affine functions of ``rho``. ``a`` (per pixel and neighbour) and ``b`
 neighbour) are computed once, so a sweep over any number of samples is a few multiply-adds
 followed by one bilinear gather (``grid_sample``) for all pixels x samples x neighbours.
 
-Photometric error: zero-mean normalised cross-correlation (ZNCC) of a small patch, as the
-cost ``1 - ZNCC``. Why ZNCC rather than the paper's raw intensity difference: TUM's
-auto-exposure changes gain and bias between frames, 7-Scenes colour is JPEG and TUM has
-motion blur; ZNCC is exactly invariant to a local gain and bias, bounded in ``[0, 2]`` (so one
-occluded neighbour cannot dominate the average) and a patch averages out pixel noise. The
-patch is sampled as a per-pixel *descriptor*: each image is blurred, the patch values around
-every pixel are stacked as channels and normalised to zero mean and unit norm once per image.
-A bilinear lookup of the descriptor image at the projected point then gives the neighbour's
-(normalised) patch there, and the ZNCC is a dot product. This assumes the patch keeps its
-shape between views (fronto-parallel, small rotation), which the neighbour selection bounds.
-The normalisation adds ``eps`` to the norm so texture-less patches get near-zero descriptors
-and a flat cost of about 1: they produce no distinct minimum and so low photometric scores.
+Photometric error: ``1 - ZNCC`` of a small patch, a dot product of the per-pixel patch
+descriptors of ``descriptors.py`` (why ZNCC, and how a patch becomes a descriptor, is there):
+a bilinear lookup of the neighbour's descriptor image at the projected point gives its
+normalised patch there.
 """
 
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the first parallel sqrt)
-from ..separable import separable_sum
-
-#: Patch layouts (offsets in units of the patch stride): cost per lookup grows with the size.
-PATCH_OFFSETS: dict[str, tuple[tuple[int, int], ...]] = {
-    'cross': ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)),
-    'box': tuple((dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)),
-}
-
-
-def patch_reach(patch: str, stride: int) -> int:
-    """Largest pixel offset of a patch (the image margin its lookups need)."""
-    return max(max(abs(dx), abs(dy)) for dx, dy in PATCH_OFFSETS[patch]) * stride
-
-
-def check_patch(patch: str, stride: int) -> None:
-    if patch not in PATCH_OFFSETS:
-        raise ValueError(f'patch must be one of {sorted(PATCH_OFFSETS)}, got {patch!r}')
-    if int(stride) < 1:
-        raise ValueError(f'patch_stride must be >= 1, got {stride}')
-
-
-def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of ``(B, H, W)`` images (replicate borders); identity for sigma <= 0.
-
-    Normalised taps over +-2.5 sigma (rounded: 3 taps for the default 0.5), summed as shifted
-    slices (``separable.separable_sum``).
-    """
-    if sigma <= 0:
-        return images
-    radius = max(1, round(2.5 * sigma))
-    taps = [math.exp(-0.5 * (k / sigma) ** 2) for k in range(-radius, radius + 1)]
-    total = sum(taps)
-    return separable_sum(images, [t / total for t in taps], replicate=True)
-
-
-def zero_mean_basis(patch: str, channels: int = 0) -> np.ndarray:
-    """Orthonormal rows spanning the zero-mean patches, lowest spatial frequencies first.
-
-    ``(K, P)`` for a ``P``-tap patch, ``K = P - 1`` (all of them) or ``channels`` when given.
-    Projecting a patch on all of them removes its mean and keeps every dot product between
-    zero-mean patches, so the ZNCC is exact with one channel less to look up; keeping only the
-    lowest frequencies is a ZNCC of a smoothed patch, cheaper still (each channel is one more
-    bilinear lookup per pixel, sample and neighbour). ``box``: the 2-D DCT-II basis of the 3x3
-    patch without its constant term, by increasing frequency; ``cross``: the two gradients,
-    then a Laplacian and an anisotropy term.
-    """
-    taps = len(PATCH_OFFSETS[patch])
-    if not (0 <= channels <= taps - 1):
-        raise ValueError(
-            f'descriptor_channels must be in [0, {taps - 1}] for the {patch!r} patch, got {channels}'
-        )
-    if patch == 'box':
-        k = np.arange(3)
-        dct = np.cos(np.pi * (2 * k[None, :] + 1) * k[:, None] / 6.0) * np.sqrt(2.0 / 3.0)
-        dct[0] /= np.sqrt(2.0)
-        order = sorted(((fy, fx) for fy in range(3) for fx in range(3)), key=lambda f: (f[0] + f[1], f))
-        # PATCH_OFFSETS['box'] is row-major over (dy, dx) in -1..1, as np.outer's layout.
-        rows = np.stack([np.outer(dct[fy], dct[fx]).reshape(-1) for fy, fx in order[1:]])
-    else:  # cross: (0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)
-        rows = np.array(
-            [
-                [0.0, -1.0, 1.0, 0.0, 0.0],
-                [0.0, 0.0, 0.0, -1.0, 1.0],
-                [4.0, -1.0, -1.0, -1.0, -1.0],
-                [0.0, 1.0, 1.0, -1.0, -1.0],
-            ]
-        )
-        rows /= np.linalg.norm(rows, axis=1, keepdims=True)
-    return rows[: channels or taps - 1]
-
-
-def stage_descriptors(images: torch.Tensor, config: Any, channels_last: bool = False) -> torch.Tensor:
-    """:func:`patch_descriptors` with a stage's matching settings (``MultiViewConfig`` or
-    ``TVConfig``: ``patch``, ``patch_stride``, ``blur_sigma``, ``noise_floor``,
-    ``descriptor_channels``), visibility band included, so both stages match the same way."""
-    return patch_descriptors(
-        images,
-        config.patch,
-        config.patch_stride,
-        config.blur_sigma,
-        config.noise_floor,
-        patch_reach(config.patch, config.patch_stride),
-        config.descriptor_channels,
-        channels_last,
-    )
-
-
-@functools.lru_cache(maxsize=16)
-def _basis(patch: str, channels: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """:func:`zero_mean_basis` as a tensor, built once per layout, dtype and device: the filter
-    describes every frame, and building it (numpy, a sort, a copy) was a tenth of that."""
-    return torch.as_tensor(zero_mean_basis(patch, channels), dtype=dtype, device=device)
 
 
 @functools.lru_cache(maxsize=16)
@@ -140,77 +38,6 @@ def _grid_scale(width: int, height: int, dtype: torch.dtype, device: torch.devic
     """Pixel to ``grid_sample`` scale per coordinate, made once per size and device: a tensor
     from host data is a copy, which a CUDA graph cannot record (``cuda_graph.py``)."""
     return torch.tensor([2.0 / (width - 1), 2.0 / (height - 1), 1.0], dtype=dtype, device=device)
-
-
-def patch_descriptors(
-    images: torch.Tensor,
-    patch: str = 'box',
-    stride: int = 2,
-    blur_sigma: float = 0.5,
-    eps: float = 0.01,
-    visibility_margin: int | None = None,
-    channels: int = 0,
-    channels_last: bool = False,
-) -> torch.Tensor:
-    """Normalised zero-mean patch descriptors ``(B, K, H, W)`` of grey ``(B, H, W)`` images.
-
-    Each pixel's ``P`` patch values are projected on :func:`zero_mean_basis` (``K = channels``
-    rows, or all ``P - 1`` when 0) and divided by
-    ``sqrt(|v|^2 + P eps^2)``: the dot product of two descriptors is the patch ZNCC, except
-    that ``eps`` (grey levels in [0, 1], the noise floor) shortens low-contrast descriptors so
-    their ZNCC with anything is near 0. With ``visibility_margin`` the descriptors are zeroed
-    in a border band of that width and a last channel, 1 inside the band, is appended: see
-    :func:`sample_cost`. ``channels_last``: the same numbers stored channels-last (the
-    filter's lookups read every channel of a tap at once), written so by the projection
-    itself instead of by a copy of the finished descriptors.
-    """
-    check_patch(patch, stride)
-    blurred = gaussian_blur(images, blur_sigma)
-    reach = patch_reach(patch, stride)
-    padded = F.pad(blurred[:, None], (reach,) * 4, mode='replicate')[:, 0]
-    b, h, w = images.shape
-    offsets = PATCH_OFFSETS[patch]
-    stack = torch.stack(
-        [
-            padded[
-                :,
-                reach + dy * stride : reach + dy * stride + h,
-                reach + dx * stride : reach + dx * stride + w,
-            ]
-            for dx, dy in offsets
-        ],
-        dim=1,
-    )
-    basis = _basis(patch, channels, images.dtype, images.device)
-    channels = basis.shape[0]
-    extra = 0 if visibility_margin is None else 1
-    layout = torch.channels_last if channels_last else torch.contiguous_format
-    out = torch.empty((b, channels + extra, h, w), dtype=images.dtype, device=images.device, memory_format=layout)
-    desc = out[:, :channels]
-    projected = torch.matmul(basis, stack.reshape(b, len(offsets), h * w)).reshape(b, channels, h, w)
-    # (d * d).sum beats linalg.vector_norm over the channel dimension by far on CPU; the
-    # division writes straight into the output (one pass, no copy first), in either layout
-    # (channels-last: 1.35 against 1.76 ms for a planar division and a copy, 320x240, one
-    # thread; projecting pixel-major instead makes the channel sum slower than the copy).
-    norm = torch.sqrt((projected * projected).sum(dim=1, keepdim=True) + len(offsets) * eps * eps)
-    torch.div(projected, norm, out=desc)
-    if visibility_margin is not None:
-        m = int(visibility_margin)
-        inside = out[:, channels]
-        inside.zero_()
-        inside[:, m : h - m, m : w - m] = 1.0
-        _zero_border(desc, m)
-    return out
-
-
-def _zero_border(images: torch.Tensor, margin: int) -> None:
-    """Zero a band of ``margin`` pixels along the border of ``(..., H, W)`` images, in place."""
-    if margin <= 0:
-        return
-    images[..., :margin, :] = 0.0
-    images[..., -margin:, :] = 0.0
-    images[..., :, :margin] = 0.0
-    images[..., :, -margin:] = 0.0
 
 
 @dataclass

@@ -49,7 +49,7 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
-from .cost_volume import gaussian_blur, patch_reach, stage_descriptors
+from .descriptors import gaussian_blur, patch_reach, stage_descriptors
 from .filter_config import FilterConfig
 from .filter_geometry import FrameGeometry, frame_geometry, grid_rows_in_place, row_motion
 from .filter_keyframe import FilterKeyframe

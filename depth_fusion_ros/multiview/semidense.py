@@ -46,17 +46,8 @@ import torch
 
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
-from .cost_volume import (
-    EpipolarRays,
-    check_patch,
-    epipolar_rays,
-    gaussian_blur,
-    patch_reach,
-    rows_per_chunk,
-    sample_cost,
-    stage_descriptors,
-    zero_mean_basis,
-)
+from .cost_volume import EpipolarRays, epipolar_rays, rows_per_chunk, sample_cost
+from .descriptors import check_patch, gaussian_blur, patch_reach, stage_descriptors, zero_mean_basis
 from .stage1 import best_fraction_mask, resolve_rule, stage1_mask
 from .views import prepare_views
 

@@ -26,14 +26,8 @@ import torch
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..cuda_graph import GraphCache
-from .cost_volume import (
-    epipolar_matrices,
-    gaussian_blur,
-    patch_reach,
-    rays_from,
-    rows_per_chunk,
-    stage_descriptors,
-)
+from .cost_volume import epipolar_matrices, rays_from, rows_per_chunk
+from .descriptors import gaussian_blur, patch_reach, stage_descriptors
 from .semidense import (
     MultiViewConfig,
     MultiViewResult,

@@ -34,15 +34,8 @@ import torch
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..compile_lock import compile_serialised
-from .cost_volume import (
-    check_patch,
-    epipolar_rays,
-    gaussian_blur,
-    rows_per_chunk,
-    sample_cost,
-    stage_descriptors,
-    zero_mean_basis,
-)
+from .cost_volume import epipolar_rays, rows_per_chunk, sample_cost
+from .descriptors import check_patch, gaussian_blur, stage_descriptors, zero_mean_basis
 from .views import prepare_views
 
 log = logging.getLogger(__name__)

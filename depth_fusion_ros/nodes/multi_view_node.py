@@ -41,7 +41,7 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
 from ..geometry import invert_pose, rotation_angle
-from ..multiview.cost_volume import PATCH_OFFSETS
+from ..multiview.descriptors import PATCH_OFFSETS
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
