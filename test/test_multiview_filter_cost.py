@@ -262,3 +262,38 @@ def test_channels_last_descriptors_are_the_same_numbers(patch: str) -> None:
     assert last.is_contiguous(memory_format=torch.channels_last)
     assert not planar.is_contiguous(memory_format=torch.channels_last)
     torch.testing.assert_close(last, planar, rtol=0, atol=0)
+
+
+def test_the_bench_ratio_pairs_each_filter_pass_with_the_sweep_timed_after_it(monkeypatch):
+    """On a machine whose speed drifts, the filter / sweep ratio compares each pass of the
+    filter with a sweep timed right after it (median of those ratios), not the median pass
+    with a median sweep timed at another moment: here the machine slows down pass after pass,
+    which leaves every paired ratio at 0.2, while the median pass against sweeps timed after
+    the last pass (as the bench did) would say 0.1."""
+    from depth_fusion_ros.bench import BenchOptions
+    from depth_fusion_ros.bench import multi_view_filter as bench_filter
+
+    speed = iter([1.0, 1.0, 0.5, 0.25])  # the warm-up pass, then three passes
+    now = {'factor': 1.0}
+
+    def fake_stream(seq, device, config=None):
+        now['factor'] = next(speed)
+        frame = 0.02 / now['factor']
+        return [frame] * 5, [frame] * 5, DepthFilter(seq.camera, config)
+
+    monkeypatch.setattr(bench_filter, 'stream_seconds', fake_stream)
+    monkeypatch.setattr(bench_filter, '_sweep_seconds', lambda seq, key, device: (0.1 / now['factor'],) * 2)
+    monkeypatch.setattr(bench_filter, 'estimate_semidense', lambda *a, **k: None)
+    monkeypatch.setattr(bench_filter, '_keyframe_inputs', lambda seq, key: ())
+    monkeypatch.setattr(bench_filter, '_stage_rows', lambda label, seq, device: [])
+
+    class Seq:
+        camera = filter_module.PinholeCamera(100.0, 100.0, 40.0, 30.0, 80, 60)
+
+        def __len__(self) -> int:
+            return 5
+
+    rows, _ = bench_filter._cost_rows('fake', Seq(), BenchOptions(repeats=3))
+    ratio = {r.name: r.value for r in rows}
+    assert ratio['fake: filter per frame / sweep per keyframe (CPU)'] == pytest.approx(0.2)
+    assert ratio['fake: filter per frame / sweep per keyframe (wall)'] == pytest.approx(0.2)
