@@ -297,3 +297,25 @@ def test_the_bench_ratio_pairs_each_filter_pass_with_the_sweep_timed_after_it(mo
     ratio = {r.name: r.value for r in rows}
     assert ratio['fake: filter per frame / sweep per keyframe (CPU)'] == pytest.approx(0.2)
     assert ratio['fake: filter per frame / sweep per keyframe (wall)'] == pytest.approx(0.2)
+
+
+@pytest.mark.parametrize(
+    ('patch', 'stride', 'channels', 'margin'), [('box', 2, 6, 3), ('cross', 1, 0, None), ('box', 1, 8, 0)]
+)
+def test_opencv_descriptors_match_the_torch_ones(
+    patch: str, stride: int, channels: int, margin: int | None
+) -> None:
+    """On a CPU the descriptors come from OpenCV (a filter2D per channel, the planes merged
+    channels-last); the torch code CUDA runs gives the same numbers to float32 rounding,
+    border band and visibility channel included, in both layouts."""
+    from depth_fusion_ros.multiview import descriptors
+
+    images = descriptors.gaussian_blur(torch.rand(2, 30, 40, generator=torch.Generator().manual_seed(5)), 0.5)
+    for channels_last in (False, True):
+        fast = descriptors._opencv_descriptors(images, patch, stride, 0.01, margin, channels, channels_last)
+        reference = descriptors._torch_descriptors(
+            images, patch, stride, 0.01, margin, channels, channels_last
+        )
+        assert fast.shape == reference.shape
+        assert fast.is_contiguous(memory_format=torch.channels_last) == channels_last
+        torch.testing.assert_close(fast, reference, rtol=1e-5, atol=3e-6)
