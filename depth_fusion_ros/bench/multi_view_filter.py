@@ -113,8 +113,8 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
     (every frame after the first, keyframe switches included), after one warm-up pass; the
     sweep's, the median of one call after each pass. The ratios are the medians of each
     pass's ratio to the sweep timed right after it: this machine's speed drifts by tens of
-    percent within a minute (the sweep of one TUM keyframe took 87-139 ms at one thread in
-    three runs of a few minutes), and a pass timed against a sweep timed seconds later
+    percent within a minute (the sweep of one TUM keyframe took 83-139 ms at one thread over
+    seven runs in a quarter of an hour), and passes timed against sweeps timed seconds later
     carried that drift into the ratio (0.16-0.32 at one thread).
     """
     stream_seconds(seq, opts.device)  # warm-up (allocations, first descriptors)

@@ -140,8 +140,9 @@ def patch_descriptors(
     their ZNCC with anything is near 0. With ``visibility_margin`` the descriptors are zeroed
     in a border band of that width and a last channel, 1 inside the band, is appended: see
     :func:`sample_cost`. ``channels_last``: the same numbers stored channels-last (the
-    filter's lookups read every channel of a tap at once), written so by the projection
-    itself instead of by a copy of the finished descriptors.
+    filter's lookups read every channel of a tap at once), written in that layout rather
+    than copied into it. On a CPU (float32) OpenCV computes them (:func:`_opencv_descriptors`),
+    elsewhere torch (:func:`_torch_descriptors`): the same numbers to float32 rounding.
     """
     check_patch(patch, stride)
     blurred = gaussian_blur(images, blur_sigma)
@@ -160,10 +161,9 @@ def _torch_descriptors(
     channels_last: bool,
 ) -> torch.Tensor:
     """:func:`patch_descriptors` of blurred images in torch (CUDA, and other dtypes)."""
-    images = blurred
     reach = patch_reach(patch, stride)
     padded = F.pad(blurred[:, None], (reach,) * 4, mode='replicate')[:, 0]
-    b, h, w = images.shape
+    b, h, w = blurred.shape
     offsets = PATCH_OFFSETS[patch]
     stack = torch.stack(
         [
@@ -176,19 +176,17 @@ def _torch_descriptors(
         ],
         dim=1,
     )
-    basis = _basis(patch, channels, images.dtype, images.device)
+    basis = _basis(patch, channels, blurred.dtype, blurred.device)
     channels = basis.shape[0]
     extra = 0 if visibility_margin is None else 1
     layout = torch.channels_last if channels_last else torch.contiguous_format
     out = torch.empty(
-        (b, channels + extra, h, w), dtype=images.dtype, device=images.device, memory_format=layout
+        (b, channels + extra, h, w), dtype=blurred.dtype, device=blurred.device, memory_format=layout
     )
     desc = out[:, :channels]
     projected = torch.matmul(basis, stack.reshape(b, len(offsets), h * w)).reshape(b, channels, h, w)
     # (d * d).sum beats linalg.vector_norm over the channel dimension by far on CPU; the
-    # division writes straight into the output (one pass, no copy first), in either layout
-    # (channels-last: 1.35 against 1.76 ms for a planar division and a copy, 320x240, one
-    # thread; projecting pixel-major instead makes the channel sum slower than the copy).
+    # division writes straight into the output (one pass, no copy first), in either layout.
     norm = torch.sqrt((projected * projected).sum(dim=1, keepdim=True) + len(offsets) * eps * eps)
     torch.div(projected, norm, out=desc)
     if visibility_margin is not None:
