@@ -312,10 +312,9 @@ def test_opencv_descriptors_match_the_torch_ones(
 
     images = descriptors.gaussian_blur(torch.rand(2, 30, 40, generator=torch.Generator().manual_seed(5)), 0.5)
     for channels_last in (False, True):
-        fast = descriptors._opencv_descriptors(images, patch, stride, 0.01, margin, channels, channels_last)
-        reference = descriptors._torch_descriptors(
-            images, patch, stride, 0.01, margin, channels, channels_last
-        )
+        spec = descriptors._Spec(patch, stride, 0.01, margin, channels, channels_last)
+        fast = descriptors._opencv_descriptors(images, spec)
+        reference = descriptors._torch_descriptors(images, spec)
         assert fast.shape == reference.shape
         assert fast.is_contiguous(memory_format=torch.channels_last) == channels_last
         torch.testing.assert_close(fast, reference, rtol=1e-5, atol=3e-6)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -146,40 +147,45 @@ def patch_descriptors(
     """
     check_patch(patch, stride)
     blurred = gaussian_blur(images, blur_sigma)
+    spec = _Spec(patch, int(stride), float(eps), visibility_margin, int(channels), bool(channels_last))
     if blurred.device.type == 'cpu' and blurred.dtype == torch.float32 and not blurred.requires_grad:
-        return _opencv_descriptors(blurred, patch, stride, eps, visibility_margin, channels, channels_last)
-    return _torch_descriptors(blurred, patch, stride, eps, visibility_margin, channels, channels_last)
+        return _opencv_descriptors(blurred, spec)
+    return _torch_descriptors(blurred, spec)
 
 
-def _torch_descriptors(
-    blurred: torch.Tensor,
-    patch: str,
-    stride: int,
-    eps: float,
-    visibility_margin: int | None,
-    channels: int,
-    channels_last: bool,
-) -> torch.Tensor:
+@dataclass(frozen=True)
+class _Spec:
+    """What :func:`patch_descriptors` was asked for, past the blur (both implementations)."""
+
+    patch: str
+    stride: int
+    eps: float
+    visibility_margin: int | None
+    channels: int
+    channels_last: bool
+
+
+def _torch_descriptors(blurred: torch.Tensor, spec: _Spec) -> torch.Tensor:
     """:func:`patch_descriptors` of blurred images in torch (CUDA, and other dtypes)."""
-    reach = patch_reach(patch, stride)
+    reach = patch_reach(spec.patch, spec.stride)
     padded = F.pad(blurred[:, None], (reach,) * 4, mode='replicate')[:, 0]
     b, h, w = blurred.shape
-    offsets = PATCH_OFFSETS[patch]
+    offsets = PATCH_OFFSETS[spec.patch]
     stack = torch.stack(
         [
             padded[
                 :,
-                reach + dy * stride : reach + dy * stride + h,
-                reach + dx * stride : reach + dx * stride + w,
+                reach + dy * spec.stride : reach + dy * spec.stride + h,
+                reach + dx * spec.stride : reach + dx * spec.stride + w,
             ]
             for dx, dy in offsets
         ],
         dim=1,
     )
-    basis = _basis(patch, channels, blurred.dtype, blurred.device)
+    basis = _basis(spec.patch, spec.channels, blurred.dtype, blurred.device)
     channels = basis.shape[0]
-    extra = 0 if visibility_margin is None else 1
-    layout = torch.channels_last if channels_last else torch.contiguous_format
+    extra = 0 if spec.visibility_margin is None else 1
+    layout = torch.channels_last if spec.channels_last else torch.contiguous_format
     out = torch.empty(
         (b, channels + extra, h, w), dtype=blurred.dtype, device=blurred.device, memory_format=layout
     )
@@ -187,10 +193,10 @@ def _torch_descriptors(
     projected = torch.matmul(basis, stack.reshape(b, len(offsets), h * w)).reshape(b, channels, h, w)
     # (d * d).sum beats linalg.vector_norm over the channel dimension by far on CPU; the
     # division writes straight into the output (one pass, no copy first), in either layout.
-    norm = torch.sqrt((projected * projected).sum(dim=1, keepdim=True) + len(offsets) * eps * eps)
+    norm = torch.sqrt((projected * projected).sum(dim=1, keepdim=True) + len(offsets) * spec.eps * spec.eps)
     torch.div(projected, norm, out=desc)
-    if visibility_margin is not None:
-        m = int(visibility_margin)
+    if spec.visibility_margin is not None:
+        m = int(spec.visibility_margin)
         inside = out[:, channels]
         inside.zero_()
         inside[:, m : h - m, m : w - m] = 1.0
@@ -223,28 +229,20 @@ def _cv_kernels(patch: str, stride: int, channels: int) -> tuple[np.ndarray, ...
     return tuple(kernels)
 
 
-def _opencv_descriptors(
-    blurred: torch.Tensor,
-    patch: str,
-    stride: int,
-    eps: float,
-    visibility_margin: int | None,
-    channels: int,
-    channels_last: bool,
-) -> torch.Tensor:
+def _opencv_descriptors(blurred: torch.Tensor, spec: _Spec) -> torch.Tensor:
     """:func:`patch_descriptors` of blurred CPU float32 images, with OpenCV.
 
     Why: the depth filter describes every frame, and in torch the patch stack, its
-    projection, the channel norm and the division each walk the whole image (2.2-2.7 ms at
+    projection, the channel norm and the division each walk the whole image (2.3-2.8 ms at
     320x240 on one thread, the division into the channels-last output alone 1.1 ms). Here each
     channel is one ``filter2D`` of the blurred image with the basis row at the patch's taps
     (border pixels repeated, as the torch path pads), the norm is accumulated plane by plane,
     and ``merge`` interleaves the normalised planes into the channels-last layout in one pass.
     The numbers are the torch path's to float32 rounding (the sums run in another order).
     """
-    kernels = _cv_kernels(patch, stride, channels)
+    kernels = _cv_kernels(spec.patch, spec.stride, spec.channels)
     b, h, w = blurred.shape
-    floor = len(PATCH_OFFSETS[patch]) * eps * eps
+    floor = len(PATCH_OFFSETS[spec.patch]) * spec.eps * spec.eps
     images = []
     for image in blurred.detach().numpy():
         src = np.ascontiguousarray(image)
@@ -256,18 +254,19 @@ def _opencv_descriptors(
             total += plane * plane
         total += np.float32(floor)
         inverse = np.reciprocal(np.sqrt(total, out=total), out=total)
-        if visibility_margin is not None:
-            _zero_band(inverse, int(visibility_margin))
+        if spec.visibility_margin is not None:
+            _zero_band(inverse, int(spec.visibility_margin))
         for plane in planes:
             plane *= inverse
-        if visibility_margin is not None:
+        if spec.visibility_margin is not None:
             inside = np.zeros((h, w), dtype=np.float32)
-            m = int(visibility_margin)
+            m = int(spec.visibility_margin)
             inside[m : h - m, m : w - m] = 1.0
             planes.append(inside)
-        images.append(cv2.merge(planes).reshape(h, w, len(planes)) if channels_last else np.stack(planes))
+        interleaved = spec.channels_last
+        images.append(cv2.merge(planes).reshape(h, w, len(planes)) if interleaved else np.stack(planes))
     out = torch.from_numpy(np.stack(images) if b > 1 else images[0][None])
-    return out.permute(0, 3, 1, 2) if channels_last else out
+    return out.permute(0, 3, 1, 2) if spec.channels_last else out
 
 
 def _zero_band(image: np.ndarray, margin: int) -> None:
