@@ -66,13 +66,13 @@ def photometric_pairs(photos: Sequence[PhotometricTensors | None]):
         mu_sq=per_pair(lambda p: p.stats.mu_sq),
         sigma=per_pair(lambda p: p.stats.sigma),
     )
-    same_camera = all(p.camera == used[0].camera for p in used[1:])
+    shared = all(p.rays_key == used[0].rays_key for p in used[1:])
     return PhotometricBatch(
         neighbours=torch.cat([p.neighbours for p in used]),
         stats=stats,
         identity=torch.cat([p.identity for p in used]),
-        rays=used[0].rays if same_camera else per_pair(lambda p: p.rays[None]),
-        k=used[0].k if same_camera else per_pair(lambda p: p.k[None]),
+        rays=used[0].rays if shared else per_pair(lambda p: p.rays[None]),
+        k=used[0].k if shared else per_pair(lambda p: p.k[None]),
         t_ok=torch.cat([p.t_ok for p in used]),
         owner=owner,
         slots=slots,

@@ -36,9 +36,10 @@ class PhotometricTensors:
     neighbours: torch.Tensor  # (N, 3, h, w) in [0, 1], gain-matched to the keyframe
     k: torch.Tensor  # (3, 3) intrinsics of the (h, w) grid
     t_ok: torch.Tensor  # (N, 4, 4)
-    #: ``(fx, fy, cx, cy)`` of ``k`` on the host (to compare cameras without a device sync);
-    #: a window of the grid appends its ``(top, left)``: its rays are its own (``window.py``).
-    camera: tuple[float, ...]
+    #: What ``rays`` and ``k`` are made of, on the host, so a batch can tell without a device
+    #: sync whether its keyframes share them: ``(fx, fy, cx, cy)`` of ``k``, and for a window
+    #: of the grid (``window.py``) its ``(top, left)`` too, since its rays are its own.
+    rays_key: tuple[float, ...]
     #: (3, h*w) rays ``K^-1 [u, v, 1]`` of the grid.
     rays: torch.Tensor
     #: SSIM statistics of the keyframe (constant: the keyframe is not warped).
@@ -143,7 +144,7 @@ class PreparedSample:
             neighbours=neigh,
             k=k,
             t_ok=torch.from_numpy(t_ok).to(self.device),
-            camera=(float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)),
+            rays_key=(float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)),
             rays=pixel_rays(torch.linalg.inv(k), height, width),
             stats=stats,
             identity=photo_error_to_key(neigh, stats, ssim_alpha),

@@ -54,7 +54,7 @@ class Window:
         return dataclasses.replace(
             p,
             key=self.of(p.key),
-            camera=(*p.camera, self.top, self.left),  # the rays are the window's own
+            rays_key=(*p.rays_key, self.top, self.left),  # the rays are the window's own
             rays=rays,
             stats=stats,
             identity=self.of(p.identity),

@@ -204,8 +204,9 @@ def _torch_descriptors(blurred: torch.Tensor, spec: _Spec) -> torch.Tensor:
     return out
 
 
-def _zero_border(images: torch.Tensor, margin: int) -> None:
-    """Zero a band of ``margin`` pixels along the border of ``(..., H, W)`` images, in place."""
+def _zero_border(images: torch.Tensor | np.ndarray, margin: int) -> None:
+    """Zero a band of ``margin`` pixels along the border of ``(..., H, W)`` images (tensors or
+    arrays), in place."""
     if margin <= 0:
         return
     images[..., :margin, :] = 0.0
@@ -242,38 +243,43 @@ def _opencv_descriptors(blurred: torch.Tensor, spec: _Spec) -> torch.Tensor:
     """
     kernels = _cv_kernels(spec.patch, spec.stride, spec.channels)
     b, h, w = blurred.shape
-    floor = len(PATCH_OFFSETS[spec.patch]) * spec.eps * spec.eps
-    images = []
-    for image in blurred.detach().numpy():
+    floor = np.float32(len(PATCH_OFFSETS[spec.patch]) * spec.eps * spec.eps)
+    margin = spec.visibility_margin
+    planar = (
+        None if spec.channels_last else np.empty((b, len(kernels) + (margin is not None), h, w), np.float32)
+    )
+    interleaved = []
+    for i, image in enumerate(blurred.detach().numpy()):
         src = np.ascontiguousarray(image)
         planes = [
             cv2.filter2D(src, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE) for kernel in kernels
         ]
-        total = np.multiply(planes[0], planes[0])
-        for plane in planes[1:]:
-            total += plane * plane
-        total += np.float32(floor)
-        inverse = np.reciprocal(np.sqrt(total, out=total), out=total)
-        if spec.visibility_margin is not None:
-            _zero_band(inverse, int(spec.visibility_margin))
+        total = np.full((h, w), floor, dtype=np.float32)
         for plane in planes:
-            plane *= inverse
-        if spec.visibility_margin is not None:
-            inside = np.zeros((h, w), dtype=np.float32)
-            m = int(spec.visibility_margin)
-            inside[m : h - m, m : w - m] = 1.0
-            planes.append(inside)
-        interleaved = spec.channels_last
-        images.append(cv2.merge(planes).reshape(h, w, len(planes)) if interleaved else np.stack(planes))
-    out = torch.from_numpy(np.stack(images) if b > 1 else images[0][None])
-    return out.permute(0, 3, 1, 2) if spec.channels_last else out
+            cv2.accumulateSquare(plane, total)  # total += plane ** 2, no temporary
+        inverse = np.reciprocal(np.sqrt(total, out=total), out=total)
+        if margin is not None:
+            _zero_border(inverse, int(margin))
+            planes.append(_inside(h, w, int(margin)))
+        if planar is None:  # normalised in place, interleaved by merge (its one copy)
+            for plane in planes[: len(kernels)]:
+                plane *= inverse
+            interleaved.append(cv2.merge(planes).reshape(h, w, len(planes)))
+        else:  # normalised straight into the output
+            for c, plane in enumerate(planes[: len(kernels)]):
+                np.multiply(plane, inverse, out=planar[i, c])
+            if margin is not None:
+                planar[i, -1] = planes[-1]
+    if planar is not None:
+        return torch.from_numpy(planar)
+    out = torch.from_numpy(np.stack(interleaved) if b > 1 else interleaved[0][None])
+    return out.permute(0, 3, 1, 2)
 
 
-def _zero_band(image: np.ndarray, margin: int) -> None:
-    """:func:`_zero_border` of one ``(H, W)`` array."""
-    if margin <= 0:
-        return
-    image[:margin] = 0.0
-    image[-margin:] = 0.0
-    image[:, :margin] = 0.0
-    image[:, -margin:] = 0.0
+@functools.lru_cache(maxsize=8)
+def _inside(height: int, width: int, margin: int) -> np.ndarray:
+    """The visibility channel: 1 inside the ``margin`` band, 0 in it (read-only, made once)."""
+    inside = np.zeros((height, width), dtype=np.float32)
+    inside[margin : height - margin, margin : width - margin] = 1.0
+    inside.flags.writeable = False
+    return inside
