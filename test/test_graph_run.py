@@ -290,7 +290,7 @@ def test_ctrl_c_stops_processes_cleanly(graph_bag, params_file, tmp_path, proces
     reader.join(5)
     output = ''.join(lines)
     assert code == 130, output
-    pids = [int(p) for p in re.findall(r'started \w+ \(pid (\d+)\)', output)]
+    pids = [int(p) for p in re.findall(r'(?:started|forked) \w+ \(pid (\d+)\)', output)]
     assert len(pids) == (4 if processes else 0), output
     time.sleep(0.5)
     alive = [p for p in pids if running(p)]

@@ -63,7 +63,7 @@ def test_kill_9_of_a_node_stops_the_run_with_a_summary(victim, setup, tmp_path):
         assert proc.poll() is None, ''.join(lines)
         time.sleep(0.2)
     time.sleep(2.0)  # the bag loops: the graph is busy
-    pids = dict(re.findall(r'started (\w+) \(pid (\d+)\)', ''.join(lines)))
+    pids = dict(re.findall(r'(?:started|forked) (\w+) \(pid (\d+)\)', ''.join(lines)))
     assert set(pids) == {'multi_view_node', 'single_view_node', 'fusion_node', 'bag_replayer'}, ''.join(lines)
     os.kill(int(pids[victim]), signal.SIGKILL)
     code = proc.wait(120)

@@ -153,15 +153,23 @@ class MemorySampler:
         self.peak_children: dict[str, float] = {}
         self.runner_max = 0.0
         self.t0 = time.monotonic()
+        self.server: int | None = None
 
     def __call__(self, run) -> None:
         runner = rss_mb()
         self.runner_max = max(self.runner_max, runner)
         if self.processes:
             total = 0.0
-            for name, proc in run.processes.items():
-                total += rss_mb(proc.pid)
-                self.peak_children[name] = max(self.peak_children.get(name, 0.0), rss_mb(proc.pid, 'VmHWM'))
+            from ..nodes.graph.forked import server_pid
+
+            pids = {name: proc.pid for name, proc in run.processes.items()}
+            if self.server is None:
+                self.server = server_pid()  # the nodes are forked from it (graph/forked.py)
+            if self.server is not None:
+                pids['fork server'] = self.server
+            for name, pid in pids.items():
+                total += rss_mb(pid)
+                self.peak_children[name] = max(self.peak_children.get(name, 0.0), rss_mb(pid, 'VmHWM'))
             self.samples.append((time.monotonic() - self.t0, total + runner))
         else:
             self.samples.append((time.monotonic() - self.t0, runner))

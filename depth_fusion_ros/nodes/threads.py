@@ -36,6 +36,15 @@ def node_threads(env: Mapping[str, str] | None = None) -> int | None:
     return max(1, usable_cores() // GRAPH_PROCESSES)
 
 
+def _omp_threads() -> int | None:
+    """``OMP_NUM_THREADS`` as a thread count (``None``: unset or not a positive integer)."""
+    try:
+        value = int(os.environ.get('OMP_NUM_THREADS', ''))
+    except ValueError:
+        return None
+    return value if value > 0 else None
+
+
 def apply_node_threads() -> str:
     """Set the torch threads of this node process (:func:`node_threads`), and OpenCV's to the
     same share (its own pool otherwise starts one thread per core and waits for each at every
@@ -46,6 +55,10 @@ def apply_node_threads() -> str:
 
     if threads is not None:
         torch.set_num_threads(threads)
+    elif (wanted := _omp_threads()) is not None:
+        # Torch read OMP_NUM_THREADS when it was imported, which for a node forked from the
+        # launcher's fork server (graph/forked.py) was before this environment was set.
+        torch.set_num_threads(wanted)
     cv2.setNumThreads(torch.get_num_threads())
     if threads is None:
         return f'torch and OpenCV threads: {torch.get_num_threads()} (OMP_NUM_THREADS)'

@@ -39,6 +39,7 @@ from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
 from ..node_executor import executor_choice, make_node_executor, spin_until
 from ..threads import node_threads
 from .dds import apply_fastdds_profile
+from .forked import ForkedNode, fork_nodes, start_forked, start_server
 from .inputs import check_inputs
 from .isolation import Isolation, isolate
 from .map_output import check_saved_map
@@ -73,7 +74,7 @@ class GraphRun:
         self.started = time.monotonic()
         self.recorder: Any = None
         self.nodes: dict[str, Any] = {}
-        self.processes: dict[str, subprocess.Popen] = {}
+        self.processes: dict[str, subprocess.Popen | ForkedNode] = {}
         self._context: Any = None
         self._executor: Any = None
         self._spin_thread: threading.Thread | None = None
@@ -92,6 +93,8 @@ class GraphRun:
         self.ledger = KeyframeLedger()
         self.ready = ReadyWatcher()
         self._spawned_at: dict[str, float] = {}
+        #: When the fork server started (monotonic s); 0.0 when nodes start as console scripts.
+        self._fork_server_started = 0.0
         self.ready_seconds: dict[str, float] = {}
         self.isolation: Isolation | None = None
 
@@ -106,6 +109,8 @@ class GraphRun:
         topics = sorted(types)
         overrides = paced_overrides(opts, node_overrides(opts, types))
         check_inputs(opts, topics)  # a bag without image/camera_info/pose fails here, see .inputs
+        if opts.processes:
+            self._start_fork_server()  # its torch import overlaps with the set-up below
         profile = apply_fastdds_profile()
         log.info('Fast DDS profile: %s', profile)
         self._wall_start = time.time()
@@ -268,13 +273,28 @@ class GraphRun:
         self._wait_for_nodes_ready()
         self._spawn(REPLAYER[0], *REPLAYER, overrides, env)
 
+    def _start_fork_server(self) -> None:
+        """Start the server the node processes are forked from (graph/forked.py), unless
+        ``DEPTH_FUSION_FORK_NODES=0`` asks for console scripts."""
+        try:
+            forking = fork_nodes()
+        except ValueError as exc:
+            raise GraphError(str(exc)) from None
+        if forking:
+            self._fork_server_started = time.monotonic()
+            start_server()
+
     def _spawn(
         self, name: str, script: str, module: str, overrides: dict[str, dict[str, Any]], env: dict[str, str]
     ) -> None:
-        cmd = node_command(script, module, self._ros_args(overrides.get(name, {})))
-        self._spawned_at[name] = time.monotonic()
-        self.processes[name] = self._popen(name, cmd, env)
-        log.info('started %s (pid %d)', name, self.processes[name].pid)
+        ros_args = self._ros_args(overrides.get(name, {}))
+        # A forked node's start began with the server's imports: its time to ready counts them.
+        # The replayer imports no torch: it starts as its console script, as before.
+        fork = bool(self._fork_server_started) and name in self.graph_nodes
+        self._spawned_at[name] = self._fork_server_started if fork else time.monotonic()
+        self.processes[name] = self._start_node(name, script, module, ros_args, env, fork)
+        how = 'forked' if fork else 'started'
+        log.info('%s %s (pid %d)', how, name, self.processes[name].pid)
 
     def _wait_for_nodes_ready(self) -> None:
         """Wait until every node process said it is ready (``depth_fusion/ready``: warm-up done,
@@ -312,13 +332,22 @@ class GraphRun:
             args += ['-p', f'{key}:={ros_arg_value(value)}']
         return args
 
-    def _popen(self, name: str, cmd: list[str], env: dict[str, str]) -> subprocess.Popen:
+    def _start_node(
+        self, name: str, script: str, module: str, ros_args: list[str], env: dict[str, str], fork: bool
+    ) -> subprocess.Popen | ForkedNode:
+        """Fork the node from the server, or start its console script; logging to its file in
+        ``log_dir`` (uncoloured) or to this terminal."""
         out = None
+        log_path = None
         if self.options.log_dir is not None:
             self.options.log_dir.mkdir(parents=True, exist_ok=True)
-            out = open(self.options.log_dir / f'{name}.log', 'w')  # noqa: SIM115 - closed in _shutdown
+            log_path = self.options.log_dir / f'{name}.log'
+            out = open(log_path, 'w')  # noqa: SIM115 - closed in _shutdown
             self._logs.append(out)
-        return popen_node(cmd, env, out)
+        if fork:
+            child_env = {**env, 'RCUTILS_COLORIZED_OUTPUT': '0'} if log_path else env
+            return start_forked(module, [script, '--ros-args', *ros_args], child_env, log_path)
+        return popen_node(node_command(script, module, ros_args), env, out)
 
     # -- waiting --
 

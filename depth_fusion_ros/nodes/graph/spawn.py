@@ -65,9 +65,11 @@ def popen_node(cmd: list[str], env: dict[str, str], log_file: TextIO | None) -> 
 
 
 def stop_processes(
-    processes: dict[str, subprocess.Popen], interrupted: bool, since: float, timeout: float = 15.0
+    processes: dict[str, Any], interrupted: bool, since: float, timeout: float = 15.0
 ) -> dict[str, int | None]:
     """SIGINT each child still running (after a grace period on Ctrl-C, which they got too).
+
+    ``processes``: ``subprocess.Popen`` objects or what behaves like them (``forked.ForkedNode``).
 
     A child that does not stop within ``timeout`` is killed, and the shared-memory segments
     created after ``since`` (epoch s) that nobody maps any more are removed. Returns the exit

@@ -1,0 +1,108 @@
+"""Node processes forked from the fork server (nodes/graph/forked.py) behave like the console
+scripts they replace: their own environment, command line, log file, threads, exit codes and
+signals, seen through a Popen-like handle."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from depth_fusion_ros.nodes.graph import forked
+from depth_fusion_ros.nodes.graph.forked import FORK_ENV, fork_nodes, server_pid, start_forked
+
+pytestmark = pytest.mark.skipif(
+    'forkserver' not in __import__('multiprocessing').get_all_start_methods(), reason='no fork server here'
+)
+
+
+def node_env(**extra: str) -> dict[str, str]:
+    """This test's environment (its isolated ROS domain) without a thread count of its own."""
+    env = {k: v for k, v in os.environ.items() if k != 'OMP_NUM_THREADS'}
+    return {**env, 'RCUTILS_COLORIZED_OUTPUT': '0', **extra}
+
+
+def wait_ready(node: forked.ForkedNode, log: Path) -> None:
+    """Until the node logged its ready line (it handles SIGINT and SIGTERM from then on)."""
+    for _ in range(600):
+        if log.exists() and 'ready' in log.read_text():
+            return
+        assert node.poll() is None, log.read_text()
+        time.sleep(0.1)
+    raise AssertionError(f'not ready after 60 s: {log.read_text() if log.exists() else "no log"}')
+
+
+def test_a_forked_node_gets_its_own_command_line_environment_threads_and_exit_code(tmp_path: Path):
+    """A bad parameter given on the forked node's ``--ros-args`` ends it with exit code 2 and
+    one line naming the parameter in its own log; the fork server imported torch with its
+    default threads, yet the node runs the ``OMP_NUM_THREADS`` of its environment."""
+    log = tmp_path / 'fusion_node.log'
+    node = start_forked(
+        'depth_fusion_ros.nodes.fusion_node',
+        ['fusion_node', '--ros-args', '-p', 'input_qos:=bogus'],
+        node_env(OMP_NUM_THREADS='1'),
+        log,
+    )
+    assert node.wait(120) == 2
+    assert node.poll() == 2 and node.returncode == 2
+    text = log.read_text()
+    assert 'torch and OpenCV threads: 1 (OMP_NUM_THREADS)' in text, text
+    errors = [line for line in text.splitlines() if line.startswith('[ERROR]')]
+    assert len(errors) == 1 and 'input_qos' in errors[0], text
+    assert 'Traceback' not in text
+
+
+@pytest.mark.parametrize(('signum', 'code'), [(signal.SIGINT, 0), (signal.SIGKILL, -9)])
+def test_a_forked_node_stops_on_sigint_and_reports_a_kill(tmp_path: Path, signum: int, code: int):
+    """A running forked node: ``wait`` with a timeout raises as Popen's does; SIGINT stops it
+    cleanly (exit 0, final counters logged); SIGKILL reads as -9, as ``describe_exit`` expects."""
+    log = tmp_path / 'multi_view_node.log'
+    node = start_forked(
+        'depth_fusion_ros.nodes.multi_view_node', ['multi_view_node', '--ros-args'], node_env(), log
+    )
+    try:
+        wait_ready(node, log)
+        with pytest.raises(subprocess.TimeoutExpired):
+            node.wait(0.2)
+        if signum == signal.SIGKILL:
+            node.kill()
+        else:
+            node.send_signal(signum)
+        assert node.wait(60) == code, log.read_text()
+    finally:
+        node.kill()
+    if code == 0:
+        assert 'final counters' in log.read_text()
+    node.send_signal(signal.SIGINT)  # stopped already: nothing is sent to a pid that may be reused
+
+
+def test_the_switch_takes_console_scripts_and_rejects_a_bad_value(monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.setenv(FORK_ENV, '0')
+    assert fork_nodes() is False
+    monkeypatch.setenv(FORK_ENV, '1')
+    assert fork_nodes() is True
+    monkeypatch.setenv(FORK_ENV, 'maybe')
+    with pytest.raises(ValueError, match=FORK_ENV):
+        fork_nodes()
+
+
+def test_a_stop_signal_to_the_fork_server_loses_no_exit_code(tmp_path: Path):
+    """SIGTERM sent to the process group reaches the server too; it ignores it, so the node's
+    own exit code still comes back (not the 255 of a server that died first)."""
+    log = tmp_path / 'fusion_node.log'
+    node = start_forked('depth_fusion_ros.nodes.fusion_node', ['fusion_node', '--ros-args'], node_env(), log)
+    try:
+        wait_ready(node, log)
+        server = server_pid()
+        assert server is not None
+        os.kill(server, signal.SIGTERM)
+        os.kill(server, signal.SIGHUP)
+        node.send_signal(signal.SIGTERM)  # the node's own handler: a clean stop
+        assert node.wait(60) == 0, log.read_text() if log.exists() else ''
+        assert server_pid() == server
+    finally:
+        node.kill()
