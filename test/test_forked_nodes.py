@@ -14,16 +14,40 @@ import pytest
 
 from depth_fusion_ros.nodes.graph import forked
 from depth_fusion_ros.nodes.graph.forked import FORK_ENV, fork_nodes, server_pid, start_forked
+from depth_fusion_ros.nodes.threads import node_threads
 
 pytestmark = pytest.mark.skipif(
     'forkserver' not in __import__('multiprocessing').get_all_start_methods(), reason='no fork server here'
 )
 
 
+def node_threads_here() -> str:
+    """The thread share ``depth-fusion run --processes`` gives a node on this machine: the fork
+    server keeps the thread variables it started with, so every test here asks for the same."""
+    return os.environ.get('OMP_NUM_THREADS') or str(node_threads())
+
+
 def node_env(**extra: str) -> dict[str, str]:
-    """This test's environment (its isolated ROS domain) without a thread count of its own."""
-    env = {k: v for k, v in os.environ.items() if k != 'OMP_NUM_THREADS'}
-    return {**env, 'RCUTILS_COLORIZED_OUTPUT': '0', **extra}
+    """This test's environment (its isolated ROS domain), with the node's thread share."""
+    return {**os.environ, 'RCUTILS_COLORIZED_OUTPUT': '0', 'OMP_NUM_THREADS': node_threads_here(), **extra}
+
+
+def main() -> int:
+    """What ``test_a_forked_child_has_the_blas_threads_its_environment_asks`` forks: prints the
+    OpenBLAS threads of numpy, which OpenBLAS sized when the fork server imported numpy."""
+    import ctypes
+
+    import numpy
+
+    names = ('scipy_openblas_get_num_threads64_', 'openblas_get_num_threads64_', 'openblas_get_num_threads')
+    for lib_path in (Path(numpy.__file__).parent.parent / 'numpy.libs').glob('*openblas*'):
+        lib = ctypes.CDLL(str(lib_path))
+        for name in names:
+            if hasattr(lib, name):
+                print(f'openblas threads: {getattr(lib, name)()}', flush=True)
+                return 0
+    print('no OpenBLAS found', flush=True)
+    return 3
 
 
 def wait_ready(node: forked.ForkedNode, log: Path) -> None:
@@ -38,19 +62,15 @@ def wait_ready(node: forked.ForkedNode, log: Path) -> None:
 
 def test_a_forked_node_gets_its_own_command_line_environment_threads_and_exit_code(tmp_path: Path):
     """A bad parameter given on the forked node's ``--ros-args`` ends it with exit code 2 and
-    one line naming the parameter in its own log; the fork server imported torch with its
-    default threads, yet the node runs the ``OMP_NUM_THREADS`` of its environment."""
+    one line naming the parameter in its own log, after the node applied the ``OMP_NUM_THREADS``
+    of its environment to torch (which the fork server imported)."""
     log = tmp_path / 'fusion_node.log'
-    node = start_forked(
-        'depth_fusion_ros.nodes.fusion_node',
-        ['fusion_node', '--ros-args', '-p', 'input_qos:=bogus'],
-        node_env(OMP_NUM_THREADS='1'),
-        log,
-    )
+    argv = ['fusion_node', '--ros-args', '-p', 'input_qos:=bogus']
+    node = start_forked('depth_fusion_ros.nodes.fusion_node', argv, node_env(), log)
     assert node.wait(120) == 2
     assert node.poll() == 2 and node.returncode == 2
     text = log.read_text()
-    assert 'torch and OpenCV threads: 1 (OMP_NUM_THREADS)' in text, text
+    assert f'torch and OpenCV threads: {node_threads_here()} (OMP_NUM_THREADS)' in text, text
     errors = [line for line in text.splitlines() if line.startswith('[ERROR]')]
     assert len(errors) == 1 and 'input_qos' in errors[0], text
     assert 'Traceback' not in text
@@ -106,3 +126,18 @@ def test_a_stop_signal_to_the_fork_server_loses_no_exit_code(tmp_path: Path):
         assert server_pid() == server
     finally:
         node.kill()
+
+
+def test_a_forked_child_has_the_blas_threads_its_environment_asks(tmp_path: Path):
+    """numpy's OpenBLAS sizes its pool when it is loaded, in the fork server: the server starts
+    with the nodes' thread variables, so a child gets one thread, not one per core (two
+    spinning OpenBLAS threads per node slowed the graph on 2 cores)."""
+    log = tmp_path / 'probe.log'
+    node = start_forked(__name__, ['probe'], node_env(), log)
+    code = node.wait(60)
+    if code == 3:
+        pytest.skip('this numpy has no OpenBLAS of its own')
+    assert code == 0, log.read_text()
+    assert f'openblas threads: {node_threads_here()}' in log.read_text()
+    with pytest.raises(RuntimeError, match='other thread variables'):
+        start_forked(__name__, ['probe'], node_env(OMP_NUM_THREADS=str(int(node_threads_here()) + 1)), log)

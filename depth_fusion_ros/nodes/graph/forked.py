@@ -58,11 +58,40 @@ def _context() -> Any:
     return ctx
 
 
-def start_server() -> None:
-    """Start the fork server now, so its imports overlap with the launcher's own set-up (it is
-    started on first use otherwise; a server already running is kept)."""
+#: The variables a library reads once, when it is loaded: the server must start with the nodes'
+#: values (numpy's OpenBLAS sized its pool from them at the server's import and a forked
+#: child keeps that pool: two spinning threads per node where one was asked cost the graph's
+#: latency half again on 2 cores).
+THREAD_VARIABLES = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
+
+#: The thread variables the running server was started with (``None``: no server yet).
+_server_threads: dict[str, str] | None = None
+
+
+def start_server(env: Mapping[str, str]) -> bool:
+    """Start the fork server now, with the nodes' thread variables (``env``), so its imports
+    overlap with the launcher's own set-up. A server of this process already running is kept
+    when it was started with the same thread variables; when not, ``False``: it cannot be
+    restarted (``multiprocessing`` has no public way), so start the nodes as console scripts."""
+    global _server_threads
+    wanted = {k: env[k] for k in THREAD_VARIABLES if k in env}
+    if _server_threads is not None:
+        return _server_threads == wanted
     _context()
-    multiprocessing.forkserver.ensure_running()
+    saved = {k: os.environ.get(k) for k in THREAD_VARIABLES}
+    try:  # the server inherits this process's environment as it is while it is spawned
+        for k in THREAD_VARIABLES:
+            os.environ.pop(k, None)
+        os.environ.update(wanted)
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    _server_threads = wanted
+    return True
 
 
 def server_pid() -> int | None:
@@ -120,7 +149,10 @@ def start_forked(
     module: str, argv: Sequence[str], env: Mapping[str, str], log_path: Path | None
 ) -> ForkedNode:
     """Fork ``module``'s ``main()`` from the server, with ``argv`` as its command line, ``env``
-    as its environment and its output to ``log_path`` (appended; ``None``: this terminal)."""
+    as its environment and its output to ``log_path`` (appended; ``None``: this terminal).
+    Raises ``RuntimeError`` when the server runs with other thread variables than ``env``'s."""
+    if not start_server(env):
+        raise RuntimeError(f'the fork server runs with other thread variables than {argv[0]} asks')
     process = _context().Process(
         target=_run_node,
         args=(module, list(argv), dict(env), str(log_path) if log_path else None),

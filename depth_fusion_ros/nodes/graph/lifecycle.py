@@ -39,7 +39,7 @@ from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
 from ..node_executor import executor_choice, make_node_executor, spin_until
 from ..threads import node_threads
 from .dds import apply_fastdds_profile
-from .forked import ForkedNode, fork_nodes, start_forked, start_server
+from .forked import THREAD_VARIABLES, ForkedNode, fork_nodes, start_forked, start_server
 from .inputs import check_inputs
 from .isolation import Isolation, isolate
 from .map_output import check_saved_map
@@ -260,7 +260,8 @@ class GraphRun:
         torch.set_num_threads(threads or 1)
         log.info('composed graph: %d torch thread(s) per op', torch.get_num_threads())
 
-    def _start_processes(self, overrides: dict[str, dict[str, Any]]) -> None:
+    def _node_env(self) -> dict[str, str]:
+        """The environment of every node process: this one's, with the node's thread share."""
         env = os.environ.copy()
         env.setdefault('PYTHONUNBUFFERED', '1')
         threads = self.options.threads_per_node
@@ -268,6 +269,10 @@ class GraphRun:
             threads = node_threads(env)  # the share a node script takes (None: OMP_NUM_THREADS)
         if threads is not None:
             env['OMP_NUM_THREADS'] = str(threads)
+        return env
+
+    def _start_processes(self, overrides: dict[str, dict[str, Any]]) -> None:
+        env = self._node_env()
         for name, (script, module) in self.graph_nodes.items():
             self._spawn(name, script, module, overrides, env)
         self._wait_for_nodes_ready()
@@ -280,9 +285,17 @@ class GraphRun:
             forking = fork_nodes()
         except ValueError as exc:
             raise GraphError(str(exc)) from None
-        if forking:
-            self._fork_server_started = time.monotonic()
-            start_server()
+        if not forking:
+            return
+        started = time.monotonic()
+        if start_server(self._node_env()):
+            self._fork_server_started = started
+        else:
+            log.info(
+                'node processes started as console scripts: the fork server of this process runs '
+                'with other thread variables (%s) and cannot be restarted',
+                ', '.join(THREAD_VARIABLES),
+            )
 
     def _spawn(
         self, name: str, script: str, module: str, overrides: dict[str, dict[str, Any]], env: dict[str, str]
