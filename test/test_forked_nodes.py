@@ -141,3 +141,24 @@ def test_a_forked_child_has_the_blas_threads_its_environment_asks(tmp_path: Path
     assert f'openblas threads: {node_threads_here()}' in log.read_text()
     with pytest.raises(RuntimeError, match='other thread variables'):
         start_forked(__name__, ['probe'], node_env(OMP_NUM_THREADS=str(int(node_threads_here()) + 1)), log)
+
+
+def test_a_fork_server_that_was_killed_is_replaced_with_the_nodes_threads(tmp_path: Path):
+    """``multiprocessing`` starts a new server inside ``start()`` when its server died; that one
+    too gets the nodes' thread variables, not this process's."""
+    log = tmp_path / 'probe.log'
+    assert start_forked(__name__, ['probe'], node_env(), log).wait(60) in (0, 3)
+    server = server_pid()
+    assert server is not None
+    os.kill(server, signal.SIGKILL)
+    stat = Path(f'/proc/{server}/stat')
+    for _ in range(100):  # dead (a zombie until multiprocessing reaps it), not only dying
+        if not stat.exists() or stat.read_text().rsplit(')', 1)[1].split()[0] == 'Z':
+            break
+        time.sleep(0.05)
+    log.unlink()
+    code = start_forked(__name__, ['probe'], node_env(), log).wait(60)
+    if code == 3:
+        pytest.skip('this numpy has no OpenBLAS of its own')
+    assert server_pid() not in (None, server)
+    assert f'openblas threads: {node_threads_here()}' in log.read_text()

@@ -6,7 +6,7 @@ imported it at once, so the slowest node was ready 3.4-3.6 s after it was starte
 server (``multiprocessing``'s ``forkserver``) imports torch and numpy once, then forks each
 node from there: the children share those pages and start with their own imports.
 
-Only torch and numpy are preloaded (and the server's signal set-up, fork_server_signals),
+Only torch and numpy are preloaded (and the server's own set-up, ``nodes/fork_server_setup``),
 because only they are fork-safe here. Importing rclpy's
 extension starts two native threads and OpenCV starts one. A fork keeps none of them, so a
 child could wait on a lock that a lost thread held. Torch starts no thread at import, and
@@ -38,9 +38,10 @@ from typing import Any
 
 #: The switch: ``0`` starts console scripts (one interpreter each, torch imported in each).
 FORK_ENV = 'DEPTH_FUSION_FORK_NODES'
-#: What the fork server imports before it forks anything (see the module docstring), and the
-#: module that makes it outlive a stop signal sent to the process group (fork_server_signals).
-PRELOAD = ('numpy', 'torch', 'depth_fusion_ros.nodes.fork_server_signals')
+#: What the fork server imports before it forks anything (see the module docstring), then its
+#: own set-up: it outlives a stop signal sent to the process group, and freezes what it
+#: imported out of the garbage collector's reach (fork_server_setup).
+PRELOAD = ('numpy', 'torch', 'depth_fusion_ros.nodes.fork_server_setup')
 
 
 def fork_nodes() -> bool:
@@ -74,24 +75,38 @@ def start_server(env: Mapping[str, str]) -> bool:
     when it was started with the same thread variables; when not, ``False``: it cannot be
     restarted (``multiprocessing`` has no public way), so start the nodes as console scripts."""
     global _server_threads
-    wanted = {k: env[k] for k in THREAD_VARIABLES if k in env}
+    wanted = _thread_variables(env)
     if _server_threads is not None:
         return _server_threads == wanted
     _context()
+    with _server_environment(wanted):
+        multiprocessing.forkserver.ensure_running()
+    _server_threads = wanted
+    return True
+
+
+def _thread_variables(env: Mapping[str, str]) -> dict[str, str]:
+    return {k: env[k] for k in THREAD_VARIABLES if k in env}
+
+
+@contextlib.contextmanager
+def _server_environment(threads: Mapping[str, str]) -> Iterator[None]:
+    """This process's thread variables set to ``threads`` for as long as it may spawn the
+    server: the server inherits the environment as it is at that moment. ``multiprocessing``
+    also starts a new server inside ``Process.start()`` when the old one died (killed), so
+    starts are wrapped too."""
     saved = {k: os.environ.get(k) for k in THREAD_VARIABLES}
-    try:  # the server inherits this process's environment as it is while it is spawned
+    try:
         for k in THREAD_VARIABLES:
             os.environ.pop(k, None)
-        os.environ.update(wanted)
-        multiprocessing.forkserver.ensure_running()
+        os.environ.update(threads)
+        yield
     finally:
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
-    _server_threads = wanted
-    return True
 
 
 def server_pid() -> int | None:
@@ -159,7 +174,7 @@ def start_forked(
         name=Path(argv[0]).name,
         daemon=True,  # terminated, not waited for, if this launcher exits without stopping it
     )
-    with _main_left_alone():
+    with _main_left_alone(), _server_environment(_thread_variables(env)):
         process.start()
     return ForkedNode(process, argv)
 
@@ -184,7 +199,7 @@ def _main_left_alone() -> Iterator[None]:
 
 def _run_node(module: str, argv: list[str], env: dict[str, str], log_path: str | None) -> None:
     """The child: become the console script ``argv[0]`` would have been, then run it."""
-    for signum in (signal.SIGTERM, signal.SIGHUP):  # the server ignores them (fork_server_signals)
+    for signum in (signal.SIGTERM, signal.SIGHUP):  # the server ignores them (fork_server_setup)
         signal.signal(signum, signal.SIG_DFL)
     os.environ.clear()
     os.environ.update(env)
