@@ -297,3 +297,16 @@ def test_ctrl_c_stops_processes_cleanly(graph_bag, params_file, tmp_path, proces
     assert alive == [], f'children still running: {alive}'
     assert (tmp_path / 'interrupted.partial').is_dir() and not out.exists()
     assert orphan_segments(since) == []
+
+
+def test_a_bad_fork_switch_is_one_line_before_anything_starts(graph_bag, monkeypatch):
+    """``DEPTH_FUSION_FORK_NODES`` other than 0 or 1 stops ``run --processes`` with one line
+    naming the variable, before a node, a recorder or the fork server exists."""
+    from depth_fusion_ros.nodes.graph import GraphError, GraphRun, RunOptions
+
+    monkeypatch.setenv('DEPTH_FUSION_FORK_NODES', 'maybe')
+    run = GraphRun(RunOptions(bag=graph_bag, processes=True))
+    with pytest.raises(GraphError, match=r"DEPTH_FUSION_FORK_NODES='maybe': expected 1") as caught:
+        run.run()
+    assert '\n' not in str(caught.value)
+    assert run.processes == {} and run.recorder is None

@@ -288,7 +288,12 @@ class GraphRun:
         if not forking:
             return
         started = time.monotonic()
-        if start_server(self._node_env()):
+        try:
+            usable = start_server(self._node_env())
+        except OSError as exc:  # no AF_UNIX socket, no process to spare: the scripts still work
+            log.warning('node processes started as console scripts: the fork server did not start (%s)', exc)
+            return
+        if usable:
             self._fork_server_started = started
         else:
             log.info(
