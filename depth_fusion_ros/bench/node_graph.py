@@ -233,13 +233,16 @@ def measure_run(
     latencies = np.array(sorted(result.latencies.values())) * 1e3
     reasons = drop_reasons(result)
     log_drops = _drop_note(result, BENCH_DIR / 'logs' if processes else None)
+    how = ''
+    if processes:  # how the processes started, and so from when their time counts
+        how = 'forked, counted from the fork server start' if graph.forked else 'console script'
+
+    def ready_note(node: str) -> str:
+        seconds = result.constructor_seconds.get(node)
+        return '; '.join(p for p in (how, f'constructor {seconds:.1f} s' if seconds is not None else '') if p)
+
     rows = [
-        BenchRow(
-            f'{mode}: time to ready, {n.removesuffix("_node")}',
-            t,
-            's',
-            f'constructor {result.constructor_seconds[n]:.1f} s' if n in result.constructor_seconds else '',
-        )
+        BenchRow(f'{mode}: time to ready, {n.removesuffix("_node")}', t, 's', ready_note(n))
         for n, t in result.ready_seconds.items()
     ]
     rows += [

@@ -6,11 +6,11 @@ imported it at once, so the slowest node was ready 3.4-3.6 s after it was starte
 server (``multiprocessing``'s ``forkserver``) imports torch and numpy once, then forks each
 node from there: the children share those pages and start with their own imports.
 
-Only torch and numpy are preloaded (and the server's own set-up, ``nodes/fork_server_setup``),
-because only they are fork-safe here. Importing rclpy's
-extension starts two native threads and OpenCV starts one. A fork keeps none of them, so a
-child could wait on a lock that a lost thread held. Torch starts no thread at import, and
-numpy's OpenBLAS pool stops and restarts around a fork with its own handlers.
+Only torch and numpy are preloaded (then the server's own set-up, ``nodes/fork_server_setup``),
+because only they are fork-safe here. Importing rclpy's extension starts two native threads
+and OpenCV starts one. A fork keeps none of them, so a child could wait on a lock that a lost
+thread held. Torch starts no thread at import, and numpy's OpenBLAS pool stops and restarts
+around a fork with its own handlers.
 
 Each child is still a process of its own, with its own rclpy context, DDS participant, GIL and
 exit code. The launcher signals it, waits for it and reads its exit code through
@@ -185,9 +185,10 @@ def _main_left_alone() -> Iterator[None]:
 
     Like ``spawn``, the fork server runs the parent's main script again in each child (as
     ``__mp_main__``) unless it was run with ``python -m``. That script is the ``depth-fusion``
-    CLI, or pytest, or a user's: importing it cost a node 0.1-0.5 s and could run whatever it
-    runs outside a ``__main__`` guard. A node needs nothing from it, so it is swapped for an
-    empty module for the few milliseconds in which ``start()`` reads it.
+    CLI, or pytest, or a user's: each node would import what it imports and run whatever it
+    runs outside a ``__main__`` guard (a test script's graph run started again in every child,
+    before this). A node needs nothing from it, so it is swapped for an empty module for the
+    few milliseconds in which ``start()`` reads it.
     """
     main = sys.modules['__main__']
     sys.modules['__main__'] = types.ModuleType('__main__')

@@ -98,6 +98,11 @@ class GraphRun:
         self.ready_seconds: dict[str, float] = {}
         self.isolation: Isolation | None = None
 
+    @property
+    def forked(self) -> bool:
+        """Whether this run's node processes are forked from the fork server (graph/forked.py)."""
+        return bool(self._fork_server_started)
+
     # -- public --
 
     def run(self) -> RunResult:
