@@ -26,6 +26,7 @@ SUBCOMMANDS = (
     'export',
     'kernels',
     'run',
+    'launch',
     'mesh',
     'bench',
 )
@@ -39,6 +40,7 @@ typical use:
   depth-fusion synth artifacts/room               # render a posed RGB-D sequence
   depth-fusion convert artifacts/room room.bag    # TUM folder (or ROS 1 bag) -> rosbag2
   depth-fusion run --bag room --record out        # the ROS 2 node graph on a bag
+  depth-fusion launch --pose /slam/camera_pose    # the node graph for a live camera
   depth-fusion evaluate SEQ_DIR --methods tv,single_view,fused
   depth-fusion export --format onnx --out model.onnx   # the network as ONNX (+ model.yaml)
   depth-fusion adapt SEQ_DIR --out adapted.pt     # self-supervised adaptation to a scene

@@ -37,7 +37,6 @@ from typing import Any
 from ..gil import set_switch_interval
 from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
 from ..node_executor import executor_choice, make_node_executor, spin_until
-from ..threads import node_threads
 from .dds import apply_fastdds_profile
 from .forked import THREAD_VARIABLES, ForkedNode, fork_nodes, start_forked, start_server
 from .inputs import check_inputs
@@ -46,7 +45,7 @@ from .map_output import check_saved_map
 from .options import GraphError, RunOptions, RunResult
 from .pacing import paced_overrides
 from .param_merge import bag_topic_types, node_overrides, recorder_qos, ros_arg_value
-from .spawn import describe_exit, node_class, node_command, popen_node, stop_processes
+from .spawn import describe_exit, node_class, node_command, node_environment, popen_node, stop_processes
 from .topics import (
     FUSED_OUTPUTS,
     GRAPH_NODES,
@@ -266,15 +265,7 @@ class GraphRun:
         log.info('composed graph: %d torch thread(s) per op', torch.get_num_threads())
 
     def _node_env(self) -> dict[str, str]:
-        """The environment of every node process: this one's, with the node's thread share."""
-        env = os.environ.copy()
-        env.setdefault('PYTHONUNBUFFERED', '1')
-        threads = self.options.threads_per_node
-        if threads is None:
-            threads = node_threads(env)  # the share a node script takes (None: OMP_NUM_THREADS)
-        if threads is not None:
-            env['OMP_NUM_THREADS'] = str(threads)
-        return env
+        return node_environment(self.options.threads_per_node)
 
     def _start_processes(self, overrides: dict[str, dict[str, Any]]) -> None:
         env = self._node_env()

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
+from ..threads import node_threads
 from .dds import orphan_segments, remove_segments
 
 log = logging.getLogger(__name__)
@@ -53,6 +54,17 @@ def describe_exit(code: int) -> str:
             name = f'signal {-code}'
         return f'was killed by {name} (exit {code})'
     return f'exited early with code {code}'
+
+
+def node_environment(threads_per_node: int | None) -> dict[str, str]:
+    """The environment of every node process: this process's, with the node's torch thread
+    share (``threads_per_node``, else what a node script takes: ``threads.node_threads``)."""
+    env = os.environ.copy()
+    env.setdefault('PYTHONUNBUFFERED', '1')
+    threads = threads_per_node if threads_per_node is not None else node_threads(env)
+    if threads is not None:  # None: OMP_NUM_THREADS is set, and it is in env already
+        env['OMP_NUM_THREADS'] = str(threads)
+    return env
 
 
 def popen_node(cmd: list[str], env: dict[str, str], log_file: TextIO | None) -> subprocess.Popen:

@@ -1,0 +1,149 @@
+"""``depth-fusion launch``: the graph's nodes for a live camera, started and stopped as one.
+
+Why: pip has no ``ros2 launch`` (no ``launch_ros``), so a live graph was three console
+scripts in three terminals, which start at once on 2 cores in ~3.5 s, each importing torch
+(docs/performance.md). This starts ``multi_view_node``, ``single_view_node`` and
+``fusion_node`` (and ``map_node`` with ``map``) as their own processes, the way
+``launch/depth_fusion.launch.py`` does with a ROS install: one params file, the multi-view
+node's inputs remapped, each node's output to this terminal or its log file. They are forked
+from the fork server that ``depth-fusion run --processes`` uses (``forked.py``), so the
+graph is ready sooner.
+
+It supervises them like ``ros2 launch`` with every node required: Ctrl-C or SIGTERM stops
+them all (SIGINT, then a kill after the timeout) and exits 0 when every node stopped cleanly.
+A node that exits on its own stops the others and exits 1, naming it and how it ended. Unlike
+``depth-fusion run`` it plays nothing, records nothing and joins the environment's ROS domain
+(``ROS_DOMAIN_ID``): the camera and the SLAM are already there.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .forked import THREAD_VARIABLES, fork_nodes, start_forked, start_server
+from .lifecycle import install_stop_signals
+from .param_merge import ros_arg_value
+from .spawn import describe_exit, node_command, node_environment, popen_node, stop_processes
+from .topics import graph_nodes
+
+log = logging.getLogger(__name__)
+
+#: The multi-view node's input names (as it declares them) that ``LaunchOptions.inputs`` remaps;
+#: the launch file's arguments of the same meaning.
+INPUTS = {
+    'image': 'camera/rgb/image_color',
+    'camera_info': 'camera/rgb/camera_info',
+    'pose': 'camera/pose',
+    'corrected_path': 'camera/corrected_path',
+}
+
+
+@dataclass
+class LaunchOptions:
+    """What ``depth-fusion launch`` was asked for."""
+
+    params_file: Path | None = None
+    with_map: bool = False
+    #: ``INPUTS`` key -> the topic to read it from (``{'pose': '/orb_slam3/camera_pose'}``).
+    inputs: dict[str, str] = field(default_factory=dict)
+    #: node -> {parameter: value}, as ``run --set`` gives them.
+    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+    log_dir: Path | None = None
+    threads_per_node: int | None = None
+    #: Seconds a node may take to stop on SIGINT before it is killed.
+    stop_timeout: float = 15.0
+
+
+def node_ros_args(name: str, opts: LaunchOptions) -> list[str]:
+    """The ``--ros-args`` of one node: the params file, its ``--set`` values, and the remaps of
+    the inputs it reads (the multi-view node all of them, the map node the corrected path)."""
+    args = ['--ros-args']
+    if opts.params_file is not None:
+        args += ['--params-file', str(opts.params_file)]
+    for key, value in opts.overrides.get(name, {}).items():
+        args += ['-p', f'{key}:={ros_arg_value(value)}']
+    reads = INPUTS if name == 'multi_view_node' else {'corrected_path': INPUTS['corrected_path']}
+    if name in ('multi_view_node', 'map_node'):
+        for key, topic in opts.inputs.items():
+            if key in reads:
+                args += ['-r', f'{reads[key]}:={topic}']
+    return args
+
+
+def launch(opts: LaunchOptions) -> int:
+    """Start the nodes, wait until one ends or this process is asked to stop, stop them all;
+    the exit code (0: stopped on request, every node cleanly; 1: a node ended on its own or
+    did not stop cleanly)."""
+    env = node_environment(opts.threads_per_node)
+    forking = _fork_server(env)
+    previous = install_stop_signals()  # SIGTERM as Ctrl-C: the nodes are never orphaned
+    processes: dict[str, Any] = {}
+    logs = []
+    since = time.time()
+    interrupted = False
+    ended: tuple[str, int] | None = None
+    try:
+        for name, (script, module) in graph_nodes(opts.with_map).items():
+            argv = [script, *node_ros_args(name, opts)]
+            log_path = None if opts.log_dir is None else opts.log_dir / f'{name}.log'
+            if log_path is not None:
+                opts.log_dir.mkdir(parents=True, exist_ok=True)
+                log_path.write_text('')
+            child_env = {**env, 'RCUTILS_COLORIZED_OUTPUT': '0'} if log_path else env
+            if forking:
+                processes[name] = start_forked(module, argv, child_env, log_path)
+            else:
+                out = None if log_path is None else open(log_path, 'a')  # noqa: SIM115 - closed below
+                if out is not None:
+                    logs.append(out)
+                processes[name] = popen_node(node_command(script, module, argv[2:]), env, out)
+            where = f', log {log_path}' if log_path else ''
+            log.info('%s %s (pid %d%s)', 'forked' if forking else 'started', name, processes[name].pid, where)
+        log.info('%d nodes running; Ctrl-C stops them', len(processes))
+        ended = _wait_for_an_end(processes)
+    except KeyboardInterrupt:
+        interrupted = True
+        log.info('stopping the nodes')
+    finally:
+        codes = stop_processes(processes, interrupted, since, opts.stop_timeout)
+        for f in logs:
+            f.close()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    if ended is not None:
+        name, code = ended
+        log.error('%s %s: the other nodes were stopped', name, describe_exit(code))
+        return 1
+    unclean = {n: c for n, c in codes.items() if c not in (0, None)}
+    for name, code in unclean.items():
+        log.error('%s did not stop cleanly (exit code %d)', name, code)
+    return 1 if unclean else 0
+
+
+def _fork_server(env: dict[str, str]) -> bool:
+    """Whether the nodes are forked (the server started), else console scripts, with why."""
+    if not fork_nodes():
+        return False
+    try:
+        usable = start_server(env)
+    except OSError as exc:
+        log.warning('nodes started as console scripts: the fork server did not start (%s)', exc)
+        return False
+    if not usable:
+        log.info('nodes started as console scripts: the fork server runs with other %s', THREAD_VARIABLES)
+    return usable
+
+
+def _wait_for_an_end(processes: dict[str, Any]) -> tuple[str, int]:
+    """Until a node ends (returned: its name and exit code) or a stop signal interrupts."""
+    while True:
+        for name, process in processes.items():
+            code = process.poll()
+            if code is not None:
+                return name, code
+        time.sleep(0.2)

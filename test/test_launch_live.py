@@ -1,0 +1,121 @@
+"""``depth-fusion launch``: the live graph started as one, its inputs remapped, stopped as one.
+
+Real processes on this test run's own ROS domain (conftest): the remapped pose topic is checked
+on the DDS graph, Ctrl-C must leave no node running, and a node that dies must stop the rest.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip('rclpy', reason='rclpy (ros-jazzy-rclpy) is not installed')
+
+NODES = ('multi_view_node', 'single_view_node', 'fusion_node')
+
+
+def running(pid: int) -> bool:
+    try:
+        return Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0] != 'Z'
+    except (OSError, IndexError):
+        return False
+
+
+def start(log_dir: Path, *extra: str) -> subprocess.Popen:
+    cmd = [sys.executable, '-m', 'depth_fusion_ros.cli.main', 'launch', '--log-dir', str(log_dir), *extra]
+    env = os.environ.copy()
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+
+
+def wait_ready(proc: subprocess.Popen, log_dir: Path, nodes=NODES, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        logs = {n: log_dir / f'{n}.log' for n in nodes}
+        if all(p.exists() and f'[{n}]: ready' in p.read_text() for n, p in logs.items()):
+            return
+        assert proc.poll() is None, proc.stdout.read()
+        time.sleep(0.2)
+    raise AssertionError(f'not ready after {timeout:g} s')
+
+
+def subscribers(topic: str) -> set[str]:
+    """The node names subscribed to ``topic`` on this test's domain, as DDS discovery sees them."""
+    import rclpy
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node('launch_probe', context=context)
+        deadline = time.monotonic() + 20.0
+        names: set[str] = set()
+        while time.monotonic() < deadline and 'multi_view_node' not in names:
+            names = {info.node_name for info in node.get_subscriptions_info_by_topic(topic)}
+            time.sleep(0.2)
+        node.destroy_node()
+        return names
+    finally:
+        rclpy.shutdown(context=context)
+
+
+def test_launch_remaps_the_inputs_and_ctrl_c_stops_every_node(tmp_path: Path):
+    proc = start(tmp_path, '--pose', '/launch_test/slam_pose', '--set', 'fusion_node.stats_period=0.0')
+    try:
+        wait_ready(proc, tmp_path)
+        assert 'multi_view_node' in subscribers('/launch_test/slam_pose')
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    output = proc.stdout.read()
+    assert code == 0, output
+    pids = [int(p) for p in re.findall(r'(?:forked|started) \w+ \(pid (\d+)', output)]
+    assert len(pids) == 3, output
+    time.sleep(0.5)
+    assert [p for p in pids if running(p)] == []
+    for node in NODES:
+        assert 'final counters' in (tmp_path / f'{node}.log').read_text()
+
+
+def test_a_node_that_dies_stops_the_others_and_the_launch_fails(tmp_path: Path):
+    proc = start(tmp_path)
+    try:
+        wait_ready(proc, tmp_path)
+        output_so_far = ''.join(proc.stdout.readline() for _ in range(3))
+        pids = dict(re.findall(r'(?:forked|started) (\w+) \(pid (\d+)', output_so_far))
+        assert set(pids) == set(NODES), output_so_far
+        os.kill(int(pids['fusion_node']), signal.SIGKILL)
+        code = proc.wait(60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    output = proc.stdout.read()
+    assert code == 1, output
+    assert 'fusion_node was killed by SIGKILL (exit -9): the other nodes were stopped' in output
+    time.sleep(0.5)
+    assert [n for n, p in pids.items() if running(int(p))] == []
+
+
+@pytest.mark.parametrize(
+    ('args', 'message'),
+    [
+        (['--set', 'bag_replayer.rate=2'], 'bag_replayer is not started (launch plays no bag)'),
+        (['--set', 'map_node.map.voxel_size=0.05'], 'map_node is not started; add --map'),
+        (['--set', 'fusion_node.no_such_parameter=1'], 'no_such_parameter'),
+        (['--params', 'no/such/file.yaml'], '--params no/such/file.yaml: no such file'),
+    ],
+)
+def test_bad_launch_options_are_one_line_before_any_node_starts(tmp_path: Path, args, message):
+    proc = start(tmp_path / 'logs', *args)
+    output, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1
+    assert output.strip().splitlines() == [output.strip().splitlines()[0]]
+    assert output.startswith('depth-fusion launch: error: ') and message in output
+    assert not (tmp_path / 'logs').exists()
