@@ -6,12 +6,14 @@ on the DDS graph, Ctrl-C must leave no node running, and a node that dies must s
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -45,6 +47,18 @@ def wait_ready(proc: subprocess.Popen, log_dir: Path, nodes=NODES, timeout: floa
     raise AssertionError(f'not ready after {timeout:g} s')
 
 
+@contextlib.contextmanager
+def launched(log_dir: Path, *extra: str) -> Iterator[subprocess.Popen]:
+    """``depth-fusion launch`` running with every node ready; killed at the end if still up."""
+    proc = start(log_dir, *extra)
+    try:
+        wait_ready(proc, log_dir)
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
 def subscribers(topic: str) -> set[str]:
     """The node names subscribed to ``topic`` on this test's domain, as DDS discovery sees them."""
     import rclpy
@@ -65,15 +79,11 @@ def subscribers(topic: str) -> set[str]:
 
 
 def test_launch_remaps_the_inputs_and_ctrl_c_stops_every_node(tmp_path: Path):
-    proc = start(tmp_path, '--pose', '/launch_test/slam_pose', '--set', 'fusion_node.stats_period=0.0')
-    try:
-        wait_ready(proc, tmp_path)
+    args = ('--pose', '/launch_test/slam_pose', '--set', 'fusion_node.stats_period=0.0')
+    with launched(tmp_path, *args) as proc:
         assert 'multi_view_node' in subscribers('/launch_test/slam_pose')
         proc.send_signal(signal.SIGINT)
         code = proc.wait(60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
     output = proc.stdout.read()
     assert code == 0, output
     pids = [int(p) for p in re.findall(r'(?:forked|started) \w+ \(pid (\d+)', output)]
@@ -85,17 +95,12 @@ def test_launch_remaps_the_inputs_and_ctrl_c_stops_every_node(tmp_path: Path):
 
 
 def test_a_node_that_dies_stops_the_others_and_the_launch_fails(tmp_path: Path):
-    proc = start(tmp_path)
-    try:
-        wait_ready(proc, tmp_path)
+    with launched(tmp_path) as proc:
         output_so_far = ''.join(proc.stdout.readline() for _ in range(3))
         pids = dict(re.findall(r'(?:forked|started) (\w+) \(pid (\d+)', output_so_far))
         assert set(pids) == set(NODES), output_so_far
         os.kill(int(pids['fusion_node']), signal.SIGKILL)
         code = proc.wait(60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
     output = proc.stdout.read()
     assert code == 1, output
     assert 'fusion_node was killed by SIGKILL (exit -9): the other nodes were stopped' in output
