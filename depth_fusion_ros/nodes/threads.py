@@ -53,11 +53,11 @@ def apply_node_threads() -> str:
     import cv2
     import torch
 
-    if threads is not None:
-        torch.set_num_threads(threads)
-    elif (wanted := _omp_threads()) is not None:
-        # Torch read OMP_NUM_THREADS when it was imported, which for a node forked from the
-        # launcher's fork server (graph/forked.py) was before this environment was set.
+    # OMP_NUM_THREADS is applied too, not left to torch: torch read it when it was imported,
+    # which for a node forked from the launcher's fork server (graph/forked.py) was before
+    # this environment was set.
+    wanted = threads if threads is not None else _omp_threads()
+    if wanted is not None:
         torch.set_num_threads(wanted)
     cv2.setNumThreads(torch.get_num_threads())
     if threads is None:

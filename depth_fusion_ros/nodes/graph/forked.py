@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import logging
 import multiprocessing
 import multiprocessing.forkserver
 import os
@@ -35,6 +36,8 @@ import types
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 #: The switch: ``0`` starts console scripts (one interpreter each, torch imported in each).
 FORK_ENV = 'DEPTH_FUSION_FORK_NODES'
@@ -51,6 +54,26 @@ def fork_nodes() -> bool:
         raise ValueError(f'{FORK_ENV}={value!r}: expected 1 (fork node processes) or 0 (console scripts)')
     wanted = value in ('1', 'true', 'yes', 'on')
     return wanted and 'forkserver' in multiprocessing.get_all_start_methods()
+
+
+def forking_server(env: Mapping[str, str]) -> bool:
+    """Whether this run forks its nodes: the switch allows it and the server runs with the
+    nodes' thread variables (``env``; started now if needed). When not, the line that says why
+    is logged and the nodes start as console scripts. A bad switch raises ``ValueError``."""
+    if not fork_nodes():
+        return False
+    try:
+        usable = start_server(env)
+    except OSError as exc:  # no AF_UNIX socket, no process to spare: the scripts still work
+        log.warning('node processes started as console scripts: the fork server did not start (%s)', exc)
+        return False
+    if not usable:
+        log.info(
+            'node processes started as console scripts: the fork server of this process runs with '
+            'other thread variables (%s) and cannot be restarted',
+            ', '.join(THREAD_VARIABLES),
+        )
+    return usable
 
 
 def _context() -> Any:

@@ -30,7 +30,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -38,14 +37,14 @@ from ..gil import set_switch_interval
 from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
 from ..node_executor import executor_choice, make_node_executor, spin_until
 from .dds import apply_fastdds_profile
-from .forked import THREAD_VARIABLES, ForkedNode, fork_nodes, start_forked, start_server
+from .forked import ForkedNode, forking_server
 from .inputs import check_inputs
 from .isolation import Isolation, isolate
 from .map_output import check_saved_map
 from .options import GraphError, RunOptions, RunResult
 from .pacing import paced_overrides
-from .param_merge import bag_topic_types, node_overrides, recorder_qos, ros_arg_value
-from .spawn import describe_exit, node_class, node_command, node_environment, popen_node, stop_processes
+from .param_merge import bag_topic_types, node_overrides, recorder_qos
+from .spawn import describe_exit, node_class, node_environment, node_ros_args, start_node, stop_processes
 from .topics import (
     FUSED_OUTPUTS,
     GRAPH_NODES,
@@ -277,31 +276,18 @@ class GraphRun:
     def _start_fork_server(self) -> None:
         """Start the server the node processes are forked from (graph/forked.py), unless
         ``DEPTH_FUSION_FORK_NODES=0`` asks for console scripts."""
-        try:
-            forking = fork_nodes()
-        except ValueError as exc:
-            raise GraphError(str(exc)) from None
-        if not forking:
-            return
         started = time.monotonic()
         try:
-            usable = start_server(self._node_env())
-        except OSError as exc:  # no AF_UNIX socket, no process to spare: the scripts still work
-            log.warning('node processes started as console scripts: the fork server did not start (%s)', exc)
-            return
-        if usable:
+            forking = forking_server(self._node_env())
+        except ValueError as exc:
+            raise GraphError(str(exc)) from None
+        if forking:
             self._fork_server_started = started
-        else:
-            log.info(
-                'node processes started as console scripts: the fork server of this process runs '
-                'with other thread variables (%s) and cannot be restarted',
-                ', '.join(THREAD_VARIABLES),
-            )
 
     def _spawn(
         self, name: str, script: str, module: str, overrides: dict[str, dict[str, Any]], env: dict[str, str]
     ) -> None:
-        ros_args = self._ros_args(overrides.get(name, {}))
+        ros_args = node_ros_args(self.options.params_file, overrides.get(name, {}))
         # A forked node's start began with the server's imports: its time to ready counts them.
         # The replayer imports no torch: it starts as its console script, as before.
         fork = bool(self._fork_server_started) and name in self.graph_nodes
@@ -338,30 +324,16 @@ class GraphRun:
                 )
             time.sleep(0.05)
 
-    def _ros_args(self, values: Mapping[str, Any]) -> list[str]:
-        args = []
-        if self.options.params_file:
-            args += ['--params-file', str(self.options.params_file)]
-        for key, value in values.items():
-            args += ['-p', f'{key}:={ros_arg_value(value)}']
-        return args
-
     def _start_node(
         self, name: str, script: str, module: str, ros_args: list[str], env: dict[str, str], fork: bool
     ) -> subprocess.Popen | ForkedNode:
-        """Fork the node from the server, or start its console script; logging to its file in
-        ``log_dir`` (uncoloured) or to this terminal."""
-        out = None
-        log_path = None
-        if self.options.log_dir is not None:
-            self.options.log_dir.mkdir(parents=True, exist_ok=True)
-            log_path = self.options.log_dir / f'{name}.log'
-            out = open(log_path, 'w')  # noqa: SIM115 - closed in _shutdown
-            self._logs.append(out)
-        if fork:
-            child_env = {**env, 'RCUTILS_COLORIZED_OUTPUT': '0'} if log_path else env
-            return start_forked(module, [script, '--ros-args', *ros_args], child_env, log_path)
-        return popen_node(node_command(script, module, ros_args), env, out)
+        """The node started by ``spawn.start_node``, logging to its file in ``log_dir`` or to
+        this terminal."""
+        log_path = self.options.log_dir / f'{name}.log' if self.options.log_dir is not None else None
+        process, out = start_node(script, module, ros_args, env, log_path, fork)
+        if out is not None:
+            self._logs.append(out)  # closed in _shutdown
+        return process
 
     # -- waiting --
 

@@ -25,10 +25,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .forked import THREAD_VARIABLES, fork_nodes, start_forked, start_server
+from .forked import forking_server
 from .lifecycle import install_stop_signals
-from .param_merge import ros_arg_value
-from .spawn import describe_exit, node_command, node_environment, popen_node, stop_processes
+from .spawn import describe_exit, node_environment, node_ros_args, start_node, stop_processes
 from .topics import graph_nodes
 
 log = logging.getLogger(__name__)
@@ -59,19 +58,17 @@ class LaunchOptions:
     stop_timeout: float = 15.0
 
 
-def node_ros_args(name: str, opts: LaunchOptions) -> list[str]:
-    """The ``--ros-args`` of one node: the params file, its ``--set`` values, and the remaps of
-    the inputs it reads (the multi-view node all of them, the map node the corrected path)."""
-    args = ['--ros-args']
-    if opts.params_file is not None:
-        args += ['--params-file', str(opts.params_file)]
-    for key, value in opts.overrides.get(name, {}).items():
-        args += ['-p', f'{key}:={ros_arg_value(value)}']
-    reads = INPUTS if name == 'multi_view_node' else {'corrected_path': INPUTS['corrected_path']}
-    if name in ('multi_view_node', 'map_node'):
-        for key, topic in opts.inputs.items():
-            if key in reads:
-                args += ['-r', f'{reads[key]}:={topic}']
+#: The inputs each node reads that ``LaunchOptions.inputs`` remaps.
+NODE_INPUTS = {'multi_view_node': tuple(INPUTS), 'map_node': ('corrected_path',)}
+
+
+def launch_ros_args(name: str, opts: LaunchOptions) -> list[str]:
+    """The ``--ros-args`` of one node: the params file and its ``--set`` values
+    (``spawn.node_ros_args``), then the remaps of the inputs it reads."""
+    args = node_ros_args(opts.params_file, opts.overrides.get(name, {}))
+    for key in NODE_INPUTS.get(name, ()):
+        if key in opts.inputs:
+            args += ['-r', f'{INPUTS[key]}:={opts.inputs[key]}']
     return args
 
 
@@ -80,7 +77,7 @@ def launch(opts: LaunchOptions) -> int:
     the exit code (0: stopped on request, every node cleanly; 1: a node ended on its own or
     did not stop cleanly)."""
     env = node_environment(opts.threads_per_node)
-    forking = _fork_server(env)
+    forking = forking_server(env)
     previous = install_stop_signals()  # SIGTERM as Ctrl-C: the nodes are never orphaned
     processes: dict[str, Any] = {}
     logs = []
@@ -89,21 +86,13 @@ def launch(opts: LaunchOptions) -> int:
     ended: tuple[str, int] | None = None
     try:
         for name, (script, module) in graph_nodes(opts.with_map).items():
-            argv = [script, *node_ros_args(name, opts)]
             log_path = None if opts.log_dir is None else opts.log_dir / f'{name}.log'
-            if log_path is not None:
-                opts.log_dir.mkdir(parents=True, exist_ok=True)
-                log_path.write_text('')
-            child_env = {**env, 'RCUTILS_COLORIZED_OUTPUT': '0'} if log_path else env
-            if forking:
-                processes[name] = start_forked(module, argv, child_env, log_path)
-            else:
-                out = None if log_path is None else open(log_path, 'a')  # noqa: SIM115 - closed below
-                if out is not None:
-                    logs.append(out)
-                processes[name] = popen_node(node_command(script, module, argv[2:]), env, out)
+            process, out = start_node(script, module, launch_ros_args(name, opts), env, log_path, forking)
+            processes[name] = process
+            if out is not None:
+                logs.append(out)
             where = f', log {log_path}' if log_path else ''
-            log.info('%s %s (pid %d%s)', 'forked' if forking else 'started', name, processes[name].pid, where)
+            log.info('%s %s (pid %d%s)', 'forked' if forking else 'started', name, process.pid, where)
         log.info('%d nodes running; Ctrl-C stops them', len(processes))
         ended = _wait_for_an_end(processes)
     except KeyboardInterrupt:
@@ -123,20 +112,6 @@ def launch(opts: LaunchOptions) -> int:
     for name, code in unclean.items():
         log.error('%s did not stop cleanly (exit code %d)', name, code)
     return 1 if unclean else 0
-
-
-def _fork_server(env: dict[str, str]) -> bool:
-    """Whether the nodes are forked (the server started), else console scripts, with why."""
-    if not fork_nodes():
-        return False
-    try:
-        usable = start_server(env)
-    except OSError as exc:
-        log.warning('nodes started as console scripts: the fork server did not start (%s)', exc)
-        return False
-    if not usable:
-        log.info('nodes started as console scripts: the fork server runs with other %s', THREAD_VARIABLES)
-    return usable
 
 
 def _wait_for_an_end(processes: dict[str, Any]) -> tuple[str, int]:

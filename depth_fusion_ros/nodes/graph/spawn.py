@@ -13,11 +13,14 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TextIO
 
 from ..threads import node_threads
 from .dds import orphan_segments, remove_segments
+from .forked import start_forked
+from .param_merge import ros_arg_value
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +68,33 @@ def node_environment(threads_per_node: int | None) -> dict[str, str]:
     if threads is not None:  # None: OMP_NUM_THREADS is set, and it is in env already
         env['OMP_NUM_THREADS'] = str(threads)
     return env
+
+
+def node_ros_args(params_file: Path | None, values: Mapping[str, Any]) -> list[str]:
+    """A node's arguments after ``--ros-args``: the params file, then ``-p`` for each value."""
+    args = ['--params-file', str(params_file)] if params_file else []
+    for key, value in values.items():
+        args += ['-p', f'{key}:={ros_arg_value(value)}']
+    return args
+
+
+def start_node(
+    script: str, module: str, ros_args: list[str], env: dict[str, str], log_path: Path | None, fork: bool
+) -> tuple[Any, TextIO | None]:
+    """Start one node: forked from the fork server (``forked.start_forked``), or as its console
+    script. Its output goes to ``log_path`` (emptied first, uncoloured) or to this terminal.
+    Returns the Popen-like process and the log file this process holds open for a console
+    script (``None`` otherwise), which the caller closes once the node has stopped."""
+    out = None
+    if log_path is not None:
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        out = open(log_path, 'w')  # noqa: SIM115 - returned, closed by the caller
+    if fork:
+        if out is not None:
+            out.close()  # emptied; the child appends to it itself
+            env = {**env, 'RCUTILS_COLORIZED_OUTPUT': '0'}
+        return start_forked(module, [script, '--ros-args', *ros_args], env, log_path), None
+    return popen_node(node_command(script, module, ros_args), env, out), out
 
 
 def popen_node(cmd: list[str], env: dict[str, str], log_file: TextIO | None) -> subprocess.Popen:
