@@ -322,3 +322,68 @@ def test_cli_synth_time_offset_is_recorded(tmp_path):
     assert main([*args, '--pose-time-offset', '-0.02']) == 0
     text = (out / 'SOURCE.md').read_text()
     assert '--pose-time-offset -0.02' in text and 'out of sync' in text and '-20 ms' in text
+
+
+def test_exposure_time_blurs_along_the_motion_and_keeps_the_stamps_depth():
+    """``exposure_time``: each image is the mean of ``blur_samples`` views over the open
+    shutter (the told pose and the depth stay the stamp's); 0 is the sharp image, bit for bit."""
+    from depth_fusion_ros.data.synthetic import stress_config
+    from depth_fusion_ros.data.synthetic.render import render_radiance
+    from depth_fusion_ros.data.synthetic.world import exposure_poses
+
+    sharp_cfg = SynthConfig(width=80, height=60, frames=3, sweep=0.12, noise_sigma=0.0)
+    blur_cfg = SynthConfig(width=80, height=60, frames=3, sweep=0.12, noise_sigma=0.0, exposure_time=1 / 30)
+    sharp, blurred = render_sequence(sharp_cfg), render_sequence(blur_cfg)
+    assert 'blur33.3ms' in blurred.name and 'blur' not in sharp.name
+    scene, trajectory = build_world(blur_cfg)
+    views = exposure_poses(blur_cfg, trajectory.poses)
+    assert views.shape == (3, 7, 4, 4) and exposure_poses(sharp_cfg, trajectory.poses) is None
+    np.testing.assert_allclose(views[1, 3], trajectory.poses[1], atol=1e-12)  # centred on the stamp
+    # Half a frame each way: the first and last views are halfway to the neighbouring frames.
+    half = 0.5 * (trajectory.poses[2][:3, 3] - trajectory.poses[1][:3, 3])
+    np.testing.assert_allclose(views[1, -1][:3, 3], trajectory.poses[1][:3, 3] + half, atol=1e-9)
+    mean = np.mean([render_radiance(scene, blur_cfg.camera(), p)[0] for p in views[1]], axis=0)
+    np.testing.assert_array_equal(blurred.frames[1].rgb, np.clip(np.rint(mean), 0, 255).astype(np.uint8))
+    for a, b in zip(blurred.frames, sharp.frames, strict=True):
+        assert np.array_equal(a.depth, b.depth) and np.array_equal(a.pose, b.pose)
+    # Blur smooths along the motion: less gradient energy than the sharp image of the same pose.
+    grad = [np.abs(np.diff(f.frames[1].rgb.astype(np.float64), axis=1)).mean() for f in (blurred, sharp)]
+    assert grad[0] < 0.9 * grad[1]
+    assert stress_config('motion_blur').exposure_time == pytest.approx(1 / 30)
+    with pytest.raises(ValueError, match='exposure_time'):
+        SynthConfig(exposure_time=0.05)  # longer than a frame period at 30 Hz
+    with pytest.raises(ValueError, match='blur_samples'):
+        SynthConfig(blur_samples=1)
+
+
+def test_gain_sigma_changes_each_frames_exposure_seeded():
+    """``gain_sigma``: every frame scaled by its own seeded gain and clipped at 255 (an
+    auto-exposure); the depth, the poses and the frame-to-frame draws do not depend on it."""
+    from depth_fusion_ros.data.synthetic.world import frame_gain
+
+    base = dict(width=48, height=36, frames=4, noise_sigma=0.0)
+    flat, varied = render_sequence(SynthConfig(**base)), render_sequence(SynthConfig(**base, gain_sigma=0.2))
+    assert 'gain0.2' in varied.name
+    cfg = SynthConfig(**base, gain_sigma=0.2)
+    gains = [frame_gain(cfg, i) for i in range(4)]
+    assert len(set(gains)) == 4 and all(0.4 < g < 2.5 for g in gains)
+    assert gains[2] == frame_gain(SynthConfig(**{**base, 'frames': 9}, gain_sigma=0.2), 2)
+    for gain, a, b in zip(gains, varied.frames, flat.frames, strict=True):
+        assert np.array_equal(a.depth, b.depth) and np.array_equal(a.pose, b.pose)
+        unclipped = (a.rgb < 255) & (b.rgb > 20)
+        ratio = a.rgb[unclipped].astype(np.float64) / b.rgb[unclipped]
+        assert np.median(ratio) == pytest.approx(gain, rel=0.03)
+    assert frame_gain(SynthConfig(**base), 1) == 1.0
+    with pytest.raises(ValueError, match='gain_sigma'):
+        SynthConfig(gain_sigma=-0.1)
+
+
+def test_cli_synth_sensor_stress_is_recorded(tmp_path):
+    from depth_fusion_ros.cli.main import main
+
+    out = tmp_path / 'blurred'
+    args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
+    assert main([*args, '--stress', 'auto_exposure', '--exposure-time', '0.02', '--blur-samples', '3']) == 0
+    text = (out / 'SOURCE.md').read_text()
+    assert '--exposure-time 0.02' in text and '--blur-samples 3' in text and '--gain-sigma 0.15' in text
+    assert 'motion-blurred' in text and '20 ms exposure' in text and 'auto-exposure' in text

@@ -155,6 +155,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         f'pose-source time offset (at most one frame period; default {d.pose_time_offset:g})',
     )
     p.add_argument(
+        '--exposure-time',
+        type=float,
+        default=d.exposure_time,
+        help='seconds the shutter is open around each stamp: a moving camera blurs the image along its '
+        f'motion (at most one frame period; default {d.exposure_time:g}: sharp)',
+    )
+    p.add_argument(
+        '--blur-samples',
+        type=int,
+        default=d.blur_samples,
+        help=f'renders averaged over --exposure-time (default {d.blur_samples})',
+    )
+    p.add_argument(
+        '--gain-sigma',
+        type=float,
+        default=d.gain_sigma,
+        help="std of each frame's log gain, an auto-exposure that changes from frame to frame "
+        f'(default {d.gain_sigma:g}: constant exposure)',
+    )
+    p.add_argument(
         '--stress',
         choices=tuple(STRESS_CASES),
         default=None,
@@ -202,6 +222,9 @@ def config_from_args(args: argparse.Namespace):
         pose_noise_m=pick('pose_noise_m', args.pose_noise_m),
         pose_noise_deg=pick('pose_noise_deg', args.pose_noise_deg),
         pose_time_offset=pick('pose_time_offset', args.pose_time_offset),
+        exposure_time=pick('exposure_time', args.exposure_time),
+        blur_samples=pick('blur_samples', args.blur_samples),
+        gain_sigma=pick('gain_sigma', args.gain_sigma),
     )
 
 

@@ -71,6 +71,16 @@ class SynthConfig:
     #: the other way), constant-velocity between neighbouring frames: a time offset between
     #: camera and pose source. At most one frame period either way. 0 = in sync.
     pose_time_offset: float = 0.0
+    #: Shutter time (s): each image averages the scene over this interval centred on its stamp,
+    #: so a moving camera blurs it along the motion (0 = an instantaneous, sharp image). At most
+    #: one frame period, what a dim room gives a 30 Hz camera.
+    exposure_time: float = 0.0
+    #: Renders averaged over ``exposure_time`` (evenly spaced poses along the motion).
+    blur_samples: int = 7
+    #: Std of each frame's log gain (auto-exposure): frame ``i`` is ``exp(gain_sigma * n_i)``
+    #: times as bright (``n_i`` standard normal, drawn per frame), clipped at 255 like a sensor.
+    #: 0 = the same exposure for every frame.
+    gain_sigma: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ValueError:
@@ -118,6 +128,12 @@ class SynthConfig:
             raise bad('pose_noise_deg', 'expected a rotation std of 0..10 degrees')
         if not abs(self.pose_time_offset) * self.fps <= 1.0:
             raise bad('pose_time_offset', f'expected at most one frame period (1 / fps = {1 / self.fps:g} s)')
+        if not 0 <= self.exposure_time * self.fps <= 1.0:
+            raise bad('exposure_time', f'expected 0 to one frame period (1 / fps = {1 / self.fps:g} s)')
+        if not 2 <= self.blur_samples <= 64:
+            raise bad('blur_samples', 'expected 2..64 renders per blurred image')
+        if not 0 <= self.gain_sigma <= 1.0:
+            raise bad('gain_sigma', 'expected a log-gain std of 0..1')
 
     def camera(self) -> PinholeCamera:
         """Intrinsics: principal point at the image centre ((W - 1) / 2 with pixel-centre

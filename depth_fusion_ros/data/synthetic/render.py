@@ -237,27 +237,14 @@ def _supersample_edges(
     return radiance.reshape(len(RGSS_OFFSETS), len(rows), 3).mean(axis=0)
 
 
-def render_frame(
-    scene: Scene,
-    camera: PinholeCamera,
-    T_wc: np.ndarray,
-    *,
-    noise_sigma: float = 0.0,
-    rng: np.random.Generator | None = None,
-    antialias: bool = True,
-) -> RenderedFrame:
-    """Render one view of ``scene`` from camera-to-world pose ``T_wc``.
-
-    Depth is the exact z-depth at each pixel centre. Colour is Lambertian shading of the
-    surface texture, supersampled on silhouettes when ``antialias``, plus Gaussian sensor
-    noise of ``noise_sigma`` grey levels drawn from ``rng`` (required when noise > 0, so the
-    caller controls determinism), rounded and clipped to uint8.
-    """
+def render_radiance(
+    scene: Scene, camera: PinholeCamera, T_wc: np.ndarray, *, antialias: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(radiance (H, W, 3) float32 grey levels, depth, surface id)`` of one instantaneous
+    view: what reaches the sensor before its exposure, noise and quantisation."""
     T_wc = np.asarray(T_wc, dtype=np.float64)
     if T_wc.shape != (4, 4) or not np.all(np.isfinite(T_wc)):
         raise ValueError(f'render_frame: T_wc must be a finite 4x4 pose, got shape {T_wc.shape}')
-    if noise_sigma > 0 and rng is None:
-        raise ValueError('render_frame: noise_sigma > 0 needs an rng (a numpy Generator)')
     depth, surface, d = cast_camera(scene, camera, T_wc)
     focal = float(np.sqrt(camera.fx * camera.fy))
     H, W = depth.shape
@@ -267,6 +254,41 @@ def render_frame(
         edge = _edge_pixels(surface)
         if edge.any():
             radiance[edge] = _supersample_edges(scene, camera, T_wc, edge, focal)
+    return radiance, depth, surface
+
+
+def render_frame(
+    scene: Scene,
+    camera: PinholeCamera,
+    T_wc: np.ndarray,
+    *,
+    noise_sigma: float = 0.0,
+    rng: np.random.Generator | None = None,
+    antialias: bool = True,
+    gain: float = 1.0,
+    exposure_poses: np.ndarray | None = None,
+) -> RenderedFrame:
+    """Render one view of ``scene`` from camera-to-world pose ``T_wc``.
+
+    Depth is the exact z-depth at each pixel centre. Colour is Lambertian shading of the
+    surface texture, supersampled on silhouettes when ``antialias``, plus Gaussian sensor
+    noise of ``noise_sigma`` grey levels drawn from ``rng`` (required when noise > 0, so the
+    caller controls determinism), rounded and clipped to uint8.
+
+    ``exposure_poses`` (K, 4, 4): the camera's poses while the shutter is open; the colour is
+    the mean of the K views (motion blur), the depth still that of ``T_wc`` (the stamp's
+    pose, which the pipeline is told). ``gain`` scales the colour before noise and clipping
+    (a frame's auto-exposure), so bright surfaces saturate as on a sensor.
+    """
+    if noise_sigma > 0 and rng is None:
+        raise ValueError('render_frame: noise_sigma > 0 needs an rng (a numpy Generator)')
+    radiance, depth, surface = render_radiance(scene, camera, T_wc, antialias=antialias)
+    if exposure_poses is not None and len(exposure_poses):
+        radiance = np.mean(
+            [render_radiance(scene, camera, pose, antialias=antialias)[0] for pose in exposure_poses], axis=0
+        )
+    if gain != 1.0:
+        radiance *= np.float32(gain)
     if noise_sigma > 0:
         radiance += rng.standard_normal(radiance.shape, dtype=np.float32) * np.float32(noise_sigma)
     rgb = np.clip(np.rint(radiance), 0, 255).astype(np.uint8)

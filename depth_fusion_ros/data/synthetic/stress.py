@@ -15,6 +15,11 @@ data with exact ground truth:
 ``forward``        a ground robot driving ahead, 1.5 cm per frame along the view (0.45 m/s at
                    30 Hz), heading wobbling by 2 deg: the epipole is in the image, and the
                    pixels around it see almost no parallax however far the robot drives
+``motion_blur``    the lateral sweep walked fast (3 cm per frame, 0.9 m/s at 30 Hz) in a dim
+                   room: the shutter is open for the whole frame period, so every image is
+                   smeared by 2-4 px along the motion (hand-held TUM fr1 sequences look so)
+``auto_exposure``  the lateral sweep with an auto-exposure that changes every frame: each
+                   image scaled by its own gain (log-gain std 0.15) and clipped at 255
 =================  ==========================================================================
 
 ``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
@@ -41,6 +46,8 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
     'wrong_focal': {'parallax': 'high', 'sweep': 1.0, 'focal_error': 0.10},
     'pose_noise': {'parallax': 'high', 'sweep': 1.0, 'pose_noise_m': 0.002, 'pose_noise_deg': 0.1},
     'forward': {'motion': 'forward', 'step_translation': 0.015, 'step_rotation_deg': 0.2},
+    'motion_blur': {'parallax': 'high', 'sweep': 3.0, 'exposure_time': 1.0 / 30.0},
+    'auto_exposure': {'parallax': 'high', 'sweep': 1.0, 'gain_sigma': 0.15},
 }
 
 

@@ -8,10 +8,10 @@ materials) is ray cast in numpy along a camera trajectory with high or low paral
     write_synthetic_sequence('artifacts/room', cfg)  # TUM folder (writer.py)
 
 Determinism: everything derives from ``cfg.seed`` through separate random streams (room
-and furniture; trajectory; per-frame sensor noise), so the same config gives bit-identical
-output, the room does not depend on ``parallax`` or ``frames`` (a high- and a low-parallax
-sequence of one seed see the same room), and frame ``i``'s noise does not depend on how
-many frames were rendered before it.
+and furniture; trajectory; per-frame sensor noise, pose jitter and exposure gain), so the
+same config gives bit-identical output, the room does not depend on ``parallax`` or
+``frames`` (a high- and a low-parallax sequence of one seed see the same room), and frame
+``i``'s noise does not depend on how many frames were rendered before it.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from .trajectory import Trajectory, make_trajectory
 log = logging.getLogger(__name__)
 
 #: Random-stream ids under the seed (numpy SeedSequence entropy ``[seed, stream, ...]``).
-_ROOM_STREAM, _TRAJECTORY_STREAM, _NOISE_STREAM, _POSE_NOISE_STREAM = 0, 1, 2, 3
+_ROOM_STREAM, _TRAJECTORY_STREAM, _NOISE_STREAM, _POSE_NOISE_STREAM, _GAIN_STREAM = 0, 1, 2, 3, 4
 #: Poses per trajectory used to keep furniture off the camera path (independent of frames).
 _KEEP_OUT_SAMPLES = 64
 #: Sub-stream of the trajectory stream drawn by the stress motions.
@@ -47,6 +47,10 @@ def sequence_name(cfg: SynthConfig) -> str:
         name += f'_posenoise{cfg.pose_noise_m * 1000:g}mm{cfg.pose_noise_deg:g}deg'
     if cfg.pose_time_offset:
         name += f'_timeoffset{cfg.pose_time_offset * 1000:+g}ms'
+    if cfg.exposure_time:
+        name += f'_blur{cfg.exposure_time * 1000:.3g}ms'
+    if cfg.gain_sigma:
+        name += f'_gain{cfg.gain_sigma:g}'
     return name
 
 
@@ -105,6 +109,26 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     return out
 
 
+def exposure_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray | None:
+    """(N, K, 4, 4): each frame's poses while its shutter is open, ``cfg.blur_samples`` of
+    them evenly over ``cfg.exposure_time`` centred on its stamp, at the constant velocity of
+    its step to the neighbouring frame (:func:`shifted_poses`); ``None`` without an exposure
+    time (a sharp image)."""
+    if not cfg.exposure_time:
+        return None
+    half = 0.5 * cfg.exposure_time * cfg.fps  # in frame periods, at most half of one
+    offsets = np.linspace(-half, half, cfg.blur_samples)
+    return np.stack([shifted_poses(poses, float(f)) for f in offsets], axis=1)
+
+
+def frame_gain(cfg: SynthConfig, index: int) -> float:
+    """Frame ``index``'s auto-exposure gain ``exp(gain_sigma * n)``, from its own random
+    stream (so it does not depend on how many frames there are); 1 without ``gain_sigma``."""
+    if not cfg.gain_sigma:
+        return 1.0
+    return float(np.exp(cfg.gain_sigma * np.random.default_rng([cfg.seed, _GAIN_STREAM, index]).normal()))
+
+
 def build_world(cfg: SynthConfig) -> tuple[Scene, Trajectory]:
     """The seeded room and the camera trajectory of a config."""
     room_rng = np.random.default_rng([cfg.seed, _ROOM_STREAM])
@@ -149,10 +173,18 @@ def iter_frames(
         scene, trajectory = build_world(cfg)
     camera = cfg.camera()
     told = told_poses(cfg, trajectory.poses)
+    exposures = exposure_poses(cfg, trajectory.poses)
     for i in progress(range(cfg.frames), desc='render', unit='frame', disable=not show_progress):
         rng = np.random.default_rng([cfg.seed, _NOISE_STREAM, i])
         frame = render_frame(
-            scene, camera, trajectory.poses[i], noise_sigma=cfg.noise_sigma, rng=rng, antialias=cfg.antialias
+            scene,
+            camera,
+            trajectory.poses[i],
+            noise_sigma=cfg.noise_sigma,
+            rng=rng,
+            antialias=cfg.antialias,
+            gain=frame_gain(cfg, i),
+            exposure_poses=None if exposures is None else exposures[i],
         )
         yield i, frame, told[i]
 

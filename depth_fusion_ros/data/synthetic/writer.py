@@ -46,15 +46,32 @@ def _pose_note(cfg: SynthConfig) -> str:
     return note
 
 
+def _sensor_note(cfg: SynthConfig) -> str:
+    note = ''
+    if cfg.exposure_time:
+        note += (
+            f'\n**The images are motion-blurred**: each averages {cfg.blur_samples} views over a '
+            f'{cfg.exposure_time * 1000:.3g} ms exposure centred on its stamp; depth and pose are those '
+            'of the stamp.'
+        )
+    if cfg.gain_sigma:
+        note += (
+            f'\n**The exposure changes from frame to frame**: each image is scaled by its own gain '
+            f'exp({cfg.gain_sigma:g} n), n standard normal (an auto-exposure), and clipped at 255.'
+        )
+    return note
+
+
 def source_markdown(cfg: SynthConfig, out_dir: Path) -> str:
     """SOURCE.md text: how to regenerate the folder and what its ground truth is."""
     command = shlex.join(['depth-fusion', 'synth', str(out_dir), *cfg.cli_args()])
+    notes = _focal_note(cfg) + _pose_note(cfg) + _sensor_note(cfg)
     config = yaml.safe_dump(cfg.as_dict(), sort_keys=False, default_flow_style=None).strip()
     return f"""# Synthetic room {sequence_name(cfg)}
 
 Rendered by depth_fusion_ros (`depth_fusion_ros/data/synthetic/`): numpy ray casting of a
 procedural room (floor, walls, ceiling, boxes, tables) with textured and texture-less
-Lambertian materials, camera motion {_motion(cfg)}, seed {cfg.seed}.{_focal_note(cfg)}{_pose_note(cfg)}
+Lambertian materials, camera motion {_motion(cfg)}, seed {cfg.seed}.{notes}
 No external data: free to use and redistribute.
 
 Regenerate (bit-identical with the same package version):
