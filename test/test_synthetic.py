@@ -383,7 +383,38 @@ def test_cli_synth_sensor_stress_is_recorded(tmp_path):
 
     out = tmp_path / 'blurred'
     args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
-    assert main([*args, '--stress', 'auto_exposure', '--exposure-time', '0.02', '--blur-samples', '3']) == 0
+    sensor = ['--exposure-time', '0.02', '--blur-samples', '3', '--walkers', '2', '--walker-speed', '0.5']
+    assert main([*args, '--stress', 'auto_exposure', *sensor]) == 0
     text = (out / 'SOURCE.md').read_text()
     assert '--exposure-time 0.02' in text and '--blur-samples 3' in text and '--gain-sigma 0.15' in text
     assert 'motion-blurred' in text and '20 ms exposure' in text and 'auto-exposure' in text
+    assert '--walkers 2 --walker-speed 0.5' in text and 'not static' in text and '0.5 m/s' in text
+
+
+def test_walkers_move_across_the_view_and_leave_the_room_as_it_was():
+    """``walkers``: a person-sized box walks back and forth across the view at
+    ``walker_speed``; the depth shows it where it is at each frame, and the room around it
+    (its furniture) is the room of the same seed without walkers."""
+    from depth_fusion_ros.data.synthetic.walkers import WALKER_HALF, WALKER_REACH, walker_centres
+
+    base = dict(width=64, height=48, frames=31, noise_sigma=0.0, sweep=0.3)
+    cfg = SynthConfig(**base, walkers=1, walker_speed=1.2)
+    scene, trajectory = build_world(cfg)
+    still, _ = build_world(SynthConfig(**base))
+    assert scene.names[-1] == 'walker0' and scene.n_objects == still.n_objects + 1
+    np.testing.assert_array_equal(scene.centres[:-1], still.centres)  # the same furniture
+    centres = np.array([walker_centres(cfg, trajectory, i)[0] for i in range(cfg.frames)])
+    steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+    assert np.all(steps <= 1.2 / 30 + 1e-9) and np.median(steps) == pytest.approx(1.2 / 30)
+    assert np.all(centres[:, 2] == WALKER_HALF[2])  # on the floor
+    across = np.linalg.norm(centres[:, :2] - centres[:, :2].mean(axis=0), axis=1)
+    assert across.max() <= WALKER_REACH + 1e-9
+    moving, static = render_sequence(cfg), render_sequence(SynthConfig(**base))
+    assert 'walkers1' in moving.name
+    nearer = [(m.depth < s.depth - 1e-3).mean() for m, s in zip(moving.frames, static.frames, strict=True)]
+    assert min(nearer) > 0 and np.median(nearer) > 0.1  # in front of the room, in view in every frame
+    first = moving.frames[0].depth < static.frames[0].depth - 1e-3
+    last = moving.frames[-1].depth < static.frames[-1].depth - 1e-3
+    assert (first & last).sum() < 0.5 * first.sum()  # it has walked on
+    with pytest.raises(ValueError, match='walkers'):
+        SynthConfig(walkers=5)

@@ -175,6 +175,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         f'(default {d.gain_sigma:g}: constant exposure)',
     )
     p.add_argument(
+        '--walkers',
+        type=int,
+        default=d.walkers,
+        help='person-sized boxes walking back and forth across the view: a world that is not static '
+        f'(0-4; default {d.walkers})',
+    )
+    p.add_argument(
+        '--walker-speed',
+        type=float,
+        default=d.walker_speed,
+        help=f'their walking speed in m/s (default {d.walker_speed:g})',
+    )
+    p.add_argument(
         '--stress',
         choices=tuple(STRESS_CASES),
         default=None,
@@ -225,6 +238,8 @@ def config_from_args(args: argparse.Namespace):
         exposure_time=pick('exposure_time', args.exposure_time),
         blur_samples=pick('blur_samples', args.blur_samples),
         gain_sigma=pick('gain_sigma', args.gain_sigma),
+        walkers=pick('walkers', args.walkers),
+        walker_speed=pick('walker_speed', args.walker_speed),
     )
 
 

@@ -10,6 +10,7 @@ One idea per module:
 * ``render``      numpy ray casting of one frame (rgb, depth, surface id, textured mask);
 * ``world``       config -> (scene, trajectory), frames, an in-memory ``Sequence``;
 * ``writer``      a TUM-layout folder with camera.yaml and SOURCE.md;
+* ``walkers``     moving objects: person-sized boxes walking across the view;
 * ``stress``      named stress cases (``STRESS_CASES``, ``stress_config``).
 
 Import from here (``from depth_fusion_ros.data.synthetic import SynthConfig, ...``); the

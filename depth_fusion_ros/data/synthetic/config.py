@@ -81,6 +81,11 @@ class SynthConfig:
     #: times as bright (``n_i`` standard normal, drawn per frame), clipped at 255 like a sensor.
     #: 0 = the same exposure for every frame.
     gain_sigma: float = 0.0
+    #: Person-sized boxes walking back and forth across the view (``walkers.py``): a world
+    #: that is not static, as a robot's camera sees people go by. 0 = a static room.
+    walkers: int = 0
+    #: Walking speed of the walkers (m/s).
+    walker_speed: float = 1.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ValueError:
@@ -134,6 +139,10 @@ class SynthConfig:
             raise bad('blur_samples', 'expected 2..64 renders per blurred image')
         if not 0 <= self.gain_sigma <= 1.0:
             raise bad('gain_sigma', 'expected a log-gain std of 0..1')
+        if not 0 <= self.walkers <= 4:
+            raise bad('walkers', 'expected 0..4 walkers')
+        if not 0 < self.walker_speed <= 5.0:
+            raise bad('walker_speed', 'expected a walking speed in (0, 5] m/s')
 
     def camera(self) -> PinholeCamera:
         """Intrinsics: principal point at the image centre ((W - 1) / 2 with pixel-centre

@@ -24,6 +24,7 @@ import numpy as np
 from .config import SynthConfig
 from .texture import PATTERNS, TextureAtlas, random_colour, textured_albedo
 from .trajectory import Trajectory
+from .walkers import WALKER_HALF, walker_centres, walker_yaw
 
 log = logging.getLogger(__name__)
 
@@ -259,6 +260,12 @@ def build_scene(
 ) -> Scene:
     """The seeded scene (furniture, materials, light) for a room and camera trajectory."""
     furniture = layout_furniture(cfg, room, trajectory, rng)
+    if cfg.walkers:  # the last objects, so that a static room draws what it drew before
+        yaw = walker_yaw(trajectory)
+        furniture += [
+            Furniture(f'walker{k}', centre, WALKER_HALF.copy(), yaw, f'walker{k}')
+            for k, centre in enumerate(walker_centres(cfg, trajectory, 0))
+        ]
     names = ['room', *(f.name for f in furniture)]
     groups_of_objects = ['room', *(f.group for f in furniture)]
     groups = list(dict.fromkeys([*ROOM_FACES, *(f.group for f in furniture)]))

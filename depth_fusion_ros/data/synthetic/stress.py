@@ -20,6 +20,8 @@ data with exact ground truth:
                    smeared by 2-4 px along the motion (hand-held TUM fr1 sequences look so)
 ``auto_exposure``  the lateral sweep with an auto-exposure that changes every frame: each
                    image scaled by its own gain (log-gain std 0.15) and clipped at 255
+``moving_object``  the lateral sweep with a person-sized box walking across the view at
+                   1 m/s, 1.6 m ahead: a world that is not static
 =================  ==========================================================================
 
 ``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
@@ -48,6 +50,7 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
     'forward': {'motion': 'forward', 'step_translation': 0.015, 'step_rotation_deg': 0.2},
     'motion_blur': {'parallax': 'high', 'sweep': 3.0, 'exposure_time': 1.0 / 30.0},
     'auto_exposure': {'parallax': 'high', 'sweep': 1.0, 'gain_sigma': 0.15},
+    'moving_object': {'parallax': 'high', 'sweep': 1.0, 'walkers': 1},
 }
 
 

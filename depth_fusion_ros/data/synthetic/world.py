@@ -28,6 +28,7 @@ from .motions import MOTION_FUNCTIONS
 from .render import RenderedFrame, render_frame
 from .scene import Scene, build_scene
 from .trajectory import Trajectory, make_trajectory
+from .walkers import scene_at
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,8 @@ def sequence_name(cfg: SynthConfig) -> str:
         name += f'_blur{cfg.exposure_time * 1000:.3g}ms'
     if cfg.gain_sigma:
         name += f'_gain{cfg.gain_sigma:g}'
+    if cfg.walkers:
+        name += f'_walkers{cfg.walkers}'
     return name
 
 
@@ -177,7 +180,7 @@ def iter_frames(
     for i in progress(range(cfg.frames), desc='render', unit='frame', disable=not show_progress):
         rng = np.random.default_rng([cfg.seed, _NOISE_STREAM, i])
         frame = render_frame(
-            scene,
+            scene_at(scene, cfg, trajectory, i),
             camera,
             trajectory.poses[i],
             noise_sigma=cfg.noise_sigma,

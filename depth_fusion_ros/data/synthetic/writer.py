@@ -59,6 +59,11 @@ def _sensor_note(cfg: SynthConfig) -> str:
             f'\n**The exposure changes from frame to frame**: each image is scaled by its own gain '
             f'exp({cfg.gain_sigma:g} n), n standard normal (an auto-exposure), and clipped at 255.'
         )
+    if cfg.walkers:
+        note += (
+            f'\n**The world is not static**: {cfg.walkers} person-sized box(es) walk back and forth '
+            f'across the view at {cfg.walker_speed:g} m/s; the depth images show them where they are.'
+        )
     return note
 
 
