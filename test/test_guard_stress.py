@@ -54,9 +54,12 @@ CASES = [
 
 
 #: Per-case overrides for the short sequences: the lateral sweep spans its whole length in any
-#: number of frames, so ``motion_blur``'s 3 m would be 50 cm per frame here; its sweep is cut
-#: to keep the stress case's 3 cm per frame, and with it the blur of one frame period's motion.
-SHORT_OVERRIDES: dict[str, dict[str, float]] = {'motion_blur': {'sweep': 0.03 * (FRAMES - 1)}}
+#: number of frames, so the 3 m of ``motion_blur`` and ``rolling_shutter`` would be 50 cm per
+#: frame here; their sweep is cut to keep the stress cases' 3 cm per frame, and with it the
+#: blur and the skew of that motion.
+SHORT_OVERRIDES: dict[str, dict[str, float]] = {
+    name: {'sweep': 0.03 * (FRAMES - 1)} for name in ('motion_blur', 'rolling_shutter')
+}
 
 
 @pytest.fixture(scope='module', params=CASES, ids=[f'{n}-{s}-{m}' for n, s, m in CASES])
@@ -93,6 +96,8 @@ def test_stress_motions_have_the_reported_steps():
     blur = stress_config('motion_blur', width=32, height=24, frames=100)
     step, _ = _steps(build_world(blur)[1].poses)
     assert step == pytest.approx(0.03, rel=0.1) and blur.exposure_time * blur.fps == pytest.approx(1.0)
+    rolling = stress_config('rolling_shutter', width=32, height=24, frames=100)
+    assert _steps(build_world(rolling)[1].poses)[0] == pytest.approx(step) and rolling.readout_time == 0.03
 
 
 def test_wrong_focal_tells_the_pipeline_wrong_intrinsics():

@@ -418,3 +418,37 @@ def test_walkers_move_across_the_view_and_leave_the_room_as_it_was():
     assert (first & last).sum() < 0.5 * first.sum()  # it has walked on
     with pytest.raises(ValueError, match='walkers'):
         SynthConfig(walkers=5)
+
+
+def test_readout_time_exposes_each_row_at_its_own_pose():
+    """``readout_time``: a rolling shutter. The top row is the view read first, the bottom row
+    the view read last, the middle row the stamp's; the depth and pose stay the stamp's."""
+    from depth_fusion_ros.data.synthetic import stress_config
+    from depth_fusion_ros.data.synthetic.render import render_radiance
+    from depth_fusion_ros.data.synthetic.world import exposure_poses, rolling_shutter_weights
+
+    base = dict(width=64, height=49, frames=3, sweep=0.12, noise_sigma=0.0)
+    cfg = SynthConfig(**base, readout_time=0.03)
+    weights = rolling_shutter_weights(cfg)
+    assert weights.shape == (49, 7) and rolling_shutter_weights(SynthConfig(**base)) is None
+    np.testing.assert_allclose(weights.sum(axis=1), 1.0)
+    assert weights[0, 0] == pytest.approx(1.0) and weights[-1, -1] == pytest.approx(1.0)
+    assert weights[24, 3] == pytest.approx(1.0)
+    scene, trajectory = build_world(cfg)
+    views = exposure_poses(cfg, trajectory.poses)[1]
+    top = render_radiance(scene, cfg.camera(), views[0])[0]
+    bottom = render_radiance(scene, cfg.camera(), views[-1])[0]
+    skewed, sharp = render_sequence(cfg), render_sequence(SynthConfig(**base))
+    assert 'rs30ms' in skewed.name
+    rgb = skewed.frames[1].rgb
+    # Rows are mixes in float32: equal to a grey level where a weight is a rounding off 1.
+    near = dict(atol=1, rtol=0)
+    np.testing.assert_allclose(rgb[0], np.clip(np.rint(top[0]), 0, 255), **near)
+    np.testing.assert_allclose(rgb[-1], np.clip(np.rint(bottom[-1]), 0, 255), **near)
+    np.testing.assert_allclose(rgb[24], sharp.frames[1].rgb[24], **near)  # the stamp's row
+    assert not np.array_equal(rgb[0], sharp.frames[1].rgb[0])
+    for a, b in zip(skewed.frames, sharp.frames, strict=True):
+        assert np.array_equal(a.depth, b.depth) and np.array_equal(a.pose, b.pose)
+    assert stress_config('rolling_shutter').readout_time == pytest.approx(0.03)
+    with pytest.raises(ValueError, match='readout_time'):
+        SynthConfig(readout_time=0.05)

@@ -162,10 +162,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         f'motion (at most one frame period; default {d.exposure_time:g}: sharp)',
     )
     p.add_argument(
+        '--readout-time',
+        type=float,
+        default=d.readout_time,
+        help='seconds a rolling shutter takes to read the rows out, top to bottom, around each stamp: '
+        f'a moving camera skews the image (at most one frame period; default {d.readout_time:g}: global)',
+    )
+    p.add_argument(
         '--blur-samples',
         type=int,
         default=d.blur_samples,
-        help=f'renders averaged over --exposure-time (default {d.blur_samples})',
+        help=f'renders over --exposure-time and --readout-time (default {d.blur_samples})',
     )
     p.add_argument(
         '--gain-sigma',
@@ -236,6 +243,7 @@ def config_from_args(args: argparse.Namespace):
         pose_noise_deg=pick('pose_noise_deg', args.pose_noise_deg),
         pose_time_offset=pick('pose_time_offset', args.pose_time_offset),
         exposure_time=pick('exposure_time', args.exposure_time),
+        readout_time=pick('readout_time', args.readout_time),
         blur_samples=pick('blur_samples', args.blur_samples),
         gain_sigma=pick('gain_sigma', args.gain_sigma),
         walkers=pick('walkers', args.walkers),

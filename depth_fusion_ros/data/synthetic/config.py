@@ -75,7 +75,11 @@ class SynthConfig:
     #: so a moving camera blurs it along the motion (0 = an instantaneous, sharp image). At most
     #: one frame period, what a dim room gives a 30 Hz camera.
     exposure_time: float = 0.0
-    #: Renders averaged over ``exposure_time`` (evenly spaced poses along the motion).
+    #: Rolling shutter (s): the rows are read out top to bottom over this interval centred on
+    #: the stamp, each at its own pose, so a moving camera skews the image (most CMOS colour
+    #: cameras; 0 = a global shutter). At most one frame period.
+    readout_time: float = 0.0
+    #: Renders over ``exposure_time`` and ``readout_time`` (evenly spaced poses along the motion).
     blur_samples: int = 7
     #: Std of each frame's log gain (auto-exposure): frame ``i`` is ``exp(gain_sigma * n_i)``
     #: times as bright (``n_i`` standard normal, drawn per frame), clipped at 255 like a sensor.
@@ -135,6 +139,8 @@ class SynthConfig:
             raise bad('pose_time_offset', f'expected at most one frame period (1 / fps = {1 / self.fps:g} s)')
         if not 0 <= self.exposure_time * self.fps <= 1.0:
             raise bad('exposure_time', f'expected 0 to one frame period (1 / fps = {1 / self.fps:g} s)')
+        if not 0 <= self.readout_time * self.fps <= 1.0:
+            raise bad('readout_time', f'expected 0 to one frame period (1 / fps = {1 / self.fps:g} s)')
         if not 2 <= self.blur_samples <= 64:
             raise bad('blur_samples', 'expected 2..64 renders per blurred image')
         if not 0 <= self.gain_sigma <= 1.0:

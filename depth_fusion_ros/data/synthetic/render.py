@@ -267,6 +267,7 @@ def render_frame(
     antialias: bool = True,
     gain: float = 1.0,
     exposure_poses: np.ndarray | None = None,
+    row_weights: np.ndarray | None = None,
 ) -> RenderedFrame:
     """Render one view of ``scene`` from camera-to-world pose ``T_wc``.
 
@@ -277,16 +278,22 @@ def render_frame(
 
     ``exposure_poses`` (K, 4, 4): the camera's poses while the shutter is open; the colour is
     the mean of the K views (motion blur), the depth still that of ``T_wc`` (the stamp's
-    pose, which the pipeline is told). ``gain`` scales the colour before noise and clipping
+    pose, which the pipeline is told). ``row_weights`` (H, K): each row's own mix of the K
+    views instead of their mean (a rolling shutter: each row exposed at its own time; rows sum
+    to 1). ``gain`` scales the colour before noise and clipping
     (a frame's auto-exposure), so bright surfaces saturate as on a sensor.
     """
     if noise_sigma > 0 and rng is None:
         raise ValueError('render_frame: noise_sigma > 0 needs an rng (a numpy Generator)')
     radiance, depth, surface = render_radiance(scene, camera, T_wc, antialias=antialias)
     if exposure_poses is not None and len(exposure_poses):
-        radiance = np.mean(
-            [render_radiance(scene, camera, pose, antialias=antialias)[0] for pose in exposure_poses], axis=0
+        views = np.stack(
+            [render_radiance(scene, camera, pose, antialias=antialias)[0] for pose in exposure_poses]
         )
+        if row_weights is None:
+            radiance = views.mean(axis=0)
+        else:
+            radiance = np.einsum('khwc,hk->hwc', views, np.asarray(row_weights, dtype=np.float32))
     if gain != 1.0:
         radiance *= np.float32(gain)
     if noise_sigma > 0:

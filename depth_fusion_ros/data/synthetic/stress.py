@@ -18,6 +18,9 @@ data with exact ground truth:
 ``motion_blur``    the lateral sweep walked fast (3 cm per frame, 0.9 m/s at 30 Hz) in a dim
                    room: the shutter is open for the whole frame period, so every image is
                    smeared by 2-4 px along the motion (hand-held TUM fr1 sequences look so)
+``rolling_shutter`` the ``motion_blur`` walk (3 cm per frame) seen by a rolling shutter that
+                   reads the rows out over 30 ms: the bottom row 2.7 cm further along the
+                   path than the top one, a skew of 3-4 px
 ``auto_exposure``  the lateral sweep with an auto-exposure that changes every frame: each
                    image scaled by its own gain (log-gain std 0.15) and clipped at 255
 ``moving_object``  the lateral sweep with a person-sized box walking across the view at
@@ -49,6 +52,7 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
     'pose_noise': {'parallax': 'high', 'sweep': 1.0, 'pose_noise_m': 0.002, 'pose_noise_deg': 0.1},
     'forward': {'motion': 'forward', 'step_translation': 0.015, 'step_rotation_deg': 0.2},
     'motion_blur': {'parallax': 'high', 'sweep': 3.0, 'exposure_time': 1.0 / 30.0},
+    'rolling_shutter': {'parallax': 'high', 'sweep': 3.0, 'readout_time': 0.03},
     'auto_exposure': {'parallax': 'high', 'sweep': 1.0, 'gain_sigma': 0.15},
     'moving_object': {'parallax': 'high', 'sweep': 1.0, 'walkers': 1},
 }

@@ -50,6 +50,8 @@ def sequence_name(cfg: SynthConfig) -> str:
         name += f'_timeoffset{cfg.pose_time_offset * 1000:+g}ms'
     if cfg.exposure_time:
         name += f'_blur{cfg.exposure_time * 1000:.3g}ms'
+    if cfg.readout_time:
+        name += f'_rs{cfg.readout_time * 1000:.3g}ms'
     if cfg.gain_sigma:
         name += f'_gain{cfg.gain_sigma:g}'
     if cfg.walkers:
@@ -112,16 +114,39 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     return out
 
 
+def _view_offsets(cfg: SynthConfig) -> np.ndarray:
+    """Times (in frame periods, from the stamp) of the ``blur_samples`` views a frame is made
+    of: evenly over its exposure and readout together, centred on the stamp."""
+    half = 0.5 * (cfg.exposure_time + cfg.readout_time) * cfg.fps  # at most one frame period
+    return np.linspace(-half, half, cfg.blur_samples)
+
+
 def exposure_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray | None:
-    """(N, K, 4, 4): each frame's poses while its shutter is open, ``cfg.blur_samples`` of
-    them evenly over ``cfg.exposure_time`` centred on its stamp, at the constant velocity of
-    its step to the neighbouring frame (:func:`shifted_poses`); ``None`` without an exposure
-    time (a sharp image)."""
-    if not cfg.exposure_time:
+    """(N, K, 4, 4): each frame's poses while its rows are exposed, ``cfg.blur_samples`` of
+    them evenly over ``cfg.exposure_time`` and ``cfg.readout_time`` centred on its stamp, at
+    the constant velocity of its step to the neighbouring frame (:func:`shifted_poses`);
+    ``None`` without either (a sharp image of one instant)."""
+    if not (cfg.exposure_time or cfg.readout_time):
         return None
-    half = 0.5 * cfg.exposure_time * cfg.fps  # in frame periods, at most half of one
-    offsets = np.linspace(-half, half, cfg.blur_samples)
-    return np.stack([shifted_poses(poses, float(f)) for f in offsets], axis=1)
+    return np.stack([shifted_poses(poses, float(f)) for f in _view_offsets(cfg)], axis=1)
+
+
+def rolling_shutter_weights(cfg: SynthConfig) -> np.ndarray | None:
+    """(H, K) mix of the views of :func:`exposure_poses` for each image row, or ``None`` with a
+    global shutter (every row the mean of the views).
+
+    Row ``y`` is read at ``(y / (H - 1) - 1/2) * readout_time`` from the stamp and exposed
+    around it. Its views are weighted by a tent centred at that time, as wide as the exposure
+    (at least the spacing of the views, so a short exposure interpolates between the two
+    nearest).
+    """
+    if not cfg.readout_time:
+        return None
+    offsets = _view_offsets(cfg)
+    rows = (np.arange(cfg.height) / max(cfg.height - 1, 1) - 0.5) * cfg.readout_time * cfg.fps
+    width = max(cfg.exposure_time * cfg.fps, float(offsets[1] - offsets[0]))
+    weights = np.maximum(0.0, 1.0 - np.abs(offsets[None, :] - rows[:, None]) / width)
+    return weights / weights.sum(axis=1, keepdims=True)
 
 
 def frame_gain(cfg: SynthConfig, index: int) -> float:
@@ -177,6 +202,7 @@ def iter_frames(
     camera = cfg.camera()
     told = told_poses(cfg, trajectory.poses)
     exposures = exposure_poses(cfg, trajectory.poses)
+    row_weights = rolling_shutter_weights(cfg)
     for i in progress(range(cfg.frames), desc='render', unit='frame', disable=not show_progress):
         rng = np.random.default_rng([cfg.seed, _NOISE_STREAM, i])
         frame = render_frame(
@@ -188,6 +214,7 @@ def iter_frames(
             antialias=cfg.antialias,
             gain=frame_gain(cfg, i),
             exposure_poses=None if exposures is None else exposures[i],
+            row_weights=row_weights,
         )
         yield i, frame, told[i]
 

@@ -54,6 +54,12 @@ def _sensor_note(cfg: SynthConfig) -> str:
             f'{cfg.exposure_time * 1000:.3g} ms exposure centred on its stamp; depth and pose are those '
             'of the stamp.'
         )
+    if cfg.readout_time:
+        note += (
+            '\n**The shutter rolls**: the rows are read out top to bottom over '
+            f'{cfg.readout_time * 1000:.3g} ms centred on the stamp, each at its own pose; depth and pose '
+            'are those of the stamp.'
+        )
     if cfg.gain_sigma:
         note += (
             f'\n**The exposure changes from frame to frame**: each image is scaled by its own gain '
