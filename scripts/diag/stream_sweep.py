@@ -57,6 +57,29 @@ def sequence(name: str, seed: int, frames: int, cache: Path | None):
     return seq
 
 
+def node_params(sets: list[str]) -> dict[str, dict[str, object]]:
+    """The node's fusion and multi-view settings, with ``--set`` overrides."""
+    params: dict[str, dict[str, object]] = {
+        'fusion': {'compile_kernel': False, 'mode': 'fast', 'max_points': 4096},
+        'multi_view': {'method': 'filter'},
+    }
+    apply_sets(params, sets)
+    return params
+
+
+def stream_options(frames: int, stride: int, params: dict) -> EvalOptions:
+    """A causal stream as the node reads it: 320x240, online neighbours, the simulated prior."""
+    return EvalOptions(
+        frames=frames,
+        stride=stride,
+        single_view='simulated',
+        width=320,
+        height=240,
+        neighbour_mode='online',
+        params=params,
+    )
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('streams', nargs='+', type=streams, help="'rooms:0-5', 'low_texture:0,2', ...")
@@ -65,23 +88,11 @@ def main() -> int:
     p.add_argument('--cache', type=Path, help='folder for the rendered streams')
     p.add_argument('--set', action='append', default=[], metavar='STAGE.FIELD=VALUE')
     args = p.parse_args()
-    params: dict[str, dict[str, object]] = {
-        'fusion': {'compile_kernel': False, 'mode': 'fast', 'max_points': 4096},
-        'multi_view': {'method': 'filter'},
-    }
-    apply_sets(params, args.set)
+    params = node_params(args.set)
     everything: list[float] = []
     for name, seed in [s for group in args.streams for s in group]:
         seq = sequence(name, seed, args.frames, args.cache)
-        options = EvalOptions(
-            frames=args.frames,
-            stride=args.stride,
-            single_view='simulated',
-            width=320,
-            height=240,
-            neighbour_mode='online',
-            params=params,
-        )
+        options = stream_options(args.frames, args.stride, params)
         result = evaluate_sequence(seq, ['single_view_simulated', 'fused'], options, show_progress=False)
         single = np.array(result.records['single_view_simulated'].all.mae_per_frame)
         fused = np.array(result.records['fused'].all.mae_per_frame)

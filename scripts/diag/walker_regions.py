@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 
 from depth_fusion_ros.data.synthetic import render_sequence
-from depth_fusion_ros.evaluation.context import EvalOptions
 from depth_fusion_ros.evaluation.harness import evaluate_sequence
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -42,15 +41,7 @@ def region_line(seq, masks: list[np.ndarray], inside: bool, params: dict) -> str
         replace(f, depth=np.where(m if inside else ~m, f.depth, 0.0).astype(f.depth.dtype))
         for f, m in zip(seq.frames, masks, strict=True)
     ]
-    options = EvalOptions(
-        frames=len(seq.frames),
-        stride=5,
-        single_view='simulated',
-        width=320,
-        height=240,
-        neighbour_mode='online',
-        params=params,
-    )
+    options = stream_sweep.stream_options(len(seq.frames), 5, params)
     result = evaluate_sequence(scored, ['single_view_simulated', 'fused'], options, show_progress=False)
     single = np.array(result.records['single_view_simulated'].all.mae_per_frame, dtype=float)
     fused = np.array(result.records['fused'].all.mae_per_frame, dtype=float)
@@ -69,11 +60,7 @@ def main() -> int:
     p.add_argument('--cache', type=Path, help='folder for the rendered streams')
     p.add_argument('--set', action='append', default=[], metavar='STAGE.FIELD=VALUE')
     args = p.parse_args()
-    params: dict[str, dict[str, object]] = {
-        'fusion': {'compile_kernel': False, 'mode': 'fast', 'max_points': 4096},
-        'multi_view': {'method': 'filter'},
-    }
-    stream_sweep.apply_sets(params, args.set)
+    params = stream_sweep.node_params(args.set)
     for seed in (int(s) for s in args.seeds.split(',')):
         seq = stream_sweep.sequence('moving_object', seed, 100, args.cache)
         masks = walker_masks(seed, seq)
