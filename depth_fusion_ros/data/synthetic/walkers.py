@@ -15,11 +15,15 @@ moves them to a frame's time.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .config import SynthConfig
 from .trajectory import Trajectory
+
+if TYPE_CHECKING:  # scene.py imports this module to place the walkers
+    from .scene import Scene
 
 #: Half extents (m) of a walker: 0.5 m wide, 0.3 m deep, 1.7 m tall.
 WALKER_HALF = np.array([0.25, 0.15, 0.85])
@@ -61,7 +65,7 @@ def walker_yaw(trajectory: Trajectory) -> float:
     return float(np.arctan2(across[1], across[0]))
 
 
-def scene_at(scene, cfg: SynthConfig, trajectory: Trajectory, index: int):
+def scene_at(scene: Scene, cfg: SynthConfig, trajectory: Trajectory, index: int) -> Scene:
     """``scene`` with its walkers (its last ``cfg.walkers`` objects) where they are at frame
     ``index``; the scene itself when there are none."""
     if not cfg.walkers:
