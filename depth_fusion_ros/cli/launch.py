@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .argtypes import at_least
+
 DESCRIPTION = """\
 Start multi_view_node, single_view_node and fusion_node (and map_node with --map) as their own
 processes, for a live camera: what `ros2 launch depth_fusion_ros depth_fusion.launch.py` does
@@ -53,7 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--log-dir', type=Path, metavar='DIR', help="write each node's log to DIR/NODE.log")
     p.add_argument(
         '--threads',
-        type=int,
+        type=at_least(1, '--threads'),
         metavar='N',
         help='torch CPU threads per node (default: cores / 3; OMP_NUM_THREADS wins)',
     )
@@ -67,8 +69,6 @@ def options_from_args(args: argparse.Namespace):  # -> LaunchOptions (import kep
 
     if args.params is not None and not args.params.is_file():
         raise FileNotFoundError(f'--params {args.params}: no such file')
-    if args.threads is not None and args.threads < 1:
-        raise ValueError(f'--threads must be at least 1, got {args.threads}')
     overrides = parse_overrides(args.set, 'NODE')
     check_node_overrides(overrides)
     for node in overrides:

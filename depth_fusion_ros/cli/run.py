@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .argtypes import at_least
+
 DESCRIPTION = """\
 Play a rosbag2 (mcap or sqlite3) through bag_replayer -> multi_view_node + single_view_node ->
 fusion_node, over real DDS, and optionally record the outputs. The run ends by itself: at the end
@@ -110,7 +112,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         '--threads',
-        type=int,
+        type=at_least(1, '--threads'),
         metavar='N',
         help='torch CPU threads per node (default: 1 composed, cores/3 with --processes; '
         'OMP_NUM_THREADS is respected)',
@@ -151,8 +153,6 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         raise ValueError(f'--rate must be positive, got {args.rate}')
     if args.log_dir is not None and not args.processes:
         raise ValueError('--log-dir only applies with --processes')
-    if args.threads is not None and args.threads < 1:
-        raise ValueError(f'--threads must be at least 1, got {args.threads}')
     if args.localhost_only and args.domain_id is None:
         raise ValueError('--localhost-only applies with --domain-id (a private run is localhost-only)')
     if args.domain_id is not None:

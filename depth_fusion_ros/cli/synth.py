@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 from .argtypes import at_least
@@ -216,39 +217,10 @@ def config_from_args(args: argparse.Namespace):
         # A stress preset fills the options left at their defaults.
         return preset[name] if name in preset and value == getattr(defaults, name) else value
 
-    return SynthConfig(
-        width=pick('width', args.width),
-        height=pick('height', args.height),
-        frames=pick('frames', args.frames),
-        fps=pick('fps', args.fps),
-        seed=pick('seed', args.seed),
-        parallax=pick('parallax', args.parallax),
-        fx=pick('fx', args.fx),
-        fy=pick('fy', args.fy),
-        noise_sigma=pick('noise_sigma', args.noise_sigma),
-        textureless_fraction=pick('textureless_fraction', args.textureless_fraction),
-        room_size=tuple(args.room_size),
-        room_jitter=pick('room_jitter', args.room_jitter),
-        boxes=pick('boxes', args.boxes),
-        tables=pick('tables', args.tables),
-        sweep=pick('sweep', args.sweep),
-        antialias=pick('antialias', args.antialias),
-        t0=pick('t0', args.t0),
-        motion=pick('motion', args.motion),
-        step_translation=pick('step_translation', args.step_translation),
-        step_rotation_deg=pick('step_rotation_deg', args.step_rotation_deg),
-        texture_contrast=pick('texture_contrast', args.texture_contrast),
-        focal_error=pick('focal_error', args.focal_error),
-        pose_noise_m=pick('pose_noise_m', args.pose_noise_m),
-        pose_noise_deg=pick('pose_noise_deg', args.pose_noise_deg),
-        pose_time_offset=pick('pose_time_offset', args.pose_time_offset),
-        exposure_time=pick('exposure_time', args.exposure_time),
-        readout_time=pick('readout_time', args.readout_time),
-        blur_samples=pick('blur_samples', args.blur_samples),
-        gain_sigma=pick('gain_sigma', args.gain_sigma),
-        walkers=pick('walkers', args.walkers),
-        walker_speed=pick('walker_speed', args.walker_speed),
-    )
+    # Every field has its option under the same name (``SynthConfig.cli_args`` writes them so).
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(SynthConfig)}
+    values['room_size'] = tuple(values['room_size'])
+    return SynthConfig(**{name: pick(name, value) for name, value in values.items()})
 
 
 def run(args: argparse.Namespace) -> int:

@@ -237,14 +237,19 @@ def _supersample_edges(
     return radiance.reshape(len(RGSS_OFFSETS), len(rows), 3).mean(axis=0)
 
 
+def _checked_pose(T_wc: np.ndarray) -> np.ndarray:
+    T_wc = np.asarray(T_wc, dtype=np.float64)
+    if T_wc.shape != (4, 4) or not np.all(np.isfinite(T_wc)):
+        raise ValueError(f'render_frame: T_wc must be a finite 4x4 pose, got shape {T_wc.shape}')
+    return T_wc
+
+
 def render_radiance(
     scene: Scene, camera: PinholeCamera, T_wc: np.ndarray, *, antialias: bool = True
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(radiance (H, W, 3) float32 grey levels, depth, surface id)`` of one instantaneous
     view: what reaches the sensor before its exposure, noise and quantisation."""
-    T_wc = np.asarray(T_wc, dtype=np.float64)
-    if T_wc.shape != (4, 4) or not np.all(np.isfinite(T_wc)):
-        raise ValueError(f'render_frame: T_wc must be a finite 4x4 pose, got shape {T_wc.shape}')
+    T_wc = _checked_pose(T_wc)
     depth, surface, d = cast_camera(scene, camera, T_wc)
     focal = float(np.sqrt(camera.fx * camera.fy))
     H, W = depth.shape
@@ -285,8 +290,9 @@ def render_frame(
     """
     if noise_sigma > 0 and rng is None:
         raise ValueError('render_frame: noise_sigma > 0 needs an rng (a numpy Generator)')
-    radiance, depth, surface = render_radiance(scene, camera, T_wc, antialias=antialias)
     if exposure_poses is not None and len(exposure_poses):
+        # The image is made of the exposure's views; of the stamp's pose only its geometry.
+        depth, surface, _ = cast_camera(scene, camera, _checked_pose(T_wc))
         views = np.stack(
             [render_radiance(scene, camera, pose, antialias=antialias)[0] for pose in exposure_poses]
         )
@@ -294,6 +300,8 @@ def render_frame(
             radiance = views.mean(axis=0)
         else:
             radiance = np.einsum('khwc,hk->hwc', views, np.asarray(row_weights, dtype=np.float32))
+    else:
+        radiance, depth, surface = render_radiance(scene, camera, T_wc, antialias=antialias)
     if gain != 1.0:
         radiance *= np.float32(gain)
     if noise_sigma > 0:
