@@ -384,11 +384,13 @@ def test_cli_synth_sensor_stress_is_recorded(tmp_path):
     out = tmp_path / 'blurred'
     args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
     sensor = ['--exposure-time', '0.02', '--blur-samples', '3', '--walkers', '2', '--walker-speed', '0.5']
+    sensor += ['--texture-period', '0.1']
     assert main([*args, '--stress', 'auto_exposure', *sensor]) == 0
     text = (out / 'SOURCE.md').read_text()
     assert '--exposure-time 0.02' in text and '--blur-samples 3' in text and '--gain-sigma 0.15' in text
     assert 'motion-blurred' in text and '20 ms exposure' in text and 'auto-exposure' in text
     assert '--walkers 2 --walker-speed 0.5' in text and 'not static' in text and '0.5 m/s' in text
+    assert '--texture-period 0.1' in text and 'texture repeats' in text and '10 cm' in text
 
 
 def test_walkers_move_across_the_view_and_leave_the_room_as_it_was():
@@ -452,3 +454,29 @@ def test_readout_time_exposes_each_row_at_its_own_pose():
     assert stress_config('rolling_shutter').readout_time == pytest.approx(0.03)
     with pytest.raises(ValueError, match='readout_time'):
         SynthConfig(readout_time=0.05)
+
+
+def test_texture_period_repeats_one_motif_on_every_textured_surface():
+    """``texture_period``: every textured material is one motif repeated on a square lattice
+    of about that period (tiles, bricks), so a patch one period along a surface looks like the
+    patch itself; the geometry, the flat materials' share and the trajectory stay the seed's."""
+    from depth_fusion_ros.data.synthetic import stress_config
+    from depth_fusion_ros.data.synthetic.texture import PERIOD_TEXELS, periodic_albedo
+
+    albedo = periodic_albedo(np.random.default_rng(1), 256)
+    np.testing.assert_allclose(albedo, np.roll(albedo, PERIOD_TEXELS, axis=0), atol=1e-5)
+    np.testing.assert_allclose(albedo, np.roll(albedo, PERIOD_TEXELS, axis=1), atol=1e-5)
+    assert albedo.std() > 0.05 and np.abs(albedo - np.roll(albedo, PERIOD_TEXELS // 2, axis=1)).mean() > 0.03
+    base = dict(width=64, height=48, frames=2, noise_sigma=0.0)
+    tiled, plain = build_world(SynthConfig(**base, texture_period=0.1)), build_world(SynthConfig(**base))
+    np.testing.assert_array_equal(tiled[0].centres, plain[0].centres)
+    np.testing.assert_array_equal(tiled[1].poses, plain[1].poses)
+    scene = tiled[0]
+    periods = PERIOD_TEXELS / scene.surface_texels_per_m[scene.surface_texels_per_m != 1.0]
+    assert periods.min() >= 0.1 * 0.8 - 1e-6 and periods.max() <= 0.1 * 1.25 + 1e-6
+    seq = render_sequence(SynthConfig(**base, texture_period=0.1))
+    assert 'period10cm' in seq.name
+    assert np.array_equal(seq.frames[0].depth, render_sequence(SynthConfig(**base)).frames[0].depth)
+    assert stress_config('repetitive').texture_period == pytest.approx(0.08)
+    with pytest.raises(ValueError, match='texture_period'):
+        SynthConfig(texture_period=0.01)

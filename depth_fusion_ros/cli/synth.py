@@ -196,6 +196,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f'their walking speed in m/s (default {d.walker_speed:g})',
     )
     p.add_argument(
+        '--texture-period',
+        type=float,
+        default=d.texture_period,
+        help='repetitive texture: every textured surface repeats one motif about this often, in m '
+        f'(0.02-0.5: tiles, bricks, shelves; default {d.texture_period:g}: aperiodic patterns)',
+    )
+    p.add_argument(
         '--stress',
         choices=tuple(STRESS_CASES),
         default=None,

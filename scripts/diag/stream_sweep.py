@@ -6,6 +6,7 @@ reads it, the node's fast fusion with at most 4096 points, the simulated prior:
 
     python scripts/diag/stream_sweep.py rooms:0-5 low_texture:0-3 rotation:1
     python scripts/diag/stream_sweep.py low_texture:0-3 --set fusion.certainty_floor=0.1
+    python scripts/diag/stream_sweep.py repetitive:0-2 --synth texture_period=0.03
 
 ``rooms`` is the default synthetic world; the other names are stress cases
 (data/synthetic/stress.py) stretched to the stream's length. Prints one line per stream
@@ -41,16 +42,26 @@ def streams(text: str) -> list[tuple[str, int]]:
     return [(name, int(s)) for s in seeds.split(',')]
 
 
-def config(name: str, seed: int, frames: int) -> SynthConfig:
-    size = {'width': 320, 'height': 240, 'frames': frames, 'seed': seed}
+def synth_overrides(items: list[str]) -> dict[str, float]:
+    """``['texture_period=0.03']`` -> ``{'texture_period': 0.03}`` (numeric ``SynthConfig`` fields)."""
+    out: dict[str, float] = {}
+    for item in items:
+        name, _, value = item.partition('=')
+        out[name] = float(value) if '.' in value or 'e' in value else int(value)
+    return out
+
+
+def config(name: str, seed: int, frames: int, synth: dict[str, float] | None = None) -> SynthConfig:
+    size = {'width': 320, 'height': 240, 'frames': frames, 'seed': seed, **(synth or {})}
     return SynthConfig(**size) if name == 'rooms' else stress_config(name, **size)
 
 
-def sequence(name: str, seed: int, frames: int, cache: Path | None):
-    path = cache / f'{name}_{seed}_{frames}.pkl' if cache else None
+def sequence(name: str, seed: int, frames: int, cache: Path | None, synth: dict[str, float] | None = None):
+    tag = ''.join(f'_{k}{v:g}' for k, v in sorted((synth or {}).items()))
+    path = cache / f'{name}_{seed}_{frames}{tag}.pkl' if cache else None
     if path is not None and path.exists():
         return pickle.loads(path.read_bytes())
-    seq = render_sequence(config(name, seed, frames))
+    seq = render_sequence(config(name, seed, frames, synth))
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(pickle.dumps(seq))
@@ -87,11 +98,19 @@ def main() -> int:
     p.add_argument('--stride', type=int, default=5)
     p.add_argument('--cache', type=Path, help='folder for the rendered streams')
     p.add_argument('--set', action='append', default=[], metavar='STAGE.FIELD=VALUE')
+    p.add_argument(
+        '--synth',
+        action='append',
+        default=[],
+        metavar='FIELD=VALUE',
+        help="a SynthConfig field of every stream, e.g. 'texture_period=0.03'",
+    )
     args = p.parse_args()
+    synth = synth_overrides(args.synth)
     params = node_params(args.set)
     everything: list[float] = []
     for name, seed in [s for group in args.streams for s in group]:
-        seq = sequence(name, seed, args.frames, args.cache)
+        seq = sequence(name, seed, args.frames, args.cache, synth)
         options = stream_options(args.frames, args.stride, params)
         result = evaluate_sequence(seq, ['single_view_simulated', 'fused'], options, show_progress=False)
         single = np.array(result.records['single_view_simulated'].all.mae_per_frame)

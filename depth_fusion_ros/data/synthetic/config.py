@@ -90,6 +90,10 @@ class SynthConfig:
     walkers: int = 0
     #: Walking speed of the walkers (m/s).
     walker_speed: float = 1.0
+    #: Repetitive texture (m): every textured material is one random motif repeated on a square
+    #: lattice of about this period (tiles, bricks, shelves, a keyboard), so an epipolar search
+    #: finds the same patch again every period. 0 = the aperiodic patterns of ``texture.py``.
+    texture_period: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ValueError:
@@ -149,6 +153,8 @@ class SynthConfig:
             raise bad('walkers', 'expected 0..4 walkers')
         if not 0 < self.walker_speed <= 5.0:
             raise bad('walker_speed', 'expected a walking speed in (0, 5] m/s')
+        if not (self.texture_period == 0 or 0.02 <= self.texture_period <= 0.5):
+            raise bad('texture_period', 'expected 0 (aperiodic) or a period of 0.02..0.5 m')
 
     def camera(self) -> PinholeCamera:
         """Intrinsics: principal point at the image centre ((W - 1) / 2 with pixel-centre

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import SynthConfig
-from .texture import PATTERNS, TextureAtlas, random_colour, textured_albedo
+from .texture import PATTERNS, PERIOD_TEXELS, TextureAtlas, periodic_albedo, random_colour, textured_albedo
 from .trajectory import Trajectory
 from .walkers import WALKER_HALF, walker_centres, walker_yaw
 
@@ -246,12 +246,16 @@ def _assign_materials(
             texel_size[g] = 1.0
             continue
         large = g in ROOM_FACES or g.endswith('_top')
-        albedo = textured_albedo(rng, str(rng.choice(PATTERNS)), 512 if large else 256)
+        if cfg.texture_period:  # one motif per period: texels sized so that it spans the period
+            albedo = periodic_albedo(rng, 512 if large else 256)
+            texel_size[g] = cfg.texture_period / PERIOD_TEXELS * rng.uniform(0.8, 1.25)
+        else:
+            albedo = textured_albedo(rng, str(rng.choice(PATTERNS)), 512 if large else 256)
+            texel_size[g] = (0.004 if g in ROOM_FACES else 0.003) * rng.uniform(0.8, 1.25)
         if cfg.texture_contrast != 1.0:  # faint texture: same pattern, squeezed towards its mean
             mean = albedo.mean(axis=(0, 1), keepdims=True)
             albedo = (mean + cfg.texture_contrast * (albedo - mean)).astype(np.float32)
         textures.append(albedo)
-        texel_size[g] = (0.004 if g in ROOM_FACES else 0.003) * rng.uniform(0.8, 1.25)
     return texture_of, textures, textured, texel_size
 
 

@@ -25,6 +25,9 @@ data with exact ground truth:
                    image scaled by its own gain (log-gain std 0.15) and clipped at 255
 ``moving_object``  the lateral sweep with a person-sized box walking across the view at
                    1 m/s, 1.6 m ahead: a world that is not static
+``repetitive``     the lateral sweep in a room of tiles: every textured surface repeats one
+                   motif every 8 cm (10-18 px at 320x240), so an epipolar search meets the
+                   same patch again every period (tiled floors, brick walls, shelves)
 =================  ==========================================================================
 
 ``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
@@ -55,6 +58,7 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
     'rolling_shutter': {'parallax': 'high', 'sweep': 3.0, 'readout_time': 0.03},
     'auto_exposure': {'parallax': 'high', 'sweep': 1.0, 'gain_sigma': 0.15},
     'moving_object': {'parallax': 'high', 'sweep': 1.0, 'walkers': 1},
+    'repetitive': {'parallax': 'high', 'sweep': 1.0, 'texture_period': 0.08},
 }
 
 

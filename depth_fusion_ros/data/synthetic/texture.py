@@ -154,6 +154,32 @@ def textured_albedo(rng: np.random.Generator, kind: str, size: int) -> np.ndarra
     return (dark * (1.0 - p) + light * p).astype(np.float32)
 
 
+#: Texels of one period of a repetitive texture (a power of two: it divides every tile).
+PERIOD_TEXELS = 32
+
+
+def periodic_albedo(rng: np.random.Generator, size: int, cell: int = PERIOD_TEXELS) -> np.ndarray:
+    """(size, size, 3) float32 albedo: one random motif of ``cell`` texels repeated on a square
+    lattice, half the time framed by dark grout like tiles.
+
+    Why: a wall of tiles, a brick wall or a bookshelf look the same again every period along
+    an epipolar line, so a match one period off costs as little as the true one. Within a
+    period the motif is as textured as :func:`pattern`'s kinds, so only the repetition is hard.
+    """
+    if size % cell:
+        raise ValueError(f'a texture of {size} texels cannot repeat a motif of {cell}')
+    dark = random_colour(rng, (0.08, 0.35))
+    light = random_colour(rng, (0.55, 0.9))
+    motif = 0.5 + 0.22 * band_noise(rng, cell, 3.0, cell / 2.0, slope=0.8)
+    if rng.uniform() < 0.5:
+        edge = np.zeros(cell, dtype=bool)
+        edge[:2] = True
+        motif = np.where(edge[:, None] | edge[None, :], 0.1, motif)
+    p = np.tile(motif.astype(np.float32), (size // cell, size // cell))
+    p = np.clip(_blur_periodic(p, 0.7), 0.0, 1.0)[..., None]
+    return (dark * (1.0 - p) + light * p).astype(np.float32)
+
+
 def _mip_chain(level0: np.ndarray) -> list[np.ndarray]:
     """Box-filtered pyramid of a square power-of-two tile down to 1x1."""
     levels = [level0.astype(np.float32)]

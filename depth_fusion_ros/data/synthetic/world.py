@@ -56,6 +56,8 @@ def sequence_name(cfg: SynthConfig) -> str:
         name += f'_gain{cfg.gain_sigma:g}'
     if cfg.walkers:
         name += f'_walkers{cfg.walkers}'
+    if cfg.texture_period:
+        name += f'_period{cfg.texture_period * 100:g}cm'
     return name
 
 

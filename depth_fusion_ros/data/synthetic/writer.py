@@ -70,6 +70,11 @@ def _sensor_note(cfg: SynthConfig) -> str:
             f'\n**The world is not static**: {cfg.walkers} person-sized box(es) walk back and forth '
             f'across the view at {cfg.walker_speed:g} m/s; the depth images show them where they are.'
         )
+    if cfg.texture_period:
+        note += (
+            '\n**The texture repeats**: every textured surface is one motif repeated on a square '
+            f'lattice of {cfg.texture_period * 100:g} cm (+-25 % per material), like tiles or bricks.'
+        )
     return note
 
 
