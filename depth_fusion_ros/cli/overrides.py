@@ -98,6 +98,7 @@ def evaluation_stages() -> dict[str, set[str]]:
     import dataclasses
 
     from ..adaptation.config import AdaptConfig
+    from ..evaluation.focal import STAGE as FOCAL_STAGE
     from ..evaluation.methods.adapted import STAGE as ADAPT_STAGE
     from ..evaluation.methods.fusion import GUARD_STAGE
     from ..evaluation.methods.fusion import STAGE as FUSION_STAGE
@@ -115,6 +116,7 @@ def evaluation_stages() -> dict[str, set[str]]:
     from ..fusion.pipeline import FusionConfig
     from ..mapping.config import MapConfig
     from ..multiview.filter_config import FilterConfig
+    from ..multiview.focal_check import FocalCheckConfig
     from ..multiview.neighbours import NeighbourConfig
     from ..multiview.semidense import MultiViewConfig
     from ..multiview.tv import TVConfig
@@ -126,6 +128,7 @@ def evaluation_stages() -> dict[str, set[str]]:
     return {
         MULTI_VIEW_STAGE: fields(MultiViewConfig) | {METHOD_PARAM},
         FILTER_STAGE: fields(FilterConfig),
+        FOCAL_STAGE: fields(FocalCheckConfig),
         GUARD_STAGE: fields(GuardConfig),
         ADAPT_STAGE: fields(AdaptConfig),
         MAP_STAGE: fields(MapConfig),

@@ -24,6 +24,7 @@ from ..data.sequence import Sequence
 from ..metrics import MetricAccumulator, good_density, high_gradient_mask, upsample_depth
 from ..progress import progress
 from .context import EvalOptions, KeyframeContext, SequenceContext, keyframe_indices
+from .focal import check_focal, estimate_json
 from .registry import MethodSpec, SequenceOutput, get_method
 
 log = logging.getLogger(__name__)
@@ -75,6 +76,8 @@ class SequenceResult:
     keyframes: list[int]
     records: dict[str, MethodRecord]
     sequence: Sequence
+    #: The focal length check (``evaluation/focal.py``), or ``None`` when it did not run.
+    focal_check: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -82,6 +85,7 @@ class SequenceResult:
             'frames': len(self.keyframes),
             'keyframes': self.keyframes,
             'dropped': dict(self.sequence.dropped),
+            'focal_check': self.focal_check,
             'methods': {name: rec.to_json() for name, rec in self.records.items()},
         }
 
@@ -106,7 +110,11 @@ def evaluate_sequence(
     n_samples: int = 3,
     show_progress: bool = True,
 ) -> SequenceResult:
-    """Run ``methods`` on the keyframes of an already loaded sequence."""
+    """Run ``methods`` on the keyframes of an already loaded sequence (first the focal length
+    check, which may correct its camera: ``evaluation/focal.py``)."""
+    told_camera = sequence.camera
+    sequence, focal = check_focal(sequence, options.params)
+    focal_json = estimate_json(focal, corrected=sequence.camera != told_camera)
     specs = [get_method(m) for m in methods]
     keyframes = keyframe_indices(len(sequence), options)
     samples = set(sample_indices(keyframes, n_samples))
@@ -138,7 +146,7 @@ def evaluate_sequence(
     for spec in specs:
         if spec.finish is not None:
             records[spec.name].sequence_output = spec.finish(whole)
-    return SequenceResult(sequence.name, path, keyframes, records, sequence)
+    return SequenceResult(sequence.name, path, keyframes, records, sequence, focal_json)
 
 
 def _mean_extra(values: list[float]) -> float:

@@ -42,6 +42,7 @@ from ..data import messages
 from ..data.sequence import Frame
 from ..geometry import invert_pose, rotation_angle
 from ..multiview.descriptors import PATCH_OFFSETS
+from ..multiview.focal_check import FocalEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
@@ -51,6 +52,7 @@ from .announce import announce
 from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode, run_node
 from .corrected_path import TOPIC_CORRECTED_PATH, correction_limits, correction_parameters, read_path
 from .diagnostics import Requirement
+from .focal_check_runner import FOCAL_CHECK_PARAMETERS, FocalCheckRunner
 from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, GraphEvents
 from .image_input import (
     CameraInput,
@@ -228,6 +230,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         MultiViewConfig, 'multi_view', MULTI_VIEW_DESCRIPTIONS, MULTI_VIEW_LIMITS, skip=MULTI_VIEW_SKIP
     ),
     *FILTER_PARAMETERS,
+    *FOCAL_CHECK_PARAMETERS,
 )
 
 
@@ -283,6 +286,12 @@ class MultiViewNode(DepthFusionNode):
             )
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
+        try:
+            self.focal_check = FocalCheckRunner.from_parameters(p, self._on_focal_estimate)
+        except ValueError as exc:
+            raise ValueError(f'{self.get_name()}: {exc}') from None
+        #: The focal check's estimate when ``focal_check.mode`` is correct and it disagreed.
+        self._focal_correction: FocalEstimate | None = None
         self.jump_limits = pose_jump_limits(p)
         self.correction_limits = correction_limits(p)
         self.pose_buffer = PoseBuffer(
@@ -622,12 +631,14 @@ class MultiViewNode(DepthFusionNode):
         }
         if self.filter_feed is not None:
             extra['filter frames passed over (filter.max_update_rate)'] = self.filter_feed.rate_skipped
+        extra['focal length check'] = self.focal_check.status()
         return extra
 
     def destroy_node(self) -> None:
         if not self._destroyed:
             self._give_up_pending('node shutting down')
         super().destroy_node()
+        self.focal_check.close()
         if self.filter_feed is not None:
             self.filter_feed.close()
 
@@ -637,19 +648,45 @@ class MultiViewNode(DepthFusionNode):
             self._restart_frames()
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
+        self.focal_check.offer(frame.gray, T_wc, image.camera)
+        camera = self._camera_of(image.camera)
         job = None
         if self._is_keyframe_candidate(frame):
-            neighbours = self._select_neighbours(frame, image.camera)
+            neighbours = self._select_neighbours(frame, camera)
             if len(neighbours) >= int(self.params['min_neighbours']):
-                job = _KeyframeJob(frame, neighbours, image.camera, image.header, pending.received_at)
+                job = _KeyframeJob(frame, neighbours, camera, image.header, pending.received_at)
         if self.filter_feed is not None:  # the filter sees every posed frame, as it comes
-            self.filter_feed.append(frame, image.camera, keyframe=job is not None)
+            self.filter_feed.append(frame, camera, keyframe=job is not None)
         if job is not None:
             self.keyframes_decided += 1
             self._last_keyframe_pose = T_wc
             self.events.event(image.stamp_ns, EVENT_CHOSEN)
             self.worker.submit(job)
         self.frames.append(frame)
+
+    # --- focal length check ------------------------------------------------------------------------
+
+    def _on_focal_estimate(self, estimate: FocalEstimate) -> None:
+        """The focal check's one result (its thread): said once; used from now on when asked to."""
+        if estimate.verdict != 'disagrees':
+            self.get_logger().info(estimate.message())
+            return
+        self.stats.noted('focal_disagrees', estimate.message())
+        if self.focal_check.config.mode == 'correct':
+            self._focal_correction = estimate
+            self.get_logger().warning(
+                f'{estimate.message()}; focal_check.mode correct: the multi-view depth and the keyframe '
+                f'camera_info use fx {estimate.fx:.1f}, fy {estimate.fy:.1f} px from now on'
+            )
+        else:
+            self.get_logger().warning(f'{estimate.message()} (focal_check.mode correct would use it)')
+
+    def _camera_of(self, camera: PinholeCamera) -> PinholeCamera:
+        """The working camera the multi-view depth uses: corrected once the check asked for it."""
+        correction = self._focal_correction
+        if correction is None or camera != self.focal_check.camera:
+            return camera
+        return correction.corrected(camera)
 
     # --- keyframe policy ----------------------------------------------------------------------------
 

@@ -1,0 +1,285 @@
+"""Does the camera's focal length agree with the images and the poses? A calibration check.
+
+Why: a focal length 10 % off biases every multi-view depth by about as much, smoothly over the
+image, and nothing downstream can tell (docs/fusion.md, "A known limit: a single view more
+accurate in scale than the points"). With known poses the focal length is observable from the
+images alone: a rotation between two views moves every pixel by about ``f`` times its angle,
+and the epipolar geometry of the told relative pose fits the matched features best at the
+true focal length (docs/multi_view.md, "The focal length check").
+
+:class:`FocalCheck` takes the posed frames of a stream. A frame that has moved
+``min_baseline`` or turned ``min_rotation_deg`` from the last sample (by the told poses) is
+the next sample (ORB features), so a pair has the same signal at any speed and frame rate;
+consecutive samples make a pair: their features are matched and the images'
+own essential matrix (RANSAC) keeps the matches that fit one rigid motion. After ``pairs``
+pairs, :func:`estimate_focal_scale` fits one scale ``s`` of both focal lengths (principal
+point kept) minimising the Sampson distances of the kept matches under the told relative
+poses, pair by pair; their median is the estimate and their spread its standard error, once.
+Motion that does not constrain the focal length, or poses too noisy to tell, give a large
+one: ``unobservable``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from ..camera import PinholeCamera
+from ..geometry import relative_pose, rotation_angle
+
+log = logging.getLogger(__name__)
+
+FOCAL_CHECK_MODES = ('off', 'warn', 'correct')
+VERDICTS = ('consistent', 'disagrees', 'unobservable')
+
+#: Sampson distance (px) where the soft-L1 loss turns from squares to absolute values.
+_LOSS_SCALE_PX = 0.5
+#: OpenCV's random state (per thread) is set to this before each RANSAC: a deterministic check.
+_RANSAC_SEED = 12345
+#: The focal scales a fit may reach (a focal length half or twice the told one).
+_SCALE_BOUNDS = (0.5, 2.0)
+
+
+@dataclass(frozen=True)
+class FocalCheckConfig:
+    """When to check the focal length, and what to do when the images disagree with it."""
+
+    #: off: no check; warn: check once and warn when the images and poses disagree with the
+    #: focal length; correct: also use the focal length they agree on for the multi-view depth
+    #: and the keyframes' camera_info from then on
+    mode: str = 'correct'
+    #: A frame is the next image of a pair once it has moved this far from the last one (m)
+    min_baseline: float = 0.05
+    #: A frame is also the next image of a pair once it has turned this far from the last one (degrees)
+    min_rotation_deg: float = 2.0
+    #: Pairs of images the estimate uses (the check ends there, once)
+    pairs: int = 15
+    #: A disagreement counts when |log(fitted / told focal length)| less twice its standard
+    #: error is at least this (0.05: surely more than 5 % off)
+    threshold: float = 0.05
+    #: Standard error of the fitted scale above which the motion and the poses do not constrain
+    #: it (the spread of the pairs' own fits, as a standard error of their median)
+    max_stderr: float = 0.025
+    #: Matches a pair needs after RANSAC to be used
+    min_matches: int = 30
+    #: ORB features per image
+    features: int = 1000
+
+    def __post_init__(self) -> None:
+        if self.mode not in FOCAL_CHECK_MODES:
+            raise ValueError(f'focal_check.mode: {self.mode!r} is not one of {", ".join(FOCAL_CHECK_MODES)}')
+        if self.pairs < 5 or self.min_matches < 8 or self.features < 50:
+            raise ValueError('focal_check: need pairs >= 5, min_matches >= 8 and features >= 50')
+        if not (self.min_baseline > 0 and self.min_rotation_deg > 0):
+            raise ValueError('focal_check: need min_baseline > 0 and min_rotation_deg > 0')
+        if not (0 < self.threshold < 1 and self.max_stderr > 0):
+            raise ValueError('focal_check: need 0 < threshold < 1 and max_stderr > 0')
+
+
+@dataclass(frozen=True)
+class FocalEstimate:
+    """The fitted focal scale of a stream and what it means for the camera's calibration."""
+
+    scale: float  # fitted / told focal length
+    stderr: float
+    pairs: int
+    matches: int
+    verdict: str  # one of VERDICTS
+    told_fx: float
+    told_fy: float
+
+    @property
+    def fx(self) -> float:
+        return self.told_fx * self.scale
+
+    @property
+    def fy(self) -> float:
+        return self.told_fy * self.scale
+
+    def message(self) -> str:
+        """One line for the log: the verdict with its numbers."""
+        fit = (
+            f'the images and poses fit fx {self.fx:.1f} px best ({self.scale - 1:+.1%} +- {self.stderr:.1%}; '
+            f'{self.pairs} image pairs, {self.matches} matches)'
+        )
+        if self.verdict == 'disagrees':
+            told = f'camera_info says fx {self.told_fx:.1f} px'
+            return f'focal length check: {told}, but {fit}: check the calibration'
+        if self.verdict == 'unobservable':
+            return (
+                f'focal length check: the motion does not constrain the focal length ({self.scale - 1:+.1%} '
+                f'+- {self.stderr:.1%} over {self.pairs} pairs): fx {self.told_fx:.1f} px kept unchecked'
+            )
+        return f'focal length check: fx {self.told_fx:.1f} px agrees with the images and poses: {fit}'
+
+    def corrected(self, camera: PinholeCamera) -> PinholeCamera:
+        """``camera`` with both focal lengths scaled by the fitted scale (principal point kept)."""
+        s = self.scale
+        return PinholeCamera(camera.width, camera.height, camera.fx * s, camera.fy * s, camera.cx, camera.cy)
+
+
+@dataclass
+class _Sample:
+    pose: np.ndarray
+    points: np.ndarray  # (N, 2) float64 keypoint positions
+    descriptors: np.ndarray | None
+
+
+@dataclass
+class _Pair:
+    T_ba: np.ndarray  # told: first-camera coordinates to second-camera coordinates
+    p1: np.ndarray  # (M, 2) matched positions in the first image
+    p2: np.ndarray
+
+
+def _skew(t: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
+def sampson_distances(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """Signed Sampson distances (px) of matches ``p1 -> p2`` (N, 2) under fundamental matrix ``F``."""
+    x1 = np.c_[p1, np.ones(len(p1))]
+    x2 = np.c_[p2, np.ones(len(p2))]
+    Fx1, Ftx2 = x1 @ F.T, x2 @ F
+    norm = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
+    return np.sum(x2 * Fx1, axis=1) / np.maximum(norm, 1e-12)
+
+
+def _residuals(scale: float, K: np.ndarray, pairs: list[_Pair]) -> np.ndarray:
+    Ks = K.copy()
+    Ks[0, 0] *= scale
+    Ks[1, 1] *= scale
+    Ki = np.linalg.inv(Ks)
+    out = [sampson_distances(Ki.T @ _skew(p.T_ba[:3, 3]) @ p.T_ba[:3, :3] @ Ki, p.p1, p.p2) for p in pairs]
+    return np.concatenate(out)
+
+
+def _robust_cost(scale: float, K: np.ndarray, pair: _Pair) -> float:
+    r = _residuals(scale, K, [pair]) / _LOSS_SCALE_PX
+    return float(np.sum(np.sqrt(1.0 + r * r) - 1.0))  # soft-L1
+
+
+def fit_pair_scale(pair: _Pair, K: np.ndarray) -> float:
+    """The focal scale that fits one pair's matches best under its told pose (soft-L1 cost).
+
+    A grid over the whole bounded range first (1 % steps), then a bounded scalar search around
+    its best step: a local fit started at 1 stays near 1 where the cost is flat, and that would
+    bias every weak pair towards the told focal length.
+    """
+    grid = np.exp(np.arange(math.log(_SCALE_BOUNDS[0]), math.log(_SCALE_BOUNDS[1]), 0.01))
+    costs = [_robust_cost(float(x), K, pair) for x in grid]
+    best = int(np.argmin(costs))
+    lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)]
+    fit = minimize_scalar(lambda x: _robust_cost(float(x), K, pair), bounds=(lo, hi), method='bounded')
+    return float(fit.x)
+
+
+def estimate_focal_scale(pairs: list[_Pair], K: np.ndarray) -> tuple[float, float]:
+    """The focal scale the pairs agree on (the median of their own fits) and its standard error.
+
+    Why per pair: an error of a told relative pose moves every match of that pair alike, so
+    the matches of one pair are not independent evidence. One fit over all matches is biased
+    by pose noise (a pose source with 4 mm and 0.25 deg of noise per frame pulled it to 0.80
+    on an exact focal length) and its standard error, counted over matches, is far too small.
+    The spread of the pairs' own fits says how much the poses let the images tell (the
+    median absolute deviation, as a standard error of the median).
+    """
+    scales = np.array([fit_pair_scale(p, K) for p in pairs])
+    median = float(np.median(scales))
+    if scales.size < 3:
+        return median, math.inf
+    spread = 1.4826 * float(np.median(np.abs(scales - median)))
+    return median, spread * math.sqrt(math.pi / 2) / math.sqrt(scales.size)
+
+
+def _as_uint8(gray: np.ndarray) -> np.ndarray:
+    if gray.dtype == np.uint8:
+        return gray
+    return np.clip(np.rint(np.asarray(gray, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
+
+
+@dataclass
+class FocalCheck:
+    """Collects image pairs from a posed stream and checks the focal length once (see module)."""
+
+    camera: PinholeCamera
+    config: FocalCheckConfig = field(default_factory=FocalCheckConfig)
+    result: FocalEstimate | None = None
+    frames: int = 0
+    pairs: list[_Pair] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._orb = cv2.ORB_create(self.config.features)
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+        self._last: _Sample | None = None
+
+    @property
+    def done(self) -> bool:
+        return self.result is not None or self.config.mode == 'off'
+
+    def wants(self, pose: np.ndarray) -> bool:
+        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
+        if self.done:
+            return False
+        if self._last is None:
+            return True
+        T = relative_pose(self._last.pose, np.asarray(pose, dtype=np.float64))
+        moved = float(np.linalg.norm(T[:3, 3])) >= self.config.min_baseline
+        return moved or math.degrees(rotation_angle(T[:3, :3])) >= self.config.min_rotation_deg
+
+    def add(self, gray: np.ndarray, pose: np.ndarray) -> FocalEstimate | None:
+        """One posed frame of the stream (grey image on this camera's grid, camera-to-world);
+        returns the estimate on the frame that completes it, else ``None``."""
+        self.frames += 1
+        if not self.wants(pose):
+            return None
+        keypoints, descriptors = self._orb.detectAndCompute(_as_uint8(gray), None)
+        points = np.float64([k.pt for k in keypoints]).reshape(-1, 2)
+        current = _Sample(np.asarray(pose, dtype=np.float64), points, descriptors)
+        if self._last is not None:
+            self._pair(self._last, current)
+        self._last = current
+        if len(self.pairs) < self.config.pairs:
+            return None
+        scale, stderr = estimate_focal_scale(self.pairs, self.camera.K)
+        self.result = self._verdict(scale, stderr)
+        self.pairs = []
+        self._last = None
+        return self.result
+
+    def _pair(self, a: _Sample, b: _Sample) -> None:
+        if a.descriptors is None or b.descriptors is None:
+            return
+        matches = self._matcher.match(a.descriptors, b.descriptors)
+        if len(matches) < self.config.min_matches:
+            return
+        p1 = a.points[[m.queryIdx for m in matches]]
+        p2 = b.points[[m.trainIdx for m in matches]]
+        cv2.setRNGSeed(_RANSAC_SEED)  # the same pairs give the same matches, whatever ran before
+        E, mask = cv2.findEssentialMat(p1, p2, self.camera.K, cv2.RANSAC, 0.999, 1.0)
+        if E is None or mask is None:
+            return
+        inliers = mask.ravel() > 0
+        T_ba = relative_pose(a.pose, b.pose)
+        if int(inliers.sum()) < self.config.min_matches or np.linalg.norm(T_ba[:3, 3]) < 1e-4:
+            return
+        self.pairs.append(_Pair(T_ba, p1[inliers], p2[inliers]))
+
+    def _verdict(self, scale: float, stderr: float) -> FocalEstimate:
+        if not math.isfinite(stderr) or stderr > self.config.max_stderr or scale <= 0:
+            verdict = 'unobservable'
+        elif abs(math.log(scale)) - 2.0 * stderr / scale >= self.config.threshold:
+            verdict = 'disagrees'
+        else:
+            verdict = 'consistent'
+        matches = sum(len(p.p1) for p in self.pairs)
+        estimate = FocalEstimate(
+            scale, stderr, len(self.pairs), matches, verdict, self.camera.fx, self.camera.fy
+        )
+        log.debug('%s', estimate.message())
+        return estimate

@@ -1,0 +1,97 @@
+"""The focal length check: a wrong camera_info focal length is found from the images and the
+told poses (issue 11's wrong-focal stress case), a right one is not flagged, noisy poses do
+not fake a disagreement, and ``evaluate`` corrects the camera when asked."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from depth_fusion_ros.data.synthetic import render_sequence, stress_config
+from depth_fusion_ros.evaluation.context import EvalOptions
+from depth_fusion_ros.evaluation.harness import evaluate_sequence
+from depth_fusion_ros.multiview.focal_check import FocalCheck, FocalCheckConfig, FocalEstimate
+
+#: 320x240 over a 1 m sweep in 40 frames: a pair every two frames.
+SIZE = {'width': 320, 'height': 240, 'frames': 40, 'seed': 5}
+PAIRS = 12
+
+
+@pytest.fixture(scope='module')
+def wrong_focal():
+    return render_sequence(stress_config('wrong_focal', **SIZE))
+
+
+def _check(sequence, **config) -> tuple[FocalEstimate | None, FocalCheck]:
+    check = FocalCheck(sequence.camera, FocalCheckConfig(pairs=PAIRS, **config))
+    estimate = None
+    for frame in sequence.frames:
+        estimate = check.add(frame.gray, frame.pose) or estimate
+    return estimate, check
+
+
+def test_a_focal_length_ten_percent_long_is_found(wrong_focal):
+    estimate, check = _check(wrong_focal)
+    assert estimate is not None and check.done and estimate.pairs == PAIRS
+    assert estimate.verdict == 'disagrees', estimate.message()
+    assert estimate.scale == pytest.approx(1 / 1.1, abs=0.03) and estimate.stderr < 0.025
+    corrected = estimate.corrected(wrong_focal.camera)
+    assert corrected.fx == pytest.approx(wrong_focal.gt_camera.fx, rel=0.03)
+    assert (corrected.cx, corrected.cy, corrected.size) == (
+        wrong_focal.camera.cx,
+        wrong_focal.camera.cy,
+        wrong_focal.camera.size,
+    )
+    message = estimate.message()
+    assert 'camera_info says fx 288.8 px' in message and 'check the calibration' in message
+    assert check.add(wrong_focal.frames[0].gray, wrong_focal.frames[0].pose) is None  # once
+
+
+def test_the_right_focal_length_is_not_flagged():
+    estimate, _ = _check(render_sequence(stress_config('translation', **SIZE)))
+    assert estimate is not None and estimate.verdict == 'consistent', estimate.message()
+    assert abs(estimate.scale - 1) < 0.04 and 'agrees' in estimate.message()
+
+
+def test_noisy_poses_do_not_fake_a_disagreement():
+    """4 mm and 0.25 deg of pose noise per frame: every match of a pair moves with its pose
+    error, so the pairs disagree with each other, not with the focal length."""
+    noisy = stress_config('pose_noise', **SIZE, pose_noise_m=0.004, pose_noise_deg=0.25)
+    estimate, _ = _check(render_sequence(noisy))
+    assert estimate is not None and estimate.verdict != 'disagrees', estimate.message()
+
+
+def test_a_camera_that_stands_still_gives_no_pairs(wrong_focal):
+    check = FocalCheck(wrong_focal.camera, FocalCheckConfig(pairs=5))
+    frame = wrong_focal.frames[0]
+    assert all(check.add(frame.gray, frame.pose) is None for _ in range(50))
+    assert check.pairs == [] and not check.done and check.frames == 50
+
+
+def test_config_is_validated():
+    with pytest.raises(ValueError, match=r'focal_check\.mode'):
+        FocalCheckConfig(mode='fix')
+    with pytest.raises(ValueError, match='pairs >= 5'):
+        FocalCheckConfig(pairs=2)
+    with pytest.raises(ValueError, match='min_baseline'):
+        FocalCheckConfig(min_baseline=0.0)
+    assert FocalCheck(stress_config('translation').camera(), FocalCheckConfig(mode='off')).done
+
+
+@pytest.mark.parametrize('mode', ['correct', 'warn'])
+def test_evaluate_runs_the_check_and_corrects_when_asked(wrong_focal, mode):
+    options = EvalOptions(
+        frames=SIZE['frames'],
+        keyframes=[30],
+        single_view='simulated',
+        width=320,
+        height=240,
+        params={'focal_check': {'pairs': PAIRS, 'mode': mode}},
+    )
+    result = evaluate_sequence(wrong_focal, ['single_view_simulated'], options, show_progress=False)
+    entry = result.to_json()['focal_check']
+    assert entry['verdict'] == 'disagrees' and entry['corrected'] == (mode == 'correct')
+    assert entry['fitted_fx'] == pytest.approx(wrong_focal.gt_camera.fx, rel=0.03)
+    fx = result.sequence.camera.fx
+    assert fx == (pytest.approx(entry['fitted_fx']) if mode == 'correct' else wrong_focal.camera.fx)
+    assert np.isfinite(result.records['single_view_simulated'].all.summary()['mae'])
