@@ -95,3 +95,31 @@ def test_evaluate_runs_the_check_and_corrects_when_asked(wrong_focal, mode):
     fx = result.sequence.camera.fx
     assert fx == (pytest.approx(entry['fitted_fx']) if mode == 'correct' else wrong_focal.camera.fx)
     assert np.isfinite(result.records['single_view_simulated'].all.summary()['mae'])
+
+
+def test_the_node_runner_checks_off_the_callbacks_and_again_for_a_new_camera(wrong_focal):
+    """``multi_view_node``'s runner: frames offered from the callbacks, the estimate computed on
+    its thread and reported once with the camera it is for; a new camera is checked anew."""
+    import time
+
+    from depth_fusion_ros.camera import PinholeCamera
+    from depth_fusion_ros.nodes.focal_check_runner import FocalCheckRunner
+
+    reports = []
+    runner = FocalCheckRunner(FocalCheckConfig(pairs=PAIRS), lambda cam, est: reports.append((cam, est)))
+    assert runner.status() == f'collecting (0 of {PAIRS} image pairs)'
+    for frame in wrong_focal.frames:
+        runner.offer(frame, wrong_focal.camera)
+        time.sleep(0.05)  # a 20 Hz stream: the thread keeps up
+    deadline = time.monotonic() + 30
+    while not reports and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert len(reports) == 1 and reports[0][0] == wrong_focal.camera
+    assert reports[0][1].verdict == 'disagrees' and runner.status().startswith('disagrees: fx 288.8 ->')
+    other = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    runner.offer(wrong_focal.frames[0], other)
+    assert runner.camera == other and runner.result is None and runner.status().startswith('collecting')
+    runner.close()
+    off = FocalCheckRunner(FocalCheckConfig(mode='off'), lambda *_: None)
+    off.offer(wrong_focal.frames[0], wrong_focal.camera)
+    assert off.status() == 'off' and off.camera is None

@@ -58,7 +58,7 @@ class FocalCheckConfig:
     #: A frame is also the next image of a pair once it has turned this far from the last one (degrees)
     min_rotation_deg: float = 2.0
     #: Pairs of images the estimate uses (the check ends there, once)
-    pairs: int = 15
+    pairs: int = 12
     #: A disagreement counts when |log(fitted / told focal length)| less twice its standard
     #: error is at least this (0.05: surely more than 5 % off)
     threshold: float = 0.05

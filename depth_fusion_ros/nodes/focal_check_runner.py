@@ -14,9 +14,8 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
 from ..camera import PinholeCamera
+from ..data.sequence import Frame
 from ..multiview.focal_check import FOCAL_CHECK_MODES, FocalCheck, FocalCheckConfig, FocalEstimate
 from .params import ParamSpec, build_dataclass, dataclass_specs
 
@@ -39,17 +38,19 @@ FOCAL_CHECK_PARAMETERS: tuple[ParamSpec, ...] = tuple(
 class FocalCheckRunner:
     """Feeds a :class:`FocalCheck` from the callbacks on its own thread; reports the result once."""
 
-    def __init__(self, config: FocalCheckConfig, on_result: Callable[[FocalEstimate], None]) -> None:
+    def __init__(
+        self, config: FocalCheckConfig, on_result: Callable[[PinholeCamera, FocalEstimate], None]
+    ) -> None:
         self.config = config
         self._on_result = on_result
         self._check: FocalCheck | None = None
-        self._queue: queue.Queue[tuple[np.ndarray, np.ndarray] | None] = queue.Queue(maxsize=2)
+        self._queue: queue.Queue[tuple[Any, Any] | None] = queue.Queue(maxsize=2)
         self.result: FocalEstimate | None = None
         self._thread: threading.Thread | None = None
 
     @classmethod
     def from_parameters(
-        cls, params: dict[str, Any], on_result: Callable[[FocalEstimate], None]
+        cls, params: dict[str, Any], on_result: Callable[[PinholeCamera, FocalEstimate], None]
     ) -> FocalCheckRunner:
         return cls(build_dataclass(FocalCheckConfig, params, 'focal_check'), on_result)
 
@@ -67,21 +68,23 @@ class FocalCheckRunner:
         pairs = 0 if self._check is None else len(self._check.pairs)
         return f'collecting ({pairs} of {self.config.pairs} image pairs)'
 
-    def offer(self, gray: np.ndarray, pose: np.ndarray, camera: PinholeCamera) -> None:
-        """A posed frame on the working grid (callback thread): queued when the check wants it."""
-        if self.config.mode == 'off' or self.result is not None:
+    def offer(self, frame: Frame, camera: PinholeCamera) -> None:
+        """A posed frame on the working grid (callback thread): queued when the check wants it
+        (its grey image is made only then)."""
+        if self.config.mode == 'off' or (self.result is not None and camera == self.camera):
             return
         if self._check is None or self._check.camera != camera:  # a new camera: check it anew
             self._stop()
             self._check = FocalCheck(camera, self.config)
+            self.result = None
             self._queue = queue.Queue(maxsize=2)
             self._thread = threading.Thread(target=self._run, args=(self._check, self._queue), daemon=True)
             self._thread.name = 'focal_check'
             self._thread.start()
-        if not self._check.wants(pose):
+        if not self._check.wants(frame.pose):
             return
         with contextlib.suppress(queue.Full):  # busy: a later frame that moved as far is taken instead
-            self._queue.put_nowait((gray, pose))
+            self._queue.put_nowait((frame.gray, frame.pose))
 
     def close(self) -> None:
         self._stop()
@@ -99,6 +102,7 @@ class FocalCheckRunner:
                 return
             estimate = check.add(*item)
             if estimate is not None:
-                self.result = estimate
-                self._on_result(estimate)
+                if check is self._check:  # not a camera given up on meanwhile
+                    self.result = estimate
+                self._on_result(check.camera, estimate)
                 return

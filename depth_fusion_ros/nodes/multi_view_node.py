@@ -290,8 +290,9 @@ class MultiViewNode(DepthFusionNode):
             self.focal_check = FocalCheckRunner.from_parameters(p, self._on_focal_estimate)
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
-        #: The focal check's estimate when ``focal_check.mode`` is correct and it disagreed.
-        self._focal_correction: FocalEstimate | None = None
+        #: The camera the focal check disagreed with and its estimate, when ``focal_check.mode``
+        #: is correct (the correction applies to that camera only).
+        self._focal_correction: tuple[PinholeCamera, FocalEstimate] | None = None
         self.jump_limits = pose_jump_limits(p)
         self.correction_limits = correction_limits(p)
         self.pose_buffer = PoseBuffer(
@@ -648,7 +649,7 @@ class MultiViewNode(DepthFusionNode):
             self._restart_frames()
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
-        self.focal_check.offer(frame.gray, T_wc, image.camera)
+        self.focal_check.offer(frame, image.camera)
         camera = self._camera_of(image.camera)
         job = None
         if self._is_keyframe_candidate(frame):
@@ -666,14 +667,15 @@ class MultiViewNode(DepthFusionNode):
 
     # --- focal length check ------------------------------------------------------------------------
 
-    def _on_focal_estimate(self, estimate: FocalEstimate) -> None:
-        """The focal check's one result (its thread): said once; used from now on when asked to."""
+    def _on_focal_estimate(self, camera: PinholeCamera, estimate: FocalEstimate) -> None:
+        """The focal check's result for ``camera`` (its thread): said once; used from now on for
+        that camera when asked to."""
         if estimate.verdict != 'disagrees':
             self.get_logger().info(estimate.message())
             return
         self.stats.noted('focal_disagrees', estimate.message())
         if self.focal_check.config.mode == 'correct':
-            self._focal_correction = estimate
+            self._focal_correction = (camera, estimate)
             self.get_logger().warning(
                 f'{estimate.message()}; focal_check.mode correct: the multi-view depth and the keyframe '
                 f'camera_info use fx {estimate.fx:.1f}, fy {estimate.fy:.1f} px from now on'
@@ -684,9 +686,9 @@ class MultiViewNode(DepthFusionNode):
     def _camera_of(self, camera: PinholeCamera) -> PinholeCamera:
         """The working camera the multi-view depth uses: corrected once the check asked for it."""
         correction = self._focal_correction
-        if correction is None or camera != self.focal_check.camera:
+        if correction is None or camera != correction[0]:
             return camera
-        return correction.corrected(camera)
+        return correction[1].corrected(camera)
 
     # --- keyframe policy ----------------------------------------------------------------------------
 
