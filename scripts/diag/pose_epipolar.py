@@ -21,19 +21,7 @@ import numpy as np
 
 from depth_fusion_ros.data.tum import load_tum_sequence
 from depth_fusion_ros.geometry import relative_pose
-
-
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-
-
-def sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """Sampson distance (px) of matches ``p1 -> p2`` (N, 2) under the fundamental matrix ``F``."""
-    x1 = np.c_[p1, np.ones(len(p1))]
-    x2 = np.c_[p2, np.ones(len(p2))]
-    Fx1, Ftx2 = x1 @ F.T, x2 @ F
-    num = np.sum(x2 * Fx1, axis=1) ** 2
-    return np.sqrt(num / (Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2))
+from depth_fusion_ros.multiview.focal_check import sampson_distances, skew
 
 
 def main() -> None:
@@ -59,9 +47,9 @@ def main() -> None:
             continue
         inl = mask[:, 0] > 0
         T = relative_pose(seq.frames[i].pose, seq.frames[i + args.gap].pose)
-        F_told = Ki.T @ _skew(T[:3, 3]) @ T[:3, :3] @ Ki
-        told.append(float(np.median(sampson(F_told, p1[inl], p2[inl]))))
-        own.append(float(np.median(sampson(Ki.T @ E @ Ki, p1[inl], p2[inl]))))
+        F_told = Ki.T @ skew(T[:3, 3]) @ T[:3, :3] @ Ki
+        told.append(float(np.median(np.abs(sampson_distances(F_told, p1[inl], p2[inl])))))
+        own.append(float(np.median(np.abs(sampson_distances(Ki.T @ E @ Ki, p1[inl], p2[inl])))))
         pair = f'{i:3d} -> {i + args.gap}: {inl.sum():4d} matches'
         print(f'{pair}, told pose {told[-1]:.2f} px, own {own[-1]:.2f} px')
     if not told:
