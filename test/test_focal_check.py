@@ -123,3 +123,15 @@ def test_the_node_runner_checks_off_the_callbacks_and_again_for_a_new_camera(wro
     off = FocalCheckRunner(FocalCheckConfig(mode='off'), lambda *_: None)
     off.offer(wrong_focal.frames[0], wrong_focal.camera)
     assert off.status() == 'off' and off.camera is None
+
+
+def test_an_unquoted_off_is_off():
+    """YAML 1.1 reads ``mode: off`` (and ``--set focal_check.mode=off``) as false: still off."""
+    from depth_fusion_ros.cli.overrides import parse_overrides
+    from depth_fusion_ros.nodes.focal_check_runner import FOCAL_CHECK_PARAMETERS
+
+    params = parse_overrides(['focal_check.mode=off'])
+    assert params['focal_check']['mode'] is False
+    assert FocalCheckConfig(**params['focal_check']).mode == 'off'
+    spec = next(p for p in FOCAL_CHECK_PARAMETERS if p.name == 'focal_check.mode')
+    assert spec.check(False) == 'off'

@@ -71,6 +71,8 @@ class FocalCheckConfig:
     features: int = 1000
 
     def __post_init__(self) -> None:
+        if self.mode is False:  # YAML 1.1 reads an unquoted `mode: off` (or `--set ...=off`) as false
+            object.__setattr__(self, 'mode', 'off')
         if self.mode not in FOCAL_CHECK_MODES:
             raise ValueError(f'focal_check.mode: {self.mode!r} is not one of {", ".join(FOCAL_CHECK_MODES)}')
         if self.pairs < 5 or self.min_matches < 8 or self.features < 50:

@@ -78,6 +78,8 @@ class ParamSpec:
             if isinstance(value, bool) and {'true', 'false'} <= set(self.choices or ()):
                 # YAML reads an unquoted `adapt: false` (or `--set ...adapt=false`) as a bool
                 value = 'true' if value else 'false'
+            elif value is False and 'off' in (self.choices or ()):
+                value = 'off'  # YAML 1.1 reads an unquoted `mode: off` as false too
             if not isinstance(value, str):
                 raise ValueError(f'{label} must be a string, got {value!r}')
             if self.choices and value not in self.choices:
