@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
 from depth_fusion_ros.evaluation.context import EvalOptions
@@ -135,3 +136,30 @@ def test_an_unquoted_off_is_off():
     assert FocalCheckConfig(**params['focal_check']).mode == 'off'
     spec = next(p for p in FOCAL_CHECK_PARAMETERS if p.name == 'focal_check.mode')
     assert spec.check(False) == 'off'
+
+
+def test_the_filter_takes_a_corrected_focal_length_without_starting_over(wrong_focal):
+    """``DepthFilter.refocus``: the keyframe and its estimates are kept, made no more certain
+    than the focal change, and the next frames move them towards the truth faster than the
+    told focal length would ever let them."""
+    from depth_fusion_ros.camera import PinholeCamera
+    from depth_fusion_ros.multiview.filter import DepthFilter
+
+    c = wrong_focal.camera
+    true = PinholeCamera(c.width, c.height, c.fx / 1.1, c.fy / 1.1, c.cx, c.cy)
+
+    def median_error(switch: bool) -> float:
+        filt = DepthFilter(c)
+        for i, frame in enumerate(wrong_focal.frames[:30]):
+            if switch and i == 15:
+                key, mu, var = filt.key, filt.key.state.mu.clone(), filt.key.state.var.clone()
+                assert filt.refocus(true) and filt.camera == true and filt.key is key
+                assert torch.equal(filt.key.state.mu, mu) and bool((filt.key.state.var >= var).all())
+            filt.process(frame.gray, frame.pose)
+        depth, gt = filt.result(wrong_focal.frames[29].pose).depth, wrong_focal.frames[29].depth
+        ok = np.isfinite(depth) & np.isfinite(gt)
+        return float(np.median(np.abs(np.log(depth[ok] / gt[ok]))))
+
+    assert median_error(switch=True) < median_error(switch=False)
+    filt = DepthFilter(c)
+    assert not filt.refocus(PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx + 1, c.cy)) and filt.camera == c

@@ -268,7 +268,7 @@ class FilterFeed:
                 self._busy = True
             outcome: FilterResult | Exception | None = None
             try:
-                if self.filter is None or self.filter.camera != camera:
+                if self.filter is None or (self.filter.camera != camera and not self.filter.refocus(camera)):
                     self.filter = DepthFilter(camera, self.config, self.matching, self.device)
                 self.filter.process(frame.gray, frame.pose)
                 self.fed += 1

@@ -673,15 +673,15 @@ class MultiViewNode(DepthFusionNode):
         if estimate.verdict != 'disagrees':
             self.get_logger().info(estimate.message())
             return
-        self.stats.noted('focal_disagrees', estimate.message())
         if self.focal_check.config.mode == 'correct':
             self._focal_correction = (camera, estimate)
-            self.get_logger().warning(
-                f'{estimate.message()}; focal_check.mode correct: the multi-view depth and the keyframe '
-                f'camera_info use fx {estimate.fx:.1f}, fy {estimate.fy:.1f} px from now on'
+            then = (
+                '; focal_check.mode correct: the multi-view depth and the keyframe camera_info use '
+                f'fx {estimate.fx:.1f}, fy {estimate.fy:.1f} px from now on'
             )
         else:
-            self.get_logger().warning(f'{estimate.message()} (focal_check.mode correct would use it)')
+            then = ' (focal_check.mode correct would use it)'
+        self.stats.noted('focal_disagrees', estimate.message() + then)  # logged as a warning, once
 
     def _camera_of(self, camera: PinholeCamera) -> PinholeCamera:
         """The working camera the multi-view depth uses: corrected once the check asked for it."""
