@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from ..camera import PinholeCamera
 from ..geometry import relative_pose, rotation_angle
@@ -187,6 +186,9 @@ def fit_pair_scale(pair: _Pair, K: np.ndarray) -> float:
     search between the best step's neighbours: a local fit started at 1 stays near 1 where the
     cost is flat, and that would bias every weak pair towards the told focal length.
     """
+    from scipy.optimize import minimize_scalar  # here: scipy.optimize imports scipy.spatial, which
+    # costs a node process ~0.3 s before it is ready (test_node_modules_start_without_scipy)
+
     best = int(np.argmin(_robust_costs(_GRID, K, pair)))
     lo, hi = _GRID[max(best - 1, 0)], _GRID[min(best + 1, _GRID.size - 1)]
     fit = minimize_scalar(
