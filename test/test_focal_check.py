@@ -163,3 +163,23 @@ def test_the_filter_takes_a_corrected_focal_length_without_starting_over(wrong_f
     assert median_error(switch=True) < median_error(switch=False)
     filt = DepthFilter(c)
     assert not filt.refocus(PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx + 1, c.cy)) and filt.camera == c
+
+
+def test_cli_check_focal_says_the_verdict_in_its_exit_status(tmp_path, capsys):
+    """``depth-fusion check-focal``: a TUM folder and its rosbag2, without ground-truth depth;
+    3 when the focal length disagrees, 0 when it agrees, 4 when there is too little motion."""
+    from depth_fusion_ros.cli.main import main
+    from depth_fusion_ros.data.synthetic import write_synthetic_sequence
+
+    wrong = write_synthetic_sequence(tmp_path / 'wrong', stress_config('wrong_focal', **SIZE))
+    right = write_synthetic_sequence(tmp_path / 'right', stress_config('translation', **SIZE))
+    pairs = ['--pairs', str(PAIRS)]
+    assert main(['check-focal', str(wrong), *pairs]) == 3
+    assert 'camera_info says fx 288.8 px' in capsys.readouterr().out
+    assert main(['check-focal', str(right), *pairs]) == 0
+    assert 'agrees' in capsys.readouterr().out
+    assert main(['convert', str(wrong), str(tmp_path / 'bag'), '--no-depth']) == 0
+    assert main(['check-focal', str(tmp_path / 'bag'), *pairs]) == 3
+    assert main(['check-focal', str(wrong), '--frames', '6']) == 4
+    assert 'not enough motion to tell' in capsys.readouterr().err
+    assert main(['check-focal', str(tmp_path / 'none')]) == 1

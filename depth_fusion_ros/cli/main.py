@@ -21,6 +21,7 @@ SUBCOMMANDS = (
     'synth',
     'convert',
     'evaluate',
+    'check_focal',
     'train',
     'adapt',
     'export',
@@ -42,6 +43,7 @@ typical use:
   depth-fusion run --bag room --record out        # the ROS 2 node graph on a bag
   depth-fusion launch --pose /slam/camera_pose    # the node graph for a live camera
   depth-fusion evaluate SEQ_DIR --methods tv,single_view,fused
+  depth-fusion check-focal SEQ_DIR                # camera.yaml's focal length against the images
   depth-fusion export --format onnx --out model.onnx   # the network as ONNX (+ model.yaml)
   depth-fusion adapt SEQ_DIR --out adapted.pt     # self-supervised adaptation to a scene
   depth-fusion mesh lab.tsdf --out lab.ply        # the mesh of a map file saved by map_node
