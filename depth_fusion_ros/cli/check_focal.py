@@ -69,16 +69,12 @@ def _load(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..multiview.focal_check import FocalCheck, FocalCheckConfig
+    from ..multiview.focal_check import FocalCheckConfig, check_frames
 
     sequence = _load(args)
     config = FocalCheckConfig() if args.pairs is None else FocalCheckConfig(pairs=args.pairs)
-    check = FocalCheck(sequence.camera, config)
-    estimate = None
-    for frame in sequence.frames:
-        estimate = check.add(frame.gray, frame.pose)
-        if estimate is not None:
-            break
+    check = check_frames(sequence.camera, sequence.frames, config)
+    estimate = check.result
     if estimate is None:
         apart = f'{config.min_baseline:g} m or {config.min_rotation_deg:g} deg apart'
         print(

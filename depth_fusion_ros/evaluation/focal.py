@@ -12,7 +12,7 @@ import dataclasses
 import logging
 
 from ..data.sequence import Sequence
-from ..multiview.focal_check import FocalCheck, FocalCheckConfig, FocalEstimate
+from ..multiview.focal_check import FocalCheckConfig, FocalEstimate, check_frames
 
 log = logging.getLogger(__name__)
 
@@ -25,12 +25,8 @@ def check_focal(sequence: Sequence, params: dict) -> tuple[Sequence, FocalEstima
     config = FocalCheckConfig(**params.get(STAGE, {}))
     if config.mode == 'off':
         return sequence, None
-    check = FocalCheck(sequence.camera, config)
-    estimate = None
-    for frame in sequence.frames:
-        estimate = check.add(frame.gray, frame.pose)
-        if estimate is not None:
-            break
+    check = check_frames(sequence.camera, sequence.frames, config)
+    estimate = check.result
     if estimate is None:
         log.info(
             '%s: focal length not checked: %d image pairs in %d frames, %d needed',

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import cv2
@@ -301,3 +302,13 @@ class FocalCheck:
         )
         log.debug('%s', estimate.message())
         return estimate
+
+
+def check_frames(camera: PinholeCamera, frames: Iterable, config: FocalCheckConfig) -> FocalCheck:
+    """A check fed with ``frames`` (anything with ``.gray`` and ``.pose``, in stream order)
+    until it has its estimate (``.result``; ``None`` when they ran out first)."""
+    check = FocalCheck(camera, config)
+    for frame in frames:
+        if check.done or check.add(frame.gray, frame.pose) is not None:
+            break
+    return check
