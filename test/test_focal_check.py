@@ -96,6 +96,12 @@ def test_evaluate_runs_the_check_and_corrects_when_asked(wrong_focal, mode):
     fx = result.sequence.camera.fx
     assert fx == (pytest.approx(entry['fitted_fx']) if mode == 'correct' else wrong_focal.camera.fx)
     assert np.isfinite(result.records['single_view_simulated'].all.summary()['mae'])
+    from depth_fusion_ros.evaluation.harness import results_document
+    from depth_fusion_ros.evaluation.report import report_markdown
+
+    report = report_markdown(results_document([result], ['single_view_simulated'], options))
+    assert '## Focal length check' in report and '| disagrees | 288.8 |' in report
+    assert f'| {fx:.1f} |' in report  # the focal length every method used, corrected or not
 
 
 def test_the_node_runner_checks_off_the_callbacks_and_again_for_a_new_camera(wrong_focal):

@@ -130,6 +130,23 @@ def gradient_table(doc: dict[str, Any]) -> str | None:
     return _table(['sequence', 'method', 'high-gradient', 'low-gradient'], rows)
 
 
+def focal_table(doc: dict[str, Any]) -> str | None:
+    """The focal length check per sequence (``evaluation/focal.py``): a corrected camera is said
+    in the report, not only in results.json."""
+    rows = []
+    for name, seq in doc['sequences'].items():
+        check = seq.get('focal_check')
+        if check:
+            fit = f'{check["fitted_fx"]:.1f} ({check["scale"] - 1:+.1%} +- {check["stderr"]:.1%})'
+            used = check['fitted_fx'] if check['corrected'] else check['told_fx']
+            row = [name, check['verdict'], f'{check["told_fx"]:.1f}', fit, str(check['pairs']), f'{used:.1f}']
+            rows.append(row)
+    if not rows:
+        return None
+    header = ['sequence', 'verdict', 'told fx (px)', 'fitted fx (px)', 'pairs', 'fx every method used']
+    return _table(header, rows)
+
+
 def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> str:
     opts = doc.get('options', {})
     out = ['# depth_fusion_ros evaluation', '']
@@ -142,6 +159,7 @@ def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> st
     )
     out.append('')
     sections = [
+        ('Focal length check (docs/multi_view.md)', focal_table(doc)),
         ('Main results (paper Table II layout)', paper_table(doc)),
         ('Weight ablation on oracle points (paper Table III)', ablation_table(doc)),
         ('Median error by image gradient (paper Table I, threshold 0.35)', gradient_table(doc)),
