@@ -27,6 +27,48 @@ examples:
 """
 
 
+#: Help of the scalar options (``{default}``: the field's default), by ``SynthConfig`` field.
+SCALAR_HELP: dict[str, str] = {
+    'noise_sigma': 'sensor noise std, grey levels (default {default})',
+    'textureless_fraction': 'fraction of surfaces with a flat colour (default {default})',
+    'room_jitter': 'per-seed relative jitter of the room size (default {default})',
+    'step_translation': 'stress motions: metres between consecutive frames (default {default})',
+    'step_rotation_deg': 'stress motions: degrees between consecutive frames (default {default})',
+    'texture_contrast': 'contrast of the textures in (0, 1] (default {default}; low = faint texture)',
+    'focal_error': (
+        'relative error of the focal lengths written to camera.yaml (rendering uses the true ones; '
+        'default {default})'
+    ),
+    'pose_noise_m': (
+        'std of a per-frame jitter (m) of the poses written to groundtruth.txt (rendering uses '
+        'the true ones; default {default})'
+    ),
+    'pose_noise_deg': 'the same jitter of the rotations, degrees (default {default})',
+    'pose_time_offset': (
+        'seconds: the poses written to groundtruth.txt are the true ones this much later, a camera / '
+        'pose-source time offset (at most one frame period; default {default})'
+    ),
+    'exposure_time': (
+        'seconds the shutter is open around each stamp: a moving camera blurs the image along its '
+        'motion (at most one frame period; default {default}: sharp)'
+    ),
+    'readout_time': (
+        'seconds a rolling shutter takes to read the rows out, top to bottom, around each stamp: '
+        'a moving camera skews the image (at most one frame period; default {default}: global)'
+    ),
+    'blur_samples': 'renders over --exposure-time and --readout-time (default {default})',
+    'gain_sigma': "std of each frame's log gain, an auto-exposure that changes from frame to frame "
+    '(default {default}: constant exposure)',
+    'walkers': 'person-sized boxes walking back and forth across the view: a world that is not static '
+    '(0-4; default {default})',
+    'walker_speed': 'their walking speed in m/s (default {default})',
+    'texture_period': (
+        'repetitive texture: every textured surface repeats one motif about this often, in m '
+        '(0.02-0.5: tiles, bricks, shelves; default {default}: aperiodic patterns)'
+    ),
+}
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     from ..data.synthetic import MOTIONS, PARALLAX_MODES, STRESS_CASES, SynthConfig
 
@@ -65,18 +107,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         '--fy', type=float, default=None, help='focal length y in pixels (default 525 * height / 480)'
     )
-    p.add_argument(
-        '--noise-sigma',
-        type=float,
-        default=d.noise_sigma,
-        help=f'sensor noise std, grey levels (default {d.noise_sigma:g})',
-    )
-    p.add_argument(
-        '--textureless-fraction',
-        type=float,
-        default=d.textureless_fraction,
-        help=f'fraction of surfaces with a flat colour (default {d.textureless_fraction:g})',
-    )
+    _scalar_options(p, ('noise_sigma', 'textureless_fraction'))
     p.add_argument(
         '--room-size',
         type=float,
@@ -85,12 +116,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=list(d.room_size),
         help='nominal room width, depth, height in metres (default %(default)s)',
     )
-    p.add_argument(
-        '--room-jitter',
-        type=float,
-        default=d.room_jitter,
-        help='per-seed relative jitter of the room size (default %(default)s)',
-    )
+    _scalar_options(p, ('room_jitter',))
     p.add_argument('--boxes', type=int, default=d.boxes, help=f'number of boxes (default {d.boxes})')
     p.add_argument('--tables', type=int, default=d.tables, help=f'number of tables (default {d.tables})')
     p.add_argument(
@@ -110,97 +136,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="'parallax': the --parallax trajectory; 'rotation_sweep', 'keyframe_stream', 'forward': "
         'stress motions with fixed per-frame steps (default parallax)',
     )
-    p.add_argument(
-        '--step-translation',
-        type=float,
-        default=d.step_translation,
-        help=f'stress motions: metres between consecutive frames (default {d.step_translation:g})',
-    )
-    p.add_argument(
-        '--step-rotation-deg',
-        type=float,
-        default=d.step_rotation_deg,
-        help=f'stress motions: degrees between consecutive frames (default {d.step_rotation_deg:g})',
-    )
-    p.add_argument(
-        '--texture-contrast',
-        type=float,
-        default=d.texture_contrast,
-        help=f'contrast of the textures in (0, 1] (default {d.texture_contrast:g}; low = faint texture)',
-    )
-    p.add_argument(
-        '--focal-error',
-        type=float,
-        default=d.focal_error,
-        help='relative error of the focal lengths written to camera.yaml (rendering uses the true ones; '
-        f'default {d.focal_error:g})',
-    )
-    p.add_argument(
-        '--pose-noise-m',
-        type=float,
-        default=d.pose_noise_m,
-        help='std of a per-frame jitter (m) of the poses written to groundtruth.txt (rendering uses '
-        f'the true ones; default {d.pose_noise_m:g})',
-    )
-    p.add_argument(
-        '--pose-noise-deg',
-        type=float,
-        default=d.pose_noise_deg,
-        help=f'the same jitter of the rotations, degrees (default {d.pose_noise_deg:g})',
-    )
-    p.add_argument(
-        '--pose-time-offset',
-        type=float,
-        default=d.pose_time_offset,
-        help='seconds: the poses written to groundtruth.txt are the true ones this much later, a camera / '
-        f'pose-source time offset (at most one frame period; default {d.pose_time_offset:g})',
-    )
-    p.add_argument(
-        '--exposure-time',
-        type=float,
-        default=d.exposure_time,
-        help='seconds the shutter is open around each stamp: a moving camera blurs the image along its '
-        f'motion (at most one frame period; default {d.exposure_time:g}: sharp)',
-    )
-    p.add_argument(
-        '--readout-time',
-        type=float,
-        default=d.readout_time,
-        help='seconds a rolling shutter takes to read the rows out, top to bottom, around each stamp: '
-        f'a moving camera skews the image (at most one frame period; default {d.readout_time:g}: global)',
-    )
-    p.add_argument(
-        '--blur-samples',
-        type=int,
-        default=d.blur_samples,
-        help=f'renders over --exposure-time and --readout-time (default {d.blur_samples})',
-    )
-    p.add_argument(
-        '--gain-sigma',
-        type=float,
-        default=d.gain_sigma,
-        help="std of each frame's log gain, an auto-exposure that changes from frame to frame "
-        f'(default {d.gain_sigma:g}: constant exposure)',
-    )
-    p.add_argument(
-        '--walkers',
-        type=int,
-        default=d.walkers,
-        help='person-sized boxes walking back and forth across the view: a world that is not static '
-        f'(0-4; default {d.walkers})',
-    )
-    p.add_argument(
-        '--walker-speed',
-        type=float,
-        default=d.walker_speed,
-        help=f'their walking speed in m/s (default {d.walker_speed:g})',
-    )
-    p.add_argument(
-        '--texture-period',
-        type=float,
-        default=d.texture_period,
-        help='repetitive texture: every textured surface repeats one motif about this often, in m '
-        f'(0.02-0.5: tiles, bricks, shelves; default {d.texture_period:g}: aperiodic patterns)',
+    _scalar_options(
+        p,
+        (
+            'step_translation',
+            'step_rotation_deg',
+            'texture_contrast',
+            'focal_error',
+            'pose_noise_m',
+            'pose_noise_deg',
+            'pose_time_offset',
+            'exposure_time',
+            'readout_time',
+            'blur_samples',
+            'gain_sigma',
+            'walkers',
+            'walker_speed',
+            'texture_period',
+        ),
     )
     p.add_argument(
         '--stress',
@@ -211,6 +164,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--overwrite', action='store_true', help='replace OUT_DIR if it exists')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     p.set_defaults(func=run)
+
+
+def _scalar_options(p: argparse.ArgumentParser, names: tuple[str, ...]) -> None:
+    """One option per scalar ``SynthConfig`` field, named, typed and defaulted from the field
+    (``--pose-noise-m`` for ``pose_noise_m``, as ``SynthConfig.cli_args`` writes it back), with
+    its help from :data:`SCALAR_HELP`."""
+    from ..data.synthetic import SynthConfig
+
+    d = SynthConfig()
+    for name in names:
+        value = getattr(d, name)
+        text = SCALAR_HELP[name].format(default=f'{value:g}')
+        p.add_argument('--' + name.replace('_', '-'), type=type(value), default=value, help=text)
 
 
 def config_from_args(args: argparse.Namespace):
