@@ -291,11 +291,13 @@ def render_frame(
     if noise_sigma > 0 and rng is None:
         raise ValueError('render_frame: noise_sigma > 0 needs an rng (a numpy Generator)')
     if exposure_poses is not None and len(exposure_poses):
-        # The image is made of the exposure's views; of the stamp's pose only its geometry.
-        depth, surface, _ = cast_camera(scene, camera, _checked_pose(T_wc))
-        views = np.stack(
-            [render_radiance(scene, camera, pose, antialias=antialias)[0] for pose in exposure_poses]
-        )
+        # The image is made of the exposure's views; of the stamp's pose only its geometry,
+        # which the view at the stamp (the middle one of an odd count) has already cast.
+        T_wc = _checked_pose(T_wc)
+        renders = [render_radiance(scene, camera, pose, antialias=antialias) for pose in exposure_poses]
+        at_stamp = [r for pose, r in zip(exposure_poses, renders, strict=True) if np.array_equal(pose, T_wc)]
+        depth, surface = at_stamp[0][1:] if at_stamp else cast_camera(scene, camera, T_wc)[:2]
+        views = np.stack([r[0] for r in renders])
         if row_weights is None:
             radiance = views.mean(axis=0)
         else:

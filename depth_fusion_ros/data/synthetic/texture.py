@@ -145,13 +145,19 @@ def random_colour(rng: np.random.Generator, lum_range: tuple[float, float]) -> n
     return np.full(3, target, dtype=np.float32)
 
 
-def textured_albedo(rng: np.random.Generator, kind: str, size: int) -> np.ndarray:
-    """(size, size, 3) float32 albedo: a pattern blended between two colours of clearly
-    different luminance (texture must survive conversion to grey)."""
+def _two_colours(rng: np.random.Generator, pattern_in_01) -> np.ndarray:
+    """(S, S, 3) float32 albedo: the pattern ``pattern_in_01()`` (drawn after the colours, from
+    the same ``rng``) blended between two colours of clearly different luminance (texture must
+    survive conversion to grey)."""
     dark = random_colour(rng, (0.08, 0.35))
     light = random_colour(rng, (0.55, 0.9))
-    p = pattern(rng, kind, size)[..., None]
+    p = pattern_in_01()[..., None]
     return (dark * (1.0 - p) + light * p).astype(np.float32)
+
+
+def textured_albedo(rng: np.random.Generator, kind: str, size: int) -> np.ndarray:
+    """(size, size, 3) float32 albedo of a :func:`pattern` kind."""
+    return _two_colours(rng, lambda: pattern(rng, kind, size))
 
 
 #: Texels of one period of a repetitive texture (a power of two: it divides every tile).
@@ -168,16 +174,17 @@ def periodic_albedo(rng: np.random.Generator, size: int, cell: int = PERIOD_TEXE
     """
     if size % cell:
         raise ValueError(f'a texture of {size} texels cannot repeat a motif of {cell}')
-    dark = random_colour(rng, (0.08, 0.35))
-    light = random_colour(rng, (0.55, 0.9))
-    motif = 0.5 + 0.22 * band_noise(rng, cell, 3.0, cell / 2.0, slope=0.8)
-    if rng.uniform() < 0.5:
-        edge = np.zeros(cell, dtype=bool)
-        edge[:2] = True
-        motif = np.where(edge[:, None] | edge[None, :], 0.1, motif)
-    p = np.tile(motif.astype(np.float32), (size // cell, size // cell))
-    p = np.clip(_blur_periodic(p, 0.7), 0.0, 1.0)[..., None]
-    return (dark * (1.0 - p) + light * p).astype(np.float32)
+
+    def lattice() -> np.ndarray:
+        motif = 0.5 + 0.22 * band_noise(rng, cell, 3.0, cell / 2.0, slope=0.8)
+        if rng.uniform() < 0.5:  # grout: a dark frame round every tile
+            edge = np.zeros(cell, dtype=bool)
+            edge[:2] = True
+            motif = np.where(edge[:, None] | edge[None, :], 0.1, motif)
+        p = np.tile(motif.astype(np.float32), (size // cell, size // cell))
+        return np.clip(_blur_periodic(p, 0.7), 0.0, 1.0)
+
+    return _two_colours(rng, lattice)
 
 
 def _mip_chain(level0: np.ndarray) -> list[np.ndarray]:

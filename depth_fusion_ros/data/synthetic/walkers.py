@@ -46,16 +46,13 @@ def _axes(trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray]:
 def walker_centres(cfg: SynthConfig, trajectory: Trajectory, index: int) -> np.ndarray:
     """(walkers, 3) centres of the walkers at frame ``index`` (time ``index / fps``)."""
     ahead, across = _axes(trajectory)
-    t = index / cfg.fps
-    centres = np.empty((cfg.walkers, 3))
-    for k in range(cfg.walkers):
-        # A triangle wave between -reach and +reach at walker_speed, walker k a quarter
-        # period later than walker k - 1 (so they do not walk in step).
-        u = (cfg.walker_speed * t / WALKER_REACH + 1.0 + k) % 4.0
-        offset = WALKER_REACH * (u - 1.0 if u <= 2.0 else 3.0 - u)
-        line = trajectory.view_origin + ahead * (WALKER_DISTANCE + k * WALKER_SPACING)
-        centres[k] = line + across * offset
-        centres[k, 2] = WALKER_HALF[2]  # standing on the floor
+    k = np.arange(cfg.walkers)[:, None]
+    # A triangle wave between -reach and +reach at walker_speed, walker k a quarter period
+    # later than walker k - 1 (so they do not walk in step).
+    u = (cfg.walker_speed * (index / cfg.fps) / WALKER_REACH + 1.0 + k) % 4.0
+    offset = WALKER_REACH * np.where(u <= 2.0, u - 1.0, 3.0 - u)
+    centres = trajectory.view_origin + ahead * (WALKER_DISTANCE + k * WALKER_SPACING) + across * offset
+    centres[:, 2] = WALKER_HALF[2]  # standing on the floor
     return centres
 
 
