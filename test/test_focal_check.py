@@ -11,7 +11,7 @@ import torch
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
 from depth_fusion_ros.evaluation.context import EvalOptions
 from depth_fusion_ros.evaluation.harness import evaluate_sequence
-from depth_fusion_ros.multiview.focal_check import FocalCheck, FocalCheckConfig, FocalEstimate
+from depth_fusion_ros.multiview.focal_check import FocalCheck, FocalCheckConfig, FocalEstimate, check_frames
 
 #: 320x240 over a 1 m sweep in 40 frames: a pair every two frames.
 SIZE = {'width': 320, 'height': 240, 'frames': 40, 'seed': 5}
@@ -24,11 +24,8 @@ def wrong_focal():
 
 
 def _check(sequence, **config) -> tuple[FocalEstimate | None, FocalCheck]:
-    check = FocalCheck(sequence.camera, FocalCheckConfig(pairs=PAIRS, **config))
-    estimate = None
-    for frame in sequence.frames:
-        estimate = check.add(frame.gray, frame.pose) or estimate
-    return estimate, check
+    check = check_frames(sequence.camera, sequence.frames, FocalCheckConfig(pairs=PAIRS, **config))
+    return check.result, check
 
 
 def test_a_focal_length_ten_percent_long_is_found(wrong_focal):
@@ -142,6 +139,11 @@ def test_an_unquoted_off_is_off():
     assert FocalCheckConfig(**params['focal_check']).mode == 'off'
     spec = next(p for p in FOCAL_CHECK_PARAMETERS if p.name == 'focal_check.mode')
     assert spec.check(False) == 'off'
+    from depth_fusion_ros.multiview.params import apply_overrides
+
+    assert apply_overrides(FocalCheckConfig(), params['focal_check'], 'focal_check').mode == 'off'
+    with pytest.raises(ValueError, match=r'focal_check\.pairs: expected an integer'):
+        apply_overrides(FocalCheckConfig(), {'pairs': 'abc'}, 'focal_check')
 
 
 def test_the_filter_takes_a_corrected_focal_length_without_starting_over(wrong_focal):

@@ -13,6 +13,7 @@ import logging
 
 from ..data.sequence import Sequence
 from ..multiview.focal_check import FocalCheckConfig, FocalEstimate, check_frames
+from ..multiview.params import apply_overrides
 
 log = logging.getLogger(__name__)
 
@@ -22,7 +23,7 @@ STAGE = 'focal_check'
 def check_focal(sequence: Sequence, params: dict) -> tuple[Sequence, FocalEstimate | None]:
     """The sequence to evaluate (its camera corrected when asked and needed) and the estimate
     (``None`` when the check is off or the sequence is too short to finish it)."""
-    config = FocalCheckConfig(**params.get(STAGE, {}))
+    config = apply_overrides(FocalCheckConfig(), params.get(STAGE, {}), STAGE)
     if config.mode == 'off':
         return sequence, None
     check = check_frames(sequence.camera, sequence.frames, config)
@@ -45,15 +46,13 @@ def check_focal(sequence: Sequence, params: dict) -> tuple[Sequence, FocalEstima
 
 
 def estimate_json(estimate: FocalEstimate | None, corrected: bool) -> dict | None:
-    """The ``focal_check`` entry of a sequence in results.json."""
+    """The ``focal_check`` entry of a sequence in results.json: the estimate's fields, the fitted
+    focal lengths and whether every method ran on them."""
     if estimate is None:
         return None
     return {
-        'verdict': estimate.verdict,
-        'scale': estimate.scale,
-        'stderr': estimate.stderr,
-        'pairs': estimate.pairs,
-        'told_fx': estimate.told_fx,
+        **dataclasses.asdict(estimate),
         'fitted_fx': estimate.fx,
+        'fitted_fy': estimate.fy,
         'corrected': corrected,
     }

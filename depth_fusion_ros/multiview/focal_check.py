@@ -216,10 +216,41 @@ def estimate_focal_scale(pairs: list[_Pair], K: np.ndarray) -> tuple[float, floa
     return median, spread * math.sqrt(math.pi / 2) / math.sqrt(scales.size)
 
 
-def _as_uint8(gray: np.ndarray) -> np.ndarray:
-    if gray.dtype == np.uint8:
-        return gray
-    return np.clip(np.rint(np.asarray(gray, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
+def image_features(orb: cv2.ORB, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """ORB keypoint positions (N, 2) float64 and descriptors (``None`` when none) of a grey image
+    (float in [0, 1] or uint8)."""
+    if gray.dtype != np.uint8:
+        gray = np.clip(np.rint(np.asarray(gray, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
+    keypoints, descriptors = orb.detectAndCompute(gray, None)
+    return np.float64([k.pt for k in keypoints]).reshape(-1, 2), descriptors
+
+
+def rigid_matches(
+    matcher: cv2.DescriptorMatcher,
+    K: np.ndarray,
+    a: tuple[np.ndarray, np.ndarray | None],
+    b: tuple[np.ndarray, np.ndarray | None],
+    min_matches: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The matches of two images' features (``image_features``) that fit one rigid motion:
+    positions ``p1``, ``p2`` (M, 2) accepted by the images' own essential matrix (RANSAC, 1 px,
+    OpenCV's random state seeded first: the same pair gives the same matches whatever ran
+    before) and that matrix; ``None`` under ``min_matches``."""
+    if a[1] is None or b[1] is None:
+        return None
+    matches = matcher.match(a[1], b[1])
+    if len(matches) < min_matches:
+        return None
+    p1 = a[0][[m.queryIdx for m in matches]]
+    p2 = b[0][[m.trainIdx for m in matches]]
+    cv2.setRNGSeed(_RANSAC_SEED)
+    E, mask = cv2.findEssentialMat(p1, p2, K, cv2.RANSAC, 0.999, 1.0)
+    if E is None or mask is None or E.shape != (3, 3):
+        return None
+    inliers = mask.ravel() > 0
+    if int(inliers.sum()) < min_matches:
+        return None
+    return p1[inliers], p2[inliers], E
 
 
 @dataclass
@@ -257,9 +288,7 @@ class FocalCheck:
         self.frames += 1
         if not self.wants(pose):
             return None
-        keypoints, descriptors = self._orb.detectAndCompute(_as_uint8(gray), None)
-        points = np.float64([k.pt for k in keypoints]).reshape(-1, 2)
-        current = _Sample(np.asarray(pose, dtype=np.float64), points, descriptors)
+        current = _Sample(np.asarray(pose, dtype=np.float64), *image_features(self._orb, gray))
         if self._last is not None:
             self._pair(self._last, current)
         self._last = current
@@ -272,22 +301,16 @@ class FocalCheck:
         return self.result
 
     def _pair(self, a: _Sample, b: _Sample) -> None:
-        if a.descriptors is None or b.descriptors is None:
-            return
-        matches = self._matcher.match(a.descriptors, b.descriptors)
-        if len(matches) < self.config.min_matches:
-            return
-        p1 = a.points[[m.queryIdx for m in matches]]
-        p2 = b.points[[m.trainIdx for m in matches]]
-        cv2.setRNGSeed(_RANSAC_SEED)  # the same pairs give the same matches, whatever ran before
-        E, mask = cv2.findEssentialMat(p1, p2, self.camera.K, cv2.RANSAC, 0.999, 1.0)
-        if E is None or mask is None:
-            return
-        inliers = mask.ravel() > 0
+        matched = rigid_matches(
+            self._matcher,
+            self.camera.K,
+            (a.points, a.descriptors),
+            (b.points, b.descriptors),
+            self.config.min_matches,
+        )
         T_ba = relative_pose(a.pose, b.pose)
-        if int(inliers.sum()) < self.config.min_matches or np.linalg.norm(T_ba[:3, 3]) < 1e-4:
-            return
-        self.pairs.append(_Pair(T_ba, p1[inliers], p2[inliers]))
+        if matched is not None and np.linalg.norm(T_ba[:3, 3]) >= 1e-4:
+            self.pairs.append(_Pair(T_ba, *matched[:2]))
 
     def _verdict(self, scale: float, stderr: float) -> FocalEstimate:
         if not math.isfinite(stderr) or stderr > self.config.max_stderr or scale <= 0:

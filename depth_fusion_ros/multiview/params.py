@@ -37,7 +37,9 @@ def _coerce(value: Any, default: Any, where: str) -> Any:
         except (TypeError, ValueError):
             raise ValueError(f'{where}: expected a number, got {value!r}') from None
     if isinstance(default, str):
-        return str(value)
+        # YAML 1.1 reads an unquoted off / no / on / yes as a bool: the config's own check
+        # decides what it means (FocalCheckConfig.mode takes false as off), str() would not.
+        return value if isinstance(value, bool) else str(value)
     return value
 
 

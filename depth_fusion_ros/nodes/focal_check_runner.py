@@ -45,8 +45,9 @@ class FocalCheckRunner:
         self._on_result = on_result
         self._check: FocalCheck | None = None
         self._queue: queue.Queue[tuple[Any, Any] | None] = queue.Queue(maxsize=2)
-        self.result: FocalEstimate | None = None
         self._thread: threading.Thread | None = None
+        #: ``(estimate, corrected camera)``: made once per estimate, not per frame.
+        self._corrected: tuple[FocalEstimate, PinholeCamera] | None = None
 
     @classmethod
     def from_parameters(
@@ -58,6 +59,24 @@ class FocalCheckRunner:
     def camera(self) -> PinholeCamera | None:
         """The camera being checked (``None`` before the first frame)."""
         return None if self._check is None else self._check.camera
+
+    @property
+    def result(self) -> FocalEstimate | None:
+        """The current camera's estimate, once the check has it."""
+        return None if self._check is None else self._check.result
+
+    def camera_for(self, camera: PinholeCamera) -> PinholeCamera:
+        """The camera the multi-view depth uses for frames of ``camera``: the fitted focal length
+        once the check disagreed with this camera and ``focal_check.mode`` is correct, else
+        ``camera`` itself."""
+        result = self.result
+        if self.config.mode != 'correct' or result is None or result.verdict != 'disagrees':
+            return camera
+        if camera != self.camera:
+            return camera
+        if self._corrected is None or self._corrected[0] is not result:
+            self._corrected = (result, result.corrected(camera))
+        return self._corrected[1]
 
     def status(self) -> str:
         """One phrase for the diagnostics."""
@@ -71,17 +90,16 @@ class FocalCheckRunner:
     def offer(self, frame: Frame, camera: PinholeCamera) -> None:
         """A posed frame on the working grid (callback thread): queued when the check wants it
         (its grey image is made only then)."""
-        if self.config.mode == 'off' or (self.result is not None and camera == self.camera):
+        if self.config.mode == 'off':
             return
         if self._check is None or self._check.camera != camera:  # a new camera: check it anew
             self._stop()
             self._check = FocalCheck(camera, self.config)
-            self.result = None
             self._queue = queue.Queue(maxsize=2)
             self._thread = threading.Thread(target=self._run, args=(self._check, self._queue), daemon=True)
             self._thread.name = 'focal_check'
             self._thread.start()
-        if not self._check.wants(frame.pose):
+        if not self._check.wants(frame.pose):  # also once it has its estimate
             return
         with contextlib.suppress(queue.Full):  # busy: a later frame that moved as far is taken instead
             self._queue.put_nowait((frame.gray, frame.pose))
@@ -102,7 +120,5 @@ class FocalCheckRunner:
                 return
             estimate = check.add(*item)
             if estimate is not None:
-                if check is self._check:  # not a camera given up on meanwhile
-                    self.result = estimate
                 self._on_result(check.camera, estimate)
                 return

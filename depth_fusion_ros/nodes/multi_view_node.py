@@ -290,9 +290,6 @@ class MultiViewNode(DepthFusionNode):
             self.focal_check = FocalCheckRunner.from_parameters(p, self._on_focal_estimate)
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
-        #: The camera the focal check disagreed with and its estimate, when ``focal_check.mode``
-        #: is correct (the correction applies to that camera only).
-        self._focal_correction: tuple[PinholeCamera, FocalEstimate] | None = None
         self.jump_limits = pose_jump_limits(p)
         self.correction_limits = correction_limits(p)
         self.pose_buffer = PoseBuffer(
@@ -650,7 +647,7 @@ class MultiViewNode(DepthFusionNode):
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
         self.focal_check.offer(frame, image.camera)
-        camera = self._camera_of(image.camera)
+        camera = self.focal_check.camera_for(image.camera)
         job = None
         if self._is_keyframe_candidate(frame):
             neighbours = self._select_neighbours(frame, camera)
@@ -668,13 +665,12 @@ class MultiViewNode(DepthFusionNode):
     # --- focal length check ------------------------------------------------------------------------
 
     def _on_focal_estimate(self, camera: PinholeCamera, estimate: FocalEstimate) -> None:
-        """The focal check's result for ``camera`` (its thread): said once; used from now on for
-        that camera when asked to."""
+        """The focal check's result for ``camera`` (its thread), said once; ``_on_posed_frame``
+        takes the corrected camera from the runner (``camera_for``)."""
         if estimate.verdict != 'disagrees':
-            self.get_logger().info(estimate.message())
+            self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
             return
         if self.focal_check.config.mode == 'correct':
-            self._focal_correction = (camera, estimate)
             then = (
                 '; focal_check.mode correct: the multi-view depth and the keyframe camera_info use '
                 f'fx {estimate.fx:.1f}, fy {estimate.fy:.1f} px from now on'
@@ -682,13 +678,6 @@ class MultiViewNode(DepthFusionNode):
         else:
             then = ' (focal_check.mode correct would use it)'
         self.stats.noted('focal_disagrees', estimate.message() + then)  # logged as a warning, once
-
-    def _camera_of(self, camera: PinholeCamera) -> PinholeCamera:
-        """The working camera the multi-view depth uses: corrected once the check asked for it."""
-        correction = self._focal_correction
-        if correction is None or camera != correction[0]:
-            return camera
-        return correction[1].corrected(camera)
 
     # --- keyframe policy ----------------------------------------------------------------------------
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from depth_fusion_ros.data.tum import load_tum_sequence
 from depth_fusion_ros.geometry import relative_pose
-from depth_fusion_ros.multiview.focal_check import sampson_distances, skew
+from depth_fusion_ros.multiview.focal_check import image_features, rigid_matches, sampson_distances, skew
 
 
 def main() -> None:
@@ -35,22 +35,18 @@ def main() -> None:
     Ki = np.linalg.inv(K)
     orb = cv2.ORB_create(3000)
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-    feats = [orb.detectAndCompute((f.gray * 255).astype(np.uint8), None) for f in seq.frames]
+    feats = [image_features(orb, f.gray) for f in seq.frames]
     told, own = [], []
     for i in range(0, len(seq.frames) - args.gap, 2):
-        (ka, da), (kb, db) = feats[i], feats[i + args.gap]
-        m = matcher.match(da, db)
-        p1 = np.float64([ka[x.queryIdx].pt for x in m])
-        p2 = np.float64([kb[x.trainIdx].pt for x in m])
-        E, mask = cv2.findEssentialMat(p1, p2, K, cv2.RANSAC, 0.999, 1.0)
-        if E is None or E.shape != (3, 3):
+        matched = rigid_matches(matcher, K, feats[i], feats[i + args.gap], 8)
+        if matched is None:
             continue
-        inl = mask[:, 0] > 0
+        p1, p2, E = matched
         T = relative_pose(seq.frames[i].pose, seq.frames[i + args.gap].pose)
         F_told = Ki.T @ skew(T[:3, 3]) @ T[:3, :3] @ Ki
-        told.append(float(np.median(np.abs(sampson_distances(F_told, p1[inl], p2[inl])))))
-        own.append(float(np.median(np.abs(sampson_distances(Ki.T @ E @ Ki, p1[inl], p2[inl])))))
-        pair = f'{i:3d} -> {i + args.gap}: {inl.sum():4d} matches'
+        told.append(float(np.median(np.abs(sampson_distances(F_told, p1, p2)))))
+        own.append(float(np.median(np.abs(sampson_distances(Ki.T @ E @ Ki, p1, p2)))))
+        pair = f'{i:3d} -> {i + args.gap}: {len(p1):4d} matches'
         print(f'{pair}, told pose {told[-1]:.2f} px, own {own[-1]:.2f} px')
     if not told:
         raise SystemExit(f'{args.path}: no frame pair could be matched')

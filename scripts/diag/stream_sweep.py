@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from depth_fusion_ros.data.synthetic import STRESS_CASES, SynthConfig, render_sequence, stress_config
 from depth_fusion_ros.evaluation.context import EvalOptions
@@ -42,21 +43,17 @@ def streams(text: str) -> list[tuple[str, int]]:
     return [(name, int(s)) for s in seeds.split(',')]
 
 
-def synth_overrides(items: list[str]) -> dict[str, float]:
-    """``['texture_period=0.03']`` -> ``{'texture_period': 0.03}`` (numeric ``SynthConfig`` fields)."""
-    out: dict[str, float] = {}
-    for item in items:
-        name, _, value = item.partition('=')
-        out[name] = float(value) if '.' in value or 'e' in value else int(value)
-    return out
+def synth_overrides(items: list[str]) -> dict[str, object]:
+    """``['texture_period=0.03']`` -> ``{'texture_period': 0.03}`` (values read as YAML, as ``--set``)."""
+    return {name: yaml.safe_load(value) for name, _, value in (item.partition('=') for item in items)}
 
 
-def config(name: str, seed: int, frames: int, synth: dict[str, float] | None = None) -> SynthConfig:
+def config(name: str, seed: int, frames: int, synth: dict[str, object] | None = None) -> SynthConfig:
     size = {'width': 320, 'height': 240, 'frames': frames, 'seed': seed, **(synth or {})}
     return SynthConfig(**size) if name == 'rooms' else stress_config(name, **size)
 
 
-def sequence(name: str, seed: int, frames: int, cache: Path | None, synth: dict[str, float] | None = None):
+def sequence(name: str, seed: int, frames: int, cache: Path | None, synth: dict[str, object] | None = None):
     tag = ''.join(f'_{k}{v:g}' for k, v in sorted((synth or {}).items()))
     path = cache / f'{name}_{seed}_{frames}{tag}.pkl' if cache else None
     if path is not None and path.exists():
