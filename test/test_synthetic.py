@@ -480,3 +480,28 @@ def test_texture_period_repeats_one_motif_on_every_textured_surface():
     assert stress_config('repetitive').texture_period == pytest.approx(0.08)
     with pytest.raises(ValueError, match='texture_period'):
         SynthConfig(texture_period=0.01)
+
+
+def test_a_shaking_hand_moves_every_pose_about_the_path_and_is_written_down(tmp_path):
+    """``shake_m``, ``shake_deg``: 1-4 Hz sinusoids of about that standard deviation per camera
+    axis on the same path in the same room (true and told poses alike), seeded; SOURCE.md says so."""
+    from depth_fusion_ros.data.synthetic import write_synthetic_sequence
+    from depth_fusion_ros.data.synthetic.world import build_world
+    from depth_fusion_ros.geometry import relative_pose, rotation_angle
+
+    base = {'width': 32, 'height': 24, 'frames': 90, 'seed': 4, 'parallax': 'high'}
+    steady_scene, steady = build_world(SynthConfig(**base))
+    shaken_scene, shaken = build_world(SynthConfig(**base, shake_m=0.005, shake_deg=0.5))
+    assert np.array_equal(shaken_scene.centres, steady_scene.centres)  # the same room
+    moves = [relative_pose(a, b) for a, b in zip(steady.poses, shaken.poses, strict=True)]
+    offsets = np.stack([m[:3, 3] for m in moves])
+    angles = np.degrees([rotation_angle(m[:3, :3]) for m in moves])
+    assert 0.003 < float(offsets.std(axis=0).mean()) < 0.008  # 5 mm per axis, give or take the draw
+    assert 0.4 < float(np.sqrt(np.mean(angles**2)) / np.sqrt(3)) < 1.0  # 0.5 deg per axis
+    again = build_world(SynthConfig(**base, shake_m=0.005, shake_deg=0.5))[1]
+    assert np.array_equal(again.poses, shaken.poses)
+    cfg = SynthConfig(**{**base, 'frames': 3}, shake_m=0.005, shake_deg=0.5)
+    text = (write_synthetic_sequence(tmp_path / 'shaky', cfg) / 'SOURCE.md').read_text()
+    assert 'The hand shakes' in text and '_shake5mm0.5deg' in text
+    with pytest.raises(ValueError, match='shake'):
+        SynthConfig(shake_deg=10.0)

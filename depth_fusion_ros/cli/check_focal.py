@@ -46,7 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _load(args: argparse.Namespace):
+def load_recording(args: argparse.Namespace):
+    """The recording of ``args.source`` (TUM folder or rosbag2) at the working size, as the checks read it."""
     from pathlib import Path
 
     source = Path(args.source)
@@ -71,7 +72,7 @@ def _load(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     from ..multiview.focal_check import FocalCheckConfig, check_frames
 
-    sequence = _load(args)
+    sequence = load_recording(args)
     config = FocalCheckConfig() if args.pairs is None else FocalCheckConfig(pairs=args.pairs)
     check = check_frames(sequence.camera, sequence.frames, config)
     estimate = check.result

@@ -22,6 +22,7 @@ SUBCOMMANDS = (
     'convert',
     'evaluate',
     'check_focal',
+    'check_sync',
     'train',
     'adapt',
     'export',

@@ -112,6 +112,7 @@ def evaluation_stages() -> dict[str, set[str]]:
     )
     from ..evaluation.methods.recorded import TOPICS as RECORDED_TOPICS
     from ..evaluation.methods.single_view import SIMULATED_STAGE
+    from ..evaluation.time_offset import STAGE as TIME_OFFSET_STAGE
     from ..fusion.guard import GuardConfig
     from ..fusion.pipeline import FusionConfig
     from ..mapping.config import MapConfig
@@ -119,6 +120,7 @@ def evaluation_stages() -> dict[str, set[str]]:
     from ..multiview.focal_check import FocalCheckConfig
     from ..multiview.neighbours import NeighbourConfig
     from ..multiview.semidense import MultiViewConfig
+    from ..multiview.time_offset_check import TimeOffsetCheckConfig
     from ..multiview.tv import TVConfig
     from ..singleview.simulated import SimulatedPriorConfig
 
@@ -129,6 +131,7 @@ def evaluation_stages() -> dict[str, set[str]]:
         MULTI_VIEW_STAGE: fields(MultiViewConfig) | {METHOD_PARAM},
         FILTER_STAGE: fields(FilterConfig),
         FOCAL_STAGE: fields(FocalCheckConfig),
+        TIME_OFFSET_STAGE: fields(TimeOffsetCheckConfig),
         GUARD_STAGE: fields(GuardConfig),
         ADAPT_STAGE: fields(AdaptConfig),
         MAP_STAGE: fields(MapConfig),

@@ -66,6 +66,11 @@ SCALAR_HELP: dict[str, str] = {
         'repetitive texture: every textured surface repeats one motif about this often, in m '
         '(0.02-0.5: tiles, bricks, shelves; default {default}: aperiodic patterns)'
     ),
+    'shake_m': (
+        "a hand's shake: every pose moves by 1-4 Hz sinusoids of this std per camera axis, in m "
+        '(0-0.05; default {default}: the smooth path)'
+    ),
+    'shake_deg': 'the same shake of the rotations, degrees (0-5; default {default})',
 }
 
 
@@ -153,6 +158,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             'walkers',
             'walker_speed',
             'texture_period',
+            'shake_m',
+            'shake_deg',
         ),
     )
     p.add_argument(
@@ -163,7 +170,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument('--overwrite', action='store_true', help='replace OUT_DIR if it exists')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
-    p.set_defaults(func=run)
+    # Every field's option defaults to None (its help names the field's default): an option
+    # given is used as given, also when it equals the default (``--stress time_offset
+    # --pose-time-offset 0`` is in sync); one left out takes the preset's value, else the default.
+    p.set_defaults(func=run, **{f.name: None for f in dataclasses.fields(SynthConfig)})
 
 
 def _scalar_options(p: argparse.ArgumentParser, names: tuple[str, ...]) -> None:
@@ -187,12 +197,15 @@ def config_from_args(args: argparse.Namespace):
     defaults = SynthConfig()
 
     def pick(name: str, value):
-        # A stress preset fills the options left at their defaults.
-        return preset[name] if name in preset and value == getattr(defaults, name) else value
+        # A stress preset fills the options left out; the rest take the field's default.
+        if value is not None:
+            return value
+        return preset.get(name, getattr(defaults, name))
 
     # Every field has its option under the same name (``SynthConfig.cli_args`` writes them so).
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(SynthConfig)}
-    values['room_size'] = tuple(values['room_size'])
+    if values['room_size'] is not None:
+        values['room_size'] = tuple(values['room_size'])
     return SynthConfig(**{name: pick(name, value) for name, value in values.items()})
 
 

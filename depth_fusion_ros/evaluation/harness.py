@@ -23,6 +23,7 @@ import numpy as np
 from ..data.sequence import Sequence
 from ..metrics import MetricAccumulator, good_density, high_gradient_mask, upsample_depth
 from ..progress import progress
+from . import time_offset
 from .context import EvalOptions, KeyframeContext, SequenceContext, keyframe_indices
 from .focal import check_focal, estimate_json
 from .registry import MethodSpec, SequenceOutput, get_method
@@ -78,6 +79,8 @@ class SequenceResult:
     sequence: Sequence
     #: The focal length check (``evaluation/focal.py``), or ``None`` when it did not run.
     focal_check: dict[str, Any] | None = None
+    #: The time offset check (``evaluation/time_offset.py``), or ``None`` when it did not run.
+    time_offset_check: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -86,6 +89,7 @@ class SequenceResult:
             'keyframes': self.keyframes,
             'dropped': dict(self.sequence.dropped),
             'focal_check': self.focal_check,
+            'time_offset_check': self.time_offset_check,
             'methods': {name: rec.to_json() for name, rec in self.records.items()},
         }
 
@@ -110,8 +114,12 @@ def evaluate_sequence(
     n_samples: int = 3,
     show_progress: bool = True,
 ) -> SequenceResult:
-    """Run ``methods`` on the keyframes of an already loaded sequence (first the focal length
-    check, which may correct its camera: ``evaluation/focal.py``)."""
+    """Run ``methods`` on the keyframes of an already loaded sequence (first the time offset
+    and focal length checks, which may correct its poses and camera: ``evaluation/time_offset.py``,
+    ``evaluation/focal.py``)."""
+    read, timing = time_offset.check_time_offset(sequence, options.params)
+    timing_json = time_offset.estimate_json(timing, corrected=read is not sequence)
+    sequence = read
     told_camera = sequence.camera
     sequence, focal = check_focal(sequence, options.params)
     focal_json = estimate_json(focal, corrected=sequence.camera != told_camera)
@@ -146,7 +154,7 @@ def evaluate_sequence(
     for spec in specs:
         if spec.finish is not None:
             records[spec.name].sequence_output = spec.finish(whole)
-    return SequenceResult(sequence.name, path, keyframes, records, sequence, focal_json)
+    return SequenceResult(sequence.name, path, keyframes, records, sequence, focal_json, timing_json)
 
 
 def _mean_extra(values: list[float]) -> float:

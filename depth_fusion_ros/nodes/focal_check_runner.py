@@ -1,22 +1,19 @@
 """``multi_view_node``'s focal length check, off the callback thread (``multiview/focal_check.py``).
 
-The callbacks offer every posed frame; only the frames the check wants as its next sample
-(a pose comparison, microseconds) are queued, and a daemon thread computes their features
-and, once, the estimate. A full queue drops the offered frame (the next one that moved far
-enough is taken instead): the check never holds up the stream.
+Only the frames the check wants as its next sample are queued (:mod:`.check_runner`); once it
+disagrees and ``focal_check.mode`` is correct, :meth:`FocalCheckRunner.camera_for` gives the
+camera with the fitted focal length.
 """
 
 from __future__ import annotations
 
-import contextlib
-import queue
-import threading
 from collections.abc import Callable
 from typing import Any
 
 from ..camera import PinholeCamera
 from ..data.sequence import Frame
 from ..multiview.focal_check import FOCAL_CHECK_MODES, FocalCheck, FocalCheckConfig, FocalEstimate
+from .check_runner import CheckRunner
 from .params import ParamSpec, build_dataclass, dataclass_specs
 
 FOCAL_CHECK_LIMITS: dict[str, Any] = {
@@ -35,17 +32,15 @@ FOCAL_CHECK_PARAMETERS: tuple[ParamSpec, ...] = tuple(
 )
 
 
-class FocalCheckRunner:
+class FocalCheckRunner(CheckRunner):
     """Feeds a :class:`FocalCheck` from the callbacks on its own thread; reports the result once."""
+
+    name = 'focal_check'
 
     def __init__(
         self, config: FocalCheckConfig, on_result: Callable[[PinholeCamera, FocalEstimate], None]
     ) -> None:
-        self.config = config
-        self._on_result = on_result
-        self._check: FocalCheck | None = None
-        self._queue: queue.Queue[tuple[Any, Any] | None] = queue.Queue(maxsize=2)
-        self._thread: threading.Thread | None = None
+        super().__init__(config, on_result)
         #: ``(estimate, corrected camera)``: made once per estimate, not per frame.
         self._corrected: tuple[FocalEstimate, PinholeCamera] | None = None
 
@@ -55,15 +50,15 @@ class FocalCheckRunner:
     ) -> FocalCheckRunner:
         return cls(build_dataclass(FocalCheckConfig, params, 'focal_check'), on_result)
 
-    @property
-    def camera(self) -> PinholeCamera | None:
-        """The camera being checked (``None`` before the first frame)."""
-        return None if self._check is None else self._check.camera
+    def _make(self, camera: PinholeCamera) -> FocalCheck:
+        return FocalCheck(camera, self.config)
 
-    @property
-    def result(self) -> FocalEstimate | None:
-        """The current camera's estimate, once the check has it."""
-        return None if self._check is None else self._check.result
+    def _item(self, check: FocalCheck, frame: Frame) -> tuple[Any, Any] | None:
+        # Its grey image is made only when the check wants the frame.
+        return (frame.gray, frame.pose) if check.wants(frame.pose) else None
+
+    def _feed(self, check: FocalCheck, item: tuple[Any, Any]) -> FocalEstimate | None:
+        return check.add(*item)
 
     def camera_for(self, camera: PinholeCamera) -> PinholeCamera:
         """The camera the multi-view depth uses for frames of ``camera``: the fitted focal length
@@ -86,39 +81,3 @@ class FocalCheckRunner:
             return f'{self.result.verdict}: fx {self.result.told_fx:.1f} -> {self.result.fx:.1f} px'
         pairs = 0 if self._check is None else len(self._check.pairs)
         return f'collecting ({pairs} of {self.config.pairs} image pairs)'
-
-    def offer(self, frame: Frame, camera: PinholeCamera) -> None:
-        """A posed frame on the working grid (callback thread): queued when the check wants it
-        (its grey image is made only then)."""
-        if self.config.mode == 'off':
-            return
-        if self._check is None or self._check.camera != camera:  # a new camera: check it anew
-            self._stop()
-            self._check = FocalCheck(camera, self.config)
-            self._queue = queue.Queue(maxsize=2)
-            self._thread = threading.Thread(target=self._run, args=(self._check, self._queue), daemon=True)
-            self._thread.name = 'focal_check'
-            self._thread.start()
-        if not self._check.wants(frame.pose):  # also once it has its estimate
-            return
-        with contextlib.suppress(queue.Full):  # busy: a later frame that moved as far is taken instead
-            self._queue.put_nowait((frame.gray, frame.pose))
-
-    def close(self) -> None:
-        self._stop()
-
-    def _stop(self) -> None:
-        if self._thread is not None:
-            with contextlib.suppress(queue.Full):  # full: it stops at its next item (not its check)
-                self._queue.put_nowait(None)
-            self._thread = None
-
-    def _run(self, check: FocalCheck, inbox: queue.Queue) -> None:
-        while True:
-            item = inbox.get()
-            if item is None or check is not self._check:
-                return
-            estimate = check.add(*item)
-            if estimate is not None:
-                self._on_result(check.camera, estimate)
-                return

@@ -45,6 +45,7 @@ from ..multiview.descriptors import PATCH_OFFSETS
 from ..multiview.focal_check import FocalEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
+from ..multiview.time_offset_check import TimeOffsetEstimate
 from ..pose_buffer import PoseBuffer
 from ..pose_jumps import PoseJump
 from . import robot_inputs
@@ -68,6 +69,7 @@ from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
 from .qos import latched_qos, qos_profile
 from .reliability import ignore_incompatible
+from .time_offset_check_runner import TIME_OFFSET_CHECK_PARAMETERS, TimeOffsetCheckRunner
 
 NODE_NAME = 'multi_view_node'
 
@@ -231,6 +233,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ),
     *FILTER_PARAMETERS,
     *FOCAL_CHECK_PARAMETERS,
+    *TIME_OFFSET_CHECK_PARAMETERS,
 )
 
 
@@ -288,6 +291,7 @@ class MultiViewNode(DepthFusionNode):
             raise ValueError(f'{self.get_name()}: {exc}') from None
         try:
             self.focal_check = FocalCheckRunner.from_parameters(p, self._on_focal_estimate)
+            self.time_offset_check = TimeOffsetCheckRunner.from_parameters(p, self._on_time_offset_estimate)
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
         self.jump_limits = pose_jump_limits(p)
@@ -299,6 +303,8 @@ class MultiViewNode(DepthFusionNode):
         self.pending: deque[_Pending] = deque()
         self.posed_count = 0
         self.keyframes_decided = 0
+        #: The time offset check's correction the lookups use (``_pose_offset``)
+        self._offset_correction = 0.0
         self._last_keyframe_pose: np.ndarray | None = None
         self._image_stamps = self.stamp_guard('image')
         self._pose_stamps = self.stamp_guard('pose')
@@ -487,7 +493,7 @@ class MultiViewNode(DepthFusionNode):
         warning) and start the frame history and the filter over at the first frame after it,
         so that no neighbour and no propagated estimate crosses it. The images between the two
         poses are dropped when their turn comes (``pose_jump``: nothing to interpolate)."""
-        offset = float(self.params['pose_time_offset'])
+        offset = self._pose_offset()
         after_ns = messages.sec_to_ns(jump.after - offset)  # on the camera's clock
         if self._restart_from_ns is None or after_ns > self._restart_from_ns:
             self._restart_from_ns = after_ns
@@ -535,7 +541,7 @@ class MultiViewNode(DepthFusionNode):
         span = self.pose_buffer.span
         if span is None or self._newest_image_ns is None:
             return ''
-        lag = messages.ns_to_sec(self._newest_image_ns) + float(self.params['pose_time_offset']) - span[1]
+        lag = messages.ns_to_sec(self._newest_image_ns) + self._pose_offset() - span[1]
         return (
             f'; the latest pose is {lag:.1f} s behind the newest image (raw images over 0.5 MB sent '
             'through shared memory by a publisher with Fast DDS defaults stall the other topics of '
@@ -546,7 +552,7 @@ class MultiViewNode(DepthFusionNode):
     def _resolve_pending(self) -> None:
         """Pose every waiting image the buffer now covers, in stamp order; drop the hopeless ones."""
         wait_ns = messages.sec_to_ns(float(self.params['pose_wait']))
-        offset = float(self.params['pose_time_offset'])
+        offset = self._pose_offset()
         while self.pending:
             head = self.pending[0]
             stamp = messages.ns_to_sec(head.image.stamp_ns) + offset  # on the pose source's clock
@@ -630,6 +636,7 @@ class MultiViewNode(DepthFusionNode):
         if self.filter_feed is not None:
             extra['filter frames passed over (filter.max_update_rate)'] = self.filter_feed.rate_skipped
         extra['focal length check'] = self.focal_check.status()
+        extra['time offset check'] = self.time_offset_check.status()
         return extra
 
     def destroy_node(self) -> None:
@@ -637,6 +644,7 @@ class MultiViewNode(DepthFusionNode):
             self._give_up_pending('node shutting down')
         super().destroy_node()
         self.focal_check.close()
+        self.time_offset_check.close()
         if self.filter_feed is not None:
             self.filter_feed.close()
 
@@ -647,6 +655,7 @@ class MultiViewNode(DepthFusionNode):
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
         self.focal_check.offer(frame, image.camera)
+        self.time_offset_check.offer(frame, image.camera)
         camera = self.focal_check.camera_for(image.camera)
         job = None
         if self._is_keyframe_candidate(frame):
@@ -678,6 +687,37 @@ class MultiViewNode(DepthFusionNode):
         else:
             then = ' (focal_check.mode correct would use it)'
         self.stats.noted('focal_disagrees', estimate.message() + then)  # logged as a warning, once
+
+    # --- time offset check ---------------------------------------------------------------------------
+
+    def _pose_offset(self) -> float:
+        """Seconds from an image's stamp to the pose time it is posed at: ``pose_time_offset``
+        plus the time offset check's correction once it has one (``time_offset_check.mode``
+        correct). Taking a new correction (callback thread) starts the frame history and the
+        filter over at the next posed frame: the frames posed before it were posed at the
+        other offset, so no neighbour and no propagated estimate mixes the two."""
+        correction = self.time_offset_check.correction
+        if correction != self._offset_correction:
+            self._offset_correction = correction
+            self._restart_from_ns = 0  # the next posed frame, whatever its stamp
+            told = float(self.params['pose_time_offset'])
+            self.stats.noted(
+                'time_offset_disagrees',
+                f'{self.time_offset_check.result.message()}; time_offset_check.mode correct: poses are '
+                f'read at image stamp {told + correction:+.3f} s from now on, frame history and filter '
+                'start over',
+            )
+        return float(self.params['pose_time_offset']) + self._offset_correction
+
+    def _on_time_offset_estimate(self, camera: PinholeCamera, estimate: TimeOffsetEstimate) -> None:
+        """The time offset check's result (its thread), said once; in correct mode the callbacks
+        take the correction (``_pose_offset``) and say it then."""
+        if estimate.verdict != 'disagrees':
+            self.get_logger().info(estimate.message())
+        elif self.time_offset_check.config.mode != 'correct':
+            self.stats.noted(
+                'time_offset_disagrees', estimate.message() + ' (time_offset_check.mode correct would use it)'
+            )
 
     # --- keyframe policy ----------------------------------------------------------------------------
 

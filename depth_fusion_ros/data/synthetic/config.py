@@ -94,6 +94,11 @@ class SynthConfig:
     #: lattice of about this period (tiles, bricks, shelves, a keyboard), so an epipolar search
     #: finds the same patch again every period. 0 = the aperiodic patterns of ``texture.py``.
     texture_period: float = 0.0
+    #: Hand shake (``shake.py``): every pose (true and told) moves by 1-4 Hz sinusoids of this
+    #: standard deviation per camera axis, in metres and degrees: a hand-held camera whose speed
+    #: and turn rate change every few hundred milliseconds. 0 = the smooth path.
+    shake_m: float = 0.0
+    shake_deg: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ValueError:
@@ -153,6 +158,8 @@ class SynthConfig:
             raise bad('walkers', 'expected 0..4 walkers')
         if not 0 < self.walker_speed <= 5.0:
             raise bad('walker_speed', 'expected a walking speed in (0, 5] m/s')
+        if not 0 <= self.shake_m <= 0.05 or not 0 <= self.shake_deg <= 5.0:
+            raise bad('shake_m', 'expected a shake of 0..0.05 m and 0..5 degrees (std per axis)')
         if not (self.texture_period == 0 or 0.02 <= self.texture_period <= 0.5):
             raise bad('texture_period', 'expected 0 (aperiodic) or a period of 0.02..0.5 m')
 

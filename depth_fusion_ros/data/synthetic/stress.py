@@ -28,6 +28,10 @@ data with exact ground truth:
 ``repetitive``     the lateral sweep in a room of tiles: every textured surface repeats one
                    motif every 8 cm (10-18 px at 320x240), so an epipolar search meets the
                    same patch again every period (tiled floors, brick walls, shelves)
+``time_offset``    the lateral sweep by a shaking hand (5 mm and 0.5 deg per axis, 1-4 Hz),
+                   told by a pose source 20 ms ahead of the camera's stamps: each told pose
+                   is where the camera was 0.6 frame later, off along a motion that keeps
+                   changing (``multiview/time_offset_check.py`` finds it)
 =================  ==========================================================================
 
 ``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
@@ -59,6 +63,13 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
     'auto_exposure': {'parallax': 'high', 'sweep': 1.0, 'gain_sigma': 0.15},
     'moving_object': {'parallax': 'high', 'sweep': 1.0, 'walkers': 1},
     'repetitive': {'parallax': 'high', 'sweep': 1.0, 'texture_period': 0.08},
+    'time_offset': {
+        'parallax': 'high',
+        'sweep': 1.0,
+        'shake_m': 0.005,
+        'shake_deg': 0.5,
+        'pose_time_offset': 0.02,
+    },
 }
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
+from dataclasses import replace
 
 import numpy as np
 
@@ -27,13 +28,14 @@ from .config import PARALLAX_MODES, SynthConfig
 from .motions import MOTION_FUNCTIONS
 from .render import RenderedFrame, render_frame
 from .scene import Scene, build_scene
+from .shake import shaken_poses
 from .trajectory import Trajectory, make_trajectory
 from .walkers import scene_at
 
 log = logging.getLogger(__name__)
 
 #: Random-stream ids under the seed (numpy SeedSequence entropy ``[seed, stream, ...]``).
-_ROOM_STREAM, _TRAJECTORY_STREAM, _NOISE_STREAM, _POSE_NOISE_STREAM, _GAIN_STREAM = 0, 1, 2, 3, 4
+_ROOM_STREAM, _TRAJECTORY_STREAM, _NOISE_STREAM, _POSE_NOISE_STREAM, _GAIN_STREAM, _SHAKE_STREAM = range(6)
 #: Poses per trajectory used to keep furniture off the camera path (independent of frames).
 _KEEP_OUT_SAMPLES = 64
 #: Sub-stream of the trajectory stream drawn by the stress motions.
@@ -58,6 +60,8 @@ def sequence_name(cfg: SynthConfig) -> str:
         name += f'_walkers{cfg.walkers}'
     if cfg.texture_period:
         name += f'_period{cfg.texture_period * 100:g}cm'
+    if cfg.shake_m or cfg.shake_deg:
+        name += f'_shake{cfg.shake_m * 1000:g}mm{cfg.shake_deg:g}deg'
     return name
 
 
@@ -188,6 +192,9 @@ def build_world(cfg: SynthConfig) -> tuple[Scene, Trajectory]:
         paths.append(main.poses)
     keep_out = Trajectory(np.concatenate(paths), both[0].view_origin, both[0].view_target)
     scene = build_scene(cfg, room, keep_out, room_rng)
+    if cfg.shake_m or cfg.shake_deg:  # a few mm off the path the furniture keeps clear of
+        rng = np.random.default_rng([cfg.seed, _SHAKE_STREAM])
+        main = replace(main, poses=shaken_poses(main.poses, cfg.fps, cfg.shake_m, cfg.shake_deg, rng))
     return scene, main
 
 

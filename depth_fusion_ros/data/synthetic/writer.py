@@ -75,6 +75,12 @@ def _sensor_note(cfg: SynthConfig) -> str:
             '\n**The texture repeats**: every textured surface is one motif repeated on a square '
             f'lattice of {cfg.texture_period * 100:g} cm (+-25 % per material), like tiles or bricks.'
         )
+    if cfg.shake_m or cfg.shake_deg:
+        note += (
+            f'\n**The hand shakes**: every pose moves by 1-4 Hz sinusoids of {cfg.shake_m * 1000:g} mm and '
+            f'{cfg.shake_deg:g} deg (std per camera axis) about the path; images, depth and poses all '
+            'follow it.'
+        )
     return note
 
 

@@ -1,0 +1,74 @@
+"""``evaluate``: the time offset check on a loaded sequence, as ``multi_view_node`` runs it.
+
+The check (``multiview/time_offset_check.py``) reads the sequence's posed frames in stream
+order. With ``time_offset_check.mode: correct`` and poses the images disagree with in time,
+every method then runs on the poses read at the fitted offset (interpolated between the
+frames' own poses, :func:`~depth_fusion_ros.multiview.time_offset_check.shift_in_time`), as
+the node reads its pose buffer at the corrected offset; the ground-truth depth is the
+camera's own and does not move. It runs before the focal length check, which reads the poses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from ..data.sequence import Sequence
+from ..multiview.params import apply_overrides
+from ..multiview.time_offset_check import (
+    TimeOffsetCheckConfig,
+    TimeOffsetEstimate,
+    check_stream,
+    shift_in_time,
+)
+
+log = logging.getLogger(__name__)
+
+STAGE = 'time_offset_check'
+
+
+def check_time_offset(sequence: Sequence, params: dict) -> tuple[Sequence, TimeOffsetEstimate | None]:
+    """The sequence to evaluate (its poses re-read when asked and needed) and the estimate
+    (``None`` when the check is off or the sequence is too short to finish it)."""
+    config = apply_overrides(TimeOffsetCheckConfig(), params.get(STAGE, {}), STAGE)
+    if config.mode == 'off':
+        return sequence, None
+    check = check_stream(sequence.camera, sequence.frames, config)
+    estimate = check.result
+    if estimate is None:
+        log.info(
+            '%s: time offset not checked: %d image pairs in %d frames, %d needed',
+            sequence.name,
+            check.pairs,
+            len(sequence.frames),
+            config.pairs,
+        )
+        return sequence, None
+    level = logging.WARNING if estimate.verdict == 'disagrees' else logging.INFO
+    log.log(level, '%s: %s', sequence.name, estimate.message())
+    if config.mode == 'correct' and estimate.verdict == 'disagrees':
+        sequence = shifted_sequence(sequence, estimate.offset)
+        log.warning(
+            '%s: every method uses the poses %+.0f ms later (time_offset_check.mode correct)',
+            sequence.name,
+            estimate.offset * 1000,
+        )
+    return sequence, estimate
+
+
+def shifted_sequence(sequence: Sequence, offset: float) -> Sequence:
+    """``sequence`` with every frame's pose read ``offset`` seconds later."""
+    stamps = np.array([f.stamp for f in sequence.frames])
+    poses = shift_in_time(stamps, np.stack([f.pose for f in sequence.frames]), offset)
+    frames = [dataclasses.replace(f, pose=p) for f, p in zip(sequence.frames, poses, strict=True)]
+    return dataclasses.replace(sequence, frames=frames)
+
+
+def estimate_json(estimate: TimeOffsetEstimate | None, corrected: bool) -> dict | None:
+    """The ``time_offset_check`` entry of a sequence in results.json: the estimate's fields, the
+    fitted ``pose_time_offset`` and whether every method ran on poses read at it."""
+    if estimate is None:
+        return None
+    return {**dataclasses.asdict(estimate), 'fitted_offset': estimate.fitted, 'corrected': corrected}

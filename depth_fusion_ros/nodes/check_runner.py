@@ -1,0 +1,96 @@
+"""A once-per-camera check of ``multi_view_node`` (focal length, time offset), off the callbacks.
+
+The callbacks offer every posed frame; the check says what it needs of it (a pose comparison,
+microseconds), and only that is queued; a daemon thread computes features and, once, the
+estimate. A full queue drops the offered item (the next frame that moved far enough is taken
+instead): a check never holds up the stream. A new camera (another size or calibration) is
+checked anew.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from ..camera import PinholeCamera
+from ..data.sequence import Frame
+
+
+class CheckRunner:
+    """Feeds one check per camera from the callbacks on its own thread; reports its result once.
+
+    Subclasses say how a check is made (:meth:`_make`), what a frame gives it (:meth:`_item`,
+    on the callback thread; ``None``: nothing) and how the thread feeds it (:meth:`_feed`,
+    returning the result on the item that completes it).
+    """
+
+    #: The thread's name, and how many items may wait for it.
+    name = 'check'
+    queue_size = 2
+
+    def __init__(self, config: Any, on_result: Callable[[PinholeCamera, Any], None]) -> None:
+        self.config = config
+        self._on_result = on_result
+        self._check: Any = None
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
+        self._thread: threading.Thread | None = None
+
+    def _make(self, camera: PinholeCamera) -> Any:
+        raise NotImplementedError
+
+    def _item(self, check: Any, frame: Frame) -> Any:
+        raise NotImplementedError
+
+    def _feed(self, check: Any, item: Any) -> Any:
+        raise NotImplementedError
+
+    @property
+    def camera(self) -> PinholeCamera | None:
+        """The camera being checked (``None`` before the first frame)."""
+        return None if self._check is None else self._check.camera
+
+    @property
+    def result(self) -> Any:
+        """The current camera's result, once the check has it."""
+        return None if self._check is None else self._check.result
+
+    def offer(self, frame: Frame, camera: PinholeCamera) -> None:
+        """A posed frame on the working grid (callback thread): queued when the check needs it."""
+        if self.config.mode == 'off':
+            return
+        if self._check is None or self._check.camera != camera:  # a new camera: check it anew
+            self._stop()
+            self._check = self._make(camera)
+            self._queue = queue.Queue(maxsize=self.queue_size)
+            self._thread = threading.Thread(target=self._run, args=(self._check, self._queue), daemon=True)
+            self._thread.name = self.name
+            self._thread.start()
+        if self._check.done:
+            return
+        item = self._item(self._check, frame)
+        if item is None:
+            return
+        with contextlib.suppress(queue.Full):  # busy: a later frame is taken instead
+            self._queue.put_nowait(item)
+
+    def close(self) -> None:
+        self._stop()
+
+    def _stop(self) -> None:
+        if self._thread is not None:
+            with contextlib.suppress(queue.Full):  # full: it stops at its next item (not its check)
+                self._queue.put_nowait(None)
+            self._thread = None
+
+    def _run(self, check: Any, inbox: queue.Queue) -> None:
+        while True:
+            item = inbox.get()
+            if item is None or check is not self._check:
+                return
+            result = self._feed(check, item)
+            if result is not None:
+                self._on_result(check.camera, result)
+                return

@@ -1,0 +1,106 @@
+"""multi_view_node's time offset check over real DDS: a pose source 20 ms ahead of the camera
+is found from the images and poses, said once, and (``time_offset_check.mode: correct``, the
+default) the poses are read at the fitted offset from then on: the keyframe poses move onto the
+camera's true ones and the multi-view depth after it is more accurate than with the offset
+only warned about."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import Image
+from test_nodes_multi_view import _Camera, _mv_node
+
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.data.synthetic import render_sequence, stress_config
+from depth_fusion_ros.nodes.testing import RosHarness
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+SIZE = {'width': 240, 'height': 180, 'frames': 90, 'seed': 5}
+#: Keyframes from this frame on are scored: the check has its 20 pairs well before it.
+LATE = 60
+
+
+@pytest.fixture(scope='module')
+def streams():
+    """The time_offset stress stream (poses 20 ms ahead) and the same camera in sync (the truth)."""
+    return (
+        render_sequence(stress_config('time_offset', **SIZE)),
+        render_sequence(stress_config('time_offset', **SIZE, pose_time_offset=0.0)),
+    )
+
+
+def _run(seq, mode: str):
+    stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    with RosHarness() as ros:
+        node = _mv_node(
+            ros,
+            keyframe_every=6,
+            queue_size=16,
+            qos_depth=100,
+            width=SIZE['width'],
+            height=SIZE['height'],
+            **{'filter.max_lag_frames': 0, 'filter.max_update_rate': 0.0, 'time_offset_check.mode': mode},
+        )
+        depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')
+        cam = _Camera(ros)
+        for i, frame in enumerate(seq.frames):
+            if i == LATE - 6:  # its pairs are in the frames before: let its thread finish
+                assert ros.wait_for(lambda: node.time_offset_check.result is not None, 60.0), (
+                    node.time_offset_check.status()
+                )
+            cam.publish_pose(frame.pose, stamps[i])
+            cam.publish_image(frame.rgb, stamps[i], seq.camera)
+            time.sleep(0.03)
+        # Every keyframe the node chose is published (the correction restarts the keyframe phase).
+        done = ros.wait_for(
+            lambda: node.posed_count == len(seq.frames) and len(depths) == node.keyframes_decided, 120.0
+        )
+        assert done, node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+        status = node.diagnostic_extra()['time offset check']
+        result = node.time_offset_check.result
+    index = {s: i for i, s in enumerate(stamps)}
+    depth = {index[m.stamp_to_ns(d.header.stamp)]: m.image_to_depth(d) for d in depths}
+    pose = {index[m.stamp_to_ns(p.header.stamp)]: m.pose_stamped_to_matrix(p) for p in poses}
+    return result, snap, status, depth, pose
+
+
+def test_a_pose_source_20_ms_ahead_is_found_and_corrected(streams):
+    late, truth = streams
+    runs = {mode: _run(late, mode) for mode in ('correct', 'warn')}
+
+    def depth_scores(depth: dict) -> tuple[float, float]:
+        """Over the late keyframes: the share of pixels with an estimate within 10 % of the truth,
+        and the median |log| error of all estimates."""
+        good, errors, pixels = 0, [], 0
+        for k, d in depth.items():
+            if k < LATE:
+                continue
+            ok = np.isfinite(d) & (d > 0)
+            error = np.abs(np.log(d[ok] / truth.frames[k].depth[ok]))
+            good, pixels = good + int((error < 0.1).sum()), pixels + d.size
+            errors.append(error)
+        return good / pixels, float(np.median(np.concatenate(errors)))
+
+    def pose_error_mm(pose: dict) -> float:
+        late_keys = [k for k in pose if k >= LATE]
+        return 1000 * float(
+            np.median([np.linalg.norm(pose[k][:3, 3] - truth.frames[k].pose[:3, 3]) for k in late_keys])
+        )
+
+    for result, snap, status, _, _ in runs.values():
+        assert result is not None and result.verdict == 'disagrees', status
+        assert result.offset == pytest.approx(-0.02, abs=0.003)
+        assert snap.noted.get('time_offset_disagrees') == 1 and snap.dropped == {}, snap.summary()
+        assert status.startswith('disagrees: -2') and f'pose_time_offset {result.fitted:.3f}' in status
+    corrected, warned = runs['correct'], runs['warn']
+    assert pose_error_mm(corrected[4]) < pose_error_mm(warned[4]) / 3
+    # Poses read in sync: as accurate estimates, and far more of them pass the filter's tests.
+    (good, error), (good_warned, error_warned) = depth_scores(corrected[3]), depth_scores(warned[3])
+    assert good > 1.4 * good_warned and error < 1.2 * error_warned, (good, good_warned, error, error_warned)
