@@ -76,6 +76,12 @@ class CheckRunner:
         with contextlib.suppress(queue.Full):  # busy: a later frame is taken instead
             self._queue.put_nowait(item)
 
+    def restart(self) -> None:
+        """Forget the current check and its result: the next frame starts a new one (the frames
+        it read were posed otherwise than the ones to come)."""
+        self._stop()
+        self._check = None
+
     def close(self) -> None:
         self._stop()
 

@@ -694,12 +694,14 @@ class MultiViewNode(DepthFusionNode):
         """Seconds from an image's stamp to the pose time it is posed at: ``pose_time_offset``
         plus the time offset check's correction once it has one (``time_offset_check.mode``
         correct). Taking a new correction (callback thread) starts the frame history and the
-        filter over at the next posed frame: the frames posed before it were posed at the
-        other offset, so no neighbour and no propagated estimate mixes the two."""
+        filter over at the next posed frame, and the focal length check: the frames posed
+        before it were posed at the other offset, so no neighbour, propagated estimate or
+        image pair mixes the two."""
         correction = self.time_offset_check.correction
         if correction != self._offset_correction:
             self._offset_correction = correction
             self._restart_from_ns = 0  # the next posed frame, whatever its stamp
+            self.focal_check.restart()  # its pairs were posed at the old offset
             told = float(self.params['pose_time_offset'])
             self.stats.noted(
                 'time_offset_disagrees',
