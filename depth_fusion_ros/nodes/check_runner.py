@@ -37,6 +37,8 @@ class CheckRunner:
         self._check: Any = None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
         self._thread: threading.Thread | None = None
+        #: Set to end the current thread (each thread has its own)
+        self._stopping = threading.Event()
 
     def _make(self, camera: PinholeCamera) -> Any:
         raise NotImplementedError
@@ -65,7 +67,9 @@ class CheckRunner:
             self._stop()
             self._check = self._make(camera)
             self._queue = queue.Queue(maxsize=self.queue_size)
-            self._thread = threading.Thread(target=self._run, args=(self._check, self._queue), daemon=True)
+            self._stopping = threading.Event()
+            args = (self._check, self._queue, self._stopping)
+            self._thread = threading.Thread(target=self._run, args=args, daemon=True)
             self._thread.name = self.name
             self._thread.start()
         if self._check.done:
@@ -82,21 +86,30 @@ class CheckRunner:
         self._stop()
         self._check = None
 
-    def close(self) -> None:
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop the thread and wait for it (at most ``timeout`` s); the result stays. A daemon
+        thread still in OpenCV or numpy while the interpreter shuts down can take the process
+        down with it, before its DDS shared memory is released."""
+        thread = self._thread
         self._stop()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout)
 
     def _stop(self) -> None:
+        """The thread ends before its next item, or at once when idle."""
+        self._stopping.set()
         if self._thread is not None:
-            with contextlib.suppress(queue.Full):  # full: it stops at its next item (not its check)
+            with contextlib.suppress(queue.Full):  # full: it stops before its next item
                 self._queue.put_nowait(None)
             self._thread = None
 
-    def _run(self, check: Any, inbox: queue.Queue) -> None:
+    def _run(self, check: Any, inbox: queue.Queue, stopping: threading.Event) -> None:
         while True:
             item = inbox.get()
-            if item is None or check is not self._check:
+            if item is None or stopping.is_set():
                 return
             result = self._feed(check, item)
             if result is not None:
-                self._on_result(check.camera, result)
+                if not stopping.is_set():  # a check restarted meanwhile reports nothing
+                    self._on_result(check.camera, result)
                 return
