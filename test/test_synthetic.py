@@ -505,3 +505,29 @@ def test_a_shaking_hand_moves_every_pose_about_the_path_and_is_written_down(tmp_
     assert 'The hand shakes' in text and '_shake5mm0.5deg' in text
     with pytest.raises(ValueError, match='shake'):
         SynthConfig(shake_deg=10.0)
+
+
+def test_a_pose_source_out_of_sync_is_recorded_as_it_would_stamp(tmp_path):
+    """``pose_time_offset``: groundtruth.txt holds each frame's pose stamped that much before
+    its image (``world.pose_source``); read at the image stamps it gives the told poses, and the
+    loaders keep it as ``Sequence.pose_stream`` (a TUM folder, and a bag made from it)."""
+    from depth_fusion_ros.data.rosbag_convert import convert
+    from depth_fusion_ros.data.rosbag_read import load_bag_sequence
+    from depth_fusion_ros.data.synthetic import write_synthetic_sequence
+    from depth_fusion_ros.data.tum import load_tum_sequence
+
+    cfg = SynthConfig(width=32, height=24, frames=4, pose_time_offset=0.02, shake_deg=0.5)
+    memory = render_sequence(cfg)
+    stamps, poses = memory.pose_stream
+    np.testing.assert_allclose(stamps, [*(memory.stamps - 0.02), memory.stamps[-1]])
+    exact = render_sequence(SynthConfig(width=32, height=24, frames=4, shake_deg=0.5))
+    np.testing.assert_allclose(poses[:-1], exact.poses)  # the samples are the true poses
+    folder = write_synthetic_sequence(tmp_path / 'late', cfg)
+    loaded = load_tum_sequence(folder, width=32, height=24)
+    assert len(loaded) == 4 and loaded.dropped.get('outside_groundtruth', 0) == 0
+    np.testing.assert_allclose(loaded.pose_stream[0], stamps, atol=1e-6)
+    # Read at the image stamps (groundtruth.txt keeps microseconds: 3 um at these 10 m/s).
+    np.testing.assert_allclose(loaded.poses, memory.poses, atol=1e-5)
+    convert(folder, tmp_path / 'bag')
+    bag = load_bag_sequence(tmp_path / 'bag', 32, 24)
+    assert bag.pose_stream is not None and len(bag.pose_stream[0]) == len(bag)

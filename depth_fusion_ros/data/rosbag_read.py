@@ -209,6 +209,12 @@ def load_bag_sequence(
     dropped = {k: v for k, v in dropped.items() if v}
     if dropped:
         logger.info('%s: dropped frames %s', path.name, dropped)
+    stream = (pose_stamps / 1e9, poses) if len(pose_stamps) else None
     return Sequence(
-        name=path.name, camera=und.camera, frames=frames, gt_camera=und.native_camera, dropped=dropped
+        name=path.name,
+        camera=und.camera,
+        frames=frames,
+        gt_camera=und.native_camera,
+        dropped=dropped,
+        pose_stream=stream,
     )

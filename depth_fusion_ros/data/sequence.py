@@ -59,6 +59,10 @@ class Sequence:
     frames: list[Frame]
     gt_camera: PinholeCamera | None = None
     dropped: dict[str, int] = field(default_factory=dict)
+    #: The pose source as recorded, ``(stamps (M,) s, poses (M, 4, 4))``, that the frames' poses
+    #: were interpolated from (groundtruth.txt, a bag's pose topic); ``None`` when the frames'
+    #: own poses are all there is. Read again at other times by the time offset correction.
+    pose_stream: tuple[np.ndarray, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.frames)

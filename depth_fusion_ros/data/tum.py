@@ -484,10 +484,12 @@ def load_tum_sequence(
         logger.info('%s: colour calibration overridden; depth registered into the colour camera', index.name)
     if assoc.dropped:
         logger.info('%s: dropped frames %s', index.name, assoc.dropped)
+    gt = index.groundtruth
     return Sequence(
         name=index.name,
         camera=undistorter.camera,
         frames=frames,
         gt_camera=undistorter.native_camera,
         dropped=assoc.dropped,
+        pose_stream=None if gt is None or not len(gt) else (gt.stamps_ns / NS_PER_SEC, gt.poses),
     )

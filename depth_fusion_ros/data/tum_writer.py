@@ -138,24 +138,29 @@ def write_tum_folder(
     name: str = 'sequence',
     source_md: str | None = None,
     overwrite: bool = False,
+    pose_stamps: np.ndarray | None = None,
 ) -> Path:
     """Write a TUM-layout folder and return its path.
 
     ``stamps`` (N,) strictly increasing seconds; ``rgbs`` and ``depths`` are iterables of N
     images (consumed lazily, so a generator can render and write frame by frame without
     holding the sequence in memory): rgb HxWx3 uint8 in RGB order, depth HxW float metres
-    (NaN = invalid); ``poses`` (N, 4, 4) camera-to-world. ``name`` is the camera name in
+    (NaN = invalid); ``poses`` (N, 4, 4) camera-to-world, stamped as the images unless
+    ``pose_stamps`` (M,) gives the pose source's own stamps (then ``poses`` is (M, 4, 4): a pose
+    source on another clock or rate). ``name`` is the camera name in
     ``camera.yaml``; ``source_md`` the text of ``SOURCE.md``. An existing ``out_dir`` raises
     ``ValueError`` unless ``overwrite``.
     """
     out_dir = Path(out_dir)
     stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
     poses = np.asarray(poses, dtype=np.float64)
-    if poses.shape != (len(stamps), 4, 4):
-        raise ValueError(f'write_tum_folder: {len(stamps)} stamps but poses have shape {poses.shape}')
+    own = stamps if pose_stamps is None else np.asarray(pose_stamps, dtype=np.float64).reshape(-1)
+    if poses.shape != (len(own), 4, 4):
+        raise ValueError(f'write_tum_folder: {len(own)} pose stamps but poses have shape {poses.shape}')
     for i, T in enumerate(poses):
         validate_pose(T, f'write_tum_folder: pose {i}')
     texts = _check_stamps(stamps)
+    pose_texts = texts if pose_stamps is None else _check_stamps(own)
     if out_dir.exists() and not overwrite:
         raise ValueError(f'{out_dir} already exists (use overwrite / --overwrite to replace it)')
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -175,7 +180,7 @@ def write_tum_folder(
             raise ValueError(f'write_tum_folder: {len(texts)} stamps but only {count} rgb/depth images')
         _write_index(tmp / 'rgb.txt', 'color images', out_dir.name, texts, 'rgb')
         _write_index(tmp / 'depth.txt', 'depth maps', out_dir.name, texts, 'depth')
-        _write_groundtruth(tmp / 'groundtruth.txt', out_dir.name, texts, poses)
+        _write_groundtruth(tmp / 'groundtruth.txt', out_dir.name, pose_texts, poses)
         (tmp / 'camera.yaml').write_text(camera_info_yaml(camera, name))
         (tmp / 'SOURCE.md').write_text(source_md if source_md is not None else f'# {name}\n')
         tmp.chmod(0o755)  # mkdtemp makes it private; the result is an ordinary folder

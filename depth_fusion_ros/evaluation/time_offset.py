@@ -23,6 +23,7 @@ from ..multiview.time_offset_check import (
     check_stream,
     shift_in_time,
 )
+from ..pose_curve import interpolate_poses_cubic
 
 log = logging.getLogger(__name__)
 
@@ -59,9 +60,17 @@ def check_time_offset(sequence: Sequence, params: dict) -> tuple[Sequence, TimeO
 
 
 def shifted_sequence(sequence: Sequence, offset: float) -> Sequence:
-    """``sequence`` with every frame's pose read ``offset`` seconds later."""
+    """``sequence`` with every frame's pose read ``offset`` seconds later: from the pose source as
+    recorded (``Sequence.pose_stream``: its own samples, so a pose source stamped off by the
+    offset gives its exact poses back), else from the frames' own poses; both along the cubic
+    through them (``pose_curve.py``), a frame past either end of the record along the end step."""
     stamps = np.array([f.stamp for f in sequence.frames])
     poses = shift_in_time(stamps, np.stack([f.pose for f in sequence.frames]), offset)
+    if sequence.pose_stream is not None and len(sequence.pose_stream[0]) >= 2:
+        source_stamps, source_poses = sequence.pose_stream
+        t0 = float(source_stamps[0])
+        read, inside = interpolate_poses_cubic(source_stamps - t0, source_poses, stamps + offset - t0)
+        poses[inside] = read[inside]
     frames = [dataclasses.replace(f, pose=p) for f, p in zip(sequence.frames, poses, strict=True)]
     return dataclasses.replace(sequence, frames=frames)
 

@@ -33,7 +33,8 @@ import cv2
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..geometry import interpolate_poses, relative_pose, rotation_angle
+from ..geometry import relative_pose, rotation_angle
+from ..pose_curve import interpolate_poses_cubic
 from .focal_check import _LOSS_SCALE_PX, image_features, rigid_matches, sampson_distances, skew
 
 log = logging.getLogger(__name__)
@@ -70,9 +71,10 @@ class TimeOffsetCheckConfig:
     #: Pairs of images the estimate uses (the check ends there, once)
     pairs: int = 20
     #: A disagreement counts when |fitted offset| less twice its standard error is at least
-    #: this (s; 0.01: surely more than 10 ms off, where TUM fr1_xyz's depth already suffers;
-    #: below it the fit's own bias on real cameras, a few ms, would decide)
-    threshold: float = 0.01
+    #: this (s; 0.015: surely more than 15 ms off). On a real camera the fit itself is off by
+    #: up to 10 ms (TUM fr1_xyz in sync reads -10 +- 2 ms), and a correction by that much
+    #: would cost the depth as much as the offset it corrects
+    threshold: float = 0.015
     #: Standard error of the fitted offset above which the motion does not constrain it (s)
     max_stderr: float = 0.004
     #: Matches a pair needs after RANSAC to be used
@@ -197,15 +199,15 @@ def estimate_offset(grid: np.ndarray, curves: np.ndarray, resamples: int = 200) 
 
 
 def shift_in_time(stamps: np.ndarray, poses: np.ndarray, offset: float) -> np.ndarray:
-    """The poses of a stream read ``offset`` seconds later (``stamps`` increasing): interpolated
-    between the stream's own poses, and at its ends extrapolated at the velocity of the end
-    step (a stream's first and last frames keep a pose)."""
+    """The poses of a stream read ``offset`` seconds later (``stamps`` increasing): along the
+    cubic through the stream's own poses (:mod:`~depth_fusion_ros.pose_curve`), and at its ends
+    extrapolated at the velocity of the end step (a stream's first and last frames keep a pose)."""
     stamps = np.asarray(stamps, dtype=np.float64)
     poses = np.asarray(poses, dtype=np.float64)
     if offset == 0.0 or len(stamps) < 2:
         return poses.copy()
     t0 = stamps[0]
-    out, valid = interpolate_poses(stamps - t0, poses, stamps + offset - t0)
+    out, valid = interpolate_poses_cubic(stamps - t0, poses, stamps + offset - t0)
     for i in np.flatnonzero(~valid):
         j = 0 if stamps[i] + offset < stamps[0] else len(stamps) - 2  # the end step
         out[i] = _extrapolate(stamps[j : j + 2], poses[j : j + 2], stamps[i] + offset)
@@ -213,8 +215,8 @@ def shift_in_time(stamps: np.ndarray, poses: np.ndarray, offset: float) -> np.nd
 
 
 def _extrapolate(stamps: np.ndarray, poses: np.ndarray, t: float) -> np.ndarray:
-    """The pose at ``t`` on the line through two poses, as ``interpolate_poses`` reads between
-    them (translation linear in the world, rotation along the same geodesic), past either end."""
+    """The pose at ``t`` on the line through two poses (translation linear in the world, rotation
+    along their geodesic), past either end."""
     from scipy.spatial.transform import Rotation
 
     f = (t - stamps[0]) / max(stamps[1] - stamps[0], 1e-9)
@@ -320,8 +322,8 @@ class TimeOffsetCheck:
         stamps = np.asarray(self._stamps)
         poses = np.asarray(self._poses)
         t0 = stamps[0]
-        Pa, va = interpolate_poses(stamps - t0, poses, pair.stamps[0] + self._grid - t0)
-        Pb, vb = interpolate_poses(stamps - t0, poses, pair.stamps[1] + self._grid - t0)
+        Pa, va = interpolate_poses_cubic(stamps - t0, poses, pair.stamps[0] + self._grid - t0)
+        Pb, vb = interpolate_poses_cubic(stamps - t0, poses, pair.stamps[1] + self._grid - t0)
         if not (va.all() and vb.all()):
             return
         costs = pair_costs(self.camera.K, Pa, Pb, pair.p1, pair.p2)

@@ -120,6 +120,26 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     return out
 
 
+def pose_source(cfg: SynthConfig, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What the pose source records, ``(stamps, poses)``: each frame's pose (with its jitter),
+    stamped ``pose_time_offset`` before the camera stamps the image it was taken with, as a
+    pose source on a clock that runs behind the camera's does (or a camera that stamps late).
+    Read at an image's stamp, such a stream gives the pose the camera had that much later:
+    :func:`told_poses`, which it covers at every frame (the first or last frame's told pose
+    is added at its own stamp where the shifted samples stop short of it). Re-read at the right
+    offset, it gives the exact poses back, as a real pose source's samples would.
+    """
+    stamps = np.array([cfg.stamp(i) for i in range(cfg.frames)])
+    told = told_poses(cfg, poses)
+    offset = cfg.pose_time_offset
+    if not offset:
+        return stamps, told
+    samples = told_poses(replace(cfg, pose_time_offset=0.0), poses)
+    if offset > 0:
+        return np.append(stamps - offset, stamps[-1]), np.concatenate([samples, told[-1:]])
+    return np.insert(stamps - offset, 0, stamps[0]), np.concatenate([told[:1], samples])
+
+
 def _view_offsets(cfg: SynthConfig) -> np.ndarray:
     """Times (in frame periods, from the stamp) of the ``blur_samples`` views a frame is made
     of: evenly over its exposure and readout together, centred on the stamp."""
@@ -234,12 +254,18 @@ def render_sequence(cfg: SynthConfig, show_progress: bool = False) -> Sequence:
     rgb and ground-truth depth (float32 z-depth in metres, exact at pixel centres, no invalid
     pixels) share the config's size. ``gt_camera`` is the true camera; ``camera`` is what the
     pipeline is told (the same unless ``focal_error``); frame poses are the ones the pipeline is
-    told (the true ones unless ``pose_noise_m`` / ``pose_noise_deg``).
+    told (the true ones unless ``pose_noise_m`` / ``pose_noise_deg``); ``pose_stream`` is the
+    pose source's own record (:func:`pose_source`).
     """
+    scene, trajectory = build_world(cfg)
     frames = [
         Frame(index=i, stamp=cfg.stamp(i), rgb=f.rgb, pose=pose.copy(), depth=f.depth)
-        for i, f, pose in iter_frames(cfg, show_progress=show_progress)
+        for i, f, pose in iter_frames(cfg, scene, trajectory, show_progress=show_progress)
     ]
     return Sequence(
-        name=sequence_name(cfg), camera=cfg.pipeline_camera(), frames=frames, gt_camera=cfg.camera()
+        name=sequence_name(cfg),
+        camera=cfg.pipeline_camera(),
+        frames=frames,
+        gt_camera=cfg.camera(),
+        pose_stream=pose_source(cfg, trajectory.poses),
     )

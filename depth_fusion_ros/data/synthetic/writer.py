@@ -11,7 +11,7 @@ import yaml
 
 from ..tum_writer import write_tum_folder
 from .config import SynthConfig
-from .world import build_world, iter_frames, sequence_name, told_poses
+from .world import build_world, iter_frames, pose_source, sequence_name
 
 
 def _motion(cfg: SynthConfig) -> str:
@@ -39,9 +39,10 @@ def _pose_note(cfg: SynthConfig) -> str:
         )
     if cfg.pose_time_offset:
         note += (
-            f"\n**groundtruth.txt is deliberately out of sync**: every pose is the camera's pose "
-            f"{cfg.pose_time_offset * 1000:+g} ms from its image's stamp, a camera / pose-source time "
-            'offset stress case; the depth images stay exact.'
+            f"\n**groundtruth.txt is deliberately out of sync**: every pose is the camera's pose at a "
+            f"frame, stamped {cfg.pose_time_offset * 1000:+g} ms before that frame's image, so read at an "
+            f"image's stamp it is the camera's pose {cfg.pose_time_offset * 1000:+g} ms later (a camera / "
+            'pose-source time offset stress case); the depth images stay exact.'
         )
     return note
 
@@ -125,14 +126,16 @@ def write_synthetic_sequence(
     # The writer zips the rgb and depth iterables in lockstep, so tee buffers one frame.
     for_rgb, for_depth = itertools.tee((f.rgb, f.depth) for _, f, _ in frames)
     stamps = np.array([cfg.stamp(i) for i in range(cfg.frames)])
+    pose_stamps, poses = pose_source(cfg, trajectory.poses)  # groundtruth.txt: the pose source's record
     return write_tum_folder(
         out_dir,
         cfg.pipeline_camera(),
         stamps,
         (rgb for rgb, _ in for_rgb),
         (depth for _, depth in for_depth),
-        told_poses(cfg, trajectory.poses),
+        poses,
         name=sequence_name(cfg),
         source_md=source_markdown(cfg, out_dir),
         overwrite=overwrite,
+        pose_stamps=None if np.array_equal(pose_stamps, stamps) else pose_stamps,
     )
