@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 from .argtypes import at_least, subcommand
 
@@ -26,6 +27,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = subcommand(
         sub, 'check-focal', "check a recording's focal length against its images and poses", DESCRIPTION
     )
+    recording_arguments(p, 'focal_check')
+    p.set_defaults(func=run)
+
+
+def recording_arguments(p: argparse.ArgumentParser, stage: str) -> None:
+    """The options a calibration check of a recording takes (``check-focal``, ``check-sync``)."""
     p.add_argument('source', help='TUM-layout folder or rosbag2 folder')
     p.add_argument(
         '--rgb-camera',
@@ -37,13 +44,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--pairs',
         type=at_least(5, '--pairs'),
         default=None,
-        help='image pairs the estimate uses (focal_check.pairs)',
+        help=f'image pairs the estimate uses ({stage}.pairs)',
     )
     p.add_argument(
         '--width', type=at_least(16, '--width'), default=320, help='working width (320, as the node)'
     )
     p.add_argument('--height', type=at_least(16, '--height'), default=240, help='working height (240)')
-    p.set_defaults(func=run)
 
 
 def load_recording(args: argparse.Namespace):
@@ -75,14 +81,19 @@ def run(args: argparse.Namespace) -> int:
     sequence = load_recording(args)
     config = FocalCheckConfig() if args.pairs is None else FocalCheckConfig(pairs=args.pairs)
     check = check_frames(sequence.camera, sequence.frames, config)
-    estimate = check.result
+    return verdict_status('check-focal', args.source, check.result, len(check.pairs), config, len(sequence))
+
+
+def verdict_status(command: str, source: str, estimate: Any, pairs: int, config: Any, frames: int) -> int:
+    """Print a check's verdict and return its exit status: 0 consistent, 3 disagrees, 4 cannot
+    tell (not finished: said on stderr, with how far it got; or unobservable)."""
     if estimate is None:
         apart = f'{config.min_baseline:g} m or {config.min_rotation_deg:g} deg apart'
         print(
-            f'depth-fusion check-focal: {args.source}: not enough motion to tell: {len(check.pairs)} of '
-            f'{config.pairs} image pairs ({apart}) in {len(sequence.frames)} frames',
+            f'depth-fusion {command}: {source}: not enough motion to tell: {pairs} of '
+            f'{config.pairs} image pairs ({apart}) in {frames} frames',
             file=sys.stderr,
         )
         return 4
-    print(f'{args.source}: {estimate.message()}')
+    print(f'{source}: {estimate.message()}')
     return {'consistent': 0, 'disagrees': 3}.get(estimate.verdict, 4)

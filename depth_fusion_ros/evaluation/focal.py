@@ -13,7 +13,7 @@ import logging
 
 from ..data.sequence import Sequence
 from ..multiview.focal_check import FocalCheckConfig, FocalEstimate, check_frames
-from ..multiview.params import apply_overrides
+from .checks import run_check
 
 log = logging.getLogger(__name__)
 
@@ -23,23 +23,15 @@ STAGE = 'focal_check'
 def check_focal(sequence: Sequence, params: dict) -> tuple[Sequence, FocalEstimate | None]:
     """The sequence to evaluate (its camera corrected when asked and needed) and the estimate
     (``None`` when the check is off or the sequence is too short to finish it)."""
-    config = apply_overrides(FocalCheckConfig(), params.get(STAGE, {}), STAGE)
-    if config.mode == 'off':
-        return sequence, None
-    check = check_frames(sequence.camera, sequence.frames, config)
-    estimate = check.result
-    if estimate is None:
-        log.info(
-            '%s: focal length not checked: %d image pairs in %d frames, %d needed',
-            sequence.name,
-            len(check.pairs),
-            len(sequence.frames),
-            config.pairs,
-        )
-        return sequence, None
-    level = logging.WARNING if estimate.verdict == 'disagrees' else logging.INFO
-    log.log(level, '%s: %s', sequence.name, estimate.message())
-    if config.mode == 'correct' and estimate.verdict == 'disagrees':
+    config, estimate = run_check(
+        sequence,
+        params,
+        STAGE,
+        FocalCheckConfig(),
+        lambda seq, cfg: check_frames(seq.camera, seq.frames, cfg),
+        'focal length',
+    )
+    if estimate is not None and config.mode == 'correct' and estimate.verdict == 'disagrees':
         sequence = dataclasses.replace(sequence, camera=estimate.corrected(sequence.camera))
         log.warning('%s: every method uses fx %.1f px (focal_check.mode correct)', sequence.name, estimate.fx)
     return sequence, estimate

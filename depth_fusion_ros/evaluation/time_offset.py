@@ -16,7 +16,6 @@ import logging
 import numpy as np
 
 from ..data.sequence import Sequence
-from ..multiview.params import apply_overrides
 from ..multiview.time_offset_check import (
     TimeOffsetCheckConfig,
     TimeOffsetEstimate,
@@ -24,6 +23,7 @@ from ..multiview.time_offset_check import (
     shift_in_time,
 )
 from ..pose_curve import interpolate_poses_cubic
+from .checks import run_check
 
 log = logging.getLogger(__name__)
 
@@ -33,23 +33,15 @@ STAGE = 'time_offset_check'
 def check_time_offset(sequence: Sequence, params: dict) -> tuple[Sequence, TimeOffsetEstimate | None]:
     """The sequence to evaluate (its poses re-read when asked and needed) and the estimate
     (``None`` when the check is off or the sequence is too short to finish it)."""
-    config = apply_overrides(TimeOffsetCheckConfig(), params.get(STAGE, {}), STAGE)
-    if config.mode == 'off':
-        return sequence, None
-    check = check_stream(sequence.camera, sequence.frames, config)
-    estimate = check.result
-    if estimate is None:
-        log.info(
-            '%s: time offset not checked: %d image pairs in %d frames, %d needed',
-            sequence.name,
-            check.pairs,
-            len(sequence.frames),
-            config.pairs,
-        )
-        return sequence, None
-    level = logging.WARNING if estimate.verdict == 'disagrees' else logging.INFO
-    log.log(level, '%s: %s', sequence.name, estimate.message())
-    if config.mode == 'correct' and estimate.verdict == 'disagrees':
+    config, estimate = run_check(
+        sequence,
+        params,
+        STAGE,
+        TimeOffsetCheckConfig(),
+        lambda seq, cfg: check_stream(seq.camera, seq.frames, cfg),
+        'time offset',
+    )
+    if estimate is not None and config.mode == 'correct' and estimate.verdict == 'disagrees':
         sequence = shifted_sequence(sequence, estimate.offset)
         log.warning(
             '%s: every method uses the poses %+.0f ms later (time_offset_check.mode correct)',

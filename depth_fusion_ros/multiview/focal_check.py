@@ -26,21 +26,18 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..geometry import relative_pose, rotation_angle
+from .image_pairs import CHECK_MODES, ImagePairs, check_mode, check_sampling
 
 log = logging.getLogger(__name__)
 
-FOCAL_CHECK_MODES = ('off', 'warn', 'correct')
+FOCAL_CHECK_MODES = CHECK_MODES
 VERDICTS = ('consistent', 'disagrees', 'unobservable')
 
 #: Sampson distance (px) where the soft-L1 loss turns from squares to absolute values.
 _LOSS_SCALE_PX = 0.5
-#: OpenCV's random state (per thread) is set to this before each RANSAC: a deterministic check.
-_RANSAC_SEED = 12345
 #: The focal scales a fit may reach (a focal length half or twice the told one).
 _SCALE_BOUNDS = (0.5, 2.0)
 
@@ -71,14 +68,8 @@ class FocalCheckConfig:
     features: int = 1000
 
     def __post_init__(self) -> None:
-        if self.mode is False:  # YAML 1.1 reads an unquoted `mode: off` (or `--set ...=off`) as false
-            object.__setattr__(self, 'mode', 'off')
-        if self.mode not in FOCAL_CHECK_MODES:
-            raise ValueError(f'focal_check.mode: {self.mode!r} is not one of {", ".join(FOCAL_CHECK_MODES)}')
-        if self.pairs < 5 or self.min_matches < 8 or self.features < 50:
-            raise ValueError('focal_check: need pairs >= 5, min_matches >= 8 and features >= 50')
-        if not (self.min_baseline > 0 and self.min_rotation_deg > 0):
-            raise ValueError('focal_check: need min_baseline > 0 and min_rotation_deg > 0')
+        object.__setattr__(self, 'mode', check_mode('focal_check', self.mode))
+        check_sampling('focal_check', self)
         if not (0 < self.threshold < 1 and self.max_stderr > 0):
             raise ValueError('focal_check: need 0 < threshold < 1 and max_stderr > 0')
 
@@ -124,13 +115,6 @@ class FocalEstimate:
         """``camera`` with both focal lengths scaled by the fitted scale (principal point kept)."""
         s = self.scale
         return PinholeCamera(camera.width, camera.height, camera.fx * s, camera.fy * s, camera.cx, camera.cy)
-
-
-@dataclass
-class _Sample:
-    pose: np.ndarray
-    points: np.ndarray  # (N, 2) float64 keypoint positions
-    descriptors: np.ndarray | None
 
 
 @dataclass
@@ -216,43 +200,6 @@ def estimate_focal_scale(pairs: list[_Pair], K: np.ndarray) -> tuple[float, floa
     return median, spread * math.sqrt(math.pi / 2) / math.sqrt(scales.size)
 
 
-def image_features(orb: cv2.ORB, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """ORB keypoint positions (N, 2) float64 and descriptors (``None`` when none) of a grey image
-    (float in [0, 1] or uint8)."""
-    if gray.dtype != np.uint8:
-        gray = np.clip(np.rint(np.asarray(gray, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
-    keypoints, descriptors = orb.detectAndCompute(gray, None)
-    return np.float64([k.pt for k in keypoints]).reshape(-1, 2), descriptors
-
-
-def rigid_matches(
-    matcher: cv2.DescriptorMatcher,
-    K: np.ndarray,
-    a: tuple[np.ndarray, np.ndarray | None],
-    b: tuple[np.ndarray, np.ndarray | None],
-    min_matches: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The matches of two images' features (``image_features``) that fit one rigid motion:
-    positions ``p1``, ``p2`` (M, 2) accepted by the images' own essential matrix (RANSAC, 1 px,
-    OpenCV's random state seeded first: the same pair gives the same matches whatever ran
-    before) and that matrix; ``None`` under ``min_matches``."""
-    if a[1] is None or b[1] is None:
-        return None
-    matches = matcher.match(a[1], b[1])
-    if len(matches) < min_matches:
-        return None
-    p1 = a[0][[m.queryIdx for m in matches]]
-    p2 = b[0][[m.trainIdx for m in matches]]
-    cv2.setRNGSeed(_RANSAC_SEED)
-    E, mask = cv2.findEssentialMat(p1, p2, K, cv2.RANSAC, 0.999, 1.0)
-    if E is None or mask is None or E.shape != (3, 3):
-        return None
-    inliers = mask.ravel() > 0
-    if int(inliers.sum()) < min_matches:
-        return None
-    return p1[inliers], p2[inliers], E
-
-
 @dataclass
 class FocalCheck:
     """Collects image pairs from a posed stream and checks the focal length once (see module)."""
@@ -264,9 +211,7 @@ class FocalCheck:
     pairs: list[_Pair] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        self._orb = cv2.ORB_create(self.config.features)
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-        self._last: _Sample | None = None
+        self._images = ImagePairs.for_config(self.camera.K, self.config)
 
     @property
     def done(self) -> bool:
@@ -274,13 +219,7 @@ class FocalCheck:
 
     def wants(self, pose: np.ndarray) -> bool:
         """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
-        if self.done:
-            return False
-        if self._last is None:
-            return True
-        T = relative_pose(self._last.pose, np.asarray(pose, dtype=np.float64))
-        moved = float(np.linalg.norm(T[:3, 3])) >= self.config.min_baseline
-        return moved or math.degrees(rotation_angle(T[:3, :3])) >= self.config.min_rotation_deg
+        return not self.done and self._images.far_enough(pose)
 
     def add(self, gray: np.ndarray, pose: np.ndarray) -> FocalEstimate | None:
         """One posed frame of the stream (grey image on this camera's grid, camera-to-world);
@@ -288,29 +227,16 @@ class FocalCheck:
         self.frames += 1
         if not self.wants(pose):
             return None
-        current = _Sample(np.asarray(pose, dtype=np.float64), *image_features(self._orb, gray))
-        if self._last is not None:
-            self._pair(self._last, current)
-        self._last = current
+        matched = self._images.add(gray, pose)
+        if matched is not None:
+            self.pairs.append(_Pair(matched.T_ba, matched.p1, matched.p2))
         if len(self.pairs) < self.config.pairs:
             return None
         scale, stderr = estimate_focal_scale(self.pairs, self.camera.K)
         self.result = self._verdict(scale, stderr)
         self.pairs = []
-        self._last = None
+        self._images.reset()
         return self.result
-
-    def _pair(self, a: _Sample, b: _Sample) -> None:
-        matched = rigid_matches(
-            self._matcher,
-            self.camera.K,
-            (a.points, a.descriptors),
-            (b.points, b.descriptors),
-            self.config.min_matches,
-        )
-        T_ba = relative_pose(a.pose, b.pose)
-        if matched is not None and np.linalg.norm(T_ba[:3, 3]) >= 1e-4:
-            self.pairs.append(_Pair(T_ba, *matched[:2]))
 
     def _verdict(self, scale: float, stderr: float) -> FocalEstimate:
         if not math.isfinite(stderr) or stderr > self.config.max_stderr or scale <= 0:

@@ -13,7 +13,7 @@ epipolar geometry of the right one best. :class:`TimeOffsetCheck` takes the pose
 stream (every frame's stamp and pose: the pose stream it interpolates in). A frame that moved
 ``min_baseline`` or turned ``min_rotation_deg`` from the last sample is the next sample;
 consecutive samples make a pair (ORB features, the images' own essential matrix keeps the
-matches that fit one rigid motion: :mod:`.focal_check`'s steps). Once the stream has passed a
+matches that fit one rigid motion: :mod:`.image_pairs`, as the focal check). Once the stream has passed a
 pair's second image by ``max_offset``, the pair's robust epipolar cost is evaluated for every
 offset of a 2 ms grid over ``[-max_offset, max_offset]``; after ``pairs`` pairs the estimate is
 the median of the pairs' best offsets and its standard error their spread, as the focal check
@@ -29,17 +29,16 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..geometry import relative_pose, rotation_angle
 from ..pose_curve import interpolate_poses_cubic
-from .focal_check import _LOSS_SCALE_PX, image_features, rigid_matches, sampson_distances, skew
+from .focal_check import _LOSS_SCALE_PX, sampson_distances, skew
+from .image_pairs import CHECK_MODES, ImagePairs, MatchedPair, check_mode, check_sampling
 
 log = logging.getLogger(__name__)
 
-TIME_OFFSET_CHECK_MODES = ('off', 'warn', 'correct')
+TIME_OFFSET_CHECK_MODES = CHECK_MODES
 
 #: Spacing of the offsets every pair's cost is evaluated at (s).
 GRID_STEP = 0.002
@@ -83,16 +82,8 @@ class TimeOffsetCheckConfig:
     features: int = 1000
 
     def __post_init__(self) -> None:
-        if self.mode is False:  # YAML 1.1 reads an unquoted `mode: off` (or `--set ...=off`) as false
-            object.__setattr__(self, 'mode', 'off')
-        if self.mode not in TIME_OFFSET_CHECK_MODES:
-            raise ValueError(
-                f'time_offset_check.mode: {self.mode!r} is not one of {", ".join(TIME_OFFSET_CHECK_MODES)}'
-            )
-        if self.pairs < 5 or self.min_matches < 8 or self.features < 50:
-            raise ValueError('time_offset_check: need pairs >= 5, min_matches >= 8 and features >= 50')
-        if not (self.min_baseline > 0 and self.min_rotation_deg > 0):
-            raise ValueError('time_offset_check: need min_baseline > 0 and min_rotation_deg > 0')
+        object.__setattr__(self, 'mode', check_mode('time_offset_check', self.mode))
+        check_sampling('time_offset_check', self)
         if not (GRID_STEP <= self.max_offset <= 1.0):
             raise ValueError(f'time_offset_check: need {GRID_STEP} <= max_offset <= 1 s')
         if not (0 < self.threshold < self.max_offset and self.max_stderr > 0):
@@ -136,21 +127,6 @@ class TimeOffsetEstimate:
                 f'{self.told:.3f} kept, unchecked'
             )
         return f'time offset check: pose_time_offset {self.told:.3f} agrees with the images: {fit}'
-
-
-@dataclass
-class _Sample:
-    stamp: float
-    pose: np.ndarray
-    points: np.ndarray
-    descriptors: np.ndarray | None
-
-
-@dataclass
-class _Pair:
-    stamps: tuple[float, float]
-    p1: np.ndarray
-    p2: np.ndarray
 
 
 def pair_costs(
@@ -241,10 +217,8 @@ class TimeOffsetCheck:
     curves: list[tuple[np.ndarray, int]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        self._orb = cv2.ORB_create(self.config.features)
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-        self._last: _Sample | None = None
-        self._waiting: list[_Pair] = []  # matched, not yet covered by the pose history
+        self._images = ImagePairs.for_config(self.camera.K, self.config)
+        self._waiting: list[MatchedPair] = []  # matched, not yet covered by the pose history
         self._stamps: list[float] = []
         self._poses: list[np.ndarray] = []
         self._grid = np.arange(-self.config.max_offset, self.config.max_offset + GRID_STEP / 2, GRID_STEP)
@@ -271,37 +245,17 @@ class TimeOffsetCheck:
 
     def wants(self, stamp: float, pose: np.ndarray) -> bool:
         """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
-        if self.done or self.pairs >= self.config.pairs:
-            return False
-        if self._last is None:
-            return True
-        T = relative_pose(self._last.pose, np.asarray(pose, dtype=np.float64))
-        moved = float(np.linalg.norm(T[:3, 3])) >= self.config.min_baseline
-        return moved or math.degrees(rotation_angle(T[:3, :3])) >= self.config.min_rotation_deg
+        return not self.done and self.pairs < self.config.pairs and self._images.far_enough(pose)
 
     def add(self, gray: np.ndarray, stamp: float, pose: np.ndarray) -> TimeOffsetEstimate | None:
         """One posed frame (grey image on this camera's grid): observed, and a sample when
         :meth:`wants` it; returns the estimate on the frame that completes it, else ``None``."""
         self.frames += 1
-        wanted = self.wants(stamp, pose)
-        if wanted:
-            pose = np.asarray(pose, dtype=np.float64)
-            current = _Sample(float(stamp), pose, *image_features(self._orb, gray))
-            if self._last is not None:
-                self._pair(self._last, current)
-            self._last = current
+        if self.wants(stamp, pose):
+            matched = self._images.add(gray, pose, stamp)
+            if matched is not None:
+                self._waiting.append(matched)
         return self.observe(stamp, pose)
-
-    def _pair(self, a: _Sample, b: _Sample) -> None:
-        matched = rigid_matches(
-            self._matcher,
-            self.camera.K,
-            (a.points, a.descriptors),
-            (b.points, b.descriptors),
-            self.config.min_matches,
-        )
-        if matched is not None and np.linalg.norm(relative_pose(a.pose, b.pose)[:3, 3]) >= 1e-4:
-            self._waiting.append(_Pair((a.stamp, b.stamp), *matched[:2]))
 
     def _evaluate_covered(self) -> TimeOffsetEstimate | None:
         """Evaluate the waiting pairs the pose history now covers; the estimate once all are in."""
@@ -309,21 +263,21 @@ class TimeOffsetCheck:
             return None
         newest, oldest = self._stamps[-1], self._stamps[0]
         reach = self.config.max_offset
-        while self._waiting and self._waiting[0].stamps[1] + reach <= newest:
+        while self._waiting and self._waiting[0].b.stamp + reach <= newest:
             pair = self._waiting.pop(0)
-            if pair.stamps[0] - reach < oldest:
+            if pair.a.stamp - reach < oldest:
                 continue  # its poses before the history: not evaluable
             self._evaluate(pair)
         if len(self.curves) < self.config.pairs:
             return None
         return self._finish()
 
-    def _evaluate(self, pair: _Pair) -> None:
+    def _evaluate(self, pair: MatchedPair) -> None:
         stamps = np.asarray(self._stamps)
         poses = np.asarray(self._poses)
         t0 = stamps[0]
-        Pa, va = interpolate_poses_cubic(stamps - t0, poses, pair.stamps[0] + self._grid - t0)
-        Pb, vb = interpolate_poses_cubic(stamps - t0, poses, pair.stamps[1] + self._grid - t0)
+        Pa, va = interpolate_poses_cubic(stamps - t0, poses, pair.a.stamp + self._grid - t0)
+        Pb, vb = interpolate_poses_cubic(stamps - t0, poses, pair.b.stamp + self._grid - t0)
         if not (va.all() and vb.all()):
             return
         costs = pair_costs(self.camera.K, Pa, Pb, pair.p1, pair.p2)
@@ -342,7 +296,8 @@ class TimeOffsetCheck:
         matches = sum(m for _, m in self.curves)
         self.result = TimeOffsetEstimate(offset, stderr, len(curves), matches, verdict, self.told, sharpness)
         log.debug('%s', self.result.message())
-        self._waiting, self._stamps, self._poses, self._last = [], [], [], None
+        self._waiting, self._stamps, self._poses = [], [], []
+        self._images.reset()
         return self.result
 
 

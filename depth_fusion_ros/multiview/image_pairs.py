@@ -1,0 +1,156 @@
+"""Image pairs from a posed stream, for the calibration checks (focal length, time offset).
+
+Both checks ask the same of a stream: frames far enough apart that a pair carries a signal
+at any speed and frame rate (moved ``min_baseline`` or turned ``min_rotation_deg`` since the
+last sample, by the told poses), and the matches of consecutive samples that fit one rigid
+motion (ORB, cross-checked Hamming matches, the images' own essential matrix:
+:func:`rigid_matches`). :class:`ImagePairs` does that once for either; the
+checks differ in what they fit to the pairs. Also the two checks' shared config rules.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..geometry import relative_pose, rotation_angle
+
+#: What a check may do: nothing, say it, or also correct what it found.
+CHECK_MODES = ('off', 'warn', 'correct')
+#: OpenCV's random state (per thread) is set to this before each RANSAC: a deterministic check.
+_RANSAC_SEED = 12345
+
+
+def check_mode(section: str, mode: object) -> str:
+    """A check's ``mode``, validated; YAML 1.1 reads an unquoted ``mode: off`` (or ``--set
+    ...=off``) as false, which is off."""
+    if mode is False:
+        return 'off'
+    if mode not in CHECK_MODES:
+        raise ValueError(f'{section}.mode: {mode!r} is not one of {", ".join(CHECK_MODES)}')
+    return str(mode)
+
+
+def check_sampling(section: str, config: object) -> None:
+    """The sampling fields a check's config shares (``pairs``, ``min_matches``, ``features``,
+    ``min_baseline``, ``min_rotation_deg``): one-line errors naming the section."""
+    c = config
+    if c.pairs < 5 or c.min_matches < 8 or c.features < 50:  # type: ignore[attr-defined]
+        raise ValueError(f'{section}: need pairs >= 5, min_matches >= 8 and features >= 50')
+    if not (c.min_baseline > 0 and c.min_rotation_deg > 0):  # type: ignore[attr-defined]
+        raise ValueError(f'{section}: need min_baseline > 0 and min_rotation_deg > 0')
+
+
+def image_features(orb: cv2.ORB, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """ORB keypoint positions (N, 2) float64 and descriptors (``None`` when none) of a grey image
+    (float in [0, 1] or uint8)."""
+    if gray.dtype != np.uint8:
+        gray = np.clip(np.rint(np.asarray(gray, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
+    keypoints, descriptors = orb.detectAndCompute(gray, None)
+    return np.float64([k.pt for k in keypoints]).reshape(-1, 2), descriptors
+
+
+def rigid_matches(
+    matcher: cv2.DescriptorMatcher,
+    K: np.ndarray,
+    a: tuple[np.ndarray, np.ndarray | None],
+    b: tuple[np.ndarray, np.ndarray | None],
+    min_matches: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The matches of two images' features (``image_features``) that fit one rigid motion:
+    positions ``p1``, ``p2`` (M, 2) accepted by the images' own essential matrix (RANSAC, 1 px,
+    OpenCV's random state seeded first: the same pair gives the same matches whatever ran
+    before) and that matrix; ``None`` under ``min_matches``."""
+    if a[1] is None or b[1] is None:
+        return None
+    matches = matcher.match(a[1], b[1])
+    if len(matches) < min_matches:
+        return None
+    p1 = a[0][[m.queryIdx for m in matches]]
+    p2 = b[0][[m.trainIdx for m in matches]]
+    cv2.setRNGSeed(_RANSAC_SEED)
+    E, mask = cv2.findEssentialMat(p1, p2, K, cv2.RANSAC, 0.999, 1.0)
+    if E is None or mask is None or E.shape != (3, 3):
+        return None
+    inliers = mask.ravel() > 0
+    if int(inliers.sum()) < min_matches:
+        return None
+    return p1[inliers], p2[inliers], E
+
+
+@dataclass
+class Sample:
+    """A frame taken as a sample: its stamp, told pose and ORB features."""
+
+    stamp: float
+    pose: np.ndarray
+    points: np.ndarray  # (N, 2) float64 keypoint positions
+    descriptors: np.ndarray | None
+
+
+@dataclass
+class MatchedPair:
+    """Two consecutive samples and their matches that fit one rigid motion."""
+
+    a: Sample
+    b: Sample
+    p1: np.ndarray  # (M, 2) matched positions in the first image
+    p2: np.ndarray
+
+    @property
+    def T_ba(self) -> np.ndarray:
+        """The told relative pose: first-camera coordinates to second-camera coordinates."""
+        return relative_pose(self.a.pose, self.b.pose)
+
+
+class ImagePairs:
+    """Takes the samples of a posed stream and matches each with the one before."""
+
+    def __init__(
+        self, K: np.ndarray, min_baseline: float, min_rotation_deg: float, min_matches: int, features: int
+    ) -> None:
+        self.K = K
+        self.min_baseline = min_baseline
+        self.min_rotation_deg = min_rotation_deg
+        self.min_matches = min_matches
+        self._orb = cv2.ORB_create(features)
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+        self.last: Sample | None = None
+
+    @classmethod
+    def for_config(cls, K: np.ndarray, config: object) -> ImagePairs:
+        c = config
+        return cls(K, c.min_baseline, c.min_rotation_deg, c.min_matches, c.features)  # type: ignore[attr-defined]
+
+    def far_enough(self, pose: np.ndarray) -> bool:
+        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
+        if self.last is None:
+            return True
+        T = relative_pose(self.last.pose, np.asarray(pose, dtype=np.float64))
+        moved = float(np.linalg.norm(T[:3, 3])) >= self.min_baseline
+        return moved or math.degrees(rotation_angle(T[:3, :3])) >= self.min_rotation_deg
+
+    def add(self, gray: np.ndarray, pose: np.ndarray, stamp: float = 0.0) -> MatchedPair | None:
+        """Take a frame as the next sample; its pair with the last one when they match (at least
+        ``min_matches`` after RANSAC) and moved apart, else ``None``."""
+        current = Sample(float(stamp), np.asarray(pose, dtype=np.float64), *image_features(self._orb, gray))
+        last, self.last = self.last, current
+        if last is None:
+            return None
+        matched = rigid_matches(
+            self._matcher,
+            self.K,
+            (last.points, last.descriptors),
+            (current.points, current.descriptors),
+            self.min_matches,
+        )
+        pair = None if matched is None else MatchedPair(last, current, *matched[:2])
+        if pair is None or np.linalg.norm(pair.T_ba[:3, 3]) < 1e-4:
+            return None
+        return pair
+
+    def reset(self) -> None:
+        self.last = None
