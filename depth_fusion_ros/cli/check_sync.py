@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from .argtypes import subcommand
-from .check_focal import load_recording, recording_arguments, verdict_status
+from .recordings import load_recording, recording_arguments, verdict_status
 
 DESCRIPTION = """\
 Check a recording (a TUM-layout folder or a rosbag2 with images, camera info and poses) for a

@@ -148,16 +148,22 @@ def _fundamental(scales: np.ndarray, K: np.ndarray, T_ba: np.ndarray) -> np.ndar
     return np.transpose(Ki, (0, 2, 1)) @ E @ Ki
 
 
-def _robust_costs(scales: np.ndarray, K: np.ndarray, pair: _Pair) -> np.ndarray:
-    """Soft-L1 sum of one pair's Sampson distances at each of ``scales`` (S,)."""
-    F = _fundamental(scales, K, pair.T_ba)
-    x1 = np.c_[pair.p1, np.ones(len(pair.p1))]
-    x2 = np.c_[pair.p2, np.ones(len(pair.p2))]
+def soft_l1_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """Soft-L1 costs (S, N) of the Sampson distances of matches ``p1 -> p2`` (N, 2) under each of
+    S fundamental matrices ``F`` (S, 3, 3), in one pass: squares under ``_LOSS_SCALE_PX``, absolute
+    values beyond. Both calibration checks fit their parameter with it."""
+    x1 = np.c_[p1, np.ones(len(p1))]
+    x2 = np.c_[p2, np.ones(len(p2))]
     Fx1 = np.einsum('sij,nj->sni', F, x1)
     Ftx2 = np.einsum('sji,nj->sni', F, x2)
     norm = np.sqrt(Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2)
     r = np.einsum('ni,sni->sn', x2, Fx1) / np.maximum(norm, 1e-12) / _LOSS_SCALE_PX
-    return np.sum(np.sqrt(1.0 + r * r) - 1.0, axis=1)
+    return np.sqrt(1.0 + r * r) - 1.0
+
+
+def _robust_costs(scales: np.ndarray, K: np.ndarray, pair: _Pair) -> np.ndarray:
+    """Soft-L1 sum of one pair's Sampson distances at each of ``scales`` (S,)."""
+    return soft_l1_sampson(_fundamental(scales, K, pair.T_ba), pair.p1, pair.p2).sum(axis=1)
 
 
 #: The grid of focal scales every pair's cost is first evaluated on (1 % steps, log-spaced).

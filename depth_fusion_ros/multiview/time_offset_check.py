@@ -24,6 +24,7 @@ the offset, so the pairs' costs are flat, their best offsets scatter and the ver
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 from collections.abc import Iterable
@@ -33,7 +34,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..pose_curve import interpolate_poses_cubic
-from .focal_check import _LOSS_SCALE_PX, sampson_distances, skew
+from .focal_check import soft_l1_sampson
 from .image_pairs import CHECK_MODES, ImagePairs, MatchedPair, check_mode, check_sampling
 
 log = logging.getLogger(__name__)
@@ -137,13 +138,14 @@ def pair_costs(
     the two poses do not move (no epipolar geometry)."""
     Ki = np.linalg.inv(K)
     T = np.linalg.inv(poses_b) @ poses_a  # first-camera coordinates to second-camera coordinates
+    t = T[:, :3, 3]
+    moving = np.linalg.norm(t, axis=1) >= 1e-5
+    skews = np.zeros((len(T), 3, 3))
+    skews[:, 0, 1], skews[:, 0, 2], skews[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
+    skews -= np.transpose(skews, (0, 2, 1))
+    F = Ki.T @ skews @ T[:, :3, :3] @ Ki  # (S, 3, 3): every relative pose at once
     costs = np.full(len(T), np.inf)
-    for s, Ts in enumerate(T):
-        if np.linalg.norm(Ts[:3, 3]) < 1e-5:
-            continue
-        F = Ki.T @ skew(Ts[:3, 3]) @ Ts[:3, :3] @ Ki
-        r = sampson_distances(F, p1, p2) / _LOSS_SCALE_PX
-        costs[s] = float(np.mean(np.sqrt(1.0 + r * r) - 1.0))
+    costs[moving] = soft_l1_sampson(F[moving], p1, p2).mean(axis=1)
     return costs
 
 
@@ -165,7 +167,8 @@ def estimate_offset(grid: np.ndarray, curves: np.ndarray, resamples: int = 200) 
     best = int(np.argmin(curves.sum(axis=0)))
     rng = np.random.default_rng(_BOOTSTRAP_SEED)
     draws = rng.integers(0, len(curves), size=(resamples, len(curves)))
-    weights = np.stack([np.bincount(d, minlength=len(curves)) for d in draws]).astype(np.float64)
+    weights = np.zeros((resamples, len(curves)))  # how often each pair was drawn, per resample
+    np.add.at(weights, (np.arange(resamples)[:, None], draws), 1.0)
     resampled = grid[np.argmin(weights @ curves, axis=1)]
     stderr = max(float(np.std(resampled)), GRID_STEP / 2)
     reach = round(_SHARPNESS_AT / GRID_STEP)
@@ -273,8 +276,12 @@ class TimeOffsetCheck:
         return self._finish()
 
     def _evaluate(self, pair: MatchedPair) -> None:
-        stamps = np.asarray(self._stamps)
-        poses = np.asarray(self._poses)
+        # Only the poses the pair's reads reach, and two more each side for the cubic's tangents.
+        reach = self.config.max_offset
+        lo = max(bisect.bisect_left(self._stamps, pair.a.stamp - reach) - 2, 0)
+        hi = bisect.bisect_right(self._stamps, pair.b.stamp + reach) + 2
+        stamps = np.asarray(self._stamps[lo:hi])
+        poses = np.asarray(self._poses[lo:hi])
         t0 = stamps[0]
         Pa, va = interpolate_poses_cubic(stamps - t0, poses, pair.a.stamp + self._grid - t0)
         Pb, vb = interpolate_poses_cubic(stamps - t0, poses, pair.b.stamp + self._grid - t0)

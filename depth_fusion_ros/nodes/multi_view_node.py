@@ -552,6 +552,7 @@ class MultiViewNode(DepthFusionNode):
     def _resolve_pending(self) -> None:
         """Pose every waiting image the buffer now covers, in stamp order; drop the hopeless ones."""
         wait_ns = messages.sec_to_ns(float(self.params['pose_wait']))
+        self._take_offset_correction()
         offset = self._pose_offset()
         while self.pending:
             head = self.pending[0]
@@ -692,28 +693,31 @@ class MultiViewNode(DepthFusionNode):
 
     def _pose_offset(self) -> float:
         """Seconds from an image's stamp to the pose time it is posed at: ``pose_time_offset``
-        plus the time offset check's correction once it has one (``time_offset_check.mode``
-        correct). Taking a new correction (callback thread) starts the frame history and the
-        filter over at the next posed frame, and the focal length check: the frames posed
-        before it were posed at the other offset, so no neighbour, propagated estimate or
-        image pair mixes the two."""
-        correction = self.time_offset_check.correction
-        if correction != self._offset_correction:
-            self._offset_correction = correction
-            self._restart_from_ns = 0  # the next posed frame, whatever its stamp
-            self.focal_check.restart()  # its pairs were posed at the old offset
-            told = float(self.params['pose_time_offset'])
-            self.stats.noted(
-                'time_offset_disagrees',
-                f'{self.time_offset_check.result.message()}; time_offset_check.mode correct: poses are '
-                f'read at image stamp {told + correction:+.3f} s from now on, frame history and filter '
-                'start over',
-            )
+        plus the time offset check's correction once taken (:meth:`_take_offset_correction`)."""
         return float(self.params['pose_time_offset']) + self._offset_correction
+
+    def _take_offset_correction(self) -> None:
+        """Take the time offset check's correction once it has one (``time_offset_check.mode``
+        correct; callback thread, before images are posed). It starts the frame history, the
+        filter and the focal length check over at the next posed frame: the frames posed before
+        it were posed at the other offset, so no neighbour, propagated estimate or image pair
+        mixes the two."""
+        correction = self.time_offset_check.correction
+        if correction == self._offset_correction:
+            return
+        self._offset_correction = correction
+        self._restart_from_ns = 0  # the next posed frame, whatever its stamp
+        self.focal_check.restart()  # its pairs were posed at the old offset
+        self.stats.noted(
+            'time_offset_disagrees',
+            f'{self.time_offset_check.result.message()}; time_offset_check.mode correct: poses are '
+            f'read at image stamp {self._pose_offset():+.3f} s from now on, frame history and filter '
+            'start over',
+        )
 
     def _on_time_offset_estimate(self, camera: PinholeCamera, estimate: TimeOffsetEstimate) -> None:
         """The time offset check's result (its thread), said once; in correct mode the callbacks
-        take the correction (``_pose_offset``) and say it then."""
+        take the correction (``_take_offset_correction``) and say it then."""
         if estimate.verdict != 'disagrees':
             self.get_logger().info(estimate.message())
         elif self.time_offset_check.config.mode != 'correct':
