@@ -25,6 +25,8 @@ SIZE = {'width': 240, 'height': 180, 'frames': 90, 'seed': 5}
 #: frames): the stream waits here for its thread, so the correction comes at the same frame
 #: however busy the machine is.
 CHECKED = 36
+#: More focal check pairs than the sweep holds (5 cm apart on 1 m): it keeps collecting to the end.
+FOCAL_PAIRS = 40
 #: Keyframes from this frame on are scored: a filter grown for 24 frames after the correction.
 LATE = 60
 
@@ -51,7 +53,12 @@ def _run(seq, mode: str):
             qos_depth=100,
             width=SIZE['width'],
             height=SIZE['height'],
-            **{'filter.max_lag_frames': 0, 'filter.max_update_rate': 0.0, 'time_offset_check.mode': mode},
+            **{
+                'filter.max_lag_frames': 0,
+                'filter.max_update_rate': 0.0,
+                'time_offset_check.mode': mode,
+                'focal_check.pairs': FOCAL_PAIRS,
+            },
         )
         depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
         poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')
@@ -110,12 +117,14 @@ def test_a_pose_source_20_ms_ahead_is_found_and_corrected(streams):
         assert snap.noted.get('time_offset_disagrees') == 1 and snap.dropped == {}, snap.summary()
         assert status.startswith('disagrees: -2') and f'pose_time_offset {result.fitted:.3f}' in status
     corrected, warned = runs['correct'], runs['warn']
+
     # The focal check started over with the correction (its pairs were posed at the old offset):
-    # 60 cm of pairs do not fit in the 1 m sweep after 40 cm of it; kept as it was, it finished.
-    assert corrected[5].startswith('collecting') and not warned[5].startswith('collecting'), (
-        corrected[5],
-        warned[5],
-    )
+    # it has fewer pairs at the end than the one left running, which collected from the start.
+    def focal_pairs(status: str) -> int:
+        assert status.startswith('collecting ('), status
+        return int(status.split('(')[1].split()[0])
+
+    assert focal_pairs(corrected[5]) < focal_pairs(warned[5]), (corrected[5], warned[5])
     assert pose_error_mm(corrected[4]) < pose_error_mm(warned[4]) / 3
     # Poses read in sync: as accurate estimates, and far more of them pass the filter's tests.
     (good, error), (good_warned, error_warned) = depth_scores(corrected[3]), depth_scores(warned[3])
