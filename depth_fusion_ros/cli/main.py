@@ -23,6 +23,7 @@ SUBCOMMANDS = (
     'evaluate',
     'check_focal',
     'check_sync',
+    'check_mount',
     'train',
     'adapt',
     'export',

@@ -112,12 +112,14 @@ def evaluation_stages() -> dict[str, set[str]]:
     )
     from ..evaluation.methods.recorded import TOPICS as RECORDED_TOPICS
     from ..evaluation.methods.single_view import SIMULATED_STAGE
+    from ..evaluation.mount import STAGE as MOUNT_STAGE
     from ..evaluation.time_offset import STAGE as TIME_OFFSET_STAGE
     from ..fusion.guard import GuardConfig
     from ..fusion.pipeline import FusionConfig
     from ..mapping.config import MapConfig
     from ..multiview.filter_config import FilterConfig
     from ..multiview.focal_check import FocalCheckConfig
+    from ..multiview.mount_check import MountCheckConfig
     from ..multiview.neighbours import NeighbourConfig
     from ..multiview.semidense import MultiViewConfig
     from ..multiview.time_offset_check import TimeOffsetCheckConfig
@@ -132,6 +134,7 @@ def evaluation_stages() -> dict[str, set[str]]:
         FILTER_STAGE: fields(FilterConfig),
         FOCAL_STAGE: fields(FocalCheckConfig),
         TIME_OFFSET_STAGE: fields(TimeOffsetCheckConfig),
+        MOUNT_STAGE: fields(MountCheckConfig),
         GUARD_STAGE: fields(GuardConfig),
         ADAPT_STAGE: fields(AdaptConfig),
         MAP_STAGE: fields(MapConfig),

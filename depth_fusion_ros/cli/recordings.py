@@ -11,7 +11,7 @@ from .argtypes import at_least
 
 
 def recording_arguments(p: argparse.ArgumentParser, stage: str) -> None:
-    """The options a calibration check of a recording takes (``check-focal``, ``check-sync``)."""
+    """The options a calibration check of a recording takes (``check-focal``, ``-sync``, ``-mount``)."""
     p.add_argument('source', help='TUM-layout folder or rosbag2 folder')
     p.add_argument(
         '--rgb-camera',

@@ -44,6 +44,10 @@ SCALAR_HELP: dict[str, str] = {
         'the true ones; default {default})'
     ),
     'pose_noise_deg': 'the same jitter of the rotations, degrees (default {default})',
+    'mount_tilt_deg': (
+        'degrees: the poses written to groundtruth.txt are the true ones turned about the camera x '
+        'axis, a camera mounted tilted against its pose frame (-10..10; default {default})'
+    ),
     'pose_time_offset': (
         'seconds: the poses written to groundtruth.txt are the true ones this much later, a camera / '
         'pose-source time offset (at most one frame period; default {default})'
@@ -150,6 +154,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             'focal_error',
             'pose_noise_m',
             'pose_noise_deg',
+            'mount_tilt_deg',
             'pose_time_offset',
             'exposure_time',
             'readout_time',

@@ -23,7 +23,7 @@ import numpy as np
 from ..data.sequence import Sequence
 from ..metrics import MetricAccumulator, good_density, high_gradient_mask, upsample_depth
 from ..progress import progress
-from . import time_offset
+from . import mount, time_offset
 from .context import EvalOptions, KeyframeContext, SequenceContext, keyframe_indices
 from .focal import check_focal, estimate_json
 from .registry import MethodSpec, SequenceOutput, get_method
@@ -81,6 +81,8 @@ class SequenceResult:
     focal_check: dict[str, Any] | None = None
     #: The time offset check (``evaluation/time_offset.py``), or ``None`` when it did not run.
     time_offset_check: dict[str, Any] | None = None
+    #: The mount check (``evaluation/mount.py``), or ``None`` when it did not run.
+    mount_check: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -90,6 +92,7 @@ class SequenceResult:
             'dropped': dict(self.sequence.dropped),
             'focal_check': self.focal_check,
             'time_offset_check': self.time_offset_check,
+            'mount_check': self.mount_check,
             'methods': {name: rec.to_json() for name, rec in self.records.items()},
         }
 
@@ -114,11 +117,14 @@ def evaluate_sequence(
     n_samples: int = 3,
     show_progress: bool = True,
 ) -> SequenceResult:
-    """Run ``methods`` on the keyframes of an already loaded sequence (first the time offset
-    and focal length checks, which may correct its poses and camera: ``evaluation/time_offset.py``,
-    ``evaluation/focal.py``)."""
+    """Run ``methods`` on the keyframes of an already loaded sequence (first the time offset,
+    mount and focal length checks, which may correct its poses and camera:
+    ``evaluation/time_offset.py``, ``evaluation/mount.py``, ``evaluation/focal.py``)."""
     read, timing = time_offset.check_time_offset(sequence, options.params)
     timing_json = time_offset.estimate_json(timing, corrected=read is not sequence)
+    sequence = read
+    read, mount_estimate = mount.check_mount(sequence, options.params)
+    mount_json = mount.estimate_json(mount_estimate, corrected=read is not sequence)
     sequence = read
     told_camera = sequence.camera
     sequence, focal = check_focal(sequence, options.params)
@@ -154,7 +160,9 @@ def evaluate_sequence(
     for spec in specs:
         if spec.finish is not None:
             records[spec.name].sequence_output = spec.finish(whole)
-    return SequenceResult(sequence.name, path, keyframes, records, sequence, focal_json, timing_json)
+    return SequenceResult(
+        sequence.name, path, keyframes, records, sequence, focal_json, timing_json, mount_json
+    )
 
 
 def _mean_extra(values: list[float]) -> float:

@@ -163,6 +163,33 @@ def time_offset_table(doc: dict[str, Any]) -> str | None:
     return _table(header, rows)
 
 
+def mount_table(doc: dict[str, Any]) -> str | None:
+    """The mount check per sequence (``evaluation/mount.py``): poses turned by a fitted rotation
+    are said in the report, not only in results.json."""
+    rows = []
+    for name, seq in doc['sequences'].items():
+        check = seq.get('mount_check')
+        if check:
+            fit = ', '.join(f'{v:+.2f}' for v in check['fitted_deg'])
+            sd = '/'.join(f'{v:.2f}' for v in check['stderr_deg'])
+            used = f'{check["angle_deg"]:.2f}' if check['corrected'] else '0'
+            rows.append(
+                [name, check['verdict'], f'[{fit}]', sd, str(check['observed']), str(check['pairs']), used]
+            )
+    if not rows:
+        return None
+    header = [
+        'sequence',
+        'verdict',
+        'fitted rotation (deg)',
+        'standard errors (deg)',
+        'directions observed',
+        'pairs',
+        'turn every method used (deg)',
+    ]
+    return _table(header, rows)
+
+
 def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> str:
     opts = doc.get('options', {})
     out = ['# depth_fusion_ros evaluation', '']
@@ -176,6 +203,7 @@ def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> st
     out.append('')
     sections = [
         ('Time offset check (docs/multi_view.md)', time_offset_table(doc)),
+        ('Mount check (docs/multi_view.md)', mount_table(doc)),
         ('Focal length check (docs/multi_view.md)', focal_table(doc)),
         ('Main results (paper Table II layout)', paper_table(doc)),
         ('Weight ablation on oracle points (paper Table III)', ablation_table(doc)),

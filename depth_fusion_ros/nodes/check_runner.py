@@ -59,6 +59,11 @@ class CheckRunner:
         """The current camera's result, once the check has it."""
         return None if self._check is None else self._check.result
 
+    @property
+    def settled(self) -> bool:
+        """Whether the check is off or has its result (the poses it may correct stay as they are)."""
+        return self.config.mode == 'off' or self.result is not None
+
     def offer(self, frame: Frame, camera: PinholeCamera) -> None:
         """A posed frame on the working grid (callback thread): queued when the check needs it."""
         if self.config.mode == 'off':

@@ -40,9 +40,10 @@ from sensor_msgs.msg import CameraInfo, Image
 from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
-from ..geometry import invert_pose, rotation_angle
+from ..geometry import invert_pose, matrix_to_quat, rotation_angle
 from ..multiview.descriptors import PATCH_OFFSETS
 from ..multiview.focal_check import FocalEstimate
+from ..multiview.mount_check import MountEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..multiview.time_offset_check import TimeOffsetEstimate
@@ -64,6 +65,7 @@ from .image_input import (
     working_grid_parameters,
 )
 from .info_wait import AwaitingCalibration
+from .mount_check_runner import MOUNT_CHECK_PARAMETERS, MountCheckRunner
 from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
@@ -234,6 +236,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     *FILTER_PARAMETERS,
     *FOCAL_CHECK_PARAMETERS,
     *TIME_OFFSET_CHECK_PARAMETERS,
+    *MOUNT_CHECK_PARAMETERS,
 )
 
 
@@ -292,6 +295,7 @@ class MultiViewNode(DepthFusionNode):
         try:
             self.focal_check = FocalCheckRunner.from_parameters(p, self._on_focal_estimate)
             self.time_offset_check = TimeOffsetCheckRunner.from_parameters(p, self._on_time_offset_estimate)
+            self.mount_check = MountCheckRunner.from_parameters(p, self._on_mount_estimate)
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
         self.jump_limits = pose_jump_limits(p)
@@ -305,6 +309,8 @@ class MultiViewNode(DepthFusionNode):
         self.keyframes_decided = 0
         #: The time offset check's correction the lookups use (``_pose_offset``)
         self._offset_correction = 0.0
+        #: The mount check's turn of every camera pose once taken (``_take_mount_correction``)
+        self._mount_correction = np.eye(4)
         self._last_keyframe_pose: np.ndarray | None = None
         self._image_stamps = self.stamp_guard('image')
         self._pose_stamps = self.stamp_guard('pose')
@@ -553,6 +559,7 @@ class MultiViewNode(DepthFusionNode):
         """Pose every waiting image the buffer now covers, in stamp order; drop the hopeless ones."""
         wait_ns = messages.sec_to_ns(float(self.params['pose_wait']))
         self._take_offset_correction()
+        self._take_mount_correction()
         offset = self._pose_offset()
         while self.pending:
             head = self.pending[0]
@@ -638,6 +645,7 @@ class MultiViewNode(DepthFusionNode):
             extra['filter frames passed over (filter.max_update_rate)'] = self.filter_feed.rate_skipped
         extra['focal length check'] = self.focal_check.status()
         extra['time offset check'] = self.time_offset_check.status()
+        extra['mount check'] = self.mount_check.status()
         return extra
 
     def destroy_node(self) -> None:
@@ -646,6 +654,7 @@ class MultiViewNode(DepthFusionNode):
         super().destroy_node()
         self.focal_check.close()
         self.time_offset_check.close()
+        self.mount_check.close()
         if self.filter_feed is not None:
             self.filter_feed.close()
 
@@ -653,10 +662,13 @@ class MultiViewNode(DepthFusionNode):
         image = pending.image
         if self._restart_from_ns is not None and image.stamp_ns >= self._restart_from_ns:
             self._restart_frames()
+        T_wc = T_wc @ self._mount_correction
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
         self.focal_check.offer(frame, image.camera)
         self.time_offset_check.offer(frame, image.camera)
+        if self.time_offset_check.settled:  # its pairs are posed at the offset that stays
+            self.mount_check.offer(frame, image.camera)
         camera = self.focal_check.camera_for(image.camera)
         job = None
         if self._is_keyframe_candidate(frame):
@@ -708,6 +720,7 @@ class MultiViewNode(DepthFusionNode):
         self._offset_correction = correction
         self._restart_from_ns = 0  # the next posed frame, whatever its stamp
         self.focal_check.restart()  # its pairs were posed at the old offset
+        self.mount_check.restart()
         self.stats.noted(
             'time_offset_disagrees',
             f'{self.time_offset_check.result.message()}; time_offset_check.mode correct: poses are '
@@ -724,6 +737,43 @@ class MultiViewNode(DepthFusionNode):
             self.stats.noted(
                 'time_offset_disagrees', estimate.message() + ' (time_offset_check.mode correct would use it)'
             )
+
+    # --- mount check -------------------------------------------------------------------------------
+
+    def _take_mount_correction(self) -> None:
+        """Take the mount check's turn once it has one (``mount_check.mode`` correct; callback
+        thread, before images are posed). As a time offset correction, it starts the frame
+        history, the filter and the focal length check over at the next posed frame."""
+        rotation = self.mount_check.rotation
+        if rotation is self._mount_correction or np.array_equal(rotation, self._mount_correction):
+            return
+        self._mount_correction = rotation
+        self._restart_from_ns = 0
+        self.focal_check.restart()  # its pairs were posed in the told frame
+        self.stats.noted(
+            'mount_disagrees',
+            f'{self.mount_check.result.message()}; mount_check.mode correct: every camera pose is '
+            f'turned by it from now on, frame history and filter start over; {self._mount_hint(rotation)}',
+        )
+
+    def _on_mount_estimate(self, camera: PinholeCamera, estimate: MountEstimate) -> None:
+        """The mount check's result (its thread), said once; in correct mode the callbacks take
+        the turn (``_take_mount_correction``) and say it then."""
+        if estimate.verdict != 'disagrees':
+            self.get_logger().info(estimate.message())
+        elif self.mount_check.config.mode != 'correct':
+            self.stats.noted(
+                'mount_disagrees',
+                f'{estimate.message()} (mount_check.mode correct would use it); '
+                f'{self._mount_hint(estimate.rotation())}',
+            )
+
+    def _mount_hint(self, rotation: np.ndarray) -> str:
+        """The ``camera_from_pose_frame`` that holds the turn, for the user's configuration (the
+        map node's rebuild from a corrected trajectory reads that parameter, not this node's turn)."""
+        T = self.T_pose_cam @ rotation
+        values = [*T[:3, 3], *matrix_to_quat(T[:3, :3])]
+        return 'camera_from_pose_frame [' + ', '.join(f'{v:.6g}' for v in values) + '] fits'
 
     # --- keyframe policy ----------------------------------------------------------------------------
 

@@ -66,6 +66,10 @@ class SynthConfig:
     #: always use the true poses. 0 = exact poses.
     pose_noise_m: float = 0.0
     pose_noise_deg: float = 0.0
+    #: The poses *given to the pipeline* are the true ones turned by this many degrees about the
+    #: camera's x axis (``T_told = T_true @ R_x``): a camera mounted tilted against the pose
+    #: frame it is told (a measured ``camera_from_pose_frame``, a hand-eye calibration). 0 = as told.
+    mount_tilt_deg: float = 0.0
     #: The poses *given to the pipeline* are the true ones this many seconds later (a pose
     #: source whose clock runs ahead of the camera's, or a camera stamp taken late; negative:
     #: the other way), constant-velocity between neighbouring frames: a time offset between
@@ -144,6 +148,8 @@ class SynthConfig:
             raise bad('pose_noise_m', 'expected a translation std of 0..0.5 m')
         if not 0 <= self.pose_noise_deg <= 10.0:
             raise bad('pose_noise_deg', 'expected a rotation std of 0..10 degrees')
+        if not -10.0 <= self.mount_tilt_deg <= 10.0:
+            raise bad('mount_tilt_deg', 'expected a tilt of -10..10 degrees')
         if not abs(self.pose_time_offset) * self.fps <= 1.0:
             raise bad('pose_time_offset', f'expected at most one frame period (1 / fps = {1 / self.fps:g} s)')
         if not 0 <= self.exposure_time * self.fps <= 1.0:

@@ -32,6 +32,9 @@ data with exact ground truth:
                    told by a pose source 20 ms ahead of the camera's stamps: each told pose
                    is where the camera was 0.6 frame later, off along a motion that keeps
                    changing (``multiview/time_offset_check.py`` finds it)
+``mount_tilt``     the ``forward`` robot with its camera mounted 2 deg more tilted than the
+                   pose frame it is told (``T_told = T_true @ R_x(2 deg)``): the epipole is
+                   told 9 px off at 320x240 (``multiview/mount_check.py`` finds it)
 =================  ==========================================================================
 
 ``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
@@ -63,6 +66,12 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
     'auto_exposure': {'parallax': 'high', 'sweep': 1.0, 'gain_sigma': 0.15},
     'moving_object': {'parallax': 'high', 'sweep': 1.0, 'walkers': 1},
     'repetitive': {'parallax': 'high', 'sweep': 1.0, 'texture_period': 0.08},
+    'mount_tilt': {
+        'motion': 'forward',
+        'step_translation': 0.015,
+        'step_rotation_deg': 0.2,
+        'mount_tilt_deg': 2.0,
+    },
     'time_offset': {
         'parallax': 'high',
         'sweep': 1.0,

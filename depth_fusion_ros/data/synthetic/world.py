@@ -48,6 +48,8 @@ def sequence_name(cfg: SynthConfig) -> str:
         name += f'_focal{cfg.focal_error:+g}'
     if cfg.pose_noise_m or cfg.pose_noise_deg:
         name += f'_posenoise{cfg.pose_noise_m * 1000:g}mm{cfg.pose_noise_deg:g}deg'
+    if cfg.mount_tilt_deg:
+        name += f'_tilt{cfg.mount_tilt_deg:+g}deg'
     if cfg.pose_time_offset:
         name += f'_timeoffset{cfg.pose_time_offset * 1000:+g}ms'
     if cfg.exposure_time:
@@ -97,7 +99,8 @@ def shifted_poses(poses: np.ndarray, frames: float) -> np.ndarray:
 
 def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     """The camera-to-world poses the pipeline is given: the true ones moved by the config's time
-    offset (``pose_time_offset``, :func:`shifted_poses`), with its per-frame jitter
+    offset (``pose_time_offset``, :func:`shifted_poses`) and turned by its mount tilt
+    (``mount_tilt_deg``, about the camera's x axis), with its per-frame jitter
     (``pose_noise_m``, ``pose_noise_deg``); a copy of the true ones without either.
 
     Each frame draws a translation offset (isotropic Gaussian) and a rotation about a random
@@ -107,6 +110,10 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     out = shifted_poses(poses, cfg.pose_time_offset * cfg.fps)
+    if cfg.mount_tilt_deg:
+        out[:, :3, :3] = (
+            out[:, :3, :3] @ Rotation.from_rotvec([np.deg2rad(cfg.mount_tilt_deg), 0.0, 0.0]).as_matrix()
+        )
     if not (cfg.pose_noise_m or cfg.pose_noise_deg):
         return out
     rotvecs, offsets = np.empty((len(out), 3)), np.empty((len(out), 3))

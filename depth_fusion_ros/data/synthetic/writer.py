@@ -44,6 +44,12 @@ def _pose_note(cfg: SynthConfig) -> str:
             f"image's stamp it is the camera's pose {cfg.pose_time_offset * 1000:+g} ms later (a camera / "
             'pose-source time offset stress case); the depth images stay exact.'
         )
+    if cfg.mount_tilt_deg:
+        note += (
+            f"\n**groundtruth.txt is deliberately turned**: every pose is the camera's turned by "
+            f'{cfg.mount_tilt_deg:+g} deg about its x axis, a camera mounted tilted against the pose frame '
+            'it is told (a mount rotation stress case); the depth images stay exact.'
+        )
     return note
 
 

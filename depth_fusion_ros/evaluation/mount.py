@@ -1,0 +1,63 @@
+"""``evaluate``: the mount check on a loaded sequence, as ``multi_view_node`` runs it.
+
+The check (``multiview/mount_check.py``) reads the sequence's posed frames in stream order,
+after the time offset check (which may re-read the poses) and before the focal length check.
+With ``mount_check.mode: correct`` and poses the images disagree with, every frame's pose
+(and the pose source's record, ``Sequence.pose_stream``) is turned by the fitted rotation
+(``T @ M``), as the node turns the poses it reads from then on; the ground-truth depth is the
+camera's own and does not move.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from ..data.sequence import Sequence
+from ..multiview.mount_check import MountCheckConfig, MountEstimate, check_frames, turned
+from .checks import run_check
+
+log = logging.getLogger(__name__)
+
+STAGE = 'mount_check'
+
+
+def check_mount(sequence: Sequence, params: dict) -> tuple[Sequence, MountEstimate | None]:
+    """The sequence to evaluate (its poses turned when asked and needed) and the estimate
+    (``None`` when the check is off or the sequence is too short to finish it)."""
+    config, estimate = run_check(
+        sequence,
+        params,
+        STAGE,
+        MountCheckConfig(),
+        lambda seq, cfg: check_frames(seq.camera, seq.frames, cfg),
+        'mount rotation',
+    )
+    if estimate is not None and config.mode == 'correct' and estimate.verdict == 'disagrees':
+        sequence = turned_sequence(sequence, estimate)
+        log.warning(
+            '%s: every method uses the poses turned by %.2f deg (mount_check.mode correct)',
+            sequence.name,
+            estimate.angle_deg,
+        )
+    return sequence, estimate
+
+
+def turned_sequence(sequence: Sequence, estimate: MountEstimate) -> Sequence:
+    """``sequence`` with every frame's pose and the pose source's record turned by the estimate."""
+    poses = turned(np.stack([f.pose for f in sequence.frames]), estimate)
+    frames = [dataclasses.replace(f, pose=p) for f, p in zip(sequence.frames, poses, strict=True)]
+    stream = sequence.pose_stream
+    if stream is not None:
+        stream = (stream[0], turned(stream[1], estimate))
+    return dataclasses.replace(sequence, frames=frames, pose_stream=stream)
+
+
+def estimate_json(estimate: MountEstimate | None, corrected: bool) -> dict | None:
+    """The ``mount_check`` entry of a sequence in results.json: the estimate's fields, the
+    correction's angle and whether every method ran on the turned poses."""
+    if estimate is None:
+        return None
+    return {**dataclasses.asdict(estimate), 'angle_deg': estimate.angle_deg, 'corrected': corrected}

@@ -1,0 +1,352 @@
+"""Is the camera mounted as the poses say? A check of the rotation between the told optical
+frame and the camera's.
+
+Why: a pose source gives the pose of its own frame (a body, an IMU, a motion-capture marker
+set), and the optical frame is reached through a fixed transform someone measured or typed
+(``camera_from_pose_frame``; a dataset's hand-eye calibration). A tilt of 1-2 degrees there is
+easy to get and invisible downstream: every relative pose the multi-view depth triangulates
+with is turned by it (the translation's direction in the camera, the rotation's axis), so
+every depth is biased, smoothly, and the fusion's guard cannot see it because the points
+still agree with each other. On TUM fr1_xyz the told poses fit the images best 1.5-1.75 deg
+turned about the camera's x axis, and read that way the filter's depth is 22 % better
+(docs/multi_view.md, "The mount check"). A principal point off by ``d`` pixels acts on the
+depth, to first order, as a turn of ``d / f`` and is corrected with it.
+
+:class:`MountCheck` takes the posed frames of a stream. A frame that moved ``min_baseline``
+(or turned ``min_rotation_deg``) from the last sample is the next sample; consecutive samples
+make a pair (ORB, the images' own essential matrix keeps the matches of one rigid motion:
+:mod:`.image_pairs`, as the other calibration checks). After ``pairs`` pairs, one rotation
+``M`` (the camera's frame in the told optical frame: ``T_wc = T_told @ M``) is fitted
+minimising the pairs' robust Sampson costs (Levenberg-Marquardt over the rotation vector).
+
+What the motion leaves unobserved is not corrected: a translation along an axis says nothing
+about a turn about that axis, and a turn about it leaves the depth as it is too. The fit's
+covariance counts a pair as one piece of evidence (the sandwich of the pairs' own gradients:
+an error of a told pose moves every match of its pair alike); along each of its principal
+directions whose standard error is at most ``max_stderr_deg`` the fitted component is kept
+when it is more than twice its standard error from zero, the others are zero. The verdict:
+``disagrees`` when a kept component is at least ``threshold_deg`` beyond twice its standard
+error, ``unobservable`` when no direction is observed, else ``consistent``. Pairs need
+decimetres of baseline (``min_baseline`` 0.1 m): at centimetres a degree moves the matches'
+epipolar residuals by hundredths of a pixel on forward motion, and the fit follows noise.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from .focal_check import soft_l1_sampson
+from .image_pairs import CHECK_MODES, ImagePairs, MatchedPair, check_mode, check_sampling
+
+log = logging.getLogger(__name__)
+
+MOUNT_CHECK_MODES = CHECK_MODES
+
+#: Finite-difference step of the cost's derivatives (radians; 0.05 deg).
+_STEP = math.radians(0.05)
+#: The largest step of one Levenberg-Marquardt iteration (radians) and the iterations allowed.
+_MAX_STEP = math.radians(2.0)
+_ITERATIONS = 40
+#: The fit stops once a step is under this (radians).
+_TOLERANCE = math.radians(0.002)
+#: Blocks of consecutive pairs the jackknife leaves out one at a time.
+_BLOCKS = 5
+#: The most the fit may turn the told frame (degrees): beyond, the fit is refused as unobservable.
+_MAX_TURN_DEG = 15.0
+
+
+@dataclass(frozen=True)
+class MountCheckConfig:
+    """When to check the camera's mount rotation, and what to do when the images disagree."""
+
+    #: off: no check; warn: check once and warn when the images and poses disagree with the
+    #: told optical frame; correct: also turn the camera poses by the fitted rotation from then on
+    mode: str = 'correct'
+    #: A frame is the next image of a pair once it has moved this far from the last one (m)
+    min_baseline: float = 0.1
+    #: A frame is also the next image of a pair once it has turned this far from the last one (degrees)
+    min_rotation_deg: float = 30.0
+    #: Pairs of images the estimate uses (the check ends there, once)
+    pairs: int = 20
+    #: A disagreement counts when a fitted component less twice its standard error is at least
+    #: this (degrees)
+    threshold_deg: float = 0.5
+    #: A direction of the rotation is observed when its standard error is at most this (degrees)
+    max_stderr_deg: float = 0.3
+    #: Matches a pair needs after RANSAC to be used
+    min_matches: int = 30
+    #: ORB features per image
+    features: int = 1000
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'mode', check_mode('mount_check', self.mode))
+        check_sampling('mount_check', self)
+        if not (0 < self.threshold_deg < 45 and self.max_stderr_deg > 0):
+            raise ValueError('mount_check: need 0 < threshold_deg < 45 and max_stderr_deg > 0')
+
+
+@dataclass(frozen=True)
+class MountEstimate:
+    """The fitted mount rotation of a stream and what it means for the told optical frame."""
+
+    #: The correction kept (observed, significant components), as a rotation vector (degrees)
+    #: of the camera's frame in the told optical frame: ``T_wc = T_told @ rotation``
+    rotvec_deg: tuple[float, float, float]
+    #: The whole fit, before its unobserved and insignificant components were dropped (degrees)
+    fitted_deg: tuple[float, float, float]
+    #: Standard errors of the fit along its principal directions (degrees), smallest first
+    stderr_deg: tuple[float, float, float]
+    observed: int  # directions with a standard error within max_stderr_deg
+    pairs: int
+    matches: int
+    verdict: str  # 'consistent', 'disagrees' or 'unobservable'
+
+    @property
+    def angle_deg(self) -> float:
+        """The size of the correction (degrees)."""
+        return float(np.linalg.norm(self.rotvec_deg))
+
+    def rotation(self) -> np.ndarray:
+        """The correction as a 4x4 transform (``T_wc = T_told @ this``); identity unless
+        the verdict is ``disagrees``."""
+        out = np.eye(4)
+        if self.verdict == 'disagrees':
+            out[:3, :3] = rotation_matrices(np.radians(np.asarray(self.rotvec_deg))[None])[0]
+        return out
+
+    def message(self) -> str:
+        """One line for the log: the verdict with its numbers."""
+        rv = ', '.join(f'{v:+.2f}' for v in self.rotvec_deg)
+        sd = '/'.join(f'{s:.2f}' for s in self.stderr_deg)
+        fit = f'{self.pairs} image pairs, {self.matches} matches, standard errors {sd} deg'
+        if self.verdict == 'disagrees':
+            return (
+                f'mount check: the images and poses fit the camera turned {self.angle_deg:.2f} deg '
+                f'from the told optical frame (rotation vector [{rv}] deg in the camera frame; {fit}): '
+                'check camera_from_pose_frame (or the principal point)'
+            )
+        if self.verdict == 'unobservable':
+            return (
+                f'mount check: the motion does not pin the camera mount down ({fit}): optical frame kept, '
+                'unchecked'
+            )
+        return (
+            'mount check: the told optical frame agrees with the images and poses '
+            f'({self.observed} of 3 directions observed; {fit})'
+        )
+
+
+def rotation_matrices(rotvecs: np.ndarray) -> np.ndarray:
+    """(S, 3, 3) rotations of rotation vectors (S, 3) (radians), Rodrigues' formula vectorised."""
+    theta = np.linalg.norm(rotvecs, axis=1)
+    safe = np.where(theta > 1e-12, theta, 1.0)
+    k = rotvecs / safe[:, None]
+    K = np.zeros((len(rotvecs), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K -= np.transpose(K, (0, 2, 1))
+    s, c = np.sin(theta)[:, None, None], (1.0 - np.cos(theta))[:, None, None]
+    return np.eye(3)[None] + s * K + c * (K @ K)
+
+
+def pair_costs(
+    K: np.ndarray, T_ba: np.ndarray, p1: np.ndarray, p2: np.ndarray, rotvecs: np.ndarray
+) -> np.ndarray:
+    """Mean soft-L1 Sampson cost (S,) of matches ``p1 -> p2`` when the told relative pose ``T_ba``
+    (first-camera to second-camera coordinates) is read in a camera turned by each of S rotation
+    vectors (radians): ``M^T T_ba M``, i.e. its rotation conjugated and its translation turned."""
+    M = rotation_matrices(rotvecs)
+    Mt = np.transpose(M, (0, 2, 1))
+    R = Mt @ T_ba[:3, :3] @ M
+    t = Mt @ T_ba[:3, 3]
+    skews = np.zeros((len(M), 3, 3))
+    skews[:, 0, 1], skews[:, 0, 2], skews[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
+    skews -= np.transpose(skews, (0, 2, 1))
+    Ki = np.linalg.inv(K)
+    F = Ki.T @ skews @ R @ Ki
+    return soft_l1_sampson(F, p1, p2).mean(axis=1)
+
+
+def _stencil() -> np.ndarray:
+    """The 19 offsets (radians) the value, gradient and Hessian are read from: the centre, ±h
+    on each axis and the four (±h, ±h) on each pair of axes."""
+    h, e = _STEP, np.eye(3)
+    rows = [np.zeros(3)] + [s * h * e[i] for i in range(3) for s in (1, -1)]
+    rows += [
+        h * (s1 * e[i] + s2 * e[j])
+        for i in range(3)
+        for j in range(i + 1, 3)
+        for s1 in (1, -1)
+        for s2 in (1, -1)
+    ]
+    return np.array(rows)
+
+
+_STENCIL = _stencil()
+
+
+def _derivatives(costs: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Value, gradient (3,) and Hessian (3, 3) from the costs at ``_STENCIL`` (central differences)."""
+    h = _STEP
+    g = np.array([(costs[1 + 2 * i] - costs[2 + 2 * i]) / (2 * h) for i in range(3)])
+    H = np.diag([(costs[1 + 2 * i] + costs[2 + 2 * i] - 2 * costs[0]) / h**2 for i in range(3)])
+    k = 7
+    for i in range(3):
+        for j in range(i + 1, 3):
+            pp, pm, mp, mm = costs[k : k + 4]
+            H[i, j] = H[j, i] = (pp - pm - mp + mm) / (4 * h * h)
+            k += 4
+    return float(costs[0]), g, H
+
+
+def _local(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Total cost, per-pair gradients (P, 3) and total Hessian at rotation vector ``v``."""
+    total, grads, hessian = 0.0, [], np.zeros((3, 3))
+    for pair in pairs:
+        c, g, H = _derivatives(pair_costs(K, pair.T_ba, pair.p1, pair.p2, v + _STENCIL))
+        total += c
+        grads.append(g)
+        hessian += H
+    return total, np.array(grads), hessian
+
+
+def _total(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> float:
+    return float(sum(pair_costs(K, p.T_ba, p.p1, p.p2, v[None])[0] for p in pairs))
+
+
+def _minimise(
+    K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt from ``v`` on the eigenvalues of the summed Hessian (a flat direction
+    moves only as far as its gradient pulls it, steps capped at 2 deg); the fit, the pairs'
+    gradients and the summed Hessian there."""
+    lam = 1e-3
+    total, grads, hessian = _local(K, pairs, v)
+    for _ in range(_ITERATIONS):
+        w, U = np.linalg.eigh(hessian)
+        scale = max(float(w.max()), 1e-12)
+        w = np.maximum(w, 1e-9 * scale)
+        step = -U @ ((U.T @ grads.sum(axis=0)) / (w + lam * scale))
+        norm = float(np.linalg.norm(step))
+        if norm > _MAX_STEP:
+            step *= _MAX_STEP / norm
+        if _total(K, pairs, v + step) < total:
+            v = v + step
+            lam = max(lam / 3.0, 1e-7)
+            total, grads, hessian = _local(K, pairs, v)
+            if norm < _TOLERANCE:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e6:
+                break
+    return v, grads, hessian
+
+
+def fit_mount(K: np.ndarray, pairs: list[MatchedPair]) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation vector (radians) that fits the pairs best and its covariance (3, 3).
+
+    The covariance is the larger of two, summed: the sandwich ``H^-1 B H^-1`` (``B`` the spread
+    of the pairs' own gradients at the fit: pairs, not matches, are the independent evidence),
+    and a jackknife over ``_BLOCKS`` blocks of consecutive pairs (the fit again without each).
+    The sandwich alone was 3-5x too confident on rendered streams (consecutive pairs share an
+    image, and the cost is not quadratic over a degree): fits of the same stream from other
+    sample frames spread by +-0.5 deg where it said 0.1.
+    """
+    v, grads, hessian = _minimise(K, pairs, np.zeros(3))
+    n = len(pairs)
+    inverse = np.linalg.pinv(hessian)
+    sandwich = inverse @ (grads.T @ grads * (n / max(n - 1, 1))) @ inverse
+    blocks = np.array_split(np.arange(n), min(_BLOCKS, n))
+    fits = np.array([_minimise(K, [p for i, p in enumerate(pairs) if i not in set(b)], v)[0] for b in blocks])
+    spread = fits - fits.mean(axis=0)
+    jackknife = spread.T @ spread * (len(blocks) - 1) / len(blocks)
+    return v, sandwich + jackknife
+
+
+@dataclass
+class MountCheck:
+    """Collects image pairs from a posed stream and checks the mount rotation once (see module)."""
+
+    camera: PinholeCamera
+    config: MountCheckConfig = field(default_factory=MountCheckConfig)
+    result: MountEstimate | None = None
+    frames: int = 0
+    pairs: list[MatchedPair] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._images = ImagePairs.for_config(self.camera.K, self.config)
+
+    @property
+    def done(self) -> bool:
+        return self.result is not None or self.config.mode == 'off'
+
+    def wants(self, pose: np.ndarray) -> bool:
+        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
+        return not self.done and self._images.far_enough(pose)
+
+    def add(self, gray: np.ndarray, pose: np.ndarray) -> MountEstimate | None:
+        """One posed frame of the stream (grey image on this camera's grid, camera-to-world);
+        returns the estimate on the frame that completes it, else ``None``."""
+        self.frames += 1
+        if not self.wants(pose):
+            return None
+        matched = self._images.add(gray, pose)
+        if matched is not None:
+            self.pairs.append(matched)
+        if len(self.pairs) < self.config.pairs:
+            return None
+        self.result = self._verdict(*fit_mount(np.asarray(self.camera.K, dtype=np.float64), self.pairs))
+        self.pairs = []
+        self._images.reset()
+        return self.result
+
+    def _verdict(self, v: np.ndarray, cov: np.ndarray) -> MountEstimate:
+        c = self.config
+        w, U = np.linalg.eigh(0.5 * (cov + cov.T))
+        sd = np.sqrt(np.maximum(w, 0.0))
+        components = U.T @ v
+        observed = sd <= math.radians(c.max_stderr_deg)
+        kept = observed & (np.abs(components) > 2.0 * sd)
+        correction = U[:, kept] @ components[kept]
+        margin = np.abs(components) - 2.0 * sd
+        if not observed.any() or not np.isfinite(v).all() or np.degrees(np.linalg.norm(v)) > _MAX_TURN_DEG:
+            verdict = 'unobservable'
+        elif (margin[kept] >= math.radians(c.threshold_deg)).any():
+            verdict = 'disagrees'
+        else:
+            verdict = 'consistent'
+        estimate = MountEstimate(
+            tuple(float(x) for x in np.degrees(correction)),  # type: ignore[arg-type]
+            tuple(float(x) for x in np.degrees(v)),  # type: ignore[arg-type]
+            tuple(float(x) for x in np.degrees(sd)),  # type: ignore[arg-type]
+            int(observed.sum()),
+            len(self.pairs),
+            sum(len(p.p1) for p in self.pairs),
+            verdict,
+        )
+        log.debug('%s', estimate.message())
+        return estimate
+
+
+def check_frames(camera: PinholeCamera, frames: Iterable, config: MountCheckConfig) -> MountCheck:
+    """A check fed with ``frames`` (anything with ``.gray`` and ``.pose``, in stream order)
+    until it has its estimate (``.result``; ``None`` when they ran out first)."""
+    check = MountCheck(camera, config)
+    for frame in frames:
+        if check.done or check.add(frame.gray, frame.pose) is not None:
+            break
+    return check
+
+
+def turned(poses: np.ndarray, estimate: MountEstimate | None) -> np.ndarray:
+    """Camera-to-world poses (N, 4, 4) read in the camera the estimate found (``T @ M``), or as
+    they are unless it disagrees."""
+    if estimate is None or estimate.verdict != 'disagrees':
+        return np.asarray(poses)
+    return np.asarray(poses) @ estimate.rotation()

@@ -1,0 +1,79 @@
+"""``multi_view_node``'s mount check, off the callback thread (``multiview/mount_check.py``).
+
+Only the frames the check wants as its next sample are queued (:mod:`.check_runner`); once it
+disagrees and ``mount_check.mode`` is correct, :attr:`MountCheckRunner.rotation` is the turn
+the node applies to every camera pose it reads from then on (``T_wc @ rotation``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from ..data.sequence import Frame
+from ..multiview.mount_check import MOUNT_CHECK_MODES, MountCheck, MountCheckConfig, MountEstimate
+from .check_runner import CheckRunner
+from .params import ParamSpec, build_dataclass, dataclass_specs
+
+MOUNT_CHECK_LIMITS: dict[str, Any] = {
+    'mode': MOUNT_CHECK_MODES,
+    'min_baseline': (1e-4, None),
+    'min_rotation_deg': (1e-3, 180.0),
+    'pairs': (5, 10000),
+    'threshold_deg': (1e-3, 44.0),
+    'max_stderr_deg': (1e-4, 45.0),
+    'min_matches': (8, 100000),
+    'features': (50, 100000),
+}
+
+MOUNT_CHECK_PARAMETERS: tuple[ParamSpec, ...] = tuple(
+    dataclass_specs(MountCheckConfig, 'mount_check', {}, MOUNT_CHECK_LIMITS)
+)
+
+_IDENTITY = np.eye(4)
+_IDENTITY.setflags(write=False)
+
+
+class MountCheckRunner(CheckRunner):
+    """Feeds a :class:`MountCheck` from the callbacks on its own thread; reports the result once."""
+
+    name = 'mount_check'
+
+    @classmethod
+    def from_parameters(
+        cls, params: dict[str, Any], on_result: Callable[[PinholeCamera, MountEstimate], None]
+    ) -> MountCheckRunner:
+        return cls(build_dataclass(MountCheckConfig, params, 'mount_check'), on_result)
+
+    def _make(self, camera: PinholeCamera) -> MountCheck:
+        return MountCheck(camera, self.config)
+
+    def _item(self, check: MountCheck, frame: Frame) -> tuple[Any, Any] | None:
+        # Its grey image is made only when the check wants the frame.
+        return (frame.gray, frame.pose) if check.wants(frame.pose) else None
+
+    def _feed(self, check: MountCheck, item: tuple[Any, Any]) -> MountEstimate | None:
+        return check.add(*item)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """The turn (4x4) of every camera pose (``T_wc @ rotation``): the fitted one once the
+        check disagreed and ``mount_check.mode`` is correct, else the identity."""
+        result = self.result
+        if self.config.mode != 'correct' or result is None or result.verdict != 'disagrees':
+            return _IDENTITY
+        return result.rotation()
+
+    def status(self) -> str:
+        """One phrase for the diagnostics."""
+        if self.config.mode == 'off':
+            return 'off'
+        r = self.result
+        if r is not None:
+            turn = ', '.join(f'{v:+.2f}' for v in r.rotvec_deg)
+            return f'{r.verdict}: turned [{turn}] deg ({r.observed} of 3 directions observed)'
+        pairs = 0 if self._check is None else len(self._check.pairs)
+        return f'collecting ({pairs} of {self.config.pairs} image pairs)'

@@ -1,0 +1,235 @@
+"""The mount check: a camera mounted 2 deg more tilted than its told optical frame is found from
+the images and poses (the ``mount_tilt`` stress case) and the poses are turned back; a right
+mount is not flagged; what the motion leaves unobserved is not corrected; ``evaluate``
+turns the poses when asked and says so in results.json and the report."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from depth_fusion_ros.camera import PinholeCamera
+from depth_fusion_ros.data.synthetic import render_sequence, stress_config
+from depth_fusion_ros.evaluation.context import EvalOptions
+from depth_fusion_ros.evaluation.harness import evaluate_sequence
+from depth_fusion_ros.multiview.image_pairs import MatchedPair, Sample
+from depth_fusion_ros.multiview.mount_check import (
+    MountCheck,
+    MountCheckConfig,
+    MountEstimate,
+    check_frames,
+    fit_mount,
+    rotation_matrices,
+    turned,
+)
+
+#: The forward robot at 1.5 cm a frame: 2.2 m in 150 frames, the check's 20 pairs 10 cm apart.
+SIZE = {'width': 320, 'height': 240, 'frames': 150, 'seed': 0}
+
+
+@pytest.fixture(scope='module')
+def tilted():
+    return render_sequence(stress_config('mount_tilt', **SIZE))
+
+
+@pytest.fixture(scope='module')
+def level():
+    return render_sequence(stress_config('mount_tilt', **SIZE, mount_tilt_deg=0.0))
+
+
+def _turn(rotvec_deg) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = rotation_matrices(np.radians(np.asarray(rotvec_deg, dtype=float))[None])[0]
+    return out
+
+
+def _exact_pairs(told_turn_deg, motion: str, n_pairs: int = 20, noise_px: float = 0.3) -> tuple:
+    """Matches of random points seen from poses along ``motion`` ('straight', 'forward' or 'turning'), exact
+    up to ``noise_px``, with the poses told turned by ``told_turn_deg``."""
+    rng = np.random.default_rng(3)
+    camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    K, Ki = camera.K, np.linalg.inv(camera.K)
+    told = _turn(told_turn_deg)  # T_told = T_true @ R: the correction M = R^-1
+    pairs = []
+    pose = np.eye(4)
+    for _ in range(n_pairs):
+        step = np.eye(4)
+        if motion == 'straight':
+            step[:3, 3] = [0.0, 0.0, 0.1]
+        elif motion == 'forward':
+            step[:3, 3] = [0.01 * rng.normal(), 0.01 * rng.normal(), 0.1]
+            step[:3, :3] = rotation_matrices(np.radians(rng.normal(0, 0.2, 3))[None])[0]
+        else:
+            step[:3, 3] = [0.1, 0.02 * rng.normal(), 0.02 * rng.normal()]
+            step[:3, :3] = rotation_matrices(np.radians(rng.normal(0, 5.0, 3))[None])[0]
+        nxt = pose @ step
+        uv = rng.uniform([0, 0], [320, 240], (300, 2))
+        z = rng.uniform(1.0, 4.0, 300)
+        points = pose[:3, :3] @ ((Ki @ np.c_[uv, np.ones(300)].T) * z) + pose[:3, 3:4]
+        inv = np.linalg.inv(nxt)
+        seen = K @ (inv[:3, :3] @ points + inv[:3, 3:4])
+        p2 = (seen[:2] / seen[2]).T
+        a = Sample(0.0, pose @ told, uv + rng.normal(0, noise_px, uv.shape), None)
+        b = Sample(0.0, nxt @ told, p2 + rng.normal(0, noise_px, p2.shape), None)
+        pairs.append(MatchedPair(a, b, a.points, b.points))
+        pose = nxt
+    return camera, pairs
+
+
+def _verdict(camera: PinholeCamera, pairs: list) -> MountEstimate:
+    check = MountCheck(camera, MountCheckConfig(pairs=len(pairs)))
+    check.pairs = pairs
+    return check._verdict(*fit_mount(camera.K, pairs))
+
+
+def test_the_fit_finds_a_told_turn_from_exact_matches():
+    """Turning motion observes all three directions: the fit is the turn back, to 0.1 deg."""
+    camera, pairs = _exact_pairs([2.0, -1.0, 0.5], 'turning')
+    estimate = _verdict(camera, pairs)
+    assert estimate.verdict == 'disagrees' and estimate.observed == 3, estimate.message()
+    assert np.allclose(estimate.rotvec_deg, [-2.0, 1.0, -0.5], atol=0.1), estimate.rotvec_deg
+    turned_back = turned(np.stack([p.a.pose for p in pairs]), estimate)
+    assert turned_back.shape == (len(pairs), 4, 4)
+    assert 'check camera_from_pose_frame' in estimate.message()
+
+
+def test_a_turn_about_the_direction_of_travel_is_not_corrected():
+    """Driving straight ahead without turning says nothing about a roll about the optical axis
+    (and the roll leaves the depth as it is): only the observed directions are corrected."""
+    camera, pairs = _exact_pairs([0.0, 0.0, 3.0], 'straight')
+    estimate = _verdict(camera, pairs)
+    assert estimate.observed < 3 and estimate.verdict != 'disagrees', estimate.message()
+    assert estimate.angle_deg < 0.5
+    camera, pairs = _exact_pairs([2.0, 0.0, 3.0], 'straight')  # a tilt moves the epipole: observed
+    estimate = _verdict(camera, pairs)
+    assert estimate.verdict == 'disagrees' and abs(estimate.rotvec_deg[0] + 2.0) < 0.15, estimate
+
+
+def test_a_camera_mounted_2_deg_more_tilted_is_found(tilted):
+    check = check_frames(tilted.camera, tilted.frames, MountCheckConfig())
+    estimate = check.result
+    assert estimate is not None and estimate.pairs == 20 and check.done
+    assert estimate.verdict == 'disagrees', estimate.message()
+    rx, ry, rz = estimate.rotvec_deg
+    assert -2.4 < rx < -1.5 and abs(ry) < 0.4 and abs(rz) < 0.6, estimate.rotvec_deg
+    # Turned back, the told poses are nearer the true ones (rendered at T_told @ R_x(-2 deg)).
+    true = [f.pose @ _turn([-2.0, 0.0, 0.0]) for f in tilted.frames]
+    told_error = [math.degrees(_angle(f.pose, t)) for f, t in zip(tilted.frames, true, strict=True)]
+    fixed = turned(np.stack([f.pose for f in tilted.frames]), estimate)
+    fixed_error = [math.degrees(_angle(p, t)) for p, t in zip(fixed, true, strict=True)]
+    assert max(fixed_error) < 0.5 < 1.9 < min(told_error)
+    assert check.add(tilted.frames[0].gray, tilted.frames[0].pose) is None  # once
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    R = a[:3, :3].T @ b[:3, :3]
+    return math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
+
+
+def test_a_level_camera_is_not_flagged(level):
+    estimate = check_frames(level.camera, level.frames, MountCheckConfig()).result
+    assert estimate is not None and estimate.verdict == 'consistent', estimate.message()
+    assert estimate.angle_deg == 0.0 and np.array_equal(estimate.rotation(), np.eye(4))
+    assert 'agrees' in estimate.message()
+
+
+def test_a_lateral_sweep_too_short_for_the_pairs_is_not_checked():
+    """1 m of sweep gives 10 pairs 10 cm apart, 20 needed: no estimate, no correction."""
+    seq = render_sequence(stress_config('translation', width=160, height=120, frames=40, seed=1))
+    check = check_frames(seq.camera, seq.frames, MountCheckConfig())
+    assert check.result is None and 0 < len(check.pairs) < 20
+
+
+def test_config_is_validated():
+    with pytest.raises(ValueError, match=r'mount_check\.mode'):
+        MountCheckConfig(mode='fix')
+    with pytest.raises(ValueError, match='pairs >= 5'):
+        MountCheckConfig(pairs=2)
+    with pytest.raises(ValueError, match='threshold_deg'):
+        MountCheckConfig(threshold_deg=0.0)
+    assert MountCheck(stress_config('translation').camera(), MountCheckConfig(mode=False)).done
+
+
+def test_the_stress_case_tells_poses_turned_about_the_camera_x_axis():
+    cfg = stress_config('mount_tilt', width=160, height=120, frames=3)
+    seq, level = (
+        render_sequence(cfg),
+        render_sequence(stress_config('forward', width=160, height=120, frames=3)),
+    )
+    assert cfg.mount_tilt_deg == 2.0 and seq.name.endswith('_tilt+2deg')
+    for a, b in zip(seq.frames, level.frames, strict=True):
+        assert np.allclose(a.pose, b.pose @ _turn([2.0, 0.0, 0.0]))
+        assert np.array_equal(a.depth, b.depth) and np.array_equal(a.rgb, b.rgb)
+    assert np.allclose(seq.pose_stream[1][0], seq.frames[0].pose)
+
+
+@pytest.mark.parametrize('mode', ['correct', 'warn'])
+def test_evaluate_runs_the_check_and_turns_the_poses_when_asked(tilted, mode):
+    options = EvalOptions(
+        frames=SIZE['frames'],
+        keyframes=[140],
+        single_view='simulated',
+        width=320,
+        height=240,
+        params={'mount_check': {'mode': mode}, 'time_offset_check': {'mode': 'off'}},
+    )
+    result = evaluate_sequence(tilted, ['single_view_simulated'], options, show_progress=False)
+    entry = result.to_json()['mount_check']
+    assert entry['verdict'] == 'disagrees' and entry['corrected'] == (mode == 'correct')
+    assert 1.5 < entry['angle_deg'] < 2.5 and entry['observed'] >= 2
+    pose, told = result.sequence.frames[140].pose, tilted.frames[140].pose
+    assert np.allclose(pose, told) == (mode == 'warn')
+    if mode == 'correct':
+        assert np.allclose(result.sequence.pose_stream[1][140], pose)
+    from depth_fusion_ros.evaluation.harness import results_document
+    from depth_fusion_ros.evaluation.report import report_markdown
+
+    report = report_markdown(results_document([result], ['single_view_simulated'], options))
+    assert '## Mount check' in report and '| disagrees | [' in report
+    used = f'{entry["angle_deg"]:.2f}' if mode == 'correct' else '0'
+    assert report.split('## Mount check')[1].split('##')[0].rstrip().endswith(f'| {used} |')
+
+
+def test_the_node_runner_checks_off_the_callbacks(tilted):
+    """``multi_view_node``'s runner: frames offered from the callbacks, the estimate computed on
+    its thread and reported once; the turn it gives the node, in correct mode only."""
+    from depth_fusion_ros.nodes.mount_check_runner import MountCheckRunner
+
+    reports = []
+    runner = MountCheckRunner(MountCheckConfig(), lambda cam, est: reports.append((cam, est)))
+    assert runner.status() == 'collecting (0 of 20 image pairs)' and not runner.settled
+    assert np.array_equal(runner.rotation, np.eye(4))
+    for frame in tilted.frames:
+        runner.offer(frame, tilted.camera)
+        time.sleep(0.02)
+    deadline = time.monotonic() + 60
+    while not reports and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert len(reports) == 1 and reports[0][0] == tilted.camera and runner.settled
+    estimate = reports[0][1]
+    assert estimate.verdict == 'disagrees' and runner.status().startswith('disagrees: turned [-')
+    assert np.allclose(runner.rotation, estimate.rotation()) and not np.allclose(runner.rotation, np.eye(4))
+    runner.close()
+    warn = MountCheckRunner(MountCheckConfig(mode='warn'), lambda *_: None)
+    warn._check = runner._check  # the same result, warned about only
+    assert np.array_equal(warn.rotation, np.eye(4))
+    off = MountCheckRunner(MountCheckConfig(mode='off'), lambda *_: None)
+    off.offer(tilted.frames[0], tilted.camera)
+    assert off.status() == 'off' and off.camera is None and off.settled
+
+
+def test_cli_check_mount_says_the_verdict_in_its_exit_status(tmp_path, capsys):
+    """``depth-fusion check-mount`` on a TUM folder without ground-truth depth: 3 when the mount
+    disagrees, 4 when there is too little motion, 1 for a missing recording."""
+    from depth_fusion_ros.cli.main import main
+    from depth_fusion_ros.data.synthetic import write_synthetic_sequence
+
+    tilted = write_synthetic_sequence(tmp_path / 'tilted', stress_config('mount_tilt', **SIZE))
+    assert main(['check-mount', str(tilted)]) == 3
+    assert 'fit the camera turned' in capsys.readouterr().out
+    assert main(['check-mount', str(tilted), '--frames', '20']) == 4
+    assert 'not enough motion to tell' in capsys.readouterr().err
+    assert main(['check-mount', str(tmp_path / 'none')]) == 1
