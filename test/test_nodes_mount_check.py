@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import Image
-from test_nodes_multi_view import _Camera, _mv_node
+from test_nodes_multi_view import _Camera, _stream_check_node
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
@@ -44,20 +44,7 @@ def test_a_tilted_camera_is_found_and_its_poses_turned():
     true = [f.pose @ tilt.T for f in seq.frames]  # told: T_true @ R_x(2 deg)
     stamps = [m.sec_to_ns(s) for s in seq.stamps]
     with RosHarness() as ros:
-        node = _mv_node(
-            ros,
-            keyframe_every=6,
-            queue_size=16,
-            qos_depth=100,
-            width=SIZE['width'],
-            height=SIZE['height'],
-            **{
-                'filter.max_lag_frames': 0,
-                'filter.max_update_rate': 0.0,
-                'mount_check.pairs': PAIRS,
-                'time_offset_check.mode': 'off',
-            },
-        )
+        node = _stream_check_node(ros, SIZE, **{'mount_check.pairs': PAIRS, 'time_offset_check.mode': 'off'})
         notes: list[tuple[str, str]] = []
         noted = node.stats.noted
         node.stats.noted = lambda why, message='': (notes.append((why, message)), noted(why, message))

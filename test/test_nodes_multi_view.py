@@ -35,6 +35,22 @@ def _mv_node(ros: RosHarness, **params) -> MultiViewNode:
     return ros.add(MultiViewNode(context=ros.context, parameter_overrides=overrides))
 
 
+def _stream_check_node(ros: RosHarness, size: dict, **params) -> MultiViewNode:
+    """A multi_view_node for the calibration checks' streams: a keyframe every 6th frame, deep
+    queues, the filter on every frame without lag, on ``size``'s working grid."""
+    filter_params = {'filter.max_lag_frames': 0, 'filter.max_update_rate': 0.0}
+    return _mv_node(
+        ros,
+        keyframe_every=6,
+        queue_size=16,
+        qos_depth=100,
+        width=size['width'],
+        height=size['height'],
+        **filter_params,
+        **params,
+    )
+
+
 class _Camera:
     """Publishers of what a camera driver and a SLAM system publish."""
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import Image
-from test_nodes_multi_view import _Camera, _mv_node
+from test_nodes_multi_view import _Camera, _stream_check_node
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
@@ -46,19 +46,8 @@ def _run(seq, mode: str):
     source_stamps = [m.sec_to_ns(s) for s in seq.pose_stream[0]]
     source_poses = seq.pose_stream[1]
     with RosHarness() as ros:
-        node = _mv_node(
-            ros,
-            keyframe_every=6,
-            queue_size=16,
-            qos_depth=100,
-            width=SIZE['width'],
-            height=SIZE['height'],
-            **{
-                'filter.max_lag_frames': 0,
-                'filter.max_update_rate': 0.0,
-                'time_offset_check.mode': mode,
-                'focal_check.pairs': FOCAL_PAIRS,
-            },
+        node = _stream_check_node(
+            ros, SIZE, **{'time_offset_check.mode': mode, 'focal_check.pairs': FOCAL_PAIRS}
         )
         depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
         poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from .argtypes import subcommand
-from .recordings import load_recording, recording_arguments, verdict_status
+from .recordings import recording_arguments, run_paired_check
 
 DESCRIPTION = """\
 Check the optical frame of a recording (a TUM-layout folder or a rosbag2 with images, camera
@@ -35,7 +35,4 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..multiview.mount_check import MountCheckConfig, check_frames
 
-    sequence = load_recording(args)
-    config = MountCheckConfig() if args.pairs is None else MountCheckConfig(pairs=args.pairs)
-    check = check_frames(sequence.camera, sequence.frames, config)
-    return verdict_status('check-mount', args.source, check.result, len(check.pairs), config, len(sequence))
+    return run_paired_check(args, 'check-mount', MountCheckConfig, check_frames)

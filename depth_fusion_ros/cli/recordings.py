@@ -1,5 +1,5 @@
-"""What the calibration check commands share (``check-focal``, ``check-sync``): the options of a
-recording, reading it as the checks do, and a verdict as a printed line and an exit status."""
+"""What the calibration check commands share (``check-focal``, ``check-sync``, ``check-mount``): the
+options of a recording, reading it as the checks do, and a verdict as a printed line and an exit status."""
 
 from __future__ import annotations
 
@@ -67,3 +67,12 @@ def verdict_status(command: str, source: str, estimate: Any, pairs: int, config:
         return 4
     print(f'{source}: {estimate.message()}')
     return {'consistent': 0, 'disagrees': 3}.get(estimate.verdict, 4)
+
+
+def run_paired_check(args: Any, command: str, config_type: type, check_frames: Any) -> int:
+    """``check-focal`` and ``check-mount``: the recording loaded, the check (``config_type``
+    with ``--pairs``) fed with its frames, the verdict printed; the exit status."""
+    sequence = load_recording(args)
+    config = config_type() if args.pairs is None else config_type(pairs=args.pairs)
+    check = check_frames(sequence.camera, sequence.frames, config)
+    return verdict_status(command, args.source, check.result, len(check.pairs), config, len(sequence))

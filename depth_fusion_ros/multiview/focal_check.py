@@ -29,7 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import PinholeCamera
-from .image_pairs import CHECK_MODES, ImagePairs, check_mode, check_sampling
+from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling
+from .paired_check import PairedCheck, feed
 
 log = logging.getLogger(__name__)
 
@@ -117,13 +118,6 @@ class FocalEstimate:
         return PinholeCamera(camera.width, camera.height, camera.fx * s, camera.fy * s, camera.cx, camera.cy)
 
 
-@dataclass
-class _Pair:
-    T_ba: np.ndarray  # told: first-camera coordinates to second-camera coordinates
-    p1: np.ndarray  # (M, 2) matched positions in the first image
-    p2: np.ndarray
-
-
 def skew(t: np.ndarray) -> np.ndarray:
     """The cross-product matrix of a 3-vector."""
     return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
@@ -161,7 +155,7 @@ def soft_l1_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray
     return np.sqrt(1.0 + r * r) - 1.0
 
 
-def _robust_costs(scales: np.ndarray, K: np.ndarray, pair: _Pair) -> np.ndarray:
+def _robust_costs(scales: np.ndarray, K: np.ndarray, pair: MatchedPair) -> np.ndarray:
     """Soft-L1 sum of one pair's Sampson distances at each of ``scales`` (S,)."""
     return soft_l1_sampson(_fundamental(scales, K, pair.T_ba), pair.p1, pair.p2).sum(axis=1)
 
@@ -170,7 +164,7 @@ def _robust_costs(scales: np.ndarray, K: np.ndarray, pair: _Pair) -> np.ndarray:
 _GRID = np.exp(np.arange(math.log(_SCALE_BOUNDS[0]), math.log(_SCALE_BOUNDS[1]), 0.01))
 
 
-def fit_pair_scale(pair: _Pair, K: np.ndarray) -> float:
+def fit_pair_scale(pair: MatchedPair, K: np.ndarray) -> float:
     """The focal scale that fits one pair's matches best under its told pose (soft-L1 cost).
 
     The whole bounded range on a 1 % grid first, in one vectorised pass, then a bounded scalar
@@ -188,7 +182,7 @@ def fit_pair_scale(pair: _Pair, K: np.ndarray) -> float:
     return float(fit.x)
 
 
-def estimate_focal_scale(pairs: list[_Pair], K: np.ndarray) -> tuple[float, float]:
+def estimate_focal_scale(pairs: list[MatchedPair], K: np.ndarray) -> tuple[float, float]:
     """The focal scale the pairs agree on (the median of their own fits) and its standard error.
 
     Why per pair: an error of a told relative pose moves every match of that pair alike, so
@@ -207,42 +201,14 @@ def estimate_focal_scale(pairs: list[_Pair], K: np.ndarray) -> tuple[float, floa
 
 
 @dataclass
-class FocalCheck:
+class FocalCheck(PairedCheck):
     """Collects image pairs from a posed stream and checks the focal length once (see module)."""
 
-    camera: PinholeCamera
     config: FocalCheckConfig = field(default_factory=FocalCheckConfig)
     result: FocalEstimate | None = None
-    frames: int = 0
-    pairs: list[_Pair] = field(default_factory=list)
 
-    def __post_init__(self) -> None:
-        self._images = ImagePairs.for_config(self.camera.K, self.config)
-
-    @property
-    def done(self) -> bool:
-        return self.result is not None or self.config.mode == 'off'
-
-    def wants(self, pose: np.ndarray) -> bool:
-        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
-        return not self.done and self._images.far_enough(pose)
-
-    def add(self, gray: np.ndarray, pose: np.ndarray) -> FocalEstimate | None:
-        """One posed frame of the stream (grey image on this camera's grid, camera-to-world);
-        returns the estimate on the frame that completes it, else ``None``."""
-        self.frames += 1
-        if not self.wants(pose):
-            return None
-        matched = self._images.add(gray, pose)
-        if matched is not None:
-            self.pairs.append(_Pair(matched.T_ba, matched.p1, matched.p2))
-        if len(self.pairs) < self.config.pairs:
-            return None
-        scale, stderr = estimate_focal_scale(self.pairs, self.camera.K)
-        self.result = self._verdict(scale, stderr)
-        self.pairs = []
-        self._images.reset()
-        return self.result
+    def _estimate(self) -> FocalEstimate:
+        return self._verdict(*estimate_focal_scale(self.pairs, self.camera.K))
 
     def _verdict(self, scale: float, stderr: float) -> FocalEstimate:
         if not math.isfinite(stderr) or stderr > self.config.max_stderr or scale <= 0:
@@ -262,8 +228,4 @@ class FocalCheck:
 def check_frames(camera: PinholeCamera, frames: Iterable, config: FocalCheckConfig) -> FocalCheck:
     """A check fed with ``frames`` (anything with ``.gray`` and ``.pose``, in stream order)
     until it has its estimate (``.result``; ``None`` when they ran out first)."""
-    check = FocalCheck(camera, config)
-    for frame in frames:
-        if check.done or check.add(frame.gray, frame.pose) is not None:
-            break
-    return check
+    return feed(FocalCheck(camera, config), frames)  # type: ignore[return-value]

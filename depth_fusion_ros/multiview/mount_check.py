@@ -42,7 +42,8 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from .focal_check import soft_l1_sampson
-from .image_pairs import CHECK_MODES, ImagePairs, MatchedPair, check_mode, check_sampling
+from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling
+from .paired_check import PairedCheck, feed
 
 log = logging.getLogger(__name__)
 
@@ -270,41 +271,14 @@ def fit_mount(K: np.ndarray, pairs: list[MatchedPair]) -> tuple[np.ndarray, np.n
 
 
 @dataclass
-class MountCheck:
+class MountCheck(PairedCheck):
     """Collects image pairs from a posed stream and checks the mount rotation once (see module)."""
 
-    camera: PinholeCamera
     config: MountCheckConfig = field(default_factory=MountCheckConfig)
     result: MountEstimate | None = None
-    frames: int = 0
-    pairs: list[MatchedPair] = field(default_factory=list)
 
-    def __post_init__(self) -> None:
-        self._images = ImagePairs.for_config(self.camera.K, self.config)
-
-    @property
-    def done(self) -> bool:
-        return self.result is not None or self.config.mode == 'off'
-
-    def wants(self, pose: np.ndarray) -> bool:
-        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
-        return not self.done and self._images.far_enough(pose)
-
-    def add(self, gray: np.ndarray, pose: np.ndarray) -> MountEstimate | None:
-        """One posed frame of the stream (grey image on this camera's grid, camera-to-world);
-        returns the estimate on the frame that completes it, else ``None``."""
-        self.frames += 1
-        if not self.wants(pose):
-            return None
-        matched = self._images.add(gray, pose)
-        if matched is not None:
-            self.pairs.append(matched)
-        if len(self.pairs) < self.config.pairs:
-            return None
-        self.result = self._verdict(*fit_mount(np.asarray(self.camera.K, dtype=np.float64), self.pairs))
-        self.pairs = []
-        self._images.reset()
-        return self.result
+    def _estimate(self) -> MountEstimate:
+        return self._verdict(*fit_mount(np.asarray(self.camera.K, dtype=np.float64), self.pairs))
 
     def _verdict(self, v: np.ndarray, cov: np.ndarray) -> MountEstimate:
         c = self.config
@@ -337,11 +311,7 @@ class MountCheck:
 def check_frames(camera: PinholeCamera, frames: Iterable, config: MountCheckConfig) -> MountCheck:
     """A check fed with ``frames`` (anything with ``.gray`` and ``.pose``, in stream order)
     until it has its estimate (``.result``; ``None`` when they ran out first)."""
-    check = MountCheck(camera, config)
-    for frame in frames:
-        if check.done or check.add(frame.gray, frame.pose) is not None:
-            break
-    return check
+    return feed(MountCheck(camera, config), frames)  # type: ignore[return-value]
 
 
 def turned(poses: np.ndarray, estimate: MountEstimate | None) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""A once-per-camera check of ``multi_view_node`` (focal length, time offset), off the callbacks.
+"""A once-per-camera check of ``multi_view_node`` (focal length, time offset, mount), off the callbacks.
 
 The callbacks offer every posed frame; the check says what it needs of it (a pose comparison,
 microseconds), and only that is queued; a daemon thread computes features and, once, the
@@ -17,6 +17,7 @@ from typing import Any
 
 from ..camera import PinholeCamera
 from ..data.sequence import Frame
+from .params import build_dataclass
 
 
 class CheckRunner:
@@ -118,3 +119,27 @@ class CheckRunner:
                 if not stopping.is_set():  # a check restarted meanwhile reports nothing
                     self._on_result(check.camera, result)
                 return
+
+
+class PairedCheckRunner(CheckRunner):
+    """A runner of a check fitted to image pairs (``multiview/paired_check.py``: the focal length
+    and mount checks): only the frames it wants as its next sample are queued, grey image and
+    pose, the grey image made only then."""
+
+    #: The check (a ``PairedCheck``), its config dataclass and its parameter section.
+    check_type: type
+    config_type: type
+    section: str
+
+    @classmethod
+    def from_parameters(cls, params: dict[str, Any], on_result: Callable[[PinholeCamera, Any], None]) -> Any:
+        return cls(build_dataclass(cls.config_type, params, cls.section), on_result)
+
+    def _make(self, camera: PinholeCamera) -> Any:
+        return self.check_type(camera, self.config)
+
+    def _item(self, check: Any, frame: Frame) -> tuple[Any, Any] | None:
+        return (frame.gray, frame.pose) if check.wants(frame.pose) else None
+
+    def _feed(self, check: Any, item: tuple[Any, Any]) -> Any:
+        return check.add(*item)

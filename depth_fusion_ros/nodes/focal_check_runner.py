@@ -11,10 +11,9 @@ from collections.abc import Callable
 from typing import Any
 
 from ..camera import PinholeCamera
-from ..data.sequence import Frame
 from ..multiview.focal_check import FOCAL_CHECK_MODES, FocalCheck, FocalCheckConfig, FocalEstimate
-from .check_runner import CheckRunner
-from .params import ParamSpec, build_dataclass, dataclass_specs
+from .check_runner import PairedCheckRunner
+from .params import ParamSpec, dataclass_specs
 
 FOCAL_CHECK_LIMITS: dict[str, Any] = {
     'mode': FOCAL_CHECK_MODES,
@@ -32,10 +31,11 @@ FOCAL_CHECK_PARAMETERS: tuple[ParamSpec, ...] = tuple(
 )
 
 
-class FocalCheckRunner(CheckRunner):
+class FocalCheckRunner(PairedCheckRunner):
     """Feeds a :class:`FocalCheck` from the callbacks on its own thread; reports the result once."""
 
-    name = 'focal_check'
+    name = section = 'focal_check'
+    check_type, config_type = FocalCheck, FocalCheckConfig
 
     def __init__(
         self, config: FocalCheckConfig, on_result: Callable[[PinholeCamera, FocalEstimate], None]
@@ -43,22 +43,6 @@ class FocalCheckRunner(CheckRunner):
         super().__init__(config, on_result)
         #: ``(estimate, corrected camera)``: made once per estimate, not per frame.
         self._corrected: tuple[FocalEstimate, PinholeCamera] | None = None
-
-    @classmethod
-    def from_parameters(
-        cls, params: dict[str, Any], on_result: Callable[[PinholeCamera, FocalEstimate], None]
-    ) -> FocalCheckRunner:
-        return cls(build_dataclass(FocalCheckConfig, params, 'focal_check'), on_result)
-
-    def _make(self, camera: PinholeCamera) -> FocalCheck:
-        return FocalCheck(camera, self.config)
-
-    def _item(self, check: FocalCheck, frame: Frame) -> tuple[Any, Any] | None:
-        # Its grey image is made only when the check wants the frame.
-        return (frame.gray, frame.pose) if check.wants(frame.pose) else None
-
-    def _feed(self, check: FocalCheck, item: tuple[Any, Any]) -> FocalEstimate | None:
-        return check.add(*item)
 
     def camera_for(self, camera: PinholeCamera) -> PinholeCamera:
         """The camera the multi-view depth uses for frames of ``camera``: the fitted focal length

@@ -7,16 +7,13 @@ the node applies to every camera pose it reads from then on (``T_wc @ rotation``
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from ..camera import PinholeCamera
-from ..data.sequence import Frame
-from ..multiview.mount_check import MOUNT_CHECK_MODES, MountCheck, MountCheckConfig, MountEstimate
-from .check_runner import CheckRunner
-from .params import ParamSpec, build_dataclass, dataclass_specs
+from ..multiview.mount_check import MOUNT_CHECK_MODES, MountCheck, MountCheckConfig
+from .check_runner import PairedCheckRunner
+from .params import ParamSpec, dataclass_specs
 
 MOUNT_CHECK_LIMITS: dict[str, Any] = {
     'mode': MOUNT_CHECK_MODES,
@@ -37,26 +34,11 @@ _IDENTITY = np.eye(4)
 _IDENTITY.setflags(write=False)
 
 
-class MountCheckRunner(CheckRunner):
+class MountCheckRunner(PairedCheckRunner):
     """Feeds a :class:`MountCheck` from the callbacks on its own thread; reports the result once."""
 
-    name = 'mount_check'
-
-    @classmethod
-    def from_parameters(
-        cls, params: dict[str, Any], on_result: Callable[[PinholeCamera, MountEstimate], None]
-    ) -> MountCheckRunner:
-        return cls(build_dataclass(MountCheckConfig, params, 'mount_check'), on_result)
-
-    def _make(self, camera: PinholeCamera) -> MountCheck:
-        return MountCheck(camera, self.config)
-
-    def _item(self, check: MountCheck, frame: Frame) -> tuple[Any, Any] | None:
-        # Its grey image is made only when the check wants the frame.
-        return (frame.gray, frame.pose) if check.wants(frame.pose) else None
-
-    def _feed(self, check: MountCheck, item: tuple[Any, Any]) -> MountEstimate | None:
-        return check.add(*item)
+    name = section = 'mount_check'
+    check_type, config_type = MountCheck, MountCheckConfig
 
     @property
     def rotation(self) -> np.ndarray:

@@ -1,0 +1,71 @@
+"""A check fitted once to the image pairs of a posed stream (the focal length check, the mount
+check): what the two share, so each says only what it fits.
+
+The stream's frames come one at a time; a frame far enough from the last sample (by the told
+poses: :class:`~.image_pairs.ImagePairs`) is the next sample and makes a pair with the one
+before; once ``config.pairs`` pairs are in, the subclass fits its parameter to them
+(:meth:`PairedCheck._estimate`), once. The time offset check reads poses at other times and
+keeps its own loop.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from .image_pairs import ImagePairs, MatchedPair
+
+
+@dataclass
+class PairedCheck:
+    """Collects image pairs from a posed stream and checks them once (see module)."""
+
+    camera: PinholeCamera
+    config: Any
+    result: Any = None
+    frames: int = 0
+    pairs: list[MatchedPair] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._images = ImagePairs.for_config(self.camera.K, self.config)
+
+    @property
+    def done(self) -> bool:
+        return self.result is not None or self.config.mode == 'off'
+
+    def wants(self, pose: np.ndarray) -> bool:
+        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
+        return not self.done and self._images.far_enough(pose)
+
+    def add(self, gray: np.ndarray, pose: np.ndarray) -> Any:
+        """One posed frame of the stream (grey image on this camera's grid, camera-to-world);
+        returns the estimate on the frame that completes it, else ``None``."""
+        self.frames += 1
+        if not self.wants(pose):
+            return None
+        matched = self._images.add(gray, pose)
+        if matched is not None:
+            self.pairs.append(matched)
+        if len(self.pairs) < self.config.pairs:
+            return None
+        self.result = self._estimate()
+        self.pairs = []
+        self._images.reset()
+        return self.result
+
+    def _estimate(self) -> Any:
+        """The estimate from ``self.pairs`` (all of them in)."""
+        raise NotImplementedError
+
+
+def feed(check: PairedCheck, frames: Iterable) -> PairedCheck:
+    """``check`` fed with ``frames`` (anything with ``.gray`` and ``.pose``, in stream order) until
+    it has its estimate (``.result``; ``None`` when they ran out first)."""
+    for frame in frames:
+        if check.done or check.add(frame.gray, frame.pose) is not None:
+            break
+    return check
