@@ -13,7 +13,8 @@ turned about the camera's x axis, and read that way the filter's depth is 22 % b
 depth, to first order, as a turn of ``d / f`` and is corrected with it.
 
 :class:`MountCheck` takes the posed frames of a stream. A frame that moved ``min_baseline``
-(or turned ``min_rotation_deg``) from the last sample is the next sample; consecutive samples
+from the last sample is the next sample (a turn alone only when ``min_rotation_deg`` is set
+under its 180); consecutive samples
 make a pair (ORB, the images' own essential matrix keeps the matches of one rigid motion:
 :mod:`.image_pairs`, as the other calibration checks). After ``pairs`` pairs, one rotation
 ``M`` (the camera's frame in the told optical frame: ``T_wc = T_told @ M``) is fitted
@@ -71,8 +72,10 @@ class MountCheckConfig:
     mode: str = 'correct'
     #: A frame is the next image of a pair once it has moved this far from the last one (m)
     min_baseline: float = 0.1
-    #: A frame is also the next image of a pair once it has turned this far from the last one (degrees)
-    min_rotation_deg: float = 30.0
+    #: A frame is also the next image of a pair once it has turned this far from the last one
+    #: (degrees; 180: by travel alone, as validated: a turn in place gives pairs without the
+    #: baseline the fit needs)
+    min_rotation_deg: float = 180.0
     #: Pairs of images the estimate uses (the check ends there, once)
     pairs: int = 20
     #: A disagreement counts when a fitted component less twice its standard error is at least
@@ -264,7 +267,7 @@ def fit_mount(K: np.ndarray, pairs: list[MatchedPair]) -> tuple[np.ndarray, np.n
     inverse = np.linalg.pinv(hessian)
     sandwich = inverse @ (grads.T @ grads * (n / max(n - 1, 1))) @ inverse
     blocks = np.array_split(np.arange(n), min(_BLOCKS, n))
-    fits = np.array([_minimise(K, [p for i, p in enumerate(pairs) if i not in set(b)], v)[0] for b in blocks])
+    fits = np.array([_minimise(K, [pairs[i] for i in np.setdiff1d(np.arange(n), b)], v)[0] for b in blocks])
     spread = fits - fits.mean(axis=0)
     jackknife = spread.T @ spread * (len(blocks) - 1) / len(blocks)
     return v, sandwich + jackknife

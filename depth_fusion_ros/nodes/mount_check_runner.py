@@ -42,8 +42,8 @@ class MountCheckRunner(PairedCheckRunner):
 
     @property
     def rotation(self) -> np.ndarray:
-        """The turn (4x4) of every camera pose (``T_wc @ rotation``): the fitted one once the
-        check disagreed and ``mount_check.mode`` is correct, else the identity."""
+        """The turn (4x4) of the camera poses the check read (``T_wc @ rotation``): the fitted
+        one once the check disagreed and ``mount_check.mode`` is correct, else the identity."""
         result = self.result
         if self.config.mode != 'correct' or result is None or result.verdict != 'disagrees':
             return _IDENTITY

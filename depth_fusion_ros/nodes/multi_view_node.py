@@ -309,8 +309,10 @@ class MultiViewNode(DepthFusionNode):
         self.keyframes_decided = 0
         #: The time offset check's correction the lookups use (``_pose_offset``)
         self._offset_correction = 0.0
-        #: The mount check's turn of every camera pose once taken (``_take_mount_correction``)
+        #: The mount check's turn of every camera pose once taken (``_take_mount_correction``), and
+        #: the check result it last took
         self._mount_correction = np.eye(4)
+        self._mount_taken: MountEstimate | None = None
         self._last_keyframe_pose: np.ndarray | None = None
         self._image_stamps = self.stamp_guard('image')
         self._pose_stamps = self.stamp_guard('pose')
@@ -742,17 +744,23 @@ class MultiViewNode(DepthFusionNode):
 
     def _take_mount_correction(self) -> None:
         """Take the mount check's turn once it has one (``mount_check.mode`` correct; callback
-        thread, before images are posed). As a time offset correction, it starts the frame
-        history, the filter and the focal length check over at the next posed frame."""
-        rotation = self.mount_check.rotation
-        if rotation is self._mount_correction or np.array_equal(rotation, self._mount_correction):
+        thread, before images are posed; a check of a camera seen anew adds its own). As a time
+        offset correction, it starts the frame history, the filter and the focal length check
+        over at the next posed frame."""
+        result = self.mount_check.result
+        if result is None or result is self._mount_taken:
+            return  # nothing new (a camera checked anew keeps the turn it has until its own verdict)
+        self._mount_taken = result
+        if self.mount_check.config.mode != 'correct' or result.verdict != 'disagrees':
             return
+        # The check read poses already turned by the correction so far: its turn adds to it.
+        rotation = self._mount_correction @ self.mount_check.rotation
         self._mount_correction = rotation
         self._restart_from_ns = 0
         self.focal_check.restart()  # its pairs were posed in the told frame
         self.stats.noted(
             'mount_disagrees',
-            f'{self.mount_check.result.message()}; mount_check.mode correct: every camera pose is '
+            f'{result.message()}; mount_check.mode correct: every camera pose is '
             f'turned by it from now on, frame history and filter start over; {self._mount_hint(rotation)}',
         )
 
@@ -765,7 +773,7 @@ class MultiViewNode(DepthFusionNode):
             self.stats.noted(
                 'mount_disagrees',
                 f'{estimate.message()} (mount_check.mode correct would use it); '
-                f'{self._mount_hint(estimate.rotation())}',
+                f'{self._mount_hint(self._mount_correction @ estimate.rotation())}',
             )
 
     def _mount_hint(self, rotation: np.ndarray) -> str:
