@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -75,6 +75,17 @@ class Sequence:
     def poses(self) -> np.ndarray:
         """(N, 4, 4) camera-to-world poses."""
         return np.stack([f.pose for f in self.frames]) if self.frames else np.zeros((0, 4, 4))
+
+    def with_poses(
+        self, poses: np.ndarray, pose_stream: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> Sequence:
+        """A copy whose frames have ``poses`` (N, 4, 4), as a calibration check's correction reads
+        them (images and depth shared, not copied); its pose record ``pose_stream`` when given,
+        else the same."""
+        frames = [replace(f, pose=p) for f, p in zip(self.frames, poses, strict=True)]
+        return replace(
+            self, frames=frames, pose_stream=self.pose_stream if pose_stream is None else pose_stream
+        )
 
     def gt_depth_working(self, i: int) -> np.ndarray | None:
         """Ground-truth depth of frame ``i`` at the working resolution (nearest sampling)."""

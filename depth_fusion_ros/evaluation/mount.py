@@ -13,8 +13,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 
-import numpy as np
-
 from ..data.sequence import Sequence
 from ..multiview.mount_check import MountCheckConfig, MountEstimate, check_frames, turned
 from .checks import run_check
@@ -47,12 +45,10 @@ def check_mount(sequence: Sequence, params: dict) -> tuple[Sequence, MountEstima
 
 def turned_sequence(sequence: Sequence, estimate: MountEstimate) -> Sequence:
     """``sequence`` with every frame's pose and the pose source's record turned by the estimate."""
-    poses = turned(np.stack([f.pose for f in sequence.frames]), estimate)
-    frames = [dataclasses.replace(f, pose=p) for f, p in zip(sequence.frames, poses, strict=True)]
     stream = sequence.pose_stream
     if stream is not None:
         stream = (stream[0], turned(stream[1], estimate))
-    return dataclasses.replace(sequence, frames=frames, pose_stream=stream)
+    return sequence.with_poses(turned(sequence.poses, estimate), stream)
 
 
 def estimate_json(estimate: MountEstimate | None, corrected: bool) -> dict | None:

@@ -130,64 +130,59 @@ def gradient_table(doc: dict[str, Any]) -> str | None:
     return _table(['sequence', 'method', 'high-gradient', 'low-gradient'], rows)
 
 
+def _check_table(doc: dict[str, Any], key: str, header: list[str], cells: Any) -> str | None:
+    """A calibration check's table (``evaluation/checks.py``): one row per sequence that ran it,
+    ``[name, verdict, *cells(entry)]``, so a correction is said in the report, not only in
+    results.json."""
+    rows = [
+        [name, seq[key]['verdict'], *cells(seq[key])]
+        for name, seq in doc['sequences'].items()
+        if seq.get(key)
+    ]
+    return _table(['sequence', 'verdict', *header], rows) if rows else None
+
+
 def focal_table(doc: dict[str, Any]) -> str | None:
-    """The focal length check per sequence (``evaluation/focal.py``): a corrected camera is said
-    in the report, not only in results.json."""
-    rows = []
-    for name, seq in doc['sequences'].items():
-        check = seq.get('focal_check')
-        if check:
-            fit = f'{check["fitted_fx"]:.1f} ({check["scale"] - 1:+.1%} +- {check["stderr"]:.1%})'
-            used = check['fitted_fx'] if check['corrected'] else check['told_fx']
-            row = [name, check['verdict'], f'{check["told_fx"]:.1f}', fit, str(check['pairs']), f'{used:.1f}']
-            rows.append(row)
-    if not rows:
-        return None
-    header = ['sequence', 'verdict', 'told fx (px)', 'fitted fx (px)', 'pairs', 'fx every method used']
-    return _table(header, rows)
+    """The focal length check per sequence (``evaluation/focal.py``)."""
+
+    def cells(c: dict) -> list[str]:
+        fit = f'{c["fitted_fx"]:.1f} ({c["scale"] - 1:+.1%} +- {c["stderr"]:.1%})'
+        used = c['fitted_fx'] if c['corrected'] else c['told_fx']
+        return [f'{c["told_fx"]:.1f}', fit, str(c['pairs']), f'{used:.1f}']
+
+    header = ['told fx (px)', 'fitted fx (px)', 'pairs', 'fx every method used']
+    return _check_table(doc, 'focal_check', header, cells)
 
 
 def time_offset_table(doc: dict[str, Any]) -> str | None:
-    """The time offset check per sequence (``evaluation/time_offset.py``): poses read at another
-    time are said in the report, not only in results.json."""
-    rows = []
-    for name, seq in doc['sequences'].items():
-        check = seq.get('time_offset_check')
-        if check:
-            fit = f'{check["offset"] * 1000:+.0f} +- {check["stderr"] * 1000:.0f}'
-            used = check['fitted_offset'] if check['corrected'] else check['told']
-            rows.append([name, check['verdict'], fit, str(check['pairs']), f'{used * 1000:+.0f}'])
-    if not rows:
-        return None
-    header = ['sequence', 'verdict', 'fitted offset (ms)', 'pairs', 'offset every method used (ms)']
-    return _table(header, rows)
+    """The time offset check per sequence (``evaluation/time_offset.py``)."""
+
+    def cells(c: dict) -> list[str]:
+        used = c['fitted_offset'] if c['corrected'] else c['told']
+        fit = f'{c["offset"] * 1000:+.0f} +- {c["stderr"] * 1000:.0f}'
+        return [fit, str(c['pairs']), f'{used * 1000:+.0f}']
+
+    header = ['fitted offset (ms)', 'pairs', 'offset every method used (ms)']
+    return _check_table(doc, 'time_offset_check', header, cells)
 
 
 def mount_table(doc: dict[str, Any]) -> str | None:
-    """The mount check per sequence (``evaluation/mount.py``): poses turned by a fitted rotation
-    are said in the report, not only in results.json."""
-    rows = []
-    for name, seq in doc['sequences'].items():
-        check = seq.get('mount_check')
-        if check:
-            fit = ', '.join(f'{v:+.2f}' for v in check['fitted_deg'])
-            sd = '/'.join(f'{v:.2f}' for v in check['stderr_deg'])
-            used = f'{check["angle_deg"]:.2f}' if check['corrected'] else '0'
-            rows.append(
-                [name, check['verdict'], f'[{fit}]', sd, str(check['observed']), str(check['pairs']), used]
-            )
-    if not rows:
-        return None
+    """The mount check per sequence (``evaluation/mount.py``)."""
+
+    def cells(c: dict) -> list[str]:
+        fit = ', '.join(f'{v:+.2f}' for v in c['fitted_deg'])
+        sd = '/'.join(f'{v:.2f}' for v in c['stderr_deg'])
+        used = f'{c["angle_deg"]:.2f}' if c['corrected'] else '0'
+        return [f'[{fit}]', sd, str(c['observed']), str(c['pairs']), used]
+
     header = [
-        'sequence',
-        'verdict',
         'fitted rotation (deg)',
         'standard errors (deg)',
         'directions observed',
         'pairs',
         'turn every method used (deg)',
     ]
-    return _table(header, rows)
+    return _check_table(doc, 'mount_check', header, cells)
 
 
 def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> str:

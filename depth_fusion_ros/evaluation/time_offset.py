@@ -57,14 +57,13 @@ def shifted_sequence(sequence: Sequence, offset: float) -> Sequence:
     offset gives its exact poses back), else from the frames' own poses; both along the cubic
     through them (``pose_curve.py``), a frame past either end of the record along the end step."""
     stamps = np.array([f.stamp for f in sequence.frames])
-    poses = shift_in_time(stamps, np.stack([f.pose for f in sequence.frames]), offset)
+    poses = shift_in_time(stamps, sequence.poses, offset)
     if sequence.pose_stream is not None and len(sequence.pose_stream[0]) >= 2:
         source_stamps, source_poses = sequence.pose_stream
         t0 = float(source_stamps[0])
         read, inside = interpolate_poses_cubic(source_stamps - t0, source_poses, stamps + offset - t0)
         poses[inside] = read[inside]
-    frames = [dataclasses.replace(f, pose=p) for f, p in zip(sequence.frames, poses, strict=True)]
-    return dataclasses.replace(sequence, frames=frames)
+    return sequence.with_poses(poses)
 
 
 def estimate_json(estimate: TimeOffsetEstimate | None, corrected: bool) -> dict | None:

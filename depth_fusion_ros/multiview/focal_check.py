@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import PinholeCamera
+from .epipolar_cost import skew, soft_l1_sampson
 from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling
 from .paired_check import PairedCheck, feed
 
@@ -37,8 +38,6 @@ log = logging.getLogger(__name__)
 FOCAL_CHECK_MODES = CHECK_MODES
 VERDICTS = ('consistent', 'disagrees', 'unobservable')
 
-#: Sampson distance (px) where the soft-L1 loss turns from squares to absolute values.
-_LOSS_SCALE_PX = 0.5
 #: The focal scales a fit may reach (a focal length half or twice the told one).
 _SCALE_BOUNDS = (0.5, 2.0)
 
@@ -118,20 +117,6 @@ class FocalEstimate:
         return PinholeCamera(camera.width, camera.height, camera.fx * s, camera.fy * s, camera.cx, camera.cy)
 
 
-def skew(t: np.ndarray) -> np.ndarray:
-    """The cross-product matrix of a 3-vector."""
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
-def sampson_distances(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """Signed Sampson distances (px) of matches ``p1 -> p2`` (N, 2) under fundamental matrix ``F``."""
-    x1 = np.c_[p1, np.ones(len(p1))]
-    x2 = np.c_[p2, np.ones(len(p2))]
-    Fx1, Ftx2 = x1 @ F.T, x2 @ F
-    norm = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
-    return np.sum(x2 * Fx1, axis=1) / np.maximum(norm, 1e-12)
-
-
 def _fundamental(scales: np.ndarray, K: np.ndarray, T_ba: np.ndarray) -> np.ndarray:
     """(S, 3, 3) fundamental matrices of the told pose with the focal lengths scaled by each of ``scales``."""
     Ks = np.repeat(K[None].astype(np.float64), len(scales), axis=0)
@@ -140,19 +125,6 @@ def _fundamental(scales: np.ndarray, K: np.ndarray, T_ba: np.ndarray) -> np.ndar
     Ki = np.linalg.inv(Ks)
     E = skew(T_ba[:3, 3]) @ T_ba[:3, :3]
     return np.transpose(Ki, (0, 2, 1)) @ E @ Ki
-
-
-def soft_l1_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """Soft-L1 costs (S, N) of the Sampson distances of matches ``p1 -> p2`` (N, 2) under each of
-    S fundamental matrices ``F`` (S, 3, 3), in one pass: squares under ``_LOSS_SCALE_PX``, absolute
-    values beyond. Both calibration checks fit their parameter with it."""
-    x1 = np.c_[p1, np.ones(len(p1))]
-    x2 = np.c_[p2, np.ones(len(p2))]
-    Fx1 = np.einsum('sij,nj->sni', F, x1)
-    Ftx2 = np.einsum('sji,nj->sni', F, x2)
-    norm = np.sqrt(Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2)
-    r = np.einsum('ni,sni->sn', x2, Fx1) / np.maximum(norm, 1e-12) / _LOSS_SCALE_PX
-    return np.sqrt(1.0 + r * r) - 1.0
 
 
 def _robust_costs(scales: np.ndarray, K: np.ndarray, pair: MatchedPair) -> np.ndarray:

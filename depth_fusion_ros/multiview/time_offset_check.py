@@ -34,7 +34,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..pose_curve import interpolate_poses_cubic
-from .focal_check import soft_l1_sampson
+from .epipolar_cost import pose_costs
 from .image_pairs import CHECK_MODES, ImagePairs, MatchedPair, check_mode, check_sampling
 
 log = logging.getLogger(__name__)
@@ -136,17 +136,7 @@ def pair_costs(
     """Mean soft-L1 Sampson cost (S,) of matches ``p1 -> p2`` under each of S relative poses
     (the two images' camera-to-world poses ``poses_a``, ``poses_b``, (S, 4, 4)); ``inf`` where
     the two poses do not move (no epipolar geometry)."""
-    Ki = np.linalg.inv(K)
-    T = np.linalg.inv(poses_b) @ poses_a  # first-camera coordinates to second-camera coordinates
-    t = T[:, :3, 3]
-    moving = np.linalg.norm(t, axis=1) >= 1e-5
-    skews = np.zeros((len(T), 3, 3))
-    skews[:, 0, 1], skews[:, 0, 2], skews[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-    skews -= np.transpose(skews, (0, 2, 1))
-    F = Ki.T @ skews @ T[:, :3, :3] @ Ki  # (S, 3, 3): every relative pose at once
-    costs = np.full(len(T), np.inf)
-    costs[moving] = soft_l1_sampson(F[moving], p1, p2).mean(axis=1)
-    return costs
+    return pose_costs(K, np.linalg.inv(poses_b) @ poses_a, p1, p2)
 
 
 def estimate_offset(grid: np.ndarray, curves: np.ndarray, resamples: int = 200) -> tuple[float, float, float]:

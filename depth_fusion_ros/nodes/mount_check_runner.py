@@ -45,9 +45,9 @@ class MountCheckRunner(PairedCheckRunner):
         """The turn (4x4) of the camera poses the check read (``T_wc @ rotation``): the fitted
         one once the check disagreed and ``mount_check.mode`` is correct, else the identity."""
         result = self.result
-        if self.config.mode != 'correct' or result is None or result.verdict != 'disagrees':
+        if self.config.mode != 'correct' or result is None:
             return _IDENTITY
-        return result.rotation()
+        return result.rotation()  # the identity unless it disagrees
 
     def status(self) -> str:
         """One phrase for the diagnostics."""

@@ -21,7 +21,7 @@ import numpy as np
 
 from depth_fusion_ros.data.tum import load_tum_sequence
 from depth_fusion_ros.geometry import relative_pose
-from depth_fusion_ros.multiview.focal_check import sampson_distances, skew
+from depth_fusion_ros.multiview.epipolar_cost import sampson_distances, skew
 from depth_fusion_ros.multiview.image_pairs import image_features, rigid_matches
 
 
