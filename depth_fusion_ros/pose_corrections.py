@@ -16,6 +16,12 @@ What is not corrected, and why:
   twice); except in a segment that a pose jump ended (below), which is all in the old world;
 * keyframes before the path's first stamp: the path says nothing about them.
 
+The keyframes' poses are camera poses; the path's are the pose source's own (its body frame,
+at its clock). :func:`corrected_posed_segments` takes each keyframe to the pose source's frame
+and time by the :class:`Posing` it was posed with (``camera_from_pose_frame``, turned by a mount
+check, and the pose time offset), corrects it there and takes it back, so a correction of the
+posing itself is kept through a loop closure instead of being undone by it.
+
 One call corrects one *segment*: keyframes whose poses are in one world, stamps increasing.
 The map node starts a new segment at each pose jump it notes and at a stream restart, and
 corrects each on its own, so nothing is interpolated across a jump; a relocalised segment is
@@ -46,6 +52,25 @@ class CorrectionLimits:
     def counts(self, metres: float | np.ndarray, degrees: float | np.ndarray) -> bool | np.ndarray:
         """Whether a move (or each of several, as arrays) is large enough to count."""
         return (np.asarray(metres) >= self.min_m) | (np.asarray(degrees) >= self.min_deg)
+
+
+@dataclass(frozen=True)
+class Posing:
+    """How a camera pose was read from the pose source: ``T_wc = T_pose(stamp + offset) @ T_pose_cam``.
+
+    ``T_pose_cam``: the camera in the pose source's frame (``camera_from_pose_frame``, with a
+    mount check's turn composed on); ``offset``: seconds from the image stamp to the pose
+    source's time (``pose_time_offset`` plus a time offset check's correction)."""
+
+    T_pose_cam: np.ndarray
+    offset: float = 0.0
+
+    def same_as(self, other: Posing | None, atol: float = 1e-9) -> bool:
+        return (
+            other is not None
+            and abs(self.offset - other.offset) <= atol
+            and bool(np.allclose(self.T_pose_cam, other.T_pose_cam, rtol=0.0, atol=atol))
+        )
 
 
 @dataclass(frozen=True)
@@ -155,4 +180,42 @@ def corrected_segments(
             np.asarray(stamps)[rows], out[rows], path_stamps, path_poses, max_gap, segment != open_segment
         )
         out[rows], corrected[rows] = fix.poses, fix.corrected
+    return Corrections(out, corrected)
+
+
+def corrected_posed_segments(
+    stamps: np.ndarray,
+    poses: np.ndarray,
+    posings: list[Posing],
+    segments: np.ndarray,
+    open_segment: int,
+    path_stamps: np.ndarray,
+    path_poses: np.ndarray,
+    max_gap: float,
+) -> Corrections:
+    """:func:`corrected_segments` of camera poses against a path of the pose source's own poses.
+
+    Each keyframe (``stamps`` on the camera's clock, ``poses`` camera-to-world) goes to the pose
+    source's time and frame by its own :class:`Posing` (``stamp + offset``, ``T_wc @
+    T_pose_cam^-1``), is corrected there and comes back (``@ T_pose_cam``). A path that
+    restates the pose source's poses then moves nothing, whatever the posing added; a camera
+    pose composed with a turn the pose source does not know keeps it. Within a segment the
+    shifted stamps are put in order (an offset that changed can reorder two keyframes)."""
+    stamps = np.asarray(stamps, np.float64)
+    poses = np.asarray(poses, np.float64)
+    segments = np.asarray(segments)
+    if len(stamps) == 0:
+        return Corrections(poses.copy(), np.zeros(0, dtype=bool))
+    T_pc = np.stack([p.T_pose_cam for p in posings]).astype(np.float64)
+    shifted = stamps + np.array([p.offset for p in posings], np.float64)
+    told = poses @ np.linalg.inv(T_pc)
+    order = np.lexsort((shifted, segments))
+    fix = corrected_segments(
+        shifted[order], told[order], segments[order], open_segment, path_stamps, path_poses, max_gap
+    )
+    out, corrected = np.empty_like(poses), np.empty(len(stamps), dtype=bool)
+    out[order] = fix.poses @ T_pc[order]
+    corrected[order] = fix.corrected
+    # Not corrected: exactly as it was (not rounded through the posing and back).
+    out[~corrected] = poses[~corrected]
     return Corrections(out, corrected)

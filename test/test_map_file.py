@@ -12,7 +12,7 @@ from depth_fusion_ros.mapping.config import MapConfig
 from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, rebuild
 from depth_fusion_ros.mapping.map_file import load_map, load_tsdf, save_tsdf
 from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
-from depth_fusion_ros.pose_corrections import CorrectionLimits
+from depth_fusion_ros.pose_corrections import CorrectionLimits, Posing
 
 
 @pytest.fixture(scope='module')
@@ -64,7 +64,10 @@ def test_the_kept_keyframes_travel_with_the_map_and_a_rebuild_after_a_restart_mo
     for i, frame in enumerate(seq.frames):
         depth = seq.gt_depth_working(i)
         tsdf.integrate(depth, frame.pose, seq.camera, rgb=frame.rgb)
-        store.add(float(i), depth, frame.pose, seq.camera, np.full(depth.shape, 0.5, np.float32), frame.rgb)
+        confidence = np.full(depth.shape, 0.5, np.float32)
+        # The last two posed with a mount turn and a pose time offset (nodes/posing.py), the first as told.
+        posing = Posing(np.diag([1.0, -1.0, -1.0, 1.0]), 0.025) if i >= 2 else None
+        store.add(float(i), depth, frame.pose, seq.camera, confidence, frame.rgb, posing=posing)
     path = tmp_path / 'with_keyframes.tsdf'
     save_tsdf(tsdf, path, 'world', store=store)
     restored = KeyframeStore(max_bytes=2**20)
@@ -74,16 +77,22 @@ def test_the_kept_keyframes_travel_with_the_map_and_a_rebuild_after_a_restart_mo
         np.testing.assert_array_equal(a.T_wc, b.T_wc)
         np.testing.assert_array_equal(a.depth, b.depth)
         np.testing.assert_array_equal(a.rgb, b.rgb)
+        assert (a.posing is None and b.posing is None) or (
+            a.posing is not None and b.posing is not None and a.posing.same_as(b.posing, atol=0.0)
+        )
         assert a.confidence is not None and np.array_equal(a.confidence, b.confidence)
         assert a.camera == b.camera and a.stamp == b.stamp
     assert {e.segment for e in restored.entries} == {1} and restored.segment == 2  # what follows: a new world
-    # A correction of 0.3 m along x moves the rebuilt map by as much.
+    # A correction of 0.3 m along x moves the rebuilt map by as much. The path is the pose
+    # source's: each keyframe's pose at its stamp plus its offset, in the pose's frame.
     shift = np.eye(4)
     shift[0, 3] = 0.3
+    told = Posing(np.eye(4))
     restored.correct(
-        np.array([e.stamp for e in restored.entries]),
-        np.stack([shift @ e.T_wc for e in restored.entries]),
+        np.array([e.stamp + (e.posing or told).offset for e in restored.entries]),
+        np.stack([shift @ e.T_wc @ np.linalg.inv((e.posing or told).T_pose_cam) for e in restored.entries]),
         CorrectionLimits(max_gap=10.0),
+        told,
     )
     rebuilt, at_old = TorchTSDF(config), TorchTSDF(config)
     rebuild(rebuilt, restored.entries)

@@ -6,14 +6,24 @@ import dataclasses
 
 import numpy as np
 import pytest
+from geometry_msgs.msg import TransformStamped
 from map_geometry import room_surface_distance
 from map_inputs import T0, MapInputs, call_save, make_room, map_node
 from nav_msgs.msg import Path as PathMsg
 from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import TimeReference
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.mapping import read_ply
+from depth_fusion_ros.nodes.posing import (
+    TOPIC_POSING_TIME,
+    TOPIC_POSING_TRANSFORM,
+    time_reference_msg,
+    transform_msg,
+)
+from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.testing import RosHarness
+from depth_fusion_ros.pose_corrections import Posing
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
@@ -41,10 +51,12 @@ def _path(poses: list[tuple[int, np.ndarray]], frame: str = 'world') -> PathMsg:
     return msg
 
 
-def _map_from_told_poses(ros: RosHarness, seq, path, told) -> tuple:
+def _map_from_told_poses(ros: RosHarness, seq, path, told, posings: int = 0) -> tuple:
     """map_node, and a publisher of corrected trajectories, after eight keyframes (frames 0, 2,
-    ..., 14) were integrated at the poses ``told(k, true_pose)`` gives."""
+    ..., 14) were integrated at the poses ``told(k, true_pose)`` gives (once the node heard
+    ``posings`` posing messages, when the test sent some)."""
     node = map_node(ros, save_path=str(path), points_rate=0.0, **{'map.engine': 'torch'})
+    assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing', 0) >= posings, 10.0)
     inputs = MapInputs(ros)
     fix = ros.publisher(PathMsg, '/camera/corrected_path')
     assert ros.wait_for_subscribers([fix])
@@ -161,4 +173,44 @@ def test_a_corrected_trajectory_after_a_restart_moves_the_map_the_earlier_run_sa
     assert np.median(corrected) < 0.01 and np.percentile(corrected, 90) < 0.025, (
         np.median(corrected),
         np.percentile(corrected, 90),
+    )
+
+
+def test_the_rebuild_compares_each_keyframe_through_the_posing_multi_view_node_said(room, tmp_path):
+    """multi_view_node turned the camera 2 deg (a mount check) and reads poses 30 ms after the
+    image stamps, and says so on the posing topics. The SLAM's trajectory restated as it was
+    moves nothing (compared in the camera frame with the configured mount alone, it moved every
+    keyframe by the turn and a rebuild dropped it); with the drift taken out, the rebuilt map
+    lies on the room, turn and offset kept."""
+    scene, seq = room
+    path = tmp_path / 'room.ply'
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler('x', 2.0, degrees=True).as_matrix()
+    mount = np.eye(4)
+    mount[:3, :3] = Rotation.from_euler('z', 90.0, degrees=True).as_matrix()
+    mount[:3, 3] = (0.05, 0.0, 0.1)
+    posing = Posing(mount @ turn, 0.03)
+    offset_ns = 30_000_000
+    with RosHarness() as ros:
+        said = ros.publisher(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, latched_qos())
+        said_time = ros.publisher(TimeReference, '/' + TOPIC_POSING_TIME, latched_qos())
+        said.publish(transform_msg(posing, T0, 'camera', kind=K))
+        said_time.publish(time_reference_msg(posing, T0, 'test', kind=K))
+        node, fix = _map_from_told_poses(ros, seq, path, lambda k, T: _drift(k) @ T, posings=2)
+        assert all(e.posing is not None for e in node.corrector.store.entries)
+        body = np.linalg.inv(posing.T_pose_cam)
+        told = [(T0 + k * STEP + offset_ns, _drift(k) @ seq.frames[2 * k].pose @ body) for k in range(8)]
+        fix.publish(_path(told))  # the pose source's poses as they were: nothing moves
+        assert ros.wait_for(lambda: node.stats.snapshot().published.get('corrections') == 1, 10.0)
+        assert node.corrector.rebuilds == 0 and not node.corrector.busy(), node.stats.snapshot().summary()
+        slam = [(T0 + k * STEP + STEP // 2 + offset_ns, seq.frames[2 * k + 1].pose @ body) for k in range(7)]
+        slam.append((T0 + 7 * STEP + offset_ns, seq.frames[14].pose @ body))
+        fix.publish(_path(slam))
+        assert ros.wait_for(lambda: node.corrector.rebuilds == 1 and not node.corrector.busy(), 60.0), (
+            node.stats.snapshot().summary()
+        )
+        dist = _saved_distances(ros, scene, path)
+    assert np.median(dist) < 0.008 and np.percentile(dist, 90) < 0.02, (
+        np.median(dist),
+        np.percentile(dist, 90),
     )

@@ -12,12 +12,14 @@ import time
 
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseStamped
-from sensor_msgs.msg import Image
+from geometry_msgs.msg import PoseStamped, TransformStamped
+from sensor_msgs.msg import Image, TimeReference
 from test_nodes_multi_view import _Camera, _stream_check_node
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
+from depth_fusion_ros.nodes.posing import TOPIC_POSING_TIME, TOPIC_POSING_TRANSFORM
+from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.testing import RosHarness
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
@@ -50,6 +52,8 @@ def test_a_tilted_camera_is_found_and_its_poses_turned():
         node.stats.noted = lambda why, message='': (notes.append((why, message)), noted(why, message))
         depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
         poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')
+        posings = ros.collect(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, latched_qos())
+        times = ros.collect(TimeReference, '/' + TOPIC_POSING_TIME, latched_qos())
         cam = _Camera(ros)
         for i, frame in enumerate(seq.frames):
             if i == CHECKED:  # let its thread finish
@@ -67,6 +71,7 @@ def test_a_tilted_camera_is_found_and_its_poses_turned():
         snap = node.stats.snapshot()
         extra = node.diagnostic_extra()
         result = node.mount_check.result
+        correction = node._mount_correction.copy()
     assert result is not None and result.verdict == 'disagrees', extra['mount check']
     assert result.rotvec_deg[0] == pytest.approx(-2.0, abs=0.6), result
     assert extra['mount check'].startswith('disagrees: turned [-')
@@ -82,3 +87,13 @@ def test_a_tilted_camera_is_found_and_its_poses_turned():
     after = [e for k, e in errors.items() if k > CHECKED + 5]
     assert before and after, sorted(errors)
     assert min(before) > 1.9 and max(after) < 1.0, (before, after)
+    # The nodes after it hear the turn (nodes/posing.py): the told mount from the first frame,
+    # the turned one from the first frame posed with it; the pose time never moved.
+    assert len(posings) == 2 and len(times) == 2, (len(posings), len(times))
+    first, turned = (m.transform_to_matrix(p.transform) for p in posings)
+    assert m.stamp_to_ns(posings[0].header.stamp) == stamps[0] and np.allclose(first, np.eye(4))
+    from_ = index[m.stamp_to_ns(posings[1].header.stamp)]
+    assert CHECKED - 10 < from_ <= CHECKED + 5, from_
+    np.testing.assert_allclose(turned, correction, atol=1e-9)
+    assert _angle_deg(turned, np.eye(4)) == pytest.approx(2.0, abs=0.6)
+    assert all(m.stamp_to_ns(t.time_ref) == m.stamp_to_ns(t.header.stamp) for t in times)

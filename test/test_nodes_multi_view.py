@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, TimeReference
 from std_msgs.msg import String
 
 from depth_fusion_ros.data import messages as m
@@ -367,6 +367,7 @@ def test_a_pose_time_offset_is_applied_before_the_pose_lookup(synthetic_sequence
     with RosHarness() as ros:
         node = _mv_node(ros, pose_time_offset=offset, queue_size=8, qos_depth=100)
         poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')
+        times = ros.collect(TimeReference, '/depth_fusion/posing/pose_time', latched_qos())
         cam = _Camera(ros)
         for i, frame in enumerate(seq.frames):
             cam.publish_pose(frame.pose, stamps[i] + m.sec_to_ns(offset))
@@ -382,3 +383,6 @@ def test_a_pose_time_offset_is_applied_before_the_pose_lookup(synthetic_sequence
     for msg in poses:
         k = index[m.stamp_to_ns(msg.header.stamp)]  # stamped as its image, on the camera's clock
         np.testing.assert_allclose(m.pose_stamped_to_matrix(msg), seq.frames[k].pose, atol=1e-6)
+    # Said to the nodes after it (nodes/posing.py), once: from the first image on, at +20 ms.
+    assert len(times) == 1 and m.stamp_to_ns(times[0].header.stamp) == stamps[0], times
+    assert m.stamp_to_ns(times[0].time_ref) == stamps[0] + m.sec_to_ns(offset)

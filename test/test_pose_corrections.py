@@ -13,9 +13,21 @@ from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.mapping import keyframe_store
 from depth_fusion_ros.mapping.config import MapConfig
 from depth_fusion_ros.mapping.engine import make_engine
-from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, half_camera, mapped_bytes, rebuild
+from depth_fusion_ros.mapping.keyframe_store import (
+    KeyframeStore,
+    PendingKeyframe,
+    half_camera,
+    mapped_bytes,
+    rebuild,
+)
 from depth_fusion_ros.pose_buffer import PoseBuffer
-from depth_fusion_ros.pose_corrections import CorrectionLimits, corrected_poses
+from depth_fusion_ros.pose_corrections import (
+    CorrectionLimits,
+    Corrections,
+    Posing,
+    corrected_posed_segments,
+    corrected_poses,
+)
 
 
 def _pose(t, rotvec=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -49,6 +61,49 @@ def test_keyframes_between_the_paths_poses_get_the_interpolated_correction():
     assert before.max() > 0.15 and err.max() < 0.005, (before.max(), err.max())
     # outside the path's span: not moved (the newest are already in the corrected world)
     assert np.array_equal(fix.poses[~inside], drifted[~inside])
+
+
+def _posed(stamps: np.ndarray, T_pose_cam: np.ndarray, offset: float, drift: bool = False) -> np.ndarray:
+    """Camera poses as a multi-view node reads them: the pose source's trajectory at ``stamp +
+    offset`` (with its drift when ``drift``), then ``T_pose_cam``."""
+    told = _trajectory(stamps + offset)
+    if drift:
+        told = _drift(stamps + offset) @ told
+    return told @ T_pose_cam
+
+
+def test_a_path_that_restates_the_pose_source_keeps_the_posing_a_check_added():
+    """A mount check turned the camera 1.75 deg and a time offset check read poses 30 ms late:
+    the camera poses are not the pose source's. Its trajectory published unchanged moves nothing;
+    corrected (a drift taken out), it moves each keyframe to the truth with the turn and the
+    offset kept. Compared in the camera frame, as before, the same path moved every keyframe by
+    the turn and lost it."""
+    ours = np.arange(0.0, 6.0, 0.2)
+    turn = _pose((0.0, 0.0, 0.0), (np.radians(1.75), 0.0, 0.0))
+    mount = _pose((0.05, 0.0, 0.1), (0.0, 0.0, np.radians(90.0)))
+    posing = Posing(mount @ turn, 0.03)
+    truth = _posed(ours, posing.T_pose_cam, posing.offset)
+    segments = np.zeros(len(ours), dtype=int)
+    slam = np.arange(0.05, 6.0, 0.3)
+    same = corrected_posed_segments(
+        ours, truth, [posing] * len(ours), segments, 0, slam, _trajectory(slam), 1.0
+    )
+    metres, degrees = same.moves(truth)
+    assert same.corrected[5:-5].all() and metres.max() < 1e-3 and degrees.max() < 0.02, (
+        metres.max(),
+        degrees.max(),
+    )
+    drifted = _posed(ours, posing.T_pose_cam, posing.offset, drift=True)
+    fix = corrected_posed_segments(
+        ours, drifted, [posing] * len(ours), segments, 0, slam, _trajectory(slam), 1.0
+    )
+    inside = fix.corrected
+    err_m, err_deg = Corrections(fix.poses[inside], inside[inside]).moves(truth[inside])
+    assert inside[5:-5].all() and err_m.max() < 0.003 and err_deg.max() < 0.02, (err_m.max(), err_deg.max())
+    # The camera poses against the path's poses with the configured mount alone (as before):
+    # the unchanged path moves every keyframe by the turn.
+    naive = corrected_poses(ours, truth, slam, _trajectory(slam) @ mount)
+    assert naive.moves(truth)[1][5:-5].min() > 1.7
 
 
 def test_a_keyframe_at_a_path_stamp_takes_the_paths_pose_and_an_unchanged_path_moves_nothing():
@@ -158,9 +213,39 @@ def test_rebuild_at_corrected_poses_puts_the_wall_back_where_it_is():
     rebuild(before, store.entries)
     lo, hi = wall_spread(before)
     assert hi - lo > 0.08  # two walls, 10 cm apart
-    summary = store.correct(np.array(stamps), np.stack(truth), CorrectionLimits())
+    summary = store.correct(np.array(stamps), np.stack(truth), CorrectionLimits(), Posing(np.eye(4)))
     assert summary.corrected == 10 and summary.moved == 5 and summary.largest_m == pytest.approx(0.10)
     after, _ = make_engine(config)
     assert rebuild(after, store.entries) == 10
     lo, hi = wall_spread(after)
     assert hi - lo < 0.03 and abs(0.5 * (lo + hi) - 2.0) < 0.02
+
+
+def test_the_newest_stored_keyframes_are_corrected_up_to_the_pending_ones():
+    """The map stores a keyframe only once the consistency test integrated it, a few keyframes
+    after it came; a SLAM's path reaches the newest pose. Compared with the stored keyframes
+    alone, the path's poses after the newest stored one had no old pose to be compared with,
+    so the newest stored keyframes were left in the old world (the last one 13 cm off here).
+    With the pending keyframes given, every stored keyframe is corrected, and so are they."""
+    camera = PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5)
+    ours = np.arange(0.0, 1.6, 0.2)  # eight keyframes, the last two pending
+    truth = _trajectory(ours)
+    drifted = _drift(ours * 5.0) @ truth
+    store = KeyframeStore(max_bytes=2**20)
+    for t, T in zip(ours[:6], drifted[:6], strict=True):
+        store.add(t, np.full((24, 32), 2.0, np.float32), T, camera)
+    slam = ours[:-1] + 0.1  # the SLAM's own keyframes, between ours, up to the newest
+    pending = [PendingKeyframe(t, T, store.segment) for t, T in zip(ours[6:], drifted[6:], strict=True)]
+    alone = KeyframeStore(max_bytes=2**20)
+    for e in store.entries:
+        alone.add(e.stamp, np.full((24, 32), 2.0, np.float32), e.T_wc, camera)
+    alone.correct(slam, _trajectory(slam), CorrectionLimits(), Posing(np.eye(4)))
+    summary = store.correct(slam, _trajectory(slam), CorrectionLimits(), Posing(np.eye(4)), pending)
+    stored = np.stack([e.T_wc for e in store.entries])
+    err = np.linalg.norm(stored[:, :3, 3] - truth[:6, :3, 3], axis=1)
+    assert summary.corrected == 5 and err[1:].max() < 0.01, err  # the first is before the path
+    before = np.linalg.norm(alone.entries[-1].T_wc[:3, 3] - truth[5, :3, 3])
+    assert before > 0.1, before
+    assert summary.others is not None
+    pending_err = np.linalg.norm(summary.others[:, :3, 3] - truth[6:, :3, 3], axis=1)
+    assert pending_err[0] < 0.01, pending_err  # the newest is after the path's last pose: as it was

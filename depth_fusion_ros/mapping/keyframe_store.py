@@ -29,14 +29,14 @@ from __future__ import annotations
 
 import dataclasses
 import mmap
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from ..camera import PinholeCamera
-from ..pose_corrections import CorrectionLimits, corrected_segments
+from ..pose_corrections import CorrectionLimits, Posing, corrected_posed_segments
 
 
 @dataclass
@@ -51,6 +51,8 @@ class StoredKeyframe:
     depth: np.ndarray  # float16, NaN where not integrated
     confidence: np.ndarray | None  # uint8, confidence x 255
     rgb: np.ndarray | None  # uint8 (H, W, 3)
+    #: How its pose was read from the pose source (None: as the store's caller assumes by default)
+    posing: Posing | None = None
 
     @property
     def nbytes(self) -> int:
@@ -115,6 +117,20 @@ class CorrectionSummary:
     moved: int  # of those, moved by at least the threshold
     largest_m: float
     largest_deg: float
+    #: The poses of the ``others`` :meth:`KeyframeStore.correct` was given, corrected where covered.
+    others: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class PendingKeyframe:
+    """A keyframe not (yet) in the store that a correction moves too (map_node's consistency
+    window, its pose-jump test's last pose): it takes part in the interpolation of the old
+    poses, so the store's newest keyframes are corrected as far as the newest pose known."""
+
+    stamp: float
+    T_wc: np.ndarray
+    segment: int
+    posing: Posing | None = None
 
 
 @dataclass
@@ -138,8 +154,12 @@ class KeyframeStore:
         confidence: np.ndarray | None = None,
         rgb: np.ndarray | None = None,
         segment: int | None = None,
+        posing: Posing | None = None,
     ) -> StoredKeyframe | None:
         """Keep one integrated keyframe (full-resolution images, as the engine took them).
+
+        ``posing``: how its pose was read from the pose source (:meth:`correct` undoes it to
+        compare the pose with a corrected trajectory); None: the caller's default then.
 
         ``segment``: the one it belongs to, when the caller decided it earlier (map_node does
         so as a keyframe enters the consistency test's window, since it is integrated later);
@@ -164,6 +184,7 @@ class KeyframeStore:
             np.asarray(T_wc, np.float64).copy(),
             half_camera(camera),
             *own_pages(d.astype(np.float16), conf, colour, mapped=self._map_next),
+            posing,
         )
         self._next_seq += 1
         self.entries.append(entry)
@@ -222,6 +243,7 @@ class KeyframeStore:
                     'depth': tensor(e.depth),
                     'confidence': tensor(e.confidence),
                     'rgb': tensor(e.rgb),
+                    **_posing_state(e.posing),
                 }
                 for e in self.entries
             ],
@@ -248,6 +270,7 @@ class KeyframeStore:
                     None if k['rgb'] is None else k['rgb'].numpy().astype(np.uint8, copy=False),
                     mapped=self._map_next,
                 ),
+                _posing_from_state(k),
             )
             self._next_seq += 1
             self.entries.append(entry)
@@ -266,29 +289,55 @@ class KeyframeStore:
         return mapped_bytes(half.width * half.height * (2 + 1 + (3 if colour else 0)))
 
     def correct(
-        self, path_stamps: np.ndarray, path_poses: np.ndarray, limits: CorrectionLimits
+        self,
+        path_stamps: np.ndarray,
+        path_poses: np.ndarray,
+        limits: CorrectionLimits,
+        posing: Posing,
+        others: Sequence[PendingKeyframe] = (),
     ) -> CorrectionSummary:
-        """Move the stored poses as the corrected trajectory says, segment by segment.
+        """Move the stored poses as the corrected trajectory (the pose source's own poses) says,
+        segment by segment, each keyframe through its own posing (``posing`` where it has none).
 
         Only a move that ``limits.counts`` counts as moved (a path that restates the poses it
         already gave moves nothing, and asks for no rebuild); ``limits.max_gap``: the longest
-        gap between two kept keyframes that a path pose is compared across."""
-        if not self.entries:
-            return CorrectionSummary(0, 0, 0.0, 0.0)
-        old = np.stack([e.T_wc for e in self.entries])
-        stamps = np.array([e.stamp for e in self.entries])
-        segments = np.array([e.segment for e in self.entries])
-        fix = corrected_segments(stamps, old, segments, self.segment, path_stamps, path_poses, limits.max_gap)
-        metres, degrees = fix.moves(old)
-        ok = fix.corrected
-        for e, T, corrected in zip(self.entries, fix.poses, ok, strict=True):
+        gap between two kept keyframes that a path pose is compared across. ``others``: newer
+        keyframes not stored yet (a stamp already stored is left out of them), corrected with
+        the stored ones, returned in ``others``. Without them the path's poses after the newest
+        stored keyframe had no old pose to be compared with, and the newest stored keyframes,
+        between it and the last one they could be, stayed in the old world."""
+        seen = {e.stamp for e in self.entries}
+        extra = []
+        for o in others:  # one of each stamp: the stored keyframe's, else the first given
+            if float(o.stamp) not in seen:
+                seen.add(float(o.stamp))
+                extra.append(o)
+        if not self.entries and not extra:
+            return CorrectionSummary(0, 0, 0.0, 0.0)  # (no others either: each would be in extra)
+        old = np.stack([e.T_wc for e in self.entries] + [np.asarray(o.T_wc, np.float64) for o in extra])
+        stamps = np.array([e.stamp for e in self.entries] + [float(o.stamp) for o in extra])
+        segments = np.array([e.segment for e in self.entries] + [o.segment for o in extra])
+        posings = [e.posing or posing for e in self.entries] + [o.posing or posing for o in extra]
+        fix = corrected_posed_segments(
+            stamps, old, posings, segments, self.segment, path_stamps, path_poses, limits.max_gap
+        )
+        n = len(self.entries)
+        for e, T, corrected in zip(self.entries, fix.poses[:n], fix.corrected[:n], strict=True):
             if corrected:
                 e.T_wc = T
+        now = {float(s): T for s, T in zip(stamps, fix.poses, strict=True)}
+        moved_others = np.stack([now[float(o.stamp)] for o in others]) if others else None
+        metres, degrees = fix.moves(old)
+        ok = fix.corrected[:n]
         if not ok.any():
-            return CorrectionSummary(0, 0, 0.0, 0.0)
-        moved = ok & limits.counts(metres, degrees)
+            return CorrectionSummary(0, 0, 0.0, 0.0, moved_others)
+        moved = ok & limits.counts(metres[:n], degrees[:n])
         return CorrectionSummary(
-            int(ok.sum()), int(moved.sum()), float(metres[ok].max()), float(degrees[ok].max())
+            int(ok.sum()),
+            int(moved.sum()),
+            float(metres[:n][ok].max()),
+            float(degrees[:n][ok].max()),
+            moved_others,
         )
 
     def newer_than(self, seq: int) -> list[StoredKeyframe]:
@@ -298,6 +347,22 @@ class KeyframeStore:
     @property
     def last_seq(self) -> int:
         return self.entries[-1].seq if self.entries else -1
+
+
+def _posing_state(posing: Posing | None) -> dict:
+    """A keyframe's posing in the map file (absent: a file from before, or the default)."""
+    if posing is None:
+        return {}
+    return {
+        'T_pose_cam': torch.from_numpy(np.asarray(posing.T_pose_cam, np.float64).copy()),
+        'pose_offset': float(posing.offset),
+    }
+
+
+def _posing_from_state(k: dict) -> Posing | None:
+    if k.get('T_pose_cam') is None:
+        return None
+    return Posing(k['T_pose_cam'].numpy().astype(np.float64), float(k.get('pose_offset', 0.0)))
 
 
 def rebuild(engine: object, entries: Iterable[StoredKeyframe]) -> int:

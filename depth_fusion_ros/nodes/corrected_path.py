@@ -4,6 +4,7 @@ correction makes it do) and the parsing of a ``nav_msgs/Path`` into stamps and p
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
@@ -50,8 +51,14 @@ def correction_parameters(consequence: str) -> tuple[ParamSpec, ...]:
 
 def camera_from_pose_frame_parameter() -> ParamSpec:
     """``camera_from_pose_frame`` as ``multi_view_node`` declares it, for a node that takes the
-    corrected trajectory without the pose stream (``map_node``)."""
-    return next(spec for spec in robot_inputs.PARAMETERS if spec.name == 'camera_from_pose_frame')
+    corrected trajectory without the pose stream (``map_node``): there only the default for
+    keyframes whose posing ``multi_view_node`` did not say (nodes/posing.py)."""
+    spec = next(spec for spec in robot_inputs.PARAMETERS if spec.name == 'camera_from_pose_frame')
+    return dataclasses.replace(
+        spec,
+        description=spec.description
+        + '; here only for keyframes multi_view_node said no posing for (depth_fusion/posing/*)',
+    )
 
 
 def correction_limits(params: Mapping[str, Any]) -> CorrectionLimits:

@@ -21,8 +21,8 @@ import numpy as np
 
 from ..malloc_tuning import release_free_memory
 from ..mapping.engine import make_engine
-from ..mapping.keyframe_store import KeyframeStore, rebuild
-from ..pose_corrections import corrected_poses, corrected_segments
+from ..mapping.keyframe_store import KeyframeStore, PendingKeyframe, rebuild
+from ..pose_corrections import Posing
 from . import robot_inputs
 from .corrected_path import (
     TOPIC_CORRECTED_PATH,
@@ -32,6 +32,7 @@ from .corrected_path import (
     read_path,
 )
 from .params import ParamSpec
+from .posing import PosingLog
 
 if TYPE_CHECKING:
     from .map_node import MapNode
@@ -60,6 +61,10 @@ class MapCorrector:
         self.store = KeyframeStore(int(float(p['reintegration_max_mb']) * 2**20))
         self.limits = correction_limits(p)
         self.T_pose_cam = robot_inputs.transform_from_parameter(p['camera_from_pose_frame'])
+        #: How multi_view_node posed each keyframe (nodes/posing.py); this node's own
+        #: ``camera_from_pose_frame`` for keyframes it said nothing about.
+        self.posings = PosingLog()
+        self.default_posing = Posing(self.T_pose_cam, 0.0)
         self.rebuilds = 0
         self.last_rebuild_s = 0.0
         self._thread: threading.Thread | None = None
@@ -82,12 +87,33 @@ class MapCorrector:
         segment it entered the window in."""
         segment = self._segments.get(float(key), self.store.segment)
         thinned = self.store.thinned
-        self.store.add(float(key), depth, T_wc, camera, confidence, rgb, segment=segment)
+        posing = self.posings.at(float(key))
+        self.store.add(float(key), depth, T_wc, camera, confidence, rgb, segment=segment, posing=posing)
         if self.store.thinned > thinned:
             # The dropped keyframes' own mappings went back with them (keyframe_store.own_pages);
             # the heap's share (their small objects, and keyframes past MAX_MAPPED_ENTRIES) would
             # stay under malloc_tuning.py's raised trim threshold: hand it back too.
             release_free_memory()
+
+    # --- multi_view_node's posing ---------------------------------------------------------------------
+
+    def on_posing_transform(self, msg: Any) -> None:
+        """``depth_fusion/posing/camera_from_pose_frame``: the camera in the pose source's frame
+        from the stamp on (a mount check's turn included)."""
+        self._on_posing(msg, self.posings.on_transform)
+
+    def on_posing_time(self, msg: Any) -> None:
+        """``depth_fusion/posing/pose_time``: the pose source's time images are posed at."""
+        self._on_posing(msg, self.posings.on_time)
+
+    def _on_posing(self, msg: Any, take: Any) -> None:
+        node = self.node
+        node.stats.received('posing')
+        try:
+            with node._lock:
+                take(msg)
+        except ValueError as exc:  # a transform that is not rigid
+            node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
 
     # --- the corrected trajectory ----------------------------------------------------------------------
 
@@ -95,7 +121,8 @@ class MapCorrector:
         """A corrected trajectory: move the kept (and waiting) keyframes, then rebuild if one moved."""
         node = self.node
         with node._lock:
-            path = read_path(node.stats, msg, self.T_pose_cam, node._world_frame)
+            # The pose source's own poses: each keyframe is compared through its own posing.
+            path = read_path(node.stats, msg, np.eye(4), node._world_frame)
             if path is None:
                 return
             if self.store.max_bytes <= 0:
@@ -105,8 +132,9 @@ class MapCorrector:
                 )
                 return
             stamps, poses = path
-            summary = self.store.correct(stamps, poses, self.limits)
-            self._correct_pending(stamps, poses)
+            pending = self._pending()
+            summary = self.store.correct(stamps, poses, self.limits, self.default_posing, pending)
+            self._move_pending(pending, summary.others)
         node.stats.published('corrections')
         if summary.moved == 0:  # a pose source that republishes its trajectory: not worth a line each time
             node.get_logger().debug(
@@ -134,25 +162,32 @@ class MapCorrector:
         for gone in [k for k in self._segments if k not in window]:
             del self._segments[gone]
 
-    def _correct_pending(self, stamps: np.ndarray, poses: np.ndarray) -> None:
-        """The keyframes in the consistency test's window, and the pose-jump test's last pose,
-        move with the kept ones, segment by segment as the store (holding node._lock)."""
+    def _pending(self) -> list[PendingKeyframe]:
+        """The keyframes in the consistency test's window, then the pose-jump test's last pose:
+        they move with the kept ones, corrected together (holding node._lock)."""
         node = self.node
-        window = node.map.window_keyframes()
-        if window:
-            keys = np.array([float(k) for k, _ in window])
-            segments = np.array([self._segments.get(k, self.store.segment) for k in keys])
-            old = np.stack([T for _, T in window])
-            fix = corrected_segments(
-                keys, old, segments, self.store.segment, stamps, poses, self.limits.max_gap
+        out = [
+            PendingKeyframe(
+                float(k), T, self._segments.get(float(k), self.store.segment), self.posings.at(float(k))
             )
-            moved = {k: T for k, T, ok in zip(keys, fix.poses, fix.corrected, strict=True) if ok}
-            node.map.move_window(lambda key, T: moved.get(float(key), T))
+            for k, T in node.map.window_keyframes()
+        ]
         last = node._last_pose
         if last is not None:
-            fix = corrected_poses(np.array([last[0]]), last[1][None], stamps, poses, self.limits.max_gap)
-            if fix.corrected[0]:
-                node._last_pose = (last[0], fix.poses[0])
+            out.append(
+                PendingKeyframe(float(last[0]), last[1], self.store.segment, self.posings.at(float(last[0])))
+            )
+        return out
+
+    def _move_pending(self, pending: list[PendingKeyframe], moved: np.ndarray | None) -> None:
+        """Give :meth:`_pending`'s keyframes their corrected poses (holding node._lock)."""
+        if moved is None:
+            return
+        node = self.node
+        now = {p.stamp: T for p, T in zip(pending, moved, strict=True)}
+        node.map.move_window(lambda key, T: now.get(float(key), T))
+        if node._last_pose is not None:
+            node._last_pose = (node._last_pose[0], now[float(node._last_pose[0])])
 
     # --- the rebuild thread ----------------------------------------------------------------------------
 

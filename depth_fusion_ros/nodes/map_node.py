@@ -19,7 +19,9 @@ frame, xyz + rgb) every ``1 / points_rate`` seconds when it changed, and the mes
 ``~/clear_map`` empties it. A jump in the keyframe poses (a relocalised pose source,
 :mod:`..pose_jumps`) is noted, and clears the map with ``clear_on_pose_jump``. A corrected
 trajectory (a loop closure, ``camera/corrected_path``) rebuilds the map from the keyframes it
-kept at their corrected poses (:mod:`.map_corrections`).
+kept at their corrected poses (:mod:`.map_corrections`), each keyframe compared with the
+trajectory through the posing multi_view_node says it was posed with (``depth_fusion/posing/*``,
+:mod:`.posing`: ``camera_from_pose_frame`` with a mount check's turn, the pose time offset).
 """
 
 from __future__ import annotations
@@ -32,9 +34,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Path as PathMsg
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, TimeReference
 from std_srvs.srv import Trigger
 
 from ..data import messages
@@ -54,6 +56,8 @@ from .map_corrections import MapCorrector
 from .map_points import MapPointsPublisher
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
+from .posing import TOPIC_POSING_TIME, TOPIC_POSING_TRANSFORM
+from .qos import latched_qos
 from .stamp_pairing import StampPairer
 
 NODE_NAME = 'map_node'
@@ -206,6 +210,9 @@ class MapNode(DepthFusionNode):
         if p['use_color']:
             self.subscribe(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
         self.subscribe(PathMsg, TOPIC_CORRECTED_PATH, self.corrector.on_path, q)
+        latched = latched_qos()
+        self.subscribe(TransformStamped, TOPIC_POSING_TRANSFORM, self.corrector.on_posing_transform, latched)
+        self.subscribe(TimeReference, TOPIC_POSING_TIME, self.corrector.on_posing_time, latched)
         self.create_service(Trigger, '~/save_map', self._on_save)
         self.create_service(Trigger, '~/clear_map', self._on_clear)
         self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)

@@ -48,6 +48,7 @@ from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..multiview.time_offset_check import TimeOffsetEstimate
 from ..pose_buffer import PoseBuffer
+from ..pose_corrections import Posing
 from ..pose_jumps import PoseJump
 from . import robot_inputs
 from .announce import announce
@@ -69,6 +70,7 @@ from .mount_check_runner import MOUNT_CHECK_PARAMETERS, MountCheckRunner
 from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
+from .posing import PosingPublisher
 from .qos import latched_qos, qos_profile
 from .reliability import ignore_incompatible
 from .time_offset_check_runner import TIME_OFFSET_CHECK_PARAMETERS, TimeOffsetCheckRunner
@@ -335,6 +337,7 @@ class MultiViewNode(DepthFusionNode):
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
         self._std_pub = self.create_publisher(Image, TOPIC_DEPTH_STD, self.output_qos)
         self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
+        self.posing = PosingPublisher(self, 'multi_view_node: pose_time_offset and the time offset check')
         self._method_pub = announce(self, TOPIC_METHOD, str(p['multi_view.method']))
         self.events = GraphEvents(self)
         self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), int(p['max_pending_images']))
@@ -665,6 +668,8 @@ class MultiViewNode(DepthFusionNode):
         if self._restart_from_ns is not None and image.stamp_ns >= self._restart_from_ns:
             self._restart_frames()
         T_wc = T_wc @ self._mount_correction
+        posing = Posing(self.T_pose_cam @ self._mount_correction, self._pose_offset())
+        self.posing.note(image.stamp_ns, image.header.frame_id, posing)
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
         self.focal_check.offer(frame, image.camera)
@@ -777,8 +782,9 @@ class MultiViewNode(DepthFusionNode):
             )
 
     def _mount_hint(self, rotation: np.ndarray) -> str:
-        """The ``camera_from_pose_frame`` that holds the turn, for the user's configuration (the
-        map node's rebuild from a corrected trajectory reads that parameter, not this node's turn)."""
+        """The ``camera_from_pose_frame`` that holds the turn, for the user's configuration: the
+        next run then starts with it (the nodes after this one hear the turn on the posing
+        topics, nodes/posing.py)."""
         T = self.T_pose_cam @ rotation
         values = [*T[:3, 3], *matrix_to_quat(T[:3, :3])]
         return 'camera_from_pose_frame [' + ', '.join(f'{v:.6g}' for v in values) + '] fits'

@@ -1,0 +1,140 @@
+"""How multi_view_node poses its images, told to the nodes after it (map_node).
+
+multi_view_node reads each image's camera pose as ``T_pose(stamp + offset) @ T_pose_cam``:
+the pose source's pose at the image stamp plus ``offset`` (``pose_time_offset`` and the time
+offset check's correction), then ``T_pose_cam`` (``camera_from_pose_frame`` and the mount
+check's turn). Its checks change both while it runs. A node that compares the keyframes'
+camera poses with the pose source's own poses later (map_node, with a corrected trajectory
+from a loop closure) must undo exactly that posing, keyframe by keyframe: with the
+configured ``camera_from_pose_frame`` alone it read a mount turn as a move of every keyframe,
+rebuilt the map and lost the turn. So multi_view_node publishes its posing, latched, with
+its first posed frame and whenever it changes or the stream restarts:
+
+* ``depth_fusion/posing/camera_from_pose_frame`` (geometry_msgs/TransformStamped): the camera
+  (``child_frame_id``: the images' frame) in the pose source's frame (``header.frame_id``
+  ``pose_frame``: PoseStamped names no child frame), as TF would hold it (there is no TF on
+  pip: docs/nodes.md);
+* ``depth_fusion/posing/pose_time`` (sensor_msgs/TimeReference): ``time_ref`` is the pose
+  source's time an image stamped ``header.stamp`` is posed at (``source``: where the offset
+  comes from).
+
+Both are stamped with the first image posed that way, so a keyframe still in flight when
+the posing changed is matched with the posing it was posed with (:class:`PosingLog`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import TransformStamped
+from sensor_msgs.msg import TimeReference
+
+from ..data import messages
+from ..pose_corrections import Posing
+from .qos import latched_qos
+
+TOPIC_POSING_TRANSFORM = 'depth_fusion/posing/camera_from_pose_frame'
+TOPIC_POSING_TIME = 'depth_fusion/posing/pose_time'
+#: ``header.frame_id`` of the transform: the frame of the pose topic's poses.
+POSE_FRAME = 'pose_frame'
+#: Posings a log keeps (a handful change per run; the oldest go first).
+LOG_SIZE = 32
+
+
+def transform_msg(posing: Posing, stamp_ns: int, camera_frame: str, *, kind: Any) -> Any:
+    """The ``camera_from_pose_frame`` message of ``posing``, stamped ``stamp_ns``."""
+    k = messages.as_kind(kind)
+    pose = messages.pose_msg(posing.T_pose_cam, kind=k)
+    p = pose.position
+    translation = k.new('geometry_msgs/msg/Vector3', x=p.x, y=p.y, z=p.z)
+    transform = k.new('geometry_msgs/msg/Transform', translation=translation, rotation=pose.orientation)
+    return k.new(
+        'geometry_msgs/msg/TransformStamped',
+        header=messages.header_msg(int(stamp_ns), POSE_FRAME, kind=k),
+        child_frame_id=camera_frame,
+        transform=transform,
+    )
+
+
+def time_reference_msg(posing: Posing, stamp_ns: int, source: str, *, kind: Any) -> Any:
+    """The ``pose_time`` message of ``posing``: image ``stamp_ns`` is posed at ``time_ref``."""
+    k = messages.as_kind(kind)
+    return k.new(
+        'sensor_msgs/msg/TimeReference',
+        header=messages.header_msg(int(stamp_ns), '', kind=k),
+        time_ref=messages.time_msg(int(stamp_ns) + messages.sec_to_ns(posing.offset), kind=k),
+        source=source,
+    )
+
+
+class PosingPublisher:
+    """multi_view_node's side: publishes its posing when it first poses a frame, when the
+    posing changes and when the stamps go back (a restarted stream: its keyframes are matched
+    from its own first stamp)."""
+
+    def __init__(self, node: Any, source: str) -> None:
+        self._transform_pub = node.create_publisher(TransformStamped, TOPIC_POSING_TRANSFORM, latched_qos())
+        self._time_pub = node.create_publisher(TimeReference, TOPIC_POSING_TIME, latched_qos())
+        self._source = source
+        self._last: Posing | None = None
+        self._last_stamp_ns: int | None = None
+        self.published = 0
+
+    def note(self, stamp_ns: int, camera_frame: str, posing: Posing) -> None:
+        """The frame stamped ``stamp_ns`` was posed with ``posing``."""
+        went_back = self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns
+        self._last_stamp_ns = stamp_ns
+        if posing.same_as(self._last) and not went_back:
+            return
+        self._last = posing
+        kind = messages.RCLPY
+        self._transform_pub.publish(transform_msg(posing, stamp_ns, camera_frame, kind=kind))
+        self._time_pub.publish(time_reference_msg(posing, stamp_ns, self._source, kind=kind))
+        self.published += 1
+
+
+@dataclass
+class PosingLog:
+    """map_node's side: the posings heard, each from the first stamp it applies to.
+
+    :meth:`at` gives a keyframe's posing by its stamp: the newest one that began at or before
+    it, else the oldest one heard (a keyframe from before the first, or a restarted stream's
+    first). A posing that begins before the newest one heard (the stream restarted) starts
+    the log over. None until multi_view_node said anything: the node's own default then."""
+
+    transforms: list[tuple[int, np.ndarray]] = field(default_factory=list)
+    offsets: list[tuple[int, float]] = field(default_factory=list)
+
+    def on_transform(self, msg: Any) -> None:
+        """A ``camera_from_pose_frame`` message (raises ``ValueError`` for a non-rigid one)."""
+        T = messages.transform_to_matrix(msg.transform)
+        _add(self.transforms, messages.stamp_to_ns(msg.header.stamp), T)
+
+    def on_time(self, msg: Any) -> None:
+        """A ``pose_time`` message."""
+        stamp = messages.stamp_to_ns(msg.header.stamp)
+        offset = messages.ns_to_sec(messages.stamp_to_ns(msg.time_ref) - stamp)
+        _add(self.offsets, stamp, offset)
+
+    def at(self, stamp_s: float) -> Posing | None:
+        if not self.transforms and not self.offsets:
+            return None
+        stamp_ns = messages.sec_to_ns(stamp_s)
+        T = _lookup(self.transforms, stamp_ns, None)
+        return Posing(np.eye(4) if T is None else T, float(_lookup(self.offsets, stamp_ns, 0.0)))
+
+
+def _add(log: list, stamp_ns: int, value: Any) -> None:
+    if log and stamp_ns < log[-1][0]:
+        log.clear()  # a restarted stream: what came before is another stream's
+    log.append((stamp_ns, value))
+    del log[:-LOG_SIZE]
+
+
+def _lookup(log: list, stamp_ns: int, default: Any) -> Any:
+    for begins, value in reversed(log):
+        if begins <= stamp_ns:
+            return value
+    return log[0][1] if log else default
