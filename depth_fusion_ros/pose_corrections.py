@@ -17,7 +17,7 @@ What is not corrected, and why:
 * keyframes before the path's first stamp: the path says nothing about them.
 
 The keyframes' poses are camera poses; the path's are the pose source's own (its body frame,
-at its clock). :func:`corrected_posed_segments` takes each keyframe to the pose source's frame
+at its clock). :func:`corrected_segments` with ``posings`` takes each keyframe to the pose source's frame
 and time by the :class:`Posing` it was posed with (``camera_from_pose_frame``, turned by a mount
 check, and the pose time offset), corrects it there and takes it back, so a correction of the
 posing itself is kept through a loop closure instead of being undone by it.
@@ -30,6 +30,7 @@ then moved into the corrected world by the path's poses in its own time span.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -165,12 +166,23 @@ def corrected_segments(
     path_stamps: np.ndarray,
     path_poses: np.ndarray,
     max_gap: float,
+    posings: list[Posing] | None = None,
 ) -> Corrections:
     """:func:`corrected_poses` of poses in several segments, each corrected on its own.
 
     ``stamps`` increase within each segment (in any order across them); ``segments`` (N,) the
     segment of each; ``open_segment`` the one still growing: every other segment was ended by
-    a jump or a restart, so it is all in the old world (``ended``)."""
+    a jump or a restart, so it is all in the old world (``ended``). ``posings``: the camera
+    poses' own :class:`Posing` each, when the path is the pose source's poses
+    (:func:`_through_posings`); None: the poses and the path are in the same frame and time."""
+    if posings is not None:
+        return _through_posings(
+            stamps,
+            poses,
+            segments,
+            posings,
+            lambda *keyframes: corrected_segments(*keyframes, open_segment, path_stamps, path_poses, max_gap),
+        )
     out = np.asarray(poses, np.float64).copy()
     corrected = np.zeros(len(out), dtype=bool)
     segments = np.asarray(segments)
@@ -183,24 +195,21 @@ def corrected_segments(
     return Corrections(out, corrected)
 
 
-def corrected_posed_segments(
+def _through_posings(
     stamps: np.ndarray,
     poses: np.ndarray,
-    posings: list[Posing],
     segments: np.ndarray,
-    open_segment: int,
-    path_stamps: np.ndarray,
-    path_poses: np.ndarray,
-    max_gap: float,
+    posings: list[Posing],
+    correct: Callable[[np.ndarray, np.ndarray, np.ndarray], Corrections],
 ) -> Corrections:
-    """:func:`corrected_segments` of camera poses against a path of the pose source's own poses.
+    """``correct`` (stamps, poses, segments) of camera poses in the pose source's time and frame.
 
-    Each keyframe (``stamps`` on the camera's clock, ``poses`` camera-to-world) goes to the pose
-    source's time and frame by its own :class:`Posing` (``stamp + offset``, ``T_wc @
-    T_pose_cam^-1``), is corrected there and comes back (``@ T_pose_cam``). A path that
-    restates the pose source's poses then moves nothing, whatever the posing added; a camera
-    pose composed with a turn the pose source does not know keeps it. Within a segment the
-    shifted stamps are put in order (an offset that changed can reorder two keyframes)."""
+    Each keyframe (``stamps`` on the camera's clock, ``poses`` camera-to-world) goes there by its
+    own :class:`Posing` (``stamp + offset``, ``T_wc @ T_pose_cam^-1``), is corrected and comes
+    back (``@ T_pose_cam``). A path that restates the pose source's poses then moves nothing,
+    whatever the posing added; a camera pose composed with a turn the pose source does not know
+    keeps it. Within a segment the shifted stamps are put in order (an offset that changed can
+    reorder two keyframes)."""
     stamps = np.asarray(stamps, np.float64)
     poses = np.asarray(poses, np.float64)
     segments = np.asarray(segments)
@@ -210,9 +219,7 @@ def corrected_posed_segments(
     shifted = stamps + np.array([p.offset for p in posings], np.float64)
     told = poses @ np.linalg.inv(T_pc)
     order = np.lexsort((shifted, segments))
-    fix = corrected_segments(
-        shifted[order], told[order], segments[order], open_segment, path_stamps, path_poses, max_gap
-    )
+    fix = correct(shifted[order], told[order], segments[order])
     out, corrected = np.empty_like(poses), np.empty(len(stamps), dtype=bool)
     out[order] = fix.poses @ T_pc[order]
     corrected[order] = fix.corrected

@@ -25,8 +25,8 @@ from depth_fusion_ros.pose_corrections import (
     CorrectionLimits,
     Corrections,
     Posing,
-    corrected_posed_segments,
     corrected_poses,
+    corrected_segments,
 )
 
 
@@ -85,18 +85,15 @@ def test_a_path_that_restates_the_pose_source_keeps_the_posing_a_check_added():
     truth = _posed(ours, posing.T_pose_cam, posing.offset)
     segments = np.zeros(len(ours), dtype=int)
     slam = np.arange(0.05, 6.0, 0.3)
-    same = corrected_posed_segments(
-        ours, truth, [posing] * len(ours), segments, 0, slam, _trajectory(slam), 1.0
-    )
+    posings = [posing] * len(ours)
+    same = corrected_segments(ours, truth, segments, 0, slam, _trajectory(slam), 1.0, posings)
     metres, degrees = same.moves(truth)
     assert same.corrected[5:-5].all() and metres.max() < 1e-3 and degrees.max() < 0.02, (
         metres.max(),
         degrees.max(),
     )
     drifted = _posed(ours, posing.T_pose_cam, posing.offset, drift=True)
-    fix = corrected_posed_segments(
-        ours, drifted, [posing] * len(ours), segments, 0, slam, _trajectory(slam), 1.0
-    )
+    fix = corrected_segments(ours, drifted, segments, 0, slam, _trajectory(slam), 1.0, posings)
     inside = fix.corrected
     err_m, err_deg = Corrections(fix.poses[inside], inside[inside]).moves(truth[inside])
     assert inside[5:-5].all() and err_m.max() < 0.003 and err_deg.max() < 0.02, (err_m.max(), err_deg.max())

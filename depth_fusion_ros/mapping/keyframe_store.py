@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from ..camera import PinholeCamera
-from ..pose_corrections import CorrectionLimits, Posing, corrected_posed_segments
+from ..pose_corrections import CorrectionLimits, Posing, corrected_segments
 
 
 @dataclass
@@ -318,8 +318,8 @@ class KeyframeStore:
         stamps = np.array([e.stamp for e in self.entries] + [float(o.stamp) for o in extra])
         segments = np.array([e.segment for e in self.entries] + [o.segment for o in extra])
         posings = [e.posing or posing for e in self.entries] + [o.posing or posing for o in extra]
-        fix = corrected_posed_segments(
-            stamps, old, posings, segments, self.segment, path_stamps, path_poses, limits.max_gap
+        fix = corrected_segments(
+            stamps, old, segments, self.segment, path_stamps, path_poses, limits.max_gap, posings
         )
         n = len(self.entries)
         for e, T, corrected in zip(self.entries, fix.poses[:n], fix.corrected[:n], strict=True):
