@@ -337,7 +337,12 @@ class MapNode(DepthFusionNode):
             where = f'to the archive {archive.path}' if archive is not None else 'dropped (map.archive off)'
             self.stats.noted(
                 'blocks_evicted',
-                f'map full ({self.map.config.max_blocks} blocks): the farthest moved {where}',
+                f'map full ({self.map.config.max_blocks} blocks): the farthest moved {where}'
+                + (
+                    f'; {TOPIC_MAP_POINTS} shows the blocks in memory, ~/save_map and map_file the whole map'
+                    if archive is not None
+                    else ''
+                ),
             )
         over = self.map.skipped_blocks - skipped
         if over > 0:
