@@ -15,6 +15,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.mapping import MapConfig, make_map, read_ply
+from depth_fusion_ros.mapping.block_surface import block_mesh
 from depth_fusion_ros.nodes.map_node import MapNode
 from depth_fusion_ros.nodes.testing import RosHarness
 
@@ -262,6 +263,10 @@ def test_a_bounded_map_archives_what_it_evicts_and_saves_the_whole_map(room, tmp
         assert diagnostics['blocks'] <= 450 and any(archive.iterdir())
         lost = off.diagnostic_extra()['blocks lost']
         assert lost > 0 and off.stats.snapshot().dropped.get('blocks_lost', 0) == lost
+        # The published cloud holds the archived blocks' surface too (mapping/archived_surface.py).
+        cloud, _ = node.points._surface()
+        archived = node.diagnostic_extra()['archived blocks in the published cloud']
+        resident = block_mesh(node.map.engine.blocks(), triangles=False).vertices
     assert not any(archive.iterdir())  # deleted with the node
     uncapped, _ = make_map(MapConfig(engine='torch'))
     for k in range(8):
@@ -276,6 +281,10 @@ def test_a_bounded_map_archives_what_it_evicts_and_saves_the_whole_map(room, tmp
     np.testing.assert_allclose(
         got[np.lexsort(got.T[::-1])], expected[np.lexsort(expected.T[::-1])], atol=1e-6
     )
+    assert archived == diagnostics['blocks archived on disk'] and len(cloud.vertices) > len(resident)
+    in_mesh = {tuple(v) for v in np.round(got.astype(np.float64), 4)}
+    on = sum(tuple(v) in in_mesh for v in np.round(cloud.vertices.astype(np.float64), 4))
+    assert on == len(cloud.vertices) == len(got), (on, len(cloud.vertices), len(got))  # the whole map's
 
 
 def test_an_archive_directory_that_cannot_be_written_is_said_at_start(tmp_path):

@@ -124,6 +124,10 @@ class BlockArchive:
         #: Blocks read back into the map so far.
         self.restored = 0
         self._slots: dict[int, int] = {}
+        #: The ``put`` each archived block was last written by (a block written again, after it
+        #: came back and changed, has a new one: :meth:`versions`).
+        self._written: dict[int, int] = {}
+        self._puts = 0
         self._free: list[int] = []
         self._capacity = 0
         self._path: Path | None = None
@@ -176,10 +180,13 @@ class BlockArchive:
         except OSError as exc:  # disk full, directory gone, read-only: the blocks are lost, said once
             for key in keys[:keep]:
                 slot = self._slots.pop(key, None)
+                self._written.pop(key, None)
                 if slot is not None:
                     self._free.append(slot)
             self._lose(keep, f'writing {self._path or self.directory or "the archive"} failed: {exc}')
             return 0
+        self._puts += 1
+        self._written.update(dict.fromkeys(keys[:keep], self._puts))
         return keep
 
     def take(self, coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -196,6 +203,7 @@ class BlockArchive:
             if slot is not None:
                 hits.append(i)
                 slots.append(slot)
+                del self._written[key]
         found[hits] = True
         self._free.extend(slots)
         self.restored += len(slots)
@@ -204,6 +212,11 @@ class BlockArchive:
     def coords(self) -> torch.Tensor:
         """(N, 3) block coordinates of the archived blocks (no voxels read)."""
         return unpack(torch.tensor(list(self._slots.keys()), dtype=torch.int64)).reshape(-1, 3)
+
+    def versions(self) -> dict[int, int]:
+        """Packed key -> the write that put each archived block there (a copy): what changed
+        since an earlier look (``mapping/archived_surface.py``)."""
+        return dict(self._written)
 
     def read(self, coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The voxels of archived blocks ``coords`` (all archived; left in the archive):
@@ -214,6 +227,7 @@ class BlockArchive:
         """Delete the archive file and its directory (the map is going)."""
         self._memmap = None
         self._slots.clear()
+        self._written.clear()
         self._free.clear()
         self._capacity = 0
         if self._finalizer is not None:

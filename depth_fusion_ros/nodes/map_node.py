@@ -455,6 +455,7 @@ class MapNode(DepthFusionNode):
             'voxel storage MiB': round(self.map.memory_bytes / 2**20, 2),
             'cap MiB': round(config.max_blocks * config.bytes_per_block / 2**20, 2),
             'surface extraction s': round(self.points.last_seconds, 3),
+            'archived blocks in the published cloud': len(self.points.archived.blocks),
             **self.corrector.diagnostics(),
         }
 
