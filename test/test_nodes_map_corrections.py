@@ -214,3 +214,49 @@ def test_the_rebuild_compares_each_keyframe_through_the_posing_multi_view_node_s
         np.median(dist),
         np.percentile(dist, 90),
     )
+
+
+def test_a_mount_turn_multi_view_node_takes_re_poses_the_keyframes_mapped_before_it(room, tmp_path):
+    """multi_view_node's mount check finds the camera turned 2 deg only after a stretch of the
+    run: the keyframes before were posed without the turn. The map node hears the new posing,
+    re-poses the keyframes it kept (and one in flight, posed before the turn and arriving after
+    it) and rebuilds: the map lies on the room, where those keyframes had smeared it."""
+    scene, seq = room
+    path = tmp_path / 'room.ply'
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler('x', 2.0, degrees=True).as_matrix()
+    told, found = Posing(np.eye(4)), Posing(turn)
+    unturned = np.linalg.inv(turn)
+    with RosHarness() as ros:
+        said = ros.publisher(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, latched_qos())
+        said.publish(transform_msg(told, T0, 'camera', kind=K))
+        node = map_node(ros, save_path=str(path), points_rate=0.0, **{'map.engine': 'torch'})
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing', 0) == 1, 10.0)
+        inputs = MapInputs(ros)
+
+        def keyframe(k: int, T: np.ndarray) -> None:
+            pose = m.pose_stamped_msg(T, m.header_msg(T0 + k * STEP, 'world', kind=K), kind=K)
+            inputs.keyframe(seq, 2 * k, T0 + k * STEP, pose=pose)
+
+        for k in range(3):  # posed without the turn: the true pose turned back
+            keyframe(k, seq.frames[2 * k].pose @ unturned)
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('depth', 0) == 3, 10.0)
+        said.publish(transform_msg(found, T0 + 3 * STEP + STEP // 2, 'camera', kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing', 0) == 2, 10.0)
+        keyframe(3, seq.frames[6].pose @ unturned)  # in flight: posed before the turn, here after it
+        for k in range(4, 8):
+            keyframe(k, seq.frames[2 * k].pose)
+        assert ros.wait_for(
+            lambda: node.integrated == 8 and node.worker.idle() and not node.corrector.busy(), 30.0
+        )
+        assert all(
+            e.posing is not None and np.allclose(e.posing.T_pose_cam, turn)
+            for e in node.corrector.store.entries
+        )
+        dist = _saved_distances(ros, scene, path)
+        rebuilds = node.corrector.rebuilds
+    assert rebuilds <= 1
+    assert np.median(dist) < 0.008 and np.percentile(dist, 90) < 0.02, (
+        np.median(dist),
+        np.percentile(dist, 90),
+    )

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..geometry import rotation_angle
 from ..malloc_tuning import release_free_memory
 from ..mapping.engine import make_engine
 from ..mapping.keyframe_store import KeyframeStore, PendingKeyframe, rebuild
@@ -87,7 +88,7 @@ class MapCorrector:
         segment it entered the window in."""
         segment = self._segments.get(float(key), self.store.segment)
         thinned = self.store.thinned
-        posing = self.posings.at(float(key))
+        posing = self.posings.current(float(key))
         self.store.add(float(key), depth, T_wc, camera, confidence, rgb, segment=segment, posing=posing)
         if self.store.thinned > thinned:
             # The dropped keyframes' own mappings went back with them (keyframe_store.own_pages);
@@ -99,8 +100,61 @@ class MapCorrector:
 
     def on_posing_transform(self, msg: Any) -> None:
         """``depth_fusion/posing/camera_from_pose_frame``: the camera in the pose source's frame
-        from the stamp on (a mount check's turn included)."""
-        self._on_posing(msg, self.posings.on_transform)
+        from the stamp on (a mount check's turn included). A turn (another transform than the
+        last) holds for the whole run, also before the check found it: the keyframes mapped
+        before it are re-posed in it and the map rebuilt (:meth:`_repose`)."""
+        node = self.node
+        turned: list[float] = []
+
+        def take(message: Any) -> None:  # holding node._lock
+            before = self.posings.latest
+            self.posings.on_transform(message)
+            after = self.posings.latest
+            if before is not None and not np.allclose(before, after, rtol=0.0, atol=1e-9):
+                turned.append(self._repose(before, after))
+                turned.append(float(np.degrees(rotation_angle((np.linalg.inv(before) @ after)[:3, :3]))))
+
+        self._on_posing(msg, take)
+        if not turned:
+            return
+        kept, angle = int(turned[0]), turned[1]
+        if not kept:
+            node.get_logger().info(
+                f'multi_view_node turned the camera {angle:.2f} deg (mount check): the keyframes from now on '
+                'are mapped in it, the map so far stays as it was (no keyframes kept to re-pose)'
+            )
+            return
+        node.get_logger().info(
+            f'multi_view_node turned the camera {angle:.2f} deg (mount check): {kept} kept keyframes '
+            're-posed in it, rebuilding the map'
+        )
+        self._start_rebuild()
+
+    def in_latest_posing(self, stamp: float, T_wc: np.ndarray) -> np.ndarray:
+        """A keyframe's pose in the newest ``camera_from_pose_frame`` (one posed before a turn
+        and arriving after it, in flight meanwhile, is re-posed as the kept ones were).
+        Holding node._lock."""
+        then, now = self.posings.at(stamp), self.posings.latest
+        if then is None or now is None or np.allclose(then.T_pose_cam, now, rtol=0.0, atol=1e-9):
+            return T_wc
+        return T_wc @ np.linalg.inv(then.T_pose_cam) @ now
+
+    def _repose(self, before: np.ndarray, after: np.ndarray) -> int:
+        """Every keyframe kept, waiting in the consistency window or last seen, posed in
+        ``before``, now in ``after``: ``T_wc @ before^-1 @ after``. Returns how many kept
+        keyframes moved (holding node._lock)."""
+        node = self.node
+        turn = np.linalg.inv(before) @ after
+        moved = 0
+        for e in self.store.entries:
+            if e.posing is not None:
+                e.T_wc = e.T_wc @ np.linalg.inv(e.posing.T_pose_cam) @ after
+                e.posing = Posing(after, e.posing.offset)
+                moved += 1
+        node.map.move_window(lambda key, T: T @ turn)
+        if node._last_pose is not None:
+            node._last_pose = (node._last_pose[0], node._last_pose[1] @ turn)
+        return moved
 
     def on_posing_time(self, msg: Any) -> None:
         """``depth_fusion/posing/pose_time``: the pose source's time images are posed at."""
@@ -166,18 +220,13 @@ class MapCorrector:
         """The keyframes in the consistency test's window, then the pose-jump test's last pose:
         they move with the kept ones, corrected together (holding node._lock)."""
         node = self.node
-        out = [
-            PendingKeyframe(
-                float(k), T, self._segments.get(float(k), self.store.segment), self.posings.at(float(k))
-            )
+        keyframes = [
+            (float(k), T, self._segments.get(float(k), self.store.segment))
             for k, T in node.map.window_keyframes()
         ]
-        last = node._last_pose
-        if last is not None:
-            out.append(
-                PendingKeyframe(float(last[0]), last[1], self.store.segment, self.posings.at(float(last[0])))
-            )
-        return out
+        if node._last_pose is not None:
+            keyframes.append((float(node._last_pose[0]), node._last_pose[1], self.store.segment))
+        return [PendingKeyframe(t, T, segment, self.posings.current(t)) for t, T, segment in keyframes]
 
     def _move_pending(self, pending: list[PendingKeyframe], moved: np.ndarray | None) -> None:
         """Give :meth:`_pending`'s keyframes their corrected poses (holding node._lock)."""

@@ -119,11 +119,27 @@ class PosingLog:
         _add(self.offsets, stamp, offset)
 
     def at(self, stamp_s: float) -> Posing | None:
+        """The posing the image stamped ``stamp_s`` was posed with."""
         if not self.transforms and not self.offsets:
             return None
         stamp_ns = messages.sec_to_ns(stamp_s)
         T = _lookup(self.transforms, stamp_ns, None)
         return Posing(np.eye(4) if T is None else T, float(_lookup(self.offsets, stamp_ns, 0.0)))
+
+    def current(self, stamp_s: float) -> Posing | None:
+        """The posing a keyframe stamped ``stamp_s`` is kept in: the newest transform (the map
+        node re-poses what came before a mount turn, :meth:`MapCorrector.on_posing_transform`)
+        with the time offset it was posed at (a later offset cannot be applied to it: the pose
+        source's poses around it are not kept)."""
+        posing = self.at(stamp_s)
+        if posing is None or not self.transforms:
+            return posing
+        return Posing(self.transforms[-1][1], posing.offset)
+
+    @property
+    def latest(self) -> np.ndarray | None:
+        """The newest ``camera_from_pose_frame`` heard (None: none yet)."""
+        return self.transforms[-1][1] if self.transforms else None
 
 
 def _add(log: list, stamp_ns: int, value: Any) -> None:
