@@ -210,6 +210,12 @@ def test_the_rebuild_compares_each_keyframe_through_the_posing_multi_view_node_s
             node.stats.snapshot().summary()
         )
         dist = _saved_distances(ros, scene, path)
+        bad = transform_msg(posing, T0 + 9 * STEP, 'camera', kind=K)
+        bad.transform.rotation.w = float('nan')  # not a rotation: dropped, counted, the posing kept
+        said.publish(bad)
+        assert ros.wait_for(lambda: node.stats.snapshot().dropped.get('bad_posing') == 1, 10.0)
+        assert node.corrector.posings.latest is not None and len(node.corrector.posings.transforms) == 1
+        assert node.corrector.rebuilds == 1
     assert np.median(dist) < 0.008 and np.percentile(dist, 90) < 0.02, (
         np.median(dist),
         np.percentile(dist, 90),
