@@ -8,6 +8,7 @@ import threading
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from depth_fusion_ros.adaptation.adapter import Adapter
 from depth_fusion_ros.adaptation.config import AdaptConfig
@@ -241,6 +242,33 @@ def test_assembler_waits_for_the_pose_once_poses_are_known(small_sequence):
     assert out == []
     out = asm.add(30, 'pose', seq.frames[2].pose)
     assert len(out) == 1 and out[0].has_photometric and len(out[0].neighbours) == 1
+
+
+def test_a_mount_turn_re_poses_the_neighbours_and_the_waiting_poses(small_sequence):
+    """A keyframe's photometric neighbours posed before multi_view_node turned the camera and
+    the keyframe after it would pair two cameras; ``repose`` turns the kept ones too, so the
+    relative pose of the pair is that of one camera."""
+    seq = small_sequence
+    asm = KeyframeAssembler(select_fraction=1.0, neighbours=1, min_baseline=0.0)
+    depth = seq.gt_depth_working(0)
+    score = np.ones_like(depth)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler('x', 2.0, degrees=True).as_matrix()
+    for i, stamp in enumerate((10, 20)):  # posed without the turn
+        asm.add(stamp, 'pose', seq.frames[i].pose @ np.linalg.inv(turn))
+        asm.add(stamp, 'rgb', seq.frames[i].rgb, seq.camera)
+    asm.add(10, 'depth', depth)
+    assert len(asm.add(10, 'score', score)) == 1  # complete: a neighbour; 20 waits
+    assert asm.repose(turn) == 2  # the neighbour and the waiting pose
+    asm.add(20, 'depth', depth)
+    out = asm.add(20, 'score', score)
+    assert asm.add(30, 'pose', seq.frames[2].pose) == []  # posed with the turn
+    out += asm.add(30, 'rgb', seq.frames[2].rgb, seq.camera) + asm.add(30, 'depth', depth)
+    out += asm.add(30, 'score', score)
+    assert [s.key for s in out] == [20, 30]
+    np.testing.assert_allclose(out[0].pose, seq.frames[1].pose, atol=1e-12)
+    np.testing.assert_allclose(out[0].neighbours[0].pose, seq.frames[0].pose, atol=1e-12)
+    np.testing.assert_allclose(out[1].neighbours[0].pose, seq.frames[1].pose, atol=1e-12)
 
 
 def test_bad_settings_are_clear_errors():

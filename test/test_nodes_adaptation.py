@@ -10,14 +10,18 @@ import pytest
 import rclpy
 import torch
 from conftest import save_torchscript_depth_model
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from rclpy.parameter import Parameter
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 
 from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.nodes.posing import TOPIC_POSING_TRANSFORM, transform_msg
+from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.single_view_node import SingleViewNode
 from depth_fusion_ros.nodes.testing import RosHarness
+from depth_fusion_ros.pose_corrections import Posing
 from depth_fusion_ros.singleview.predictor import load_predictor
 
 K = m.RCLPY
@@ -174,3 +178,35 @@ def test_exported_models_do_not_adapt_by_default_and_refuse_adapt_true(tmp_path,
     with pytest.raises(ValueError, match='cannot be adapted'):
         adaptation_wanted({'adapt': 'true', 'model': str(path)})
     assert adaptation_wanted({'adapt': 'auto', 'model': 'default'}) is True
+
+
+def test_a_mount_turn_multi_view_node_takes_re_poses_the_keyframe_poses_the_adaptation_holds(
+    tiny_model, room
+):
+    """multi_view_node says on depth_fusion/posing/camera_from_pose_frame that its mount check
+    turned the camera: the adaptation's waiting keyframe poses, and one posed before the turn
+    that arrives after it, are turned too, so its photometric pairs compare one camera."""
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler('x', 2.0, degrees=True).as_matrix()
+    with RosHarness() as ros:
+        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model)))
+        assert node.adaptation is not None
+        said = ros.publisher(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, latched_qos())
+        poses = ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose')
+        assert ros.wait_for_subscribers([said, poses])
+        said.publish(transform_msg(Posing(np.eye(4)), 1_000_000_000, 'camera', kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing') == 1, 10.0)
+        before = [1_000_000_000, 1_100_000_000]  # posed without the turn
+        poses.publish(
+            m.pose_stamped_msg(room.frames[0].pose, m.header_msg(before[0], 'world', kind=K), kind=K)
+        )
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('keyframe_pose') == 1, 10.0)
+        said.publish(transform_msg(Posing(turn), 1_150_000_000, 'camera', kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing') == 2, 10.0)
+        poses.publish(
+            m.pose_stamped_msg(room.frames[1].pose, m.header_msg(before[1], 'world', kind=K), kind=K)
+        )
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('keyframe_pose') == 2, 10.0)
+        waiting = {s: e.values['pose'] for s, e in node.adaptation.assembler._pending.items()}
+    np.testing.assert_allclose(waiting[before[0]], room.frames[0].pose @ turn, atol=1e-12)
+    np.testing.assert_allclose(waiting[before[1]], room.frames[1].pose @ turn, atol=1e-12)

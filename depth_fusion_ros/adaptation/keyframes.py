@@ -78,6 +78,22 @@ class KeyframeAssembler:
                 self.evicted_incomplete += 1
         return out
 
+    def repose(self, turn: np.ndarray) -> int:
+        """The camera was turned (a mount check's correction, which holds for the whole run):
+        the neighbours kept and the poses waiting are re-posed, ``T @ turn``, so the
+        photometric pairs of the keyframes to come compare poses of one camera. Returns how
+        many poses moved. (The samples already made keep their own, consistent among
+        themselves.)"""
+        moved = 0
+        for n in self._recent:
+            n.pose = n.pose @ turn
+            moved += 1
+        for entry in self._pending.values():
+            if 'pose' in entry.values:
+                entry.values['pose'] = entry.values['pose'] @ turn
+                moved += 1
+        return moved
+
     def _ready(self, entry: _Parts, waiting_for_pose: bool) -> bool:
         v = entry.values
         if not all(k in v for k in ('rgb', 'depth', 'score')) or entry.camera is None:

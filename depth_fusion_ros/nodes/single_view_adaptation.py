@@ -13,7 +13,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from geometry_msgs.msg import PoseStamped
+import numpy as np
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import Image
 
 from ..adaptation.adapter import Adapter, UpdateReport
@@ -21,8 +22,11 @@ from ..adaptation.config import AdaptConfig
 from ..adaptation.keyframes import KeyframeAssembler
 from ..adaptation.online import OnlineAdaptation, WeightSlot
 from ..adaptation.sample import AdaptSample
+from ..data import messages
 from .image_input import InputError, WorkingImage, depth_from_message, header_stamp_ns, pose_from_message
 from .params import ParamSpec, build_dataclass, dataclass_specs
+from .posing import TOPIC_POSING_TRANSFORM, PosingLog
+from .qos import latched_qos
 
 TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
@@ -159,6 +163,10 @@ class NodeAdaptation:
         node.subscribe(Image, TOPIC_MV_DEPTH, lambda m: self._on_depth(m, 'depth'), q)
         node.subscribe(Image, TOPIC_MV_SCORE, lambda m: self._on_depth(m, 'score'), q)
         node.subscribe(PoseStamped, TOPIC_KEYFRAME_POSE, self._on_pose, q)
+        #: How multi_view_node posed each keyframe: a mount turn it takes re-poses the photometric
+        #: neighbours (nodes/posing.py).
+        self.posings = PosingLog()
+        node.subscribe(TransformStamped, TOPIC_POSING_TRANSFORM, self._on_posing, latched_qos())
         from std_srvs.srv import Trigger
 
         self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
@@ -194,7 +202,31 @@ class NodeAdaptation:
         except InputError as exc:
             self.node.stats.dropped(exc.reason, str(exc))
             return
-        self._add(header_stamp_ns(msg), 'pose', pose)
+        stamp_ns = header_stamp_ns(msg)
+        with self._lock:  # posed before a turn heard already (in flight): in the turned camera
+            then, now = self.posings.at(messages.ns_to_sec(stamp_ns)), self.posings.latest
+            if then is not None and now is not None:
+                pose = pose @ np.linalg.inv(then.T_pose_cam) @ now
+        self._add(stamp_ns, 'pose', pose)
+
+    def _on_posing(self, msg: Any) -> None:
+        """multi_view_node's ``camera_from_pose_frame``; another one than the last (its mount
+        check turned the camera) re-poses the neighbours and waiting poses (``repose``)."""
+        self.node.stats.received('posing')
+        try:
+            with self._lock:
+                before = self.posings.latest
+                self.posings.on_transform(msg)
+                after = self.posings.latest
+                if before is None or np.allclose(before, after, rtol=0.0, atol=1e-9):
+                    return
+                moved = self.assembler.repose(np.linalg.inv(before) @ after)
+        except ValueError as exc:  # a transform that is not rigid
+            self.node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
+            return
+        self.node.get_logger().info(
+            f'adaptation: multi_view_node turned the camera (mount check): {moved} kept poses re-posed'
+        )
 
     def _add(self, stamp_ns: int, part: str, value: Any, camera: Any = None) -> None:
         with self._lock:
