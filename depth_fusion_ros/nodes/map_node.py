@@ -340,7 +340,7 @@ class MapNode(DepthFusionNode):
                 'blocks_evicted',
                 f'map full ({self.map.config.max_blocks} blocks): the farthest moved {where}'
                 + (
-                    f'; {TOPIC_MAP_POINTS} shows the blocks in memory, ~/save_map and map_file the whole map'
+                    f'; {TOPIC_MAP_POINTS}, ~/save_map and map_file keep the whole map'
                     if archive is not None
                     else ''
                 ),
