@@ -66,13 +66,6 @@ class Posing:
     T_pose_cam: np.ndarray
     offset: float = 0.0
 
-    def same_as(self, other: Posing | None, atol: float = 1e-9) -> bool:
-        return (
-            other is not None
-            and abs(self.offset - other.offset) <= atol
-            and bool(np.allclose(self.T_pose_cam, other.T_pose_cam, rtol=0.0, atol=atol))
-        )
-
 
 @dataclass(frozen=True)
 class Corrections:

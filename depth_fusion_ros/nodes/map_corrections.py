@@ -107,12 +107,10 @@ class MapCorrector:
         turned: list[float] = []
 
         def take(message: Any) -> None:  # holding node._lock
-            before = self.posings.latest
-            self.posings.on_transform(message)
-            after = self.posings.latest
-            if before is not None and not np.allclose(before, after, rtol=0.0, atol=1e-9):
-                turned.append(self._repose(before, after))
-                turned.append(float(np.degrees(rotation_angle((np.linalg.inv(before) @ after)[:3, :3]))))
+            turn = self.posings.on_transform(message)
+            if turn is not None:
+                turned.append(self._repose(turn))
+                turned.append(float(np.degrees(rotation_angle(turn[:3, :3]))))
 
         self._on_posing(msg, take)
         if not turned:
@@ -130,25 +128,16 @@ class MapCorrector:
         )
         self._start_rebuild()
 
-    def in_latest_posing(self, stamp: float, T_wc: np.ndarray) -> np.ndarray:
-        """A keyframe's pose in the newest ``camera_from_pose_frame`` (one posed before a turn
-        and arriving after it, in flight meanwhile, is re-posed as the kept ones were).
-        Holding node._lock."""
-        then, now = self.posings.at(stamp), self.posings.latest
-        if then is None or now is None or np.allclose(then.T_pose_cam, now, rtol=0.0, atol=1e-9):
-            return T_wc
-        return T_wc @ np.linalg.inv(then.T_pose_cam) @ now
-
-    def _repose(self, before: np.ndarray, after: np.ndarray) -> int:
-        """Every keyframe kept, waiting in the consistency window or last seen, posed in
-        ``before``, now in ``after``: ``T_wc @ before^-1 @ after``. Returns how many kept
+    def _repose(self, turn: np.ndarray) -> int:
+        """Every keyframe kept, waiting in the consistency window or last seen, posed in the
+        transform before the newest, now in the newest: ``T_wc @ turn``. Returns how many kept
         keyframes moved (holding node._lock)."""
         node = self.node
-        turn = np.linalg.inv(before) @ after
+        after = self.posings.latest
         moved = 0
         for e in self.store.entries:
             if e.posing is not None:
-                e.T_wc = e.T_wc @ np.linalg.inv(e.posing.T_pose_cam) @ after
+                e.T_wc = e.T_wc @ turn
                 e.posing = Posing(after, e.posing.offset)
                 moved += 1
         node.map.move_window(lambda key, T: T @ turn)

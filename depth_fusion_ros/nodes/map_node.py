@@ -319,7 +319,7 @@ class MapNode(DepthFusionNode):
                 )
                 return
             self._world_frame = self._world_frame or frame_id or 'world'
-            T_wc = self.corrector.in_latest_posing(stamp, T_wc)
+            T_wc = self.corrector.posings.in_latest(stamp, T_wc)  # posed before a mount turn
             self._check_pose_jump(stamp, T_wc)
             self.corrector.note_segment(stamp)
             before = (self.map.evicted_blocks, self.map.lost_blocks, self.map.skipped_blocks)

@@ -665,11 +665,13 @@ class MultiViewNode(DepthFusionNode):
 
     def _on_posed_frame(self, pending: _Pending, T_wc: np.ndarray) -> None:
         image = pending.image
-        if self._restart_from_ns is not None and image.stamp_ns >= self._restart_from_ns:
+        restarted = self._restart_from_ns is not None and image.stamp_ns >= self._restart_from_ns
+        if restarted:
             self._restart_frames()
+        if restarted or not self.posing.published:  # a posing correction restarts the history
+            posing = Posing(self.T_pose_cam @ self._mount_correction, self._pose_offset())
+            self.posing.publish(image.stamp_ns, image.header.frame_id, posing)
         T_wc = T_wc @ self._mount_correction
-        posing = Posing(self.T_pose_cam @ self._mount_correction, self._pose_offset())
-        self.posing.note(image.stamp_ns, image.header.frame_id, posing)
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
         self.focal_check.offer(frame, image.camera)

@@ -8,7 +8,8 @@ camera poses with the pose source's own poses later (map_node, with a corrected 
 from a loop closure) must undo exactly that posing, keyframe by keyframe: with the
 configured ``camera_from_pose_frame`` alone it read a mount turn as a move of every keyframe,
 rebuilt the map and lost the turn. So multi_view_node publishes its posing, latched, with
-its first posed frame and whenever it changes or the stream restarts:
+its first posed frame and at every restart of its frame history: each change of the posing
+causes one, as a restarted stream or a pose jump does (the same posing again changes nothing):
 
 * ``depth_fusion/posing/camera_from_pose_frame`` (geometry_msgs/TransformStamped): the camera
   (``child_frame_id``: the images' frame) in the pose source's frame (``header.frame_id``
@@ -70,25 +71,19 @@ def time_reference_msg(posing: Posing, stamp_ns: int, source: str, *, kind: Any)
 
 
 class PosingPublisher:
-    """multi_view_node's side: publishes its posing when it first poses a frame, when the
-    posing changes and when the stamps go back (a restarted stream: its keyframes are matched
-    from its own first stamp)."""
+    """multi_view_node's side: publishes its posing from a frame on. The node calls it with the
+    first frame it poses and at each restart of its frame history, which every change of its
+    posing causes (a time offset or mount correction), as a restarted stream does (its
+    keyframes are then matched from its own first stamp)."""
 
     def __init__(self, node: Any, source: str) -> None:
         self._transform_pub = node.create_publisher(TransformStamped, TOPIC_POSING_TRANSFORM, latched_qos())
         self._time_pub = node.create_publisher(TimeReference, TOPIC_POSING_TIME, latched_qos())
         self._source = source
-        self._last: Posing | None = None
-        self._last_stamp_ns: int | None = None
         self.published = 0
 
-    def note(self, stamp_ns: int, camera_frame: str, posing: Posing) -> None:
-        """The frame stamped ``stamp_ns`` was posed with ``posing``."""
-        went_back = self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns
-        self._last_stamp_ns = stamp_ns
-        if posing.same_as(self._last) and not went_back:
-            return
-        self._last = posing
+    def publish(self, stamp_ns: int, camera_frame: str, posing: Posing) -> None:
+        """The frames from the one stamped ``stamp_ns`` on are posed with ``posing``."""
         kind = messages.RCLPY
         self._transform_pub.publish(transform_msg(posing, stamp_ns, camera_frame, kind=kind))
         self._time_pub.publish(time_reference_msg(posing, stamp_ns, self._source, kind=kind))
@@ -107,10 +102,16 @@ class PosingLog:
     transforms: list[tuple[int, np.ndarray]] = field(default_factory=list)
     offsets: list[tuple[int, float]] = field(default_factory=list)
 
-    def on_transform(self, msg: Any) -> None:
-        """A ``camera_from_pose_frame`` message (raises ``ValueError`` for a non-rigid one)."""
+    def on_transform(self, msg: Any) -> np.ndarray | None:
+        """A ``camera_from_pose_frame`` message (raises ``ValueError`` for a non-rigid one).
+        Returns the turn ``before^-1 @ after`` when the newest transform changed (a mount check
+        turned the camera: what was posed before is re-posed by it), else None."""
+        before = self.latest
         T = messages.transform_to_matrix(msg.transform)
         _add(self.transforms, messages.stamp_to_ns(msg.header.stamp), T)
+        if before is None or _same(before, T):
+            return None
+        return np.linalg.inv(before) @ T
 
     def on_time(self, msg: Any) -> None:
         """A ``pose_time`` message."""
@@ -126,6 +127,15 @@ class PosingLog:
         T = _lookup(self.transforms, stamp_ns, None)
         return Posing(np.eye(4) if T is None else T, float(_lookup(self.offsets, stamp_ns, 0.0)))
 
+    def in_latest(self, stamp_s: float, T_wc: np.ndarray) -> np.ndarray:
+        """A camera pose of the image stamped ``stamp_s`` in the newest transform: one posed
+        before a turn and arriving after it (in flight meanwhile) is re-posed as the ones kept
+        were, ``T_wc @ then^-1 @ now``."""
+        then, now = self.at(stamp_s), self.latest
+        if then is None or now is None or _same(then.T_pose_cam, now):
+            return T_wc
+        return T_wc @ np.linalg.inv(then.T_pose_cam) @ now
+
     def current(self, stamp_s: float) -> Posing | None:
         """The posing a keyframe stamped ``stamp_s`` is kept in: the newest transform (the map
         node re-poses what came before a mount turn, :meth:`MapCorrector.on_posing_transform`)
@@ -140,6 +150,11 @@ class PosingLog:
     def latest(self) -> np.ndarray | None:
         """The newest ``camera_from_pose_frame`` heard (None: none yet)."""
         return self.transforms[-1][1] if self.transforms else None
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """The same transform (to rounding: one sent twice, or through a message)."""
+    return bool(np.allclose(a, b, rtol=0.0, atol=1e-9))
 
 
 def _add(log: list, stamp_ns: int, value: Any) -> None:

@@ -13,7 +13,6 @@ import threading
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import Image
 
@@ -204,9 +203,7 @@ class NodeAdaptation:
             return
         stamp_ns = header_stamp_ns(msg)
         with self._lock:  # posed before a turn heard already (in flight): in the turned camera
-            then, now = self.posings.at(messages.ns_to_sec(stamp_ns)), self.posings.latest
-            if then is not None and now is not None:
-                pose = pose @ np.linalg.inv(then.T_pose_cam) @ now
+            pose = self.posings.in_latest(messages.ns_to_sec(stamp_ns), pose)
         self._add(stamp_ns, 'pose', pose)
 
     def _on_posing(self, msg: Any) -> None:
@@ -215,12 +212,10 @@ class NodeAdaptation:
         self.node.stats.received('posing')
         try:
             with self._lock:
-                before = self.posings.latest
-                self.posings.on_transform(msg)
-                after = self.posings.latest
-                if before is None or np.allclose(before, after, rtol=0.0, atol=1e-9):
+                turn = self.posings.on_transform(msg)
+                if turn is None:
                     return
-                moved = self.assembler.repose(np.linalg.inv(before) @ after)
+                moved = self.assembler.repose(turn)
         except ValueError as exc:  # a transform that is not rigid
             self.node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
             return
