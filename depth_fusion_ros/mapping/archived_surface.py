@@ -81,9 +81,9 @@ class ArchivedSurface:
         todo = [k for k, v in versions.items() if self.blocks.get(k, (None,))[0] != v][:limit]
         keys = torch.tensor(todo, dtype=torch.int64)
         archived = torch.tensor(list(versions), dtype=torch.int64)
-        near = torch.cat((_upper(_unpack(keys)), _upper(resident.coords.cpu())))
+        near = torch.cat((_upper(unpack(keys)), _upper(resident.coords.cpu())))
         near = near[torch.isin(near, archived) & ~torch.isin(near, keys)]
-        every = _unpack(torch.cat((keys, near)))
+        every = unpack(torch.cat((keys, near)))
         grid = BlockGrid(every, *read(every), resident.block_size, resident.voxel_size, resident.min_weight)
         return Pending(keys, [versions[k] for k in todo], grid)
 
@@ -96,9 +96,15 @@ class ArchivedSurface:
         rows, found = SortedKeys(pack(resident.coords.cpu())).lookup(_upper(mine))
         grid = _joined(pending.read, resident.rows(rows[found].unique().to(resident.coords.device)))
         mesh, owner = _vertices(grid)
+        # The vertices grouped by their block in one sort (not a pass over all of them per block).
+        order = np.argsort(owner, kind='stable')
+        keys = pending.keys.numpy()
+        grouped = owner[order]
+        starts = np.searchsorted(grouped, keys, side='left')
+        ends = np.searchsorted(grouped, keys, side='right')
         stride = 2**self.thinned
-        for key, version in zip(pending.keys.tolist(), pending.versions, strict=True):
-            at = np.nonzero(owner == key)[0][::stride]
+        for key, version, a, b in zip(keys.tolist(), pending.versions, starts, ends, strict=True):
+            at = order[a:b:stride]
             self._drop(key)
             self.blocks[key] = (version, mesh.vertices[at], mesh.colours[at])
             self.points += len(at)
@@ -151,7 +157,3 @@ def _joined(a: BlockGrid, b: BlockGrid) -> BlockGrid:
 def _upper(coords: torch.Tensor) -> torch.Tensor:
     """Packed keys of the +1 neighbours of blocks ``coords`` (N, 3), each once."""
     return pack((coords[:, None, :] + _UPPER[None]).reshape(-1, 3)).unique()
-
-
-def _unpack(keys: torch.Tensor) -> torch.Tensor:
-    return unpack(keys).reshape(-1, 3)
