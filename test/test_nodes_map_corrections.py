@@ -18,6 +18,7 @@ from depth_fusion_ros.mapping import read_ply
 from depth_fusion_ros.nodes.posing import (
     TOPIC_POSING_TIME,
     TOPIC_POSING_TRANSFORM,
+    posing_qos,
     time_reference_msg,
     transform_msg,
 )
@@ -262,6 +263,44 @@ def test_a_mount_turn_multi_view_node_takes_re_poses_the_keyframes_mapped_before
         dist = _saved_distances(ros, scene, path)
         rebuilds = node.corrector.rebuilds
     assert rebuilds <= 1
+    assert np.median(dist) < 0.008 and np.percentile(dist, 90) < 0.02, (
+        np.median(dist),
+        np.percentile(dist, 90),
+    )
+
+
+def test_a_map_node_started_after_a_mount_turn_hears_the_posing_before_it(room, tmp_path):
+    """The posing topics keep the last posings, not only the newest: a map_node started after
+    multi_view_node turned the camera hears the posing before the turn too, so keyframes posed
+    before it and still in flight are re-posed in the turn (with the newest posing alone, they
+    were taken as posed in it and mapped 2 deg off)."""
+    scene, seq = room
+    path = tmp_path / 'room.ply'
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler('x', 2.0, degrees=True).as_matrix()
+    unturned = np.linalg.inv(turn)
+    with RosHarness() as ros:
+        said = ros.publisher(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, posing_qos())
+        said.publish(transform_msg(Posing(np.eye(4)), T0, 'camera', kind=K))
+        said.publish(transform_msg(Posing(turn), T0 + 3 * STEP + STEP // 2, 'camera', kind=K))
+        node = map_node(ros, save_path=str(path), points_rate=0.0, **{'map.engine': 'torch'})
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing', 0) == 2, 10.0)
+        assert [stamp for stamp, _ in node.corrector.posings.transforms] == [T0, T0 + 3 * STEP + STEP // 2]
+        inputs = MapInputs(ros)
+        for k in range(8):  # 0-2 posed before the turn (the true pose turned back), in flight
+            T = seq.frames[2 * k].pose @ (unturned if k < 3 else np.eye(4))
+            pose = m.pose_stamped_msg(T, m.header_msg(T0 + k * STEP, 'world', kind=K), kind=K)
+            inputs.keyframe(seq, 2 * k, T0 + k * STEP, pose=pose)
+        assert ros.wait_for(lambda: node.integrated == 8 and node.worker.idle(), 30.0), (
+            node.stats.snapshot().summary()
+        )
+        entries = {round(e.stamp, 3): e.T_wc for e in node.corrector.store.entries}
+        dist = _saved_distances(ros, scene, path)
+    early = {k: round((T0 + k * STEP) / 1e9, 3) for k in range(3)}
+    early = {k: entries[stamp] for k, stamp in early.items() if stamp in entries}
+    assert early, sorted(entries)
+    for k, T_wc in early.items():
+        np.testing.assert_allclose(T_wc, seq.frames[2 * k].pose, atol=1e-6)
     assert np.median(dist) < 0.008 and np.percentile(dist, 90) < 0.02, (
         np.median(dist),
         np.percentile(dist, 90),

@@ -56,8 +56,7 @@ from .map_corrections import MapCorrector
 from .map_points import MapPointsPublisher
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
-from .posing import TOPIC_POSING_TIME, TOPIC_POSING_TRANSFORM
-from .qos import latched_qos
+from .posing import TOPIC_POSING_TIME, TOPIC_POSING_TRANSFORM, posing_qos
 from .stamp_pairing import StampPairer
 
 NODE_NAME = 'map_node'
@@ -210,7 +209,7 @@ class MapNode(DepthFusionNode):
         if p['use_color']:
             self.subscribe(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
         self.subscribe(PathMsg, TOPIC_CORRECTED_PATH, self.corrector.on_path, q)
-        latched = latched_qos()
+        latched = posing_qos()
         self.subscribe(TransformStamped, TOPIC_POSING_TRANSFORM, self.corrector.on_posing_transform, latched)
         self.subscribe(TimeReference, TOPIC_POSING_TIME, self.corrector.on_posing_time, latched)
         self.create_service(Trigger, '~/save_map', self._on_save)

@@ -9,7 +9,9 @@ from a loop closure) must undo exactly that posing, keyframe by keyframe: with t
 configured ``camera_from_pose_frame`` alone it read a mount turn as a move of every keyframe,
 rebuilt the map and lost the turn. So multi_view_node publishes its posing, latched, with
 its first posed frame and at every restart of its frame history: each change of the posing
-causes one, as a restarted stream or a pose jump does (the same posing again changes nothing):
+causes one, as a restarted stream or a pose jump does (the same posing again changes nothing).
+The topics keep the last posings (:func:`posing_qos`), so a node that joins later hears the
+posings before the current one too:
 
 * ``depth_fusion/posing/camera_from_pose_frame`` (geometry_msgs/TransformStamped): the camera
   (``child_frame_id``: the images' frame) in the pose source's frame (``header.frame_id``
@@ -40,8 +42,17 @@ TOPIC_POSING_TRANSFORM = 'depth_fusion/posing/camera_from_pose_frame'
 TOPIC_POSING_TIME = 'depth_fusion/posing/pose_time'
 #: ``header.frame_id`` of the transform: the frame of the pose topic's poses.
 POSE_FRAME = 'pose_frame'
-#: Posings a log keeps (a handful change per run; the oldest go first).
+#: Posings a log keeps (a handful change per run; the oldest go first), and the posing messages
+#: the topics keep for a node that joins later (:func:`posing_qos`).
 LOG_SIZE = 32
+
+
+def posing_qos() -> Any:
+    """Latched with the last :data:`LOG_SIZE` posings, not the last one only: a map_node started
+    after a mount turn still hears the posing before it, so a keyframe posed before the turn and
+    still in flight is re-posed in the turn (:meth:`PosingLog.in_latest`) instead of being taken
+    as posed in it."""
+    return latched_qos(LOG_SIZE)
 
 
 def transform_msg(posing: Posing, stamp_ns: int, camera_frame: str, *, kind: Any) -> Any:
@@ -77,8 +88,8 @@ class PosingPublisher:
     keyframes are then matched from its own first stamp)."""
 
     def __init__(self, node: Any, source: str) -> None:
-        self._transform_pub = node.create_publisher(TransformStamped, TOPIC_POSING_TRANSFORM, latched_qos())
-        self._time_pub = node.create_publisher(TimeReference, TOPIC_POSING_TIME, latched_qos())
+        self._transform_pub = node.create_publisher(TransformStamped, TOPIC_POSING_TRANSFORM, posing_qos())
+        self._time_pub = node.create_publisher(TimeReference, TOPIC_POSING_TIME, posing_qos())
         self._source = source
         self.published = 0
 

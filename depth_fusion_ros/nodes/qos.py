@@ -45,11 +45,12 @@ def qos_profile(kind: str, depth: int) -> QoSProfile:
     )
 
 
-def latched_qos() -> QoSProfile:
-    """Reliable, transient-local, depth 1: the last value reaches subscribers that join later."""
+def latched_qos(depth: int = 1) -> QoSProfile:
+    """Reliable, transient-local, keeping the last ``depth`` values (1: the last value) for
+    subscribers that join later."""
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
-        depth=1,
+        depth=int(depth),
         reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL,
     )

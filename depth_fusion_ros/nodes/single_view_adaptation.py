@@ -24,8 +24,7 @@ from ..adaptation.sample import AdaptSample
 from ..data import messages
 from .image_input import InputError, WorkingImage, depth_from_message, header_stamp_ns, pose_from_message
 from .params import ParamSpec, build_dataclass, dataclass_specs
-from .posing import TOPIC_POSING_TRANSFORM, PosingLog
-from .qos import latched_qos
+from .posing import TOPIC_POSING_TRANSFORM, PosingLog, posing_qos
 
 TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
@@ -165,7 +164,7 @@ class NodeAdaptation:
         #: How multi_view_node posed each keyframe: a mount turn it takes re-poses the photometric
         #: neighbours (nodes/posing.py).
         self.posings = PosingLog()
-        node.subscribe(TransformStamped, TOPIC_POSING_TRANSFORM, self._on_posing, latched_qos())
+        node.subscribe(TransformStamped, TOPIC_POSING_TRANSFORM, self._on_posing, posing_qos())
         from std_srvs.srv import Trigger
 
         self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
