@@ -125,6 +125,23 @@ class PoseBuffer:
         )
         return PoseLookup(T[0])
 
+    def reread(self, stamps: list[float], before: float, after: float) -> list[np.ndarray | None]:
+        """The poses of frames stamped ``stamps`` (s, the camera's clock) that were posed at
+        ``stamp + before``, read again at ``stamp + after``: a corrected time offset, applied
+        backwards to what was posed before it (map_node re-poses its keyframes). ``None`` for a
+        frame the buffer no longer covers at either time, or whose two times lie across a pose
+        jump (the new pose would be in another world than the one it was mapped in)."""
+        jumps = np.array(sorted(self._after_jump))
+        out: list[np.ndarray | None] = []
+        for stamp in stamps:
+            lo, hi = sorted((stamp + before, stamp + after))
+            across = bool(np.any((jumps > lo) & (jumps <= hi)))
+            if across or self.lookup(stamp + before).pose is None:
+                out.append(None)
+            else:
+                out.append(self.lookup(stamp + after).pose)
+        return out
+
     def correct(
         self, path_stamps: np.ndarray, path_poses: np.ndarray, max_gap: float
     ) -> tuple[float, float] | None:

@@ -18,7 +18,9 @@ from depth_fusion_ros.mapping import read_ply
 from depth_fusion_ros.nodes.posing import (
     TOPIC_POSING_TIME,
     TOPIC_POSING_TRANSFORM,
+    TOPIC_REPOSED_KEYFRAMES,
     posing_qos,
+    reposed_msg,
     time_reference_msg,
     transform_msg,
 )
@@ -302,6 +304,67 @@ def test_a_map_node_started_after_a_mount_turn_hears_the_posing_before_it(room, 
     for k, T_wc in early.items():
         np.testing.assert_allclose(T_wc, seq.frames[2 * k].pose, atol=1e-6)
     assert np.median(dist) < 0.008 and np.percentile(dist, 90) < 0.02, (
+        np.median(dist),
+        np.percentile(dist, 90),
+    )
+
+
+def test_a_time_offset_correction_re_poses_the_keyframes_mapped_before_it(room, tmp_path):
+    """multi_view_node read the poses 50 ms late until its time offset check corrected it; it
+    then reads the keyframes before again at the corrected offset and publishes them
+    (``reposed_keyframes``, here before the ``pose_time`` of the posing it belongs to). The map
+    node moves the kept keyframes, those in the consistency window and one still in flight,
+    rebuilds, and keeps them at the corrected offset: the map lies on the room."""
+    scene, seq = room
+    path = tmp_path / 'room.ply'
+    corrected_from = T0 + 4 * STEP + STEP // 2
+    with RosHarness() as ros:
+        said_time = ros.publisher(TimeReference, '/' + TOPIC_POSING_TIME, posing_qos())
+        reposed = ros.publisher(PathMsg, '/' + TOPIC_REPOSED_KEYFRAMES, posing_qos())
+        said_time.publish(time_reference_msg(Posing(np.eye(4), 0.05), T0, 'test', kind=K))
+        node = map_node(ros, save_path=str(path), points_rate=0.0, **{'map.engine': 'torch'})
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing', 0) == 1, 10.0)
+        inputs = MapInputs(ros)
+
+        def keyframe(k: int, T: np.ndarray, skip: tuple[str, ...] = ()) -> None:
+            pose = m.pose_stamped_msg(T, m.header_msg(T0 + k * STEP, 'world', kind=K), kind=K)
+            inputs.keyframe(seq, 2 * k, T0 + k * STEP, skip=skip, pose=pose)
+
+        for k in range(4):  # posed 50 ms late: at the next frame's pose
+            keyframe(k, seq.frames[2 * k + 1].pose)
+        keyframe(4, seq.frames[9].pose, skip=('depth',))  # in flight: its depth comes after the correction
+        assert ros.wait_for(
+            lambda: (
+                node.stats.snapshot().received.get('depth', 0) == 4
+                and node.worker.idle()
+                and len(node.corrector.store.entries) >= 1
+            ),
+            30.0,
+        ), node.stats.snapshot().summary()
+        kept_before = len(node.corrector.store.entries)
+        poses = [(T0 + k * STEP, seq.frames[2 * k].pose) for k in range(5)]  # read again in sync
+        reposed.publish(reposed_msg(corrected_from, 'world', poses, kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('reposed_keyframes', 0) == 1, 10.0)
+        assert node.corrector.rebuilds == 0  # its posing's pose_time not heard yet: waits for it
+        said_time.publish(time_reference_msg(Posing(np.eye(4), 0.0), corrected_from, 'test', kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().published.get('reposings', 0) == 1, 10.0)
+        keyframe(4, seq.frames[9].pose, skip=('image', 'info', 'confidence', 'pose'))
+        for k in range(5, 8):
+            keyframe(k, seq.frames[2 * k].pose)
+        assert ros.wait_for(
+            lambda: node.integrated == 8 and node.worker.idle() and not node.corrector.busy(), 30.0
+        ), node.stats.snapshot().summary()
+        entries = {e.stamp: e for e in node.corrector.store.entries}
+        dist = _saved_distances(ros, scene, path)
+        rebuilds = node.corrector.rebuilds
+    assert kept_before >= 1 and rebuilds == 1
+    for k in range(5):
+        e = entries.get(m.ns_to_sec(T0 + k * STEP))
+        if e is not None:
+            np.testing.assert_allclose(e.T_wc, seq.frames[2 * k].pose, atol=1e-6)
+            assert e.posing.offset == 0.0
+    # 1.4 mm and 4.1 mm; with the keyframes left where they were mapped, 6.4 mm and 17.6 mm.
+    assert np.median(dist) < 0.004 and np.percentile(dist, 90) < 0.01, (
         np.median(dist),
         np.percentile(dist, 90),
     )

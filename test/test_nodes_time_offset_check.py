@@ -11,11 +11,13 @@ import time
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import Image
 from test_nodes_multi_view import _Camera, _stream_check_node
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
+from depth_fusion_ros.nodes.posing import TOPIC_REPOSED_KEYFRAMES, posing_qos
 from depth_fusion_ros.nodes.testing import RosHarness
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
@@ -51,6 +53,7 @@ def _run(seq, mode: str):
         )
         depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
         poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')
+        reposed = ros.collect(PathMsg, '/' + TOPIC_REPOSED_KEYFRAMES, posing_qos())
         cam = _Camera(ros)
         for i, frame in enumerate(seq.frames):
             if i == CHECKED:  # let its thread finish
@@ -74,7 +77,11 @@ def _run(seq, mode: str):
     index = {s: i for i, s in enumerate(stamps)}
     depth = {index[m.stamp_to_ns(d.header.stamp)]: m.image_to_depth(d) for d in depths}
     pose = {index[m.stamp_to_ns(p.header.stamp)]: m.pose_stamped_to_matrix(p) for p in poses}
-    return result, snap, status, depth, pose, focal
+    reread = [
+        {index[m.stamp_to_ns(p.header.stamp)]: m.pose_stamped_to_matrix(p) for p in path.poses}
+        for path in reposed
+    ]
+    return result, snap, status, depth, pose, focal, reread
 
 
 def test_a_pose_source_20_ms_ahead_is_found_and_corrected(streams):
@@ -115,6 +122,16 @@ def test_a_pose_source_20_ms_ahead_is_found_and_corrected(streams):
 
     assert focal_pairs(corrected[5]) < focal_pairs(warned[5]), (corrected[5], warned[5])
     assert pose_error_mm(corrected[4]) < pose_error_mm(warned[4]) / 3
+    # The keyframes posed before the correction, read again at it for the map (nodes/posing.py):
+    # every one of them, onto the camera's true poses; none when the offset was only warned about.
+    assert warned[6] == [] and len(corrected[6]) == 1, corrected[6]
+    reread, published = corrected[6][0], corrected[4]
+    assert sorted(reread) == sorted(k for k in published if k < CHECKED), (sorted(reread), sorted(published))
+
+    def error_mm(poses: dict) -> float:
+        return 1000 * max(np.linalg.norm(poses[k][:3, 3] - truth.frames[k].pose[:3, 3]) for k in reread)
+
+    assert error_mm(reread) < error_mm(published) / 3, (error_mm(reread), error_mm(published))
     # Poses read in sync: as accurate estimates, and far more of them pass the filter's tests.
     (good, error), (good_warned, error_warned) = depth_scores(corrected[3]), depth_scores(warned[3])
     assert good > 1.4 * good_warned and error < 1.2 * error_warned, (good, good_warned, error, error_warned)

@@ -75,3 +75,20 @@ def test_jumps_leave_the_buffer_with_their_poses():
     assert buf.span == (0.2, 0.4) and buf.lookup(0.25).pose is not None
     buf.clear()
     assert buf.lookup(0.25).pose is None and buf.lookup(0.25).key == 'pose_gap'
+
+
+def test_reread_gives_the_poses_at_a_corrected_offset_but_not_across_a_jump_or_past_the_buffer():
+    """A time offset corrected from 0 to +20 ms: the frames posed before are read again 20 ms
+    later; one whose two times straddle a jump (its new pose is in another world) or the
+    buffer's end gets none."""
+    buf = PoseBuffer(capacity=100, max_gap=0.5, jump_limits=PoseJumpLimits())
+    dt = 1 / 30
+    for i in range(10):
+        buf.insert(i * dt, _pose(0.01 * i + (0.5 if i >= 6 else 0.0)))  # relocalised between 5 and 6
+    stamps = [1 * dt, 3 * dt, 5.5 * dt, 9 * dt - 0.01]
+    poses = buf.reread(stamps, 0.0, 0.02)
+    assert np.allclose(poses[0][:3, 3], [0.01 + 0.006, 0, 0])  # 0.3 m/s for 20 ms later
+    assert np.allclose(poses[1][:3, 3], [0.03 + 0.006, 0, 0])
+    assert poses[2] is None  # 5.5 dt was posed inside the jump: none then, none now
+    assert poses[3] is None  # 20 ms later is past the newest pose
+    assert buf.reread([5 * dt - 0.01], 0.0, 0.02) == [None]  # before the jump, then after it

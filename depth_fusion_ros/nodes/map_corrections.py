@@ -19,7 +19,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..geometry import rotation_angle
 from ..malloc_tuning import release_free_memory
 from ..mapping.engine import make_engine
 from ..mapping.keyframe_store import KeyframeStore, PendingKeyframe, rebuild
@@ -32,8 +31,8 @@ from .corrected_path import (
     correction_parameters,
     read_path,
 )
+from .map_posing import MapPosing
 from .params import ParamSpec
-from .posing import PosingLog
 
 if TYPE_CHECKING:
     from .map_node import MapNode
@@ -62,9 +61,10 @@ class MapCorrector:
         self.store = KeyframeStore(int(float(p['reintegration_max_mb']) * 2**20))
         self.limits = correction_limits(p)
         self.T_pose_cam = robot_inputs.transform_from_parameter(p['camera_from_pose_frame'])
-        #: How multi_view_node posed each keyframe (nodes/posing.py); this node's own
-        #: ``camera_from_pose_frame`` for keyframes it said nothing about.
-        self.posings = PosingLog()
+        #: How multi_view_node posed each keyframe (nodes/posing.py, nodes/map_posing.py); this
+        #: node's own ``camera_from_pose_frame`` for keyframes it said nothing about.
+        self.posing = MapPosing(node, self)
+        self.posings = self.posing.log
         self.default_posing = Posing(self.T_pose_cam, 0.0)
         self.rebuilds = 0
         self.last_rebuild_s = 0.0
@@ -95,68 +95,6 @@ class MapCorrector:
             # the heap's share (their small objects, and keyframes past MAX_MAPPED_ENTRIES) would
             # stay under malloc_tuning.py's raised trim threshold: hand it back too.
             release_free_memory()
-
-    # --- multi_view_node's posing ---------------------------------------------------------------------
-
-    def on_posing_transform(self, msg: Any) -> None:
-        """``depth_fusion/posing/camera_from_pose_frame``: the camera in the pose source's frame
-        from the stamp on (a mount check's turn included). A turn (another transform than the
-        last) holds for the whole run, also before the check found it: the keyframes mapped
-        before it are re-posed in it and the map rebuilt (:meth:`_repose`)."""
-        node = self.node
-        turned: list[float] = []
-
-        def take(message: Any) -> None:  # holding node._lock
-            turn = self.posings.on_transform(message)
-            if turn is not None:
-                turned.append(self._repose(turn))
-                turned.append(float(np.degrees(rotation_angle(turn[:3, :3]))))
-
-        self._on_posing(msg, take)
-        if not turned:
-            return
-        kept, angle = int(turned[0]), turned[1]
-        if not kept:
-            node.get_logger().info(
-                f'multi_view_node turned the camera {angle:.2f} deg (mount check): the keyframes from now on '
-                'are mapped in it, the map so far stays as it was (no keyframes kept to re-pose)'
-            )
-            return
-        node.get_logger().info(
-            f'multi_view_node turned the camera {angle:.2f} deg (mount check): {kept} kept keyframes '
-            're-posed in it, rebuilding the map'
-        )
-        self._start_rebuild()
-
-    def _repose(self, turn: np.ndarray) -> int:
-        """Every keyframe kept, waiting in the consistency window or last seen, posed in the
-        transform before the newest, now in the newest: ``T_wc @ turn``. Returns how many kept
-        keyframes moved (holding node._lock)."""
-        node = self.node
-        after = self.posings.latest
-        moved = 0
-        for e in self.store.entries:
-            if e.posing is not None:
-                e.T_wc = e.T_wc @ turn
-                e.posing = Posing(after, e.posing.offset)
-                moved += 1
-        node.map.move_window(lambda key, T: T @ turn)
-        if node._last_pose is not None:
-            node._last_pose = (node._last_pose[0], node._last_pose[1] @ turn)
-        return moved
-
-    def on_posing_time(self, msg: Any) -> None:
-        """``depth_fusion/posing/pose_time``: the pose source's time images are posed at."""
-        self._on_posing(msg, self.posings.on_time)
-
-    def _on_posing(self, msg: Any, take: Any) -> None:
-        node = self.node
-        node.stats.received('posing')
-        try:
-            with node._lock:
-                take(msg)
-        except ValueError as exc:  # a transform that is not rigid
-            node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
 
     # --- the corrected trajectory ----------------------------------------------------------------------
 
@@ -190,7 +128,7 @@ class MapCorrector:
             f'kept keyframes (largest {summary.largest_m:.3f} m, {summary.largest_deg:.2f} deg): '
             'rebuilding the map'
         )
-        self._start_rebuild()
+        self.start_rebuild()
 
     def note_segment(self, key: float) -> None:
         """The keyframe ``key`` enters the consistency test's window in the store's current
@@ -229,7 +167,7 @@ class MapCorrector:
 
     # --- the rebuild thread ----------------------------------------------------------------------------
 
-    def _start_rebuild(self) -> None:
+    def start_rebuild(self) -> None:
         with self._state:
             if self._thread is not None and self._thread.is_alive():
                 self._again = True  # the running rebuild is already out of date: once more after it

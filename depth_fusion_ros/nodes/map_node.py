@@ -21,7 +21,8 @@ frame, xyz + rgb) every ``1 / points_rate`` seconds when it changed, and the mes
 trajectory (a loop closure, ``camera/corrected_path``) rebuilds the map from the keyframes it
 kept at their corrected poses (:mod:`.map_corrections`), each keyframe compared with the
 trajectory through the posing multi_view_node says it was posed with (``depth_fusion/posing/*``,
-:mod:`.posing`: ``camera_from_pose_frame`` with a mount check's turn, the pose time offset).
+:mod:`.posing`: ``camera_from_pose_frame`` with a mount check's turn, the pose time offset);
+a change of that posing moves the keyframes posed before it (:mod:`.map_posing`).
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ from .map_corrections import MapCorrector
 from .map_points import MapPointsPublisher
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
-from .posing import TOPIC_POSING_TIME, TOPIC_POSING_TRANSFORM, posing_qos
+from .posing import TOPIC_POSING_TIME, TOPIC_POSING_TRANSFORM, TOPIC_REPOSED_KEYFRAMES, posing_qos
 from .stamp_pairing import StampPairer
 
 NODE_NAME = 'map_node'
@@ -210,8 +211,10 @@ class MapNode(DepthFusionNode):
             self.subscribe(Image, TOPIC_KEYFRAME_IMAGE, self._on_keyframe_image, q)
         self.subscribe(PathMsg, TOPIC_CORRECTED_PATH, self.corrector.on_path, q)
         latched = posing_qos()
-        self.subscribe(TransformStamped, TOPIC_POSING_TRANSFORM, self.corrector.on_posing_transform, latched)
-        self.subscribe(TimeReference, TOPIC_POSING_TIME, self.corrector.on_posing_time, latched)
+        posing = self.corrector.posing
+        self.subscribe(TransformStamped, TOPIC_POSING_TRANSFORM, posing.on_transform, latched)
+        self.subscribe(TimeReference, TOPIC_POSING_TIME, posing.on_time, latched)
+        self.subscribe(PathMsg, TOPIC_REPOSED_KEYFRAMES, posing.on_reposed, latched)
         self.create_service(Trigger, '~/save_map', self._on_save)
         self.create_service(Trigger, '~/clear_map', self._on_clear)
         self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
@@ -318,7 +321,7 @@ class MapNode(DepthFusionNode):
                 )
                 return
             self._world_frame = self._world_frame or frame_id or 'world'
-            T_wc = self.corrector.posings.in_latest(stamp, T_wc)  # posed before a mount turn
+            T_wc = self.corrector.posing.arriving_pose(stamp, T_wc)  # posed before a posing change
             self._check_pose_jump(stamp, T_wc)
             self.corrector.note_segment(stamp)
             before = (self.map.evicted_blocks, self.map.lost_blocks, self.map.skipped_blocks)

@@ -70,7 +70,7 @@ from .mount_check_runner import MOUNT_CHECK_PARAMETERS, MountCheckRunner
 from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
-from .posing import PosingPublisher
+from .posing import TOPIC_REPOSED_KEYFRAMES, PosingPublisher
 from .qos import latched_qos, qos_profile
 from .reliability import ignore_incompatible
 from .time_offset_check_runner import TIME_OFFSET_CHECK_PARAMETERS, TimeOffsetCheckRunner
@@ -337,7 +337,9 @@ class MultiViewNode(DepthFusionNode):
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
         self._std_pub = self.create_publisher(Image, TOPIC_DEPTH_STD, self.output_qos)
         self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
-        self.posing = PosingPublisher(self, 'multi_view_node: pose_time_offset and the time offset check')
+        self.posing = PosingPublisher(
+            self, 'multi_view_node: pose_time_offset and the time offset check', int(p['pose_buffer_size'])
+        )
         self._method_pub = announce(self, TOPIC_METHOD, str(p['multi_view.method']))
         self.events = GraphEvents(self)
         self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), int(p['max_pending_images']))
@@ -487,6 +489,7 @@ class MultiViewNode(DepthFusionNode):
         """
         (self._pose_stamps if stream == 'image' else self._image_stamps).reset()
         self.pose_buffer.clear()
+        self.posing.forget_keyframes()
         while self.pending:
             old = self.pending.popleft()
             self.stats.dropped(
@@ -669,8 +672,7 @@ class MultiViewNode(DepthFusionNode):
         if restarted:
             self._restart_frames()
         if restarted or not self.posing.published:  # a posing correction restarts the history
-            posing = Posing(self.T_pose_cam @ self._mount_correction, self._pose_offset())
-            self.posing.publish(image.stamp_ns, image.header.frame_id, posing)
+            self._publish_posing(image.stamp_ns, image.header.frame_id)
         T_wc = T_wc @ self._mount_correction
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
@@ -688,10 +690,31 @@ class MultiViewNode(DepthFusionNode):
             self.filter_feed.append(frame, camera, keyframe=job is not None)
         if job is not None:
             self.keyframes_decided += 1
+            self.posing.keyframe(image.stamp_ns)
             self._last_keyframe_pose = T_wc
             self.events.event(image.stamp_ns, EVENT_CHOSEN)
             self.worker.submit(job)
         self.frames.append(frame)
+
+    def _publish_posing(self, stamp_ns: int, camera_frame: str) -> None:
+        """Say the posing from the frame stamped ``stamp_ns`` on (nodes/posing.py). After a time
+        offset correction the keyframes posed before it are read again at the corrected offset
+        from the pose buffer, so the map moves them where they were (their depth stays as the
+        old poses made it)."""
+        posing = Posing(self.T_pose_cam @ self._mount_correction, self._pose_offset())
+
+        def reread(stamps: list[float], before: float, after: float) -> list[np.ndarray | None]:
+            poses = self.pose_buffer.reread(stamps, before, after)
+            return [None if T is None else T @ self._mount_correction for T in poses]
+
+        reposed = self.posing.publish(stamp_ns, camera_frame, posing, reread, self._world_frame)
+        if reposed is not None:
+            found, before = reposed
+            others = '' if found == before else '; the others are older than the pose buffer or across a jump'
+            self.get_logger().info(
+                f'{found} of the {before} keyframes posed before the time offset correction re-read at it '
+                f'({TOPIC_REPOSED_KEYFRAMES}: map_node moves them){others}'
+            )
 
     # --- focal length check ------------------------------------------------------------------------
 

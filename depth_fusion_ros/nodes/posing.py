@@ -23,15 +23,27 @@ posings before the current one too:
 
 Both are stamped with the first image posed that way, so a keyframe still in flight when
 the posing changed is matched with the posing it was posed with (:class:`PosingLog`).
+
+A time offset correction is also applied backwards, by the node that still has the pose
+source's poses around the keyframes posed before it: multi_view_node reads them again at the
+corrected offset and publishes them with the new posing:
+
+* ``depth_fusion/posing/reposed_keyframes`` (nav_msgs/Path): the camera poses of the
+  keyframes posed at the old offset, read again at the new one (``header.stamp``: the first
+  image of the new posing, as on ``pose_time``; each pose stamped with its keyframe). map_node
+  moves those keyframes there (kept, waiting, or still in flight) and rebuilds the map.
 """
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import TransformStamped
+from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import TimeReference
 
 from ..data import messages
@@ -40,11 +52,17 @@ from .qos import latched_qos
 
 TOPIC_POSING_TRANSFORM = 'depth_fusion/posing/camera_from_pose_frame'
 TOPIC_POSING_TIME = 'depth_fusion/posing/pose_time'
+TOPIC_REPOSED_KEYFRAMES = 'depth_fusion/posing/reposed_keyframes'
 #: ``header.frame_id`` of the transform: the frame of the pose topic's poses.
 POSE_FRAME = 'pose_frame'
 #: Posings a log keeps (a handful change per run; the oldest go first), and the posing messages
 #: the topics keep for a node that joins later (:func:`posing_qos`).
 LOG_SIZE = 32
+
+
+#: ``reread(stamps_s, before, after)``: the camera poses of frames posed at ``stamp + before``,
+#: read again at ``stamp + after`` (None where the pose source's poses are gone).
+Reread = Callable[[list[float], float, float], list[np.ndarray | None]]
 
 
 def posing_qos() -> Any:
@@ -85,20 +103,64 @@ class PosingPublisher:
     """multi_view_node's side: publishes its posing from a frame on. The node calls it with the
     first frame it poses and at each restart of its frame history, which every change of its
     posing causes (a time offset or mount correction), as a restarted stream does (its
-    keyframes are then matched from its own first stamp)."""
+    keyframes are then matched from its own first stamp).
 
-    def __init__(self, node: Any, source: str) -> None:
+    It keeps the stamps of the last ``keep`` keyframes (:meth:`keyframe`): when the time offset
+    changed, those posed at the old one are read again at the new one (``reread``: the node's
+    pose buffer) and published on :data:`TOPIC_REPOSED_KEYFRAMES`."""
+
+    def __init__(self, node: Any, source: str, keep: int) -> None:
         self._transform_pub = node.create_publisher(TransformStamped, TOPIC_POSING_TRANSFORM, posing_qos())
         self._time_pub = node.create_publisher(TimeReference, TOPIC_POSING_TIME, posing_qos())
+        self._reposed_pub = node.create_publisher(PathMsg, TOPIC_REPOSED_KEYFRAMES, posing_qos())
         self._source = source
+        self._keyframes: deque[int] = deque(maxlen=keep)
+        self._offset: float | None = None  # of the posing published last
         self.published = 0
+        self.reposed = 0
 
-    def publish(self, stamp_ns: int, camera_frame: str, posing: Posing) -> None:
-        """The frames from the one stamped ``stamp_ns`` on are posed with ``posing``."""
+    def keyframe(self, stamp_ns: int) -> None:
+        """A keyframe was chosen (its pose is published with it)."""
+        self._keyframes.append(int(stamp_ns))
+
+    def forget_keyframes(self) -> None:
+        """A new stream: the pose source's poses of the keyframes before are gone."""
+        self._keyframes.clear()
+
+    def publish(
+        self, stamp_ns: int, camera_frame: str, posing: Posing, reread: Reread, world_frame: str
+    ) -> tuple[int, int] | None:
+        """The frames from the one stamped ``stamp_ns`` on are posed with ``posing``. When its
+        time offset is another than the last posing's, the keyframes before are read again at it
+        and published: returns ``(re-read, keyframes before)``, else None."""
         kind = messages.RCLPY
         self._transform_pub.publish(transform_msg(posing, stamp_ns, camera_frame, kind=kind))
         self._time_pub.publish(time_reference_msg(posing, stamp_ns, self._source, kind=kind))
         self.published += 1
+        before, self._offset = self._offset, posing.offset
+        if before is None or before == posing.offset:
+            return None
+        stamps = [s for s in self._keyframes if s < stamp_ns]
+        poses = reread([messages.ns_to_sec(s) for s in stamps], before, posing.offset)
+        found = [(s, T) for s, T in zip(stamps, poses, strict=True) if T is not None]
+        if found:
+            self._reposed_pub.publish(reposed_msg(stamp_ns, world_frame, found, kind=kind))
+            self.reposed += len(found)
+        return len(found), len(stamps)
+
+
+def reposed_msg(stamp_ns: int, world_frame: str, poses: list[tuple[int, np.ndarray]], *, kind: Any) -> Any:
+    """The ``reposed_keyframes`` message: keyframes ``(stamp_ns, T_wc)`` posed before the posing
+    that begins at ``stamp_ns``, read again in it."""
+    k = messages.as_kind(kind)
+    return k.new(
+        'nav_msgs/msg/Path',
+        header=messages.header_msg(int(stamp_ns), world_frame, kind=k),
+        poses=[
+            messages.pose_stamped_msg(T, messages.header_msg(int(s), world_frame, kind=k), kind=k)
+            for s, T in poses
+        ],
+    )
 
 
 @dataclass
@@ -129,6 +191,16 @@ class PosingLog:
         stamp = messages.stamp_to_ns(msg.header.stamp)
         offset = messages.ns_to_sec(messages.stamp_to_ns(msg.time_ref) - stamp)
         _add(self.offsets, stamp, offset)
+
+    def offset_from(self, stamp_ns: int) -> float | None:
+        """The time offset of the posing said to begin at ``stamp_ns`` exactly (None: not heard)."""
+        return next((offset for begins, offset in self.offsets if begins == stamp_ns), None)
+
+    def retime(self, first_ns: int, until_ns: int, offset: float) -> None:
+        """The images from ``first_ns`` to before ``until_ns`` were posed again at ``offset``
+        (multi_view_node re-read them at a corrected time offset)."""
+        before = [e for e in self.offsets if e[0] < first_ns]
+        self.offsets = [*before, (first_ns, offset), *(e for e in self.offsets if e[0] >= until_ns)]
 
     def at(self, stamp_s: float) -> Posing | None:
         """The posing the image stamped ``stamp_s`` was posed with."""

@@ -1,0 +1,210 @@
+"""map_node's side of multi_view_node's posing (nodes/posing.py): how each keyframe was posed,
+and the keyframes it moves when multi_view_node's checks change that posing while it runs.
+
+* **A mount turn** (``camera_from_pose_frame`` changed): the turn held for the whole run,
+  also before the check found it, so every keyframe posed in the old transform (kept, waiting
+  in the consistency window, the pose-jump test's last pose, or still in flight) is re-posed
+  in the new one, ``T_wc @ old^-1 @ new``, and the map rebuilt from the kept ones.
+* **A time offset correction** (``pose_time`` changed): the keyframes posed before it were
+  read at the old offset. Only multi_view_node still has the pose source's poses around them:
+  it reads them again at the new offset and publishes them (``reposed_keyframes``). The map
+  node moves those keyframes there, in the same places, and rebuilds. Their depth stays as
+  the old poses made it.
+
+Without this, the map kept the first stretch of a run at the poses of a wrong time offset
+or mount (the checks find them only after seconds of travel) and smeared it under the rest.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..data import messages
+from ..geometry import rotation_angle
+from ..pose_corrections import Posing
+from .corrected_path import path_from_message
+from .posing import PosingLog
+
+if TYPE_CHECKING:
+    from .map_corrections import MapCorrector
+    from .map_node import MapNode
+
+#: Re-read poses kept for keyframes still in flight (a few per correction; bounded against a
+#: keyframe that never comes).
+IN_FLIGHT = 256
+
+
+class MapPosing:
+    """The posings heard (:class:`PosingLog`) and what a change of them moves in a :class:`MapNode`."""
+
+    def __init__(self, node: MapNode, corrector: MapCorrector) -> None:
+        self.node = node
+        self.corrector = corrector
+        self.log = PosingLog()
+        #: Poses re-read at a corrected time offset for keyframes not yet integrated, by stamp (s),
+        #: in the newest transform.
+        self._in_flight: dict[float, np.ndarray] = {}
+        #: A ``reposed_keyframes`` message whose posing's ``pose_time`` has not come yet.
+        self._waiting: tuple[int, np.ndarray, np.ndarray] | None = None
+        self.reposed = 0
+
+    # --- called holding node._lock ---------------------------------------------------------------------
+
+    def arriving_pose(self, stamp: float, T_wc: np.ndarray) -> np.ndarray:
+        """The pose a keyframe is integrated at: re-read at a corrected time offset while it was
+        in flight, else its own, re-posed in the newest transform when it was posed before a turn."""
+        reread = self._in_flight.pop(stamp, None)
+        return reread if reread is not None else self.log.in_latest(stamp, T_wc)
+
+    # --- the posing topics ----------------------------------------------------------------------------
+
+    def on_transform(self, msg: Any) -> None:
+        """``camera_from_pose_frame``: a turn (another transform than the last) re-poses what
+        came before it (:meth:`_turn`) and rebuilds the map."""
+        turned: list[tuple[int, float]] = []
+
+        def take(message: Any) -> None:  # holding node._lock
+            turn = self.log.on_transform(message)
+            if turn is not None:
+                turned.append((self._turn(turn), float(np.degrees(rotation_angle(turn[:3, :3])))))
+
+        self._take(msg, take)
+        if not turned:
+            return
+        kept, angle = turned[0]
+        logger = self.node.get_logger()
+        if not kept:
+            logger.info(
+                f'multi_view_node turned the camera {angle:.2f} deg (mount check): the keyframes from now on '
+                'are mapped in it, the map so far stays as it was (no keyframes kept to re-pose)'
+            )
+            return
+        logger.info(
+            f'multi_view_node turned the camera {angle:.2f} deg (mount check): {kept} kept keyframes '
+            're-posed in it, rebuilding the map'
+        )
+        self.corrector.start_rebuild()
+
+    def _turn(self, turn: np.ndarray) -> int:
+        """Every keyframe kept, waiting in the consistency window, last seen or re-read in flight,
+        posed in the transform before the newest, now in the newest: ``T_wc @ turn``. Returns how
+        many kept keyframes moved (holding node._lock)."""
+        node = self.node
+        after = self.log.latest
+        moved = 0
+        for e in self.corrector.store.entries:
+            if e.posing is not None:
+                e.T_wc = e.T_wc @ turn
+                e.posing = Posing(after, e.posing.offset)
+                moved += 1
+        node.map.move_window(lambda key, T: T @ turn)
+        if node._last_pose is not None:
+            node._last_pose = (node._last_pose[0], node._last_pose[1] @ turn)
+        self._in_flight = {stamp: T @ turn for stamp, T in self._in_flight.items()}
+        return moved
+
+    def on_time(self, msg: Any) -> None:
+        """``pose_time``: the pose source's time images are posed at from the stamp on."""
+        moved: list[tuple[int, int]] = []
+
+        def take(message: Any) -> None:  # holding node._lock
+            self.log.on_time(message)
+            moved.extend(self._take_reposed())
+
+        self._take(msg, take)
+        self._after_reposed(moved)
+
+    def on_reposed(self, msg: Any) -> None:
+        """``reposed_keyframes``: the keyframes posed before a time offset correction, read again
+        at the corrected offset. Taken once the posing it belongs to is heard (its ``pose_time``
+        may come after it)."""
+        node = self.node
+        node.stats.received('reposed_keyframes')
+        stamps, poses, bad = path_from_message(msg, np.eye(4))
+        if bad:
+            node.stats.dropped('bad_pose', f'reposed keyframes: {bad} of {len(msg.poses)} poses unusable')
+        frame = msg.header.frame_id
+        with node._lock:
+            world = node._world_frame
+            if frame and world and frame != world:
+                node.stats.dropped('frame_mismatch', f'reposed keyframes in {frame!r}, map in {world!r}')
+                return
+            if not len(stamps):
+                return
+            self._waiting = (messages.stamp_to_ns(msg.header.stamp), stamps, poses)
+            moved = self._take_reposed()
+        self._after_reposed(moved)
+
+    def _take_reposed(self) -> list[tuple[int, int]]:
+        """Move the keyframes of the waiting ``reposed_keyframes`` once its posing's offset is
+        known: ``[(kept keyframes moved enough to rebuild, keyframes moved)]`` or ``[]``
+        (holding node._lock)."""
+        if self._waiting is None:
+            return []
+        begins_ns, stamps, poses = self._waiting
+        offset = self.log.offset_from(begins_ns)
+        if offset is None:
+            return []
+        self._waiting = None
+        begins = messages.ns_to_sec(begins_ns)
+        # In the newest transform, as every keyframe here (a turn heard since is applied).
+        reread = {float(s): self.log.in_latest(begins, T) for s, T in zip(stamps, poses, strict=True)}
+        self.log.retime(messages.sec_to_ns(float(stamps.min())), begins_ns, offset)
+        return [self._move(reread)]
+
+    def _move(self, reread: dict[float, np.ndarray]) -> tuple[int, int]:
+        """Give the keyframes their re-read poses: kept, in the window, last seen; the rest are
+        still in flight. Returns ``(kept keyframes moved enough to rebuild, keyframes moved)``."""
+        node, corrector = self.node, self.corrector
+        rebuild = moved = 0
+        for e in corrector.store.entries:
+            T = reread.pop(e.stamp, None)
+            if T is None:
+                continue
+            metres = float(np.linalg.norm(T[:3, 3] - e.T_wc[:3, 3]))
+            degrees = float(np.degrees(rotation_angle(e.T_wc[:3, :3].T @ T[:3, :3])))
+            rebuild += bool(corrector.limits.counts(metres, degrees))
+            e.T_wc, e.posing = T, self.log.current(e.stamp)
+            moved += 1
+        window = {float(key) for key, _ in node.map.window_keyframes()}
+        node.map.move_window(lambda key, T: reread.get(float(key), T))
+        if node._last_pose is not None and node._last_pose[0] in reread:
+            node._last_pose = (node._last_pose[0], reread[node._last_pose[0]])
+        moved += len(window & reread.keys())
+        for stamp in window:
+            reread.pop(stamp, None)
+        self._in_flight.update(reread)
+        for stamp in list(self._in_flight)[:-IN_FLIGHT]:
+            del self._in_flight[stamp]
+        self.reposed += moved + len(reread)
+        return rebuild, moved
+
+    def _after_reposed(self, moved: list[tuple[int, int]]) -> None:
+        if not moved:
+            return
+        rebuild, count = moved[0]
+        node = self.node
+        node.stats.published('reposings')
+        if not rebuild:
+            node.get_logger().info(
+                f'multi_view_node corrected its pose time offset: {count} keyframes here re-posed at it, '
+                'none kept moved enough to rebuild the map'
+            )
+            return
+        node.get_logger().info(
+            f'multi_view_node corrected its pose time offset: {count} keyframes re-posed at it '
+            f'({rebuild} kept ones moved by {self.corrector.limits.min_m:g} m or '
+            f'{self.corrector.limits.min_deg:g} deg or more), rebuilding the map'
+        )
+        self.corrector.start_rebuild()
+
+    def _take(self, msg: Any, take: Any) -> None:
+        node = self.node
+        node.stats.received('posing')
+        try:
+            with node._lock:
+                take(msg)
+        except ValueError as exc:  # a transform that is not rigid
+            node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
