@@ -215,7 +215,7 @@ def test_a_map_file_keeps_the_map_across_a_restart(room, tmp_path):
         # The file carried the keyframes the map kept: a rebuild at corrected poses integrates
         # them (at half resolution, so a few blocks fewer), nothing is fixed.
         assert len(node.corrector.store.entries) == 4 and node.corrector.base is None
-        node.corrector._start_rebuild()
+        node.corrector.start_rebuild()
         assert ros.wait_for(lambda: node.corrector.rebuilds == 1 and not node.corrector.busy(), 30.0)
         assert 0.8 * blocks < node.map.n_blocks <= blocks
     dist = room_surface_distance(scene, read_ply(tmp_path / 'b.ply').vertices.astype(np.float64))
