@@ -368,3 +368,41 @@ def test_a_time_offset_correction_re_poses_the_keyframes_mapped_before_it(room, 
         np.median(dist),
         np.percentile(dist, 90),
     )
+
+
+def test_a_time_offset_correction_with_no_keyframes_kept_moves_the_rest_and_counts_what_stays(room, tmp_path):
+    """reintegration_max_mb 0 keeps no keyframe to rebuild from: the keyframes integrated before
+    the correction stay where they were mapped, counted and said; those still in the consistency
+    window and in flight move."""
+    _, seq = room
+    corrected_from = T0 + 4 * STEP + STEP // 2
+    with RosHarness() as ros:
+        said_time = ros.publisher(TimeReference, '/' + TOPIC_POSING_TIME, posing_qos())
+        reposed = ros.publisher(PathMsg, '/' + TOPIC_REPOSED_KEYFRAMES, posing_qos())
+        said_time.publish(time_reference_msg(Posing(np.eye(4), 0.05), T0, 'test', kind=K))
+        node = map_node(ros, points_rate=0.0, reintegration_max_mb=0.0, **{'map.engine': 'torch'})
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing', 0) == 1, 10.0)
+        inputs = MapInputs(ros)
+        for k in range(4):
+            pose = m.pose_stamped_msg(
+                seq.frames[2 * k + 1].pose, m.header_msg(T0 + k * STEP, 'world', kind=K), kind=K
+            )
+            inputs.keyframe(seq, 2 * k, T0 + k * STEP, pose=pose)
+        assert ros.wait_for(
+            lambda: node.stats.snapshot().received.get('depth', 0) == 4 and node.worker.idle(), 30.0
+        )
+        waiting = len(node.map.waiting_keys())
+        poses = [(T0 + k * STEP, seq.frames[2 * k].pose) for k in range(5)]  # 4: not come yet
+        reposed.publish(reposed_msg(corrected_from, 'world', poses, kind=K))
+        said_time.publish(time_reference_msg(Posing(np.eye(4), 0.0), corrected_from, 'test', kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().published.get('reposings', 0) == 1, 10.0)
+        moved = {float(key): T for key, T in node.map.window_keyframes() if key in node.map.waiting_keys()}
+        extra = node.diagnostic_extra()
+    integrated = 4 - waiting
+    assert integrated >= 1 and node.corrector.rebuilds == 0
+    assert extra['keyframes integrated and not kept at a time offset correction'] == integrated
+    assert extra['keyframes re-read at a corrected time offset'] == waiting + 1  # + the one in flight
+    assert len(moved) == waiting >= 1
+    for stamp, T in moved.items():
+        k = round((stamp - T0 / 1e9) / (STEP / 1e9))
+        np.testing.assert_allclose(T, seq.frames[2 * k].pose, atol=1e-6)

@@ -187,6 +187,10 @@ class ConsistentMap:
         """``(key, T_wc)`` of the keyframes in the test's window (waiting, or checked against)."""
         return [(k.key, k.T_wc) for k in self._window]
 
+    def waiting_keys(self) -> list[object]:
+        """Keys of the window's keyframes not yet integrated (moving them moves where they go)."""
+        return [k.key for k in self._window if not k.integrated]
+
     def move_window(self, pose_of: Callable[[object, np.ndarray], np.ndarray]) -> None:
         """Give every keyframe of the window the pose ``pose_of(key, T_wc)`` (a corrected
         trajectory moved it: the waiting ones are then checked and integrated there, against

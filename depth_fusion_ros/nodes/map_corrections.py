@@ -244,4 +244,6 @@ class MapCorrector:
             'kept keyframes MiB': round(self.store.memory_bytes / 2**20, 2),
             'keyframes thinned out of the store': self.store.thinned,
             'rebuilds at corrected poses': self.rebuilds,
+            'keyframes re-read at a corrected time offset': self.posing.reposed,
+            'keyframes integrated and not kept at a time offset correction': self.posing.not_reposed,
         }

@@ -48,7 +48,10 @@ class MapPosing:
         self._in_flight: dict[float, np.ndarray] = {}
         #: A ``reposed_keyframes`` message whose posing's ``pose_time`` has not come yet.
         self._waiting: tuple[int, np.ndarray, np.ndarray] | None = None
+        #: Keyframes re-read at a corrected time offset: moved (or to be, in flight), and those
+        #: integrated before and not kept, which stay where they were mapped.
         self.reposed = 0
+        self.not_reposed = 0
 
     # --- called holding node._lock ---------------------------------------------------------------------
 
@@ -107,7 +110,7 @@ class MapPosing:
 
     def on_time(self, msg: Any) -> None:
         """``pose_time``: the pose source's time images are posed at from the stamp on."""
-        moved: list[tuple[int, int]] = []
+        moved: list[tuple[int, int, int]] = []
 
         def take(message: Any) -> None:  # holding node._lock
             self.log.on_time(message)
@@ -137,10 +140,9 @@ class MapPosing:
             moved = self._take_reposed()
         self._after_reposed(moved)
 
-    def _take_reposed(self) -> list[tuple[int, int]]:
+    def _take_reposed(self) -> list[tuple[int, int, int]]:
         """Move the keyframes of the waiting ``reposed_keyframes`` once its posing's offset is
-        known: ``[(kept keyframes moved enough to rebuild, keyframes moved)]`` or ``[]``
-        (holding node._lock)."""
+        known: ``[what _move returns]`` or ``[]`` (holding node._lock)."""
         if self._waiting is None:
             return []
         begins_ns, stamps, poses = self._waiting
@@ -154,9 +156,11 @@ class MapPosing:
         self.log.retime(messages.sec_to_ns(float(stamps.min())), begins_ns, offset)
         return [self._move(reread)]
 
-    def _move(self, reread: dict[float, np.ndarray]) -> tuple[int, int]:
-        """Give the keyframes their re-read poses: kept, in the window, last seen; the rest are
-        still in flight. Returns ``(kept keyframes moved enough to rebuild, keyframes moved)``."""
+    def _move(self, reread: dict[float, np.ndarray]) -> tuple[int, int, int]:
+        """Give the keyframes their re-read poses: kept, in the window, last seen; those after the
+        last seen are still in flight; those before it were integrated and not kept (nothing to
+        move them with). Returns ``(kept keyframes moved enough to rebuild, keyframes moved,
+        integrated ones not kept)``."""
         node, corrector = self.node, self.corrector
         rebuild = moved = 0
         for e in corrector.store.entries:
@@ -168,35 +172,39 @@ class MapPosing:
             rebuild += bool(corrector.limits.counts(metres, degrees))
             e.T_wc, e.posing = T, self.log.current(e.stamp)
             moved += 1
-        window = {float(key) for key, _ in node.map.window_keyframes()}
         node.map.move_window(lambda key, T: reread.get(float(key), T))
         if node._last_pose is not None and node._last_pose[0] in reread:
             node._last_pose = (node._last_pose[0], reread[node._last_pose[0]])
-        moved += len(window & reread.keys())
-        for stamp in window:
-            reread.pop(stamp, None)
-        self._in_flight.update(reread)
+        for stamp in node.map.waiting_keys():  # the window's integrated ones are in the map already
+            moved += reread.pop(float(stamp), None) is not None
+        last = node._last_pose[0] if node._last_pose is not None else -np.inf
+        lost = sum(stamp <= last for stamp in reread)
+        self._in_flight.update((stamp, T) for stamp, T in reread.items() if stamp > last)
         for stamp in list(self._in_flight)[:-IN_FLIGHT]:
             del self._in_flight[stamp]
-        self.reposed += moved + len(reread)
-        return rebuild, moved
+        self.reposed += moved + len(reread) - lost
+        self.not_reposed += lost
+        return rebuild, moved, lost
 
-    def _after_reposed(self, moved: list[tuple[int, int]]) -> None:
+    def _after_reposed(self, moved: list[tuple[int, int, int]]) -> None:
         if not moved:
             return
-        rebuild, count = moved[0]
+        rebuild, count, lost = moved[0]
         node = self.node
         node.stats.published('reposings')
-        if not rebuild:
-            node.get_logger().info(
-                f'multi_view_node corrected its pose time offset: {count} keyframes here re-posed at it, '
-                'none kept moved enough to rebuild the map'
+        limits = self.corrector.limits
+        said = f'multi_view_node corrected its pose time offset: {count} keyframes here re-posed at it'
+        if lost:
+            said += (
+                f'; {lost} integrated before and not kept (reintegration_max_mb, thinned) stay at the old '
+                'offset in the map'
             )
+        if not rebuild:
+            node.get_logger().info(f'{said}; none kept moved enough to rebuild the map')
             return
         node.get_logger().info(
-            f'multi_view_node corrected its pose time offset: {count} keyframes re-posed at it '
-            f'({rebuild} kept ones moved by {self.corrector.limits.min_m:g} m or '
-            f'{self.corrector.limits.min_deg:g} deg or more), rebuilding the map'
+            f'{said} ({rebuild} kept ones moved by {limits.min_m:g} m or {limits.min_deg:g} deg or more), '
+            'rebuilding the map'
         )
         self.corrector.start_rebuild()
 
