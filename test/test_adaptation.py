@@ -340,3 +340,31 @@ def test_keyframes_skipped_while_behind_are_not_counted_as_trained(small_sequenc
     report = adapter.observe(_gt_sample(small_sequence, 0), behind=True)
     assert report.status == 'skipped' and adapter.counters.skipped == 1
     assert adapter.counters.behind == 0
+
+
+def test_a_time_offset_correction_re_reads_the_neighbours_and_the_waiting_poses(small_sequence):
+    """Keyframes posed at a wrong time offset, then read again at the corrected one by
+    multi_view_node: the neighbour kept and the pose waiting take the new poses (the
+    keyframes the assembler has not heard of are left to the caller), so the pairs of the
+    keyframes to come compare poses read at one offset."""
+    seq = small_sequence
+    asm = KeyframeAssembler(select_fraction=1.0, neighbours=1, min_baseline=0.0)
+    depth = seq.gt_depth_working(0)
+    score = np.ones_like(depth)
+    late = np.eye(4)
+    late[:3, 3] = (0.03, 0.0, 0.0)  # where the camera was 30 ms later
+    for i, stamp in enumerate((10, 20)):
+        asm.add(stamp, 'pose', seq.frames[i].pose @ late)
+        asm.add(stamp, 'rgb', seq.frames[i].rgb, seq.camera)
+    asm.add(10, 'depth', depth)
+    assert len(asm.add(10, 'score', score)) == 1  # complete: a neighbour; 20 waits
+    truth = {10: seq.frames[0].pose, 20: seq.frames[1].pose, 25: seq.frames[1].pose}
+    assert asm.reread(truth) == {10, 20}  # 25: not heard of
+    asm.add(20, 'depth', depth)
+    out = asm.add(20, 'score', score)
+    out += asm.add(30, 'pose', seq.frames[2].pose) + asm.add(30, 'rgb', seq.frames[2].rgb, seq.camera)
+    out += asm.add(30, 'depth', depth) + asm.add(30, 'score', score)
+    assert [s.key for s in out] == [20, 30]
+    np.testing.assert_allclose(out[0].pose, seq.frames[1].pose, atol=1e-12)
+    np.testing.assert_allclose(out[0].neighbours[0].pose, seq.frames[0].pose, atol=1e-12)
+    np.testing.assert_allclose(out[1].neighbours[0].pose, seq.frames[1].pose, atol=1e-12)

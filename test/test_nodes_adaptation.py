@@ -11,13 +11,20 @@ import rclpy
 import torch
 from conftest import save_torchscript_depth_model
 from geometry_msgs.msg import PoseStamped, TransformStamped
+from nav_msgs.msg import Path as PathMsg
 from rclpy.parameter import Parameter
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 
 from depth_fusion_ros.data import messages as m
-from depth_fusion_ros.nodes.posing import TOPIC_POSING_TRANSFORM, transform_msg
+from depth_fusion_ros.nodes.posing import (
+    TOPIC_POSING_TRANSFORM,
+    TOPIC_REPOSED_KEYFRAMES,
+    posing_qos,
+    reposed_msg,
+    transform_msg,
+)
 from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.single_view_node import SingleViewNode
 from depth_fusion_ros.nodes.testing import RosHarness
@@ -210,3 +217,35 @@ def test_a_mount_turn_multi_view_node_takes_re_poses_the_keyframe_poses_the_adap
         waiting = {s: e.values['pose'] for s, e in node.adaptation.assembler._pending.items()}
     np.testing.assert_allclose(waiting[before[0]], room.frames[0].pose @ turn, atol=1e-12)
     np.testing.assert_allclose(waiting[before[1]], room.frames[1].pose @ turn, atol=1e-12)
+
+
+def test_the_keyframes_multi_view_node_reads_again_at_a_corrected_offset_move_in_the_adaptation(
+    tiny_model, room
+):
+    """multi_view_node corrected its pose time offset and read the keyframes before it again
+    (depth_fusion/posing/reposed_keyframes): the adaptation's waiting pose takes the new one,
+    and so does a keyframe whose old pose comes after the message (it was in flight)."""
+    late = np.eye(4)
+    late[:3, 3] = (0.03, 0.0, 0.0)
+    stamps = [1_000_000_000, 1_100_000_000]
+    with RosHarness() as ros:
+        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model)))
+        assert node.adaptation is not None
+        reposed = ros.publisher(PathMsg, '/' + TOPIC_REPOSED_KEYFRAMES, posing_qos())
+        poses = ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose')
+        assert ros.wait_for_subscribers([reposed, poses])
+
+        def pose(i: int) -> None:  # posed at the old offset
+            header = m.header_msg(stamps[i], 'world', kind=K)
+            poses.publish(m.pose_stamped_msg(room.frames[i].pose @ late, header, kind=K))
+
+        pose(0)
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('keyframe_pose') == 1, 10.0)
+        truth = [(stamps[i], room.frames[i].pose) for i in range(2)]
+        reposed.publish(reposed_msg(1_150_000_000, 'world', truth, kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('reposed_keyframes') == 1, 10.0)
+        pose(1)
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('keyframe_pose') == 2, 10.0)
+        waiting = {s: e.values['pose'] for s, e in node.adaptation.assembler._pending.items()}
+    np.testing.assert_allclose(waiting[stamps[0]], room.frames[0].pose, atol=1e-12)
+    np.testing.assert_allclose(waiting[stamps[1]], room.frames[1].pose, atol=1e-12)

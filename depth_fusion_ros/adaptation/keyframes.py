@@ -49,7 +49,8 @@ class KeyframeAssembler:
         self.min_baseline = float(min_baseline)
         self.max_pending = int(max_pending)
         self._pending: OrderedDict[int, _Parts] = OrderedDict()
-        self._recent: deque[Neighbour] = deque(maxlen=max(1, window))
+        #: The recent posed keyframes, by stamp (ns): the neighbours of the next ones.
+        self._recent: deque[tuple[int, Neighbour]] = deque(maxlen=max(1, window))
         #: Once any pose has arrived, a keyframe waits for its own (until it is evicted).
         self.poses_seen = False
         self.evicted_incomplete = 0
@@ -85,7 +86,7 @@ class KeyframeAssembler:
         many poses moved. (The samples already made keep their own, consistent among
         themselves.)"""
         moved = 0
-        for n in self._recent:
+        for _, n in self._recent:
             n.pose = n.pose @ turn
             moved += 1
         for entry in self._pending.values():
@@ -93,6 +94,22 @@ class KeyframeAssembler:
                 entry.values['pose'] = entry.values['pose'] @ turn
                 moved += 1
         return moved
+
+    def reread(self, poses: dict[int, np.ndarray]) -> set[int]:
+        """multi_view_node read these keyframes' poses again (by stamp, ns: a corrected time
+        offset, nodes/posing.py): the neighbours kept and the poses waiting take them, so the
+        photometric pairs of the keyframes to come compare poses read at one offset. Returns
+        the stamps it held (the others have not come yet, or are gone)."""
+        held = set()
+        for stamp, n in self._recent:
+            if stamp in poses:
+                n.pose = poses[stamp]
+                held.add(stamp)
+        for stamp, entry in self._pending.items():
+            if stamp in poses and 'pose' in entry.values:
+                entry.values['pose'] = poses[stamp]
+                held.add(stamp)
+        return held
 
     def _ready(self, entry: _Parts, waiting_for_pose: bool) -> bool:
         v = entry.values
@@ -102,7 +119,7 @@ class KeyframeAssembler:
 
     def _neighbours(self, pose: np.ndarray) -> list[Neighbour]:
         chosen = []
-        for n in reversed(self._recent):
+        for _, n in reversed(self._recent):
             if np.linalg.norm(n.pose[:3, 3] - pose[:3, 3]) >= self.min_baseline:
                 chosen.append(n)
             if len(chosen) >= self.n_neighbours:
@@ -127,5 +144,5 @@ class KeyframeAssembler:
             neighbours=neighbours,
         )
         if pose is not None:
-            self._recent.append(Neighbour(v['rgb'], pose))
+            self._recent.append((stamp_ns, Neighbour(v['rgb'], pose)))
         return sample

@@ -25,15 +25,11 @@ from ..data import messages
 from ..geometry import rotation_angle
 from ..pose_corrections import Posing
 from .corrected_path import path_from_message
-from .posing import PosingLog
+from .posing import IN_FLIGHT, PosingLog
 
 if TYPE_CHECKING:
     from .map_corrections import MapCorrector
     from .map_node import MapNode
-
-#: Re-read poses kept for keyframes still in flight (a few per correction; bounded against a
-#: keyframe that never comes).
-IN_FLIGHT = 256
 
 
 class MapPosing:

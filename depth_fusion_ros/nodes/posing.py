@@ -58,6 +58,9 @@ POSE_FRAME = 'pose_frame'
 #: Posings a log keeps (a handful change per run; the oldest go first), and the posing messages
 #: the topics keep for a node that joins later (:func:`posing_qos`).
 LOG_SIZE = 32
+#: Poses re-read at a corrected time offset that a node keeps for keyframes still in flight (a
+#: few per correction; bounded against a keyframe that never comes).
+IN_FLIGHT = 256
 
 
 #: ``reread(stamps_s, before, after)``: the camera poses of frames posed at ``stamp + before``,

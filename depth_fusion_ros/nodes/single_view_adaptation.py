@@ -13,7 +13,9 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from geometry_msgs.msg import PoseStamped, TransformStamped
+from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import Image
 
 from ..adaptation.adapter import Adapter, UpdateReport
@@ -24,7 +26,7 @@ from ..adaptation.sample import AdaptSample
 from ..data import messages
 from .image_input import InputError, WorkingImage, depth_from_message, header_stamp_ns, pose_from_message
 from .params import ParamSpec, build_dataclass, dataclass_specs
-from .posing import TOPIC_POSING_TRANSFORM, PosingLog, posing_qos
+from .posing import IN_FLIGHT, TOPIC_POSING_TRANSFORM, TOPIC_REPOSED_KEYFRAMES, PosingLog, posing_qos
 
 TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
@@ -165,6 +167,10 @@ class NodeAdaptation:
         #: neighbours (nodes/posing.py).
         self.posings = PosingLog()
         node.subscribe(TransformStamped, TOPIC_POSING_TRANSFORM, self._on_posing, posing_qos())
+        node.subscribe(PathMsg, TOPIC_REPOSED_KEYFRAMES, self._on_reposed, posing_qos())
+        #: Poses multi_view_node read again at a corrected time offset for keyframes whose own
+        #: pose has not come yet (in flight), by stamp (ns), in the newest transform.
+        self._reread: dict[int, np.ndarray] = {}
         from std_srvs.srv import Trigger
 
         self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
@@ -201,8 +207,11 @@ class NodeAdaptation:
             self.node.stats.dropped(exc.reason, str(exc))
             return
         stamp_ns = header_stamp_ns(msg)
-        with self._lock:  # posed before a turn heard already (in flight): in the turned camera
-            pose = self.posings.in_latest(messages.ns_to_sec(stamp_ns), pose)
+        with self._lock:  # posed before a posing change heard already (in flight): as it says
+            reread = self._reread.pop(stamp_ns, None)
+            pose = (
+                reread if reread is not None else self.posings.in_latest(messages.ns_to_sec(stamp_ns), pose)
+            )
         self._add(stamp_ns, 'pose', pose)
 
     def _on_posing(self, msg: Any) -> None:
@@ -215,11 +224,35 @@ class NodeAdaptation:
                 if turn is None:
                     return
                 moved = self.assembler.repose(turn)
+                self._reread = {stamp: T @ turn for stamp, T in self._reread.items()}
         except ValueError as exc:  # a transform that is not rigid
             self.node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
             return
         self.node.get_logger().info(
             f'adaptation: multi_view_node turned the camera (mount check): {moved} kept poses re-posed'
+        )
+
+    def _on_reposed(self, msg: Any) -> None:
+        """multi_view_node's ``reposed_keyframes``: the keyframes posed before its time offset
+        correction, read again at the corrected offset; the neighbours and waiting poses take
+        them, and keyframes whose pose has not come yet take them when it does."""
+        self.node.stats.received('reposed_keyframes')
+        begins = messages.ns_to_sec(messages.stamp_to_ns(msg.header.stamp))
+        poses: dict[int, np.ndarray] = {}
+        for stamped in msg.poses:
+            try:
+                poses[header_stamp_ns(stamped)] = pose_from_message(stamped)
+            except InputError as exc:
+                self.node.stats.dropped(exc.reason, f'reposed keyframes: {exc}')
+        with self._lock:  # in the newest transform, as every pose here
+            poses = {stamp: self.posings.in_latest(begins, T) for stamp, T in poses.items()}
+            held = self.assembler.reread(poses)
+            self._reread.update((stamp, T) for stamp, T in poses.items() if stamp not in held)
+            for stamp in list(self._reread)[:-IN_FLIGHT]:
+                del self._reread[stamp]
+        self.node.get_logger().info(
+            f'adaptation: multi_view_node corrected its pose time offset: {len(held)} kept poses re-read '
+            'at it'
         )
 
     def _add(self, stamp_ns: int, part: str, value: Any, camera: Any = None) -> None:
