@@ -25,7 +25,6 @@ from depth_fusion_ros.nodes.posing import (
     reposed_msg,
     transform_msg,
 )
-from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.single_view_node import SingleViewNode
 from depth_fusion_ros.nodes.testing import RosHarness
 from depth_fusion_ros.pose_corrections import Posing
@@ -187,6 +186,17 @@ def test_exported_models_do_not_adapt_by_default_and_refuse_adapt_true(tmp_path,
     assert adaptation_wanted({'adapt': 'auto', 'model': 'default'}) is True
 
 
+def _adaptation_hearing(ros: RosHarness, tiny_model, msg_type, topic: str):
+    """An adapting single_view_node, a publisher of the posing topic ``topic`` and one of the
+    keyframe poses, matched."""
+    node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model)))
+    assert node.adaptation is not None
+    said = ros.publisher(msg_type, '/' + topic, posing_qos())
+    poses = ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose')
+    assert ros.wait_for_subscribers([said, poses])
+    return node, said, poses
+
+
 def test_a_mount_turn_multi_view_node_takes_re_poses_the_keyframe_poses_the_adaptation_holds(
     tiny_model, room
 ):
@@ -196,11 +206,7 @@ def test_a_mount_turn_multi_view_node_takes_re_poses_the_keyframe_poses_the_adap
     turn = np.eye(4)
     turn[:3, :3] = Rotation.from_euler('x', 2.0, degrees=True).as_matrix()
     with RosHarness() as ros:
-        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model)))
-        assert node.adaptation is not None
-        said = ros.publisher(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, latched_qos())
-        poses = ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose')
-        assert ros.wait_for_subscribers([said, poses])
+        node, said, poses = _adaptation_hearing(ros, tiny_model, TransformStamped, TOPIC_POSING_TRANSFORM)
         said.publish(transform_msg(Posing(np.eye(4)), 1_000_000_000, 'camera', kind=K))
         assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing') == 1, 10.0)
         before = [1_000_000_000, 1_100_000_000]  # posed without the turn
@@ -229,11 +235,7 @@ def test_the_keyframes_multi_view_node_reads_again_at_a_corrected_offset_move_in
     late[:3, 3] = (0.03, 0.0, 0.0)
     stamps = [1_000_000_000, 1_100_000_000]
     with RosHarness() as ros:
-        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model)))
-        assert node.adaptation is not None
-        reposed = ros.publisher(PathMsg, '/' + TOPIC_REPOSED_KEYFRAMES, posing_qos())
-        poses = ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose')
-        assert ros.wait_for_subscribers([reposed, poses])
+        node, reposed, poses = _adaptation_hearing(ros, tiny_model, PathMsg, TOPIC_REPOSED_KEYFRAMES)
 
         def pose(i: int) -> None:  # posed at the old offset
             header = m.header_msg(stamps[i], 'world', kind=K)
