@@ -373,7 +373,8 @@ def test_a_time_offset_correction_re_poses_the_keyframes_mapped_before_it(room, 
 def test_a_time_offset_correction_with_no_keyframes_kept_moves_the_rest_and_counts_what_stays(room, tmp_path):
     """reintegration_max_mb 0 keeps no keyframe to rebuild from: the keyframes integrated before
     the correction stay where they were mapped, counted and said; those still in the consistency
-    window and in flight move."""
+    window and in flight move. Re-read poses for a posing no pose_time said are dropped, counted,
+    when the next ones come."""
     _, seq = room
     corrected_from = T0 + 4 * STEP + STEP // 2
     with RosHarness() as ros:
@@ -393,11 +394,14 @@ def test_a_time_offset_correction_with_no_keyframes_kept_moves_the_rest_and_coun
         )
         waiting = len(node.map.waiting_keys())
         poses = [(T0 + k * STEP, seq.frames[2 * k].pose) for k in range(5)]  # 4: not come yet
+        reposed.publish(reposed_msg(T0 + 99 * STEP, 'world', poses, kind=K))  # no pose_time says it
         reposed.publish(reposed_msg(corrected_from, 'world', poses, kind=K))
         said_time.publish(time_reference_msg(Posing(np.eye(4), 0.0), corrected_from, 'test', kind=K))
         assert ros.wait_for(lambda: node.stats.snapshot().published.get('reposings', 0) == 1, 10.0)
         moved = {float(key): T for key, T in node.map.window_keyframes() if key in node.map.waiting_keys()}
         extra = node.diagnostic_extra()
+        dropped = node.stats.snapshot().dropped
+    assert dropped == {'reposed_unmatched': 1}, dropped  # replaced by the one its pose_time said
     integrated = 4 - waiting
     assert integrated >= 1 and node.corrector.rebuilds == 0
     assert extra['keyframes integrated and not kept at a time offset correction'] == integrated

@@ -132,6 +132,12 @@ class MapPosing:
                 return
             if not len(stamps):
                 return
+            if self._waiting is not None:  # its posing's pose_time never came: those keyframes stay
+                node.stats.dropped(
+                    'reposed_unmatched',
+                    f'reposed keyframes for the posing from {messages.ns_to_sec(self._waiting[0]):.3f} s '
+                    'dropped: no pose_time said that posing (the newer ones replace them)',
+                )
             self._waiting = (messages.stamp_to_ns(msg.header.stamp), stamps, poses)
             moved = self._take_reposed()
         self._after_reposed(moved)
