@@ -15,7 +15,7 @@ from test_tum import make_tum_folder, write_camera_yaml
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.cli.main import main as cli_main
 from depth_fusion_ros.data import messages as m
-from depth_fusion_ros.data import rosbag_convert
+from depth_fusion_ros.data import tum_to_bag
 from depth_fusion_ros.data.rosbag_convert import BagTopics, TfTree, convert, ros1_to_rosbag2, tum_to_rosbag
 from depth_fusion_ros.data.rosbag_read import (
     bag_topics,
@@ -24,7 +24,7 @@ from depth_fusion_ros.data.rosbag_read import (
     read_depth_images,
     read_poses,
 )
-from depth_fusion_ros.data.tum import associate, load_tum_sequence, read_tum_index
+from depth_fusion_ros.data.tum import associate, load_tum_sequence, read_groundtruth, read_tum_index
 from depth_fusion_ros.data.undistort import CameraCalibration
 from depth_fusion_ros.geometry import make_pose
 
@@ -42,15 +42,37 @@ def _raw_messages(bag: Path) -> list[tuple[str, int, bytes]]:
         return [(c.topic, t, bytes(raw)) for c, t, raw in reader.messages()]
 
 
+def _rows_in_span(stamps_ns: np.ndarray, first_ns: int, last_ns: int) -> np.ndarray:
+    """Which of a pose source's samples a bag must carry: from the last one at or before the
+    first frame - 0.5 s to the first one at or after the last frame + 0.5 s (clipped)."""
+    before = stamps_ns[stamps_ns <= first_ns - 500_000_000]
+    after = stamps_ns[stamps_ns >= last_ns + 500_000_000]
+    lo = before.max() if len(before) else stamps_ns.min()
+    hi = after.min() if len(after) else stamps_ns.max()
+    return (stamps_ns >= lo) & (stamps_ns <= hi)
+
+
+def _check_own_samples(bag: Path, stamps_ns: np.ndarray, poses: np.ndarray) -> None:
+    """The bag's pose topic is exactly these samples: stamps, poses (1e-9), header = bag time."""
+    got_stamps, got_poses = read_poses(bag)
+    assert got_stamps.tolist() == stamps_ns.tolist()
+    np.testing.assert_allclose(got_poses, poses, atol=1e-9)
+    for _, bag_time, msg in iter_messages(bag, [POSE]):
+        assert m.stamp_to_ns(msg.header.stamp) == bag_time and msg.header.frame_id == 'world'
+
+
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
 def test_tum_folder_round_trip(tmp_path, storage):
     src = tmp_path / 'tum'
     make_tum_folder(src, n=5, D=DISTORTION)
     out = tmp_path / f'bag_{storage}'
     result = tum_to_rosbag(src, out, storage=storage, show_progress=False)
-    assert result.frames == 5 and result.messages == {RGB: 5, INFO: 5, DEPTH: 5, POSE: 5}
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(['tum', out.name])  # no partial left
     expected = {f.stamp_ns: f for f in associate(read_tum_index(src)).frames}
+    gt = read_groundtruth(src / 'groundtruth.txt')
+    rows = _rows_in_span(gt.stamps_ns, min(expected), max(expected))
+    assert result.frames == 5 and result.messages == {RGB: 5, INFO: 5, DEPTH: 5, POSE: int(rows.sum())}
+    assert result.pose_source == 'groundtruth.txt, its own samples'
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(['tum', out.name])  # no partial left
 
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import Image
@@ -70,12 +92,12 @@ def test_tum_folder_round_trip(tmp_path, storage):
             depth = m.image_to_numpy(ros)
             np.testing.assert_array_equal(np.isnan(depth), raw_png == 0)
             np.testing.assert_array_equal(depth[raw_png > 0], raw_png[raw_png > 0].astype(np.float32) / 5000)
-    assert all(sorted(stamps) == sorted(expected) for stamps in seen.values())
-
-    stamps, poses = read_poses(out)
-    assert stamps.tolist() == sorted(expected)
-    for stamp, T in zip(stamps.tolist(), poses, strict=True):
-        np.testing.assert_allclose(T, expected[stamp].pose, atol=1e-9)
+    assert all(sorted(seen[topic]) == sorted(expected) for topic in (RGB, DEPTH, INFO))
+    assert sorted(seen[POSE]) == gt.stamps_ns[rows].tolist()  # the 100 Hz rows, at their own stamps
+    _check_own_samples(out, gt.stamps_ns[rows], gt.poses[rows])
+    bag = load_bag_sequence(out, width=32, height=24)  # read at the images, the frames' poses
+    for f in bag.frames:
+        np.testing.assert_allclose(f.pose, expected[round(f.stamp * 1e9)].pose, atol=1e-9)
     for _, _, info in iter_messages(out, [INFO]):
         calib = m.camera_info_to_calibration(info)
         assert calib.D == DISTORTION and calib.camera == read_tum_index(src).calibration.camera
@@ -101,6 +123,32 @@ def test_bag_sequence_equals_folder_sequence(tmp_path):
         read_depth_images(out, '/nope')
 
 
+def test_tum_pose_topic_holds_the_groundtruths_own_rows_around_the_frames(tmp_path):
+    """groundtruth.txt at 100 Hz from 98 s to 103 s, images at 10 Hz from 100 s: the bag carries
+    the motion capture's own rows from 99.5 s to 100.9 s (the frames +- 0.5 s), and read at the
+    images they give the folder's poses."""
+    src = tmp_path / 'tum'
+    make_tum_folder(src, n=5, gt_span=(98.0, 103.0), D=DISTORTION)
+    gt = read_groundtruth(src / 'groundtruth.txt')
+    out = tmp_path / 'bag'
+    result = tum_to_rosbag(src, out, show_progress=False)
+    rows = _rows_in_span(gt.stamps_ns, 100_000_000_000, 100_400_000_000)
+    assert gt.stamps_ns[rows][[0, -1]].tolist() == [99_500_000_000, 100_900_000_000] and rows.sum() == 141
+    assert result.frames == 5 and result.messages[POSE] == 141 and len(gt) == 500
+    _check_own_samples(out, gt.stamps_ns[rows], gt.poses[rows])
+    folder = load_tum_sequence(src, width=32, height=24)
+    bag = load_bag_sequence(out, width=32, height=24)
+    assert bag.stamps.tolist() == folder.stamps.tolist() and bag.dropped == folder.dropped == {}
+    np.testing.assert_allclose(bag.poses, folder.poses, atol=1e-9)
+    np.testing.assert_array_equal(bag.pose_stream[0], gt.stamps_ns[rows] / 1e9)
+    np.testing.assert_allclose(bag.pose_stream[1], gt.poses[rows], atol=1e-9)
+    # The span follows the frames written: two frames, 100.0 and 100.1 s.
+    tum_to_rosbag(src, tmp_path / 'two', max_frames=2, show_progress=False)
+    rows = _rows_in_span(gt.stamps_ns, 100_000_000_000, 100_100_000_000)
+    assert gt.stamps_ns[rows][[0, -1]].tolist() == [99_500_000_000, 100_600_000_000]
+    _check_own_samples(tmp_path / 'two', gt.stamps_ns[rows], gt.poses[rows])
+
+
 def test_existing_output_and_overwrite(tmp_path):
     src = tmp_path / 'tum'
     make_tum_folder(src, n=3)
@@ -122,7 +170,7 @@ def test_interrupted_conversion_leaves_no_bag(tmp_path, monkeypatch):
     src = tmp_path / 'tum'
     make_tum_folder(src, n=6)
     calls = {'n': 0}
-    real = rosbag_convert.read_rgb_file
+    real = tum_to_bag.read_rgb_file
 
     def flaky(path, camera=None):
         calls['n'] += 1
@@ -130,7 +178,7 @@ def test_interrupted_conversion_leaves_no_bag(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(path, camera)
 
-    monkeypatch.setattr(rosbag_convert, 'read_rgb_file', flaky)
+    monkeypatch.setattr(tum_to_bag, 'read_rgb_file', flaky)
     with pytest.raises(KeyboardInterrupt):
         tum_to_rosbag(src, tmp_path / 'bag', show_progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ['tum']
@@ -144,8 +192,12 @@ def test_cli_convert(tmp_path, capsys):
         cli_main(['convert', str(src), str(out), '--storage', 'sqlite3', '--frames', '2', '--no-progress'])
         == 0
     )
-    assert 'wrote' in capsys.readouterr().out
-    assert bag_topics(out)[POSE] == ('geometry_msgs/msg/PoseStamped', 2)
+    printed = capsys.readouterr().out
+    assert 'wrote' in printed and 'poses from groundtruth.txt, its own samples' in printed
+    gt = read_groundtruth(src / 'groundtruth.txt').stamps_ns
+    written = load_bag_sequence(out, width=32, height=24).stamps
+    rows = _rows_in_span(gt, round(written[0] * 1e9), round(written[-1] * 1e9))
+    assert len(written) == 2 and bag_topics(out)[POSE] == ('geometry_msgs/msg/PoseStamped', int(rows.sum()))
     assert cli_main(['convert', str(src), str(out), '--no-progress']) == 1
     assert 'already exists (pass --overwrite' in capsys.readouterr().err
     assert cli_main(['convert', str(src), str(tmp_path / 'x'), '--groundtruth', 'g.txt']) == 1
@@ -185,8 +237,16 @@ def _tf_msg(parent: str, child: str, t_ns: int, T: np.ndarray):
     return k.new('tf2_msgs/msg/TFMessage', transforms=[stamped])
 
 
-def write_ros1_bag(path: Path, n: int = 5, tf: bool = True) -> dict:
-    """A TUM-like ROS 1 bag: bgr8 colour at 10 Hz, 16UC1 depth 5 ms later, tf at 100 Hz."""
+def pose_topic_samples(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A PoseStamped source at 100 Hz on its own stamps (3 ms off the images), from 1 s before the
+    first image to about 1 s after the last one of ``n``."""
+    stamps = 98_953_000_000 + 10_000_000 * np.arange(n * 10 + 200, dtype=np.int64)
+    return stamps, np.stack([_T_world_kinect(t / 1e9) @ T_KINECT_OPTICAL for t in stamps.tolist()])
+
+
+def write_ros1_bag(path: Path, n: int = 5, tf: bool = True, pose_topic: bool = False) -> dict:
+    """A TUM-like ROS 1 bag: bgr8 colour at 10 Hz, 16UC1 depth 5 ms later, tf at 100 Hz; with
+    ``pose_topic`` the optical frame's poses on /camera/pose too (``pose_topic_samples``)."""
     rng = np.random.default_rng(1)
     events: list[tuple[int, str, str, object]] = []
     truth = {}
@@ -212,6 +272,12 @@ def write_ros1_bag(path: Path, n: int = 5, tf: bool = True) -> dict:
             if j % 10 == 0:  # ROS 1 style: a fixed transform republished on /tf
                 msg = _tf_msg('/kinect', '/openni_rgb_optical_frame', t_ns, T_KINECT_OPTICAL)
                 events.append((t_ns, '/tf', 'tf2_msgs/msg/TFMessage', msg))
+    if pose_topic:
+        for t_ns, T in zip(*pose_topic_samples(n), strict=True):
+            hdr = m.header_msg(int(t_ns), '/world', kind=ROS1)
+            events.append(
+                (int(t_ns), POSE, 'geometry_msgs/msg/PoseStamped', m.pose_stamped_msg(T, hdr, kind=ROS1))
+            )
     events.sort(key=lambda e: e[0])
     with Ros1Writer(path) as writer:
         conns = {}
@@ -223,10 +289,15 @@ def write_ros1_bag(path: Path, n: int = 5, tf: bool = True) -> dict:
 
 
 def _check_ros1_output(out: Path, truth: dict, n: int) -> None:
+    """One pose per colour frame (a /tf chain), and the images."""
     stamps, poses = read_poses(out)
     assert stamps.tolist() == sorted(truth)[:n]
     for stamp, T in zip(stamps.tolist(), poses, strict=True):
         np.testing.assert_allclose(T, truth[stamp]['pose'], atol=1e-9)
+    _check_ros1_images(out, truth, n)
+
+
+def _check_ros1_images(out: Path, truth: dict, n: int) -> None:
     depth = read_depth_images(out, DEPTH)  # re-stamped with the colour stamps
     assert sorted(depth) == sorted(truth)[:n]
     for stamp, d in depth.items():
@@ -245,6 +316,7 @@ def test_ros1_bag_with_tf_poses(tmp_path, storage):
     out = tmp_path / 'ros2'
     result = ros1_to_rosbag2(src, out, storage=storage, show_progress=False)
     assert result.frames == 5 and result.pose_source.startswith('/tf (world -> openni_rgb_optical_frame)')
+    assert result.pose_source.endswith('interpolated at the colour stamps')  # a chain: at common stamps
     assert result.messages == {RGB: 5, INFO: 5, DEPTH: 5, POSE: 5}
     _check_ros1_output(out, truth, 5)
     seq = load_bag_sequence(out, width=32, height=24)
@@ -270,9 +342,33 @@ def test_ros1_bag_with_groundtruth_and_camera_yaml(tmp_path):
         src, out, groundtruth=gt, camera_yaml=tmp_path / 'camera.yaml', max_frames=3, show_progress=False
     )
     assert result.frames == 3 and result.pose_source.startswith('groundtruth')
-    _check_ros1_output(out, truth, 3)
+    assert result.pose_source.endswith('its own samples')
+    # The file's rows (all 4: the last is the first at or after the last frame + 0.5 s), not 3.
+    stamps = np.asarray(sorted(truth), dtype=np.int64)
+    _check_own_samples(out, stamps, np.stack([truth[s]['pose'] for s in stamps.tolist()]))
+    _check_ros1_images(out, truth, 3)
     for _, _, info in iter_messages(out, [INFO]):
         assert m.camera_info_to_calibration(info).camera == yaml_cam
+
+
+def test_ros1_bag_with_a_pose_topic_keeps_its_own_samples(tmp_path):
+    """A PoseStamped topic at 100 Hz, 3 ms off the images: the bag carries its samples from the
+    last at or before the first frame - 0.5 s to the first at or after the last frame + 0.5 s."""
+    src = tmp_path / 'tum.bag'
+    truth = write_ros1_bag(src, tf=False, pose_topic=True)
+    out = tmp_path / 'ros2'
+    result = ros1_to_rosbag2(src, out, show_progress=False)
+    assert result.frames == 5 and result.pose_source == 'pose topic, its own samples'
+    stamps, poses = pose_topic_samples(5)
+    rows = _rows_in_span(stamps, min(truth), max(truth))
+    assert stamps[rows][[0, -1]].tolist() == [99_493_000_000, 100_903_000_000] and rows.sum() < len(stamps)
+    assert result.messages == {RGB: 5, INFO: 5, DEPTH: 5, POSE: int(rows.sum())}
+    _check_own_samples(out, stamps[rows], poses[rows])
+    _check_ros1_images(out, truth, 5)
+    seq = load_bag_sequence(out, width=32, height=24)
+    assert seq.stamps.tolist() == [s / 1e9 for s in sorted(truth)]
+    for f in seq.frames:  # read at the images, the poses there
+        np.testing.assert_allclose(f.pose, truth[round(f.stamp * 1e9)]['pose'], atol=1e-9)
 
 
 def test_ros1_bag_errors(tmp_path):

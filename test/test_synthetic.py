@@ -530,4 +530,8 @@ def test_a_pose_source_out_of_sync_is_recorded_as_it_would_stamp(tmp_path):
     np.testing.assert_allclose(loaded.poses, memory.poses, atol=1e-5)
     convert(folder, tmp_path / 'bag')
     bag = load_bag_sequence(tmp_path / 'bag', 32, 24)
-    assert bag.pose_stream is not None and len(bag.pose_stream[0]) == len(bag)
+    # The bag carries the pose source's own samples (20 ms before the images), not blends at them.
+    assert bag.pose_stream is not None and len(bag.pose_stream[0]) == len(stamps) == len(bag) + 1
+    np.testing.assert_array_equal(bag.pose_stream[0], loaded.pose_stream[0])
+    np.testing.assert_allclose(bag.pose_stream[1], loaded.pose_stream[1], atol=1e-9)
+    np.testing.assert_allclose(bag.poses, loaded.poses, atol=1e-9)

@@ -19,15 +19,20 @@ SRC is either
     PoseStamped topic (--src-pose-topic), else from the /tf chain --tf-world-frame ->
     --tf-camera-frame.
 
-OUT_BAG is the rosbag2 folder to create (mcap by default). Written per colour frame, all with
-the colour stamp (header stamp = bag time):
+OUT_BAG is the rosbag2 folder to create (mcap by default). Header stamp = bag time throughout;
+written per colour frame, with the colour stamp:
   <rgb-topic>          sensor_msgs/Image rgb8, the original (distorted) colour image
                        (with --compressed: sensor_msgs/CompressedImage on <rgb-topic>/compressed)
   <camera-info-topic>  sensor_msgs/CameraInfo, K and D of the colour camera
   <depth-topic>        sensor_msgs/Image 32FC1, ground-truth depth in metres (NaN = none)
-  <pose-topic>         geometry_msgs/PoseStamped, camera-to-world, frame <world-frame>
-Colour frames without a pose (or without depth within --depth-max-gap) are skipped and
-counted. The bag appears only when the conversion completes.
+and the poses, as the pose source published them:
+  <pose-topic>         geometry_msgs/PoseStamped, camera-to-world, frame <world-frame>: the
+                       source's own samples at their own stamps (groundtruth.txt's rows, a
+                       pose topic's messages) from 0.5 s before the first frame written to
+                       0.5 s after the last; from a /tf chain, one pose per colour frame
+                       interpolated at its stamp
+Colour frames without a pose (interpolated at their stamp) or without depth within
+--depth-max-gap are skipped and counted. The bag appears only when the conversion completes.
 """
 
 EPILOG = """\

@@ -1,0 +1,304 @@
+"""A ROS 1 bag (e.g. a TUM RGB-D ``.bag`` as downloaded) -> a rosbag2 in our layout.
+
+Two passes over the source: the first learns the stamps, the calibration and the poses
+(``_scan_ros1``) and decides which colour frames to write; the second converts those frames
+and their depth, interleaved with the pose source's own samples (``ros1_poses``) in stamp
+order through ``OrderedOutput``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+
+from ..progress import progress
+from .bag_layout import (
+    CAMERA_INFO,
+    DEFAULT_FRAME_IDS,
+    DEFAULT_TOPICS,
+    IMAGE,
+    NS_PER_SEC,
+    POSE_STAMPED,
+    BagTopics,
+    ConvertResult,
+    FrameIds,
+)
+from .bag_writer import AtomicBagWriter, OrderedOutput
+from .compressed import RAW_COLOUR, ColourFormat
+from .messages import (
+    camera_info_msg,
+    camera_info_to_calibration,
+    depth_image_msg,
+    header_msg,
+    image_to_depth,
+    image_to_rgb,
+    pose_stamped_msg,
+    pose_stamped_to_matrix,
+    stamp_to_ns,
+    transform_to_matrix,
+)
+from .pose_samples import SampleFeed, samples_spanning
+from .ros1_poses import PoseSource, ros1_pose_source
+from .tf_tree import TfTree
+from .tum import TumTrajectory, nearest_stamps, read_camera_yaml
+from .undistort import CameraCalibration
+
+logger = logging.getLogger(__name__)
+
+TF_TOPICS = ('/tf', '/tf_static')
+
+
+@dataclass
+class _Ros1Scan:
+    """Everything the first pass over a ROS 1 bag learns (stamps, calibration, poses)."""
+
+    rgb_stamps: list[int] = field(default_factory=list)
+    depth_stamps: list[int] = field(default_factory=list)
+    calibration: CameraCalibration | None = None
+    camera_frame: str | None = None
+    pose_stamps: list[int] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)
+    tf: TfTree = field(default_factory=TfTree)
+
+
+def _scan_ros1(reader: AnyReader, src: Path, source: BagTopics) -> _Ros1Scan:
+    topics = {c.topic for c in reader.connections}
+    if source.rgb not in topics:
+        raise ValueError(f'{src}: no colour topic {source.rgb} (it has: {", ".join(sorted(topics))})')
+    wanted = {source.rgb, source.depth, source.camera_info, source.pose, *TF_TOPICS}
+    scan = _Ros1Scan()
+    conns = [c for c in reader.connections if c.topic in wanted]
+    for conn, _, raw in reader.messages(connections=conns):
+        msg = reader.deserialize(raw, conn.msgtype)
+        if conn.topic == source.rgb:
+            scan.rgb_stamps.append(stamp_to_ns(msg.header.stamp))
+            scan.camera_frame = scan.camera_frame or msg.header.frame_id
+        elif conn.topic == source.depth:
+            scan.depth_stamps.append(stamp_to_ns(msg.header.stamp))
+        elif conn.topic == source.camera_info and scan.calibration is None:
+            scan.calibration = camera_info_to_calibration(msg)
+        elif conn.topic == source.pose:
+            scan.pose_stamps.append(stamp_to_ns(msg.header.stamp))
+            scan.poses.append(pose_stamped_to_matrix(msg))
+        elif conn.topic in TF_TOPICS:
+            for tr in msg.transforms:
+                scan.tf.add(
+                    tr.header.frame_id,
+                    tr.child_frame_id,
+                    stamp_to_ns(tr.header.stamp),
+                    transform_to_matrix(tr.transform),
+                    static=conn.topic == '/tf_static',
+                )
+    return scan
+
+
+@dataclass
+class _Plan:
+    """What the second pass writes: the colour frames (each with the pose to write alongside,
+    ``None`` when the source's own ``samples`` are written instead or there is no pose), the
+    depth images to re-stamp with their colour frames, and what was dropped."""
+
+    frames: dict[int, np.ndarray | None] = field(default_factory=dict)
+    depth_targets: dict[int, list[int]] = field(default_factory=dict)
+    samples: TumTrajectory | None = None
+    dropped: dict[str, int] = field(default_factory=dict)
+
+
+def _plan(
+    scan: _Ros1Scan,
+    query: np.ndarray,
+    poses: PoseSource,
+    depth_max_gap: float,
+    include_depth: bool,
+    max_frames: int | None,
+) -> _Plan:
+    """Choose the colour frames (pose and depth found, in order, at most ``max_frames``)."""
+    depth_sorted = np.unique(np.asarray(scan.depth_stamps, dtype=np.int64))
+    didx, gap = nearest_stamps(depth_sorted, query)
+    has_depth = gap <= round(depth_max_gap * NS_PER_SEC)
+    dropped = {'duplicate_stamp': len(scan.rgb_stamps) - len(query), 'outside_poses': 0, 'no_depth': 0}
+    plan = _Plan()
+    for i, stamp in enumerate(query.tolist()):
+        if max_frames is not None and len(plan.frames) >= max_frames:
+            break
+        if poses.found and not poses.valid[i]:
+            dropped['outside_poses'] += 1
+            continue
+        if include_depth and not has_depth[i]:
+            dropped['no_depth'] += 1
+            continue
+        with_frame = poses.samples is None and poses.valid[i]
+        plan.frames[stamp] = poses.at_frames[i] if with_frame else None
+        if include_depth:
+            plan.depth_targets.setdefault(int(depth_sorted[didx[i]]), []).append(stamp)
+    plan.dropped = {k: v for k, v in dropped.items() if v}
+    if plan.frames and poses.samples is not None:
+        plan.samples = samples_spanning(poses.samples, min(plan.frames), max(plan.frames))
+    return plan
+
+
+def ros1_to_rosbag2(
+    src: str | Path,
+    out: str | Path,
+    *,
+    storage: str = 'mcap',
+    max_frames: int | None = None,
+    topics: BagTopics = DEFAULT_TOPICS,
+    source_topics: BagTopics = DEFAULT_TOPICS,
+    frame_ids: FrameIds = DEFAULT_FRAME_IDS,
+    groundtruth: str | Path | None = None,
+    camera_yaml: str | Path | None = None,
+    tf_world_frame: str = 'world',
+    tf_camera_frame: str | None = None,
+    depth_max_gap: float = 0.02,
+    include_depth: bool = True,
+    overwrite: bool = False,
+    show_progress: bool = True,
+    colour: ColourFormat = RAW_COLOUR,
+) -> ConvertResult:
+    """Convert a ROS 1 bag (e.g. a TUM RGB-D ``.bag``) into our rosbag2 layout.
+
+    Colour images (any of rgb8/bgr8/rgba8/bgra8/mono8) become rgb8, depth (32FC1 m or 16UC1 mm)
+    becomes 32FC1 metres re-stamped with its nearest colour frame, and one CameraInfo is
+    written per colour frame. Poses come from, in order of preference: the ``groundtruth``
+    file (TUM format), a PoseStamped topic ``source_topics.pose`` in the bag, or the ``/tf``
+    chain from ``tf_world_frame`` to the camera frame (``tf_camera_frame``, default the colour
+    images' frame_id). The first two write their own samples spanning the frames, at their own
+    stamps; the ``/tf`` chain writes one pose per colour frame, interpolated at its stamp.
+    Intrinsics come from ``camera_yaml`` when given (TUM bags carry uncalibrated default
+    intrinsics), else from the bag's first CameraInfo.
+    """
+    start = time.perf_counter()
+    src = Path(src)
+    if not src.is_file():
+        raise FileNotFoundError(f'ROS 1 bag {src} not found')
+    if src.suffix != '.bag':
+        raise ValueError(f'{src}: a ROS 1 bag must end in .bag')
+    if depth_max_gap < 0:
+        raise ValueError(f'depth_max_gap must be >= 0, got {depth_max_gap}')
+    writer = AtomicBagWriter(out, storage, overwrite)  # fail on an existing output before reading
+    with AnyReader([src]) as reader:
+        scan = _scan_ros1(reader, src, source_topics)
+        calib = read_camera_yaml(camera_yaml) if camera_yaml is not None else scan.calibration
+        if calib is None:
+            raise ValueError(f'{src}: no CameraInfo on {source_topics.camera_info}; pass --camera-yaml')
+        query = np.unique(np.asarray(scan.rgb_stamps, dtype=np.int64))
+        poses = ros1_pose_source(
+            query,
+            groundtruth=Path(groundtruth) if groundtruth is not None else None,
+            pose_stamps=scan.pose_stamps,
+            poses=scan.poses,
+            tf=scan.tf,
+            tf_world=tf_world_frame,
+            tf_camera=tf_camera_frame or scan.camera_frame,
+        )
+        if include_depth and not scan.depth_stamps:
+            raise ValueError(
+                f'{src}: no depth images on {source_topics.depth} (pass --no-depth to skip depth)'
+            )
+        plan = _plan(scan, query, poses, depth_max_gap, include_depth, max_frames)
+        if not plan.frames:
+            raise ValueError(f'{src}: no frame to write (poses from {poses.name}; dropped: {plan.dropped})')
+        _write_ros1_frames(
+            reader,
+            writer,
+            source_topics,
+            topics,
+            frame_ids,
+            calib,
+            plan,
+            depth_max_gap,
+            show_progress,
+            colour,
+        )
+    result = ConvertResult(
+        writer.out,
+        len(plan.frames),
+        dict(writer.counts),
+        plan.dropped,
+        poses.name,
+        time.perf_counter() - start,
+    )
+    logger.debug(
+        'wrote %s: %d frames (poses: %s) in %.1f s', writer.out, result.frames, poses.name, result.seconds
+    )
+    return result
+
+
+def _write_ros1_frames(
+    reader: AnyReader,
+    writer: AtomicBagWriter,
+    source: BagTopics,
+    topics: BagTopics,
+    frame_ids: FrameIds,
+    calib: CameraCalibration,
+    plan: _Plan,
+    depth_max_gap: float,
+    show_progress: bool,
+    colour: ColourFormat = RAW_COLOUR,
+) -> None:
+    """Second pass: convert and write the planned colour frames, their depth and the poses."""
+    ts = writer.typestore
+    cam = calib.camera
+    selected, depth_targets = plan.frames, plan.depth_targets
+    conns = [
+        c for c in reader.connections if c.topic == source.rgb or (depth_targets and c.topic == source.depth)
+    ]
+    total = sum(c.msgcount for c in conns)
+    written_rgb: set[int] = set()
+    written_depth: set[int] = set()
+    with writer:
+        out = OrderedOutput(writer, horizon_ns=round(2 * depth_max_gap * NS_PER_SEC) + NS_PER_SEC // 2)
+        samples = SampleFeed(plan.samples, topics, frame_ids, ts) if plan.samples is not None else None
+        messages = progress(
+            reader.messages(connections=conns),
+            desc='convert',
+            unit='msg',
+            total=total,
+            disable=not show_progress,
+        )
+        for conn, _, raw in messages:
+            msg = reader.deserialize(raw, conn.msgtype)
+            stamp = stamp_to_ns(msg.header.stamp)
+            if samples is not None:
+                for pose in samples.until(stamp):
+                    out.push(*pose)
+            if conn.topic == source.rgb and stamp in selected and stamp not in written_rgb:
+                rgb = image_to_rgb(msg)
+                _check_image_size(rgb, cam, conn.topic, stamp)
+                hdr = header_msg(stamp, frame_ids.camera, kind=ts)
+                rgb_topic, rgb_type, rgb_msg = colour.message(rgb, hdr, topics.rgb, kind=ts)
+                out.push(rgb_topic, rgb_type, stamp, rgb_msg)
+                out.push(topics.camera_info, CAMERA_INFO, stamp, camera_info_msg(calib, hdr, kind=ts))
+                pose = selected[stamp]
+                if pose is not None:
+                    pose_hdr = header_msg(stamp, frame_ids.world, kind=ts)
+                    out.push(topics.pose, POSE_STAMPED, stamp, pose_stamped_msg(pose, pose_hdr, kind=ts))
+                written_rgb.add(stamp)
+            elif conn.topic == source.depth and stamp in depth_targets and stamp not in written_depth:
+                depth = image_to_depth(msg)
+                _check_image_size(depth, cam, conn.topic, stamp)
+                for target in depth_targets[stamp]:
+                    hdr = header_msg(target, frame_ids.camera, kind=ts)
+                    out.push(topics.depth, IMAGE, target, depth_image_msg(depth, hdr, kind=ts))
+                written_depth.add(stamp)
+            out.advance(stamp)
+        if samples is not None:
+            for pose in samples.until():
+                out.push(*pose)
+        out.flush()
+
+
+def _check_image_size(img: np.ndarray, camera: Any, topic: str, stamp: int) -> None:
+    h, w = img.shape[:2]
+    if (w, h) != camera.size:
+        raise ValueError(
+            f'{topic} at {stamp / NS_PER_SEC:.6f}: image is {w}x{h}, '
+            f'the calibration is {camera.width}x{camera.height}'
+        )
