@@ -1,0 +1,142 @@
+"""The synthetic stress cases through the whole node graph, as a user runs it (diagnostic).
+
+What the other sweeps (``stress_sweep.py``, ``stream_sweep.py``) do not cover: the defaults a
+user gets (the shipped network adapted online, the checks in correct mode, the graph's own
+keyframe policy and timing), the conversion to a bag and the DDS graph in between. Each case:
+
+    depth-fusion synth DIR/seq --stress CASE --frames N --seed S --width 320 --height 240
+    depth-fusion convert DIR/seq DIR/bag
+    depth-fusion run --bag DIR/bag --record DIR/rec               # composed, paced, defaults
+    depth-fusion evaluate DIR/seq --frames N --methods graph_fused,graph_single_view,graph_multi_view \
+        --set recorded.bag=DIR/rec --neighbour-mode online --out DIR/eval
+
+and prints one line: fused and single-view MAE of what the graph published, their ratio, the
+worst keyframe's ratio and how many keyframes were fused above their input, the multi-view
+MAE, the run's summary and the node's own check verdicts (from its log):
+
+    python scripts/diag/graph_stress_sweep.py translation rotation keyframes --seed 21 --out /tmp/gs
+    python scripts/diag/graph_stress_sweep.py all --seed 21 --out /tmp/gs      # every stress case
+
+docs/fusion.md "The stress cases through the node graph" holds the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+from depth_fusion_ros.data.synthetic import STRESS_CASES
+
+CHECK_LINES = re.compile(r'(focal length check|time offset check|mount check): ([^(;]*)')
+
+
+def run(args: list[str], log: Path) -> None:
+    """One CLI step, its output to ``log``; a failure stops this case with the log's tail."""
+    with log.open('w') as out:
+        done = subprocess.run(
+            [sys.executable, '-m', 'depth_fusion_ros.cli.main', *args], stdout=out, stderr=out
+        )
+    if done.returncode != 0:
+        tail = log.read_text().splitlines()[-3:]
+        raise RuntimeError(f'{args[0]} failed ({done.returncode}): ' + ' | '.join(tail))
+
+
+def node_checks(log: Path) -> str:
+    """The node's check verdicts, as its log says them (first words of each line)."""
+    said = {name: text.strip()[:40] for name, text in CHECK_LINES.findall(log.read_text())}
+    return '; '.join(f'{name}: {text}' for name, text in said.items()) or 'no check finished'
+
+
+def score(results: Path) -> str:
+    seq = next(iter(json.loads(results.read_text())['sequences'].values()))
+    m = seq['methods']
+    fused, single = m['graph_fused'], m['graph_single_view']
+    ratios = [
+        a / b
+        for a, b in zip(fused['per_frame_mae'], single['per_frame_mae'], strict=True)
+        if a is not None and b
+    ]
+    above = sum(r > 1.0 for r in ratios)
+    return (
+        f'fused {fused["mae"]:.3f} single {single["mae"]:.3f} ratio {fused["mae"] / single["mae"]:.3f} '
+        f'worst keyframe {max(ratios):.3f} above {above}/{len(ratios)} '
+        f'multi-view {m["graph_multi_view"]["mae"]:.3f}'
+    )
+
+
+def sweep_case(case: str, seed: int, frames: int, out: Path) -> str:
+    d = out / f'{case}_{seed}'
+    d.mkdir(parents=True, exist_ok=True)
+    for old in ('seq', 'bag', 'rec', 'eval'):
+        subprocess.run(['rm', '-rf', str(d / old)], check=True)
+    size = ['--width', '320', '--height', '240']
+    run(
+        [
+            'synth',
+            str(d / 'seq'),
+            '--stress',
+            case,
+            '--frames',
+            str(frames),
+            '--seed',
+            str(seed),
+            *size,
+            '--quiet',
+        ],
+        d / 'synth.log',
+    )
+    run(['convert', str(d / 'seq'), str(d / 'bag')], d / 'convert.log')
+    run(['run', '--bag', str(d / 'bag'), '--record', str(d / 'rec')], d / 'run.log')
+    methods = 'graph_fused,graph_single_view,graph_multi_view'
+    run(
+        [
+            'evaluate',
+            str(d / 'seq'),
+            '--frames',
+            str(frames),
+            '--methods',
+            methods,
+            '--set',
+            f'recorded.bag={d / "rec"}',
+            '--neighbour-mode',
+            'online',
+            '--out',
+            str(d / 'eval'),
+        ],
+        d / 'eval.log',
+    )
+    summary = next(
+        line for line in (d / 'run.log').read_text().splitlines()[::-1] if 'keyframes chosen' in line
+    )
+    return f'{case:16s} {score(d / "eval" / "results.json")} | {summary[:48]} | {node_checks(d / "run.log")}'
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument('cases', nargs='+', help=f'stress cases, or all ({", ".join(STRESS_CASES)})')
+    parser.add_argument('--seed', type=int, default=21)
+    parser.add_argument('--frames', type=int, default=100)
+    parser.add_argument('--out', type=Path, required=True, help='working folder (one subfolder per case)')
+    args = parser.parse_args()
+    cases = list(STRESS_CASES) if args.cases == ['all'] else args.cases
+    unknown = [c for c in cases if c not in STRESS_CASES]
+    if unknown:
+        parser.error(f'unknown stress case(s) {", ".join(unknown)}')
+    failed = 0
+    for case in cases:
+        try:
+            print(sweep_case(case, args.seed, args.frames, args.out), flush=True)
+        except (RuntimeError, StopIteration, KeyError, ValueError) as exc:
+            failed += 1
+            print(f'{case:16s} FAILED: {exc}', flush=True)
+    return 1 if failed else 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
