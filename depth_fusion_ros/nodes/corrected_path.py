@@ -70,6 +70,20 @@ def correction_limits(params: Mapping[str, Any]) -> CorrectionLimits:
     )
 
 
+def path_poses(msg: Any) -> tuple[np.ndarray, np.ndarray, int]:
+    """Stamps (ns, int64), poses (P, 4, 4) as they are, and the number of unusable poses of a
+    ``nav_msgs/Path`` (the corrected trajectory, multi_view_node's ``reposed_keyframes``)."""
+    stamps, poses, bad = [], [], 0
+    for stamped in msg.poses:
+        try:
+            poses.append(pose_from_message(stamped))
+        except InputError:
+            bad += 1
+            continue
+        stamps.append(messages.stamp_to_ns(stamped.header.stamp))
+    return np.asarray(stamps, np.int64), np.asarray(poses, np.float64).reshape(-1, 4, 4), bad
+
+
 def path_from_message(msg: Any, T_pose_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """Stamps (s), camera-to-world poses (P, 4, 4) and the number of unusable poses of a Path.
 
@@ -77,15 +91,9 @@ def path_from_message(msg: Any, T_pose_cam: np.ndarray) -> tuple[np.ndarray, np.
     (``camera_from_pose_frame``) makes them the optical frame's, as the keyframe poses are.
     (The correction ``T_new T_old^-1`` is the same whichever frame both are of, but ours are
     the camera's, so the path's must be too.)"""
-    stamps, poses, bad = [], [], 0
-    for stamped in msg.poses:
-        try:
-            poses.append(pose_from_message(stamped) @ T_pose_cam)
-        except InputError:
-            bad += 1
-            continue
-        stamps.append(messages.ns_to_sec(messages.stamp_to_ns(stamped.header.stamp)))
-    return np.asarray(stamps, np.float64), np.asarray(poses, np.float64).reshape(-1, 4, 4), bad
+    stamps_ns, poses, bad = path_poses(msg)
+    seconds = np.array([messages.ns_to_sec(s) for s in stamps_ns.tolist()], np.float64)
+    return seconds, poses @ T_pose_cam, bad
 
 
 def read_path(

@@ -161,9 +161,7 @@ class MapCorrector:
             return
         node = self.node
         now = {p.stamp: T for p, T in zip(pending, moved, strict=True)}
-        node.map.move_window(lambda key, T: now.get(float(key), T))
-        if node._last_pose is not None:
-            node._last_pose = (node._last_pose[0], now[float(node._last_pose[0])])
+        node.move_recent(lambda stamp, T: now.get(stamp, T))
 
     # --- the rebuild thread ----------------------------------------------------------------------------
 

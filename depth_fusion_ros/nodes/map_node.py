@@ -30,7 +30,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -391,6 +391,15 @@ class MapNode(DepthFusionNode):
             + (f', {archived} more archived (beyond map.max_blocks)' if archived else '')
             + f'; {movable}'
         )
+
+    def move_recent(self, pose_of: Callable[[float, np.ndarray], np.ndarray]) -> None:
+        """Give the keyframes not yet kept their new poses, ``pose_of(stamp, T_wc)``: those in the
+        consistency test's window and the pose-jump test's last pose (a loop closure, a mount
+        turn or a time offset correction moved them; holding ``_lock``)."""
+        self.map.move_window(lambda key, T: pose_of(float(key), T))
+        if self._last_pose is not None:
+            stamp, T = self._last_pose
+            self._last_pose = (stamp, pose_of(float(stamp), T))
 
     def _check_pose_jump(self, stamp: float, T_wc: np.ndarray) -> None:
         """Note a pose jump since the last keyframe integrated (``pose_jump``), and clear the

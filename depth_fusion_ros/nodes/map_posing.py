@@ -17,15 +17,18 @@ or mount (the checks find them only after seconds of travel) and smeared it unde
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 from ..data import messages
 from ..geometry import rotation_angle
-from ..pose_corrections import Posing
-from .corrected_path import path_from_message
+from ..pose_corrections import Corrections, Posing
+from .corrected_path import path_poses
 from .posing import IN_FLIGHT, PosingLog
+
+T = TypeVar('T')
 
 if TYPE_CHECKING:
     from .map_corrections import MapCorrector
@@ -62,17 +65,16 @@ class MapPosing:
     def on_transform(self, msg: Any) -> None:
         """``camera_from_pose_frame``: a turn (another transform than the last) re-poses what
         came before it (:meth:`_turn`) and rebuilds the map."""
-        turned: list[tuple[int, float]] = []
 
-        def take(message: Any) -> None:  # holding node._lock
+        def take(message: Any) -> tuple[np.ndarray, int] | None:  # holding node._lock: one step
             turn = self.log.on_transform(message)
-            if turn is not None:
-                turned.append((self._turn(turn), float(np.degrees(rotation_angle(turn[:3, :3])))))
+            return None if turn is None else (turn, self._turn(turn))
 
-        self._take(msg, take)
-        if not turned:
+        turned = self._take(msg, take)
+        if turned is None:
             return
-        kept, angle = turned[0]
+        turn, kept = turned
+        angle = float(np.degrees(rotation_angle(turn[:3, :3])))
         logger = self.node.get_logger()
         if not kept:
             logger.info(
@@ -90,7 +92,6 @@ class MapPosing:
         """Every keyframe kept, waiting in the consistency window, last seen or re-read in flight,
         posed in the transform before the newest, now in the newest: ``T_wc @ turn``. Returns how
         many kept keyframes moved (holding node._lock)."""
-        node = self.node
         after = self.log.latest
         moved = 0
         for e in self.corrector.store.entries:
@@ -98,22 +99,19 @@ class MapPosing:
                 e.T_wc = e.T_wc @ turn
                 e.posing = Posing(after, e.posing.offset)
                 moved += 1
-        node.map.move_window(lambda key, T: T @ turn)
-        if node._last_pose is not None:
-            node._last_pose = (node._last_pose[0], node._last_pose[1] @ turn)
+        self.node.move_recent(lambda stamp, T: T @ turn)
         self._in_flight = {stamp: T @ turn for stamp, T in self._in_flight.items()}
         return moved
 
     def on_time(self, msg: Any) -> None:
-        """``pose_time``: the pose source's time images are posed at from the stamp on."""
-        moved: list[tuple[int, int, int]] = []
+        """``pose_time``: the pose source's time images are posed at from the stamp on; it takes
+        the re-read keyframes that waited for it."""
 
-        def take(message: Any) -> None:  # holding node._lock
+        def take(message: Any) -> tuple[int, int, int] | None:  # holding node._lock
             self.log.on_time(message)
-            moved.extend(self._take_reposed())
+            return self._take_reposed()
 
-        self._take(msg, take)
-        self._after_reposed(moved)
+        self._after_reposed(self._take(msg, take))
 
     def on_reposed(self, msg: Any) -> None:
         """``reposed_keyframes``: the keyframes posed before a time offset correction, read again
@@ -121,9 +119,10 @@ class MapPosing:
         may come after it)."""
         node = self.node
         node.stats.received('reposed_keyframes')
-        stamps, poses, bad = path_from_message(msg, np.eye(4))
+        stamps_ns, poses, bad = path_poses(msg)
         if bad:
             node.stats.dropped('bad_pose', f'reposed keyframes: {bad} of {len(msg.poses)} poses unusable')
+        stamps = np.array([messages.ns_to_sec(s) for s in stamps_ns.tolist()], np.float64)
         frame = msg.header.frame_id
         with node._lock:
             world = node._world_frame
@@ -142,21 +141,21 @@ class MapPosing:
             moved = self._take_reposed()
         self._after_reposed(moved)
 
-    def _take_reposed(self) -> list[tuple[int, int, int]]:
+    def _take_reposed(self) -> tuple[int, int, int] | None:
         """Move the keyframes of the waiting ``reposed_keyframes`` once its posing's offset is
-        known: ``[what _move returns]`` or ``[]`` (holding node._lock)."""
+        known: what :meth:`_move` returns, or None (holding node._lock)."""
         if self._waiting is None:
-            return []
+            return None
         begins_ns, stamps, poses = self._waiting
         offset = self.log.offset_from(begins_ns)
         if offset is None:
-            return []
+            return None
         self._waiting = None
         begins = messages.ns_to_sec(begins_ns)
         # In the newest transform, as every keyframe here (a turn heard since is applied).
         reread = {float(s): self.log.in_latest(begins, T) for s, T in zip(stamps, poses, strict=True)}
         self.log.retime(messages.sec_to_ns(float(stamps.min())), begins_ns, offset)
-        return [self._move(reread)]
+        return self._move(reread)
 
     def _move(self, reread: dict[float, np.ndarray]) -> tuple[int, int, int]:
         """Give the keyframes their re-read poses: kept, in the window, last seen; those after the
@@ -164,19 +163,18 @@ class MapPosing:
         move them with). Returns ``(kept keyframes moved enough to rebuild, keyframes moved,
         integrated ones not kept)``."""
         node, corrector = self.node, self.corrector
-        rebuild = moved = 0
-        for e in corrector.store.entries:
-            T = reread.pop(e.stamp, None)
-            if T is None:
-                continue
-            metres = float(np.linalg.norm(T[:3, 3] - e.T_wc[:3, 3]))
-            degrees = float(np.degrees(rotation_angle(e.T_wc[:3, :3].T @ T[:3, :3])))
-            rebuild += bool(corrector.limits.counts(metres, degrees))
-            e.T_wc, e.posing = T, self.log.current(e.stamp)
-            moved += 1
-        node.map.move_window(lambda key, T: reread.get(float(key), T))
-        if node._last_pose is not None and node._last_pose[0] in reread:
-            node._last_pose = (node._last_pose[0], reread[node._last_pose[0]])
+        kept = [e for e in corrector.store.entries if e.stamp in reread]
+        rebuild = 0
+        if kept:
+            old = np.stack([e.T_wc for e in kept])
+            new = np.stack([reread.pop(e.stamp) for e in kept])
+            rebuild = int(
+                np.sum(corrector.limits.counts(*Corrections(new, np.ones(len(kept), bool)).moves(old)))
+            )
+            for e, T in zip(kept, new, strict=True):
+                e.T_wc, e.posing = T, self.log.current(e.stamp)
+        moved = len(kept)
+        node.move_recent(lambda stamp, T: reread.get(stamp, T))
         for stamp in node.map.waiting_keys():  # the window's integrated ones are in the map already
             moved += reread.pop(float(stamp), None) is not None
         last = node._last_pose[0] if node._last_pose is not None else -np.inf
@@ -188,10 +186,11 @@ class MapPosing:
         self.not_reposed += lost
         return rebuild, moved, lost
 
-    def _after_reposed(self, moved: list[tuple[int, int, int]]) -> None:
-        if not moved:
+    def _after_reposed(self, moved: tuple[int, int, int] | None) -> None:
+        """Say what a re-read moved (:meth:`_move`) and rebuild when a kept keyframe moved enough."""
+        if moved is None:
             return
-        rebuild, count, lost = moved[0]
+        rebuild, count, lost = moved
         node = self.node
         node.stats.published('reposings')
         limits = self.corrector.limits
@@ -210,11 +209,14 @@ class MapPosing:
         )
         self.corrector.start_rebuild()
 
-    def _take(self, msg: Any, take: Any) -> None:
+    def _take(self, msg: Any, take: Callable[[Any], T]) -> T | None:
+        """``take(msg)`` under the node's lock, counted; a posing that is not a rigid transform is
+        dropped and counted (None)."""
         node = self.node
         node.stats.received('posing')
         try:
             with node._lock:
-                take(msg)
-        except ValueError as exc:  # a transform that is not rigid
+                return take(msg)
+        except ValueError as exc:
             node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
+            return None

@@ -24,6 +24,7 @@ from ..adaptation.keyframes import KeyframeAssembler
 from ..adaptation.online import OnlineAdaptation, WeightSlot
 from ..adaptation.sample import AdaptSample
 from ..data import messages
+from .corrected_path import path_poses
 from .image_input import InputError, WorkingImage, depth_from_message, header_stamp_ns, pose_from_message
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .posing import IN_FLIGHT, TOPIC_POSING_TRANSFORM, TOPIC_REPOSED_KEYFRAMES, PosingLog, posing_qos
@@ -238,14 +239,16 @@ class NodeAdaptation:
         them, and keyframes whose pose has not come yet take them when it does."""
         self.node.stats.received('reposed_keyframes')
         begins = messages.ns_to_sec(messages.stamp_to_ns(msg.header.stamp))
-        poses: dict[int, np.ndarray] = {}
-        for stamped in msg.poses:
-            try:
-                poses[header_stamp_ns(stamped)] = pose_from_message(stamped)
-            except InputError as exc:
-                self.node.stats.dropped(exc.reason, f'reposed keyframes: {exc}')
+        stamps, read, bad = path_poses(msg)
+        if bad:
+            self.node.stats.dropped(
+                'bad_pose', f'reposed keyframes: {bad} of {len(msg.poses)} poses unusable'
+            )
         with self._lock:  # in the newest transform, as every pose here
-            poses = {stamp: self.posings.in_latest(begins, T) for stamp, T in poses.items()}
+            poses = {
+                stamp: self.posings.in_latest(begins, T)
+                for stamp, T in zip(stamps.tolist(), read, strict=True)
+            }
             held = self.assembler.reread(poses)
             self._reread.update((stamp, T) for stamp, T in poses.items() if stamp not in held)
             for stamp in list(self._reread)[:-IN_FLIGHT]:
