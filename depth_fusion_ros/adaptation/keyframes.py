@@ -11,6 +11,7 @@ baseline), and bounded memory: at most ``max_pending`` incomplete keyframes.
 from __future__ import annotations
 
 from collections import OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -85,31 +86,30 @@ class KeyframeAssembler:
         photometric pairs of the keyframes to come compare poses of one camera. Returns how
         many poses moved. (The samples already made keep their own, consistent among
         themselves.)"""
-        moved = 0
-        for _, n in self._recent:
-            n.pose = n.pose @ turn
-            moved += 1
-        for entry in self._pending.values():
-            if 'pose' in entry.values:
-                entry.values['pose'] = entry.values['pose'] @ turn
-                moved += 1
-        return moved
+        return len(self._move(lambda stamp, T: T @ turn))
 
     def reread(self, poses: dict[int, np.ndarray]) -> set[int]:
         """multi_view_node read these keyframes' poses again (by stamp, ns: a corrected time
         offset, nodes/posing.py): the neighbours kept and the poses waiting take them, so the
         photometric pairs of the keyframes to come compare poses read at one offset. Returns
         the stamps it held (the others have not come yet, or are gone)."""
-        held = set()
+        return self._move(lambda stamp, T: poses.get(stamp))
+
+    def _move(self, pose_of: Callable[[int, np.ndarray], np.ndarray | None]) -> set[int]:
+        """Give the neighbours kept and the poses waiting ``pose_of(stamp, pose)`` where it is
+        not None; returns their stamps."""
+        moved = set()
         for stamp, n in self._recent:
-            if stamp in poses:
-                n.pose = poses[stamp]
-                held.add(stamp)
+            T = pose_of(stamp, n.pose)
+            if T is not None:
+                n.pose = T
+                moved.add(stamp)
         for stamp, entry in self._pending.items():
-            if stamp in poses and 'pose' in entry.values:
-                entry.values['pose'] = poses[stamp]
-                held.add(stamp)
-        return held
+            T = pose_of(stamp, entry.values['pose']) if 'pose' in entry.values else None
+            if T is not None:
+                entry.values['pose'] = T
+                moved.add(stamp)
+        return moved
 
     def _ready(self, entry: _Parts, waiting_for_pose: bool) -> bool:
         v = entry.values

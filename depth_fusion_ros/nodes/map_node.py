@@ -321,7 +321,7 @@ class MapNode(DepthFusionNode):
                 )
                 return
             self._world_frame = self._world_frame or frame_id or 'world'
-            T_wc = self.corrector.posing.arriving_pose(stamp, T_wc)  # posed before a posing change
+            T_wc = self.corrector.posings.arriving(pairing.stamp_ns, T_wc)  # posed before a posing change
             self._check_pose_jump(stamp, T_wc)
             self.corrector.note_segment(stamp)
             before = (self.map.evicted_blocks, self.map.lost_blocks, self.map.skipped_blocks)

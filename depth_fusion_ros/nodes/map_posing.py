@@ -26,7 +26,7 @@ from ..data import messages
 from ..geometry import rotation_angle
 from ..pose_corrections import Corrections, Posing
 from .corrected_path import path_poses
-from .posing import IN_FLIGHT, PosingLog
+from .posing import PosingLog
 
 T = TypeVar('T')
 
@@ -42,23 +42,13 @@ class MapPosing:
         self.node = node
         self.corrector = corrector
         self.log = PosingLog()
-        #: Poses re-read at a corrected time offset for keyframes not yet integrated, by stamp (s),
-        #: in the newest transform.
-        self._in_flight: dict[float, np.ndarray] = {}
-        #: A ``reposed_keyframes`` message whose posing's ``pose_time`` has not come yet.
+        #: A ``reposed_keyframes`` message (its posing's first stamp, stamps in ns, poses) whose
+        #: posing's ``pose_time`` has not come yet.
         self._waiting: tuple[int, np.ndarray, np.ndarray] | None = None
         #: Keyframes re-read at a corrected time offset: moved (or to be, in flight), and those
         #: integrated before and not kept, which stay where they were mapped.
         self.reposed = 0
         self.not_reposed = 0
-
-    # --- called holding node._lock ---------------------------------------------------------------------
-
-    def arriving_pose(self, stamp: float, T_wc: np.ndarray) -> np.ndarray:
-        """The pose a keyframe is integrated at: re-read at a corrected time offset while it was
-        in flight, else its own, re-posed in the newest transform when it was posed before a turn."""
-        reread = self._in_flight.pop(stamp, None)
-        return reread if reread is not None else self.log.in_latest(stamp, T_wc)
 
     # --- the posing topics ----------------------------------------------------------------------------
 
@@ -89,9 +79,10 @@ class MapPosing:
         self.corrector.start_rebuild()
 
     def _turn(self, turn: np.ndarray) -> int:
-        """Every keyframe kept, waiting in the consistency window, last seen or re-read in flight,
-        posed in the transform before the newest, now in the newest: ``T_wc @ turn``. Returns how
-        many kept keyframes moved (holding node._lock)."""
+        """Every keyframe kept, waiting in the consistency window or last seen, posed in the
+        transform before the newest, now in the newest: ``T_wc @ turn`` (those in flight: the
+        log, :meth:`PosingLog.arriving`). Returns how many kept keyframes moved (holding
+        node._lock)."""
         after = self.log.latest
         moved = 0
         for e in self.corrector.store.entries:
@@ -100,7 +91,6 @@ class MapPosing:
                 e.posing = Posing(after, e.posing.offset)
                 moved += 1
         self.node.move_recent(lambda stamp, T: T @ turn)
-        self._in_flight = {stamp: T @ turn for stamp, T in self._in_flight.items()}
         return moved
 
     def on_time(self, msg: Any) -> None:
@@ -119,10 +109,9 @@ class MapPosing:
         may come after it)."""
         node = self.node
         node.stats.received('reposed_keyframes')
-        stamps_ns, poses, bad = path_poses(msg)
+        stamps, poses, bad = path_poses(msg)
         if bad:
             node.stats.dropped('bad_pose', f'reposed keyframes: {bad} of {len(msg.poses)} poses unusable')
-        stamps = np.array([messages.ns_to_sec(s) for s in stamps_ns.tolist()], np.float64)
         frame = msg.header.frame_id
         with node._lock:
             world = node._world_frame
@@ -151,38 +140,34 @@ class MapPosing:
         if offset is None:
             return None
         self._waiting = None
-        begins = messages.ns_to_sec(begins_ns)
-        # In the newest transform, as every keyframe here (a turn heard since is applied).
-        reread = {float(s): self.log.in_latest(begins, T) for s, T in zip(stamps, poses, strict=True)}
-        self.log.retime(messages.sec_to_ns(float(stamps.min())), begins_ns, offset)
-        return self._move(reread)
+        # From 1 us before the first: the log's look-ups go through float seconds (ns_to_sec).
+        self.log.retime(int(stamps.min()) - 1000, begins_ns, offset)
+        return self._move(self.log.reread_in_latest(begins_ns, stamps, poses))
 
-    def _move(self, reread: dict[float, np.ndarray]) -> tuple[int, int, int]:
-        """Give the keyframes their re-read poses: kept, in the window, last seen; those after the
-        last seen are still in flight; those before it were integrated and not kept (nothing to
-        move them with). Returns ``(kept keyframes moved enough to rebuild, keyframes moved,
-        integrated ones not kept)``."""
+    def _move(self, reread: dict[int, np.ndarray]) -> tuple[int, int, int]:
+        """Give the keyframes their re-read poses (by stamp, ns): kept, in the window, last seen;
+        those after the last seen are still in flight (the log holds theirs); those before it
+        were integrated and not kept (nothing to move them with). Returns ``(kept keyframes
+        moved enough to rebuild, keyframes moved, integrated ones not kept)``."""
         node, corrector = self.node, self.corrector
-        kept = [e for e in corrector.store.entries if e.stamp in reread]
+        left = {messages.ns_to_sec(s): s for s in reread}  # the keyframes' stamps here (s) -> ns
+        kept = [e for e in corrector.store.entries if e.stamp in left]
         rebuild = 0
         if kept:
             old = np.stack([e.T_wc for e in kept])
-            new = np.stack([reread.pop(e.stamp) for e in kept])
-            rebuild = int(
-                np.sum(corrector.limits.counts(*Corrections(new, np.ones(len(kept), bool)).moves(old)))
-            )
+            new = np.stack([reread[left.pop(e.stamp)] for e in kept])
+            metres, degrees = Corrections(new, np.ones(len(kept), bool)).moves(old)
+            rebuild = int(np.sum(corrector.limits.counts(metres, degrees)))
             for e, T in zip(kept, new, strict=True):
                 e.T_wc, e.posing = T, self.log.current(e.stamp)
         moved = len(kept)
-        node.move_recent(lambda stamp, T: reread.get(stamp, T))
+        node.move_recent(lambda stamp, T: reread[left[stamp]] if stamp in left else T)
         for stamp in node.map.waiting_keys():  # the window's integrated ones are in the map already
-            moved += reread.pop(float(stamp), None) is not None
+            moved += left.pop(float(stamp), None) is not None
         last = node._last_pose[0] if node._last_pose is not None else -np.inf
-        lost = sum(stamp <= last for stamp in reread)
-        self._in_flight.update((stamp, T) for stamp, T in reread.items() if stamp > last)
-        for stamp in list(self._in_flight)[:-IN_FLIGHT]:
-            del self._in_flight[stamp]
-        self.reposed += moved + len(reread) - lost
+        lost = sum(stamp <= last for stamp in left)
+        self.log.hold({ns: reread[ns] for stamp, ns in left.items() if stamp > last})
+        self.reposed += moved + len(left) - lost
         self.not_reposed += lost
         return rebuild, moved, lost
 

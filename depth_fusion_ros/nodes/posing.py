@@ -168,7 +168,8 @@ def reposed_msg(stamp_ns: int, world_frame: str, poses: list[tuple[int, np.ndarr
 
 @dataclass
 class PosingLog:
-    """map_node's side: the posings heard, each from the first stamp it applies to.
+    """The nodes after multi_view_node (map_node, the adaptation): the posings heard, each from
+    the first stamp it applies to, and the re-read poses of keyframes still in flight.
 
     :meth:`at` gives a keyframe's posing by its stamp: the newest one that began at or before
     it, else the oldest one heard (a keyframe from before the first, or a restarted stream's
@@ -177,17 +178,23 @@ class PosingLog:
 
     transforms: list[tuple[int, np.ndarray]] = field(default_factory=list)
     offsets: list[tuple[int, float]] = field(default_factory=list)
+    #: Poses multi_view_node re-read at a corrected time offset for keyframes whose own pose
+    #: has not come yet, by stamp (ns), in the newest transform (:meth:`hold`, :meth:`arriving`).
+    in_flight: dict[int, np.ndarray] = field(default_factory=dict)
 
     def on_transform(self, msg: Any) -> np.ndarray | None:
         """A ``camera_from_pose_frame`` message (raises ``ValueError`` for a non-rigid one).
         Returns the turn ``before^-1 @ after`` when the newest transform changed (a mount check
-        turned the camera: what was posed before is re-posed by it), else None."""
+        turned the camera: what was posed before is re-posed by it, the poses held in flight
+        here too), else None."""
         before = self.latest
         T = messages.transform_to_matrix(msg.transform)
         _add(self.transforms, messages.stamp_to_ns(msg.header.stamp), T)
         if before is None or _same(before, T):
             return None
-        return np.linalg.inv(before) @ T
+        turn = np.linalg.inv(before) @ T
+        self.in_flight = {stamp: pose @ turn for stamp, pose in self.in_flight.items()}
+        return turn
 
     def on_time(self, msg: Any) -> None:
         """A ``pose_time`` message."""
@@ -204,6 +211,28 @@ class PosingLog:
         (multi_view_node re-read them at a corrected time offset)."""
         before = [e for e in self.offsets if e[0] < first_ns]
         self.offsets = [*before, (first_ns, offset), *(e for e in self.offsets if e[0] >= until_ns)]
+
+    def reread_in_latest(
+        self, begins_ns: int, stamps_ns: np.ndarray, poses: np.ndarray
+    ) -> dict[int, np.ndarray]:
+        """A ``reposed_keyframes`` message's poses (read in the posing that begins at
+        ``begins_ns``) in the newest transform, by stamp (ns): a turn heard since applies."""
+        begins = messages.ns_to_sec(begins_ns)
+        return {int(s): self.in_latest(begins, T) for s, T in zip(stamps_ns.tolist(), poses, strict=True)}
+
+    def hold(self, poses: dict[int, np.ndarray]) -> None:
+        """Keep re-read poses (by stamp, ns) of keyframes whose own pose has not come yet; the
+        oldest go beyond :data:`IN_FLIGHT` (a keyframe that never comes)."""
+        self.in_flight.update(poses)
+        for stamp in list(self.in_flight)[:-IN_FLIGHT]:
+            del self.in_flight[stamp]
+
+    def arriving(self, stamp_ns: int, T_wc: np.ndarray) -> np.ndarray:
+        """The pose a keyframe's own pose message stands for when it comes: the one re-read at a
+        corrected time offset while it was in flight, else its own in the newest transform
+        (:meth:`in_latest`)."""
+        reread = self.in_flight.pop(int(stamp_ns), None)
+        return reread if reread is not None else self.in_latest(messages.ns_to_sec(stamp_ns), T_wc)
 
     def at(self, stamp_s: float) -> Posing | None:
         """The posing the image stamped ``stamp_s`` was posed with."""
@@ -224,9 +253,8 @@ class PosingLog:
 
     def current(self, stamp_s: float) -> Posing | None:
         """The posing a keyframe stamped ``stamp_s`` is kept in: the newest transform (the map
-        node re-poses what came before a mount turn, :meth:`MapCorrector.on_posing_transform`)
-        with the time offset it was posed at (a later offset cannot be applied to it: the pose
-        source's poses around it are not kept)."""
+        node re-poses what came before a mount turn, ``MapPosing.on_transform``) with the time
+        offset it was posed at, or re-read at (:meth:`retime`)."""
         posing = self.at(stamp_s)
         if posing is None or not self.transforms:
             return posing

@@ -13,7 +13,6 @@ import threading
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import Image
@@ -27,7 +26,7 @@ from ..data import messages
 from .corrected_path import path_poses
 from .image_input import InputError, WorkingImage, depth_from_message, header_stamp_ns, pose_from_message
 from .params import ParamSpec, build_dataclass, dataclass_specs
-from .posing import IN_FLIGHT, TOPIC_POSING_TRANSFORM, TOPIC_REPOSED_KEYFRAMES, PosingLog, posing_qos
+from .posing import TOPIC_POSING_TRANSFORM, TOPIC_REPOSED_KEYFRAMES, PosingLog, posing_qos
 
 TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
@@ -169,9 +168,6 @@ class NodeAdaptation:
         self.posings = PosingLog()
         node.subscribe(TransformStamped, TOPIC_POSING_TRANSFORM, self._on_posing, posing_qos())
         node.subscribe(PathMsg, TOPIC_REPOSED_KEYFRAMES, self._on_reposed, posing_qos())
-        #: Poses multi_view_node read again at a corrected time offset for keyframes whose own
-        #: pose has not come yet (in flight), by stamp (ns), in the newest transform.
-        self._reread: dict[int, np.ndarray] = {}
         from std_srvs.srv import Trigger
 
         self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
@@ -209,10 +205,7 @@ class NodeAdaptation:
             return
         stamp_ns = header_stamp_ns(msg)
         with self._lock:  # posed before a posing change heard already (in flight): as it says
-            reread = self._reread.pop(stamp_ns, None)
-            pose = (
-                reread if reread is not None else self.posings.in_latest(messages.ns_to_sec(stamp_ns), pose)
-            )
+            pose = self.posings.arriving(stamp_ns, pose)
         self._add(stamp_ns, 'pose', pose)
 
     def _on_posing(self, msg: Any) -> None:
@@ -225,7 +218,6 @@ class NodeAdaptation:
                 if turn is None:
                     return
                 moved = self.assembler.repose(turn)
-                self._reread = {stamp: T @ turn for stamp, T in self._reread.items()}
         except ValueError as exc:  # a transform that is not rigid
             self.node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
             return
@@ -238,21 +230,13 @@ class NodeAdaptation:
         correction, read again at the corrected offset; the neighbours and waiting poses take
         them, and keyframes whose pose has not come yet take them when it does."""
         self.node.stats.received('reposed_keyframes')
-        begins = messages.ns_to_sec(messages.stamp_to_ns(msg.header.stamp))
         stamps, read, bad = path_poses(msg)
         if bad:
-            self.node.stats.dropped(
-                'bad_pose', f'reposed keyframes: {bad} of {len(msg.poses)} poses unusable'
-            )
-        with self._lock:  # in the newest transform, as every pose here
-            poses = {
-                stamp: self.posings.in_latest(begins, T)
-                for stamp, T in zip(stamps.tolist(), read, strict=True)
-            }
+            self.node.stats.dropped('bad_pose', f'reposed keyframes: {bad} of {len(msg.poses)} unusable')
+        with self._lock:
+            poses = self.posings.reread_in_latest(messages.stamp_to_ns(msg.header.stamp), stamps, read)
             held = self.assembler.reread(poses)
-            self._reread.update((stamp, T) for stamp, T in poses.items() if stamp not in held)
-            for stamp in list(self._reread)[:-IN_FLIGHT]:
-                del self._reread[stamp]
+            self.posings.hold({stamp: T for stamp, T in poses.items() if stamp not in held})
         self.node.get_logger().info(
             f'adaptation: multi_view_node corrected its pose time offset: {len(held)} kept poses re-read '
             'at it'
