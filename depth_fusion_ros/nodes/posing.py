@@ -120,7 +120,6 @@ class PosingPublisher:
         self._keyframes: deque[int] = deque(maxlen=keep)
         self._offset: float | None = None  # of the posing published last
         self.published = 0
-        self.reposed = 0
 
     def keyframe(self, stamp_ns: int) -> None:
         """A keyframe was chosen (its pose is published with it)."""
@@ -148,7 +147,6 @@ class PosingPublisher:
         found = [(s, T) for s, T in zip(stamps, poses, strict=True) if T is not None]
         if found:
             self._reposed_pub.publish(reposed_msg(stamp_ns, world_frame, found, kind=kind))
-            self.reposed += len(found)
         return len(found), len(stamps)
 
 
