@@ -68,6 +68,13 @@ def test_topic_names_match_the_nodes():
     assert launcher.TOPIC_FUSED_DEPTH == '/' + fusion_node.TOPIC_FUSED_DEPTH
     assert launcher.TOPIC_FUSED_CONFIDENCE == '/' + fusion_node.TOPIC_FUSED_CONFIDENCE
     assert launcher.TOPIC_FUSED_CAMERA_INFO == '/' + fusion_node.TOPIC_FUSED_CAMERA_INFO
+    from depth_fusion_ros.nodes import posing
+    from depth_fusion_ros.nodes.graph import topics
+
+    assert set(topics.POSING_TOPICS) == {
+        '/' + t
+        for t in (posing.TOPIC_POSING_TRANSFORM, posing.TOPIC_POSING_TIME, posing.TOPIC_REPOSED_KEYFRAMES)
+    }
     for name, (_, module) in launcher.GRAPH_NODES.items():
         declared = importlib.import_module(module).NODE_NAME
         assert declared == name

@@ -424,6 +424,61 @@ def test_recorder_round_trip(context, bag, tmp_path, storage):
     assert recorder.stamp_logs[IMAGE].stamps() == [T0_NS + i * PERIOD_NS for i in range(20)]
 
 
+def _wait_for(condition, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return condition()
+
+
+def test_a_latched_topic_stays_latched_through_a_recording_and_its_replay(context, bag, tmp_path):
+    """Transient-local topics published before the recorder existed are recorded (a named one
+    and one whose publishers the recorder found latched), the bag says so, and the replay
+    publishes them latched again: a transient-local subscriber that joins after the replay has
+    played them still gets every one. A bag that recorded no QoS plays volatile, as before."""
+    from geometry_msgs.msg import TransformStamped
+    from rosbags.rosbag2 import Reader
+
+    from depth_fusion_ros.data.bag_qos import recorded_latched_depth
+    from depth_fusion_ros.nodes.qos import latched_qos
+
+    named, found = '/latched_test/named', '/latched_test/found'
+    source = rclpy.create_node(f'latched_source_{os.getpid()}', context=context)
+    pubs = {t: source.create_publisher(TransformStamped, t, latched_qos(8)) for t in (named, found)}
+    for sec in (1, 2, 3):
+        for topic, pub in pubs.items():
+            msg = TransformStamped()
+            msg.header.stamp.sec = sec
+            msg.child_frame_id = topic
+            pub.publish(msg)
+    out = tmp_path / 'latched_rec'
+    recorder = Recorder(
+        context=context,
+        output=out,
+        topics={named: 'geometry_msgs/msg/TransformStamped', found: ''},
+        latched=[named],
+    )
+    with Spinning(context, source, recorder):
+        assert _wait_for(lambda: recorder.counts[named] == 3 and recorder.counts[found] == 3)
+        assert recorder.close(success=True) == out
+    with Reader(out) as rec:
+        kept = {c.topic: recorded_latched_depth(c) for c in rec.connections}
+    assert kept == {named: 100, found: 100}  # the recorder's qos_depth
+    with Reader(bag) as plain:
+        assert {recorded_latched_depth(c) for c in plain.connections} == {0}
+
+    replayer = make_replayer(context, out, wait_for_subscribers=0)
+    with Spinning(context, replayer) as spinning:
+        replayer.start()
+        assert replayer.finished.wait(20.0) and replayer.error is None
+        assert sum(replayer.stats.published.values()) == 6  # played before anyone listened
+        late = Listener(context, {named: TransformStamped, found: TransformStamped}, latched_qos(8))
+        spinning.add(late.node)
+        assert _wait_for(lambda: len(late.got[named]) == 3 and len(late.got[found]) == 3)
+    for topic in (named, found):
+        assert [m.header.stamp.sec for _, m in late.got[topic]] == [1, 2, 3]
+
+
 def test_recorder_refuses_existing_output(context, tmp_path):
     (tmp_path / 'taken').mkdir()
     with pytest.raises(ValueError, match='already exists'):

@@ -16,6 +16,11 @@ from run_bags import header_stamps, small_bag, write_params  # noqa: E402
 
 POSE = '/depth_fusion/keyframe/pose'
 FUSED = '/depth_fusion/fused/depth'
+POSING = (
+    '/depth_fusion/posing/camera_from_pose_frame',
+    '/depth_fusion/posing/pose_time',
+    '/depth_fusion/posing/reposed_keyframes',
+)
 
 
 class _ToyDepth(torch.nn.Module):
@@ -42,6 +47,16 @@ def test_save_map_writes_the_mesh_of_every_fused_keyframe(synthetic_tum_dir, tmp
     assert map_stats.published.get('integrated') == len(result.fused)  # every fused keyframe is in the map
     # the keyframe poses the map used are recorded with the fused depth, stamp for stamp
     assert header_stamps(tmp_path / 'rec', POSE) == header_stamps(tmp_path / 'rec', FUSED)
+    # and the posing they were posed with, latched as published, so a replay latches it too
+    from rosbags.rosbag2 import Reader
+
+    from depth_fusion_ros.data.bag_qos import recorded_latched_depth
+
+    with Reader(tmp_path / 'rec') as rec:
+        latched = {c.topic: recorded_latched_depth(c) for c in rec.connections if '/posing/' in c.topic}
+    assert set(latched) == set(POSING) and all(latched.values()), latched
+    told = header_stamps(tmp_path / 'rec', POSING[0])
+    assert told and min(told) <= min(header_stamps(tmp_path / 'rec', FUSED))  # said with the first frame
 
 
 def test_no_map_written_is_an_error_not_a_success(tmp_path):

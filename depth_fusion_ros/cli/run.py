@@ -22,8 +22,10 @@ lost between processes, the camera image topics read over UDP (docs/nodes.md, "L
 images"); set FASTRTPS_DEFAULT_PROFILES_FILE yourself to use another.
 
 recorded topics (--record): /depth_fusion/fused/{depth,confidence,camera_info},
-/depth_fusion/multi_view/depth, /depth_fusion/single_view/depth, /depth_fusion/keyframe/{image,pose};
-the input bag keeps the ground truth (/camera/depth/image) to evaluate them against.
+/depth_fusion/multi_view/depth, /depth_fusion/single_view/depth, /depth_fusion/keyframe/{image,pose},
+and the posing the keyframes were posed with, /depth_fusion/posing/{camera_from_pose_frame,
+pose_time,reposed_keyframes} (recorded transient local, replayed so); the input bag keeps the
+ground truth (/camera/depth/image) to evaluate them against.
 
 --map also starts map_node (docs/mapping.md): every fused keyframe is integrated into a TSDF map,
 published on /depth_fusion/map/points; --save-map FILE.ply writes its mesh when the run ends (an

@@ -34,10 +34,12 @@ from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from ..data.bag_qos import recorded_latched_depth
 from ..data.bag_recovery import open_rosbag2, storage_file
 from .diagnostics import TOPIC_DIAGNOSTICS, replayer_array
 from .pacer import Pacer
 from .params import ParamSpec, declare_parameters
+from .qos import latched_qos
 
 NODE_NAME = 'bag_replayer'
 
@@ -383,6 +385,7 @@ class BagReplayer(Node):
             durability=DurabilityPolicy.VOLATILE,
         )
         topics: dict[str, PlayedTopic] = {}
+        latched: list[str] = []
         for conn in self._reader.connections:
             if wanted and conn.topic not in wanted:
                 continue
@@ -399,11 +402,17 @@ class BagReplayer(Node):
             played = PlayedTopic(
                 conn.topic, remaps.get(conn.topic, conn.topic), conn.msgtype, has_leading_header(conn.msgtype)
             )
-            played.publisher = self.create_publisher(msg_cls, played.out_topic, qos)
+            kept = recorded_latched_depth(conn)
+            if kept:  # offered transient local when recorded: a late subscriber still hears it
+                latched.append(played.out_topic)
+            topic_qos = latched_qos(max(kept, self.params['qos_depth'])) if kept else qos
+            played.publisher = self.create_publisher(msg_cls, played.out_topic, topic_qos)
             played.connections.append(conn)
             topics[conn.topic] = played
         if not topics:
             raise BagError(f'{NODE_NAME}: nothing to play in {self._reader.path}')
+        if latched:
+            self.get_logger().info(f'publishing {sorted(latched)} transient local, as recorded')
         return topics
 
     def _plan_times(self) -> tuple[int, int]:

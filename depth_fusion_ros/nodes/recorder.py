@@ -21,16 +21,18 @@ import sys
 import threading
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
 
+from ..data.bag_qos import latched_bag_qos
 from .bag_replayer import has_leading_header, header_stamp_ns, non_empty, ros_message_class
 from .params import ParamSpec, declare_parameters
-from .qos import QOS_CHOICES, qos_profile
+from .qos import QOS_CHOICES, latched_qos, qos_profile
 
 NODE_NAME = 'recorder'
 
@@ -45,6 +47,12 @@ RECORDER_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec('storage', 'mcap', 'rosbag2 storage of the output', choices=('mcap', 'sqlite3')),
     ParamSpec('qos', 'reliable', 'QoS of the subscriptions (must match the publishers)', choices=QOS_CHOICES),
     ParamSpec('qos_depth', 100, 'history depth of each subscription', 1, 100000),
+    ParamSpec(
+        'latched_topics',
+        [''],
+        'topics subscribed transient local and recorded so (replayed so by bag_replayer); a topic '
+        'whose type comes from the graph is latched when all its publishers are',
+    ),
 )
 
 
@@ -117,8 +125,9 @@ class BagWriterThread:
         if self.error is not None:
             raise ValueError(f'{NODE_NAME}: cannot write {path}: {self.error}') from None
 
-    def add_connection(self, topic: str, msgtype: str) -> None:
-        self._queue.put(('connection', topic, msgtype))
+    def add_connection(self, topic: str, msgtype: str, latched_depth: int = 0) -> None:
+        """A topic to write; ``latched_depth`` > 0 records it as offered transient local."""
+        self._queue.put(('connection', topic, msgtype, latched_depth))
 
     def write(self, topic: str, stamp_ns: int, raw: bytes) -> None:
         self._queue.put(('message', topic, stamp_ns, raw))
@@ -156,7 +165,10 @@ class BagWriterThread:
                     continue  # keep draining so producers never block on a dead writer
                 try:
                     if item[0] == 'connection':
-                        connections[item[1]] = writer.add_connection(item[1], item[2], typestore=typestore)
+                        qos = [latched_bag_qos(item[3])] if item[3] else []
+                        connections[item[1]] = writer.add_connection(
+                            item[1], item[2], typestore=typestore, offered_qos_profiles=qos
+                        )
                     else:
                         writer.write(connections[item[1]], item[2], item[3])
                         self.written[item[1]] += 1
@@ -173,7 +185,9 @@ class Recorder(Node):
     """Records ``topics`` to ``output`` (parameters, or the keyword arguments that override them).
 
     ``topics`` maps each topic to its type (``''``: taken from the graph once a publisher
-    exists). ``watch`` names topics whose stamps are logged like the recorded ones but whose
+    exists). ``latched`` (or the parameter ``latched_topics``) names topics whose publishers keep
+    their last messages (transient local): they are subscribed so, and the bag says so, so a
+    replay publishes them so. ``watch`` names topics whose stamps are logged like the recorded ones but whose
     messages are not written (e.g. the input images, to measure latency without storing them).
     With ``track_only`` nothing is written at all (no bag): every topic is only watched.
     """
@@ -184,6 +198,7 @@ class Recorder(Node):
         output: str | Path | None = None,
         topics: Mapping[str, str] | None = None,
         watch: Mapping[str, str] | None = None,
+        latched: Iterable[str] | None = None,
         track_only: bool = False,
         node_name: str = NODE_NAME,
         **kwargs: Any,
@@ -210,6 +225,7 @@ class Recorder(Node):
         self._lock = threading.Lock()
         self._group = MutuallyExclusiveCallbackGroup()
         self._qos = qos_profile(self.params['qos'], self.params['qos_depth'])
+        self._latched = set(latched if latched is not None else non_empty(self.params['latched_topics']))
         self._record_subs: dict[str, Any] = {}
         self._written_topics: set[str] = set()
         self._pending: dict[str, tuple[str, bool]] = {t: (m, False) for t, m in watch.items()}
@@ -251,15 +267,26 @@ class Recorder(Node):
                 if not types:
                     continue
                 msgtype = types[0]
+                if self._publishers_latched(topic):
+                    self._latched.add(topic)
             self._subscribe(topic, msgtype, write)
             del self._pending[topic]
         if not self._pending and self._discovery_timer is not None:
             self._discovery_timer.cancel()
 
+    def _publishers_latched(self, topic: str) -> bool:
+        """Every publisher of ``topic`` offers transient local, as ``ros2 bag record`` checks."""
+        infos = self.get_publishers_info_by_topic(topic)
+        return bool(infos) and all(
+            i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos
+        )
+
     def _subscribe(self, topic: str, msgtype: str, write: bool) -> None:
         msg_cls = ros_message_class(msgtype)
+        latched = topic in self._latched
+        depth = self.params['qos_depth']
         if write:
-            self._writer.add_connection(topic, msgtype)
+            self._writer.add_connection(topic, msgtype, depth if latched else 0)
             self._written_topics.add(topic)
         self.stamp_logs[topic] = StampLog()
         stampable = has_leading_header(msgtype)
@@ -267,7 +294,7 @@ class Recorder(Node):
             msg_cls,
             topic,
             lambda raw, t=topic, w=write, s=stampable: self._on_message(t, raw, w, s),
-            self._qos,
+            latched_qos(depth) if latched else self._qos,
             callback_group=self._group,
             raw=True,
         )

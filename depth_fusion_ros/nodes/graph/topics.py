@@ -17,12 +17,26 @@ TOPIC_FUSED_DEPTH = '/depth_fusion/fused/depth'
 TOPIC_FUSED_CONFIDENCE = '/depth_fusion/fused/confidence'
 TOPIC_FUSED_CAMERA_INFO = '/depth_fusion/fused/camera_info'
 TOPIC_KEYFRAME_POSE = '/depth_fusion/keyframe/pose'
+TOPIC_POSING_TRANSFORM = '/depth_fusion/posing/camera_from_pose_frame'
+TOPIC_POSING_TIME = '/depth_fusion/posing/pose_time'
+TOPIC_REPOSED_KEYFRAMES = '/depth_fusion/posing/reposed_keyframes'
 
 IMAGE = 'sensor_msgs/msg/Image'
 CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'
+TIME_REFERENCE = 'sensor_msgs/msg/TimeReference'
+PATH = 'nav_msgs/msg/Path'
 
-#: What ``--record`` writes: enough to evaluate the fused depth against the bag's ground truth.
+#: The posing multi_view_node says (nodes/posing.py): latched, so a late map_node hears it.
+POSING_TOPICS: dict[str, str] = {
+    TOPIC_POSING_TRANSFORM: TRANSFORM_STAMPED,
+    TOPIC_POSING_TIME: TIME_REFERENCE,
+    TOPIC_REPOSED_KEYFRAMES: PATH,
+}
+#: What ``--record`` writes: enough to evaluate the fused depth against the bag's ground truth,
+#: and, with the keyframe poses and the posing they were posed with, to map it again later
+#: (the posing topics recorded transient local, so a replay of the recording latches them too).
 RECORDED_TOPICS: dict[str, str] = {
     TOPIC_FUSED_DEPTH: IMAGE,
     TOPIC_FUSED_CONFIDENCE: IMAGE,
@@ -31,6 +45,7 @@ RECORDED_TOPICS: dict[str, str] = {
     TOPIC_SINGLE_DEPTH: IMAGE,
     TOPIC_KEYFRAME_IMAGE: IMAGE,
     TOPIC_KEYFRAME_POSE: POSE_STAMPED,
+    **POSING_TOPICS,
 }
 #: A keyframe is complete when all of these carry its stamp.
 FUSED_OUTPUTS = (TOPIC_FUSED_DEPTH, TOPIC_FUSED_CONFIDENCE, TOPIC_FUSED_CAMERA_INFO)
