@@ -214,18 +214,38 @@ def _header_for(header: Any, kind: MessageKind) -> Any:
 
 # --------------------------------------------------------------------------- images
 
-#: encoding -> (numpy dtype, channels)
+_U8, _U16 = np.dtype(np.uint8), np.dtype(np.uint16)
+
+#: encoding -> (numpy dtype, channels). The packed YUV 4:2:2 encodings are 2 uint8 channels per
+#: pixel (a pair of pixels shares one U and one V); Bayer mosaics are 1 channel.
 ENCODINGS: dict[str, tuple[np.dtype, int]] = {
-    'rgb8': (np.dtype(np.uint8), 3),
-    'bgr8': (np.dtype(np.uint8), 3),
-    'rgba8': (np.dtype(np.uint8), 4),
-    'bgra8': (np.dtype(np.uint8), 4),
-    'mono8': (np.dtype(np.uint8), 1),
-    '8UC1': (np.dtype(np.uint8), 1),
-    '8UC3': (np.dtype(np.uint8), 3),
-    'mono16': (np.dtype(np.uint16), 1),
-    '16UC1': (np.dtype(np.uint16), 1),
+    'rgb8': (_U8, 3),
+    'bgr8': (_U8, 3),
+    'rgba8': (_U8, 4),
+    'bgra8': (_U8, 4),
+    'mono8': (_U8, 1),
+    '8UC1': (_U8, 1),
+    '8UC3': (_U8, 3),
+    'rgb16': (_U16, 3),
+    'bgr16': (_U16, 3),
+    'rgba16': (_U16, 4),
+    'bgra16': (_U16, 4),
+    'mono16': (_U16, 1),
+    '16UC1': (_U16, 1),
     '32FC1': (np.dtype(np.float32), 1),
+    # packed YUV 4:2:2: ROS 2 Jazzy's names (uyvy, yuyv) and the deprecated ones cameras still use
+    'uyvy': (_U8, 2),
+    'yuv422': (_U8, 2),
+    'yuyv': (_U8, 2),
+    'yuv422_yuy2': (_U8, 2),
+    'bayer_rggb8': (_U8, 1),
+    'bayer_bggr8': (_U8, 1),
+    'bayer_gbrg8': (_U8, 1),
+    'bayer_grbg8': (_U8, 1),
+    'bayer_rggb16': (_U16, 1),
+    'bayer_bggr16': (_U16, 1),
+    'bayer_gbrg16': (_U16, 1),
+    'bayer_grbg16': (_U16, 1),
 }
 
 
@@ -269,29 +289,72 @@ def image_to_numpy(msg: Any) -> np.ndarray:
     return arr
 
 
-#: OpenCV conversions to RGB of the colour encodings that are not RGB already.
-_TO_RGB = {
+#: ``cv2.cvtColor`` code to RGB of every colour encoding (``None``: the samples are RGB already).
+#: A 16-bit encoding uses the code of its 8-bit twin after ``>> 8``.
+#: yuv422 is ROS's name for UYVY (bytes U Y0 V Y1), yuv422_yuy2 for YUYV (Y0 U Y1 V); OpenCV
+#: decodes both as BT.601 limited range (Y 16..235), as the V4L2 drivers produce them.
+#: ROS names a Bayer pattern by its first 2x2 block (bayer_rggb8: R at row 0, column 0), OpenCV
+#: by the block starting at the second row and column, so bayer_rggb8 is ``BayerBG`` (as in
+#: cv_bridge; test_camera_encodings checks every pattern on a mosaic of known colours).
+_TO_RGB: dict[str, int | None] = {
+    'rgb8': None,
+    '8UC3': None,
+    'rgb16': None,
     'bgr8': cv2.COLOR_BGR2RGB,
+    'bgr16': cv2.COLOR_BGR2RGB,
     'rgba8': cv2.COLOR_RGBA2RGB,
+    'rgba16': cv2.COLOR_RGBA2RGB,
     'bgra8': cv2.COLOR_BGRA2RGB,
+    'bgra16': cv2.COLOR_BGRA2RGB,
     'mono8': cv2.COLOR_GRAY2RGB,
     '8UC1': cv2.COLOR_GRAY2RGB,
+    'mono16': cv2.COLOR_GRAY2RGB,
+    'uyvy': cv2.COLOR_YUV2RGB_UYVY,
+    'yuv422': cv2.COLOR_YUV2RGB_UYVY,
+    'yuyv': cv2.COLOR_YUV2RGB_YUY2,
+    'yuv422_yuy2': cv2.COLOR_YUV2RGB_YUY2,
+    'bayer_rggb8': cv2.COLOR_BayerBG2RGB,
+    'bayer_rggb16': cv2.COLOR_BayerBG2RGB,
+    'bayer_bggr8': cv2.COLOR_BayerRG2RGB,
+    'bayer_bggr16': cv2.COLOR_BayerRG2RGB,
+    'bayer_gbrg8': cv2.COLOR_BayerGR2RGB,
+    'bayer_gbrg16': cv2.COLOR_BayerGR2RGB,
+    'bayer_grbg8': cv2.COLOR_BayerGB2RGB,
+    'bayer_grbg16': cv2.COLOR_BayerGB2RGB,
 }
+
+#: The colour encodings ``image_to_rgb`` accepts.
+COLOUR_ENCODINGS = tuple(_TO_RGB)
+
+_PACKED_YUV = frozenset(('uyvy', 'yuv422', 'yuyv', 'yuv422_yuy2'))
 
 
 def image_to_rgb(msg: Any) -> np.ndarray:
-    """An ``HxWx3 uint8`` RGB image from rgb8/bgr8/rgba8/bgra8/mono8 (contiguous copy)."""
-    arr = image_to_numpy(msg)
+    """An ``HxWx3 uint8`` RGB image of any encoding in ``COLOUR_ENCODINGS`` (contiguous copy).
+
+    Grey is repeated into three channels and alpha dropped. Packed YUV 4:2:2 (uyvy/yuv422,
+    yuyv/yuv422_yuy2) is converted from BT.601 limited range and needs an even width; Bayer
+    mosaics are demosaiced bilinearly. 16-bit encodings (rgb16, bgr16, rgba16, bgra16, mono16,
+    bayer_*16, either byte order) keep their high byte: ``v >> 8``, truncating, so 8-bit values
+    scaled by 257 come back exactly; a camera that puts 10 or 12 bits in the low bits of a
+    16-bit word comes out dark.
+    """
     enc = msg.encoding
-    if enc in ('rgb8', '8UC3'):
-        return np.ascontiguousarray(arr)
+    if enc in _PACKED_YUV and int(msg.width) % 2:
+        raise ValueError(f'{enc} packs pixels in pairs: the width must be even, got {int(msg.width)}')
+    arr = image_to_numpy(msg)
     if enc not in _TO_RGB:
         raise ValueError(f'cannot make an RGB image from encoding {enc!r}')
+    if arr.dtype == np.uint16:
+        arr = (arr >> 8).astype(np.uint8)
+    code = _TO_RGB[enc]
+    if code is None:
+        return np.ascontiguousarray(arr)
     if arr.size == 0:
         return np.zeros((*arr.shape[:2], 3), dtype=np.uint8)
     # OpenCV's channel swap, not a numpy copy through a reversed stride: the same bytes,
     # 0.2 ms instead of 12.5 ms for a 1296x972 bgr8 image (a 30 Hz camera's callback budget).
-    return cv2.cvtColor(np.ascontiguousarray(arr), _TO_RGB[enc])
+    return cv2.cvtColor(np.ascontiguousarray(arr), code)
 
 
 def image_to_depth(msg: Any) -> np.ndarray:

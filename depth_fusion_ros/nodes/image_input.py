@@ -22,8 +22,11 @@ from ..data.undistort import CameraCalibration, Undistorter, check_distortion
 from ..geometry import PoseError
 from .params import ParamSpec
 
-#: Encodings ``messages.image_to_rgb`` turns into RGB.
-COLOUR_ENCODINGS = ('rgb8', 'bgr8', 'rgba8', 'bgra8', 'mono8', '8UC1', '8UC3')
+#: Encodings ``messages.image_to_rgb`` turns into RGB: rgb8, bgr8, rgba8, bgra8, mono8, 8UC1, 8UC3,
+#: the 16-bit rgb16, bgr16, rgba16, bgra16, mono16, packed YUV 4:2:2 (uyvy/yuv422, yuyv/yuv422_yuy2)
+#: and Bayer bayer_*8/16, what USB (usb_cam, v4l2_camera) and industrial (Spinnaker, Arena, pylon)
+#: camera drivers publish.
+COLOUR_ENCODINGS = messages.COLOUR_ENCODINGS
 
 
 class InputError(ValueError):
