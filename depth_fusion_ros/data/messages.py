@@ -33,6 +33,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..geometry import PoseError, pose_to_tq, quat_to_matrix, validate_pose
+from .camera_info_geometry import ImageWindow
 from .undistort import CameraCalibration
 
 NS_PER_SEC = 1_000_000_000
@@ -428,10 +429,57 @@ def _field(msg: Any, name: str) -> Any:
     return getattr(msg, name.upper())
 
 
-def camera_info_to_calibration(msg: Any) -> CameraCalibration:
-    """``CameraCalibration`` (K at the raw size, distortion model, D) of a ``CameraInfo``."""
+def _field_or(msg: Any, name: str, default: Any) -> Any:
+    """``_field(msg, name)``, or ``default`` where the message has no such field."""
+    try:
+        return _field(msg, name)
+    except AttributeError:
+        return default
+
+
+def camera_info_window(msg: Any) -> ImageWindow:
+    """The ROI and binning of a ``CameraInfo`` (REP 104), checked against its sensor size.
+
+    ROS 1 and ROS 2 both spell ``binning_x``, ``binning_y`` and ``roi`` in lower case; a message
+    without them (a hand-built stand-in) is the full sensor, unbinned.
+    """
+    roi = _field_or(msg, 'roi', None)
+    return ImageWindow.of(
+        int(msg.width),
+        int(msg.height),
+        binning_x=_field_or(msg, 'binning_x', 0),
+        binning_y=_field_or(msg, 'binning_y', 0),
+        x_offset=_field_or(roi, 'x_offset', 0),
+        y_offset=_field_or(roi, 'y_offset', 0),
+        roi_width=_field_or(roi, 'width', 0),
+        roi_height=_field_or(roi, 'height', 0),
+    )
+
+
+def camera_info_to_calibration(msg: Any, *, rectified: bool = False) -> CameraCalibration:
+    """``CameraCalibration`` (K at the size of the published image, distortion model, D) of a
+    ``CameraInfo``.
+
+    Binning and the region of interest are applied as REP 104 / image_geometry do
+    (``camera_info_geometry``): the camera is that of the ROI, binned, and D is unchanged.
+    ``rectified=True`` reads an image that is already rectified (image_proc's ``image_rect``,
+    published with the raw image's camera_info): the intrinsics are P's ``fx = P[0]``,
+    ``fy = P[5]``, ``cx = P[2]``, ``cy = P[6]`` (binning and ROI applied the same way) and there is
+    no distortion (``plumb_bob``, ``D = ()``); K and D are not used.
+    """
     width, height = int(msg.width), int(msg.height)
-    K = np.asarray(_field(msg, 'k'), dtype=np.float64)
+    if rectified:
+        P = np.asarray(_field(msg, 'p'), dtype=np.float64).ravel()
+        if P.size != 12:
+            raise ValueError(f'CameraInfo P has {P.size} values, expected 12')
+        if width <= 0 or height <= 0 or not np.all(np.isfinite(P)) or P[0] <= 0 or P[5] <= 0:
+            raise ValueError(
+                f'CameraInfo P is not set (size {width}x{height}, P = {P.tolist()}): '
+                'a rectified image needs the rectified intrinsics in P'
+            )
+        camera = camera_info_window(msg).camera(P[0], P[5], P[2], P[6])
+        return CameraCalibration(camera, 'plumb_bob', ())
+    K = np.asarray(_field(msg, 'k'), dtype=np.float64).ravel()
     if K.size != 9:
         raise ValueError(f'CameraInfo K has {K.size} values, expected 9')
     if width <= 0 or height <= 0 or not np.all(np.isfinite(K)) or K[0] <= 0 or K[4] <= 0:
@@ -440,7 +488,8 @@ def camera_info_to_calibration(msg: Any) -> CameraCalibration:
             'set the intrinsics parameter or publish a calibrated camera_info'
         )
     D = tuple(np.asarray(_field(msg, 'd'), dtype=np.float64).ravel().tolist())
-    return CameraCalibration(PinholeCamera.from_K(K, width, height), str(msg.distortion_model), D)
+    camera = camera_info_window(msg).camera(K[0], K[4], K[2], K[5])
+    return CameraCalibration(camera, str(msg.distortion_model), D)
 
 
 def camera_info_msg(

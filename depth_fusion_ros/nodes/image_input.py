@@ -127,9 +127,9 @@ def calibration_from_parameters(intrinsics: list[float], distortion: list[float]
 
 
 def working_grid_parameters(note: str = '') -> tuple[ParamSpec, ...]:
-    """``width``, ``height``, ``camera_intrinsics``, ``camera_distortion``: the working grid and
-    the fallback calibration of every node that reads camera images (``note`` is appended to
-    the calibration descriptions)."""
+    """``width``, ``height``, ``camera_intrinsics``, ``camera_distortion``, ``camera_rectified``:
+    the working grid, the fallback calibration and how camera_info is read, for every node that
+    reads camera images (``note`` is appended to the calibration descriptions)."""
     return (
         ParamSpec(
             'width', 320, 'working grid width (pixels): images are undistorted and resized to it', 16, 4096
@@ -148,6 +148,13 @@ def working_grid_parameters(note: str = '') -> tuple[ParamSpec, ...]:
             f'plumb_bob k1, k2, p1, p2, k3 for camera_intrinsics{note}',
             length=5,
         ),
+        ParamSpec(
+            'camera_rectified',
+            False,
+            "the camera images are already rectified (image_proc's image_rect topics): intrinsics "
+            "from camera_info's P, its distortion ignored; false: raw images, undistorted with K "
+            f'and D{note}',
+        ),
     )
 
 
@@ -158,6 +165,10 @@ class CameraInput:
     replace CameraInfo for sources that publish none. With ``rectified=True`` the images are
     already undistorted (e.g. the keyframe topic), so a CameraInfo is not needed: the image is
     only resized to the working grid if its size differs.
+
+    ``camera_rectified=True`` is another thing: the images are image_proc's ``image_rect``, and
+    their CameraInfo (the raw camera's, D non-zero) is read with
+    ``camera_info_to_calibration(..., rectified=True)``: intrinsics from P, no undistortion.
     """
 
     def __init__(
@@ -168,10 +179,12 @@ class CameraInput:
         rectified: bool = False,
         fixed_intrinsics: tuple[float, ...] | None = None,
         fixed_distortion: tuple[float, ...] = (),
+        camera_rectified: bool = False,
     ) -> None:
         self.width = int(width)
         self.height = int(height)
         self.rectified = rectified
+        self.camera_rectified = bool(camera_rectified)
         self.fixed_intrinsics = fixed_intrinsics
         self.fixed_distortion = tuple(fixed_distortion)
         self.calibration: CameraCalibration | None = None
@@ -187,12 +200,13 @@ class CameraInput:
                 params['camera_intrinsics'], params['camera_distortion']
             ),
             fixed_distortion=tuple(params['camera_distortion']),
+            camera_rectified=bool(params.get('camera_rectified', False)),
         )
 
     def update(self, info_msg: Any) -> None:
         """Take a CameraInfo (raises ``InputError('bad_camera_info')`` if it is unusable)."""
         try:
-            calib = messages.camera_info_to_calibration(info_msg)
+            calib = messages.camera_info_to_calibration(info_msg, rectified=self.camera_rectified)
             check_distortion(calib.distortion_model, calib.D)
         except ValueError as exc:
             raise InputError('bad_camera_info', f'camera_info: {exc}') from None
