@@ -100,6 +100,46 @@ def test_a_keyframe_pose_jump_is_noted_and_clears_the_map_when_asked(room, clear
         assert node.integrated == 0 and node.extract()[0].is_empty
 
 
+def test_a_young_map_follows_the_pose_sources_frame_and_an_established_one_keeps_its_own(room):
+    """One stray keyframe posed in 'map' must not lock the map out of the pose source's frame
+    for good: after three keyframes in a row posed in 'world', the young map starts over there
+    (noted ``world_frame_changed``). A map of three keyframes keeps its frame: keyframes posed
+    in another are dropped (``frame_mismatch``) however many come, and after ~/clear_map the
+    next keyframe sets the frame again."""
+    _, seq = room
+    with RosHarness() as ros:
+        node = map_node(ros, points_rate=0.0, **{'map.consistency_span': 0})
+        inputs = MapInputs(ros)
+
+        def send(k: int, frame: str) -> None:
+            stamp = T0 + k * 100_000_000
+            pose = m.pose_stamped_msg(seq.frames[k].pose, m.header_msg(stamp, frame, kind=K), kind=K)
+            inputs.keyframe(seq, k, stamp, pose=pose)
+
+        def settled(integrated: int, mismatched: int) -> bool:
+            snap = node.stats.snapshot()
+            done = node.integrated == integrated and snap.dropped.get('frame_mismatch', 0) == mismatched
+            return done and node.worker.idle()
+
+        send(0, 'map')  # a stray pose in another node's frame comes first
+        assert ros.wait_for(lambda: settled(1, 0), 30.0), node.stats.snapshot().summary()
+        for k in range(1, 6):
+            send(k, 'world')
+        assert ros.wait_for(lambda: settled(3, 2), 30.0), node.stats.snapshot().summary()
+        assert node.stats.snapshot().noted.get('world_frame_changed') == 1
+        assert node.extract()[1] == 'world'
+
+        for k in range(6, 10):  # an established map: another frame is refused, however long
+            send(k, 'odom')
+        assert ros.wait_for(lambda: settled(3, 6), 30.0), node.stats.snapshot().summary()
+        assert node.stats.snapshot().noted.get('world_frame_changed') == 1 and node.extract()[1] == 'world'
+        cleared = call(ros, '/map_node/clear_map')
+        assert cleared.success and '3 keyframes' in cleared.message
+        send(10, 'odom')
+        assert ros.wait_for(lambda: settled(1, 6), 30.0), node.stats.snapshot().summary()
+        assert node.extract()[1] == 'odom'
+
+
 def test_bad_parameters_fail_at_start():
     with RosHarness() as ros:
         with pytest.raises(ValueError, match='save_path'):

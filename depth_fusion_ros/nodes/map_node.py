@@ -136,6 +136,10 @@ PARAMETERS: tuple[ParamSpec, ...] = (
 )
 
 
+#: Keyframes in a row posed in another frame after which a young map follows it (:meth:`MapNode._frame_fits`).
+FRAME_SWITCH_KEYFRAMES = 3
+
+
 def _writable(folder: Path) -> bool:
     """Whether ``folder`` exists as a writable directory or could be made (its nearest existing
     ancestor is a writable directory)."""
@@ -178,6 +182,9 @@ class MapNode(DepthFusionNode):
         self._lock = threading.Lock()
         self._dirty = False
         self._world_frame = ''
+        #: another frame keyframes came in, and how many in a row (:meth:`_frame_fits`)
+        self._other_frame = ('', 0)
+        self._loaded = False
         self.map_file = Path(str(p['map_file'])) if str(p['map_file']) else None
         self._load_map_file()
         self._integrated = 0
@@ -314,15 +321,11 @@ class MapNode(DepthFusionNode):
         if rgb is not None and rgb.shape[:2] != shape:
             rgb = None
         with self._lock:
-            if self._world_frame and frame_id and frame_id != self._world_frame:
-                self.stats.dropped(
-                    'frame_mismatch',
-                    f'keyframe {stamp:.3f}: pose in {frame_id!r}, map in {self._world_frame!r}',
-                )
+            if not self._frame_fits(frame_id, stamp):
                 return
-            self._world_frame = self._world_frame or frame_id or 'world'
             T_wc = self.corrector.posings.arriving(pairing.stamp_ns, T_wc)  # posed before a posing change
-            self._check_pose_jump(stamp, T_wc)
+            self._check_pose_jump(stamp, T_wc)  # (a clear there forgets the frame: this one sets it)
+            self._world_frame = self._world_frame or frame_id or 'world'
             self.corrector.note_segment(stamp)
             before = (self.map.evicted_blocks, self.map.lost_blocks, self.map.skipped_blocks)
             self.map.integrate(depth, T_wc, camera, confidence=confidence, rgb=rgb, key=stamp)
@@ -331,6 +334,44 @@ class MapNode(DepthFusionNode):
             self._integrated += 1
         self.stats.published('integrated')
         self.stats.processed(time.monotonic() - pairing.first_seen)
+
+    def _frame_fits(self, frame_id: str, stamp: float) -> bool:
+        """Whether a keyframe posed in ``frame_id`` goes into this map (holding ``_lock``).
+
+        One map is in one world frame, set by its first keyframe; a keyframe posed in another
+        is dropped (``frame_mismatch``). Why a young map follows instead: its frame was set by
+        its first keyframe alone, and one stray pose (another node's frame, a SLAM that
+        restarted under another name) would otherwise lock the map out of the pose source's
+        real frame for good. So a map of fewer than :data:`FRAME_SWITCH_KEYFRAMES` keyframes,
+        none loaded from ``map_file``, starts over in the other frame once that many keyframes in
+        a row are posed in it (noted ``world_frame_changed``). An established or loaded map is
+        never cleared for it: its keyframes stay dropped, and ~/clear_map starts a new map."""
+        if not self._world_frame or not frame_id or frame_id == self._world_frame:
+            self._other_frame = ('', 0)
+            return True
+        name, count = self._other_frame
+        count = count + 1 if name == frame_id else 1
+        self._other_frame = (frame_id, count)
+        young = self._integrated < FRAME_SWITCH_KEYFRAMES and not self._loaded
+        if young and count >= FRAME_SWITCH_KEYFRAMES:
+            old, dropped = self._world_frame, self._clear()
+            self.stats.noted(
+                'world_frame_changed',
+                f'{count} keyframes in a row posed in {frame_id!r}, the map of {dropped} keyframes in '
+                f'{old!r}: the map starts over in {frame_id!r}',
+            )
+            self._other_frame = ('', 0)
+            return True
+        what = (
+            f'it follows after {FRAME_SWITCH_KEYFRAMES} in a row'
+            if young
+            else '~/clear_map starts a map in the new frame'
+        )
+        self.stats.dropped(
+            'frame_mismatch',
+            f'keyframe {stamp:.3f}: pose in {frame_id!r}, map in {self._world_frame!r} ({what})',
+        )
+        return False
 
     def _note_evictions(self, evicted: int, lost: int, skipped: int) -> None:
         """Say when the map evicted blocks (to the archive) and when some were lost (no archive,
@@ -376,6 +417,7 @@ class MapNode(DepthFusionNode):
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
         self._world_frame = loaded.world_frame
+        self._loaded = True
         self.corrector.base = loaded.base
         self._dirty = True
         frame = self._world_frame or '?'
@@ -434,6 +476,8 @@ class MapNode(DepthFusionNode):
         self.corrector.clear()
         self.corrector.base = None
         self._integrated = 0
+        self._world_frame = ''  # the next keyframe's frame: a cleared map may start in another
+        self._loaded = False
         self._dirty = True
         return dropped
 
