@@ -401,3 +401,61 @@ def test_single_view_node_survives_a_barrage_and_then_predicts(tmp_path):
             node.stats.snapshot().summary()
         )
         _survived(ros, node, 'valid keyframe')
+
+
+def test_multi_view_node_survives_broken_compressed_images_and_then_maps(synthetic_sequence):
+    """image_transport's compressed topic: random bytes, truncated JPEGs, a 16-bit PNG, a
+    ``compressedDepth`` format, a camera 2x larger than its camera_info, then a valid stream."""
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    from depth_fusion_ros.data.compressed import compressed_image_msg, encode_compressed
+    from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
+
+    seq = synthetic_sequence
+    fuzz = Fuzzer(15)
+    with RosHarness() as ros:
+        filter_params = {'filter.max_lag_frames': 0, 'filter.max_update_rate': 0.0}
+        node = _node(
+            ros, MultiViewNode, width=160, height=120, keyframe_every=3, queue_size=16, qos_depth=1000,
+            camera_info_wait=0.0, image_transport='compressed', **filter_params,
+        )  # fmt: skip
+        depth_out = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        image = ros.publisher(CompressedImage, '/camera/rgb/image_color/compressed', _deep())
+        info = ros.publisher(CameraInfo, '/camera/rgb/camera_info', _deep())
+        pose = ros.publisher(PoseStamped, '/camera/pose', _deep())
+        assert ros.wait_for_subscribers([image, info, pose])
+        rgb = seq.frames[0].rgb
+        jpeg = encode_compressed(rgb, 'jpeg')
+        png16 = cv2.imencode('.png', np.full((8, 8), 40000, np.uint16))[1].tobytes()
+        big = encode_compressed(np.ascontiguousarray(np.repeat(np.repeat(rgb, 2, 0), 2, 1)), 'jpeg')
+        for _ in range(60):
+            stamp = fuzz.stamp_ns()
+            header = m.header_msg(stamp, FRAME, kind=K)
+            info.publish(m.camera_info_msg(seq.camera, header, kind=K))
+            pose.publish(m.pose_stamped_msg(seq.poses[0], m.header_msg(stamp, 'world', kind=K), kind=K))
+            data, fmt = fuzz.pick(
+                (
+                    (fuzz.rng.integers(0, 256, 500, dtype=np.uint8).tobytes(), 'rgb8; jpeg compressed bgr8'),
+                    (jpeg[: int(fuzz.rng.integers(0, len(jpeg)))], 'rgb8; jpeg compressed bgr8'),
+                    (png16, 'mono16; png compressed mono16'),
+                    (jpeg, '32FC1; compressedDepth png'),
+                    (big, 'rgb8; jpeg compressed bgr8'),
+                    (b'', ''),
+                )
+            )
+            image.publish(CompressedImage(header=header, format=fmt, data=data))
+        dropped = _survived(ros, node, 'barrage')
+        assert sum(dropped.values()) >= 50, dropped
+
+        start = VALID_FROM_S * 10**9
+        for i, frame in enumerate(seq.frames):
+            stamp = start + round(i * 1e9 / 30)
+            header = m.header_msg(stamp, FRAME, kind=K)
+            info.publish(m.camera_info_msg(seq.camera, header, kind=K))
+            image.publish(compressed_image_msg(frame.rgb, header, kind=K, fmt='png'))
+            pose.publish(m.pose_stamped_msg(seq.poses[i], m.header_msg(stamp, 'world', kind=K), kind=K))
+        assert ros.wait_for(lambda: any(m.stamp_to_ns(d.header.stamp) >= start for d in depth_out), 120.0), (
+            node.stats.snapshot().summary()
+        )
+        _survived(ros, node, 'valid stream')
