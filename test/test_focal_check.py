@@ -51,6 +51,23 @@ def test_the_right_focal_length_is_not_flagged():
     assert abs(estimate.scale - 1) < 0.04 and 'agrees' in estimate.message()
 
 
+def test_a_fit_off_by_more_than_the_threshold_but_not_surely_is_suspect_not_agreement():
+    """-6.7 % +- 1.4 % (a camera_info 10 % long read through the graph, seed 23) is not
+    "agrees": it is said as suspect, with both focal lengths, and nothing is corrected; the
+    recording check exits 5 for it."""
+    from depth_fusion_ros.camera import PinholeCamera
+    from depth_fusion_ros.cli.recordings import verdict_status
+
+    check = FocalCheck(PinholeCamera(320, 240, 288.8, 288.8, 159.5, 119.5), FocalCheckConfig())
+    verdicts = {s: check._verdict(s, e).verdict for s, e in ((0.933, 0.014), (1.03, 0.008), (0.90, 0.01))}
+    assert verdicts == {0.933: 'suspect', 1.03: 'consistent', 0.90: 'disagrees'}
+    suspect = check._verdict(0.933, 0.014)
+    message = suspect.message()
+    assert 'camera_info says fx 288.8 px' in message and 'fx 269.5 px best' in message
+    assert 'kept' in message and 'check the calibration' in message and 'agrees' not in message
+    assert verdict_status('check-focal', 'seq', suspect, 12, FocalCheckConfig(), 100) == 5
+
+
 def test_noisy_poses_do_not_fake_a_disagreement():
     """4 mm and 0.25 deg of pose noise per frame: every match of a pair moves with its pose
     error, so the pairs disagree with each other, not with the focal length."""

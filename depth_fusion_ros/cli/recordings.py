@@ -56,7 +56,8 @@ def load_recording(args: argparse.Namespace):
 
 def verdict_status(command: str, source: str, estimate: Any, pairs: int, config: Any, frames: int) -> int:
     """Print a check's verdict and return its exit status: 0 consistent, 3 disagrees, 4 cannot
-    tell (not finished: said on stderr, with how far it got; or unobservable)."""
+    tell (not finished: said on stderr, with how far it got; or unobservable), 5 suspect (the
+    focal check: off by its fit, not surely)."""
     if estimate is None:
         apart = f'{config.min_baseline:g} m or {config.min_rotation_deg:g} deg apart'
         print(
@@ -66,7 +67,7 @@ def verdict_status(command: str, source: str, estimate: Any, pairs: int, config:
         )
         return 4
     print(f'{source}: {estimate.message()}')
-    return {'consistent': 0, 'disagrees': 3}.get(estimate.verdict, 4)
+    return {'consistent': 0, 'disagrees': 3, 'suspect': 5}.get(estimate.verdict, 4)
 
 
 def run_paired_check(args: Any, command: str, config_type: type, check_frames: Any) -> int:

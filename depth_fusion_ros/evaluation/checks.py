@@ -37,6 +37,6 @@ def run_check(
             config.pairs,
         )
         return config, None
-    level = logging.WARNING if estimate.verdict == 'disagrees' else logging.INFO
+    level = logging.WARNING if estimate.verdict in ('disagrees', 'suspect') else logging.INFO
     log.log(level, '%s: %s', sequence.name, estimate.message())
     return config, estimate

@@ -36,7 +36,7 @@ from .paired_check import PairedCheck, feed
 log = logging.getLogger(__name__)
 
 FOCAL_CHECK_MODES = CHECK_MODES
-VERDICTS = ('consistent', 'disagrees', 'unobservable')
+VERDICTS = ('consistent', 'suspect', 'disagrees', 'unobservable')
 
 #: The focal scales a fit may reach (a focal length half or twice the told one).
 _SCALE_BOUNDS = (0.5, 2.0)
@@ -57,7 +57,8 @@ class FocalCheckConfig:
     #: Pairs of images the estimate uses (the check ends there, once)
     pairs: int = 12
     #: A disagreement counts when |log(fitted / told focal length)| less twice its standard
-    #: error is at least this (0.05: surely more than 5 % off)
+    #: error is at least this (0.05: surely more than 5 % off); a fit this far off but not
+    #: surely is ``suspect``: warned, not corrected
     threshold: float = 0.05
     #: Standard error of the fitted scale above which the motion and the poses do not constrain
     #: it (the spread of the pairs' own fits, as a standard error of their median)
@@ -103,6 +104,12 @@ class FocalEstimate:
         if self.verdict == 'disagrees':
             told = f'camera_info says fx {self.told_fx:.1f} px'
             return f'focal length check: {told}, but {fit}: check the calibration'
+        if self.verdict == 'suspect':
+            return (
+                f'focal length check: camera_info says fx {self.told_fx:.1f} px, but {fit}: more than '
+                f'{abs(math.log(self.scale)):.0%} off by the fit, not surely more than the threshold: '
+                f'fx {self.told_fx:.1f} px kept; check the calibration'
+            )
         if self.verdict == 'unobservable':
             return (
                 f'focal length check: the motion and poses do not pin the focal length down '
@@ -187,6 +194,8 @@ class FocalCheck(PairedCheck):
             verdict = 'unobservable'
         elif abs(math.log(scale)) - 2.0 * stderr / scale >= self.config.threshold:
             verdict = 'disagrees'
+        elif abs(math.log(scale)) >= self.config.threshold:
+            verdict = 'suspect'  # off by the fit, within its error of the threshold: said, not taken
         else:
             verdict = 'consistent'
         matches = sum(len(p.p1) for p in self.pairs)

@@ -721,6 +721,9 @@ class MultiViewNode(DepthFusionNode):
     def _on_focal_estimate(self, camera: PinholeCamera, estimate: FocalEstimate) -> None:
         """The focal check's result for ``camera`` (its thread), said once; ``_on_posed_frame``
         takes the corrected camera from the runner (``camera_for``)."""
+        if estimate.verdict == 'suspect':  # warned once, not taken: the fit is not sure enough
+            self.stats.noted('focal_suspect', f'{estimate.message()} ({camera.width}x{camera.height})')
+            return
         if estimate.verdict != 'disagrees':
             self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
             return
