@@ -109,7 +109,7 @@ class MountEstimate:
     observed: int  # directions with a standard error within max_stderr_deg
     pairs: int
     matches: int
-    verdict: str  # 'consistent', 'disagrees' or 'unobservable'
+    verdict: str  # 'consistent', 'suspect', 'disagrees' or 'unobservable'
 
     @property
     def angle_deg(self) -> float:
@@ -134,6 +134,12 @@ class MountEstimate:
                 f'mount check: the images and poses fit the camera turned {self.angle_deg:.2f} deg '
                 f'from the told optical frame (rotation vector [{rv}] deg in the camera frame; {fit}): '
                 'check camera_from_pose_frame (or the principal point)'
+            )
+        if self.verdict == 'suspect':
+            return (
+                f'mount check: the images and poses fit the camera turned {self.angle_deg:.2f} deg from '
+                f'the told optical frame (rotation vector [{rv}] deg in the camera frame; {fit}), not '
+                'surely: optical frame kept; check camera_from_pose_frame'
             )
         if self.verdict == 'unobservable':
             return (
@@ -285,6 +291,8 @@ class MountCheck(PairedCheck):
             verdict = 'unobservable'
         elif (margin[kept] >= math.radians(c.threshold_deg)).any():
             verdict = 'disagrees'
+        elif (np.abs(components[kept]) >= math.radians(c.threshold_deg)).any():
+            verdict = 'suspect'  # turned by the fit, within its error of the threshold: said, not taken
         else:
             verdict = 'consistent'
         estimate = MountEstimate(

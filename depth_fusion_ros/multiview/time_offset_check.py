@@ -99,7 +99,7 @@ class TimeOffsetEstimate:
     stderr: float
     pairs: int
     matches: int
-    verdict: str  # consistent | disagrees | unobservable
+    verdict: str  # consistent | suspect | disagrees | unobservable
     #: The offset the poses were read with (``pose_time_offset``)
     told: float = 0.0
     #: How much the pairs' mean cost rises 20 ms either side of the estimate (see estimate_offset)
@@ -120,6 +120,11 @@ class TimeOffsetEstimate:
             return (
                 f'time offset check: {fit}: camera and pose source are out of sync; '
                 f'pose_time_offset {self.fitted:.3f} fits them ({self.told:.3f} now)'
+            )
+        if self.verdict == 'suspect':
+            return (
+                f'time offset check: {fit}: off by the fit, not surely: pose_time_offset {self.told:.3f} '
+                f'kept ({self.fitted:.3f} would fit best); check the clocks'
             )
         if self.verdict == 'unobservable':
             return (
@@ -288,6 +293,8 @@ class TimeOffsetCheck:
             verdict = 'unobservable'
         elif abs(offset) - 2.0 * stderr >= self.config.threshold:
             verdict = 'disagrees'
+        elif abs(offset) >= self.config.threshold:
+            verdict = 'suspect'  # off by the fit, within its error of the threshold: said, not taken
         else:
             verdict = 'consistent'
         matches = sum(m for _, m in self.curves)

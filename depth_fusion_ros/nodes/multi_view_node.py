@@ -766,7 +766,9 @@ class MultiViewNode(DepthFusionNode):
     def _on_time_offset_estimate(self, camera: PinholeCamera, estimate: TimeOffsetEstimate) -> None:
         """The time offset check's result (its thread), said once; in correct mode the callbacks
         take the correction (``_take_offset_correction``) and say it then."""
-        if estimate.verdict != 'disagrees':
+        if estimate.verdict == 'suspect':  # warned once, not taken
+            self.stats.noted('time_offset_suspect', estimate.message())
+        elif estimate.verdict != 'disagrees':
             self.get_logger().info(estimate.message())
         elif self.time_offset_check.config.mode != 'correct':
             self.stats.noted(
@@ -800,7 +802,9 @@ class MultiViewNode(DepthFusionNode):
     def _on_mount_estimate(self, camera: PinholeCamera, estimate: MountEstimate) -> None:
         """The mount check's result (its thread), said once; in correct mode the callbacks take
         the turn (``_take_mount_correction``) and say it then."""
-        if estimate.verdict != 'disagrees':
+        if estimate.verdict == 'suspect':  # warned once, not taken
+            self.stats.noted('mount_suspect', estimate.message())
+        elif estimate.verdict != 'disagrees':
             self.get_logger().info(estimate.message())
         elif self.mount_check.config.mode != 'correct':
             self.stats.noted(
