@@ -9,27 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from rosbags.typesys import Stores, get_typestore
+from message_kinds import KIND_IDS, KINDS, TYPESTORE
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.nodes.image_input import COLOUR_ENCODINGS, InputError, decode_colour
-
-TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-
-
-def _kinds() -> list:
-    kinds = [TYPESTORE]
-    try:
-        import rclpy  # noqa: F401
-
-        kinds.append(m.RCLPY)
-    except ImportError:  # pragma: no cover - the venv has rclpy; rosbags-only installs do not
-        pass
-    return kinds
-
-
-KINDS = _kinds()
-KIND_IDS = ['rosbags' if k is TYPESTORE else 'rclpy' for k in KINDS]
 
 H, W = 24, 32
 FLAT = (200, 100, 30)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from message_kinds import KIND_IDS, KINDS, TYPESTORE
 from rosbags.typesys import Stores, get_typestore
 
 from depth_fusion_ros.camera import PinholeCamera
@@ -11,24 +12,8 @@ from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.undistort import CameraCalibration
 from depth_fusion_ros.geometry import PoseError, make_pose
 
-TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ROS1_TYPESTORE = get_typestore(Stores.ROS1_NOETIC)
 STAMP_NS = 1_305_031_102_175_304_123
-
-
-def _kinds() -> list:
-    kinds = [TYPESTORE]
-    try:
-        import rclpy  # noqa: F401
-
-        kinds.append(m.RCLPY)
-    except ImportError:  # pragma: no cover - the venv has rclpy; rosbags-only installs do not
-        pass
-    return kinds
-
-
-KINDS = _kinds()
-KIND_IDS = ['rosbags' if k is TYPESTORE else 'rclpy' for k in KINDS]
 
 
 def _sample(encoding: str, rng: np.random.Generator, h: int = 5, w: int = 7) -> np.ndarray:

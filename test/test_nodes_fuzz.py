@@ -11,6 +11,7 @@ valid input into its output afterwards. The barrage is seeded: every run sends t
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -188,18 +189,44 @@ def _node(ros: RosHarness, cls: type, **params: Any) -> Any:
     )
 
 
-def test_multi_view_node_survives_a_barrage_and_then_maps_a_valid_stream(synthetic_sequence):
+def _multi_view_node(ros: RosHarness, **params: Any) -> Any:
+    """A multi_view_node at 160x120, a keyframe every third frame, deep queues, the filter on
+    every frame, no wait for a late camera_info."""
     from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
 
+    filter_params = {'filter.max_lag_frames': 0, 'filter.max_update_rate': 0.0}
+    size = {'width': 160, 'height': 120}
+    return _node(
+        ros, MultiViewNode, keyframe_every=3, queue_size=16, qos_depth=1000, camera_info_wait=0.0,
+        **size, **filter_params, **params,
+    )  # fmt: skip
+
+
+def _valid_stream(
+    ros: RosHarness, seq: Any, pubs: tuple[Any, Any, Any], image_of: Callable, node: Any
+) -> None:
+    """The sequence as a camera and a SLAM send it, after the barrage (later stamps); its
+    multi-view depth must come out."""
+    image, info, pose = pubs
+    depth_out = ros.collect(Image, '/depth_fusion/multi_view/depth')
+    start = VALID_FROM_S * 10**9
+    for i, frame in enumerate(seq.frames):
+        stamp = start + round(i * 1e9 / 30)
+        header = m.header_msg(stamp, FRAME, kind=K)
+        info.publish(m.camera_info_msg(seq.camera, header, kind=K))
+        image.publish(image_of(frame.rgb, header))
+        pose.publish(m.pose_stamped_msg(seq.poses[i], m.header_msg(stamp, 'world', kind=K), kind=K))
+    assert ros.wait_for(lambda: any(m.stamp_to_ns(d.header.stamp) >= start for d in depth_out), 120.0), (
+        node.stats.snapshot().summary()
+    )
+    _survived(ros, node, 'valid stream')
+
+
+def test_multi_view_node_survives_a_barrage_and_then_maps_a_valid_stream(synthetic_sequence):
     seq = synthetic_sequence
     fuzz = Fuzzer(11)
     with RosHarness() as ros:
-        filter_params = {'filter.max_lag_frames': 0, 'filter.max_update_rate': 0.0}
-        node = _node(
-            ros, MultiViewNode, width=160, height=120, keyframe_every=3, queue_size=16, qos_depth=1000,
-            camera_info_wait=0.0, **filter_params,
-        )  # fmt: skip
-        depth_out = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        node = _multi_view_node(ros)
         image = ros.publisher(Image, '/camera/rgb/image_color', _deep())
         info = ros.publisher(CameraInfo, '/camera/rgb/camera_info', _deep())
         pose = ros.publisher(PoseStamped, '/camera/pose', _deep())
@@ -220,17 +247,7 @@ def test_multi_view_node_survives_a_barrage_and_then_maps_a_valid_stream(synthet
         dropped = _survived(ros, node, 'barrage')
         assert sum(dropped.values()) >= 120, dropped
 
-        start = VALID_FROM_S * 10**9
-        for i, frame in enumerate(seq.frames):
-            stamp = start + round(i * 1e9 / 30)
-            header = m.header_msg(stamp, FRAME, kind=K)
-            info.publish(m.camera_info_msg(seq.camera, header, kind=K))
-            image.publish(m.rgb_image_msg(frame.rgb, header, kind=K))
-            pose.publish(m.pose_stamped_msg(seq.poses[i], m.header_msg(stamp, 'world', kind=K), kind=K))
-        assert ros.wait_for(lambda: any(m.stamp_to_ns(d.header.stamp) >= start for d in depth_out), 120.0), (
-            node.stats.snapshot().summary()
-        )
-        _survived(ros, node, 'valid stream')
+        _valid_stream(ros, seq, (image, info, pose), lambda rgb, h: m.rgb_image_msg(rgb, h, kind=K), node)
 
 
 def _fusion_scene() -> tuple[Any, dict[str, np.ndarray]]:
@@ -410,17 +427,11 @@ def test_multi_view_node_survives_broken_compressed_images_and_then_maps(synthet
     from sensor_msgs.msg import CompressedImage
 
     from depth_fusion_ros.data.compressed import compressed_image_msg, encode_compressed
-    from depth_fusion_ros.nodes.multi_view_node import MultiViewNode
 
     seq = synthetic_sequence
     fuzz = Fuzzer(15)
     with RosHarness() as ros:
-        filter_params = {'filter.max_lag_frames': 0, 'filter.max_update_rate': 0.0}
-        node = _node(
-            ros, MultiViewNode, width=160, height=120, keyframe_every=3, queue_size=16, qos_depth=1000,
-            camera_info_wait=0.0, image_transport='compressed', **filter_params,
-        )  # fmt: skip
-        depth_out = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        node = _multi_view_node(ros, image_transport='compressed')
         image = ros.publisher(CompressedImage, '/camera/rgb/image_color/compressed', _deep())
         info = ros.publisher(CameraInfo, '/camera/rgb/camera_info', _deep())
         pose = ros.publisher(PoseStamped, '/camera/pose', _deep())
@@ -448,14 +459,5 @@ def test_multi_view_node_survives_broken_compressed_images_and_then_maps(synthet
         dropped = _survived(ros, node, 'barrage')
         assert sum(dropped.values()) >= 50, dropped
 
-        start = VALID_FROM_S * 10**9
-        for i, frame in enumerate(seq.frames):
-            stamp = start + round(i * 1e9 / 30)
-            header = m.header_msg(stamp, FRAME, kind=K)
-            info.publish(m.camera_info_msg(seq.camera, header, kind=K))
-            image.publish(compressed_image_msg(frame.rgb, header, kind=K, fmt='png'))
-            pose.publish(m.pose_stamped_msg(seq.poses[i], m.header_msg(stamp, 'world', kind=K), kind=K))
-        assert ros.wait_for(lambda: any(m.stamp_to_ns(d.header.stamp) >= start for d in depth_out), 120.0), (
-            node.stats.snapshot().summary()
-        )
-        _survived(ros, node, 'valid stream')
+        png = functools.partial(compressed_image_msg, kind=K, fmt='png')
+        _valid_stream(ros, seq, (image, info, pose), png, node)

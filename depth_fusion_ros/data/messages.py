@@ -456,6 +456,21 @@ def camera_info_window(msg: Any) -> ImageWindow:
     )
 
 
+def _projection(msg: Any, name: str, columns: int, what: str, fix: str) -> np.ndarray:
+    """CameraInfo's K (3x3) or P (3x4) as a flat array, or a one-line ``ValueError``: wrong
+    size, a size of zero, a non-finite value or a focal length that is not positive."""
+    width, height = int(msg.width), int(msg.height)
+    values = np.asarray(_field(msg, name), dtype=np.float64).ravel()
+    if values.size != 3 * columns:
+        raise ValueError(f'CameraInfo {name.upper()} has {values.size} values, expected {3 * columns}')
+    fx, fy = values[0], values[columns + 1]
+    if width <= 0 or height <= 0 or not np.all(np.isfinite(values)) or fx <= 0 or fy <= 0:
+        raise ValueError(
+            f'CameraInfo {what} (size {width}x{height}, {name.upper()} = {values.tolist()}): {fix}'
+        )
+    return values
+
+
 def camera_info_to_calibration(msg: Any, *, rectified: bool = False) -> CameraCalibration:
     """``CameraCalibration`` (K at the size of the published image, distortion model, D) of a
     ``CameraInfo``.
@@ -467,26 +482,13 @@ def camera_info_to_calibration(msg: Any, *, rectified: bool = False) -> CameraCa
     ``fy = P[5]``, ``cx = P[2]``, ``cy = P[6]`` (binning and ROI applied the same way) and there is
     no distortion (``plumb_bob``, ``D = ()``); K and D are not used.
     """
-    width, height = int(msg.width), int(msg.height)
     if rectified:
-        P = np.asarray(_field(msg, 'p'), dtype=np.float64).ravel()
-        if P.size != 12:
-            raise ValueError(f'CameraInfo P has {P.size} values, expected 12')
-        if width <= 0 or height <= 0 or not np.all(np.isfinite(P)) or P[0] <= 0 or P[5] <= 0:
-            raise ValueError(
-                f'CameraInfo P is not set (size {width}x{height}, P = {P.tolist()}): '
-                'a rectified image needs the rectified intrinsics in P'
-            )
+        P = _projection(msg, 'p', 4, 'P is not set', 'a rectified image needs the rectified intrinsics in P')
         camera = camera_info_window(msg).camera(P[0], P[5], P[2], P[6])
         return CameraCalibration(camera, 'plumb_bob', ())
-    K = np.asarray(_field(msg, 'k'), dtype=np.float64).ravel()
-    if K.size != 9:
-        raise ValueError(f'CameraInfo K has {K.size} values, expected 9')
-    if width <= 0 or height <= 0 or not np.all(np.isfinite(K)) or K[0] <= 0 or K[4] <= 0:
-        raise ValueError(
-            f'CameraInfo is not calibrated (size {width}x{height}, K = {K.tolist()}): '
-            'set the intrinsics parameter or publish a calibrated camera_info'
-        )
+    K = _projection(
+        msg, 'k', 3, 'is not calibrated', 'set the intrinsics parameter or publish a calibrated camera_info'
+    )
     D = tuple(np.asarray(_field(msg, 'd'), dtype=np.float64).ravel().tolist())
     camera = camera_info_window(msg).camera(K[0], K[4], K[2], K[5])
     return CameraCalibration(camera, str(msg.distortion_model), D)
