@@ -50,8 +50,9 @@ RECORDER_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'latched_topics',
         [''],
-        'topics subscribed transient local and recorded so (replayed so by bag_replayer); a topic '
-        'whose type comes from the graph is latched when all its publishers are',
+        'topics subscribed transient local and recorded so (replayed so by bag_replayer); their '
+        'publishers must be transient local too (DDS matches no volatile one); a topic whose type '
+        'comes from the graph is latched when all its publishers are',
     ),
 )
 
