@@ -106,9 +106,8 @@ class FocalEstimate:
             return f'focal length check: {told}, but {fit}: check the calibration'
         if self.verdict == 'suspect':
             return (
-                f'focal length check: camera_info says fx {self.told_fx:.1f} px, but {fit}: more than '
-                f'{abs(math.log(self.scale)):.0%} off by the fit, not surely more than the threshold: '
-                f'fx {self.told_fx:.1f} px kept; check the calibration'
+                f'focal length check: camera_info says fx {self.told_fx:.1f} px, but {fit}: past the '
+                f'threshold by the fit, not surely: fx {self.told_fx:.1f} px kept; check the calibration'
             )
         if self.verdict == 'unobservable':
             return (
