@@ -216,3 +216,21 @@ def test_camera_rectified_is_a_parameter_read_by_from_parameters():
     assert not CameraInput.from_parameters(params).camera_rectified
     on = CameraInput.from_parameters({**params, 'camera_rectified': True})
     assert on.camera_rectified and not on.rectified  # not the keyframe topic's "no camera_info"
+
+
+def test_an_image_of_camera_infos_own_size_under_binning_says_what_the_driver_did():
+    """A driver that binned K itself and still says binning 2: the image has camera_info's own
+    width x height, not the binned size. The drop says so, in one line, instead of a bare
+    size mismatch."""
+    inp = CameraInput(32, 24)
+    inp.update(_info(m.RCLPY, binning=(BIN, BIN)))
+    header = m.header_msg(1_000, 'cam', kind=m.RCLPY)
+    same_as_info = m.rgb_image_msg(np.zeros((FULL.height, FULL.width, 3), np.uint8), header, kind=m.RCLPY)
+    with pytest.raises(InputError) as exc:
+        inp.working_image(same_as_info)
+    assert exc.value.reason == 'size_mismatch'
+    text = str(exc.value)
+    assert 'image is 200x160 but camera_info says 100x80 after its binning and ROI' in text
+    assert 'binning 0' in text and '\n' not in text
+    binned = m.rgb_image_msg(np.zeros((FULL.height // 2, FULL.width // 2, 3), np.uint8), header, kind=m.RCLPY)
+    assert inp.working_image(binned).rgb.shape == (24, 32, 3)

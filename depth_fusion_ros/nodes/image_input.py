@@ -188,6 +188,7 @@ class CameraInput:
         self.fixed_intrinsics = fixed_intrinsics
         self.fixed_distortion = tuple(fixed_distortion)
         self.calibration: CameraCalibration | None = None
+        self._sensor_size: tuple[int, int] | None = None
 
     @classmethod
     def from_parameters(cls, params: dict[str, Any], rectified: bool = False) -> CameraInput:
@@ -211,6 +212,10 @@ class CameraInput:
         except ValueError as exc:
             raise InputError('bad_camera_info', f'camera_info: {exc}') from None
         self.calibration = calib
+        #: The size camera_info gives before its binning and ROI, where they change it (REP 104):
+        #: an image of that size means a driver that binned or cropped K itself (said on a mismatch).
+        sensor = (int(info_msg.width), int(info_msg.height))
+        self._sensor_size = sensor if sensor != (calib.camera.width, calib.camera.height) else None
 
     def _calibration_for(self, width: int, height: int) -> CameraCalibration:
         if self.fixed_intrinsics is not None:
@@ -226,10 +231,14 @@ class CameraInput:
                 'no_camera_info', 'no camera_info received yet (set camera_intrinsics if there is none)'
             )
         if (calib.camera.width, calib.camera.height) != (width, height):
-            raise InputError(
-                'size_mismatch',
-                f'image is {width}x{height} but camera_info says {calib.camera.width}x{calib.camera.height}',
-            )
+            said = f'{calib.camera.width}x{calib.camera.height}'
+            if self._sensor_size == (width, height):
+                said += (
+                    f" after its binning and ROI (REP 104: width, height and K are the full sensor's; "
+                    f"the image has camera_info's own {width}x{height}: a driver that binned or cropped "
+                    'K itself should publish binning 0 and an empty ROI)'
+                )
+            raise InputError('size_mismatch', f'image is {width}x{height} but camera_info says {said}')
         return calib
 
     def working_image(self, msg: Any) -> WorkingImage:
