@@ -107,7 +107,8 @@ class FocalEstimate:
         if self.verdict == 'suspect':
             return (
                 f'focal length check: camera_info says fx {self.told_fx:.1f} px, but {fit}: past the '
-                f'threshold by the fit, not surely: fx {self.told_fx:.1f} px kept; check the calibration'
+                f'threshold by the fit, not surely: fx {self.told_fx:.1f} px kept; check the calibration '
+                '(a camera mounted turned from camera_from_pose_frame reads as a focal error too)'
             )
         if self.verdict == 'unobservable':
             return (
