@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
 import pytest
 
 from depth_fusion_ros.nodes.graph.map_output import check_saved_map
@@ -16,6 +17,9 @@ from run_bags import header_stamps, small_bag, write_params  # noqa: E402
 
 POSE = '/depth_fusion/keyframe/pose'
 FUSED = '/depth_fusion/fused/depth'
+CONFIDENCE = '/depth_fusion/fused/confidence'
+INFO = '/depth_fusion/fused/camera_info'
+KEYFRAME_IMAGE = '/depth_fusion/keyframe/image'
 POSING = (
     '/depth_fusion/posing/camera_from_pose_frame',
     '/depth_fusion/posing/pose_time',
@@ -57,6 +61,51 @@ def test_save_map_writes_the_mesh_of_every_fused_keyframe(synthetic_tum_dir, tmp
     assert set(latched) == set(POSING) and all(latched.values()), latched
     told = header_stamps(tmp_path / 'rec', POSING[0])
     assert told and min(told) <= min(header_stamps(tmp_path / 'rec', FUSED))  # said with the first frame
+    # The recording maps again offline: replayed into a map_node of its own (the posings
+    # latched as recorded), it gives the run's mesh.
+    again = _map_from_recording(tmp_path / 'rec', tmp_path / 'again.ply', len(result.fused))
+    assert again.vertices.shape == mesh.vertices.shape
+    assert np.abs(np.sort(again.vertices, axis=0) - np.sort(mesh.vertices, axis=0)).max() < 1e-4
+
+
+def _map_from_recording(rec, out, keyframes: int):
+    """A map_node fed by ``bag_replayer`` from a ``--record`` recording; its saved mesh."""
+    from map_inputs import call_save
+    from rclpy.parameter import Parameter
+
+    from depth_fusion_ros.mapping.ply import read_ply
+    from depth_fusion_ros.nodes.bag_replayer import BagReplayer
+    from depth_fusion_ros.nodes.map_node import MapNode
+    from depth_fusion_ros.nodes.testing import RosHarness
+
+    inputs = [FUSED, CONFIDENCE, INFO, POSE, KEYFRAME_IMAGE, *POSING]
+    with RosHarness() as ros:
+        lossless = {'queue_size': 16, 'queue_policy': 'block', 'qos_depth': 100}
+        params = {**lossless, 'save_path': str(out), 'points_rate': 0.0}
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        node = ros.add(MapNode(context=ros.context, parameter_overrides=overrides))
+        replayer = BagReplayer(
+            context=ros.context,
+            parameter_overrides=[
+                Parameter('bag', value=str(rec)),
+                Parameter('topics', value=inputs),
+                Parameter('qos_depth', value=100),
+                Parameter('wait_for_subscribers', value=1),
+                Parameter('wait_topics', value=[FUSED]),
+            ],
+            autostart=False,
+        )
+        ros.add(replayer)
+        replayer.start()
+        assert replayer.finished.wait(60.0) and replayer.error is None
+        assert ros.wait_for(lambda: node.integrated == keyframes and node.worker.idle(), 60.0), (
+            node.stats.snapshot().summary()
+        )
+        posings = node.corrector.posings
+        assert posings.transforms and posings.offsets  # heard from the replay, latched as recorded
+        saved = call_save(ros)
+        assert saved.success, saved.message
+    return read_ply(out)
 
 
 def test_no_map_written_is_an_error_not_a_success(tmp_path):
