@@ -164,8 +164,8 @@ def ros1_to_rosbag2(
 ) -> ConvertResult:
     """Convert a ROS 1 bag (e.g. a TUM RGB-D ``.bag``) into our rosbag2 layout.
 
-    Colour images (any of rgb8/bgr8/rgba8/bgra8/mono8) become rgb8, depth (32FC1 m or 16UC1 mm)
-    becomes 32FC1 metres re-stamped with its nearest colour frame, and one CameraInfo is
+    Colour images (any encoding of ``messages.COLOUR_ENCODINGS``) become rgb8, depth (32FC1 m or
+    16UC1 mm) becomes 32FC1 metres re-stamped with its nearest colour frame, and one CameraInfo is
     written per colour frame. Poses come from, in order of preference: the ``groundtruth``
     file (TUM format), a PoseStamped topic ``source_topics.pose`` in the bag, or the ``/tf``
     chain from ``tf_world_frame`` to the camera frame (``tf_camera_frame``, default the colour

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from .epipolar_cost import skew, soft_l1_sampson
-from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling
+from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling, graded_verdict
 from .paired_check import PairedCheck, feed
 
 log = logging.getLogger(__name__)
@@ -192,12 +192,9 @@ class FocalCheck(PairedCheck):
     def _verdict(self, scale: float, stderr: float) -> FocalEstimate:
         if not math.isfinite(stderr) or stderr > self.config.max_stderr or scale <= 0:
             verdict = 'unobservable'
-        elif abs(math.log(scale)) - 2.0 * stderr / scale >= self.config.threshold:
-            verdict = 'disagrees'
-        elif abs(math.log(scale)) >= self.config.threshold:
-            verdict = 'suspect'  # off by the fit, within its error of the threshold: said, not taken
         else:
-            verdict = 'consistent'
+            size = abs(math.log(scale))
+            verdict = graded_verdict(size, size - 2.0 * stderr / scale, self.config.threshold)
         matches = sum(len(p.p1) for p in self.pairs)
         estimate = FocalEstimate(
             scale, stderr, len(self.pairs), matches, verdict, self.camera.fx, self.camera.fy

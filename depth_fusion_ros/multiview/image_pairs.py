@@ -44,6 +44,16 @@ def check_sampling(section: str, config: object) -> None:
         raise ValueError(f'{section}: need min_baseline > 0 and min_rotation_deg > 0')
 
 
+def graded_verdict(size: float, sure: float, threshold: float) -> str:
+    """The verdict of an observable fit, the same for every calibration check: ``disagrees``
+    when even ``sure`` (the fitted offset less twice its standard error) is at least
+    ``threshold``, ``suspect`` when only ``size`` (the fitted offset itself) is (said, never
+    applied: before 2026-11-30 such a fit read as agreement), else ``consistent``."""
+    if sure >= threshold:
+        return 'disagrees'
+    return 'suspect' if size >= threshold else 'consistent'
+
+
 def image_features(orb: cv2.ORB, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """ORB keypoint positions (N, 2) float64 and descriptors (``None`` when none) of a grey image
     (float in [0, 1] or uint8)."""

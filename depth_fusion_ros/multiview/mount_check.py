@@ -43,7 +43,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from .epipolar_cost import pose_costs
-from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling
+from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling, graded_verdict
 from .paired_check import PairedCheck, feed
 
 log = logging.getLogger(__name__)
@@ -289,12 +289,10 @@ class MountCheck(PairedCheck):
         margin = np.abs(components) - 2.0 * sd
         if not observed.any() or not np.isfinite(v).all() or np.degrees(np.linalg.norm(v)) > _MAX_TURN_DEG:
             verdict = 'unobservable'
-        elif (margin[kept] >= math.radians(c.threshold_deg)).any():
-            verdict = 'disagrees'
-        elif (np.abs(components[kept]) >= math.radians(c.threshold_deg)).any():
-            verdict = 'suspect'  # turned by the fit, within its error of the threshold: said, not taken
-        else:
-            verdict = 'consistent'
+        else:  # the largest kept component decides (none kept: nothing turned)
+            size = float(np.abs(components[kept]).max(initial=0.0))
+            sure = float(margin[kept].max(initial=-math.inf))
+            verdict = graded_verdict(size, sure, math.radians(c.threshold_deg))
         estimate = MountEstimate(
             tuple(float(x) for x in np.degrees(correction)),  # type: ignore[arg-type]
             tuple(float(x) for x in np.degrees(v)),  # type: ignore[arg-type]

@@ -35,7 +35,7 @@ import numpy as np
 from ..camera import PinholeCamera
 from ..pose_curve import interpolate_poses_cubic
 from .epipolar_cost import pose_costs
-from .image_pairs import CHECK_MODES, ImagePairs, MatchedPair, check_mode, check_sampling
+from .image_pairs import CHECK_MODES, ImagePairs, MatchedPair, check_mode, check_sampling, graded_verdict
 
 log = logging.getLogger(__name__)
 
@@ -291,12 +291,8 @@ class TimeOffsetCheck:
         offset, stderr, sharpness = estimate_offset(self._grid, curves)
         if not math.isfinite(stderr) or stderr > self.config.max_stderr or sharpness < _MIN_SHARPNESS:
             verdict = 'unobservable'
-        elif abs(offset) - 2.0 * stderr >= self.config.threshold:
-            verdict = 'disagrees'
-        elif abs(offset) >= self.config.threshold:
-            verdict = 'suspect'  # off by the fit, within its error of the threshold: said, not taken
         else:
-            verdict = 'consistent'
+            verdict = graded_verdict(abs(offset), abs(offset) - 2.0 * stderr, self.config.threshold)
         matches = sum(m for _, m in self.curves)
         self.result = TimeOffsetEstimate(offset, stderr, len(curves), matches, verdict, self.told, sharpness)
         log.debug('%s', self.result.message())

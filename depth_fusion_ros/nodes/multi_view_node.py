@@ -34,7 +34,6 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMsg
-from rclpy.qos import DurabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
 from ..camera import PinholeCamera
@@ -71,7 +70,7 @@ from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
 from .params import ParamSpec, build_dataclass, dataclass_specs
 from .pose_jump_params import pose_jump_limits, pose_jump_parameters
 from .posing import TOPIC_REPOSED_KEYFRAMES, PosingPublisher
-from .qos import latched_qos, qos_profile
+from .qos import latched_qos, offers_latched, qos_profile
 from .reliability import ignore_incompatible
 from .time_offset_check_runner import TIME_OFFSET_CHECK_PARAMETERS, TimeOffsetCheckRunner
 
@@ -393,7 +392,7 @@ class MultiViewNode(DepthFusionNode):
             return
         topic = self.resolve_topic_name(TOPIC_CAMERA_INFO)
         infos = self.get_publishers_info_by_topic(topic)
-        if not any(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos):
+        if not any(offers_latched(i) for i in infos):
             return
         self._latched_info_timer.cancel()
         self._latched_info = self.subscribe(

@@ -16,6 +16,8 @@ subscriber still hears them.
 
 from __future__ import annotations
 
+from typing import Any
+
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -54,3 +56,10 @@ def latched_qos(depth: int = 1) -> QoSProfile:
         reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL,
     )
+
+
+def offers_latched(info: Any) -> bool:
+    """Whether a publisher (an entry of ``get_publishers_info_by_topic``) keeps its last samples
+    for late joiners (transient local): the test a latched subscription needs, since DDS never
+    matches a transient-local reader with a volatile writer."""
+    return info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL

@@ -27,12 +27,11 @@ from typing import Any
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy
 
 from ..data.bag_qos import latched_bag_qos
 from .bag_replayer import has_leading_header, header_stamp_ns, non_empty, ros_message_class
 from .params import ParamSpec, declare_parameters
-from .qos import QOS_CHOICES, latched_qos, qos_profile
+from .qos import QOS_CHOICES, latched_qos, offers_latched, qos_profile
 
 NODE_NAME = 'recorder'
 
@@ -278,9 +277,7 @@ class Recorder(Node):
     def _publishers_latched(self, topic: str) -> bool:
         """Every publisher of ``topic`` offers transient local, as ``ros2 bag record`` checks."""
         infos = self.get_publishers_info_by_topic(topic)
-        return bool(infos) and all(
-            i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos
-        )
+        return bool(infos) and all(offers_latched(i) for i in infos)
 
     def _subscribe(self, topic: str, msgtype: str, write: bool) -> None:
         msg_cls = ros_message_class(msgtype)
