@@ -18,7 +18,7 @@ from rclpy.parameter import Parameter
 from depth_fusion_ros.fusion.pipeline import FusionConfig
 from depth_fusion_ros.multiview.neighbours import NeighbourConfig
 from depth_fusion_ros.multiview.semidense import MultiViewConfig
-from depth_fusion_ros.nodes import fusion_node, multi_view_node
+from depth_fusion_ros.nodes import fusion_node, multi_view_params
 from depth_fusion_ros.nodes.config_yaml import (
     PROCESSING_NODES,
     available_nodes,
@@ -67,8 +67,8 @@ def test_yaml_holds_every_parameter_with_its_default():
 
 
 def test_core_config_fields_are_all_described():
-    assert missing_descriptions(MultiViewConfig, multi_view_node.MULTI_VIEW_DESCRIPTIONS) == []
-    assert missing_descriptions(NeighbourConfig, multi_view_node.NEIGHBOUR_DESCRIPTIONS) == []
+    assert missing_descriptions(MultiViewConfig, multi_view_params.MULTI_VIEW_DESCRIPTIONS) == []
+    assert missing_descriptions(NeighbourConfig, multi_view_params.NEIGHBOUR_DESCRIPTIONS) == []
     from depth_fusion_ros.fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS
 
     assert missing_descriptions(FusionConfig, FUSION_PARAMETER_DESCRIPTIONS, fusion_node.FUSION_SKIP) == []

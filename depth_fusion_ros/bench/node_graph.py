@@ -128,7 +128,7 @@ def keyframe_every() -> int:
         doc = yaml.safe_load(find_config_file().read_text())
         return int(doc['multi_view_node']['ros__parameters']['keyframe_every'])
     except (FileNotFoundError, KeyError, TypeError):
-        from ..nodes.multi_view_node import PARAMETERS
+        from ..nodes.multi_view_params import PARAMETERS
 
         return int(next(p.default for p in PARAMETERS if p.name == 'keyframe_every'))
 

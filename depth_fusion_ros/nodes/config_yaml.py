@@ -20,7 +20,7 @@ from .params import ParamSpec, markdown_table, yaml_section
 
 #: node name -> (module, attribute of its own parameter table); the order of the YAML file.
 NODE_TABLES: dict[str, tuple[str, str]] = {
-    'multi_view_node': ('depth_fusion_ros.nodes.multi_view_node', 'PARAMETERS'),
+    'multi_view_node': ('depth_fusion_ros.nodes.multi_view_params', 'PARAMETERS'),
     'single_view_node': ('depth_fusion_ros.nodes.single_view_node', 'PARAMETERS'),
     'fusion_node': ('depth_fusion_ros.nodes.fusion_node', 'PARAMETERS'),
     'map_node': ('depth_fusion_ros.nodes.map_node', 'PARAMETERS'),

@@ -39,22 +39,18 @@ from sensor_msgs.msg import CameraInfo, Image
 from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
-from ..geometry import invert_pose, matrix_to_quat, rotation_angle
-from ..multiview.descriptors import PATCH_OFFSETS
-from ..multiview.focal_check import FocalEstimate
+from ..geometry import invert_pose, rotation_angle
 from ..multiview.mount_check import MountEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
-from ..multiview.time_offset_check import TimeOffsetEstimate
 from ..pose_buffer import PoseBuffer
-from ..pose_corrections import Posing
 from ..pose_jumps import PoseJump
 from . import robot_inputs
 from .announce import announce
 from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode, run_node
-from .corrected_path import TOPIC_CORRECTED_PATH, correction_limits, correction_parameters, read_path
+from .corrected_path import TOPIC_CORRECTED_PATH, correction_limits, read_path
 from .diagnostics import Requirement
-from .focal_check_runner import FOCAL_CHECK_PARAMETERS, FocalCheckRunner
+from .focal_check_runner import FocalCheckRunner
 from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, GraphEvents
 from .image_input import (
     CameraInput,
@@ -62,183 +58,32 @@ from .image_input import (
     WorkingImage,
     header_stamp_ns,
     pose_from_message,
-    working_grid_parameters,
 )
 from .info_wait import AwaitingCalibration
-from .mount_check_runner import MOUNT_CHECK_PARAMETERS, MountCheckRunner
-from .multi_view_filter import FILTER_PARAMETERS, FilterFeed
-from .params import ParamSpec, build_dataclass, dataclass_specs
-from .pose_jump_params import pose_jump_limits, pose_jump_parameters
-from .posing import TOPIC_REPOSED_KEYFRAMES, PosingPublisher
+from .mount_check_runner import MountCheckRunner
+from .multi_view_checks import CheckCorrections
+from .multi_view_filter import FilterFeed
+from .multi_view_params import (
+    PARAMETERS,
+    TOPIC_CAMERA_INFO,
+    TOPIC_DEPTH,
+    TOPIC_DEPTH_STD,
+    TOPIC_IMAGE,
+    TOPIC_KEYFRAME_CAMERA_INFO,
+    TOPIC_KEYFRAME_IMAGE,
+    TOPIC_KEYFRAME_POSE,
+    TOPIC_METHOD,
+    TOPIC_POSE,
+    TOPIC_SCORE,
+)
+from .params import build_dataclass
+from .pose_jump_params import pose_jump_limits
+from .posing import PosingPublisher
 from .qos import latched_qos, offers_latched, qos_profile
 from .reliability import ignore_incompatible
-from .time_offset_check_runner import TIME_OFFSET_CHECK_PARAMETERS, TimeOffsetCheckRunner
+from .time_offset_check_runner import TimeOffsetCheckRunner
 
 NODE_NAME = 'multi_view_node'
-
-TOPIC_IMAGE = 'camera/rgb/image_color'
-TOPIC_CAMERA_INFO = 'camera/rgb/camera_info'
-TOPIC_POSE = 'camera/pose'
-TOPIC_KEYFRAME_IMAGE = 'depth_fusion/keyframe/image'
-TOPIC_KEYFRAME_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
-TOPIC_DEPTH = 'depth_fusion/multi_view/depth'
-TOPIC_SCORE = 'depth_fusion/multi_view/score'
-#: Per-estimate depth standard deviation (m, 32FC1): the fusion guard's parallax evidence.
-TOPIC_DEPTH_STD = 'depth_fusion/multi_view/depth_std'
-#: The keyframe's interpolated camera-to-world pose, with its stamp (map_node pairs it by stamp).
-TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
-#: Latched: the multi-view method (``sweep`` or ``filter``); fusion_node's stage 1 follows it.
-TOPIC_METHOD = 'depth_fusion/multi_view/method'
-
-KEYFRAME_POLICIES = ('every_k', 'motion')
-
-#: Descriptions of the ``MultiViewConfig`` fields exposed as ``multi_view.*`` parameters.
-MULTI_VIEW_DESCRIPTIONS = {
-    'min_depth': 'nearest depth hypothesis (m); the sweep is uniform in inverse depth',
-    'max_depth': 'farthest depth hypothesis (m)',
-    'num_samples': 'coarse inverse-depth samples per pixel',
-    'refine_samples': 'fine samples on each side of the coarse minimum',
-    'patch': "patch layout of the ZNCC cost: 'cross' (5 pixels) or 'box' (3x3)",
-    'patch_stride': 'spacing (px) of the patch samples',
-    'blur_sigma': 'Gaussian blur (px) before matching (noise, aliasing)',
-    'noise_floor': 'grey-level noise floor of the ZNCC normalisation',
-    'min_gradient': 'candidate pixels: grey gradient magnitude (grey in [0, 1] per px) at least this',
-    'all_pixels': 'search every pixel instead of the high-gradient ones (dense, slower)',
-    'min_view_fraction': 'a depth sample counts only if at least this fraction of the neighbours sees it',
-    'max_cost': 'estimates whose best cost (1 - ZNCC) is above this are dropped',
-    'second_min_exclusion': 'samples around the best ignored when looking for the second-best minimum',
-    'chunk_elements': 'largest intermediate tensor in float elements (bounds memory)',
-    'cuda_graph': 'on a GPU (device: cuda), replay the sweep from a CUDA graph captured once per image '
-    'size and neighbour count: the same estimates without the launch overhead (method sweep only)',
-}
-MULTI_VIEW_LIMITS: dict[str, Any] = {
-    'min_depth': (1e-3, None),
-    'max_depth': (1e-3, None),
-    'num_samples': (3, 4096),
-    'refine_samples': (1, 64),
-    'patch': tuple(sorted(PATCH_OFFSETS)),
-    'patch_stride': (1, 16),
-    'blur_sigma': (0.0, 20.0),
-    'noise_floor': (0.0, 1.0),
-    'min_gradient': (0.0, 10.0),
-    'max_candidate_fraction': (0.0, 1.0),
-    'min_view_fraction': (0.0, 1.0),
-    'max_cost': (0.0, 2.0),
-    'second_min_exclusion': (0, 1000),
-    'chunk_elements': (1024, None),
-}
-#: Descriptions of the ``NeighbourConfig`` fields exposed as ``neighbours.*`` parameters.
-NEIGHBOUR_DESCRIPTIONS = {
-    'window': 'neighbour candidates: the last window posed frames received (kept undistorted in memory)',
-    'scene_depth': 'typical scene depth (m) that turns a baseline into parallax and places the overlap test',
-    'target_parallax': 'preferred baseline / scene depth of a neighbour',
-    'min_parallax': 'below this baseline / depth a frame counts as zero baseline (pure rotation)',
-    'max_parallax': 'above this baseline / depth a frame is not used (appearance changes too much)',
-    'max_rotation_deg': 'largest rotation between keyframe and neighbour (degrees)',
-    'min_overlap': 'smallest fraction of the keyframe that must be visible in a neighbour',
-    'min_separation': 'chosen neighbours are at least this fraction of the target baseline apart',
-}
-NEIGHBOUR_LIMITS: dict[str, Any] = {
-    'window': (1, 1000),
-    'scene_depth': (1e-3, None),
-    'target_parallax': (1e-6, None),
-    'min_parallax': (0.0, None),
-    'max_parallax': (0.0, None),
-    'max_rotation_deg': (0.0, 180.0),
-    'min_overlap': (0.0, 1.0),
-    'min_separation': (0.0, None),
-}
-#: Stage 1 runs in the fusion node (``fusion.stage1_fraction``), on the score image published here.
-MULTI_VIEW_SKIP = ('select_fraction',)
-
-PARAMETERS: tuple[ParamSpec, ...] = (
-    ParamSpec('device', 'cpu', 'torch device of the multi-view estimate (filter or sweep): cpu, cuda, ...'),
-    *working_grid_parameters(),
-    *robot_inputs.PARAMETERS,
-    ParamSpec(
-        'keyframe_policy',
-        'every_k',
-        'every_k: every keyframe_every-th posed frame; motion: when the camera moved '
-        'keyframe_min_translation or turned keyframe_min_rotation_deg since the last keyframe',
-        choices=KEYFRAME_POLICIES,
-    ),
-    ParamSpec('keyframe_every', 5, 'every_k policy: posed frames 0, k, 2k, ... are keyframes', 1, 100000),
-    ParamSpec(
-        'keyframe_min_translation', 0.05, 'motion policy: translation (m) since the last keyframe', 0.0
-    ),
-    ParamSpec(
-        'keyframe_min_rotation_deg',
-        5.0,
-        'motion policy: rotation (degrees) since the last keyframe',
-        0.0,
-        180.0,
-    ),
-    ParamSpec('num_neighbours', 4, 'overlapping past frames used per keyframe', 1, 32),
-    ParamSpec(
-        'min_neighbours',
-        1,
-        'a frame becomes a keyframe only when at least this many usable neighbours exist',
-        1,
-        32,
-    ),
-    ParamSpec(
-        'pose_qos_depth',
-        100,
-        'history depth of the pose subscription: poses are small and come in bursts from a SLAM, and a '
-        'lost pose means interpolating over a longer interval',
-        1,
-        100000,
-    ),
-    ParamSpec('pose_buffer_size', 1000, 'poses kept for interpolation (oldest dropped first)', 2, 1000000),
-    ParamSpec(
-        'max_pose_gap',
-        0.5,
-        'seconds between two poses above which an image between them is not interpolated (tracking lost)',
-        0.0,
-    ),
-    *pose_jump_parameters(
-        'poses',
-        'the images between them are dropped (pose_jump) and the frame history and filter start over '
-        'after it',
-    ),
-    *correction_parameters('moves the buffered poses and starts the frame history and filter over'),
-    ParamSpec(
-        'pose_time_offset',
-        0.0,
-        "seconds: the pose source's clock minus the camera's (an image stamped t takes the pose "
-        'interpolated at t + this); at 0.35 m/s, 10 ms out of sync moves a pose by a third of a '
-        '30 Hz frame-to-frame baseline (docs/nodes.md "Clocks out of sync")',
-        -1.0,
-        1.0,
-    ),
-    ParamSpec(
-        'pose_wait',
-        1.0,
-        'an image newer than the latest pose waits until the image stream is this many seconds (stamp '
-        'time) ahead of it, or until no image nor pose arrived for this many seconds (end of the stream); '
-        'then it is dropped as not posed (no_pose)',
-        0.0,
-    ),
-    ParamSpec(
-        'max_pending_images', 30, 'images waiting for their pose at most (oldest dropped first)', 1, 10000
-    ),
-    ParamSpec(
-        'camera_info_wait',
-        1.0,
-        'images that come before the first camera_info wait for it until the image stream is this many '
-        'seconds (stamp time) ahead of them (at most max_pending_images); then they are dropped as '
-        'no_camera_info (0: drop at once)',
-        0.0,
-    ),
-    *dataclass_specs(NeighbourConfig, 'neighbours', NEIGHBOUR_DESCRIPTIONS, NEIGHBOUR_LIMITS),
-    *dataclass_specs(
-        MultiViewConfig, 'multi_view', MULTI_VIEW_DESCRIPTIONS, MULTI_VIEW_LIMITS, skip=MULTI_VIEW_SKIP
-    ),
-    *FILTER_PARAMETERS,
-    *FOCAL_CHECK_PARAMETERS,
-    *TIME_OFFSET_CHECK_PARAMETERS,
-    *MOUNT_CHECK_PARAMETERS,
-)
 
 
 @dataclass
@@ -263,7 +108,7 @@ def _image_name(stamp_ns: int, offset: float) -> str:
     return f'image {stamp:.3f}' if offset == 0.0 else f'image {stamp:.3f} (pose time {stamp + offset:.3f})'
 
 
-class MultiViewNode(DepthFusionNode):
+class MultiViewNode(CheckCorrections, DepthFusionNode):
     """Poses images by stamp, decides keyframes and runs the semi-dense search on a worker."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs: Any) -> None:
@@ -694,131 +539,6 @@ class MultiViewNode(DepthFusionNode):
             self.events.event(image.stamp_ns, EVENT_CHOSEN)
             self.worker.submit(job)
         self.frames.append(frame)
-
-    def _publish_posing(self, stamp_ns: int, camera_frame: str) -> None:
-        """Say the posing from the frame stamped ``stamp_ns`` on (nodes/posing.py). After a time
-        offset correction the keyframes posed before it are read again at the corrected offset
-        from the pose buffer, so the map moves them where they were (their depth stays as the
-        old poses made it)."""
-        posing = Posing(self.T_pose_cam @ self._mount_correction, self._pose_offset())
-
-        def reread(stamps: list[float], before: float, after: float) -> list[np.ndarray | None]:
-            poses = self.pose_buffer.reread(stamps, before, after)
-            return [None if T is None else T @ self._mount_correction for T in poses]
-
-        reposed = self.posing.publish(stamp_ns, camera_frame, posing, reread, self._world_frame)
-        if reposed is not None:
-            found, before = reposed
-            others = '' if found == before else '; the others are older than the pose buffer or across a jump'
-            self.get_logger().info(
-                f'{found} of the {before} keyframes posed before the time offset correction re-read at it '
-                f'({TOPIC_REPOSED_KEYFRAMES}: map_node moves them){others}'
-            )
-
-    # --- focal length check ------------------------------------------------------------------------
-
-    def _on_focal_estimate(self, camera: PinholeCamera, estimate: FocalEstimate) -> None:
-        """The focal check's result for ``camera`` (its thread), said once; ``_on_posed_frame``
-        takes the corrected camera from the runner (``camera_for``)."""
-        if estimate.verdict == 'suspect':  # warned once, not taken: the fit is not sure enough
-            self.stats.noted('focal_suspect', f'{estimate.message()} ({camera.width}x{camera.height})')
-            return
-        if estimate.verdict != 'disagrees':
-            self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
-            return
-        if self.focal_check.config.mode == 'correct':
-            then = (
-                '; focal_check.mode correct: the multi-view depth and the keyframe camera_info use '
-                f'fx {estimate.fx:.1f}, fy {estimate.fy:.1f} px from now on'
-            )
-        else:
-            then = ' (focal_check.mode correct would use it)'
-        self.stats.noted('focal_disagrees', estimate.message() + then)  # logged as a warning, once
-
-    # --- time offset check ---------------------------------------------------------------------------
-
-    def _pose_offset(self) -> float:
-        """Seconds from an image's stamp to the pose time it is posed at: ``pose_time_offset``
-        plus the time offset check's correction once taken (:meth:`_take_offset_correction`)."""
-        return float(self.params['pose_time_offset']) + self._offset_correction
-
-    def _take_offset_correction(self) -> None:
-        """Take the time offset check's correction once it has one (``time_offset_check.mode``
-        correct; callback thread, before images are posed). It starts the frame history, the
-        filter and the focal length check over at the next posed frame: the frames posed before
-        it were posed at the other offset, so no neighbour, propagated estimate or image pair
-        mixes the two."""
-        correction = self.time_offset_check.correction
-        if correction == self._offset_correction:
-            return
-        self._offset_correction = correction
-        self._restart_from_ns = 0  # the next posed frame, whatever its stamp
-        self.focal_check.restart()  # its pairs were posed at the old offset
-        self.mount_check.restart()
-        self.stats.noted(
-            'time_offset_disagrees',
-            f'{self.time_offset_check.result.message()}; time_offset_check.mode correct: poses are '
-            f'read at image stamp {self._pose_offset():+.3f} s from now on, frame history and filter '
-            'start over',
-        )
-
-    def _on_time_offset_estimate(self, camera: PinholeCamera, estimate: TimeOffsetEstimate) -> None:
-        """The time offset check's result (its thread), said once; in correct mode the callbacks
-        take the correction (``_take_offset_correction``) and say it then."""
-        if estimate.verdict == 'suspect':  # warned once, not taken
-            self.stats.noted('time_offset_suspect', estimate.message())
-        elif estimate.verdict != 'disagrees':
-            self.get_logger().info(estimate.message())
-        elif self.time_offset_check.config.mode != 'correct':
-            self.stats.noted(
-                'time_offset_disagrees', estimate.message() + ' (time_offset_check.mode correct would use it)'
-            )
-
-    # --- mount check -------------------------------------------------------------------------------
-
-    def _take_mount_correction(self) -> None:
-        """Take the mount check's turn once it has one (``mount_check.mode`` correct; callback
-        thread, before images are posed; a check of a camera seen anew adds its own). As a time
-        offset correction, it starts the frame history, the filter and the focal length check
-        over at the next posed frame."""
-        result = self.mount_check.result
-        if result is None or result is self._mount_taken:
-            return  # nothing new (a camera checked anew keeps the turn it has until its own verdict)
-        self._mount_taken = result
-        if self.mount_check.config.mode != 'correct' or result.verdict != 'disagrees':
-            return
-        # The check read poses already turned by the correction so far: its turn adds to it.
-        rotation = self._mount_correction @ self.mount_check.rotation
-        self._mount_correction = rotation
-        self._restart_from_ns = 0
-        self.focal_check.restart()  # its pairs were posed in the told frame
-        self.stats.noted(
-            'mount_disagrees',
-            f'{result.message()}; mount_check.mode correct: every camera pose is '
-            f'turned by it from now on, frame history and filter start over; {self._mount_hint(rotation)}',
-        )
-
-    def _on_mount_estimate(self, camera: PinholeCamera, estimate: MountEstimate) -> None:
-        """The mount check's result (its thread), said once; in correct mode the callbacks take
-        the turn (``_take_mount_correction``) and say it then."""
-        if estimate.verdict == 'suspect':  # warned once, not taken
-            self.stats.noted('mount_suspect', estimate.message())
-        elif estimate.verdict != 'disagrees':
-            self.get_logger().info(estimate.message())
-        elif self.mount_check.config.mode != 'correct':
-            self.stats.noted(
-                'mount_disagrees',
-                f'{estimate.message()} (mount_check.mode correct would use it); '
-                f'{self._mount_hint(self._mount_correction @ estimate.rotation())}',
-            )
-
-    def _mount_hint(self, rotation: np.ndarray) -> str:
-        """The ``camera_from_pose_frame`` that holds the turn, for the user's configuration: the
-        next run then starts with it (the nodes after this one hear the turn on the posing
-        topics, nodes/posing.py)."""
-        T = self.T_pose_cam @ rotation
-        values = [*T[:3, 3], *matrix_to_quat(T[:3, :3])]
-        return 'camera_from_pose_frame [' + ', '.join(f'{v:.6g}' for v in values) + '] fits'
 
     # --- keyframe policy ----------------------------------------------------------------------------
 

@@ -1,0 +1,173 @@
+"""What ``multi_view_node`` does with its calibration checks' verdicts (focal length, time
+offset, mount) and how it says the posing they lead to.
+
+Why apart from the node: the node poses images, decides keyframes and runs the search; taking
+a correction is a separate decision with its own state (the offset and the turn taken, the
+restart of the frame history) and its own messages. :class:`CheckCorrections` is a mixin of
+:class:`~depth_fusion_ros.nodes.multi_view_node.MultiViewNode`: it reads the node's check
+runners, pose buffer, posing publisher and counters, which the node builds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from ..geometry import matrix_to_quat
+from ..multiview.focal_check import FocalEstimate
+from ..multiview.mount_check import MountEstimate
+from ..multiview.time_offset_check import TimeOffsetEstimate
+from ..pose_buffer import PoseBuffer
+from ..pose_corrections import Posing
+from .focal_check_runner import FocalCheckRunner
+from .mount_check_runner import MountCheckRunner
+from .posing import TOPIC_REPOSED_KEYFRAMES, PosingPublisher
+from .time_offset_check_runner import TimeOffsetCheckRunner
+
+
+class CheckCorrections:
+    """The checks' verdicts said once, and their corrections taken (see module)."""
+
+    # Built by the node's constructor.
+    params: Any
+    stats: Any
+    T_pose_cam: np.ndarray
+    pose_buffer: PoseBuffer
+    posing: PosingPublisher
+    focal_check: FocalCheckRunner
+    time_offset_check: TimeOffsetCheckRunner
+    mount_check: MountCheckRunner
+    _offset_correction: float
+    _mount_correction: np.ndarray
+    _mount_taken: MountEstimate | None
+    _restart_from_ns: int | None
+    _world_frame: str
+    get_logger: Callable[[], Any]  # rclpy.node.Node's
+
+    def _publish_posing(self, stamp_ns: int, camera_frame: str) -> None:
+        """Say the posing from the frame stamped ``stamp_ns`` on (nodes/posing.py). After a time
+        offset correction the keyframes posed before it are read again at the corrected offset
+        from the pose buffer, so the map moves them where they were (their depth stays as the
+        old poses made it)."""
+        posing = Posing(self.T_pose_cam @ self._mount_correction, self._pose_offset())
+
+        def reread(stamps: list[float], before: float, after: float) -> list[np.ndarray | None]:
+            poses = self.pose_buffer.reread(stamps, before, after)
+            return [None if T is None else T @ self._mount_correction for T in poses]
+
+        reposed = self.posing.publish(stamp_ns, camera_frame, posing, reread, self._world_frame)
+        if reposed is not None:
+            found, before = reposed
+            others = '' if found == before else '; the others are older than the pose buffer or across a jump'
+            self.get_logger().info(
+                f'{found} of the {before} keyframes posed before the time offset correction re-read at it '
+                f'({TOPIC_REPOSED_KEYFRAMES}: map_node moves them){others}'
+            )
+
+    # --- focal length check ------------------------------------------------------------------------
+
+    def _on_focal_estimate(self, camera: PinholeCamera, estimate: FocalEstimate) -> None:
+        """The focal check's result for ``camera`` (its thread), said once; ``_on_posed_frame``
+        takes the corrected camera from the runner (``camera_for``)."""
+        if estimate.verdict == 'suspect':  # warned once, not taken: the fit is not sure enough
+            self.stats.noted('focal_suspect', f'{estimate.message()} ({camera.width}x{camera.height})')
+            return
+        if estimate.verdict != 'disagrees':
+            self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
+            return
+        if self.focal_check.config.mode == 'correct':
+            then = (
+                '; focal_check.mode correct: the multi-view depth and the keyframe camera_info use '
+                f'fx {estimate.fx:.1f}, fy {estimate.fy:.1f} px from now on'
+            )
+        else:
+            then = ' (focal_check.mode correct would use it)'
+        self.stats.noted('focal_disagrees', estimate.message() + then)  # logged as a warning, once
+
+    # --- time offset check ---------------------------------------------------------------------------
+
+    def _pose_offset(self) -> float:
+        """Seconds from an image's stamp to the pose time it is posed at: ``pose_time_offset``
+        plus the time offset check's correction once taken (:meth:`_take_offset_correction`)."""
+        return float(self.params['pose_time_offset']) + self._offset_correction
+
+    def _take_offset_correction(self) -> None:
+        """Take the time offset check's correction once it has one (``time_offset_check.mode``
+        correct; callback thread, before images are posed). It starts the frame history, the
+        filter and the focal length check over at the next posed frame: the frames posed before
+        it were posed at the other offset, so no neighbour, propagated estimate or image pair
+        mixes the two."""
+        correction = self.time_offset_check.correction
+        if correction == self._offset_correction:
+            return
+        self._offset_correction = correction
+        self._restart_from_ns = 0  # the next posed frame, whatever its stamp
+        self.focal_check.restart()  # its pairs were posed at the old offset
+        self.mount_check.restart()
+        self.stats.noted(
+            'time_offset_disagrees',
+            f'{self.time_offset_check.result.message()}; time_offset_check.mode correct: poses are '
+            f'read at image stamp {self._pose_offset():+.3f} s from now on, frame history and filter '
+            'start over',
+        )
+
+    def _on_time_offset_estimate(self, camera: PinholeCamera, estimate: TimeOffsetEstimate) -> None:
+        """The time offset check's result (its thread), said once; in correct mode the callbacks
+        take the correction (``_take_offset_correction``) and say it then."""
+        if estimate.verdict == 'suspect':  # warned once, not taken
+            self.stats.noted('time_offset_suspect', estimate.message())
+        elif estimate.verdict != 'disagrees':
+            self.get_logger().info(estimate.message())
+        elif self.time_offset_check.config.mode != 'correct':
+            self.stats.noted(
+                'time_offset_disagrees', estimate.message() + ' (time_offset_check.mode correct would use it)'
+            )
+
+    # --- mount check -------------------------------------------------------------------------------
+
+    def _take_mount_correction(self) -> None:
+        """Take the mount check's turn once it has one (``mount_check.mode`` correct; callback
+        thread, before images are posed; a check of a camera seen anew adds its own). As a time
+        offset correction, it starts the frame history, the filter and the focal length check
+        over at the next posed frame."""
+        result = self.mount_check.result
+        if result is None or result is self._mount_taken:
+            return  # nothing new (a camera checked anew keeps the turn it has until its own verdict)
+        self._mount_taken = result
+        if self.mount_check.config.mode != 'correct' or result.verdict != 'disagrees':
+            return
+        # The check read poses already turned by the correction so far: its turn adds to it.
+        rotation = self._mount_correction @ self.mount_check.rotation
+        self._mount_correction = rotation
+        self._restart_from_ns = 0
+        self.focal_check.restart()  # its pairs were posed in the told frame
+        self.stats.noted(
+            'mount_disagrees',
+            f'{result.message()}; mount_check.mode correct: every camera pose is '
+            f'turned by it from now on, frame history and filter start over; {self._mount_hint(rotation)}',
+        )
+
+    def _on_mount_estimate(self, camera: PinholeCamera, estimate: MountEstimate) -> None:
+        """The mount check's result (its thread), said once; in correct mode the callbacks take
+        the turn (``_take_mount_correction``) and say it then."""
+        if estimate.verdict == 'suspect':  # warned once, not taken
+            self.stats.noted('mount_suspect', estimate.message())
+        elif estimate.verdict != 'disagrees':
+            self.get_logger().info(estimate.message())
+        elif self.mount_check.config.mode != 'correct':
+            self.stats.noted(
+                'mount_disagrees',
+                f'{estimate.message()} (mount_check.mode correct would use it); '
+                f'{self._mount_hint(self._mount_correction @ estimate.rotation())}',
+            )
+
+    def _mount_hint(self, rotation: np.ndarray) -> str:
+        """The ``camera_from_pose_frame`` that holds the turn, for the user's configuration: the
+        next run then starts with it (the nodes after this one hear the turn on the posing
+        topics, nodes/posing.py)."""
+        T = self.T_pose_cam @ rotation
+        values = [*T[:3, 3], *matrix_to_quat(T[:3, :3])]
+        return 'camera_from_pose_frame [' + ', '.join(f'{v:.6g}' for v in values) + '] fits'
