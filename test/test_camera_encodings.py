@@ -1,4 +1,5 @@
-"""The colour encodings real cameras publish: packed YUV 4:2:2, Bayer mosaics, 16-bit colour.
+"""The colour encodings real cameras publish: packed YUV 4:2:2, semi-planar YUV (nv21 4:2:0,
+nv24 4:4:4), Bayer mosaics, 16-bit colour.
 
 Every test builds the wire bytes from a known RGB image (or known Y/U/V values) itself, so the
 OpenCV codes in ``messages.image_to_rgb`` are checked against the encodings' definitions, not
@@ -183,6 +184,135 @@ def test_row_padding_is_honoured(encoding, arr):
     np.testing.assert_array_equal(m.image_to_rgb(msg), expected)
 
 
+# --------------------------------------------------------------------------- semi-planar YUV
+
+PLANAR = ('nv21', 'nv24')
+
+
+def _planes(y: np.ndarray, u: np.ndarray, v: np.ndarray, encoding: str, step: int = 0) -> bytes:
+    """The wire bytes of per-pixel Y, U, V as ``encoding``, every row padded to ``step`` (0xAB).
+
+    ``nv21``: the Y rows, then one row of V U pairs per two Y rows, each pair the mean of a 2x2
+    block; rows of ``step`` bytes. ``nv24``: the Y rows, then one row of U V pairs per Y row, every
+    pixel its own; chroma rows of ``2 * step`` bytes (V4L2's NV24)."""
+    h, w = y.shape
+    step = step or w
+    if encoding == 'nv21':
+        blocks = [c.reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3)) for c in (v, u)]
+        chroma, chroma_step = np.stack(blocks, axis=-1).reshape(h // 2, w), step
+    else:
+        chroma, chroma_step = np.stack((u, v), axis=-1).reshape(h, 2 * w), 2 * step
+
+    def rows(plane: np.ndarray, stride: int) -> bytes:
+        out = np.full((plane.shape[0], stride), 0xAB, np.uint8)
+        out[:, : plane.shape[1]] = np.clip(np.rint(plane), 0, 255)
+        return out.tobytes()
+
+    return rows(y, step) + rows(chroma, chroma_step)
+
+
+def _planar_msg(data: bytes, encoding: str, width: int, height: int, step: int = 0, kind=TYPESTORE):
+    """A ``sensor_msgs/Image`` of ``encoding`` holding ``data`` (image_msg builds no planar YUV)."""
+    msg = _msg(np.frombuffer(data, np.uint8).reshape(1, -1), 'mono8', kind)
+    msg.encoding, msg.width, msg.height, msg.step = encoding, width, height, step or width
+    return msg
+
+
+@pytest.mark.parametrize('encoding', PLANAR)
+def test_planar_yuv_known_values(encoding):
+    # BT.601 limited range, as the yuv422 test: black, white, red, green, blue and a mid grey
+    known = {(16, 128, 128): (0, 0, 0), (235, 128, 128): (255, 255, 255), (81, 90, 240): (255, 0, 0)}
+    known.update({(145, 54, 34): (0, 255, 0), (41, 240, 110): (0, 0, 255), (126, 128, 128): (128,) * 3})
+    for (y, u, v), colour in known.items():
+        data = _planes(*(np.full((2, 2), c, float) for c in (y, u, v)), encoding)
+        out = m.image_to_rgb(_planar_msg(data, encoding, 2, 2))
+        assert _max_error(out, np.full((2, 2, 3), colour)) <= 2, ((y, u, v), out[0, 0])
+
+
+@pytest.mark.parametrize('kind', KINDS, ids=KIND_IDS)
+@pytest.mark.parametrize('image', list(IMAGES))
+@pytest.mark.parametrize('encoding', PLANAR)
+def test_planar_yuv_decodes_to_the_source_colours(kind, image, encoding):
+    rgb = IMAGES[image]()
+    out = m.image_to_rgb(_planar_msg(_planes(*_yuv(rgb), encoding), encoding, W, H, kind=kind))
+    assert out.shape == (H, W, 3) and out.dtype == np.uint8 and out.flags.c_contiguous
+    # flat, and nv24 (a chroma sample per pixel): YUV rounding only; nv21 gradient: plus the 2x2
+    # block's shared chroma, half a pixel off each (R and B change 4 and 2 a pixel across, B 1 down)
+    assert _max_error(out, rgb) <= (4 if image == 'gradient' and encoding == 'nv21' else 2)
+
+
+def test_nv24_keeps_a_chroma_sample_per_pixel():
+    """Random colours, every pixel its own: nv24 gives them back to rounding, nv21 cannot."""
+    rgb = np.random.default_rng(3).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    errors = {}
+    for encoding in PLANAR:
+        out = m.image_to_rgb(_planar_msg(_planes(*_yuv(rgb), encoding), encoding, W, H))
+        errors[encoding] = _max_error(out, rgb)
+    assert errors['nv24'] <= 2 and errors['nv21'] > 50, errors
+
+
+def test_planar_chroma_orders_are_told_apart():
+    """nv21's chroma pairs are V U, nv24's U V: the other order gives the wrong colour."""
+    rgb = _flat()
+    y, u, v = _yuv(rgb)
+    for encoding in PLANAR:
+        right = _planar_msg(_planes(y, u, v, encoding), encoding, W, H)
+        swapped = _planar_msg(_planes(y, v, u, encoding), encoding, W, H)
+        assert _max_error(m.image_to_rgb(right), rgb) <= 2, encoding
+        assert _max_error(m.image_to_rgb(swapped), rgb) > 50, encoding
+
+
+@pytest.mark.parametrize('encoding', PLANAR)
+@pytest.mark.parametrize('pad', [2, 7])
+def test_planar_yuv_row_padding_is_dropped(encoding, pad):
+    """``step`` counts the Y rows' bytes, padding included; nv24's chroma rows are twice that."""
+    yuv = _yuv(_gradient())
+    expected = m.image_to_rgb(_planar_msg(_planes(*yuv, encoding), encoding, W, H))
+    padded = _planar_msg(_planes(*yuv, encoding, step=W + pad), encoding, W, H, step=W + pad)
+    np.testing.assert_array_equal(m.image_to_rgb(padded), expected)
+
+
+@pytest.mark.parametrize(('width', 'height'), [(5, 4), (4, 3), (5, 3)])
+def test_nv21_odd_size_raises_one_line(width, height):
+    msg = _planar_msg(bytes(width * height * 2), 'nv21', width, height)
+    with pytest.raises(ValueError, match=f'nv21 .*must be even, got {width}x{height}') as exc:
+        m.image_to_rgb(msg)
+    assert '\n' not in str(exc.value)
+    with pytest.raises(InputError, match=f'must be even, got {width}x{height}') as exc:
+        decode_colour(msg)
+    assert exc.value.reason == 'bad_image'
+    # 4:4:4 shares no chroma: nv24 of any size is fine
+    nv24 = _planar_msg(bytes(width * height * 3), 'nv24', width, height)
+    assert m.image_to_rgb(nv24).shape == (height, width, 3)
+
+
+@pytest.mark.parametrize(('encoding', 'formula'), [('nv21', '3/2'), ('nv24', '3')])
+def test_planar_yuv_step_and_size_are_checked(encoding, formula):
+    data = _planes(*_yuv(_gradient()), encoding, step=W + 2)
+    expected = (W + 2) * H * (3 if encoding == 'nv24' else 1.5)
+    assert len(data) == expected
+    msg = _planar_msg(data, encoding, W, H, step=W - 1)
+    with pytest.raises(ValueError, match=f'step 31 is smaller than a {encoding} row of 32 pixels'):
+        m.image_to_rgb(msg)
+    for size in (len(data) - 1, len(data) + 1, (W + 2) * H, 2 * (W + 2) * H):  # short, long, other layouts
+        msg = _planar_msg(data[:size].ljust(size, b'\0'), encoding, W, H, step=W + 2)
+        with pytest.raises(ValueError) as exc:
+            m.image_to_rgb(msg)
+        message = str(exc.value)
+        assert '\n' not in message and encoding in message
+        assert (
+            f'has {size} bytes, expected step*height*{formula} = 34*24*{formula} = {int(expected)}' in message
+        )
+        with pytest.raises(InputError) as exc:
+            decode_colour(msg)
+        assert exc.value.reason == 'bad_image'
+    # no array of pixels: image_to_numpy and image_msg say where they are read
+    with pytest.raises(ValueError, match=f'{encoding} is planar YUV.*image_to_rgb'):
+        m.image_to_numpy(_planar_msg(data, encoding, W, H, step=W + 2))
+    with pytest.raises(ValueError, match=f'{encoding} is planar YUV'):
+        _msg(np.zeros((H, W), np.uint8), encoding)
+
+
 # --------------------------------------------------------------------------- 16-bit colour
 
 
@@ -233,6 +363,13 @@ def test_nodes_accept_the_camera_encodings():
         arr = np.random.default_rng(2).integers(0, np.iinfo(dtype).max, shape, endpoint=True).astype(dtype)
         out = decode_colour(_msg(arr, encoding, m.RCLPY if m.RCLPY in KINDS else TYPESTORE))
         assert out.shape == (H, W, 3) and out.dtype == np.uint8, encoding
+    assert set(PLANAR) <= set(COLOUR_ENCODINGS)
+    for encoding, size in (('nv21', W * H * 3 // 2), ('nv24', W * H * 3)):
+        data = np.random.default_rng(2).integers(0, 256, size, dtype=np.uint8).tobytes()
+        out = decode_colour(
+            _planar_msg(data, encoding, W, H, kind=m.RCLPY if m.RCLPY in KINDS else TYPESTORE)
+        )
+        assert out.shape == (H, W, 3) and out.dtype == np.uint8, encoding
 
 
 def test_nodes_refuse_other_encodings():
@@ -243,6 +380,7 @@ def test_nodes_refuse_other_encodings():
         message = str(exc.value)
         assert '\n' not in message and f"'{encoding}' is not colour" in message
         assert 'yuv422' in message and 'bayer_rggb8' in message and 'rgb16' in message
+        assert 'nv21' in message and 'nv24' in message
     odd = _msg(np.zeros((4, 5, 2), np.uint8), 'yuv422')
     with pytest.raises(InputError, match='width must be even, got 5') as exc:
         decode_colour(odd)

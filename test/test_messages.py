@@ -107,14 +107,14 @@ def test_image_to_depth(kind):
 def test_bad_images_raise(kind):
     hdr = _header(kind)
     arr = np.zeros((4, 6, 3), np.uint8)
-    with pytest.raises(ValueError, match="unsupported image encoding 'nv21'"):
-        m.image_msg(arr, 'nv21', hdr, kind=kind)
+    with pytest.raises(ValueError, match="unsupported image encoding 'yuv420'"):
+        m.image_msg(arr, 'yuv420', hdr, kind=kind)
     with pytest.raises(ValueError, match='dtype uint8'):
         m.image_msg(arr.astype(np.uint16), 'rgb8', hdr, kind=kind)
     with pytest.raises(ValueError, match='shape'):
         m.image_msg(arr, 'mono8', hdr, kind=kind)
     msg = m.image_msg(arr, 'rgb8', hdr, kind=kind)
-    msg.encoding = 'nv21'
+    msg.encoding = 'yuv420'
     with pytest.raises(ValueError, match='unsupported image encoding'):
         m.image_to_numpy(msg)
     msg = m.image_msg(arr, 'rgb8', hdr, kind=kind)

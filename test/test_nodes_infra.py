@@ -212,7 +212,7 @@ def test_camera_input_undistorts_resizes_and_rejects_bad_images():
         inp.working_image(small)
     assert exc.value.reason == 'size_mismatch'
     bad = m.image_msg(rgb, 'rgb8', header, kind=m.RCLPY)
-    bad.encoding = 'nv21'
+    bad.encoding = 'yuv420'
     with pytest.raises(InputError) as exc:
         inp.working_image(bad)
     assert exc.value.reason == 'bad_encoding'

@@ -207,7 +207,7 @@ def test_bad_inputs_are_dropped_counted_and_processing_goes_on(synthetic_sequenc
         uncalibrated.k = [0.0] * 9
         cam.info.publish(uncalibrated)
         expect('bad_camera_info')
-        cam.publish_image(rgb, stamps[0], seq.camera, encoding='nv21')
+        cam.publish_image(rgb, stamps[0], seq.camera, encoding='yuv420')
         expect('bad_encoding')
         small = np.ascontiguousarray(rgb[::2, ::2])
         cam.image.publish(m.rgb_image_msg(small, m.header_msg(stamps[0], FRAME, kind=K), kind=K))

@@ -67,7 +67,7 @@ def test_keyframe_depth_has_source_header_and_bad_inputs_are_dropped(torchscript
         images.publish(_image(good[stamps[0]], stamps[0]))
         images.publish(_image(good[stamps[0]], stamps[0]))  # duplicate stamp
         images.publish(_image(good[stamps[0]], stamps[0] - 1))  # older than the previous one
-        images.publish(_image(good[stamps[1]], stamps[1], encoding='nv21'))  # unsupported encoding
+        images.publish(_image(good[stamps[1]], stamps[1], encoding='yuv420'))  # unsupported encoding
         truncated = _image(good[stamps[1]], stamps[1])
         truncated.data = truncated.data[:-10]
         images.publish(truncated)  # data shorter than step * height
