@@ -23,9 +23,10 @@ from ..geometry import PoseError
 from .params import ParamSpec
 
 #: Encodings ``messages.image_to_rgb`` turns into RGB: rgb8, bgr8, rgba8, bgra8, mono8, 8UC1, 8UC3,
-#: the 16-bit rgb16, bgr16, rgba16, bgra16, mono16, packed YUV 4:2:2 (uyvy/yuv422, yuyv/yuv422_yuy2)
-#: and Bayer bayer_*8/16, what USB (usb_cam, v4l2_camera) and industrial (Spinnaker, Arena, pylon)
-#: camera drivers publish.
+#: the 16-bit rgb16, bgr16, rgba16, bgra16, mono16, packed YUV 4:2:2 (uyvy/yuv422, yuyv/yuv422_yuy2),
+#: semi-planar YUV nv21 (4:2:0) and nv24 (4:4:4) and Bayer bayer_*8/16, what USB (usb_cam,
+#: v4l2_camera), embedded (camera_ros / libcamera) and industrial (Spinnaker, Arena, pylon) camera
+#: drivers publish.
 COLOUR_ENCODINGS = messages.COLOUR_ENCODINGS
 
 
