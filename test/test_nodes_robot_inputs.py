@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -51,10 +51,19 @@ def _header(stamp_ns: int, frame: str = FRAME):
 
 
 def _pose_msg(cls: type, T: np.ndarray, stamp_ns: int):
-    """``T`` as a PoseStamped, PoseWithCovarianceStamped or Odometry (child frame base_link)."""
+    """``T`` as a PoseStamped, PoseWithCovarianceStamped, Odometry or TransformStamped (child
+    frame base_link)."""
     pose = m.pose_msg(T, kind=K)
     msg = cls(header=_header(stamp_ns, 'odom'))
-    if cls is PoseStamped:
+    if cls is TransformStamped:  # a motion-capture bridge's body
+        msg.child_frame_id = 'base_link'
+        msg.transform.translation.x, msg.transform.translation.y, msg.transform.translation.z = (
+            pose.position.x,
+            pose.position.y,
+            pose.position.z,
+        )
+        msg.transform.rotation = pose.orientation
+    elif cls is PoseStamped:
         msg.pose = pose
     else:
         msg.pose.pose = pose
@@ -116,7 +125,8 @@ def test_compressed_images_are_decoded_and_a_corrupt_one_is_counted(synthetic_se
 @pytest.mark.parametrize(
     ('msg_cls', 'pose_type'),
     [(Odometry, 'auto'), (PoseWithCovarianceStamped, 'auto'), (Odometry, 'odometry'),
-     (PoseWithCovarianceStamped, 'pose_with_covariance'), (PoseStamped, 'auto')],
+     (PoseWithCovarianceStamped, 'pose_with_covariance'), (PoseStamped, 'auto'),
+     (TransformStamped, 'auto'), (TransformStamped, 'transform_stamped')],
 )  # fmt: skip
 def test_pose_types_and_the_body_to_camera_transform(synthetic_sequence, msg_cls, pose_type):
     """A body-frame pose (T_world_body) of each message type plus camera_from_pose_frame gives
@@ -139,9 +149,11 @@ def test_pose_types_and_the_body_to_camera_transform(synthetic_sequence, msg_cls
         assert ros.wait_for(lambda: node.posed_count == 4, 20.0), node.stats.snapshot().summary()
         assert ros.wait_for(lambda: node.pose_input.pose_type is not None)  # auto: confirmed
         frames = list(node.frames)
-    assert node.pose_input.pose_type == {PoseStamped: 'pose_stamped', Odometry: 'odometry'}.get(
-        msg_cls, 'pose_with_covariance'
-    )
+    assert node.pose_input.pose_type == {
+        PoseStamped: 'pose_stamped',
+        Odometry: 'odometry',
+        TransformStamped: 'transform_stamped',
+    }.get(msg_cls, 'pose_with_covariance')
     for i, frame in enumerate(frames):
         np.testing.assert_allclose(frame.pose, seq.poses[i], atol=1e-9)
 
@@ -173,6 +185,7 @@ def test_auto_pose_type_switches_to_another_process_odometry_and_maps_bag_types(
         odometry.publish(_pose_msg(Odometry, np.eye(4), 1_000_000_000))
         assert ros.wait_for(lambda: node.stats.snapshot().received.get('pose', 0) == 1)
     assert pose_type_for_topics({POSE: 'nav_msgs/msg/Odometry'}) == 'odometry'
+    assert pose_type_for_topics({POSE: 'geometry_msgs/msg/TransformStamped'}) == 'transform_stamped'
     assert pose_type_for_topics({POSE: 'geometry_msgs/msg/PoseStamped'}) == 'pose_stamped'
     assert pose_type_for_topics({'/other': 'nav_msgs/msg/Odometry'}) == 'auto'
     assert pose_type_for_topics({POSE: 'std_msgs/msg/String'}) == 'auto'

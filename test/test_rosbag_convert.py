@@ -220,7 +220,7 @@ def _T_world_kinect(t: float) -> np.ndarray:
     return make_pose([0.5 * (t - 99.95), 0.2, 1.0], [0.0, 0.0, 0.2588190, 0.9659258])
 
 
-def _tf_msg(parent: str, child: str, t_ns: int, T: np.ndarray):
+def _transform_stamped(parent: str, child: str, t_ns: int, T: np.ndarray):
     k = m.as_kind(ROS1)
     tr, q = T[:3, 3], m.pose_msg(T, kind=k).orientation
     transform = k.new(
@@ -228,13 +228,41 @@ def _tf_msg(parent: str, child: str, t_ns: int, T: np.ndarray):
         translation=k.new('geometry_msgs/msg/Vector3', x=tr[0], y=tr[1], z=tr[2]),
         rotation=q,
     )
-    stamped = k.new(
+    return k.new(
         'geometry_msgs/msg/TransformStamped',
         header=m.header_msg(t_ns, parent, kind=k),
         child_frame_id=child,
         transform=transform,
     )
-    return k.new('tf2_msgs/msg/TFMessage', transforms=[stamped])
+
+
+def _tf_msg(parent: str, child: str, t_ns: int, T: np.ndarray):
+    stamped = _transform_stamped(parent, child, t_ns, T)
+    return m.as_kind(ROS1).new('tf2_msgs/msg/TFMessage', transforms=[stamped])
+
+
+def _pose_topic_msg(msgtype: str, T: np.ndarray, t_ns: int):
+    """``T`` as a ROS 1 message of one of the pose types a pose topic may carry."""
+    k = m.as_kind(ROS1)
+    hdr = m.header_msg(t_ns, '/world', kind=ROS1)
+    if msgtype == 'geometry_msgs/msg/PoseStamped':
+        return m.pose_stamped_msg(T, hdr, kind=ROS1)
+    if msgtype == 'geometry_msgs/msg/TransformStamped':
+        return _transform_stamped('/world', '/openni_rgb_optical_frame', t_ns, T)
+    pose = m.pose_msg(T, kind=k)
+    with_cov = k.new('geometry_msgs/msg/PoseWithCovariance', pose=pose, covariance=np.zeros(36))
+    if msgtype == 'geometry_msgs/msg/PoseWithCovarianceStamped':
+        return k.new(msgtype, header=hdr, pose=with_cov)
+    twist = k.new(
+        'geometry_msgs/msg/TwistWithCovariance',
+        twist=k.new(
+            'geometry_msgs/msg/Twist',
+            linear=k.new('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.0),
+            angular=k.new('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.0),
+        ),
+        covariance=np.zeros(36),
+    )
+    return k.new(msgtype, header=hdr, child_frame_id='/openni_rgb_optical_frame', pose=with_cov, twist=twist)
 
 
 def pose_topic_samples(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -244,9 +272,10 @@ def pose_topic_samples(n: int) -> tuple[np.ndarray, np.ndarray]:
     return stamps, np.stack([_T_world_kinect(t / 1e9) @ T_KINECT_OPTICAL for t in stamps.tolist()])
 
 
-def write_ros1_bag(path: Path, n: int = 5, tf: bool = True, pose_topic: bool = False) -> dict:
+def write_ros1_bag(path: Path, n: int = 5, tf: bool = True, pose_topic: bool | str = False) -> dict:
     """A TUM-like ROS 1 bag: bgr8 colour at 10 Hz, 16UC1 depth 5 ms later, tf at 100 Hz; with
-    ``pose_topic`` the optical frame's poses on /camera/pose too (``pose_topic_samples``)."""
+    ``pose_topic`` the optical frame's poses on /camera/pose too (``pose_topic_samples``), as
+    PoseStamped or as the message type ``pose_topic`` names."""
     rng = np.random.default_rng(1)
     events: list[tuple[int, str, str, object]] = []
     truth = {}
@@ -273,11 +302,9 @@ def write_ros1_bag(path: Path, n: int = 5, tf: bool = True, pose_topic: bool = F
                 msg = _tf_msg('/kinect', '/openni_rgb_optical_frame', t_ns, T_KINECT_OPTICAL)
                 events.append((t_ns, '/tf', 'tf2_msgs/msg/TFMessage', msg))
     if pose_topic:
+        msgtype = pose_topic if isinstance(pose_topic, str) else 'geometry_msgs/msg/PoseStamped'
         for t_ns, T in zip(*pose_topic_samples(n), strict=True):
-            hdr = m.header_msg(int(t_ns), '/world', kind=ROS1)
-            events.append(
-                (int(t_ns), POSE, 'geometry_msgs/msg/PoseStamped', m.pose_stamped_msg(T, hdr, kind=ROS1))
-            )
+            events.append((int(t_ns), POSE, msgtype, _pose_topic_msg(msgtype, T, int(t_ns))))
     events.sort(key=lambda e: e[0])
     with Ros1Writer(path) as writer:
         conns = {}
@@ -351,11 +378,21 @@ def test_ros1_bag_with_groundtruth_and_camera_yaml(tmp_path):
         assert m.camera_info_to_calibration(info).camera == yaml_cam
 
 
-def test_ros1_bag_with_a_pose_topic_keeps_its_own_samples(tmp_path):
-    """A PoseStamped topic at 100 Hz, 3 ms off the images: the bag carries its samples from the
-    last at or before the first frame - 0.5 s to the first at or after the last frame + 0.5 s."""
+@pytest.mark.parametrize(
+    'msgtype',
+    [
+        'geometry_msgs/msg/PoseStamped',
+        'geometry_msgs/msg/PoseWithCovarianceStamped',
+        'nav_msgs/msg/Odometry',
+        'geometry_msgs/msg/TransformStamped',
+    ],
+)
+def test_ros1_bag_with_a_pose_topic_keeps_its_own_samples(tmp_path, msgtype):
+    """A pose topic at 100 Hz, 3 ms off the images: the bag carries its samples from the last at
+    or before the first frame - 0.5 s to the first at or after the last frame + 0.5 s. Any of the
+    pose types the nodes read (a motion-capture bridge's TransformStamped, an odometry) is read."""
     src = tmp_path / 'tum.bag'
-    truth = write_ros1_bag(src, tf=False, pose_topic=True)
+    truth = write_ros1_bag(src, tf=False, pose_topic=msgtype)
     out = tmp_path / 'ros2'
     result = ros1_to_rosbag2(src, out, show_progress=False)
     assert result.frames == 5 and result.pose_source == 'pose topic, its own samples'

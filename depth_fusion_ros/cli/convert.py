@@ -16,7 +16,8 @@ SRC is either
   * a ROS 1 .bag file (e.g. a TUM RGB-D sequence as downloaded). Its camera_info often holds
     default intrinsics: pass --camera-yaml with the real calibration. Poses come from
     --groundtruth (TUM 'timestamp tx ty tz qx qy qz qw', camera-to-world), else from a
-    PoseStamped topic (--src-pose-topic), else from the /tf chain --tf-world-frame ->
+    pose topic (--src-pose-topic: PoseStamped, PoseWithCovarianceStamped, Odometry or
+    TransformStamped), else from the /tf chain --tf-world-frame ->
     --tf-camera-frame.
 
 OUT_BAG is the rosbag2 folder to create (mcap by default). Header stamp = bag time throughout;
@@ -121,7 +122,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     ros1.add_argument('--src-depth-topic', default='/camera/depth/image', help='(default: %(default)s)')
     ros1.add_argument(
-        '--src-pose-topic', default='/camera/pose', help='PoseStamped poses, if the bag has them'
+        '--src-pose-topic',
+        default='/camera/pose',
+        help='pose topic (PoseStamped, PoseWithCovarianceStamped, Odometry or TransformStamped),'
+        ' if the bag has one',
     )
     ros1.add_argument('--tf-world-frame', default=None, help='/tf poses: the world frame (default: world)')
     ros1.add_argument(

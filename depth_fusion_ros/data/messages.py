@@ -640,12 +640,15 @@ def pose_stamped_to_matrix(msg: Any) -> np.ndarray:
 
 
 def pose_message_to_matrix(msg: Any) -> np.ndarray:
-    """4x4 pose of a PoseStamped, PoseWithCovarianceStamped or nav_msgs/Odometry.
+    """4x4 pose of a PoseStamped, PoseWithCovarianceStamped, nav_msgs/Odometry or TransformStamped.
 
-    The two latter nest the ``Pose`` one level deeper (``msg.pose.pose``); the covariance and
-    Odometry's twist are not used. The pose is that of the message's frame (``child_frame_id``
-    for Odometry) in ``header.frame_id``.
+    The second and third nest the ``Pose`` one level deeper (``msg.pose.pose``); the covariance
+    and Odometry's twist are not used. A TransformStamped (a motion-capture bridge's body, a
+    ``/tf`` entry on a topic of its own) holds a ``Transform`` instead. The pose is that of the
+    message's frame (``child_frame_id`` for Odometry and TransformStamped) in ``header.frame_id``.
     """
+    if hasattr(msg, 'transform'):
+        return transform_to_matrix(msg.transform)
     pose = msg.pose
     return pose_to_matrix(pose.pose if hasattr(pose, 'pose') else pose)
 

@@ -38,8 +38,8 @@ from .messages import (
     header_msg,
     image_to_depth,
     image_to_rgb,
+    pose_message_to_matrix,
     pose_stamped_msg,
-    pose_stamped_to_matrix,
     stamp_to_ns,
     transform_to_matrix,
 )
@@ -85,7 +85,7 @@ def _scan_ros1(reader: AnyReader, src: Path, source: BagTopics) -> _Ros1Scan:
             scan.calibration = camera_info_to_calibration(msg)
         elif conn.topic == source.pose:
             scan.pose_stamps.append(stamp_to_ns(msg.header.stamp))
-            scan.poses.append(pose_stamped_to_matrix(msg))
+            scan.poses.append(pose_message_to_matrix(msg))
         elif conn.topic in TF_TOPICS:
             for tr in msg.transforms:
                 scan.tf.add(
@@ -167,7 +167,8 @@ def ros1_to_rosbag2(
     Colour images (any encoding of ``messages.COLOUR_ENCODINGS``) become rgb8, depth (32FC1 m or
     16UC1 mm) becomes 32FC1 metres re-stamped with its nearest colour frame, and one CameraInfo is
     written per colour frame. Poses come from, in order of preference: the ``groundtruth``
-    file (TUM format), a PoseStamped topic ``source_topics.pose`` in the bag, or the ``/tf``
+    file (TUM format), a pose topic ``source_topics.pose`` in the bag (PoseStamped,
+    PoseWithCovarianceStamped, Odometry or TransformStamped), or the ``/tf``
     chain from ``tf_world_frame`` to the camera frame (``tf_camera_frame``, default the colour
     images' frame_id). The first two write their own samples spanning the frames, at their own
     stamps; the ``/tf`` chain writes one pose per colour frame, interpolated at its stamp.

@@ -29,7 +29,7 @@ from .compressed import any_image_to_rgb, colour_topic_in
 from .messages import (
     camera_info_to_calibration,
     image_to_depth,
-    pose_stamped_to_matrix,
+    pose_message_to_matrix,
     stamp_to_ns,
 )
 from .sequence import Frame, Sequence
@@ -94,11 +94,13 @@ def read_depth_images(bag: str | Path, topic: str) -> dict[int, np.ndarray]:
 
 
 def read_poses(bag: str | Path, topic: str = POSE_TOPIC) -> tuple[np.ndarray, np.ndarray]:
-    """``(stamps_ns (N,) int64, T_wc (N, 4, 4))`` of a PoseStamped topic, sorted by stamp."""
+    """``(stamps_ns (N,) int64, T_wc (N, 4, 4))`` of a pose topic (PoseStamped,
+    PoseWithCovarianceStamped, Odometry or TransformStamped: ``pose_message_to_matrix``),
+    sorted by stamp."""
     stamps, poses = [], []
     for _, _, msg in iter_messages(bag, [topic]):
         stamps.append(stamp_to_ns(msg.header.stamp))
-        poses.append(pose_stamped_to_matrix(msg))
+        poses.append(pose_message_to_matrix(msg))
     order = np.argsort(np.asarray(stamps, dtype=np.int64), kind='stable')
     arr = np.asarray(stamps, dtype=np.int64)[order]
     keep = np.concatenate(([True], np.diff(arr) > 0)) if len(arr) else np.zeros(0, bool)
@@ -123,7 +125,7 @@ def _scan(
             calib = camera_info_to_calibration(msg)
         elif topic == pose_topic:
             pose_stamps.append(stamp_to_ns(msg.header.stamp))
-            poses.append(pose_stamped_to_matrix(msg))
+            poses.append(pose_message_to_matrix(msg))
     order = np.argsort(np.asarray(pose_stamps, dtype=np.int64), kind='stable')
     p_stamps = np.asarray(pose_stamps, dtype=np.int64)[order]
     p_poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[order]

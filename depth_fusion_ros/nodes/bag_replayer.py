@@ -252,6 +252,7 @@ INSTANT_ORDER = {
     'geometry_msgs/msg/PoseStamped': 1,
     'geometry_msgs/msg/PoseWithCovarianceStamped': 1,
     'nav_msgs/msg/Odometry': 1,
+    'geometry_msgs/msg/TransformStamped': 1,
     'tf2_msgs/msg/TFMessage': 1,
 }
 

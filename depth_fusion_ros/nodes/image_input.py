@@ -310,7 +310,7 @@ def _identity_calibration(width: int, height: int) -> CameraCalibration:
 
 
 def pose_from_message(msg: Any) -> np.ndarray:
-    """4x4 pose of a PoseStamped, PoseWithCovarianceStamped or Odometry, or
+    """4x4 pose of a PoseStamped, PoseWithCovarianceStamped, Odometry or TransformStamped, or
     ``InputError('bad_pose')`` naming the problem."""
     try:
         return messages.pose_message_to_matrix(msg)

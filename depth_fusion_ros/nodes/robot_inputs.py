@@ -1,11 +1,13 @@
-"""The input flavours robots publish: image_transport ``compressed``, three pose message types,
+"""The input flavours robots publish: image_transport ``compressed``, four pose message types,
 and a pose that is not the camera's.
 
 * ``image_transport: compressed`` subscribes to ``<image topic>/compressed``
   (``sensor_msgs/CompressedImage``) instead of the raw topic; decoding is in
   ``data.compressed`` and happens in the node's image callback like raw decoding.
 * ``pose_type`` picks the pose message: ``PoseStamped``, ``PoseWithCovarianceStamped``
-  (AMCL-style, some SLAMs) or ``nav_msgs/Odometry`` (VINS-Fusion, robot_localization). ``auto``
+  (AMCL-style, some SLAMs), ``nav_msgs/Odometry`` (VINS-Fusion, robot_localization) or
+  ``TransformStamped`` (motion-capture bridges such as vicon_bridge, one topic per body: a
+  ``/tf`` transform on a topic of its own; ``/tf`` itself needs tf2_msgs, not on pip). ``auto``
   waits for a publisher and subscribes with its type (ROS cannot subscribe "to any type").
 * ``camera_from_pose_frame`` is the fixed transform from the pose's frame (a body or IMU
   frame) to the camera optical frame: ``T_world_cam = T_world_pose @ T_pose_cam``. TF is not
@@ -30,6 +32,7 @@ POSE_MESSAGE_TYPES = {
     'pose_stamped': 'geometry_msgs/msg/PoseStamped',
     'pose_with_covariance': 'geometry_msgs/msg/PoseWithCovarianceStamped',
     'odometry': 'nav_msgs/msg/Odometry',
+    'transform_stamped': 'geometry_msgs/msg/TransformStamped',
 }
 POSE_TYPES = ('auto', *POSE_MESSAGE_TYPES)
 IDENTITY_TQ = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
@@ -46,7 +49,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'pose_type',
         'auto',
         'message type of the pose topic: pose_stamped, pose_with_covariance (PoseWithCovarianceStamped), '
-        "odometry (nav_msgs/Odometry, its pose.pose); auto: the type the topic's publishers use",
+        'odometry (nav_msgs/Odometry, its pose.pose), transform_stamped (TransformStamped, a motion-capture '
+        "bridge's body: child_frame_id in header.frame_id); auto: the type the topic's publishers use",
         choices=POSE_TYPES,
     ),
     ParamSpec(
