@@ -7,6 +7,8 @@ import argparse
 import sys
 from typing import Any
 
+import numpy as np
+
 from .argtypes import at_least
 
 
@@ -29,29 +31,81 @@ def recording_arguments(p: argparse.ArgumentParser, stage: str) -> None:
         '--width', type=at_least(16, '--width'), default=320, help='working width (320, as the node)'
     )
     p.add_argument('--height', type=at_least(16, '--height'), default=240, help='working height (240)')
+    topics = p.add_argument_group("a robot's rosbag2 (ros2 bag record): its topics and frames")
+    topics.add_argument(
+        '--image-topic',
+        default=None,
+        help='colour images, raw or <topic>/compressed (/camera/rgb/image_color)',
+    )
+    topics.add_argument('--camera-info-topic', default=None, help='camera_info (/camera/rgb/camera_info)')
+    topics.add_argument(
+        '--pose-topic',
+        default=None,
+        help='poses: PoseStamped, PoseWithCovarianceStamped, Odometry or TransformStamped (/camera/pose)',
+    )
+    topics.add_argument(
+        '--camera-from-pose-frame',
+        nargs=7,
+        type=float,
+        metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
+        default=None,
+        help="the camera optical frame in the poses' frame (a body or IMU), as multi_view_node's "
+        'parameter: the camera pose is the pose times this (also for a TUM folder)',
+    )
+
+
+#: The topic options and ``load_bag_sequence``'s keywords they set.
+_TOPIC_OPTIONS = {
+    'image_topic': 'rgb_topic',
+    'camera_info_topic': 'camera_info_topic',
+    'pose_topic': 'pose_topic',
+}
 
 
 def load_recording(args: argparse.Namespace):
-    """The recording of ``args.source`` (TUM folder or rosbag2) at the working size, as the checks read it."""
+    """The recording of ``args.source`` (TUM folder or rosbag2) at the working size, as the checks
+    read it, its poses those of the camera (``--camera-from-pose-frame``)."""
     from pathlib import Path
+
+    from ..data.tum import read_camera_yaml
 
     source = Path(args.source)
     if not source.exists():
         raise FileNotFoundError(f'{source} does not exist')
+    calibration = read_camera_yaml(args.rgb_camera) if args.rgb_camera else None
+    topics = {key: getattr(args, opt) for opt, key in _TOPIC_OPTIONS.items() if getattr(args, opt, None)}
     if (source / 'metadata.yaml').is_file():
         from ..data.rosbag_read import load_bag_sequence
-        from ..data.tum import read_camera_yaml
 
-        calibration = read_camera_yaml(args.rgb_camera) if args.rgb_camera else None
-        return load_bag_sequence(
-            source, args.width, args.height, args.frames, depth_topic=None, calibration=calibration
+        sequence = load_bag_sequence(
+            source, args.width, args.height, args.frames, depth_topic=None, calibration=calibration, **topics
         )
-    from ..data.tum import load_tum_sequence, read_camera_yaml
+    else:
+        if topics:
+            named = ', '.join(
+                '--' + opt.replace('_', '-') for opt in _TOPIC_OPTIONS if getattr(args, opt, None)
+            )
+            raise ValueError(f'{named}: topics are for a rosbag2, and {source} is a TUM folder')
+        from ..data.tum import load_tum_sequence
 
-    calibration = read_camera_yaml(args.rgb_camera) if args.rgb_camera else None
-    return load_tum_sequence(
-        source, args.width, args.height, args.frames, require_depth=False, rgb_calibration=calibration
-    )
+        sequence = load_tum_sequence(
+            source, args.width, args.height, args.frames, require_depth=False, rgb_calibration=calibration
+        )
+    return camera_poses(sequence, getattr(args, 'camera_from_pose_frame', None))
+
+
+def camera_poses(sequence: Any, camera_from_pose_frame: list[float] | None) -> Any:
+    """``sequence`` with its poses (and its pose record) taken from the poses' frame to the camera
+    optical frame, ``T_world_cam = T_world_pose @ T_pose_cam``, as multi_view_node does; as it
+    is without one."""
+    if camera_from_pose_frame is None:
+        return sequence
+    from ..nodes.robot_inputs import transform_from_parameter
+
+    T_pose_cam = transform_from_parameter(list(camera_from_pose_frame), '--camera-from-pose-frame')
+    stream = sequence.pose_stream
+    moved = None if stream is None else (stream[0], np.asarray(stream[1]) @ T_pose_cam)
+    return sequence.with_poses(sequence.poses @ T_pose_cam, pose_stream=moved)
 
 
 def verdict_status(command: str, source: str, estimate: Any, pairs: int, config: Any, frames: int) -> int:

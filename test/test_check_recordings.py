@@ -1,0 +1,99 @@
+"""The calibration check commands on a robot's own recording: its topic names, its pose type
+and the pose of a body rather than of the camera (``--image-topic``, ``--camera-info-topic``,
+``--pose-topic``, ``--camera-from-pose-frame``), read as multi_view_node reads them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from depth_fusion_ros.cli.main import main
+from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.data.bag_writer import AtomicBagWriter
+from depth_fusion_ros.data.rosbag_read import bag_typestore, iter_messages
+from depth_fusion_ros.data.synthetic import stress_config, write_synthetic_sequence
+from depth_fusion_ros.geometry import invert_pose, make_pose, pose_to_tq
+
+#: 320x240 over a 1 m sweep in 40 frames, as test_focal_check.
+SIZE = {'width': 320, 'height': 240, 'frames': 40, 'seed': 5}
+PAIRS = ['--pairs', '12']
+#: A camera mounted on a body: 10 cm ahead, 5 cm up, optical axis along the body's x.
+T_BODY_CAM = make_pose([0.10, 0.0, 0.05], [-0.5, 0.5, -0.5, 0.5])
+ROBOT = [
+    '--image-topic',
+    '/cam/image_raw',
+    '--camera-info-topic',
+    '/cam/camera_info',
+    '--pose-topic',
+    '/odom',
+]
+
+
+def _odometry(T_world_body: np.ndarray, header) -> object:
+    k = m.as_kind(bag_typestore())
+    zero = k.new('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.0)
+    twist = k.new(
+        'geometry_msgs/msg/TwistWithCovariance',
+        twist=k.new('geometry_msgs/msg/Twist', linear=zero, angular=zero),
+        covariance=np.zeros(36),
+    )
+    pose = k.new(
+        'geometry_msgs/msg/PoseWithCovariance', pose=m.pose_msg(T_world_body, kind=k), covariance=np.zeros(36)
+    )
+    return k.new('nav_msgs/msg/Odometry', header=header, child_frame_id='base_link', pose=pose, twist=twist)
+
+
+def _robot_bag(bag: Path, out: Path) -> Path:
+    """``bag`` (the layout ``convert`` writes) as a robot records it: its own topic names, and the
+    body's odometry (``T_world_body = T_world_cam @ inv(T_BODY_CAM)``) instead of the camera pose."""
+    names = {'/camera/rgb/image_color': '/cam/image_raw', '/camera/rgb/camera_info': '/cam/camera_info'}
+    T_cam_body = invert_pose(T_BODY_CAM)
+    with AtomicBagWriter(out) as writer:
+        for topic, t_ns, msg in iter_messages(bag):
+            if topic == '/camera/pose':
+                T_world_body = m.pose_message_to_matrix(msg) @ T_cam_body
+                writer.write('/odom', 'nav_msgs/msg/Odometry', t_ns, _odometry(T_world_body, msg.header))
+            elif topic in names:
+                writer.write(names[topic], msg.__msgtype__, t_ns, msg)
+    return out
+
+
+def test_check_focal_reads_a_robots_topics_and_body_poses(tmp_path, capsys):
+    """The wrong-focal stream recorded by a robot (its topic names, Odometry of its body) gives
+    the check the verdict and the fit of the camera-posed recording once told its topics and
+    the camera's mount; without the mount the poses are the body's, and the fit is another."""
+    wrong = write_synthetic_sequence(tmp_path / 'wrong', stress_config('wrong_focal', **SIZE))
+    assert main(['convert', str(wrong), str(tmp_path / 'bag'), '--no-depth']) == 0
+    robot = _robot_bag(tmp_path / 'bag', tmp_path / 'robot')
+    capsys.readouterr()
+    assert main(['check-focal', str(tmp_path / 'bag'), *PAIRS]) == 3
+    reference = capsys.readouterr().out.strip().split(': ', 1)[1]
+    assert 'camera_info says fx 288.8 px' in reference
+    mount = [str(v) for v in np.concatenate(pose_to_tq(T_BODY_CAM))]
+    assert main(['check-focal', str(robot), *PAIRS, *ROBOT, '--camera-from-pose-frame', *mount]) == 3
+    assert capsys.readouterr().out.strip().split(': ', 1)[1] == reference
+    main(['check-focal', str(robot), *PAIRS, *ROBOT])  # the body's poses as the camera's
+    assert capsys.readouterr().out.strip().split(': ', 1)[1] != reference
+
+
+def test_topics_for_a_tum_folder_and_a_bad_mount_are_one_line_errors(tmp_path, capsys):
+    folder = write_synthetic_sequence(tmp_path / 'tum', stress_config('translation', **{**SIZE, 'frames': 4}))
+    capsys.readouterr()
+    assert main(['check-mount', str(folder), '--pose-topic', '/odom']) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count('\n') == 0 and '--pose-topic: topics are for a rosbag2' in err, err
+    bad = ['0', '0', '0', '0', '0', '0', '2']
+    assert main(['check-sync', str(folder), '--camera-from-pose-frame', *bad]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count('\n') == 0 and "'--camera-from-pose-frame'" in err and 'has norm 2' in err, err
+
+
+@pytest.mark.parametrize('command', ['check-focal', 'check-sync', 'check-mount'])
+def test_every_check_command_takes_the_robot_options(command, capsys):
+    with pytest.raises(SystemExit):
+        main([command, '--help'])
+    out = capsys.readouterr().out
+    for option in ('--image-topic', '--camera-info-topic', '--pose-topic', '--camera-from-pose-frame'):
+        assert option in out
