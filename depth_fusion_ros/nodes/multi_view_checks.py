@@ -117,13 +117,21 @@ class CheckCorrections:
     def _on_time_offset_estimate(self, camera: PinholeCamera, estimate: TimeOffsetEstimate) -> None:
         """The time offset check's result (its thread), said once; in correct mode the callbacks
         take the correction (``_take_offset_correction``) and say it then."""
-        if estimate.verdict == 'suspect':  # warned once, not taken
-            self.stats.noted('time_offset_suspect', estimate.message())
+        self._say_verdict('time_offset', estimate, self.time_offset_check.config.mode)
+
+    def _say_verdict(self, check: str, estimate: Any, mode: str, hint: str = '') -> None:
+        """A check's verdict said once: ``suspect`` as a note (warned once, never taken), a
+        disagreement the node does not take (``mode`` warn) as a note naming the mode that
+        would, agreement and ``unobservable`` as an info line. A disagreement taken is said by
+        the callbacks when they take it. ``hint``: what the user's configuration could hold."""
+        if estimate.verdict == 'suspect':
+            self.stats.noted(f'{check}_suspect', estimate.message())
         elif estimate.verdict != 'disagrees':
             self.get_logger().info(estimate.message())
-        elif self.time_offset_check.config.mode != 'correct':
+        elif mode != 'correct':
+            then = f'; {hint}' if hint else ''
             self.stats.noted(
-                'time_offset_disagrees', estimate.message() + ' (time_offset_check.mode correct would use it)'
+                f'{check}_disagrees', f'{estimate.message()} ({check}_check.mode correct would use it){then}'
             )
 
     # --- mount check -------------------------------------------------------------------------------
@@ -153,16 +161,8 @@ class CheckCorrections:
     def _on_mount_estimate(self, camera: PinholeCamera, estimate: MountEstimate) -> None:
         """The mount check's result (its thread), said once; in correct mode the callbacks take
         the turn (``_take_mount_correction``) and say it then."""
-        if estimate.verdict == 'suspect':  # warned once, not taken
-            self.stats.noted('mount_suspect', estimate.message())
-        elif estimate.verdict != 'disagrees':
-            self.get_logger().info(estimate.message())
-        elif self.mount_check.config.mode != 'correct':
-            self.stats.noted(
-                'mount_disagrees',
-                f'{estimate.message()} (mount_check.mode correct would use it); '
-                f'{self._mount_hint(self._mount_correction @ estimate.rotation())}',
-            )
+        hint = self._mount_hint(self._mount_correction @ estimate.rotation())
+        self._say_verdict('mount', estimate, self.mount_check.config.mode, hint)
 
     def _mount_hint(self, rotation: np.ndarray) -> str:
         """The ``camera_from_pose_frame`` that holds the turn, for the user's configuration: the
