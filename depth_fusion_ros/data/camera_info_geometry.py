@@ -79,24 +79,14 @@ class ImageWindow:
         return self.roi_width // self.binning_x, self.roi_height // self.binning_y
 
     def camera(self, fx: float, fy: float, cx: float, cy: float) -> PinholeCamera:
-        """The published image's camera, of the full-sensor ``fx, fy, cx, cy`` (module docstring)."""
-        width, height = self.size
-        return PinholeCamera(
-            width,
-            height,
-            float(fx) / self.binning_x,
-            float(fy) / self.binning_y,
-            _principal(float(cx), self.x_offset, self.binning_x),
-            _principal(float(cy), self.y_offset, self.binning_y),
-        )
-
-
-def _principal(c: float, offset: int, binning: int) -> float:
-    """``(c - offset + 0.5) / binning - 0.5``, written so that no binning leaves ``c - offset``
-    exact (``(c + 0.5) - 0.5`` need not give ``c`` back in floating point)."""
-    if binning == 1:
-        return c - offset
-    return (c - offset + 0.5) / binning - 0.5
+        """The published image's camera, of the full-sensor ``fx, fy, cx, cy`` (module docstring):
+        the ROI's crop, then binning as a resize (``PinholeCamera.cropped`` and ``.scaled``; an
+        unbinned window is not resized, so its principal point stays ``c - offset`` exactly)."""
+        roi = PinholeCamera(self.roi_width, self.roi_height, float(fx), float(fy), float(cx), float(cy))
+        roi = roi.cropped(self.x_offset, self.y_offset, self.roi_width, self.roi_height)
+        if (self.binning_x, self.binning_y) == (1, 1):
+            return roi
+        return roi.scaled(*self.size)
 
 
 def _count(name: str, value: object) -> int:
