@@ -73,18 +73,22 @@ def load_recording(args: argparse.Namespace):
     if not source.exists():
         raise FileNotFoundError(f'{source} does not exist')
     calibration = read_camera_yaml(args.rgb_camera) if args.rgb_camera else None
-    topics = {key: getattr(args, opt) for opt, key in _TOPIC_OPTIONS.items() if getattr(args, opt, None)}
+    given = {opt: getattr(args, opt) for opt in _TOPIC_OPTIONS if getattr(args, opt, None)}
     if (source / 'metadata.yaml').is_file():
         from ..data.rosbag_read import load_bag_sequence
 
         sequence = load_bag_sequence(
-            source, args.width, args.height, args.frames, depth_topic=None, calibration=calibration, **topics
+            source,
+            args.width,
+            args.height,
+            args.frames,
+            depth_topic=None,
+            calibration=calibration,
+            **{_TOPIC_OPTIONS[opt]: topic for opt, topic in given.items()},
         )
     else:
-        if topics:
-            named = ', '.join(
-                '--' + opt.replace('_', '-') for opt in _TOPIC_OPTIONS if getattr(args, opt, None)
-            )
+        if given:
+            named = ', '.join('--' + opt.replace('_', '-') for opt in given)
             raise ValueError(f'{named}: topics are for a rosbag2, and {source} is a TUM folder')
         from ..data.tum import load_tum_sequence
 
