@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from message_kinds import odometry_msg
 
 from depth_fusion_ros.cli.main import main
 from depth_fusion_ros.data import messages as m
@@ -31,20 +32,6 @@ ROBOT = [
 ]
 
 
-def _odometry(T_world_body: np.ndarray, header) -> object:
-    k = m.as_kind(bag_typestore())
-    zero = k.new('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.0)
-    twist = k.new(
-        'geometry_msgs/msg/TwistWithCovariance',
-        twist=k.new('geometry_msgs/msg/Twist', linear=zero, angular=zero),
-        covariance=np.zeros(36),
-    )
-    pose = k.new(
-        'geometry_msgs/msg/PoseWithCovariance', pose=m.pose_msg(T_world_body, kind=k), covariance=np.zeros(36)
-    )
-    return k.new('nav_msgs/msg/Odometry', header=header, child_frame_id='base_link', pose=pose, twist=twist)
-
-
 def _robot_bag(bag: Path, out: Path) -> Path:
     """``bag`` (the layout ``convert`` writes) as a robot records it: its own topic names, and the
     body's odometry (``T_world_body = T_world_cam @ inv(T_BODY_CAM)``) instead of the camera pose."""
@@ -54,7 +41,8 @@ def _robot_bag(bag: Path, out: Path) -> Path:
         for topic, t_ns, msg in iter_messages(bag):
             if topic == '/camera/pose':
                 T_world_body = m.pose_message_to_matrix(msg) @ T_cam_body
-                writer.write('/odom', 'nav_msgs/msg/Odometry', t_ns, _odometry(T_world_body, msg.header))
+                odom = odometry_msg(T_world_body, msg.header, 'base_link', kind=bag_typestore())
+                writer.write('/odom', 'nav_msgs/msg/Odometry', t_ns, odom)
             elif topic in names:
                 writer.write(names[topic], msg.__msgtype__, t_ns, msg)
     return out

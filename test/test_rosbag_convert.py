@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from message_kinds import odometry_msg
 from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -253,16 +254,7 @@ def _pose_topic_msg(msgtype: str, T: np.ndarray, t_ns: int):
     with_cov = k.new('geometry_msgs/msg/PoseWithCovariance', pose=pose, covariance=np.zeros(36))
     if msgtype == 'geometry_msgs/msg/PoseWithCovarianceStamped':
         return k.new(msgtype, header=hdr, pose=with_cov)
-    twist = k.new(
-        'geometry_msgs/msg/TwistWithCovariance',
-        twist=k.new(
-            'geometry_msgs/msg/Twist',
-            linear=k.new('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.0),
-            angular=k.new('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.0),
-        ),
-        covariance=np.zeros(36),
-    )
-    return k.new(msgtype, header=hdr, child_frame_id='/openni_rgb_optical_frame', pose=with_cov, twist=twist)
+    return odometry_msg(T, hdr, '/openni_rgb_optical_frame', kind=ROS1)
 
 
 def pose_topic_samples(n: int) -> tuple[np.ndarray, np.ndarray]:
