@@ -21,7 +21,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .messages import _header_for, as_kind, image_msg, image_to_rgb
+from .message_stamps import _header_for
+from .messages import as_kind, image_msg, image_to_rgb
 
 #: Suffix image_transport appends to the base topic for the ``compressed`` transport.
 COMPRESSED_SUFFIX = '/compressed'
