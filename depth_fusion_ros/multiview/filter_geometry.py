@@ -1,6 +1,6 @@
 """One frame's epipolar geometry for every pixel of the filter's keyframe, in a handful of ops.
 
-What the per-pixel tests (``filter.DepthFilter._choose``) and the searches read: the rows'
+What the per-pixel tests (``filter_frame_update.choose_rows``) and the searches read: the rows'
 projections at infinity, the epipolar motion per unit inverse depth, the gradient along the
 epipolar line and the visibility, all from one homography product per frame.
 """

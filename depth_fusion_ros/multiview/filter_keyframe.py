@@ -1,7 +1,7 @@
 """The temporal filter's keyframe: its image descriptors, candidate pixels and their posterior.
 
 One object per filter keyframe (``filter.DepthFilter.key``); propagation makes the next one
-(``filter.DepthFilter._propagate``). Plain tensors, so the state moves to any device with
+(``filter_new_keyframe.propagate``). Plain tensors, so the state moves to any device with
 the filter.
 """
 

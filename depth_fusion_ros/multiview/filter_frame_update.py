@@ -1,0 +1,255 @@
+"""One posed frame's measurements for the filter's keyframe: choose, search, fuse, in place.
+
+Step 2 of ``filter.py``'s flow. Cheap per-pixel tests on every keyframe pixel first pick
+the rows the frame can teach something (:func:`choose_rows`); only those are searched
+along their epipolar line (:func:`search_rows`, in buckets by interval length) and fused
+(``filter_update``'s Gaussian x uniform update), then scattered back: the frame's cost
+follows the pixels that still need it, not the candidate count.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from .filter_bracket import bracket_seeds
+from .filter_config import FilterConfig
+from .filter_geometry import FrameGeometry, frame_geometry, grid_rows_in_place, row_motion
+from .filter_keyframe import FilterKeyframe
+from .filter_search import SearchResult, plan_buckets, search_buckets
+from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
+
+if TYPE_CHECKING:
+    from .filter import DepthFilter
+
+
+def measurement_variance(
+    config: FilterConfig, rho: torch.Tensor, j: torch.Tensor, baseline: float
+) -> torch.Tensor:
+    """Measurement variance: one ``pixel_sigma`` of matching error back-propagated through the
+    epipolar motion ``j``, plus the pose noise as a relative error ``pose_sigma / baseline``."""
+    c = config
+    tau2 = (c.pixel_sigma / torch.clamp(j, min=1e-6)) ** 2
+    if c.pose_sigma == 0.0:  # the default: the term is + 0 (its three passes were a tenth of an update)
+        return tau2
+    return tau2 + (rho * (c.pose_sigma / baseline)) ** 2
+
+
+def update_frame(
+    filt: DepthFilter,
+    key: FilterKeyframe,
+    desc: torch.Tensor,
+    T_fk: np.ndarray,
+    only: torch.Tensor | None = None,
+) -> float:
+    """One frame's measurements for the pixels of ``key`` it can teach something, in place.
+
+    Cheap per-pixel tests on every pixel first (:func:`choose_rows`), then the searches and
+    the update on the chosen rows only, scattered back: the frame's cost follows the pixels
+    that still need it, not the candidate count. Returns the fraction of the estimates
+    that project into the frame (the keyframe-switch test), from the same projection.
+    ``only``: the new keyframe's first measurements at a switch (its stages are the
+    ``seed`` ones of the filter's ``clock``).
+    """
+    prefix = 'seed ' if only is not None else ''
+    left = filt.clock.switch(prefix + 'selection')
+    try:
+        return _update_rows(filt, key, desc, T_fk, only, prefix)
+    finally:
+        filt.clock.switch(left)
+
+
+def _update_rows(
+    filt: DepthFilter,
+    key: FilterKeyframe,
+    desc: torch.Tensor,
+    T_fk: np.ndarray,
+    only: torch.Tensor | None,
+    prefix: str,
+) -> float:
+    """:func:`update_frame`'s work; ``prefix`` names its stages."""
+    c = filt.config
+    rho_min, rho_max = filt.rho_range
+    st = key.state
+    baseline = max(float(np.linalg.norm(T_fk[:3, 3])), 1e-9)
+    geo = frame_geometry(key, filt.camera, T_fk, filt.margin)
+    rows, seen = choose_rows(filt, key, geo, baseline, only)
+    if rows.numel() == 0:
+        return seen
+    # Everything below runs on the chosen rows only (index_select: several times faster
+    # on CPU than advanced indexing).
+    pick = lambda t: t.index_select(0, rows)  # noqa: E731
+    a_r, j_r = geo.a.index_select(1, rows), pick(geo.j)
+    mu_r, var_r, f_r = pick(st.mu), pick(st.var), ~pick(key.prior)
+    # The rows without a prior, once: the whole-range bounds, the search's spans and the
+    # first measurements are index ops on these few rows instead of where over all rows
+    # (torch.where is several times slower than arithmetic on CPU).
+    seeds = torch.nonzero(f_r, as_tuple=True)[0]
+    floor = c.min_search_px / torch.clamp(j_r, min=1e-9)
+    half = torch.maximum(c.search_sigmas * torch.sqrt(var_r), floor)
+    lo = torch.clamp(mu_r - half, rho_min, rho_max).index_fill_(0, seeds, rho_min)
+    hi = torch.clamp(mu_r + half, rho_min, rho_max).index_fill_(0, seeds, rho_max)
+    bracketed = bracket_seeds(filt, key, rows, seeds, f_r, a_r, geo.b, lo, hi)
+    filt.clock.switch(prefix + 'search')
+    # Through the filter (its module's search_interval, read at the call: tests count the searches).
+    x, cost, valid = filt._search(key, rows, desc, a_r, geo, lo, hi, j_r, f_r, seeds)
+    filt.clock.switch(prefix + 'update')
+    # The epipolar motion at the match: the bracket's edge test and the measurement
+    # variance (only read where the match is valid, so one evaluation at x serves both).
+    j_x = row_motion(a_r, geo.b, x)
+    if bracketed is not None:
+        # A bracket's best match on its edge: the minimum lies outside, not a measurement.
+        inside = ((x - lo) * j_x >= 0.5) & ((hi - x) * j_x >= 0.5)
+        valid &= ~bracketed | inside
+    valid &= (x >= rho_min) & (x <= rho_max)
+    valid &= j_x > 1e-6
+    tau2 = measurement_variance(c, x, j_x, baseline)
+    fail = ~f_r & ~valid  # visible (chosen above) but nothing matched: an outlier vote
+    a_old, b_old = pick(st.a), pick(st.b)
+    prior = BetaGaussian(mu_r, var_r, a_old, b_old)
+    # The posterior of every row; only the valid ones keep it (the others' inputs, and so
+    # their posterior, are not read), and a valid row without a prior takes its first
+    # measurement instead, below.
+    post = gaussian_uniform_update(prior, x, tau2, filt.rho_range)
+    mu_n = torch.where(valid, post.mu, mu_r)
+    var_n = torch.where(valid, post.var, var_r)
+    a_n = torch.where(valid, post.a, a_old)
+    b_n = torch.where(valid, post.b, outlier_vote(prior, fail).b)
+    born = seeds.masked_select(valid.index_select(0, seeds))  # first measurements
+    if born.numel() > 0:
+        mu_n.index_copy_(0, born, x.index_select(0, born))
+        var_n.index_copy_(0, born, tau2.index_select(0, born))
+        a_n.index_fill_(0, born, c.init_a)
+        b_n.index_fill_(0, born, c.init_b)
+    n_n = pick(key.updates) + valid.long()
+    prior_n = ~f_r | valid
+    # Outliers: a pixel that keeps failing is reset to "no estimate" (it may be re-seeded).
+    gone = torch.nonzero(~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio), as_tuple=True)[0]
+    if gone.numel() > 0:
+        # filter_new_keyframe.fresh_state's values
+        mid, span2 = 0.5 * (rho_min + rho_max), (rho_max - rho_min) ** 2
+        for value, fill in (
+            (mu_n, mid),
+            (var_n, span2),
+            (a_n, c.init_a),
+            (b_n, c.init_b),
+            (n_n, 0),
+            (prior_n, False),
+        ):
+            value.index_fill_(0, gone, fill)
+    for target, value in (
+        (st.mu, mu_n),
+        (st.var, var_n),
+        (st.a, a_n),
+        (st.b, b_n),
+        (key.updates, n_n),
+        (key.prior, prior_n),
+        (key.cost, torch.where(valid, cost, pick(key.cost))),
+    ):
+        target.scatter_(0, rows, value)  # rows are distinct: index_copy_'s result, a third cheaper
+    return seen
+
+
+def choose_rows(
+    filt: DepthFilter, key: FilterKeyframe, geo: FrameGeometry, baseline: float, only: torch.Tensor | None
+) -> tuple[torch.Tensor, float]:
+    """Rows this frame searches, and the fraction of the estimates it sees.
+
+    LSD-SLAM: only where the gradient has a component along the epipolar line. REMODE:
+    converged pixels this frame cannot improve are left alone. Whole-range searches only
+    from frames with ``seed_parallax`` and ``seed_attempts`` left. Pixels without a prior
+    are searched from the middle of the range (``mu`` holds it:
+    ``filter_new_keyframe.fresh_state``), so their projection only gives the epipolar
+    direction.
+    """
+    c = filt.config
+    st = key.state
+    fresh = ~key.prior
+    estimates = key.prior  # a measured, carried or filled prior
+    want = (geo.along >= c.min_epipolar_gradient) & (fresh | geo.visible)
+    want &= fresh | (st.var >= c.min_information * measurement_variance(c, st.mu, geo.j, baseline))
+    seeding = baseline / filt._scene >= c.seed_parallax
+    if seeding:
+        want &= estimates | (key.attempts < c.seed_attempts)
+    else:
+        want &= estimates
+    if only is not None:
+        want &= only
+    seeds = want & fresh
+    key.attempts += seeds.long()
+    n_estimates = float(estimates.sum())
+    seen = float((geo.visible & estimates).sum()) / n_estimates if n_estimates > 0 else 1.0
+    return torch.nonzero(want, as_tuple=True)[0], seen
+
+
+def search_rows(
+    filt: DepthFilter,
+    key: FilterKeyframe,
+    rows: torch.Tensor,
+    desc: torch.Tensor,
+    a_r: torch.Tensor,
+    geo: FrameGeometry,
+    lo: torch.Tensor,
+    hi: torch.Tensor,
+    j_r: torch.Tensor,
+    fresh: torch.Tensor,
+    seeds: torch.Tensor,
+    search: Callable[..., SearchResult],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Search each chosen row in ``[lo, hi]``, in buckets by sample count (``plan_buckets``).
+
+    Returns the match ``x``, its cost and whether it passed ``max_cost`` (and, in the
+    buckets with a distinctiveness test, ``min_distinctiveness``; with
+    ``reject_edge_minima``, lay inside its interval), per row. ``search``:
+    ``filter_search.search_interval``, passed in by the filter.
+    """
+    c = filt.config
+    # Interval length in px: to first order at the prior mean for an estimate (as the
+    # +-2 px floor is set); a whole-range search takes the larger motion of its two ends.
+    span = j_r * (hi - lo)
+    if seeds.numel() > 0:  # the rows of ``fresh``
+        a_s, lo_s, hi_s = a_r.index_select(1, seeds), lo.index_select(0, seeds), hi.index_select(0, seeds)
+        ends = torch.maximum(row_motion(a_s, geo.b, lo_s), row_motion(a_s, geo.b, hi_s))
+        span.index_copy_(0, seeds, ends * (hi_s - lo_s))
+    bucket = plan_buckets(span, fresh, c)
+    # Rows sorted by bucket once: each bucket is then a slice (views, no gather per bucket),
+    # and the results go back in one scatter.
+    members = [torch.nonzero(bucket == k, as_tuple=True)[0] for k in range(len(search_buckets(c)))]
+    order = torch.cat(members)  # a counting sort: torch.argsort is several times slower on CPU
+    counts = [int(m.numel()) for m in members]
+    desc_o = key.key_desc.index_select(1, rows.index_select(0, order))
+    lo_o, hi_o = lo.index_select(0, order), hi.index_select(0, order)
+    # The rays normalised once for the frame, not once per bucket.
+    a_o, b_o = grid_rows_in_place(a_r.index_select(1, order), geo.b, filt.camera.width, filt.camera.height)
+    xs, costs, goods = [], [], []
+    start = 0
+    for (samples, refine, distinct), n in zip(search_buckets(c), counts, strict=True):
+        if n == 0:
+            continue
+        stop = start + n
+        found = search(
+            desc_o[:, start:stop],
+            desc,
+            (a_o[:, start:stop], b_o),
+            lo_o[start:stop],
+            hi_o[start:stop],
+            samples,
+            refine,
+            filt._chunk_elements,
+            with_distinctiveness=distinct,
+            reject_edges=c.reject_edge_minima,
+        )
+        good = found.ok & (found.cost <= c.max_cost)
+        if distinct:
+            good &= found.distinct >= c.min_distinctiveness
+        xs.append(found.rho)
+        costs.append(found.cost)
+        goods.append(good)
+        start = stop
+    x = torch.empty_like(lo).scatter_(0, order, torch.cat(xs))
+    cost = torch.empty_like(lo).scatter_(0, order, torch.cat(costs))
+    valid = torch.empty_like(fresh).scatter_(0, order, torch.cat(goods))
+    return x, cost, valid
