@@ -174,3 +174,22 @@ def interpolate_pose(stamps: np.ndarray, poses: np.ndarray, t: float) -> np.ndar
     """Single-stamp convenience wrapper of :func:`interpolate_poses` (``None`` if uncovered)."""
     T, valid = interpolate_poses(stamps, poses, np.array([t]))
     return T[0] if valid[0] else None
+
+
+def transform_from_parameter(values: list[float], name: str = 'camera_from_pose_frame') -> np.ndarray:
+    """4x4 of ``[x, y, z, qx, qy, qz, qw]``; ``ValueError`` naming the parameter if it is not rigid."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.shape != (7,) or not np.all(np.isfinite(v)):
+        raise ValueError(
+            f'parameter {name!r} must be 7 finite numbers [x, y, z, qx, qy, qz, qw], got {values}'
+        )
+    norm = float(np.linalg.norm(v[3:]))
+    if abs(norm - 1.0) > 1e-3:
+        raise ValueError(
+            f'parameter {name!r}: quaternion (qx, qy, qz, qw) = {v[3:].tolist()} has norm {norm:.4g}, '
+            'expected 1 (order is x, y, z, w as tf2_echo prints it)'
+        )
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(v[3:] / norm)
+    T[:3, 3] = v[:3]
+    return T

@@ -4,48 +4,15 @@ and the pose of a body rather than of the camera (``--image-topic``, ``--camera-
 
 from __future__ import annotations
 
-from pathlib import Path
-
-import numpy as np
 import pytest
-from message_kinds import odometry_msg
+from robot_bag import MOUNT, ROBOT, robot_bag
 
 from depth_fusion_ros.cli.main import main
-from depth_fusion_ros.data import messages as m
-from depth_fusion_ros.data.bag_writer import AtomicBagWriter
-from depth_fusion_ros.data.rosbag_read import bag_typestore, iter_messages
 from depth_fusion_ros.data.synthetic import stress_config, write_synthetic_sequence
-from depth_fusion_ros.geometry import invert_pose, make_pose, pose_to_tq
 
 #: 320x240 over a 1 m sweep in 40 frames, as test_focal_check.
 SIZE = {'width': 320, 'height': 240, 'frames': 40, 'seed': 5}
 PAIRS = ['--pairs', '12']
-#: A camera mounted on a body: 10 cm ahead, 5 cm up, optical axis along the body's x.
-T_BODY_CAM = make_pose([0.10, 0.0, 0.05], [-0.5, 0.5, -0.5, 0.5])
-ROBOT = [
-    '--image-topic',
-    '/cam/image_raw',
-    '--camera-info-topic',
-    '/cam/camera_info',
-    '--pose-topic',
-    '/odom',
-]
-
-
-def _robot_bag(bag: Path, out: Path) -> Path:
-    """``bag`` (the layout ``convert`` writes) as a robot records it: its own topic names, and the
-    body's odometry (``T_world_body = T_world_cam @ inv(T_BODY_CAM)``) instead of the camera pose."""
-    names = {'/camera/rgb/image_color': '/cam/image_raw', '/camera/rgb/camera_info': '/cam/camera_info'}
-    T_cam_body = invert_pose(T_BODY_CAM)
-    with AtomicBagWriter(out) as writer:
-        for topic, t_ns, msg in iter_messages(bag):
-            if topic == '/camera/pose':
-                T_world_body = m.pose_message_to_matrix(msg) @ T_cam_body
-                odom = odometry_msg(T_world_body, msg.header, 'base_link', kind=bag_typestore())
-                writer.write('/odom', 'nav_msgs/msg/Odometry', t_ns, odom)
-            elif topic in names:
-                writer.write(names[topic], msg.__msgtype__, t_ns, msg)
-    return out
 
 
 def test_check_focal_reads_a_robots_topics_and_body_poses(tmp_path, capsys):
@@ -54,13 +21,12 @@ def test_check_focal_reads_a_robots_topics_and_body_poses(tmp_path, capsys):
     the camera's mount; without the mount the poses are the body's, and the fit is another."""
     wrong = write_synthetic_sequence(tmp_path / 'wrong', stress_config('wrong_focal', **SIZE))
     assert main(['convert', str(wrong), str(tmp_path / 'bag'), '--no-depth']) == 0
-    robot = _robot_bag(tmp_path / 'bag', tmp_path / 'robot')
+    robot = robot_bag(tmp_path / 'bag', tmp_path / 'robot')
     capsys.readouterr()
     assert main(['check-focal', str(tmp_path / 'bag'), *PAIRS]) == 3
     reference = capsys.readouterr().out.strip().split(': ', 1)[1]
     assert 'camera_info says fx 288.8 px' in reference
-    mount = [str(v) for v in np.concatenate(pose_to_tq(T_BODY_CAM))]
-    assert main(['check-focal', str(robot), *PAIRS, *ROBOT, '--camera-from-pose-frame', *mount]) == 3
+    assert main(['check-focal', str(robot), *PAIRS, *ROBOT, '--camera-from-pose-frame', *MOUNT]) == 3
     assert capsys.readouterr().out.strip().split(': ', 1)[1] == reference
     main(['check-focal', str(robot), *PAIRS, *ROBOT])  # the body's poses as the camera's
     assert capsys.readouterr().out.strip().split(': ', 1)[1] != reference

@@ -4,8 +4,8 @@ The same code as the node's online adaptation and the evaluation's ``single_view
 (``evaluation.methods.adapted.observe_keyframe``): keyframes in order, the multi-view search
 of each against its neighbours, then one guarded update on its selected multi-view points and
 its photometric consistency with the posed neighbours. Ground-truth depth is never read for
-training (folders without depth images work). Writes a checkpoint that ``--single-view`` /
-``model:`` load.
+training: no depth is read (folders without depth images, a robot's rosbag2 with its own
+topics). Writes a checkpoint that ``--single-view`` / ``model:`` load.
 """
 
 from __future__ import annotations
@@ -13,17 +13,21 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .recordings import topic_arguments
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         'adapt',
         help='adapt the single-view network to posed sequences, self-supervised (writes a checkpoint)',
-        description='Train the single-view network on TUM-layout folders without ground truth: '
+        description='Train the single-view network on TUM-layout folders or rosbag2s without ground truth: '
         'multi-view depth of the selected points and photometric consistency with posed '
         'neighbours, with replay and a held-out guard (docs/adaptation.md). Writes --out, a '
         'checkpoint that --single-view and the node parameter model: load.',
     )
-    p.add_argument('sequences', nargs='+', metavar='SEQ_DIR', help='TUM-layout folder(s), in order')
+    p.add_argument(
+        'sequences', nargs='+', metavar='SEQ_DIR', help='TUM-layout folder(s) or rosbag2 folder(s), in order'
+    )
     p.add_argument('--out', required=True, metavar='CKPT', help='checkpoint to write (.pt)')
     p.add_argument(
         '--model',
@@ -60,6 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar='[SEQ_NAME=]YAML',
         help='colour-camera calibration for a sequence whose camera.yaml is the depth camera (7-Scenes)',
     )
+    topic_arguments(p, depth=False)
     p.set_defaults(func=run)
 
 
@@ -70,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.harness import load_evaluation_sequence
     from ..evaluation.methods.adapted import adaptation_run, observe_keyframe
     from ..progress import progress
-    from .evaluate import parse_rgb_cameras
+    from .evaluate import parse_rgb_cameras, recording_topics
     from .overrides import parse_overrides
 
     if args.threads > 0:
@@ -87,10 +92,12 @@ def run(args: argparse.Namespace) -> int:
         height=args.height,
         params=parse_overrides(args.set, 'STAGE'),
         rgb_cameras=parse_rgb_cameras(args.rgb_camera),
+        topics=recording_topics(args),
+        camera_from_pose_frame=args.camera_from_pose_frame,
     )
     run_state = None
     for path in args.sequences:
-        seq = load_evaluation_sequence(path, options)
+        seq = load_evaluation_sequence(path, options, with_depth=False)
         shared = {} if run_state is None else {'adaptation:run': run_state}
         keyframes = range(0, len(seq), max(1, args.stride))
         for i in progress(keyframes, desc=seq.name, unit='kf'):

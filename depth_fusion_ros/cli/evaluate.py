@@ -1,10 +1,12 @@
-"""``depth-fusion evaluate``: score depth methods against ground truth on TUM-layout folders."""
+"""``depth-fusion evaluate``: score depth methods against ground truth on TUM-layout folders or
+rosbag2s (a robot's own recording: its topics and the camera's mount are options)."""
 
 from __future__ import annotations
 
 import argparse
 
 from .argtypes import at_least
+from .recordings import given_topics, topic_arguments
 
 #: The paper's evaluation: Table II columns, the oracle, the Table III ablation, Table I inputs.
 PAPER_METHODS = (
@@ -22,12 +24,16 @@ PAPER_METHODS = (
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         'evaluate',
-        help='score depth methods on TUM-layout sequences (results.json, report.md, figures)',
+        help='score depth methods on TUM-layout sequences or rosbag2s (results.json, report.md, figures)',
         description='Run registered depth methods on the first N frames of each sequence and '
         'compare them with the ground-truth depth (paper §IV). Writes OUT/results.json and '
-        'OUT/report.md and prints the table.',
+        'OUT/report.md and prints the table. A sequence is a TUM-layout folder or a rosbag2 with '
+        'colour, camera_info, poses and depth registered to the colour camera (the topics of '
+        "depth-fusion convert, or a robot's own: the options below).",
     )
-    p.add_argument('sequences', nargs='*', metavar='SEQ_DIR', help='TUM-layout folder(s)')
+    p.add_argument(
+        'sequences', nargs='*', metavar='SEQ_DIR', help='TUM-layout folder(s) or rosbag2 folder(s)'
+    )
     p.add_argument(
         '--methods',
         default=','.join(PAPER_METHODS),
@@ -79,8 +85,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=[],
         metavar='[SEQ_NAME=]YAML',
         help='colour-camera calibration for a sequence whose camera.yaml is the depth camera '
-        '(7-Scenes: config/cameras/7scenes_rgb.yaml); the depth is registered into it (repeatable)',
+        '(7-Scenes: config/cameras/7scenes_rgb.yaml); the depth is registered into it (repeatable). '
+        "For a rosbag2: used instead of its camera_info (its depth must be the colour camera's)",
     )
+    topic_arguments(p, depth=True)
     p.add_argument('--out', default='eval_out', help='output folder (default eval_out)')
     p.add_argument('--no-figures', action='store_true', help='skip the PNG figures')
     p.set_defaults(func=run)
@@ -93,6 +101,18 @@ def parse_rgb_cameras(items: list[str]) -> dict[str, str]:
         name, sep, path = item.rpartition('=')
         out[name if sep else '*'] = path
     return out
+
+
+def recording_topics(args: argparse.Namespace) -> dict[str, str]:
+    """The topic options given, checked before any data is loaded: they name a rosbag2's topics,
+    so at least one of the sequences must be one (a ``ValueError`` naming them otherwise)."""
+    from ..data.recording import is_rosbag2
+
+    topics = given_topics(args)
+    if topics and not any(is_rosbag2(s) for s in args.sequences):
+        named = ', '.join('--' + name.replace('_', '-') for name in topics)
+        raise ValueError(f'{named}: topics are for a rosbag2, and no SEQ_DIR is one')
+    return topics
 
 
 def run(args: argparse.Namespace) -> int:
@@ -109,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
             print(f'{name:24s} {spec.description}')
         return 0
     if not args.sequences:
-        raise ValueError('give at least one TUM-layout folder (SEQ_DIR), or --list')
+        raise ValueError('give at least one TUM-layout folder or rosbag2 (SEQ_DIR), or --list')
     methods = [m.strip() for m in args.methods.split(',') if m.strip()]
     check_model(args.single_view, args.device, allow_simulated=True)  # before any data is loaded
     params = parse_overrides(args.set, 'STAGE')
@@ -127,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
         height=args.height,
         params=params,
         rgb_cameras=parse_rgb_cameras(args.rgb_camera),
+        topics=recording_topics(args),
+        camera_from_pose_frame=args.camera_from_pose_frame,
     )
     doc = evaluate_sequences(args.sequences, methods, options, args.out, figures=not args.no_figures)
     print(report_markdown(doc))

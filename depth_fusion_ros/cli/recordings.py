@@ -7,8 +7,6 @@ import argparse
 import sys
 from typing import Any
 
-import numpy as np
-
 from .argtypes import at_least
 
 
@@ -31,6 +29,12 @@ def recording_arguments(p: argparse.ArgumentParser, stage: str) -> None:
         '--width', type=at_least(16, '--width'), default=320, help='working width (320, as the node)'
     )
     p.add_argument('--height', type=at_least(16, '--height'), default=240, help='working height (240)')
+    topic_arguments(p, depth=False)
+
+
+def topic_arguments(p: argparse.ArgumentParser, depth: bool) -> None:
+    """The options of a robot's rosbag2 (its topics; ``depth``: a ground-truth depth topic too)
+    and of poses that are a body's, not the camera's (``data.recording.load_recording``)."""
     topics = p.add_argument_group("a robot's rosbag2 (ros2 bag record): its topics and frames")
     topics.add_argument(
         '--image-topic',
@@ -43,6 +47,13 @@ def recording_arguments(p: argparse.ArgumentParser, stage: str) -> None:
         default=None,
         help='poses: PoseStamped, PoseWithCovarianceStamped, Odometry or TransformStamped (/camera/pose)',
     )
+    if depth:
+        topics.add_argument(
+            '--depth-topic',
+            default=None,
+            help='ground-truth depth registered to the colour camera, 32FC1 m or 16UC1 mm, e.g. '
+            '/camera/aligned_depth_to_color/image_raw (/camera/depth/image)',
+        )
     topics.add_argument(
         '--camera-from-pose-frame',
         nargs=7,
@@ -54,62 +65,29 @@ def recording_arguments(p: argparse.ArgumentParser, stage: str) -> None:
     )
 
 
-#: The topic options and ``load_bag_sequence``'s keywords they set.
-_TOPIC_OPTIONS = {
-    'image_topic': 'rgb_topic',
-    'camera_info_topic': 'camera_info_topic',
-    'pose_topic': 'pose_topic',
-}
+def given_topics(args: argparse.Namespace) -> dict[str, str]:
+    """The topic options given on the command line (``data.recording.TOPIC_KEYWORDS`` names)."""
+    from ..data.recording import TOPIC_KEYWORDS
+
+    return {name: getattr(args, name) for name in TOPIC_KEYWORDS if getattr(args, name, None)}
 
 
 def load_recording(args: argparse.Namespace):
     """The recording of ``args.source`` (TUM folder or rosbag2) at the working size, as the checks
-    read it, its poses those of the camera (``--camera-from-pose-frame``)."""
-    from pathlib import Path
-
+    read it (no depth), its poses those of the camera (``--camera-from-pose-frame``)."""
+    from ..data import recording
     from ..data.tum import read_camera_yaml
 
-    source = Path(args.source)
-    if not source.exists():
-        raise FileNotFoundError(f'{source} does not exist')
-    calibration = read_camera_yaml(args.rgb_camera) if args.rgb_camera else None
-    given = {opt: getattr(args, opt) for opt in _TOPIC_OPTIONS if getattr(args, opt, None)}
-    if (source / 'metadata.yaml').is_file():
-        from ..data.rosbag_read import load_bag_sequence
-
-        sequence = load_bag_sequence(
-            source,
-            args.width,
-            args.height,
-            args.frames,
-            depth_topic=None,
-            calibration=calibration,
-            **{_TOPIC_OPTIONS[opt]: topic for opt, topic in given.items()},
-        )
-    else:
-        if given:
-            named = ', '.join('--' + opt.replace('_', '-') for opt in given)
-            raise ValueError(f'{named}: topics are for a rosbag2, and {source} is a TUM folder')
-        from ..data.tum import load_tum_sequence
-
-        sequence = load_tum_sequence(
-            source, args.width, args.height, args.frames, require_depth=False, rgb_calibration=calibration
-        )
-    return camera_poses(sequence, getattr(args, 'camera_from_pose_frame', None))
-
-
-def camera_poses(sequence: Any, camera_from_pose_frame: list[float] | None) -> Any:
-    """``sequence`` with its poses (and its pose record) taken from the poses' frame to the camera
-    optical frame, ``T_world_cam = T_world_pose @ T_pose_cam``, as multi_view_node does; as it
-    is without one."""
-    if camera_from_pose_frame is None:
-        return sequence
-    from ..nodes.robot_inputs import transform_from_parameter
-
-    T_pose_cam = transform_from_parameter(list(camera_from_pose_frame), '--camera-from-pose-frame')
-    stream = sequence.pose_stream
-    moved = None if stream is None else (stream[0], np.asarray(stream[1]) @ T_pose_cam)
-    return sequence.with_poses(sequence.poses @ T_pose_cam, pose_stream=moved)
+    return recording.load_recording(
+        args.source,
+        args.width,
+        args.height,
+        args.frames,
+        calibration=read_camera_yaml(args.rgb_camera) if args.rgb_camera else None,
+        topics=given_topics(args),
+        camera_from_pose_frame=args.camera_from_pose_frame,
+        with_depth=False,
+    )
 
 
 def verdict_status(command: str, source: str, estimate: Any, pairs: int, config: Any, frames: int) -> int:

@@ -43,6 +43,13 @@ class EvalOptions:
     #: Colour-camera calibration YAML per sequence name ('*': every sequence), for folders whose
     #: camera.yaml is the depth camera's (7-Scenes): see ``load_tum_sequence(rgb_calibration=)``.
     rgb_cameras: dict[str, str] = field(default_factory=dict)
+    #: A rosbag2 sequence's topics (``data.recording.TOPIC_KEYWORDS`` names: ``image_topic``,
+    #: ``camera_info_topic``, ``pose_topic``, ``depth_topic``); those not given are the layout
+    #: ``depth-fusion convert`` writes. For a robot's own recording.
+    topics: dict[str, str] = field(default_factory=dict)
+    #: The camera optical frame in the poses' frame ``[x, y, z, qx, qy, qz, qw]`` (a body's
+    #: odometry, as multi_view_node's ``camera_from_pose_frame``), for every sequence.
+    camera_from_pose_frame: list[float] | None = None
     #: Per-stage overrides, e.g. ``{'multi_view': {'num_samples': 96}, 'fusion': {'mode': 'fast'}}``.
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
 

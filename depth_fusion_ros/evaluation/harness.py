@@ -189,7 +189,7 @@ def evaluate_sequences(
     show_progress: bool = True,
     figures: bool = True,
 ) -> dict[str, Any]:
-    """Evaluate ``methods`` on TUM-layout folders; write ``results.json`` and ``report.md``."""
+    """Evaluate ``methods`` on TUM-layout folders or rosbag2s; write ``results.json`` and ``report.md``."""
     for m in methods:  # fail before loading data when a name is wrong
         get_method(m)
     results: list[SequenceResult] = []
@@ -203,18 +203,24 @@ def evaluate_sequences(
     return doc
 
 
-def load_evaluation_sequence(path: str | Path, options: EvalOptions) -> Sequence:
-    """Load a TUM folder as the options say (working size, frames, colour-camera override)."""
-    from ..data.tum import load_tum_sequence, read_camera_yaml
+def load_evaluation_sequence(path: str | Path, options: EvalOptions, with_depth: bool = True) -> Sequence:
+    """Load a TUM folder or a rosbag2 as the options say (working size, frames, colour-camera
+    override, a rosbag2's topics, the camera's mount on the posed body). ``with_depth``: frames
+    without ground-truth depth are dropped (scoring needs it; ``adapt`` does not read it)."""
+    from ..data.recording import is_rosbag2, load_recording
+    from ..data.tum import read_camera_yaml
 
     name = Path(path).resolve().name
     override = options.rgb_cameras.get(name, options.rgb_cameras.get('*'))
-    return load_tum_sequence(
+    return load_recording(
         path,
-        width=options.width,
-        height=options.height,
-        max_frames=options.frames,
-        rgb_calibration=read_camera_yaml(override) if override else None,
+        options.width,
+        options.height,
+        options.frames,
+        calibration=read_camera_yaml(override) if override else None,
+        topics=options.topics if is_rosbag2(path) else None,  # a bag's topics; a TUM folder has none
+        camera_from_pose_frame=options.camera_from_pose_frame,
+        with_depth=with_depth,
     )
 
 

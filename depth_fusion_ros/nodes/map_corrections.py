@@ -19,11 +19,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..geometry import transform_from_parameter
 from ..malloc_tuning import release_free_memory
 from ..mapping.engine import make_engine
 from ..mapping.keyframe_store import KeyframeStore, PendingKeyframe, rebuild
 from ..pose_corrections import Posing
-from . import robot_inputs
 from .corrected_path import (
     TOPIC_CORRECTED_PATH,
     camera_from_pose_frame_parameter,
@@ -60,7 +60,7 @@ class MapCorrector:
         p = node.params
         self.store = KeyframeStore(int(float(p['reintegration_max_mb']) * 2**20))
         self.limits = correction_limits(p)
-        self.T_pose_cam = robot_inputs.transform_from_parameter(p['camera_from_pose_frame'])
+        self.T_pose_cam = transform_from_parameter(p['camera_from_pose_frame'])
         #: How multi_view_node posed each keyframe (nodes/posing.py, nodes/map_posing.py); this
         #: node's own ``camera_from_pose_frame`` for keyframes it said nothing about.
         self.posing = MapPosing(node, self)

@@ -39,7 +39,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
-from ..geometry import invert_pose, rotation_angle
+from ..geometry import invert_pose, rotation_angle, transform_from_parameter
 from ..multiview.mount_check import MountEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
@@ -123,7 +123,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             raise ValueError(f'{self.get_name()}: {exc}') from None
         self.camera_input = CameraInput.from_parameters(p)
         try:
-            self.T_pose_cam = robot_inputs.transform_from_parameter(p['camera_from_pose_frame'])
+            self.T_pose_cam = transform_from_parameter(p['camera_from_pose_frame'])
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
         self.device = str(p['device'])

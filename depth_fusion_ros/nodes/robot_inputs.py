@@ -12,7 +12,8 @@ and a pose that is not the camera's.
 * ``camera_from_pose_frame`` is the fixed transform from the pose's frame (a body or IMU
   frame) to the camera optical frame: ``T_world_cam = T_world_pose @ T_pose_cam``. TF is not
   on pip for Jazzy, so it is a parameter (docs/nodes.md says how to read it from a URDF or
-  ``tf2_echo``).
+  ``tf2_echo``), read by ``geometry.transform_from_parameter``, as the commands' option of the
+  same name is.
 """
 
 from __future__ import annotations
@@ -20,11 +21,8 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any
 
-import numpy as np
-
 from ..data import messages
 from ..data.compressed import COMPRESSED_SUFFIX, TRANSPORTS
-from ..geometry import quat_to_matrix
 from .params import ParamSpec
 
 #: ``pose_type`` value -> ROS message type name.
@@ -61,25 +59,6 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         length=7,
     ),
 )
-
-
-def transform_from_parameter(values: list[float], name: str = 'camera_from_pose_frame') -> np.ndarray:
-    """4x4 of ``[x, y, z, qx, qy, qz, qw]``; ``ValueError`` naming the parameter if it is not rigid."""
-    v = np.asarray(values, dtype=np.float64)
-    if v.shape != (7,) or not np.all(np.isfinite(v)):
-        raise ValueError(
-            f'parameter {name!r} must be 7 finite numbers [x, y, z, qx, qy, qz, qw], got {values}'
-        )
-    norm = float(np.linalg.norm(v[3:]))
-    if abs(norm - 1.0) > 1e-3:
-        raise ValueError(
-            f'parameter {name!r}: quaternion (qx, qy, qz, qw) = {v[3:].tolist()} has norm {norm:.4g}, '
-            'expected 1 (order is x, y, z, w as tf2_echo prints it)'
-        )
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(v[3:] / norm)
-    T[:3, 3] = v[:3]
-    return T
 
 
 def image_topic_for(topic: str, transport: str) -> str:
