@@ -134,7 +134,7 @@ def keyframe_every() -> int:
 
 
 def image_count(bag: Path) -> int:
-    from ..nodes.bag_replayer import open_bag
+    from ..data.bag_open import open_bag
     from ..nodes.graph import TOPIC_IMAGE
 
     reader = open_bag(bag)

@@ -16,14 +16,12 @@ moving forward, which is what a long soak test needs.
 from __future__ import annotations
 
 import contextlib
-import functools
 import importlib
-import struct
 import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,14 +32,18 @@ from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+# re-exported: BagError, has_leading_header, header_stamp_ns, shift_header_stamp and calibration_first
+# (test/test_replayer.py and test/run_bags.py import them from this module).
+from ..data.bag_open import BagError, open_bag
 from ..data.bag_qos import recorded_latched_depth
-from ..data.bag_recovery import open_rosbag2, storage_file
+from ..data.cdr_stamps import has_leading_header, header_stamp_ns, shift_header_stamp
+from ..data.instant_order import calibration_first
 from .diagnostics import TOPIC_DIAGNOSTICS, replayer_array
 from .pacer import Pacer
 from .params import ParamSpec, declare_parameters
 from .qos import latched_qos
 
-NODE_NAME = 'bag_replayer'
+NODE_NAME = 'bag_replayer'  # data.bag_open prefixes its errors with the same name
 
 #: Every parameter of the node (``config/depth_fusion.yaml`` section ``bag_replayer``).
 REPLAYER_PARAMS: tuple[ParamSpec, ...] = (
@@ -142,50 +144,6 @@ REPLAYER_PARAMS: tuple[ParamSpec, ...] = (
 )
 
 
-class BagError(ValueError):
-    """A bag that cannot be played (missing, unknown storage, no playable topic)."""
-
-
-# --- the bag ------------------------------------------------------------------------------------
-
-
-def resolve_bag_path(path: str | Path) -> Path:
-    """The path rosbags opens, or ``FileNotFoundError``/``BagError`` saying what is wrong.
-
-    Accepts the bag folder or one storage file (``.mcap``, ``.db3``); a storage file inside a
-    bag folder is opened through its folder so the metadata (QoS, counts) is used.
-    """
-    if not str(path):
-        raise BagError(f'{NODE_NAME}: parameter "bag" is empty: give the rosbag2 folder to play')
-    p = Path(path).expanduser()
-    if not p.exists():
-        raise FileNotFoundError(f'{NODE_NAME}: bag {p} does not exist')
-    if p.is_dir():
-        if not (p / 'metadata.yaml').is_file() and storage_file(p) is None:
-            raise BagError(f'{NODE_NAME}: {p} is a folder without metadata.yaml, not a rosbag2')
-        return p  # without metadata.yaml: a crashed recording, see data.bag_recovery
-    if p.suffix not in ('.mcap', '.db3'):
-        raise BagError(
-            f'{NODE_NAME}: {p}: unknown storage {p.suffix or "(no suffix)"!r}; '
-            'expected a rosbag2 folder, a .mcap or a .db3 file'
-        )
-    if (p.parent / 'metadata.yaml').is_file():
-        return p.parent
-    return p
-
-
-def open_bag(path: str | Path) -> Any:
-    """An open ``rosbags.rosbag2.Reader``; every failure is a ``BagError`` naming the bag."""
-    from rosbags.rosbag2 import ReaderError
-
-    p = resolve_bag_path(path)
-    try:
-        reader = open_rosbag2(p)  # a truncated bag plays up to its last readable message
-    except (ReaderError, KeyError, OSError) as exc:
-        raise BagError(f'{NODE_NAME}: cannot read bag {p}: {exc}') from None
-    return reader
-
-
 def parse_remaps(items: Sequence[str]) -> dict[str, str]:
     """``['/a:=/b']`` -> ``{'/a': '/b'}``; empty strings are ignored (ROS has no empty arrays)."""
     remaps: dict[str, str] = {}
@@ -208,71 +166,6 @@ def ros_message_class(msgtype: str) -> type:
     package, _, name = msgtype.rpartition('/')
     module = importlib.import_module(package.replace('/', '.'))
     return getattr(module, name)
-
-
-@functools.lru_cache(maxsize=1)
-def _jazzy_typestore() -> Any:
-    """rosbags' Jazzy type store, built once: building it takes about 0.2 s, and a recorder
-    asked for it once per topic at start."""
-    from rosbags.typesys import Stores, get_typestore
-
-    return get_typestore(Stores.ROS2_JAZZY)
-
-
-def has_leading_header(msgtype: str) -> bool:
-    """Whether the message starts with a ``std_msgs/Header`` (so its stamp sits at byte 4)."""
-    try:
-        fields = _jazzy_typestore().fielddefs[msgtype][1]
-    except KeyError:
-        return False
-    return bool(fields) and fields[0][1][1] == 'std_msgs/msg/Header'
-
-
-def header_stamp_ns(raw: bytes | memoryview) -> int:
-    """``header.stamp`` in ns of a CDR message that starts with a Header (no deserialization)."""
-    endian = '<' if raw[1] & 1 else '>'
-    sec, nanosec = struct.unpack_from(f'{endian}iI', raw, 4)
-    return sec * 1_000_000_000 + nanosec
-
-
-def shift_header_stamp(raw: bytes, shift_ns: int) -> bytes:
-    """A copy of ``raw`` whose ``header.stamp`` is moved by ``shift_ns`` (for looped playback)."""
-    if shift_ns == 0:
-        return raw
-    endian = '<' if raw[1] & 1 else '>'
-    sec, nanosec = divmod(header_stamp_ns(raw) + shift_ns, 1_000_000_000)
-    out = bytearray(raw)
-    struct.pack_into(f'{endian}iI', out, 4, sec, nanosec)
-    return bytes(out)
-
-
-#: Order of messages recorded at the same instant: what describes an image before the image.
-INSTANT_ORDER = {
-    'sensor_msgs/msg/CameraInfo': 0,
-    'geometry_msgs/msg/PoseStamped': 1,
-    'geometry_msgs/msg/PoseWithCovarianceStamped': 1,
-    'nav_msgs/msg/Odometry': 1,
-    'geometry_msgs/msg/TransformStamped': 1,
-    'tf2_msgs/msg/TFMessage': 1,
-}
-
-
-def calibration_first(
-    messages: Iterable[tuple[Any, int, Any]], msgtype_of: Callable[[Any], str]
-) -> Iterator[tuple[Any, int, Any]]:
-    """``messages`` with each run of equal timestamps reordered camera_info, poses, then the rest.
-
-    A converter or a driver may store an image before the camera_info of the same instant; a
-    node receiving that image first cannot use it (it has no intrinsics yet) and drops it, which
-    shifts every later keyframe. Playback timing is unchanged (same timestamps).
-    """
-    group: list[tuple[Any, int, Any]] = []
-    for item in messages:
-        if group and item[1] != group[0][1]:
-            yield from sorted(group, key=lambda m: INSTANT_ORDER.get(msgtype_of(m[0]), 2))
-            group = []
-        group.append(item)
-    yield from sorted(group, key=lambda m: INSTANT_ORDER.get(msgtype_of(m[0]), 2))
 
 
 @dataclass

@@ -29,7 +29,8 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
 from ..data.bag_qos import latched_bag_qos
-from .bag_replayer import has_leading_header, header_stamp_ns, non_empty, ros_message_class
+from ..data.cdr_stamps import has_leading_header, header_stamp_ns
+from .bag_replayer import non_empty, ros_message_class
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, latched_qos, offers_latched, qos_profile
 

@@ -485,7 +485,7 @@ class GraphRun:
         settings = self.options.overrides.get(REPLAYER[0], {})
         if self.options.start_offset or settings.get('loop') or settings.get('start_offset'):
             return None
-        from ..bag_replayer import open_bag
+        from ...data.bag_open import open_bag
 
         reader = open_bag(self.options.bag)
         try:

@@ -144,7 +144,7 @@ def recorder_qos(options: RunOptions) -> str:
 
 def bag_topic_types(bag: Path) -> dict[str, str]:
     """``{topic: message type}`` of the bag, read once for the names and the types."""
-    from ..bag_replayer import open_bag
+    from ...data.bag_open import open_bag
 
     reader = open_bag(bag)
     try:
