@@ -175,13 +175,13 @@ def test_replayer_plays_a_compressed_bag(context, tmp_path) -> None:  # noqa: F8
 def test_ros1_bag_converts_to_compressed_png_exactly(tmp_path) -> None:
     from test_rosbag_convert import write_ros1_bag
 
-    from depth_fusion_ros.data.rosbag_convert import ros1_to_rosbag2
+    from depth_fusion_ros.data.rosbag_convert import recorded_to_rosbag2
     from depth_fusion_ros.data.rosbag_read import iter_messages
 
     src = tmp_path / 'tum.bag'
     truth = write_ros1_bag(src, n=3)
     out = tmp_path / 'ros2'
-    result = ros1_to_rosbag2(src, out, show_progress=False, colour=ColourFormat('png'))
+    result = recorded_to_rosbag2(src, out, show_progress=False, colour=ColourFormat('png'))
     assert result.messages[COMPRESSED] == 3 and RGB not in result.messages
     for _, bag_time, msg in iter_messages(out, [COMPRESSED]):
         np.testing.assert_array_equal(decode_compressed(msg), truth[bag_time]['rgb'])

@@ -17,7 +17,15 @@ from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.cli.main import main as cli_main
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data import tum_to_bag
-from depth_fusion_ros.data.rosbag_convert import BagTopics, TfTree, convert, ros1_to_rosbag2, tum_to_rosbag
+from depth_fusion_ros.data.bag_writer import AtomicBagWriter
+from depth_fusion_ros.data.compressed import compressed_image_msg
+from depth_fusion_ros.data.rosbag_convert import (
+    BagTopics,
+    TfTree,
+    convert,
+    recorded_to_rosbag2,
+    tum_to_rosbag,
+)
 from depth_fusion_ros.data.rosbag_read import (
     bag_topics,
     iter_messages,
@@ -221,8 +229,8 @@ def _T_world_kinect(t: float) -> np.ndarray:
     return make_pose([0.5 * (t - 99.95), 0.2, 1.0], [0.0, 0.0, 0.2588190, 0.9659258])
 
 
-def _transform_stamped(parent: str, child: str, t_ns: int, T: np.ndarray):
-    k = m.as_kind(ROS1)
+def _transform_stamped(parent: str, child: str, t_ns: int, T: np.ndarray, kind=ROS1):
+    k = m.as_kind(kind)
     tr, q = T[:3, 3], m.pose_msg(T, kind=k).orientation
     transform = k.new(
         'geometry_msgs/msg/Transform',
@@ -333,7 +341,7 @@ def test_ros1_bag_with_tf_poses(tmp_path, storage):
     src = tmp_path / 'tum.bag'
     truth = write_ros1_bag(src)
     out = tmp_path / 'ros2'
-    result = ros1_to_rosbag2(src, out, storage=storage, show_progress=False)
+    result = recorded_to_rosbag2(src, out, storage=storage, show_progress=False)
     assert result.frames == 5 and result.pose_source.startswith('/tf (world -> openni_rgb_optical_frame)')
     assert result.pose_source.endswith('interpolated at the colour stamps')  # a chain: at common stamps
     assert result.messages == {RGB: 5, INFO: 5, DEPTH: 5, POSE: 5}
@@ -386,7 +394,7 @@ def test_ros1_bag_with_a_pose_topic_keeps_its_own_samples(tmp_path, msgtype):
     src = tmp_path / 'tum.bag'
     truth = write_ros1_bag(src, tf=False, pose_topic=msgtype)
     out = tmp_path / 'ros2'
-    result = ros1_to_rosbag2(src, out, show_progress=False)
+    result = recorded_to_rosbag2(src, out, show_progress=False)
     assert result.frames == 5 and result.pose_source == 'pose topic, its own samples'
     stamps, poses = pose_topic_samples(5)
     rows = _rows_in_span(stamps, min(truth), max(truth))
@@ -403,10 +411,10 @@ def test_ros1_bag_with_a_pose_topic_keeps_its_own_samples(tmp_path, msgtype):
 def test_ros1_bag_errors(tmp_path):
     src = tmp_path / 'tum.bag'
     write_ros1_bag(src, n=2, tf=False)
-    result = ros1_to_rosbag2(src, tmp_path / 'noposes', show_progress=False)
+    result = recorded_to_rosbag2(src, tmp_path / 'noposes', show_progress=False)
     assert result.pose_source == 'none' and POSE not in result.messages and result.frames == 2
     with pytest.raises(ValueError, match=r'no colour topic /camera/rgb/image_raw \(it has:'):
-        ros1_to_rosbag2(
+        recorded_to_rosbag2(
             src, tmp_path / 'x', source_topics=BagTopics(rgb='/camera/rgb/image_raw'), show_progress=False
         )
     with pytest.raises(FileNotFoundError, match=r'missing\.bag'):
@@ -415,6 +423,94 @@ def test_ros1_bag_errors(tmp_path):
     tree.add('/world', '/kinect', 1, np.eye(4))
     with pytest.raises(ValueError, match="no /tf chain from 'world' to 'camera'"):
         tree.lookup('world', 'camera', np.array([1]))
+
+
+# --------------------------------------------------------------------------- a robot's rosbag2
+
+JAZZY = get_typestore(Stores.ROS2_JAZZY)
+ROBOT_RGB, ROBOT_INFO = '/cam/color/image_raw', '/cam/color/camera_info'
+ROBOT_DEPTH = '/cam/aligned_depth_to_color/image_raw'
+
+
+def write_robot_rosbag2(path: Path, n: int = 5) -> dict:
+    """What a robot's ``ros2 bag record`` holds, in ``write_ros1_bag``'s scene: PNG colour on
+    ``<image>/compressed`` (image_transport), 16UC1 depth 5 ms later, the body's odometry frame
+    on ``/tf`` at 100 Hz and the camera's mount once on ``/tf_static``; no pose topic."""
+    rng = np.random.default_rng(1)
+    calib = CameraCalibration(CAM, 'plumb_bob', DISTORTION)
+    events: list[tuple[int, str, str, object]] = []
+    truth = {}
+    for i in range(n):
+        t_ns = 100_000_000_000 + i * 100_000_000
+        rgb = rng.integers(0, 256, (48, 64, 3)).astype(np.uint8)
+        mm = rng.integers(0, 6000, (48, 64)).astype(np.uint16)
+        hdr = m.header_msg(t_ns, 'cam_color_optical_frame', kind=JAZZY)
+        compressed = compressed_image_msg(rgb, hdr, kind=JAZZY, fmt='png')
+        events.append((t_ns, ROBOT_RGB + '/compressed', 'sensor_msgs/msg/CompressedImage', compressed))
+        events.append(
+            (t_ns, ROBOT_INFO, 'sensor_msgs/msg/CameraInfo', m.camera_info_msg(calib, hdr, kind=JAZZY))
+        )
+        d_ns = t_ns + 5_000_000
+        dhdr = m.header_msg(d_ns, 'cam_color_optical_frame', kind=JAZZY)
+        events.append(
+            (d_ns, ROBOT_DEPTH, 'sensor_msgs/msg/Image', m.image_msg(mm, '16UC1', dhdr, kind=JAZZY))
+        )
+        truth[t_ns] = {'rgb': rgb, 'depth_mm': mm, 'pose': _T_world_kinect(t_ns / 1e9) @ T_KINECT_OPTICAL}
+    tf = 'tf2_msgs/msg/TFMessage'
+    mount = _transform_stamped(
+        'base_link', 'cam_color_optical_frame', 99_950_000_000, T_KINECT_OPTICAL, JAZZY
+    )
+    events.append((99_950_000_000, '/tf_static', tf, JAZZY.types[tf](transforms=[mount])))
+    for j in range(int(n * 10 + 10)):
+        t_ns = 99_950_000_000 + j * 10_000_000
+        odom = _transform_stamped('odom', 'base_link', t_ns, _T_world_kinect(t_ns / 1e9), JAZZY)
+        events.append((t_ns, '/tf', tf, JAZZY.types[tf](transforms=[odom])))
+    events.sort(key=lambda e: e[0])
+    with AtomicBagWriter(path) as writer:
+        for t_ns, topic, msgtype, msg in events:
+            writer.write(topic, msgtype, t_ns, msg)
+    return truth
+
+
+def test_a_robots_rosbag2_with_tf_poses_and_compressed_colour(tmp_path, capsys):
+    """A robot's own recording converts into the layout the nodes read: its topic names given,
+    the compressed colour found on ``<image>/compressed``, 16UC1 depth in metres re-stamped
+    with its colour frame, and the poses of the /tf chain odom -> base_link -> camera (the
+    mount from /tf_static) at the colour stamps, read back as a sequence."""
+    src = tmp_path / 'robot'
+    truth = write_robot_rosbag2(src)
+    out = tmp_path / 'ros2'
+    args = [
+        'convert',
+        str(src),
+        str(out),
+        '--src-rgb-topic',
+        ROBOT_RGB,
+        '--src-camera-info-topic',
+        ROBOT_INFO,
+    ]
+    args += ['--src-depth-topic', ROBOT_DEPTH, '--tf-world-frame', 'odom', '--no-progress']
+    assert cli_main(args) == 0
+    printed = capsys.readouterr().out
+    assert 'poses from /tf (odom -> cam_color_optical_frame)' in printed, printed
+    _check_ros1_output(out, truth, 5)
+    seq = load_bag_sequence(out, width=32, height=24)
+    assert len(seq) == 5 and seq.gt_camera == CAM
+    assert cli_main(['convert', str(src), str(tmp_path / 'x'), '--no-progress']) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count('\n') == 0 and 'no colour topic /camera/rgb/image_color (it has:' in err, err
+    assert f'{ROBOT_RGB}/compressed' in err
+
+
+def test_a_rosbag2_cut_short_is_sent_to_repair(tmp_path, capsys):
+    """A recording folder with its storage file but no metadata.yaml (the recorder was killed) is
+    not converted as it is: the one-line error sends it to ``--repair``."""
+    src = tmp_path / 'robot'
+    write_robot_rosbag2(src, n=2)
+    (src / 'metadata.yaml').unlink()
+    assert cli_main(['convert', str(src), str(tmp_path / 'out'), '--no-progress']) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count('\n') == 0 and 'convert --repair it first' in err, err
 
 
 def test_tum_fr1_xyz_converts(tum_fr1_xyz, tmp_path):

@@ -1,4 +1,5 @@
-"""``depth-fusion convert SRC OUT_BAG``: a TUM folder or a ROS 1 bag -> a rosbag2."""
+"""``depth-fusion convert SRC OUT_BAG``: a TUM folder, a ROS 1 bag or a robot's rosbag2 -> a rosbag2
+in the layout the nodes, ``run`` and ``evaluate`` read."""
 
 from __future__ import annotations
 
@@ -10,15 +11,19 @@ DESCRIPTION = """\
 Convert a posed RGB-D recording into a ROS 2 bag (rosbag2) that `depth-fusion run` and the
 nodes can play.
 
-SRC is either
+SRC is one of
   * a TUM RGB-D folder: rgb.txt, depth.txt, groundtruth.txt, camera.yaml (ROS camera-info
-    YAML with K and the distortion) and the images they name; or
+    YAML with K and the distortion) and the images they name;
   * a ROS 1 .bag file (e.g. a TUM RGB-D sequence as downloaded). Its camera_info often holds
-    default intrinsics: pass --camera-yaml with the real calibration. Poses come from
-    --groundtruth (TUM 'timestamp tx ty tz qx qy qz qw', camera-to-world), else from a
-    pose topic (--src-pose-topic: PoseStamped, PoseWithCovarianceStamped, Odometry or
-    TransformStamped), else from the /tf chain --tf-world-frame ->
-    --tf-camera-frame.
+    default intrinsics: pass --camera-yaml with the real calibration;
+  * a rosbag2 folder a robot recorded (ros2 bag record): its own topics (--src-*-topic),
+    colour raw or on <topic>/compressed, depth 16UC1 mm or 32FC1 m registered to the colour
+    camera, poses on a topic or only on /tf (which the nodes cannot subscribe to: tf2_msgs is
+    not on pip, so convert them here).
+For both bags, poses come from --groundtruth (TUM 'timestamp tx ty tz qx qy qz qw',
+camera-to-world), else from a pose topic (--src-pose-topic: PoseStamped,
+PoseWithCovarianceStamped, Odometry or TransformStamped), else from the /tf and /tf_static
+chain --tf-world-frame -> --tf-camera-frame.
 
 OUT_BAG is the rosbag2 folder to create (mcap by default). Header stamp = bag time throughout;
 written per colour frame, with the colour stamp:
@@ -43,18 +48,21 @@ examples:
   depth-fusion convert --repair runs/crashed.partial/crashed runs/crashed_repaired
   depth-fusion convert fr1_xyz.bag fr1_xyz_ros2 --groundtruth fr1_xyz-groundtruth.txt \\
       --camera-yaml camera.yaml
+  depth-fusion convert robot_recording robot_ros2 --src-rgb-topic /camera/color/image_raw \\
+      --src-camera-info-topic /camera/color/camera_info \\
+      --src-depth-topic /camera/aligned_depth_to_color/image_raw --tf-world-frame odom
 """
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         'convert',
-        help='TUM folder or ROS 1 bag -> rosbag2 (mcap or sqlite3)',
+        help="TUM folder, ROS 1 bag or a robot's rosbag2 -> rosbag2 (mcap or sqlite3)",
         description=DESCRIPTION,
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument('src', metavar='SRC', help='TUM folder or ROS 1 .bag file')
+    p.add_argument('src', metavar='SRC', help='TUM folder, ROS 1 .bag file or rosbag2 folder')
     p.add_argument('out', metavar='OUT_BAG', help='rosbag2 folder to create')
     p.add_argument(
         '--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (default: %(default)s)'
@@ -109,26 +117,28 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--camera-frame', default='camera_rgb_optical_frame', help='camera frame_id (default: %(default)s)'
     )
     out.add_argument('--world-frame', default='world', help='frame_id of the poses (default: %(default)s)')
-    ros1 = p.add_argument_group('ROS 1 bag sources only')
-    ros1.add_argument(
+    recorded = p.add_argument_group('recorded bag sources only (ROS 1 .bag or rosbag2)')
+    recorded.add_argument(
         '--groundtruth', metavar='FILE', help='poses from a TUM groundtruth.txt (preferred for TUM bags)'
     )
-    ros1.add_argument(
+    recorded.add_argument(
         '--camera-yaml', metavar='FILE', help='intrinsics and distortion from a ROS camera-info YAML'
     )
-    ros1.add_argument('--src-rgb-topic', default='/camera/rgb/image_color', help='(default: %(default)s)')
-    ros1.add_argument(
+    recorded.add_argument('--src-rgb-topic', default='/camera/rgb/image_color', help='(default: %(default)s)')
+    recorded.add_argument(
         '--src-camera-info-topic', default='/camera/rgb/camera_info', help='(default: %(default)s)'
     )
-    ros1.add_argument('--src-depth-topic', default='/camera/depth/image', help='(default: %(default)s)')
-    ros1.add_argument(
+    recorded.add_argument('--src-depth-topic', default='/camera/depth/image', help='(default: %(default)s)')
+    recorded.add_argument(
         '--src-pose-topic',
         default='/camera/pose',
         help='pose topic (PoseStamped, PoseWithCovarianceStamped, Odometry or TransformStamped),'
         ' if the bag has one',
     )
-    ros1.add_argument('--tf-world-frame', default=None, help='/tf poses: the world frame (default: world)')
-    ros1.add_argument(
+    recorded.add_argument(
+        '--tf-world-frame', default=None, help='/tf poses: the world frame (default: world)'
+    )
+    recorded.add_argument(
         '--tf-camera-frame', default=None, help="/tf poses: the camera frame (default: the images' frame_id)"
     )
     p.set_defaults(func=run)
@@ -172,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         'tf_camera_frame': args.tf_camera_frame,
     }
     src = Path(args.src)
-    if src.is_file():
+    if not (src / 'rgb.txt').is_file():  # a recorded bag, not a TUM folder
         options['source_topics'] = BagTopics(
             args.src_rgb_topic, args.src_camera_info_topic, args.src_depth_topic, args.src_pose_topic
         )

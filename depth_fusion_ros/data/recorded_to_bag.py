@@ -1,13 +1,21 @@
-"""A ROS 1 bag (e.g. a TUM RGB-D ``.bag`` as downloaded) -> a rosbag2 in our layout.
+"""A recorded bag -> a rosbag2 in our layout: a ROS 1 ``.bag`` (e.g. a TUM RGB-D sequence as
+downloaded) or a robot's own rosbag2 (``ros2 bag record``).
+
+Why both in one place: rosbags' ``AnyReader`` reads either, and both hold what a robot
+records: its drivers' topic names, colour raw or as ``<topic>/compressed``, depth in 16UC1
+mm, and poses on a topic of their own or only as a ``/tf`` chain (which the nodes cannot
+subscribe to: ``tf2_msgs`` is not on pip). The output is the layout ``run``, ``evaluate`` and
+the nodes read.
 
 Two passes over the source: the first learns the stamps, the calibration and the poses
-(``_scan_ros1``) and decides which colour frames to write; the second converts those frames
-and their depth, interleaved with the pose source's own samples (``ros1_poses``) in stamp
+(``_scan_recording``) and decides which colour frames to write; the second converts those frames
+and their depth, interleaved with the pose source's own samples (``recorded_poses``) in stamp
 order through ``OrderedOutput``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -29,22 +37,23 @@ from .bag_layout import (
     ConvertResult,
     FrameIds,
 )
+from .bag_recovery import storage_file
 from .bag_writer import AtomicBagWriter, OrderedOutput
-from .compressed import RAW_COLOUR, ColourFormat
+from .compressed import RAW_COLOUR, ColourFormat, any_image_to_rgb, colour_topic_in
 from .messages import (
     camera_info_msg,
     camera_info_to_calibration,
     depth_image_msg,
     header_msg,
     image_to_depth,
-    image_to_rgb,
     pose_message_to_matrix,
     pose_stamped_msg,
     stamp_to_ns,
     transform_to_matrix,
 )
 from .pose_samples import SampleFeed, samples_spanning
-from .ros1_poses import PoseSource, ros1_pose_source
+from .recorded_poses import PoseSource, recorded_pose_source
+from .rosbag_read import bag_typestore
 from .tf_tree import TfTree
 from .tum import TumTrajectory, nearest_stamps, read_camera_yaml
 from .undistort import CameraCalibration
@@ -55,8 +64,8 @@ TF_TOPICS = ('/tf', '/tf_static')
 
 
 @dataclass
-class _Ros1Scan:
-    """Everything the first pass over a ROS 1 bag learns (stamps, calibration, poses)."""
+class _RecordingScan:
+    """Everything the first pass over a recorded bag learns (stamps, calibration, poses)."""
 
     rgb_stamps: list[int] = field(default_factory=list)
     depth_stamps: list[int] = field(default_factory=list)
@@ -67,12 +76,19 @@ class _Ros1Scan:
     tf: TfTree = field(default_factory=TfTree)
 
 
-def _scan_ros1(reader: AnyReader, src: Path, source: BagTopics) -> _Ros1Scan:
+def colour_source(reader: AnyReader, src: Path, source: BagTopics) -> BagTopics:
+    """``source`` with its colour topic as recorded: raw, else ``<topic>/compressed`` (what
+    image_transport records); a ``ValueError`` listing the bag's topics when it has neither."""
     topics = {c.topic for c in reader.connections}
-    if source.rgb not in topics:
+    rgb = colour_topic_in(topics, source.rgb)
+    if rgb not in topics:
         raise ValueError(f'{src}: no colour topic {source.rgb} (it has: {", ".join(sorted(topics))})')
+    return dataclasses.replace(source, rgb=rgb)
+
+
+def _scan_recording(reader: AnyReader, src: Path, source: BagTopics) -> _RecordingScan:
     wanted = {source.rgb, source.depth, source.camera_info, source.pose, *TF_TOPICS}
-    scan = _Ros1Scan()
+    scan = _RecordingScan()
     conns = [c for c in reader.connections if c.topic in wanted]
     for conn, _, raw in reader.messages(connections=conns):
         msg = reader.deserialize(raw, conn.msgtype)
@@ -111,7 +127,7 @@ class _Plan:
 
 
 def _plan(
-    scan: _Ros1Scan,
+    scan: _RecordingScan,
     query: np.ndarray,
     poses: PoseSource,
     depth_max_gap: float,
@@ -143,7 +159,7 @@ def _plan(
     return plan
 
 
-def ros1_to_rosbag2(
+def recorded_to_rosbag2(
     src: str | Path,
     out: str | Path,
     *,
@@ -162,9 +178,11 @@ def ros1_to_rosbag2(
     show_progress: bool = True,
     colour: ColourFormat = RAW_COLOUR,
 ) -> ConvertResult:
-    """Convert a ROS 1 bag (e.g. a TUM RGB-D ``.bag``) into our rosbag2 layout.
+    """Convert a recorded bag, a ROS 1 ``.bag`` (e.g. a TUM RGB-D sequence) or a rosbag2 folder
+    (a robot's ``ros2 bag record``), into our rosbag2 layout.
 
-    Colour images (any encoding of ``messages.COLOUR_ENCODINGS``) become rgb8, depth (32FC1 m or
+    Colour images (any encoding of ``messages.COLOUR_ENCODINGS``, or a CompressedImage on
+    ``<rgb topic>/compressed`` when the raw topic is absent) become rgb8, depth (32FC1 m or
     16UC1 mm) becomes 32FC1 metres re-stamped with its nearest colour frame, and one CameraInfo is
     written per colour frame. Poses come from, in order of preference: the ``groundtruth``
     file (TUM format), a pose topic ``source_topics.pose`` in the bag (PoseStamped,
@@ -177,20 +195,18 @@ def ros1_to_rosbag2(
     """
     start = time.perf_counter()
     src = Path(src)
-    if not src.is_file():
-        raise FileNotFoundError(f'ROS 1 bag {src} not found')
-    if src.suffix != '.bag':
-        raise ValueError(f'{src}: a ROS 1 bag must end in .bag')
+    _check_recorded(src)
     if depth_max_gap < 0:
         raise ValueError(f'depth_max_gap must be >= 0, got {depth_max_gap}')
     writer = AtomicBagWriter(out, storage, overwrite)  # fail on an existing output before reading
-    with AnyReader([src]) as reader:
-        scan = _scan_ros1(reader, src, source_topics)
+    with AnyReader([src], default_typestore=bag_typestore()) as reader:
+        source_topics = colour_source(reader, src, source_topics)
+        scan = _scan_recording(reader, src, source_topics)
         calib = read_camera_yaml(camera_yaml) if camera_yaml is not None else scan.calibration
         if calib is None:
             raise ValueError(f'{src}: no CameraInfo on {source_topics.camera_info}; pass --camera-yaml')
         query = np.unique(np.asarray(scan.rgb_stamps, dtype=np.int64))
-        poses = ros1_pose_source(
+        poses = recorded_pose_source(
             query,
             groundtruth=Path(groundtruth) if groundtruth is not None else None,
             pose_stamps=scan.pose_stamps,
@@ -206,7 +222,7 @@ def ros1_to_rosbag2(
         plan = _plan(scan, query, poses, depth_max_gap, include_depth, max_frames)
         if not plan.frames:
             raise ValueError(f'{src}: no frame to write (poses from {poses.name}; dropped: {plan.dropped})')
-        _write_ros1_frames(
+        _write_frames(
             reader,
             writer,
             source_topics,
@@ -232,7 +248,7 @@ def ros1_to_rosbag2(
     return result
 
 
-def _write_ros1_frames(
+def _write_frames(
     reader: AnyReader,
     writer: AtomicBagWriter,
     source: BagTopics,
@@ -271,7 +287,7 @@ def _write_ros1_frames(
                 for pose in samples.until(stamp):
                     out.push(*pose)
             if conn.topic == source.rgb and stamp in selected and stamp not in written_rgb:
-                rgb = image_to_rgb(msg)
+                rgb = any_image_to_rgb(msg)
                 _check_image_size(rgb, cam, conn.topic, stamp)
                 hdr = header_msg(stamp, frame_ids.camera, kind=ts)
                 rgb_topic, rgb_type, rgb_msg = colour.message(rgb, hdr, topics.rgb, kind=ts)
@@ -294,6 +310,19 @@ def _write_ros1_frames(
             for pose in samples.until():
                 out.push(*pose)
         out.flush()
+
+
+def _check_recorded(src: Path) -> None:
+    """A ROS 1 ``.bag`` file or a rosbag2 folder, or the error that says which it is not."""
+    if not src.exists():
+        raise FileNotFoundError(f'recorded bag {src} not found')
+    if src.is_file():
+        if src.suffix != '.bag':
+            raise ValueError(f'{src}: a ROS 1 bag must end in .bag (a rosbag2 is its folder)')
+        return
+    if not (src / 'metadata.yaml').is_file():
+        hint = ' (a recording cut short: depth-fusion convert --repair it first)' if storage_file(src) else ''
+        raise ValueError(f'{src}: a folder without metadata.yaml is not a rosbag2{hint}')
 
 
 def _check_image_size(img: np.ndarray, camera: Any, topic: str, stamp: int) -> None:

@@ -1,4 +1,4 @@
-"""Where a ROS 1 bag conversion's poses come from, and which poses it writes.
+"""Where a recorded bag's conversion (ROS 1 or rosbag2) takes its poses from, and which it writes.
 
 Every source gives the poses at the colour stamps, which decide the frames that have one. What
 goes into the bag differs: a groundtruth file or a PoseStamped topic is a pose source that
@@ -53,7 +53,7 @@ def _own(name: str, trajectory: TumTrajectory, query: np.ndarray) -> PoseSource:
     return PoseSource(f'{name}, {OWN_SAMPLES}', T, ok, trajectory)
 
 
-def ros1_pose_source(
+def recorded_pose_source(
     query: np.ndarray,
     *,
     groundtruth: Path | None,
