@@ -30,10 +30,11 @@ ROBOT = [
 ]
 
 
-def robot_bag(bag: Path, out: Path, depth: bool = False) -> Path:
+def robot_bag(bag: Path, out: Path, depth: bool = False, depth_frame: str | None = None) -> Path:
     """``bag`` (the layout ``convert`` writes) as a robot records it: its own topic names, and the
     body's odometry (``T_world_body = T_world_cam @ inv(T_BODY_CAM)``) instead of the camera
-    pose; with ``depth``, the depth as 16UC1 mm on :data:`DEPTH_TOPIC` (none otherwise)."""
+    pose; with ``depth``, the depth as 16UC1 mm on :data:`DEPTH_TOPIC` (none otherwise), in the
+    colour's frame or in ``depth_frame``."""
     names = {'/camera/rgb/image_color': '/cam/image_raw', '/camera/rgb/camera_info': '/cam/camera_info'}
     T_cam_body = invert_pose(T_BODY_CAM)
     store = bag_typestore()
@@ -48,7 +49,8 @@ def robot_bag(bag: Path, out: Path, depth: bool = False) -> Path:
             elif topic == '/camera/depth/image' and depth:
                 metres = m.image_to_depth(msg)
                 mm = np.where(np.isfinite(metres), np.round(metres * 1000.0), 0).astype(np.uint16)
-                writer.write(
-                    DEPTH_TOPIC, msg.__msgtype__, t_ns, m.image_msg(mm, '16UC1', msg.header, kind=store)
-                )
+                header = msg.header
+                if depth_frame is not None:
+                    header = m.header_msg(m.stamp_to_ns(msg.header.stamp), depth_frame, kind=store)
+                writer.write(DEPTH_TOPIC, msg.__msgtype__, t_ns, m.image_msg(mm, '16UC1', header, kind=store))
     return out

@@ -96,6 +96,22 @@ def test_adapt_takes_a_robots_bag_without_depth(recordings, tmp_path, capsys):
     assert 'wrote' in capsys.readouterr().out
 
 
+def test_depth_in_another_frame_than_the_colour_is_said(recordings, tmp_path, caplog):
+    """Depth whose frame_id is not the colour's (a RealSense's unaligned depth) is read as
+    registered all the same, and a warning names both frames: it may be a registered depth
+    with its sensor's name (TUM's), or not registered, and then every score is wrong."""
+    from depth_fusion_ros.data.recording import load_recording
+
+    bag, _ = recordings
+    robot = robot_bag(bag, tmp_path / 'unaligned', depth=True, depth_frame='cam_depth_optical_frame')
+    topics = {'image_topic': '/cam/image_raw', 'camera_info_topic': '/cam/camera_info', 'pose_topic': '/odom'}
+    with caplog.at_level('WARNING', logger='depth_fusion_ros.data.rosbag_read'):
+        sequence = load_recording(robot, 160, 120, 12, topics={**topics, 'depth_topic': DEPTH_TOPIC})
+    assert len(sequence) == 12
+    said = [r.getMessage() for r in caplog.records if 'registered to the colour camera' in r.getMessage()]
+    assert len(said) == 1 and "'cam_depth_optical_frame'" in said[0], caplog.text
+
+
 @pytest.mark.parametrize('command', ['evaluate', 'adapt'])
 def test_evaluate_and_adapt_take_the_robot_options(command, capsys):
     with pytest.raises(SystemExit):

@@ -115,8 +115,11 @@ def _scan(
     depth_stamps: list[int] = []
     calib: CameraCalibration | None = None
     pose_stamps, poses = [], []
+    frames: dict[str, str] = {}  # the first frame_id of the colour and of the depth
     topics = [t for t in (rgb_topic, info_topic, pose_topic, depth_topic) if t]
     for topic, _, msg in iter_messages(path, topics):
+        if topic in (rgb_topic, depth_topic):
+            frames.setdefault(topic, msg.header.frame_id)
         if topic == rgb_topic:
             rgb_stamps.append(stamp_to_ns(msg.header.stamp))
         elif topic == depth_topic:
@@ -126,6 +129,7 @@ def _scan(
         elif topic == pose_topic:
             pose_stamps.append(stamp_to_ns(msg.header.stamp))
             poses.append(pose_message_to_matrix(msg))
+    _warn_unregistered(path, frames.get(rgb_topic, ''), depth_topic, frames.get(depth_topic, ''))
     order = np.argsort(np.asarray(pose_stamps, dtype=np.int64), kind='stable')
     p_stamps = np.asarray(pose_stamps, dtype=np.int64)[order]
     p_poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
@@ -133,6 +137,22 @@ def _scan(
         keep = np.concatenate(([True], np.diff(p_stamps) > 0))
         p_stamps, p_poses = p_stamps[keep], p_poses[keep]
     return rgb_stamps, depth_stamps, calib, p_stamps, p_poses
+
+
+def _warn_unregistered(path: Path, colour_frame: str, depth_topic: str | None, depth_frame: str) -> None:
+    """Say when the depth is in another optical frame than the colour: the scores and every
+    depth check read it as registered to the colour camera (a RealSense's
+    ``aligned_depth_to_color``, not its ``depth/image_rect_raw``). A warning, not an error: a
+    registered depth may keep its sensor's frame_id (TUM's ``openni_depth_optical_frame``)."""
+    if depth_topic and colour_frame and depth_frame and colour_frame != depth_frame:
+        logger.warning(
+            '%s: the depth on %s is in frame %r, the colour in %r: it is read as registered to the '
+            'colour camera (same pixels); if it is not, the scores against it are wrong',
+            path.name,
+            depth_topic,
+            depth_frame,
+            colour_frame,
+        )
 
 
 def load_bag_sequence(
