@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
 import pytest
+from jumped_views import jumped_views
 
 from depth_fusion_ros.multiview.filter import DepthFilter
 from depth_fusion_ros.multiview.filter_config import FilterConfig
@@ -104,3 +106,28 @@ def test_a_rate_cap_passes_over_frames_between_updates_but_never_a_keyframe(smal
     for i in [i for i in fed if i <= 4]:
         reference.process(seq.frames[i].gray, seq.frames[i].pose)
     np.testing.assert_array_equal(got.depth, reference.result(seq.frames[4].pose).depth)
+
+
+def test_the_feed_counts_the_filters_jumps_across_restarts(synthetic_sequence):
+    """The node's diagnostics count the filter keyframes switched across a jump (the carried
+    estimates confirmed again) over the feed's life, also after the filter starts over."""
+    seq = synthetic_sequence
+    feed, drops, errors = _feed()
+
+    def settle() -> None:
+        deadline = time.monotonic() + 60.0
+        while not feed.idle() and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    try:
+        for frame in [*seq.frames[:12], *jumped_views(seq, 11, 40.0, (0.05,))]:
+            feed.append(frame, seq.camera)
+        settle()
+        assert feed.jumps == 1
+        feed.restart(200)  # a new stream: the filter is built again, its count kept
+        feed.append(dataclasses.replace(seq.frames[0], index=200), seq.camera)
+        settle()
+        assert feed.jumps == 1 and feed.filter is not None and feed.filter.stats.jumps == 0
+    finally:
+        feed.close()
+    assert drops == [] and errors == []

@@ -535,3 +535,21 @@ def test_a_pose_source_out_of_sync_is_recorded_as_it_would_stamp(tmp_path):
     np.testing.assert_array_equal(bag.pose_stream[0], loaded.pose_stream[0])
     np.testing.assert_allclose(bag.pose_stream[1], loaded.pose_stream[1], atol=1e-9)
     np.testing.assert_allclose(bag.poses, loaded.poses, atol=1e-9)
+
+
+def test_the_keyframe_stream_moves_one_step_every_frame_back_and_forth():
+    """The ``keyframes`` stress stream is a SLAM's keyframe stream: every frame 0.15 m and 6.7 deg
+    from the last, sweeping back and forth. (Its wave used to jump 2h + 1 steps back every 4h
+    frames: a 60 deg, 1.3 m teleport, a relocalisation rather than the stream it names.)"""
+    from depth_fusion_ros.data.synthetic import build_world, stress_config
+
+    _, trajectory = build_world(stress_config('keyframes', frames=100, seed=21))
+    poses = trajectory.poses
+    steps = [relative_pose(poses[i - 1], poses[i]) for i in range(1, len(poses))]
+    moved = np.array([np.linalg.norm(T[:3, 3]) for T in steps])
+    turned = np.degrees([rotation_angle(T[:3, :3]) for T in steps])
+    np.testing.assert_allclose(moved, 0.15, rtol=1e-6)
+    np.testing.assert_allclose(turned, 6.7, rtol=1e-4)
+    # back and forth: it comes back to where it started every 20 frames
+    np.testing.assert_allclose(poses[20], poses[0], atol=1e-9)
+    assert np.linalg.norm(poses[5][:3, 3] - poses[0][:3, 3]) > 0.6  # five steps along the arc

@@ -68,12 +68,14 @@ UPDATED, SKIPPED, KEYFRAME = 'updated', 'skipped', 'keyframe'
 
 @dataclass
 class FilterStats:
-    """Frames seen, used, skipped, and keyframes made."""
+    """Frames seen, used, skipped, keyframes made, and the switches across a jump (a keyframe
+    turned further than ``max_rotation_deg`` from the last: its estimates to confirm again)."""
 
     frames: int = 0
     updated: int = 0
     skipped: int = 0
     keyframes: int = 0
+    jumps: int = 0
 
 
 class DepthFilter:

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ..geometry import relative_pose
+from ..geometry import relative_pose, rotation_angle
 from .descriptors import gaussian_blur
 from .filter_frame_update import update_frame
 from .filter_keyframe import FilterKeyframe
@@ -91,6 +91,17 @@ def propagate(
     rows = torch.nonzero(old.updates > 0, as_tuple=True)[0]
     new.first = old.first and rows.numel() == 0  # nothing to carry: still the stream's first
     T_nk = relative_pose(old.pose, T_wn)
+    # A jump (a relocalisation, a gap in the stream): turned further than the filter matches
+    # across. The estimates are carried by geometry alone, and those hidden in the new view
+    # (behind a surface the old keyframe did not see) land on it all the same; across a
+    # jump that is a large share of them. So they come as priors to confirm (their count
+    # restarts: published once new views measured them), and no first measurement is taken
+    # from the old keyframe image (too turned for its patches to match).
+    turn = math.degrees(rotation_angle(T_nk[:3, :3]))
+    jump = turn > c.max_rotation_deg
+    if jump:
+        filt.stats.jumps += 1
+        log.debug('filter keyframe across a %.0f deg jump: %d estimates to confirm', turn, int(rows.numel()))
     warped = warp_estimates(
         old.us[rows],
         old.vs[rows],
@@ -116,7 +127,7 @@ def propagate(
     st.var[at] = inflated + (c.propagation_relative_sigma * rho) ** 2
     st.a[at] = old_at(old.state.a)
     st.b[at] = old_at(old.state.b)
-    new.updates[at] = old_at(old.updates)
+    new.updates[at] = 0 if jump else old_at(old.updates)
     new.prior[at] = True
     new.cost[at] = old_at(old.cost)
     # Only estimates with fill_min_updates measurements fill holes: a young one may be wrong,
@@ -132,7 +143,7 @@ def propagate(
     )
     # Pixels without a prior: a first measurement from the previous keyframe image.
     T_ok = relative_pose(T_wn, old.pose)
-    if float(np.linalg.norm(T_ok[:3, 3])) / filt._scene >= c.min_parallax:
+    if not jump and float(np.linalg.norm(T_ok[:3, 3])) / filt._scene >= c.min_parallax:
         update_frame(filt, new, old.desc, T_ok, only=new.updates == 0)
     log.debug(
         'filter keyframe: %d carried of %d, %d filled, %d pixels',

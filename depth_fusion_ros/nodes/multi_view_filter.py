@@ -147,6 +147,9 @@ class FilterFeed:
         self._last_update_stamp: float | None = None
         #: Frames passed over by ``max_update_rate`` (diagnostics).
         self.rate_skipped = 0
+        #: Keyframe switches across a jump of the filters this feed replaced (restarts, a new
+        #: camera): :attr:`jumps` adds the current filter's.
+        self._past_jumps = 0
         self._on_drop = on_drop
         self._on_error = on_error or on_drop
         self._on_skip = on_skip or on_drop
@@ -259,7 +262,8 @@ class FilterFeed:
                     return
                 frame, camera, keyframe = self._frames.popleft()
                 if self._restart_at is not None and frame.index >= self._restart_at:
-                    self.filter, self._restart_at = None, None  # built again below
+                    self._retire_filter()
+                    self._restart_at = None  # built again below
                     self._last_update_stamp = None
                 if not keyframe and self._too_soon(frame.stamp):
                     self.rate_skipped += 1
@@ -269,6 +273,7 @@ class FilterFeed:
             outcome: FilterResult | Exception | None = None
             try:
                 if self.filter is None or (self.filter.camera != camera and not self.filter.refocus(camera)):
+                    self._retire_filter()
                     self.filter = DepthFilter(camera, self.config, self.matching, self.device)
                 self.filter.process(frame.gray, frame.pose)
                 self.fed += 1
@@ -283,6 +288,19 @@ class FilterFeed:
                     self._keep(frame.index, outcome)
                 self._busy = False
                 self._cond.notify_all()
+
+    @property
+    def jumps(self) -> int:
+        """Filter keyframes switched across a jump (turned more than ``filter.max_rotation_deg``:
+        the carried estimates confirmed again before they are published), over the feed's life."""
+        current = self.filter
+        return self._past_jumps + (current.stats.jumps if current is not None else 0)
+
+    def _retire_filter(self) -> None:
+        """Drop the filter (it is built again for the next frame), keeping its jump count."""
+        if self.filter is not None:
+            self._past_jumps += self.filter.stats.jumps
+        self.filter = None
 
     def _too_soon(self, stamp: float) -> bool:
         """Under ``max_update_rate``: less than its interval (stamp time) since the last update."""

@@ -495,6 +495,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         }
         if self.filter_feed is not None:
             extra['filter frames passed over (filter.max_update_rate)'] = self.filter_feed.rate_skipped
+            extra['filter keyframes across a jump (estimates confirmed again)'] = self.filter_feed.jumps
         extra['focal length check'] = self.focal_check.status()
         extra['time offset check'] = self.time_offset_check.status()
         extra['mount check'] = self.mount_check.status()

@@ -31,10 +31,11 @@ STREAM_HALF_PERIOD = 5
 
 
 def _triangle(k: np.ndarray, half_period: int) -> np.ndarray:
-    """Integer triangle wave 0, 1, ..., h, h-1, ..., -h, ... centred on 0 (amplitude h)."""
-    phase = (k + half_period // 2) % (4 * half_period)
-    up = np.minimum(phase, 2 * half_period - phase)
-    return np.where(phase <= 2 * half_period, up, phase - 4 * half_period) - half_period // 2
+    """Integer triangle wave 0, 1, ..., h, h-1, ..., -h, ... centred on 0 (amplitude h), one
+    step a frame. (Until 2026-11-30 it rose to h // 2 + 1 and then jumped 2h + 1 steps back, so
+    the ``keyframes`` stress stream turned 60 deg between two frames every 4h frames.)"""
+    h = int(half_period)
+    return h - np.abs((np.asarray(k) + h) % (4 * h) - 2 * h)
 
 
 def _level_ahead(base: np.ndarray, target: np.ndarray) -> np.ndarray:
