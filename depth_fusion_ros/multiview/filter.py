@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,14 +52,13 @@ from ..geometry import relative_pose, rotation_angle, validate_pose
 from .descriptors import patch_reach, stage_descriptors
 from .filter_bracket import neighbour_range, neighbour_range_dense
 from .filter_config import FilterConfig
-from .filter_frame_update import search_rows, update_frame
-from .filter_geometry import FrameGeometry
+from .filter_frame_update import update_frame
 from .filter_keyframe import FilterKeyframe
 from .filter_new_keyframe import new_keyframe, propagate
 from .filter_profile import StageClock
 from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
-from .filter_search import search_interval
+from .filter_search import SearchResult, search_interval
 from .semidense import MultiViewConfig
 from .views import _as_gray
 
@@ -300,22 +300,12 @@ class DepthFilter:
 
     # --- seams of the steps in filter_frame_update, filter_bracket ----------------------------
 
-    def _search(
-        self,
-        key: FilterKeyframe,
-        rows: torch.Tensor,
-        desc: torch.Tensor,
-        a_r: torch.Tensor,
-        geo: FrameGeometry,
-        lo: torch.Tensor,
-        hi: torch.Tensor,
-        j_r: torch.Tensor,
-        fresh: torch.Tensor,
-        seeds: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``search_rows`` with this module's ``search_interval``, read at the call: the tests
-        count (and shape) the searches by patching ``filter.search_interval``."""
-        return search_rows(self, key, rows, desc, a_r, geo, lo, hi, j_r, fresh, seeds, search_interval)
+    @property
+    def search(self) -> Callable[..., SearchResult]:
+        """The interval search the updates use (``filter_frame_update.search_rows``): this
+        module's ``search_interval``, read at each frame, so the tests can count and shape the
+        searches by patching ``filter.search_interval``."""
+        return search_interval
 
     def _neighbour_range(self, key: FilterKeyframe, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``filter_bracket.neighbour_range`` (the tests compare its two paths)."""

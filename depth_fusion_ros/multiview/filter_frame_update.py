@@ -95,7 +95,7 @@ def _update_rows(
     bracketed = bracket_seeds(filt, key, rows, seeds, f_r, a_r, geo.b, lo, hi)
     filt.clock.switch(prefix + 'search')
     # Through the filter (its module's search_interval, read at the call: tests count the searches).
-    x, cost, valid = filt._search(key, rows, desc, a_r, geo, lo, hi, j_r, f_r, seeds)
+    x, cost, valid = search_rows(filt, key, rows, desc, a_r, geo, lo, hi, j_r, f_r, seeds, filt.search)
     filt.clock.switch(prefix + 'update')
     # The epipolar motion at the match: the bracket's edge test and the measurement
     # variance (only read where the match is valid, so one evaluation at x serves both).
