@@ -155,6 +155,15 @@ def test_missing_pose_stops_before_start_or_runs_with_allow_missing(caplog):
     assert 'running without the pose topic' in caplog.text
 
 
+def test_a_bag_posed_only_on_tf_is_sent_to_convert():
+    """A robot's bag whose poses are only on /tf: the nodes cannot subscribe to it (tf2_msgs is
+    not on pip), so the missing pose topic says how to get one."""
+    topics = [*(t for t in ALL if t != '/camera/pose'), '/tf', '/tf_static']
+    (said,) = missing_inputs(RunOptions(bag=Path('b')), topics)
+    assert said.startswith('the pose topic /camera/pose (its poses are on /tf')
+    assert 'depth-fusion convert BAG OUT --tf-world-frame FRAME' in said
+
+
 def test_run_on_a_bag_without_pose_is_one_line(synthetic_tum_dir, tmp_path, capsys):
     from run_bags import shifted_copy, small_bag
 

@@ -80,8 +80,16 @@ def missing_inputs(options: RunOptions, bag_topics: Sequence[str]) -> list[str]:
             f'the camera_info topic {TOPIC_CAMERA_INFO} (or set multi_view_node.camera_intrinsics)'
         )
     if TOPIC_POSE not in played:
-        missing.append(f'the pose topic {TOPIC_POSE}')
+        missing.append(f'the pose topic {TOPIC_POSE}' + (_TF_HINT if '/tf' in bag_topics else ''))
     return missing
+
+
+#: A bag posed only on ``/tf``: the nodes cannot subscribe to it (``tf2_msgs`` is not on pip),
+#: and ``depth-fusion convert`` writes the chain as a pose topic.
+_TF_HINT = (
+    ' (its poses are on /tf, which the nodes cannot read: tf2_msgs is not on pip; '
+    'depth-fusion convert BAG OUT --tf-world-frame FRAME writes them as a pose topic)'
+)
 
 
 def check_inputs(options: RunOptions, bag_topics: Sequence[str]) -> list[str]:
