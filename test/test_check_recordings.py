@@ -44,10 +44,13 @@ def test_topics_for_a_tum_folder_and_a_bad_mount_are_one_line_errors(tmp_path, c
     assert err.count('\n') == 0 and "'--camera-from-pose-frame'" in err and 'has norm 2' in err, err
 
 
-@pytest.mark.parametrize('command', ['check-focal', 'check-sync', 'check-mount'])
+@pytest.mark.parametrize('command', ['check-focal', 'check-sync', 'check-mount', 'evaluate', 'adapt'])
 def test_every_check_command_takes_the_robot_options(command, capsys):
+    """The check commands, ``evaluate`` and ``adapt`` read a robot's recording alike; only
+    ``evaluate`` scores against depth, so only it takes a depth topic."""
     with pytest.raises(SystemExit):
         main([command, '--help'])
     out = capsys.readouterr().out
     for option in ('--image-topic', '--camera-info-topic', '--pose-topic', '--camera-from-pose-frame'):
         assert option in out
+    assert ('--depth-topic' in out) == (command == 'evaluate')

@@ -110,13 +110,3 @@ def test_depth_in_another_frame_than_the_colour_is_said(recordings, tmp_path, ca
     assert len(sequence) == 12
     said = [r.getMessage() for r in caplog.records if 'registered to the colour camera' in r.getMessage()]
     assert len(said) == 1 and "'cam_depth_optical_frame'" in said[0], caplog.text
-
-
-@pytest.mark.parametrize('command', ['evaluate', 'adapt'])
-def test_evaluate_and_adapt_take_the_robot_options(command, capsys):
-    with pytest.raises(SystemExit):
-        main([command, '--help'])
-    out = capsys.readouterr().out
-    for option in ('--image-topic', '--camera-info-topic', '--pose-topic', '--camera-from-pose-frame'):
-        assert option in out
-    assert ('--depth-topic' in out) == (command == 'evaluate')
