@@ -106,10 +106,10 @@ def parse_rgb_cameras(items: list[str]) -> dict[str, str]:
 def recording_topics(args: argparse.Namespace) -> dict[str, str]:
     """The topic options given, checked before any data is loaded: they name a rosbag2's topics,
     so at least one of the sequences must be one (a ``ValueError`` naming them otherwise)."""
-    from ..data.recording import is_rosbag2
+    from ..data.bag_recovery import readable_rosbag2
 
     topics = given_topics(args)
-    if topics and not any(is_rosbag2(s) for s in args.sequences):
+    if topics and not any(readable_rosbag2(s) for s in args.sequences):
         named = ', '.join('--' + name.replace('_', '-') for name in topics)
         raise ValueError(f'{named}: topics are for a rosbag2, and no SEQ_DIR is one')
     return topics

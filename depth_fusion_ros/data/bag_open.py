@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from .bag_recovery import open_rosbag2, storage_file
+from .bag_recovery import open_rosbag2, readable_rosbag2
 
 #: The prefix of every error: the node that plays the bag (``nodes.bag_replayer.NODE_NAME``).
 NODE_NAME = 'bag_replayer'
@@ -34,7 +34,7 @@ def resolve_bag_path(path: str | Path) -> Path:
     if not p.exists():
         raise FileNotFoundError(f'{NODE_NAME}: bag {p} does not exist')
     if p.is_dir():
-        if not (p / 'metadata.yaml').is_file() and storage_file(p) is None:
+        if not readable_rosbag2(p):
             raise BagError(f'{NODE_NAME}: {p} is a folder without metadata.yaml, not a rosbag2')
         return p  # without metadata.yaml: a crashed recording, see data.bag_recovery
     if p.suffix not in ('.mcap', '.db3'):

@@ -55,6 +55,14 @@ def storage_file(path: Path) -> Path | None:
     return files[0] if len(files) == 1 else None
 
 
+def readable_rosbag2(path: str | Path) -> bool:
+    """Whether ``path`` is a rosbag2 folder: its ``metadata.yaml``, or the one ``.mcap`` / ``.db3``
+    of a recording cut short before it wrote one (read by :func:`open_rosbag2`'s recovery).
+    (``bag_writer.is_rosbag2`` asks for a complete bag: the metadata alone.)"""
+    path = Path(path)
+    return path.is_dir() and ((path / 'metadata.yaml').is_file() or storage_file(path) is not None)
+
+
 def expected_count(path: Path) -> int | None:
     """Message count that ``metadata.yaml`` promises (what the recorder wrote, if it got that far)."""
     meta = (path if path.is_dir() else path.parent) / 'metadata.yaml'

@@ -39,15 +39,6 @@ class PoseSource:
         return self.name != 'none'
 
 
-def _sorted_unique(label: str, stamps: list[int], poses: list[np.ndarray]) -> TumTrajectory:
-    """A pose topic's messages as a trajectory (sorted; the first of equal stamps kept)."""
-    arr = np.asarray(stamps, dtype=np.int64)
-    order = np.argsort(arr, kind='stable')
-    arr, mats = arr[order], np.asarray(poses, dtype=np.float64)[order]
-    keep = np.concatenate(([True], np.diff(arr) > 0))
-    return TumTrajectory(Path(label), arr[keep], mats[keep])
-
-
 def _own(name: str, trajectory: TumTrajectory, query: np.ndarray) -> PoseSource:
     T, ok = trajectory.interpolate(query)
     return PoseSource(f'{name}, {OWN_SAMPLES}', T, ok, trajectory)
@@ -68,7 +59,7 @@ def recorded_pose_source(
     if groundtruth is not None:
         return _own(f'groundtruth ({groundtruth})', read_groundtruth(groundtruth), query)
     if pose_stamps:
-        return _own('pose topic', _sorted_unique('pose topic', pose_stamps, poses), query)
+        return _own('pose topic', TumTrajectory.from_samples('pose topic', pose_stamps, poses), query)
     if tf_camera and tf.frames:
         T, ok = tf.lookup(tf_world, tf_camera, query)
         name = f'/tf ({frame_name(tf_world)} -> {frame_name(tf_camera)}), {INTERPOLATED}'

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import transform_from_parameter
-from .bag_recovery import storage_file
+from .bag_recovery import readable_rosbag2
 from .sequence import Sequence
 from .undistort import CameraCalibration
 
@@ -30,13 +30,6 @@ TOPIC_KEYWORDS = {
 }
 
 
-def is_rosbag2(path: str | Path) -> bool:
-    """Whether ``path`` is a rosbag2 folder, not a TUM folder: its ``metadata.yaml``, or the one
-    ``.mcap`` / ``.db3`` of a recording cut short before it wrote one (read by recovery)."""
-    path = Path(path)
-    return path.is_dir() and ((path / 'metadata.yaml').is_file() or storage_file(path) is not None)
-
-
 def load_recording(
     source: str | Path,
     width: int,
@@ -47,15 +40,13 @@ def load_recording(
     topics: Mapping[str, str] | None = None,
     camera_from_pose_frame: list[float] | None = None,
     with_depth: bool = True,
-    option: str = '--camera-from-pose-frame',
 ) -> Sequence:
     """``source`` (TUM folder or rosbag2) at ``width x height``, its poses the camera's.
 
     ``topics``: :data:`TOPIC_KEYWORDS` names to topics, for a rosbag2 only (given for a TUM
     folder: ``ValueError`` naming them); those not given are ``depth-fusion convert``'s.
     ``with_depth``: ground-truth depth is read and a frame without it dropped (``evaluate``);
-    without, no depth is read (the checks). ``option`` names ``camera_from_pose_frame`` in
-    its error.
+    without, no depth is read (the checks).
     """
     source = Path(source)
     if not source.exists():
@@ -64,7 +55,7 @@ def load_recording(
     unknown = sorted(set(given) - set(TOPIC_KEYWORDS))
     if unknown:
         raise ValueError(f'unknown topic option(s) {unknown}; known: {sorted(TOPIC_KEYWORDS)}')
-    if is_rosbag2(source):
+    if readable_rosbag2(source):
         from .rosbag_read import load_bag_sequence
 
         keywords = {TOPIC_KEYWORDS[name]: topic for name, topic in given.items()}
@@ -82,18 +73,16 @@ def load_recording(
         sequence = load_tum_sequence(
             source, width, height, max_frames, require_depth=with_depth, rgb_calibration=calibration
         )
-    return camera_poses(sequence, camera_from_pose_frame, option)
+    return camera_poses(sequence, camera_from_pose_frame)
 
 
-def camera_poses(
-    sequence: Sequence, camera_from_pose_frame: list[float] | None, option: str = '--camera-from-pose-frame'
-) -> Sequence:
+def camera_poses(sequence: Sequence, camera_from_pose_frame: list[float] | None) -> Sequence:
     """``sequence`` with its poses (and its pose record) taken from the poses' frame to the camera
     optical frame, ``T_world_cam = T_world_pose @ T_pose_cam``, as multi_view_node does; as it
     is without one."""
     if camera_from_pose_frame is None:
         return sequence
-    T_pose_cam = transform_from_parameter(list(camera_from_pose_frame), option)
+    T_pose_cam = transform_from_parameter(list(camera_from_pose_frame), '--camera-from-pose-frame')
     stream = sequence.pose_stream
     moved = None if stream is None else (stream[0], np.asarray(stream[1]) @ T_pose_cam)
     return sequence.with_poses(sequence.poses @ T_pose_cam, pose_stream=moved)

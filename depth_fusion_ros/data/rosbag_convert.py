@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from .bag_layout import BagTopics, ConvertResult, FrameIds
-from .bag_recovery import storage_file
+from .bag_recovery import readable_rosbag2
 from .bag_writer import AtomicBagWriter
 from .recorded_to_bag import recorded_to_rosbag2
 from .tf_tree import TfTree
@@ -70,6 +70,6 @@ def convert(src: str | Path, out: str | Path, **options: Any) -> ConvertResult:
                 f'{", ".join(given)} only apply to a ROS 1 bag or a rosbag2 source, not to TUM folder {path}'
             )
         return tum_to_rosbag(path, out, **{k: v for k, v in options.items() if k not in RECORDED_ONLY})
-    if path.is_dir() and not (path / 'metadata.yaml').is_file() and storage_file(path) is None:
+    if path.is_dir() and not readable_rosbag2(path):
         raise ValueError(f'{path} is neither a TUM folder (no rgb.txt) nor a rosbag2 (no metadata.yaml)')
     return recorded_to_rosbag2(path, out, **{k: v for k, v in options.items() if v is not None})

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from .bag_recovery import open_rosbag2, storage_file
+from .bag_recovery import open_rosbag2, readable_rosbag2
 from .compressed import any_image_to_rgb, colour_topic_in
 from .messages import (
     camera_info_to_calibration,
@@ -57,7 +57,7 @@ def _check_bag(bag: str | Path) -> Path:
     path = Path(bag)
     if not path.exists():
         raise FileNotFoundError(f'bag {path} not found')
-    if not (path.is_dir() and ((path / 'metadata.yaml').is_file() or storage_file(path) is not None)):
+    if not readable_rosbag2(path):
         raise ValueError(
             f'{path} is not a rosbag2 folder (no metadata.yaml); ROS 1 bags: run depth-fusion convert'
         )
@@ -101,10 +101,8 @@ def read_poses(bag: str | Path, topic: str = POSE_TOPIC) -> tuple[np.ndarray, np
     for _, _, msg in iter_messages(bag, [topic]):
         stamps.append(stamp_to_ns(msg.header.stamp))
         poses.append(pose_message_to_matrix(msg))
-    order = np.argsort(np.asarray(stamps, dtype=np.int64), kind='stable')
-    arr = np.asarray(stamps, dtype=np.int64)[order]
-    keep = np.concatenate(([True], np.diff(arr) > 0)) if len(arr) else np.zeros(0, bool)
-    return arr[keep], np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[order][keep]
+    samples = TumTrajectory.from_samples(topic, stamps, poses)
+    return samples.stamps_ns, samples.poses
 
 
 def _scan(
@@ -130,13 +128,8 @@ def _scan(
             pose_stamps.append(stamp_to_ns(msg.header.stamp))
             poses.append(pose_message_to_matrix(msg))
     _warn_unregistered(path, frames.get(rgb_topic, ''), depth_topic, frames.get(depth_topic, ''))
-    order = np.argsort(np.asarray(pose_stamps, dtype=np.int64), kind='stable')
-    p_stamps = np.asarray(pose_stamps, dtype=np.int64)[order]
-    p_poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
-    if len(p_stamps):
-        keep = np.concatenate(([True], np.diff(p_stamps) > 0))
-        p_stamps, p_poses = p_stamps[keep], p_poses[keep]
-    return rgb_stamps, depth_stamps, calib, p_stamps, p_poses
+    samples = TumTrajectory.from_samples(pose_topic, pose_stamps, poses)
+    return rgb_stamps, depth_stamps, calib, samples.stamps_ns, samples.poses
 
 
 def _warn_unregistered(path: Path, colour_frame: str, depth_topic: str | None, depth_frame: str) -> None:

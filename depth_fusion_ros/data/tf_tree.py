@@ -7,8 +7,6 @@ at query stamps rather than the edges' own samples.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from .tum import TumTrajectory
@@ -49,11 +47,7 @@ class TfTree:
         arr = np.asarray(poses, dtype=np.float64)
         if static or len(arr) == 1 or np.allclose(arr, arr[0], rtol=0.0, atol=1e-12):
             return np.broadcast_to(arr[-1], (len(query_ns), 4, 4)), np.ones(len(query_ns), bool)
-        stamps_arr = np.asarray(stamps, dtype=np.int64)
-        order = np.argsort(stamps_arr, kind='stable')
-        stamps_arr, arr = stamps_arr[order], arr[order]
-        keep = np.concatenate(([True], np.diff(stamps_arr) > 0))
-        return TumTrajectory(Path('/tf'), stamps_arr[keep], arr[keep]).interpolate(query_ns)
+        return TumTrajectory.from_samples('/tf', stamps, arr).interpolate(query_ns)
 
     def lookup(self, target: str, source: str, query_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``T_target_source`` at each stamp, and whether it is known there.

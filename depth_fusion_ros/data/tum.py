@@ -90,6 +90,18 @@ class TumTrajectory:
     def __len__(self) -> int:
         return len(self.stamps_ns)
 
+    @classmethod
+    def from_samples(
+        cls, label: str | Path, stamps_ns: Iterable[int], poses: Iterable[np.ndarray]
+    ) -> TumTrajectory:
+        """A pose source's samples as a trajectory: sorted by stamp (stably), the first of equal
+        stamps kept (a bag may repeat one; the interpolation needs them strictly increasing)."""
+        stamps = np.asarray(list(stamps_ns), dtype=np.int64)
+        order = np.argsort(stamps, kind='stable')
+        stamps, mats = stamps[order], np.asarray(list(poses), dtype=np.float64).reshape(-1, 4, 4)[order]
+        keep = np.concatenate(([True], np.diff(stamps) > 0)) if len(stamps) else np.zeros(0, bool)
+        return cls(Path(label), stamps[keep], mats[keep])
+
     def interpolate(self, query_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Poses at ``query_ns`` (linear translation, slerp); ``(T (M,4,4), valid (M,))``.
 

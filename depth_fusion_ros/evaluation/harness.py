@@ -207,7 +207,8 @@ def load_evaluation_sequence(path: str | Path, options: EvalOptions, with_depth:
     """Load a TUM folder or a rosbag2 as the options say (working size, frames, colour-camera
     override, a rosbag2's topics, the camera's mount on the posed body). ``with_depth``: frames
     without ground-truth depth are dropped (scoring needs it; ``adapt`` does not read it)."""
-    from ..data.recording import is_rosbag2, load_recording
+    from ..data.bag_recovery import readable_rosbag2
+    from ..data.recording import load_recording
     from ..data.tum import read_camera_yaml
 
     name = Path(path).resolve().name
@@ -218,7 +219,7 @@ def load_evaluation_sequence(path: str | Path, options: EvalOptions, with_depth:
         options.height,
         options.frames,
         calibration=read_camera_yaml(override) if override else None,
-        topics=options.topics if is_rosbag2(path) else None,  # a bag's topics; a TUM folder has none
+        topics=options.topics if readable_rosbag2(path) else None,  # a bag's topics; a TUM folder has none
         camera_from_pose_frame=options.camera_from_pose_frame,
         with_depth=with_depth,
     )
