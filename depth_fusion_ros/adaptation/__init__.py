@@ -18,4 +18,6 @@ because the poses are). It never sees ground truth.
 * ``guard.py``    held-out multi-view points: score an update, decide on a rollback
 * ``adapter.py``  Adapter: train on one keyframe (+ replay), guard, roll back, version weights
 * ``online.py``   OnlineAdaptation: the Adapter on its own thread, weights swapped atomically
+* ``remote_adapter.py`` RemoteAdapter: the Adapter's interface over a training process
+* ``trainer_process.py`` that process (niced before it imports torch; one update at a time)
 """

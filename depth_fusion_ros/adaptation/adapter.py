@@ -82,6 +82,31 @@ class AdapterCounters:
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
 
 
+def load_adaptable(
+    spec: str | Path, device: str | torch.device = 'cpu'
+) -> tuple[nn.Module, ModelMetadata, str]:
+    """The network, metadata and name of an adaptable ``spec`` ('default' or a checkpoint of
+    ``depth-fusion train`` / ``adapt``); a one-line error for anything else (an exported model,
+    a missing file, the simulated prior). The in-process and the process-backed adapter
+    (``remote_adapter.py``) both load through it, so they refuse the same models."""
+    from ..singleview.checkpoint import is_exported_model, load_checkpoint
+    from ..singleview.predictor import SIMULATED_SPEC, default_model_path
+
+    if str(spec) == SIMULATED_SPEC:
+        raise ValueError("adaptation needs a network: 'simulated' is the evaluation-only prior")
+    path = default_model_path() if str(spec) == 'default' else Path(spec).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f'single-view model not found: {path}')
+    if is_exported_model(path):
+        raise ValueError(
+            f"{path}: adaptation trains the project's own networks (checkpoints of depth-fusion "
+            'train/adapt, or the shipped model); an exported ONNX / .pt2 / TorchScript model '
+            'cannot be adapted'
+        )
+    ckpt = load_checkpoint(path, device)
+    return ckpt.model, ckpt.metadata, f'{ckpt.architecture}:{path.name}'
+
+
 def _output_bias(net: nn.Module) -> list[nn.Parameter]:
     """The network's final scalar bias (a global log-depth offset), if it has one."""
     scalars = [(n, p) for n, p in net.named_parameters() if p.numel() == 1 and n.endswith('bias')]
@@ -166,22 +191,8 @@ class Adapter:
     ) -> Adapter:
         """An adapter for the network named like ``load_predictor``'s ``spec`` ('default' or a
         checkpoint of ``depth-fusion train`` / ``adapt``). Exported models cannot adapt."""
-        from ..singleview.checkpoint import is_exported_model, load_checkpoint
-        from ..singleview.predictor import SIMULATED_SPEC, default_model_path
-
-        if str(spec) == SIMULATED_SPEC:
-            raise ValueError("adaptation needs a network: 'simulated' is the evaluation-only prior")
-        path = default_model_path() if str(spec) == 'default' else Path(spec).expanduser()
-        if not path.is_file():
-            raise FileNotFoundError(f'single-view model not found: {path}')
-        if is_exported_model(path):
-            raise ValueError(
-                f"{path}: adaptation trains the project's own networks (checkpoints of depth-fusion "
-                'train/adapt, or the shipped model); an exported ONNX / .pt2 / TorchScript model '
-                'cannot be adapted'
-            )
-        ckpt = load_checkpoint(path, device)
-        return cls(ckpt.model, ckpt.metadata, config, device, name=f'{ckpt.architecture}:{path.name}')
+        net, metadata, name = load_adaptable(spec, device)
+        return cls(net, metadata, config, device, name=name)
 
     # --- inference side -----------------------------------------------------------------------
 

@@ -18,7 +18,7 @@ it reports:
 * end-to-end latency per keyframe: input image arrival -> fused depth arrival, both seen by the
   runner's recorder (so it includes DDS transport both ways);
 * peak resident memory (this process when composed; the sum of the node processes' peaks
-  when separate).
+  when separate; either with their child processes, such as the adaptation's training process).
 
 With ``DEPTH_FUSION_BENCH_SOAK_SECONDS=600`` (or ``BenchOptions.soak_seconds``) it then loops the
 bag for that long, composed, sampling the resident memory every few seconds, and reports it
@@ -144,6 +144,27 @@ def image_count(bag: Path) -> int:
         reader.close()
 
 
+def descendants(pid: int | str = 'self') -> list[int]:
+    """Every process below ``pid`` (Linux ``/proc/PID/task/*/children``): the adaptation's
+    training process and a kernel builder belong to the graph's memory too."""
+    found: list[int] = []
+    stack = [pid]
+    while stack:
+        for task in Path(f'/proc/{stack.pop()}/task').glob('*'):
+            try:
+                kids = [int(k) for k in (task / 'children').read_text().split()]
+            except (OSError, ValueError):
+                continue
+            found += kids
+            stack += kids
+    return found
+
+
+def tree_mb(pid: int | str = 'self', field: str = 'VmRSS') -> float:
+    """:func:`rss_mb` of ``pid`` plus its descendants' (those gone meanwhile count 0)."""
+    return rss_mb(pid, field) + sum(np.nan_to_num(rss_mb(d, field)) for d in descendants(pid))
+
+
 class MemorySampler:
     """Resident memory of the graph (this process, or the node processes) over time."""
 
@@ -156,7 +177,9 @@ class MemorySampler:
         self.server: int | None = None
 
     def __call__(self, run) -> None:
-        runner = rss_mb()
+        # Separate, the node processes are the runner's (or the fork server's) descendants:
+        # each is counted once, with its own children.
+        runner = rss_mb() if self.processes else tree_mb()
         self.runner_max = max(self.runner_max, runner)
         if self.processes:
             total = 0.0
@@ -168,8 +191,9 @@ class MemorySampler:
             if self.server is not None:
                 pids['fork server'] = self.server
             for name, pid in pids.items():
-                total += rss_mb(pid)
-                self.peak_children[name] = max(self.peak_children.get(name, 0.0), rss_mb(pid, 'VmHWM'))
+                size = rss_mb if name == 'fork server' else tree_mb
+                total += size(pid)
+                self.peak_children[name] = max(self.peak_children.get(name, 0.0), size(pid, 'VmHWM'))
             self.samples.append((time.monotonic() - self.t0, total + runner))
         else:
             self.samples.append((time.monotonic() - self.t0, runner))
@@ -385,7 +409,7 @@ def _peak_note(sampler: MemorySampler) -> str:
     if sampler.processes:
         parts = [f'{k.removesuffix("_node")} {v:.0f}' for k, v in sampler.peak_children.items()]
         return ' + '.join([*parts, f'runner {sampler.runner_max:.0f}'])
-    return 'whole process (torch, rclpy, all nodes), sampled every 0.5 s'
+    return 'whole process (torch, rclpy, all nodes) with its child processes, sampled every 0.5 s'
 
 
 def soak(opts: BenchOptions, bag: Path, seconds: float) -> list[BenchRow]:

@@ -21,6 +21,7 @@ from ..adaptation.adapter import Adapter, UpdateReport
 from ..adaptation.config import AdaptConfig
 from ..adaptation.keyframes import KeyframeAssembler
 from ..adaptation.online import OnlineAdaptation, WeightSlot
+from ..adaptation.remote_adapter import RemoteAdapter
 from ..adaptation.sample import AdaptSample
 from ..data import messages
 from .corrected_path import path_poses
@@ -81,10 +82,18 @@ ADAPTATION_PARAMETERS: tuple[ParamSpec, ...] = (
         100,
     ),
     ParamSpec(
+        'adaptation.process',
+        True,
+        'train in a process of its own (true) or on a thread of this one (false): in a process the '
+        "training's Python work never holds this process's GIL, so a niced trainer cannot hold up "
+        'inference or, composed, the other nodes',
+    ),
+    ParamSpec(
         'adaptation.nice',
         10,
-        'scheduling niceness of the training thread (Linux): training then uses the CPU that inference, '
-        'multi-view and fusion leave idle instead of delaying them; 0 = the same priority as inference',
+        'scheduling niceness of the training process or thread (Linux): training then uses the CPU that '
+        'inference, multi-view and fusion leave idle instead of delaying them; 0 = the same priority as '
+        'inference',
         0,
         19,
     ),
@@ -140,14 +149,16 @@ class NodeAdaptation:
         self.config = build_dataclass(AdaptConfig, p, 'adaptation')
         self.config.validate()
         self.checkpoint = str(p['adaptation.checkpoint'])
-        self.adapter = Adapter.from_spec(str(p['model']), self.config, str(p['device']))
+        nice = int(p['adaptation.nice'])
+        self.adapter: Adapter | RemoteAdapter
+        if bool(p['adaptation.process']):
+            self.adapter = RemoteAdapter(str(p['model']), self.config, str(p['device']), nice=nice)
+            nice = 0  # the thread only waits for the training process: its priority is the process's
+        else:
+            self.adapter = Adapter.from_spec(str(p['model']), self.config, str(p['device']))
         self.slot = WeightSlot(predictor)
         self.online = OnlineAdaptation(
-            self.adapter,
-            self.slot,
-            int(p['adaptation.queue_size']),
-            on_report=self._on_report,
-            nice=int(p['adaptation.nice']),
+            self.adapter, self.slot, int(p['adaptation.queue_size']), on_report=self._on_report, nice=nice
         )
         self.assembler = KeyframeAssembler(
             select_fraction=self.config.select_fraction,
@@ -171,8 +182,13 @@ class NodeAdaptation:
         from std_srvs.srv import Trigger
 
         self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
+        where = (
+            f'in training process {self.adapter.pid} at nice +{self.adapter.nice}'
+            if isinstance(self.adapter, RemoteAdapter)
+            else f'on a training thread at nice +{int(p["adaptation.nice"])}'
+        )
         node.get_logger().info(
-            f'adapting {self.adapter.name} online: lr {self.config.lr:g}, '
+            f'adapting {self.adapter.name} online {where}: lr {self.config.lr:g}, '
             f'{self.config.steps_per_keyframe} steps/keyframe, replay {self.config.replay_per_step} of '
             f'{self.config.buffer_size} ({self.config.steps_when_behind} steps while behind), windows of '
             f'{self.config.photometric_window:g} of each side; '
@@ -298,8 +314,13 @@ class NodeAdaptation:
 
     def shutdown(self) -> None:
         """Stop the training thread, then write the checkpoint (when a path is set)."""
+        remote = self.adapter if isinstance(self.adapter, RemoteAdapter) else None
+        if remote is not None:
+            remote.cancel()  # the thread may be waiting for a training process still starting
         if not self.online.stop(timeout=60.0):
             self.node.get_logger().warning('adaptation thread did not stop within 60 s')
+        if remote is not None and not remote.close():
+            self.node.get_logger().warning('adaptation: the training process did not stop in 10 s: killed')
         c = self.adapter.counters
         summary = (
             f'adaptation: {c.observed} keyframes, {c.updated} updates, {c.rolled_back} rolled back, '

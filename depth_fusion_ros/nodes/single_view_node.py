@@ -15,10 +15,11 @@ itself cannot carry it.
 
 With ``adapt`` on (``auto``: on for the project's own networks, off for exported ones), the
 node also listens to the multi-view depth and score and the keyframe pose, and trains the
-network on each keyframe on a background thread (``depth_fusion_ros.adaptation``; see
-docs/adaptation.md). Inference never waits for it: it uses the last accepted weights,
-swapped atomically. ``~/save_model`` (std_srvs/Trigger) and shutdown write them to
-``adaptation.checkpoint``, which ``model:`` loads next time.
+network on each keyframe in a training process of its own (``adaptation.process``; a
+background thread when false; ``depth_fusion_ros.adaptation``, docs/adaptation.md).
+Inference never waits for it: it uses the last accepted weights, swapped atomically.
+``~/save_model`` (std_srvs/Trigger) and shutdown write them to ``adaptation.checkpoint``,
+which ``model:`` loads next time.
 """
 
 from __future__ import annotations

@@ -1,0 +1,136 @@
+"""The training side of :class:`~.remote_adapter.RemoteAdapter`: an Adapter in a process of its own.
+
+Why a process: in one process every thread shares one GIL. The training thread is niced so
+that inference, multi-view and fusion get the CPU first, but a niced thread that holds the
+GIL when the kernel deschedules it holds every other thread up with it (docs/performance.md,
+"Composed in real time": the composed graph fused 8-11 of 19 keyframes in real time with the
+adaptation on, 14-19 with it off, though training used under a tenth of the CPU). A process
+has its own interpreter: its niceness then only says who gets the CPU, and its imports (1.7 s
+of ``torch._dynamo`` for the optimiser) hold up nobody.
+
+Started as ``python -m depth_fusion_ros.adaptation.trainer_process FD NICE THREADS`` (not by
+``multiprocessing``, whose spawn re-imports the parent's main script: a node's, with rclpy
+and torch, before the child could lower its priority). So this module imports only the
+standard library at the top, and the child is niced before it imports torch.
+
+Protocol over the connection on ``FD`` (``multiprocessing.connection``: pickled tuples), one
+request at a time:
+
+* ``('init', spec, config, device)`` -> ``('ready',)`` or ``('error', text)``;
+* ``('observe', sample, behind)`` -> ``('report', report, counters, weights)``, ``weights`` the
+  accepted network's tensors (``state_dict`` order) after an ``updated`` report, else None;
+  or ``('failed', text, counters)`` when the update raised;
+* ``('stop',)``, or the parent's end closing: the child returns.
+
+``SIGUSR1`` asks the update in hand to stop: the adapter checks between steps, restores the
+weights and reports the keyframe ``stopped``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pickle
+import signal
+import sys
+from multiprocessing.connection import Connection
+from typing import Any
+
+
+class _Abort:
+    """Set by ``SIGUSR1`` (between the adapter's steps Python runs the handler), cleared per update."""
+
+    requested = False
+
+    @classmethod
+    def on_signal(cls, signum: int, frame: Any) -> None:
+        cls.requested = True
+
+    @classmethod
+    def check(cls) -> bool:
+        return cls.requested
+
+
+def send(conn: Connection, message: tuple) -> None:
+    """``conn.send`` with the standard pickler: ``Connection.send`` uses multiprocessing's,
+    for which torch registers tensor reducers that share memory through multiprocessing's
+    resource sharer, and that needs a ``multiprocessing`` child (its authentication key):
+    this child is not one. Pickled plainly a tensor travels by value (2 MB a set of weights)."""
+    conn.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def receive(conn: Connection) -> tuple:
+    return pickle.loads(conn.recv_bytes())
+
+
+def lower_priority(nice: int) -> None:
+    """Add ``nice`` to this process's niceness (quietly nothing where not permitted)."""
+    if nice > 0:
+        with contextlib.suppress(AttributeError, OSError):
+            os.nice(nice)
+
+
+def main(argv: list[str]) -> int:
+    fd, nice, threads = (int(a) for a in argv)
+    lower_priority(nice)
+    signal.signal(signal.SIGUSR1, _Abort.on_signal)
+    # Ctrl+C or a SIGTERM to the process group is the parent's to handle: it stops this child
+    # (after the update in hand) as it shuts down, and a parent that dies closes the pipe.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    conn = Connection(fd)
+    try:
+        adapter = _build(conn, threads)
+    except (EOFError, OSError):
+        return 0
+    if adapter is None:
+        return 1
+    _serve(conn, adapter)
+    return 0
+
+
+def _build(conn: Connection, threads: int) -> Any:
+    _, spec, config, device = receive(conn)
+    try:
+        import torch
+
+        if threads > 0:
+            torch.set_num_threads(threads)
+        from .adapter import Adapter
+
+        adapter = Adapter.from_spec(spec, config, device)
+        adapter.warm_up()
+    except Exception as exc:  # the parent logs it once and trains no more (inference goes on)
+        send(conn, ('error', f'{type(exc).__name__}: {exc}'))
+        return None
+    send(conn, ('ready',))
+    return adapter
+
+
+def _serve(conn: Connection, adapter: Any) -> None:
+    try:
+        _loop(conn, adapter)
+    except (EOFError, OSError):  # the parent is gone (its end of the pipe closed)
+        return
+
+
+def _loop(conn: Connection, adapter: Any) -> None:
+    while True:
+        request = receive(conn)
+        if request[0] == 'stop':
+            return
+        _, sample, behind = request
+        _Abort.requested = False
+        try:
+            report = adapter.observe(sample, abort=_Abort.check, behind=behind)
+        except Exception as exc:  # a bad sample must not end adaptation (the parent counts it)
+            send(conn, ('failed', f'{type(exc).__name__}: {exc}', adapter.counters))
+            continue
+        weights = None
+        if report.status == 'updated':
+            weights = [t.detach().cpu() for t in adapter.net.state_dict().values()]
+        send(conn, ('report', report, adapter.counters, weights))
+
+
+if __name__ == '__main__':
+    sys.exit(main(sys.argv[1:]))

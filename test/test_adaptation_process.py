@@ -1,0 +1,109 @@
+"""Adaptation in a training process of its own (adaptation/remote_adapter.py, trainer_process.py):
+the same update as in process, the weights back for inference, stop mid-update, a dead child."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+import torch
+from test_adaptation import _gt_sample
+
+from depth_fusion_ros.adaptation.adapter import Adapter
+from depth_fusion_ros.adaptation.config import AdaptConfig
+from depth_fusion_ros.adaptation.online import OnlineAdaptation, WeightSlot
+from depth_fusion_ros.adaptation.remote_adapter import RemoteAdapter
+from depth_fusion_ros.singleview.predictor import load_predictor
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+CONFIG = {'steps_per_keyframe': 2, 'replay_per_step': 1, 'min_points': 5, 'guard_tolerance': 1e9}
+
+
+@pytest.fixture()
+def remote(tiny_model):
+    adapter = RemoteAdapter(tiny_model, AdaptConfig(**CONFIG), nice=0)
+    yield adapter
+    adapter.close()
+
+
+def _weights(net: torch.nn.Module) -> list[torch.Tensor]:
+    return [t.detach().clone() for t in net.state_dict().values()]
+
+
+def test_an_update_in_the_process_gives_the_in_process_weights(remote, tiny_model, small_sequence):
+    local = Adapter.from_spec(tiny_model, AdaptConfig(**CONFIG))
+    before = remote.predictor().predict(small_sequence.frames[2].rgb)
+    for i in (0, 1):
+        sample = _gt_sample(small_sequence, i, scale=1.3)
+        want, got = local.observe(sample), remote.observe(sample)
+        assert (got.status, got.version, got.steps) == (want.status, want.version, want.steps)
+        assert (got.status, got.version, got.steps) == ('updated', i + 1, 2)
+        assert got.loss_last == pytest.approx(want.loss_last, rel=1e-5)
+    for a, b in zip(_weights(remote.net), _weights(local.net), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    assert remote.counters.updated == 2 and remote.counters.observed == 2
+    after = remote.predictor().predict(small_sequence.frames[2].rgb)
+    assert not np.array_equal(after, before)  # inference got the new weights
+    np.testing.assert_allclose(after, local.predictor().predict(small_sequence.frames[2].rgb), rtol=1e-4)
+
+
+def test_stop_mid_update_keeps_the_weights_and_reports_stopped(remote, small_sequence):
+    before = _weights(remote.net)
+    report = remote.observe(_gt_sample(small_sequence, 0, scale=1.3), abort=lambda: True)
+    assert report.status == 'skipped' and report.reason == 'stopped', report
+    assert remote.version == 0
+    for a, b in zip(_weights(remote.net), before, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_a_training_process_that_dies_ends_training_not_inference(remote, small_sequence, caplog):
+    assert remote.observe(_gt_sample(small_sequence, 0, scale=1.3)).status == 'updated'
+    weights = _weights(remote.net)
+    os.kill(remote.pid, signal.SIGKILL)
+    reports = [remote.observe(_gt_sample(small_sequence, i, scale=1.3)) for i in (1, 2)]
+    assert [r.status for r in reports] == ['skipped', 'skipped']
+    assert all(r.reason.startswith('trainer_stopped: the training process ended') for r in reports), reports
+    assert remote.counters.reasons['trainer_stopped'] == 2
+    assert sum('no more training in this run' in r.getMessage() for r in caplog.records) == 1  # said once
+    for a, b in zip(_weights(remote.net), weights, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert np.isfinite(remote.predictor().predict(small_sequence.frames[0].rgb)).all()
+
+
+def test_the_training_thread_swaps_in_the_process_weights(remote, tiny_model, small_sequence):
+    slot = WeightSlot(load_predictor(tiny_model))
+    online = OnlineAdaptation(remote, slot, queue_size=4)
+    try:
+        for i in (0, 1, 2):
+            online.submit(_gt_sample(small_sequence, i, scale=1.3))
+        assert online.wait_idle(120.0)
+    finally:
+        assert online.stop()
+    assert slot.version == remote.version == 3 and online.failed == 0
+    rgb = small_sequence.frames[3].rgb
+    np.testing.assert_array_equal(slot.get()[0].predict(rgb), remote.predictor().predict(rgb))
+
+
+def test_a_model_that_cannot_adapt_is_a_start_up_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match='single-view model not found'):
+        RemoteAdapter(str(tmp_path / 'missing.pt'))
+
+
+def test_the_bench_counts_the_training_process_in_the_graphs_memory(remote):
+    from depth_fusion_ros.bench.node_graph import descendants, rss_mb, tree_mb
+
+    remote.warm_up()  # the child has imported torch and built its network
+    assert remote.pid in descendants()
+    assert tree_mb() >= rss_mb() + rss_mb(remote.pid) - 1.0  # this process and the child (MB)
+
+
+def test_a_node_shutting_down_does_not_wait_for_a_training_process_still_starting(tiny_model, small_sequence):
+    remote = RemoteAdapter(tiny_model, AdaptConfig(**CONFIG), nice=0)
+    remote.cancel()  # at once: the child is still importing torch
+    report = remote.observe(_gt_sample(small_sequence, 0, scale=1.3))
+    assert (report.status, report.reason) == ('skipped', 'stopped')
+    assert not remote.ready and remote.counters.reasons == {'stopped': 1}
+    assert remote.close()  # the child read 'stop' once built, and ended by itself
