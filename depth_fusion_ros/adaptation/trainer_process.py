@@ -29,6 +29,7 @@ weights and reports the keyframe ``stopped``.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import pickle
 import signal
@@ -73,6 +74,11 @@ def lower_priority(nice: int) -> None:
 def main(argv: list[str]) -> int:
     fd, nice, threads = (int(a) for a in argv)
     lower_priority(nice)
+    # The adapter's warnings (a rolled-back update) reach the node's terminal, named as this
+    # process's; the node counts and logs each report itself as well.
+    logging.basicConfig(
+        level=logging.WARNING, format=f'[adaptation trainer {os.getpid()}] %(levelname)s %(message)s'
+    )
     signal.signal(signal.SIGUSR1, _Abort.on_signal)
     # Ctrl+C or a SIGTERM to the process group is the parent's to handle: it stops this child
     # (after the update in hand) as it shuts down, and a parent that dies closes the pipe.
