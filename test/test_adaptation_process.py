@@ -107,3 +107,13 @@ def test_a_node_shutting_down_does_not_wait_for_a_training_process_still_startin
     assert (report.status, report.reason) == ('skipped', 'stopped')
     assert not remote.ready and remote.counters.reasons == {'stopped': 1}
     assert remote.close()  # the child read 'stop' once built, and ended by itself
+
+
+def test_the_training_process_imports_the_package_the_node_runs():
+    from pathlib import Path
+
+    import depth_fusion_ros
+    from depth_fusion_ros.adaptation.remote_adapter import _child_environment
+
+    first = _child_environment()['PYTHONPATH'].split(os.pathsep)[0]
+    assert first == str(Path(depth_fusion_ros.__file__).resolve().parents[1])

@@ -18,8 +18,8 @@ once); inference goes on with the last accepted weights.
 from __future__ import annotations
 
 import contextlib
-import copy
 import logging
+import os
 import signal
 import socket
 import subprocess
@@ -27,6 +27,7 @@ import sys
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
+from pathlib import Path
 
 import torch
 
@@ -41,6 +42,15 @@ log = logging.getLogger(__name__)
 
 #: Seconds between the waiting thread's looks at ``abort`` while the child trains.
 POLL_S = 0.05
+
+
+def _child_environment() -> dict[str, str]:
+    """This environment, with the directory this package was imported from first on the
+    child's ``PYTHONPATH``: the child runs the same code as the node (a source tree, a
+    worktree, a colcon install), whatever the child's own default path would find."""
+    root = str(Path(__file__).resolve().parents[2])
+    path = os.environ.get('PYTHONPATH', '')
+    return {**os.environ, 'PYTHONPATH': os.pathsep.join(p for p in (root, path) if p)}
 
 
 class RemoteAdapter:
@@ -59,8 +69,8 @@ class RemoteAdapter:
         self.device = resolve_device(device)
         # Loaded here too, for the inference copies and so that a bad model is the node's
         # start-up error, as with the in-process Adapter (the same checks: load_adaptable).
-        net, self.metadata, self.name = load_adaptable(spec, self.device)
-        self.net = copy.deepcopy(net).eval()
+        self.net, self.metadata, self.name = load_adaptable(spec, self.device)
+        self.net.eval()
         for p in self.net.parameters():
             p.requires_grad_(False)
         self._copies = InferenceCopies(self.net)
@@ -82,6 +92,7 @@ class RemoteAdapter:
                 str(n_threads),
             ],
             pass_fds=(theirs.fileno(),),
+            env=_child_environment(),
         )
         theirs.close()
         self._conn = Connection(ours.detach())
