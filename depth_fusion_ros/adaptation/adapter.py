@@ -81,6 +81,11 @@ class AdapterCounters:
     def as_dict(self) -> dict[str, Any]:
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
 
+    def skip(self, reason: str) -> None:
+        """Count a keyframe not trained on, under its short reason (``too_few_points``, ``stopped``, ...)."""
+        self.skipped += 1
+        self.reasons[reason] = self.reasons.get(reason, 0) + 1
+
 
 def load_adaptable(
     spec: str | Path, device: str | torch.device = 'cpu'
@@ -351,9 +356,7 @@ class Adapter:
         return report
 
     def _skip(self, key: int, reason: str, t0: float) -> UpdateReport:
-        self.counters.skipped += 1
-        short = reason.split(' ')[0]
-        self.counters.reasons[short] = self.counters.reasons.get(short, 0) + 1
+        self.counters.skip(reason.split(' ')[0])
         log.info('adaptation: keyframe %d not trained on: %s', key, reason)
         return UpdateReport(key, 'skipped', reason, version=self.version, seconds=time.perf_counter() - t0)
 

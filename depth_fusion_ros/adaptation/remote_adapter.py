@@ -150,9 +150,6 @@ class RemoteAdapter:
         """A predictor around a copy of the last accepted weights (as ``Adapter.predictor``)."""
         return predictor_from_network(self._copies.take(), self.metadata, self.device, name=self.name)
 
-    def inference_network(self) -> torch.nn.Module:
-        return self._copies.take()
-
     # --- the process ----------------------------------------------------------------------------
 
     def cancel(self) -> None:
@@ -205,10 +202,8 @@ class RemoteAdapter:
 
     def _skip(self, key: int, t0: float) -> UpdateReport:
         """A keyframe not trained on because the child is gone (or, closing, never started)."""
-        short = 'trainer_stopped' if self._error is not None else 'stopped'
         self.counters.observed += 1
-        self.counters.skipped += 1
-        self.counters.reasons[short] = self.counters.reasons.get(short, 0) + 1
+        self.counters.skip('trainer_stopped' if self._error is not None else 'stopped')
         reason = f'trainer_stopped: {self._error}' if self._error is not None else 'stopped'
         return UpdateReport(key, 'skipped', reason, version=self.version, seconds=time.perf_counter() - t0)
 

@@ -150,15 +150,20 @@ class NodeAdaptation:
         self.config.validate()
         self.checkpoint = str(p['adaptation.checkpoint'])
         nice = int(p['adaptation.nice'])
-        self.adapter: Adapter | RemoteAdapter
-        if bool(p['adaptation.process']):
-            self.adapter = RemoteAdapter(str(p['model']), self.config, str(p['device']), nice=nice)
-            nice = 0  # the thread only waits for the training process: its priority is the process's
-        else:
-            self.adapter = Adapter.from_spec(str(p['model']), self.config, str(p['device']))
+        #: The training process (``adaptation.process``), else None: training on the thread.
+        self.remote = (
+            RemoteAdapter(str(p['model']), self.config, str(p['device']), nice=nice)
+            if bool(p['adaptation.process'])
+            else None
+        )
+        self.adapter = self.remote or Adapter.from_spec(str(p['model']), self.config, str(p['device']))
         self.slot = WeightSlot(predictor)
         self.online = OnlineAdaptation(
-            self.adapter, self.slot, int(p['adaptation.queue_size']), on_report=self._on_report, nice=nice
+            self.adapter,
+            self.slot,
+            int(p['adaptation.queue_size']),
+            on_report=self._on_report,
+            nice=0 if self.remote else nice,  # that thread only waits for the process, niced itself
         )
         self.assembler = KeyframeAssembler(
             select_fraction=self.config.select_fraction,
@@ -182,11 +187,8 @@ class NodeAdaptation:
         from std_srvs.srv import Trigger
 
         self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
-        where = (
-            f'in training process {self.adapter.pid} at nice +{self.adapter.nice}'
-            if isinstance(self.adapter, RemoteAdapter)
-            else f'on a training thread at nice +{int(p["adaptation.nice"])}'
-        )
+        where = f'in training process {self.remote.pid}' if self.remote else 'on a training thread'
+        where += f' at nice +{nice}'
         node.get_logger().info(
             f'adapting {self.adapter.name} online {where}: lr {self.config.lr:g}, '
             f'{self.config.steps_per_keyframe} steps/keyframe, replay {self.config.replay_per_step} of '
@@ -314,12 +316,11 @@ class NodeAdaptation:
 
     def shutdown(self) -> None:
         """Stop the training thread, then write the checkpoint (when a path is set)."""
-        remote = self.adapter if isinstance(self.adapter, RemoteAdapter) else None
-        if remote is not None:
-            remote.cancel()  # the thread may be waiting for a training process still starting
+        if self.remote:
+            self.remote.cancel()  # the thread may be waiting for a training process still starting
         if not self.online.stop(timeout=60.0):
             self.node.get_logger().warning('adaptation thread did not stop within 60 s')
-        if remote is not None and not remote.close():
+        if self.remote and not self.remote.close():
             self.node.get_logger().warning('adaptation: the training process did not stop in 10 s: killed')
         c = self.adapter.counters
         summary = (
