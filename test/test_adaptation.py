@@ -187,6 +187,44 @@ def test_too_few_points_is_skipped_and_counted(small_sequence, tiny_model):
     assert adapter.counters.skipped == 1 and adapter.version == 0
 
 
+def test_points_on_one_corner_of_the_view_are_not_trained_on(small_sequence, tiny_model):
+    """A live filter's first points lie on the nearest object; one update on them moved the whole
+    network's scale to that object's error. Such a keyframe is skipped; a view-wide one is not."""
+    sample = _gt_sample(small_sequence, 0)
+    h, w = sample.rgb.shape[:2]
+    corner = (sample.train_uv[:, 0] < w / 4) & (sample.train_uv[:, 1] < h / 3)
+    sample.train_uv, sample.train_depth = sample.train_uv[corner], sample.train_depth[corner]
+    assert corner.sum() >= 20 and sample.coverage() == 4 / 48  # 2 x 2 cells of the 8 x 6 grid
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict(FAST))
+    report = adapter.observe(sample)
+    assert report.status == 'skipped' and report.reason.startswith('too_little_coverage (8% of the image')
+    assert adapter.counters.reasons == {'too_little_coverage': 1} and adapter.version == 0
+    assert _gt_sample(small_sequence, 1).coverage() >= 0.9
+    assert adapter.observe(_gt_sample(small_sequence, 1)).status != 'skipped'
+    everywhere = Adapter.from_spec(
+        tiny_model, AdaptConfig.from_dict({**FAST, 'min_coverage': 0.0, 'start_coverage': 0.0})
+    )
+    assert everywhere.observe(sample).status != 'skipped'  # 0: any coverage
+
+
+def test_the_first_update_needs_points_over_half_the_view(small_sequence, tiny_model):
+    """The first updates set the network's scale for the whole view: until one is accepted a
+    keyframe needs ``start_coverage`` (half the image), then ``min_coverage`` (a quarter)."""
+    left = _gt_sample(small_sequence, 2)
+    keep = left.train_uv[:, 0] < left.rgb.shape[1] * 3 / 8  # 3 of the grid's 8 columns
+    left.train_uv, left.train_depth = left.train_uv[keep], left.train_depth[keep]
+    assert 0.25 <= left.coverage() < 0.5
+    adapter = Adapter.from_spec(
+        tiny_model, AdaptConfig.from_dict({**FAST, 'guard_z': 0.0, 'guard_tolerance': 1.0})
+    )
+    assert adapter.coverage_needed() == 0.5
+    first = adapter.observe(left)
+    assert first.status == 'skipped' and first.reason.startswith('too_little_coverage')
+    assert adapter.observe(_gt_sample(small_sequence, 0)).status == 'updated'
+    assert adapter.coverage_needed() == 0.25
+    assert adapter.observe(left).status == 'updated'
+
+
 def test_photometric_term_is_lowest_at_the_true_scale(small_sequence, tiny_model):
     """Known poses make the photometric consistency metric: scaling the depth raises it."""
     seq = small_sequence

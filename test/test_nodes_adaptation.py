@@ -15,9 +15,11 @@ from nav_msgs.msg import Path as PathMsg
 from rclpy.parameter import Parameter
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from depth_fusion_ros.data import messages as m
+from depth_fusion_ros.nodes.graph_events import READERS_DEPTH, TOPIC_READY, ReadyStatus, ready_qos
 from depth_fusion_ros.nodes.posing import (
     TOPIC_POSING_TRANSFORM,
     TOPIC_REPOSED_KEYFRAMES,
@@ -133,6 +135,28 @@ def test_inference_never_waits_for_training_and_adapted_weights_are_saved(tiny_m
 
     assert snap.published['adapted_weights'] >= 2 and snap.received['keyframe_pose'] == 4
     np.testing.assert_array_equal(load_predictor(checkpoint).predict(room.frames[5].rgb), current)
+
+
+@pytest.mark.parametrize('process', [True, False])
+def test_the_node_is_warm_only_once_training_can_take_keyframes(tiny_model, process):
+    """Ready (inference) at once, warm when the trainer is built: a replay waits for the warm
+    line (bag_replayer.wait_warm), so a bag is trained on from its first keyframe."""
+    with RosHarness() as ros:
+        lines = ros.collect(String, '/' + TOPIC_READY, ready_qos(READERS_DEPTH))
+        params = _params(tiny_model, **{'adaptation.process': process})
+        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=params))
+        assert node.adaptation is not None and (node.adaptation.remote is not None) == process
+
+        def statuses() -> list[ReadyStatus]:
+            return [ReadyStatus.from_json(msg.data) for msg in list(lines)]
+
+        assert ros.wait_for(lambda: any(s.warm for s in statuses()), timeout=60.0), statuses()
+        if process:
+            assert node.adaptation.remote.ready
+            # The process takes seconds to import torch; the node said ready long before.
+            first, *rest = statuses()
+            assert not first.warm and rest and rest[-1].warm
+        assert all(s.node == '/single_view_node' for s in statuses())
 
 
 def test_adapt_false_is_the_network_as_loaded_bit_for_bit(tiny_model, room):

@@ -301,6 +301,10 @@ class Adapter:
         prepared = self.prepare(sample)
         if prepared.n_train < max(1, cfg.min_points):
             return self._skip(sample.key, f'too_few_points ({prepared.n_train} < {cfg.min_points})', t0)
+        coverage, needed = sample.coverage(), self.coverage_needed()
+        if coverage < needed:
+            reason = f'too_little_coverage ({coverage:.0%} of the image < {needed:.0%})'
+            return self._skip(sample.key, reason, t0)
         guard_set = [prepared, *self.buffer.recent(cfg.guard_keyframes)]
         before = self._guard(guard_set)
         start = self._token
@@ -354,6 +358,12 @@ class Adapter:
         report.seconds = time.perf_counter() - t0
         self.counters.train_seconds += report.seconds
         return report
+
+    def coverage_needed(self) -> float:
+        """Share of the image a keyframe's points must cover to be trained on: ``start_coverage``
+        until an update was accepted, then ``min_coverage``."""
+        cfg = self.config
+        return cfg.min_coverage if self.version > 0 else max(cfg.min_coverage, cfg.start_coverage)
 
     def _skip(self, key: int, reason: str, t0: float) -> UpdateReport:
         self.counters.skip(reason.split(' ')[0])

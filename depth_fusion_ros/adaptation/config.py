@@ -53,6 +53,16 @@ class AdaptConfig:
     holdout_fraction: float = 0.2
     #: A keyframe with fewer training points than this is not trained on (counted as skipped).
     min_points: int = 30
+    #: A keyframe whose training points cover less than this share of the image (cells of an
+    #: 8 x 6 grid holding at least 5 points) is not trained on (skipped, too_little_coverage).
+    #: 0: any coverage.
+    min_coverage: float = 0.25
+    #: The same, until the first update is accepted: the first updates set the network's scale
+    #: for the whole view. A live filter's first points lie on the few surfaces that converge
+    #: first, where a network trained elsewhere can be far more wrong than over the view (1.8x
+    #: against 0.9x on a synthetic room), and one update on them moved the whole depth by 30-40 %
+    #: (docs/adaptation.md, "The first keyframes").
+    start_coverage: float = 0.5
     #: Recent replay keyframes whose held-out points the guard checks with the new keyframe's.
     guard_keyframes: int = 4
     #: An update is rolled back when the guard error grows by more than this fraction (and
@@ -90,6 +100,9 @@ class AdaptConfig:
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ValueError(f'adaptation.{name} must be >= 0, got {getattr(self, name)}')
+        for name in ('min_coverage', 'start_coverage'):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f'adaptation.{name} must be in [0, 1], got {getattr(self, name)}')
         for name in ('select_fraction',):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f'adaptation.{name} must be in (0, 1], got {getattr(self, name)}')

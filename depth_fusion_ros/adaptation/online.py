@@ -71,7 +71,9 @@ class OnlineAdaptation:
     """Runs ``adapter.observe`` on a background thread for each submitted sample.
 
     ``on_report`` (optional) is called on the training thread after every update with its
-    :class:`~.adapter.UpdateReport` (for counters and logs).
+    :class:`~.adapter.UpdateReport` (for counters and logs). ``on_warm`` (optional) is called
+    on it once, when the adapter's warm-up is over (or failed): the first keyframe it takes is
+    trained on at once from then on.
     """
 
     def __init__(
@@ -81,6 +83,7 @@ class OnlineAdaptation:
         queue_size: int = 2,
         on_report: Callable[[UpdateReport], None] | None = None,
         name: str = 'adaptation',
+        on_warm: Callable[[], None] | None = None,
         nice: int = 0,
         clock: Callable[[], float] = time.monotonic,
     ):
@@ -94,6 +97,7 @@ class OnlineAdaptation:
         self.adapter = adapter
         self.slot = slot
         self.on_report = on_report
+        self.on_warm = on_warm
         self._queue: deque[AdaptSample] = deque()
         self._queue_size = int(queue_size)
         self._cond = threading.Condition()
@@ -157,6 +161,11 @@ class OnlineAdaptation:
             self.adapter.warm_up()  # at the thread's priority, before the first keyframe comes
         except Exception:
             log.exception('adaptation warm-up failed (the first update pays for it)')
+        if self.on_warm is not None:
+            try:
+                self.on_warm()
+            except Exception:  # a report that fails must not end training
+                log.exception('adaptation: on_warm failed')
         while True:
             with self._cond:
                 while not self._queue and not self._stop:

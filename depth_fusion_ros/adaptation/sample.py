@@ -46,6 +46,30 @@ class AdaptSample:
     def has_photometric(self) -> bool:
         return self.pose is not None and len(self.neighbours) > 0
 
+    def coverage(self) -> float:
+        """Share of the image's cells (:data:`COVERAGE_GRID`) holding at least
+        :data:`COVERAGE_MIN_POINTS` training points: how much of the view the points speak for."""
+        return point_coverage(self.train_uv, self.rgb.shape[:2])
+
+
+#: Columns and rows of the grid :meth:`AdaptSample.coverage` counts cells of (40 px at 320x240).
+COVERAGE_GRID = (8, 6)
+#: Training points a cell needs to count as covered.
+COVERAGE_MIN_POINTS = 5
+
+
+def point_coverage(uv: np.ndarray, shape: tuple[int, int]) -> float:
+    """Share of the cells of a :data:`COVERAGE_GRID` over an image of ``shape`` (rows, columns)
+    holding at least :data:`COVERAGE_MIN_POINTS` of the points ``uv`` ((N, 2) columns, rows)."""
+    cols, rows = COVERAGE_GRID
+    if len(uv) == 0:
+        return 0.0
+    height, width = shape
+    cx = np.clip((np.asarray(uv[:, 0]) * cols / width).astype(np.int64), 0, cols - 1)
+    cy = np.clip((np.asarray(uv[:, 1]) * rows / height).astype(np.int64), 0, rows - 1)
+    counts = np.bincount(cy * cols + cx, minlength=cols * rows)
+    return float(np.count_nonzero(counts >= COVERAGE_MIN_POINTS)) / (cols * rows)
+
 
 def split_holdout(count: int, fraction: float, seed: tuple[int, ...]) -> np.ndarray:
     """Bool mask of the ``count`` points that are held out (a seeded draw, ``fraction`` of them)."""

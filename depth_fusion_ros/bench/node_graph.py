@@ -59,6 +59,13 @@ SET_ENV = 'DEPTH_FUSION_BENCH_GRAPH_SET'
 FRAMES = 100
 
 
+#: What a node's warm line waits for (it processes inputs from its ready line on).
+WARM_NOTES = {
+    'fusion_node': 'ready before, at eager speed until the compiled kernels are in',
+    'single_view_node': 'ready before (inference); warm once the training process is built',
+}
+
+
 def rss_mb(pid: int | str = 'self', field: str = 'VmRSS') -> float:
     """``VmRSS`` (current) or ``VmHWM`` (peak) of a process in MB, NaN when unknown."""
     try:
@@ -274,7 +281,7 @@ def measure_run(
             f'{mode}: time to warm, {n.removesuffix("_node")}',
             t,
             's',
-            'ready before, at eager speed; the replayer waits for this (bag_replayer.wait_warm)',
+            f'{WARM_NOTES.get(n, "ready before")}; the replayer waits for this (bag_replayer.wait_warm)',
         )
         for n, t in result.warm_seconds.items()
     ]

@@ -52,6 +52,8 @@ ADAPT_LIMITS: dict[str, Any] = {
     'select_fraction': (1e-6, 1.0),
     'holdout_fraction': (0.0, 0.9),
     'min_points': (0, None),
+    'min_coverage': (0.0, 1.0),
+    'start_coverage': (0.0, 1.0),
     'guard_keyframes': (0, 1000),
     'guard_tolerance': (0.0, None),
     'guard_z': (0.0, None),
@@ -163,6 +165,7 @@ class NodeAdaptation:
             self.slot,
             int(p['adaptation.queue_size']),
             on_report=self._on_report,
+            on_warm=self._on_warm,
             nice=0 if self.remote else nice,  # that thread only waits for the process, niced itself
         )
         self.assembler = KeyframeAssembler(
@@ -173,6 +176,7 @@ class NodeAdaptation:
             min_baseline=float(p['adaptation.min_baseline']),
         )
         self._lock = threading.Lock()
+        self._stopping = False
         self._uncalibrated: set[int] = set()
         self._said_sparse_only = False
         q = node.input_qos
@@ -285,6 +289,22 @@ class NodeAdaptation:
 
     # --- results --------------------------------------------------------------------------------
 
+    def _on_warm(self) -> None:
+        """The node's warm line once training can take keyframes (graph_events): a replay waits
+        for it (``bag_replayer.wait_warm``), so that a bag is trained on from its first keyframe
+        instead of after the 4-8 s a training process takes to import torch and build its
+        optimiser on a busy 2-core machine. A live stream is not held up: the node was ready
+        (inference) before."""
+        if self._stopping:
+            return
+        if self.remote is None:
+            what = 'adaptation: training thread ready'
+        elif self.remote.ready:
+            what = f'adaptation: training process {self.remote.pid} ready'
+        else:  # the error was logged; a replay must not wait for a training that will not come
+            what = 'adaptation: no training process (see the error above); warm without it'
+        self.node.events.warm(what)
+
     def _on_report(self, report: UpdateReport) -> None:
         stats = self.node.stats
         if report.status == 'updated':
@@ -316,6 +336,7 @@ class NodeAdaptation:
 
     def shutdown(self) -> None:
         """Stop the training thread, then write the checkpoint (when a path is set)."""
+        self._stopping = True
         if self.remote:
             self.remote.cancel()  # the thread may be waiting for a training process still starting
         if not self.online.stop(timeout=60.0):

@@ -98,7 +98,8 @@ class SingleViewNode(DepthFusionNode):
             f'single-view model {p["model"]!r} ({self.output_kind}) on {p["device"]}; '
             f'{self.resolve_topic_name(TOPIC_IMAGE)} -> {self.resolve_topic_name(TOPIC_DEPTH)}'
         )
-        self.events.ready()
+        # With adaptation on, warm only once training can take keyframes (NodeAdaptation._on_warm).
+        self.events.ready(warm=self.adaptation is None)
 
     def _subscribe_inputs(self) -> None:
         """Subscribe before the network loads (~1 s), so keyframes that come meanwhile wait.
