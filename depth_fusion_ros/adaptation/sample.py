@@ -54,13 +54,15 @@ class AdaptSample:
 
 #: Columns and rows of the grid :meth:`AdaptSample.coverage` counts cells of (40 px at 320x240).
 COVERAGE_GRID = (8, 6)
-#: Training points a cell needs to count as covered.
+#: Training points a cell needs to count as covered: 5, or a fifth of the points a cell would
+#: hold if they were spread evenly where there are fewer (a small working grid), at least 1.
 COVERAGE_MIN_POINTS = 5
+COVERAGE_MIN_SHARE = 0.2
 
 
 def point_coverage(uv: np.ndarray, shape: tuple[int, int]) -> float:
     """Share of the cells of a :data:`COVERAGE_GRID` over an image of ``shape`` (rows, columns)
-    holding at least :data:`COVERAGE_MIN_POINTS` of the points ``uv`` ((N, 2) columns, rows)."""
+    holding enough of the points ``uv`` ((N, 2) columns, rows): :data:`COVERAGE_MIN_POINTS`."""
     cols, rows = COVERAGE_GRID
     if len(uv) == 0:
         return 0.0
@@ -68,7 +70,8 @@ def point_coverage(uv: np.ndarray, shape: tuple[int, int]) -> float:
     cx = np.clip((np.asarray(uv[:, 0]) * cols / width).astype(np.int64), 0, cols - 1)
     cy = np.clip((np.asarray(uv[:, 1]) * rows / height).astype(np.int64), 0, rows - 1)
     counts = np.bincount(cy * cols + cx, minlength=cols * rows)
-    return float(np.count_nonzero(counts >= COVERAGE_MIN_POINTS)) / (cols * rows)
+    needed = min(COVERAGE_MIN_POINTS, max(1.0, COVERAGE_MIN_SHARE * len(uv) / (cols * rows)))
+    return float(np.count_nonzero(counts >= needed)) / (cols * rows)
 
 
 def split_holdout(count: int, fraction: float, seed: tuple[int, ...]) -> np.ndarray:
