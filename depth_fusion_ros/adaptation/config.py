@@ -55,8 +55,7 @@ class AdaptConfig:
     min_points: int = 30
     #: A keyframe whose training points cover less than this share of the image (cells of an
     #: 8 x 6 grid holding at least 5 points, fewer for a sparse set: ``sample.point_coverage``)
-    #: is not trained on (skipped, too_little_coverage).
-    #: 0: any coverage.
+    #: is not trained on (skipped, too_little_coverage). 0: any coverage.
     min_coverage: float = 0.25
     #: The same, until the first update is accepted: the first updates set the network's scale
     #: for the whole view. A live filter's first points lie on the few surfaces that converge

@@ -164,7 +164,7 @@ class OnlineAdaptation:
         if self.on_warm is not None:
             try:
                 self.on_warm()
-            except Exception:  # a report that fails must not end training
+            except Exception:  # a warm line that fails must not end training
                 log.exception('adaptation: on_warm failed')
         while True:
             with self._cond:

@@ -47,8 +47,8 @@ class AdaptSample:
         return self.pose is not None and len(self.neighbours) > 0
 
     def coverage(self) -> float:
-        """Share of the image's cells (:data:`COVERAGE_GRID`) holding at least
-        :data:`COVERAGE_MIN_POINTS` training points: how much of the view the points speak for."""
+        """Share of the image's cells (:data:`COVERAGE_GRID`) holding enough training points
+        (:func:`point_coverage`): how much of the view the points speak for."""
         return point_coverage(self.train_uv, self.rgb.shape[:2])
 
 
@@ -62,7 +62,8 @@ COVERAGE_MIN_SHARE = 0.2
 
 def point_coverage(uv: np.ndarray, shape: tuple[int, int]) -> float:
     """Share of the cells of a :data:`COVERAGE_GRID` over an image of ``shape`` (rows, columns)
-    holding enough of the points ``uv`` ((N, 2) columns, rows): :data:`COVERAGE_MIN_POINTS`."""
+    holding enough of the points ``uv`` ((N, 2) columns, rows): :data:`COVERAGE_MIN_POINTS`, or
+    :data:`COVERAGE_MIN_SHARE` of an even spread when that is fewer, at least one."""
     cols, rows = COVERAGE_GRID
     if len(uv) == 0:
         return 0.0
