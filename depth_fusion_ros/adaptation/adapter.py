@@ -298,13 +298,15 @@ class Adapter:
         t0 = time.perf_counter()
         cfg = self.config
         self.counters.observed += 1
-        prepared = self.prepare(sample)
-        if prepared.n_train < max(1, cfg.min_points):
-            return self._skip(sample.key, f'too_few_points ({prepared.n_train} < {cfg.min_points})', t0)
+        # Both tests read the sample: a keyframe skipped is never preprocessed.
+        n_train = len(sample.train_uv)
+        if n_train < max(1, cfg.min_points):
+            return self._skip(sample.key, f'too_few_points ({n_train} < {cfg.min_points})', t0)
         coverage, needed = sample.coverage(), self.coverage_needed()
         if coverage < needed:
             reason = f'too_little_coverage ({coverage:.0%} of the image < {needed:.0%})'
             return self._skip(sample.key, reason, t0)
+        prepared = self.prepare(sample)
         guard_set = [prepared, *self.buffer.recent(cfg.guard_keyframes)]
         before = self._guard(guard_set)
         start = self._token
