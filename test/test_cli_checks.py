@@ -107,6 +107,37 @@ def test_unknown_evaluation_stage_and_key():
     check_stage_overrides({'fusion': {'mode': 'fast', 'stage1_fraction': 0.3}, 'recorded': {'bag': 'x'}})
 
 
+def test_every_stage_an_evaluation_method_reads_can_be_set():
+    """``--set consistency.candidates=all`` (docs/fusion.md, stage 3) was refused as an unknown
+    stage: the check's table missed a stage a method reads. Every ``ctx.stage_params(X)`` in
+    the evaluation code must be a stage ``evaluate --set`` accepts."""
+    import importlib
+    import re
+    from pathlib import Path
+
+    import depth_fusion_ros.evaluation as evaluation
+    from depth_fusion_ros.cli.overrides import evaluation_stages
+
+    root = Path(evaluation.__file__).parent
+    read: set[str] = set()
+    for path in root.rglob('*.py'):
+        source = path.read_text()
+        module = importlib.import_module(
+            'depth_fusion_ros.' + '.'.join(path.relative_to(root.parent).with_suffix('').parts)
+        )
+        for arg in re.findall(r'stage_params\(([^)]+)\)', source):
+            arg = arg.strip()
+            if arg.startswith("'"):
+                read.add(arg.strip("'"))
+            elif arg.isidentifier() and isinstance(getattr(module, arg, None), str):
+                read.add(getattr(module, arg))
+    assert {'consistency', 'fusion', 'guard', 'recorded'} <= read
+    assert read <= set(evaluation_stages())
+    check_stage_overrides({'consistency': {'candidates': 'all', 'enabled': True}})
+    with pytest.raises(ValueError, match=r"consistency has no parameter 'tolerence'; did you mean tolerance"):
+        check_stage_overrides({'consistency': {'tolerence': 0.1}})
+
+
 def test_set_typo_is_an_error_in_the_cli(tmp_path, capsys):
     line = one_line_error(capsys, ['run', '--bag', str(tmp_path), '--set', 'multi_view_node.keyframe_evry=3'])
     assert 'did you mean keyframe_every' in line

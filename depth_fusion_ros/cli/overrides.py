@@ -100,7 +100,7 @@ def evaluation_stages() -> dict[str, set[str]]:
     from ..adaptation.config import AdaptConfig
     from ..evaluation.focal import STAGE as FOCAL_STAGE
     from ..evaluation.methods.adapted import STAGE as ADAPT_STAGE
-    from ..evaluation.methods.fusion import GUARD_STAGE
+    from ..evaluation.methods.fusion import CONSISTENCY_STAGE, GUARD_STAGE
     from ..evaluation.methods.fusion import STAGE as FUSION_STAGE
     from ..evaluation.methods.mapping import STAGE as MAP_STAGE
     from ..evaluation.methods.multi_view import (
@@ -114,6 +114,7 @@ def evaluation_stages() -> dict[str, set[str]]:
     from ..evaluation.methods.single_view import SIMULATED_STAGE
     from ..evaluation.mount import STAGE as MOUNT_STAGE
     from ..evaluation.time_offset import STAGE as TIME_OFFSET_STAGE
+    from ..fusion.consistency import ConsistencyConfig
     from ..fusion.guard import GuardConfig
     from ..fusion.pipeline import FusionConfig
     from ..mapping.config import MapConfig
@@ -136,6 +137,7 @@ def evaluation_stages() -> dict[str, set[str]]:
         TIME_OFFSET_STAGE: fields(TimeOffsetCheckConfig),
         MOUNT_STAGE: fields(MountCheckConfig),
         GUARD_STAGE: fields(GuardConfig),
+        CONSISTENCY_STAGE: fields(ConsistencyConfig),
         ADAPT_STAGE: fields(AdaptConfig),
         MAP_STAGE: fields(MapConfig),
         NEIGHBOURS_STAGE: fields(NeighbourConfig),
