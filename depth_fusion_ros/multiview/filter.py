@@ -278,7 +278,31 @@ class DepthFilter:
         count, total = float(published.sum()), float(measured.sum())
         if 0 < count < c.min_published_fraction * total:
             return torch.zeros_like(published), count / total
-        return published, None
+        return published & self._regions_passing(key, measured, published), None
+
+    def _regions_passing(
+        self, key: FilterKeyframe, measured: torch.Tensor, passed: torch.Tensor
+    ) -> torch.Tensor:
+        """Per estimate: whether its cell of the ``published_fraction_cells`` grid passes the
+        minority test (at least ``min_published_fraction`` of the cell's measured estimates
+        pass, or none does). Why per cell: a near region that passes whole lifts the
+        keyframe's share above the bar while a far one publishes only its noise-selected,
+        too-near tail (``FilterConfig.published_fraction_cells``)."""
+        c = self.config
+        if c.published_fraction_cells <= 0 or c.min_published_fraction <= 0:
+            return torch.ones_like(passed)
+        cell = max(1, math.ceil(self.camera.width / c.published_fraction_cells))
+        across = math.ceil(self.camera.width / cell)
+        rows = math.ceil(self.camera.height / cell)
+        index = (
+            torch.div(key.vs, cell, rounding_mode='floor').long() * across
+            + torch.div(key.us, cell, rounding_mode='floor').long()
+        )
+        n = across * rows
+        measured_count = torch.bincount(index[measured], minlength=n)
+        passed_count = torch.bincount(index[passed], minlength=n)
+        sliver = (passed_count > 0) & (passed_count < c.min_published_fraction * measured_count)
+        return ~sliver[index]
 
     def _visible_fraction(self, key: FilterKeyframe, T_fk: np.ndarray) -> float:
         """The keyframe-switch test of a skipped frame: the fraction of the estimates that land

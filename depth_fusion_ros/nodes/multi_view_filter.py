@@ -61,6 +61,7 @@ FILTER_LIMITS: dict[str, Any] = {
     'score_relative_power': (0.0, 10.0),
     'max_relative_sigma': (1e-6, None),
     'min_published_fraction': (0.0, 1.0),
+    'published_fraction_cells': (0, 1000),
     'min_parallax': (0.0, None),
     'max_rotation_deg': (0.0, 180.0),
     'keyframe_parallax': (0.0, None),
