@@ -179,12 +179,16 @@ class RemoteAdapter:
         starting."""
         signalled = False
         try:
-            while not self._conn.poll(POLL_S):
+            # ``abort`` is looked at before the first wait: an update shorter than POLL_S (a
+            # small network) was otherwise done before a stop asked at once reached it.
+            while True:
                 if not signalled and (self._closing or (abort is not None and abort())):
                     if not self._ready:
                         return None
                     self._proc.send_signal(signal.SIGUSR1)
                     signalled = True
+                if self._conn.poll(POLL_S):
+                    break
                 if self._proc.poll() is not None and not self._conn.poll(0):
                     raise EOFError
             return receive(self._conn)

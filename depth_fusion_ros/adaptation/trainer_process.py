@@ -39,7 +39,8 @@ from typing import Any
 
 
 class _Abort:
-    """Set by ``SIGUSR1`` (between the adapter's steps Python runs the handler), cleared per update."""
+    """Set by ``SIGUSR1`` (between the adapter's steps Python runs the handler); cleared
+    before each request is read."""
 
     requested = False
 
@@ -122,11 +123,13 @@ def _serve(conn: Connection, adapter: Any) -> None:
 
 def _loop(conn: Connection, adapter: Any) -> None:
     while True:
+        # Cleared before the request is read, not after: the parent may signal a stop as soon
+        # as it has sent the request, while this process is still reading it.
+        _Abort.requested = False
         request = receive(conn)
         if request[0] == 'stop':
             return
         _, sample, behind = request
-        _Abort.requested = False
         try:
             report = adapter.observe(sample, abort=_Abort.check, behind=behind)
         except Exception as exc:  # a bad sample must not end adaptation (the parent counts it)
