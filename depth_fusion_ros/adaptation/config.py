@@ -53,8 +53,9 @@ class AdaptConfig:
     holdout_fraction: float = 0.2
     #: A keyframe with fewer training points than this is not trained on (counted as skipped).
     min_points: int = 30
-    #: A keyframe whose training points cover less than this share of the image (cells of an
-    #: 8 x 6 grid holding at least 5 points, fewer for a sparse set: ``sample.point_coverage``)
+    #: A keyframe whose training points cover less than this share of the image (square cells,
+    #: 8 across (8 x 6 at 4:3), holding at least 5 points, fewer for a sparse set:
+    #: ``sample.point_coverage``)
     #: is not trained on (skipped, too_little_coverage). 0: any coverage.
     min_coverage: float = 0.25
     #: The same, until the first update is accepted: the first updates set the network's scale

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import PinholeCamera
+from ..image_cells import ImageCells
 from ..multiview.stage1 import best_fraction_mask
 
 
@@ -47,13 +48,14 @@ class AdaptSample:
         return self.pose is not None and len(self.neighbours) > 0
 
     def coverage(self) -> float:
-        """Share of the image's cells (:data:`COVERAGE_GRID`) holding enough training points
+        """Share of the image's cells (:data:`COVERAGE_CELLS_ACROSS`) holding enough training points
         (:func:`point_coverage`): how much of the view the points speak for."""
         return point_coverage(self.train_uv, self.rgb.shape[:2])
 
 
-#: Columns and rows of the grid :meth:`AdaptSample.coverage` counts cells of (40 px at 320x240).
-COVERAGE_GRID = (8, 6)
+#: Cells across the image that :meth:`AdaptSample.coverage` counts (square cells, rows in
+#: proportion: 8 x 6 at 4:3, 40 px at 320x240; ``image_cells.ImageCells``).
+COVERAGE_CELLS_ACROSS = 8
 #: Training points a cell needs to count as covered: 5, or a fifth of the points a cell would
 #: hold if they were spread evenly where there are fewer (a small working grid), at least 1.
 COVERAGE_MIN_POINTS = 5
@@ -61,18 +63,17 @@ COVERAGE_MIN_SHARE = 0.2
 
 
 def point_coverage(uv: np.ndarray, shape: tuple[int, int]) -> float:
-    """Share of the cells of a :data:`COVERAGE_GRID` over an image of ``shape`` (rows, columns)
-    holding enough of the points ``uv`` ((N, 2) columns, rows): :data:`COVERAGE_MIN_POINTS`, or
-    :data:`COVERAGE_MIN_SHARE` of an even spread when that is fewer, at least one."""
-    cols, rows = COVERAGE_GRID
+    """Share of the :data:`COVERAGE_CELLS_ACROSS` cells over an image of ``shape`` (rows,
+    columns) holding enough of the points ``uv`` ((N, 2) columns, rows):
+    :data:`COVERAGE_MIN_POINTS`, or :data:`COVERAGE_MIN_SHARE` of an even spread when that is
+    fewer, at least one."""
     if len(uv) == 0:
         return 0.0
     height, width = shape
-    cx = np.clip((np.asarray(uv[:, 0]) * cols / width).astype(np.int64), 0, cols - 1)
-    cy = np.clip((np.asarray(uv[:, 1]) * rows / height).astype(np.int64), 0, rows - 1)
-    counts = np.bincount(cy * cols + cx, minlength=cols * rows)
-    needed = min(COVERAGE_MIN_POINTS, max(1.0, COVERAGE_MIN_SHARE * len(uv) / (cols * rows)))
-    return float(np.count_nonzero(counts >= needed)) / (cols * rows)
+    cells = ImageCells.across(width, height, COVERAGE_CELLS_ACROSS)
+    counts = np.bincount(cells.index(uv[:, 0], uv[:, 1]), minlength=cells.count)
+    needed = min(COVERAGE_MIN_POINTS, max(1.0, COVERAGE_MIN_SHARE * len(uv) / cells.count))
+    return float(np.count_nonzero(counts >= needed)) / cells.count
 
 
 def split_holdout(count: int, fraction: float, seed: tuple[int, ...]) -> np.ndarray:

@@ -49,6 +49,7 @@ import torch
 from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
+from ..image_cells import ImageCells
 from .descriptors import patch_reach, stage_descriptors
 from .filter_bracket import neighbour_range, neighbour_range_dense
 from .filter_config import FilterConfig
@@ -291,16 +292,10 @@ class DepthFilter:
         c = self.config
         if c.published_fraction_cells <= 0 or c.min_published_fraction <= 0:
             return torch.ones_like(passed)
-        cell = max(1, math.ceil(self.camera.width / c.published_fraction_cells))
-        across = math.ceil(self.camera.width / cell)
-        rows = math.ceil(self.camera.height / cell)
-        index = (
-            torch.div(key.vs, cell, rounding_mode='floor').long() * across
-            + torch.div(key.us, cell, rounding_mode='floor').long()
-        )
-        n = across * rows
-        measured_count = torch.bincount(index[measured], minlength=n)
-        passed_count = torch.bincount(index[passed], minlength=n)
+        cells = ImageCells.across(self.camera.width, self.camera.height, c.published_fraction_cells)
+        index = cells.index(key.us, key.vs)
+        measured_count = torch.bincount(index[measured], minlength=cells.count)
+        passed_count = torch.bincount(index[passed], minlength=cells.count)
         sliver = (passed_count > 0) & (passed_count < c.min_published_fraction * measured_count)
         return ~sliver[index]
 
