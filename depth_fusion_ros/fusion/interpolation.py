@@ -219,6 +219,13 @@ def _chunk_sums_one_pass(
 #: since ``min Σ|v| <= ΣW̃|v|``); above it, up to all weights equal (|Ω| = 1, where the
 #: plain-normalisation guard takes over), the subtraction would cancel digits.
 ONE_PASS_MIN_RTOL = 0.1
+#: Fewest pixels per kernel call: a single fix-up pixel is padded to two. The kernels are
+#: compiled for dynamic sizes, which torch.compile makes from 2 up: one pixel is a size it
+#: specialises for, so the first keyframe whose fast mode fixed up a single pixel recompiled
+#: the kernel mid-stream (seconds on the fusion node's thread: the live keyframes behind it
+#: were dropped, docs/performance.md "GPU"); the ahead-of-time package does not take it at all
+#: (two passes instead).
+MIN_KERNEL_ROWS = 2
 #: Pixels per call of the one-pass kernel: it holds nothing of size (pixels, Ω), so the
 #: chunks are only as small as keeps every thread busy and the per-call overhead negligible.
 ONE_PASS_ROWS = 8192
@@ -390,14 +397,16 @@ def _offsets_at(
     Chunks have a fixed size (the last one padded by repeating a pixel) so a compiled kernel
     sees one pixel-count shape per |Ω|; the size is balanced (never above the kernel's) so
     the padding is under one pixel per chunk (8192-pixel chunks would pad 76,800 pixels to
-    81,920). Rows whose weights are all equal (the min-subtracted sum vanishes next to the
-    plain sum ``ΣW' + |Ω|·min``; always when |Ω| = 1) are redone with plain normalisation.
+    81,920), and at least ``MIN_KERNEL_ROWS``. Rows whose weights are all equal (the
+    min-subtracted sum vanishes next to the plain sum ``ΣW' + |Ω|·min``; always when |Ω| = 1)
+    are redone with plain normalisation.
     """
     n = pixels.x.numel()
     n_points = points.x.numel()
     block = max(1, chunk_elements // max(1, n_points))  # rows of one (rows, Ω) weight block
     chunk = int(max(1, min(n, getattr(kernel, 'rows', None) or block)))
     chunk = -(-n // -(-n // chunk))  # as many chunks, of equal size: the padding is < one per chunk
+    chunk = max(chunk, MIN_KERNEL_ROWS)
     q = points.row()
     offsets = torch.empty(n, dtype=v.dtype, device=v.device)
     support = torch.empty(n, dtype=v.dtype, device=v.device)
