@@ -163,6 +163,40 @@ def test_worker_survives_errors_and_stops():
     assert not worker.submit(9)  # after stop: dropped, never handled
 
 
+def test_worker_start_runs_first_on_its_own_thread_and_items_wait_for_it():
+    """A warm-up (``start``) belongs on the thread that handles the items; items submitted
+    while it runs wait for it, and a failing one is logged, not fatal."""
+    gate = threading.Event()
+    seen: list[tuple[str, object]] = []
+
+    def start() -> None:
+        gate.wait(5.0)
+        seen.append(('start', threading.current_thread().name))
+
+    def handle(item: int) -> None:
+        seen.append((f'item {item}', threading.current_thread().name))
+
+    worker = BoundedWorker('w', handle, maxsize=4, start=start)
+    assert worker.submit(1) and not worker.started.is_set()
+    time.sleep(0.05)
+    assert seen == []  # item 1 waits for the warm-up
+    gate.set()
+    assert worker.started.wait(5.0) and worker.wait_idle(5.0)
+    worker.stop()
+    assert seen == [('start', 'w-worker'), ('item 1', 'w-worker')]
+
+    def broken() -> None:
+        raise RuntimeError('no GPU today')
+
+    handled: list[int] = []
+    worker = BoundedWorker('b', handled.append, maxsize=4, start=broken)
+    assert worker.started.wait(5.0)
+    worker.submit(7)
+    assert worker.wait_idle(5.0) and worker.stop()
+    assert handled == [7]
+    assert BoundedWorker('n', handled.append).started.wait(5.0)  # no start: started at once
+
+
 # --- counters -----------------------------------------------------------------------------------
 
 

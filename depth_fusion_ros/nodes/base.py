@@ -200,12 +200,17 @@ class DepthFusionNode(Node):
         return self.create_timer(period, guarded, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def make_worker(
-        self, name: str, handle: Callable[[Any], None], on_lost: Callable[[Any, str], None] | None = None
+        self,
+        name: str,
+        handle: Callable[[Any], None],
+        on_lost: Callable[[Any, str], None] | None = None,
+        start: Callable[[], None] | None = None,
     ) -> BoundedWorker:
         """A worker with this node's queue parameters; drops and failures are counted and logged.
 
         ``on_lost(item, reason)`` is told of every item dropped (``worker_queue_full`` ...) or
-        failed (``processing_error``), e.g. to announce a lost keyframe to the graph.
+        failed (``processing_error``), e.g. to announce a lost keyframe to the graph. ``start``
+        runs first on the worker's thread (a warm-up: :class:`BoundedWorker`).
         """
         lost = on_lost or (lambda item, reason: None)
 
@@ -226,6 +231,7 @@ class DepthFusionNode(Node):
             policy=str(self.params['queue_policy']),
             on_drop=on_drop,
             on_error=on_error,
+            start=start,
         )
         self._workers.append(worker)
         return worker

@@ -63,7 +63,12 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'resized to width x height; false: undistort and resize with camera_info (a raw camera topic)',
     ),
     *working_grid_parameters('; only for input_rectified: false'),
-    ParamSpec('warmup', True, 'run the network once at start-up so the first keyframe is not slow'),
+    ParamSpec(
+        'warmup',
+        True,
+        'run the network once at start-up, on the thread that runs every keyframe, so the first keyframe '
+        'is not slow',
+    ),
     *ADAPTATION_PARAMETERS,
 )
 
@@ -85,12 +90,12 @@ class SingleViewNode(DepthFusionNode):
         self._subscribe_inputs()
         self.predictor = self._load_predictor(str(p['model']), str(p['device']))
         self.output_kind = str(getattr(self.predictor, 'output_kind', 'metric_depth'))
-        if p['warmup']:
-            self.predictor.predict(np.zeros((int(p['height']), int(p['width']), 3), dtype=np.uint8))
         self._stamps = self.stamp_guard('image')
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._kind_pub = announce(self, TOPIC_OUTPUT_KIND, self.output_kind)
-        self.worker = self.make_worker('single_view', self._process)
+        warm = self._warm_up if p['warmup'] else None
+        self.worker = self.make_worker('single_view', self._process, start=warm)
+        self.worker.started.wait()  # ready means warm: the first keyframe is not slow
         self.adaptation: NodeAdaptation | None = None
         if adaptation_wanted(p):
             self.adaptation = NodeAdaptation(self, self.predictor)
@@ -113,6 +118,15 @@ class SingleViewNode(DepthFusionNode):
         """
         self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
         self.subscribe(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
+
+    def _warm_up(self) -> None:
+        """The network once on a blank working image, on the worker's thread: the thread that
+        runs every keyframe. Run on the constructor's thread (until 2026-11-30), it left the
+        thread's own first-call costs to the first live keyframe: on a GPU, the cuDNN and
+        cuBLAS handles torch keeps per thread. Whether those are why a real-time stream on an
+        H200 lost its first second is not measured yet (docs/performance.md "GPU")."""
+        height, width = int(self.params['height']), int(self.params['width'])
+        self.predictor.predict(np.zeros((height, width, 3), dtype=np.uint8))
 
     def _load_predictor(self, spec: str, device: str) -> Any:
         from ..singleview.predictor import load_predictor

@@ -14,6 +14,10 @@ what happens when it is full is a policy:
   executor or a producer that is not time critical).
 
 Every drop goes through ``on_drop`` so the node counts and reports it.
+
+``start`` runs once on the worker thread before its first item (items submitted meanwhile
+wait): a warm-up belongs on the thread that does the work, because some state a first call
+builds is the thread's own (on a GPU, the cuDNN and cuBLAS handles torch keeps per thread).
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ class BoundedWorker(Generic[T]):
         policy: str = 'latest',
         on_drop: Callable[[T, str], None] | None = None,
         on_error: Callable[[T, BaseException], None] | None = None,
+        start: Callable[[], None] | None = None,
     ) -> None:
         if maxsize < 1:
             raise ValueError(f'worker {name}: queue size must be at least 1, got {maxsize}')
@@ -61,6 +66,9 @@ class BoundedWorker(Generic[T]):
         self._stopping = False
         self.handled = 0
         self.failed = 0
+        self._start = start
+        #: Set once ``start`` has run (at once without one).
+        self.started = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f'{name}-worker', daemon=True)
         self._thread.start()
 
@@ -99,6 +107,12 @@ class BoundedWorker(Generic[T]):
         return accepted
 
     def _run(self) -> None:
+        if self._start is not None:
+            try:
+                self._start()
+            except Exception:  # a failed warm-up only costs the first item its speed
+                logger.exception('worker %s: start-up failed', self.name)
+        self.started.set()
         while True:
             with self._cond:
                 self._cond.wait_for(lambda: self._stopping or bool(self._queue))
