@@ -109,7 +109,8 @@ def test_a_turn_about_the_direction_of_travel_is_not_corrected():
 
 
 def test_a_camera_mounted_2_deg_more_tilted_is_found(tilted):
-    check = check_frames(tilted.camera, tilted.frames, MountCheckConfig())
+    """The check's last look, 20 pairs (the early look off: it is tested below)."""
+    check = check_frames(tilted.camera, tilted.frames, MountCheckConfig(early_pairs=0))
     estimate = check.result
     assert estimate is not None and estimate.pairs == 20 and check.done
     assert estimate.verdict == 'disagrees', estimate.message()
@@ -122,6 +123,27 @@ def test_a_camera_mounted_2_deg_more_tilted_is_found(tilted):
     fixed_error = [math.degrees(_angle(p, t)) for p, t in zip(fixed, true, strict=True)]
     assert max(fixed_error) < 0.5 < 1.9 < min(told_error)
     assert check.add(tilted.frames[0].gray, tilted.frames[0].pose) is None  # once
+
+
+def test_the_early_look_ends_the_check_only_when_the_mount_surely_disagrees(level):
+    """At ``early_pairs`` (8) the check ends only on a turn sure at three standard errors: a
+    2 deg turn told by 8 exact pairs ends it there; the same pairs told level do not, nor does
+    the level robot, whose check goes on to all 20 pairs and agrees."""
+    for turn, ends in (([2.0, -1.0, 0.5], True), ([0.0, 0.0, 0.0], False)):
+        camera, pairs = _exact_pairs(turn, 'turning', n_pairs=8)
+        check = MountCheck(camera, MountCheckConfig())
+        check.pairs = pairs
+        early = check._early_look()
+        assert (early is not None) == ends, early
+        if ends:
+            assert early.verdict == 'disagrees' and early.pairs == 8, early.message()
+            assert np.allclose(early.rotvec_deg, [-2.0, 1.0, -0.5], atol=0.2), early.rotvec_deg
+            check.pairs = pairs[:7]  # before early_pairs: no look yet
+            assert check._early_look() is None
+    estimate = check_frames(level.camera, level.frames, MountCheckConfig()).result
+    assert estimate is not None and estimate.pairs == 20 and estimate.verdict == 'consistent', estimate
+    with pytest.raises(ValueError, match='early_pairs'):
+        MountCheckConfig(early_pairs=3)
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:

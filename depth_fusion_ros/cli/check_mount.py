@@ -15,8 +15,9 @@ degree or two more tilted than its told pose frame (camera_from_pose_frame, a ha
 calibration) turns every relative pose; the images fit the poses best turned back. No
 ground-truth depth is needed; run check-sync first (clocks out of sync fake a turn). Prints the
 verdict with the rotation the images fit. Exit status: 0 consistent, 3 disagrees, 4 cannot tell
-(too little motion: the check needs 20 image pairs 10 cm apart, about 2 m of travel, or no
-direction of the turn is pinned down); 1 and 2 are errors.
+(too little motion: the check needs 20 image pairs 10 cm apart, about 2 m of travel, or 8
+when the turn is already sure by three standard errors, or no direction of the turn is pinned
+down); 1 and 2 are errors.
 
 examples:
   depth-fusion check-mount ~/data/rgbd_dataset_freiburg1_desk

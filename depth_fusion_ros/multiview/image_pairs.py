@@ -46,7 +46,8 @@ def check_sampling(section: str, config: object) -> None:
 
 def graded_verdict(size: float, sure: float, threshold: float) -> str:
     """The verdict of an observable fit, the same for every calibration check: ``disagrees``
-    when even ``sure`` (the fitted offset less twice its standard error) is at least
+    when even ``sure`` (the fitted offset less twice its standard error; three times at the
+    mount check's early look) is at least
     ``threshold``, ``suspect`` when only ``size`` (the fitted offset itself) is (said, never
     applied: before 2026-11-30 such a fit read as agreement), else ``consistent``."""
     if sure >= threshold:

@@ -61,6 +61,10 @@ _TOLERANCE = math.radians(0.002)
 _BLOCKS = 5
 #: The most the fit may turn the told frame (degrees): beyond, the fit is refused as unobservable.
 _MAX_TURN_DEG = 15.0
+#: Standard errors a fitted component must clear the threshold by: at the last look, and at
+#: the early one (``MountCheckConfig.early_pairs``), whose jackknife over fewer pairs is noisier.
+STANDARD_ERRORS = 2.0
+EARLY_STANDARD_ERRORS = 3.0
 
 
 @dataclass(frozen=True)
@@ -76,8 +80,13 @@ class MountCheckConfig:
     #: (degrees; 180: by travel alone, as validated: a turn in place gives pairs without the
     #: baseline the fit needs)
     min_rotation_deg: float = 180.0
-    #: Pairs of images the estimate uses (the check ends there, once)
+    #: Pairs of images the estimate uses (the check's last look; it ends there, once)
     pairs: int = 20
+    #: An earlier look with this many pairs (0, or pairs or more: none). It ends the check only
+    #: when the mount surely disagrees by three standard errors, a stricter bar than the last
+    #: look's two, for the extra look; anything less waits for all the pairs. A turned mount
+    #: triples the multi-view error while the check collects, and 20 pairs take about 2 m of travel
+    early_pairs: int = 8
     #: A disagreement counts when a fitted component less twice its standard error is at least
     #: this (degrees)
     threshold_deg: float = 0.5
@@ -91,6 +100,8 @@ class MountCheckConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, 'mode', check_mode('mount_check', self.mode))
         check_sampling('mount_check', self)
+        if self.early_pairs != 0 and self.early_pairs < 5:
+            raise ValueError('mount_check: need early_pairs 0 (no early look) or >= 5')
         if not (0 < self.threshold_deg < 45 and self.max_stderr_deg > 0):
             raise ValueError('mount_check: need 0 < threshold_deg < 45 and max_stderr_deg > 0')
 
@@ -278,15 +289,27 @@ class MountCheck(PairedCheck):
     def _estimate(self) -> MountEstimate:
         return self._verdict(*fit_mount(np.asarray(self.camera.K, dtype=np.float64), self.pairs))
 
-    def _verdict(self, v: np.ndarray, cov: np.ndarray) -> MountEstimate:
+    def _early_look(self) -> MountEstimate | None:
+        """At ``early_pairs`` pairs: the estimate if the mount surely disagrees at
+        ``EARLY_STANDARD_ERRORS``, else None (the check goes on to ``pairs``)."""
+        n = self.config.early_pairs
+        if not 0 < n < self.config.pairs or len(self.pairs) != n:
+            return None
+        fit = fit_mount(np.asarray(self.camera.K, dtype=np.float64), self.pairs)
+        estimate = self._verdict(*fit, standard_errors=EARLY_STANDARD_ERRORS)
+        return estimate if estimate.verdict == 'disagrees' else None
+
+    def _verdict(
+        self, v: np.ndarray, cov: np.ndarray, standard_errors: float = STANDARD_ERRORS
+    ) -> MountEstimate:
         c = self.config
         w, U = np.linalg.eigh(0.5 * (cov + cov.T))
         sd = np.sqrt(np.maximum(w, 0.0))
         components = U.T @ v
         observed = sd <= math.radians(c.max_stderr_deg)
-        kept = observed & (np.abs(components) > 2.0 * sd)
+        kept = observed & (np.abs(components) > standard_errors * sd)
         correction = U[:, kept] @ components[kept]
-        margin = np.abs(components) - 2.0 * sd
+        margin = np.abs(components) - standard_errors * sd
         if not observed.any() or not np.isfinite(v).all() or np.degrees(np.linalg.norm(v)) > _MAX_TURN_DEG:
             verdict = 'unobservable'
         else:  # the largest kept component decides (none kept: nothing turned)

@@ -4,8 +4,9 @@ check): what the two share, so each says only what it fits.
 The stream's frames come one at a time; a frame far enough from the last sample (by the told
 poses: :class:`~.image_pairs.ImagePairs`) is the next sample and makes a pair with the one
 before; once ``config.pairs`` pairs are in, the subclass fits its parameter to them
-(:meth:`PairedCheck._estimate`), once. The time offset check reads poses at other times and
-keeps its own loop.
+(:meth:`PairedCheck._estimate`), once. A subclass may also conclude before that, when it is
+already sure (:meth:`PairedCheck._early_look`: the mount check). The time offset check reads
+poses at other times and keeps its own loop.
 """
 
 from __future__ import annotations
@@ -50,16 +51,27 @@ class PairedCheck:
         matched = self._images.add(gray, pose)
         if matched is not None:
             self.pairs.append(matched)
+            early = self._early_look()
+            if early is not None:
+                return self._conclude(early)
         if len(self.pairs) < self.config.pairs:
             return None
-        self.result = self._estimate()
+        return self._conclude(self._estimate())
+
+    def _conclude(self, result: Any) -> Any:
+        self.result = result
         self.pairs = []
         self._images.reset()
-        return self.result
+        return result
 
     def _estimate(self) -> Any:
         """The estimate from ``self.pairs`` (all of them in)."""
         raise NotImplementedError
+
+    def _early_look(self) -> Any:
+        """An estimate that ends the check before ``config.pairs`` pairs are in, else None
+        (this base class: always None, the check looks once)."""
+        return None
 
 
 def feed(check: PairedCheck, frames: Iterable) -> PairedCheck:

@@ -20,6 +20,7 @@ MOUNT_CHECK_LIMITS: dict[str, Any] = {
     'min_baseline': (1e-4, None),
     'min_rotation_deg': (1e-3, 180.0),
     'pairs': (5, 10000),
+    'early_pairs': (0, 10000),
     'threshold_deg': (1e-3, 44.0),
     'max_stderr_deg': (1e-4, 45.0),
     'min_matches': (8, 100000),
