@@ -9,8 +9,8 @@ from .recordings import recording_arguments, run_paired_check
 
 DESCRIPTION = """\
 Check the optical frame of a recording (a TUM-layout folder or a rosbag2 with images, camera
-info and poses) against its own images: the check multi_view_node runs once the time offset
-check has settled (mount_check.*; docs/multi_view.md, "The mount check"). A camera mounted a
+info and poses) against its own images: the check whose verdict multi_view_node takes once the time
+offset check has settled (mount_check.*; docs/multi_view.md, "The mount check"). A camera mounted a
 degree or two more tilted than its told pose frame (camera_from_pose_frame, a hand-eye
 calibration) turns every relative pose; the images fit the poses best turned back. No
 ground-truth depth is needed; run check-sync first (clocks out of sync fake a turn). Prints the

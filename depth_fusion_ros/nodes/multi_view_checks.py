@@ -43,6 +43,8 @@ class CheckCorrections:
     _offset_correction: float
     _mount_correction: np.ndarray
     _mount_taken: MountEstimate | None
+    _mount_unsaid: tuple[PinholeCamera, MountEstimate] | None
+    _mount_unsaid_lock: Any  # threading.Lock
     _restart_from_ns: int | None
     _world_frame: str
     get_logger: Callable[[], Any]  # rclpy.node.Node's
@@ -107,6 +109,8 @@ class CheckCorrections:
         self._restart_from_ns = 0  # the next posed frame, whatever its stamp
         self.focal_check.restart()  # its pairs were posed at the old offset
         self.mount_check.restart()
+        with self._mount_unsaid_lock:  # a verdict on those pairs is not said either
+            self._mount_unsaid = None
         self.stats.noted(
             'time_offset_disagrees',
             f'{self.time_offset_check.result.message()}; time_offset_check.mode correct: poses are '
@@ -140,7 +144,18 @@ class CheckCorrections:
         """Take the mount check's turn once it has one (``mount_check.mode`` correct; callback
         thread, before images are posed; a check of a camera seen anew adds its own). As a time
         offset correction, it starts the frame history, the filter and the focal length check
-        over at the next posed frame."""
+        over at the next posed frame.
+
+        Only once the time offset check has settled: an offset fakes a turn. The mount check
+        collects its pairs from the start meanwhile (until 2026-11-30 it began only then, and a
+        short stream ended before its pairs were in); an offset correction starts it over
+        (``_take_offset_correction``), and a verdict that came before is said now."""
+        if not self.time_offset_check.settled:
+            return
+        with self._mount_unsaid_lock:
+            unsaid, self._mount_unsaid = self._mount_unsaid, None
+        if unsaid is not None:
+            self._say_mount_verdict(*unsaid)
         result = self.mount_check.result
         if result is None or result is self._mount_taken:
             return  # nothing new (a camera checked anew keeps the turn it has until its own verdict)
@@ -159,8 +174,16 @@ class CheckCorrections:
         )
 
     def _on_mount_estimate(self, camera: PinholeCamera, estimate: MountEstimate) -> None:
-        """The mount check's result (its thread), said once; in correct mode the callbacks take
-        the turn (``_take_mount_correction``) and say it then."""
+        """The mount check's result (its thread), said once: now, or, before the time offset
+        check has settled, by the callbacks once it has (``_take_mount_correction``). In correct
+        mode the callbacks take the turn and say it then."""
+        with self._mount_unsaid_lock:
+            if not self.time_offset_check.settled:
+                self._mount_unsaid = (camera, estimate)
+                return
+        self._say_mount_verdict(camera, estimate)
+
+    def _say_mount_verdict(self, camera: PinholeCamera, estimate: MountEstimate) -> None:
         hint = self._mount_hint(self._mount_correction @ estimate.rotation())
         self._say_verdict('mount', estimate, self.mount_check.config.mode, hint)
 

@@ -24,6 +24,7 @@ one that will not come.
 
 from __future__ import annotations
 
+import threading
 import time
 import traceback
 from collections import deque
@@ -159,6 +160,10 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         #: the check result it last took
         self._mount_correction = np.eye(4)
         self._mount_taken: MountEstimate | None = None
+        #: A mount verdict that came before the time offset check settled, said once it has
+        #: (``_on_mount_estimate``), under its lock (the check's thread and the callbacks')
+        self._mount_unsaid: tuple[PinholeCamera, MountEstimate] | None = None
+        self._mount_unsaid_lock = threading.Lock()
         self._last_keyframe_pose: np.ndarray | None = None
         self._image_stamps = self.stamp_guard('image')
         self._pose_stamps = self.stamp_guard('pose')
@@ -523,8 +528,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self.posed_count += 1
         self.focal_check.offer(frame, image.camera)
         self.time_offset_check.offer(frame, image.camera)
-        if self.time_offset_check.settled:  # its pairs are posed at the offset that stays
-            self.mount_check.offer(frame, image.camera)
+        # From the start: a time offset correction starts it over (its pairs were posed at the
+        # old offset), and its verdict waits for the time offset check (_take_mount_correction).
+        self.mount_check.offer(frame, image.camera)
         camera = self.focal_check.camera_for(image.camera)
         job = None
         if self._is_keyframe_candidate(frame):
