@@ -298,8 +298,10 @@ def kernel(name: str, params: WeightParams, device: torch.device) -> Callable | 
         def sums(
             p: Samples, q: Samples, v: torch.Tensor, lw: torch.Tensor | None
         ) -> tuple[torch.Tensor, ...]:
-            if p.x.shape[0] < 2 or q.x.shape[-1] < 2:
-                return interpolation._no_one_pass()  # sizes the package does not take: two passes
+            # One point is a size the package does not take: two passes. (One pixel never comes:
+            # interpolation._offsets_at pads a call to MIN_KERNEL_ROWS.)
+            if q.x.shape[-1] < 2:
+                return interpolation._no_one_pass()
             lw = torch.zeros_like(q.x) if lw is None else lw  # + 0 leaves every exponent as it was
             return tuple(loaded(*p, *q, v, lw))
 

@@ -294,8 +294,11 @@ class DepthFilter:
             return torch.ones_like(passed)
         cells = ImageCells.across(self.camera.width, self.camera.height, c.published_fraction_cells)
         index = cells.index(key.us, key.vs)
-        measured_count = torch.bincount(index[measured], minlength=cells.count)
-        passed_count = torch.bincount(index[passed], minlength=cells.count)
+        # Counts by adding the masks, not by counting the masked indices: a masked select and
+        # bincount's size read each wait for the device, and the filter is host-bound on a GPU.
+        zeros = torch.zeros(cells.count, dtype=torch.float32, device=index.device)
+        measured_count = zeros.index_add(0, index, measured.to(torch.float32))
+        passed_count = zeros.index_add(0, index, passed.to(torch.float32))
         sliver = (passed_count > 0) & (passed_count < c.min_published_fraction * measured_count)
         return ~sliver[index]
 

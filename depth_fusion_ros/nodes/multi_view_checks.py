@@ -43,7 +43,7 @@ class CheckCorrections:
     _offset_correction: float
     _mount_correction: np.ndarray
     _mount_taken: MountEstimate | None
-    _mount_unsaid: tuple[PinholeCamera, MountEstimate] | None
+    _mount_unsaid: MountEstimate | None
     _mount_unsaid_lock: Any  # threading.Lock
     _restart_from_ns: int | None
     _world_frame: str
@@ -155,7 +155,7 @@ class CheckCorrections:
         with self._mount_unsaid_lock:
             unsaid, self._mount_unsaid = self._mount_unsaid, None
         if unsaid is not None:
-            self._say_mount_verdict(*unsaid)
+            self._say_mount_verdict(unsaid)
         result = self.mount_check.result
         if result is None or result is self._mount_taken:
             return  # nothing new (a camera checked anew keeps the turn it has until its own verdict)
@@ -179,11 +179,11 @@ class CheckCorrections:
         mode the callbacks take the turn and say it then."""
         with self._mount_unsaid_lock:
             if not self.time_offset_check.settled:
-                self._mount_unsaid = (camera, estimate)
+                self._mount_unsaid = estimate
                 return
-        self._say_mount_verdict(camera, estimate)
+        self._say_mount_verdict(estimate)
 
-    def _say_mount_verdict(self, camera: PinholeCamera, estimate: MountEstimate) -> None:
+    def _say_mount_verdict(self, estimate: MountEstimate) -> None:
         hint = self._mount_hint(self._mount_correction @ estimate.rotation())
         self._say_verdict('mount', estimate, self.mount_check.config.mode, hint)
 

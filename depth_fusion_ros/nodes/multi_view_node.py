@@ -162,7 +162,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self._mount_taken: MountEstimate | None = None
         #: A mount verdict that came before the time offset check settled, said once it has
         #: (``_on_mount_estimate``), under its lock (the check's thread and the callbacks')
-        self._mount_unsaid: tuple[PinholeCamera, MountEstimate] | None = None
+        self._mount_unsaid: MountEstimate | None = None
         self._mount_unsaid_lock = threading.Lock()
         self._last_keyframe_pose: np.ndarray | None = None
         self._image_stamps = self.stamp_guard('image')
