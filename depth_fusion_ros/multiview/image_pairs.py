@@ -4,7 +4,8 @@ Both checks ask the same of a stream: frames far enough apart that a pair carrie
 at any speed and frame rate (moved ``min_baseline`` or turned ``min_rotation_deg`` since the
 last sample, by the told poses), and the matches of consecutive samples that fit one rigid
 motion (ORB, cross-checked Hamming matches, the images' own essential matrix:
-:func:`rigid_matches`). :class:`ImagePairs` does that once for either; the
+:func:`rigid_matches`), for the focal check with the second position of each tracked from
+the first to sub-pixel (:mod:`.match_refinement`). :class:`ImagePairs` does that once for each; the
 checks differ in what they fit to the pairs. Also the two checks' shared config rules.
 """
 
@@ -17,6 +18,7 @@ import cv2
 import numpy as np
 
 from ..geometry import relative_pose, rotation_angle
+from .match_refinement import as_uint8, refine_matches
 
 #: What a check may do: nothing, say it, or also correct what it found.
 CHECK_MODES = ('off', 'warn', 'correct')
@@ -58,9 +60,7 @@ def graded_verdict(size: float, sure: float, threshold: float) -> str:
 def image_features(orb: cv2.ORB, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """ORB keypoint positions (N, 2) float64 and descriptors (``None`` when none) of a grey image
     (float in [0, 1] or uint8)."""
-    if gray.dtype != np.uint8:
-        gray = np.clip(np.rint(np.asarray(gray, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
-    keypoints, descriptors = orb.detectAndCompute(gray, None)
+    keypoints, descriptors = orb.detectAndCompute(as_uint8(gray), None)
     return np.float64([k.pt for k in keypoints]).reshape(-1, 2), descriptors
 
 
@@ -121,20 +121,32 @@ class ImagePairs:
     """Takes the samples of a posed stream and matches each with the one before."""
 
     def __init__(
-        self, K: np.ndarray, min_baseline: float, min_rotation_deg: float, min_matches: int, features: int
+        self,
+        K: np.ndarray,
+        min_baseline: float,
+        min_rotation_deg: float,
+        min_matches: int,
+        features: int,
+        refine: bool = False,
     ) -> None:
         self.K = K
+        #: Track each match's second position from the first (:mod:`.match_refinement`). The
+        #: focal check does: its fit became unbiased where it had corrected a right focal length.
+        #: The mount check does not: tracked matches are so precise that a rolling shutter or a
+        #: forward stream read as a turned mount (docs/multi_view.md, "Matches tracked to sub-pixel").
+        self.refine = refine
         self.min_baseline = min_baseline
         self.min_rotation_deg = min_rotation_deg
         self.min_matches = min_matches
         self._orb = cv2.ORB_create(features)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
         self.last: Sample | None = None
+        self._last_image: np.ndarray | None = None  # the last sample's uint8 image, to track from
 
     @classmethod
-    def for_config(cls, K: np.ndarray, config: object) -> ImagePairs:
+    def for_config(cls, K: np.ndarray, config: object, refine: bool = False) -> ImagePairs:
         c = config
-        return cls(K, c.min_baseline, c.min_rotation_deg, c.min_matches, c.features)  # type: ignore[attr-defined]
+        return cls(K, c.min_baseline, c.min_rotation_deg, c.min_matches, c.features, refine)  # type: ignore[attr-defined]
 
     def far_enough(self, pose: np.ndarray) -> bool:
         """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
@@ -147,9 +159,10 @@ class ImagePairs:
     def add(self, gray: np.ndarray, pose: np.ndarray, stamp: float = 0.0) -> MatchedPair | None:
         """Take a frame as the next sample; its pair with the last one when they match (at least
         ``min_matches`` after RANSAC) and moved apart, else ``None``."""
-        current = Sample(float(stamp), np.asarray(pose, dtype=np.float64), *image_features(self._orb, gray))
-        last, self.last = self.last, current
-        if last is None:
+        image = as_uint8(gray)
+        current = Sample(float(stamp), np.asarray(pose, dtype=np.float64), *image_features(self._orb, image))
+        (last, self.last), (last_image, self._last_image) = (self.last, current), (self._last_image, image)
+        if last is None or last_image is None:
             return None
         matched = rigid_matches(
             self._matcher,
@@ -158,10 +171,18 @@ class ImagePairs:
             (current.points, current.descriptors),
             self.min_matches,
         )
-        pair = None if matched is None else MatchedPair(last, current, *matched[:2])
-        if pair is None or np.linalg.norm(pair.T_ba[:3, 3]) < 1e-4:
+        if matched is None:
+            return None
+        p1, p2 = matched[:2]
+        if self.refine:
+            p1, p2 = refine_matches(last_image, image, p1, p2)
+            if len(p1) < self.min_matches:
+                return None
+        pair = MatchedPair(last, current, p1, p2)
+        if np.linalg.norm(pair.T_ba[:3, 3]) < 1e-4:
             return None
         return pair
 
     def reset(self) -> None:
         self.last = None
+        self._last_image = None

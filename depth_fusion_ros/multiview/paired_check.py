@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -30,9 +30,11 @@ class PairedCheck:
     result: Any = None
     frames: int = 0
     pairs: list[MatchedPair] = field(default_factory=list)
+    #: Whether the pairs' matches are tracked to sub-pixel (``ImagePairs.refine``).
+    REFINE_MATCHES: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
-        self._images = ImagePairs.for_config(self.camera.K, self.config)
+        self._images = ImagePairs.for_config(self.camera.K, self.config, refine=self.REFINE_MATCHES)
 
     @property
     def done(self) -> bool:
