@@ -49,3 +49,31 @@ def test_a_wrong_match_is_dropped_not_moved():
     assert np.abs(kept2 - kept1).max() < 0.05
     empty = refine_matches(first, first, np.zeros((0, 2)), np.zeros((0, 2)))
     assert empty[0].shape == (0, 2)
+
+
+def test_image_pairs_track_only_between_images_of_one_size():
+    """A sample on another grid (a camera that changed its size) makes no tracked pair, and
+    the one after it pairs again."""
+    import math
+
+    from depth_fusion_ros.multiview.image_pairs import ImagePairs
+
+    K = np.array([[200.0, 0.0, 160.0], [0.0, 200.0, 120.0], [0.0, 0.0, 1.0]])
+    pairs = ImagePairs(K, min_baseline=0.01, min_rotation_deg=2.0, min_matches=10, features=500, refine=True)
+    big = _texture(4, (480, 640))
+    small = cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA)
+
+    def pose(x: float) -> np.ndarray:
+        T = np.eye(4)
+        T[0, 3] = x
+        return T
+
+    assert pairs.add(big, pose(0.0)) is None  # the first sample
+    assert pairs.add(small, pose(0.02)) is None  # another size: no pair, no error
+    shifted = np.roll(small, 2, axis=1)
+    pair = pairs.add(shifted, pose(0.04))
+    assert (
+        pair is not None
+        and len(pair.p1) >= 10
+        and math.isclose(float(np.median(pair.p2[:, 0] - pair.p1[:, 0])), 2.0, abs_tol=0.1)
+    )

@@ -175,6 +175,8 @@ class ImagePairs:
             return None
         p1, p2 = matched[:2]
         if self.refine:
+            if last_image.shape != image.shape:  # another camera grid: nothing to track across
+                return None
             p1, p2 = refine_matches(last_image, image, p1, p2)
             if len(p1) < self.min_matches:
                 return None
