@@ -130,10 +130,8 @@ class ImagePairs:
         refine: bool = False,
     ) -> None:
         self.K = K
-        #: Track each match's second position from the first (:mod:`.match_refinement`). The
-        #: focal check does: its fit became unbiased where it had corrected a right focal length.
-        #: The mount check does not: tracked matches are so precise that a rolling shutter or a
-        #: forward stream read as a turned mount (docs/multi_view.md, "Matches tracked to sub-pixel").
+        #: Track each match's second position from the first (:mod:`.match_refinement`; which
+        #: checks do and why: ``PairedCheck.REFINE_MATCHES``).
         self.refine = refine
         self.min_baseline = min_baseline
         self.min_rotation_deg = min_rotation_deg
@@ -141,7 +139,7 @@ class ImagePairs:
         self._orb = cv2.ORB_create(features)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
         self.last: Sample | None = None
-        self._last_image: np.ndarray | None = None  # the last sample's uint8 image, to track from
+        self._last_image: np.ndarray | None = None  # the last sample's uint8 image, kept to track from
 
     @classmethod
     def for_config(cls, K: np.ndarray, config: object, refine: bool = False) -> ImagePairs:
@@ -161,8 +159,9 @@ class ImagePairs:
         ``min_matches`` after RANSAC) and moved apart, else ``None``."""
         image = as_uint8(gray)
         current = Sample(float(stamp), np.asarray(pose, dtype=np.float64), *image_features(self._orb, image))
-        (last, self.last), (last_image, self._last_image) = (self.last, current), (self._last_image, image)
-        if last is None or last_image is None:
+        last, last_image = self.last, self._last_image
+        self.last, self._last_image = current, (image if self.refine else None)
+        if last is None:
             return None
         matched = rigid_matches(
             self._matcher,
@@ -175,7 +174,7 @@ class ImagePairs:
             return None
         p1, p2 = matched[:2]
         if self.refine:
-            if last_image.shape != image.shape:  # another camera grid: nothing to track across
+            if last_image is None or last_image.shape != image.shape:  # another grid: nothing to track
                 return None
             p1, p2 = refine_matches(last_image, image, p1, p2)
             if len(p1) < self.min_matches:

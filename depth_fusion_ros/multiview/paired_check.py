@@ -30,7 +30,10 @@ class PairedCheck:
     result: Any = None
     frames: int = 0
     pairs: list[MatchedPair] = field(default_factory=list)
-    #: Whether the pairs' matches are tracked to sub-pixel (``ImagePairs.refine``).
+    #: Whether the pairs' matches are tracked to sub-pixel (``ImagePairs.refine``). The focal
+    #: check does (``FocalCheck``); the mount check does not: tracked matches are so precise that
+    #: a rolling shutter or a forward stream read as a turned mount (docs/multi_view.md,
+    #: "Matches tracked to sub-pixel").
     REFINE_MATCHES: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
