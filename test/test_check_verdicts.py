@@ -22,7 +22,7 @@ def _offset_verdict(monkeypatch, offset: float, stderr: float):
     monkeypatch.setattr(time_offset_check, 'estimate_offset', lambda grid, curves: (offset, stderr, 1.0))
     check = TimeOffsetCheck(CAMERA, TimeOffsetCheckConfig())
     check.curves = [(np.zeros(3), 100)]
-    return check._finish()
+    return check._estimate()
 
 
 def test_a_time_offset_past_the_threshold_but_not_surely_is_suspect(monkeypatch):

@@ -40,7 +40,7 @@ def _check(sequence, **config):
 @pytest.mark.parametrize('offset', [0.02, -0.02])
 def test_poses_stamped_20_ms_off_are_found(late, offset):
     sequence = late if offset > 0 else _stream(offset)
-    estimate, check = _check(sequence)
+    estimate, check = _check(sequence, early_pairs=0)  # the last look only: all 20 pairs
     assert estimate is not None and check.done and estimate.pairs == 20
     assert estimate.verdict == 'disagrees', estimate.message()
     # The told pose of an image is the camera's pose `offset` later: reading it `offset` earlier fits.
@@ -49,6 +49,23 @@ def test_poses_stamped_20_ms_off_are_found(late, offset):
     message = estimate.message()
     assert 'out of sync' in message and f'pose_time_offset {-offset:.3f}' in message
     assert check.add(sequence.frames[0].gray, 99.0, sequence.frames[0].pose) is None  # once
+
+
+def test_the_early_look_ends_the_check_only_where_the_pairs_settle_it(late):
+    """At ``early_pairs`` (8) the check ends on an offset sure by three standard errors, or on
+    motion so smooth that no offset matters; poses in sync wait for all 20 pairs, so the early
+    look never says they agree on less evidence than the last one."""
+    early, check = _check(late)
+    assert early is not None and early.pairs == 8 and early.verdict == 'disagrees', early.message()
+    assert early.offset == pytest.approx(-0.02, abs=0.003) and abs(early.offset) - 3 * early.stderr >= 0.015
+    assert check.add(late.frames[0].gray, 99.0, late.frames[0].pose) is None  # once
+    flat, _ = _check(render_sequence(stress_config('translation', **SIZE, pose_time_offset=0.02)))
+    assert flat is not None and flat.pairs == 8 and flat.verdict == 'unobservable', flat.message()
+    assert flat.sharpness < 0.005
+    in_sync, _ = _check(_stream(0.0))
+    assert in_sync is not None and in_sync.pairs == 20 and in_sync.verdict == 'consistent', in_sync.message()
+    with pytest.raises(ValueError, match='early_pairs'):
+        TimeOffsetCheckConfig(early_pairs=3)
 
 
 def test_poses_in_sync_are_not_flagged():
