@@ -51,3 +51,21 @@ def test_a_mount_turn_past_the_threshold_but_not_surely_is_suspect_and_not_appli
     message = suspect.message()
     assert 'turned 0.60 deg' in message and 'kept' in message and 'agrees' not in message
     assert not math.isclose(_mount_verdict(1.0, 0.1).rotation()[1, 1], 1.0)
+
+
+def test_an_unobservable_time_offset_is_said_without_a_fitted_offset_to_copy():
+    """A flat fit (smooth motion) lands wherever the noise puts it, often the search's edge:
+    the log line and the diagnostics say flat, and the told offset kept, never "+100 ms"."""
+    from depth_fusion_ros.multiview.time_offset_check import TimeOffsetEstimate
+    from depth_fusion_ros.nodes.time_offset_check_runner import TimeOffsetCheckRunner
+
+    runner = TimeOffsetCheckRunner(TimeOffsetCheckConfig(), 0.0, lambda *_: None)
+    runner._check = TimeOffsetCheck(CAMERA, TimeOffsetCheckConfig())
+    flat = TimeOffsetEstimate(0.1, 0.005, 8, 900, 'unobservable', 0.0, sharpness=0.001)
+    runner._check.result = flat
+    assert runner.status() == 'unobservable: flat over 8 pairs (pose_time_offset 0.000 kept)'
+    assert '100' not in flat.message() and 'kept, unchecked' in flat.message()
+    loose = TimeOffsetEstimate(0.03, 0.02, 20, 900, 'unobservable', 0.0, sharpness=0.05)
+    runner._check.result = loose
+    assert runner.status() == 'unobservable: +30 +- 20 ms (pose_time_offset 0.000 kept)'
+    assert '+30 +- 20 ms over 20 pairs' in loose.message()

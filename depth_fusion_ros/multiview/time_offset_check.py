@@ -129,6 +129,18 @@ class TimeOffsetEstimate:
         """The ``pose_time_offset`` the images fit best (s)."""
         return self.told + self.offset
 
+    @property
+    def flat(self) -> bool:
+        """Whether the pairs fit every offset about alike (smooth motion): the fitted offset is
+        then wherever the noise put it, often the search's edge, and is not worth saying."""
+        return self.sharpness < _MIN_SHARPNESS
+
+    def fit_phrase(self) -> str:
+        """The fit in a few words: the offset and its standard error, or "flat"."""
+        if self.verdict == 'unobservable' and self.flat:
+            return f'flat over {self.pairs} pairs'
+        return f'{self.offset * 1000:+.0f} +- {self.stderr * 1000:.0f} ms'
+
     def message(self) -> str:
         """One line for the log: the verdict with its numbers."""
         fit = (
@@ -144,6 +156,12 @@ class TimeOffsetEstimate:
             return (
                 f'time offset check: {fit}: off by the fit, not surely: pose_time_offset {self.told:.3f} '
                 f'kept ({self.fitted:.3f} would fit best); check the clocks'
+            )
+        if self.verdict == 'unobservable' and self.flat:
+            return (
+                f'time offset check: the motion is too smooth to show an offset (the images fit every '
+                f'offset alike over {self.pairs} pairs; none would matter to the depth either): '
+                f'pose_time_offset {self.told:.3f} kept, unchecked'
             )
         if self.verdict == 'unobservable':
             return (

@@ -91,7 +91,8 @@ class TimeOffsetCheckRunner(CheckRunner):
             return 'off'
         if self.result is not None:
             r = self.result
-            fit = f'{r.offset * 1000:+.0f} +- {r.stderr * 1000:.0f} ms'
-            return f'{r.verdict}: {fit} (pose_time_offset {r.fitted:.3f})'
+            if r.verdict == 'unobservable':  # no fit worth naming: the told offset stays
+                return f'{r.verdict}: {r.fit_phrase()} (pose_time_offset {r.told:.3f} kept)'
+            return f'{r.verdict}: {r.fit_phrase()} (pose_time_offset {r.fitted:.3f})'
         pairs = 0 if self._check is None else self._check.pairs
         return f'collecting ({pairs} of {self.config.pairs} image pairs)'
