@@ -13,7 +13,12 @@ from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.cli.recordings import verdict_status
 from depth_fusion_ros.multiview import time_offset_check
 from depth_fusion_ros.multiview.mount_check import MountCheck, MountCheckConfig
-from depth_fusion_ros.multiview.time_offset_check import TimeOffsetCheck, TimeOffsetCheckConfig
+from depth_fusion_ros.multiview.time_offset_check import (
+    TimeOffsetCheck,
+    TimeOffsetCheckConfig,
+    TimeOffsetEstimate,
+)
+from depth_fusion_ros.nodes.time_offset_check_runner import TimeOffsetCheckRunner
 
 CAMERA = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
 
@@ -56,9 +61,6 @@ def test_a_mount_turn_past_the_threshold_but_not_surely_is_suspect_and_not_appli
 def test_an_unobservable_time_offset_is_said_without_a_fitted_offset_to_copy():
     """A flat fit (smooth motion) lands wherever the noise puts it, often the search's edge:
     the log line and the diagnostics say flat, and the told offset kept, never "+100 ms"."""
-    from depth_fusion_ros.multiview.time_offset_check import TimeOffsetEstimate
-    from depth_fusion_ros.nodes.time_offset_check_runner import TimeOffsetCheckRunner
-
     runner = TimeOffsetCheckRunner(TimeOffsetCheckConfig(), 0.0, lambda *_: None)
     runner._check = TimeOffsetCheck(CAMERA, TimeOffsetCheckConfig())
     flat = TimeOffsetEstimate(0.1, 0.005, 8, 900, 'unobservable', 0.0, sharpness=0.001)

@@ -22,6 +22,10 @@ from .match_refinement import as_uint8, refine_matches
 
 #: What a check may do: nothing, say it, or also correct what it found.
 CHECK_MODES = ('off', 'warn', 'correct')
+#: Standard errors a fit must clear a check's threshold by: at its last look, and at an early
+#: look (``early_pairs``: the mount and time offset checks), whose error over fewer pairs is noisier.
+STANDARD_ERRORS = 2.0
+EARLY_STANDARD_ERRORS = 3.0
 #: OpenCV's random state (per thread) is set to this before each RANSAC: a deterministic check.
 _RANSAC_SEED = 12345
 
@@ -38,18 +42,22 @@ def check_mode(section: str, mode: object) -> str:
 
 def check_sampling(section: str, config: object) -> None:
     """The sampling fields a check's config shares (``pairs``, ``min_matches``, ``features``,
-    ``min_baseline``, ``min_rotation_deg``): one-line errors naming the section."""
+    ``min_baseline``, ``min_rotation_deg``, and ``early_pairs`` where it has an early look):
+    one-line errors naming the section."""
     c = config
     if c.pairs < 5 or c.min_matches < 8 or c.features < 50:  # type: ignore[attr-defined]
         raise ValueError(f'{section}: need pairs >= 5, min_matches >= 8 and features >= 50')
     if not (c.min_baseline > 0 and c.min_rotation_deg > 0):  # type: ignore[attr-defined]
         raise ValueError(f'{section}: need min_baseline > 0 and min_rotation_deg > 0')
+    early = getattr(c, 'early_pairs', 0)
+    if early != 0 and early < 5:
+        raise ValueError(f'{section}: need early_pairs 0 (no early look) or >= 5')
 
 
 def graded_verdict(size: float, sure: float, threshold: float) -> str:
     """The verdict of an observable fit, the same for every calibration check: ``disagrees``
-    when even ``sure`` (the fitted offset less twice its standard error; three times at the
-    mount check's early look) is at least
+    when even ``sure`` (the fitted offset less :data:`STANDARD_ERRORS` of its standard error;
+    :data:`EARLY_STANDARD_ERRORS` at an early look) is at least
     ``threshold``, ``suspect`` when only ``size`` (the fitted offset itself) is (said, never
     applied: before 2026-11-30 such a fit read as agreement), else ``consistent``."""
     if sure >= threshold:

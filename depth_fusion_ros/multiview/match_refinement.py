@@ -45,11 +45,12 @@ def refine_matches(
     start = p1.astype(np.float32).reshape(-1, 1, 2)
     guess = p2.astype(np.float32).reshape(-1, 1, 2)
     flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+    # The initial guesses are these fresh float32 arrays (OpenCV may write into them), not p1 / p2.
     tracked, found, _ = cv2.calcOpticalFlowPyrLK(
-        first, second, start, guess.copy(), winSize=WINDOW, maxLevel=LEVELS, criteria=_CRITERIA, flags=flags
+        first, second, start, guess, winSize=WINDOW, maxLevel=LEVELS, criteria=_CRITERIA, flags=flags
     )
     back, found_back, _ = cv2.calcOpticalFlowPyrLK(
-        second, first, tracked, start.copy(), winSize=WINDOW, maxLevel=LEVELS, criteria=_CRITERIA, flags=flags
+        second, first, tracked, start, winSize=WINDOW, maxLevel=LEVELS, criteria=_CRITERIA, flags=flags
     )
     tracked, back = tracked.reshape(-1, 2), back.reshape(-1, 2)
     keep = (

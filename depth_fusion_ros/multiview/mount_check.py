@@ -43,7 +43,15 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from .epipolar_cost import pose_costs
-from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling, graded_verdict
+from .image_pairs import (
+    CHECK_MODES,
+    EARLY_STANDARD_ERRORS,
+    STANDARD_ERRORS,
+    MatchedPair,
+    check_mode,
+    check_sampling,
+    graded_verdict,
+)
 from .paired_check import PairedCheck, feed
 
 log = logging.getLogger(__name__)
@@ -61,10 +69,6 @@ _TOLERANCE = math.radians(0.002)
 _BLOCKS = 5
 #: The most the fit may turn the told frame (degrees): beyond, the fit is refused as unobservable.
 _MAX_TURN_DEG = 15.0
-#: Standard errors a fitted component must clear the threshold by: at the last look, and at
-#: the early one (``MountCheckConfig.early_pairs``), whose jackknife over fewer pairs is noisier.
-STANDARD_ERRORS = 2.0
-EARLY_STANDARD_ERRORS = 3.0
 
 
 @dataclass(frozen=True)
@@ -100,8 +104,6 @@ class MountCheckConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, 'mode', check_mode('mount_check', self.mode))
         check_sampling('mount_check', self)
-        if self.early_pairs != 0 and self.early_pairs < 5:
-            raise ValueError('mount_check: need early_pairs 0 (no early look) or >= 5')
         if not (0 < self.threshold_deg < 45 and self.max_stderr_deg > 0):
             raise ValueError('mount_check: need 0 < threshold_deg < 45 and max_stderr_deg > 0')
 

@@ -37,7 +37,16 @@ import numpy as np
 from ..camera import PinholeCamera
 from ..pose_curve import interpolate_poses_cubic
 from .epipolar_cost import pose_costs
-from .image_pairs import CHECK_MODES, ImagePairs, MatchedPair, check_mode, check_sampling, graded_verdict
+from .image_pairs import (
+    CHECK_MODES,
+    EARLY_STANDARD_ERRORS,
+    STANDARD_ERRORS,
+    ImagePairs,
+    MatchedPair,
+    check_mode,
+    check_sampling,
+    graded_verdict,
+)
 
 log = logging.getLogger(__name__)
 
@@ -53,10 +62,6 @@ _BOOTSTRAP_SEED = 2024
 #: the mean soft-L1 cost (at 0.5 px) rising by 0.02, about a tenth of a pixel of residual.
 _SHARPNESS_AT = 0.02
 _MIN_SHARPNESS = 0.02
-#: Standard errors a fitted offset must clear the threshold by at the early look
-#: (``TimeOffsetCheckConfig.early_pairs``; the last look: two), whose bootstrap over fewer pairs
-#: is noisier.
-EARLY_STANDARD_ERRORS = 3.0
 #: At the early look, pairs whose cost rises less than this share of ``_MIN_SHARPNESS`` settle the
 #: check as unobservable: the motion is so smooth that no offset matters to them. At 8 pairs of 87
 #: recorded streams (docs/multi_view.md, "An early look at 8 pairs") 71 read 0.0043 or less, all
@@ -102,8 +107,6 @@ class TimeOffsetCheckConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, 'mode', check_mode('time_offset_check', self.mode))
         check_sampling('time_offset_check', self)
-        if self.early_pairs != 0 and self.early_pairs < 5:
-            raise ValueError('time_offset_check: need early_pairs 0 (no early look) or >= 5')
         if not (GRID_STEP <= self.max_offset <= 1.0):
             raise ValueError(f'time_offset_check: need {GRID_STEP} <= max_offset <= 1 s')
         if not (0 < self.threshold < self.max_offset and self.max_stderr > 0):
@@ -144,7 +147,7 @@ class TimeOffsetEstimate:
     def message(self) -> str:
         """One line for the log: the verdict with its numbers."""
         fit = (
-            f'the images fit the poses {self.offset * 1000:+.0f} +- {self.stderr * 1000:.0f} ms later best '
+            f'the images fit the poses {self.fit_phrase()} later best '
             f'({self.pairs} image pairs, {self.matches} matches)'
         )
         if self.verdict == 'disagrees':
@@ -165,9 +168,8 @@ class TimeOffsetEstimate:
             )
         if self.verdict == 'unobservable':
             return (
-                f'time offset check: the motion does not pin the offset down ({self.offset * 1000:+.0f} '
-                f'+- {self.stderr * 1000:.0f} ms over {self.pairs} pairs): pose_time_offset '
-                f'{self.told:.3f} kept, unchecked'
+                f'time offset check: the motion does not pin the offset down ({self.fit_phrase()} over '
+                f'{self.pairs} pairs): pose_time_offset {self.told:.3f} kept, unchecked'
             )
         return f'time offset check: pose_time_offset {self.told:.3f} agrees with the images: {fit}'
 
@@ -334,10 +336,10 @@ class TimeOffsetCheck:
             return None
         self._looked = True
         estimate = self._estimate(EARLY_STANDARD_ERRORS)
-        flat = estimate.verdict == 'unobservable' and estimate.sharpness < EARLY_FLAT_SHARE * _MIN_SHARPNESS
-        return self._conclude(estimate) if estimate.verdict == 'disagrees' or flat else None
+        surely_flat = estimate.sharpness < EARLY_FLAT_SHARE * _MIN_SHARPNESS  # so unobservable too
+        return self._conclude(estimate) if estimate.verdict == 'disagrees' or surely_flat else None
 
-    def _estimate(self, standard_errors: float = 2.0) -> TimeOffsetEstimate:
+    def _estimate(self, standard_errors: float = STANDARD_ERRORS) -> TimeOffsetEstimate:
         """The estimate from the pairs evaluated so far; ``disagrees`` when the fitted offset less
         ``standard_errors`` of its standard error is at least the threshold."""
         curves = np.stack([c for c, _ in self.curves])
