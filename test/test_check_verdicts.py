@@ -11,6 +11,8 @@ import pytest
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.cli.recordings import verdict_status
+from depth_fusion_ros.evaluation.report import time_offset_table
+from depth_fusion_ros.evaluation.time_offset import estimate_json
 from depth_fusion_ros.multiview import time_offset_check
 from depth_fusion_ros.multiview.mount_check import MountCheck, MountCheckConfig
 from depth_fusion_ros.multiview.time_offset_check import (
@@ -71,3 +73,21 @@ def test_an_unobservable_time_offset_is_said_without_a_fitted_offset_to_copy():
     runner._check.result = loose
     assert runner.status() == 'unobservable: +30 +- 20 ms (pose_time_offset 0.000 kept)'
     assert '+30 +- 20 ms over 20 pairs' in loose.message()
+
+
+def test_the_evaluation_report_says_a_flat_time_offset_fit_as_flat():
+    """The report's table too (found on a synthetic hall driven forward: "-100 +- 50" of a
+    flat fit at the search's edge): a flat fit is said flat; a loose one keeps its numbers."""
+    flat = TimeOffsetEstimate(-0.1, 0.05, 8, 256, 'unobservable', 0.0, sharpness=0.0)
+    loose = TimeOffsetEstimate(0.03, 0.02, 20, 900, 'unobservable', 0.0, sharpness=0.05)
+    doc = {
+        'sequences': {
+            'hall': {'time_offset_check': estimate_json(flat, corrected=False)},
+            'room': {'time_offset_check': estimate_json(loose, corrected=False)},
+        }
+    }
+    assert doc['sequences']['hall']['time_offset_check']['flat'] is True
+    rows = time_offset_table(doc).splitlines()
+    hall, room = [line for line in rows if line.startswith(('| hall', '| room'))]
+    assert 'flat' in hall and '-100' not in hall and hall.endswith('| 8 | +0 |')
+    assert '+30 +- 20' in room and 'flat' not in room

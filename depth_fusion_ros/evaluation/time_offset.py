@@ -68,7 +68,14 @@ def shifted_sequence(sequence: Sequence, offset: float) -> Sequence:
 
 def estimate_json(estimate: TimeOffsetEstimate | None, corrected: bool) -> dict | None:
     """The ``time_offset_check`` entry of a sequence in results.json: the estimate's fields, the
-    fitted ``pose_time_offset`` and whether every method ran on poses read at it."""
+    fitted ``pose_time_offset`` and whether every method ran on poses read at it. ``flat``
+    says that the pairs fit every offset alike: the fitted one is then noise (often the
+    search's edge), which the report must not print as an offset to copy."""
     if estimate is None:
         return None
-    return {**dataclasses.asdict(estimate), 'fitted_offset': estimate.fitted, 'corrected': corrected}
+    return {
+        **dataclasses.asdict(estimate),
+        'fitted_offset': estimate.fitted,
+        'flat': estimate.flat,
+        'corrected': corrected,
+    }
