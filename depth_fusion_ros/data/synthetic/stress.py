@@ -35,6 +35,10 @@ data with exact ground truth:
 ``mount_tilt``     the ``forward`` robot with its camera mounted 2 deg more tilted than the
                    pose frame it is told (``T_told = T_true @ R_x(2 deg)``): the epipole is
                    told 9 px off at 320x240 (``multiview/mount_check.py`` finds it)
+``large_hall``     a robot driving ahead at 1 m/s (3.3 cm per frame at 30 Hz) through a hall of
+                   14 x 12 x 4.5 m (a warehouse, a lobby): half the view is 3 m and more away
+                   and a tenth beyond 10 m, past the multi-view depth range, where a pixel's
+                   parallax is a fraction of a pixel; the single-view error grows with depth
 =================  ==========================================================================
 
 ``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
@@ -71,6 +75,12 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
         'step_translation': 0.015,
         'step_rotation_deg': 0.2,
         'mount_tilt_deg': 2.0,
+    },
+    'large_hall': {
+        'motion': 'forward',
+        'step_translation': 0.033,
+        'step_rotation_deg': 0.3,
+        'room_size': (14.0, 12.0, 4.5),
     },
     'time_offset': {
         'parallax': 'high',
