@@ -11,7 +11,7 @@ import pytest
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.cli.recordings import verdict_status
-from depth_fusion_ros.evaluation.report import time_offset_table
+from depth_fusion_ros.evaluation.check_tables import time_offset_table
 from depth_fusion_ros.evaluation.time_offset import estimate_json
 from depth_fusion_ros.multiview import time_offset_check
 from depth_fusion_ros.multiview.mount_check import MountCheck, MountCheckConfig

@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from .markdown import table
+
 #: Band edges (px on the working grid): on the point, next to it, its neighbourhood, far.
 BAND_EDGES = (0.0, 2.0, 6.0, 24.0, np.inf)
 FIELDS = ('n', 'single', 'fused')
@@ -79,5 +81,4 @@ def band_table(doc: dict[str, Any], method: str = 'fused') -> str | None:
         rows.append([name, *cells])
     if not rows:
         return None
-    lines = ['| ' + ' | '.join(header) + ' |', '|---|' + '---:|' * (len(header) - 1)]
-    return '\n'.join(lines + ['| ' + ' | '.join(r) + ' |' for r in rows])
+    return table(header, rows)

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..fusion.guard import DECISIONS
+from .markdown import table
 
 if TYPE_CHECKING:
     from .harness import SequenceResult
@@ -54,8 +55,7 @@ def decision_table(doc: dict[str, Any]) -> str | None:
         )
     if not rows:
         return None
-    lines = ['| ' + ' | '.join(header) + ' |', '|---|' + '---:|' * (len(header) - 1)]
-    return '\n'.join(lines + ['| ' + ' | '.join(r) + ' |' for r in rows])
+    return table(header, rows)
 
 
 def decision_figure(results: list[SequenceResult], path: Path) -> Path | None:

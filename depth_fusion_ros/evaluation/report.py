@@ -6,20 +6,24 @@ Tables (each appears when the methods it needs were run):
   sequence, with the oracle ("manual") selection's mean error;
 * paper Table III: the weight ablation (W1, W1·W2, all four) on oracle points;
 * paper Table I: median error on high- and low-gradient pixels;
+* the calibration checks' verdicts (``check_tables.py``), the guard's decisions, the
+  distance bands and the adaptation (each in its own module);
 * every metric of every method, per sequence.
 """
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .adaptation_report import adaptation_table
+from .check_tables import focal_table, mount_table, time_offset_table
 from .distance_bands import band_table
 from .guard_report import decision_table
+from .markdown import fmt as _fmt
+from .markdown import table as _table
 
 if TYPE_CHECKING:
     from .harness import SequenceResult
@@ -40,19 +44,6 @@ COLUMNS = [
     ('map_completeness_10cm', 'map compl. 10 cm', '{:.3f}'),
     ('seconds_per_frame', 's/frame', '{:.3f}'),
 ]
-
-
-def _fmt(value: Any, pattern: str = '{:.3f}') -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return '–'
-    return pattern.format(value)
-
-
-def _table(header: list[str], rows: list[list[str]], align_first_left: bool = True) -> str:
-    lines = ['| ' + ' | '.join(header) + ' |']
-    lines.append('|' + ('---|' if align_first_left else '---:|') + '---:|' * (len(header) - 1))
-    lines += ['| ' + ' | '.join(r) + ' |' for r in rows]
-    return '\n'.join(lines)
 
 
 def metrics_table(methods: dict[str, dict[str, Any]]) -> str:
@@ -128,63 +119,6 @@ def gradient_table(doc: dict[str, Any]) -> str | None:
     if not rows:
         return None
     return _table(['sequence', 'method', 'high-gradient', 'low-gradient'], rows)
-
-
-def _check_table(doc: dict[str, Any], key: str, header: list[str], cells: Any) -> str | None:
-    """A calibration check's table (``evaluation/checks.py``): one row per sequence that ran it,
-    ``[name, verdict, *cells(entry)]``, so a correction is said in the report, not only in
-    results.json."""
-    rows = [
-        [name, seq[key]['verdict'], *cells(seq[key])]
-        for name, seq in doc['sequences'].items()
-        if seq.get(key)
-    ]
-    return _table(['sequence', 'verdict', *header], rows) if rows else None
-
-
-def focal_table(doc: dict[str, Any]) -> str | None:
-    """The focal length check per sequence (``evaluation/focal.py``)."""
-
-    def cells(c: dict) -> list[str]:
-        fit = f'{c["fitted_fx"]:.1f} ({c["scale"] - 1:+.1%} +- {c["stderr"]:.1%})'
-        used = c['fitted_fx'] if c['corrected'] else c['told_fx']
-        return [f'{c["told_fx"]:.1f}', fit, str(c['pairs']), f'{used:.1f}']
-
-    header = ['told fx (px)', 'fitted fx (px)', 'pairs', 'fx every method used']
-    return _check_table(doc, 'focal_check', header, cells)
-
-
-def time_offset_table(doc: dict[str, Any]) -> str | None:
-    """The time offset check per sequence (``evaluation/time_offset.py``)."""
-
-    def cells(c: dict) -> list[str]:
-        used = c['fitted_offset'] if c['corrected'] else c['told']
-        fit = f'{c["offset"] * 1000:+.0f} +- {c["stderr"] * 1000:.0f}'
-        if c['verdict'] == 'unobservable' and c.get('flat'):  # noise, not an offset to copy
-            fit = 'flat (every offset fits alike)'
-        return [fit, str(c['pairs']), f'{used * 1000:+.0f}']
-
-    header = ['fitted offset (ms)', 'pairs', 'offset every method used (ms)']
-    return _check_table(doc, 'time_offset_check', header, cells)
-
-
-def mount_table(doc: dict[str, Any]) -> str | None:
-    """The mount check per sequence (``evaluation/mount.py``)."""
-
-    def cells(c: dict) -> list[str]:
-        fit = ', '.join(f'{v:+.2f}' for v in c['fitted_deg'])
-        sd = '/'.join(f'{v:.2f}' for v in c['stderr_deg'])
-        used = f'{c["angle_deg"]:.2f}' if c['corrected'] else '0'
-        return [f'[{fit}]', sd, str(c['observed']), str(c['pairs']), used]
-
-    header = [
-        'fitted rotation (deg)',
-        'standard errors (deg)',
-        'directions observed',
-        'pairs',
-        'turn every method used (deg)',
-    ]
-    return _check_table(doc, 'mount_check', header, cells)
 
 
 def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> str:
