@@ -41,9 +41,11 @@ def time_offset_table(doc: dict[str, Any]) -> str | None:
 
     def cells(c: dict) -> list[str]:
         used = c['fitted_offset'] if c['corrected'] else c['told']
-        fit = f'{c["offset"] * 1000:+.0f} +- {c["stderr"] * 1000:.0f}'
-        if c['verdict'] == 'unobservable' and c.get('flat'):  # noise, not an offset to copy
+        # A flat fit is noise, not an offset to copy (TimeOffsetEstimate.flat)
+        if c.get('flat'):
             fit = 'flat (every offset fits alike)'
+        else:
+            fit = f'{c["offset"] * 1000:+.0f} +- {c["stderr"] * 1000:.0f}'
         return [fit, str(c['pairs']), f'{used * 1000:+.0f}']
 
     header = ['fitted offset (ms)', 'pairs', 'offset every method used (ms)']

@@ -18,16 +18,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..fusion.guard import DECISIONS
-from .markdown import table
+from .markdown import fmt, table
 
 if TYPE_CHECKING:
     from .harness import SequenceResult
 
 METHOD = 'fused'
-
-
-def _fmt(value: Any) -> str:
-    return f'{value:.3f}' if isinstance(value, float) and np.isfinite(value) else '–'
 
 
 def decision_table(doc: dict[str, Any]) -> str | None:
@@ -47,10 +43,10 @@ def decision_table(doc: dict[str, Any]) -> str | None:
                 name,
                 *counts,
                 str(int(sum(fused['per_frame_extras'].get('withheld', [])))),
-                _fmt(fused.get('keyframe_confidence')),
-                _fmt(single.get('mae')),
-                _fmt(fused.get('mae')),
-                _fmt(methods.get('fused_unguarded', {}).get('mae')),
+                fmt(fused.get('keyframe_confidence')),
+                fmt(single.get('mae')),
+                fmt(fused.get('mae')),
+                fmt(methods.get('fused_unguarded', {}).get('mae')),
             ]
         )
     if not rows:

@@ -22,8 +22,7 @@ from .adaptation_report import adaptation_table
 from .check_tables import focal_table, mount_table, time_offset_table
 from .distance_bands import band_table
 from .guard_report import decision_table
-from .markdown import fmt as _fmt
-from .markdown import table as _table
+from .markdown import fmt, table
 
 if TYPE_CHECKING:
     from .harness import SequenceResult
@@ -49,8 +48,8 @@ COLUMNS = [
 def metrics_table(methods: dict[str, dict[str, Any]]) -> str:
     """One row per method, the metric columns any method reports."""
     cols = [c for c in COLUMNS if any(c[0] in m for m in methods.values())]
-    rows = [[name] + [_fmt(m.get(k), f) for k, _, f in cols] for name, m in methods.items()]
-    return _table(['method'] + [c[1] for c in cols], rows)
+    rows = [[name] + [fmt(m.get(k), f) for k, _, f in cols] for name, m in methods.items()]
+    return table(['method'] + [c[1] for c in cols], rows)
 
 
 def _single_view_name(methods: dict[str, Any]) -> str | None:
@@ -73,10 +72,10 @@ def paper_table(doc: dict[str, Any]) -> str | None:
         row = [name]
         for key in ('rmse', 'si', 'mae'):
             for method in ('tv', sv, 'fused'):
-                row.append(_fmt(ms.get(method, {}).get(key)) if method else '–')
-        row.append(_fmt(ms.get('fused_oracle', {}).get('mae')))
+                row.append(fmt(ms.get(method, {}).get(key)) if method else '–')
+        row.append(fmt(ms.get('fused_oracle', {}).get('mae')))
         rows.append(row)
-    return _table(header, rows)
+    return table(header, rows)
 
 
 def ablation_table(doc: dict[str, Any]) -> str | None:
@@ -93,11 +92,11 @@ def ablation_table(doc: dict[str, Any]) -> str | None:
             continue
         v = [ms[n].get('si') for n in names] + [ms[n].get('mae') for n in names]
         values.append(v)
-        rows.append([name] + [_fmt(x) for x in v])
+        rows.append([name] + [fmt(x) for x in v])
     if len(values) > 1:
         mean = np.nanmean(np.array(values, dtype=float), axis=0)
-        rows.append(['**mean**'] + [_fmt(float(x)) for x in mean])
-    return _table(header, rows)
+        rows.append(['**mean**'] + [fmt(float(x)) for x in mean])
+    return table(header, rows)
 
 
 def gradient_table(doc: dict[str, Any]) -> str | None:
@@ -112,13 +111,13 @@ def gradient_table(doc: dict[str, Any]) -> str | None:
                     [
                         name,
                         method,
-                        _fmt(g['high'].get('median_abs_err')),
-                        _fmt(g['low'].get('median_abs_err')),
+                        fmt(g['high'].get('median_abs_err')),
+                        fmt(g['low'].get('median_abs_err')),
                     ]
                 )
     if not rows:
         return None
-    return _table(['sequence', 'method', 'high-gradient', 'low-gradient'], rows)
+    return table(['sequence', 'method', 'high-gradient', 'low-gradient'], rows)
 
 
 def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> str:
@@ -147,9 +146,9 @@ def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> st
         ),
         ('Online adaptation, prequential (figure adaptation_mae.png)', adaptation_table(doc)),
     ]
-    for title, table in sections:
-        if table:
-            out += [f'## {title}', '', table, '']
+    for title, section in sections:
+        if section:
+            out += [f'## {title}', '', section, '']
     out += ['## All metrics', '']
     for name, seq in doc['sequences'].items():
         out += [f'### {name} ({seq["frames"]} keyframes)', '', metrics_table(seq['methods']), '']

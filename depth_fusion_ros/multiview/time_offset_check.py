@@ -134,13 +134,14 @@ class TimeOffsetEstimate:
 
     @property
     def flat(self) -> bool:
-        """Whether the pairs fit every offset about alike (smooth motion): the fitted offset is
-        then wherever the noise put it, often the search's edge, and is not worth saying."""
-        return self.sharpness < _MIN_SHARPNESS
+        """Whether the pairs fit every offset about alike (smooth motion; the verdict is then
+        ``unobservable``): the fitted offset is wherever the noise put it, often the search's
+        edge, and is not worth saying. The one test the log, the diagnostics and the report read."""
+        return self.verdict == 'unobservable' and self.sharpness < _MIN_SHARPNESS
 
     def fit_phrase(self) -> str:
         """The fit in a few words: the offset and its standard error, or "flat"."""
-        if self.verdict == 'unobservable' and self.flat:
+        if self.flat:
             return f'flat over {self.pairs} pairs'
         return f'{self.offset * 1000:+.0f} +- {self.stderr * 1000:.0f} ms'
 
@@ -160,7 +161,7 @@ class TimeOffsetEstimate:
                 f'time offset check: {fit}: off by the fit, not surely: pose_time_offset {self.told:.3f} '
                 f'kept ({self.fitted:.3f} would fit best); check the clocks'
             )
-        if self.verdict == 'unobservable' and self.flat:
+        if self.flat:
             return (
                 f'time offset check: the motion is too smooth to show an offset (the images fit every '
                 f'offset alike over {self.pairs} pairs; none would matter to the depth either): '
