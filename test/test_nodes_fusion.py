@@ -95,8 +95,13 @@ class _Inputs:
 
 
 def _fusion_node(ros: RosHarness, **params) -> FusionNode:
-    """Eager kernels unless a test asks (compiling costs seconds per node; one test checks it)."""
-    params = {'fusion.compile_kernel': False, **params}
+    """Eager kernels unless a test asks (compiling costs seconds per node; one test checks it).
+
+    The halo test off unless a test asks: the tests compare the node with an offline fusion
+    of the same inputs, and whether the optional image is paired before the depths complete a
+    keyframe is up to DDS (topics are not ordered among each other); one test checks the test.
+    """
+    params = {'fusion.compile_kernel': False, 'fusion.halo_min_step': 0.0, **params}
     overrides = [Parameter('queue_size', value=8), *(Parameter(k, value=v) for k, v in params.items())]
     return ros.add(FusionNode(context=ros.context, parameter_overrides=overrides))
 
@@ -380,3 +385,29 @@ def test_a_keyframe_fused_while_another_waits_uses_load_max_points_and_is_counte
     np.testing.assert_allclose(m.image_to_numpy(depths[0]), expected, rtol=1e-5, atol=1e-5)
     assert not np.allclose(expected, _offline(scene), atol=1e-4)  # a different fusion than uncapped
     assert snap.noted.get('reduced_under_load') == 1
+
+
+def test_the_keyframe_image_gives_the_halo_test_and_a_keyframe_without_it_is_counted():
+    """The fusion reads the keyframe image (which multi_view_node sends before its depth) to
+    find the points of a silhouette's halo (fusion/occlusion.py), whether or not it colours a
+    cloud. A keyframe whose image did not come is fused without the test, and counted."""
+    import json
+
+    scene = _scene(0)
+    a, b = 5_000_000_000, 5_033_333_333
+    with RosHarness() as ros:
+        # publish_points off: no cloud to colour, the image is for the halo test alone
+        node = _fusion_node(ros, publish_points=False, **{'fusion.halo_min_step': 0.1})
+        decisions, inputs = ros.collect(String, '/depth_fusion/fused/decision'), _Inputs(ros)
+        inputs.publish('image', scene, a)
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('keyframe_image') == 1, 10.0)
+        inputs.keyframe(scene, a, skip=('image',))
+        assert ros.wait_for(lambda: len(decisions) == 1, 20.0), node.stats.snapshot().summary()
+        inputs.keyframe(scene, b, skip=('image',))
+        assert ros.wait_for(lambda: len(decisions) == 2, 20.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+
+    first, second = (json.loads(msg.data)['evidence'] for msg in decisions)
+    assert first['halo_checked'] == 1.0 and 'n_halo' in first
+    assert second['halo_checked'] == 0.0
+    assert snap.noted.get('halo_unchecked') == 1

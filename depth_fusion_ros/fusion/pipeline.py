@@ -43,6 +43,7 @@ from .interpolation import (
     confidence_from_support,
     interpolate,
 )
+from .occlusion import check_min_step, halo_points
 from .precision import check_half_weight, precision_weights
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
 from .subsample import seeded_subsample
@@ -101,6 +102,12 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
         "at the points (the guard's single_error and global scale): a single-view depth nearly as "
         'precise as the points keeps more of itself (0: off)'
     ),
+    'halo_min_step': (
+        "drop the points in a silhouette's halo (the foreground's depth on background pixels next to "
+        "it, a patch matcher's fattening): on the far side of an image edge where the single-view log "
+        'depth steps by more than this beyond a ramp, with a depth nearer than halfway; needs the '
+        'keyframe image (0: off)'
+    ),
     'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
 
@@ -146,6 +153,9 @@ class FusionConfig:
     #: κ also follows the single-view depth's precision against the points' (guard evidence):
     #: at least this × (mv_noise / e)², e its error at the points (0: off, the fixed floor alone).
     certainty_gain: float = 30.0
+    #: Points in a silhouette's halo leave Ω (``occlusion.py``) where the single-view depth
+    #: steps by more than this (log depth) at the edge; 0: off, every stage-2 point stays.
+    halo_min_step: float = 0.1
     #: Check the evidence per keyframe and degrade gracefully (``guard.py``, ``GuardConfig``).
     guard: bool = True
     device: str = 'cpu'
@@ -180,6 +190,7 @@ class FusionConfig:
             )
         check_half_weight(self.std_half_weight)
         check_certainty_floor(self.certainty_floor)
+        check_min_step(self.halo_min_step)
         if not (np.isfinite(self.certainty_gain) and self.certainty_gain >= 0):
             raise ValueError(
                 f'certainty_gain must be a finite number >= 0 (0: off), got {self.certainty_gain}'
@@ -254,6 +265,7 @@ def fuse_keyframe(
     guard_config: GuardConfig | None = None,
     evidence: MultiViewEvidence | None = None,
     consistency_config: ConsistencyConfig | None = None,
+    image: np.ndarray | None = None,
 ) -> FusionResult:
     """Fuse one keyframe (all inputs HxW on the working grid).
 
@@ -265,6 +277,8 @@ def fuse_keyframe(
     optional per-pixel multi-view evidence (``guard.MultiViewEvidence``).
     ``consistency_config``: stage 3 (``consistency.py``; off by default): every multi-view
     estimate of the stage-2 band tested against its neighbours, skipped with a given Ω.
+    ``image``: the keyframe (grey or RGB) for the halo test (``occlusion.py``,
+    ``halo_min_step``); without it the test is skipped (``evidence['halo_checked']`` 0).
     """
     config = config or FusionConfig()
     check_output_kind(output_kind)
@@ -282,6 +296,7 @@ def fuse_keyframe(
 
     if not np.isfinite(s).any():
         return _fallback(s, stage1, n_stage1, 'no_single_view', needs_fit)
+    halo: dict[str, float] = {}
     if omega_mask is not None:
         omega = _mask(omega_mask, s.shape, 'omega_mask') & usable
         if not omega.any():
@@ -290,6 +305,10 @@ def fuse_keyframe(
         if not fit.ok and config.aligns(output_kind):
             return _fallback(s, stage1, n_stage1, 'too_few_points', needs_fit)
     else:
+        if output_kind == 'metric_depth':
+            # A metric source is a depth already: its halo leaves before stage 2, whose line
+            # is then fitted without it (the halo is too near by the whole step, a bias).
+            stage1, halo = _without_halo(image, s, m, stage1, config.halo_min_step)
         fit = fit_alignment(s[stage1], m[stage1], output_kind, config)
         if not fit.ok:
             log.debug('stage 2 failed (%s) on %d stage-1 points', fit.reason, n_stage1)
@@ -301,6 +320,9 @@ def fuse_keyframe(
     aligned = apply_alignment(s, fit) if config.aligns(output_kind) else AlignedDepth(s, 0)
     base = aligned.depth
     consistency_config = consistency_config or ConsistencyConfig()
+    if omega_mask is None and output_kind != 'metric_depth':
+        # Relative and inverse sources are a depth only once aligned.
+        omega, halo = _without_halo(image, base, m, omega, config.halo_min_step)
     stage3: dict[str, float] = {}
     if consistency_config.enabled and omega_mask is None:
         candidates = stage3_candidates(
@@ -318,7 +340,11 @@ def fuse_keyframe(
     verdict = None
     if config.guard and omega_mask is None:
         sample = None if config.max_points is None else GUARD_SAMPLE_FACTOR * config.max_points
-        verdict = assess(base, m, omega, n_stage1, guard_config, evidence, sample=sample, seed=config.seed)
+        # The halo's points leave stage 1 as well: the inlier ratio asks whether the fit explains
+        # the points the multi-view stage offered, and those were dropped for another reason.
+        offered = n_stage1 - int(halo.get('n_halo', 0))
+        verdict = assess(base, m, omega, offered, guard_config, evidence, sample=sample, seed=config.seed)
+        verdict.evidence.update(halo)
         verdict.evidence.update(stage3)
         if verdict.decision not in ('full', 'fewer_points'):
             return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config, needs_fit)
@@ -374,9 +400,21 @@ def fuse_keyframe(
         **_verdict_fields(verdict),
     )
     # With the guard or without: how much of the correction the certainty floor kept.
+    result.evidence.update(halo)
     result.evidence['certainty'] = interp.kept
     result.evidence['certainty_floor'] = kappa
     return result
+
+
+def _without_halo(
+    image: np.ndarray | None, base: np.ndarray, m: np.ndarray, omega: np.ndarray, min_step: float
+) -> tuple[np.ndarray, dict[str, float]]:
+    """Ω less the points in a silhouette's halo (``occlusion.halo_points``), and the evidence:
+    ``halo_checked`` (0 when the test is off or the keyframe image is missing) and ``n_halo``."""
+    if min_step <= 0 or image is None:
+        return omega, {'halo_checked': 0.0, 'n_halo': 0.0}
+    halo = halo_points(image, base, m, omega, min_step)
+    return omega & ~halo, {'halo_checked': 1.0, 'n_halo': float(np.count_nonzero(halo))}
 
 
 def keyframe_floor(config: FusionConfig, verdict: GuardVerdict | None) -> float:

@@ -276,7 +276,8 @@ class FusionNode(DepthFusionNode):
         self.announced_kind: str | None = None
         self.announced_method: str | None = None
         self.required = REQUIRED_PARTS
-        self.want_rgb = bool(p['publish_points'] and p['points_color'])
+        # The keyframe image colours the cloud and places the points of a silhouette's halo.
+        self.want_rgb = bool(p['publish_points'] and p['points_color']) or self.config.halo_min_step > 0
         self.pairer = StampPairer(
             REQUIRED_PARTS,
             ('rgb', 'mv_std'),
@@ -440,6 +441,7 @@ class FusionNode(DepthFusionNode):
             # the parallax evidence evaluate gives the guard, when the optional std part came
             evidence=MultiViewEvidence.from_depth_std(mv_depth, _same_shape(parts.get('mv_std'), mv_depth)),
             consistency_config=self.consistency_config,
+            image=self._halo_image(parts.get('rgb'), single.shape, stamp),
         )
         if result.withheld:
             self.stats.noted(
@@ -472,6 +474,19 @@ class FusionNode(DepthFusionNode):
         self.stats.published('fused')
         self.events.event(job.pairing.stamp_ns, EVENT_FUSED)
         self.stats.processed(time.monotonic() - job.received_at)
+
+    def _halo_image(self, rgb: np.ndarray | None, shape: tuple[int, ...], stamp: float) -> np.ndarray | None:
+        """The keyframe image for the fusion's halo test, or None (counted) when it did not come
+        in time or is not on the depth's grid: the keyframe is then fused without the test."""
+        if self.config.halo_min_step <= 0:
+            return None
+        if rgb is None or rgb.shape[:2] != tuple(shape):
+            why = 'did not come' if rgb is None else f'is {rgb.shape[1]}x{rgb.shape[0]}, off the depth grid'
+            self.stats.noted(
+                'halo_unchecked', f'keyframe {stamp:.3f}: its image {why}; fused without the halo test'
+            )
+            return None
+        return rgb
 
     def _cloud(
         self,

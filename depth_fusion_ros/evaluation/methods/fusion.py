@@ -3,7 +3,8 @@
 * ``fused`` — the paper's method: stage-1 (best ``stage1_fraction`` by score) and stage-2
   (RANSAC) point selection, then the interpolation with all four weights;
 * ``fused_fast`` — the same in the fast mode (the harness then measures fast vs exact);
-* ``fused_unguarded`` — ``fused`` without the guard (``fusion.guard=false``) and with the
+* ``fused_unguarded`` — ``fused`` without the guard (``fusion.guard=false``) or the halo test
+  (``fusion.halo_min_step=0``, ``fusion/occlusion.py``) and with the
   paper's weights as written (``fusion.structure_scale=1``): the paper's fusion as it was,
   to compare with;
 * ``fused_oracle`` — Ω = the multi-view points within ``oracle_threshold`` (10 cm) of the
@@ -178,6 +179,7 @@ def fuse_automatic(
         guard_config=guard_settings(ctx),
         evidence=MultiViewEvidence.from_result(mv),
         consistency_config=consistency,
+        image=ctx.frame.gray,
     )
 
 
@@ -231,9 +233,11 @@ _register(
 )
 _register(
     'fused_unguarded',
-    "as fused without the guard and in the paper's metres: every stage-2 point bends the depth",
+    "as fused without the guard or the halo test and in the paper's metres: every stage-2 point "
+    'bends the depth',
     fused_automatic,
     guard=False,
+    halo_min_step=0.0,
     **PAPER_AS_WRITTEN,
 )
 _register(

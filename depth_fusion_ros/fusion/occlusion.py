@@ -1,0 +1,201 @@
+"""Multi-view points in a silhouette's halo: the foreground's depth on the background's pixels.
+
+A patch matcher (the ZNCC of the sweep and of the filter, ``multiview/descriptors.py``) gives a
+pixel just outside a foreground object the *foreground's* depth. Its patch holds the object's
+silhouette, often the only texture there, and the silhouette moves with the object between the
+views, so the patch matches best at the object's depth ("foreground fattening", a classic of
+stereo matching). Every silhouette then carries a halo of points one or two pixels wide, too
+near by the whole depth step. Measured on the stress case ``low_texture`` (seed 31, the shipped
+network, causal neighbours): 25-35 % of the multi-view points are more than 10 % off, 66-97 % of
+those are too near, and 90-96 % of those carry a depth the ground truth has within 2 px. They sit
+in tight lines along the silhouettes, so the guard's local test (each point against its
+neighbours, ``guard.py``) sees them agree with each other; their corrections, weighed as
+similar to the background (their single-view depth is the background's), spread into the
+walls around. There the fused depth was worse than the single view (1.04x over the stream).
+
+The keyframe image and the single-view depth tell the halo apart; the multi-view depth alone
+cannot (both sides of the silhouette carry the foreground's depth). Per point ``p``, along the
+direction ``n`` of the image gradient at ``p``:
+
+1. **the intensity edge**: the sub-pixel peak of the gradient magnitude within
+   ``±SEARCH_PX`` of ``p`` (parabolic fit around the largest sample);
+2. **an occluding edge there**: the single-view log depth at ``p ± SIDE_PX · n`` differs by more
+   than ``min_step``, beyond what a ramp explains (the same spans further out: a slanted floor
+   or wall changes its depth steadily and does not count);
+3. **p on the far side**: the single-view step says which side of the edge is farther, and ``p``
+   lies on that side of the peak;
+4. **a foreground depth**: the point's multi-view depth is nearer than halfway (in log depth)
+   between the two sides' single-view depths, scaled to the points by their median ratio;
+5. **nothing beyond says otherwise**: the multi-view points ``BEYOND_PX`` further on the far
+   side (two or more of them) are not nearer the point's depth than the far side's. Where they
+   are, the single view's step is its own error (a region of the prediction off, its border on
+   an image edge), not an occlusion, and the point is right.
+
+The five together drop 9-30 % of a keyframe's points on the stress cases (docs/fusion.md
+"Silhouette halos"). Where the single-view depth has no step at an edge, or the point lies on
+its near side, the point is kept: the test removes no point the single view cannot place.
+The single view's step must sit at the image's edge for the side to be right; a single view
+from the image (a network) has its edges there, one from a misregistered depth camera may not
+(docs/fusion.md: TUM's ground-truth edges lie -1.7 to +2.2 px off the image's).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import cv2
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+#: Half-length (px) of the search for the intensity edge along the gradient direction.
+SEARCH_PX = 3
+#: Distance (px) on each side of a point at which the single-view depth is read: past the
+#: blur of a network's depth edge (2-4 px at 320x240) and of the halo itself.
+SIDE_PX = 6.0
+#: Grey-image blur (Gaussian sigma, px) before the gradient: a little more than the
+#: descriptors' 0.5, so that a sharp step's gradient peaks on a parabola.
+BLUR_SIGMA = 0.7
+#: A halo point's depth is nearer than this share of the step from the near side (log depth).
+NEAR_SHARE = 0.5
+#: The span (px, from, to) beyond a point on the far side whose points may speak for it.
+BEYOND_PX = (3, 8)
+#: Fewer points than this: nothing to scale the single view with, nothing tested.
+MIN_POINTS = 20
+
+
+def check_min_step(min_step: float) -> None:
+    if not (np.isfinite(min_step) and min_step >= 0):
+        raise ValueError(f'halo_min_step must be a finite number >= 0 (0: off), got {min_step}')
+
+
+def gray_image(image: np.ndarray) -> np.ndarray:
+    """Float32 grey image from an HxW grey or HxWx3 RGB image (any scale: only gradients count)."""
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] == 3:
+        a = a.astype(np.float32).mean(axis=2)
+    if a.ndim != 2:
+        raise ValueError(f'keyframe image must be HxW or HxWx3, got shape {a.shape}')
+    return a.astype(np.float32)
+
+
+def halo_points(
+    image: np.ndarray,
+    base: np.ndarray,
+    m: np.ndarray,
+    points: np.ndarray,
+    min_step: float = 0.1,
+) -> np.ndarray:
+    """The points of ``points`` (HxW bool) that sit in a silhouette's halo (see the module doc).
+
+    ``image``: the keyframe (grey or RGB, the working grid); ``base``: the single-view depth the
+    fusion starts from (metres, any global scale); ``m``: the multi-view depth. Returns an HxW
+    bool mask, a subset of ``points``; empty when ``min_step`` is 0 or the points are too few.
+    """
+    out = np.zeros(points.shape, dtype=bool)
+    if min_step <= 0:
+        return out
+    gray = gray_image(image)
+    if gray.shape != points.shape:
+        raise ValueError(f'keyframe image {gray.shape} and depth {points.shape} differ in size')
+    with np.errstate(invalid='ignore', divide='ignore'):
+        log_s = np.log(np.where(np.isfinite(base) & (base > 0), base, np.nan)).astype(np.float32)
+        usable = points & np.isfinite(log_s) & np.isfinite(m) & (m > 0)
+    rows, cols = np.nonzero(usable)
+    if len(rows) < MIN_POINTS:
+        return out
+    log_m = np.log(m[rows, cols].astype(np.float32))
+    scale = float(np.median(log_m - log_s[rows, cols]))
+    nx, ny, peak = _edge_offsets(gray, rows, cols)
+    filled = np.nan_to_num(log_s, nan=float(np.nanmedian(log_s)))
+    near_side, far_side, ramp = _single_view_sides(filled, rows, cols, nx, ny)
+    step = far_side - near_side  # >= 0 by construction: the far side's log depth minus the near's
+    # Step 3: the far side is +n where the depth grows along n; p is at -peak from the edge.
+    grows = _along(filled, rows, cols, nx, ny, SIDE_PX) > _along(filled, rows, cols, nx, ny, -SIDE_PX)
+    offset = np.where(grows, -peak, peak)
+    halo = (step - ramp > min_step) & (offset > 0)
+    halo &= log_m - scale < near_side + NEAR_SHARE * step
+    log_points = np.full(points.shape, np.nan, dtype=np.float32)
+    log_points[rows, cols] = log_m
+    halo &= ~_beyond_agrees(log_points, rows, cols, nx, ny, grows, log_m, far_side + scale)
+    out[rows[halo], cols[halo]] = True
+    return out
+
+
+def _beyond_agrees(
+    log_points: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    nx: np.ndarray,
+    ny: np.ndarray,
+    grows: np.ndarray,
+    log_m: np.ndarray,
+    far_log: np.ndarray,
+) -> np.ndarray:
+    """Whether the multi-view points beyond each point (``BEYOND_PX`` further on the far
+    side, and 1 px to either side of that line; two or more of them) are nearer the point's
+    log depth than the single view's far side (``far_log``, scaled to the points): then the
+    single view's step is its own error (a region off), not an occlusion."""
+    h, w = log_points.shape
+    sign = np.where(grows, 1.0, -1.0).astype(np.float32)
+    ts = np.arange(BEYOND_PX[0], BEYOND_PX[1] + 1, dtype=np.float32)
+    lateral = np.array([-1.0, 0.0, 1.0], dtype=np.float32)
+    x = cols[:, None, None] + sign[:, None, None] * ts[None, :, None] * nx[:, None, None]
+    x = x - lateral[None, None, :] * ny[:, None, None]
+    y = rows[:, None, None] + sign[:, None, None] * ts[None, :, None] * ny[:, None, None]
+    y = y + lateral[None, None, :] * nx[:, None, None]
+    xi = np.clip(np.rint(x).astype(np.int64), 0, w - 1)
+    yi = np.clip(np.rint(y).astype(np.int64), 0, h - 1)
+    samples = log_points[yi, xi].reshape(len(rows), -1)
+    count = np.isfinite(samples).sum(axis=1)
+    with np.errstate(invalid='ignore'), warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)
+        beyond = np.nanmedian(samples, axis=1)
+    return (count >= 2) & (np.abs(beyond - log_m) < np.abs(beyond - far_log))
+
+
+def _edge_offsets(gray: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Unit gradient direction at each point and the sub-pixel offset (along it) of the
+    gradient magnitude's peak within ``±SEARCH_PX``."""
+    g = cv2.GaussianBlur(gray, (0, 0), BLUR_SIGMA)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    magnitude = np.hypot(gx, gy)
+    norm = np.maximum(magnitude[rows, cols], 1e-6)
+    nx, ny = gx[rows, cols] / norm, gy[rows, cols] / norm
+    steps = np.arange(-SEARCH_PX, SEARCH_PX + 1, dtype=np.float32)
+    samples = _sample(magnitude, cols[:, None] + steps * nx[:, None], rows[:, None] + steps * ny[:, None])
+    # The largest sample away from the ends, refined by a parabola through it and its neighbours.
+    j = np.clip(np.argmax(samples, axis=1), 1, 2 * SEARCH_PX - 1)
+    idx = np.arange(len(j))
+    left, centre, right = samples[idx, j - 1], samples[idx, j], samples[idx, j + 1]
+    curvature = left - 2.0 * centre + right
+    peaked = curvature < -1e-9
+    delta = np.where(peaked, 0.5 * (left - right) / np.where(peaked, curvature, -1.0), 0.0)
+    return nx, ny, steps[j] + np.clip(delta, -1.0, 1.0)
+
+
+def _single_view_sides(
+    log_s: np.ndarray, rows: np.ndarray, cols: np.ndarray, nx: np.ndarray, ny: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The near and far sides' single-view log depth at ``±SIDE_PX`` and the change a ramp
+    would make over the same span (from the spans beyond, ``SIDE_PX`` to ``2 SIDE_PX``)."""
+    plus, minus = _along(log_s, rows, cols, nx, ny, SIDE_PX), _along(log_s, rows, cols, nx, ny, -SIDE_PX)
+    plus2, minus2 = (
+        _along(log_s, rows, cols, nx, ny, 2 * SIDE_PX),
+        _along(log_s, rows, cols, nx, ny, -2 * SIDE_PX),
+    )
+    sign = np.sign(plus - minus)
+    ramp = sign * ((plus2 - plus) + (minus - minus2))
+    return np.minimum(plus, minus), np.maximum(plus, minus), ramp
+
+
+def _along(
+    image: np.ndarray, rows: np.ndarray, cols: np.ndarray, nx: np.ndarray, ny: np.ndarray, distance: float
+) -> np.ndarray:
+    return _sample(image, (cols + distance * nx)[:, None], (rows + distance * ny)[:, None])[:, 0]
+
+
+def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image`` at ``(x, y)`` (any shape of coordinates; borders replicated)."""
+    coords = np.stack((y.ravel(), x.ravel())).astype(np.float32)
+    return map_coordinates(image, coords, order=1, mode='nearest').reshape(x.shape)
