@@ -41,8 +41,6 @@ from the image (a network) has its edges there, one from a misregistered depth c
 
 from __future__ import annotations
 
-import warnings
-
 import cv2
 import numpy as np
 from scipy.ndimage import map_coordinates
@@ -107,16 +105,20 @@ def halo_points(
     scale = float(np.median(log_m - log_s[rows, cols]))
     nx, ny, peak = _edge_offsets(gray, rows, cols)
     filled = np.nan_to_num(log_s, nan=float(np.nanmedian(log_s)))
-    near_side, far_side, ramp = _single_view_sides(filled, rows, cols, nx, ny)
+    near_side, far_side, ramp, grows = _single_view_sides(filled, rows, cols, nx, ny)
     step = far_side - near_side  # >= 0 by construction: the far side's log depth minus the near's
     # Step 3: the far side is +n where the depth grows along n; p is at -peak from the edge.
-    grows = _along(filled, rows, cols, nx, ny, SIDE_PX) > _along(filled, rows, cols, nx, ny, -SIDE_PX)
     offset = np.where(grows, -peak, peak)
     halo = (step - ramp > min_step) & (offset > 0)
     halo &= log_m - scale < near_side + NEAR_SHARE * step
+    # Step 5 on the candidates only (a fifth of the points or fewer: it is the costly one).
     log_points = np.full(points.shape, np.nan, dtype=np.float32)
     log_points[rows, cols] = log_m
-    halo &= ~_beyond_agrees(log_points, rows, cols, nx, ny, grows, log_m, far_side + scale)
+    c = np.flatnonzero(halo)
+    if c.size:
+        far_log = far_side[c] + scale
+        beyond = _beyond_agrees(log_points, rows[c], cols[c], nx[c], ny[c], grows[c], log_m[c], far_log)
+        halo[c[beyond]] = False
     out[rows[halo], cols[halo]] = True
     return out
 
@@ -145,11 +147,12 @@ def _beyond_agrees(
     y = y + lateral[None, None, :] * nx[:, None, None]
     xi = np.clip(np.rint(x).astype(np.int64), 0, w - 1)
     yi = np.clip(np.rint(y).astype(np.int64), 0, h - 1)
-    samples = log_points[yi, xi].reshape(len(rows), -1)
+    samples = np.sort(log_points[yi, xi].reshape(len(rows), -1), axis=1)  # NaN (no point) last
     count = np.isfinite(samples).sum(axis=1)
-    with np.errstate(invalid='ignore'), warnings.catch_warnings():
-        warnings.simplefilter('ignore', RuntimeWarning)
-        beyond = np.nanmedian(samples, axis=1)
+    # The median of each row's finite samples (np.nanmedian is ten times slower here).
+    idx = np.arange(len(rows))
+    low, high = np.maximum(count - 1, 0) // 2, count // 2
+    beyond = 0.5 * (samples[idx, low] + samples[idx, np.minimum(high, samples.shape[1] - 1)])
     return (count >= 2) & (np.abs(beyond - log_m) < np.abs(beyond - far_log))
 
 
@@ -176,9 +179,10 @@ def _edge_offsets(gray: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple
 
 def _single_view_sides(
     log_s: np.ndarray, rows: np.ndarray, cols: np.ndarray, nx: np.ndarray, ny: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The near and far sides' single-view log depth at ``±SIDE_PX`` and the change a ramp
-    would make over the same span (from the spans beyond, ``SIDE_PX`` to ``2 SIDE_PX``)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The near and far sides' single-view log depth at ``±SIDE_PX``, the change a ramp
+    would make over the same span (from the spans beyond, ``SIDE_PX`` to ``2 SIDE_PX``), and
+    whether the far side is along ``n`` (``+SIDE_PX``)."""
     plus, minus = _along(log_s, rows, cols, nx, ny, SIDE_PX), _along(log_s, rows, cols, nx, ny, -SIDE_PX)
     plus2, minus2 = (
         _along(log_s, rows, cols, nx, ny, 2 * SIDE_PX),
@@ -186,7 +190,7 @@ def _single_view_sides(
     )
     sign = np.sign(plus - minus)
     ramp = sign * ((plus2 - plus) + (minus - minus2))
-    return np.minimum(plus, minus), np.maximum(plus, minus), ramp
+    return np.minimum(plus, minus), np.maximum(plus, minus), ramp, plus > minus
 
 
 def _along(
