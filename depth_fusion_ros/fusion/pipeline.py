@@ -5,7 +5,9 @@ call. Numpy in, numpy out; the interpolation runs on torch (``FusionConfig.devic
 
 Steps (paper §III-C/§III-D):
 
-1. stage-1 points = the given mask where ``m`` and ``s`` are finite (``n_stage1``);
+1. stage-1 points = the given mask where ``m`` and ``s`` are finite (``n_stage1``), less
+   the points of a silhouette's halo when the keyframe image is given (``occlusion.py``; a
+   relative or inverse source after step 3 instead, once it is a depth);
 2. RANSAC ``m ≈ a·s + b`` over them; inliers = Ω (``n_omega``), or a given Ω (oracle);
 3. ``s ← a·s + b`` when aligning (default: only for non-metric sources), in the model's own
    space (``alignment.py``); pixels mapped to a non-positive depth are NaN (``n_nonpositive``);
