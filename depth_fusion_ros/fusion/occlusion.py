@@ -31,9 +31,10 @@ direction ``n`` of the image gradient at ``p``:
    are, the single view's step is its own error (a region of the prediction off, its border on
    an image edge), not an occlusion, and the point is right.
 
-The five together drop 9-30 % of a keyframe's points on the stress cases (docs/fusion.md
-"Silhouette halos"). Where the single-view depth has no step at an edge, or the point lies on
-its near side, the point is kept: the test removes no point the single view cannot place.
+The five together drop 2-14 % of the points of a stress case's stream (docs/fusion.md
+"Silhouette halos"; most on ``low_texture``). Where the single-view depth has no step at an
+edge, or the point lies on its near side, the point is kept: the test removes no point the
+single view cannot place.
 The single view's step must sit at the image's edge for the side to be right; a single view
 from the image (a network) has its edges there, one from a misregistered depth camera may not
 (docs/fusion.md: TUM's ground-truth edges lie -1.7 to +2.2 px off the image's).
