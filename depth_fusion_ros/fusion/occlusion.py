@@ -46,6 +46,8 @@ import cv2
 import numpy as np
 from scipy.ndimage import map_coordinates
 
+from ..data.sequence import rgb_to_gray
+
 #: Half-length (px) of the search for the intensity edge along the gradient direction.
 SEARCH_PX = 3
 #: Distance (px) on each side of a point at which the single-view depth is read: past the
@@ -68,10 +70,11 @@ def check_min_step(min_step: float) -> None:
 
 
 def gray_image(image: np.ndarray) -> np.ndarray:
-    """Float32 grey image from an HxW grey or HxWx3 RGB image (any scale: only gradients count)."""
+    """Float32 grey image from an HxW grey or HxWx3 RGB image (``data.sequence.rgb_to_gray``,
+    the matcher's own grey; any scale: only gradients count)."""
     a = np.asarray(image)
     if a.ndim == 3 and a.shape[2] == 3:
-        a = a.astype(np.float32).mean(axis=2)
+        return rgb_to_gray(a)
     if a.ndim != 2:
         raise ValueError(f'keyframe image must be HxW or HxWx3, got shape {a.shape}')
     return a.astype(np.float32)
@@ -184,20 +187,12 @@ def _single_view_sides(
     """The near and far sides' single-view log depth at ``±SIDE_PX``, the change a ramp
     would make over the same span (from the spans beyond, ``SIDE_PX`` to ``2 SIDE_PX``), and
     whether the far side is along ``n`` (``+SIDE_PX``)."""
-    plus, minus = _along(log_s, rows, cols, nx, ny, SIDE_PX), _along(log_s, rows, cols, nx, ny, -SIDE_PX)
-    plus2, minus2 = (
-        _along(log_s, rows, cols, nx, ny, 2 * SIDE_PX),
-        _along(log_s, rows, cols, nx, ny, -2 * SIDE_PX),
-    )
+    reach = np.array([SIDE_PX, -SIDE_PX, 2 * SIDE_PX, -2 * SIDE_PX], dtype=np.float32)
+    sides = _sample(log_s, cols[:, None] + reach * nx[:, None], rows[:, None] + reach * ny[:, None])
+    plus, minus, plus2, minus2 = sides.T
     sign = np.sign(plus - minus)
     ramp = sign * ((plus2 - plus) + (minus - minus2))
     return np.minimum(plus, minus), np.maximum(plus, minus), ramp, plus > minus
-
-
-def _along(
-    image: np.ndarray, rows: np.ndarray, cols: np.ndarray, nx: np.ndarray, ny: np.ndarray, distance: float
-) -> np.ndarray:
-    return _sample(image, (cols + distance * nx)[:, None], (rows + distance * ny)[:, None])[:, 0]
 
 
 def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
