@@ -10,6 +10,8 @@ slanted surface). The single view is the truth 5 % too far, blurred (a network's
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
@@ -131,3 +133,16 @@ def test_a_region_the_single_view_has_off_is_kept_where_points_beyond_agree() ->
     assert not halo_points(image, single, m, points).any()
     alone = np.where(edge, depth, np.nan).astype(np.float32)
     assert halo_points(image, single, alone, np.isfinite(alone)).any()
+
+
+def test_the_bench_row_times_the_test_on_a_fattened_box_scene() -> None:
+    """``depth-fusion bench --only fusion`` prints the halo test's cost on a scene where it has
+    work: most of the fattened points are flagged, and few others."""
+    from depth_fusion_ros.bench.fusion import _halo_row
+
+    row = _halo_row(160, 120, 5000, repeats=1)
+    assert row.unit == 's' and 0 < row.value < 5
+    flagged, found, wrong = (int(n) for n in re.findall(r'flagged (\d+), (\d+) of the (\d+)', row.note)[0])
+    assert wrong > 50
+    assert found >= 0.8 * wrong
+    assert flagged - found <= 0.2 * flagged

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.ndimage import map_coordinates
 
 from ..data.sequence import rgb_to_gray
 
@@ -62,6 +61,8 @@ NEAR_SHARE = 0.5
 BEYOND_PX = (3, 8)
 #: Fewer points than this: nothing to scale the single view with, nothing tested.
 MIN_POINTS = 20
+#: Width of the maps handed to ``cv2.remap`` (its maps must stay below 32767 a side).
+_REMAP_WIDTH = 1024
 
 
 def check_min_step(min_step: float) -> None:
@@ -107,9 +108,12 @@ def halo_points(
         return out
     log_m = np.log(m[rows, cols].astype(np.float32))
     scale = float(np.median(log_m - log_s[rows, cols]))
-    nx, ny, peak = _edge_offsets(gray, rows, cols)
-    filled = np.nan_to_num(log_s, nan=float(np.nanmedian(log_s)))
-    near_side, far_side, ramp, grows = _single_view_sides(filled, rows, cols, nx, ny)
+    # Float32 coordinates: every sample position below is computed in float32 (half the work).
+    x, y = cols.astype(np.float32), rows.astype(np.float32)
+    nx, ny, peak = _edge_offsets(gray, x, y, rows, cols)
+    finite = np.isfinite(log_s)
+    filled = np.where(finite, log_s, np.float32(np.median(log_s[finite])))
+    near_side, far_side, ramp, grows = _single_view_sides(filled, x, y, nx, ny)
     step = far_side - near_side  # >= 0 by construction: the far side's log depth minus the near's
     # Step 3: the far side is +n where the depth grows along n; p is at -peak from the edge.
     offset = np.where(grows, -peak, peak)
@@ -121,7 +125,7 @@ def halo_points(
     c = np.flatnonzero(halo)
     if c.size:
         far_log = far_side[c] + scale
-        beyond = _beyond_agrees(log_points, rows[c], cols[c], nx[c], ny[c], grows[c], log_m[c], far_log)
+        beyond = _beyond_agrees(log_points, y[c], x[c], nx[c], ny[c], grows[c], log_m[c], far_log)
         halo[c[beyond]] = False
     out[rows[halo], cols[halo]] = True
     return out
@@ -149,8 +153,8 @@ def _beyond_agrees(
     x = x - lateral[None, None, :] * ny[:, None, None]
     y = rows[:, None, None] + sign[:, None, None] * ts[None, :, None] * ny[:, None, None]
     y = y + lateral[None, None, :] * nx[:, None, None]
-    xi = np.clip(np.rint(x).astype(np.int64), 0, w - 1)
-    yi = np.clip(np.rint(y).astype(np.int64), 0, h - 1)
+    xi = np.clip(np.rint(x).astype(np.intp), 0, w - 1)
+    yi = np.clip(np.rint(y).astype(np.intp), 0, h - 1)
     samples = np.sort(log_points[yi, xi].reshape(len(rows), -1), axis=1)  # NaN (no point) last
     count = np.isfinite(samples).sum(axis=1)
     # The median of each row's finite samples (np.nanmedian is ten times slower here).
@@ -160,21 +164,24 @@ def _beyond_agrees(
     return (count >= 2) & (np.abs(beyond - log_m) < np.abs(beyond - far_log))
 
 
-def _edge_offsets(gray: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Unit gradient direction at each point and the sub-pixel offset (along it) of the
-    gradient magnitude's peak within ``±SEARCH_PX``."""
+def _edge_offsets(
+    gray: np.ndarray, x: np.ndarray, y: np.ndarray, rows: np.ndarray, cols: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """Unit gradient direction at each point (``x``, ``y``: float32 coordinates; ``rows``,
+    ``cols``: the same as indices) and the sub-pixel offset (along it) of the gradient
+    magnitude's peak within ``±SEARCH_PX``."""
     g = cv2.GaussianBlur(gray, (0, 0), BLUR_SIGMA)
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
-    magnitude = np.hypot(gx, gy)
-    norm = np.maximum(magnitude[rows, cols], 1e-6)
+    magnitude = cv2.magnitude(gx, gy)
+    norm = np.maximum(magnitude[rows, cols], np.float32(1e-6))
     nx, ny = gx[rows, cols] / norm, gy[rows, cols] / norm
     steps = np.arange(-SEARCH_PX, SEARCH_PX + 1, dtype=np.float32)
-    samples = _sample(magnitude, cols[:, None] + steps * nx[:, None], rows[:, None] + steps * ny[:, None])
+    samples = _sample(magnitude, x[:, None] + steps * nx[:, None], y[:, None] + steps * ny[:, None])
     # The largest sample away from the ends, refined by a parabola through it and its neighbours.
-    j = np.clip(np.argmax(samples, axis=1), 1, 2 * SEARCH_PX - 1)
-    idx = np.arange(len(j))
-    left, centre, right = samples[idx, j - 1], samples[idx, j], samples[idx, j + 1]
+    j = np.clip(np.argmax(samples, axis=1), 1, 2 * SEARCH_PX - 1)[:, None]
+    left, centre, right = (np.take_along_axis(samples, j + k, axis=1)[:, 0] for k in (-1, 0, 1))
+    j = j[:, 0]
     curvature = left - 2.0 * centre + right
     peaked = curvature < -1e-9
     delta = np.where(peaked, 0.5 * (left - right) / np.where(peaked, curvature, -1.0), 0.0)
@@ -182,13 +189,13 @@ def _edge_offsets(gray: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple
 
 
 def _single_view_sides(
-    log_s: np.ndarray, rows: np.ndarray, cols: np.ndarray, nx: np.ndarray, ny: np.ndarray
+    log_s: np.ndarray, x: np.ndarray, y: np.ndarray, nx: np.ndarray, ny: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The near and far sides' single-view log depth at ``±SIDE_PX``, the change a ramp
     would make over the same span (from the spans beyond, ``SIDE_PX`` to ``2 SIDE_PX``), and
     whether the far side is along ``n`` (``+SIDE_PX``)."""
     reach = np.array([SIDE_PX, -SIDE_PX, 2 * SIDE_PX, -2 * SIDE_PX], dtype=np.float32)
-    sides = _sample(log_s, cols[:, None] + reach * nx[:, None], rows[:, None] + reach * ny[:, None])
+    sides = _sample(log_s, x[:, None] + reach * nx[:, None], y[:, None] + reach * ny[:, None])
     plus, minus, plus2, minus2 = sides.T
     sign = np.sign(plus - minus)
     ramp = sign * ((plus2 - plus) + (minus - minus2))
@@ -196,6 +203,22 @@ def _single_view_sides(
 
 
 def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` at ``(x, y)`` (any shape of coordinates; borders replicated)."""
-    coords = np.stack((y.ravel(), x.ravel())).astype(np.float32)
-    return map_coordinates(image, coords, order=1, mode='nearest').reshape(x.shape)
+    """Bilinear samples of ``image`` at ``(x, y)`` (any shape of coordinates; borders replicated).
+
+    One ``cv2.remap`` call on the flattened coordinates, folded ``_REMAP_WIDTH`` wide: five to
+    ten times faster than ``scipy.ndimage.map_coordinates`` here, at OpenCV's 1/32 px weights."""
+    n = x.size
+    rows = max(1, -(-n // _REMAP_WIDTH))
+    map_x = np.zeros(rows * _REMAP_WIDTH, dtype=np.float32)
+    map_y = np.zeros(rows * _REMAP_WIDTH, dtype=np.float32)
+    map_x[:n] = x.ravel()
+    map_y[:n] = y.ravel()
+    shape = (rows, _REMAP_WIDTH)
+    out = cv2.remap(
+        np.ascontiguousarray(image, dtype=np.float32),
+        map_x.reshape(shape),
+        map_y.reshape(shape),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    return out.ravel()[:n].reshape(x.shape)
