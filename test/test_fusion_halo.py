@@ -146,3 +146,27 @@ def test_the_bench_row_times_the_test_on_a_fattened_box_scene() -> None:
     assert wrong > 50
     assert found >= 0.8 * wrong
     assert flagged - found <= 0.2 * flagged
+
+
+def test_the_lookups_are_bilinear_and_split_into_calls_opencv_takes(monkeypatch) -> None:
+    """``_sample`` (``cv2.remap``, 1/32 px weights) against scipy's bilinear
+    ``map_coordinates``, off the image too (borders replicated), also when the samples are
+    split over several calls (here 3 rows of 4 at most: OpenCV's maps stay under 32767 a side)."""
+    from scipy.ndimage import map_coordinates
+
+    from depth_fusion_ros.fusion import occlusion
+
+    rng = np.random.default_rng(5)
+    image = gaussian_filter(rng.normal(size=(30, 40)), 2).astype(np.float32)
+    x = rng.uniform(-3, 43, size=(50, 7)).astype(np.float32)
+    y = rng.uniform(-3, 33, size=(50, 7)).astype(np.float32)
+    reference = map_coordinates(image, np.stack((y.ravel(), x.ravel())), order=1, mode='nearest').reshape(
+        x.shape
+    )
+    whole = occlusion._sample(image, x, y)
+    monkeypatch.setattr(occlusion, '_REMAP_WIDTH', 4)
+    monkeypatch.setattr(occlusion, '_REMAP_ROWS', 3)
+    split = occlusion._sample(image, x, y)
+    step = float(np.abs(np.diff(image, axis=0)).max() + np.abs(np.diff(image, axis=1)).max())
+    assert whole.shape == x.shape and np.array_equal(whole, split)
+    assert np.abs(whole - reference).max() <= step / 32
