@@ -170,3 +170,4 @@ def test_the_lookups_are_bilinear_and_split_into_calls_opencv_takes(monkeypatch)
     step = float(np.abs(np.diff(image, axis=0)).max() + np.abs(np.diff(image, axis=1)).max())
     assert whole.shape == x.shape and np.array_equal(whole, split)
     assert np.abs(whole - reference).max() <= step / 32
+    assert occlusion._sample(image, x[:0], y[:0]).shape == (0, 7)

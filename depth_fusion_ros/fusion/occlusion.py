@@ -208,8 +208,11 @@ def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear samples of ``image`` at ``(x, y)`` (any shape of coordinates; borders replicated).
 
     ``cv2.remap`` on the flattened coordinates, folded ``_REMAP_WIDTH`` wide and at most
-    ``_REMAP_ROWS`` rows a call: five to ten times faster than ``scipy.ndimage.map_coordinates``
-    here, at OpenCV's 1/32 px interpolation weights."""
+    ``_REMAP_ROWS`` rows a call, at OpenCV's 1/32 px interpolation weights: about six times
+    faster than ``scipy.ndimage.map_coordinates`` here (cProfile of the halo test on recorded
+    keyframes of 21-22k points: 1.5-1.8 against 11.5 ms a lookup)."""
+    if x.size == 0:
+        return np.zeros(x.shape, dtype=np.float32)
     src = np.ascontiguousarray(image, dtype=np.float32)
     flat_x = np.asarray(x, dtype=np.float32).ravel()
     flat_y = np.asarray(y, dtype=np.float32).ravel()
