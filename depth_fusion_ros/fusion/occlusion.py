@@ -46,6 +46,7 @@ import cv2
 import numpy as np
 
 from ..data.sequence import rgb_to_gray
+from ..point_lookup import bilinear_at
 
 #: Half-length (px) of the search for the intensity edge along the gradient direction.
 SEARCH_PX = 3
@@ -61,10 +62,6 @@ NEAR_SHARE = 0.5
 BEYOND_PX = (3, 8)
 #: Fewer points than this: nothing to scale the single view with, nothing tested.
 MIN_POINTS = 20
-#: Width and most rows of the maps handed to one ``cv2.remap`` call (its maps must stay
-#: below 32767 a side): 32M samples a call, more in several.
-_REMAP_WIDTH = 1024
-_REMAP_ROWS = 32000
 
 
 def check_min_step(min_step: float) -> None:
@@ -135,8 +132,8 @@ def halo_points(
 
 def _beyond_agrees(
     log_points: np.ndarray,
-    rows: np.ndarray,
-    cols: np.ndarray,
+    y: np.ndarray,
+    x: np.ndarray,
     nx: np.ndarray,
     ny: np.ndarray,
     grows: np.ndarray,
@@ -151,16 +148,15 @@ def _beyond_agrees(
     sign = np.where(grows, 1.0, -1.0).astype(np.float32)
     ts = np.arange(BEYOND_PX[0], BEYOND_PX[1] + 1, dtype=np.float32)
     lateral = np.array([-1.0, 0.0, 1.0], dtype=np.float32)
-    x = cols[:, None, None] + sign[:, None, None] * ts[None, :, None] * nx[:, None, None]
-    x = x - lateral[None, None, :] * ny[:, None, None]
-    y = rows[:, None, None] + sign[:, None, None] * ts[None, :, None] * ny[:, None, None]
-    y = y + lateral[None, None, :] * nx[:, None, None]
-    xi = np.clip(np.rint(x).astype(np.intp), 0, w - 1)
-    yi = np.clip(np.rint(y).astype(np.intp), 0, h - 1)
-    samples = np.sort(log_points[yi, xi].reshape(len(rows), -1), axis=1)  # NaN (no point) last
+    along = sign[:, None, None] * ts[None, :, None]
+    xs = x[:, None, None] + along * nx[:, None, None] - lateral[None, None, :] * ny[:, None, None]
+    ys = y[:, None, None] + along * ny[:, None, None] + lateral[None, None, :] * nx[:, None, None]
+    xi = np.clip(np.rint(xs).astype(np.intp), 0, w - 1)
+    yi = np.clip(np.rint(ys).astype(np.intp), 0, h - 1)
+    samples = np.sort(log_points[yi, xi].reshape(len(x), -1), axis=1)  # NaN (no point) last
     count = np.isfinite(samples).sum(axis=1)
     # The median of each row's finite samples (np.nanmedian is ten times slower here).
-    idx = np.arange(len(rows))
+    idx = np.arange(len(x))
     low, high = np.maximum(count - 1, 0) // 2, count // 2
     beyond = 0.5 * (samples[idx, low] + samples[idx, np.minimum(high, samples.shape[1] - 1)])
     return (count >= 2) & (np.abs(beyond - log_m) < np.abs(beyond - far_log))
@@ -179,7 +175,7 @@ def _edge_offsets(
     norm = np.maximum(magnitude[rows, cols], np.float32(1e-6))
     nx, ny = gx[rows, cols] / norm, gy[rows, cols] / norm
     steps = np.arange(-SEARCH_PX, SEARCH_PX + 1, dtype=np.float32)
-    samples = _sample(magnitude, x[:, None] + steps * nx[:, None], y[:, None] + steps * ny[:, None])
+    samples = bilinear_at(magnitude, x[:, None] + steps * nx[:, None], y[:, None] + steps * ny[:, None])
     # The largest sample away from the ends, refined by a parabola through it and its neighbours.
     j = np.clip(np.argmax(samples, axis=1), 1, 2 * SEARCH_PX - 1)[:, None]
     left, centre, right = (np.take_along_axis(samples, j + k, axis=1)[:, 0] for k in (-1, 0, 1))
@@ -197,38 +193,8 @@ def _single_view_sides(
     would make over the same span (from the spans beyond, ``SIDE_PX`` to ``2 SIDE_PX``), and
     whether the far side is along ``n`` (``+SIDE_PX``)."""
     reach = np.array([SIDE_PX, -SIDE_PX, 2 * SIDE_PX, -2 * SIDE_PX], dtype=np.float32)
-    sides = _sample(log_s, x[:, None] + reach * nx[:, None], y[:, None] + reach * ny[:, None])
+    sides = bilinear_at(log_s, x[:, None] + reach * nx[:, None], y[:, None] + reach * ny[:, None])
     plus, minus, plus2, minus2 = sides.T
     sign = np.sign(plus - minus)
     ramp = sign * ((plus2 - plus) + (minus - minus2))
     return np.minimum(plus, minus), np.maximum(plus, minus), ramp, plus > minus
-
-
-def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` at ``(x, y)`` (any shape of coordinates; borders replicated).
-
-    ``cv2.remap`` on the flattened coordinates, folded ``_REMAP_WIDTH`` wide and at most
-    ``_REMAP_ROWS`` rows a call, at OpenCV's 1/32 px interpolation weights: about six times
-    faster than ``scipy.ndimage.map_coordinates`` here (cProfile of the halo test on recorded
-    keyframes of 21-22k points: 1.5-1.8 against 11.5 ms a lookup)."""
-    if x.size == 0:
-        return np.zeros(x.shape, dtype=np.float32)
-    src = np.ascontiguousarray(image, dtype=np.float32)
-    flat_x = np.asarray(x, dtype=np.float32).ravel()
-    flat_y = np.asarray(y, dtype=np.float32).ravel()
-    chunk = _REMAP_WIDTH * _REMAP_ROWS
-    parts = [_remap(src, flat_x[i : i + chunk], flat_y[i : i + chunk]) for i in range(0, x.size, chunk)]
-    return (parts[0] if len(parts) == 1 else np.concatenate(parts)).reshape(x.shape)
-
-
-def _remap(src: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """One ``cv2.remap`` call: the 1-D coordinates padded to whole rows of ``_REMAP_WIDTH``."""
-    n = x.size
-    rows = max(1, -(-n // _REMAP_WIDTH))
-    maps = np.zeros((2, rows * _REMAP_WIDTH), dtype=np.float32)
-    maps[0, :n], maps[1, :n] = x, y
-    shape = (rows, _REMAP_WIDTH)
-    out = cv2.remap(
-        src, maps[0].reshape(shape), maps[1].reshape(shape), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    )
-    return out.ravel()[:n]

@@ -20,9 +20,10 @@ import logging
 from dataclasses import dataclass
 from functools import lru_cache
 
-import cv2
 import numpy as np
 import scipy.fft
+
+from ...point_lookup import bilinear_at
 
 log = logging.getLogger(__name__)
 
@@ -198,8 +199,6 @@ def _mip_chain(level0: np.ndarray) -> list[np.ndarray]:
 
 #: Width of the packed atlas image (cv2.remap needs image sides below 32767).
 _ATLAS_WIDTH = 4096
-#: cv2.remap maps are at most this wide, so any number of samples fits in one call.
-_REMAP_ROW = 1024
 
 
 def _shelf_pack(sizes: list[int], width: int) -> tuple[np.ndarray, int]:
@@ -264,16 +263,6 @@ class TextureAtlas:
     def nbytes(self) -> int:
         return int(self.image.nbytes)
 
-    def _remap(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Bilinear lookups (M, 3) of the atlas at pixel coordinates (M,)."""
-        m = len(x)
-        rows = max(1, -(-m // _REMAP_ROW))
-        pad = rows * _REMAP_ROW - m
-        map_x = np.pad(x, (0, pad)).reshape(rows, _REMAP_ROW)
-        map_y = np.pad(y, (0, pad)).reshape(rows, _REMAP_ROW)
-        out = cv2.remap(self.image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return out.reshape(-1, 3)[:m]
-
     def sample(self, tex: np.ndarray, u: np.ndarray, v: np.ndarray, lod: np.ndarray) -> np.ndarray:
         """Trilinear albedo samples (M, 3) float32 in [0, 1]: texture ids ``tex``, level-0
         texel coordinates ``(u, v)`` and level of detail ``lod`` = log2(texels per pixel), all
@@ -296,7 +285,7 @@ class TextureAtlas:
             key = tex * self.origin.shape[1] + level
             side = self._side_table[key]
             corner = self._corner_table[key]
-            samples.append(self._remap(corner[:, 0] + fu * side, corner[:, 1] + fv * side))
+            samples.append(bilinear_at(self.image, corner[:, 0] + fu * side, corner[:, 1] + fv * side))
         return samples[0] * (1 - frac) + samples[1] * frac
 
     @property
