@@ -3,8 +3,11 @@ the same update as in process, the weights back for inference, stop mid-update, 
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -57,6 +60,61 @@ def test_stop_mid_update_keeps_the_weights_and_reports_stopped(remote, small_seq
     assert remote.version == 0
     for a, b in zip(_weights(remote.net), before, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_an_abort_that_comes_after_its_update_does_not_stop_the_next(remote, small_sequence):
+    from depth_fusion_ros.adaptation.trainer_process import send
+
+    assert remote.observe(_gt_sample(small_sequence, 0, scale=1.3)).status == 'updated'
+    send(remote._conn, ('abort',))  # a stop asked as the update ended: too late for it
+    report = remote.observe(_gt_sample(small_sequence, 1, scale=1.3))
+    assert (report.status, report.steps, remote.version) == ('updated', 2, 2), report
+
+
+class _StepAdapter:
+    """The adapter's side of the protocol for ``trainer_process._loop``: an update of up to
+    2000 steps of 1 ms that looks at ``abort`` before each step, as ``Adapter.observe`` does."""
+
+    def __init__(self) -> None:
+        self.net = torch.nn.Linear(2, 1)
+        self.counters = None
+        self.version = 0
+
+    def observe(self, sample, abort, behind=False):
+        from depth_fusion_ros.adaptation.adapter import UpdateReport
+
+        for step in range(2000):
+            if abort():
+                return UpdateReport(sample, 'skipped', 'stopped', steps=step, version=self.version)
+            time.sleep(0.001)
+        self.version += 1
+        return UpdateReport(sample, 'updated', steps=2000, version=self.version)
+
+
+def test_the_trainer_loop_stops_the_update_an_abort_follows_and_only_that_one():
+    # In one process, with the loop on a thread: an abort sent right after its request, before
+    # the loop has even read the request (what a loaded machine does to the child), still
+    # stops that update; a late abort is skipped; a stop mid-update ends the loop after its report.
+    from depth_fusion_ros.adaptation.trainer_process import _loop, receive, send
+
+    parent, child = multiprocessing.Pipe()
+    send(parent, ('observe', 0, False))
+    send(parent, ('abort',))
+    loop = threading.Thread(target=_loop, args=(child, _StepAdapter()), daemon=True)
+    loop.start()
+    report = receive(parent)[1]
+    assert (report.status, report.reason, report.steps) == ('skipped', 'stopped', 0), report
+    send(parent, ('abort',))  # late: for no update
+    send(parent, ('observe', 1, False))
+    kind, report, _, weights = receive(parent)
+    assert (kind, report.status, report.version, len(weights)) == ('report', 'updated', 1, 2), report
+    send(parent, ('observe', 2, False))
+    time.sleep(0.05)
+    send(parent, ('stop',))
+    report = receive(parent)[1]
+    assert report.status == 'skipped' and 0 < report.steps < 2000, report
+    loop.join(10)
+    assert not loop.is_alive()
 
 
 def test_a_training_process_that_dies_ends_training_not_inference(remote, small_sequence, caplog):

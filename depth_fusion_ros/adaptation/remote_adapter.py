@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -158,8 +157,8 @@ class RemoteAdapter:
         self._closing = True
 
     def close(self, timeout: float = 10.0) -> bool:
-        """Ask the child to stop (after the update in hand) and reap it; True when it ended
-        by itself (False: killed after ``timeout``)."""
+        """Ask the child to stop (an update in hand stops at its next step) and reap it; True
+        when it ended by itself (False: killed after ``timeout``)."""
         self._closing = True
         ended = True
         with contextlib.suppress(OSError):
@@ -174,19 +173,19 @@ class RemoteAdapter:
         return ended
 
     def _receive(self, abort: Callable[[], bool] | None) -> tuple | None:
-        """The child's next reply, signalling it once when ``abort`` turns true or the adapter is
-        closing; None when the child died (the adapter then failed) or, closing, is still
-        starting."""
-        signalled = False
+        """The child's next reply, asking it once to stop when ``abort`` turns true or the
+        adapter is closing; None when the child died (the adapter then failed) or, closing, is
+        still starting."""
+        asked = False
         try:
             # ``abort`` is looked at before the first wait: an update shorter than POLL_S (a
             # small network) was otherwise done before a stop asked at once reached it.
             while True:
-                if not signalled and (self._closing or (abort is not None and abort())):
+                if not asked and (self._closing or (abort is not None and abort())):
                     if not self._ready:
                         return None
-                    self._proc.send_signal(signal.SIGUSR1)
-                    signalled = True
+                    send(self._conn, ('abort',))  # after the request: for this update only
+                    asked = True
                 if self._conn.poll(POLL_S):
                     break
                 if self._proc.poll() is not None and not self._conn.poll(0):

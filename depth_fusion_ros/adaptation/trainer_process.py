@@ -20,10 +20,16 @@ request at a time:
 * ``('observe', sample, behind)`` -> ``('report', report, counters, weights)``, ``weights`` the
   accepted network's tensors (``state_dict`` order) after an ``updated`` report, else None;
   or ``('failed', text, counters)`` when the update raised;
-* ``('stop',)``, or the parent's end closing: the child returns.
+* ``('stop',)``, or the parent's end closing: the child returns (after the update in hand);
+* ``('abort',)`` while an update runs asks it to stop: between its steps the adapter looks at
+  the pipe (:class:`_Requests`), restores the weights and reports the keyframe ``stopped``. An
+  abort that comes after the update ended is skipped as the next request is read.
 
-``SIGUSR1`` asks the update in hand to stop: the adapter checks between steps, restores the
-weights and reports the keyframe ``stopped``.
+Why a message and not a signal (as before): a signal carries no request. One sent right after
+a request could reach this process before it had cleared the previous request's flag, and the
+update then ran in full (the likely cause of one test failure with two test workers on two
+cores). An abort on the pipe sits after the request it is for, so it can neither come early
+nor stop the next update.
 """
 
 from __future__ import annotations
@@ -38,19 +44,25 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 
-class _Abort:
-    """Set by ``SIGUSR1`` (between the adapter's steps Python runs the handler); cleared
-    before each request is read."""
+class _Requests:
+    """What the parent asks while an update runs, read from the pipe between the adapter's
+    steps: an ``abort`` of the update in hand, a ``stop`` (close) or the pipe's end, both of
+    which stop the update too."""
 
-    requested = False
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+        self.abort = False
+        self.stop = False
 
-    @classmethod
-    def on_signal(cls, signum: int, frame: Any) -> None:
-        cls.requested = True
-
-    @classmethod
-    def check(cls) -> bool:
-        return cls.requested
+    def check(self) -> bool:
+        while not self.stop and self.conn.poll(0):
+            try:
+                kind = receive(self.conn)[0]
+            except (EOFError, OSError):  # the parent is gone
+                kind = 'stop'
+            self.abort = True
+            self.stop = kind == 'stop'
+        return self.abort
 
 
 def send(conn: Connection, message: tuple) -> None:
@@ -80,7 +92,6 @@ def main(argv: list[str]) -> int:
     logging.basicConfig(
         level=logging.WARNING, format=f'[adaptation trainer {os.getpid()}] %(levelname)s %(message)s'
     )
-    signal.signal(signal.SIGUSR1, _Abort.on_signal)
     # Ctrl+C or a SIGTERM to the process group is the parent's to handle: it stops this child
     # (after the update in hand) as it shuts down, and a parent that dies closes the pipe.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -123,22 +134,24 @@ def _serve(conn: Connection, adapter: Any) -> None:
 
 def _loop(conn: Connection, adapter: Any) -> None:
     while True:
-        # Cleared before the request is read, not after: the parent may signal a stop as soon
-        # as it has sent the request, while this process is still reading it.
-        _Abort.requested = False
         request = receive(conn)
         if request[0] == 'stop':
             return
+        if request[0] == 'abort':  # for an update that had ended before it came
+            continue
         _, sample, behind = request
+        asked = _Requests(conn)
         try:
-            report = adapter.observe(sample, abort=_Abort.check, behind=behind)
+            report = adapter.observe(sample, abort=asked.check, behind=behind)
         except Exception as exc:  # a bad sample must not end adaptation (the parent counts it)
             send(conn, ('failed', f'{type(exc).__name__}: {exc}', adapter.counters))
-            continue
-        weights = None
-        if report.status == 'updated':
-            weights = [t.detach().cpu() for t in adapter.net.state_dict().values()]
-        send(conn, ('report', report, adapter.counters, weights))
+        else:
+            weights = None
+            if report.status == 'updated':
+                weights = [t.detach().cpu() for t in adapter.net.state_dict().values()]
+            send(conn, ('report', report, adapter.counters, weights))
+        if asked.stop:
+            return
 
 
 if __name__ == '__main__':
