@@ -31,6 +31,8 @@ REQUIREMENTS=(
   "tqdm==4.70.1"
   "matplotlib==3.11.2"
   "pytest==9.2.0"
+  "pytest-xdist==3.8.0"
+  "execnet==2.1.2"
   "ruff==0.17.6"
   "colcon-common-extensions==0.3.0"
 )

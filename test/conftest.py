@@ -14,6 +14,11 @@ SHARED_DATA = Path(os.environ.get('DEPTH_FUSION_SHARED_DATA', ROOT.parent / 'sha
 # Each test session talks DDS on its own domain and only over loopback, so parallel runs
 # (CI, a developer's second terminal) never hear each other's nodes.
 os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(1, 100)))
+# pytest-xdist's workers (scripts/test.sh runs two) inherit the controller's domain: each takes
+# the next one, so two workers' test graphs never hear each other either.
+if os.environ.get('PYTEST_XDIST_WORKER', '').startswith('gw'):
+    _worker = int(os.environ['PYTEST_XDIST_WORKER'][2:])
+    os.environ['ROS_DOMAIN_ID'] = str(1 + (int(os.environ['ROS_DOMAIN_ID']) + _worker) % 100)
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 # Fusion kernels a developer built ahead of time (depth-fusion kernels, in ~/.cache) would make
 # this machine's run differ from CI's: the suite compiles as CI does, and test_fusion_aot.py
