@@ -20,7 +20,8 @@ request at a time:
 * ``('observe', sample, behind)`` -> ``('report', report, counters, weights)``, ``weights`` the
   accepted network's tensors (``state_dict`` order) after an ``updated`` report, else None;
   or ``('failed', text, counters)`` when the update raised;
-* ``('stop',)``, or the parent's end closing: the child returns (after the update in hand);
+* ``('stop',)``, or the parent's end closing: the child returns; one that comes during an
+  update stops the update first, as an abort does;
 * ``('abort',)`` while an update runs asks it to stop: between its steps the adapter looks at
   the pipe (:class:`_Requests`), restores the weights and reports the keyframe ``stopped``. An
   abort that comes after the update ended is skipped as the next request is read.
@@ -93,7 +94,7 @@ def main(argv: list[str]) -> int:
         level=logging.WARNING, format=f'[adaptation trainer {os.getpid()}] %(levelname)s %(message)s'
     )
     # Ctrl+C or a SIGTERM to the process group is the parent's to handle: it stops this child
-    # (after the update in hand) as it shuts down, and a parent that dies closes the pipe.
+    # (and the update in hand) as it shuts down, and a parent that dies closes the pipe.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     conn = Connection(fd)
