@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import random
 from pathlib import Path
 
 import pytest
@@ -11,14 +10,19 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get('DEPTH_FUSION_SHARED_DATA', ROOT.parent / 'shared' / 'data'))
 
-# Each test session talks DDS on its own domain and only over loopback, so parallel runs
-# (CI, a developer's second terminal) never hear each other's nodes.
-os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(1, 100)))
-# pytest-xdist's workers (scripts/test.sh runs two) inherit the controller's domain: each takes
-# the next one, so two workers' test graphs never hear each other either.
-if os.environ.get('PYTEST_XDIST_WORKER', '').startswith('gw'):
-    _worker = int(os.environ['PYTEST_XDIST_WORKER'][2:])
-    os.environ['ROS_DOMAIN_ID'] = str(1 + (int(os.environ['ROS_DOMAIN_ID']) + _worker) % 100)
+# Each pytest process that runs tests talks DDS on a domain of its own and only over loopback,
+# so parallel runs (CI, a developer's second terminal) and the two pytest-xdist workers
+# scripts/test.sh starts never hear each other's nodes. The domain is a free one of the suite's
+# range, locked for this process's life as a RosHarness or a `depth-fusion run` locks its own
+# (nodes/graph/isolation.py), so no harness in the other worker takes it either. A worker
+# inherits the controller's ROS_DOMAIN_ID and so always picks; one process keeps a domain the
+# caller set.
+if 'ROS_DOMAIN_ID' not in os.environ or os.environ.get('PYTEST_XDIST_WORKER'):
+    from depth_fusion_ros.nodes.graph.isolation import pick_free_domain
+    from depth_fusion_ros.nodes.testing import TEST_DOMAINS
+
+    _SUITE_DOMAIN, _SUITE_DOMAIN_LOCK = pick_free_domain(TEST_DOMAINS)
+    os.environ['ROS_DOMAIN_ID'] = str(_SUITE_DOMAIN)
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 # Fusion kernels a developer built ahead of time (depth-fusion kernels, in ~/.cache) would make
 # this machine's run differ from CI's: the suite compiles as CI does, and test_fusion_aot.py
