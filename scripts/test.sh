@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
 . scripts/venv.sh
 ruff check depth_fusion_ros test launch scripts
 # Two pytest-xdist workers: most of a test's time is waiting on other processes (nodes over DDS,
-# a graph's start, a fault's clean-up), so two workers on two cores take ~8.8 min, not ~13.8
+# a graph's start, a fault's clean-up), so two workers on two cores take ~8 min, not ~13.8
 # (docs/performance.md, "The test suite on two workers"). Each worker is on its own ROS domain
 # (test/conftest.py). DEPTH_FUSION_TEST_WORKERS=0 runs every test in this one process.
 python -m pytest test -q -n "${DEPTH_FUSION_TEST_WORKERS:-2}" "$@"
