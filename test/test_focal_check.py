@@ -155,6 +155,42 @@ def test_the_node_runner_checks_off_the_callbacks_and_again_for_a_new_camera(wro
     assert off.status() == 'off' and off.camera is None
 
 
+def test_a_busy_runner_queues_only_frames_far_from_the_last_it_queued(wrong_focal):
+    """A runner whose thread is still busy with one sample is not handed the very next frames
+    too (each far from the sample it took, not from one another), to skip on arrival while they
+    fill its queue: the frames queued are a sample apart, and the thread takes each as one."""
+    import threading
+    import time
+
+    from depth_fusion_ros.nodes.focal_check_runner import FocalCheckRunner
+
+    entered, gate = threading.Event(), threading.Event()
+
+    class Held(FocalCheckRunner):
+        def _feed(self, check, item):
+            entered.set()
+            assert gate.wait(30)
+            return super()._feed(check, item)
+
+    runner = Held(FocalCheckConfig(pairs=PAIRS), lambda *_: None)
+    frames = wrong_focal.frames  # a sample every two frames
+    runner.offer(frames[0], wrong_focal.camera)
+    assert entered.wait(10)  # the thread holds frame 0
+    for frame in frames[1:8]:  # 2 and 4 fill the queue; 6 finds it full and is dropped
+        runner.offer(frame, wrong_focal.camera)
+    held = runner.pending
+    gate.set()
+    deadline = time.monotonic() + 30
+    while runner.pending and time.monotonic() < deadline:
+        time.sleep(0.01)
+    check = runner._check
+    runner.close()
+    assert held == 3 and runner.pending == 0
+    taken = [[p.a.pose, p.b.pose] for p in check.pairs]
+    assert check.frames == 3 and len(taken) == 2, (check.frames, len(taken))
+    assert np.allclose(taken, [[frames[0].pose, frames[2].pose], [frames[2].pose, frames[4].pose]])
+
+
 def test_an_unquoted_off_is_off():
     """YAML 1.1 reads ``mode: off`` (and ``--set focal_check.mode=off``) as false: still off."""
     from depth_fusion_ros.cli.overrides import parse_overrides

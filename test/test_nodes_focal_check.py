@@ -8,7 +8,7 @@ import time
 
 import pytest
 from sensor_msgs.msg import CameraInfo, Image
-from test_nodes_multi_view import _Camera, _mv_node
+from test_nodes_multi_view import _Camera, _checks_caught_up, _mv_node
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
@@ -44,6 +44,7 @@ def test_a_wrong_focal_length_is_found_and_corrected_downstream(mode):
             cam.publish_pose(frame.pose, stamps[i])
             cam.publish_image(frame.rgb, stamps[i], seq.camera)
             time.sleep(0.03)
+            _checks_caught_up(ros, node, i + 1)
         assert ros.wait_for(lambda: len(depths) == 6, 120.0), node.stats.snapshot().summary()
         snap = node.stats.snapshot()
         result = node.focal_check.result

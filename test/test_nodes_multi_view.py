@@ -51,6 +51,17 @@ def _stream_check_node(ros: RosHarness, size: dict, **params) -> MultiViewNode:
     )
 
 
+def _checks_caught_up(ros: RosHarness, node: MultiViewNode, posed: int, timeout: float = 60.0) -> None:
+    """Waits until ``node`` has posed ``posed`` frames and its calibration checks' threads have
+    taken every frame queued for them. A test that waits so before each next frame feeds its
+    checks the samples an idle machine would: on a loaded one (two test workers on two cores) a
+    busy check thread drops frames by design, and its samples move (CI once saw 11 of 12 focal
+    check pairs at the frame a test waited at)."""
+    checks = (node.focal_check, node.time_offset_check, node.mount_check)
+    done = ros.wait_for(lambda: node.posed_count >= posed and not any(c.pending for c in checks), timeout)
+    assert done, (node.posed_count, posed, [c.pending for c in checks])
+
+
 class _Camera:
     """Publishers of what a camera driver and a SLAM system publish."""
 

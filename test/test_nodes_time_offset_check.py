@@ -13,7 +13,7 @@ import pytest
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import Image
-from test_nodes_multi_view import _Camera, _stream_check_node
+from test_nodes_multi_view import _Camera, _checks_caught_up, _stream_check_node
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
@@ -70,6 +70,7 @@ def _run(seq, mode: str):
             cam.publish_pose(source_poses[i], source_stamps[i])  # the pose source's own sample
             cam.publish_image(frame.rgb, stamps[i], seq.camera)
             time.sleep(0.03)
+            _checks_caught_up(ros, node, i)  # frame i is posed once the pose after it comes
         for k in range(len(seq.frames), len(source_stamps)):
             cam.publish_pose(source_poses[k], source_stamps[k])
         # Every keyframe the node chose is published (the correction restarts the keyframe phase).

@@ -154,11 +154,13 @@ class ImagePairs:
         c = config
         return cls(K, c.min_baseline, c.min_rotation_deg, c.min_matches, c.features, refine)  # type: ignore[attr-defined]
 
-    def far_enough(self, pose: np.ndarray) -> bool:
-        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
-        if self.last is None:
+    def far_enough(self, pose: np.ndarray, since: np.ndarray | None = None) -> bool:
+        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last
+        (or since ``since``: a sample chosen but not yet added, as a check's thread lags its
+        stream)."""
+        if since is None and self.last is None:
             return True
-        T = relative_pose(self.last.pose, np.asarray(pose, dtype=np.float64))
+        T = relative_pose(self.last.pose if since is None else since, np.asarray(pose, dtype=np.float64))
         moved = float(np.linalg.norm(T[:3, 3])) >= self.min_baseline
         return moved or math.degrees(rotation_angle(T[:3, :3])) >= self.min_rotation_deg
 

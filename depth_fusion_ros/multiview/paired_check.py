@@ -43,9 +43,10 @@ class PairedCheck:
     def done(self) -> bool:
         return self.result is not None or self.config.mode == 'off'
 
-    def wants(self, pose: np.ndarray) -> bool:
-        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
-        return not self.done and self._images.far_enough(pose)
+    def wants(self, pose: np.ndarray, since: np.ndarray | None = None) -> bool:
+        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last
+        (or since ``since``, a sample chosen but not yet added: ``ImagePairs.far_enough``)."""
+        return not self.done and self._images.far_enough(pose, since)
 
     def add(self, gray: np.ndarray, pose: np.ndarray) -> Any:
         """One posed frame of the stream (grey image on this camera's grid, camera-to-world);

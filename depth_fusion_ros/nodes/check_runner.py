@@ -4,7 +4,7 @@ The callbacks offer every posed frame; the check says what it needs of it (a pos
 microseconds), and only that is queued; a daemon thread computes features and, once, the
 estimate. A full queue drops the offered item (the next frame that moved far enough is taken
 instead): a check never holds up the stream. A new camera (another size or calibration) is
-checked anew.
+checked anew. :attr:`CheckRunner.pending` says whether the thread has caught up with the stream.
 """
 
 from __future__ import annotations
@@ -50,6 +50,19 @@ class CheckRunner:
     def _feed(self, check: Any, item: Any) -> Any:
         raise NotImplementedError
 
+    def _queued(self, item: Any) -> None:
+        """``item`` went into the queue (callback thread): what a subclass needs to know of it."""
+
+    @property
+    def pending(self) -> int:
+        """Items queued for the thread or in its hands, 0 once it has caught up with the stream or
+        the check has its result (or the runner was closed). A test waits for 0 before the next
+        frame: the check then takes the same samples however loaded the machine (a loaded one
+        drops some, by design)."""
+        if self._check is None or self._check.done or self._thread is None:
+            return 0
+        return self._queue.unfinished_tasks
+
     @property
     def camera(self) -> PinholeCamera | None:
         """The camera being checked (``None`` before the first frame)."""
@@ -83,8 +96,11 @@ class CheckRunner:
         item = self._item(self._check, frame)
         if item is None:
             return
-        with contextlib.suppress(queue.Full):  # busy: a later frame is taken instead
+        try:
             self._queue.put_nowait(item)
+        except queue.Full:  # busy: a later frame is taken instead
+            return
+        self._queued(item)
 
     def restart(self) -> None:
         """Forget the current check and its result: the next frame starts a new one (the frames
@@ -114,7 +130,10 @@ class CheckRunner:
             item = inbox.get()
             if item is None or stopping.is_set():
                 return
-            result = self._feed(check, item)
+            try:
+                result = self._feed(check, item)
+            finally:
+                inbox.task_done()
             if result is not None:
                 if not stopping.is_set():  # a check restarted meanwhile reports nothing
                     self._on_result(check.camera, result)
@@ -124,7 +143,17 @@ class CheckRunner:
 class PairedCheckRunner(CheckRunner):
     """A runner of a check fitted to image pairs (``multiview/paired_check.py``: the focal length
     and mount checks): only the frames it wants as its next sample are queued, grey image and
-    pose, the grey image made only then."""
+    pose, the grey image made only then.
+
+    "Next" counts from the last frame queued, not the last the thread took: a thread still busy
+    with one sample would otherwise be handed the very next frames too, each far from the last
+    it took but not from one another, and skip them on arrival, while they filled the queue.
+    """
+
+    def __init__(self, config: Any, on_result: Callable[[PinholeCamera, Any], None]) -> None:
+        super().__init__(config, on_result)
+        #: The pose of the last frame queued for the current check (``None``: none yet).
+        self._queued_pose: Any = None
 
     #: The check (a ``PairedCheck``), its config dataclass and its parameter section.
     check_type: type
@@ -136,10 +165,14 @@ class PairedCheckRunner(CheckRunner):
         return cls(build_dataclass(cls.config_type, params, cls.section), on_result)
 
     def _make(self, camera: PinholeCamera) -> Any:
+        self._queued_pose = None
         return self.check_type(camera, self.config)
 
     def _item(self, check: Any, frame: Frame) -> tuple[Any, Any] | None:
-        return (frame.gray, frame.pose) if check.wants(frame.pose) else None
+        return (frame.gray, frame.pose) if check.wants(frame.pose, self._queued_pose) else None
+
+    def _queued(self, item: tuple[Any, Any]) -> None:
+        self._queued_pose = item[1]
 
     def _feed(self, check: Any, item: tuple[Any, Any]) -> Any:
         return check.add(*item)
