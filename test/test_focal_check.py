@@ -140,7 +140,10 @@ def test_the_node_runner_checks_off_the_callbacks_and_again_for_a_new_camera(wro
     assert runner.status() == f'collecting (0 of {PAIRS} image pairs)'
     for frame in wrong_focal.frames:
         runner.offer(frame, wrong_focal.camera)
-        time.sleep(0.05)  # a 20 Hz stream: the thread keeps up
+        time.sleep(0.05)  # a 20 Hz stream
+        deadline = time.monotonic() + 30
+        while runner.pending and time.monotonic() < deadline:  # its thread caught up, however loaded
+            time.sleep(0.005)
     deadline = time.monotonic() + 30
     while not reports and time.monotonic() < deadline:
         time.sleep(0.05)

@@ -184,7 +184,10 @@ def test_the_node_runner_checks_off_the_callbacks(late):
         assert runner.status() == 'collecting (0 of 20 image pairs)' and runner.correction == 0.0
         for frame in late.frames:
             runner.offer(frame, late.camera)
-            time.sleep(0.03)  # a 30 Hz stream: the thread keeps up
+            time.sleep(0.03)  # a 30 Hz stream
+            deadline = time.monotonic() + 30
+            while runner.pending and time.monotonic() < deadline:  # its thread caught up, however loaded
+                time.sleep(0.005)
         deadline = time.monotonic() + 30
         while not reports and time.monotonic() < deadline:
             time.sleep(0.05)
