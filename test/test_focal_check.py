@@ -134,6 +134,7 @@ def test_the_node_runner_checks_off_the_callbacks_and_again_for_a_new_camera(wro
 
     from depth_fusion_ros.camera import PinholeCamera
     from depth_fusion_ros.nodes.focal_check_runner import FocalCheckRunner
+    from depth_fusion_ros.nodes.testing import RosHarness
 
     reports = []
     runner = FocalCheckRunner(FocalCheckConfig(pairs=PAIRS), lambda cam, est: reports.append((cam, est)))
@@ -141,9 +142,7 @@ def test_the_node_runner_checks_off_the_callbacks_and_again_for_a_new_camera(wro
     for frame in wrong_focal.frames:
         runner.offer(frame, wrong_focal.camera)
         time.sleep(0.05)  # a 20 Hz stream
-        deadline = time.monotonic() + 30
-        while runner.pending and time.monotonic() < deadline:  # its thread caught up, however loaded
-            time.sleep(0.005)
+        assert RosHarness.wait_for(lambda: not runner.pending, 30.0)  # its thread caught up, however loaded
     deadline = time.monotonic() + 30
     while not reports and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -163,9 +162,9 @@ def test_a_busy_runner_queues_only_frames_far_from_the_last_it_queued(wrong_foca
     too (each far from the sample it took, not from one another), to skip on arrival while they
     fill its queue: the frames queued are a sample apart, and the thread takes each as one."""
     import threading
-    import time
 
     from depth_fusion_ros.nodes.focal_check_runner import FocalCheckRunner
+    from depth_fusion_ros.nodes.testing import RosHarness
 
     entered, gate = threading.Event(), threading.Event()
 
@@ -183,9 +182,7 @@ def test_a_busy_runner_queues_only_frames_far_from_the_last_it_queued(wrong_foca
         runner.offer(frame, wrong_focal.camera)
     held = runner.pending
     gate.set()
-    deadline = time.monotonic() + 30
-    while runner.pending and time.monotonic() < deadline:
-        time.sleep(0.01)
+    assert RosHarness.wait_for(lambda: not runner.pending, 30.0)
     check = runner._check
     runner.close()
     assert held == 3 and runner.pending == 0

@@ -174,6 +174,7 @@ def test_the_node_runner_checks_off_the_callbacks(late):
     estimate computed on its thread, reported once; the correction only in correct mode."""
     import time
 
+    from depth_fusion_ros.nodes.testing import RosHarness
     from depth_fusion_ros.nodes.time_offset_check_runner import TimeOffsetCheckRunner
 
     for mode in ('correct', 'warn'):
@@ -185,9 +186,8 @@ def test_the_node_runner_checks_off_the_callbacks(late):
         for frame in late.frames:
             runner.offer(frame, late.camera)
             time.sleep(0.03)  # a 30 Hz stream
-            deadline = time.monotonic() + 30
-            while runner.pending and time.monotonic() < deadline:  # its thread caught up, however loaded
-                time.sleep(0.005)
+            # its thread caught up, however loaded
+            assert RosHarness.wait_for(lambda r=runner: not r.pending, 30.0)
         deadline = time.monotonic() + 30
         while not reports and time.monotonic() < deadline:
             time.sleep(0.05)

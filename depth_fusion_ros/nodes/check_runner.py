@@ -150,15 +150,15 @@ class PairedCheckRunner(CheckRunner):
     it took but not from one another, and skip them on arrival, while they filled the queue.
     """
 
-    def __init__(self, config: Any, on_result: Callable[[PinholeCamera, Any], None]) -> None:
-        super().__init__(config, on_result)
-        #: The pose of the last frame queued for the current check (``None``: none yet).
-        self._queued_pose: Any = None
-
     #: The check (a ``PairedCheck``), its config dataclass and its parameter section.
     check_type: type
     config_type: type
     section: str
+
+    def __init__(self, config: Any, on_result: Callable[[PinholeCamera, Any], None]) -> None:
+        super().__init__(config, on_result)
+        #: The pose of the last frame queued for the current check (``None``: none yet).
+        self._queued_pose: Any = None
 
     @classmethod
     def from_parameters(cls, params: dict[str, Any], on_result: Callable[[PinholeCamera, Any], None]) -> Any:
