@@ -77,7 +77,7 @@ def test_a_live_stream_that_outruns_the_filter_skips_old_frames_but_never_a_keyf
     feed.close()  # no feed thread: the queue only fills, as behind a live camera
     for frame in seq.frames:  # 6 frames, frame 1 a keyframe
         feed.append(frame, seq.camera, keyframe=frame.index == 1)
-    waiting = [(f.index, key) for f, _, key in feed._frames]
+    waiting = [(f.index, key) for f, _, key, _ in feed._frames]
     assert waiting == [(1, True), (4, False), (5, False)]  # the keyframe stays, the newest follow
     assert len(skips) == 3 and all('skipped' in s for s in skips) and drops == []
 
@@ -131,3 +131,41 @@ def test_the_feed_counts_the_filters_jumps_across_restarts(synthetic_sequence):
     finally:
         feed.close()
     assert drops == [] and errors == []
+
+
+def test_every_frame_is_consumed_once_whatever_the_feed_does_with_it(small_sequence):
+    """``on_consumed`` (the node's "image handled" event, which paces a replay) hears every
+    frame's token exactly once: updated, passed over by the rate cap, skipped behind a live
+    stream or dropped from a full queue. A frame left out would stall a paced replay; one said
+    twice would let it run ahead."""
+    seq = small_sequence
+    consumed: list[int] = []
+    drops: list[str] = []
+    stamps = [i / 30.0 for i in range(len(seq.frames))]
+    frames = [type(f)(f.index, t, f.rgb, f.pose) for f, t in zip(seq.frames, stamps, strict=True)]
+    config, matching = FilterConfig(), MultiViewConfig()
+    feed = FilterFeed(config, matching, 'cpu', 100, drops.append, max_rate=10.0, on_consumed=consumed.append)
+    try:
+        for frame in frames:
+            feed.append(frame, seq.camera, keyframe=frame.index == 4, token=1000 + frame.index)
+        feed.result_for(frames[4], seq.camera)
+        deadline = time.monotonic() + 30.0
+        while len(consumed) < len(frames) and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        feed.close()
+    assert consumed == [1000 + f.index for f in frames]  # in order, each once
+    assert feed.rate_skipped > 0 and feed.fed > 0  # both kinds were consumed
+
+    done: list[int] = []
+    full: list[str] = []
+    skips: list[str] = []
+    behind = FilterFeed(
+        config, matching, 'cpu', 2, full.append, max_lag=2, on_skip=skips.append, on_consumed=done.append
+    )
+    behind.close()  # no feed thread: the queue only fills, skipping behind the stream and dropping
+    for frame in frames:  # frames 1-3 keyframes: the lag skips 0, 4 and 5, the queue of 2 drops 1
+        behind.append(frame, seq.camera, keyframe=frame.index in (1, 2, 3), token=frame.index)
+    assert [item.token for item in behind._frames] == [2, 3]
+    assert sorted(done) == [0, 1, 4, 5] and len(skips) == 3 and len(full) == 1
+    assert drops == []

@@ -157,6 +157,77 @@ def test_ledger_first_final_event_wins_and_counts_in_flight():
     assert snap.drop_reasons() == {'multi_view.worker_queue_full': 1}
 
 
+class _NoNode:
+    """What the pacer needs of a node: somewhere to subscribe (the test feeds its ledger)."""
+
+    def create_subscription(self, *args, **kwargs) -> None:
+        return None
+
+
+def _pacer(**kwargs):
+    import threading
+
+    from depth_fusion_ros.nodes.pacer import Pacer
+
+    warnings: list[str] = []
+    options = {'max_keyframes': 1, 'max_images_ahead': 4, 'timeout': 30.0}
+    pacer = Pacer(_NoNode(), stop=threading.Event(), warn=warnings.append, **{**options, **kwargs})
+    return pacer, warnings
+
+
+def test_a_paced_replay_waits_for_the_filter_but_not_for_a_lagging_pose():
+    """The next image waits until multi_view_node has the last one and its filter is done with
+    every image it posed (the next keyframe never queues behind earlier frames); an image
+    waiting for its pose does not hold the replay back, and ``max_images_ahead`` still bounds
+    those; a lost image holds it back for ``SETTLE_LIMIT_S`` only."""
+    from depth_fusion_ros.nodes.pacer import SETTLE_LIMIT_S
+
+    pacer, warnings = _pacer()
+    ledger = pacer.ledger
+    assert pacer._busy() == ''
+    pacer.sent_image(10)
+    assert 'not reached' in pacer._busy()  # on its way
+    ledger.add(10, 'image')  # posed: in the filter's hands
+    assert 'filter' in pacer._busy()
+    ledger.add(10, 'image_done')
+    assert pacer._busy() == ''
+    for stamp in (20, 30, 40):  # a pose stream that lags: each image waits for its pose
+        pacer.sent_image(stamp)
+        ledger.add(stamp, 'image_waiting')
+        assert pacer._busy() == ''
+    pacer.sent_image(50)
+    ledger.add(50, 'image_waiting')
+    assert 'images not yet handled' in pacer._busy()  # four waiting: max_images_ahead
+    for stamp in (20, 30, 40, 50):  # the poses came: all posed, the filter on them
+        ledger.add(stamp, 'image')
+    assert 'filter' in pacer._busy()
+    assert pacer._busy(SETTLE_LIMIT_S) == ''  # a filter that never says done holds it so long only
+    ledger.add(50, 'image_done')
+    assert pacer._busy() == ''
+    pacer.sent_image(60)  # lost on the way
+    assert pacer._busy(SETTLE_LIMIT_S) == ''
+    ledger.add(60, 'chosen')  # a keyframe in flight holds it back whatever the filter does
+    ledger.add(60, 'image')
+    ledger.add(60, 'image_done')
+    assert 'keyframes in flight' in pacer._busy(SETTLE_LIMIT_S)
+    ledger.add(60, 'fused')
+    assert pacer._busy() == '' and warnings == []
+
+
+def test_ledger_keeps_the_newest_image_stamps_in_order():
+    from depth_fusion_ros.nodes.graph_events import RECENT_IMAGES
+
+    ledger = KeyframeLedger()
+    assert ledger.image_ns() == -1
+    for stamp in (30, 10, 20):  # a dropped image may be acknowledged before an older posed one
+        ledger.add(stamp, 'image')
+    assert [ledger.image_ns(back) for back in (1, 2, 3, 4)] == [30, 20, 10, -1]
+    for stamp in range(100, 100 + 2 * RECENT_IMAGES):
+        ledger.add(stamp, 'image')
+    assert ledger.image_ns(RECENT_IMAGES) == 100 + RECENT_IMAGES and ledger.image_ns(RECENT_IMAGES + 1) == -1
+    assert ledger.snapshot().images == 3 + 2 * RECENT_IMAGES  # every image counted once
+
+
 # --- multi_view_node alone ------------------------------------------------------------------------
 
 
@@ -226,6 +297,45 @@ def test_ready_line_and_images_before_camera_info_wait(synthetic_sequence):
     assert acked == stamps  # every image handled, in order
     chosen = [m.stamp_to_ns(e.stamp) for e in events if e.frame_id == 'chosen']
     assert chosen == stamps[2::2]  # every 2nd posed frame, but the first (no neighbour)
+
+
+def test_every_image_is_seen_handled_and_done_once_in_that_order(synthetic_sequence):
+    """What a paced replay follows: ``image_waiting`` for an image whose pose is not there yet,
+    then one ``image`` (handled) and one ``image_done`` (the filter has updated with it) per
+    image, in that order, also when the poses lag the images."""
+    seq = synthetic_sequence
+    with RosHarness() as ros:
+        node = _mv_node(ros, keyframe_every=2)
+        events = _events(ros)
+        image_pub, info_pub, pose_pub = _publishers(ros)
+        stamps = [m.sec_to_ns(s) for s in seq.stamps[:6]]
+        info = m.camera_info_msg(seq.camera, m.header_msg(stamps[0], FRAME, kind=m.RCLPY), kind=m.RCLPY)
+        info_pub.publish(info)
+
+        def pose(i: int) -> None:
+            header = m.header_msg(stamps[i], 'world', kind=m.RCLPY)
+            pose_pub.publish(m.pose_stamped_msg(seq.poses[i], header, kind=m.RCLPY))
+
+        def image(i: int) -> None:
+            header = m.header_msg(stamps[i], FRAME, kind=m.RCLPY)
+            image_pub.publish(m.rgb_image_msg(seq.frames[i].rgb, header, kind=m.RCLPY))
+
+        for i in range(3):  # the images first: they wait for their poses
+            image(i)
+        assert ros.wait_for(lambda: sum(e.frame_id == 'image_waiting' for e in events) == 3, 10.0)
+        for i in range(3):
+            pose(i)
+        for i in range(3, 6):  # then poses ahead of their images
+            pose(i)
+            image(i)
+        assert ros.wait_for(lambda: sum(e.frame_id == 'image_done' for e in events) == 6, 30.0)
+        assert node.wait_idle(30.0)
+        time.sleep(0.2)
+    kinds = [(m.stamp_to_ns(e.stamp), e.frame_id) for e in events if e.frame_id.startswith('image')]
+    for i, stamp in enumerate(stamps):
+        mine = [kind for s, kind in kinds if s == stamp]
+        waited = ['image_waiting'] if i < 3 else []
+        assert mine == [*waited, 'image', 'image_done'], (i, mine)
 
 
 def test_keyframes_dropped_before_announcement_are_announced_as_dropped(synthetic_sequence):

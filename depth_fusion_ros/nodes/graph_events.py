@@ -10,7 +10,10 @@ any deployment (one process or several) without reading logs or introspecting th
 * ``depth_fusion/keyframe/events`` (``std_msgs/Header``, reliable, deep history): one message
   per event, ``stamp`` = the stamp of the image or keyframe concerned, ``frame_id`` = the
   event: ``image`` (multi_view_node has handled an input image: posed, buffered or dropped),
-  ``chosen`` (the keyframe policy chose it), ``fused`` (fusion_node published its fused depth)
+  ``image_waiting`` (it has the image, which waits for its pose; ``image`` follows),
+  ``image_done`` (multi_view_node is done with it: its filter has updated with it, or it was
+  never for the filter), ``chosen`` (the keyframe policy chose it), ``fused`` (fusion_node
+  published its fused depth)
   or ``dropped:<node>.<reason>`` (a node gave the keyframe up, e.g.
   ``dropped:multi_view.worker_queue_full``).
   One writer per node keeps each node's events in order: a replayer that sees ``image`` for a
@@ -22,6 +25,7 @@ flight): the back-pressure of a paced replay and the honest summary of a run.
 
 from __future__ import annotations
 
+import bisect
 import json
 import threading
 import time
@@ -36,6 +40,8 @@ TOPIC_READY = 'depth_fusion/ready'
 TOPIC_KEYFRAME_EVENTS = 'depth_fusion/keyframe/events'
 
 EVENT_IMAGE = 'image'
+EVENT_IMAGE_WAITING = 'image_waiting'
+EVENT_IMAGE_DONE = 'image_done'
 EVENT_CHOSEN = 'chosen'
 EVENT_FUSED = 'fused'
 DROPPED = 'dropped:'
@@ -43,6 +49,8 @@ DROPPED = 'dropped:'
 #: Deep enough that a burst of events (a replay catching up) is never overwritten before it is
 #: read; each event is a few dozen bytes.
 EVENTS_DEPTH = 1000
+#: ``image`` stamps a ledger keeps (:meth:`KeyframeLedger.image_ns`).
+RECENT_IMAGES = 8
 #: History of a ready-line reader: more than the nodes of any graph.
 READERS_DEPTH = 100
 
@@ -195,6 +203,10 @@ class KeyframeLedger:
         self._lock = threading.Condition()
         self._images = 0
         self._last_image_ns = -1
+        self._last_done_ns = -1
+        self._last_seen_ns = -1
+        #: The newest ``image`` stamps, in order (:meth:`image_ns`).
+        self._recent_images: list[int] = []
         self._chosen: dict[int, None] = {}
         self._final: dict[int, str] = {}
         self.last_event = time.monotonic()
@@ -209,6 +221,13 @@ class KeyframeLedger:
             if event == EVENT_IMAGE:
                 self._images += 1
                 self._last_image_ns = max(self._last_image_ns, stamp_ns)
+                self._last_seen_ns = max(self._last_seen_ns, stamp_ns)
+                bisect.insort(self._recent_images, stamp_ns)
+                del self._recent_images[:-RECENT_IMAGES]
+            elif event == EVENT_IMAGE_WAITING:
+                self._last_seen_ns = max(self._last_seen_ns, stamp_ns)
+            elif event == EVENT_IMAGE_DONE:
+                self._last_done_ns = max(self._last_done_ns, stamp_ns)
             elif event == EVENT_CHOSEN:
                 self._chosen.setdefault(stamp_ns, None)
             elif event == EVENT_FUSED or event.startswith(DROPPED):
@@ -220,6 +239,25 @@ class KeyframeLedger:
         """Stamp of the newest image multi_view_node has handled (-1: none)."""
         with self._lock:
             return self._last_image_ns
+
+    def image_ns(self, back: int = 1) -> int:
+        """Stamp of the ``back``-th newest image handled (1: the newest; -1: fewer than that,
+        or ``back`` beyond :data:`RECENT_IMAGES`)."""
+        with self._lock:
+            recent = self._recent_images
+            return recent[-back] if 1 <= back <= len(recent) else -1
+
+    @property
+    def last_seen_ns(self) -> int:
+        """Stamp of the newest image multi_view_node has (handled, or waiting for its pose; -1: none)."""
+        with self._lock:
+            return self._last_seen_ns
+
+    @property
+    def last_done_ns(self) -> int:
+        """Stamp of the newest image multi_view_node is done with (-1: none)."""
+        with self._lock:
+            return self._last_done_ns
 
     def in_flight(self) -> int:
         with self._lock:

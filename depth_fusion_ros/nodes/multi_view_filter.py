@@ -21,7 +21,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 from ..camera import PinholeCamera
 from ..data.sequence import Frame
@@ -122,9 +122,25 @@ MAX_UNCLAIMED = 16
 RESULT_TIMEOUT = 120.0
 
 
+class _Queued(NamedTuple):
+    """One posed frame waiting for the filter; ``token`` is handed to ``on_consumed`` once the
+    feed is done with it."""
+
+    frame: Frame
+    camera: PinholeCamera
+    keyframe: bool
+    token: int | None
+
+
 class FilterFeed:
     """Posed frames queued by the callbacks, fed to a :class:`DepthFilter` by its own thread;
-    keyframe estimates handed to the worker."""
+    keyframe estimates handed to the worker.
+
+    ``on_consumed(token)`` is called once for every frame appended with a token, when the feed is
+    done with it (updated, passed over, skipped or dropped): the node's "image handled" event, so
+    that a paced replay waits for the filter itself, not only for the callbacks that queue its
+    frames (the queue would otherwise fill with the frames sent after a keyframe was fused, and
+    the next keyframe would wait behind them)."""
 
     def __init__(
         self,
@@ -137,10 +153,12 @@ class FilterFeed:
         max_lag: int = 0,
         on_skip: Callable[[str], None] | None = None,
         max_rate: float = 0.0,
+        on_consumed: Callable[[int], None] | None = None,
     ) -> None:
         config.validate()
         self.config, self.matching, self.device = config, matching, device
-        self._frames: deque[tuple[Frame, PinholeCamera, bool]] = deque()
+        self._frames: deque[_Queued] = deque()
+        self._on_consumed = on_consumed
         self._max_queued = int(max_queued)
         self._max_lag = int(max_lag)
         #: Shortest stamp interval (s) between two non-keyframe updates (0: none).
@@ -177,6 +195,7 @@ class FilterFeed:
         on_drop: Callable[[str], None],
         on_error: Callable[[str], None] | None = None,
         on_skip: Callable[[str], None] | None = None,
+        on_consumed: Callable[[int], None] | None = None,
     ) -> FilterFeed | None:
         """The feed when ``multi_view.method`` is ``filter``, else ``None`` (the sweep)."""
         if params['multi_view.method'] != 'filter':
@@ -184,21 +203,35 @@ class FilterFeed:
         config = build_dataclass(FilterConfig, params, 'filter')
         queued, lag = int(params['filter.max_queued_frames']), int(params['filter.max_lag_frames'])
         rate = float(params['filter.max_update_rate'])
-        return cls(config, matching, device, queued, on_drop, on_error, lag, on_skip, rate)
+        return cls(config, matching, device, queued, on_drop, on_error, lag, on_skip, rate, on_consumed)
 
-    def append(self, frame: Frame, camera: PinholeCamera, keyframe: bool = False) -> None:
-        """Queue one posed frame (callback thread); ``keyframe``: the worker will ask for its estimate."""
+    def append(
+        self, frame: Frame, camera: PinholeCamera, keyframe: bool = False, token: int | None = None
+    ) -> None:
+        """Queue one posed frame (callback thread); ``keyframe``: the worker will ask for its
+        estimate; ``token``: handed to ``on_consumed`` when the feed is done with the frame."""
+        done: list[int | None] = []
         with self._cond:
-            self._frames.append((frame, camera, keyframe))
+            self._frames.append(_Queued(frame, camera, keyframe, token))
             if self._max_lag > 0 and len(self._frames) > self._max_lag:
-                self._skip_behind()
+                done += self._skip_behind()
             while len(self._frames) > self._max_queued:
-                old, _, was_key = self._frames.popleft()
-                message = f'filter frame {old.stamp:.3f} dropped: the filter is behind'
-                if was_key:
-                    self._keep(old.index, RuntimeError(message))
+                old = self._frames.popleft()
+                message = f'filter frame {old.frame.stamp:.3f} dropped: the filter is behind'
+                if old.keyframe:
+                    self._keep(old.frame.index, RuntimeError(message))
                 self._on_drop(message)
+                done.append(old.token)
             self._cond.notify_all()
+        self._consumed(*done)
+
+    def _consumed(self, *tokens: int | None) -> None:
+        """Tell ``on_consumed`` the feed is done with these frames (no lock held: it publishes)."""
+        if self._on_consumed is None:
+            return
+        for token in tokens:
+            if token is not None:
+                self._on_consumed(token)
 
     def restart(self, first_index: int) -> None:
         """A new stream begins at frame ``first_index``: the filter starts over there (callback
@@ -206,20 +239,22 @@ class FilterFeed:
         with self._cond:
             self._restart_at = int(first_index)
 
-    def _skip_behind(self) -> None:
-        """Skip the oldest non-keyframes until at most ``max_lag`` frames wait (lock held)."""
+    def _skip_behind(self) -> list[int | None]:
+        """Skip the oldest non-keyframes until at most ``max_lag`` frames wait (lock held); their
+        tokens."""
         excess = len(self._frames) - self._max_lag
-        kept: deque[tuple[Frame, PinholeCamera, bool]] = deque()
-        skipped = []
+        kept: deque[_Queued] = deque()
+        skipped: list[_Queued] = []
         for item in self._frames:
-            if excess > 0 and not item[2]:
-                skipped.append(item[0])
+            if excess > 0 and not item.keyframe:
+                skipped.append(item)
                 excess -= 1
             else:
                 kept.append(item)
         self._frames = kept
-        for frame in skipped:
-            self._on_skip(f'filter frame {frame.stamp:.3f} skipped: the filter is behind a live stream')
+        for item in skipped:
+            self._on_skip(f'filter frame {item.frame.stamp:.3f} skipped: the filter is behind a live stream')
+        return [item.token for item in skipped]
 
     def result_for(self, key: Frame, camera: PinholeCamera) -> FilterResult:
         """The estimate in keyframe ``key`` once the filter has seen it (worker thread)."""
@@ -261,16 +296,20 @@ class FilterFeed:
                 self._cond.wait_for(lambda: self._frames or self._closed)
                 if self._closed:
                     return
-                frame, camera, keyframe = self._frames.popleft()
+                frame, camera, keyframe, token = self._frames.popleft()
                 if self._restart_at is not None and frame.index >= self._restart_at:
                     self._retire_filter()
                     self._restart_at = None  # built again below
                     self._last_update_stamp = None
-                if not keyframe and self._too_soon(frame.stamp):
+                skip = not keyframe and self._too_soon(frame.stamp)
+                if skip:
                     self.rate_skipped += 1
-                    continue
-                self._last_update_stamp = frame.stamp
-                self._busy = True
+                else:
+                    self._last_update_stamp = frame.stamp
+                    self._busy = True
+            if skip:
+                self._consumed(token)
+                continue
             outcome: FilterResult | Exception | None = None
             try:
                 if self.filter is None or (self.filter.camera != camera and not self.filter.refocus(camera)):
@@ -289,6 +328,7 @@ class FilterFeed:
                     self._keep(frame.index, outcome)
                 self._busy = False
                 self._cond.notify_all()
+            self._consumed(token)
 
     @property
     def jumps(self) -> int:

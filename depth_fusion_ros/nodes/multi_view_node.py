@@ -52,7 +52,7 @@ from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode, run_node
 from .corrected_path import TOPIC_CORRECTED_PATH, correction_limits, read_path
 from .diagnostics import Requirement
 from .focal_check_runner import FocalCheckRunner
-from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, GraphEvents
+from .graph_events import EVENT_CHOSEN, EVENT_IMAGE, EVENT_IMAGE_DONE, EVENT_IMAGE_WAITING, GraphEvents
 from .image_input import (
     CameraInput,
     InputError,
@@ -136,6 +136,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
                 lambda message: self.stats.dropped('filter_behind', message),
                 lambda message: self.stats.dropped('filter_error', message),
                 lambda message: self.stats.noted('filter_skipped', message),  # no output lost
+                # A frame the filter takes is done once the filter is done with it: a paced
+                # replay waits for that, so no frame queues in front of the next keyframe.
+                lambda stamp_ns: self.events.event(stamp_ns, EVENT_IMAGE_DONE),
             )
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
@@ -307,10 +310,10 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             if exc.reason == 'no_camera_info':
                 for stamp_ns, _ in self.awaiting_info.hold(header_stamp_ns(msg), msg):
                     self.stats.dropped(exc.reason, str(exc))
-                    self.events.event(stamp_ns, EVENT_IMAGE)
+                    self._handled(stamp_ns)
                 return
             self.stats.dropped(exc.reason, str(exc))
-            self.events.event(header_stamp_ns(msg), EVENT_IMAGE)
+            self._handled(header_stamp_ns(msg))
             return
         self._newest_image_ns = image.stamp_ns
         self.pending.append(_Pending(image, received_at))
@@ -323,8 +326,17 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
                 f'image {messages.ns_to_sec(old.image.stamp_ns):.3f} dropped: more than '
                 f'{limit} images waiting for poses{hint}',
             )
-            self.events.event(old.image.stamp_ns, EVENT_IMAGE)
+            self._handled(old.image.stamp_ns)
         self._resolve_pending()
+        if self.pending and self.pending[-1].image is image:  # still waiting for its pose
+            self.events.event(image.stamp_ns, EVENT_IMAGE_WAITING)
+
+    def _handled(self, stamp_ns: int) -> None:
+        """The graph's events of an image this node is done with (dropped, or posed and not for
+        the filter): ``image`` (handled: counted, and a keyframe decision made) and ``image_done``
+        (nothing of it left to do here), which a paced replay waits for."""
+        self.events.event(stamp_ns, EVENT_IMAGE)
+        self.events.event(stamp_ns, EVENT_IMAGE_DONE)
 
     def _start_over(self, stream: str, stamp_ns: int) -> None:
         """A new stream began (``stream`` jumped back): forget what the previous one left.
@@ -344,7 +356,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             self.stats.dropped(
                 'stream_restart', f'image {messages.ns_to_sec(old.image.stamp_ns):.3f}: its stream ended'
             )
-            self.events.event(old.image.stamp_ns, EVENT_IMAGE)
+            self._handled(old.image.stamp_ns)
         self._newest_image_ns = None
         self._image_periods.clear()
         self._restart_from_ns = 0  # the next posed frame, whatever its stamp
@@ -432,7 +444,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
                     self.pending.popleft()
                     newest = 'no pose yet' if span is None else f'latest pose {span[1]:.3f}'
                     self.stats.dropped('no_pose', f'{what} has no pose ({newest}); dropped')
-                    self.events.event(head.image.stamp_ns, EVENT_IMAGE)
+                    self._handled(head.image.stamp_ns)
                     continue
                 return
             self.pending.popleft()
@@ -443,9 +455,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
                 if lookup.pose is None:
                     self.stats.dropped(lookup.key, f'{what}: {lookup.reason}')
                 else:
-                    self._on_posed_frame(head, lookup.pose)
-            # After 'chosen' (same writer): a replayer seeing this ack knows the decision.
-            self.events.event(head.image.stamp_ns, EVENT_IMAGE)
+                    self._on_posed_frame(head, lookup.pose)  # sends the frame's events
+                    continue
+            self._handled(head.image.stamp_ns)
 
     def _give_up_pending(self, reason: str = '') -> None:
         """Drop (``no_pose``) the images still waiting once no image nor pose came for ``pose_wait``
@@ -517,6 +529,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             self.filter_feed.close()
 
     def _on_posed_frame(self, pending: _Pending, T_wc: np.ndarray) -> None:
+        """Take one posed frame: the checks, the keyframe policy, the filter, and the frame's
+        events (``chosen``, ``image``, ``image_done``: see :meth:`_handled`)."""
         image = pending.image
         restarted = self._restart_from_ns is not None and image.stamp_ns >= self._restart_from_ns
         if restarted:
@@ -537,13 +551,19 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             neighbours = self._select_neighbours(frame, camera)
             if len(neighbours) >= int(self.params['min_neighbours']):
                 job = _KeyframeJob(frame, neighbours, camera, image.header, pending.received_at)
-        if self.filter_feed is not None:  # the filter sees every posed frame, as it comes
-            self.filter_feed.append(frame, camera, keyframe=job is not None)
         if job is not None:
             self.keyframes_decided += 1
             self.posing.keyframe(image.stamp_ns)
             self._last_keyframe_pose = T_wc
             self.events.event(image.stamp_ns, EVENT_CHOSEN)
+        if self.filter_feed is not None:  # the filter sees every posed frame, as it comes
+            # After 'chosen' (same writer): a replayer seeing this ack knows the decision.
+            self.events.event(image.stamp_ns, EVENT_IMAGE)
+            # 'image_done' comes from the feed, once the filter is done with the frame.
+            self.filter_feed.append(frame, camera, keyframe=job is not None, token=image.stamp_ns)
+        else:
+            self._handled(image.stamp_ns)
+        if job is not None:
             self.worker.submit(job)
         self.frames.append(frame)
 

@@ -9,7 +9,14 @@ image it waits until
   announced yet), and
 * fewer than ``max_images_ahead`` images sent are not yet handled by the multi-view node (so
   the replayer knows whether an image became a keyframe before it sends the next keyframe's
-  images).
+  images), and
+* the multi-view node has the last image sent and is done with every image it has posed
+  (``image_done``: its depth filter has updated with it), for at most :data:`SETTLE_LIMIT_S`
+  per image. Without this the images sent after a fused keyframe went out in a burst (the
+  replay is behind its schedule) and queued in front of the filter, and the next keyframe
+  waited behind them: 150-200 ms of TUM fr1_xyz's 350-400 ms latency, measured. An image
+  that waits for its pose (``image_waiting``) does not hold the replay back: a pose stream
+  that lags the images would stall it (``max_images_ahead`` bounds those instead).
 
 It never plays faster than the recorded rate (times ``rate``): a graph that keeps up sees the
 recorded timing, a slow one fuses every keyframe, only later. If the graph stops reporting
@@ -38,6 +45,18 @@ class PaceStats:
     gave_up: bool = False
 
 
+#: Seconds one image waits at most for the multi-view node to settle (the last image arrived,
+#: the filter done with what it posed); then only the other two rules hold it back. A lost
+#: image (it never arrives) costs this once instead of stalling the replay.
+SETTLE_LIMIT_S = 1.0
+#: Images in front of the filter (on their way, queued or being updated with) when the next is
+#: sent, at most. 1: the filter idles for a round trip per image, the next keyframe waits for
+#: no frame. Measured against 2 (a keyframe waits behind one frame at most; two runs each of
+#: the room and TUM fr1_xyz, paced, processes and composed; docs/performance.md): median
+#: latency 196-262 ms against 236-346 ms, keyframes/s 5-10 % lower.
+FILTER_DEPTH = 1
+
+
 class Pacer:
     """The replayer's view of the graph's progress, and the wait before each image."""
 
@@ -63,8 +82,10 @@ class Pacer:
         self._stop = stop
         self._warn = warn
         self._unacked: deque[int] = deque()
+        #: The newest images sent (:meth:`_unsettled`).
+        self._sent: deque[int] = deque(maxlen=FILTER_DEPTH)
 
-    def _busy(self) -> str:
+    def _busy(self, waited: float = 0.0) -> str:
         """Why the next image must wait ('' when it may go)."""
         acked = self.ledger.last_image_ns
         while self._unacked and self._unacked[0] <= acked:
@@ -74,6 +95,17 @@ class Pacer:
         in_flight = self.ledger.in_flight()
         if in_flight >= self.max_keyframes:
             return f'{in_flight} keyframes in flight'
+        return self._unsettled() if waited < SETTLE_LIMIT_S else ''
+
+    def _unsettled(self) -> str:
+        """Why the multi-view node is not ready for the next image yet ('' when it is): of the
+        images sent, more than the newest ``FILTER_DEPTH - 1`` are on their way to it, or its
+        filter is not done with all but the newest ``FILTER_DEPTH - 1`` images it posed."""
+        depth = FILTER_DEPTH
+        if len(self._sent) == depth and self.ledger.last_seen_ns < self._sent[0]:
+            return 'an image sent has not reached the multi-view node'
+        if self.ledger.last_done_ns < self.ledger.image_ns(depth):
+            return 'the multi-view filter is still on an image'
         return ''
 
     def before_image(self) -> bool:
@@ -96,10 +128,11 @@ class Pacer:
                 self.stats.gave_up = True
                 break
             self.ledger.wait(0.05)
-            why = self._busy()
+            why = self._busy(time.monotonic() - start)
         self.stats.paused_s += time.monotonic() - start
         return not self._stop.is_set()
 
     def sent_image(self, stamp_ns: int) -> None:
         if self.enabled:
             self._unacked.append(stamp_ns)
+            self._sent.append(stamp_ns)
