@@ -198,6 +198,40 @@ def test_the_node_runner_checks_off_the_callbacks(late):
         assert runner.correction == expected
 
 
+def test_a_busy_runner_makes_grey_images_only_for_the_samples_it_will_take(late):
+    """While the runner's thread is busy with one sample, the callbacks still queue every
+    frame's pose, but a grey image only for frames a sample apart from the last one queued
+    with one: the thread takes every grey image it is handed as a sample."""
+    import threading
+
+    from depth_fusion_ros.nodes.testing import RosHarness
+    from depth_fusion_ros.nodes.time_offset_check_runner import TimeOffsetCheckRunner
+
+    entered, gate = threading.Event(), threading.Event()
+    fed: list[tuple[bool, bool]] = []  # (a grey image came with it, the check wanted it as a sample)
+
+    class Held(TimeOffsetCheckRunner):
+        def _feed(self, check, item):
+            fed.append((item[0] is not None, check.wants(item[1], item[2])))
+            entered.set()
+            assert gate.wait(30)
+            return super()._feed(check, item)
+
+    # A sample every 2-3 frames (1.5-2 cm a frame), far from done after 25 frames.
+    config = TimeOffsetCheckConfig(min_baseline=0.035, min_rotation_deg=45.0, early_pairs=0)
+    runner = Held(config, 0.0, lambda *_: None)
+    runner.offer(late.frames[0], late.camera)
+    assert entered.wait(10)  # the thread holds frame 0
+    for frame in late.frames[1:25]:
+        runner.offer(frame, late.camera)
+    gate.set()
+    assert RosHarness.wait_for(lambda: not runner.pending, 30.0)
+    runner.close()
+    assert len(fed) == 25  # every pose reached the thread
+    grey = [wanted for with_grey, wanted in fed if with_grey]
+    assert 8 <= len(grey) <= 13 and all(grey), fed  # each grey image was a sample the thread took
+
+
 def test_cli_check_sync_says_the_verdict_in_its_exit_status(tmp_path, late, capsys):
     """``depth-fusion check-sync``: a TUM folder and its rosbag2, without ground-truth depth; 3
     out of sync, 0 in sync (also once told the offset), 4 when it cannot tell. ``synth`` takes

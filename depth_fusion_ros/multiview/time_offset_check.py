@@ -282,9 +282,10 @@ class TimeOffsetCheck:
             del self._stamps[0], self._poses[0]
         return self._evaluate_covered()
 
-    def wants(self, stamp: float, pose: np.ndarray) -> bool:
-        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last."""
-        return not self.done and self.pairs < self.config.pairs and self._images.far_enough(pose)
+    def wants(self, stamp: float, pose: np.ndarray, since: np.ndarray | None = None) -> bool:
+        """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last
+        (or since the pose ``since``: a runner's last frame queued as a sample)."""
+        return not self.done and self.pairs < self.config.pairs and self._images.far_enough(pose, since)
 
     def add(self, gray: np.ndarray, stamp: float, pose: np.ndarray) -> TimeOffsetEstimate | None:
         """One posed frame (grey image on this camera's grid): observed, and a sample when

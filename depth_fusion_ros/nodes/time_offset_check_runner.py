@@ -41,7 +41,13 @@ TIME_OFFSET_CHECK_PARAMETERS: tuple[ParamSpec, ...] = tuple(
 
 
 class TimeOffsetCheckRunner(CheckRunner):
-    """Feeds a :class:`TimeOffsetCheck` from the callbacks on its own thread; reports once."""
+    """Feeds a :class:`TimeOffsetCheck` from the callbacks on its own thread; reports once.
+
+    A frame's grey image is made when the check wants the frame as its next sample, counted
+    from the last frame queued with one (as :class:`.check_runner.PairedCheckRunner` does): a
+    thread still busy with one sample is not handed grey images of the very next frames, which
+    it would not use.
+    """
 
     name = 'time_offset_check'
     #: Every frame's pose is queued (a sample's grey image too): a second of a 30 Hz stream.
@@ -55,6 +61,8 @@ class TimeOffsetCheckRunner(CheckRunner):
     ) -> None:
         super().__init__(config, on_result)
         self.told = told
+        #: The pose of the last frame queued with its grey image (``None``: none yet).
+        self._sample_pose: Any = None
 
     @classmethod
     def from_parameters(
@@ -73,11 +81,16 @@ class TimeOffsetCheckRunner(CheckRunner):
         return result.offset
 
     def _make(self, camera: PinholeCamera) -> TimeOffsetCheck:
+        self._sample_pose = None
         return TimeOffsetCheck(camera, self.config, self.told)
 
     def _item(self, check: TimeOffsetCheck, frame: Frame) -> tuple[Any, float, Any]:
-        gray = frame.gray if check.wants(frame.stamp, frame.pose) else None  # made only then
-        return gray, frame.stamp, frame.pose
+        wanted = check.wants(frame.stamp, frame.pose, self._sample_pose)
+        return (frame.gray if wanted else None), frame.stamp, frame.pose  # the grey image only then
+
+    def _queued(self, item: tuple[Any, float, Any]) -> None:
+        if item[0] is not None:
+            self._sample_pose = item[2]
 
     def _feed(self, check: TimeOffsetCheck, item: tuple[Any, float, Any]) -> TimeOffsetEstimate | None:
         gray, stamp, pose = item
