@@ -137,10 +137,10 @@ class FilterFeed:
     keyframe estimates handed to the worker.
 
     ``on_consumed(token)`` is called once for every frame appended with a token, when the feed is
-    done with it (updated, passed over, skipped or dropped): the node's "image handled" event, so
+    done with it (updated, passed over, skipped or dropped): the node's ``image_done`` event, so
     that a paced replay waits for the filter itself, not only for the callbacks that queue its
     frames (the queue would otherwise fill with the frames sent after a keyframe was fused, and
-    the next keyframe would wait behind them)."""
+    the next keyframe would wait behind them: ``nodes/pacer.py``)."""
 
     def __init__(
         self,
