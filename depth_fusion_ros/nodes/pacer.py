@@ -53,7 +53,7 @@ SETTLE_LIMIT_S = 1.0
 #: sent, at most. 1: the filter idles for a round trip per image, the next keyframe waits for
 #: no frame. Measured against 2 (a keyframe waits behind one frame at most; two runs each of
 #: the room and TUM fr1_xyz, paced, processes and composed; docs/performance.md): median
-#: latency 196-262 ms against 236-346 ms, keyframes/s 5-10 % lower.
+#: latency 196-268 ms against 236-346 ms, keyframes/s 3-6 % lower (means of four runs).
 FILTER_DEPTH = 1
 
 
