@@ -14,7 +14,8 @@ image it waits until
   (``image_done``: its depth filter has updated with it), for at most :data:`SETTLE_LIMIT_S`
   per image. Without this the images sent after a fused keyframe went out in a burst (the
   replay is behind its schedule) and queued in front of the filter, and the next keyframe
-  waited behind them: 150-200 ms of TUM fr1_xyz's 350-400 ms latency, measured. An image
+  waited behind them: 150-200 ms of TUM fr1_xyz's 390-470 ms median latency (measured:
+  docs/performance.md, "A paced replay waits for the filter"). An image
   that waits for its pose (``image_waiting``) does not hold the replay back: a pose stream
   that lags the images would stall it (``max_images_ahead`` bounds those instead).
 
