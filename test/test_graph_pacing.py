@@ -110,6 +110,51 @@ def test_paced_replay_fuses_every_keyframe_of_a_slow_graph(bag, toy_model):
     }
 
 
+def _poses_later(bag, out, lag_ns: int):
+    """``bag`` with every pose recorded ``lag_ns`` after its stamp, as a SLAM publishes it."""
+    from rosbags.rosbag2 import Reader
+
+    from depth_fusion_ros.data.bag_writer import AtomicBagWriter
+
+    pose = 'geometry_msgs/msg/PoseStamped'
+    with Reader(bag) as reader:
+        rows = [
+            (t + (lag_ns if c.msgtype == pose else 0), c.topic, c.msgtype, bytes(raw))
+            for c, t, raw in reader.messages()
+        ]
+    with AtomicBagWriter(out) as writer:
+        for t, topic, msgtype, raw in sorted(rows, key=lambda row: row[0]):
+            writer.write_raw(topic, msgtype, t, raw)
+    return out
+
+
+def test_a_paced_replay_of_poses_that_lag_their_images_never_stalls(bag, tmp_path):
+    """Poses recorded 0.3 s (9 frames) after their images: only more images bring each pose,
+    so images waiting for theirs must not hold the replay back. Until 2026-12-01 they did,
+    and the replay stalled until ``pace_timeout`` switched pacing off."""
+    from depth_fusion_ros.nodes.bag_replayer import BagReplayer
+
+    lagged = _poses_later(bag, tmp_path / 'lagged', int(0.3e9))
+    with RosHarness() as ros:
+        node = _mv_node(ros, keyframe_every=5)
+        params = {'bag': str(lagged), 'pace': True, 'pace_timeout': 10.0, 'rate': 4.0, 'linger': 0.5}
+        # No fusion node here: keyframes in flight must not hold the replay back either.
+        params.update(wait_ready=[node.get_name()], max_keyframes_in_flight=1000)
+        replayer = BagReplayer(
+            context=ros.context,
+            parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
+            autostart=False,
+        )
+        ros.add(replayer)
+        replayer.start()
+        assert replayer.finished.wait(60.0), 'the replay did not finish'
+        assert ros.wait_for(lambda: node.posed_count == 24, 10.0), node.stats.snapshot().summary()
+        assert node.wait_idle(30.0)
+        stats = replayer.pacer.stats
+    assert replayer.error is None and not stats.gave_up  # paced to the end
+    assert 'no_pose' not in node.stats.snapshot().dropped
+
+
 def test_realtime_replay_reports_every_drop(bag, toy_model):
     result = run_graph(_slow_graph(bag, toy_model, realtime=True))
     summary = keyframe_summary(result, 'composed')
@@ -177,9 +222,10 @@ def _pacer(**kwargs):
 
 def test_a_paced_replay_waits_for_the_filter_but_not_for_a_lagging_pose():
     """The next image waits until multi_view_node has the last one and its filter is done with
-    every image it posed (the next keyframe never queues behind earlier frames); an image
-    waiting for its pose does not hold the replay back, and ``max_images_ahead`` still bounds
-    those; a lost image holds it back for ``SETTLE_LIMIT_S`` only."""
+    every image it posed (the next keyframe never queues behind earlier frames); images
+    waiting for their pose hold nothing back (only more images bring a lagging pose);
+    ``max_images_ahead`` bounds the images that never arrived; a lost image holds the replay
+    back for ``SETTLE_LIMIT_S`` only."""
     from depth_fusion_ros.nodes.pacer import SETTLE_LIMIT_S
 
     pacer, warnings = _pacer()
@@ -197,20 +243,23 @@ def test_a_paced_replay_waits_for_the_filter_but_not_for_a_lagging_pose():
         assert pacer._busy() == ''
     pacer.sent_image(50)
     ledger.add(50, 'image_waiting')
-    assert 'images not yet handled' in pacer._busy()  # four waiting: max_images_ahead
-    for stamp in (20, 30, 40, 50):  # the poses came: all posed, the filter on them
+    assert pacer._busy() == ''  # four waiting for poses that only more images bring: no stall
+    for stamp in (60, 70, 80, 90):  # lost on the way: max_images_ahead bounds those
+        pacer.sent_image(stamp)
+    assert 'have not reached' in pacer._busy(SETTLE_LIMIT_S)
+    for stamp in (20, 30, 40, 50, 60, 70, 80, 90):  # the poses came: all posed, the filter on them
         ledger.add(stamp, 'image')
     assert 'filter' in pacer._busy()
     assert pacer._busy(SETTLE_LIMIT_S) == ''  # a filter that never says done holds it so long only
-    ledger.add(50, 'image_done')
+    ledger.add(90, 'image_done')
     assert pacer._busy() == ''
-    pacer.sent_image(60)  # lost on the way
+    pacer.sent_image(100)  # lost on the way
     assert pacer._busy(SETTLE_LIMIT_S) == ''
-    ledger.add(60, 'chosen')  # a keyframe in flight holds it back whatever the filter does
-    ledger.add(60, 'image')
-    ledger.add(60, 'image_done')
+    ledger.add(100, 'chosen')  # a keyframe in flight holds it back whatever the filter does
+    ledger.add(100, 'image')
+    ledger.add(100, 'image_done')
     assert 'keyframes in flight' in pacer._busy(SETTLE_LIMIT_S)
-    ledger.add(60, 'fused')
+    ledger.add(100, 'fused')
     assert pacer._busy() == '' and warnings == []
 
 

@@ -127,8 +127,8 @@ REPLAYER_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'max_images_ahead',
         4,
-        'pace: images sent but not yet handled by multi_view_node at most (keep it below the keyframe '
-        'spacing so a keyframe is known before the next one is sent)',
+        'pace: images sent that have not reached multi_view_node yet, at most (one that waits there for '
+        'its pose has reached it, so a pose stream that lags the images never stalls the replay)',
         1,
         1000,
     ),
@@ -393,6 +393,8 @@ class BagReplayer(Node):
             if self.pacer is not None and self.params['pace']:
                 ps = self.pacer.stats
                 paced = f'; the graph held it back {ps.pauses} times, {ps.paused_s:.1f} s in all'
+                if ps.gave_up:  # said once as a warning when it happened; the summary says it too
+                    paced += ', then pacing was switched off (no progress from the graph)'
             self.get_logger().info(
                 f'playback ended: {total} messages in {self.stats.passes} pass(es), '
                 f'max lag {self.stats.max_lag * 1e3:.1f} ms{paced}'

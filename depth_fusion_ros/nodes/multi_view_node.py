@@ -482,8 +482,11 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             else f'no pose ever received on {self.pose_input.resolved_topic}'
         )
         count = len(self.pending)
+        stamps = [p.image.stamp_ns for p in self.pending]
         self.pending.clear()
         self.stats.dropped('no_pose', f'{count} image(s) never got a pose ({latest}; {why})', count=count)
+        for stamp_ns in stamps:  # handled (dropped): a run counts them, a paced replay moves on
+            self._handled(stamp_ns)
 
     def held_items(self) -> int:
         return len(self.pending)

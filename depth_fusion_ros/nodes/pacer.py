@@ -7,17 +7,21 @@ image it waits until
 
 * fewer than ``max_keyframes`` chosen keyframes are still in flight (no fused depth nor drop
   announced yet), and
-* fewer than ``max_images_ahead`` images sent are not yet handled by the multi-view node (so
-  the replayer knows whether an image became a keyframe before it sends the next keyframe's
-  images), and
+* fewer than ``max_images_ahead`` images sent have not reached the multi-view node yet (an
+  image that waits there for its pose has reached it: ``image_waiting``), and
 * the multi-view node has the last image sent and is done with every image it has posed
   (``image_done``: its depth filter has updated with it), for at most :data:`SETTLE_LIMIT_S`
   per image. Without this the images sent after a fused keyframe went out in a burst (the
   replay is behind its schedule) and queued in front of the filter, and the next keyframe
   waited behind them: 150-200 ms of TUM fr1_xyz's 390-470 ms median latency (measured:
-  docs/performance.md, "A paced replay waits for the filter"). An image
-  that waits for its pose (``image_waiting``) does not hold the replay back: a pose stream
-  that lags the images would stall it (``max_images_ahead`` bounds those instead).
+  docs/performance.md, "A paced replay waits for the filter").
+
+Images that wait for their pose hold nothing back: a bag recorded with a SLAM's pose latency
+has each pose some frames after its image, and only more images bring it. Until 2026-12-01
+the replayer waited for ``max_images_ahead`` images to be *posed*: a pose lag longer than
+that deadlocked the replay until ``timeout`` switched pacing off (a 200 ms lag in a 30 Hz bag,
+measured). The multi-view node bounds those images itself (``pose_wait``,
+``max_pending_images``); a keyframe among them is known, and counted in flight, once posed.
 
 It never plays faster than the recorded rate (times ``rate``): a graph that keeps up sees the
 recorded timing, a slow one fuses every keyframe, only later. If the graph stops reporting
@@ -88,11 +92,11 @@ class Pacer:
 
     def _busy(self, waited: float = 0.0) -> str:
         """Why the next image must wait ('' when it may go)."""
-        acked = self.ledger.last_image_ns
-        while self._unacked and self._unacked[0] <= acked:
+        seen = self.ledger.last_seen_ns
+        while self._unacked and self._unacked[0] <= seen:
             self._unacked.popleft()
         if len(self._unacked) >= self.max_images_ahead:
-            return f'{len(self._unacked)} images not yet handled by the multi-view node'
+            return f'{len(self._unacked)} images sent have not reached the multi-view node'
         in_flight = self.ledger.in_flight()
         if in_flight >= self.max_keyframes:
             return f'{in_flight} keyframes in flight'
