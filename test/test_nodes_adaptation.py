@@ -247,6 +247,8 @@ def test_a_mount_turn_multi_view_node_takes_re_poses_the_keyframe_poses_the_adap
             m.pose_stamped_msg(room.frames[1].pose, m.header_msg(before[1], 'world', kind=K), kind=K)
         )
         assert ros.wait_for(lambda: node.stats.snapshot().received.get('keyframe_pose') == 2, 10.0)
+        # The count comes first in the callback, the pose after it: wait for the pose too.
+        assert ros.wait_for(lambda: before[1] in node.adaptation.assembler._pending, 10.0)
         waiting = {s: e.values['pose'] for s, e in node.adaptation.assembler._pending.items()}
     np.testing.assert_allclose(waiting[before[0]], room.frames[0].pose @ turn, atol=1e-12)
     np.testing.assert_allclose(waiting[before[1]], room.frames[1].pose @ turn, atol=1e-12)
@@ -275,6 +277,8 @@ def test_the_keyframes_multi_view_node_reads_again_at_a_corrected_offset_move_in
         assert ros.wait_for(lambda: node.stats.snapshot().received.get('reposed_keyframes') == 1, 10.0)
         pose(1)
         assert ros.wait_for(lambda: node.stats.snapshot().received.get('keyframe_pose') == 2, 10.0)
+        # The count comes first in the callback, the pose after it: wait for the pose too.
+        assert ros.wait_for(lambda: stamps[1] in node.adaptation.assembler._pending, 10.0)
         waiting = {s: e.values['pose'] for s, e in node.adaptation.assembler._pending.items()}
     np.testing.assert_allclose(waiting[stamps[0]], room.frames[0].pose, atol=1e-12)
     np.testing.assert_allclose(waiting[stamps[1]], room.frames[1].pose, atol=1e-12)

@@ -258,6 +258,8 @@ def test_loop_seconds_is_wall_time_also_when_a_busy_graph_holds_the_replay(conte
 
     from sensor_msgs.msg import Image
 
+    from depth_fusion_ros.nodes.pacer import PaceStats
+
     listener = Listener(context, {IMAGE: Image})
     replayer = make_replayer(
         context, bag, rate=10.0, loop=True, loop_seconds=0.5, topics=[IMAGE], qos_depth=1000, pace=True
@@ -267,7 +269,7 @@ def test_loop_seconds_is_wall_time_also_when_a_busy_graph_holds_the_replay(conte
     replayer.pacer = SimpleNamespace(
         before_image=lambda: time.sleep(0.2) is None,
         sent_image=lambda stamp: None,
-        stats=SimpleNamespace(pauses=0, paused_s=0.0),
+        stats=PaceStats(),  # the real stats: the replayer reads every field
     )
     start = time.monotonic()
     play(context, replayer, listener)
