@@ -40,6 +40,10 @@ class CheckRunner:
         self._thread: threading.Thread | None = None
         #: Set to end the current thread (each thread has its own)
         self._stopping = threading.Event()
+        #: The pose of the last item queued as a sample of the current check (``None``: none
+        #: yet): the check's next sample is counted from it, not from the last one the thread
+        #: took, so a busy thread is never handed samples it would skip (:meth:`_sample_pose_of`).
+        self._sample_pose: Any = None
 
     def _make(self, camera: PinholeCamera) -> Any:
         raise NotImplementedError
@@ -50,8 +54,9 @@ class CheckRunner:
     def _feed(self, check: Any, item: Any) -> Any:
         raise NotImplementedError
 
-    def _queued(self, item: Any) -> None:
-        """``item`` went into the queue (callback thread): what a subclass needs to know of it."""
+    def _sample_pose_of(self, item: Any) -> Any:
+        """The pose of ``item`` when it is a sample (``None``: not one): the reference of the next."""
+        return None
 
     @property
     def pending(self) -> int:
@@ -85,6 +90,7 @@ class CheckRunner:
         if self._check is None or self._check.camera != camera:  # a new camera: check it anew
             self._stop()
             self._check = self._make(camera)
+            self._sample_pose = None
             self._queue = queue.Queue(maxsize=self.queue_size)
             self._stopping = threading.Event()
             args = (self._check, self._queue, self._stopping)
@@ -100,7 +106,9 @@ class CheckRunner:
             self._queue.put_nowait(item)
         except queue.Full:  # busy: a later frame is taken instead
             return
-        self._queued(item)
+        pose = self._sample_pose_of(item)
+        if pose is not None:  # only a sample that went into the queue moves the reference
+            self._sample_pose = pose
 
     def restart(self) -> None:
         """Forget the current check and its result: the next frame starts a new one (the frames
@@ -155,24 +163,18 @@ class PairedCheckRunner(CheckRunner):
     config_type: type
     section: str
 
-    def __init__(self, config: Any, on_result: Callable[[PinholeCamera, Any], None]) -> None:
-        super().__init__(config, on_result)
-        #: The pose of the last frame queued for the current check (``None``: none yet).
-        self._queued_pose: Any = None
-
     @classmethod
     def from_parameters(cls, params: dict[str, Any], on_result: Callable[[PinholeCamera, Any], None]) -> Any:
         return cls(build_dataclass(cls.config_type, params, cls.section), on_result)
 
     def _make(self, camera: PinholeCamera) -> Any:
-        self._queued_pose = None
         return self.check_type(camera, self.config)
 
     def _item(self, check: Any, frame: Frame) -> tuple[Any, Any] | None:
-        return (frame.gray, frame.pose) if check.wants(frame.pose, self._queued_pose) else None
+        return (frame.gray, frame.pose) if check.wants(frame.pose, self._sample_pose) else None
 
-    def _queued(self, item: tuple[Any, Any]) -> None:
-        self._queued_pose = item[1]
+    def _sample_pose_of(self, item: tuple[Any, Any]) -> Any:
+        return item[1]  # every item is a sample
 
     def _feed(self, check: Any, item: tuple[Any, Any]) -> Any:
         return check.add(*item)

@@ -61,8 +61,6 @@ class TimeOffsetCheckRunner(CheckRunner):
     ) -> None:
         super().__init__(config, on_result)
         self.told = told
-        #: The pose of the last frame queued with its grey image (``None``: none yet).
-        self._sample_pose: Any = None
 
     @classmethod
     def from_parameters(
@@ -81,16 +79,14 @@ class TimeOffsetCheckRunner(CheckRunner):
         return result.offset
 
     def _make(self, camera: PinholeCamera) -> TimeOffsetCheck:
-        self._sample_pose = None
         return TimeOffsetCheck(camera, self.config, self.told)
 
     def _item(self, check: TimeOffsetCheck, frame: Frame) -> tuple[Any, float, Any]:
         wanted = check.wants(frame.stamp, frame.pose, self._sample_pose)
         return (frame.gray if wanted else None), frame.stamp, frame.pose  # the grey image only then
 
-    def _queued(self, item: tuple[Any, float, Any]) -> None:
-        if item[0] is not None:
-            self._sample_pose = item[2]
+    def _sample_pose_of(self, item: tuple[Any, float, Any]) -> Any:
+        return item[2] if item[0] is not None else None  # a sample is an item with its grey image
 
     def _feed(self, check: TimeOffsetCheck, item: tuple[Any, float, Any]) -> TimeOffsetEstimate | None:
         gray, stamp, pose = item
