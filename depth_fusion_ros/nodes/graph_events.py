@@ -202,7 +202,6 @@ class KeyframeLedger:
     def __init__(self) -> None:
         self._lock = threading.Condition()
         self._images = 0
-        self._last_image_ns = -1
         self._last_done_ns = -1
         self._last_seen_ns = -1
         #: The newest ``image`` stamps, in order (:meth:`image_ns`).
@@ -220,7 +219,6 @@ class KeyframeLedger:
             self.last_event = time.monotonic()
             if event == EVENT_IMAGE:
                 self._images += 1
-                self._last_image_ns = max(self._last_image_ns, stamp_ns)
                 self._last_seen_ns = max(self._last_seen_ns, stamp_ns)
                 bisect.insort(self._recent_images, stamp_ns)
                 del self._recent_images[:-RECENT_IMAGES]
@@ -233,12 +231,6 @@ class KeyframeLedger:
             elif event == EVENT_FUSED or event.startswith(DROPPED):
                 self._final.setdefault(stamp_ns, event.removeprefix(DROPPED))
             self._lock.notify_all()
-
-    @property
-    def last_image_ns(self) -> int:
-        """Stamp of the newest image multi_view_node has handled (-1: none)."""
-        with self._lock:
-            return self._last_image_ns
 
     def image_ns(self, back: int = 1) -> int:
         """Stamp of the ``back``-th newest image handled (1: the newest; -1: fewer than that,

@@ -86,9 +86,8 @@ class Pacer:
         self.stats = PaceStats()
         self._stop = stop
         self._warn = warn
+        #: Images sent that have not reached multi_view_node, oldest first (stamps increase).
         self._unacked: deque[int] = deque()
-        #: The newest images sent (:meth:`_unsettled`).
-        self._sent: deque[int] = deque(maxlen=FILTER_DEPTH)
 
     def _busy(self, waited: float = 0.0) -> str:
         """Why the next image must wait ('' when it may go)."""
@@ -107,7 +106,7 @@ class Pacer:
         images sent, more than the newest ``FILTER_DEPTH - 1`` are on their way to it, or its
         filter is not done with all but the newest ``FILTER_DEPTH - 1`` images it posed."""
         depth = FILTER_DEPTH
-        if len(self._sent) == depth and self.ledger.last_seen_ns < self._sent[0]:
+        if len(self._unacked) >= depth:  # (:meth:`_busy` took out those that arrived)
             return 'an image sent has not reached the multi-view node'
         if self.ledger.last_done_ns < self.ledger.image_ns(depth):
             return 'the multi-view filter is still on an image'
@@ -140,4 +139,3 @@ class Pacer:
     def sent_image(self, stamp_ns: int) -> None:
         if self.enabled:
             self._unacked.append(stamp_ns)
-            self._sent.append(stamp_ns)
