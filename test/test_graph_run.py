@@ -208,6 +208,16 @@ def running(pid: int) -> bool:
         return False
 
 
+def print_logs_of_failed_nodes(exit_codes: dict[str, int | None], log_dir: Path) -> None:
+    """The end of each failed node's log, in the test's output: a node killed on CI for not
+    stopping left its threads' stacks there (nodes/base.run_node), and CI keeps no files."""
+    for name, code in exit_codes.items():
+        log_file = log_dir / f'{name}.log'
+        if code != 0 and log_file.is_file():
+            print(f'--- {name} exited {code}; the end of {log_file}:')
+            print('\n'.join(log_file.read_text(errors='replace').splitlines()[-120:]))
+
+
 @pytest.mark.parametrize('processes', [False, True], ids=['composed', 'processes'])
 def test_graph_fuses_every_keyframe_like_offline(
     processes, synthetic_tum_dir, graph_bag, params_file, expected_keyframes, offline_mae, tmp_path
@@ -239,6 +249,7 @@ def test_graph_fuses_every_keyframe_like_offline(
     check_fused_messages(listener.received, expected_keyframes)
     check_accuracy_matches_offline(out, synthetic_tum_dir, keyframe_indices(graph_bag), offline_mae)
     if processes:
+        print_logs_of_failed_nodes(result.exit_codes, tmp_path / 'logs')
         assert result.exit_codes == {
             'single_view_node': 0,
             'multi_view_node': 0,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import signal
 import subprocess
@@ -262,8 +263,36 @@ def test_a_ctrl_c_as_the_node_finishes_building_still_destroys_it_with_its_final
     # itself was started in the background by a shell without job control.
     before = signal.getsignal(signal.SIGINT)
     assert run_node(build, []) == 0
+    faulthandler.cancel_dump_traceback_later()  # this process goes on: no stop stacks later
     assert len(destroyed) == 1
     assert signal.getsignal(signal.SIGINT) is before  # restored
+
+
+def test_a_node_that_hangs_as_it_stops_writes_its_threads_stacks_to_its_log(monkeypatch, capfd):
+    """A node process the graph kills for not stopping (graph/spawn.py) has first written where
+    each of its threads was, to its stderr (its log): here with the delay cut to 0.3 s and a
+    destroy that takes 1 s."""
+    from depth_fusion_ros.nodes import base
+    from depth_fusion_ros.nodes.map_node import MapNode
+
+    monkeypatch.setattr(base, 'STOP_STACKS_AFTER_S', 0.3)
+
+    class _SlowToStop(MapNode):
+        def destroy_node(self) -> None:
+            time.sleep(1.0)  # stands for a stop that hangs
+            super().destroy_node()
+
+    def build() -> MapNode:
+        node = _SlowToStop()
+        os.kill(os.getpid(), signal.SIGINT)
+        return node
+
+    try:
+        assert base.run_node(build, []) == 0
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+    err = capfd.readouterr().err
+    assert 'Thread' in err and 'in destroy_node' in err, err[-2000:]
 
 
 def test_a_bad_executor_choice_is_a_one_line_error_and_single_still_runs():

@@ -12,6 +12,8 @@ the documented ``/depth_fusion/...`` names and a ``namespace`` moves the whole g
 
 from __future__ import annotations
 
+import atexit
+import faulthandler
 import signal
 import sys
 import threading
@@ -31,6 +33,7 @@ from . import diagnostics as diag
 from .gil import set_switch_interval
 from .graph.dds import profile_for_console_node
 from .graph.dds_readers import resolved_topic
+from .graph.spawn import STOP_STACKS_AFTER_S
 from .image_input import StampGuard
 from .input_watch import InputWatch
 from .node_executor import executor_choice, make_node_executor, spin_until
@@ -300,8 +303,41 @@ class DepthFusionNode(Node):
             for worker in self._workers:
                 if not worker.stop(timeout=10.0):
                     self.get_logger().warning(f'worker {worker.name} did not stop within 10 s')
+            self.close_threads()
+            events = getattr(self, 'events', None)  # graph_events.GraphEvents, where the node has one
+            if events is not None:
+                events.close()
             self.get_logger().info(f'final counters: {self.stats.snapshot().summary()}')
         super().destroy_node()
+
+    def close_threads(self) -> None:
+        """Stop the node's own threads that publish (besides its workers). Called once, after
+        the workers stopped (an item in hand may still need them) and before the publishers
+        go: a thread that publishes after that raises in rclpy (``InvalidHandle``)."""
+
+
+def arm_stop_stacks() -> None:
+    """A stop that hangs leaves every thread's stack in the node's log, after
+    ``STOP_STACKS_AFTER_S`` (then the graph kills it: graph/spawn.py); without it a hang seen
+    once on CI says nothing about where. It stays armed through the interpreter's teardown,
+    which joins the threads left (a forked node ends right after that; a console script
+    disarms it at exit). Only one such timer exists per process: this replaces any other."""
+    faulthandler.dump_traceback_later(STOP_STACKS_AFTER_S, exit=False)
+    atexit.unregister(faulthandler.cancel_dump_traceback_later)  # registered once
+    atexit.register(faulthandler.cancel_dump_traceback_later)  # runs after the threads were joined
+
+
+def _close_executor(executor: Any, node: Node) -> None:
+    """Take the node out of its executor and shut the executor down, before the node is
+    destroyed and rclpy shuts down: the order the composed graph keeps (graph/lifecycle.py),
+    rather than leaving the events executor (C++) to be torn down after its context is gone."""
+    if executor is None:
+        return
+    try:
+        executor.remove_node(node)
+        executor.shutdown(timeout_sec=5.0)
+    except Exception as exc:  # the node is destroyed anyway
+        node.get_logger().warning(f'closing the executor failed: {exc!r}')
 
 
 def run_node(
@@ -351,6 +387,7 @@ def run_node(
     rclpy.logging.get_logger('depth_fusion').info(profile_line)
     rclpy.logging.get_logger('depth_fusion').info(threads_line)
     node = None
+    executor = None
     code = 0
     try:
         node = factory()
@@ -364,7 +401,9 @@ def run_node(
         rclpy.logging.get_logger('depth_fusion').error(str(exc))
         code = 2
     finally:
+        arm_stop_stacks()
         if node is not None:
+            _close_executor(executor, node)
             node.destroy_node()
         rclpy.try_shutdown()
         signal.signal(signal.SIGTERM, previous_term)

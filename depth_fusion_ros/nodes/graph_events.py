@@ -124,6 +124,14 @@ class GraphEvents:
         self.started = time.monotonic()
         self._subscribes: tuple[str, ...] | None = None  # set by ready()
         self._warm_early = False
+        self._closed = False
+
+    def close(self) -> None:
+        """Publish nothing from now on: the node is going. A thread of its own that outlives
+        the node's publishers (the fusion node's background compilation says ``warm``) would
+        otherwise raise in rclpy (``InvalidHandle``) as it ends."""
+        with self._lock:
+            self._closed = True
 
     def event(self, stamp_ns: int, event: str) -> None:
         """Publish one event about the image / keyframe stamped ``stamp_ns``."""
@@ -131,7 +139,8 @@ class GraphEvents:
         msg.stamp.sec, msg.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
         msg.frame_id = event
         with self._lock:  # callbacks and the worker both publish; keep their order
-            self._events.publish(msg)
+            if not self._closed:
+                self._events.publish(msg)
 
     def dropped(self, stamp_ns: int, reason: str) -> None:
         """``dropped:multi_view.worker_queue_full``: which node gave the keyframe up, and why."""
@@ -154,6 +163,8 @@ class GraphEvents:
         """Tell the graph the background warm-up is over: the ready line again, ``warm``. Before
         :meth:`ready` it only makes the ready line say warm."""
         with self._lock:
+            if self._closed:
+                return None
             if self._subscribes is None:
                 self._warm_early = True
                 return None

@@ -525,6 +525,10 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         if not self._destroyed:
             self._give_up_pending('node shutting down')
         super().destroy_node()
+
+    def close_threads(self) -> None:
+        """The checks and the filter feed publish (estimates, ``image_done``): they stop before
+        the publishers go, once the worker is done with the keyframe in hand."""
         self.focal_check.close()
         self.time_offset_check.close()
         self.mount_check.close()

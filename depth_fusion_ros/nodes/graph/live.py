@@ -27,7 +27,14 @@ from typing import Any
 
 from .forked import forking_server
 from .lifecycle import install_stop_signals
-from .spawn import describe_exit, node_environment, node_ros_args, start_node, stop_processes
+from .spawn import (
+    STOP_TIMEOUT_S,
+    describe_exit,
+    node_environment,
+    node_ros_args,
+    start_node,
+    stop_processes,
+)
 from .topics import graph_nodes
 
 log = logging.getLogger(__name__)
@@ -55,7 +62,7 @@ class LaunchOptions:
     log_dir: Path | None = None
     threads_per_node: int | None = None
     #: Seconds a node may take to stop on SIGINT before it is killed.
-    stop_timeout: float = 15.0
+    stop_timeout: float = STOP_TIMEOUT_S
 
 
 #: The inputs each node reads that ``LaunchOptions.inputs`` remaps.

@@ -106,8 +106,15 @@ def popen_node(cmd: list[str], env: dict[str, str], log_file: TextIO | None) -> 
     )
 
 
+# Seconds a node process has to stop on SIGINT before it is killed, and after which a node still
+# stopping writes its threads' stacks to its log (base.run_node) so a kill says where it hung. A
+# normal stop takes < 2 s (a worker finishing its keyframe, a map saved on shutdown: ~10 s).
+STOP_TIMEOUT_S = 15.0
+STOP_STACKS_AFTER_S = 12.0
+
+
 def stop_processes(
-    processes: dict[str, Any], interrupted: bool, since: float, timeout: float = 15.0
+    processes: dict[str, Any], interrupted: bool, since: float, timeout: float = STOP_TIMEOUT_S
 ) -> dict[str, int | None]:
     """SIGINT each child still running (after a grace period on Ctrl-C, which they got too).
 
@@ -130,7 +137,8 @@ def stop_processes(
         try:
             p.wait(max(0.1, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
-            log.warning('%s did not stop on SIGINT within %.0f s: killing it', name, timeout)
+            stacks = "; its log has its threads' stacks" if timeout > STOP_STACKS_AFTER_S else ''
+            log.warning('%s did not stop on SIGINT within %.0f s: killing it%s', name, timeout, stacks)
             p.kill()
             p.wait()
             forced = True
