@@ -11,13 +11,16 @@ from pathlib import Path
 import pytest
 
 from depth_fusion_ros.cli.main import main
-from depth_fusion_ros.cli.overrides import check_node_overrides, check_stage_overrides
+from depth_fusion_ros.cli.overrides import check_node_overrides, check_params_file, check_stage_overrides
 from depth_fusion_ros.cli.paths import OutputPathError, check_output
 from depth_fusion_ros.nodes.graph import RunOptions
 from depth_fusion_ros.nodes.graph.inputs import MissingInputError, check_inputs, missing_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
 ALL = ['/camera/rgb/image_color', '/camera/rgb/camera_info', '/camera/pose', '/camera/depth/image']
+
+
+CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'depth_fusion.yaml'
 
 
 def one_line_error(capsys, argv: list[str], code: int = 1) -> str:
@@ -143,6 +146,27 @@ def test_set_typo_is_an_error_in_the_cli(tmp_path, capsys):
     assert 'did you mean keyframe_every' in line
     line = one_line_error(capsys, ['evaluate', str(tmp_path), '--set', 'fusion.mdoe=fast'])
     assert 'did you mean mode' in line
+
+
+def test_a_typo_in_a_params_file_section_of_ours_is_an_error_and_other_sections_are_left_alone(
+    tmp_path, capsys
+):
+    """``run --params``: the nodes would only warn about a name they do not declare (and run the
+    default), so the CLI refuses it first. A ``/**`` section and a section for another package's
+    node hold what they like; the packaged file passes."""
+    params = tmp_path / 'params.yaml'
+    params.write_text(
+        '/**:\n  ros__parameters:\n    use_sim_time: true\n    fusion:\n      mode: exact\n'
+        'some_driver_node:\n  ros__parameters:\n    exposure: 3\n'
+        'multi_view_node:\n  ros__parameters:\n    keyframe_evry: 3\n    qos_overrides:\n'
+        '      /x:\n        publisher:\n          depth: 3\n'
+    )
+    line = one_line_error(capsys, ['run', '--bag', str(tmp_path), '--params', str(params)])
+    assert f"--params {params}: multi_view_node has no parameter 'keyframe_evry'" in line
+    assert 'did you mean keyframe_every' in line
+    params.write_text(params.read_text().replace('keyframe_evry', 'keyframe_every'))
+    check_params_file(params)
+    check_params_file(CONFIG)
 
 
 @pytest.mark.parametrize('command', [['evaluate', 'x'], ['demo'], ['convert', 'a', 'b'], ['synth', 'o']])

@@ -210,7 +210,7 @@ def running(pid: int) -> bool:
 
 def print_logs_of_failed_nodes(exit_codes: dict[str, int | None], log_dir: Path) -> None:
     """The end of each failed node's log, in the test's output: a node killed on CI for not
-    stopping left its threads' stacks there (nodes/base.run_node), and CI keeps no files."""
+    stopping left its threads' stacks there (nodes/console.run_node), and CI keeps no files."""
     for name, code in exit_codes.items():
         log_file = log_dir / f'{name}.log'
         if code != 0 and log_file.is_file():

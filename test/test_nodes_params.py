@@ -239,12 +239,41 @@ def test_a_namespace_moves_every_topic_of_a_node():
     assert all(topic.startswith('/robot1/depth_fusion/') for topic in subscribed), subscribed
 
 
+def test_a_misspelt_parameter_is_said_with_the_name_meant_and_other_nodes_parameters_are_not_typos(capfd):
+    """rclpy ignores a parameter the node does not declare; the node says so in one line per
+    name, with the closest declared name. A parameter of another node (a ``/**:`` section
+    gives every node all of them) and rclpy's own ``qos_overrides.*`` are no typo."""
+    from depth_fusion_ros.nodes.fusion_node import FusionNode
+    from depth_fusion_ros.nodes.ignored_params import warn_ignored
+
+    given = [
+        Parameter('fusion.mod', value='exact'),
+        Parameter('zzz_unheard_of', value=1),
+        Parameter('multi_view.method', value='sweep'),  # multi_view_node's
+        Parameter('qos_overrides./x.publisher.depth', value=3),
+        Parameter('fusion.mode', value='exact'),  # declared: taken
+    ]
+    with RosHarness() as ros:
+        node = FusionNode(context=ros.context, parameter_overrides=given)
+        try:
+            mode = node.params['fusion.mode']
+            typos = warn_ignored(node, ['fusion.mode'])
+        finally:
+            node.destroy_node()
+    err = capfd.readouterr().err
+    assert mode == 'exact'
+    assert typos == ['fusion.mod', 'zzz_unheard_of']
+    assert "'fusion.mod' is not a parameter of fusion_node: ignored (did you mean 'fusion.mode'?)" in err
+    assert "'zzz_unheard_of' is not a parameter of fusion_node: ignored" in err
+    assert 'multi_view.method' not in err and 'qos_overrides' not in err
+
+
 def test_a_ctrl_c_as_the_node_finishes_building_still_destroys_it_with_its_final_counters():
     """The signal lands just after the node's "ready" line, before ``run_node`` holds the node
     (a KeyboardInterrupt there left nothing to destroy: exit 0 without final counters)."""
     import os
 
-    from depth_fusion_ros.nodes.base import run_node
+    from depth_fusion_ros.nodes.console import run_node
     from depth_fusion_ros.nodes.map_node import MapNode
 
     destroyed = []
@@ -272,10 +301,10 @@ def test_a_node_that_hangs_as_it_stops_writes_its_threads_stacks_to_its_log(monk
     """A node process the graph kills for not stopping (graph/spawn.py) has first written where
     each of its threads was, to its stderr (its log): here with the delay cut to 0.3 s and a
     destroy that takes 1 s."""
-    from depth_fusion_ros.nodes import base
+    from depth_fusion_ros.nodes import console
     from depth_fusion_ros.nodes.map_node import MapNode
 
-    monkeypatch.setattr(base, 'STOP_STACKS_AFTER_S', 0.3)
+    monkeypatch.setattr(console, 'STOP_STACKS_AFTER_S', 0.3)
 
     class _SlowToStop(MapNode):
         def destroy_node(self) -> None:
@@ -288,7 +317,7 @@ def test_a_node_that_hangs_as_it_stops_writes_its_threads_stacks_to_its_log(monk
         return node
 
     try:
-        assert base.run_node(build, []) == 0
+        assert console.run_node(build, []) == 0
     finally:
         faulthandler.cancel_dump_traceback_later()
     err = capfd.readouterr().err

@@ -64,13 +64,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def options_from_args(args: argparse.Namespace):  # -> LaunchOptions (import kept lazy)
     from ..nodes.graph.live import LaunchOptions
-    from .overrides import check_node_overrides, parse_overrides
+    from .overrides import check_node_overrides, check_params_file, parse_overrides
     from .paths import check_output
 
     if args.params is not None and not args.params.is_file():
         raise FileNotFoundError(f'--params {args.params}: no such file')
     overrides = parse_overrides(args.set, 'NODE')
     check_node_overrides(overrides)
+    check_params_file(args.params)
     for node in overrides:
         if node == 'bag_replayer' or (node == 'map_node' and not args.map):
             hint = '; add --map' if node == 'map_node' else ' (launch plays no bag)'

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import difflib
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 
 #: Parameters every rclpy node declares or accepts besides its own table.
 ROS_NODE_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
@@ -90,6 +91,28 @@ def check_node_overrides(overrides: Mapping[str, Mapping[str, object]]) -> None:
     """``run --set NODE.PARAM=VALUE``: the node exists and declares the parameter."""
     if overrides:
         check_names(overrides, node_parameter_names(), 'node', ROS_NODE_PARAMETERS, ROS_PARAMETER_PREFIXES)
+
+
+def check_params_file(path: Path | None) -> None:
+    """``run`` / ``launch --params FILE``: each section named after one of the package's nodes
+    holds only that node's parameters (one line, with a did-you-mean, before any node starts;
+    the nodes would only warn). ``/**`` and other nodes' sections are left alone: a file
+    shared with the rest of a robot's graph is fine."""
+    if path is None:
+        return
+    from ..nodes.graph.param_merge import read_params_file
+
+    known = node_parameter_names()
+    for node, params in read_params_file(path).items():
+        if node not in known:
+            continue
+        for key in params:
+            if key in known[node] or key in ROS_NODE_PARAMETERS or key.startswith(ROS_PARAMETER_PREFIXES):
+                continue
+            raise ValueError(
+                f'--params {path}: {node} has no parameter {key!r}{did_you_mean(key, known[node])} '
+                '(all of them: config/depth_fusion.yaml)'
+            )
 
 
 def evaluation_stages() -> dict[str, set[str]]:

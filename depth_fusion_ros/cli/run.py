@@ -148,7 +148,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
     from ..nodes.graph import RunOptions
     from ..nodes.graph.isolation import check_domain_id
     from ..nodes.graph.map_output import check_map_path
-    from .overrides import check_node_overrides, parse_overrides
+    from .overrides import check_node_overrides, check_params_file, parse_overrides
     from .paths import check_output
 
     if args.rate is not None and args.rate <= 0:
@@ -161,6 +161,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         check_domain_id(args.domain_id)
     overrides = parse_overrides(args.set, 'NODE')
     check_node_overrides(overrides)
+    check_params_file(args.params)
     with_map = args.map or args.save_map is not None
     if 'map_node' in overrides and not with_map:
         raise ValueError('--set map_node.*: map_node is not started; add --map (or --save-map FILE.ply)')

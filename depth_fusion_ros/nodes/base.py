@@ -1,4 +1,5 @@
-"""What the three processing nodes share: common parameters, counters, the worker, ``main``.
+"""What the processing nodes share: common parameters, counters, the worker (their console
+entry point, ``main``, is console.py).
 
 Construction contract (what ``depth-fusion run`` relies on to compose nodes): each node
 class takes ``**kwargs`` that go straight to ``rclpy.node.Node`` (``parameter_overrides``,
@@ -12,36 +13,22 @@ the documented ``/depth_fusion/...`` names and a ``namespace`` moves the whole g
 
 from __future__ import annotations
 
-import atexit
-import faulthandler
-import signal
-import sys
-import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from ..data import messages
-from ..malloc_tuning import keep_freed_memory
 from . import diagnostics as diag
-from .gil import set_switch_interval
-from .graph.dds import profile_for_console_node
-from .graph.dds_readers import resolved_topic
-from .graph.spawn import STOP_STACKS_AFTER_S
 from .image_input import StampGuard
 from .input_watch import InputWatch
-from .node_executor import executor_choice, make_node_executor, spin_until
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
-from .robot_inputs import image_topic_for
 from .stats import NodeStats
-from .threads import apply_node_threads
 from .worker import POLICIES, BoundedWorker
 
 #: Parameters every processing node declares (before its own).
@@ -314,98 +301,3 @@ class DepthFusionNode(Node):
         """Stop the node's own threads that publish (besides its workers). Called once, after
         the workers stopped (an item in hand may still need them) and before the publishers
         go: a thread that publishes after that raises in rclpy (``InvalidHandle``)."""
-
-
-def arm_stop_stacks() -> None:
-    """A stop that hangs leaves every thread's stack in the node's log, after
-    ``STOP_STACKS_AFTER_S`` (then the graph kills it: graph/spawn.py); without it a hang seen
-    once on CI says nothing about where. It stays armed through the interpreter's teardown,
-    which joins the threads left (a forked node ends right after that; a console script
-    disarms it at exit). Only one such timer exists per process: this replaces any other."""
-    faulthandler.dump_traceback_later(STOP_STACKS_AFTER_S, exit=False)
-    atexit.unregister(faulthandler.cancel_dump_traceback_later)  # registered once
-    atexit.register(faulthandler.cancel_dump_traceback_later)  # runs after the threads were joined
-
-
-def _close_executor(executor: Any, node: Node) -> None:
-    """Take the node out of its executor and shut the executor down, before the node is
-    destroyed and rclpy shuts down: the order the composed graph keeps (graph/lifecycle.py),
-    rather than leaving the events executor (C++) to be torn down after its context is gone."""
-    if executor is None:
-        return
-    try:
-        executor.remove_node(node)
-        executor.shutdown(timeout_sec=5.0)
-    except Exception as exc:  # the node is destroyed anyway
-        node.get_logger().warning(f'closing the executor failed: {exc!r}')
-
-
-def run_node(
-    factory: Callable[[], Node],
-    args: Sequence[str] | None = None,
-    udp_image_topics: Sequence[str] = (),
-    node_name: str = '',
-) -> int:
-    """Console entry point body: init, build the node, spin until Ctrl-C/SIGTERM, clean up.
-
-    rclpy's own signal handler would shut the context down at once, so the final counters
-    could no longer reach ``/rosout``; instead SIGINT and SIGTERM end the spin loop, the node
-    is destroyed while the context is still valid (workers joined, final counters logged),
-    then rclpy shuts down. The signals set a flag rather than raise: a KeyboardInterrupt that
-    lands while the constructor finishes (just after its "ready" line) would leave no node to
-    destroy and no final counters. A second Ctrl-C interrupts at once (a constructor that
-    hangs). Returns the process exit code: 0 on a normal stop, 2 when a parameter is invalid
-    (the message names it; no traceback: it is the user's to fix). ``udp_image_topics``: the
-    node's camera image topics (as declared, resolved here with the command line's remaps for
-    ``node_name``), read over UDP with their ``/compressed`` (graph/dds_readers.py).
-    """
-    from rclpy.executors import ExternalShutdownException
-    from rclpy.signals import SignalHandlerOptions
-
-    try:
-        set_switch_interval()  # the node's threads hand the GIL over sooner (gil.py)
-        choice = executor_choice()  # a bad DEPTH_FUSION_EXECUTOR fails now, in one line
-    except ValueError as exc:
-        rclpy.logging.get_logger('depth_fusion').error(str(exc))
-        return 2
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: object) -> None:
-        if signum == signal.SIGINT and stop.is_set():
-            raise KeyboardInterrupt  # the second Ctrl-C
-        stop.set()
-
-    previous_term = signal.signal(signal.SIGTERM, on_signal)
-    previous_int = signal.signal(signal.SIGINT, on_signal)
-    argv = list(sys.argv if args is None else args)
-    bases = [resolved_topic(t, node_name, argv) for t in udp_image_topics]
-    readers = [name for base in bases for name in (base, image_topic_for(base, 'compressed'))]
-    profile_line = profile_for_console_node(udp_readers=readers)  # before rclpy.init: read once
-    threads_line = apply_node_threads()
-    keep_freed_memory()  # freed tensor memory reused (DEPTH_FUSION_MALLOC_TUNING=0: off), malloc_tuning.py
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    rclpy.logging.get_logger('depth_fusion').info(profile_line)
-    rclpy.logging.get_logger('depth_fusion').info(threads_line)
-    node = None
-    executor = None
-    code = 0
-    try:
-        node = factory()
-        executor, executor_line = make_node_executor(choice)
-        rclpy.logging.get_logger('depth_fusion').info(executor_line)
-        executor.add_node(node)
-        spin_until(executor, lambda: rclpy.ok() and not stop.is_set())  # notices a signal within 0.2 s
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, FileNotFoundError) as exc:
-        rclpy.logging.get_logger('depth_fusion').error(str(exc))
-        code = 2
-    finally:
-        arm_stop_stacks()
-        if node is not None:
-            _close_executor(executor, node)
-            node.destroy_node()
-        rclpy.try_shutdown()
-        signal.signal(signal.SIGTERM, previous_term)
-        signal.signal(signal.SIGINT, previous_int)
-    return code

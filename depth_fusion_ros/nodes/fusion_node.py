@@ -46,7 +46,8 @@ from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_
 from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig
 from ..multiview.stage1 import METHOD_RULES, STAGE1_RULES, resolve_rule, stage1_mask
-from .base import DepthFusionNode, run_node
+from .base import DepthFusionNode
+from .console import run_node
 from .diagnostics import Requirement
 from .fusion_warmup import exit_now_if_compiling, finish_compiling, start_kernels
 from .graph_events import EVENT_FUSED, GraphEvents

@@ -48,7 +48,8 @@ from ..mapping.ply import write_ply
 from ..mapping.surface import SurfaceMesh
 from ..mapping.torch_tsdf import TorchTSDF
 from ..pose_jumps import find_jump
-from .base import DepthFusionNode, run_node
+from .base import DepthFusionNode
+from .console import run_node
 from .corrected_path import TOPIC_CORRECTED_PATH
 from .graph_events import GraphEvents
 from .image_input import InputError, depth_from_message, pose_from_message

@@ -48,7 +48,8 @@ from ..pose_buffer import PoseBuffer
 from ..pose_jumps import PoseJump
 from . import robot_inputs
 from .announce import announce
-from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode, run_node
+from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode
+from .console import run_node
 from .corrected_path import TOPIC_CORRECTED_PATH, correction_limits, read_path
 from .diagnostics import Requirement
 from .focal_check_runner import FocalCheckRunner

@@ -25,6 +25,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from .ignored_params import warn_ignored
+
 ParamValue = bool | int | float | str | list[float] | list[int] | list[str]
 
 
@@ -161,6 +163,7 @@ def declare_parameters(node: Any, specs: Sequence[ParamSpec]) -> dict[str, Param
         if isinstance(value, tuple) or type(value).__name__ == 'array':
             value = list(value)
         values[spec.name] = spec.check(value, where)
+    warn_ignored(node, [spec.name for spec in specs])  # a misspelt -p is said, not ignored
     return values
 
 

@@ -34,7 +34,8 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from ..data import messages
 from .announce import announce
-from .base import DepthFusionNode, run_node
+from .base import DepthFusionNode
+from .console import run_node
 from .graph_events import GraphEvents
 from .image_input import CameraInput, InputError, WorkingImage, working_grid_parameters
 from .params import ParamSpec

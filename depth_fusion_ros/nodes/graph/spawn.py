@@ -107,7 +107,7 @@ def popen_node(cmd: list[str], env: dict[str, str], log_file: TextIO | None) -> 
 
 
 # Seconds a node process has to stop on SIGINT before it is killed, and after which a node still
-# stopping writes its threads' stacks to its log (base.run_node) so a kill says where it hung. A
+# stopping writes its threads' stacks to its log (console.run_node) so a kill says where it hung. A
 # normal stop takes < 2 s (a worker finishing its keyframe, a map saved on shutdown: ~10 s).
 STOP_TIMEOUT_S = 15.0
 STOP_STACKS_AFTER_S = 12.0
