@@ -169,6 +169,16 @@ def test_a_typo_in_a_params_file_section_of_ours_is_an_error_and_other_sections_
     check_params_file(CONFIG)
 
 
+def test_bench_refuses_a_section_it_does_not_have_instead_of_measuring_nothing(capsys):
+    """``bench --only fusoin`` once printed "not available" and exited 0 with no figure."""
+    line = one_line_error(capsys, ['bench', '--only', 'fusoin'])
+    assert '--only fusoin: no such bench section; did you mean fusion?' in line
+    assert 'names no section' in one_line_error(capsys, ['bench', '--only', ','])
+    assert '--repeats must be at least 1, got 0' in one_line_error(
+        capsys, ['bench', '--only', 'fusion', '--repeats', '0']
+    )
+
+
 @pytest.mark.parametrize('command', [['evaluate', 'x'], ['demo'], ['convert', 'a', 'b'], ['synth', 'o']])
 @pytest.mark.parametrize('value', ['0', '-3'])
 def test_frames_must_be_positive_and_the_message_names_the_option(command, value, capsys):

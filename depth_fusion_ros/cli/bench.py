@@ -6,6 +6,7 @@ import argparse
 import importlib
 import json
 import sys
+from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,24 +35,51 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def chosen_sections(only: str) -> list[str]:
+    """The sections ``--only`` names, in its order; ``ValueError`` (one line, with a
+    did-you-mean) for a name that is not one, or for none at all: a bench that measures
+    nothing must not end as if it had."""
+    from ..bench import SECTIONS
+    from .overrides import did_you_mean
+
+    names = [s.strip() for s in only.split(',') if s.strip()]
+    if not names:
+        raise ValueError(f'--only names no section (sections: {", ".join(SECTIONS)})')
+    for name in names:
+        if name not in SECTIONS:
+            hint = did_you_mean(name, SECTIONS)
+            raise ValueError(f'--only {name}: no such bench section{hint} (sections: {", ".join(SECTIONS)})')
+    return names
+
+
 def run(args: argparse.Namespace) -> int:
     from ..bench import BenchOptions
+    from .paths import check_output
 
+    names = chosen_sections(args.only)
+    if args.repeats < 1:
+        raise ValueError(f'--repeats must be at least 1, got {args.repeats}')
+    for folder in args.sequence:
+        if not Path(folder).is_dir():
+            raise FileNotFoundError(f'--sequence {folder}: no such folder')
+    if args.json:
+        check_output(args.json, '--json', folder=False)
     opts = BenchOptions(device=args.device, quick=args.quick, repeats=args.repeats, sequences=args.sequence)
     out: dict[str, list[dict]] = {}
-    for name in [s.strip() for s in args.only.split(',') if s.strip()]:
-        try:
-            module = importlib.import_module(f'depth_fusion_ros.bench.{name}')
-        except ModuleNotFoundError:
-            print(f'bench section {name!r} is not available', file=sys.stderr)
-            continue
+    for name in names:
+        module = importlib.import_module(f'depth_fusion_ros.bench.{name}')
         print(f'## {module.TITLE}', flush=True)
         rows = module.run(opts)
         for r in rows:
             note = f'  ({r.note})' if r.note else ''
             print(f'  {r.name:48s} {r.value:12.4g} {r.unit}{note}', flush=True)
+        if not rows:
+            print('  (no figures)', flush=True)
         out[name] = [vars(r) for r in rows]
     if args.json:
         with open(args.json, 'w') as f:
             json.dump(out, f, indent=2)
+    if not any(out.values()):
+        print('depth-fusion bench: no section gave a figure', file=sys.stderr)
+        return 1
     return 0
