@@ -88,6 +88,7 @@ def test_launch_remaps_the_inputs_and_ctrl_c_stops_every_node(tmp_path: Path):
     assert code == 0, output
     pids = [int(p) for p in re.findall(r'(?:forked|started) \w+ \(pid (\d+)', output)]
     assert len(pids) == 3, output
+    assert '3 nodes stopped cleanly in' in output, output  # a clean stop says so
     time.sleep(0.5)
     assert [p for p in pids if running(p)] == []
     for node in NODES:

@@ -106,6 +106,7 @@ def launch(opts: LaunchOptions) -> int:
         interrupted = True
         log.info('stopping the nodes')
     finally:
+        stopping = time.monotonic()
         codes = stop_processes(processes, interrupted, since, opts.stop_timeout)
         for f in logs:
             f.close()
@@ -118,6 +119,8 @@ def launch(opts: LaunchOptions) -> int:
     unclean = {n: c for n, c in codes.items() if c not in (0, None)}
     for name, code in unclean.items():
         log.error('%s did not stop cleanly (exit code %d)', name, code)
+    if not unclean:
+        log.info('%d nodes stopped cleanly in %.1f s', len(codes), time.monotonic() - stopping)
     return 1 if unclean else 0
 
 
