@@ -196,12 +196,14 @@ class MapPosing:
 
     def _take(self, msg: Any, take: Callable[[Any], T]) -> T | None:
         """``take(msg)`` under the node's lock, counted; a posing that is not a rigid transform is
-        dropped and counted (None)."""
+        dropped and counted (None). Counted once taken (or dropped), so that a count read
+        elsewhere (a test, the diagnostics) never runs ahead of what the node holds."""
         node = self.node
-        node.stats.received('posing')
         try:
             with node._lock:
                 return take(msg)
         except ValueError as exc:
             node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
             return None
+        finally:
+            node.stats.received('posing')

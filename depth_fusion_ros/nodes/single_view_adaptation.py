@@ -232,8 +232,8 @@ class NodeAdaptation:
 
     def _on_posing(self, msg: Any) -> None:
         """multi_view_node's ``camera_from_pose_frame``; another one than the last (its mount
-        check turned the camera) re-poses the neighbours and waiting poses (``repose``)."""
-        self.node.stats.received('posing')
+        check turned the camera) re-poses the neighbours and waiting poses (``repose``). Counted
+        once taken (or dropped): a count read elsewhere never runs ahead of what is held."""
         try:
             with self._lock:
                 turn = self.posings.on_transform(msg)
@@ -243,6 +243,8 @@ class NodeAdaptation:
         except ValueError as exc:  # a transform that is not rigid
             self.node.stats.dropped('bad_posing', f'posing from multi_view_node unusable: {exc}')
             return
+        finally:
+            self.node.stats.received('posing')
         self.node.get_logger().info(
             f'adaptation: multi_view_node turned the camera (mount check): {moved} kept poses re-posed'
         )
