@@ -17,9 +17,7 @@ import difflib
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-#: Parameters every rclpy node declares or accepts besides its own table.
-ROS_NODE_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
-ROS_PARAMETER_PREFIXES = ('qos_overrides.',)
+from ..nodes.ignored_params import ROS_NODE_PARAMETERS, ROS_PARAMETER_PREFIXES, node_parameter_names
 
 
 def parse_overrides(items: list[str], owner: str = 'STAGE') -> dict[str, dict[str, object]]:
@@ -57,8 +55,10 @@ def check_names(
     owner: str,
     accept: frozenset[str] = frozenset(),
     accept_prefixes: tuple[str, ...] = (),
+    source: str | None = None,
 ) -> None:
-    """Raise ``ValueError`` (one line, with a did-you-mean) for the first unknown owner or key."""
+    """Raise ``ValueError`` (one line, with a did-you-mean) for the first unknown owner or key.
+    ``source``: where the names come from, to start the line with (default ``--set OWNER.KEY``)."""
     for name, values in overrides.items():
         if name not in known:
             first = next(iter(values), 'KEY')
@@ -70,21 +70,15 @@ def check_names(
         for key in values:
             if key in params or key in accept or key.startswith(accept_prefixes):
                 continue
+            where = source or f'--set {name}.{key}'
             raise ValueError(
-                f'--set {name}.{key}: {name} has no parameter {key!r}{did_you_mean(key, params)}'
+                f'{where}: {name} has no parameter {key!r}{did_you_mean(key, params)}'
                 + (
                     ' (all of them: docs/nodes.md)'
                     if owner == 'node'
                     else f' (known: {", ".join(sorted(params))})'
                 )
             )
-
-
-def node_parameter_names() -> dict[str, set[str]]:
-    """``{node: parameter names}`` of every node ``depth-fusion run`` starts (their tables)."""
-    from ..nodes.config_yaml import available_nodes, node_parameters
-
-    return {node: {spec.name for spec in node_parameters(node)} for node in available_nodes()}
 
 
 def check_node_overrides(overrides: Mapping[str, Mapping[str, object]]) -> None:
@@ -103,16 +97,8 @@ def check_params_file(path: Path | None) -> None:
     from ..nodes.graph.param_merge import read_params_file
 
     known = node_parameter_names()
-    for node, params in read_params_file(path).items():
-        if node not in known:
-            continue
-        for key in params:
-            if key in known[node] or key in ROS_NODE_PARAMETERS or key.startswith(ROS_PARAMETER_PREFIXES):
-                continue
-            raise ValueError(
-                f'--params {path}: {node} has no parameter {key!r}{did_you_mean(key, known[node])} '
-                '(all of them: config/depth_fusion.yaml)'
-            )
+    ours = {node: params for node, params in read_params_file(path).items() if node in known}
+    check_names(ours, known, 'node', ROS_NODE_PARAMETERS, ROS_PARAMETER_PREFIXES, source=f'--params {path}')
 
 
 def evaluation_stages() -> dict[str, set[str]]:

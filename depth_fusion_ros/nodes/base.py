@@ -24,6 +24,7 @@ from rclpy.node import Node
 
 from ..data import messages
 from . import diagnostics as diag
+from .graph_events import GraphEvents
 from .image_input import StampGuard
 from .input_watch import InputWatch
 from .params import ParamSpec, declare_parameters
@@ -88,6 +89,9 @@ PUBLISHER_CHECK_PERIOD = 2.0
 
 class DepthFusionNode(Node):
     """An rclpy node with validated parameters, counters, a bounded worker and clean shutdown."""
+
+    #: The node's keyframe events and ready line (graph_events.py), for the nodes that have them.
+    events: GraphEvents | None = None
 
     def __init__(self, node_name: str, specs: Sequence[ParamSpec], **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
@@ -291,9 +295,8 @@ class DepthFusionNode(Node):
                 if not worker.stop(timeout=10.0):
                     self.get_logger().warning(f'worker {worker.name} did not stop within 10 s')
             self.close_threads()
-            events = getattr(self, 'events', None)  # graph_events.GraphEvents, where the node has one
-            if events is not None:
-                events.close()
+            if self.events is not None:
+                self.events.close()
             self.get_logger().info(f'final counters: {self.stats.snapshot().summary()}')
         super().destroy_node()
 

@@ -17,8 +17,18 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 
+#: Parameters every rclpy node declares or accepts besides its own table (the CLI's checks).
+ROS_NODE_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
 #: Prefixes of names rclpy declares itself when asked (QoS overriding options).
-ROS_OWN_PREFIXES = ('qos_overrides.',)
+ROS_PARAMETER_PREFIXES = ('qos_overrides.',)
+
+
+def node_parameter_names() -> dict[str, set[str]]:
+    """``{node: parameter names}`` of every node of the package (their tables; imported only
+    when needed: a node module imports torch). ``run --set`` / ``--params`` check against it."""
+    from .config_yaml import available_nodes, node_parameters
+
+    return {node: {spec.name for spec in node_parameters(node)} for node in available_nodes()}
 
 
 def undeclared_overrides(node: Any) -> list[str]:
@@ -26,16 +36,8 @@ def undeclared_overrides(node: Any) -> list[str]:
     not declared, sorted."""
     given = getattr(node, '_parameter_overrides', None) or {}
     return sorted(
-        name for name in given if not node.has_parameter(name) and not name.startswith(ROS_OWN_PREFIXES)
+        name for name in given if not node.has_parameter(name) and not name.startswith(ROS_PARAMETER_PREFIXES)
     )
-
-
-def other_nodes_parameters(own: str) -> set[str]:
-    """Every parameter the package's other nodes declare (imported only when needed: a node
-    module imports torch)."""
-    from .config_yaml import available_nodes, node_parameters
-
-    return {spec.name for name in available_nodes() if name != own for spec in node_parameters(name)}
 
 
 def warn_ignored(node: Any, declared: list[str]) -> list[str]:
@@ -45,7 +47,8 @@ def warn_ignored(node: Any, declared: list[str]) -> list[str]:
     if not names:
         return []
     try:
-        elsewhere = other_nodes_parameters(node.get_name())
+        own = node.get_name()
+        elsewhere = {n for other, names in node_parameter_names().items() if other != own for n in names}
     except ImportError as exc:  # a partial install: every unknown name is reported
         log.debug('parameter tables of the other nodes not available: %s', exc)
         elsewhere = set()
