@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from depth_fusion_ros.fusion.scenes import make_scene
 from depth_fusion_ros.fusion.weights import WeightParams
 
 PARAMS = WeightParams()
+_REPO = Path(__file__).resolve().parents[1]
 CPU = torch.device('cpu')
 
 
@@ -226,3 +228,53 @@ def test_shutdown_does_not_wait_for_a_builder_process():
         release.set()
     node.compile_thread.join(5)
     assert fusion_warmup.finish_compiling(node, 0.0)
+
+
+_PROGRESS_BAR_CHILD = """
+import multiprocessing, os, sys
+
+def child(give_thread_lock):
+    if give_thread_lock:
+        from depth_fusion_ros.nodes.fusion_warmup import thread_lock_for_progress_bars
+        thread_lock_for_progress_bars()
+    from tqdm import tqdm
+    for _ in tqdm(range(2), disable=True):  # what torch.fx's interpreter does while it compiles
+        pass
+    os._exit(0)  # fusion_warmup.exit_now_if_compiling: a node stopped while it compiles
+
+if __name__ == '__main__':
+    process = multiprocessing.get_context('forkserver').Process(target=child, args=(sys.argv[1] == '1',))
+    process.start()
+    process.join()
+    sys.exit(process.exitcode)
+"""
+
+
+@pytest.mark.parametrize('give_thread_lock', [False, True])
+def test_a_node_stopped_while_it_compiles_leaves_no_semaphore_behind(tmp_path, give_thread_lock):
+    """fusion_warmup.thread_lock_for_progress_bars: a forked node whose compilation drew a tqdm
+    bar and that then ended with ``os._exit`` left tqdm's multiprocessing lock to the
+    launcher's resource tracker, which warned of a leaked semaphore at every such stop. The
+    unfixed case is run too, so the test shows it still detects the leak."""
+    import multiprocessing
+    import os
+    import subprocess
+    import sys
+
+    if 'forkserver' not in multiprocessing.get_all_start_methods():
+        pytest.skip('no forkserver start method on this platform')
+    script = tmp_path / 'child.py'
+    script.write_text(_PROGRESS_BAR_CHILD)
+    env = {
+        **os.environ,
+        'PYTHONPATH': os.pathsep.join(filter(None, [str(_REPO), os.environ.get('PYTHONPATH')])),
+    }
+    done = subprocess.run(
+        [sys.executable, str(script), '1' if give_thread_lock else '0'],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+    )
+    assert done.returncode == 0, done.stderr
+    assert ('leaked semaphore' in done.stderr) is not give_thread_lock, done.stderr
