@@ -148,6 +148,14 @@ def test_set_typo_is_an_error_in_the_cli(tmp_path, capsys):
     assert 'did you mean mode' in line
 
 
+def test_an_unknown_or_empty_evaluation_method_is_a_sentence_before_the_model_loads(tmp_path, capsys, caplog):
+    line = one_line_error(capsys, ['evaluate', str(tmp_path), '--methods', 'fused,fuzed'])
+    assert line.startswith("depth-fusion evaluate: error: unknown evaluation method 'fuzed'; available: ")
+    assert 'single-view model' not in caplog.text  # refused before any model or data loads
+    line = one_line_error(capsys, ['evaluate', str(tmp_path), '--methods', ' , '])
+    assert line == "depth-fusion evaluate: error: --methods ' , ' names no method (see --list)"
+
+
 def test_a_typo_in_a_params_file_section_of_ours_is_an_error_and_other_sections_are_left_alone(
     tmp_path, capsys
 ):
@@ -185,6 +193,28 @@ def test_frames_must_be_positive_and_the_message_names_the_option(command, value
     line = one_line_error(capsys, [*command, '--frames', value], code=2)
     assert line.endswith(f'argument --frames: must be at least 1, got {value}')
     assert 'max_frames' not in line
+
+
+@pytest.mark.parametrize(
+    ('argv', 'option', 'minimum'),
+    [
+        (['adapt', 'x', '--out', 'a.pt', '--stride'], '--stride', 1),
+        (['adapt', 'x', '--out', 'a.pt', '--frames'], '--frames', 1),
+        (['adapt', 'x', '--out', 'a.pt', '--threads'], '--threads', 0),
+        (['adapt', 'x', '--out', 'a.pt', '--neighbours'], '--neighbours', 1),
+        (['evaluate', 'x', '--neighbours'], '--neighbours', 1),
+        (['evaluate', 'x', '--width'], '--width', 16),
+        (['adapt', 'x', '--out', 'a.pt', '--height'], '--height', 16),
+        (['train', 'x', '--out', 't.pt', '--every'], '--every', 1),
+        (['train', 'x', '--out', 't.pt', '--steps'], '--steps', 1),
+        (['train', 'x', '--out', 't.pt', '--threads'], '--threads', 1),
+    ],
+)
+def test_counts_below_their_meaning_are_refused_not_read_as_a_default(argv, option, minimum, capsys):
+    """``adapt --stride 0`` and ``train --every 0`` once ran as stride 1, ``evaluate --width 7``
+    scored a 7-pixel-wide image and ``--neighbours 0`` failed only after the data loaded."""
+    line = one_line_error(capsys, [*argv, str(minimum - 1)], code=2)
+    assert line.endswith(f'argument {option}: must be at least {minimum}, got {minimum - 1}')
 
 
 # --- a bag lacking a needed topic -------------------------------------------------------------

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .argtypes import at_least
 from .recordings import topic_arguments
 
 
@@ -35,21 +36,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="network to start from: 'default' or a checkpoint (default: default)",
     )
     p.add_argument(
-        '--frames', type=int, default=None, help='use the first N frames of each sequence (default all)'
+        '--frames',
+        type=at_least(1),
+        default=None,
+        help='use the first N frames of each sequence (default all)',
     )
-    p.add_argument('--stride', type=int, default=1, help='every k-th frame is a keyframe (default 1)')
-    p.add_argument('--neighbours', type=int, default=4, help='overlapping frames per keyframe (default 4)')
+    p.add_argument('--stride', type=at_least(1), default=1, help='every k-th frame is a keyframe (default 1)')
+    p.add_argument(
+        '--neighbours', type=at_least(1), default=4, help='overlapping frames per keyframe (default 4)'
+    )
     p.add_argument(
         '--neighbour-mode',
         choices=('offline', 'online'),
         default='online',
         help='online: past frames only, as the node (default); offline: a window around the keyframe',
     )
-    p.add_argument('--width', type=int, default=320, help='working width (default 320)')
-    p.add_argument('--height', type=int, default=240, help='working height (default 240)')
+    p.add_argument('--width', type=at_least(16), default=320, help='working width (default 320)')
+    p.add_argument('--height', type=at_least(16), default=240, help='working height (default 240)')
     p.add_argument('--device', default='cpu', help='torch device (default cpu)')
     p.add_argument('--seed', type=int, default=0, help='seed (default 0)')
-    p.add_argument('--threads', type=int, default=0, help='torch threads (default: torch decides)')
+    p.add_argument('--threads', type=at_least(0), default=0, help='torch threads (default: torch decides)')
     p.add_argument(
         '--set',
         action='append',

@@ -60,15 +60,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         "with its YAML, or a checkpoint), 'simulated' (the simulated CNN prior) or 'simulated_relative' "
         '(it as inverse depth up to an unknown scale and shift per keyframe)',
     )
-    p.add_argument('--neighbours', type=int, default=4, help='overlapping frames per keyframe (default 4)')
+    p.add_argument(
+        '--neighbours', type=at_least(1), default=4, help='overlapping frames per keyframe (default 4)'
+    )
     p.add_argument(
         '--neighbour-mode',
         choices=('offline', 'online'),
         default='offline',
         help='offline: window around the keyframe; online: past frames only (as the node)',
     )
-    p.add_argument('--width', type=int, default=320, help='working width (default 320)')
-    p.add_argument('--height', type=int, default=240, help='working height (default 240)')
+    p.add_argument('--width', type=at_least(16), default=320, help='working width (default 320)')
+    p.add_argument('--height', type=at_least(16), default=240, help='working height (default 240)')
     p.add_argument('--device', default='cpu', help="torch device: 'cpu', 'cuda', 'cuda:0' (default cpu)")
     p.add_argument('--seed', type=int, default=0, help='seed of every random choice (default 0)')
     p.add_argument(
@@ -118,7 +120,7 @@ def recording_topics(args: argparse.Namespace) -> dict[str, str]:
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.context import EvalOptions
     from ..evaluation.harness import evaluate_sequences
-    from ..evaluation.registry import available_methods
+    from ..evaluation.registry import available_methods, get_method
     from ..evaluation.report import report_markdown
     from ..singleview.predictor import check_model
     from .overrides import check_stage_overrides, parse_overrides
@@ -131,6 +133,10 @@ def run(args: argparse.Namespace) -> int:
     if not args.sequences:
         raise ValueError('give at least one TUM-layout folder or rosbag2 (SEQ_DIR), or --list')
     methods = [m.strip() for m in args.methods.split(',') if m.strip()]
+    if not methods:
+        raise ValueError(f'--methods {args.methods!r} names no method (see --list)')
+    for name in methods:  # a typo fails before the model loads
+        get_method(name)
     check_model(args.single_view, args.device, allow_simulated=True)  # before any data is loaded
     params = parse_overrides(args.set, 'STAGE')
     check_stage_overrides(params)  # a typo fails now, not after minutes of evaluation

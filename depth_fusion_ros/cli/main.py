@@ -83,8 +83,16 @@ def main(argv: list[str] | None = None) -> int:
         # Bad input is the user's to fix: say what and where, no traceback.
         if args.verbose:
             raise
-        print(f'depth-fusion {args.command}: error: {exc}', file=sys.stderr)
+        print(f'depth-fusion {args.command}: error: {_message(exc)}', file=sys.stderr)
         return 1
+
+
+def _message(exc: Exception) -> str:
+    """The error's text: a ``KeyError`` prints its message quoted (``str`` gives its key's
+    repr), which reads like a key, not a sentence."""
+    if isinstance(exc, KeyError) and len(exc.args) == 1 and isinstance(exc.args[0], str):
+        return exc.args[0]
+    return str(exc)
 
 
 if __name__ == '__main__':

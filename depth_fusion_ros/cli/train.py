@@ -55,9 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         '--frames', type=at_least(1, '--frames'), default=None, help='use the first N frames of each folder'
     )
-    p.add_argument('--every', type=int, default=1, help='use every k-th frame (default 1)')
-    p.add_argument('--steps', type=int, default=2000, help='optimiser steps (default 2000)')
-    p.add_argument('--batch-size', type=int, default=8, help='images per step (default 8)')
+    p.add_argument('--every', type=at_least(1), default=1, help='use every k-th frame (default 1)')
+    p.add_argument('--steps', type=at_least(1), default=2000, help='optimiser steps (default 2000)')
+    p.add_argument('--batch-size', type=at_least(1), default=8, help='images per step (default 8)')
     p.add_argument(
         '--lr', type=float, default=1e-3, help='peak learning rate (AdamW, cosine decay; default 1e-3)'
     )
@@ -67,11 +67,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--max-zoom', type=float, default=1.25, help='largest zoom-crop factor (1 = off)')
     p.add_argument('--jitter', type=float, default=0.2, help='colour jitter amount (0 = off)')
     p.add_argument('--no-flip', action='store_true', help='no horizontal flips')
-    p.add_argument('--val-every', type=int, default=200, help='validate and checkpoint every N steps')
-    p.add_argument('--val-max-samples', type=int, default=120, help='validate on at most N images')
+    p.add_argument('--val-every', type=at_least(1), default=200, help='validate and checkpoint every N steps')
+    p.add_argument('--val-max-samples', type=at_least(1), default=120, help='validate on at most N images')
     p.add_argument('--seed', type=int, default=0, help='seed of every random choice (default 0)')
     p.add_argument('--device', default='cpu', help="torch device: 'cpu', 'cuda', 'cuda:0' (default cpu)")
-    p.add_argument('--threads', type=int, default=None, help='torch CPU threads (default: torch decides)')
+    p.add_argument(
+        '--threads', type=at_least(1), default=None, help='torch CPU threads (default: torch decides)'
+    )
     p.add_argument('--resume', action='store_true', help='continue OUT/last.pt')
     p.add_argument(
         '--ship', metavar='PATH', help='after training, write best.pt as a small fp16 checkpoint (+ .yaml)'
