@@ -270,6 +270,50 @@ def test_run_on_a_bag_without_pose_is_one_line(synthetic_tum_dir, tmp_path, caps
     assert not (tmp_path / 'out').exists() and not (tmp_path / 'out.partial').exists()
 
 
+_NOT_A_NAME = 'is not a valid ROS topic name (topic name'
+
+
+@pytest.mark.parametrize(
+    ('argv', 'said'),
+    [
+        (
+            ['launch', '--pose', 'bad//topic'],
+            f"--pose 'bad//topic' {_NOT_A_NAME} must not contain repeated '/')",
+        ),
+        (['launch', '--image', '1abc'], f"--image '1abc' {_NOT_A_NAME} token must not start with a number)"),
+        (['launch', '--camera-info', ''], f"--camera-info '' {_NOT_A_NAME} must not be empty string)"),
+        (
+            ['run', '--bag', 'b', '--record', 'o', '--record-topic', '/a/'],
+            f"--record-topic '/a/' {_NOT_A_NAME} must not end with a forward slash)",
+        ),
+        (
+            ['run', '--bag', 'b', '--record-topic', '/rosout'],
+            '--record-topic /rosout: nothing records it without --record OUT_BAG',
+        ),
+    ],
+)
+def test_topic_names_are_checked_before_any_node_starts(argv, said, capsys, tmp_path, monkeypatch):
+    """A name rcl refuses once reached the forked node as a remap and ended in its traceback
+    after the graph had started; an empty ``--pose ''`` was taken as no option at all."""
+    monkeypatch.chdir(tmp_path)
+    assert one_line_error(capsys, argv) == f'depth-fusion {argv[0]}: error: {said}'
+
+
+def test_a_record_topic_the_bag_holds_nothing_of_is_said():
+    """``--record-topic`` of a name the graph never published was left out of the bag in silence."""
+    from depth_fusion_ros.cli.run import unrecorded_topics
+    from depth_fusion_ros.nodes.graph.options import RunResult
+
+    result = RunResult(
+        announced=[], fused=[], missing={}, recorded=None, seconds=1.0,
+        counts={'/a': 3, '/quiet': 0}, unannounced=['/typo'],
+    )  # fmt: skip
+    assert unrecorded_topics(result, ['/a', '/typo', '/quiet', '/typo']) == [
+        '--record-topic /typo: nothing recorded (no node of the graph published it)',
+        '--record-topic /quiet: nothing recorded (its publisher sent nothing)',
+    ]
+
+
 # --- pinned dependencies ----------------------------------------------------------------------
 
 

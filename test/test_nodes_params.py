@@ -324,6 +324,18 @@ def test_a_node_that_hangs_as_it_stops_writes_its_threads_stacks_to_its_log(monk
     assert 'Thread' in err and 'in destroy_node' in err, err[-2000:]
 
 
+def test_a_remap_rcl_cannot_parse_is_a_one_line_error_not_a_traceback():
+    """``depth-fusion launch --pose bad//topic`` once ended in a Python traceback from
+    ``rclpy.init`` inside the node; a node started by hand with such a remap says so in one
+    line and exits 2, as for a bad parameter."""
+    bad = _Process('multi_view_node', '--ros-args', '-r', 'camera/pose:=bad//topic')
+    assert bad.finish(60.0) == 2, bad.output
+    assert (
+        "multi_view_node: cannot start: failed to initialize rcl: Couldn't parse remap rule: " in bad.output
+    )
+    assert "'-r camera/pose:=bad//topic'" in bad.output and 'Traceback' not in bad.output, bad.output
+
+
 def test_a_bad_executor_choice_is_a_one_line_error_and_single_still_runs():
     """``DEPTH_FUSION_EXECUTOR`` picks the console node's executor; a typo stops the node at
     once with exit code 2 and a line naming the variable, and ``single`` (the rclpy default

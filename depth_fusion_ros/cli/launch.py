@@ -66,6 +66,7 @@ def options_from_args(args: argparse.Namespace):  # -> LaunchOptions (import kep
     from ..nodes.graph.live import LaunchOptions
     from .overrides import check_node_overrides, check_params_file, parse_overrides
     from .paths import check_output
+    from .topic_names import check_topic_name
 
     if args.params is not None and not args.params.is_file():
         raise FileNotFoundError(f'--params {args.params}: no such file')
@@ -79,14 +80,14 @@ def options_from_args(args: argparse.Namespace):  # -> LaunchOptions (import kep
     if args.log_dir is not None:
         check_output(args.log_dir, '--log-dir')
     inputs = {
-        key: topic
+        key: check_topic_name(f'--{key.replace("_", "-")}', topic)
         for key, topic in (
             ('image', args.image),
             ('camera_info', args.camera_info),
             ('pose', args.pose),
             ('corrected_path', args.corrected_path),
         )
-        if topic
+        if topic is not None
     }
     return LaunchOptions(
         params_file=args.params,

@@ -150,6 +150,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
     from ..nodes.graph.map_output import check_map_path
     from .overrides import check_node_overrides, check_params_file, parse_overrides
     from .paths import check_output
+    from .topic_names import check_topic_name
 
     if args.rate is not None and args.rate <= 0:
         raise ValueError(f'--rate must be positive, got {args.rate}')
@@ -169,6 +170,12 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         check_output(check_map_path(args.save_map), '--save-map', folder=False)
     if args.record is not None:
         check_output(args.record, '--record', exists_ok=False, bag=True)
+    elif args.record_topic:
+        raise ValueError(
+            f'--record-topic {args.record_topic[0]}: nothing records it without --record OUT_BAG'
+        )
+    for topic in args.record_topic:
+        check_topic_name('--record-topic', topic, node='recorder')
     if args.log_dir is not None:
         check_output(args.log_dir, '--log-dir')
     return RunOptions(
@@ -193,6 +200,22 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         map=args.map,
         save_map=args.save_map,
     )
+
+
+def unrecorded_topics(result, asked: list[str]) -> list[str]:
+    """One line per ``--record-topic`` the bag holds no message of, and why: a name the graph
+    never published (a typo, a node not started) was once left out of the bag in silence."""
+    lines = []
+    for topic in dict.fromkeys(asked):
+        if result.counts.get(topic, 0):
+            continue
+        why = (
+            'no node of the graph published it'
+            if topic in result.unannounced
+            else 'its publisher sent nothing'
+        )
+        lines.append(f'--record-topic {topic}: nothing recorded ({why})')
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:
@@ -233,6 +256,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if result.missing:
         print(f'{len(result.missing)} keyframe(s) without fused output (see the warning above)')
+    for line in unrecorded_topics(result, options.record_extra):
+        print(f'depth-fusion run: warning: {line}', file=sys.stderr)
     if options.save_map is not None:
         if result.map_error is not None:
             print(f'depth-fusion run: error: {result.map_error}', file=sys.stderr)

@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
 from ..malloc_tuning import keep_freed_memory
@@ -38,6 +39,12 @@ def arm_stop_stacks() -> None:
     faulthandler.dump_traceback_later(STOP_STACKS_AFTER_S, exit=False)
     atexit.unregister(faulthandler.cancel_dump_traceback_later)  # registered once
     atexit.register(faulthandler.cancel_dump_traceback_later)  # runs after the threads were joined
+
+
+def _first_line(exc: BaseException) -> str:
+    """rcl's message without its source location (``..., at /project/src/rcl/arguments.c:380``)
+    and the empty detail it appends to a remap it cannot parse."""
+    return str(exc).splitlines()[0].split(', at /')[0].removesuffix('. Error: error not set')
 
 
 def _close_executor(executor: Any, node: Node) -> None:
@@ -96,7 +103,15 @@ def run_node(
     profile_line = profile_for_console_node(udp_readers=readers)  # before rclpy.init: read once
     threads_line = apply_node_threads()
     keep_freed_memory()  # freed tensor memory reused (DEPTH_FUSION_MALLOC_TUNING=0: off), malloc_tuning.py
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except _rclpy.RCLError as exc:  # a bad --ros-args (a remap rcl cannot parse): one line, not a traceback
+        rclpy.logging.get_logger('depth_fusion').error(
+            f'{node_name or "node"}: cannot start: {_first_line(exc)}'
+        )
+        signal.signal(signal.SIGTERM, previous_term)
+        signal.signal(signal.SIGINT, previous_int)
+        return 2
     rclpy.logging.get_logger('depth_fusion').info(profile_line)
     rclpy.logging.get_logger('depth_fusion').info(threads_line)
     node = None

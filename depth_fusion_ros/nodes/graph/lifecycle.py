@@ -532,6 +532,7 @@ class GraphRun:
             missing=self.pending_keyframes(),
             recorded=None,
             counts=dict(self.recorder.counts),
+            unannounced=self.recorder.waiting_topics,
             seconds=time.monotonic() - self.started,
             interrupted=interrupted,
             node_stats=stats,

@@ -116,6 +116,8 @@ class RunResult:
     map_file: Path | None = None
     map_size: tuple[int, int] | None = None
     map_error: str | None = None
+    #: Topics asked to be recorded that no publisher of the graph announced (never subscribed).
+    unannounced: list[str] = field(default_factory=list)
 
     @property
     def complete(self) -> bool:
