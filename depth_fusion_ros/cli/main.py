@@ -75,6 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     keep_freed_memory()  # freed tensor memory reused (DEPTH_FUSION_MALLOC_TUNING=0: off), malloc_tuning.py
     try:
+        _check_device(args)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print('interrupted', file=sys.stderr)
@@ -85,6 +86,17 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f'depth-fusion {args.command}: error: {_message(exc)}', file=sys.stderr)
         return 1
+
+
+def _check_device(args: argparse.Namespace) -> None:
+    """Every command's ``--device`` checked before its work starts: ``adapt`` and ``bench``
+    with ``--device cuda`` on a CPU build, or ``evaluate --device gpu``, ended in a torch
+    traceback where ``run`` and ``demo`` said it in one line."""
+    device = getattr(args, 'device', None)
+    if isinstance(device, str) and device != 'cpu':
+        from ..torch_device import resolve_device
+
+        resolve_device(device)
 
 
 def _message(exc: Exception) -> str:

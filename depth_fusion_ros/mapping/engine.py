@@ -11,6 +11,7 @@ from typing import Protocol
 import numpy as np
 
 from ..camera import PinholeCamera
+from ..torch_device import resolve_device
 from .config import MapConfig
 from .consistency import ConsistentMap
 from .open3d_tsdf import Open3DTSDF, open3d_available
@@ -73,13 +74,22 @@ def make_engine(config: MapConfig) -> tuple[TSDFMap, str]:
     config.validate()
     wanted = config.engine
     if wanted == 'torch':
+        resolve_device(config.device)
         return TorchTSDF(config), f'TSDF engine: torch on {config.device}'
     missing = open3d_available()
     if wanted == 'auto' and missing is None and config.device.startswith('cuda') and not _open3d_cuda():
+        resolve_device(config.device)
         return TorchTSDF(config), f'TSDF engine: torch on {config.device} (auto; this Open3D has no CUDA)'
     if missing is None:
+        if not config.device.startswith('cuda'):
+            resolve_device(config.device)  # a typo; Open3D's own CUDA needs no torch CUDA
+        elif not _open3d_cuda():
+            raise ValueError(
+                f'device {config.device!r} requested but this Open3D has no CUDA (map.engine open3d)'
+            )
         archive = '; no archive: blocks evicted past map.max_blocks are lost' if config.archive else ''
         return Open3DTSDF(config), f'TSDF engine: open3d (VoxelBlockGrid) on {config.device}{archive}'
+    resolve_device(config.device)
     if wanted == 'auto':
         return TorchTSDF(config), f'TSDF engine: torch on {config.device} (auto; Open3D not installed)'
     return TorchTSDF(config), f'TSDF engine: open3d unavailable ({missing}); falling back to torch'

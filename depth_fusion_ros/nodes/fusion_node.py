@@ -46,6 +46,7 @@ from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_
 from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig
 from ..multiview.stage1 import METHOD_RULES, STAGE1_RULES, resolve_rule, stage1_mask
+from ..torch_device import resolve_device
 from .base import DepthFusionNode
 from .console import run_node
 from .diagnostics import Requirement
@@ -271,6 +272,10 @@ class FusionNode(DepthFusionNode):
         super().__init__(node_name, PARAMETERS, **kwargs)
         self._own_process = own_process
         p = self.params
+        try:
+            resolve_device(str(p['device']))  # before any kernel is compiled for it
+        except ValueError as exc:
+            raise ValueError(f'{self.get_name()}: {exc}') from None
         self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))
         self.guard_config = build_dataclass(GuardConfig, p, 'guard')
         self.consistency_config = build_dataclass(ConsistencyConfig, p, 'consistency')

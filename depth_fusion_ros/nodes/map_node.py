@@ -173,7 +173,10 @@ class MapNode(DepthFusionNode):
         save_path = Path(str(p['save_path']))
         if save_path.suffix.lower() != '.ply':
             raise ValueError(f'{self.get_name()}: parameter save_path={str(save_path)!r} must end in .ply')
-        self.map, engine_note = make_map(config)
+        try:
+            self.map, engine_note = make_map(config)
+        except ValueError as exc:  # a device this machine lacks
+            raise ValueError(f'{self.get_name()}: {exc}') from None
         self.get_logger().info(engine_note)
         try:
             self.corrector = MapCorrector(self)

@@ -89,7 +89,10 @@ class SingleViewNode(DepthFusionNode):
         self.events = GraphEvents(self)
         self.camera_input = CameraInput.from_parameters(p, rectified=bool(p['input_rectified']))
         self._subscribe_inputs()
-        self.predictor = self._load_predictor(str(p['model']), str(p['device']))
+        try:
+            self.predictor = self._load_predictor(str(p['model']), str(p['device']))
+        except (ValueError, FileNotFoundError) as exc:  # a device or a model this machine lacks
+            raise type(exc)(f'{self.get_name()}: {exc}') from None
         self.output_kind = str(getattr(self.predictor, 'output_kind', 'metric_depth'))
         self._stamps = self.stamp_guard('image')
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)

@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from torch import nn
 
+from ..torch_device import resolve_device
 from .checkpoint import is_torchscript_file, load_checkpoint
 from .export_formats import ONNX_SUFFIX, PT2_SUFFIX
 from .metadata import ModelMetadata
@@ -50,17 +51,6 @@ SIMULATED_SPECS = (SIMULATED_SPEC, SIMULATED_RELATIVE_SPEC)
 
 def default_model_path() -> Path:
     return MODELS_DIR / DEFAULT_MODEL_NAME
-
-
-def resolve_device(device: str | torch.device) -> torch.device:
-    """``torch.device`` from a user string; a clear error for typos and absent CUDA."""
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError, ValueError):
-        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
-    if dev.type == 'cuda' and not torch.cuda.is_available():
-        raise ValueError(f'device {device!r} requested but CUDA is not available in this torch build')
-    return dev
 
 
 def check_rgb(rgb: np.ndarray, what: str = 'image') -> np.ndarray:
