@@ -29,6 +29,9 @@ class EvalOptions:
     stride: int = 1
     #: Explicit keyframe indices (overrides ``stride``), e.g. the frames the node graph chose.
     keyframes: list[int] | None = None
+    #: The keyframes are the frames the recorded bag (``params['recorded']['bag']``) holds fused
+    #: depth for, per sequence: the graph's methods and the offline ones scored on the same set.
+    recorded_keyframes: bool = False
     seed: int = 0
     device: str = 'cpu'
     #: ``default`` (the shipped compact model), ``simulated`` (the simulated CNN prior),

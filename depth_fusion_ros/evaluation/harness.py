@@ -101,6 +101,26 @@ def _finite_or_none(v: float) -> float | None:
     return float(v) if np.isfinite(v) else None
 
 
+def run_keyframes(sequence: Sequence, options: EvalOptions) -> list[int]:
+    """The keyframes a sequence is scored on: the options' (stride or list), or with
+    ``recorded_keyframes`` those the recorded node graph published fused depth for."""
+    if not options.recorded_keyframes:
+        return keyframe_indices(len(sequence), options)
+    from .methods.recorded import TOPICS, recorded_keyframes
+
+    recorded = options.params.get('recorded', {})
+    bag = recorded.get('bag')
+    if not bag:
+        raise ValueError('--recorded-keyframes needs the recorded bag: --set recorded.bag=PATH')
+    keyframes = recorded_keyframes(sequence, bag, recorded.get('graph_fused', TOPICS['graph_fused']))
+    if not keyframes:
+        raise ValueError(
+            f'{bag} holds no fused depth at any of the first {len(sequence)} frames of {sequence.name}'
+        )
+    log.info('%s: scoring the %d keyframes the recorded graph fused (%s)', sequence.name, len(keyframes), bag)
+    return keyframes
+
+
 def sample_indices(keyframes: list[int], count: int) -> list[int]:
     """``count`` keyframes spread evenly over the run, for the figures."""
     if not keyframes or count <= 0:
@@ -130,7 +150,7 @@ def evaluate_sequence(
     sequence, focal = check_focal(sequence, options.params)
     focal_json = estimate_json(focal, corrected=sequence.camera != told_camera)
     specs = [get_method(m) for m in methods]
-    keyframes = keyframe_indices(len(sequence), options)
+    keyframes = run_keyframes(sequence, options)
     samples = set(sample_indices(keyframes, n_samples))
     records = {s.name: MethodRecord(s) for s in specs}
     shared: dict[str, Any] = {}

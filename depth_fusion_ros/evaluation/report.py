@@ -120,12 +120,37 @@ def gradient_table(doc: dict[str, Any]) -> str | None:
     return table(['sequence', 'method', 'high-gradient', 'low-gradient'], rows)
 
 
+def _keyframe_choice(opts: dict[str, Any]) -> str:
+    if opts.get('recorded_keyframes'):
+        return 'keyframes: those the recorded node graph fused'
+    if opts.get('keyframes') is not None:
+        return 'keyframes: a given list'
+    return f'keyframe stride {opts.get("stride")}'
+
+
+def coverage_notes(seq: dict[str, Any]) -> list[str]:
+    """A line per recorded-graph method that has output for only some of the keyframes: its
+    figures are over those alone, so beside the offline methods (scored on all) they compare
+    different frames. Said, not left for the reader to find in results.json."""
+    notes = []
+    for name, m in seq['methods'].items():
+        published = m.get('published')
+        if published is None or published >= 1.0:
+            continue
+        n = len(seq.get('keyframes', []))
+        notes.append(
+            f'`{name}`: the graph published {round(published * n)} of these {n} keyframes; its figures '
+            "are over those alone (`--recorded-keyframes` scores every method on the graph's keyframes)."
+        )
+    return notes
+
+
 def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> str:
     opts = doc.get('options', {})
     out = ['# depth_fusion_ros evaluation', '']
     out.append(
         f'Working resolution {opts.get("width")}x{opts.get("height")}, first {opts.get("frames")} frames, '
-        f'keyframe stride {opts.get("stride")}, single-view source `{opts.get("single_view")}`, '
+        f'{_keyframe_choice(opts)}, single-view source `{opts.get("single_view")}`, '
         f'{opts.get("num_neighbours")} neighbours ({opts.get("neighbour_mode")}), seed {opts.get("seed")}. '
         'Errors on valid ground-truth pixels after upsampling predictions to the ground-truth '
         'resolution; semi-dense methods are scored on the pixels they estimate.'
@@ -152,6 +177,7 @@ def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> st
     out += ['## All metrics', '']
     for name, seq in doc['sequences'].items():
         out += [f'### {name} ({seq["frames"]} keyframes)', '', metrics_table(seq['methods']), '']
+        out += [*coverage_notes(seq), *([''] if coverage_notes(seq) else [])]
     if figures:
         out += ['## Figures', '']
         out += [f'![{Path(f).stem}]({Path(f).name})' for f in figures]
