@@ -78,14 +78,52 @@ def subscribers(topic: str) -> set[str]:
         rclpy.shutdown(context=context)
 
 
+def publish_keyframe_events(events: list[tuple[int, str]]) -> None:
+    """Publish keyframe events (``graph_events``) as the nodes would, once the launch's
+    listener has matched."""
+    import rclpy
+    from std_msgs.msg import Header
+
+    from depth_fusion_ros.nodes.graph_events import TOPIC_KEYFRAME_EVENTS, events_qos
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node('launch_events_probe', context=context)
+        pub = node.create_publisher(Header, '/' + TOPIC_KEYFRAME_EVENTS, events_qos())
+        deadline = time.monotonic() + 20.0
+        while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert pub.get_subscription_count() >= 1, 'the launch does not listen to the keyframe events'
+        for stamp, event in events:
+            msg = Header(frame_id=event)
+            msg.stamp.sec, msg.stamp.nanosec = divmod(stamp, 10**9)
+            pub.publish(msg)
+        time.sleep(1.0)  # reliable: delivered, then this participant leaves
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+
+
 def test_launch_remaps_the_inputs_and_ctrl_c_stops_every_node(tmp_path: Path):
     args = ('--pose', '/launch_test/slam_pose', '--set', 'fusion_node.stats_period=0.0')
     with launched(tmp_path, *args) as proc:
         assert 'multi_view_node' in subscribers('/launch_test/slam_pose')
+        # What the nodes say of four keyframes: the launch's closing count (as run's summary).
+        kf = [10**9 * (100 + i) for i in range(4)]
+        publish_keyframe_events(
+            [(s, 'chosen') for s in kf]
+            + [(kf[0], 'fused'), (kf[1], 'fused'), (kf[2], 'dropped:multi_view.worker_queue_full')]
+        )
         proc.send_signal(signal.SIGINT)
         code = proc.wait(60)
     output = proc.stdout.read()
     assert code == 0, output
+    assert re.search(
+        r'4 keyframes chosen, 2 fused, 2 dropped \(in_flight_at_stop=1, multi_view.worker_queue_full=1\) '
+        r'in [\d.]+ s \(live\)',
+        output,
+    ), output
     pids = [int(p) for p in re.findall(r'(?:forked|started) \w+ \(pid (\d+)', output)]
     assert len(pids) == 3, output
     assert '3 nodes stopped cleanly in' in output, output  # a clean stop says so

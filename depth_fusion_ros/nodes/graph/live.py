@@ -11,7 +11,9 @@ graph is ready sooner.
 
 It supervises them like ``ros2 launch`` with every node required: Ctrl-C or SIGTERM stops
 them all (SIGINT, then a kill after the timeout) and exits 0 when every node stopped cleanly.
-A node that exits on its own stops the others and exits 1, naming it and how it ended. Unlike
+A node that exits on its own stops the others and exits 1, naming it and how it ended. Either
+way it ends with the count ``depth-fusion run`` gives: keyframes chosen, fused and dropped (by
+reason), from the nodes' keyframe events (``live_ledger.py``). Unlike
 ``depth-fusion run`` it plays nothing, records nothing and joins the environment's ROS domain
 (``ROS_DOMAIN_ID``): the camera and the SLAM are already there.
 """
@@ -27,6 +29,7 @@ from typing import Any
 
 from .forked import forking_server
 from .lifecycle import install_stop_signals
+from .live_ledger import start_listening
 from .spawn import (
     STOP_TIMEOUT_S,
     describe_exit,
@@ -35,6 +38,7 @@ from .spawn import (
     start_node,
     stop_processes,
 )
+from .summary import live_summary
 from .topics import graph_nodes
 
 log = logging.getLogger(__name__)
@@ -85,6 +89,7 @@ def launch(opts: LaunchOptions) -> int:
     did not stop cleanly)."""
     env = node_environment(opts.threads_per_node)
     forking = forking_server(env)
+    listener = start_listening()  # before the nodes: their first keyframe events are heard
     previous = install_stop_signals()  # SIGTERM as Ctrl-C: the nodes are never orphaned
     processes: dict[str, Any] = {}
     logs = []
@@ -112,6 +117,9 @@ def launch(opts: LaunchOptions) -> int:
             f.close()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+        if listener is not None:
+            log.info(live_summary(listener.snapshot(), time.time() - since))
+            listener.close()
     if ended is not None:
         name, code = ended
         log.error('%s %s: the other nodes were stopped', name, describe_exit(code))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections import Counter
 
+from ..graph_events import LedgerSnapshot
 from .options import RunResult
 
 
@@ -23,19 +24,34 @@ def drop_reasons(result: RunResult) -> dict[str, int]:
     return dict(reasons)
 
 
+def counts_line(chosen: int, fused: int, reasons: dict[str, int]) -> str:
+    """``30 keyframes chosen, 21 fused, 9 dropped (multi_view.worker_queue_full=9)``."""
+    detail = ' (' + ', '.join(f'{k}={v}' for k, v in sorted(reasons.items())) + ')' if reasons else ''
+    return f'{chosen} keyframes chosen, {fused} fused, {sum(reasons.values())} dropped{detail}'
+
+
 def keyframe_summary(result: RunResult, mode: str) -> str:
     """``30 keyframes chosen, 21 fused, 9 dropped (multi_view.worker_queue_full=9) in 12.3 s
     (processes, real time)``."""
-    reasons = drop_reasons(result)
-    lost = sum(reasons.values())
-    detail = ' (' + ', '.join(f'{k}={v}' for k, v in sorted(reasons.items())) + ')' if reasons else ''
     pacing = 'paced' if result.paced else 'real time'
-    line = (
-        f'{len(result.chosen)} keyframes chosen, {len(set(result.fused) & set(result.chosen))} fused, '
-        f'{lost} dropped{detail} in {result.seconds:.1f} s ({mode}, {pacing})'
-    )
+    fused = len(set(result.fused) & set(result.chosen))
+    counts = counts_line(len(result.chosen), fused, drop_reasons(result))
+    line = f'{counts} in {result.seconds:.1f} s ({mode}, {pacing})'
     played = result.images_played
     if played is not None and result.images_handled < played:
         # Images that never reached the keyframe policy cannot be counted as keyframes: say so.
         line += f'; only {result.images_handled} of {played} images reached multi_view_node'
     return line
+
+
+def live_summary(snapshot: LedgerSnapshot, seconds: float) -> str:
+    """``depth-fusion launch``'s closing count, from the keyframe events it heard: keyframes
+    the policy chose and neither fused nor dropped by the stop (still in a node's hands, or
+    their events lost) are ``in_flight``."""
+    chosen = set(snapshot.chosen)
+    reasons = dict(snapshot.drop_reasons())
+    in_flight = len(snapshot.in_flight)
+    if in_flight:
+        reasons['in_flight_at_stop'] = in_flight
+    fused = len(set(snapshot.fused) & chosen)
+    return f'{counts_line(len(chosen), fused, reasons)} in {seconds:.1f} s (live)'
