@@ -177,7 +177,8 @@ def report_markdown(doc: dict[str, Any], figures: list[str] | None = None) -> st
     out += ['## All metrics', '']
     for name, seq in doc['sequences'].items():
         out += [f'### {name} ({seq["frames"]} keyframes)', '', metrics_table(seq['methods']), '']
-        out += [*coverage_notes(seq), *([''] if coverage_notes(seq) else [])]
+        notes = coverage_notes(seq)
+        out += [*notes, ''] if notes else []
     if figures:
         out += ['## Figures', '']
         out += [f'![{Path(f).stem}]({Path(f).name})' for f in figures]
