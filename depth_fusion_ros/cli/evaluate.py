@@ -128,11 +128,12 @@ def check_recorded(methods: list[str], params: dict, recorded_keyframes: bool, s
     """The recorded graph's methods and ``--recorded-keyframes`` need the bag, named before
     any data loads (they said so only at the first keyframe); ``--stride`` and
     ``--recorded-keyframes`` choose the keyframes two ways, so both is an error."""
+    from ..evaluation.methods.recorded import recorded_bag
+
     graph = [m for m in methods if m.startswith('graph_')]
     bag = params.get('recorded', {}).get('bag')
-    if (graph or recorded_keyframes) and not bag:
-        what = graph[0] if graph else '--recorded-keyframes'
-        raise ValueError(f'{what} needs the recorded bag: --set recorded.bag=PATH')
+    if graph or recorded_keyframes:
+        bag = recorded_bag(params.get('recorded', {}), graph[0] if graph else '--recorded-keyframes')
     if bag and not Path(str(bag)).exists():
         raise FileNotFoundError(f'recorded.bag {bag}: no such bag')
     if recorded_keyframes and stride is not None:

@@ -18,10 +18,12 @@ def check_topic_name(option: str, name: str, node: str = 'multi_view_node') -> s
     from rclpy.expand_topic_name import expand_topic_name
     from rclpy.validate_full_topic_name import validate_full_topic_name
 
+    from ..nodes.rcl_errors import rcl_message
+
     try:
         validate_full_topic_name(expand_topic_name(name, node, '/'))
     except (InvalidTopicNameException, ValueError) as exc:
-        line = str(exc).splitlines()[0].split(', at /')[0]  # rcl adds its source line
+        line = rcl_message(exc)
         rule = re.search(r'topic name (?:token )?must [^:]*', line)  # the rule alone, once
         reason = rule.group(0) if rule else line
         raise ValueError(f'{option} {name!r} is not a valid ROS topic name ({reason})') from None

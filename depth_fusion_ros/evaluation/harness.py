@@ -106,12 +106,10 @@ def run_keyframes(sequence: Sequence, options: EvalOptions) -> list[int]:
     ``recorded_keyframes`` those the recorded node graph published fused depth for."""
     if not options.recorded_keyframes:
         return keyframe_indices(len(sequence), options)
-    from .methods.recorded import TOPICS, recorded_keyframes
+    from .methods.recorded import TOPICS, recorded_bag, recorded_keyframes
 
     recorded = options.params.get('recorded', {})
-    bag = recorded.get('bag')
-    if not bag:
-        raise ValueError('--recorded-keyframes needs the recorded bag: --set recorded.bag=PATH')
+    bag = recorded_bag(recorded, '--recorded-keyframes')
     keyframes = recorded_keyframes(sequence, bag, recorded.get('graph_fused', TOPICS['graph_fused']))
     if not keyframes:
         raise ValueError(

@@ -70,29 +70,36 @@ def make_map(config: MapConfig) -> tuple[ConsistentMap, str]:
 
 def make_engine(config: MapConfig) -> tuple[TSDFMap, str]:
     """The bare engine (no consistency test) and the line saying which: also what a rebuild
-    at corrected poses integrates into (mapping/keyframe_store.py)."""
+    at corrected poses integrates into (mapping/keyframe_store.py). The device is checked
+    once the engine is chosen: Open3D's own CUDA needs no CUDA in torch."""
     config.validate()
-    wanted = config.engine
-    if wanted == 'torch':
-        resolve_device(config.device)
-        return TorchTSDF(config), f'TSDF engine: torch on {config.device}'
-    missing = open3d_available()
-    if wanted == 'auto' and missing is None and config.device.startswith('cuda') and not _open3d_cuda():
-        resolve_device(config.device)
-        return TorchTSDF(config), f'TSDF engine: torch on {config.device} (auto; this Open3D has no CUDA)'
-    if missing is None:
-        if not config.device.startswith('cuda'):
-            resolve_device(config.device)  # a typo; Open3D's own CUDA needs no torch CUDA
-        elif not _open3d_cuda():
+    open3d, note = _choose(config)
+    if open3d:
+        if config.device.startswith('cuda') and not _open3d_cuda():
             raise ValueError(
                 f'device {config.device!r} requested but this Open3D has no CUDA (map.engine open3d)'
             )
-        archive = '; no archive: blocks evicted past map.max_blocks are lost' if config.archive else ''
-        return Open3DTSDF(config), f'TSDF engine: open3d (VoxelBlockGrid) on {config.device}{archive}'
+        if not config.device.startswith('cuda'):
+            resolve_device(config.device)  # a typo
+        return Open3DTSDF(config), note
     resolve_device(config.device)
+    return TorchTSDF(config), note
+
+
+def _choose(config: MapConfig) -> tuple[bool, str]:
+    """(whether Open3D is the engine, the line saying which and why)."""
+    wanted = config.engine
+    if wanted == 'torch':
+        return False, f'TSDF engine: torch on {config.device}'
+    missing = open3d_available()
+    if wanted == 'auto' and missing is None and config.device.startswith('cuda') and not _open3d_cuda():
+        return False, f'TSDF engine: torch on {config.device} (auto; this Open3D has no CUDA)'
+    if missing is None:
+        archive = '; no archive: blocks evicted past map.max_blocks are lost' if config.archive else ''
+        return True, f'TSDF engine: open3d (VoxelBlockGrid) on {config.device}{archive}'
     if wanted == 'auto':
-        return TorchTSDF(config), f'TSDF engine: torch on {config.device} (auto; Open3D not installed)'
-    return TorchTSDF(config), f'TSDF engine: open3d unavailable ({missing}); falling back to torch'
+        return False, f'TSDF engine: torch on {config.device} (auto; Open3D not installed)'
+    return False, f'TSDF engine: open3d unavailable ({missing}); falling back to torch'
 
 
 def _open3d_cuda() -> bool:

@@ -26,6 +26,7 @@ from .graph.dds import profile_for_console_node
 from .graph.dds_readers import resolved_topic
 from .graph.spawn import STOP_STACKS_AFTER_S
 from .node_executor import executor_choice, make_node_executor, spin_until
+from .rcl_errors import rcl_message
 from .robot_inputs import image_topic_for
 from .threads import apply_node_threads
 
@@ -39,12 +40,6 @@ def arm_stop_stacks() -> None:
     faulthandler.dump_traceback_later(STOP_STACKS_AFTER_S, exit=False)
     atexit.unregister(faulthandler.cancel_dump_traceback_later)  # registered once
     atexit.register(faulthandler.cancel_dump_traceback_later)  # runs after the threads were joined
-
-
-def _first_line(exc: BaseException) -> str:
-    """rcl's message without its source location (``..., at /project/src/rcl/arguments.c:380``)
-    and the empty detail it appends to a remap it cannot parse."""
-    return str(exc).splitlines()[0].split(', at /')[0].removesuffix('. Error: error not set')
 
 
 def _close_executor(executor: Any, node: Node) -> None:
@@ -107,7 +102,7 @@ def run_node(
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except _rclpy.RCLError as exc:  # a bad --ros-args (a remap rcl cannot parse): one line, not a traceback
         rclpy.logging.get_logger('depth_fusion').error(
-            f'{node_name or "node"}: cannot start: {_first_line(exc)}'
+            f'{node_name or "node"}: cannot start: {rcl_message(exc)}'
         )
         signal.signal(signal.SIGTERM, previous_term)
         signal.signal(signal.SIGINT, previous_int)

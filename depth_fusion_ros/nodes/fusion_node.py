@@ -46,14 +46,13 @@ from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_
 from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig
 from ..multiview.stage1 import METHOD_RULES, STAGE1_RULES, resolve_rule, stage1_mask
-from ..torch_device import resolve_device
 from .base import DepthFusionNode
 from .console import run_node
 from .diagnostics import Requirement
 from .fusion_warmup import exit_now_if_compiling, finish_compiling, start_kernels
 from .graph_events import EVENT_FUSED, GraphEvents
 from .image_input import InputError, depth_from_message
-from .params import ParamSpec, build_dataclass, dataclass_specs
+from .params import ParamSpec, build_dataclass, dataclass_specs, torch_device
 from .qos import latched_qos
 from .stamp_pairing import Pairing, StampPairer
 
@@ -151,7 +150,7 @@ WARMING_MAX_POINTS = 512
 
 REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
 PARAMETERS: tuple[ParamSpec, ...] = (
-    ParamSpec('device', 'cpu', 'torch device of the fusion: cpu, cuda, cuda:1, ...'),
+    ParamSpec('device', 'cpu', 'torch device of the fusion: cpu, cuda, cuda:1, ...', validate=torch_device),
     ParamSpec(
         'single_view_output_kind',
         'auto',
@@ -272,10 +271,6 @@ class FusionNode(DepthFusionNode):
         super().__init__(node_name, PARAMETERS, **kwargs)
         self._own_process = own_process
         p = self.params
-        try:
-            resolve_device(str(p['device']))  # before any kernel is compiled for it
-        except ValueError as exc:
-            raise ValueError(f'{self.get_name()}: {exc}') from None
         self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))
         self.guard_config = build_dataclass(GuardConfig, p, 'guard')
         self.consistency_config = build_dataclass(ConsistencyConfig, p, 'consistency')

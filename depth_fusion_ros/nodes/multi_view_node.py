@@ -46,7 +46,6 @@ from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
 from ..pose_jumps import PoseJump
-from ..torch_device import resolve_device
 from . import robot_inputs
 from .announce import announce
 from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode
@@ -131,7 +130,6 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             raise ValueError(f'{self.get_name()}: {exc}') from None
         self.device = str(p['device'])
         try:
-            resolve_device(self.device)
             self.filter_feed = FilterFeed.from_parameters(
                 p,
                 self.config,

@@ -18,7 +18,7 @@ from .focal_check_runner import FOCAL_CHECK_PARAMETERS
 from .image_input import working_grid_parameters
 from .mount_check_runner import MOUNT_CHECK_PARAMETERS
 from .multi_view_filter import FILTER_PARAMETERS
-from .params import ParamSpec, dataclass_specs
+from .params import ParamSpec, dataclass_specs, torch_device
 from .pose_jump_params import pose_jump_parameters
 from .time_offset_check_runner import TIME_OFFSET_CHECK_PARAMETERS
 
@@ -98,7 +98,12 @@ NEIGHBOUR_LIMITS: dict[str, Any] = {
 MULTI_VIEW_SKIP = ('select_fraction',)
 
 PARAMETERS: tuple[ParamSpec, ...] = (
-    ParamSpec('device', 'cpu', 'torch device of the multi-view estimate (filter or sweep): cpu, cuda, ...'),
+    ParamSpec(
+        'device',
+        'cpu',
+        'torch device of the multi-view estimate (filter or sweep): cpu, cuda, ...',
+        validate=torch_device,
+    ),
     *working_grid_parameters(),
     *robot_inputs.PARAMETERS,
     ParamSpec(

@@ -21,13 +21,23 @@ import dataclasses
 import math
 import types
 import typing
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from .ignored_params import warn_ignored
 
 ParamValue = bool | int | float | str | list[float] | list[int] | list[str]
+
+
+def torch_device(value: str) -> None:
+    """A ``device`` parameter's check: a typo, CUDA on a CPU build of torch or a CUDA index
+    the machine lacks fails at start (``fusion_node -p device:=cuda`` on a CPU build once
+    started and failed its compilation in the background). ``cpu`` needs no torch import."""
+    if value != 'cpu':
+        from ..torch_device import resolve_device
+
+        resolve_device(value)
 
 
 @dataclass(frozen=True)
@@ -44,6 +54,9 @@ class ParamSpec:
     choices: tuple[str, ...] = ()
     #: Required length of an array parameter (``None``: any length).
     length: int | None = None
+    #: A further check of a string value: raises ``ValueError`` with a message that names
+    #: what is wrong (e.g. :func:`torch_device`); the node's name is put before it.
+    validate: Callable[[str], object] | None = None
 
     @property
     def kind(self) -> type:
@@ -86,6 +99,11 @@ class ParamSpec:
                 raise ValueError(f'{label} must be a string, got {value!r}')
             if self.choices and value not in self.choices:
                 raise ValueError(f'{label} is {value!r}: expected one of {", ".join(self.choices)}')
+            if self.validate is not None:
+                try:
+                    self.validate(value)
+                except ValueError as exc:
+                    raise ValueError(f'{where}{exc}') from None
             return value
         return self._check_list(value, label)
 

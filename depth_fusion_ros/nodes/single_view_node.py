@@ -38,7 +38,7 @@ from .base import DepthFusionNode
 from .console import run_node
 from .graph_events import GraphEvents
 from .image_input import CameraInput, InputError, WorkingImage, working_grid_parameters
-from .params import ParamSpec
+from .params import ParamSpec, torch_device
 from .single_view_adaptation import ADAPTATION_PARAMETERS, NodeAdaptation, adaptation_wanted
 
 NODE_NAME = 'single_view_node'
@@ -56,7 +56,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'model with its metadata YAML beside it: ONNX .onnx (ONNX Runtime), torch.export .pt2 or '
         'TorchScript .pt (local files only)',
     ),
-    ParamSpec('device', 'cpu', 'torch device of the network: cpu, cuda, cuda:1, ...'),
+    ParamSpec('device', 'cpu', 'torch device of the network: cpu, cuda, cuda:1, ...', validate=torch_device),
     ParamSpec(
         'input_rectified',
         True,

@@ -53,10 +53,17 @@ def recorded_keyframes(sequence: Sequence, bag: str | Path, topic: str = TOPICS[
     return sorted(match_stamps(sequence.stamps, list(recorded_depths(bag, topic))))
 
 
-def _recorded(ctx: KeyframeContext, method: str) -> MethodOutput:
-    bag = ctx.stage_params('recorded').get('bag')
+def recorded_bag(recorded: dict, what: str) -> str:
+    """The recorded bag of ``--set recorded.bag=PATH`` (the ``recorded`` stage parameters),
+    or a ``ValueError`` saying that ``what`` (a method, an option) needs it."""
+    bag = recorded.get('bag')
     if not bag:
-        raise ValueError(f'{method} needs the recorded bag: --set recorded.bag=PATH')
+        raise ValueError(f'{what} needs the recorded bag: --set recorded.bag=PATH')
+    return str(bag)
+
+
+def _recorded(ctx: KeyframeContext, method: str) -> MethodOutput:
+    bag = recorded_bag(ctx.stage_params('recorded'), method)
     topic = ctx.stage_params('recorded').get(method, TOPICS[method])
     table = ctx.shared_cached(
         f'recorded:{topic}',
