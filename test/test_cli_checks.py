@@ -77,6 +77,51 @@ def test_every_command_checks_its_output_first(argv, tmp_path, capsys):
     assert f'{blocker} is a file, not a folder' in line
 
 
+@pytest.mark.parametrize(
+    ('argv', 'existing'),
+    [
+        (['adapt', '{d}/no_sequence', '--out', '{d}/a.pt'], 'a.pt'),
+        (['export', '--format', 'torchscript', '--out', '{d}/m.pt'], 'm.pt'),
+        (['train', '{d}', '--out', '{d}/run', '--ship', '{d}/s.pt'], 's.pt'),
+        (['train', '{d}', '--out', '{d}/run', '--ship', '{d}/s.pt'], 's.yaml'),
+        (['run', '--bag', '{d}', '--save-map', '{d}/map.ply'], 'map.ply'),
+    ],
+    ids=['adapt', 'export', 'train-ship', 'train-ship-yaml', 'run-save-map'],
+)
+def test_an_output_already_there_is_kept_unless_overwrite_is_given(argv, existing, tmp_path, capsys):
+    """A checkpoint, an exported model (or a shipped one's YAML) or a map from an earlier run is a
+    result: it is refused before any work (adapt's sequence is not even looked for), naming
+    --overwrite, and left as it was."""
+    kept = tmp_path / existing
+    kept.write_text('an earlier result')
+    line = one_line_error(capsys, [a.format(d=tmp_path) for a in argv])
+    assert f'{kept} already exists (pass --overwrite to replace it)' in line
+    assert kept.read_text() == 'an earlier result'
+
+
+def test_overwrite_replaces_and_is_refused_where_nothing_would_be_replaced(tmp_path, capsys):
+    model = tmp_path / 'm.pt'
+    model.write_text('old')
+    assert main(['export', '--format', 'torchscript', '--out', str(model), '--overwrite']) == 0
+    assert model.stat().st_size > 1000 and model.with_suffix('.yaml').is_file()
+    onnx = tmp_path / 'm.onnx'  # another format of the same model shares m.yaml: written again
+    assert main(['export', '--out', str(onnx)]) == 0
+    other = tmp_path / 'other.pt'
+    other.with_suffix('.yaml').write_text('input_width: 64')  # another model's YAML is kept
+    line = one_line_error(capsys, ['export', '--out', str(other)])
+    assert line.endswith(
+        'other.yaml already exists and describes another model (pass --overwrite to replace it)'
+    )
+    assert not other.exists() and other.with_suffix('.yaml').read_text() == 'input_width: 64'
+    line = one_line_error(capsys, ['run', '--bag', str(tmp_path), '--overwrite'])
+    assert line.endswith('--overwrite applies to --save-map, which is not given')
+    line = one_line_error(capsys, ['train', str(tmp_path), '--out', str(tmp_path / 'run'), '--overwrite'])
+    assert line.endswith('--overwrite applies to --ship, which is not given')
+    (tmp_path / 'run').mkdir()
+    line = one_line_error(capsys, ['train', str(tmp_path), '--out', str(tmp_path / 'run'), '--resume'])
+    assert 'last.pt does not exist' in line
+
+
 def test_bag_outputs_refuse_the_bag_suffix(tmp_path, capsys):
     assert 'use ' in one_line_error(capsys, ['convert', str(tmp_path), str(tmp_path / 'x.bag')])
     line = one_line_error(capsys, ['run', '--bag', str(tmp_path), '--record', str(tmp_path / 'o.bag')])

@@ -134,3 +134,7 @@ def test_depth_fusion_mesh_writes_the_mesh_of_a_map_file(saved_map, tmp_path, ca
     assert 'not readable as a map' in capsys.readouterr().err
     assert main(['mesh', str(path), '--out', str(tmp_path / 'none.ply'), '--min-weight', '1e9']) == 1
     assert 'has no surface' in capsys.readouterr().err and not (tmp_path / 'none.ply').exists()
+    assert main(['mesh', str(path), '--out', str(out)]) == 2  # the first .ply is kept
+    assert 'already exists (pass --overwrite' in capsys.readouterr().err
+    assert len(read_ply(out).vertices) == len(expected.vertices)
+    assert main(['mesh', str(path), '--out', str(out), '--overwrite']) == 0

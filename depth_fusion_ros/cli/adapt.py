@@ -30,6 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         'sequences', nargs='+', metavar='SEQ_DIR', help='TUM-layout folder(s) or rosbag2 folder(s), in order'
     )
     p.add_argument('--out', required=True, metavar='CKPT', help='checkpoint to write (.pt)')
+    p.add_argument('--overwrite', action='store_true', help='replace CKPT if it exists')
     p.add_argument(
         '--model',
         default='default',
@@ -83,7 +84,10 @@ def run(args: argparse.Namespace) -> int:
     from ..progress import progress
     from .evaluate import parse_rgb_cameras, recording_topics
     from .overrides import parse_overrides
+    from .paths import check_output
 
+    # before minutes of adaptation: a checkpoint already there is someone's result (cli/paths.py)
+    check_output(args.out, '--out', folder=False, exists_ok=args.overwrite, overwrite_flag='--overwrite')
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     options = EvalOptions(

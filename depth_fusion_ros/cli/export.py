@@ -31,6 +31,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument('--out', required=True, metavar='PATH', help='the exported model file')
     p.add_argument(
+        '--overwrite',
+        action='store_true',
+        help='replace PATH, and the YAML beside it if it describes another model',
+    )
+    p.add_argument(
         '--model',
         default='default',
         metavar='SRC',
@@ -41,7 +46,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..singleview.export import export_network
+    from .paths import check_output
 
-    model_path, yaml_path = export_network(args.out, args.format, args.model)
+    out = check_output(
+        args.out, '--out', folder=False, exists_ok=args.overwrite, overwrite_flag='--overwrite'
+    )
+    check_output(out.with_suffix('.yaml'), '--out', folder=False)  # its YAML: see export_network
+    model_path, yaml_path = export_network(out, args.format, args.model, overwrite=args.overwrite)
     print(f'wrote {model_path} and {yaml_path}; use it with --single-view {model_path}')
     return 0

@@ -23,6 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = subcommand(sub, 'mesh', 'the mesh (.ply) of a saved map file, offline', DESCRIPTION)
     p.add_argument('map_file', help='a map file written by map_node (map_file, ~/save_map)')
     p.add_argument('--out', required=True, help='the .ply to write')
+    p.add_argument('--overwrite', action='store_true', help='replace the .ply if it exists')
     weight = 'voxels observed with less accumulated weight are left out (default: map.min_weight)'
     p.add_argument('--min-weight', type=float, default=None, help=weight)
     blocks = at_least(1, '--max-blocks')
@@ -37,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from ..mapping.map_file import file_blocks, read_state
     from ..mapping.ply import write_ply
     from ..mapping.slab_surface import slab_mesh
+    from .paths import OutputPathError, check_output
 
     out = Path(args.out)
     if out.suffix.lower() != '.ply':
@@ -48,6 +50,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         state = read_state(args.map_file)
     except (OSError, ValueError) as exc:
+        print(f'depth-fusion mesh: {exc}', file=sys.stderr)
+        return 2
+    try:
+        check_output(out, '--out', folder=False, exists_ok=args.overwrite, overwrite_flag='--overwrite')
+    except OutputPathError as exc:
         print(f'depth-fusion mesh: {exc}', file=sys.stderr)
         return 2
     min_weight = MapConfig().min_weight if args.min_weight is None else args.min_weight

@@ -80,3 +80,15 @@ def check_output(
         raise OutputPathError(f'{what} {path}: {ancestor} is a file, not a folder')
     _probe_writable(ancestor, what, path)
     return path
+
+
+def check_new_model(path: str | Path, what: str, overwrite: bool) -> Path:
+    """A model file and the YAML written beside it (``export``, ``train --ship``), both checked.
+
+    Why both: the YAML is half of the model (its input size and output kind); replacing one
+    and not the other would leave a pair that loads and predicts wrongly.
+    """
+    path = Path(path).expanduser()
+    for target in (path, path.with_suffix('.yaml')):
+        check_output(target, what, folder=False, exists_ok=overwrite, overwrite_flag='--overwrite')
+    return path

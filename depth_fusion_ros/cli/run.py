@@ -77,6 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar='FILE.ply',
         help="write the map's mesh to FILE.ply when the run ends (implies --map)",
     )
+    p.add_argument('--overwrite', action='store_true', help='replace the --save-map file if it exists')
     p.add_argument(
         '--realtime',
         action='store_true',
@@ -167,7 +168,12 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
     if 'map_node' in overrides and not with_map:
         raise ValueError('--set map_node.*: map_node is not started; add --map (or --save-map FILE.ply)')
     if args.save_map is not None:
-        check_output(check_map_path(args.save_map), '--save-map', folder=False)
+        map_path = check_map_path(args.save_map)
+        check_output(
+            map_path, '--save-map', folder=False, exists_ok=args.overwrite, overwrite_flag='--overwrite'
+        )
+    elif args.overwrite:
+        raise ValueError('--overwrite applies to --save-map, which is not given')
     if args.record is not None:
         check_output(args.record, '--record', exists_ok=False, bag=True)
     elif args.record_topic:

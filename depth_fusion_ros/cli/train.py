@@ -78,6 +78,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         '--ship', metavar='PATH', help='after training, write best.pt as a small fp16 checkpoint (+ .yaml)'
     )
+    p.add_argument(
+        '--overwrite', action='store_true', help='replace the --ship file and its YAML if they exist'
+    )
     p.add_argument('--no-progress', action='store_true', help='no progress bar')
     p.set_defaults(func=run)
 
@@ -104,6 +107,26 @@ def source_summary(path: str | Path) -> str:
     return 'unknown (no SOURCE.md)'
 
 
+def check_training_outputs(args: argparse.Namespace) -> None:
+    """Every output checked before the data loads: a finished run in ``--out`` is kept unless
+    ``--resume`` continues it, and ``--ship`` replaces a file only with ``--overwrite``."""
+    from .paths import check_new_model, check_output
+
+    out = check_output(args.out, '--out')
+    last = out / 'last.pt'
+    if args.resume and not last.is_file():
+        raise FileNotFoundError(f'--resume: {last} does not exist')
+    if not args.resume and last.exists():
+        raise ValueError(
+            f'--out {out} holds a training run ({last}): pass --resume to continue it, or choose '
+            'another folder'
+        )
+    if args.ship:
+        check_new_model(args.ship, '--ship', args.overwrite)
+    elif args.overwrite:
+        raise ValueError('--overwrite applies to --ship, which is not given')
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -119,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
     for folder in [*args.sequences, *args.val]:
         if not Path(folder).is_dir():
             raise FileNotFoundError(f'training folder not found: {folder}')
+    check_training_outputs(args)
 
     def load(folder: str) -> DepthSamples:
         return load_folder_samples(folder, width, height, args.frames, args.every)

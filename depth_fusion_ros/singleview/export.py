@@ -16,7 +16,7 @@ import torch
 
 from .checkpoint import load_checkpoint
 from .export_formats import FORMATS
-from .metadata import ModelMetadata, write_metadata_yaml
+from .metadata import ModelMetadata, metadata_yaml_text, write_metadata_yaml
 from .onnx_model import export_onnx
 from .pt2_model import export_pt2
 from .torchscript_model import MetricDepthHead, export_torchscript
@@ -44,22 +44,35 @@ def format_for(out: Path, fmt: str | None) -> str:
     return fmt
 
 
+def _check_yaml(yaml_path: Path, text: str, overwrite: bool) -> None:
+    """Refuse to replace another model's YAML. One YAML serves every format of a stem
+    (``compact.onnx``, ``compact.pt2`` and ``compact.pt`` all read ``compact.yaml``), so the same
+    text written again is no loss; different text is someone's model description."""
+    if overwrite or not yaml_path.exists() or yaml_path.read_text() == text:
+        return
+    raise ValueError(
+        f'{yaml_path} already exists and describes another model (pass --overwrite to replace it)'
+    )
+
+
 def export_network(
-    out: str | Path, fmt: str | None = None, model: str | Path = 'default'
+    out: str | Path, fmt: str | None = None, model: str | Path = 'default', overwrite: bool = False
 ) -> tuple[Path, Path]:
     """Export the checkpoint ``model`` ('default': the shipped network) to ``out`` in ``fmt``
-    and write its YAML beside it; returns ``(model_path, yaml_path)``."""
+    and write its YAML beside it; returns ``(model_path, yaml_path)``. The YAML carries no
+    format (the loader picks the host by the suffix), so every format of one stem shares it."""
     from .predictor import default_model_path
 
     out = Path(out)
     fmt = format_for(out, fmt)
     source = default_model_path() if str(model) == 'default' else Path(model).expanduser()
     ckpt = load_checkpoint(source, 'cpu')  # names the file when it is missing or not a checkpoint
-    info = {**ckpt.metadata.info, 'exported_from': str(source), 'export_format': fmt}
+    info = {**ckpt.metadata.info, 'exported_from': str(source)}
     meta = ModelMetadata.from_dict(
         {**ckpt.metadata.to_dict(), 'output_kind': 'metric_depth', 'scale': 1.0, 'info': info}
     )
     yaml_path = out.with_suffix('.yaml')
+    _check_yaml(yaml_path, metadata_yaml_text(meta), overwrite)
     if fmt == 'torchscript':
         return export_torchscript(ckpt.model, out, meta, yaml_path)
     width, height = meta.input_size

@@ -181,8 +181,13 @@ def read_metadata_yaml(path: str | Path) -> ModelMetadata:
     return ModelMetadata.from_dict(data or {}, source=str(path))
 
 
+def metadata_yaml_text(meta: ModelMetadata) -> str:
+    """``meta`` as the YAML text :func:`write_metadata_yaml` writes."""
+    return yaml.safe_dump(meta.to_dict(), sort_keys=False)
+
+
 def write_metadata_yaml(meta: ModelMetadata, path: str | Path) -> Path:
     """Write ``meta`` as YAML (the format ``read_metadata_yaml`` reads)."""
     path = Path(path)
-    path.write_text(yaml.safe_dump(meta.to_dict(), sort_keys=False))
+    path.write_text(metadata_yaml_text(meta))
     return path
