@@ -388,3 +388,68 @@ def test_building_the_parser_imports_neither_torch_nor_the_renderer():
     )
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True).stdout
     assert out.splitlines() == ['[]', 'SynthConfig render_sequence'], out
+
+
+def _help_examples() -> list[str]:
+    """Every ``depth-fusion ...`` example line of the top-level help and of each command's
+    description and epilog (continuation backslashes joined, comments cut)."""
+    import argparse
+
+    from depth_fusion_ros.cli.main import build_parser
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    texts = [parser.description or ''] + [
+        t or '' for p in subs.choices.values() for t in (p.description, p.epilog)
+    ]
+    lines = []
+    for text in texts:
+        for line in re.sub(r'\\\n\s*', ' ', text).splitlines():
+            if line.strip().startswith('depth-fusion '):
+                lines.append(re.split(r'\s+#', line.strip())[0])
+    return lines
+
+
+def test_every_example_in_the_help_is_a_command_line_the_cli_accepts():
+    """The help's examples are what a new user types first: each parses, and none names a
+    rosbag2 output the command refuses (the top-level help once said `convert ... room.bag`)."""
+    import shlex
+
+    from depth_fusion_ros.cli.main import build_parser
+
+    examples = _help_examples()
+    assert len(examples) >= 30, examples
+    parser = build_parser()
+    for line in examples:
+        try:
+            args = parser.parse_args(shlex.split(line)[1:])
+        except SystemExit:
+            pytest.fail(f'the help example does not parse: {line}')
+        outputs = [args.out] if args.command == 'convert' else []
+        outputs += [getattr(args, 'record', None)] if args.command == 'run' else []
+        for out in filter(None, outputs):
+            assert not str(out).endswith('.bag'), f'a rosbag2 output named .bag in the help: {line}'
+
+
+def test_every_command_line_in_the_readme_and_docs_code_blocks_parses():
+    """The fenced shell blocks of README.md and docs/ are copied as they are: each
+    ``depth-fusion`` line in them parses (``[...]``, an optional part, is left out)."""
+    import shlex
+
+    from depth_fusion_ros.cli.main import build_parser
+
+    parser = build_parser()
+    checked = 0
+    for doc in [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]:
+        for block in re.findall(r'```(?:bash|sh|console)?\n(.*?)```', doc.read_text(), re.S):
+            for line in re.sub(r'\\\n\s*', ' ', block).splitlines():
+                line = line.strip().removeprefix('$ ')
+                if not line.startswith('depth-fusion '):
+                    continue
+                line = re.split(r'\s+#|\s+\||\s+>|\s+&&|\s+2>', line)[0]
+                try:
+                    parser.parse_args(shlex.split(re.sub(r'\[[^\]]*\]', '', line))[1:])
+                except SystemExit:
+                    pytest.fail(f'{doc.name}: the command line does not parse: {line}')
+                checked += 1
+    assert checked >= 15, checked

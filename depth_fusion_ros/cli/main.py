@@ -41,7 +41,7 @@ multi-view depth from posed frames (Facil et al., RA-L 2017), for ROS 2 Jazzy.
 typical use:
   depth-fusion demo                               # everything, on a synthetic sequence
   depth-fusion synth artifacts/room               # render a posed RGB-D sequence
-  depth-fusion convert artifacts/room room.bag    # TUM folder (or ROS 1 bag) -> rosbag2
+  depth-fusion convert artifacts/room room        # TUM folder (or ROS 1 bag) -> rosbag2 folder
   depth-fusion run --bag room --record out        # the ROS 2 node graph on a bag
   depth-fusion launch --pose /slam/camera_pose    # the node graph for a live camera
   depth-fusion evaluate SEQ_DIR --methods tv,single_view,fused
