@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -28,6 +31,10 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 # this machine's run differ from CI's: the suite compiles as CI does, and test_fusion_aot.py
 # builds its own in a private cache.
 os.environ['DEPTH_FUSION_AOT'] = '0'
+# What nodes keep across runs (the adapted weights, the map archive) goes under $ROS_HOME
+# (ros_home.py): a private one per pytest process, so no test writes into the user's ~/.ros.
+os.environ['ROS_HOME'] = tempfile.mkdtemp(prefix='depth_fusion_test_ros_home_')
+atexit.register(shutil.rmtree, os.environ['ROS_HOME'], ignore_errors=True)
 
 
 @pytest.fixture(scope='module')

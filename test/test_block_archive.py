@@ -260,3 +260,16 @@ def test_a_full_disk_loses_the_blocks_instead_of_killing_the_node(tmp_path, monk
     monkeypatch.undo()
     assert archive.put(torch.tensor([[0, 0, 0]]), one[:1], one[:1], torch.ones((1, 3, 8))) == 1  # space again
     archive.close()
+
+
+def test_ros_home_is_expanded_in_path_parameters(monkeypatch, tmp_path):
+    from depth_fusion_ros.ros_home import expand_ros_home
+
+    monkeypatch.setenv('ROS_HOME', str(tmp_path))
+    assert expand_ros_home('$ROS_HOME/a/b.pt') == tmp_path / 'a' / 'b.pt'
+    assert expand_ros_home('${ROS_HOME}/b.pt') == tmp_path / 'b.pt'
+    assert expand_ros_home('/x/$ROS_HOME/b.pt') == Path('/x/$ROS_HOME/b.pt')  # only a leading one
+    assert expand_ros_home('$ROS_HOMEX/b.pt') == Path('$ROS_HOMEX/b.pt')
+    monkeypatch.delenv('ROS_HOME')
+    assert expand_ros_home('$ROS_HOME/b.pt') == Path.home() / '.ros' / 'b.pt'
+    assert expand_ros_home('~/b.pt') == Path.home() / 'b.pt'

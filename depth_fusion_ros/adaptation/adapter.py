@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from ..compile_lock import COMPILE_LOCK
+from ..ros_home import expand_ros_home
 from ..singleview.metadata import ModelMetadata
 from ..singleview.predictor import DepthPredictor, predictor_from_network, resolve_device
 from .batch import batch_loss
@@ -99,7 +100,7 @@ def load_adaptable(
 
     if str(spec) == SIMULATED_SPEC:
         raise ValueError("adaptation needs a network: 'simulated' is the evaluation-only prior")
-    path = default_model_path() if str(spec) == 'default' else Path(spec).expanduser()
+    path = default_model_path() if str(spec) == 'default' else expand_ros_home(str(spec))
     if not path.is_file():
         raise FileNotFoundError(f'single-view model not found: {path}')
     if is_exported_model(path):

@@ -48,6 +48,7 @@ from ..mapping.ply import write_ply
 from ..mapping.surface import SurfaceMesh
 from ..mapping.torch_tsdf import TorchTSDF
 from ..pose_jumps import find_jump
+from ..ros_home import ros_home
 from .base import DepthFusionNode
 from .console import run_node
 from .corrected_path import TOPIC_CORRECTED_PATH
@@ -154,8 +155,7 @@ def default_archive_dir() -> Path:
     """Where map_node's archive goes unless ``map.archive_dir`` says: under ``$ROS_HOME``
     (``~/.ros``, where ROS keeps its logs: a disk), not the temporary directory, which some
     systems keep in memory (tmpfs) and which would then hold what ``max_blocks`` keeps out of it."""
-    home = os.environ.get('ROS_HOME') or str(Path.home() / '.ros')
-    return Path(home) / 'depth_fusion_ros' / 'map_archive'
+    return ros_home() / 'depth_fusion_ros' / 'map_archive'
 
 
 class MapNode(DepthFusionNode):

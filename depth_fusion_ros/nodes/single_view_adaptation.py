@@ -24,6 +24,7 @@ from ..adaptation.online import OnlineAdaptation, WeightSlot
 from ..adaptation.remote_adapter import RemoteAdapter
 from ..adaptation.sample import AdaptSample
 from ..data import messages
+from ..ros_home import expand_ros_home
 from .corrected_path import path_poses
 from .image_input import InputError, WorkingImage, depth_from_message, header_stamp_ns, pose_from_message
 from .params import ParamSpec, build_dataclass, dataclass_specs
@@ -35,7 +36,8 @@ TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
 TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
 SERVICE_SAVE = '~/save_model'
 ADAPT_CHOICES = ('auto', 'true', 'false')
-DEFAULT_CHECKPOINT = '~/.ros/depth_fusion_ros/single_view_adapted.pt'
+#: Under ``$ROS_HOME`` (``~/.ros`` when unset; nodes/ros_home.py), expanded when it is written.
+DEFAULT_CHECKPOINT = '$ROS_HOME/depth_fusion_ros/single_view_adapted.pt'
 
 ADAPT_LIMITS: dict[str, Any] = {
     'lr': (1e-9, 1.0),
@@ -73,8 +75,9 @@ ADAPTATION_PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
         'adaptation.checkpoint',
         DEFAULT_CHECKPOINT,
-        'where ~/save_model and shutdown write the adapted weights, a checkpoint that model: loads; '
-        "'' = nothing is written at shutdown",
+        'where ~/save_model and shutdown write the adapted weights, a checkpoint that model: loads '
+        'as it is written ($ROS_HOME: ~/.ros when unset); shutdown writes only when an update was '
+        "accepted; '' = nothing is written at shutdown",
     ),
     ParamSpec(
         'adaptation.queue_size',
@@ -193,13 +196,14 @@ class NodeAdaptation:
         self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
         where = f'in training process {self.remote.pid}' if self.remote else 'on a training thread'
         where += f' at nice +{nice}'
+        checkpoint = expand_ros_home(self.checkpoint) if self.checkpoint else '(none)'
         node.get_logger().info(
             f'adapting {self.adapter.name} online {where}: lr {self.config.lr:g}, '
             f'{self.config.steps_per_keyframe} steps/keyframe, replay {self.config.replay_per_step} of '
             f'{self.config.buffer_size} ({self.config.steps_when_behind} steps while behind), windows of '
             f'{self.config.photometric_window:g} of each side; '
             f'signals {node.resolve_topic_name(TOPIC_MV_DEPTH)}, '
-            f'{node.resolve_topic_name(TOPIC_KEYFRAME_POSE)}; checkpoint {self.checkpoint or "(none)"}'
+            f'{node.resolve_topic_name(TOPIC_KEYFRAME_POSE)}; checkpoint {checkpoint}'
         )
 
     # --- parts of a keyframe --------------------------------------------------------------------
@@ -323,7 +327,7 @@ class NodeAdaptation:
     def save(self) -> Path:
         if not self.checkpoint:
             raise ValueError("adaptation.checkpoint is '' : no path to save the adapted model to")
-        return self.online.save(self.checkpoint)
+        return self.online.save(expand_ros_home(self.checkpoint))
 
     def _on_save(self, request: Any, response: Any) -> Any:
         try:
@@ -352,7 +356,13 @@ class NodeAdaptation:
             f'{c.behind} trained while behind'
         )
         self.node.get_logger().info(summary)
-        if self.checkpoint:
+        if self.checkpoint and self.slot.version == 0:
+            # Nothing learnt in this run: writing the weights as loaded would replace an earlier
+            # run's adapted checkpoint with them.
+            self.node.get_logger().info(
+                f'no adaptation update was accepted: {expand_ros_home(self.checkpoint)} left as it was'
+            )
+        elif self.checkpoint:
             try:
                 path = self.save()
                 self.node.get_logger().info(f'adapted weights (version {self.slot.version}) saved to {path}')

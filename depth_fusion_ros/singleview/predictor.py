@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from torch import nn
 
+from ..ros_home import expand_ros_home
 from ..torch_device import resolve_device
 from .checkpoint import is_torchscript_file, load_checkpoint
 from .export_formats import ONNX_SUFFIX, PT2_SUFFIX
@@ -192,7 +193,7 @@ def load_predictor(
             f'{str(spec)!r} is the evaluation-only simulated CNN prior, not a network: '
             f'use it through depth-fusion evaluate --single-view {spec}'
         )
-    path = default_model_path() if str(spec) == 'default' else Path(spec).expanduser()
+    path = default_model_path() if str(spec) == 'default' else expand_ros_home(str(spec))
     if not path.is_file():
         hint = ' (the shipped model is missing: reinstall the package)' if str(spec) == 'default' else ''
         raise FileNotFoundError(f'single-view model not found: {path}{hint}')
