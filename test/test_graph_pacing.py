@@ -454,3 +454,21 @@ def test_run_cli_is_paced_unless_realtime(tmp_path):
     from depth_fusion_ros.nodes.bag_replayer import REPLAYER_PARAMS
 
     assert {s.name: s.default for s in REPLAYER_PARAMS}['max_keyframes_in_flight'] == 1
+
+
+def test_the_live_count_says_how_many_images_came_or_that_none_did():
+    """A launch whose camera topic is wrong ends with "0 keyframes chosen": the line says that
+    no image reached the graph, and otherwise how many did."""
+    from depth_fusion_ros.nodes.graph.summary import live_summary
+
+    ledger = KeyframeLedger()
+    assert live_summary(ledger.snapshot(), 3.0).endswith(
+        '0 keyframes chosen, 0 fused, 0 dropped in 3.0 s (live); no image reached multi_view_node '
+        '(check --image and that the camera publishes)'
+    )
+    for stamp in range(1, 13):
+        ledger.add(stamp, 'image')
+    ledger.add(5, 'chosen')
+    ledger.add(5, 'fused')
+    line = live_summary(ledger.snapshot(), 2.0)
+    assert line == '1 keyframes chosen, 1 fused, 0 dropped in 2.0 s (live); 12 images reached multi_view_node'

@@ -124,6 +124,7 @@ def test_launch_remaps_the_inputs_and_ctrl_c_stops_every_node(tmp_path: Path):
         r'in [\d.]+ s \(live\)',
         output,
     ), output
+    assert re.search(r'\(live\); no image reached multi_view_node \(check --image', output), output
     pids = [int(p) for p in re.findall(r'(?:forked|started) \w+ \(pid (\d+)', output)]
     assert len(pids) == 3, output
     assert '3 nodes stopped cleanly in' in output, output  # a clean stop says so

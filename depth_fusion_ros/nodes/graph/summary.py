@@ -47,11 +47,16 @@ def keyframe_summary(result: RunResult, mode: str) -> str:
 def live_summary(snapshot: LedgerSnapshot, seconds: float) -> str:
     """``depth-fusion launch``'s closing count, from the keyframe events it heard: keyframes
     the policy chose and neither fused nor dropped by the stop (still in a node's hands, or
-    their events lost) are ``in_flight``."""
+    their events lost) are ``in_flight``; then the images multi_view_node handled (posed or
+    dropped), or that none came."""
     chosen = set(snapshot.chosen)
     reasons = dict(snapshot.drop_reasons())
     in_flight = len(snapshot.in_flight)
     if in_flight:
         reasons['in_flight_at_stop'] = in_flight
     fused = len(set(snapshot.fused) & chosen)
-    return f'{counts_line(len(chosen), fused, reasons)} in {seconds:.1f} s (live)'
+    line = f'{counts_line(len(chosen), fused, reasons)} in {seconds:.1f} s (live)'
+    # What came in, so "0 keyframes" says whether the camera was heard at all.
+    if snapshot.images:
+        return f'{line}; {snapshot.images} images reached multi_view_node'
+    return f'{line}; no image reached multi_view_node (check --image and that the camera publishes)'
