@@ -135,6 +135,9 @@ def test_launch_remaps_the_inputs_and_ctrl_c_stops_every_node(tmp_path: Path):
 
 
 def test_a_node_that_dies_stops_the_others_and_the_launch_fails(tmp_path: Path):
+    # The log of a run before, in the same --log-dir: a launch again after a crash keeps it.
+    earlier = '[ERROR] [fusion_node]: the crash of the run before\n'
+    (tmp_path / 'fusion_node.log').write_text(earlier)
     with launched(tmp_path) as proc:
         output_so_far = ''.join(proc.stdout.readline() for _ in range(3))
         pids = dict(re.findall(r'(?:forked|started) (\w+) \(pid (\d+)', output_so_far))
@@ -146,6 +149,11 @@ def test_a_node_that_dies_stops_the_others_and_the_launch_fails(tmp_path: Path):
     assert 'fusion_node was killed by SIGKILL (exit -9): the other nodes were stopped' in output
     time.sleep(0.5)
     assert [n for n, p in pids.items() if running(int(p))] == []
+    log = (tmp_path / 'fusion_node.log').read_text()
+    assert log.startswith(earlier) and re.search(
+        r'\n=== fusion_node started \S+ \S+ UTC by depth-fusion', log
+    )
+    assert '[fusion_node]: ready' in log.split('=== fusion_node started')[1]
 
 
 @pytest.mark.parametrize(

@@ -78,20 +78,33 @@ def node_ros_args(params_file: Path | None, values: Mapping[str, Any]) -> list[s
     return args
 
 
+def run_header(script: str) -> str:
+    """The line that opens one run's part of a node log: ``=== fusion_node started 2026-12-02
+    02:50:01 UTC by depth-fusion (pid 1234) ===``."""
+    when = time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())
+    return f'=== {script} started {when} by depth-fusion (pid {os.getpid()}) ===\n'
+
+
 def start_node(
     script: str, module: str, ros_args: list[str], env: dict[str, str], log_path: Path | None, fork: bool
 ) -> tuple[Any, TextIO | None]:
     """Start one node: forked from the fork server (``forked.start_forked``), or as its console
-    script. Its output goes to ``log_path`` (emptied first, uncoloured) or to this terminal.
-    Returns the Popen-like process and the log file this process holds open for a console
-    script (``None`` otherwise), which the caller closes once the node has stopped."""
+    script. Its output goes to ``log_path`` (appended after a line that opens this run,
+    uncoloured) or to this terminal. Returns the Popen-like process and the log file this
+    process holds open for a console script (``None`` otherwise), which the caller closes once
+    the node has stopped.
+
+    Appended, not emptied: a graph started again with the same ``--log-dir`` (after a crash,
+    say) kept only the new run's logs, and the crash's were lost."""
     out = None
     if log_path is not None:
         log_path.parent.mkdir(parents=True, exist_ok=True)
-        out = open(log_path, 'w')  # noqa: SIM115 - returned, closed by the caller
+        out = open(log_path, 'a')  # noqa: SIM115 - returned, closed by the caller
+        out.write(run_header(script))
+        out.flush()
     if fork:
         if out is not None:
-            out.close()  # emptied; the child appends to it itself
+            out.close()  # the child appends to it itself
             env = {**env, 'RCUTILS_COLORIZED_OUTPUT': '0'}
         return start_forked(module, [script, '--ros-args', *ros_args], env, log_path), None
     return popen_node(node_command(script, module, ros_args), env, out), out
