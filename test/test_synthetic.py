@@ -246,6 +246,30 @@ def test_writer_is_atomic_and_refuses_to_clobber(tmp_path):
     assert (out / 'rgb' / '3.000000.png').is_file() and not (out / 'rgb' / '1.000000.png').exists()
 
 
+def test_overwrite_replaces_a_sequence_and_never_a_folder_of_something_else(tmp_path, capsys):
+    """`synth OUT --overwrite` replaced whatever OUT named: a mistyped output removed the
+    user's files. Now only a TUM-layout sequence (or an empty folder) is replaced."""
+    from depth_fusion_ros.cli.main import main
+
+    precious = tmp_path / 'thesis'
+    precious.mkdir()
+    (precious / 'chapter1.tex').write_text('months of work')
+    args = ['--frames', '2', '--width', '64', '--height', '48', '--quiet', '--overwrite']
+    assert main(['synth', str(precious), *args]) == 1
+    err = capsys.readouterr().err
+    assert 'is not a TUM-layout sequence (no rgb.txt and groundtruth.txt): refusing to overwrite it' in err
+    assert (precious / 'chapter1.tex').read_text() == 'months of work'
+    a_file = tmp_path / 'notes.txt'
+    a_file.write_text('x')
+    assert main(['synth', str(a_file), *args]) == 1
+    assert 'is not a folder: refusing' in capsys.readouterr().err and a_file.read_text() == 'x'
+    empty = tmp_path / 'empty'
+    empty.mkdir()
+    assert main(['synth', str(empty), *args]) == 0  # nothing in it to lose
+    assert main(['synth', str(empty), *args, '--seed', '4']) == 0  # a sequence: replaced
+    assert '--seed 4' in (empty / 'SOURCE.md').read_text()
+
+
 def test_cli_synth(tmp_path, capsys):
     from depth_fusion_ros.cli.main import main
 

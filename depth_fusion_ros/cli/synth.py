@@ -173,7 +173,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help='start from a named stress case (data/synthetic/stress.py); options given explicitly win',
     )
-    p.add_argument('--overwrite', action='store_true', help='replace OUT_DIR if it exists')
+    p.add_argument(
+        '--overwrite', action='store_true', help='replace OUT_DIR if it is a TUM-layout sequence (or empty)'
+    )
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     # Every field's option defaults to None (its help names the field's default): an option
     # given is used as given, also when it equals the default (``--stress time_offset

@@ -114,11 +114,32 @@ def _write_groundtruth(path: Path, source: str, stamps: list[str], poses: np.nda
     path.write_text('\n'.join(lines) + '\n')
 
 
+def is_tum_folder(path: Path) -> bool:
+    """A TUM-layout sequence folder: ``rgb.txt`` and ``groundtruth.txt`` in it."""
+    return path.is_dir() and (path / 'rgb.txt').is_file() and (path / 'groundtruth.txt').is_file()
+
+
+def check_replaceable(out_dir: Path, overwrite: bool) -> None:
+    """``ValueError`` unless ``out_dir`` is new, or ``overwrite`` and it is a TUM-layout sequence
+    (or an empty folder). Why: ``--overwrite`` replaced whatever folder was named, so a typo in
+    the output name removed the user's own files; ``convert`` likewise replaces only a rosbag2."""
+    if not (out_dir.exists() or out_dir.is_symlink()):
+        return
+    if not overwrite:
+        raise ValueError(f'{out_dir} already exists (use overwrite / --overwrite to replace it)')
+    if out_dir.is_symlink() or not out_dir.is_dir():
+        raise ValueError(f'{out_dir} exists and is not a folder: refusing to overwrite it')
+    if not is_tum_folder(out_dir) and any(out_dir.iterdir()):
+        raise ValueError(
+            f'{out_dir} exists and is not a TUM-layout sequence (no rgb.txt and groundtruth.txt): '
+            'refusing to overwrite it'
+        )
+
+
 def _replace_dir(tmp: Path, out_dir: Path, overwrite: bool) -> None:
     """Move the finished ``tmp`` folder onto ``out_dir`` (removing an old one if allowed)."""
     if out_dir.exists():
-        if not overwrite:
-            raise ValueError(f'{out_dir} already exists (use overwrite / --overwrite to replace it)')
+        check_replaceable(out_dir, overwrite)  # again: it may have changed while we wrote
         trash = out_dir.with_name(f'.{out_dir.name}.old-{os.getpid()}')
         out_dir.rename(trash)
         tmp.rename(out_dir)
@@ -161,8 +182,7 @@ def write_tum_folder(
         validate_pose(T, f'write_tum_folder: pose {i}')
     texts = _check_stamps(stamps)
     pose_texts = texts if pose_stamps is None else _check_stamps(own)
-    if out_dir.exists() and not overwrite:
-        raise ValueError(f'{out_dir} already exists (use overwrite / --overwrite to replace it)')
+    check_replaceable(out_dir, overwrite)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f'.{out_dir.name}.tmp-', dir=out_dir.parent))
     try:

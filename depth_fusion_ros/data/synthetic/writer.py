@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..tum_writer import write_tum_folder
+from ..tum_writer import check_replaceable, write_tum_folder
 from .config import SynthConfig
 from .world import build_world, iter_frames, pose_source, sequence_name
 
@@ -125,8 +125,7 @@ def write_synthetic_sequence(
 ) -> Path:
     """Render and write a TUM-layout folder (frames streamed to disk, not held in memory)."""
     out_dir = Path(out_dir)
-    if out_dir.exists() and not overwrite:  # say so before spending time on rendering
-        raise ValueError(f'{out_dir} already exists (use overwrite / --overwrite to replace it)')
+    check_replaceable(out_dir, overwrite)  # say so before spending time on rendering
     scene, trajectory = build_world(cfg)
     frames = iter_frames(cfg, scene, trajectory, show_progress=show_progress)
     # The writer zips the rgb and depth iterables in lockstep, so tee buffers one frame.
