@@ -248,17 +248,24 @@ def test_writer_is_atomic_and_refuses_to_clobber(tmp_path):
 
 def test_overwrite_replaces_a_sequence_and_never_a_folder_of_something_else(tmp_path, capsys):
     """`synth OUT --overwrite` replaced whatever OUT named: a mistyped output removed the
-    user's files. Now only a TUM-layout sequence (or an empty folder) is replaced."""
+    user's files. Now only a folder depth-fusion wrote (or an empty one) is replaced: not a
+    folder of other files, not a file, not a downloaded dataset in TUM layout."""
     from depth_fusion_ros.cli.main import main
 
     precious = tmp_path / 'thesis'
     precious.mkdir()
     (precious / 'chapter1.tex').write_text('months of work')
+    dataset = tmp_path / 'rgbd_dataset_freiburg1_xyz'  # TUM layout, not written here
+    dataset.mkdir()
+    for name in ('rgb.txt', 'groundtruth.txt', 'depth.txt'):
+        (dataset / name).write_text('# downloaded\n')
     args = ['--frames', '2', '--width', '64', '--height', '48', '--quiet', '--overwrite']
-    assert main(['synth', str(precious), *args]) == 1
-    err = capsys.readouterr().err
-    assert 'is not a TUM-layout sequence (no rgb.txt and groundtruth.txt): refusing to overwrite it' in err
+    for kept in (precious, dataset):
+        assert main(['synth', str(kept), *args]) == 1
+        err = capsys.readouterr().err
+        assert 'is not a sequence depth-fusion wrote (no .written_by_depth_fusion_ros): refusing' in err
     assert (precious / 'chapter1.tex').read_text() == 'months of work'
+    assert (dataset / 'rgb.txt').read_text() == '# downloaded\n'
     a_file = tmp_path / 'notes.txt'
     a_file.write_text('x')
     assert main(['synth', str(a_file), *args]) == 1
@@ -266,8 +273,10 @@ def test_overwrite_replaces_a_sequence_and_never_a_folder_of_something_else(tmp_
     empty = tmp_path / 'empty'
     empty.mkdir()
     assert main(['synth', str(empty), *args]) == 0  # nothing in it to lose
-    assert main(['synth', str(empty), *args, '--seed', '4']) == 0  # a sequence: replaced
+    assert main(['synth', str(empty), *args, '--seed', '4']) == 0  # written here: replaced
     assert '--seed 4' in (empty / 'SOURCE.md').read_text()
+    (empty / '.written_by_depth_fusion_ros').unlink()  # a synthetic folder from before the mark
+    assert main(['synth', str(empty), *args, '--seed', '5']) == 0
 
 
 def test_cli_synth(tmp_path, capsys):

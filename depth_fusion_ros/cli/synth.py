@@ -174,7 +174,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help='start from a named stress case (data/synthetic/stress.py); options given explicitly win',
     )
     p.add_argument(
-        '--overwrite', action='store_true', help='replace OUT_DIR if it is a TUM-layout sequence (or empty)'
+        '--overwrite', action='store_true', help='replace OUT_DIR if depth-fusion wrote it (or it is empty)'
     )
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     # Every field's option defaults to None (its help names the field's default): an option

@@ -8,6 +8,7 @@ Layout (what ``data/tum.py`` reads and the TUM tools expect)::
     OUT/groundtruth.txt        'timestamp tx ty tz qx qy qz qw' (camera-to-world)
     OUT/camera.yaml            ROS camera-info YAML (plumb_bob, zero distortion)
     OUT/SOURCE.md              how the folder was made
+    OUT/.written_by_depth_fusion_ros   the mark that lets ``overwrite`` replace this folder
 
 Frames are written into a temporary sibling folder that is renamed onto ``OUT`` at the
 end, so an interrupted run never leaves a half-written sequence that looks complete.
@@ -114,24 +115,35 @@ def _write_groundtruth(path: Path, source: str, stamps: list[str], poses: np.nda
     path.write_text('\n'.join(lines) + '\n')
 
 
-def is_tum_folder(path: Path) -> bool:
-    """A TUM-layout sequence folder: ``rgb.txt`` and ``groundtruth.txt`` in it."""
-    return path.is_dir() and (path / 'rgb.txt').is_file() and (path / 'groundtruth.txt').is_file()
+#: The file :func:`write_tum_folder` leaves in every folder it writes: what it may replace.
+WRITTEN_MARK = '.written_by_depth_fusion_ros'
+#: What the synthetic sequences' SOURCE.md said before the mark existed.
+_OLD_SYNTH_SOURCE = 'Rendered by depth_fusion_ros'
+
+
+def written_here(path: Path) -> bool:
+    """A folder this writer made: its mark, or (folders from before the mark) a synthetic
+    sequence's SOURCE.md."""
+    if (path / WRITTEN_MARK).is_file():
+        return True
+    source = path / 'SOURCE.md'
+    return source.is_file() and _OLD_SYNTH_SOURCE in source.read_text(errors='replace')[:2000]
 
 
 def check_replaceable(out_dir: Path, overwrite: bool) -> None:
-    """``ValueError`` unless ``out_dir`` is new, or ``overwrite`` and it is a TUM-layout sequence
-    (or an empty folder). Why: ``--overwrite`` replaced whatever folder was named, so a typo in
-    the output name removed the user's own files; ``convert`` likewise replaces only a rosbag2."""
+    """``ValueError`` unless ``out_dir`` is new, or ``overwrite`` and it is a folder this
+    writer made (or an empty one). Why: ``--overwrite`` replaced whatever folder was named, so
+    a typo in the output name removed the user's own files, a real dataset included;
+    ``convert`` likewise replaces only a rosbag2."""
     if not (out_dir.exists() or out_dir.is_symlink()):
         return
     if not overwrite:
         raise ValueError(f'{out_dir} already exists (use overwrite / --overwrite to replace it)')
     if out_dir.is_symlink() or not out_dir.is_dir():
         raise ValueError(f'{out_dir} exists and is not a folder: refusing to overwrite it')
-    if not is_tum_folder(out_dir) and any(out_dir.iterdir()):
+    if not written_here(out_dir) and any(out_dir.iterdir()):
         raise ValueError(
-            f'{out_dir} exists and is not a TUM-layout sequence (no rgb.txt and groundtruth.txt): '
+            f'{out_dir} exists and is not a sequence depth-fusion wrote (no {WRITTEN_MARK}): '
             'refusing to overwrite it'
         )
 
@@ -203,6 +215,9 @@ def write_tum_folder(
         _write_groundtruth(tmp / 'groundtruth.txt', out_dir.name, pose_texts, poses)
         (tmp / 'camera.yaml').write_text(camera_info_yaml(camera, name))
         (tmp / 'SOURCE.md').write_text(source_md if source_md is not None else f'# {name}\n')
+        (tmp / WRITTEN_MARK).write_text(
+            'written by depth_fusion_ros (data/tum_writer.py): --overwrite may replace it\n'
+        )
         tmp.chmod(0o755)  # mkdtemp makes it private; the result is an ordinary folder
         _replace_dir(tmp, out_dir, overwrite)
     except BaseException:
