@@ -85,6 +85,9 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     bag = work / 'input_bag'
+    # The demo's own work folder: an input bag from an earlier demo goes, whichever version
+    # wrote it (convert's overwrite replaces only bags that carry its mark).
+    shutil.rmtree(bag, ignore_errors=True)
     convert(seq_dir, bag, max_frames=opts.frames, overwrite=True)
     _step(opts, 'convert', t0)
 

@@ -28,6 +28,7 @@ from depth_fusion_ros.data.rosbag_convert import (
 )
 from depth_fusion_ros.data.rosbag_read import (
     bag_topics,
+    bag_typestore,
     iter_messages,
     load_bag_sequence,
     read_depth_images,
@@ -173,6 +174,21 @@ def test_existing_output_and_overwrite(tmp_path):
     with pytest.raises(ValueError, match='not a rosbag2 folder: refusing'):
         tum_to_rosbag(src, not_a_bag, overwrite=True, show_progress=False)
     assert (not_a_bag / 'notes.txt').read_text() == 'keep me'
+
+    # A bag recorded elsewhere (a robot's ros2 bag record: no mark of ours) is never replaced,
+    # --overwrite or not: a recording cannot be made again.
+    from rosbags.rosbag2 import Writer
+
+    recording = tmp_path / 'robot_recording'
+    with Writer(recording, version=9) as foreign:
+        foreign.add_connection('/chatter', 'std_msgs/msg/String', typestore=bag_typestore())
+    before = (recording / 'metadata.yaml').read_text()
+    with pytest.raises(
+        ValueError, match=r'a rosbag2 depth-fusion did not write .* refusing to overwrite a recording'
+    ):
+        tum_to_rosbag(src, recording, overwrite=True, show_progress=False)
+    assert (recording / 'metadata.yaml').read_text() == before
+    assert 'written_by: depth_fusion_ros' in (out / 'metadata.yaml').read_text()  # ours carry it
 
 
 def test_interrupted_conversion_leaves_no_bag(tmp_path, monkeypatch):

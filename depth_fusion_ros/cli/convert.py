@@ -74,7 +74,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar='N',
         help='write only the first N usable frames',
     )
-    p.add_argument('--overwrite', action='store_true', help='replace OUT_BAG if it is an existing rosbag2')
+    p.add_argument(
+        '--overwrite',
+        action='store_true',
+        help='replace OUT_BAG if it is a rosbag2 depth-fusion wrote (never a recording)',
+    )
     p.add_argument(
         '--repair',
         action='store_true',

@@ -15,6 +15,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+import yaml
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 from .rosbag_read import bag_typestore
@@ -22,28 +23,58 @@ from .rosbag_read import bag_typestore
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 
 
+#: ``custom_data`` of every bag this writer makes (rosbag2 metadata, version 6 on): what
+#: ``overwrite`` may replace. A bag recorded on a robot has no such entry and is never replaced.
+WRITTEN_BY = ('written_by', 'depth_fusion_ros')
+
+
 def is_rosbag2(path: Path) -> bool:
-    """Whether ``path`` is a rosbag2 folder (the only kind ``overwrite`` may replace)."""
+    """Whether ``path`` is a rosbag2 folder."""
     return path.is_dir() and (path / 'metadata.yaml').is_file()
+
+
+def written_here(path: Path) -> bool:
+    """A rosbag2 this writer made: its metadata's ``custom_data`` holds :data:`WRITTEN_BY`."""
+    try:
+        doc = yaml.safe_load((path / 'metadata.yaml').read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return False
+    custom = (doc.get('rosbag2_bagfile_information') or {}).get('custom_data') or {}
+    return isinstance(custom, dict) and custom.get(WRITTEN_BY[0]) == WRITTEN_BY[1]
+
+
+def check_replaceable(out: Path, overwrite: bool) -> None:
+    """``ValueError`` unless ``out`` is new, or ``overwrite`` and it is a rosbag2 this writer
+    made. Why only those: ``--overwrite`` on the name of a bag recorded on a robot (a typo, a
+    reused name) would have replaced the recording, which nothing can bring back."""
+    if not (out.exists() or out.is_symlink()):
+        return
+    if not overwrite:
+        raise ValueError(f'{out} already exists (pass --overwrite to replace it)')
+    if not is_rosbag2(out):
+        raise ValueError(f'{out} exists and is not a rosbag2 folder: refusing to overwrite it')
+    if not written_here(out):
+        raise ValueError(
+            f'{out} is a rosbag2 depth-fusion did not write (no custom_data {WRITTEN_BY[0]}: '
+            f'{WRITTEN_BY[1]} in its metadata.yaml): refusing to overwrite a recording; choose another name'
+        )
 
 
 class AtomicBagWriter:
     """A rosbag2 writer that only makes ``out`` appear once everything is written.
 
-    The bag is written to ``<parent>/.<name>.<random>.partial/<name>`` and moved to ``out`` on
-    a clean exit; on an exception (or Ctrl-C) the partial folder is removed. An existing
-    ``out`` is an error unless ``overwrite`` (and then only a rosbag2 folder is replaced).
+        The bag is written to ``<parent>/.<name>.<random>.partial/<name>`` and moved to ``out`` on
+        a clean exit; on an exception (or Ctrl-C) the partial folder is removed. An existing
+        ``out`` is an error unless ``overwrite``, and then only a bag this writer made is replaced
+    (:func:`check_replaceable`).
     """
 
     def __init__(self, out: str | Path, storage: str = 'mcap', overwrite: bool = False) -> None:
         if storage not in STORAGES:
             raise ValueError(f'storage must be one of {", ".join(STORAGES)}, got {storage!r}')
         self.out = Path(out)
-        if self.out.exists() or self.out.is_symlink():
-            if not overwrite:
-                raise ValueError(f'{self.out} already exists (pass --overwrite to replace it)')
-            if not is_rosbag2(self.out):
-                raise ValueError(f'{self.out} exists and is not a rosbag2 folder: refusing to overwrite it')
+        check_replaceable(self.out, overwrite)
+        self.overwrite = overwrite
         self.storage = storage
         self.typestore = bag_typestore()
         self.counts: dict[str, int] = {}
@@ -61,6 +92,7 @@ class AtomicBagWriter:
                 self._tmp_root / self.out.name, version=9, storage_plugin=STORAGES[self.storage]
             )
             self._writer.open()
+            self._writer.set_custom_data(*WRITTEN_BY)
         except BaseException:
             shutil.rmtree(self._tmp_root, ignore_errors=True)
             raise
@@ -96,6 +128,7 @@ class AtomicBagWriter:
         """Move the finished bag into place (an old bag is moved aside first, then deleted)."""
         assert self._tmp_root is not None
         if self.out.exists():
+            check_replaceable(self.out, self.overwrite)  # again: it may have come while we wrote
             self.out.rename(self._tmp_root / 'replaced')
         (self._tmp_root / self.out.name).rename(self.out)
 
