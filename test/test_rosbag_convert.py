@@ -184,7 +184,8 @@ def test_existing_output_and_overwrite(tmp_path):
         foreign.add_connection('/chatter', 'std_msgs/msg/String', typestore=bag_typestore())
     before = (recording / 'metadata.yaml').read_text()
     with pytest.raises(
-        ValueError, match=r'a rosbag2 depth-fusion did not write .* refusing to overwrite a recording'
+        ValueError,
+        match=r"without depth-fusion's mark .* a recording, or a bag converted before the mark; refusing",
     ):
         tum_to_rosbag(src, recording, overwrite=True, show_progress=False)
     assert (recording / 'metadata.yaml').read_text() == before

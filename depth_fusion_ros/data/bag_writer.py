@@ -55,8 +55,9 @@ def check_replaceable(out: Path, overwrite: bool) -> None:
         raise ValueError(f'{out} exists and is not a rosbag2 folder: refusing to overwrite it')
     if not written_here(out):
         raise ValueError(
-            f'{out} is a rosbag2 depth-fusion did not write (no custom_data {WRITTEN_BY[0]}: '
-            f'{WRITTEN_BY[1]} in its metadata.yaml): refusing to overwrite a recording; choose another name'
+            f"{out} is a rosbag2 without depth-fusion's mark (custom_data {WRITTEN_BY[0]}: {WRITTEN_BY[1]} "
+            'in metadata.yaml): a recording, or a bag converted before the mark; refusing to overwrite '
+            'it (remove it yourself, or choose another name)'
         )
 
 
