@@ -185,7 +185,7 @@ def test_existing_output_and_overwrite(tmp_path):
     before = (recording / 'metadata.yaml').read_text()
     with pytest.raises(
         ValueError,
-        match=r"without depth-fusion's mark .* a recording, or a bag converted before the mark; refusing",
+        match=r"without depth-fusion's mark .* a recording or a bag converted before the mark .*: refusing",
     ):
         tum_to_rosbag(src, recording, overwrite=True, show_progress=False)
     assert (recording / 'metadata.yaml').read_text() == before

@@ -18,6 +18,7 @@ from typing import Any
 import yaml
 from rosbags.rosbag2 import StoragePlugin, Writer
 
+from . import replaceable
 from .rosbag_read import bag_typestore
 
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
@@ -33,32 +34,29 @@ def is_rosbag2(path: Path) -> bool:
     return path.is_dir() and (path / 'metadata.yaml').is_file()
 
 
-def written_here(path: Path) -> bool:
-    """A rosbag2 this writer made: its metadata's ``custom_data`` holds :data:`WRITTEN_BY`."""
+def not_written_here(path: Path) -> str | None:
+    """Why ``overwrite`` must keep ``path`` (``None``: a rosbag2 this writer made, its
+    metadata's ``custom_data`` holding :data:`WRITTEN_BY`)."""
+    if not is_rosbag2(path):
+        return 'exists and is not a rosbag2 folder'
     try:
         doc = yaml.safe_load((path / 'metadata.yaml').read_text()) or {}
     except (OSError, yaml.YAMLError):
-        return False
+        doc = {}
     custom = (doc.get('rosbag2_bagfile_information') or {}).get('custom_data') or {}
-    return isinstance(custom, dict) and custom.get(WRITTEN_BY[0]) == WRITTEN_BY[1]
+    if isinstance(custom, dict) and custom.get(WRITTEN_BY[0]) == WRITTEN_BY[1]:
+        return None
+    return (
+        f"is a rosbag2 without depth-fusion's mark (custom_data {WRITTEN_BY[0]}: {WRITTEN_BY[1]} in "
+        'metadata.yaml), a recording or a bag converted before the mark (remove it yourself, or '
+        'choose another name)'
+    )
 
 
 def check_replaceable(out: Path, overwrite: bool) -> None:
-    """``ValueError`` unless ``out`` is new, or ``overwrite`` and it is a rosbag2 this writer
-    made. Why only those: ``--overwrite`` on the name of a bag recorded on a robot (a typo, a
-    reused name) would have replaced the recording, which nothing can bring back."""
-    if not (out.exists() or out.is_symlink()):
-        return
-    if not overwrite:
-        raise ValueError(f'{out} already exists (pass --overwrite to replace it)')
-    if not is_rosbag2(out):
-        raise ValueError(f'{out} exists and is not a rosbag2 folder: refusing to overwrite it')
-    if not written_here(out):
-        raise ValueError(
-            f"{out} is a rosbag2 without depth-fusion's mark (custom_data {WRITTEN_BY[0]}: {WRITTEN_BY[1]} "
-            'in metadata.yaml): a recording, or a bag converted before the mark; refusing to overwrite '
-            'it (remove it yourself, or choose another name)'
-        )
+    """The rule of :mod:`.replaceable` with this writer's mark: a bag recorded on a robot (or by
+    ``depth-fusion run --record``) is never replaced."""
+    replaceable.check_replaceable(out, overwrite, not_written_here)
 
 
 class AtomicBagWriter:

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..geometry import pose_to_tq, validate_pose
+from . import replaceable
 
 log = logging.getLogger(__name__)
 
@@ -121,31 +122,20 @@ WRITTEN_MARK = '.written_by_depth_fusion_ros'
 _OLD_SYNTH_SOURCE = 'Rendered by depth_fusion_ros'
 
 
-def written_here(path: Path) -> bool:
-    """A folder this writer made: its mark, or (folders from before the mark) a synthetic
-    sequence's SOURCE.md."""
+def not_written_here(path: Path) -> str | None:
+    """Why ``overwrite`` must keep the folder ``path`` (``None``: this writer made it, by its
+    mark or, for folders from before the mark, a synthetic sequence's SOURCE.md)."""
     if (path / WRITTEN_MARK).is_file():
-        return True
+        return None
     source = path / 'SOURCE.md'
-    return source.is_file() and _OLD_SYNTH_SOURCE in source.read_text(errors='replace')[:2000]
+    if source.is_file() and _OLD_SYNTH_SOURCE in source.read_text(errors='replace')[:2000]:
+        return None
+    return f'exists and is not a sequence depth-fusion wrote (no {WRITTEN_MARK})'
 
 
 def check_replaceable(out_dir: Path, overwrite: bool) -> None:
-    """``ValueError`` unless ``out_dir`` is new, or ``overwrite`` and it is a folder this
-    writer made (or an empty one). Why: ``--overwrite`` replaced whatever folder was named, so
-    a typo in the output name removed the user's own files, a real dataset included;
-    ``convert`` likewise replaces only a rosbag2."""
-    if not (out_dir.exists() or out_dir.is_symlink()):
-        return
-    if not overwrite:
-        raise ValueError(f'{out_dir} already exists (use overwrite / --overwrite to replace it)')
-    if out_dir.is_symlink() or not out_dir.is_dir():
-        raise ValueError(f'{out_dir} exists and is not a folder: refusing to overwrite it')
-    if not written_here(out_dir) and any(out_dir.iterdir()):
-        raise ValueError(
-            f'{out_dir} exists and is not a sequence depth-fusion wrote (no {WRITTEN_MARK}): '
-            'refusing to overwrite it'
-        )
+    """The rule of :mod:`.replaceable` with this writer's mark."""
+    replaceable.check_replaceable(out_dir, overwrite, not_written_here)
 
 
 def _replace_dir(tmp: Path, out_dir: Path, overwrite: bool) -> None:
