@@ -69,6 +69,7 @@ def prepare_sequence(opts: DemoOptions, work: Path) -> Path:
 def run_demo(opts: DemoOptions) -> dict[str, Any]:
     """Run every step; returns the results document (also written to ``opts.out``)."""
     from .data.rosbag_convert import convert
+    from .data.staging import staging_folder
     from .data.tum import load_tum_sequence
     from .evaluation.context import EvalOptions
     from .evaluation.harness import evaluate_sequence, results_document, write_outputs
@@ -94,6 +95,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     t0 = time.perf_counter()
     record = work / 'graph_output'
     shutil.rmtree(record, ignore_errors=True)
+    shutil.rmtree(staging_folder(record), ignore_errors=True)  # an earlier demo's, if it failed
     run = run_graph(
         RunOptions(
             bag=bag,

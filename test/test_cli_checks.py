@@ -121,6 +121,21 @@ def test_overwrite_replaces_and_is_refused_where_nothing_would_be_replaced(tmp_p
     assert 'last.pt does not exist' in line
 
 
+def test_an_earlier_runs_unfinished_recording_is_kept(tmp_path, capsys):
+    """A run that failed leaves its recording in OUT.partial; a run again with the same
+    --record removed it (with a warning) and so lost it. Now the run refuses before any node
+    starts, and the folder is as it was."""
+    unfinished = tmp_path / 'out.partial' / 'out'
+    unfinished.mkdir(parents=True)
+    (unfinished / 'out_0.mcap').write_bytes(b'what the failed run recorded')
+    line = one_line_error(capsys, ['run', '--bag', str(tmp_path), '--record', str(tmp_path / 'out')])
+    assert line.endswith(
+        f'{tmp_path / "out.partial"} holds the unfinished recording of an earlier run: move it away or '
+        'remove it, or choose another output'
+    )
+    assert (unfinished / 'out_0.mcap').read_bytes() == b'what the failed run recorded'
+
+
 def test_bag_outputs_refuse_the_bag_suffix(tmp_path, capsys):
     assert 'use ' in one_line_error(capsys, ['convert', str(tmp_path), str(tmp_path / 'x.bag')])
     line = one_line_error(capsys, ['run', '--bag', str(tmp_path), '--record', str(tmp_path / 'o.bag')])

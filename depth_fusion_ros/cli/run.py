@@ -146,6 +146,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept lazy)
+    from ..data.staging import check_no_unfinished_recording
     from ..nodes.graph import RunOptions
     from ..nodes.graph.isolation import check_domain_id
     from ..nodes.graph.map_output import check_map_path
@@ -176,6 +177,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         raise ValueError('--overwrite applies to --save-map, which is not given')
     if args.record is not None:
         check_output(args.record, '--record', exists_ok=False, bag=True)
+        check_no_unfinished_recording(args.record)
     elif args.record_topic:
         raise ValueError(
             f'--record-topic {args.record_topic[0]}: nothing records it without --record OUT_BAG'

@@ -6,7 +6,8 @@ they are (no deserialization, no re-encoding).
 
 The bag is written under a staging folder ``OUT.partial/`` and moved to ``OUT`` only by
 ``close(success=True)``: a run that crashed or was interrupted never leaves a half-written
-bag under the name a user (or the demo) will read.
+bag under the name a user (or the demo) will read. What such a run left in ``OUT.partial/``
+stays: a recorder for the same ``OUT`` refuses to start (``data/staging.py``).
 
 Besides writing, the recorder remembers the header stamp and the arrival time of every
 message per topic (bounded), which is what ``depth-fusion run`` needs to know when every
@@ -30,6 +31,7 @@ from rclpy.node import Node
 
 from ..data.bag_qos import latched_bag_qos
 from ..data.cdr_stamps import has_leading_header, header_stamp_ns
+from ..data.staging import check_no_unfinished_recording, staging_folder
 from .bag_replayer import non_empty, ros_message_class
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, latched_qos, offers_latched, qos_profile
@@ -218,7 +220,7 @@ class Recorder(Node):
         if not track_only and (not str(out) or str(out) == '.'):
             raise ValueError(f"{NODE_NAME}: parameter 'output' is empty: give the bag folder to write")
         self.output: Path | None = None if track_only else out
-        self.staging = out.with_name(out.name + '.partial') if not track_only else Path()
+        self.staging = staging_folder(out) if not track_only else Path()
         self.counts: Counter[str] = Counter()
         self.stamp_logs: dict[str, StampLog] = {}
         self.last_arrival = time.monotonic()
@@ -248,9 +250,7 @@ class Recorder(Node):
         assert self.output is not None
         if self.output.exists():
             raise ValueError(f'{NODE_NAME}: {self.output} already exists: remove it or choose another output')
-        if self.staging.exists():
-            self.get_logger().warning(f'removing a stale staging folder {self.staging}')
-            shutil.rmtree(self.staging)
+        check_no_unfinished_recording(self.output)  # it was removed here, and so lost
         self.staging.mkdir(parents=True)
         try:
             return BagWriterThread(self.staging / self.output.name, self.params['storage'])
