@@ -472,3 +472,25 @@ def test_the_live_count_says_how_many_images_came_or_that_none_did():
     ledger.add(5, 'fused')
     line = live_summary(ledger.snapshot(), 2.0)
     assert line == '1 keyframes chosen, 1 fused, 0 dropped in 2.0 s (live); 12 images reached multi_view_node'
+
+
+def test_a_run_that_fused_nothing_says_why_and_fails():
+    """`depth-fusion run` on a bag too short for a keyframe ended "0 keyframes chosen, 0 fused"
+    with exit 0; a script's `run && evaluate` went on with an empty recording."""
+    from depth_fusion_ros.cli.run import empty_run
+
+    def result(chosen: list[int], fused: list[int], images: int) -> RunResult:
+        return RunResult(
+            announced=fused, fused=fused, missing={}, recorded=None, counts={}, seconds=1.0,
+            chosen=chosen, drops={s: 'fusion.unpaired' for s in chosen if s not in fused}, paced=True,
+            images_handled=images,
+        )  # fmt: skip
+
+    assert empty_run(result([], [], 3)) == (
+        'no keyframe was chosen from the 3 images multi_view_node handled (too few posed frames, or '
+        'too little motion between them): nothing was fused'
+    )
+    assert (
+        empty_run(result([5, 10], [], 12)) == 'none of the 2 keyframes chosen was fused (see the drops above)'
+    )
+    assert empty_run(result([5, 10], [10], 12)) is None

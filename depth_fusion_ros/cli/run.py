@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .argtypes import at_least
+
+if TYPE_CHECKING:
+    from ..nodes.graph.options import RunResult
 
 DESCRIPTION = """\
 Play a rosbag2 (mcap or sqlite3) through bag_replayer -> multi_view_node + single_view_node ->
@@ -145,6 +149,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def empty_run(result: RunResult) -> str | None:
+    """Why a run that ended by itself produced no fused depth, or ``None`` when it did."""
+    if set(result.fused) & set(result.chosen):
+        return None
+    if not result.chosen:
+        return (
+            f'no keyframe was chosen from the {result.images_handled} images multi_view_node handled '
+            '(too few posed frames, or too little motion between them): nothing was fused'
+        )
+    return f'none of the {len(result.chosen)} keyframes chosen was fused (see the drops above)'
+
+
 def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept lazy)
     from ..data.staging import check_no_unfinished_recording
     from ..nodes.graph import RunOptions
@@ -272,4 +288,9 @@ def run(args: argparse.Namespace) -> int:
             return 1
         vertices, faces = result.map_size or (0, 0)
         print(f'map: {vertices} vertices, {faces} faces written to {result.map_file}')
+    empty = empty_run(result)
+    if empty:
+        # Not exit 0 on an empty result: a script's `run && evaluate` must not go on.
+        print(f'depth-fusion run: error: {empty}', file=sys.stderr)
+        return 1
     return 0
