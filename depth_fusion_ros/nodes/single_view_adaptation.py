@@ -36,7 +36,7 @@ TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
 TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
 SERVICE_SAVE = '~/save_model'
 ADAPT_CHOICES = ('auto', 'true', 'false')
-#: Under ``$ROS_HOME`` (``~/.ros`` when unset; nodes/ros_home.py), expanded when it is written.
+#: Under ``$ROS_HOME`` (``~/.ros`` when unset; ros_home.py), expanded when it is written.
 DEFAULT_CHECKPOINT = '$ROS_HOME/depth_fusion_ros/single_view_adapted.pt'
 
 ADAPT_LIMITS: dict[str, Any] = {
