@@ -83,7 +83,8 @@ def check_output(
 
 
 def check_new_model(path: str | Path, what: str, overwrite: bool) -> Path:
-    """A model file and the YAML written beside it (``export``, ``train --ship``), both checked.
+    """A model file and the YAML written beside it (``train --ship``), both checked. (``export``
+    checks its YAML itself: the formats of one stem share it, see ``singleview/export.py``.)
 
     Why both: the YAML is half of the model (its input size and output kind); replacing one
     and not the other would leave a pair that loads and predicts wrongly.
