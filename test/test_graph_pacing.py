@@ -477,7 +477,7 @@ def test_the_live_count_says_how_many_images_came_or_that_none_did():
 def test_a_run_that_fused_nothing_says_why_and_fails():
     """`depth-fusion run` on a bag too short for a keyframe ended "0 keyframes chosen, 0 fused"
     with exit 0; a script's `run && evaluate` went on with an empty recording."""
-    from depth_fusion_ros.cli.run import empty_run
+    from depth_fusion_ros.nodes.graph.summary import empty_run
 
     def result(chosen: list[int], fused: list[int], images: int) -> RunResult:
         return RunResult(

@@ -300,7 +300,7 @@ def test_a_run_that_learnt_nothing_leaves_the_earlier_checkpoint_as_it_was(tiny_
     """Shutdown writes the adapted weights only when an update was accepted: a run without one
     used to write the network as loaded over an earlier run's adapted checkpoint. The default
     path is under $ROS_HOME (~/.ros when unset), as ROS keeps its own files."""
-    from depth_fusion_ros.nodes.single_view_adaptation import DEFAULT_CHECKPOINT
+    from depth_fusion_ros.nodes.single_view_adaptation import DEFAULT_CHECKPOINT, is_own_network
 
     monkeypatch.setenv('ROS_HOME', str(tmp_path))
     earlier = tmp_path / 'depth_fusion_ros' / 'single_view_adapted.pt'
@@ -314,5 +314,6 @@ def test_a_run_that_learnt_nothing_leaves_the_earlier_checkpoint_as_it_was(tiny_
         node.adaptation.shutdown()
     assert earlier.read_bytes() == b'an earlier run adapted these'
     assert node.adaptation.save() == earlier  # ~/save_model, asked for, writes it
-    # model: takes the same string, $ROS_HOME and all
+    # model: takes the same string, $ROS_HOME and all, and adapt: auto sees one of our networks
     assert load_predictor(DEFAULT_CHECKPOINT).predict(np.zeros((120, 160, 3), np.uint8)).shape == (120, 160)
+    assert is_own_network(DEFAULT_CHECKPOINT)

@@ -31,7 +31,6 @@ import torch
 from torch import nn
 
 from ..compile_lock import COMPILE_LOCK
-from ..ros_home import expand_ros_home
 from ..singleview.metadata import ModelMetadata
 from ..singleview.predictor import DepthPredictor, predictor_from_network, resolve_device
 from .batch import batch_loss
@@ -96,11 +95,11 @@ def load_adaptable(
     a missing file, the simulated prior). The in-process and the process-backed adapter
     (``remote_adapter.py``) both load through it, so they refuse the same models."""
     from ..singleview.checkpoint import is_exported_model, load_checkpoint
-    from ..singleview.predictor import SIMULATED_SPEC, default_model_path
+    from ..singleview.predictor import SIMULATED_SPEC, model_path
 
     if str(spec) == SIMULATED_SPEC:
         raise ValueError("adaptation needs a network: 'simulated' is the evaluation-only prior")
-    path = default_model_path() if str(spec) == 'default' else expand_ros_home(str(spec))
+    path = model_path(spec)
     if not path.is_file():
         raise FileNotFoundError(f'single-view model not found: {path}')
     if is_exported_model(path):

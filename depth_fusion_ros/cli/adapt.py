@@ -84,10 +84,10 @@ def run(args: argparse.Namespace) -> int:
     from ..progress import progress
     from .evaluate import parse_rgb_cameras, recording_topics
     from .overrides import parse_overrides
-    from .paths import check_output
+    from .paths import check_new_file
 
     # before minutes of adaptation: a checkpoint already there is someone's result (cli/paths.py)
-    check_output(args.out, '--out', folder=False, exists_ok=args.overwrite, overwrite_flag='--overwrite')
+    check_new_file(args.out, '--out', args.overwrite)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     options = EvalOptions(

@@ -46,11 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..singleview.export import export_network
-    from .paths import check_output
+    from .paths import check_new_file, check_output
 
-    out = check_output(
-        args.out, '--out', folder=False, exists_ok=args.overwrite, overwrite_flag='--overwrite'
-    )
+    out = check_new_file(args.out, '--out', args.overwrite)
     check_output(out.with_suffix('.yaml'), '--out', folder=False)  # its YAML: see export_network
     model_path, yaml_path = export_network(out, args.format, args.model, overwrite=args.overwrite)
     print(f'wrote {model_path} and {yaml_path}; use it with --single-view {model_path}')

@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from ..mapping.map_file import file_blocks, read_state
     from ..mapping.ply import write_ply
     from ..mapping.slab_surface import slab_mesh
-    from .paths import OutputPathError, check_output
+    from .paths import OutputPathError, check_new_file
 
     out = Path(args.out)
     if out.suffix.lower() != '.ply':
@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         print(f'depth-fusion mesh: {exc}', file=sys.stderr)
         return 2
     try:
-        check_output(out, '--out', folder=False, exists_ok=args.overwrite, overwrite_flag='--overwrite')
+        check_new_file(out, '--out', args.overwrite)
     except OutputPathError as exc:
         print(f'depth-fusion mesh: {exc}', file=sys.stderr)
         return 2

@@ -82,6 +82,12 @@ def check_output(
     return path
 
 
+def check_new_file(path: str | Path, what: str, overwrite: bool) -> Path:
+    """A file output that an existing file blocks unless ``--overwrite`` is given (a checkpoint,
+    a model, a mesh: someone's result, kept by default)."""
+    return check_output(path, what, folder=False, exists_ok=overwrite, overwrite_flag='--overwrite')
+
+
 def check_new_model(path: str | Path, what: str, overwrite: bool) -> Path:
     """A model file and the YAML written beside it (``train --ship``), both checked. (``export``
     checks its YAML itself: the formats of one stem share it, see ``singleview/export.py``.)
@@ -91,5 +97,5 @@ def check_new_model(path: str | Path, what: str, overwrite: bool) -> Path:
     """
     path = Path(path).expanduser()
     for target in (path, path.with_suffix('.yaml')):
-        check_output(target, what, folder=False, exists_ok=overwrite, overwrite_flag='--overwrite')
+        check_new_file(target, what, overwrite)
     return path

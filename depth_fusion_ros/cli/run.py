@@ -4,12 +4,8 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from .argtypes import at_least
-
-if TYPE_CHECKING:
-    from ..nodes.graph.options import RunResult
 
 DESCRIPTION = """\
 Play a rosbag2 (mcap or sqlite3) through bag_replayer -> multi_view_node + single_view_node ->
@@ -149,25 +145,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def empty_run(result: RunResult) -> str | None:
-    """Why a run that ended by itself produced no fused depth, or ``None`` when it did."""
-    if set(result.fused) & set(result.chosen):
-        return None
-    if not result.chosen:
-        return (
-            f'no keyframe was chosen from the {result.images_handled} images multi_view_node handled '
-            '(too few posed frames, or too little motion between them): nothing was fused'
-        )
-    return f'none of the {len(result.chosen)} keyframes chosen was fused (see the drops above)'
-
-
 def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept lazy)
     from ..data.staging import check_no_unfinished_recording
     from ..nodes.graph import RunOptions
     from ..nodes.graph.isolation import check_domain_id
     from ..nodes.graph.map_output import check_map_path
     from .overrides import check_node_overrides, check_params_file, parse_overrides
-    from .paths import check_output
+    from .paths import check_new_file, check_output
     from .topic_names import check_topic_name
 
     if args.rate is not None and args.rate <= 0:
@@ -186,9 +170,7 @@ def options_from_args(args: argparse.Namespace):  # -> RunOptions (import kept l
         raise ValueError('--set map_node.*: map_node is not started; add --map (or --save-map FILE.ply)')
     if args.save_map is not None:
         map_path = check_map_path(args.save_map)
-        check_output(
-            map_path, '--save-map', folder=False, exists_ok=args.overwrite, overwrite_flag='--overwrite'
-        )
+        check_new_file(map_path, '--save-map', args.overwrite)
     elif args.overwrite:
         raise ValueError('--overwrite applies to --save-map, which is not given')
     if args.record is not None:
@@ -246,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from ..nodes.graph import GraphError, run_graph
-    from ..nodes.graph.summary import keyframe_summary
+    from ..nodes.graph.summary import empty_run, keyframe_summary
     from ..nodes.node_executor import executor_choice
 
     options = options_from_args(args)

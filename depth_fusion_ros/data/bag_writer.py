@@ -62,9 +62,9 @@ def check_replaceable(out: Path, overwrite: bool) -> None:
 class AtomicBagWriter:
     """A rosbag2 writer that only makes ``out`` appear once everything is written.
 
-        The bag is written to ``<parent>/.<name>.<random>.partial/<name>`` and moved to ``out`` on
-        a clean exit; on an exception (or Ctrl-C) the partial folder is removed. An existing
-        ``out`` is an error unless ``overwrite``, and then only a bag this writer made is replaced
+    The bag is written to ``<parent>/.<name>.<random>.partial/<name>`` and moved to ``out`` on
+    a clean exit; on an exception (or Ctrl-C) the partial folder is removed. An existing
+    ``out`` is an error unless ``overwrite``, and then only a bag this writer made is replaced
     (:func:`check_replaceable`).
     """
 

@@ -122,10 +122,11 @@ ADAPTATION_PARAMETERS: tuple[ParamSpec, ...] = (
 def is_own_network(spec: str) -> bool:
     """True for networks the adapter can train: the shipped model and our checkpoints."""
     from ..singleview.checkpoint import is_exported_model
+    from ..singleview.predictor import model_path
 
     if spec == 'default':
         return True
-    path = Path(spec).expanduser()
+    path = model_path(spec)
     return path.is_file() and not is_exported_model(path)
 
 
@@ -153,7 +154,9 @@ class NodeAdaptation:
         self.node = node
         self.config = build_dataclass(AdaptConfig, p, 'adaptation')
         self.config.validate()
-        self.checkpoint = str(p['adaptation.checkpoint'])
+        given = str(p['adaptation.checkpoint'])
+        #: Where the adapted weights go (``$ROS_HOME`` expanded once), ``None`` for ''.
+        self.checkpoint: Path | None = expand_ros_home(given) if given else None
         nice = int(p['adaptation.nice'])
         #: The training process (``adaptation.process``), else None: training on the thread.
         self.remote = (
@@ -196,14 +199,13 @@ class NodeAdaptation:
         self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
         where = f'in training process {self.remote.pid}' if self.remote else 'on a training thread'
         where += f' at nice +{nice}'
-        checkpoint = expand_ros_home(self.checkpoint) if self.checkpoint else '(none)'
         node.get_logger().info(
             f'adapting {self.adapter.name} online {where}: lr {self.config.lr:g}, '
             f'{self.config.steps_per_keyframe} steps/keyframe, replay {self.config.replay_per_step} of '
             f'{self.config.buffer_size} ({self.config.steps_when_behind} steps while behind), windows of '
             f'{self.config.photometric_window:g} of each side; '
             f'signals {node.resolve_topic_name(TOPIC_MV_DEPTH)}, '
-            f'{node.resolve_topic_name(TOPIC_KEYFRAME_POSE)}; checkpoint {checkpoint}'
+            f'{node.resolve_topic_name(TOPIC_KEYFRAME_POSE)}; checkpoint {self.checkpoint or "(none)"}'
         )
 
     # --- parts of a keyframe --------------------------------------------------------------------
@@ -327,7 +329,7 @@ class NodeAdaptation:
     def save(self) -> Path:
         if not self.checkpoint:
             raise ValueError("adaptation.checkpoint is '' : no path to save the adapted model to")
-        return self.online.save(expand_ros_home(self.checkpoint))
+        return self.online.save(self.checkpoint)
 
     def _on_save(self, request: Any, response: Any) -> Any:
         try:
@@ -360,7 +362,7 @@ class NodeAdaptation:
             # Nothing learnt in this run: writing the weights as loaded would replace an earlier
             # run's adapted checkpoint with them.
             self.node.get_logger().info(
-                f'no adaptation update was accepted: {expand_ros_home(self.checkpoint)} left as it was'
+                f'no adaptation update was accepted: {self.checkpoint} left as it was'
             )
         elif self.checkpoint:
             try:

@@ -61,11 +61,11 @@ def export_network(
     """Export the checkpoint ``model`` ('default': the shipped network) to ``out`` in ``fmt``
     and write its YAML beside it; returns ``(model_path, yaml_path)``. The YAML carries no
     format (the loader picks the host by the suffix), so every format of one stem shares it."""
-    from .predictor import default_model_path
+    from .predictor import model_path
 
     out = Path(out)
     fmt = format_for(out, fmt)
-    source = default_model_path() if str(model) == 'default' else Path(model).expanduser()
+    source = model_path(model)
     ckpt = load_checkpoint(source, 'cpu')  # names the file when it is missing or not a checkpoint
     info = {**ckpt.metadata.info, 'exported_from': str(source)}
     meta = ModelMetadata.from_dict(

@@ -54,6 +54,13 @@ def default_model_path() -> Path:
     return MODELS_DIR / DEFAULT_MODEL_NAME
 
 
+def model_path(spec: str | Path) -> Path:
+    """The file a model spec names: the shipped network for ``'default'``, else the path with
+    ``~`` and a leading ``$ROS_HOME`` expanded (the adapted checkpoint's default place). One
+    rule for the predictor, the adapter, the exporter and the node's ``adapt: auto``."""
+    return default_model_path() if str(spec) == 'default' else expand_ros_home(str(spec))
+
+
 def check_rgb(rgb: np.ndarray, what: str = 'image') -> np.ndarray:
     """Raise ``ValueError`` unless ``rgb`` is an HxWx3 uint8 array (the package's RGB convention)."""
     if not isinstance(rgb, np.ndarray):
@@ -193,7 +200,7 @@ def load_predictor(
             f'{str(spec)!r} is the evaluation-only simulated CNN prior, not a network: '
             f'use it through depth-fusion evaluate --single-view {spec}'
         )
-    path = default_model_path() if str(spec) == 'default' else expand_ros_home(str(spec))
+    path = model_path(spec)
     if not path.is_file():
         hint = ' (the shipped model is missing: reinstall the package)' if str(spec) == 'default' else ''
         raise FileNotFoundError(f'single-view model not found: {path}{hint}')

@@ -30,18 +30,35 @@ def counts_line(chosen: int, fused: int, reasons: dict[str, int]) -> str:
     return f'{chosen} keyframes chosen, {fused} fused, {sum(reasons.values())} dropped{detail}'
 
 
+def fused_chosen(result: RunResult) -> int:
+    """The chosen keyframes that were fused (a stray fused output of no chosen one not counted)."""
+    return len(set(result.fused) & set(result.chosen))
+
+
 def keyframe_summary(result: RunResult, mode: str) -> str:
     """``30 keyframes chosen, 21 fused, 9 dropped (multi_view.worker_queue_full=9) in 12.3 s
     (processes, real time)``."""
     pacing = 'paced' if result.paced else 'real time'
-    fused = len(set(result.fused) & set(result.chosen))
-    counts = counts_line(len(result.chosen), fused, drop_reasons(result))
+    counts = counts_line(len(result.chosen), fused_chosen(result), drop_reasons(result))
     line = f'{counts} in {result.seconds:.1f} s ({mode}, {pacing})'
     played = result.images_played
     if played is not None and result.images_handled < played:
         # Images that never reached the keyframe policy cannot be counted as keyframes: say so.
         line += f'; only {result.images_handled} of {played} images reached multi_view_node'
     return line
+
+
+def empty_run(result: RunResult) -> str | None:
+    """Why a run that ended by itself produced no fused depth, or ``None`` when it did: the
+    reason ``depth-fusion run`` gives when it exits 1 instead of 0 on an empty result."""
+    if fused_chosen(result):
+        return None
+    if not result.chosen:
+        return (
+            f'no keyframe was chosen from the {result.images_handled} images multi_view_node handled '
+            '(too few posed frames, or too little motion between them): nothing was fused'
+        )
+    return f'none of the {len(result.chosen)} keyframes chosen was fused (see the drops above)'
 
 
 def live_summary(snapshot: LedgerSnapshot, seconds: float) -> str:
