@@ -219,3 +219,20 @@ def _through_posings(
     # Not corrected: exactly as it was (not rounded through the posing and back).
     out[~corrected] = poses[~corrected]
     return Corrections(out, corrected)
+
+
+def new_world_from(stamp: float, path_end: float, newest_posed: float | None) -> float | None:
+    """The first image stamp (s, the pose source's clock) in the corrected world, or ``None``:
+    the next image posed, whatever its stamp.
+
+    ``stamp`` is the corrected trajectory's header stamp, when the pose source corrected (0:
+    not said); ``path_end`` its newest pose's stamp; ``newest_posed`` the newest image already
+    posed at the old poses. Images stamped from ``stamp`` on get poses the source published
+    after its correction; images on their way stamped before it (another topic, so their
+    callback may come after the path's) get the old poses, as the frames already posed did,
+    and belong with them. The next posed image is the boundary instead when the header says
+    nothing new (unset, or not after ``newest_posed``), or when an image still to come lies
+    within the path and so gets a corrected pose."""
+    if stamp <= 0.0 or newest_posed is None or stamp <= newest_posed or path_end > newest_posed:
+        return None
+    return stamp

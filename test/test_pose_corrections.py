@@ -27,6 +27,7 @@ from depth_fusion_ros.pose_corrections import (
     Posing,
     corrected_poses,
     corrected_segments,
+    new_world_from,
 )
 
 
@@ -246,3 +247,13 @@ def test_the_newest_stored_keyframes_are_corrected_up_to_the_pending_ones():
     assert summary.others is not None
     pending_err = np.linalg.norm(summary.others[:, :3, 3] - truth[6:, :3, 3], axis=1)
     assert pending_err[0] < 0.01, pending_err  # the newest is after the path's last pose: as it was
+
+
+def test_the_corrected_world_starts_at_the_paths_stamp_unless_it_says_nothing_new():
+    # Stamp 9 after the newest posed image 7, path to 6: an image 8 still to come is old world.
+    assert new_world_from(9.0, 6.0, 7.0) == 9.0
+    # Unset, not after what is posed, or a path reaching past it: the next posed image.
+    assert new_world_from(0.0, 6.0, 7.0) is None
+    assert new_world_from(7.0, 6.0, 7.0) is None
+    assert new_world_from(9.0, 8.0, 7.0) is None
+    assert new_world_from(9.0, 6.0, None) is None

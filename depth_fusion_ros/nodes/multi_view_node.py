@@ -45,6 +45,7 @@ from ..multiview.mount_check import MountEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
 from ..pose_buffer import PoseBuffer
+from ..pose_corrections import new_world_from
 from ..pose_jumps import PoseJump
 from . import robot_inputs
 from .announce import announce
@@ -178,6 +179,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         #: recent image periods (s), to tell a new stream's gap from the stream's own rhythm
         self._image_periods: deque[float] = deque(maxlen=10)
         self._newest_image_ns: int | None = None
+        #: the newest image posed (camera clock), for where a corrected trajectory's world begins
+        self._last_posed_ns: int | None = None
         self._last_input = time.monotonic()
         #: ``_last_input`` as a timer tick last found it quiet for ``pose_wait`` (``_give_up_pending``).
         self._quiet_mark: float | None = None
@@ -288,13 +291,21 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         stamps, poses = path
         move = self.pose_buffer.correct(stamps, poses, self.correction_limits.max_gap)
         if move is not None and self.correction_limits.counts(*move):
-            self._restart_from_ns = 0  # the next posed frame, whatever its stamp
+            self._restart_from_ns = self._corrected_world_from(msg, float(np.max(stamps)))
             self.stats.noted(
                 'pose_correction',
                 f'a corrected trajectory moved the newest pose it covers by {move[0]:.3f} m and '
                 f'{move[1]:.2f} deg: poses corrected, frame history and filter start over',
             )
         self._resolve_pending()
+
+    def _corrected_world_from(self, msg: Any, path_end: float) -> int:
+        """The camera stamp (ns) from which posed images are in the corrected world
+        (:func:`new_world_from`; 0: the next posed image)."""
+        offset = self._pose_offset()
+        newest = None if self._last_posed_ns is None else messages.ns_to_sec(self._last_posed_ns) + offset
+        start = new_world_from(messages.ns_to_sec(messages.stamp_to_ns(msg.header.stamp)), path_end, newest)
+        return 0 if start is None else messages.sec_to_ns(start - offset)
 
     def _on_image(self, msg: Any, counted: bool = False) -> None:
         received_at = self._last_input = time.monotonic()
@@ -359,6 +370,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             )
             self._handled(old.image.stamp_ns)
         self._newest_image_ns = None
+        self._last_posed_ns = None
         self._image_periods.clear()
         self._restart_from_ns = 0  # the next posed frame, whatever its stamp
         self.note_stream_restart(stream, stamp_ns, 'poses, frame history and filter start over')
@@ -548,6 +560,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         T_wc = T_wc @ self._mount_correction
         frame = Frame(self.posed_count, messages.ns_to_sec(image.stamp_ns), image.rgb, T_wc)
         self.posed_count += 1
+        self._last_posed_ns = image.stamp_ns
         self.focal_check.offer(frame, image.camera)
         self.time_offset_check.offer(frame, image.camera)
         # From the start: a time offset correction starts it over (its pairs were posed at the
