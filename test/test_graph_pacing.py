@@ -474,6 +474,27 @@ def test_the_live_count_says_how_many_images_came_or_that_none_did():
     assert line == '1 keyframes chosen, 1 fused, 0 dropped in 2.0 s (live); 12 images reached multi_view_node'
 
 
+def test_a_launch_that_fused_nothing_says_why():
+    """`depth-fusion launch` stopped by Ctrl-C exited 0 after "0 keyframes chosen, 0 fused" (a
+    wrong camera topic, a SLAM that never published): the reason it now exits 1 with."""
+    from depth_fusion_ros.nodes.graph.summary import live_empty
+
+    ledger = KeyframeLedger()
+    assert live_empty(ledger.snapshot()) == 'nothing was fused: no image reached multi_view_node'
+    for stamp in range(1, 13):
+        ledger.add(stamp, 'image')
+    assert 'no keyframe was chosen from the 12 images' in live_empty(ledger.snapshot())
+    ledger.add(5, 'chosen')
+    ledger.add(5, 'dropped:fusion.unpaired')
+    assert (
+        live_empty(ledger.snapshot())
+        == 'nothing was fused: none of the 1 keyframes chosen (see the drops above)'
+    )
+    ledger.add(10, 'chosen')
+    ledger.add(10, 'fused')
+    assert live_empty(ledger.snapshot()) is None
+
+
 def test_a_run_that_fused_nothing_says_why_and_fails():
     """`depth-fusion run` on a bag too short for a keyframe ended "0 keyframes chosen, 0 fused"
     with exit 0; a script's `run && evaluate` went on with an empty recording."""

@@ -134,6 +134,17 @@ def test_launch_remaps_the_inputs_and_ctrl_c_stops_every_node(tmp_path: Path):
         assert 'final counters' in (tmp_path / f'{node}.log').read_text()
 
 
+def test_a_launch_stopped_before_anything_was_fused_fails_and_says_why(tmp_path: Path):
+    """No camera on the topic: the nodes stop cleanly, but nothing was fused, so not exit 0."""
+    with launched(tmp_path, '--image', '/launch_test/no_camera') as proc:
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(60)
+    output = proc.stdout.read()
+    assert code == 1, output
+    assert '3 nodes stopped cleanly in' in output, output
+    assert output.rstrip().endswith('nothing was fused: no image reached multi_view_node'), output
+
+
 def test_a_node_that_dies_stops_the_others_and_the_launch_fails(tmp_path: Path):
     # The log of a run before, in the same --log-dir: a launch again after a crash keeps it.
     earlier = '[ERROR] [fusion_node]: the crash of the run before\n'

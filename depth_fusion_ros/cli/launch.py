@@ -17,8 +17,9 @@ with a ROS install, in one command where pip has no `ros2 launch`. Every node ge
 
 The nodes are forked from a process that imported torch once, so the graph is ready sooner
 than three console scripts started at once (DEPTH_FUSION_FORK_NODES=0 starts the scripts).
-Ctrl-C or SIGTERM stops them all and exits 0 when every node stopped cleanly. A node that ends
-on its own (a bad parameter, a crash, a kill) stops the others, and the exit code is 1.
+Ctrl-C or SIGTERM stops them all and exits 0 when every node stopped cleanly and a keyframe
+was fused; 1, with the reason, when nothing was. A node that ends on its own (a bad parameter,
+a crash, a kill) stops the others, and the exit code is 1.
 
 examples:
   depth-fusion launch --pose /orb_slam3/camera_pose

@@ -38,7 +38,7 @@ from .spawn import (
     start_node,
     stop_processes,
 )
-from .summary import live_summary
+from .summary import live_empty, live_summary
 from .topics import graph_nodes
 
 log = logging.getLogger(__name__)
@@ -85,8 +85,8 @@ def launch_ros_args(name: str, opts: LaunchOptions) -> list[str]:
 
 def launch(opts: LaunchOptions) -> int:
     """Start the nodes, wait until one ends or this process is asked to stop, stop them all;
-    the exit code (0: stopped on request, every node cleanly; 1: a node ended on its own or
-    did not stop cleanly)."""
+    the exit code (0: stopped on request, every node cleanly, and a keyframe was fused; 1: a
+    node ended on its own or did not stop cleanly, or nothing was fused)."""
     env = node_environment(opts.threads_per_node)
     forking = forking_server(env)
     listener = start_listening()  # before the nodes: their first keyframe events are heard
@@ -117,8 +117,11 @@ def launch(opts: LaunchOptions) -> int:
             f.close()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+        empty = None
         if listener is not None:
-            log.info(live_summary(listener.snapshot(), time.time() - since))
+            snapshot = listener.snapshot()
+            log.info(live_summary(snapshot, time.time() - since))
+            empty = live_empty(snapshot)
             listener.close()
     if ended is not None:
         name, code = ended
@@ -129,7 +132,9 @@ def launch(opts: LaunchOptions) -> int:
         log.error('%s did not stop cleanly (exit code %d)', name, code)
     if not unclean:
         log.info('%d nodes stopped cleanly in %.1f s', len(codes), time.monotonic() - stopping)
-    return 1 if unclean else 0
+    if empty is not None:
+        log.error(empty)
+    return 1 if unclean or empty is not None else 0
 
 
 def _wait_for_an_end(processes: dict[str, Any]) -> tuple[str, int]:

@@ -77,3 +77,20 @@ def live_summary(snapshot: LedgerSnapshot, seconds: float) -> str:
     if snapshot.images:
         return f'{line}; {snapshot.images} images reached multi_view_node'
     return f'{line}; no image reached multi_view_node (check --image and that the camera publishes)'
+
+
+def live_empty(snapshot: LedgerSnapshot) -> str | None:
+    """Why a launch that was stopped fused nothing, or ``None`` when it fused something: the
+    reason ``depth-fusion launch`` gives when it exits 1 instead of 0 (a clean stop of a graph
+    that never produced a depth is not a success a script should go on from)."""
+    chosen = set(snapshot.chosen)
+    if set(snapshot.fused) & chosen:
+        return None
+    if not snapshot.images:
+        return 'nothing was fused: no image reached multi_view_node'
+    if not chosen:
+        return (
+            f'nothing was fused: no keyframe was chosen from the {snapshot.images} images multi_view_node '
+            'handled (no poses, too few posed frames, or too little motion between them)'
+        )
+    return f'nothing was fused: none of the {len(chosen)} keyframes chosen (see the drops above)'
