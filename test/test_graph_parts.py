@@ -161,20 +161,6 @@ def test_running_doc_lists_every_replayer_and_recorder_parameter():
         assert f'| `{spec.name}` |' in doc, f'docs/running.md does not describe {spec.name}'
 
 
-def _segments_mapped_by(pid: int) -> set[str]:
-    """The participant segments (``fastrtps_<16 hex>``) one process has mapped."""
-    from pathlib import Path
-
-    from depth_fusion_ros.nodes.graph.dds import PARTICIPANT_SEGMENT
-
-    names = set()
-    for line in Path(f'/proc/{pid}/maps').read_text().splitlines():
-        idx = line.find('/dev/shm/')
-        if idx >= 0:
-            names.add(line[idx + len('/dev/shm/') :].split(' ')[0])
-    return {n for n in names if PARTICIPANT_SEGMENT.match(n)}
-
-
 def test_segments_of_a_killed_node_are_found_and_removed():
     """What the no-leftover checks rely on: SIGKILL leaves a participant segment nobody maps.
 
@@ -183,6 +169,8 @@ def test_segments_of_a_killed_node_are_found_and_removed():
     import os
     import signal
     import time
+
+    from depth_fusion_ros.nodes.graph.dds import participant_segments_of
 
     since = time.time()
     code = (
@@ -195,7 +183,7 @@ def test_segments_of_a_killed_node_are_found_and_removed():
     try:
         assert proc.stdout.readline().strip() == 'up'
         time.sleep(0.5)
-        own = _segments_mapped_by(proc.pid)
+        own = participant_segments_of(proc.pid)
         assert own, 'the node maps no participant segment'
         assert not own & set(launcher.orphan_segments(since)), 'a live node segment is not an orphan'
     finally:

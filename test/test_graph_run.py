@@ -256,7 +256,19 @@ def test_graph_fuses_every_keyframe_like_offline(
             'fusion_node': 0,
             'bag_replayer': 0,
         }
-        assert orphan_segments(since) == [], 'Fast DDS shared memory left behind'
+        assert no_orphans_since(since), 'Fast DDS shared memory left behind'
+
+
+def no_orphans_since(since: float, timeout: float = 15.0) -> bool:
+    """No shared-memory segment created since ``since`` is left unmapped, within ``timeout`` s:
+    the tests on the other pytest workers that kill a node on purpose leave theirs for the
+    moment until they (or their run) remove them; a segment this run left stays."""
+    deadline = time.monotonic() + timeout
+    while orphan_segments(since):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.5)
+    return True
 
 
 @pytest.mark.parametrize(
@@ -307,7 +319,7 @@ def test_ctrl_c_stops_processes_cleanly(graph_bag, params_file, tmp_path, proces
     alive = [p for p in pids if running(p)]
     assert alive == [], f'children still running: {alive}'
     assert (tmp_path / 'interrupted.partial').is_dir() and not out.exists()
-    assert orphan_segments(since) == []
+    assert no_orphans_since(since), orphan_segments(since)
 
 
 def test_a_bad_fork_switch_is_one_line_before_anything_starts(graph_bag, monkeypatch):

@@ -146,6 +146,8 @@ def test_a_launch_stopped_before_anything_was_fused_fails_and_says_why(tmp_path:
 
 
 def test_a_node_that_dies_stops_the_others_and_the_launch_fails(tmp_path: Path):
+    from depth_fusion_ros.nodes.graph.dds import participant_segments_of
+
     # The log of a run before, in the same --log-dir: a launch again after a crash keeps it.
     earlier = '[ERROR] [fusion_node]: the crash of the run before\n'
     (tmp_path / 'fusion_node.log').write_text(earlier)
@@ -153,11 +155,16 @@ def test_a_node_that_dies_stops_the_others_and_the_launch_fails(tmp_path: Path):
         output_so_far = ''.join(proc.stdout.readline() for _ in range(3))
         pids = dict(re.findall(r'(?:forked|started) (\w+) \(pid (\d+)', output_so_far))
         assert set(pids) == set(NODES), output_so_far
+        segments = participant_segments_of(int(pids['fusion_node']))
+        assert segments, 'fusion_node maps no participant segment'
         os.kill(int(pids['fusion_node']), signal.SIGKILL)
         code = proc.wait(60)
     output = proc.stdout.read()
     assert code == 1, output
     assert 'fusion_node was killed by SIGKILL (exit -9): the other nodes were stopped' in output
+    # Its shared memory, which no shutdown removed, is not left in /dev/shm.
+    assert 'shared-memory segments left by killed nodes' in output, output
+    assert not [s for s in segments if (Path('/dev/shm') / s).exists()]
     time.sleep(0.5)
     assert [n for n, p in pids.items() if running(int(p))] == []
     log = (tmp_path / 'fusion_node.log').read_text()

@@ -99,16 +99,28 @@ def shm_segments(include_ports: bool = False) -> dict[str, float]:
     return out
 
 
+def _shm_files_in(maps: Path) -> set[str]:
+    """Names of the /dev/shm files one ``/proc/PID/maps`` lists (none once it is gone)."""
+    names: set[str] = set()
+    with contextlib.suppress(OSError):
+        for line in maps.read_text().splitlines():
+            idx = line.find('/dev/shm/')
+            if idx >= 0:
+                names.add(line[idx + len('/dev/shm/') :].split(' ')[0])
+    return names
+
+
 def mapped_shm_files() -> set[str]:
     """Names of /dev/shm files some live process has mapped (read from /proc/*/maps)."""
     mapped: set[str] = set()
     for maps in Path('/proc').glob('[0-9]*/maps'):
-        with contextlib.suppress(OSError):
-            for line in maps.read_text().splitlines():
-                idx = line.find('/dev/shm/')
-                if idx >= 0:
-                    mapped.add(line[idx + len('/dev/shm/') :].split(' ')[0])
+        mapped |= _shm_files_in(maps)
     return mapped
+
+
+def participant_segments_of(pid: int) -> set[str]:
+    """The participant segments one live process has mapped: what it leaves behind if killed."""
+    return {n for n in _shm_files_in(Path(f'/proc/{pid}/maps')) if PARTICIPANT_SEGMENT.match(n)}
 
 
 def orphan_segments(since: float, include_ports: bool = False) -> list[str]:

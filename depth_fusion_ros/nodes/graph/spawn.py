@@ -133,9 +133,9 @@ def stop_processes(
 
     ``processes``: ``subprocess.Popen`` objects or what behaves like them (``forked.ForkedNode``).
 
-    A child that does not stop within ``timeout`` is killed, and the shared-memory segments
-    created after ``since`` (epoch s) that nobody maps any more are removed. Returns the exit
-    codes by node name.
+    A child that does not stop within ``timeout`` is killed. When a child was killed (so, or
+    by a signal from elsewhere), the shared-memory segments created after ``since`` (epoch s)
+    that nobody maps any more are removed. Returns the exit codes by node name.
     """
     if interrupted:
         deadline = time.monotonic() + 1.0
@@ -155,7 +155,10 @@ def stop_processes(
             p.kill()
             p.wait()
             forced = True
-    if forced:
+    # A node killed by a signal, here or by someone else (kill -9, the OOM killer), had no
+    # shutdown: its segments stay in /dev/shm, mapped by nobody, until removed.
+    killed = forced or any((p.returncode or 0) < 0 for p in processes.values())
+    if killed:
         orphans = orphan_segments(since, include_ports=True)
         if orphans:
             log.warning('removing %d shared-memory segments left by killed nodes', len(orphans))
