@@ -324,6 +324,25 @@ def test_images_waiting_for_poses_stay_bounded(synthetic_sequence):
     assert snap.dropped == {'pose_wait_overflow': received - 5}
 
 
+def test_missing_images_are_counted_as_a_note(synthetic_sequence):
+    """Images lost before the node's callback (the camera, the transport, or a subscription
+    history overflowing) were counted nowhere: a gap of two and of three periods in the
+    stamps is noted as 1 + 2 missing images, and the rest of the stream as none."""
+    seq = synthetic_sequence
+    skipped = {8, 14, 15}
+    with RosHarness() as ros:
+        node = _mv_node(ros, width=80, height=60, max_pending_images=30, pose_wait=100.0)
+        cam = _Camera(ros)
+        sent = [i for i in range(len(seq.frames)) if i not in skipped]
+        for i in sent:
+            cam.publish_image(seq.frames[i].rgb, m.sec_to_ns(seq.stamps[i]), seq.camera)
+            time.sleep(0.01)
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('image', 0) == len(sent), 20.0)
+        snap = node.stats.snapshot()
+    assert snap.noted.get('image_gap') == len(skipped), snap.summary()
+    assert snap.dropped == {}, snap.summary()
+
+
 def test_an_overflow_says_how_far_the_poses_are_behind(synthetic_sequence):
     """Poses that stall while images flow (a publisher of large raw images with Fast DDS
     defaults): the drop message gives the pose stream's lag and the usual cause."""

@@ -133,6 +133,16 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         32,
     ),
     ParamSpec(
+        'image_qos_depth',
+        30,
+        'history depth of the image and camera_info subscriptions, or qos_depth if larger (30: one second '
+        'at 30 Hz): a camera '
+        "outpaces a busy node's callbacks for a moment (its first frames, a loaded machine), and images "
+        'beyond the depth are lost before the node sees them (10: 6 of 37 in a live 2-core run)',
+        1,
+        1000,
+    ),
+    ParamSpec(
         'pose_qos_depth',
         100,
         'history depth of the pose subscription: poses are small and come in bursts from a SLAM, and a '

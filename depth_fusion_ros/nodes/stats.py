@@ -113,9 +113,10 @@ class NodeStats:
         """
         self._count_and_warn(self._dropped, 'dropped', reason, message, count)
 
-    def noted(self, reason: str, message: str = '') -> None:
-        """Count an anomaly that did not cost an output (e.g. a fusion fallback) and warn, throttled."""
-        self._count_and_warn(self._noted, 'note', reason, message, 1)
+    def noted(self, reason: str, message: str = '', count: int = 1) -> None:
+        """Count ``count`` anomalies that did not cost an output (e.g. a fusion fallback) and
+        warn, throttled."""
+        self._count_and_warn(self._noted, 'note', reason, message, count)
 
     def _count_and_warn(
         self, counter: Counter[str], verb: str, reason: str, message: str, count: int
