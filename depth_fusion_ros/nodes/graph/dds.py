@@ -10,8 +10,10 @@ remove them.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import re
+import time
 from collections.abc import MutableMapping, Sequence
 from importlib import resources
 from pathlib import Path
@@ -123,21 +125,55 @@ def participant_segments_of(pid: int) -> set[str]:
     return {n for n in _shm_files_in(Path(f'/proc/{pid}/maps')) if PARTICIPANT_SEGMENT.match(n)}
 
 
-def orphan_segments(since: float, include_ports: bool = False) -> list[str]:
-    """Participant segments created after ``since`` (epoch s) that no process maps any more:
-    what a node killed without shutdown leaves behind.
+def owner_alive(segment: str) -> bool | None:
+    """Whether the process that created a participant segment still runs: Fast DDS holds an
+    exclusive ``flock`` on the segment's lock file (``<segment>_el``) for its owner's life, so
+    a lock this process can take has no owner. ``None``: no lock file to ask.
 
-    Lock files (``*_el``) are never mapped and are judged with their segment. With
-    ``include_ports`` also the port segments and mutexes nobody maps (a killed node leaves
-    those too; ``fastdds shm clean`` would remove them).
+    What a mapping cannot tell: every participant of a graph maps the others' segments (the
+    data comes through them), and Fast DDS keeps a segment mapped until its process ends, so
+    a killed node's segment stays mapped by the launcher's own listener and by the nodes."""
+    try:
+        fd = os.open(Path('/dev/shm') / f'{segment}_el', os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return None
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
+
+
+#: A segment younger than this (s) is never judged: its owner may be taking its lock.
+SETTLE_S = 0.2
+
+
+def orphan_segments(since: float, include_ports: bool = False) -> list[str]:
+    """Participant segments created after ``since`` (epoch s) whose owner is gone: what a node
+    killed without shutdown leaves behind (:func:`owner_alive`; a segment without a lock file
+    when nobody maps it).
+
+    Lock files (``*_el``) are judged with their segment. With ``include_ports`` also the port
+    segments and mutexes nobody maps (a killed node leaves those too; ``fastdds shm clean``
+    would remove them).
     """
     mapped = mapped_shm_files()
+    now = time.time()
     orphans = []
     for name, created in shm_segments(include_ports).items():
         if created < since - 1.0:
             continue
         base = name[: -len('_el')] if name.endswith('_el') else name
-        if base not in mapped:
+        alive = owner_alive(base) if PARTICIPANT_SEGMENT.match(name) else None
+        if alive is None:
+            alive = base in mapped
+        if not alive and now - created >= SETTLE_S:
             orphans.append(name)
     return sorted(orphans)
 

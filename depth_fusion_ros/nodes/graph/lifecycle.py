@@ -44,7 +44,15 @@ from .map_output import check_saved_map
 from .options import GraphError, RunOptions, RunResult
 from .pacing import paced_overrides
 from .param_merge import bag_topic_types, node_overrides, recorder_qos
-from .spawn import describe_exit, node_class, node_environment, node_ros_args, start_node, stop_processes
+from .spawn import (
+    describe_exit,
+    node_class,
+    node_environment,
+    node_ros_args,
+    remove_segments_of_killed,
+    start_node,
+    stop_processes,
+)
 from .topics import (
     FUSED_OUTPUTS,
     GRAPH_NODES,
@@ -547,7 +555,7 @@ class GraphRun:
 
     def _shutdown(self, interrupted: bool) -> None:
         if self.processes:
-            self.exit_codes = stop_processes(self.processes, interrupted, self._wall_start)
+            self.exit_codes = stop_processes(self.processes, interrupted)
         replayer = self.nodes.get(REPLAYER[0])
         if replayer is not None:
             replayer.stop()
@@ -580,6 +588,8 @@ class GraphRun:
             self._executor.shutdown(timeout_sec=5.0)
         if self._context is not None:
             self._context.try_shutdown()
+        # After this process's own participants (the recorder, the listener) left the graph.
+        remove_segments_of_killed(self.exit_codes, self._wall_start)
         for f in self._logs:
             f.close()
         if self._torch_threads_before is not None:  # the caller's process gets its pool back

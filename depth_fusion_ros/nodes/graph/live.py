@@ -35,6 +35,7 @@ from .spawn import (
     describe_exit,
     node_environment,
     node_ros_args,
+    remove_segments_of_killed,
     start_node,
     stop_processes,
 )
@@ -112,7 +113,7 @@ def launch(opts: LaunchOptions) -> int:
         log.info('stopping the nodes')
     finally:
         stopping = time.monotonic()
-        codes = stop_processes(processes, interrupted, since, opts.stop_timeout)
+        codes = stop_processes(processes, interrupted, opts.stop_timeout)
         for f in logs:
             f.close()
         for signum, handler in previous.items():
@@ -123,6 +124,7 @@ def launch(opts: LaunchOptions) -> int:
             log.info(live_summary(snapshot, time.time() - since))
             empty = live_empty(snapshot)
             listener.close()
+        remove_segments_of_killed(codes, since)  # once the listener left the graph too
     if ended is not None:
         name, code = ended
         log.error('%s %s: the other nodes were stopped', name, describe_exit(code))

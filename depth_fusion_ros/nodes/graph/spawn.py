@@ -127,15 +127,14 @@ STOP_STACKS_AFTER_S = 12.0
 
 
 def stop_processes(
-    processes: dict[str, Any], interrupted: bool, since: float, timeout: float = STOP_TIMEOUT_S
+    processes: dict[str, Any], interrupted: bool, timeout: float = STOP_TIMEOUT_S
 ) -> dict[str, int | None]:
     """SIGINT each child still running (after a grace period on Ctrl-C, which they got too).
 
     ``processes``: ``subprocess.Popen`` objects or what behaves like them (``forked.ForkedNode``).
 
-    A child that does not stop within ``timeout`` is killed. When a child was killed (so, or
-    by a signal from elsewhere), the shared-memory segments created after ``since`` (epoch s)
-    that nobody maps any more are removed. Returns the exit codes by node name.
+    A child that does not stop within ``timeout`` is killed (its shared memory is for
+    :func:`remove_segments_of_killed`). Returns the exit codes by node name.
     """
     if interrupted:
         deadline = time.monotonic() + 1.0
@@ -144,7 +143,6 @@ def stop_processes(
     for p in processes.values():
         if p.poll() is None:
             p.send_signal(signal.SIGINT)
-    forced = False
     deadline = time.monotonic() + timeout
     for name, p in processes.items():
         try:
@@ -154,13 +152,19 @@ def stop_processes(
             log.warning('%s did not stop on SIGINT within %.0f s: killing it%s', name, timeout, stacks)
             p.kill()
             p.wait()
-            forced = True
-    # A node killed by a signal, here or by someone else (kill -9, the OOM killer), had no
-    # shutdown: its segments stay in /dev/shm, mapped by nobody, until removed.
-    killed = forced or any((p.returncode or 0) < 0 for p in processes.values())
-    if killed:
-        orphans = orphan_segments(since, include_ports=True)
-        if orphans:
-            log.warning('removing %d shared-memory segments left by killed nodes', len(orphans))
-            remove_segments(orphans)
     return {name: p.returncode for name, p in processes.items()}
+
+
+def remove_segments_of_killed(codes: dict[str, int | None], since: float) -> None:
+    """After a node was killed by a signal (by :func:`stop_processes` or by someone else: kill
+    -9, the OOM killer), remove the shared-memory segments created after ``since`` (epoch s)
+    that nobody maps any more: a killed node had no shutdown to remove its own. Called once
+    this process's own participants are gone too (a listener, a recorder): each maps the
+    other participants' segments, the killed node's included, and a segment still mapped is
+    not judged an orphan."""
+    if not any(code is not None and code < 0 for code in codes.values()):
+        return
+    orphans = orphan_segments(since, include_ports=True)
+    if orphans:
+        log.warning('removing %d shared-memory segments left by killed nodes', len(orphans))
+        remove_segments(orphans)
