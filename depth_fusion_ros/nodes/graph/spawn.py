@@ -158,10 +158,10 @@ def stop_processes(
 def remove_segments_of_killed(codes: dict[str, int | None], since: float) -> None:
     """After a node was killed by a signal (by :func:`stop_processes` or by someone else: kill
     -9, the OOM killer), remove the shared-memory segments created after ``since`` (epoch s)
-    that nobody maps any more: a killed node had no shutdown to remove its own. Called once
-    this process's own participants are gone too (a listener, a recorder): each maps the
-    other participants' segments, the killed node's included, and a segment still mapped is
-    not judged an orphan."""
+    whose owner is gone (:func:`~.dds.orphan_segments`): a killed node had no shutdown to
+    remove its own. Called once this process's own participants are gone too (a listener, a
+    recorder): the port segments are judged by who maps them, and each participant maps
+    them."""
     if not any(code is not None and code < 0 for code in codes.values()):
         return
     orphans = orphan_segments(since, include_ports=True)
