@@ -165,15 +165,16 @@ def orphan_segments(since: float, include_ports: bool = False) -> list[str]:
     """
     mapped = mapped_shm_files()
     now = time.time()
+    alive: dict[str, bool] = {}  # by segment: a segment and its lock file are judged once
     orphans = []
     for name, created in shm_segments(include_ports).items():
         if created < since - 1.0:
             continue
         base = name[: -len('_el')] if name.endswith('_el') else name
-        alive = owner_alive(base) if PARTICIPANT_SEGMENT.match(name) else None
-        if alive is None:
-            alive = base in mapped
-        if not alive and now - created >= SETTLE_S:
+        if base not in alive:
+            owner = owner_alive(base) if PARTICIPANT_SEGMENT.match(name) else None
+            alive[base] = base in mapped if owner is None else owner
+        if not alive[base] and now - created >= SETTLE_S:
             orphans.append(name)
     return sorted(orphans)
 
