@@ -5,6 +5,8 @@ the poses when asked, and ``depth-fusion check-sync`` says the verdict in its ex
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -230,6 +232,35 @@ def test_a_busy_runner_makes_grey_images_only_for_the_samples_it_will_take(late)
     assert len(fed) == 25  # every pose reached the thread
     grey = [wanted for with_grey, wanted in fed if with_grey]
     assert 8 <= len(grey) <= 13 and all(grey), fed  # each grey image was a sample the thread took
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='per-thread niceness is Linux-only')
+def test_a_check_works_at_a_lower_priority_than_the_callbacks(late):
+    """The check's thread (its ORB, matching and costs) runs CHECK_NICE below the thread that
+    offers the frames (the node's callbacks), which keeps its own priority: the check must
+    not hold up the first keyframes of a stream on a small CPU."""
+    import os
+    import threading
+
+    from depth_fusion_ros.nodes.check_runner import CHECK_NICE
+    from depth_fusion_ros.nodes.testing import RosHarness
+    from depth_fusion_ros.nodes.time_offset_check_runner import TimeOffsetCheckRunner
+
+    seen: list[int] = []
+
+    class Recording(TimeOffsetCheckRunner):
+        def _feed(self, check, item):
+            seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+            return super()._feed(check, item)
+
+    own = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    runner = Recording(TimeOffsetCheckConfig(), 0.0, lambda *_: None)
+    for frame in late.frames[:5]:
+        runner.offer(frame, late.camera)
+        assert RosHarness.wait_for(lambda r=runner: not r.pending, 30.0)
+    runner.close()
+    assert seen and set(seen) == {min(19, own + CHECK_NICE)}
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == own
 
 
 def test_cli_check_sync_says_the_verdict_in_its_exit_status(tmp_path, late, capsys):

@@ -31,13 +31,22 @@ def sampson_distances(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarr
 def soft_l1_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
     """Soft-L1 costs (S, N) of the Sampson distances of matches ``p1 -> p2`` (N, 2) under each of
     S fundamental matrices ``F`` (S, 3, 3), in one pass: squares under ``_LOSS_SCALE_PX``, absolute
-    values beyond. Every calibration check fits its parameter with it."""
-    x1 = np.c_[p1, np.ones(len(p1))]
-    x2 = np.c_[p2, np.ones(len(p2))]
-    Fx1 = np.einsum('sij,nj->sni', F, x1)
-    Ftx2 = np.einsum('sji,nj->sni', F, x2)
-    norm = np.sqrt(Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2)
-    r = np.einsum('ni,sni->sn', x2, Fx1) / np.maximum(norm, 1e-12) / _LOSS_SCALE_PX
+    values beyond. Every calibration check fits its parameter with it.
+
+    Written out per component (the last coordinate is 1) rather than as ``einsum`` over the
+    3-vectors: numpy's einsum loops over a dimension of 3 for every (S, N) element, the
+    component form is a dozen whole-array multiply-adds, 4x faster (1.6 against 6.5 ms for
+    101 poses x 620 matches, a time offset check's pair) and the same to 1e-12."""
+    x, y = p1[:, 0], p1[:, 1]
+    u, v = p2[:, 0], p2[:, 1]
+    f = F[:, :, :, None]  # (S, 3, 3, 1): each entry against the N matches
+    fx1 = f[:, 0, 0] * x + f[:, 0, 1] * y + f[:, 0, 2]  # F x1, rows 0-2
+    fy1 = f[:, 1, 0] * x + f[:, 1, 1] * y + f[:, 1, 2]
+    fz1 = f[:, 2, 0] * x + f[:, 2, 1] * y + f[:, 2, 2]
+    gx2 = f[:, 0, 0] * u + f[:, 1, 0] * v + f[:, 2, 0]  # F^T x2, rows 0-1
+    gy2 = f[:, 0, 1] * u + f[:, 1, 1] * v + f[:, 2, 1]
+    norm = np.sqrt(fx1 * fx1 + fy1 * fy1 + gx2 * gx2 + gy2 * gy2)
+    r = (u * fx1 + v * fy1 + fz1) / np.maximum(norm, 1e-12) / _LOSS_SCALE_PX
     return np.sqrt(1.0 + r * r) - 1.0
 
 

@@ -5,6 +5,12 @@ microseconds), and only that is queued; a daemon thread computes features and, o
 estimate. A full queue drops the offered item (the next frame that moved far enough is taken
 instead): a check never holds up the stream. A new camera (another size or calibration) is
 checked anew. :attr:`CheckRunner.pending` says whether the thread has caught up with the stream.
+
+The thread runs at a lower priority (:data:`CHECK_NICE`): a check is done once, within the
+first seconds of a stream, exactly when the first keyframes are on their way. On 2 cores at
+normal priority the time offset check alone (about 0.6 s of CPU over TUM fr1_xyz's first
+second: ORB, matching, the epipolar costs) doubled the multi-view node's latency for those
+keyframes (docs/performance.md, "The calibration checks yield to the keyframes").
 """
 
 from __future__ import annotations
@@ -17,7 +23,12 @@ from typing import Any
 
 from ..camera import PinholeCamera
 from ..data.sequence import Frame
+from ..thread_priority import lower_this_thread
 from .params import build_dataclass
+
+#: Niceness added to a check's thread (its OpenCV and numpy work runs there: one OpenCV thread
+#: per node process, nodes/threads.py). On an idle core it changes nothing.
+CHECK_NICE = 10
 
 
 class CheckRunner:
@@ -134,6 +145,7 @@ class CheckRunner:
             self._thread = None
 
     def _run(self, check: Any, inbox: queue.Queue, stopping: threading.Event) -> None:
+        lower_this_thread(CHECK_NICE)  # nowhere possible: normal priority, as before
         while True:
             item = inbox.get()
             if item is None or stopping.is_set():
