@@ -6,11 +6,16 @@ estimate. A full queue drops the offered item (the next frame that moved far eno
 instead): a check never holds up the stream. A new camera (another size or calibration) is
 checked anew. :attr:`CheckRunner.pending` says whether the thread has caught up with the stream.
 
-The thread runs at a lower priority (:data:`CHECK_NICE`): a check is done once, within the
-first seconds of a stream, exactly when the first keyframes are on their way. On 2 cores at
-normal priority the time offset check alone (about 0.6 s of CPU over TUM fr1_xyz's first
-second: ORB, matching, the epipolar costs) doubled the multi-view node's latency for those
-keyframes (docs/performance.md, "The calibration checks yield to the keyframes").
+The thread gives way to the node's keyframe path (:attr:`CheckRunner.busy`): before a
+sample's work (features, matching, a pair's costs) it waits while the node has a keyframe or
+a filter frame in hand, at most :data:`MAX_YIELD_S` a sample. A check is done once, within the
+first seconds of a stream, exactly when the first keyframes are on their way: on 2 cores the
+time offset check alone (about 0.5 s of CPU over TUM fr1_xyz's first second) doubled the
+multi-view node's latency for those keyframes. A lower thread priority (nice +10) was tried
+first and taken out: in a Python process a niced thread that holds the GIL while the kernel
+deschedules it holds up the node's other threads, and on a loaded machine the graph then
+fused fewer keyframes than at normal priority (docs/performance.md, "The calibration checks
+yield to the keyframes").
 """
 
 from __future__ import annotations
@@ -18,17 +23,23 @@ from __future__ import annotations
 import contextlib
 import queue
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
 from ..camera import PinholeCamera
 from ..data.sequence import Frame
-from ..thread_priority import lower_this_thread
 from .params import build_dataclass
 
-#: Niceness added to a check's thread (its OpenCV and numpy work runs there: one OpenCV thread
-#: per node process, nodes/threads.py). On an idle core it changes nothing.
-CHECK_NICE = 10
+#: How long a check's thread waits for the keyframe path at most before each sample (s): under
+#: a load that never lets up, the check still takes a sample every half second.
+MAX_YIELD_S = 0.5
+#: How often it looks again while it waits (s).
+YIELD_POLL_S = 0.005
+
+
+def _never() -> bool:
+    return False
 
 
 class CheckRunner:
@@ -55,6 +66,11 @@ class CheckRunner:
         #: yet): the check's next sample is counted from it, not from the last one the thread
         #: took, so a busy thread is never handed samples it would skip (:meth:`_sample_pose_of`).
         self._sample_pose: Any = None
+        #: Whether the node's keyframe path has work in hand (set by the node; thread-safe,
+        #: cheap): the thread waits while it does, before each sample (:meth:`_give_way`).
+        self.busy: Callable[[], bool] = _never
+        #: Seconds the thread waited for the keyframe path, over the runner's life.
+        self.waited = 0.0
 
     def _make(self, camera: PinholeCamera) -> Any:
         raise NotImplementedError
@@ -68,6 +84,19 @@ class CheckRunner:
     def _sample_pose_of(self, item: Any) -> Any:
         """The pose of ``item`` when it is a sample (``None``: not one): the reference of the next."""
         return None
+
+    def _heavy(self, item: Any) -> bool:
+        """Whether ``item`` costs the thread real work (features, matching), so it waits for
+        the keyframe path first; a pose alone does not."""
+        return True
+
+    def _give_way(self, stopping: threading.Event) -> None:
+        """Wait while the keyframe path is busy, at most :data:`MAX_YIELD_S`."""
+        start = time.monotonic()
+        deadline = start + MAX_YIELD_S
+        while self.busy() and not stopping.is_set() and time.monotonic() < deadline:
+            time.sleep(YIELD_POLL_S)
+        self.waited += time.monotonic() - start
 
     @property
     def pending(self) -> int:
@@ -145,12 +174,13 @@ class CheckRunner:
             self._thread = None
 
     def _run(self, check: Any, inbox: queue.Queue, stopping: threading.Event) -> None:
-        lower_this_thread(CHECK_NICE)  # nowhere possible: normal priority, as before
         while True:
             item = inbox.get()
             if item is None or stopping.is_set():
                 return
             try:
+                if self._heavy(item):
+                    self._give_way(stopping)
                 result = self._feed(check, item)
             finally:
                 inbox.task_done()

@@ -286,7 +286,8 @@ class FilterFeed:
             self._thread.join(timeout)
 
     def idle(self) -> bool:
-        """Nothing queued (tests: the filter has seen every frame appended so far)."""
+        """Nothing queued or in hand: the filter has seen every frame appended so far (tests;
+        the calibration checks wait for it, nodes/check_runner.py)."""
         with self._cond:
             return not self._frames and not self._busy
 

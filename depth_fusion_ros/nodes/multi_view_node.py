@@ -202,6 +202,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self.events = GraphEvents(self)
         self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), int(p['max_pending_images']))
         self.worker = self.make_worker('multi_view', self._process, on_lost=self._on_keyframe_lost)
+        for runner in (self.focal_check, self.time_offset_check, self.mount_check):
+            runner.busy = self._keyframe_path_busy
         image_qos = qos_profile(str(p['input_qos']), max(int(p['image_qos_depth']), int(p['qos_depth'])))
         self.subscribe_input(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, image_qos)
         self._latched_info: Any = None
@@ -637,6 +639,13 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             warn=lambda message: self.stats.noted('zero_baseline', f'keyframe {key.stamp:.3f}: {message}'),
         )
         return [history[i] for i in chosen]
+
+    def _keyframe_path_busy(self) -> bool:
+        """A keyframe or a filter frame in hand or waiting: the calibration checks wait before
+        their next sample (nodes/check_runner.py), so the first keyframes of a stream do not
+        share the CPU with them."""
+        feed = self.filter_feed
+        return not self.worker.idle() or (feed is not None and not feed.idle())
 
     def _on_keyframe_lost(self, job: _KeyframeJob, reason: str) -> None:
         """A chosen keyframe the worker dropped before announcing it: the graph must hear of it."""
