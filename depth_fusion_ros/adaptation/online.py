@@ -14,6 +14,7 @@ prediction in flight.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -22,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 from ..singleview.predictor import DepthPredictor
-from ..thread_priority import lower_this_thread
 from .adapter import Adapter, UpdateReport
 from .sample import AdaptSample
 
@@ -145,9 +145,15 @@ class OnlineAdaptation:
         if self.nice == 0:
             self.thread_nice = 0
             return
-        self.thread_nice = lower_this_thread(self.nice)
-        if self.thread_nice is None:  # not Linux / not permitted
-            log.warning('adaptation: cannot lower the training thread priority; it runs at normal priority')
+        try:
+            tid = threading.get_native_id()
+            base = os.getpriority(os.PRIO_PROCESS, tid)
+            os.setpriority(os.PRIO_PROCESS, tid, min(19, base + self.nice))
+            self.thread_nice = os.getpriority(os.PRIO_PROCESS, tid)
+        except (AttributeError, OSError) as exc:  # not Linux / not permitted
+            log.warning(
+                'adaptation: cannot lower the training thread priority (%s); it runs at normal priority', exc
+            )
 
     def _run(self) -> None:
         self._lower_priority()
