@@ -251,7 +251,9 @@ def test_a_check_waits_for_the_keyframe_path_before_each_sample(late):
             fed.append((item[0] is not None, busy.is_set()))
             return super()._feed(check, item)
 
-    runner = Recording(TimeOffsetCheckConfig(), 0.0, lambda *_: None)
+    # A sample every 2-3 frames (1.5-2 cm a frame): the frames between are poses alone.
+    config = TimeOffsetCheckConfig(min_baseline=0.035, min_rotation_deg=45.0, early_pairs=0)
+    runner = Recording(config, 0.0, lambda *_: None)
     runner.busy = busy.is_set
     busy.set()
     runner.offer(late.frames[0], late.camera)  # the first frame is a sample
@@ -262,14 +264,16 @@ def test_a_check_waits_for_the_keyframe_path_before_each_sample(late):
     assert fed == [(True, False)]
     busy.set()  # a load that never lets up: each sample still comes within MAX_YIELD_S
     started = time.monotonic()
-    for frame in late.frames[1:6]:
+    for frame in late.frames[1:8]:
         runner.offer(frame, late.camera)
     assert RosHarness.wait_for(lambda: not runner.pending, 30.0)
     runner.close()
     samples = sum(sample for sample, _ in fed[1:])
-    assert samples >= 1 and all(was_busy for _, was_busy in fed[1:])
+    assert 1 <= samples < len(fed[1:]) and all(was_busy for _, was_busy in fed[1:])  # poses too
     assert time.monotonic() - started < samples * MAX_YIELD_S + 5.0
     assert runner.waited >= samples * MAX_YIELD_S * 0.9  # each later sample waited the whole cap
+    # ... and only the samples: a pose alone would have added another MAX_YIELD_S
+    assert runner.waited < samples * MAX_YIELD_S + MAX_YIELD_S / 5 + 0.3
 
 
 def test_cli_check_sync_says_the_verdict_in_its_exit_status(tmp_path, late, capsys):
