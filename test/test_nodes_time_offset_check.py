@@ -80,6 +80,9 @@ def _run(seq, mode: str):
         assert done, node.stats.snapshot().summary()
         snap = node.stats.snapshot()
         status = node.diagnostic_extra()['time offset check']
+        # How long the checks gave way to the keyframes (still running ones add to it meanwhile).
+        waited = node.diagnostic_extra()['calibration checks: seconds waited for the keyframes']
+        assert isinstance(waited, float) and waited >= 0.0
         focal = node.diagnostic_extra()['focal length check']
         result = node.time_offset_check.result
     index = {s: i for i, s in enumerate(stamps)}

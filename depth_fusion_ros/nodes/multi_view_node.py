@@ -555,6 +555,11 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         extra['focal length check'] = self.focal_check.status()
         extra['time offset check'] = self.time_offset_check.status()
         extra['mount check'] = self.mount_check.status()
+        runners = (self.focal_check, self.time_offset_check, self.mount_check)
+        # Why a check can take longer than its pairs: it waits for the keyframes (check_runner.py).
+        extra['calibration checks: seconds waited for the keyframes'] = round(
+            sum(r.waited for r in runners), 2
+        )
         return extra
 
     def destroy_node(self) -> None:
