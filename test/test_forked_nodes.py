@@ -13,6 +13,12 @@ from pathlib import Path
 import pytest
 
 from depth_fusion_ros.nodes.graph import forked
+from depth_fusion_ros.nodes.graph.dds import (
+    owner_alive,
+    participant_segments_of,
+    remove_segments,
+    shm_segments,
+)
 from depth_fusion_ros.nodes.graph.forked import FORK_ENV, fork_nodes, server_pid, start_forked
 from depth_fusion_ros.nodes.threads import node_threads
 
@@ -76,16 +82,29 @@ def test_a_forked_node_gets_its_own_command_line_environment_threads_and_exit_co
     assert 'Traceback' not in text
 
 
+def remove_own_orphans(mapped: set[str], since: float) -> None:
+    """Remove the Fast DDS segments a node killed here left: those it mapped that were created
+    since the test began and whose owner is gone (dds.owner_alive). ``run`` and ``launch`` do
+    this for the nodes they start; a test that kills one itself must, or the segments stay in
+    /dev/shm, where the graph tests on the other worker count them as left behind."""
+    created = shm_segments()
+    own = [s for s in mapped if created.get(s, 0.0) >= since - 1.0 and owner_alive(s) is False]
+    remove_segments([name for s in own for name in (s, f'{s}_el')])
+
+
 @pytest.mark.parametrize(('signum', 'code'), [(signal.SIGINT, 0), (signal.SIGKILL, -9)])
 def test_a_forked_node_stops_on_sigint_and_reports_a_kill(tmp_path: Path, signum: int, code: int):
     """A running forked node: ``wait`` with a timeout raises as Popen's does; SIGINT stops it
     cleanly (exit 0, final counters logged); SIGKILL reads as -9, as ``describe_exit`` expects."""
+    since = time.time()
     log = tmp_path / 'multi_view_node.log'
     node = start_forked(
         'depth_fusion_ros.nodes.multi_view_node', ['multi_view_node', '--ros-args'], node_env(), log
     )
+    mapped: set[str] = set()
     try:
         wait_ready(node, log)
+        mapped = participant_segments_of(node.pid)
         with pytest.raises(subprocess.TimeoutExpired):
             node.wait(0.2)
         if signum == signal.SIGKILL:
@@ -95,6 +114,8 @@ def test_a_forked_node_stops_on_sigint_and_reports_a_kill(tmp_path: Path, signum
         assert node.wait(60) == code, log.read_text()
     finally:
         node.kill()
+        node.wait(60)
+        remove_own_orphans(mapped, since)
     if code == 0:
         assert 'final counters' in log.read_text()
     node.send_signal(signal.SIGINT)  # stopped already: nothing is sent to a pid that may be reused
