@@ -174,6 +174,40 @@ def test_the_node_is_warm_only_once_training_can_take_keyframes(tiny_model, proc
         assert all(s.node == '/single_view_node' for s in statuses())
 
 
+def test_a_training_thread_warm_before_the_node_is_built_still_says_warm(tiny_model, monkeypatch):
+    """The training thread (``adaptation.process`` false) can be warm before the node's
+    adaptation has finished its constructor: its warm callback must find what it reads there.
+    The race is made certain here (the constructor waits for the thread's warm-up); a fresh
+    clone's full run once lost it (``'NodeAdaptation' object has no attribute '_stopping'``, and
+    the node never said warm)."""
+    import threading
+
+    from depth_fusion_ros.nodes import single_view_adaptation
+
+    class WarmFirst(single_view_adaptation.OnlineAdaptation):
+        def __init__(self, *args, on_warm=None, **kwargs):
+            called = threading.Event()
+
+            def warm() -> None:
+                try:
+                    on_warm()
+                finally:
+                    called.set()
+
+            super().__init__(*args, on_warm=warm, **kwargs)
+            assert called.wait(60.0)  # the thread is warm before the constructor goes on
+
+    monkeypatch.setattr(single_view_adaptation, 'OnlineAdaptation', WarmFirst)
+    with RosHarness() as ros:
+        lines = ros.collect(String, '/' + TOPIC_READY, ready_qos(READERS_DEPTH))
+        params = _params(tiny_model, **{'adaptation.process': False, 'adaptation.nice': 0})
+        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=params))
+        assert node.adaptation is not None
+        assert ros.wait_for(
+            lambda: any(ReadyStatus.from_json(msg.data).warm for msg in list(lines)), timeout=30.0
+        ), [msg.data for msg in list(lines)]
+
+
 def test_adapt_false_is_the_network_as_loaded_bit_for_bit(tiny_model, room):
     reference = load_predictor(tiny_model)
     with RosHarness() as ros:

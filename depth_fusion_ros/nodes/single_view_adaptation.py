@@ -166,6 +166,10 @@ class NodeAdaptation:
         )
         self.adapter = self.remote or Adapter.from_spec(str(p['model']), self.config, str(p['device']))
         self.slot = WeightSlot(predictor)
+        # Before the training thread starts: its warm callback reads them, and a training thread
+        # (adaptation.process false) can be warm before this constructor has returned.
+        self._lock = threading.Lock()
+        self._stopping = False
         self.online = OnlineAdaptation(
             self.adapter,
             self.slot,
@@ -181,8 +185,6 @@ class NodeAdaptation:
             neighbours=int(p['adaptation.neighbours']),
             min_baseline=float(p['adaptation.min_baseline']),
         )
-        self._lock = threading.Lock()
-        self._stopping = False
         self._uncalibrated: set[int] = set()
         self._said_sparse_only = False
         q = node.input_qos
