@@ -13,12 +13,7 @@ from pathlib import Path
 import pytest
 
 from depth_fusion_ros.nodes.graph import forked
-from depth_fusion_ros.nodes.graph.dds import (
-    owner_alive,
-    participant_segments_of,
-    remove_segments,
-    shm_segments,
-)
+from depth_fusion_ros.nodes.graph.dds import orphan_segments, participant_segments_of, remove_segments
 from depth_fusion_ros.nodes.graph.forked import FORK_ENV, fork_nodes, server_pid, start_forked
 from depth_fusion_ros.nodes.threads import node_threads
 
@@ -83,13 +78,12 @@ def test_a_forked_node_gets_its_own_command_line_environment_threads_and_exit_co
 
 
 def remove_own_orphans(mapped: set[str], since: float) -> None:
-    """Remove the Fast DDS segments a node killed here left: those it mapped that were created
-    since the test began and whose owner is gone (dds.owner_alive). ``run`` and ``launch`` do
-    this for the nodes they start; a test that kills one itself must, or the segments stay in
-    /dev/shm, where the graph tests on the other worker count them as left behind."""
-    created = shm_segments()
-    own = [s for s in mapped if created.get(s, 0.0) >= since - 1.0 and owner_alive(s) is False]
-    remove_segments([name for s in own for name in (s, f'{s}_el')])
+    """Remove the Fast DDS segments a node killed here left: the orphans since the test began
+    (dds.orphan_segments: owner gone) among those it mapped, with their lock files. ``run`` and
+    ``launch`` do this for the nodes they start; a test that kills one itself must, or the
+    segments stay in /dev/shm, where the graph tests on the other worker count them as left
+    behind."""
+    remove_segments([n for n in orphan_segments(since) if n.removesuffix('_el') in mapped])
 
 
 @pytest.mark.parametrize(('signum', 'code'), [(signal.SIGINT, 0), (signal.SIGKILL, -9)])

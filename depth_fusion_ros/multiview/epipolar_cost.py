@@ -21,17 +21,12 @@ def skew(t: np.ndarray) -> np.ndarray:
 
 def sampson_distances(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
     """Signed Sampson distances (px) of matches ``p1 -> p2`` (N, 2) under fundamental matrix ``F``."""
-    x1 = np.c_[p1, np.ones(len(p1))]
-    x2 = np.c_[p2, np.ones(len(p2))]
-    Fx1, Ftx2 = x1 @ F.T, x2 @ F
-    norm = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
-    return np.sum(x2 * Fx1, axis=1) / np.maximum(norm, 1e-12)
+    return _signed_sampson(F[None], p1, p2)[0]
 
 
-def soft_l1_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """Soft-L1 costs (S, N) of the Sampson distances of matches ``p1 -> p2`` (N, 2) under each of
-    S fundamental matrices ``F`` (S, 3, 3), in one pass: squares under ``_LOSS_SCALE_PX``, absolute
-    values beyond. Every calibration check fits its parameter with it.
+def _signed_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """Signed Sampson distances (S, N) of matches ``p1 -> p2`` (N, 2) under each of S
+    fundamental matrices ``F`` (S, 3, 3).
 
     Written out per component (the last coordinate is 1) rather than as ``einsum`` over the
     3-vectors: numpy's einsum loops over a dimension of 3 for every (S, N) element, the
@@ -46,7 +41,14 @@ def soft_l1_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray
     gx2 = f[:, 0, 0] * u + f[:, 1, 0] * v + f[:, 2, 0]  # F^T x2, rows 0-1
     gy2 = f[:, 0, 1] * u + f[:, 1, 1] * v + f[:, 2, 1]
     norm = np.sqrt(fx1 * fx1 + fy1 * fy1 + gx2 * gx2 + gy2 * gy2)
-    r = (u * fx1 + v * fy1 + fz1) / np.maximum(norm, 1e-12) / _LOSS_SCALE_PX
+    return (u * fx1 + v * fy1 + fz1) / np.maximum(norm, 1e-12)
+
+
+def soft_l1_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """Soft-L1 costs (S, N) of the Sampson distances of matches ``p1 -> p2`` (N, 2) under each of
+    S fundamental matrices ``F`` (S, 3, 3), in one pass: squares under ``_LOSS_SCALE_PX``, absolute
+    values beyond. Every calibration check fits its parameter with it."""
+    r = _signed_sampson(F, p1, p2) / _LOSS_SCALE_PX
     return np.sqrt(1.0 + r * r) - 1.0
 
 

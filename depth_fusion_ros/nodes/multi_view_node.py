@@ -202,7 +202,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self.events = GraphEvents(self)
         self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), int(p['max_pending_images']))
         self.worker = self.make_worker('multi_view', self._process, on_lost=self._on_keyframe_lost)
-        for runner in (self.focal_check, self.time_offset_check, self.mount_check):
+        #: The calibration checks' runners (their diagnostics, and the wait for the keyframes).
+        self.check_runners = (self.focal_check, self.time_offset_check, self.mount_check)
+        for runner in self.check_runners:
             runner.busy = self._keyframe_path_busy
         image_qos = qos_profile(str(p['input_qos']), max(int(p['image_qos_depth']), int(p['qos_depth'])))
         self.subscribe_input(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, image_qos)
@@ -555,11 +557,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         extra['focal length check'] = self.focal_check.status()
         extra['time offset check'] = self.time_offset_check.status()
         extra['mount check'] = self.mount_check.status()
-        runners = (self.focal_check, self.time_offset_check, self.mount_check)
         # Why a check can take longer than its pairs: it waits for the keyframes (check_runner.py).
-        extra['calibration checks: seconds waited for the keyframes'] = round(
-            sum(r.waited for r in runners), 2
-        )
+        waited = sum(r.waited for r in self.check_runners)
+        extra['calibration checks: seconds waited for the keyframes'] = round(waited, 2)
         return extra
 
     def destroy_node(self) -> None:
