@@ -50,6 +50,7 @@ from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from ..geometry import relative_pose, rotation_angle, validate_pose
 from ..image_cells import ImageCells
+from ..true_indices import true_indices
 from .descriptors import patch_reach, stage_descriptors
 from .filter_bracket import neighbour_range, neighbour_range_dense
 from .filter_config import FilterConfig
@@ -184,7 +185,7 @@ class DepthFilter:
                 torch.zeros(shape, dtype=torch.bool, device=self.device),
             )
         published, withheld = self._published(key)
-        rows = torch.nonzero(published, as_tuple=True)[0]
+        rows = true_indices(published)
         st = key.state
         mu, var = st.mu[rows], st.var[rows]
         T_tk = None if pose is None else relative_pose(key.pose, validate_pose(pose, 'result pose'))
@@ -305,7 +306,7 @@ class DepthFilter:
     def _visible_fraction(self, key: FilterKeyframe, T_fk: np.ndarray) -> float:
         """The keyframe-switch test of a skipped frame: the fraction of the estimates that land
         in it (an update answers the same from its own projection, ``update_frame``)."""
-        has = torch.nonzero(key.updates > 0, as_tuple=True)[0]
+        has = true_indices(key.updates > 0)
         if has.numel() == 0:
             return 1.0
         warped = warp_estimates(

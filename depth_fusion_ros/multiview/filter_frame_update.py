@@ -3,7 +3,7 @@
 Step 2 of ``filter.py``'s flow. Cheap per-pixel tests on every keyframe pixel first pick
 the rows the frame can teach something (:func:`choose_rows`); only those are searched
 along their epipolar line (:func:`search_rows`, in buckets by interval length) and fused
-(``filter_update``'s Gaussian x uniform update), then scattered back: the frame's cost
+(``filter_matches``: the Gaussian x uniform update of the rows that matched), so the frame's cost
 follows the pixels that still need it, not the candidate count.
 """
 
@@ -15,27 +15,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from ..true_indices import true_indices
 from .filter_bracket import bracket_seeds
-from .filter_config import FilterConfig
 from .filter_geometry import FrameGeometry, frame_geometry, grid_rows_in_place, row_motion
 from .filter_keyframe import FilterKeyframe
-from .filter_search import SearchResult, plan_buckets, search_buckets
-from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
+from .filter_matches import apply_matches, measurement_variance
+from .filter_search import SearchResult, bucket_members, search_buckets
 
 if TYPE_CHECKING:
     from .filter import DepthFilter
-
-
-def measurement_variance(
-    config: FilterConfig, rho: torch.Tensor, j: torch.Tensor, baseline: float
-) -> torch.Tensor:
-    """Measurement variance: one ``pixel_sigma`` of matching error back-propagated through the
-    epipolar motion ``j``, plus the pose noise as a relative error ``pose_sigma / baseline``."""
-    c = config
-    tau2 = (c.pixel_sigma / torch.clamp(j, min=1e-6)) ** 2
-    if c.pose_sigma == 0.0:  # the default: the term is + 0 (its three passes were a tenth of an update)
-        return tau2
-    return tau2 + (rho * (c.pose_sigma / baseline)) ** 2
 
 
 def update_frame(
@@ -87,7 +75,7 @@ def _update_rows(
     # The rows without a prior, once: the whole-range bounds, the search's spans and the
     # first measurements are index ops on these few rows instead of where over all rows
     # (torch.where is several times slower than arithmetic on CPU).
-    seeds = torch.nonzero(f_r, as_tuple=True)[0]
+    seeds = true_indices(f_r)
     floor = c.min_search_px / torch.clamp(j_r, min=1e-9)
     half = torch.maximum(c.search_sigmas * torch.sqrt(var_r), floor)
     lo = torch.clamp(mu_r - half, rho_min, rho_max).index_fill_(0, seeds, rho_min)
@@ -106,50 +94,7 @@ def _update_rows(
         valid &= ~bracketed | inside
     valid &= (x >= rho_min) & (x <= rho_max)
     valid &= j_x > 1e-6
-    tau2 = measurement_variance(c, x, j_x, baseline)
-    fail = ~f_r & ~valid  # visible (chosen above) but nothing matched: an outlier vote
-    a_old, b_old = pick(st.a), pick(st.b)
-    prior = BetaGaussian(mu_r, var_r, a_old, b_old)
-    # The posterior of every row; only the valid ones keep it (the others' inputs, and so
-    # their posterior, are not read), and a valid row without a prior takes its first
-    # measurement instead, below.
-    post = gaussian_uniform_update(prior, x, tau2, filt.rho_range)
-    mu_n = torch.where(valid, post.mu, mu_r)
-    var_n = torch.where(valid, post.var, var_r)
-    a_n = torch.where(valid, post.a, a_old)
-    b_n = torch.where(valid, post.b, outlier_vote(prior, fail).b)
-    born = seeds.masked_select(valid.index_select(0, seeds))  # first measurements
-    if born.numel() > 0:
-        mu_n.index_copy_(0, born, x.index_select(0, born))
-        var_n.index_copy_(0, born, tau2.index_select(0, born))
-        a_n.index_fill_(0, born, c.init_a)
-        b_n.index_fill_(0, born, c.init_b)
-    n_n = pick(key.updates) + valid.long()
-    prior_n = ~f_r | valid
-    # Outliers: a pixel that keeps failing is reset to "no estimate" (it may be re-seeded).
-    gone = torch.nonzero(~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio), as_tuple=True)[0]
-    if gone.numel() > 0:
-        # filter_new_keyframe.fresh_state's values
-        mid, span2 = 0.5 * (rho_min + rho_max), (rho_max - rho_min) ** 2
-        for value, fill in (
-            (mu_n, mid),
-            (var_n, span2),
-            (a_n, c.init_a),
-            (b_n, c.init_b),
-            (n_n, 0),
-            (prior_n, False),
-        ):
-            value.index_fill_(0, gone, fill)
-    for target, value in (
-        (st.mu, mu_n),
-        (st.var, var_n),
-        (st.a, a_n),
-        (st.b, b_n),
-        (key.updates, n_n),
-        (key.prior, prior_n),
-        (key.cost, torch.where(valid, cost, pick(key.cost))),
-    ):
-        target.scatter_(0, rows, value)  # rows are distinct: index_copy_'s result, a third cheaper
+    apply_matches(filt, key, rows, valid, x, j_x, cost, f_r, baseline)
     return seen
 
 
@@ -182,7 +127,7 @@ def choose_rows(
     key.attempts += seeds.long()
     n_estimates = float(estimates.sum())
     seen = float((geo.visible & estimates).sum()) / n_estimates if n_estimates > 0 else 1.0
-    return torch.nonzero(want, as_tuple=True)[0], seen
+    return true_indices(want), seen
 
 
 def search_rows(
@@ -199,7 +144,7 @@ def search_rows(
     seeds: torch.Tensor,
     search: Callable[..., SearchResult],
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Search each chosen row in ``[lo, hi]``, in buckets by sample count (``plan_buckets``).
+    """Search each chosen row in ``[lo, hi]``, in buckets by sample count (``bucket_members``).
 
     Returns the match ``x``, its cost and whether it passed ``max_cost`` (and, in the
     buckets with a distinctiveness test, ``min_distinctiveness``; with
@@ -214,10 +159,9 @@ def search_rows(
         a_s, lo_s, hi_s = a_r.index_select(1, seeds), lo.index_select(0, seeds), hi.index_select(0, seeds)
         ends = torch.maximum(row_motion(a_s, geo.b, lo_s), row_motion(a_s, geo.b, hi_s))
         span.index_copy_(0, seeds, ends * (hi_s - lo_s))
-    bucket = plan_buckets(span, fresh, c)
     # Rows sorted by bucket once: each bucket is then a slice (views, no gather per bucket),
     # and the results go back in one scatter.
-    members = [torch.nonzero(bucket == k, as_tuple=True)[0] for k in range(len(search_buckets(c)))]
+    members = bucket_members(span, fresh, c)
     order = torch.cat(members)  # a counting sort: torch.argsort is several times slower on CPU
     counts = [int(m.numel()) for m in members]
     desc_o = key.key_desc.index_select(1, rows.index_select(0, order))

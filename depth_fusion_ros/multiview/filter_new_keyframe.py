@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from ..geometry import relative_pose, rotation_angle
+from ..true_indices import true_indices
 from .descriptors import gaussian_blur
 from .filter_frame_update import update_frame
 from .filter_keyframe import FilterKeyframe
@@ -88,7 +89,7 @@ def propagate(
     left = filt.clock.switch('propagation')
     new = new_keyframe(filt, image, desc, T_wn)
     c = filt.config
-    rows = torch.nonzero(old.updates > 0, as_tuple=True)[0]
+    rows = true_indices(old.updates > 0)
     new.first = old.first and rows.numel() == 0  # nothing to carry: still the stream's first
     T_nk = relative_pose(old.pose, T_wn)
     # A jump (a relocalisation, a gap in the stream): turned further than the filter matches
@@ -116,7 +117,7 @@ def propagate(
     # Reads by index_select (the same values as advanced indexing, several times cheaper on
     # CPU); the writes stay index_put_, as before (a tie in the z-buffer can repeat a target).
     at = position.index_select(0, warped.target)
-    landed = torch.nonzero(at >= 0, as_tuple=True)[0]
+    landed = true_indices(at >= 0)
     sources = rows.index_select(0, warped.source)
     kept = lambda t: t.index_select(0, landed)  # noqa: E731
     at, src, rho, scale4 = kept(at), kept(sources), kept(warped.rho), kept(warped.scale) ** 4
@@ -132,7 +133,7 @@ def propagate(
     new.cost[at] = old_at(old.cost)
     # Only estimates with fill_min_updates measurements fill holes: a young one may be wrong,
     # and a prior filled from it is confirmed by the short searches around it.
-    mature = torch.nonzero(old.updates.index_select(0, sources) >= c.fill_min_updates, as_tuple=True)[0]
+    mature = true_indices(old.updates.index_select(0, sources) >= c.fill_min_updates)
     variance = old.state.var.index_select(0, sources) * warped.scale**4
     filled = fill_holes(
         filt,

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..true_indices import true_indices
+
 
 @dataclass
 class Warped:
@@ -61,11 +63,11 @@ def warp_estimates(
     keep &= (rho_t >= rho_range[0]) & (rho_t <= rho_range[1])
     # Gathers by index_select: the same values as advanced / boolean-mask indexing, several
     # times cheaper on CPU.
-    source = torch.nonzero(keep, as_tuple=True)[0]
+    source = true_indices(keep)
     target = (v.index_select(0, source) * w + u.index_select(0, source)).long()
     rho_t = rho_t.index_select(0, source)
     nearest = torch.full((h * w,), -1.0, dtype=dtype, device=dev)
     nearest.scatter_reduce_(0, target, rho_t, reduce='amax')
-    win = torch.nonzero(rho_t >= nearest.index_select(0, target), as_tuple=True)[0]
+    win = true_indices(rho_t >= nearest.index_select(0, target))
     source, target, rho_t = (t.index_select(0, win) for t in (source, target, rho_t))
     return Warped(target, source, rho_t, rho_t / rho.index_select(0, source))

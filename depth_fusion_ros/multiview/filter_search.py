@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
+from ..true_indices import true_indices
 from .cost_volume import EpipolarRays, rows_per_chunk
 from .filter_config import FilterConfig
 
@@ -56,7 +57,7 @@ def _distinctiveness(cost: torch.Tensor, best: torch.Tensor, c1: torch.Tensor) -
     c2 = (cost / is_min).scatter_(0, near, inf).amin(dim=0)
     # A single basin (no other minimum): the largest finite cost instead, for those rows only.
     # Costs are >= 0, so -1 stands for "no finite cost" (the ratio is then 0, as c1 is inf).
-    single = torch.nonzero(~torch.isfinite(c2), as_tuple=True)[0]
+    single = true_indices(~torch.isfinite(c2))
     if single.numel() > 0:
         largest = torch.nan_to_num(cost.index_select(1, single), posinf=-1.0).amax(dim=0)
         c2.index_copy_(0, single, largest)
@@ -245,15 +246,21 @@ def _parabola(
     c1: torch.Tensor,
     distinct: torch.Tensor,
 ) -> SearchResult:
-    """Sub-sample minimum of the parabola through samples ``j - 1, j, j + 1`` of ``grid`` (S, R)."""
-    curvature = cm - 2.0 * c0 + cp
+    """Sub-sample minimum of the parabola through samples ``j - 1, j, j + 1`` of ``grid`` (S, R).
+
+    Written with the fewest whole-row passes that give the same numbers as the plain form
+    (``cm - 2 c0 + cp``, ``0.5 slope / curvature``, ``c0 - 0.25 slope delta``): the factors
+    2, 0.5 and 0.25 are powers of two, so folding them into ``alpha`` or into the halved slope
+    rounds nothing differently. It runs once per search bucket; on CPU each pass over a
+    bucket's rows costs about as much in dispatch as in arithmetic.
+    """
+    curvature = torch.sub(cm, c0, alpha=2.0).add_(cp)
     # finite and > 0 (NaN fails both comparisons, -inf the first): one test fewer than isfinite
     ok = (curvature > 0) & (curvature < math.inf) & torch.isfinite(c1)
-    safe = torch.where(ok, curvature, 1.0)
-    slope = cm - cp
-    delta = torch.clamp(0.5 * slope / safe, -1.0, 1.0)
-    rho = _gather(grid, j) + delta * step
-    best_cost = torch.where(ok, c0 - 0.25 * slope * delta, math.inf)
+    half_slope = torch.sub(cm, cp).mul_(0.5)
+    delta = torch.div(half_slope, torch.where(ok, curvature, 1.0)).clamp_(-1.0, 1.0)
+    rho = _gather(grid, j).add_(delta * step)
+    best_cost = torch.where(ok, torch.sub(c0, half_slope.mul_(delta), alpha=0.5), math.inf)
     return SearchResult(rho, best_cost, distinct, ok)
 
 
@@ -329,22 +336,44 @@ def search_buckets(config: FilterConfig) -> tuple[tuple[int, int, bool], ...]:
     )
 
 
-def plan_buckets(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterConfig) -> torch.Tensor:
-    """Bucket index (into :func:`search_buckets`) of each search from its interval length in px.
+def bucket_members(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterConfig) -> list[torch.Tensor]:
+    """Rows of each bucket of :func:`search_buckets`, in row order, from each search's interval
+    length in px.
 
     ``span_px``: the interval's length along the epipolar line (for a whole-range search the
     largest epipolar motion at its ends times its length, so no sample step exceeds it);
-    ``fresh``: pixels without an estimate, which always get a distinctiveness test.
+    ``fresh``: pixels without an estimate, which always get a distinctiveness test. The first
+    bucket whose test a row passes takes it (verify, short, medium, else long). Straight from
+    the tests' masks: on CPU a bucket index per row (three ``where`` into int64, then a
+    comparison per bucket) cost about twice these mask operations.
     """
     c = config
     tolerance = 1.0 + 1e-4  # the floor, computed, lands a rounding error above its length
-    off = torch.zeros_like(fresh)
-    verify = (
-        ~fresh & (span_px <= (c.verify_samples - 1) * c.max_step_px * tolerance) if c.verify_samples else off
-    )
-    short = ~fresh & (span_px <= c.short_samples * c.max_step_px)
-    medium = span_px <= (c.medium_samples - 1) * c.max_step_px * tolerance if c.medium_samples else off
-    bucket = torch.full_like(span_px, 3, dtype=torch.long)
-    bucket = torch.where(medium, 2, bucket)
-    bucket = torch.where(short, 1, bucket)
-    return torch.where(verify, 0, bucket)
+    known = ~fresh
+    short = known & (span_px <= c.short_samples * c.max_step_px)
+    if c.verify_samples:
+        verify = known & (span_px <= (c.verify_samples - 1) * c.max_step_px * tolerance)
+        not_verify = ~verify
+        short &= not_verify
+    else:
+        verify = not_verify = None
+    rest = ~short if not_verify is None else ~short & not_verify  # neither verify nor short
+    if c.medium_samples:
+        medium = span_px <= (c.medium_samples - 1) * c.max_step_px * tolerance
+        long = rest & ~medium
+        medium &= rest
+    else:
+        medium, long = None, rest
+    return [
+        true_indices(m) if m is not None else span_px.new_zeros(0, dtype=torch.long)
+        for m in (verify, short, medium, long)
+    ]
+
+
+def plan_buckets(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterConfig) -> torch.Tensor:
+    """Bucket index (into :func:`search_buckets`) of each row: :func:`bucket_members` as one
+    index per row."""
+    bucket = torch.empty_like(span_px, dtype=torch.long)
+    for k, rows in enumerate(bucket_members(span_px, fresh, config)):
+        bucket.index_fill_(0, rows, k)
+    return bucket
