@@ -282,7 +282,17 @@ def main(argv: list[str] | None = None) -> int:
             near = min(client.decisions, key=lambda k: abs(k - key), default=None)
             verdict = client.decisions.get(near) if near is not None and abs(near - key) < 1_000_000 else None
             ratio = fused_err[-1] / single_err[-1]
-            print(json.dumps({'keyframe': t, 'ratio': ratio, 'decision': verdict}))
+            print(
+                json.dumps(
+                    {
+                        'keyframe': t,
+                        'fused_mae_m': round(fused_err[-1], 4),
+                        'single_view_mae_m': round(single_err[-1], 4),
+                        'ratio': ratio,
+                        'decision': verdict,
+                    }
+                )
+            )
         if paired and single_err[-1] > 0:
             ratios.append(round(fused_err[-1] / single_err[-1], 3))
     summary = {
