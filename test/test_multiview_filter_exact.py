@@ -16,9 +16,9 @@ import pytest
 import torch
 
 from depth_fusion_ros.multiview.filter import _lower_median
+from depth_fusion_ros.multiview.filter_buckets import bucket_members, plan_buckets
 from depth_fusion_ros.multiview.filter_config import FilterConfig
 from depth_fusion_ros.multiview.filter_matches import apply_matches, measurement_variance
-from depth_fusion_ros.multiview.filter_search import bucket_members, plan_buckets
 from depth_fusion_ros.multiview.filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
 from depth_fusion_ros.true_indices import true_indices
 

@@ -17,10 +17,11 @@ import torch
 
 from ..true_indices import true_indices
 from .filter_bracket import bracket_seeds
+from .filter_buckets import bucket_members, search_buckets
 from .filter_geometry import FrameGeometry, frame_geometry, grid_rows_in_place, row_motion
 from .filter_keyframe import FilterKeyframe
 from .filter_matches import apply_matches, measurement_variance
-from .filter_search import SearchResult, bucket_members, search_buckets
+from .filter_search import SearchResult
 
 if TYPE_CHECKING:
     from .filter import DepthFilter
