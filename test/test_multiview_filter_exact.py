@@ -18,7 +18,7 @@ import torch
 from depth_fusion_ros.multiview.filter import _lower_median
 from depth_fusion_ros.multiview.filter_buckets import bucket_members, plan_buckets
 from depth_fusion_ros.multiview.filter_config import FilterConfig
-from depth_fusion_ros.multiview.filter_matches import apply_matches, measurement_variance
+from depth_fusion_ros.multiview.filter_matches import Matches, apply_matches, measurement_variance
 from depth_fusion_ros.multiview.filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
 from depth_fusion_ros.true_indices import true_indices
 
@@ -170,7 +170,7 @@ def test_matches_update_only_the_rows_they_change(seed, pose_sigma):
     cost = torch.rand(2500, generator=gen)
     dense, sparse = _copy(key), _copy(key)
     _dense_update(filt, dense, rows, valid, x, j_x, cost, fresh, 0.05)
-    apply_matches(filt, sparse, rows, valid, x, j_x, cost, fresh, 0.05)
+    apply_matches(filt, sparse, Matches(rows, x, j_x, cost, fresh), valid, 0.05)
     changed = 0
     for name in ('mu', 'var', 'a', 'b'):
         got, want = getattr(sparse.state, name), getattr(dense.state, name)

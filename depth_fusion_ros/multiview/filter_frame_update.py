@@ -20,7 +20,7 @@ from .filter_bracket import bracket_seeds
 from .filter_buckets import bucket_members, search_buckets
 from .filter_geometry import FrameGeometry, frame_geometry, grid_rows_in_place, row_motion
 from .filter_keyframe import FilterKeyframe
-from .filter_matches import apply_matches, measurement_variance
+from .filter_matches import Matches, apply_matches, measurement_variance
 from .filter_search import SearchResult
 
 if TYPE_CHECKING:
@@ -95,7 +95,7 @@ def _update_rows(
         valid &= ~bracketed | inside
     valid &= (x >= rho_min) & (x <= rho_max)
     valid &= j_x > 1e-6
-    apply_matches(filt, key, rows, valid, x, j_x, cost, f_r, baseline)
+    apply_matches(filt, key, Matches(rows, x, j_x, cost, f_r), valid, baseline)
     return seen
 
 

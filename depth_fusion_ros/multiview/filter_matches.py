@@ -9,6 +9,7 @@ back to "no estimate". Only the rows that change are read and written.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
@@ -34,20 +35,29 @@ def measurement_variance(
     return tau2 + (rho * (c.pose_sigma / baseline)) ** 2
 
 
+@dataclass
+class Matches:
+    """One frame's searches, per searched keyframe row: the row, the match ``x`` (inverse
+    depth), the epipolar motion ``j_x`` there, the match's cost, and whether the row had no
+    prior (``fresh``)."""
+
+    rows: torch.Tensor
+    x: torch.Tensor
+    j_x: torch.Tensor
+    cost: torch.Tensor
+    fresh: torch.Tensor
+
+    def take(self, index: torch.Tensor) -> Matches:
+        """These searches at ``index`` (into the searched rows) only."""
+        fields = (self.rows, self.x, self.j_x, self.cost, self.fresh)
+        return Matches(*(t.index_select(0, index) for t in fields))
+
+
 def apply_matches(
-    filt: DepthFilter,
-    key: FilterKeyframe,
-    rows: torch.Tensor,
-    valid: torch.Tensor,
-    x: torch.Tensor,
-    j_x: torch.Tensor,
-    cost: torch.Tensor,
-    fresh: torch.Tensor,
-    baseline: float,
+    filt: DepthFilter, key: FilterKeyframe, matches: Matches, valid: torch.Tensor, baseline: float
 ) -> None:
-    """One frame's matches into the keyframe's state, in place: per searched row (``rows``),
-    the match ``x``, its epipolar motion ``j_x`` and cost, whether it is ``valid``, and
-    whether the row had no prior (``fresh``).
+    """One frame's matches into the keyframe's state, in place; ``valid``: which searched
+    rows found a measurement.
 
     Only the rows that change are touched: a valid match updates its row (or gives a row
     without a prior its first measurement), a row with a prior that matched nothing gets an
@@ -57,57 +67,39 @@ def apply_matches(
     about half of the update's passes on CPU, where ``where`` is several times slower than
     arithmetic and the posterior is needed for half of the rows.
     """
-    _measure(filt, key, rows, true_indices(valid), x, j_x, cost, fresh, baseline)
-    _vote(filt, key, rows.index_select(0, true_indices(~fresh & ~valid)))
+    _measure(filt, key, matches.take(true_indices(valid)), baseline)
+    _vote(filt, key, matches.rows.index_select(0, true_indices(~matches.fresh & ~valid)))
 
 
-def _measure(
-    filt: DepthFilter,
-    key: FilterKeyframe,
-    rows: torch.Tensor,
-    measured: torch.Tensor,
-    x: torch.Tensor,
-    j_x: torch.Tensor,
-    cost: torch.Tensor,
-    fresh: torch.Tensor,
-    baseline: float,
-) -> None:
-    """The Gaussian x uniform update of the ``measured`` rows (indices into ``rows``) by their
-    matches ``x``, in place; a row without a prior (``fresh``) takes its first measurement."""
-    if measured.numel() == 0:
+def _measure(filt: DepthFilter, key: FilterKeyframe, m: Matches, baseline: float) -> None:
+    """The Gaussian x uniform update of the rows of ``m`` (all valid matches) in place; a row
+    without a prior takes its first measurement."""
+    if m.rows.numel() == 0:
         return
     c, st = filt.config, key.state
-    at = rows.index_select(0, measured)
-    pick = lambda t: t.index_select(0, measured)  # noqa: E731
-    state = lambda t: t.index_select(0, at)  # noqa: E731
-    x_m = pick(x)
-    tau2 = measurement_variance(c, x_m, pick(j_x), baseline)
+    state = lambda t: t.index_select(0, m.rows)  # noqa: E731
+    tau2 = measurement_variance(c, m.x, m.j_x, baseline)
     prior = BetaGaussian(state(st.mu), state(st.var), state(st.a), state(st.b))
-    post = gaussian_uniform_update(prior, x_m, tau2, filt.rho_range)
+    post = gaussian_uniform_update(prior, m.x, tau2, filt.rho_range)
     mu_n, var_n, a_n, b_n = post.mu, post.var, post.a, post.b
-    fresh_m = pick(fresh)
-    born = true_indices(fresh_m)  # first measurements
+    born = true_indices(m.fresh)  # first measurements
     if born.numel() > 0:
-        mu_n.index_copy_(0, born, x_m.index_select(0, born))
+        mu_n.index_copy_(0, born, m.x.index_select(0, born))
         var_n.index_copy_(0, born, tau2.index_select(0, born))
         a_n.index_fill_(0, born, c.init_a)
         b_n.index_fill_(0, born, c.init_b)
     n_n = state(key.updates).add_(1)
-    prior_n = torch.ones_like(fresh_m)
-    gone = _outliers(filt, a_n, b_n, ~fresh_m)
+    prior_n = torch.ones_like(m.fresh)
+    gone = _outliers(filt, a_n, b_n, ~m.fresh)
     if gone.numel() > 0:
         for value, fill in zip((mu_n, var_n, a_n, b_n, n_n, prior_n), _no_estimate(filt), strict=True):
             value.index_fill_(0, gone, fill)
-    for target, value in (
-        (st.mu, mu_n),
-        (st.var, var_n),
-        (st.a, a_n),
-        (st.b, b_n),
-        (key.updates, n_n),
-        (key.prior, prior_n),
-        (key.cost, pick(cost)),
+    for target, value in zip(
+        (st.mu, st.var, st.a, st.b, key.updates, key.prior, key.cost),
+        (mu_n, var_n, a_n, b_n, n_n, prior_n, m.cost),
+        strict=True,
     ):
-        target.index_copy_(0, at, value)
+        target.index_copy_(0, m.rows, value)
 
 
 def _vote(filt: DepthFilter, key: FilterKeyframe, at: torch.Tensor) -> None:
