@@ -43,6 +43,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..camera import PinholeCamera
+from ..true_indices import true_indices
 from .block_archive import BlockArchive
 from .block_surface import BlockGrid, block_mesh
 from .config import MapConfig
@@ -256,7 +257,7 @@ class TorchTSDF:
         """Rows of the blocks this keyframe touches, allocating (and evicting) as needed."""
         s = self.config.allocation_stride
         ds, ws = d[::s, ::s], w[::s, ::s]
-        vv, uu = torch.nonzero(ws > 0, as_tuple=True)
+        vv, uu = _divmod(true_indices((ws > 0).reshape(-1)), ws.shape[1])
         if vv.numel() == 0:
             return torch.zeros(0, dtype=torch.int64, device=d.device)
         z = ds[vv, uu]
@@ -333,7 +334,7 @@ class TorchTSDF:
         found, tsdf, weight, colour = self.archive.take(coords)
         if tsdf.shape[0] == 0:
             return
-        rows = torch.nonzero(found).squeeze(1).to(self.device) + start
+        rows = true_indices(found).to(self.device) + start
         self.tsdf.index_copy_(0, rows, tsdf.to(self.device))
         self.weight.index_copy_(0, rows, weight.to(self.device))
         self.colour.index_copy_(0, rows, colour.to(self.device))
@@ -375,7 +376,7 @@ class TorchTSDF:
         pix = px_row.mul_(width + 2).add_(px_col)
         obs_w = _bordered(w).index_select(0, pix)
         sdf = _bordered(torch.nan_to_num(d, nan=0.0)).index_select(0, pix).sub_(z)
-        idx = torch.nonzero((obs_w > 0) & (sdf > -self.trunc)).squeeze(1)
+        idx = true_indices((obs_w > 0) & (sdf > -self.trunc))
         if idx.numel() == 0:
             return 0
         wi = obs_w.index_select(0, idx)
@@ -483,6 +484,6 @@ def _distinct(cells: torch.Tensor) -> torch.Tensor:
     linear = (local[:, 0] * ny + local[:, 1]) * nz + local[:, 2]
     marks = torch.zeros(nx * ny * nz, dtype=torch.bool, device=cells.device)
     marks.scatter_(0, linear, True)
-    at = torch.nonzero(marks).squeeze(1)
+    at = true_indices(marks)
     x, rest = torch.div(at, ny * nz, rounding_mode='floor'), at % (ny * nz)
     return torch.stack((x, torch.div(rest, nz, rounding_mode='floor'), rest % nz), dim=-1) + lo
