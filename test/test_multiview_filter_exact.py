@@ -2,9 +2,10 @@
 
 Each shortcut (numpy's index of a mask, bucket membership straight from the interval
 tests, the update of only the rows that change, the scene depth's median by numpy's
-selection) is checked against the plain torch form it replaced, bit for bit, on random
-inputs that reach every branch: empty, all and strided masks; buckets switched off; rows
-that match, fail, are new, and fall below the inlier ratio.
+selection) is checked against the plain torch form it replaced (for the update, the dense
+form the GPU still runs), bit for bit, on random inputs that reach every branch: empty, all
+and strided masks; buckets switched off; rows that match, fail, are new, and fall below the
+inlier ratio.
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ import torch
 from depth_fusion_ros.multiview.filter import _lower_median
 from depth_fusion_ros.multiview.filter_buckets import bucket_members, plan_buckets
 from depth_fusion_ros.multiview.filter_config import FilterConfig
-from depth_fusion_ros.multiview.filter_matches import Matches, apply_matches, measurement_variance
-from depth_fusion_ros.multiview.filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
+from depth_fusion_ros.multiview.filter_matches import Matches, _apply_dense, apply_matches
+from depth_fusion_ros.multiview.filter_update import BetaGaussian
 from depth_fusion_ros.true_indices import true_indices
 
 
@@ -85,55 +86,6 @@ def test_bucket_members_follow_the_where_chain(config):
     assert torch.equal(plan_buckets(span, fresh, config), expected)
 
 
-def _dense_update(filt, key, rows, valid, x, j_x, cost, fresh, baseline):
-    """The update as it was written before 2026-12-02: every searched row's posterior, the
-    valid ones kept with ``where``, the outlier votes and resets, one scatter per field."""
-    c, st = filt.config, key.state
-    rho_min, rho_max = filt.rho_range
-    pick = lambda t: t.index_select(0, rows)  # noqa: E731
-    mu_r, var_r, f_r = pick(st.mu), pick(st.var), fresh
-    seeds = _nonzero(f_r)
-    tau2 = measurement_variance(c, x, j_x, baseline)
-    fail = ~f_r & ~valid
-    a_old, b_old = pick(st.a), pick(st.b)
-    prior = BetaGaussian(mu_r, var_r, a_old, b_old)
-    post = gaussian_uniform_update(prior, x, tau2, filt.rho_range)
-    mu_n = torch.where(valid, post.mu, mu_r)
-    var_n = torch.where(valid, post.var, var_r)
-    a_n = torch.where(valid, post.a, a_old)
-    b_n = torch.where(valid, post.b, outlier_vote(prior, fail).b)
-    born = seeds.masked_select(valid.index_select(0, seeds))
-    if born.numel() > 0:
-        mu_n.index_copy_(0, born, x.index_select(0, born))
-        var_n.index_copy_(0, born, tau2.index_select(0, born))
-        a_n.index_fill_(0, born, c.init_a)
-        b_n.index_fill_(0, born, c.init_b)
-    n_n = pick(key.updates) + valid.long()
-    prior_n = ~f_r | valid
-    gone = _nonzero(~f_r & (a_n / (a_n + b_n) < c.min_inlier_ratio))
-    if gone.numel() > 0:
-        mid, span2 = 0.5 * (rho_min + rho_max), (rho_max - rho_min) ** 2
-        for value, fill in (
-            (mu_n, mid),
-            (var_n, span2),
-            (a_n, c.init_a),
-            (b_n, c.init_b),
-            (n_n, 0),
-            (prior_n, False),
-        ):
-            value.index_fill_(0, gone, fill)
-    for target, value in (
-        (st.mu, mu_n),
-        (st.var, var_n),
-        (st.a, a_n),
-        (st.b, b_n),
-        (key.updates, n_n),
-        (key.prior, prior_n),
-        (key.cost, torch.where(valid, cost, pick(key.cost))),
-    ):
-        target.scatter_(0, rows, value)
-
-
 def _keyframe(m: int, gen: torch.Generator) -> SimpleNamespace:
     prior = torch.rand(m, generator=gen) > 0.3
     # Beta counts near the reset line, so some rows fall below the inlier ratio
@@ -158,6 +110,8 @@ def _copy(key: SimpleNamespace) -> SimpleNamespace:
 @pytest.mark.parametrize('seed', [0, 1, 2])
 @pytest.mark.parametrize('pose_sigma', [0.0, 0.01])
 def test_matches_update_only_the_rows_they_change(seed, pose_sigma):
+    """The CPU's update of only the rows that change against the dense form (every row's
+    posterior kept with ``where``), which the GPU runs and the CPU ran until 2026-12-02."""
     gen = torch.Generator().manual_seed(seed)
     m = 4000
     filt = SimpleNamespace(config=FilterConfig(pose_sigma=pose_sigma), rho_range=(0.1, 5.0))
@@ -169,7 +123,7 @@ def test_matches_update_only_the_rows_they_change(seed, pose_sigma):
     j_x = torch.rand(2500, generator=gen) * 300 + 1
     cost = torch.rand(2500, generator=gen)
     dense, sparse = _copy(key), _copy(key)
-    _dense_update(filt, dense, rows, valid, x, j_x, cost, fresh, 0.05)
+    _apply_dense(filt, dense, Matches(rows, x, j_x, cost, fresh), valid, 0.05)
     apply_matches(filt, sparse, Matches(rows, x, j_x, cost, fresh), valid, 0.05)
     changed = 0
     for name in ('mu', 'var', 'a', 'b'):

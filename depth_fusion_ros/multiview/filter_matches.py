@@ -17,7 +17,7 @@ import torch
 from ..true_indices import true_indices
 from .filter_config import FilterConfig
 from .filter_keyframe import FilterKeyframe
-from .filter_update import BetaGaussian, gaussian_uniform_update
+from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
 
 if TYPE_CHECKING:
     from .filter import DepthFilter
@@ -63,12 +63,56 @@ def apply_matches(
     without a prior its first measurement), a row with a prior that matched nothing gets an
     outlier vote, and a row without a prior that matched nothing is left as it is. The same
     numbers as computing every searched row's posterior and keeping the valid ones with
-    ``where`` (until 2026-12-02; ``test_matches_update_only_the_rows_they_change``), at
-    about half of the update's passes on CPU, where ``where`` is several times slower than
-    arithmetic and the posterior is needed for half of the rows.
+    ``where`` (:func:`_apply_dense`, the form until 2026-12-02 and still the GPU's;
+    ``test_matches_update_only_the_rows_they_change``), at about half of the update's passes
+    on CPU, where ``where`` is several times slower than arithmetic and the posterior is
+    needed for half of the rows.
     """
+    if matches.rows.device.type != 'cpu':
+        # On a GPU the two indices below are two host round trips a frame, which the dense
+        # form does not need and ``where`` is no slower there than arithmetic: kept as it was.
+        _apply_dense(filt, key, matches, valid, baseline)
+        return
     _measure(filt, key, matches.take(true_indices(valid)), baseline)
     _vote(filt, key, matches.rows.index_select(0, true_indices(~matches.fresh & ~valid)))
+
+
+def _apply_dense(
+    filt: DepthFilter, key: FilterKeyframe, matches: Matches, valid: torch.Tensor, baseline: float
+) -> None:
+    """:func:`apply_matches` as it was until 2026-12-02, and still is on a GPU: every searched
+    row's posterior, the valid ones kept with ``where``, the outlier votes and resets, one
+    scatter per field."""
+    c, st = filt.config, key.state
+    rows, x, fresh = matches.rows, matches.x, matches.fresh
+    pick = lambda t: t.index_select(0, rows)  # noqa: E731
+    mu_r, var_r, a_old, b_old = pick(st.mu), pick(st.var), pick(st.a), pick(st.b)
+    tau2 = measurement_variance(c, x, matches.j_x, baseline)
+    prior = BetaGaussian(mu_r, var_r, a_old, b_old)
+    post = gaussian_uniform_update(prior, x, tau2, filt.rho_range)
+    mu_n = torch.where(valid, post.mu, mu_r)
+    var_n = torch.where(valid, post.var, var_r)
+    a_n = torch.where(valid, post.a, a_old)
+    b_n = torch.where(valid, post.b, outlier_vote(prior, ~fresh & ~valid).b)
+    born = true_indices(fresh & valid)  # first measurements
+    if born.numel() > 0:
+        mu_n.index_copy_(0, born, x.index_select(0, born))
+        var_n.index_copy_(0, born, tau2.index_select(0, born))
+        a_n.index_fill_(0, born, c.init_a)
+        b_n.index_fill_(0, born, c.init_b)
+    n_n = pick(key.updates) + valid.long()
+    prior_n = ~fresh | valid
+    gone = _outliers(filt, a_n, b_n, ~fresh)
+    if gone.numel() > 0:
+        for value, fill in zip((mu_n, var_n, a_n, b_n, n_n, prior_n), _no_estimate(filt), strict=True):
+            value.index_fill_(0, gone, fill)
+    cost = torch.where(valid, matches.cost, pick(key.cost))
+    for target, value in zip(
+        (st.mu, st.var, st.a, st.b, key.updates, key.prior, key.cost),
+        (mu_n, var_n, a_n, b_n, n_n, prior_n, cost),
+        strict=True,
+    ):
+        target.scatter_(0, rows, value)
 
 
 def _measure(filt: DepthFilter, key: FilterKeyframe, m: Matches, baseline: float) -> None:
