@@ -43,7 +43,8 @@ def bucket_members(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterCon
     ``fresh``: pixels without an estimate, which always get a distinctiveness test. The first
     bucket whose test a row passes takes it (verify, short, medium, else long). Straight from
     the tests' masks: on CPU a bucket index per row (three ``where`` into int64, then a
-    comparison per bucket) cost about twice these mask operations.
+    comparison and a ``nonzero`` per bucket) cost more (with the indices: 14.5 against 9.4 ms
+    over TUM's 37 frames, ``torch.profiler``, one thread, part of it ``true_indices``' share).
     """
     c = config
     tolerance = 1.0 + 1e-4  # the floor, computed, lands a rounding error above its length
