@@ -8,11 +8,24 @@ the filter.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from .filter_update import BetaGaussian
+
+if TYPE_CHECKING:
+    from .filter import DepthFilter
+
+
+def no_estimate(filt: DepthFilter) -> tuple[float, float, float, float, int, bool]:
+    """Mean, variance, Beta ``a``, ``b``, measurement count and prior flag of a pixel without an
+    estimate: the middle of the inverse-depth range, its whole span as the variance, the prior
+    Beta. A new keyframe's pixels start so (``filter_new_keyframe.fresh_state``) and an estimate
+    that failed too often goes back to it (``filter_matches``)."""
+    lo, hi = filt.rho_range
+    return 0.5 * (lo + hi), (hi - lo) ** 2, filt.config.init_a, filt.config.init_b, 0, False
 
 
 @dataclass

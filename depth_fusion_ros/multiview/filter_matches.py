@@ -16,7 +16,7 @@ import torch
 
 from ..true_indices import true_indices
 from .filter_config import FilterConfig
-from .filter_keyframe import FilterKeyframe
+from .filter_keyframe import FilterKeyframe, no_estimate
 from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
 
 if TYPE_CHECKING:
@@ -103,9 +103,7 @@ def _apply_dense(
     n_n = pick(key.updates) + valid.long()
     prior_n = ~fresh | valid
     gone = _outliers(filt, a_n, b_n, ~fresh)
-    if gone.numel() > 0:
-        for value, fill in zip((mu_n, var_n, a_n, b_n, n_n, prior_n), _no_estimate(filt), strict=True):
-            value.index_fill_(0, gone, fill)
+    _reset(filt, gone, (mu_n, var_n, a_n, b_n, n_n, prior_n))
     cost = torch.where(valid, matches.cost, pick(key.cost))
     for target, value in zip(
         (st.mu, st.var, st.a, st.b, key.updates, key.prior, key.cost),
@@ -135,9 +133,7 @@ def _measure(filt: DepthFilter, key: FilterKeyframe, m: Matches, baseline: float
     n_n = state(key.updates).add_(1)
     prior_n = torch.ones_like(m.fresh)
     gone = _outliers(filt, a_n, b_n, ~m.fresh)
-    if gone.numel() > 0:
-        for value, fill in zip((mu_n, var_n, a_n, b_n, n_n, prior_n), _no_estimate(filt), strict=True):
-            value.index_fill_(0, gone, fill)
+    _reset(filt, gone, (mu_n, var_n, a_n, b_n, n_n, prior_n))
     for target, value in zip(
         (st.mu, st.var, st.a, st.b, key.updates, key.prior, key.cost),
         (mu_n, var_n, a_n, b_n, n_n, prior_n, m.cost),
@@ -155,10 +151,7 @@ def _vote(filt: DepthFilter, key: FilterKeyframe, at: torch.Tensor) -> None:
     b_n = st.b.index_select(0, at).add_(1.0)
     st.b.scatter_(0, at, b_n)
     gone = at.index_select(0, _outliers(filt, st.a.index_select(0, at), b_n))
-    if gone.numel() > 0:
-        targets = (st.mu, st.var, st.a, st.b, key.updates, key.prior)
-        for value, fill in zip(targets, _no_estimate(filt), strict=True):
-            value.index_fill_(0, gone, fill)
+    _reset(filt, gone, (st.mu, st.var, st.a, st.b, key.updates, key.prior))
 
 
 def _outliers(
@@ -170,9 +163,9 @@ def _outliers(
     return true_indices(low if with_prior is None else with_prior & low)
 
 
-def _no_estimate(filt: DepthFilter) -> tuple[float, float, float, float, int, bool]:
-    """Mean, variance, Beta ``a``, ``b``, measurement count and prior flag of a pixel without an
-    estimate (``filter_new_keyframe.fresh_state``'s values)."""
-    rho_min, rho_max = filt.rho_range
-    c = filt.config
-    return 0.5 * (rho_min + rho_max), (rho_max - rho_min) ** 2, c.init_a, c.init_b, 0, False
+def _reset(filt: DepthFilter, gone: torch.Tensor, values: tuple[torch.Tensor, ...]) -> None:
+    """Rows ``gone`` of the mean, variance, ``a``, ``b``, count and prior flag ``values`` back to
+    "no estimate" (``filter_keyframe.no_estimate``), in place."""
+    if gone.numel() > 0:
+        for value, fill in zip(values, no_estimate(filt), strict=True):
+            value.index_fill_(0, gone, fill)

@@ -21,7 +21,7 @@ from ..geometry import relative_pose, rotation_angle
 from ..true_indices import true_indices
 from .descriptors import gaussian_blur
 from .filter_frame_update import update_frame
-from .filter_keyframe import FilterKeyframe
+from .filter_keyframe import FilterKeyframe, no_estimate
 from .filter_propagate import warp_estimates
 from .filter_update import BetaGaussian
 from .filter_window import box_sum
@@ -34,13 +34,11 @@ log = logging.getLogger(__name__)
 
 
 def fresh_state(filt: DepthFilter, m: int) -> tuple[BetaGaussian, torch.Tensor, torch.Tensor]:
-    """The posterior, measurement count and cost of ``m`` pixels without an estimate: the
-    middle of the inverse-depth range, its whole span as the variance, the prior Beta."""
-    lo, hi = filt.rho_range
+    """The posterior, measurement count and cost of ``m`` pixels without an estimate
+    (``filter_keyframe.no_estimate``)."""
+    mu, var, a, b, _, _ = no_estimate(filt)
     full = lambda value: torch.full((m,), float(value), device=filt.device)  # noqa: E731
-    state = BetaGaussian(
-        full(0.5 * (lo + hi)), full((hi - lo) ** 2), full(filt.config.init_a), full(filt.config.init_b)
-    )
+    state = BetaGaussian(full(mu), full(var), full(a), full(b))
     return state, torch.zeros(m, dtype=torch.long, device=filt.device), full(math.nan)
 
 

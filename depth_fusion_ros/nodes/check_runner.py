@@ -85,11 +85,6 @@ class CheckRunner:
         """The pose of ``item`` when it is a sample (``None``: not one): the reference of the next."""
         return None
 
-    def _heavy(self, item: Any) -> bool:
-        """Whether ``item`` costs the thread real work (features, matching), so it waits for
-        the keyframe path first; a pose alone does not."""
-        return True
-
     def _give_way(self, stopping: threading.Event) -> None:
         """Wait while the keyframe path is busy, at most :data:`MAX_YIELD_S`."""
         start = time.monotonic()
@@ -179,7 +174,9 @@ class CheckRunner:
             if item is None or stopping.is_set():
                 return
             try:
-                if self._heavy(item):
+                # A sample costs the thread real work (features, matching), so it waits for the
+                # keyframe path first; a pose alone does not.
+                if self._sample_pose_of(item) is not None:
                     self._give_way(stopping)
                 result = self._feed(check, item)
             finally:

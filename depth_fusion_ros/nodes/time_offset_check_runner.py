@@ -88,9 +88,6 @@ class TimeOffsetCheckRunner(CheckRunner):
     def _sample_pose_of(self, item: tuple[Any, float, Any]) -> Any:
         return item[2] if item[0] is not None else None  # a sample is an item with its grey image
 
-    def _heavy(self, item: tuple[Any, float, Any]) -> bool:
-        return item[0] is not None  # a sample; a pose alone is appended to the history
-
     def _feed(self, check: TimeOffsetCheck, item: tuple[Any, float, Any]) -> TimeOffsetEstimate | None:
         gray, stamp, pose = item
         if gray is None:
