@@ -228,6 +228,11 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             f'{self.resolve_topic_name(self.image_topic)} + {self.resolve_topic_name(TOPIC_POSE)} -> '
             f'{self.resolve_topic_name(TOPIC_DEPTH)}'
         )
+        # Before "ready", not on the first posed frame: every published pose and every image
+        # between two poses goes through scipy's Rotation, whose import (~0.25 s on 2 cores)
+        # otherwise stalled the callbacks there (py-spy of a flat-out run, docs/performance.md).
+        import scipy.spatial.transform  # noqa: F401
+
         self.events.ready()
 
     # --- callbacks (light: decode, check, buffer) ---------------------------------------------------
