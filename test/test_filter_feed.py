@@ -108,6 +108,30 @@ def test_a_rate_cap_passes_over_frames_between_updates_but_never_a_keyframe(smal
     np.testing.assert_array_equal(got.depth, reference.result(seq.frames[4].pose).depth)
 
 
+def test_with_time_to_spare_the_capped_feed_updates_with_every_frame(small_sequence):
+    """``filter.rate_cap_load``: the cap holds only while an update takes longer than that
+    share of a frame interval. With a share no update reaches (100 intervals of a 30 Hz
+    stream), every frame updates the filter and none is passed over; the feed's rule has
+    measured both."""
+    seq = small_sequence
+    drops: list[str] = []
+    feed = FilterFeed(
+        FilterConfig(), MultiViewConfig(), 'cpu', 100, drops.append, max_rate=10.0, rate_cap_load=100.0
+    )
+    try:
+        for frame in seq.frames:
+            frame = type(frame)(frame.index, frame.index / 30.0, frame.rgb, frame.pose)
+            feed.append(frame, seq.camera)
+        deadline = time.monotonic() + 30.0
+        while not feed.idle() and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        feed.close()
+    assert feed.fed == len(seq.frames) and feed.rate_skipped == 0 and drops == []
+    assert not feed.rate.loaded() and feed.rate.update_s > 0
+    assert feed.rate.frame_gap_s == pytest.approx(1 / 30)
+
+
 def test_the_feed_counts_the_filters_jumps_across_restarts(synthetic_sequence):
     """The node's diagnostics count the filter keyframes switched across a jump (the carried
     estimates confirmed again) over the feed's life, also after the filter starts over."""

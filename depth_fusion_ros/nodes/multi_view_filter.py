@@ -322,20 +322,21 @@ class FilterFeed:
                 self._consumed(token)
                 continue
             outcome: FilterResult | Exception | None = None
+            started = time.perf_counter()
             try:
                 if self.filter is None or (self.filter.camera != camera and not self.filter.refocus(camera)):
                     self._retire_filter()
                     self.filter = DepthFilter(camera, self.config, self.matching, self.device)
-                started = time.perf_counter()
                 self.filter.process(frame.gray, frame.pose)
                 self.fed += 1
                 if keyframe:
                     outcome = self.filter.result(frame.pose)
-                self.rate.updated(frame.stamp, time.perf_counter() - started)
             except Exception as exc:  # one bad frame must not end the feed
                 outcome = exc
                 if not keyframe:
                     self._on_error(f'filter frame {frame.stamp:.3f} failed: {type(exc).__name__}: {exc}')
+            # A failed update counts too (as the cap did before): its time was spent.
+            self.rate.updated(frame.stamp, time.perf_counter() - started)
             with self._cond:
                 if keyframe and outcome is not None:
                     self._keep(frame.index, outcome)
