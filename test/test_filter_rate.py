@@ -15,6 +15,7 @@ def _stream(rate: UpdateRate, seconds_per_update: float, frames: int = 60, fps: 
     updated = []
     for i in range(frames):
         stamp = 100.0 + i / fps
+        rate.seen(stamp)
         if not rate.too_soon(stamp):
             rate.updated(stamp, seconds_per_update)
             updated.append(i)
@@ -50,9 +51,23 @@ def test_the_rule_follows_the_load_and_a_new_stream_starts_with_an_update():
     _stream(rate, 0.040, frames=30)  # the same stream, later: the machine got busy
     assert rate.loaded()
     rate.reset()
+    rate.seen(500.0)
     assert not rate.too_soon(500.0)  # the first frame of a new stream is never passed over
     rate.updated(500.0, 0.040)
+    rate.seen(500.0 + 1 / 30)
     assert rate.too_soon(500.0 + 1 / 30)
+
+
+def test_frames_the_feed_skips_still_count_for_the_interval():
+    """A feed that is behind skips frames before the rule sees them; the interval is the
+    stream's (every arrival), not that of the frames the feed reached, so the cap holds."""
+    rate = UpdateRate(max_rate=10.0, load_share=1.0)
+    for i in range(60):
+        stamp = 100.0 + i / 30.0
+        rate.seen(stamp)
+        if i % 3 == 0:  # only every third frame reached the feed
+            rate.updated(stamp, 0.040)
+    assert rate.frame_gap_s == pytest.approx(1 / 30) and rate.loaded()
 
 
 @pytest.mark.parametrize(('max_rate', 'share'), [(-1.0, 0.5), (10.0, -0.1)])

@@ -23,8 +23,13 @@ MAX_GAP_S = 1.0
 
 
 class UpdateRate:
-    """The feed thread's rule: :meth:`too_soon` for a frame that is not a keyframe, then
-    :meth:`updated` after each update it made (its stamp and the seconds it took)."""
+    """The feed's rule: :meth:`seen` for every frame of the stream as it arrives, :meth:`too_soon`
+    for a frame that is not a keyframe, then :meth:`updated` after each update made (its stamp
+    and the seconds it took).
+
+    The frame interval is the stream's, read where frames arrive: frames the feed skips because
+    it is behind (``filter.max_lag_frames``) never reach it, and read there the interval would
+    grow exactly when the feed falls behind, lifting the cap when it is needed most."""
 
     def __init__(self, max_rate: float, load_share: float) -> None:
         if not (max_rate >= 0 and load_share >= 0):
@@ -38,9 +43,9 @@ class UpdateRate:
         self.frame_gap_s: float | None = None
 
     def reset(self) -> None:
-        """A new stream: no last update (its first frame always updates); the timings stay."""
+        """A new stream: no last update (its first frame always updates); the timings stay (a
+        stamp that goes back or jumps is no frame interval: :meth:`seen`)."""
         self._last_update = None
-        self._last_seen = None
 
     def loaded(self) -> bool:
         """An update takes more than ``load_share`` of a frame interval (always, with share 0)."""
@@ -53,7 +58,6 @@ class UpdateRate:
     def too_soon(self, stamp: float) -> bool:
         """Whether a non-keyframe at ``stamp`` is passed over: only while :meth:`loaded`, and
         then when less than ``min_interval`` of stamp time passed since the last update."""
-        self._seen(stamp)
         last = self._last_update
         if self.min_interval <= 0 or last is None or not self.loaded():
             return False
@@ -61,11 +65,11 @@ class UpdateRate:
 
     def updated(self, stamp: float, seconds: float) -> None:
         """The filter updated with the frame at ``stamp`` in ``seconds`` (wall clock)."""
-        self._seen(stamp)
         self._last_update = stamp
         self.update_s = _smooth(self.update_s, max(0.0, seconds))
 
-    def _seen(self, stamp: float) -> None:
+    def seen(self, stamp: float) -> None:
+        """A frame of the stream arrived, stamped ``stamp``: the smoothed frame interval."""
         previous, self._last_seen = self._last_seen, stamp
         if previous is not None and previous < stamp and stamp - previous <= MAX_GAP_S:
             self.frame_gap_s = _smooth(self.frame_gap_s, stamp - previous)

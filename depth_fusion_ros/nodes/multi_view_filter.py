@@ -223,6 +223,7 @@ class FilterFeed:
         estimate; ``token``: handed to ``on_consumed`` when the feed is done with the frame."""
         done: list[int | None] = []
         with self._cond:
+            self.rate.seen(frame.stamp)  # every frame of the stream, skipped ones too
             self._frames.append(_Queued(frame, camera, keyframe, token))
             if self._max_lag > 0 and len(self._frames) > self._max_lag:
                 done += self._skip_behind()
