@@ -13,11 +13,12 @@ import time
 import numpy as np
 import pytest
 import torch
+from bucket_index import plan_buckets
 
 import depth_fusion_ros.multiview.filter as filter_module
 from depth_fusion_ros.multiview.cost_volume import EpipolarRays, sample_cost
 from depth_fusion_ros.multiview.filter import DepthFilter
-from depth_fusion_ros.multiview.filter_buckets import plan_buckets, search_buckets
+from depth_fusion_ros.multiview.filter_buckets import search_buckets
 from depth_fusion_ros.multiview.filter_config import FilterConfig
 from depth_fusion_ros.multiview.filter_search import (
     _distinctiveness,

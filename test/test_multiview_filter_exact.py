@@ -15,9 +15,10 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from bucket_index import plan_buckets
 
 from depth_fusion_ros.multiview.filter import _lower_median
-from depth_fusion_ros.multiview.filter_buckets import bucket_members, plan_buckets
+from depth_fusion_ros.multiview.filter_buckets import bucket_members
 from depth_fusion_ros.multiview.filter_config import FilterConfig
 from depth_fusion_ros.multiview.filter_matches import Matches, _apply_dense, apply_matches
 from depth_fusion_ros.multiview.filter_update import BetaGaussian

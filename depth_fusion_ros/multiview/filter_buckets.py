@@ -67,12 +67,3 @@ def bucket_members(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterCon
         true_indices(m) if m is not None else span_px.new_zeros(0, dtype=torch.long)
         for m in (verify, short, medium, long)
     ]
-
-
-def plan_buckets(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterConfig) -> torch.Tensor:
-    """Bucket index (into :func:`search_buckets`) of each row: :func:`bucket_members` as one
-    index per row."""
-    bucket = torch.empty_like(span_px, dtype=torch.long)
-    for k, rows in enumerate(bucket_members(span_px, fresh, config)):
-        bucket.index_fill_(0, rows, k)
-    return bucket
