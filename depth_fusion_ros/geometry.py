@@ -19,11 +19,20 @@ import numpy as np
 # scipy.spatial is imported where it is used (matrix_to_quat, interpolate_poses): importing it
 # costs about 0.3 s of CPU, and every node process imports this module before it can say
 # ready (issue 13's time to ready); quat_to_matrix, on every pose message, is plain numpy.
+# A node that will call them on its stream loads it once before "ready": load_rotations.
 
 #: Tolerance on ``R^T R - I`` (max abs) above which a rotation is rejected as not orthonormal.
 ORTHONORMAL_TOL = 1e-3
 #: Tolerance on ``| |q| - 1 |`` above which a quaternion is called not normalised.
 QUAT_NORM_TOL = 1e-3
+
+
+def load_rotations() -> None:
+    """Import what :func:`matrix_to_quat` and :func:`interpolate_poses` use, now: a node that
+    calls them on every posed frame does it before it says "ready", so the ~0.25 s import does
+    not stall its callbacks on the stream's first frame (py-spy of a flat-out run,
+    docs/performance.md)."""
+    import scipy.spatial.transform  # noqa: F401
 
 
 class PoseError(ValueError):

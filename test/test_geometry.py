@@ -144,3 +144,18 @@ def test_strided_backprojection_is_the_full_one_sliced():
         assert np.array_equal(cam.backproject(depth, stride), full[::stride, ::stride])
     with pytest.raises(ValueError, match='stride'):
         cam.backproject(depth, 0)
+
+
+def test_scipy_rotations_load_only_when_asked():
+    """Importing geometry leaves scipy.spatial out (a node's time to ready); load_rotations
+    brings it in, as multi_view_node does before it says ready."""
+    import subprocess
+    import sys
+
+    code = (
+        'import sys; import depth_fusion_ros.geometry as g; '
+        "a = 'scipy.spatial.transform' in sys.modules; g.load_rotations(); "
+        "print(a, 'scipy.spatial.transform' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ['False', 'True']

@@ -336,9 +336,9 @@ class FilterFeed:
                 outcome = exc
                 if not keyframe:
                     self._on_error(f'filter frame {frame.stamp:.3f} failed: {type(exc).__name__}: {exc}')
-            # A failed update counts too (as the cap did before): its time was spent.
-            self.rate.updated(frame.stamp, time.perf_counter() - started)
             with self._cond:
+                # A failed update counts too (as the cap did before): its time was spent.
+                self.rate.updated(frame.stamp, time.perf_counter() - started)
                 if keyframe and outcome is not None:
                     self._keep(frame.index, outcome)
                 self._busy = False

@@ -40,7 +40,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
-from ..geometry import invert_pose, rotation_angle, transform_from_parameter
+from ..geometry import invert_pose, load_rotations, rotation_angle, transform_from_parameter
 from ..multiview.mount_check import MountEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
@@ -228,11 +228,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             f'{self.resolve_topic_name(self.image_topic)} + {self.resolve_topic_name(TOPIC_POSE)} -> '
             f'{self.resolve_topic_name(TOPIC_DEPTH)}'
         )
-        # Before "ready", not on the first posed frame: every published pose and every image
-        # between two poses goes through scipy's Rotation, whose import (~0.25 s on 2 cores)
-        # otherwise stalled the callbacks there (py-spy of a flat-out run, docs/performance.md).
-        import scipy.spatial.transform  # noqa: F401
-
+        # Every published pose and every image between two poses goes through them.
+        load_rotations()
         self.events.ready()
 
     # --- callbacks (light: decode, check, buffer) ---------------------------------------------------
