@@ -1,7 +1,8 @@
 """Node graph throughput, latency, drops and memory (``depth-fusion bench --only node_graph``).
 
 Replays the first 100 frames of a sequence (``--sequence DIR``, converted once to a rosbag2
-under ``artifacts/bench/``; a synthetic room when none is given) at the recorded 30 Hz
+under ``artifacts/bench/``; a synthetic room when none is given; ``DEPTH_FUSION_BENCH_GRAPH_FRAMES``
+plays more, so that the start of a stream weighs less in the flat-out rate) at the recorded 30 Hz
 through the whole graph with the nodes' default parameters, in several runs (mode, pacing,
 rate; ``DEPTH_FUSION_BENCH_GRAPH_RUNS``, default ``processes:paced:1,processes:realtime:1,
 composed:paced:1,composed:realtime:1,processes:paced:10``: the last one plays 10x faster than
@@ -13,8 +14,10 @@ it reports:
 
 * time-to-ready of each node (start -> its "ready" line);
 * keyframes the policy chose, fused, and dropped by node and reason (the run's summary);
-* fused keyframes per second of the run (first image sent -> last keyframe fused), and of
-  playback at the recorded rate (fused / recorded seconds);
+* fused keyframes per second of the run (first image sent -> last keyframe fused), of its
+  second half (the keyframes fused after the middle one: the rate once the start of the stream,
+  the kernels' compile and the calibration checks' first samples, is behind), and of playback at
+  the recorded rate (fused / recorded seconds);
 * end-to-end latency per keyframe: input image arrival -> fused depth arrival, both seen by the
   runner's recorder (so it includes DDS transport both ways);
 * peak resident memory (this process when composed; the sum of the node processes' peaks
@@ -55,8 +58,26 @@ DEFAULT_RUNS = (
 )
 MODEL_ENV = 'DEPTH_FUSION_BENCH_MODEL'
 SET_ENV = 'DEPTH_FUSION_BENCH_GRAPH_SET'
-#: Keyframe spacing of the multi-view node's defaults (read from its table at run time).
+FRAMES_ENV = 'DEPTH_FUSION_BENCH_GRAPH_FRAMES'
+#: Frames of the bag a run plays, unless ``DEPTH_FUSION_BENCH_GRAPH_FRAMES`` says otherwise.
 FRAMES = 100
+
+
+def bench_frames(quick: bool) -> int:
+    """Frames of the bag: 30 for ``--quick``, else ``DEPTH_FUSION_BENCH_GRAPH_FRAMES`` (a
+    positive integer; anything else is an error, not a silent 100) or 100."""
+    if quick:
+        return 30
+    raw = os.environ.get(FRAMES_ENV, '').strip()
+    if not raw:
+        return FRAMES
+    try:
+        frames = int(raw)
+    except ValueError:
+        frames = 0
+    if frames < 2:
+        raise ValueError(f'{FRAMES_ENV}: need an integer of at least 2 frames, got {raw!r}')
+    return frames
 
 
 #: What a node's warm line waits for (it processes inputs from its ready line on).
@@ -81,7 +102,7 @@ def bench_bag(opts: BenchOptions) -> tuple[Path, str]:
     """A rosbag2 of the first frames of the benchmark sequence (converted once, cached)."""
     from ..data.rosbag_convert import tum_to_rosbag
 
-    frames = 30 if opts.quick else FRAMES
+    frames = bench_frames(opts.quick)
     BENCH_DIR.mkdir(parents=True, exist_ok=True)
     if opts.sequences:
         src = Path(opts.sequences[0])
@@ -257,6 +278,7 @@ def measure_run(
     result = graph.run()
     result.exit_codes = dict(graph.exit_codes)  # which processes ran: only their logs count
     spans = {'run': run_span(graph.recorder.stamp_logs, TOPIC_IMAGE, TOPIC_FUSED_DEPTH)}
+    later_rate = second_half_rate(graph.recorder.stamp_logs, TOPIC_FUSED_DEPTH)
     images = image_count(bag)
     every = keyframe_every()
     expected = len([i for i in range(images) if i % every == 0 and i > 0])
@@ -320,6 +342,15 @@ def measure_run(
                 f'first image sent -> last keyframe fused: {spans["run"]:.1f} s',
             )
         )
+    if later_rate is not None:
+        rows.append(
+            BenchRow(
+                f'{mode}: fused kf per second of the second half',
+                later_rate[0],
+                'kf/s',
+                f'{later_rate[1]} keyframes fused after the middle one, over {later_rate[2]:.1f} s',
+            )
+        )
     if latencies.size:
         # In stamp order: the first seconds hold the fusion kernel's background compile (~6 s of
         # one core with torch's disk cache) and the adaptation's start; the second half is the
@@ -357,6 +388,21 @@ def run_span(logs: dict, first: str, last: str) -> float:
     starts = [t for t in map(logs[first].arrival, logs[first].stamps()) if t is not None]
     ends = [t for t in map(logs[last].arrival, logs[last].stamps()) if t is not None]
     return max(ends) - min(starts) if starts and ends else 0.0
+
+
+def second_half_rate(logs: dict, topic: str) -> tuple[float, int, float] | None:
+    """Keyframes per second after the middle arrival on ``topic`` (the rate, how many, over how many
+    seconds), or None with fewer than 5 arrivals: the rate the graph keeps once the start of a
+    stream is behind it, which the run's own rate mixes with that start."""
+    if topic not in logs:
+        return None
+    times = sorted(t for t in map(logs[topic].arrival, logs[topic].stamps()) if t is not None)
+    if len(times) < 5:
+        return None
+    middle = len(times) // 2
+    span = times[-1] - times[middle]
+    count = len(times) - 1 - middle
+    return (count / span, count, span) if span > 0 else None
 
 
 def node_latencies(result, log_dir: Path | None) -> dict[str, float]:
