@@ -23,6 +23,7 @@ MOUNT_CHECK_LIMITS: dict[str, Any] = {
     'early_pairs': (0, 10000),
     'threshold_deg': (1e-3, 44.0),
     'max_stderr_deg': (1e-4, 45.0),
+    'min_cost_rise': (0.0, 1.0),
     'min_matches': (8, 100000),
     'features': (50, 100000),
 }
