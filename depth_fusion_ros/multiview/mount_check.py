@@ -30,8 +30,8 @@ is flatter, an error every pair shares moves the fit more than any standard erro
 the synthetic robots driving ahead every match's flow runs 0.03-0.2 px longer than the told
 poses and the true depth give, with ORB's keypoints and with tracked ones alike; the pairs
 agree on it, so neither the sandwich nor the jackknife sees it, and with matches only below a
-high epipole it turned a level camera's fit by 1.8 deg). Along an observed direction the fitted component is kept when it is more than twice its
-standard error from zero, the others are zero. The verdict:
+high epipole it turned a level camera's fit by 1.8 deg). Along an observed direction the fitted
+component is kept when it is more than twice its standard error from zero, the others are zero. The verdict:
 ``disagrees`` when a kept component is at least ``threshold_deg`` beyond twice its standard
 error, ``unobservable`` when no direction is observed, else ``consistent``. Pairs need
 decimetres of baseline (``min_baseline`` 0.1 m): at centimetres a degree moves the matches'
