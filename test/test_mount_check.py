@@ -165,9 +165,9 @@ def test_a_level_camera_is_not_flagged(level):
 def test_a_level_robot_whose_matches_lie_below_a_high_epipole_is_not_turned():
     """The failure this guards against: the level robot of seed 47 sees its matches only in the
     lower image, 110-150 px below the epipole, where a tilt hardly turns an epipolar line (the
-    pairs' cost rises 0.2 % over a 1 deg tilt). Its matches share a bias (their flow runs a
-    fraction of a pixel longer than the poses and depth give); on that flat cost it fitted the
-    camera 1.7 deg tilted, sure at three standard errors after 8 pairs, and the poses were turned:
+    pairs' cost rises 0.2 % over a 1 deg tilt). Its matches share a bias (those at depth edges
+    slide along the flow as the robot approaches); on that flat cost it fitted the camera 1.7 deg
+    tilted, sure at three standard errors after 8 pairs, and the poses were turned:
     the multi-view depth then 2.3x worse. A direction that flat is not read any more."""
     # The first 100 frames (1.5 m) of the 300-frame stream: its speed follows its length.
     cfg = stress_config('mount_tilt', width=320, height=240, frames=300, seed=47, mount_tilt_deg=0.0)
