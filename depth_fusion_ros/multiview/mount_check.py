@@ -30,12 +30,13 @@ is flatter, an error every pair shares moves the fit more than any standard erro
 the synthetic robots driving ahead, the matches at depth edges, corners where an outline
 crosses the background, slide along the flow by 0.3 px as the camera approaches; the pairs
 agree on it, so neither the sandwich nor the jackknife sees it, and with matches only below a
-high epipole it turned a level camera's fit by 1.8 deg). Along an observed direction the fitted
-component is kept when it is more than twice its standard error from zero, the others are zero. The verdict:
-``disagrees`` when a kept component is at least ``threshold_deg`` beyond twice its standard
-error, ``unobservable`` when no direction is observed, else ``consistent``. Pairs need
-decimetres of baseline (``min_baseline`` 0.1 m): at centimetres a degree moves the matches'
-epipolar residuals by hundredths of a pixel on forward motion, and the fit follows noise.
+high epipole it turned a level camera's fit by 1.8 deg). Along an observed direction the
+fitted component is kept when it is more than twice its standard error from zero, the others
+are zero. The verdict: ``disagrees`` when a kept component is at least ``threshold_deg``
+beyond twice its standard error, ``unobservable`` when no direction is observed, else
+``consistent``. Pairs need decimetres of baseline (``min_baseline`` 0.1 m): at centimetres a
+degree moves the matches' epipolar residuals by hundredths of a pixel on forward motion, and
+the fit follows noise.
 """
 
 from __future__ import annotations
@@ -256,7 +257,7 @@ def cost_rises(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray, direction
     unit column of ``directions`` (3, 3): the mean of the turns either way, over the cost at ``v``.
 
     Why a share and not a standard error: the standard errors come from the pairs' scatter, and
-    an error the pairs share (the detector's bias under forward motion) does not scatter. How
+    an error the pairs share (matches at depth edges sliding along the flow) does not scatter. How
     far it moves the fit goes with the inverse of this curvature, so a flat direction is not
     read at all.
     """
