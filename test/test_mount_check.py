@@ -5,7 +5,6 @@ turns the poses when asked and says so in results.json and the report."""
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 
@@ -13,9 +12,7 @@ import numpy as np
 import pytest
 
 from depth_fusion_ros.camera import PinholeCamera
-from depth_fusion_ros.data.sequence import Frame
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
-from depth_fusion_ros.data.synthetic.world import iter_frames
 from depth_fusion_ros.evaluation.context import EvalOptions
 from depth_fusion_ros.evaluation.harness import evaluate_sequence
 from depth_fusion_ros.multiview.image_pairs import MatchedPair, Sample
@@ -171,11 +168,9 @@ def test_a_level_robot_whose_matches_lie_below_a_high_epipole_is_not_turned():
     the multi-view depth then 2.3x worse. A direction that flat is not read any more."""
     # The first 100 frames (1.5 m) of the 300-frame stream: its speed follows its length.
     cfg = stress_config('mount_tilt', width=320, height=240, frames=300, seed=47, mount_tilt_deg=0.0)
-    frames = [
-        Frame(index=i, stamp=cfg.stamp(i), rgb=f.rgb, pose=pose.copy(), depth=f.depth)
-        for i, f, pose in itertools.islice(iter_frames(cfg), 100)
-    ]
-    check = check_frames(cfg.pipeline_camera(), frames, MountCheckConfig())
+    seq = render_sequence(cfg, max_frames=100)
+    assert len(seq.frames) == 100
+    check = check_frames(seq.camera, seq.frames, MountCheckConfig())
     assert len(check.pairs) >= 8  # the early look was taken
     assert check.result is None or check.result.verdict != 'disagrees', check.result.message()
 

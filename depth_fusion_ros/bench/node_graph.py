@@ -383,20 +383,22 @@ def measure_run(
 
 def run_span(logs: dict, first: str, last: str) -> float:
     """Seconds from the first message of ``first`` to the last of ``last`` seen by the recorder."""
-    if first not in logs or last not in logs:
-        return 0.0
-    starts = [t for t in map(logs[first].arrival, logs[first].stamps()) if t is not None]
-    ends = [t for t in map(logs[last].arrival, logs[last].stamps()) if t is not None]
+    starts, ends = arrivals(logs, first), arrivals(logs, last)
     return max(ends) - min(starts) if starts and ends else 0.0
+
+
+def arrivals(logs: dict, topic: str) -> list[float]:
+    """Arrival times (monotonic s) of the messages the recorder saw on ``topic``, sorted."""
+    if topic not in logs:
+        return []
+    return sorted(t for t in map(logs[topic].arrival, logs[topic].stamps()) if t is not None)
 
 
 def second_half_rate(logs: dict, topic: str) -> tuple[float, int, float] | None:
     """Keyframes per second after the middle arrival on ``topic`` (the rate, how many, over how many
     seconds), or None with fewer than 5 arrivals: the rate the graph keeps once the start of a
     stream is behind it, which the run's own rate mixes with that start."""
-    if topic not in logs:
-        return None
-    times = sorted(t for t in map(logs[topic].arrival, logs[topic].stamps()) if t is not None)
+    times = arrivals(logs, topic)
     if len(times) < 5:
         return None
     middle = len(times) // 2

@@ -16,6 +16,7 @@ same config gives bit-identical output, the room does not depend on ``parallax``
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Iterator
 from dataclasses import replace
@@ -255,8 +256,9 @@ def iter_frames(
         yield i, frame, told[i]
 
 
-def render_sequence(cfg: SynthConfig, show_progress: bool = False) -> Sequence:
-    """Render the whole sequence in memory.
+def render_sequence(cfg: SynthConfig, show_progress: bool = False, max_frames: int | None = None) -> Sequence:
+    """Render the whole sequence in memory (its first ``max_frames`` only, when given: the start of
+    a longer stream, whose motion follows ``cfg.frames``).
 
     rgb and ground-truth depth (float32 z-depth in metres, exact at pixel centres, no invalid
     pixels) share the config's size. ``gt_camera`` is the true camera; ``camera`` is what the
@@ -265,9 +267,10 @@ def render_sequence(cfg: SynthConfig, show_progress: bool = False) -> Sequence:
     pose source's own record (:func:`pose_source`).
     """
     scene, trajectory = build_world(cfg)
+    rendered = iter_frames(cfg, scene, trajectory, show_progress=show_progress)
     frames = [
         Frame(index=i, stamp=cfg.stamp(i), rgb=f.rgb, pose=pose.copy(), depth=f.depth)
-        for i, f, pose in iter_frames(cfg, scene, trajectory, show_progress=show_progress)
+        for i, f, pose in itertools.islice(rendered, max_frames)
     ]
     return Sequence(
         name=sequence_name(cfg),
