@@ -352,7 +352,9 @@ class MountCheck(PairedCheck):
         sd = np.sqrt(np.maximum(w, 0.0))
         components = U.T @ v
         observed = sd <= math.radians(c.max_stderr_deg)
-        if c.min_cost_rise > 0:  # a fit that is not finite reads no rise: unobservable below
+        # A verdict read from a given fit and covariance without its pairs has no cost to read:
+        # the standard errors alone decide. A fit that is not finite reads no rise.
+        if c.min_cost_rise > 0 and self.pairs:
             K = np.asarray(self.camera.K, dtype=np.float64)
             observed &= cost_rises(K, self.pairs, v, U) >= c.min_cost_rise
         kept = observed & (np.abs(components) > standard_errors * sd)
