@@ -18,6 +18,8 @@ it reports:
   second half (the keyframes fused after the middle one: the rate once the start of the stream,
   the kernels' compile and the calibration checks' first samples, is behind), and of playback at
   the recorded rate (fused / recorded seconds);
+* CPU milliseconds per fused keyframe of each process over that second half, and the cores
+  they used together (``graph_cpu.py``, Linux): what holds the rate where it is;
 * end-to-end latency per keyframe: input image arrival -> fused depth arrival, both seen by the
   runner's recorder (so it includes DDS transport both ways);
 * peak resident memory (this process when composed; the sum of the node processes' peaks
@@ -41,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from . import BenchOptions, BenchRow, load_note
+from .graph_cpu import CpuSampler
 
 TITLE = 'node graph (replayer -> multi-view + single-view -> fusion, real DDS)'
 
@@ -265,7 +268,13 @@ def measure_run(
     mode = ('processes' if processes else 'composed') + (' real time' if realtime else ' paced')
     mode += f' x{rate:g}' if rate != 1.0 else ''
     sampler = MemorySampler(processes)
-    options = graph_options(opts, bag, processes, on_progress=sampler, progress_period=0.5)
+    cpu = CpuSampler(processes, descendants)
+
+    def on_progress(run) -> None:
+        sampler(run)
+        cpu(run)
+
+    options = graph_options(opts, bag, processes, on_progress=on_progress, progress_period=0.5)
     options.realtime = realtime
     options.rate = rate
     if (
@@ -351,6 +360,7 @@ def measure_run(
                 f'{later_rate[1]} keyframes fused after the middle one, over {later_rate[2]:.1f} s',
             )
         )
+    rows += cpu_rows(mode, cpu, arrivals(graph.recorder.stamp_logs, TOPIC_FUSED_DEPTH))
     if latencies.size:
         # In stamp order: the first seconds hold the fusion kernel's background compile (~6 s of
         # one core with torch's disk cache) and the adaptation's start; the second half is the
@@ -405,6 +415,47 @@ def second_half_rate(logs: dict, topic: str) -> tuple[float, int, float] | None:
     span = times[-1] - times[middle]
     count = len(times) - 1 - middle
     return (count / span, count, span) if span > 0 else None
+
+
+def cpu_rows(mode: str, cpu: CpuSampler, fused: list[float]) -> list[BenchRow]:
+    """CPU milliseconds per fused keyframe of each process over the second half's window (the
+    keyframes fused after the middle one, as "fused kf per second of the second half"), and
+    the cores they used together; none where ``/proc`` gave nothing (not Linux)."""
+    if len(fused) < 5:
+        return []
+    middle = len(fused) // 2
+    start, end, count = fused[middle], fused[-1], len(fused) - 1 - middle
+    used = cpu.window(start, end)
+    if not used or end <= start:
+        return []
+    cores = os.cpu_count() or 1
+    rows = [
+        BenchRow(
+            f'{mode}: CPU per fused keyframe, {name}',
+            1e3 * seconds / count,
+            'ms',
+            f'second half, {seconds / (end - start):.2f} cores' + _child_note(name),
+        )
+        for name, seconds in sorted(used.items(), key=lambda item: -item[1])
+    ]
+    total = sum(used.values())
+    rows.append(
+        BenchRow(
+            f'{mode}: CPU of the second half, all processes',
+            total / (end - start),
+            'cores',
+            f'of {cores}; {1e3 * total / count:.0f} ms per fused keyframe over {count} keyframes',
+        )
+    )
+    return rows
+
+
+def _child_note(name: str) -> str:
+    if not name.endswith(' children'):
+        return ''
+    if name.startswith(('single_view', 'graph')):
+        return "; its child processes: the adaptation's training process, niced, on what the others leave"
+    return '; its child processes'
 
 
 def node_latencies(result, log_dir: Path | None) -> dict[str, float]:

@@ -1,0 +1,95 @@
+"""Where the cores go: CPU time of each node-graph process over the bench's sustained window.
+
+A flat-out run's rate says how fast the graph is, not what holds it there. On 2 cores the
+answer is a budget: each process's CPU seconds per fused keyframe once the start of the stream
+is behind (the window of "fused kf per second of the second half"), and how many of the cores
+they used together. A process that is the limit shows as the largest share; a graph whose
+processes together use less than the cores waits on something else (pacing, a queue).
+
+Read from Linux ``/proc/PID/stat`` (user + system time, in clock ticks, usually 10 ms) each
+time the run reports progress (every 0.5 s), and interpolated to the window's ends. A node's
+own process and its descendants are apart: the single-view node's training process runs at the
+lowest priority (``adaptation.nice``) on what the others leave, so it is no cost to them. Where
+``/proc`` cannot be read (not Linux) every figure is NaN and the bench prints none.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+#: Clock ticks per second of ``/proc/PID/stat``'s times.
+TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
+
+
+def cpu_seconds(pid: int | str = 'self') -> float:
+    """User + system CPU seconds a live process has used (NaN when it cannot be read)."""
+    try:
+        stat = Path(f'/proc/{pid}/stat').read_text()
+    except OSError:
+        return float('nan')
+    # The command name (2nd field) is in parentheses and may hold spaces: count after the last ')'.
+    fields = stat.rsplit(')', 1)[-1].split()
+    try:
+        return (int(fields[11]) + int(fields[12])) / TICKS
+    except (IndexError, ValueError):
+        return float('nan')
+
+
+def children_cpu_seconds(pids: Iterable[int]) -> float:
+    """The live descendants' CPU seconds together (0 with none; one gone meanwhile counts 0)."""
+    return sum(t for t in map(cpu_seconds, pids) if math.isfinite(t))
+
+
+class CpuSampler:
+    """Cumulative CPU seconds per graph process at each progress call, for :meth:`window`.
+
+    ``processes``: the nodes run as processes (each one is read, the runner apart) or composed
+    in this one (the runner is the graph). ``descendants(pid)`` lists a process's children and
+    theirs (``node_graph.descendants``)."""
+
+    def __init__(self, processes: bool, descendants: Callable[[int | str], list[int]]) -> None:
+        self.processes = processes
+        self._descendants = descendants
+        self.samples: list[tuple[float, dict[str, float]]] = []
+
+    def __call__(self, run) -> None:
+        now = time.monotonic()
+        values: dict[str, float] = {}
+        if self.processes:
+            values['runner'] = cpu_seconds()
+            for name, proc in run.processes.items():
+                self._read(values, name.removesuffix('_node'), proc.pid)
+        else:
+            self._read(values, 'graph', 'self')
+        self.samples.append((now, values))
+
+    def _read(self, values: dict[str, float], name: str, pid: int | str) -> None:
+        values[name] = cpu_seconds(pid)
+        kids = self._descendants(pid)
+        if kids:
+            values[f'{name} children'] = children_cpu_seconds(kids)
+
+    def window(self, start: float, end: float) -> dict[str, float]:
+        """CPU seconds each process used from ``start`` to ``end`` (monotonic s), read linearly
+        between the samples around each end; only processes read at both ends and in between."""
+        names = {n for _, values in self.samples for n in values}
+        out = {}
+        for name in sorted(names):
+            series = [(t, v[name]) for t, v in self.samples if math.isfinite(v.get(name, math.nan))]
+            first, last = _at(series, start), _at(series, end)
+            if first is not None and last is not None:
+                out[name] = max(0.0, last - first)
+        return out
+
+
+def _at(series: list[tuple[float, float]], t: float) -> float | None:
+    """The cumulative value at ``t``, linear between the samples around it; None outside them."""
+    for (t0, v0), (t1, v1) in itertools.pairwise(series):
+        if t0 <= t <= t1:
+            return v0 if t1 == t0 else v0 + (v1 - v0) * (t - t0) / (t1 - t0)
+    return None

@@ -1,0 +1,85 @@
+"""The node-graph benchmark's CPU budget: which process the cores go to per fused keyframe. A wrong
+figure would point a user (or us) at the wrong process, so it is checked against known work."""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from types import SimpleNamespace
+
+import pytest
+
+from depth_fusion_ros.bench.graph_cpu import CpuSampler, cpu_seconds
+from depth_fusion_ros.bench.node_graph import cpu_rows, descendants
+
+linux = pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc (Linux)')
+
+
+@linux
+def test_cpu_seconds_counts_this_process_work_and_nothing_for_a_missing_one() -> None:
+    before = cpu_seconds()
+    end = time.process_time() + 0.3
+    while time.process_time() < end:
+        pass
+    after = cpu_seconds()
+    assert after - before == pytest.approx(0.3, abs=0.05)  # 10 ms ticks
+    assert math.isnan(cpu_seconds(2**22 + 12345))  # above any pid_max: no such process
+
+
+def _sampler(samples: list[tuple[float, dict[str, float]]]) -> CpuSampler:
+    cpu = CpuSampler(processes=True, descendants=lambda pid: [])
+    cpu.samples = samples
+    return cpu
+
+
+def test_the_window_reads_each_process_between_the_samples_around_its_ends() -> None:
+    cpu = _sampler(
+        [
+            (0.0, {'fusion': 1.0, 'multi_view': 2.0}),
+            (1.0, {'fusion': 1.5, 'multi_view': 3.0, 'late': 0.0}),
+            (2.0, {'fusion': 2.5, 'multi_view': 3.2, 'late': 0.4}),
+        ]
+    )
+    used = cpu.window(0.5, 1.5)
+    assert used['fusion'] == pytest.approx(2.0 - 1.25)  # 1.25 at 0.5 s, 2.0 at 1.5 s
+    assert used['multi_view'] == pytest.approx(3.1 - 2.5)
+    assert 'late' not in used  # not read at the window's start: no figure rather than a wrong one
+    assert cpu.window(0.5, 2.5) == {}  # past the last sample
+
+
+def test_cpu_rows_give_milliseconds_per_keyframe_and_the_cores_used() -> None:
+    # 10 keyframes after the middle one over 2 s; fusion used 1 s, multi_view 0.6 s.
+    cpu = _sampler([(0.0, {'fusion': 0.0, 'multi_view': 0.0}), (4.0, {'fusion': 2.0, 'multi_view': 1.2})])
+    fused = [0.0] * 11 + [2.0 + 0.2 * k for k in range(11)]  # middle at 2.0, last at 4.0
+    rows = {r.name: r for r in cpu_rows('processes paced', cpu, fused)}
+    assert rows['processes paced: CPU per fused keyframe, fusion'].value == pytest.approx(100.0)
+    assert rows['processes paced: CPU per fused keyframe, multi_view'].value == pytest.approx(60.0)
+    total = rows['processes paced: CPU of the second half, all processes']
+    assert total.value == pytest.approx(0.8) and total.unit == 'cores'
+    assert '160 ms per fused keyframe over 10 keyframes' in total.note
+    assert cpu_rows('processes paced', cpu, fused[:4]) == []  # too few keyframes: no budget
+
+
+@linux
+def test_a_child_process_is_read_apart_from_its_parent() -> None:
+    """The adaptation's training process (a child of the single-view node) is its own line: it
+    runs niced on what the nodes leave, so it must not be charged to the node."""
+    child = os.fork()
+    if child == 0:  # pragma: no cover - the child burns CPU until killed
+        while True:
+            pass
+    try:
+        cpu = CpuSampler(processes=True, descendants=descendants)
+        run = SimpleNamespace(processes={'single_view_node': SimpleNamespace(pid=os.getpid())})
+        cpu(run)
+        time.sleep(0.5)
+        cpu(run)
+        times = [t for t, _ in cpu.samples]
+        used = cpu.window(times[0], times[-1])
+        assert used['single_view children'] >= 0.2  # the busy child
+        assert used['single_view'] < used['single_view children']  # this process slept
+    finally:
+        os.kill(child, 9)
+        os.waitpid(child, 0)
