@@ -176,3 +176,22 @@ def test_the_training_process_imports_the_package_the_node_runs():
 
     first = _child_environment()['PYTHONPATH'].split(os.pathsep)[0]
     assert first == str(Path(depth_fusion_ros.__file__).resolve().parents[1])
+
+
+@pytest.mark.skipif(not hasattr(os, 'SCHED_IDLE'), reason='SCHED_IDLE is Linux only')
+def test_an_idle_training_process_runs_under_sched_idle_and_a_plain_one_does_not(tiny_model, small_sequence):
+    """``adaptation.idle_policy``: the child sets its own policy before it imports torch; the
+    node's process keeps its own (only the trainer yields the cores)."""
+    idle = RemoteAdapter(tiny_model, AdaptConfig(**CONFIG), nice=0, idle=True)
+    plain = RemoteAdapter(tiny_model, AdaptConfig(**CONFIG), nice=0)
+    try:
+        idle.warm_up()
+        plain.warm_up()
+        assert os.sched_getscheduler(idle.pid) == os.SCHED_IDLE
+        assert os.sched_getscheduler(plain.pid) == os.SCHED_OTHER
+        assert os.sched_getscheduler(0) == os.SCHED_OTHER
+        report = idle.observe(_gt_sample(small_sequence, 0, scale=1.3))  # it still trains
+        assert (report.status, report.version) == ('updated', 1), report
+    finally:
+        idle.close()
+        plain.close()

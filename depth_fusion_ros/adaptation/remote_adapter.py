@@ -62,6 +62,7 @@ class RemoteAdapter:
         device: str | torch.device = 'cpu',
         nice: int = 10,
         threads: int | None = None,
+        idle: bool = False,
     ):
         self.config = config or AdaptConfig()
         self.config.validate()
@@ -76,6 +77,8 @@ class RemoteAdapter:
         self.counters = AdapterCounters()
         self.version = 0
         self.nice = int(nice)
+        #: Whether the process was asked to run under ``SCHED_IDLE`` (trainer_process.idle_policy).
+        self.idle = bool(idle)
         self._error: str | None = None
         self._ready = False
         self._closing = False
@@ -89,6 +92,7 @@ class RemoteAdapter:
                 str(theirs.fileno()),
                 str(self.nice),
                 str(n_threads),
+                str(int(self.idle)),
             ],
             pass_fds=(theirs.fileno(),),
             env=_child_environment(),

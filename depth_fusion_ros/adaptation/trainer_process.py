@@ -8,10 +8,11 @@ adaptation on, 14-19 with it off, though training used under a tenth of the CPU)
 has its own interpreter: its niceness then only says who gets the CPU, and its imports (1.7 s
 of ``torch._dynamo`` for the optimiser) hold up nobody.
 
-Started as ``python -m depth_fusion_ros.adaptation.trainer_process FD NICE THREADS`` (not by
+Started as ``python -m depth_fusion_ros.adaptation.trainer_process FD NICE THREADS IDLE`` (not by
 ``multiprocessing``, whose spawn re-imports the parent's main script: a node's, with rclpy
 and torch, before the child could lower its priority). So this module imports only the
-standard library at the top, and the child is niced before it imports torch.
+standard library at the top, and the child is niced (and, with IDLE 1, put under
+``SCHED_IDLE``: :func:`idle_policy`) before it imports torch.
 
 Protocol over the connection on ``FD`` (``multiprocessing.connection``: pickled tuples), one
 request at a time:
@@ -85,14 +86,35 @@ def lower_priority(nice: int) -> None:
             os.nice(nice)
 
 
+def idle_policy() -> str:
+    """Run this process under ``SCHED_IDLE`` (Linux): only on a core that no other task wants,
+    and a waking task of any node takes the core from it at once. Returns '' or why it could
+    not (another system, a kernel that refuses).
+
+    Why, besides the niceness: under the EEVDF scheduler (Linux 6.6 and later) a niced process
+    that runs keeps its core for its time slice when a node's thread wakes; the graph's
+    keyframes pass through many such wake-ups (DDS messages, worker queues), and on 2 cores a
+    niced trainer took the graph from 7.4-7.9 to 6.4-7.0 keyframes/s flat out, a niced CPU
+    spinner alike (docs/performance.md, "The training process at idle priority")."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError) as exc:
+        return f'{type(exc).__name__}: {exc}'
+    return ''
+
+
 def main(argv: list[str]) -> int:
-    fd, nice, threads = (int(a) for a in argv)
+    fd, nice, threads, idle = (int(a) for a in argv)
     lower_priority(nice)
+    not_idle = idle_policy() if idle else ''
     # The adapter's warnings (a rolled-back update) reach the node's terminal, named as this
     # process's; the node counts and logs each report itself as well.
     logging.basicConfig(
         level=logging.WARNING, format=f'[adaptation trainer {os.getpid()}] %(levelname)s %(message)s'
     )
+    if not_idle:
+        log = logging.getLogger(__name__)
+        log.warning('SCHED_IDLE not set (%s): training at nice +%d only', not_idle, nice)
     # Ctrl+C or a SIGTERM to the process group is the parent's to handle: it stops this child
     # (and the update in hand) as it shuts down, and a parent that dies closes the pipe.
     signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -103,6 +103,14 @@ ADAPTATION_PARAMETERS: tuple[ParamSpec, ...] = (
         19,
     ),
     ParamSpec(
+        'adaptation.idle_policy',
+        True,
+        'Linux: run the training process under SCHED_IDLE, only on a core no node wants, given up '
+        "at once when a node's thread wakes (a niceness alone lets it keep the core for its time slice "
+        'under the EEVDF scheduler of Linux 6.6+); the training process only: with adaptation.process '
+        'false the thread keeps adaptation.nice (a warning says so)',
+    ),
+    ParamSpec(
         'adaptation.neighbours',
         2,
         'previous posed keyframes warped into each keyframe for the photometric term (0: sparse term only)',
@@ -158,9 +166,16 @@ class NodeAdaptation:
         #: Where the adapted weights go (``$ROS_HOME`` expanded once), ``None`` for ''.
         self.checkpoint: Path | None = expand_ros_home(given) if given else None
         nice = int(p['adaptation.nice'])
+        idle = bool(p['adaptation.idle_policy']) and bool(p['adaptation.process'])
+        if bool(p['adaptation.idle_policy']) and not idle:
+            node.get_logger().warning(
+                'adaptation.idle_policy applies to the training process only (adaptation.process is '
+                "false): a SCHED_IDLE thread would hold this node's GIL while it waits for a core; the "
+                f'thread trains at nice +{nice}'
+            )
         #: The training process (``adaptation.process``), else None: training on the thread.
         self.remote = (
-            RemoteAdapter(str(p['model']), self.config, str(p['device']), nice=nice)
+            RemoteAdapter(str(p['model']), self.config, str(p['device']), nice=nice, idle=idle)
             if bool(p['adaptation.process'])
             else None
         )
@@ -200,7 +215,7 @@ class NodeAdaptation:
 
         self.service = node.create_service(Trigger, SERVICE_SAVE, self._on_save)
         where = f'in training process {self.remote.pid}' if self.remote else 'on a training thread'
-        where += f' at nice +{nice}'
+        where += f' at nice +{nice}' + (' under SCHED_IDLE' if idle else '')
         node.get_logger().info(
             f'adapting {self.adapter.name} online {where}: lr {self.config.lr:g}, '
             f'{self.config.steps_per_keyframe} steps/keyframe, replay {self.config.replay_per_step} of '
