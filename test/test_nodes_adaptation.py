@@ -3,7 +3,9 @@ swap in, ~/save_model writes a checkpoint that loads, adapt false is bit-identic
 
 from __future__ import annotations
 
+import os
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -351,3 +353,21 @@ def test_a_run_that_learnt_nothing_leaves_the_earlier_checkpoint_as_it_was(tiny_
     # model: takes the same string, $ROS_HOME and all, and adapt: auto sees one of our networks
     assert load_predictor(DEFAULT_CHECKPOINT).predict(np.zeros((120, 160, 3), np.uint8)).shape == (120, 160)
     assert is_own_network(DEFAULT_CHECKPOINT)
+
+
+@pytest.mark.skipif(not hasattr(os, 'SCHED_IDLE'), reason='SCHED_IDLE is Linux only')
+def test_the_nodes_training_process_runs_under_sched_idle_unless_told_otherwise(tiny_model):
+    """``adaptation.idle_policy`` (default true) reaches the training process; false leaves it
+    at its niceness alone (docs/adaptation.md)."""
+    for given, policy in ((None, os.SCHED_IDLE), (False, os.SCHED_OTHER)):
+        extra = {} if given is None else {'adaptation.idle_policy': given}
+        with RosHarness() as ros:
+            params = _params(tiny_model, **extra)
+            node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=params))
+            remote = node.adaptation.remote
+            assert remote is not None and remote.idle is (given is None)
+            deadline = time.monotonic() + 30.0  # the child sets it first thing, before torch
+            while os.sched_getscheduler(remote.pid) != policy and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert os.sched_getscheduler(remote.pid) == policy
+            assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the node itself is not idled
