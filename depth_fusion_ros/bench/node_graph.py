@@ -19,7 +19,7 @@ it reports:
   the kernels' compile and the calibration checks' first samples, is behind), and of playback at
   the recorded rate (fused / recorded seconds);
 * CPU milliseconds per fused keyframe of each process over that second half, and the cores
-  they used together (``graph_cpu.py``, Linux): what holds the rate where it is;
+  they used together (``cpu_budget.py``, Linux): what holds the rate where it is;
 * end-to-end latency per keyframe: input image arrival -> fused depth arrival, both seen by the
   runner's recorder (so it includes DDS transport both ways);
 * peak resident memory (this process when composed; the sum of the node processes' peaks
@@ -42,8 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cpu_budget import CHILDREN, CpuSampler, descendants
 from . import BenchOptions, BenchRow, load_note
-from .graph_cpu import CpuSampler
 
 TITLE = 'node graph (replayer -> multi-view + single-view -> fusion, real DDS)'
 
@@ -173,22 +173,6 @@ def image_count(bag: Path) -> int:
         return sum(c.msgcount for c in reader.connections if c.topic == TOPIC_IMAGE)
     finally:
         reader.close()
-
-
-def descendants(pid: int | str = 'self') -> list[int]:
-    """Every process below ``pid`` (Linux ``/proc/PID/task/*/children``): the adaptation's
-    training process and a kernel builder belong to the graph's memory too."""
-    found: list[int] = []
-    stack = [pid]
-    while stack:
-        for task in Path(f'/proc/{stack.pop()}/task').glob('*'):
-            try:
-                kids = [int(k) for k in (task / 'children').read_text().split()]
-            except (OSError, ValueError):
-                continue
-            found += kids
-            stack += kids
-    return found
 
 
 def tree_mb(pid: int | str = 'self', field: str = 'VmRSS') -> float:
@@ -451,11 +435,9 @@ def cpu_rows(mode: str, cpu: CpuSampler, fused: list[float]) -> list[BenchRow]:
 
 
 def _child_note(name: str) -> str:
-    if not name.endswith(' children'):
-        return ''
-    if name.startswith(('single_view', 'graph')):
-        return "; its child processes: the adaptation's training process, niced, on what the others leave"
-    return '; its child processes'
+    if name.endswith(CHILDREN) and name.startswith(('single_view', 'graph')):
+        return "; the adaptation's training process, at idle priority: what the others leave"
+    return ''
 
 
 def node_latencies(result, log_dir: Path | None) -> dict[str, float]:

@@ -72,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
         print(f'\n{name}: {seq["frames"]} keyframes\n')
         print(metrics_table(seq['methods']))
     print(f'\nnode graph: {demo["graph_summary"]}; steps (s): {demo["step_seconds"]}')
+    if demo.get('cpu_budget'):
+        print(demo['cpu_budget'])
     out = Path(args.out).resolve()
     print(f'\nreport:  {out / "report.md"}\nresults: {out / "results.json"}\nfigures: {out}/*.png')
     if 'map_ply' in demo:

@@ -1,5 +1,6 @@
-"""The node-graph benchmark's CPU budget: which process the cores go to per fused keyframe. A wrong
-figure would point a user (or us) at the wrong process, so it is checked against known work."""
+"""The node graph's CPU budget (``cpu_budget.py``: the bench's rows and ``depth-fusion run``'s line):
+which process the cores go to per fused keyframe. A wrong figure would point a user (or us) at
+the wrong process, so it is checked against known work."""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from depth_fusion_ros.bench.graph_cpu import CpuSampler, cpu_seconds
 from depth_fusion_ros.bench.node_graph import cpu_rows, descendants
+from depth_fusion_ros.cpu_budget import CpuSampler, budget_line, cpu_seconds
 
 linux = pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc (Linux)')
 
@@ -78,8 +79,28 @@ def test_a_child_process_is_read_apart_from_its_parent() -> None:
         cpu(run)
         times = [t for t, _ in cpu.samples]
         used = cpu.window(times[0], times[-1])
-        assert used['single_view children'] >= 0.2  # the busy child
-        assert used['single_view'] < used['single_view children']  # this process slept
+        assert used["single_view's child processes"] >= 0.2  # the busy child
+        assert used['single_view'] < used["single_view's child processes"]  # this process slept
     finally:
         os.kill(child, 9)
         os.waitpid(child, 0)
+
+
+def test_the_run_summary_line_divides_the_whole_playback_by_the_keyframes_fused() -> None:
+    """``depth-fusion run`` prints this after its summary: no line rather than a wrong one."""
+    cpu = _sampler([(10.0, {'fusion': 1.0, 'runner': 0.5}), (14.0, {'fusion': 2.6, 'runner': 0.9})])
+    line = budget_line(cpu, fused=20, cores=2)
+    want = 'CPU a fused keyframe over the 4 s of playback: fusion 80 ms, runner 20 ms; 0.50 of 2 cores'
+    assert line == want
+    assert budget_line(cpu, fused=0) is None  # nothing fused: nothing to divide by
+    assert budget_line(_sampler(cpu.samples[:1]), fused=20) is None  # one sample is no span
+    assert budget_line(_sampler([(0.0, {}), (4.0, {})]), fused=20) is None  # /proc gave nothing
+
+
+def test_the_run_line_names_the_training_process_as_idle() -> None:
+    """The training process often uses more CPU than a node (it takes what the nodes leave):
+    the line says it runs at idle priority, so nobody reads it as the graph's limit."""
+    child = "single_view's child processes"
+    cpu = _sampler([(0.0, {'multi_view': 0.0, child: 0.0}), (2.0, {'multi_view': 0.6, child: 1.0})])
+    line = budget_line(cpu, fused=10, cores=2)
+    assert f'{child} (the training, at idle priority) 100 ms, multi_view 60 ms; 0.80 of 2 cores' in line

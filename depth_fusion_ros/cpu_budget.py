@@ -1,16 +1,18 @@
-"""Where the cores go: CPU time of each node-graph process over the bench's sustained window.
+"""Where the cores go: CPU time of each node-graph process per fused keyframe.
 
-A flat-out run's rate says how fast the graph is, not what holds it there. On 2 cores the
-answer is a budget: each process's CPU seconds per fused keyframe once the start of the stream
-is behind (the window of "fused kf per second of the second half"), and how many of the cores
+A run's rate says how fast the graph is, not what holds it there. On a small machine the
+answer is a budget: each process's CPU seconds per fused keyframe, and how many of the cores
 they used together. A process that is the limit shows as the largest share; a graph whose
 processes together use less than the cores waits on something else (pacing, a queue).
+``depth-fusion bench`` reads it over the second half of a run (the window of "fused kf per
+second of the second half"); ``depth-fusion run`` prints it for the whole playback
+(:func:`budget_line`).
 
 Read from Linux ``/proc/PID/stat`` (user + system time, in clock ticks, usually 10 ms) each
-time the run reports progress (every 0.5 s), and interpolated to the window's ends. A node's
-own process and its descendants are apart: the single-view node's training process runs at the
-lowest priority (``adaptation.nice``) on what the others leave, so it is no cost to them. Where
-``/proc`` cannot be read (not Linux) every figure is NaN and the bench prints none.
+time the run reports progress, and interpolated to the window's ends. A node's own process and
+its descendants are apart: the single-view node's training process runs at idle priority
+(``adaptation.idle_policy``) on what the others leave. Where ``/proc`` cannot be read (not
+Linux) there are no figures, and nothing is printed.
 """
 
 from __future__ import annotations
@@ -22,8 +24,29 @@ import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+#: How a process's descendants are named: after it, with this (the single-view node's are its
+#: training process).
+CHILDREN = "'s child processes"
+#: Said of them in ``depth-fusion run``'s line: the adaptation's training process, the usual one.
+_TRAINING = ' (the training, at idle priority)'
 #: Clock ticks per second of ``/proc/PID/stat``'s times.
 TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
+
+
+def descendants(pid: int | str = 'self') -> list[int]:
+    """Every process below ``pid`` (Linux ``/proc/PID/task/*/children``): the adaptation's
+    training process and a kernel builder belong to the graph's memory and CPU too."""
+    found: list[int] = []
+    stack = [pid]
+    while stack:
+        for task in Path(f'/proc/{stack.pop()}/task').glob('*'):
+            try:
+                kids = [int(k) for k in (task / 'children').read_text().split()]
+            except (OSError, ValueError):
+                continue
+            found += kids
+            stack += kids
+    return found
 
 
 def cpu_seconds(pid: int | str = 'self') -> float:
@@ -50,7 +73,7 @@ class CpuSampler:
 
     ``processes``: the nodes run as processes (each one is read, the runner apart) or composed
     in this one (the runner is the graph). ``descendants(pid)`` lists a process's children and
-    theirs (``node_graph.descendants``)."""
+    theirs (:func:`descendants`)."""
 
     def __init__(self, processes: bool, descendants: Callable[[int | str], list[int]]) -> None:
         self.processes = processes
@@ -72,7 +95,7 @@ class CpuSampler:
         values[name] = cpu_seconds(pid)
         kids = self._descendants(pid)
         if kids:
-            values[f'{name} children'] = children_cpu_seconds(kids)
+            values[f'{name}{CHILDREN}'] = children_cpu_seconds(kids)
 
     def window(self, start: float, end: float) -> dict[str, float]:
         """CPU seconds each process used from ``start`` to ``end`` (monotonic s), read linearly
@@ -93,3 +116,24 @@ def _at(series: list[tuple[float, float]], t: float) -> float | None:
         if t0 <= t <= t1:
             return v0 if t1 == t0 else v0 + (v1 - v0) * (t - t0) / (t1 - t0)
     return None
+
+
+def budget_line(cpu: CpuSampler, fused: int, cores: int | None = None) -> str | None:
+    """``CPU a fused keyframe: fusion 81 ms, multi_view 75 ms, ...; 1.93 of 2 cores`` over the
+    samples' whole span (the playback), or None without figures (not Linux, no keyframe fused,
+    fewer than two samples)."""
+    if fused <= 0 or len(cpu.samples) < 2:
+        return None
+    start, end = cpu.samples[0][0], cpu.samples[-1][0]
+    used = cpu.window(start, end)
+    if not used or end <= start:
+        return None
+    parts = [
+        f'{name}{_TRAINING if name.endswith(CHILDREN) else ""} {1e3 * seconds / fused:.0f} ms'
+        for name, seconds in sorted(used.items(), key=lambda item: -item[1])
+    ]
+    cores = cores or os.cpu_count() or 1
+    return (
+        f'CPU a fused keyframe over the {end - start:.0f} s of playback: {", ".join(parts)}; '
+        f'{sum(used.values()) / (end - start):.2f} of {cores} cores'
+    )
