@@ -27,10 +27,17 @@ from pathlib import Path
 #: How a process's descendants are named: after it, with this (the single-view node's are its
 #: training process).
 CHILDREN = "'s child processes"
-#: Said of them in ``depth-fusion run``'s line: the adaptation's training process, the usual one.
-_TRAINING = ' (the training, at idle priority)'
+#: Said of the training process in ``depth-fusion run``'s line.
+TRAINING = ' (the training, at idle priority)'
 #: Clock ticks per second of ``/proc/PID/stat``'s times.
 TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
+
+
+def is_training(name: str) -> bool:
+    """Whether a budget line is the adaptation's training process: the child processes of the
+    single-view node, or composed, of the graph's one process (a kernel builder too, while one
+    runs). It runs at idle priority, so its CPU is what the nodes left, not their cost."""
+    return name.endswith(CHILDREN) and name.startswith(('single_view', 'graph'))
 
 
 def descendants(pid: int | str = 'self') -> list[int]:
@@ -129,7 +136,7 @@ def budget_line(cpu: CpuSampler, fused: int, cores: int | None = None) -> str | 
     if not used or end <= start:
         return None
     parts = [
-        f'{name}{_TRAINING if name.endswith(CHILDREN) else ""} {1e3 * seconds / fused:.0f} ms'
+        f'{name}{TRAINING if is_training(name) else ""} {1e3 * seconds / fused:.0f} ms'
         for name, seconds in sorted(used.items(), key=lambda item: -item[1])
     ]
     cores = cores or os.cpu_count() or 1

@@ -104,3 +104,10 @@ def test_the_run_line_names_the_training_process_as_idle() -> None:
     cpu = _sampler([(0.0, {'multi_view': 0.0, child: 0.0}), (2.0, {'multi_view': 0.6, child: 1.0})])
     line = budget_line(cpu, fused=10, cores=2)
     assert f'{child} (the training, at idle priority) 100 ms, multi_view 60 ms; 0.80 of 2 cores' in line
+
+
+def test_only_the_single_view_nodes_children_are_called_the_training() -> None:
+    """A kernel builder below the fusion node is not the training: no label it does not earn."""
+    child = "fusion's child processes"
+    cpu = _sampler([(0.0, {child: 0.0}), (2.0, {child: 0.5})])
+    assert budget_line(cpu, fused=10, cores=2).endswith(f'{child} 50 ms; 0.25 of 2 cores')

@@ -93,9 +93,11 @@ def idle_policy() -> str:
 
     Why, besides the niceness: under the EEVDF scheduler (Linux 6.6 and later) a niced process
     that runs keeps its core for its time slice when a node's thread wakes; the graph's
-    keyframes pass through many such wake-ups (DDS messages, worker queues), and on 2 cores a
-    niced trainer took the graph from 7.4-7.9 to 6.4-7.0 keyframes/s flat out, a niced CPU
-    spinner alike (docs/performance.md, "The training process at idle priority")."""
+    keyframes pass through many such wake-ups (DDS messages, worker queues). On 2 cores the
+    graph fused 7.50 keyframes/s flat out beside a trainer at nice +10 and 7.96 beside one
+    under SCHED_IDLE (means of eleven alternated pairs), and a niced process that only spins
+    slowed it as much (docs/performance.md, "Where the cores go, and the training process at
+    idle priority")."""
     try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (AttributeError, OSError) as exc:

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cpu_budget import CHILDREN, CpuSampler, descendants
+from ..cpu_budget import CpuSampler, descendants, is_training
 from . import BenchOptions, BenchRow, load_note
 
 TITLE = 'node graph (replayer -> multi-view + single-view -> fusion, real DDS)'
@@ -435,9 +435,11 @@ def cpu_rows(mode: str, cpu: CpuSampler, fused: list[float]) -> list[BenchRow]:
 
 
 def _child_note(name: str) -> str:
-    if name.endswith(CHILDREN) and name.startswith(('single_view', 'graph')):
-        return "; the adaptation's training process, at idle priority: what the others leave"
-    return ''
+    return (
+        "; the adaptation's training process, at idle priority: what the others leave"
+        if is_training(name)
+        else ''
+    )
 
 
 def node_latencies(result, log_dir: Path | None) -> dict[str, float]:
