@@ -79,12 +79,12 @@ class CpuSampler:
     """Cumulative CPU seconds per graph process at each progress call, for :meth:`window`.
 
     ``processes``: the nodes run as processes (each one is read, the runner apart) or composed
-    in this one (the runner is the graph). ``descendants(pid)`` lists a process's children and
-    theirs (:func:`descendants`)."""
+    in this one (the runner is the graph). ``children(pid)`` lists a process's children and
+    theirs (default :func:`descendants`; a test passes its own)."""
 
-    def __init__(self, processes: bool, descendants: Callable[[int | str], list[int]]) -> None:
+    def __init__(self, processes: bool, children: Callable[[int | str], list[int]] | None = None) -> None:
         self.processes = processes
-        self._descendants = descendants
+        self._descendants = children or descendants
         self.samples: list[tuple[float, dict[str, float]]] = []
 
     def __call__(self, run) -> None:

@@ -68,14 +68,13 @@ def prepare_sequence(opts: DemoOptions, work: Path) -> Path:
 
 def run_demo(opts: DemoOptions) -> dict[str, Any]:
     """Run every step; returns the results document (also written to ``opts.out``)."""
-    from .cpu_budget import CpuSampler, budget_line, descendants
     from .data.rosbag_convert import convert
     from .data.staging import staging_folder
     from .data.tum import load_tum_sequence
     from .evaluation.context import EvalOptions
     from .evaluation.harness import evaluate_sequence, results_document, write_outputs
     from .nodes.graph import RunOptions, run_graph
-    from .nodes.graph.summary import drop_reasons, fused_chosen, keyframe_summary
+    from .nodes.graph.summary import drop_reasons, keyframe_summary
 
     out = Path(opts.out)
     work = out / 'work'
@@ -97,7 +96,6 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     record = work / 'graph_output'
     shutil.rmtree(record, ignore_errors=True)
     shutil.rmtree(staging_folder(record), ignore_errors=True)  # an earlier demo's, if it failed
-    cpu = CpuSampler(opts.processes, descendants)
     run = run_graph(
         RunOptions(
             bag=bag,
@@ -108,7 +106,6 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
             single_view_model=opts.single_view,
             # Paced (the default): the replayer waits while the graph is busy, so a slow
             # machine fuses every keyframe the policy chooses and the report scores them all.
-            on_progress=cpu,
         )
     )
     _step(opts, 'node_graph', t0)
@@ -143,7 +140,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         'graph_summary': keyframe_summary(run, 'processes' if opts.processes else 'composed'),
         'keyframes_lost': {str(k): v for k, v in run.missing.items()},
         'graph_seconds': round(run.seconds, 2),
-        'cpu_budget': budget_line(cpu, fused_chosen(run)),
+        'cpu_budget': run.cpu_budget,
         'step_seconds': dict(opts.timings),
     }
     map_ply = _write_map(result, out)

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from depth_fusion_ros.bench.node_graph import cpu_rows, descendants
+from depth_fusion_ros.bench.node_graph import cpu_rows, descendants, second_half
 from depth_fusion_ros.cpu_budget import CpuSampler, budget_line, cpu_seconds
 
 linux = pytest.mark.skipif(not sys.platform.startswith('linux'), reason='reads /proc (Linux)')
@@ -30,7 +30,7 @@ def test_cpu_seconds_counts_this_process_work_and_nothing_for_a_missing_one() ->
 
 
 def _sampler(samples: list[tuple[float, dict[str, float]]]) -> CpuSampler:
-    cpu = CpuSampler(processes=True, descendants=lambda pid: [])
+    cpu = CpuSampler(processes=True, children=lambda pid: [])
     cpu.samples = samples
     return cpu
 
@@ -54,13 +54,13 @@ def test_cpu_rows_give_milliseconds_per_keyframe_and_the_cores_used() -> None:
     # 10 keyframes after the middle one over 2 s; fusion used 1 s, multi_view 0.6 s.
     cpu = _sampler([(0.0, {'fusion': 0.0, 'multi_view': 0.0}), (4.0, {'fusion': 2.0, 'multi_view': 1.2})])
     fused = [0.0] * 11 + [2.0 + 0.2 * k for k in range(11)]  # middle at 2.0, last at 4.0
-    rows = {r.name: r for r in cpu_rows('processes paced', cpu, fused)}
+    rows = {r.name: r for r in cpu_rows('processes paced', cpu, second_half(fused))}
     assert rows['processes paced: CPU per fused keyframe, fusion'].value == pytest.approx(100.0)
     assert rows['processes paced: CPU per fused keyframe, multi_view'].value == pytest.approx(60.0)
     total = rows['processes paced: CPU of the second half, all processes']
     assert total.value == pytest.approx(0.8) and total.unit == 'cores'
     assert '160 ms per fused keyframe over 10 keyframes' in total.note
-    assert cpu_rows('processes paced', cpu, fused[:4]) == []  # too few keyframes: no budget
+    assert cpu_rows('processes paced', cpu, second_half(fused[:4])) == []  # too few keyframes: no budget
 
 
 @linux
@@ -72,7 +72,7 @@ def test_a_child_process_is_read_apart_from_its_parent() -> None:
         while True:
             pass
     try:
-        cpu = CpuSampler(processes=True, descendants=descendants)
+        cpu = CpuSampler(processes=True, children=descendants)
         run = SimpleNamespace(processes={'single_view_node': SimpleNamespace(pid=os.getpid())})
         cpu(run)
         time.sleep(0.5)

@@ -77,7 +77,7 @@ class RemoteAdapter:
         self.counters = AdapterCounters()
         self.version = 0
         self.nice = int(nice)
-        #: Whether the process was asked to run under ``SCHED_IDLE`` (trainer_process.idle_policy).
+        #: Whether the process was asked to run under ``SCHED_IDLE`` (``priority.idle_policy``).
         self.idle = bool(idle)
         self._error: str | None = None
         self._ready = False

@@ -12,7 +12,7 @@ Started as ``python -m depth_fusion_ros.adaptation.trainer_process FD NICE THREA
 ``multiprocessing``, whose spawn re-imports the parent's main script: a node's, with rclpy
 and torch, before the child could lower its priority). So this module imports only the
 standard library at the top, and the child is niced (and, with IDLE 1, put under
-``SCHED_IDLE``: :func:`idle_policy`) before it imports torch.
+``SCHED_IDLE``: ``priority.idle_policy``) before it imports torch.
 
 Protocol over the connection on ``FD`` (``multiprocessing.connection``: pickled tuples), one
 request at a time:
@@ -36,7 +36,6 @@ nor stop the next update.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import pickle
@@ -44,6 +43,8 @@ import signal
 import sys
 from multiprocessing.connection import Connection
 from typing import Any
+
+from ..priority import idle_policy, lower_priority
 
 
 class _Requests:
@@ -77,32 +78,6 @@ def send(conn: Connection, message: tuple) -> None:
 
 def receive(conn: Connection) -> tuple:
     return pickle.loads(conn.recv_bytes())
-
-
-def lower_priority(nice: int) -> None:
-    """Add ``nice`` to this process's niceness (quietly nothing where not permitted)."""
-    if nice > 0:
-        with contextlib.suppress(AttributeError, OSError):
-            os.nice(nice)
-
-
-def idle_policy() -> str:
-    """Run this process under ``SCHED_IDLE`` (Linux): only on a core that no other task wants,
-    and a waking task of any node takes the core from it at once. Returns '' or why it could
-    not (another system, a kernel that refuses).
-
-    Why, besides the niceness: under the EEVDF scheduler (Linux 6.6 and later) a niced process
-    that runs keeps its core for its time slice when a node's thread wakes; the graph's
-    keyframes pass through many such wake-ups (DDS messages, worker queues). On 2 cores the
-    graph fused 7.50 keyframes/s flat out beside a trainer at nice +10 and 7.96 beside one
-    under SCHED_IDLE (means of eleven alternated pairs), and a niced process that only spins
-    slowed it as much (docs/performance.md, "Where the cores go, and the training process at
-    idle priority")."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError) as exc:
-        return f'{type(exc).__name__}: {exc}'
-    return ''
 
 
 def main(argv: list[str]) -> int:

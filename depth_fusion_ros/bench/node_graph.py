@@ -252,13 +252,7 @@ def measure_run(
     mode = ('processes' if processes else 'composed') + (' real time' if realtime else ' paced')
     mode += f' x{rate:g}' if rate != 1.0 else ''
     sampler = MemorySampler(processes)
-    cpu = CpuSampler(processes, descendants)
-
-    def on_progress(run) -> None:
-        sampler(run)
-        cpu(run)
-
-    options = graph_options(opts, bag, processes, on_progress=on_progress, progress_period=0.5)
+    options = graph_options(opts, bag, processes, on_progress=sampler, progress_period=0.5)
     options.realtime = realtime
     options.rate = rate
     if (
@@ -344,7 +338,7 @@ def measure_run(
                 f'{later_rate[1]} keyframes fused after the middle one, over {later_rate[2]:.1f} s',
             )
         )
-    rows += cpu_rows(mode, cpu, arrivals(graph.recorder.stamp_logs, TOPIC_FUSED_DEPTH))
+    rows += cpu_rows(mode, graph.cpu, second_half(arrivals(graph.recorder.stamp_logs, TOPIC_FUSED_DEPTH)))
     if latencies.size:
         # In stamp order: the first seconds hold the fusion kernel's background compile (~6 s of
         # one core with torch's disk cache) and the adaptation's start; the second half is the
@@ -388,29 +382,37 @@ def arrivals(logs: dict, topic: str) -> list[float]:
     return sorted(t for t in map(logs[topic].arrival, logs[topic].stamps()) if t is not None)
 
 
+def second_half(times: list[float]) -> tuple[float, float, int] | None:
+    """The second half of a run from sorted arrival times: from the middle arrival to the last,
+    and how many arrived after the middle one; None with fewer than 5 or no time between. The
+    window of both the second half's rate and its CPU budget."""
+    if len(times) < 5:
+        return None
+    middle = len(times) // 2
+    start, end = times[middle], times[-1]
+    return (start, end, len(times) - 1 - middle) if end > start else None
+
+
 def second_half_rate(logs: dict, topic: str) -> tuple[float, int, float] | None:
     """Keyframes per second after the middle arrival on ``topic`` (the rate, how many, over how many
     seconds), or None with fewer than 5 arrivals: the rate the graph keeps once the start of a
     stream is behind it, which the run's own rate mixes with that start."""
-    times = arrivals(logs, topic)
-    if len(times) < 5:
+    window = second_half(arrivals(logs, topic))
+    if window is None:
         return None
-    middle = len(times) // 2
-    span = times[-1] - times[middle]
-    count = len(times) - 1 - middle
-    return (count / span, count, span) if span > 0 else None
+    start, end, count = window
+    return count / (end - start), count, end - start
 
 
-def cpu_rows(mode: str, cpu: CpuSampler, fused: list[float]) -> list[BenchRow]:
-    """CPU milliseconds per fused keyframe of each process over the second half's window (the
-    keyframes fused after the middle one, as "fused kf per second of the second half"), and
-    the cores they used together; none where ``/proc`` gave nothing (not Linux)."""
-    if len(fused) < 5:
+def cpu_rows(mode: str, cpu: CpuSampler, window: tuple[float, float, int] | None) -> list[BenchRow]:
+    """CPU milliseconds per fused keyframe of each process over the second half's ``window``
+    (:func:`second_half`, as "fused kf per second of the second half"), and the cores they used
+    together; none without a window or where ``/proc`` gave nothing (not Linux)."""
+    if window is None:
         return []
-    middle = len(fused) // 2
-    start, end, count = fused[middle], fused[-1], len(fused) - 1 - middle
+    start, end, count = window
     used = cpu.window(start, end)
-    if not used or end <= start:
+    if not used:
         return []
     cores = os.cpu_count() or 1
     rows = [

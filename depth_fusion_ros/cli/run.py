@@ -227,9 +227,8 @@ def unrecorded_topics(result, asked: list[str]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from ..cpu_budget import CpuSampler, budget_line, descendants
     from ..nodes.graph import GraphError, run_graph
-    from ..nodes.graph.summary import empty_run, fused_chosen, keyframe_summary
+    from ..nodes.graph.summary import empty_run, keyframe_summary
     from ..nodes.node_executor import executor_choice
 
     options = options_from_args(args)
@@ -239,9 +238,6 @@ def run(args: argparse.Namespace) -> int:
 
         check_model(args.single_view, args.device or 'cpu')  # one-line error before the graph starts
     mode = 'processes' if options.processes else 'composed'
-    cpu = CpuSampler(options.processes, descendants)
-    if options.on_progress is None:
-        options.on_progress = cpu
     try:
         result = run_graph(options)
     except GraphError as exc:
@@ -264,9 +260,8 @@ def run(args: argparse.Namespace) -> int:
         keyframe_summary(result, mode + domain)
         + (f'; recorded to {result.recorded}' if result.recorded else '')
     )
-    budget = budget_line(cpu, fused_chosen(result))
-    if budget:  # where the cores went: which node holds the rate on this machine
-        print(budget)
+    if result.cpu_budget:  # where the cores went: which node holds the rate on this machine
+        print(result.cpu_budget)
     if result.missing:
         print(f'{len(result.missing)} keyframe(s) without fused output (see the warning above)')
     for line in unrecorded_topics(result, options.record_extra):

@@ -18,11 +18,11 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
+from ..priority import idle_policy, lower_priority
 from .weights import WeightParams
 
 #: The builder's output (one line per kernel, or the reason it failed), next to the kernels.
@@ -51,10 +51,8 @@ def _lowest_priority() -> None:
     session group, without which the builder would get as much CPU as the whole graph's
     session (measured: 48 % of a core beside a live graph, with 17 keyframes lost to it).
     Each step is best effort: a build at a higher priority is still a one-off."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.nice(19)
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    lower_priority(19)
+    idle_policy()
     with contextlib.suppress(OSError):
         Path('/proc/self/autogroup').write_text('19')
 

@@ -166,8 +166,9 @@ class NodeAdaptation:
         #: Where the adapted weights go (``$ROS_HOME`` expanded once), ``None`` for ''.
         self.checkpoint: Path | None = expand_ros_home(given) if given else None
         nice = int(p['adaptation.nice'])
-        idle = bool(p['adaptation.idle_policy']) and bool(p['adaptation.process'])
-        if bool(p['adaptation.idle_policy']) and not idle:
+        in_process, idle = bool(p['adaptation.process']), bool(p['adaptation.idle_policy'])
+        if idle and not in_process:
+            idle = False
             node.get_logger().warning(
                 'adaptation.idle_policy applies to the training process only (adaptation.process is '
                 "false): a SCHED_IDLE thread would hold this node's GIL while it waits for a core; the "
@@ -176,7 +177,7 @@ class NodeAdaptation:
         #: The training process (``adaptation.process``), else None: training on the thread.
         self.remote = (
             RemoteAdapter(str(p['model']), self.config, str(p['device']), nice=nice, idle=idle)
-            if bool(p['adaptation.process'])
+            if in_process
             else None
         )
         self.adapter = self.remote or Adapter.from_spec(str(p['model']), self.config, str(p['device']))

@@ -33,6 +33,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ...cpu_budget import CpuSampler, budget_line
 from ..gil import set_switch_interval
 from ..graph_events import KeyframeLedger, ReadyWatcher, subscribe_events
 from ..node_executor import executor_choice, make_node_executor, spin_until
@@ -53,6 +54,7 @@ from .spawn import (
     start_node,
     stop_processes,
 )
+from .summary import fused_chosen
 from .topics import (
     FUSED_OUTPUTS,
     GRAPH_NODES,
@@ -97,6 +99,9 @@ class GraphRun:
         self.exit_codes: dict[str, int | None] = {}
         self.executor_error: BaseException | None = None
         self._next_progress = 0.0
+        #: CPU seconds of the graph's processes at every progress tick: the summary's budget line
+        #: (``RunResult.cpu_budget``) and the bench's window (cpu_budget.py).
+        self.cpu = CpuSampler(self.options.processes)
         self.ledger = KeyframeLedger()
         self.ready = ReadyWatcher()
         self._spawned_at: dict[str, float] = {}
@@ -367,12 +372,14 @@ class GraphRun:
             self._tick_progress()
 
     def _tick_progress(self) -> None:
-        """Call ``on_progress`` every ``progress_period`` s while the graph runs (benchmark sampling)."""
-        if self.options.on_progress is None:
-            return
+        """Every ``progress_period`` s while the graph runs: read its processes' CPU time
+        (:attr:`cpu`), then call ``on_progress`` (benchmark sampling)."""
         now = time.monotonic()
-        if now >= self._next_progress:
-            self._next_progress = now + self.options.progress_period
+        if now < self._next_progress:
+            return
+        self._next_progress = now + self.options.progress_period
+        self.cpu(self)
+        if self.options.on_progress is not None:
             self.options.on_progress(self)
 
     def _check_processes(self) -> None:
@@ -516,7 +523,7 @@ class GraphRun:
         for name, node in self.nodes.items():
             if name in self.graph_nodes:
                 stats[name] = node.stats.snapshot()
-        return RunResult(
+        result = RunResult(
             announced=announced,
             fused=fused,
             chosen=self.chosen_keyframes(),
@@ -546,6 +553,8 @@ class GraphRun:
             node_stats=stats,
             latencies=latencies,
         )
+        result.cpu_budget = budget_line(self.cpu, fused_chosen(result))
+        return result
 
     def _close_recorder(self, success: bool) -> Path | None:
         path = self.recorder.close(success=success)

@@ -118,6 +118,9 @@ class RunResult:
     map_error: str | None = None
     #: Topics asked to be recorded that no publisher of the graph announced (never subscribed).
     unannounced: list[str] = field(default_factory=list)
+    #: Where the cores went: CPU per fused keyframe of each process over the playback
+    #: (``cpu_budget.budget_line``); None where ``/proc`` gave nothing.
+    cpu_budget: str | None = None
 
     @property
     def complete(self) -> bool:
