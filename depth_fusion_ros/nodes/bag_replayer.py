@@ -558,20 +558,25 @@ class BagReplayer(Node):
 def main(args: list[str] | None = None) -> int:
     """``bag_replayer --ros-args -p bag:=PATH [-p rate:=0.5 ...]``: play, exit 0 at the end."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
 
     from .graph.dds import profile_for_console_node
+    from .node_executor import executor_choice, make_node_executor, spin_until
 
     profile_line = profile_for_console_node()  # before rclpy.init: Fast DDS reads it once
     rclpy.init(args=args)
-    rclpy.logging.get_logger('bag_replayer').info(profile_line)
+    logger = rclpy.logging.get_logger('bag_replayer')
+    logger.info(profile_line)
     node = None
     try:
+        # The console nodes' executor (node_executor.py): the graph's events reach the pacer
+        # here several times a keyframe, and the single-threaded one rebuilds its wait set at
+        # each wake-up.
+        executor, line = make_node_executor(executor_choice())
+        logger.info(line)
         node = BagReplayer()
-        executor = SingleThreadedExecutor()
         executor.add_node(node)
-        while rclpy.ok() and not node.finished.is_set():
-            executor.spin_once(timeout_sec=0.1)
+        spin_until(executor, lambda: rclpy.ok() and not node.finished.is_set(), timeout_sec=0.1)
         return 1 if node.error is not None else 0
     except (FileNotFoundError, ValueError) as exc:
         # The messages already name the node and the file or parameter: no traceback.

@@ -362,15 +362,20 @@ def main(args: list[str] | None = None) -> int:
     Records until Ctrl-C, then closes the bag under its final name.
     """
     import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
+
+    from .node_executor import executor_choice, make_node_executor, spin_until
 
     rclpy.init(args=args)
     node = None
     try:
+        # The console nodes' executor (node_executor.py: the single-threaded one rebuilds its
+        # wait set at every message), spun so that Ctrl-C is noticed (its spin() would not).
+        executor, line = make_node_executor(executor_choice())
+        rclpy.logging.get_logger('recorder').info(line)
         node = Recorder()
-        executor = SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        spin_until(executor, rclpy.ok)
     except (FileNotFoundError, ValueError) as exc:
         print(f'error: {exc}', file=sys.stderr, flush=True)
         return 1
