@@ -31,6 +31,13 @@ CHILDREN = "'s child processes"
 TRAINING = ' (the training, at idle priority)'
 #: Clock ticks per second of ``/proc/PID/stat``'s times.
 TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
+#: Seconds between two walks of each process's tree (:func:`descendants`); the descendants
+#: found are read at every sample in between. A walk reads the children file of every thread
+#: of every graph process (a node holds dozens of DDS and torch threads): walked at every
+#: progress call (0.5 s), it was 40 % of the runner's own CPU in a flat-out run (py-spy,
+#: docs/performance.md "The replayer's executor"). A process born in between is read from the
+#: next walk on, with all its CPU since it started.
+TREE_REFRESH_S = 5.0
 
 
 def is_training(name: str) -> bool:
@@ -86,9 +93,13 @@ class CpuSampler:
         self.processes = processes
         self._descendants = children or descendants
         self.samples: list[tuple[float, dict[str, float]]] = []
+        self._kids: dict[int | str, list[int]] = {}  # each process's descendants at the last walk
+        self._walked: float | None = None
 
     def __call__(self, run) -> None:
         now = time.monotonic()
+        if self._walked is None or now - self._walked >= TREE_REFRESH_S:
+            self._kids, self._walked = {}, now
         values: dict[str, float] = {}
         if self.processes:
             values['runner'] = cpu_seconds()
@@ -100,7 +111,9 @@ class CpuSampler:
 
     def _read(self, values: dict[str, float], name: str, pid: int | str) -> None:
         values[name] = cpu_seconds(pid)
-        kids = self._descendants(pid)
+        kids = self._kids.get(pid)
+        if kids is None:
+            kids = self._kids[pid] = self._descendants(pid)
         if kids:
             values[f'{name}{CHILDREN}'] = children_cpu_seconds(kids)
 

@@ -86,6 +86,36 @@ def test_a_child_process_is_read_apart_from_its_parent() -> None:
         os.waitpid(child, 0)
 
 
+def test_each_process_tree_is_walked_again_only_every_refresh_period(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Walking every thread's children file at every progress call cost the runner 40 % of its
+    CPU flat out; the descendants found are read at each sample, and a child born later is
+    found at the next walk with all its CPU."""
+    import depth_fusion_ros.cpu_budget as cpu_budget
+
+    walks: list[int | str] = []
+    kids = {'now': [10]}
+
+    def children(pid: int | str) -> list[int]:
+        walks.append(pid)
+        return list(kids['now'])
+
+    clock = {'t': 100.0}
+    monkeypatch.setattr(cpu_budget.time, 'monotonic', lambda: clock['t'])
+    monkeypatch.setattr(cpu_budget, 'cpu_seconds', lambda pid='self': {10: 1.0, 11: 2.0}.get(pid, 0.5))
+    cpu = CpuSampler(processes=True, children=children)
+    run = SimpleNamespace(processes={'single_view_node': SimpleNamespace(pid=7)})
+    for step in range(4):  # 0, 1.5, 3, 4.5 s: one walk
+        clock['t'] = 100.0 + 1.5 * step
+        cpu(run)
+        kids['now'] = [10, 11]  # a second child is born after the first walk
+    assert walks == [7]
+    assert [v["single_view's child processes"] for _, v in cpu.samples] == [1.0] * 4
+    clock['t'] = 100.0 + cpu_budget.TREE_REFRESH_S
+    cpu(run)  # the period is over: walked again, the new child read with everything it used
+    assert walks == [7, 7]
+    assert cpu.samples[-1][1]["single_view's child processes"] == 3.0
+
+
 def test_the_run_summary_line_divides_the_whole_playback_by_the_keyframes_fused() -> None:
     """``depth-fusion run`` prints this after its summary: no line rather than a wrong one."""
     cpu = _sampler([(10.0, {'fusion': 1.0, 'runner': 0.5}), (14.0, {'fusion': 2.6, 'runner': 0.9})])
