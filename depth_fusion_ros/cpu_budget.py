@@ -34,7 +34,8 @@ TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
 #: Seconds between two walks of each process's tree (:func:`descendants`); the descendants
 #: found are read at every sample in between. A walk reads the children file of every thread
 #: of every graph process (a node holds dozens of DDS and torch threads): walked at every
-#: progress call (0.5 s), it was 40 % of the runner's own CPU in a flat-out run (py-spy,
+#: progress call (0.5 s), by the CPU budget once and by the bench's memory sampler twice for
+#: each process, it was the largest part of the runner's own CPU in a flat-out run (py-spy,
 #: docs/performance.md "The replayer's executor"). A process born in between is read from the
 #: next walk on, with all its CPU since it started.
 TREE_REFRESH_S = 5.0
@@ -61,6 +62,28 @@ def descendants(pid: int | str = 'self') -> list[int]:
             found += kids
             stack += kids
     return found
+
+
+class ProcessTree:
+    """:func:`descendants` of each process asked for, walked again every ``refresh`` seconds
+    (:data:`TREE_REFRESH_S`) and the same list returned in between: the CPU budget and the
+    bench's memory samples read a graph's processes every progress call."""
+
+    def __init__(
+        self, walk: Callable[[int | str], list[int]] = descendants, refresh: float = TREE_REFRESH_S
+    ) -> None:
+        self._walk, self.refresh = walk, refresh
+        self._kids: dict[int | str, list[int]] = {}  # each process's descendants at the last walk
+        self._walked: float | None = None
+
+    def __call__(self, pid: int | str) -> list[int]:
+        now = time.monotonic()
+        if self._walked is None or now - self._walked >= self.refresh:
+            self._kids, self._walked = {}, now
+        kids = self._kids.get(pid)
+        if kids is None:
+            kids = self._kids[pid] = self._walk(pid)
+        return kids
 
 
 def cpu_seconds(pid: int | str = 'self') -> float:
@@ -91,15 +114,11 @@ class CpuSampler:
 
     def __init__(self, processes: bool, children: Callable[[int | str], list[int]] | None = None) -> None:
         self.processes = processes
-        self._descendants = children or descendants
+        self._descendants = ProcessTree(children or descendants)
         self.samples: list[tuple[float, dict[str, float]]] = []
-        self._kids: dict[int | str, list[int]] = {}  # each process's descendants at the last walk
-        self._walked: float | None = None
 
     def __call__(self, run) -> None:
         now = time.monotonic()
-        if self._walked is None or now - self._walked >= TREE_REFRESH_S:
-            self._kids, self._walked = {}, now
         values: dict[str, float] = {}
         if self.processes:
             values['runner'] = cpu_seconds()
@@ -111,9 +130,7 @@ class CpuSampler:
 
     def _read(self, values: dict[str, float], name: str, pid: int | str) -> None:
         values[name] = cpu_seconds(pid)
-        kids = self._kids.get(pid)
-        if kids is None:
-            kids = self._kids[pid] = self._descendants(pid)
+        kids = self._descendants(pid)
         if kids:
             values[f'{name}{CHILDREN}'] = children_cpu_seconds(kids)
 

@@ -38,11 +38,12 @@ import logging
 import os
 import re
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from ..cpu_budget import CpuSampler, descendants, is_training
+from ..cpu_budget import CpuSampler, ProcessTree, descendants, is_training
 from . import BenchOptions, BenchRow, load_note
 
 TITLE = 'node graph (replayer -> multi-view + single-view -> fusion, real DDS)'
@@ -175,9 +176,12 @@ def image_count(bag: Path) -> int:
         reader.close()
 
 
-def tree_mb(pid: int | str = 'self', field: str = 'VmRSS') -> float:
-    """:func:`rss_mb` of ``pid`` plus its descendants' (those gone meanwhile count 0)."""
-    return rss_mb(pid, field) + sum(np.nan_to_num(rss_mb(d, field)) for d in descendants(pid))
+def tree_mb(
+    pid: int | str = 'self', field: str = 'VmRSS', children: Callable[[int | str], list[int]] = descendants
+) -> float:
+    """:func:`rss_mb` of ``pid`` plus its descendants' (those gone meanwhile count 0); ``children``
+    lists them (a :class:`~..cpu_budget.ProcessTree` for a sampler that asks every tick)."""
+    return rss_mb(pid, field) + sum(np.nan_to_num(rss_mb(d, field)) for d in children(pid))
 
 
 class MemorySampler:
@@ -190,11 +194,12 @@ class MemorySampler:
         self.runner_max = 0.0
         self.t0 = time.monotonic()
         self.server: int | None = None
+        self.tree = ProcessTree()
 
     def __call__(self, run) -> None:
         # Separate, the node processes are the runner's (or the fork server's) descendants:
         # each is counted once, with its own children.
-        runner = rss_mb() if self.processes else tree_mb()
+        runner = rss_mb() if self.processes else tree_mb(children=self.tree)
         self.runner_max = max(self.runner_max, runner)
         if self.processes:
             total = 0.0
@@ -206,7 +211,7 @@ class MemorySampler:
             if self.server is not None:
                 pids['fork server'] = self.server
             for name, pid in pids.items():
-                size = rss_mb if name == 'fork server' else tree_mb
+                size = rss_mb if name == 'fork server' else functools.partial(tree_mb, children=self.tree)
                 total += size(pid)
                 self.peak_children[name] = max(self.peak_children.get(name, 0.0), size(pid, 'VmHWM'))
             self.samples.append((time.monotonic() - self.t0, total + runner))
