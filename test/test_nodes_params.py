@@ -348,7 +348,9 @@ def test_a_bad_executor_choice_is_a_one_line_error_and_single_still_runs():
         assert "DEPTH_FUSION_EXECUTOR='evnets': must be one of events, single" in bad.output, bad.output
         assert 'Traceback' not in bad.output, bad.output
         assert single.wait_for_output('fusion (fast mode)', 90.0), single.output
-        assert 'executor: single-threaded' in single.output, single.output
+        # The executor's line follows the node's construction (console.run_node): waited for,
+        # not read at once (a full suite on two cores read the output between the two lines).
+        assert single.wait_for_output('executor: single-threaded', 30.0), single.output
         single.proc.send_signal(signal.SIGINT)
         assert single.finish() == 0, single.output
         assert 'final counters' in single.output, single.output
