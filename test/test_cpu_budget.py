@@ -87,9 +87,9 @@ def test_a_child_process_is_read_apart_from_its_parent() -> None:
 
 
 def test_each_process_tree_is_walked_again_only_every_refresh_period(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Walking every thread's children file at every progress call cost the runner 40 % of its
-    CPU flat out; the descendants found are read at each sample, and a child born later is
-    found at the next walk with all its CPU."""
+    """Walking every thread's children file at every progress call was the largest part of the
+    runner's own CPU flat out (py-spy); the descendants found are read at each sample, and a
+    child born later is found at the next walk with all its CPU."""
     import depth_fusion_ros.cpu_budget as cpu_budget
 
     walks: list[int | str] = []

@@ -14,8 +14,8 @@ The events executor is in rclpy since Jazzy 7.1.4 (backported from Rolling) and 
 (``depth-fusion run`` without ``--processes``) gives each node an executor of the same
 choice, in its own thread, and the console ``bag_replayer`` and recorder spin one too: the
 replayer's pacer hears the graph's events several times a keyframe, and with the
-single-threaded executor it took 21-27 ms of CPU a fused keyframe flat out, 14-16 ms with this
-one (docs/performance.md, "The replayer's executor").
+single-threaded executor it took 21-30 ms of CPU a fused keyframe flat out, 14-22 ms with this
+one in the same hours (docs/performance.md, "The replayer's executor").
 
 Spin it with :func:`spin_until`, never with ``spin()``: this rclpy's
 ``EventsExecutor.spin()`` waits in C++ while holding the GIL, so it runs one core at 100 %,
