@@ -66,8 +66,9 @@ def descendants(pid: int | str = 'self') -> list[int]:
 
 class ProcessTree:
     """:func:`descendants` of each process asked for, walked again every ``refresh`` seconds
-    (:data:`TREE_REFRESH_S`) and the same list returned in between: the CPU budget and the
-    bench's memory samples read a graph's processes every progress call."""
+    (:data:`TREE_REFRESH_S`) and the same list returned in between: a graph run's CPU sampler
+    (:class:`CpuSampler`) and the bench's memory sampler read its processes every progress call,
+    from one cache."""
 
     def __init__(
         self, walk: Callable[[int | str], list[int]] = descendants, refresh: float = TREE_REFRESH_S
@@ -114,7 +115,9 @@ class CpuSampler:
 
     def __init__(self, processes: bool, children: Callable[[int | str], list[int]] | None = None) -> None:
         self.processes = processes
-        self._descendants = ProcessTree(children or descendants)
+        #: The processes' descendants, walked every :data:`TREE_REFRESH_S`; the bench's memory
+        #: sampler reads the same cache (``bench.node_graph.MemorySampler``).
+        self.tree = ProcessTree(children or descendants)
         self.samples: list[tuple[float, dict[str, float]]] = []
 
     def __call__(self, run) -> None:
@@ -130,7 +133,7 @@ class CpuSampler:
 
     def _read(self, values: dict[str, float], name: str, pid: int | str) -> None:
         values[name] = cpu_seconds(pid)
-        kids = self._descendants(pid)
+        kids = self.tree(pid)
         if kids:
             values[f'{name}{CHILDREN}'] = children_cpu_seconds(kids)
 

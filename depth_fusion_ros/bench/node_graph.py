@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cpu_budget import CpuSampler, ProcessTree, descendants, is_training
+from ..cpu_budget import CpuSampler, descendants, is_training
 from . import BenchOptions, BenchRow, load_note
 
 TITLE = 'node graph (replayer -> multi-view + single-view -> fusion, real DDS)'
@@ -180,7 +180,8 @@ def tree_mb(
     pid: int | str = 'self', field: str = 'VmRSS', children: Callable[[int | str], list[int]] = descendants
 ) -> float:
     """:func:`rss_mb` of ``pid`` plus its descendants' (those gone meanwhile count 0); ``children``
-    lists them (a :class:`~..cpu_budget.ProcessTree` for a sampler that asks every tick)."""
+    lists them (a run's ``cpu.tree``, :class:`~..cpu_budget.ProcessTree`, for a sampler that
+    asks every tick)."""
     return rss_mb(pid, field) + sum(np.nan_to_num(rss_mb(d, field)) for d in children(pid))
 
 
@@ -194,12 +195,13 @@ class MemorySampler:
         self.runner_max = 0.0
         self.t0 = time.monotonic()
         self.server: int | None = None
-        self.tree = ProcessTree()
 
     def __call__(self, run) -> None:
         # Separate, the node processes are the runner's (or the fork server's) descendants:
-        # each is counted once, with its own children.
-        runner = rss_mb() if self.processes else tree_mb(children=self.tree)
+        # each is counted once, with its own children. Their trees come from the run's CPU
+        # sampler, which walks them every few seconds (cpu_budget.ProcessTree).
+        tree = run.cpu.tree
+        runner = rss_mb() if self.processes else tree_mb(children=tree)
         self.runner_max = max(self.runner_max, runner)
         if self.processes:
             total = 0.0
@@ -211,7 +213,7 @@ class MemorySampler:
             if self.server is not None:
                 pids['fork server'] = self.server
             for name, pid in pids.items():
-                size = rss_mb if name == 'fork server' else functools.partial(tree_mb, children=self.tree)
+                size = rss_mb if name == 'fork server' else functools.partial(tree_mb, children=tree)
                 total += size(pid)
                 self.peak_children[name] = max(self.peak_children.get(name, 0.0), size(pid, 'VmHWM'))
             self.samples.append((time.monotonic() - self.t0, total + runner))
