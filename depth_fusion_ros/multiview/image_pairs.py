@@ -19,6 +19,7 @@ import numpy as np
 
 from ..geometry import relative_pose, rotation_angle
 from .match_refinement import as_uint8, refine_matches
+from .match_screening import screen_matches
 
 #: What a check may do: nothing, say it, or also correct what it found.
 CHECK_MODES = ('off', 'warn', 'correct')
@@ -136,11 +137,15 @@ class ImagePairs:
         min_matches: int,
         features: int,
         refine: bool = False,
+        screen: float = 0.0,
     ) -> None:
         self.K = K
         #: Track each match's second position from the first (:mod:`.match_refinement`; which
         #: checks do and why: ``PairedCheck.REFINE_MATCHES``).
         self.refine = refine
+        #: Drop matches whose patch no single shift carries into the second image, above this
+        #: multiple of the pair's median residual (:mod:`.match_screening`; 0: none dropped).
+        self.screen = float(screen)
         self.min_baseline = min_baseline
         self.min_rotation_deg = min_rotation_deg
         self.min_matches = min_matches
@@ -151,8 +156,11 @@ class ImagePairs:
 
     @classmethod
     def for_config(cls, K: np.ndarray, config: object, refine: bool = False) -> ImagePairs:
+        """From a check's config: its sampling fields, and ``max_patch_residual`` where it has
+        one (the mount check's screen; the other checks keep every match)."""
         c = config
-        return cls(K, c.min_baseline, c.min_rotation_deg, c.min_matches, c.features, refine)  # type: ignore[attr-defined]
+        screen = getattr(c, 'max_patch_residual', 0.0)
+        return cls(K, c.min_baseline, c.min_rotation_deg, c.min_matches, c.features, refine, screen)  # type: ignore[attr-defined]
 
     def far_enough(self, pose: np.ndarray, since: np.ndarray | None = None) -> bool:
         """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last
@@ -170,7 +178,7 @@ class ImagePairs:
         image = as_uint8(gray)
         current = Sample(float(stamp), np.asarray(pose, dtype=np.float64), *image_features(self._orb, image))
         last, last_image = self.last, self._last_image
-        self.last, self._last_image = current, (image if self.refine else None)
+        self.last, self._last_image = current, (image if self.refine or self.screen > 0 else None)
         if last is None:
             return None
         matched = rigid_matches(
@@ -183,10 +191,12 @@ class ImagePairs:
         if matched is None:
             return None
         p1, p2 = matched[:2]
-        if self.refine:
+        if self.refine or self.screen > 0:
             if last_image is None or last_image.shape != image.shape:  # another grid: nothing to track
                 return None
-            p1, p2 = refine_matches(last_image, image, p1, p2)
+            p1, p2 = screen_matches(last_image, image, p1, p2, self.screen)
+            if self.refine:
+                p1, p2 = refine_matches(last_image, image, p1, p2)
             if len(p1) < self.min_matches:
                 return None
         pair = MatchedPair(last, current, p1, p2)

@@ -109,7 +109,12 @@ class MountCheckConfig:
     #: summed cost by this share: on a flatter cost a bias all the pairs share moves the fit
     #: further than its standard error says (0: the standard error alone decides)
     min_cost_rise: float = 0.01
-    #: Matches a pair needs after RANSAC to be used
+    #: A match is dropped when the window at its first position, tracked into the second image,
+    #: still differs from it by more than this multiple of the pair's median difference: a
+    #: corner on an occlusion outline slides along the flow, and a bias all the pairs share
+    #: turned a level robot 0.95 deg (multiview/match_screening.py; 0: every match kept, else at least 1)
+    max_patch_residual: float = 1.5
+    #: Matches a pair needs after RANSAC (and the screen above) to be used
     min_matches: int = 30
     #: ORB features per image
     features: int = 1000
@@ -121,6 +126,9 @@ class MountCheckConfig:
             raise ValueError(
                 'mount_check: need 0 < threshold_deg < 45, max_stderr_deg > 0 and 0 <= min_cost_rise <= 1'
             )
+        if not (self.max_patch_residual == 0 or 1 <= self.max_patch_residual <= 100):
+            got = self.max_patch_residual
+            raise ValueError(f'mount_check: max_patch_residual must be 0 (off) or in [1, 100], got {got}')
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ MOUNT_CHECK_LIMITS: dict[str, Any] = {
     'threshold_deg': (1e-3, 44.0),
     'max_stderr_deg': (1e-4, 45.0),
     'min_cost_rise': (0.0, 1.0),
+    'max_patch_residual': (0.0, 100.0),
     'min_matches': (8, 100000),
     'features': (50, 100000),
 }
