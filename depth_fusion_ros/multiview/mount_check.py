@@ -113,7 +113,7 @@ class MountCheckConfig:
     #: still differs from it by more than this multiple of the pair's median difference: a
     #: corner on an occlusion outline slides along the flow, and a bias all the pairs share
     #: turned a level robot 0.95 deg (multiview/match_screening.py; 0: every match kept, else at least 1)
-    max_patch_residual: float = 1.5
+    max_patch_residual: float = 2.0
     #: Matches a pair needs after RANSAC (and the screen above) to be used
     min_matches: int = 30
     #: ORB features per image
