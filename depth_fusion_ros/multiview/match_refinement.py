@@ -23,7 +23,8 @@ LEVELS = 2
 BACK_TOLERANCE_PX = 0.5
 #: ...and it is within this of the matched keypoint it started from (px): the match was right.
 MOVE_TOLERANCE_PX = 3.0
-_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+#: When Lucas-Kanade stops iterating (also the outline screen's, match_screening.py).
+LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 
 
 def as_uint8(gray: np.ndarray) -> np.ndarray:
@@ -47,10 +48,10 @@ def refine_matches(
     flags = cv2.OPTFLOW_USE_INITIAL_FLOW
     # The initial guesses are these fresh float32 arrays (OpenCV may write into them), not p1 / p2.
     tracked, found, _ = cv2.calcOpticalFlowPyrLK(
-        first, second, start, guess, winSize=WINDOW, maxLevel=LEVELS, criteria=_CRITERIA, flags=flags
+        first, second, start, guess, winSize=WINDOW, maxLevel=LEVELS, criteria=LK_CRITERIA, flags=flags
     )
     back, found_back, _ = cv2.calcOpticalFlowPyrLK(
-        second, first, tracked, start, winSize=WINDOW, maxLevel=LEVELS, criteria=_CRITERIA, flags=flags
+        second, first, tracked, start, winSize=WINDOW, maxLevel=LEVELS, criteria=LK_CRITERIA, flags=flags
     )
     tracked, back = tracked.reshape(-1, 2), back.reshape(-1, 2)
     keep = (

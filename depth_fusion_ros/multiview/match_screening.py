@@ -21,11 +21,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .match_refinement import as_uint8
+from .match_refinement import LK_CRITERIA, as_uint8
 
 #: The compared window (px), at full resolution only: the match is already within a pixel or two.
 WINDOW = (11, 11)
-_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 
 
 def patch_residuals(first: np.ndarray, second: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
@@ -43,7 +42,7 @@ def patch_residuals(first: np.ndarray, second: np.ndarray, p1: np.ndarray, p2: n
         guess,
         winSize=WINDOW,
         maxLevel=0,
-        criteria=_CRITERIA,
+        criteria=LK_CRITERIA,
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
     residual = error.ravel().astype(np.float64)
