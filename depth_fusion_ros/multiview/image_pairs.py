@@ -155,12 +155,17 @@ class ImagePairs:
         self._last_image: np.ndarray | None = None  # the last sample's uint8 image, kept to track from
 
     @classmethod
-    def for_config(cls, K: np.ndarray, config: object, refine: bool = False) -> ImagePairs:
-        """From a check's config: its sampling fields, and ``max_patch_residual`` where it has
-        one (the mount check's screen; the other checks keep every match)."""
+    def for_config(
+        cls, K: np.ndarray, config: object, refine: bool = False, screen: float = 0.0
+    ) -> ImagePairs:
         c = config
-        screen = getattr(c, 'max_patch_residual', 0.0)
         return cls(K, c.min_baseline, c.min_rotation_deg, c.min_matches, c.features, refine, screen)  # type: ignore[attr-defined]
+
+    @property
+    def _tracks(self) -> bool:
+        """Whether pairs are tracked from the last sample's image (refined or screened), which
+        is then kept."""
+        return self.refine or self.screen > 0
 
     def far_enough(self, pose: np.ndarray, since: np.ndarray | None = None) -> bool:
         """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last
@@ -178,7 +183,7 @@ class ImagePairs:
         image = as_uint8(gray)
         current = Sample(float(stamp), np.asarray(pose, dtype=np.float64), *image_features(self._orb, image))
         last, last_image = self.last, self._last_image
-        self.last, self._last_image = current, (image if self.refine or self.screen > 0 else None)
+        self.last, self._last_image = current, (image if self._tracks else None)
         if last is None:
             return None
         matched = rigid_matches(
@@ -191,7 +196,7 @@ class ImagePairs:
         if matched is None:
             return None
         p1, p2 = matched[:2]
-        if self.refine or self.screen > 0:
+        if self._tracks:
             if last_image is None or last_image.shape != image.shape:  # another grid: nothing to track
                 return None
             p1, p2 = screen_matches(last_image, image, p1, p2, self.screen)

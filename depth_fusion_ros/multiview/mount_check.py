@@ -339,6 +339,9 @@ class MountCheck(PairedCheck):
     config: MountCheckConfig = field(default_factory=MountCheckConfig)
     result: MountEstimate | None = None
 
+    def _screen_ratio(self) -> float:
+        return self.config.max_patch_residual
+
     def _estimate(self) -> MountEstimate:
         return self._verdict(*fit_mount(np.asarray(self.camera.K, dtype=np.float64), self.pairs))
 

@@ -37,7 +37,13 @@ class PairedCheck:
     REFINE_MATCHES: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
-        self._images = ImagePairs.for_config(self.camera.K, self.config, refine=self.REFINE_MATCHES)
+        screen = self._screen_ratio()
+        self._images = ImagePairs.for_config(self.camera.K, self.config, self.REFINE_MATCHES, screen)
+
+    def _screen_ratio(self) -> float:
+        """The pairs' outline screen (``ImagePairs.screen``; 0: every match kept): the mount
+        check's config says it (``MountCheck``); the focal check keeps every match."""
+        return 0.0
 
     @property
     def done(self) -> bool:
