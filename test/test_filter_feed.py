@@ -193,3 +193,28 @@ def test_every_frame_is_consumed_once_whatever_the_feed_does_with_it(small_seque
     assert [item.token for item in behind._frames] == [2, 3]
     assert sorted(done) == [0, 1, 4, 5] and len(skips) == 3 and len(full) == 1
     assert drops == []
+
+
+def test_a_keyframe_is_published_with_the_focal_uncertainty_the_node_hands_in(small_sequence):
+    """The node hands in its focal check's uncertainty (``FocalCheckRunner.uncertainty``), read at
+    each keyframe: the estimate's std is a filter's with that uncertainty, not the prior's."""
+    seq = small_sequence
+    feed, drops, errors = _feed()
+    feed.focal_uncertainty = lambda: 0.0  # as a check that verified the focal length exactly
+    key = 4
+    try:
+        for frame in seq.frames[: key + 1]:
+            feed.append(frame, seq.camera, keyframe=frame.index == key)
+        got = feed.result_for(seq.frames[key], seq.camera)
+    finally:
+        feed.close()
+    stds = {}
+    for uncertainty in (0.0, FilterConfig().focal_uncertainty):
+        config = FilterConfig(focal_uncertainty=uncertainty)
+        reference = DepthFilter(seq.camera, config, MultiViewConfig(), 'cpu')
+        for frame in seq.frames[: key + 1]:
+            reference.process(frame.gray, frame.pose)
+        stds[uncertainty] = reference.result(seq.frames[key].pose).depth_std
+    np.testing.assert_array_equal(got.depth_std, stds[0.0])
+    assert not np.array_equal(stds[0.0], stds[FilterConfig().focal_uncertainty], equal_nan=True)
+    assert drops == [] and errors == []

@@ -10,14 +10,19 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from typing import Any
 
 from ..data.sequence import Sequence
+from ..multiview.focal_bias import focal_uncertainty
 from ..multiview.focal_check import FocalCheckConfig, FocalEstimate, check_frames
 from .checks import run_check
 
 log = logging.getLogger(__name__)
 
 STAGE = 'focal_check'
+#: The key of the check's outcome ``(estimate, corrected)`` in a sequence's shared memo
+#: (``KeyframeContext.shared``), which the filter's published std reads (:func:`checked_uncertainty`).
+SHARED_KEY = 'focal_check'
 
 
 def check_focal(sequence: Sequence, params: dict) -> tuple[Sequence, FocalEstimate | None]:
@@ -48,3 +53,10 @@ def estimate_json(estimate: FocalEstimate | None, corrected: bool) -> dict | Non
         'fitted_fy': estimate.fy,
         'corrected': corrected,
     }
+
+
+def checked_uncertainty(shared: dict[str, Any], prior: float) -> float:
+    """``filter.focal_uncertainty`` as the sequence's focal length check left it
+    (``focal_bias.focal_uncertainty``; ``prior`` when the check did not run or finish)."""
+    estimate, corrected = shared.get(SHARED_KEY, (None, False))
+    return focal_uncertainty(estimate, prior, corrected)

@@ -25,6 +25,7 @@ from ..metrics import MetricAccumulator, good_density, high_gradient_mask, upsam
 from ..progress import progress
 from . import mount, time_offset
 from .context import EvalOptions, KeyframeContext, SequenceContext, keyframe_indices
+from .focal import SHARED_KEY as FOCAL_SHARED_KEY
 from .focal import check_focal, estimate_json
 from .registry import MethodSpec, SequenceOutput, get_method
 
@@ -151,7 +152,7 @@ def evaluate_sequence(
     keyframes = run_keyframes(sequence, options)
     samples = set(sample_indices(keyframes, n_samples))
     records = {s.name: MethodRecord(s) for s in specs}
-    shared: dict[str, Any] = {}
+    shared: dict[str, Any] = {FOCAL_SHARED_KEY: (focal, sequence.camera != told_camera)}
     for i in progress(keyframes, desc=sequence.name, unit='kf', disable=not show_progress):
         ctx = KeyframeContext(sequence, i, options, shared)
         gt = ctx.gt_depth

@@ -61,6 +61,7 @@ from .filter_profile import StageClock
 from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
 from .filter_search import SearchResult, search_interval
+from .focal_bias import inverse_depth_bias, remember_update, spaced
 from .semidense import MultiViewConfig
 from .views import _as_gray
 
@@ -107,6 +108,10 @@ class DepthFilter:
         self.stats = FilterStats()
         #: Seconds per stage of :meth:`process` (``clock.enabled = True`` to record; the bench does).
         self.clock = StageClock(self.device)
+        #: How far the focal length may be off (relative), for the published std
+        #: (``multiview/focal_bias.py``): ``filter.focal_uncertainty`` until the node or the
+        #: evaluation sets what the focal length check verified.
+        self.focal_uncertainty = self.config.focal_uncertainty
         self._candidates = dataclasses.replace(
             self.matching,
             max_candidate_fraction=self.config.max_candidate_fraction,
@@ -148,6 +153,8 @@ class DepthFilter:
             # A skipped frame needs no descriptors unless it becomes the keyframe.
             desc = describe() if usable else None
             seen = update_frame(self, key, desc, T_fk) if usable else self._visible_fraction(key, T_fk)
+            if usable:
+                remember_update(key.update_poses, T_wf)
             switch = (
                 parallax >= self.config.keyframe_parallax
                 or rotation >= self.config.keyframe_rotation_deg
@@ -155,6 +162,8 @@ class DepthFilter:
             )
             if switch:
                 self.key = propagate(self, key, image, describe() if desc is None else desc, T_wf)
+                # The carried estimates were measured by the old keyframe's frames.
+                self.key.update_poses = list(key.update_poses)
                 self.stats.keyframes += 1
                 return KEYFRAME
         if usable:
@@ -188,6 +197,7 @@ class DepthFilter:
         rows = true_indices(published)
         st = key.state
         mu, var = st.mu[rows], st.var[rows]
+        focal_var = self._focal_variance(key, rows, mu)
         T_tk = None if pose is None else relative_pose(key.pose, validate_pose(pose, 'result pose'))
         if T_tk is None or np.allclose(T_tk, np.eye(4), atol=1e-9):
             target = key.flat[rows]
@@ -195,6 +205,7 @@ class DepthFilter:
             warped = warp_estimates(key.us[rows], key.vs[rows], mu, cam.K, T_tk, cam.size, self.rho_range)
             rows = rows[warped.source]
             target, mu, var = warped.target, warped.rho, var[warped.source] * warped.scale**4
+            focal_var = focal_var[warped.source] * warped.scale**4
         candidates = torch.zeros(shape, dtype=torch.bool, device=self.device)
         candidates[target] = True
         return assemble_result(
@@ -208,7 +219,18 @@ class DepthFilter:
             candidates,
             self.config.score_relative_power,
             withheld_fraction=withheld,
+            extra_variance=focal_var,
         )
+
+    def _focal_variance(self, key: FilterKeyframe, rows: torch.Tensor, mu: torch.Tensor) -> torch.Tensor:
+        """Per published row, the squared inverse-depth bias a focal length ``focal_uncertainty``
+        off would give it under the frames that updated ``key`` (``multiview/focal_bias.py``);
+        0 when the uncertainty is 0 or no frame updated the keyframe yet."""
+        if self.focal_uncertainty <= 0 or not key.update_poses or rows.numel() == 0:
+            return torch.zeros_like(mu)
+        poses = [relative_pose(key.pose, T_wf) for T_wf in spaced(key.update_poses)]
+        bias = inverse_depth_bias(self.camera.K, key.us[rows], key.vs[rows], mu, poses)
+        return (bias * self.focal_uncertainty) ** 2
 
     def refocus(self, camera: PinholeCamera) -> bool:
         """Go on with ``camera`` when it differs from the current one only in its focal lengths

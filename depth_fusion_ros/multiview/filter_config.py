@@ -165,6 +165,12 @@ class FilterConfig:
     fill_min_updates: int = 3
     #: Scene depth (m) assumed before any estimate exists (parallax of the first frames).
     scene_depth: float = 1.5
+    #: How far camera_info's focal length may be off (relative) until the focal length check
+    #: has verified it, and while the check cannot tell: the published depth std then includes
+    #: the bias such an error gives each estimate under this motion (``multiview/focal_bias.py``:
+    #: large under rotation-dominant motion, small with a sideways baseline). Once the check has
+    #: read the stream, twice its standard error is used instead. 0: off.
+    focal_uncertainty: float = 0.1
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad ``filter.<parameter>``."""
@@ -214,6 +220,7 @@ class FilterConfig:
             ('fill_min_neighbours', self.fill_min_neighbours >= 1, '>= 1'),
             ('fill_min_updates', self.fill_min_updates >= 1, '>= 1'),
             ('scene_depth', self.scene_depth > 0 and math.isfinite(self.scene_depth), 'positive'),
+            ('focal_uncertainty', 0 <= self.focal_uncertainty <= 1, 'in [0, 1]'),
         )
         for name, ok, what in checks:
             if not ok:

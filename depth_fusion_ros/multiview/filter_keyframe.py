@@ -7,7 +7,7 @@ the filter.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -51,3 +51,6 @@ class FilterKeyframe:
     # none (built on first use: the seed bracket's neighbour lookups)
     padded_rows: torch.Tensor | None = None
     padded_flat: torch.Tensor | None = None  # (M,) long: each row's index in that padded image
+    #: Camera-to-world poses of the last frames that updated this keyframe or, carried, the
+    #: keyframes before it, in order (``multiview/focal_bias.py``)
+    update_poses: list[np.ndarray] = field(default_factory=list)

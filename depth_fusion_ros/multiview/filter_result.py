@@ -3,7 +3,9 @@
 Field by field (a pixel is published once its inlier ratio, its number of measurements and
 its relative inverse-depth std pass the ``filter.*`` thresholds):
 
-* ``depth`` = ``1 / mu``; ``depth_std`` = ``sigma / mu^2`` (m), the posterior std;
+* ``depth`` = ``1 / mu``; ``depth_std`` = ``sqrt(sigma^2 + b^2) / mu^2`` (m): the posterior
+  std and the bias ``b`` an uncertain focal length may give the estimate under this motion
+  (``focal_bias.py``; the posterior's own ``sigma`` is ``variance``);
 * ``geometric_score`` = ``1 / sigma`` (the posterior inverse-depth std: every frame that
   matched it adds its ``J^2 / pixel_sigma^2``, as the sweep's one-pixel score sums its
   neighbours' ``J^2``);
@@ -60,9 +62,11 @@ def assemble_result(
     candidates: torch.Tensor,
     relative_power: float = 0.0,
     withheld_fraction: float | None = None,
+    extra_variance: torch.Tensor | None = None,
 ) -> FilterResult:
     """Scatter published estimates (flat pixel indices ``target``) into NaN-filled (H, W) maps;
-    ``withheld_fraction`` as :attr:`FilterResult.withheld_fraction`."""
+    ``withheld_fraction`` as :attr:`FilterResult.withheld_fraction`; ``extra_variance`` (inverse
+    depth squared, per estimate) is added to ``var`` in ``depth_std`` only."""
     shape = (camera.height, camera.width)
     idx = target.cpu().numpy()
 
@@ -75,7 +79,7 @@ def assemble_result(
     geometric = 1.0 / torch.clamp(sigma, min=1e-12)
     return FilterResult(
         depth=image(1.0 / mu),
-        depth_std=image(sigma / (mu * mu)),
+        depth_std=image((sigma if extra_variance is None else torch.sqrt(var + extra_variance)) / (mu * mu)),
         photometric_score=image(inlier),
         geometric_score=image(geometric),
         score=image(inlier * geometric**SIGMA_POWER * (mu / torch.clamp(sigma, min=1e-12)) ** relative_power),

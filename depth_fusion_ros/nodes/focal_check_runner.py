@@ -11,6 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 from ..camera import PinholeCamera
+from ..multiview.focal_bias import focal_uncertainty
 from ..multiview.focal_check import FOCAL_CHECK_MODES, FocalCheck, FocalCheckConfig, FocalEstimate
 from .check_runner import PairedCheckRunner
 from .params import ParamSpec, dataclass_specs
@@ -56,6 +57,14 @@ class FocalCheckRunner(PairedCheckRunner):
         if self._corrected is None or self._corrected[0] is not result:
             self._corrected = (result, result.corrected(camera))
         return self._corrected[1]
+
+    def uncertainty(self, prior: float) -> float:
+        """How far the multi-view depth's focal length may still be off (relative,
+        ``multiview/focal_bias.py``): ``prior`` until the check has read the stream, then what
+        it verified."""
+        result = self.result
+        corrected = self.config.mode == 'correct' and result is not None and result.verdict == 'disagrees'
+        return focal_uncertainty(result, prior, corrected)
 
     def status(self) -> str:
         """One phrase for the diagnostics."""

@@ -75,6 +75,7 @@ FILTER_LIMITS: dict[str, Any] = {
     'fill_min_updates': (1, 1000),
     'fill_min_neighbours': (1, 10000),
     'scene_depth': (1e-3, None),
+    'focal_uncertainty': (0.0, 1.0),
 }
 
 FILTER_PARAMETERS: tuple[ParamSpec, ...] = (
@@ -193,6 +194,10 @@ class FilterFeed:
         self.filter: DepthFilter | None = None
         #: Frames the filter has been given (the feed thread's progress).
         self.fed = 0
+        #: The focal length uncertainty a keyframe's estimate is published with
+        #: (``DepthFilter.focal_uncertainty``): the node hands in its focal check's
+        #: (``FocalCheckRunner.uncertainty``); read at each keyframe.
+        self.focal_uncertainty: Callable[[], float] = lambda: config.focal_uncertainty
         self._thread = threading.Thread(target=self._run, name='filter_feed', daemon=True)
         self._thread.start()
 
@@ -331,6 +336,7 @@ class FilterFeed:
                 self.filter.process(frame.gray, frame.pose)
                 self.fed += 1
                 if keyframe:
+                    self.filter.focal_uncertainty = self.focal_uncertainty()
                     outcome = self.filter.result(frame.pose)
             except Exception as exc:  # one bad frame must not end the feed
                 outcome = exc

@@ -148,6 +148,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             raise ValueError(f'{self.get_name()}: {exc}') from None
         try:
             self.focal_check = FocalCheckRunner.from_parameters(p, self._on_focal_estimate)
+            if self.filter_feed is not None:
+                prior = self.filter_feed.config.focal_uncertainty
+                self.filter_feed.focal_uncertainty = lambda: self.focal_check.uncertainty(prior)
             self.time_offset_check = TimeOffsetCheckRunner.from_parameters(p, self._on_time_offset_estimate)
             self.mount_check = MountCheckRunner.from_parameters(p, self._on_mount_estimate)
         except ValueError as exc:

@@ -20,6 +20,7 @@ sequence we hold (docs/multi_view.md, "Verdict").
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -31,6 +32,7 @@ from ...multiview.params import apply_overrides
 from ...multiview.semidense import MultiViewConfig, MultiViewResult, empty_result, estimate_semidense
 from ...multiview.tv import TVConfig, estimate_tv
 from ..context import KeyframeContext, keyframe_indices
+from ..focal import checked_uncertainty
 from ..registry import MethodOutput, register_method
 
 log = logging.getLogger(__name__)
@@ -59,10 +61,12 @@ def multi_view_method(ctx: KeyframeContext) -> str:
 
 
 def filter_config(ctx: KeyframeContext) -> FilterConfig:
-    """``FilterConfig`` with the run's ``--set filter.*`` overrides (checked)."""
+    """``FilterConfig`` with the run's ``--set filter.*`` overrides (checked), its
+    ``focal_uncertainty`` as the sequence's focal length check verified it (``evaluation/focal.py``)."""
     config = apply_overrides(FilterConfig(), ctx.stage_params(FILTER_STAGE), FILTER_STAGE)
     config.validate()
-    return config
+    verified = checked_uncertainty(ctx.shared, config.focal_uncertainty)
+    return dataclasses.replace(config, focal_uncertainty=verified)
 
 
 def multi_view_config(ctx: KeyframeContext) -> MultiViewConfig:

@@ -1,0 +1,126 @@
+"""How far an uncertain focal length can bias the multi-view depth, per pixel.
+
+Why: a focal length a few per cent off barely moves a depth triangulated from a sideways
+baseline, but under rotation-dominant motion (a handheld sweep, a robot turning on the spot)
+the told rotation is undone with the wrong focal length, and what is left slides every point
+along its epipolar line like parallax. The depths are then all biased the same way (an
+inverse-depth offset), they agree with each other, and the fusion's guard trusted them: a
+rotation sweep with camera_info 5 % long, the focal check unable to pin it (rolling shutter,
+exposure and pose noise together), was fused 46 % above its own single view (docs/fusion.md,
+"An unverified focal length under rotation"). The images cannot tell this bias apart from
+depth, so what can be said is its size: for each frame that updated an estimate, the shift
+along the epipolar line that a focal change of ``eps`` gives the point, over the line's motion
+per unit inverse depth; combined with the filter's own weights (``j^2``), as its posterior mean
+combines the frames. The multi-view node adds it to the published depth std, so the guard
+(``guard.max_relative_std``) and the fusion's precision weights see it.
+
+``eps`` is what the focal length check has verified (:func:`focal_uncertainty`): twice its
+standard error once it has read the stream, ``filter.focal_uncertainty`` before then or when
+it cannot tell.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+#: The focal change the bias is computed for (relative); the result is per unit of it.
+STEP = 0.01
+#: The largest focal uncertainty a check's standard error is taken for (an unobservable fit
+#: may report any standard error; 25 % already leaves no rotation-dominant estimate trusted).
+MAX_UNCERTAINTY = 0.25
+#: At most this many of the frames that updated a keyframe enter the bias (evenly spaced):
+#: it is computed once per published keyframe, and neighbouring frames add little.
+MAX_FRAMES = 4
+#: The frames a keyframe's bias is read from: the last this many that updated it or, carried
+#: with their estimates into it, the keyframes before it.
+KEPT_FRAMES = 16
+
+
+def focal_uncertainty(estimate: object | None, prior: float, corrected: bool) -> float:
+    """The relative focal length uncertainty the multi-view depth is published with.
+
+    ``estimate``: the focal length check's result (``FocalEstimate``), ``None`` while it has
+    not read enough of the stream; ``corrected``: whether the multi-view depth runs on its
+    fitted focal length. A verified focal length (``consistent``, or ``disagrees`` and
+    corrected) is good to twice the fit's standard error; one the check found off but kept
+    (``suspect``, or ``disagrees`` in warn mode) is off by the fit as well; one it cannot
+    pin down (``unobservable``) is at least as uncertain as ``prior`` and as its own fit.
+    """
+    if prior == 0.0:
+        return 0.0
+    if estimate is None:
+        return prior
+    stderr = float(getattr(estimate, 'stderr', math.inf))
+    spread = 2.0 * stderr if math.isfinite(stderr) else MAX_UNCERTAINTY
+    verdict = getattr(estimate, 'verdict', 'unobservable')
+    if verdict == 'unobservable':
+        eps = max(prior, spread)
+    elif verdict == 'consistent' or (verdict == 'disagrees' and corrected):
+        eps = spread
+    else:
+        eps = abs(math.log(max(float(getattr(estimate, 'scale', 1.0)), 1e-6))) + spread
+    return min(eps, MAX_UNCERTAINTY)
+
+
+def remember_update(poses: list[np.ndarray], pose: np.ndarray) -> None:
+    """Append the pose of a frame that updated the keyframe, keeping the last ``KEPT_FRAMES``."""
+    poses.append(pose)
+    del poses[:-KEPT_FRAMES]
+
+
+def spaced(poses: Sequence[np.ndarray], n: int = MAX_FRAMES) -> list[np.ndarray]:
+    """At most ``n`` of ``poses``, evenly spaced, the last one included."""
+    if len(poses) <= n:
+        return list(poses)
+    pick = np.linspace(0, len(poses) - 1, n).round().astype(int)
+    return [poses[i] for i in pick]
+
+
+def inverse_depth_bias(
+    K: np.ndarray, us: torch.Tensor, vs: torch.Tensor, rho: torch.Tensor, poses_fk: Sequence[np.ndarray]
+) -> torch.Tensor:
+    """Inverse-depth bias (R,) per unit relative focal error of the estimates at keyframe pixels
+    ``(us, vs)`` with inverse depths ``rho``, updated by frames at ``poses_fk`` (each the
+    keyframe-to-frame transform ``T_fk``); 0 where no frame moved a point along a line.
+
+    Per frame: the point's projection ``(a + rho b) / (a_2 + rho b_2)`` with ``a = K R K^-1 x``,
+    and again with both focal lengths ``1 + STEP`` times as long in ``K`` (the homography only:
+    the translation's share of a focal error is a depth scale of that size, not this bias);
+    their difference along the epipolar direction over ``j`` (pixels per unit inverse depth) is
+    the frame's bias, and the frames combine weighted by ``j^2`` as in the filter's update.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    scaled = K.copy()
+    scaled[0, 0] *= 1.0 + STEP
+    scaled[1, 1] *= 1.0 + STEP
+    x = torch.stack((us.to(rho.dtype), vs.to(rho.dtype), torch.ones_like(rho)))
+    num = torch.zeros_like(rho)
+    den = torch.zeros_like(rho)
+    for T_fk in poses_fk:
+        R, t = T_fk[:3, :3], T_fk[:3, 3]
+        b = torch.as_tensor(K @ t, dtype=rho.dtype, device=rho.device)
+        told = _project(K @ R @ np.linalg.inv(K), x, rho, b)
+        other = _project(scaled @ R @ np.linalg.inv(scaled), x, rho, b)
+        a = told[2]
+        nu, nv = b[0] * a[2] - a[0] * b[2], b[1] * a[2] - a[1] * b[2]
+        norm = torch.hypot(nu, nv).clamp_(min=1e-12)
+        w = a[2] + rho * b[2]
+        j = norm / (w * w).clamp_(min=1e-12)
+        shift = ((other[0] - told[0]) * nu + (other[1] - told[1]) * nv) / norm
+        num += j * shift
+        den += j * j
+    return (num.abs() / den.clamp(min=1e-12)).div_(STEP)
+
+
+def _project(
+    H: np.ndarray, x: torch.Tensor, rho: torch.Tensor, b: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pixel coordinates ``u``, ``v`` (R,) of rows ``x`` (3, R) at inverse depths ``rho`` through
+    homography ``H`` and translation image ``b``, and ``a = H x`` (3, R)."""
+    a = torch.as_tensor(H, dtype=x.dtype, device=x.device) @ x
+    w = a[2] + rho * b[2]
+    return (a[0] + rho * b[0]) / w, (a[1] + rho * b[1]) / w, a
