@@ -8,11 +8,12 @@ inverse-depth offset), they agree with each other, and the fusion's guard truste
 rotation sweep with camera_info 5 % long, the focal check unable to pin it (rolling shutter,
 exposure and pose noise together), was fused 46 % above its own single view (docs/fusion.md,
 "An unverified focal length under rotation"). The images cannot tell this bias apart from
-depth, so what can be said is its size: for each frame that updated an estimate, the shift
-along the epipolar line that a focal change of ``eps`` gives the point, over the line's motion
-per unit inverse depth; combined with the filter's own weights (``j^2``), as its posterior mean
-combines the frames. The multi-view node adds it to the published depth std, so the guard
-(``guard.max_relative_std``) and the fusion's precision weights see it.
+depth, so what can be said is its size: for each frame that updated the filter's keyframe (or,
+with the estimates carried into it, the keyframes before it), the shift along the epipolar
+line that a focal change of ``eps`` gives the point, over the line's motion per unit inverse
+depth; combined with the filter's own weights (``j^2``), as its posterior mean combines the
+frames. The filter adds it to the published depth std, so the guard (``guard.max_relative_std``,
+``guard.min_precise_fraction``) and the fusion's precision weights see it.
 
 ``eps`` is what the focal length check has verified (:func:`focal_uncertainty`): twice its
 standard error once it has read the stream, ``filter.focal_uncertainty`` before then or when
