@@ -456,14 +456,21 @@ def test_every_command_line_in_the_readme_and_docs_code_blocks_parses():
     parser = build_parser()
     checked = 0
     for doc in [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]:
-        for block in re.findall(r'```(?:bash|sh|console)?\n(.*?)```', doc.read_text(), re.S):
+        # Every fence pairs with its own close (a ```python block must not shift the pairing
+        # and turn the prose after it into a "block"); shell and untagged blocks are checked.
+        for language, block in re.findall(r'```([\w-]*)\n(.*?)```', doc.read_text(), re.S):
+            if language not in ('', 'bash', 'sh', 'console'):
+                continue
             for line in re.sub(r'\\\n\s*', ' ', block).splitlines():
                 line = line.strip().removeprefix('$ ')
                 if not line.startswith('depth-fusion '):
                     continue
                 line = re.split(r'\s+#|\s+\||\s+>|\s+&&|\s+2>', line)[0]
+                optional = line
+                while (inner := re.sub(r'\[[^\[\]]*\]', '', optional)) != optional:  # [a [b]]: inner first
+                    optional = inner
                 try:
-                    parser.parse_args(shlex.split(re.sub(r'\[[^\]]*\]', '', line))[1:])
+                    parser.parse_args(shlex.split(optional)[1:])
                 except SystemExit:
                     pytest.fail(f'{doc.name}: the command line does not parse: {line}')
                 checked += 1
