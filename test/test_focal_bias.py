@@ -87,12 +87,12 @@ def test_frames_combine_as_the_filter_weighs_them():
 @pytest.mark.parametrize(
     ('verdict', 'scale', 'stderr', 'corrected', 'expected'),
     [
-        ('consistent', 1.01, 0.01, False, 0.02),  # verified: twice the fit's standard error
-        ('disagrees', 0.9, 0.01, True, 0.02),  # corrected to the fit
-        ('disagrees', 0.9, 0.01, False, -math.log(0.9) + 0.02),  # warn mode: the told one is off
-        ('suspect', 1.08, 0.03, False, math.log(1.08) + 0.06),
-        ('unobservable', 0.86, 0.081, False, 0.162),  # the handheld combination: its own spread
-        ('unobservable', 1.0, 0.01, False, 0.1),  # never below the prior while unverified
+        ('consistent', 1.01, 0.01, False, 0.01),  # verified: the fit's standard error
+        ('disagrees', 0.9, 0.01, True, 0.01),  # corrected to the fit
+        ('disagrees', 0.9, 0.01, False, -math.log(0.9) + 0.01),  # warn mode: the told one is off
+        ('suspect', 1.08, 0.03, False, math.log(1.08) + 0.03),
+        ('unobservable', 0.86, 0.181, False, 0.181),  # as unsure as its own fit
+        ('unobservable', 0.86, 0.081, False, 0.1),  # never below the prior while unverified
         ('unobservable', 1.0, math.inf, False, MAX_UNCERTAINTY),
         ('unobservable', 1.0, 0.9, False, MAX_UNCERTAINTY),
     ],

@@ -87,7 +87,8 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'max_neighbours': 'the median a point is checked against is over its nearest this many Ω neighbours '
     "within the radius (bounds the cost at the filter's dense points)",
     'local_tolerance': 'a point whose log residual deviates from its neighbours by more is inconsistent',
-    'max_relative_std': 'points whose depth_std / depth (1 px of matching error) is above this: untrusted',
+    'max_relative_std': "points whose depth_std / depth (1 px of matching error, and the filter's "
+    "focal length bias) is above this and above the single view's own error: untrusted",
     'min_precise_fraction': 'when a smaller share of the points passes max_relative_std, none is trusted: '
     'the few that pass are the tail of an error the rest share (an unverified focal length under rotation)',
     'min_agreement': 'points confirmed by a smaller fraction of the neighbour frames are untrusted',
@@ -341,10 +342,20 @@ def assess(
     support *= thin
     checked = np.isfinite(deviation)
     good = checked & (deviation <= config.local_tolerance)
+    mv_noise = MAD_TO_SIGMA * float(np.median(deviation[checked])) / np.sqrt(2.0) if checked.any() else np.inf
+    centre = float(np.median(residual))
+    fit_spread = MAD_TO_SIGMA * float(np.median(np.abs(residual - centre)))
+    # The fusion averages the points near a pixel, so what reaches the depth is the noise over
+    # about ``support + 1`` points; it helps only while that is below the single-view error,
+    # which is what remains of the fit residual's spread once the multi-view noise is removed.
+    effective_noise = mv_noise / np.sqrt(support + 1.0)
+    single_error = float(np.sqrt(max(fit_spread**2 - mv_noise**2, 0.0)))
     if evidence is not None and evidence.relative_std is not None:
         rel = evidence.relative_std[rows, cols]
         stats['median_relative_std'] = float(np.nanmedian(rel)) if np.isfinite(rel).any() else float('nan')
-        precise = np.nan_to_num(rel, nan=np.inf) <= config.max_relative_std
+        # A point may be as far off as its std says and still help a single view that is
+        # further off (a focal length verified to 2-4 % under rotation: docs/fusion.md).
+        precise = np.nan_to_num(rel, nan=np.inf) <= max(config.max_relative_std, single_error)
         stats['precise_fraction'] = float(precise.mean())
         if stats['precise_fraction'] < config.min_precise_fraction:
             # The std says how far an estimate may be off, and a shared cause (the focal length
@@ -357,14 +368,6 @@ def assess(
         agree = evidence.agreement[rows, cols]
         stats['median_agreement'] = float(np.nanmedian(agree)) if np.isfinite(agree).any() else float('nan')
         good &= np.nan_to_num(agree, nan=0.0) >= config.min_agreement
-    mv_noise = MAD_TO_SIGMA * float(np.median(deviation[checked])) / np.sqrt(2.0) if checked.any() else np.inf
-    centre = float(np.median(residual))
-    fit_spread = MAD_TO_SIGMA * float(np.median(np.abs(residual - centre)))
-    # The fusion averages the points near a pixel, so what reaches the depth is the noise over
-    # about ``support + 1`` points; it helps only while that is below the single-view error,
-    # which is what remains of the fit residual's spread once the multi-view noise is removed.
-    effective_noise = mv_noise / np.sqrt(support + 1.0)
-    single_error = float(np.sqrt(max(fit_spread**2 - mv_noise**2, 0.0)))
     n_trusted = round(int(good.sum()) * thin)  # of all Ω
     trusted = np.zeros(omega.shape, dtype=bool)
     trusted[rows[good], cols[good]] = True

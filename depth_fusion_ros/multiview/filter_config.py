@@ -169,7 +169,7 @@ class FilterConfig:
     #: has verified it, and while the check cannot tell: the published depth std then includes
     #: the bias such an error gives each estimate under this motion (``multiview/focal_bias.py``:
     #: large under rotation-dominant motion, small with a sideways baseline). Once the check has
-    #: read the stream, twice its standard error is used instead. 0: off.
+    #: read the stream, its standard error is used instead. 0: off.
     focal_uncertainty: float = 0.1
 
     def validate(self) -> None:

@@ -15,9 +15,9 @@ depth; combined with the filter's own weights (``j^2``), as its posterior mean c
 frames. The filter adds it to the published depth std, so the guard (``guard.max_relative_std``,
 ``guard.min_precise_fraction``) and the fusion's precision weights see it.
 
-``eps`` is what the focal length check has verified (:func:`focal_uncertainty`): twice its
-standard error once it has read the stream, ``filter.focal_uncertainty`` before then or when
-it cannot tell.
+``eps`` is what the focal length check has verified (:func:`focal_uncertainty`): its standard
+error once it has read the stream, ``filter.focal_uncertainty`` before then or when it cannot
+tell.
 """
 
 from __future__ import annotations
@@ -47,16 +47,19 @@ def focal_uncertainty(estimate: object | None, prior: float, corrected: bool) ->
     ``estimate``: the focal length check's result (``FocalEstimate``), ``None`` while it has
     not read enough of the stream; ``corrected``: whether the multi-view depth runs on its
     fitted focal length. A verified focal length (``consistent``, or ``disagrees`` and
-    corrected) is good to twice the fit's standard error; one the check found off but kept
+    corrected) is good to the fit's standard error; one the check found off but kept
     (``suspect``, or ``disagrees`` in warn mode) is off by the fit as well; one it cannot
     pin down (``unobservable``) is at least as uncertain as ``prior`` and as its own fit.
+    One standard error, not two: the guard weighs the bias against the single view's own
+    error (``guard.max_relative_std``), and at two a causal 500-frame read of 7-Scenes
+    (verified to 1.8 %) lost 1.5 % of its fused MAE on a stretch where the camera turns.
     """
     if prior == 0.0:
         return 0.0
     if estimate is None:
         return prior
     stderr = float(getattr(estimate, 'stderr', math.inf))
-    spread = 2.0 * stderr if math.isfinite(stderr) else MAX_UNCERTAINTY
+    spread = stderr if math.isfinite(stderr) else MAX_UNCERTAINTY
     verdict = getattr(estimate, 'verdict', 'unobservable')
     if verdict == 'unobservable':
         eps = max(prior, spread)
