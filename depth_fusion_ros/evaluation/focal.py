@@ -36,7 +36,7 @@ def check_focal(sequence: Sequence, params: dict) -> tuple[Sequence, FocalEstima
         lambda seq, cfg: check_frames(seq.camera, seq.frames, cfg),
         'focal length',
     )
-    if estimate is not None and config.mode == 'correct' and estimate.verdict == 'disagrees':
+    if estimate is not None and estimate.applied(config.mode):
         sequence = dataclasses.replace(sequence, camera=estimate.corrected(sequence.camera))
         log.warning('%s: every method uses fx %.1f px (focal_check.mode correct)', sequence.name, estimate.fx)
     return sequence, estimate

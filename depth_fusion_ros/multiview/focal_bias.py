@@ -24,9 +24,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+
+from .cost_volume import epipolar_matrices, epipolar_motion
+
+if TYPE_CHECKING:
+    from .focal_check import FocalEstimate
 
 #: The focal change the bias is computed for (relative); the result is per unit of it.
 STEP = 0.01
@@ -41,12 +47,12 @@ MAX_FRAMES = 4
 KEPT_FRAMES = 16
 
 
-def focal_uncertainty(estimate: object | None, prior: float, corrected: bool) -> float:
+def focal_uncertainty(estimate: FocalEstimate | None, prior: float, corrected: bool) -> float:
     """The relative focal length uncertainty the multi-view depth is published with.
 
-    ``estimate``: the focal length check's result (``FocalEstimate``), ``None`` while it has
-    not read enough of the stream; ``corrected``: whether the multi-view depth runs on its
-    fitted focal length. A verified focal length (``consistent``, or ``disagrees`` and
+    ``estimate``: the focal length check's result, ``None`` while it has not read enough of
+    the stream; ``corrected``: whether the multi-view depth runs on its fitted focal length
+    (``FocalEstimate.applied``). A verified focal length (``consistent``, or ``disagrees`` and
     corrected) is good to the fit's standard error; one the check found off but kept
     (``suspect``, or ``disagrees`` in warn mode) is off by the fit as well; one it cannot
     pin down (``unobservable``) is at least as uncertain as ``prior`` and as its own fit.
@@ -58,15 +64,14 @@ def focal_uncertainty(estimate: object | None, prior: float, corrected: bool) ->
         return 0.0
     if estimate is None:
         return prior
-    stderr = float(getattr(estimate, 'stderr', math.inf))
-    spread = stderr if math.isfinite(stderr) else MAX_UNCERTAINTY
-    verdict = getattr(estimate, 'verdict', 'unobservable')
+    spread = estimate.stderr if math.isfinite(estimate.stderr) else MAX_UNCERTAINTY
+    verdict = estimate.verdict
     if verdict == 'unobservable':
         eps = max(prior, spread)
     elif verdict == 'consistent' or (verdict == 'disagrees' and corrected):
         eps = spread
     else:
-        eps = abs(math.log(max(float(getattr(estimate, 'scale', 1.0)), 1e-6))) + spread
+        eps = abs(math.log(max(estimate.scale, 1e-6))) + spread
     return min(eps, MAX_UNCERTAINTY)
 
 
@@ -91,40 +96,34 @@ def inverse_depth_bias(
     ``(us, vs)`` with inverse depths ``rho``, updated by frames at ``poses_fk`` (each the
     keyframe-to-frame transform ``T_fk``); 0 where no frame moved a point along a line.
 
-    Per frame: the point's projection ``(a + rho b) / (a_2 + rho b_2)`` with ``a = K R K^-1 x``,
-    and again with both focal lengths ``1 + STEP`` times as long in ``K`` (the homography only:
-    the translation's share of a focal error is a depth scale of that size, not this bias);
-    their difference along the epipolar direction over ``j`` (pixels per unit inverse depth) is
-    the frame's bias, and the frames combine weighted by ``j^2`` as in the filter's update.
+    Per frame: the point's projection ``(a + rho b) / (a_2 + rho b_2)`` with ``a = K R K^-1 x``
+    (``cost_volume.epipolar_matrices``), and again with both focal lengths ``1 + STEP`` times
+    as long in the homography (only there: the translation's share of a focal error is a depth
+    scale of that size, not this bias). The shift between the two along the line's motion ``m``
+    (``cost_volume.epipolar_motion``, pixels per unit inverse depth), over ``|m|``, is the
+    frame's bias, and the frames combine weighted by ``|m|^2`` as in the filter's update:
+    ``sum(shift . m) / sum(|m|^2)``.
     """
+    if len(poses_fk) == 0:
+        return torch.zeros_like(rho)
     K = np.asarray(K, dtype=np.float64)
     scaled = K.copy()
     scaled[0, 0] *= 1.0 + STEP
     scaled[1, 1] *= 1.0 + STEP
-    x = torch.stack((us.to(rho.dtype), vs.to(rho.dtype), torch.ones_like(rho)))
-    num = torch.zeros_like(rho)
-    den = torch.zeros_like(rho)
-    for T_fk in poses_fk:
-        R, t = T_fk[:3, :3], T_fk[:3, 3]
-        b = torch.as_tensor(K @ t, dtype=rho.dtype, device=rho.device)
-        told = _project(K @ R @ np.linalg.inv(K), x, rho, b)
-        other = _project(scaled @ R @ np.linalg.inv(scaled), x, rho, b)
-        a = told[2]
-        nu, nv = b[0] * a[2] - a[0] * b[2], b[1] * a[2] - a[1] * b[2]
-        norm = torch.hypot(nu, nv).clamp_(min=1e-12)
-        w = a[2] + rho * b[2]
-        j = norm / (w * w).clamp_(min=1e-12)
-        shift = ((other[0] - told[0]) * nu + (other[1] - told[1]) * nv) / norm
-        num += j * shift
-        den += j * j
-    return (num.abs() / den.clamp(min=1e-12)).div_(STEP)
-
-
-def _project(
-    H: np.ndarray, x: torch.Tensor, rho: torch.Tensor, b: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Pixel coordinates ``u``, ``v`` (R,) of rows ``x`` (3, R) at inverse depths ``rho`` through
-    homography ``H`` and translation image ``b``, and ``a = H x`` (3, R)."""
-    a = torch.as_tensor(H, dtype=x.dtype, device=x.device) @ x
-    w = a[2] + rho * b[2]
-    return (a[0] + rho * b[0]) / w, (a[1] + rho * b[1]) / w, a
+    poses = np.stack(poses_fk)
+    H, b = epipolar_matrices(K, poses, rho.device)  # (n, 3, 3), (n, 3)
+    H_long, _ = epipolar_matrices(scaled, poses, rho.device)
+    r = rho.to(H.dtype)
+    x = torch.stack((us.to(H.dtype), vs.to(H.dtype), torch.ones_like(r)))
+    num, den = torch.zeros_like(r), torch.zeros_like(r)
+    # One frame at a time: its (R,) rows stay in cache (a batch of frames took twice as long).
+    for f, (b0, b1, b2) in enumerate(b.tolist()):
+        told, longer = H[f] @ x, H_long[f] @ x
+        du, dv = epipolar_motion(told.unbind(0), (b0, b1, b2), r)
+        w, w_long = told[2] + r * b2, longer[2] + r * b2
+        rb0, rb1 = r * b0, r * b1
+        shift_u = (longer[0] + rb0) / w_long - (told[0] + rb0) / w
+        shift_v = (longer[1] + rb1) / w_long - (told[1] + rb1) / w
+        num += shift_u * du + shift_v * dv
+        den += du * du + dv * dv
+    return (num.abs() / den.clamp(min=1e-12)).div_(STEP).to(rho.dtype)

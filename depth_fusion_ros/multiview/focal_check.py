@@ -120,6 +120,11 @@ class FocalEstimate:
             )
         return f'focal length check: fx {self.told_fx:.1f} px agrees with the images and poses: {fit}'
 
+    def applied(self, mode: str) -> bool:
+        """Whether the multi-view depth runs on the fitted focal length under ``focal_check.mode``
+        ``mode``: only a sure disagreement is corrected, and only in ``correct`` mode."""
+        return mode == 'correct' and self.verdict == 'disagrees'
+
     def corrected(self, camera: PinholeCamera) -> PinholeCamera:
         """``camera`` with both focal lengths scaled by the fitted scale (principal point kept)."""
         s = self.scale

@@ -50,7 +50,7 @@ class FocalCheckRunner(PairedCheckRunner):
         once the check disagreed with this camera and ``focal_check.mode`` is correct, else
         ``camera`` itself."""
         result = self.result
-        if self.config.mode != 'correct' or result is None or result.verdict != 'disagrees':
+        if result is None or not result.applied(self.config.mode):
             return camera
         if camera != self.camera:
             return camera
@@ -63,8 +63,7 @@ class FocalCheckRunner(PairedCheckRunner):
         ``multiview/focal_bias.py``): ``prior`` until the check has read the stream, then what
         it verified."""
         result = self.result
-        corrected = self.config.mode == 'correct' and result is not None and result.verdict == 'disagrees'
-        return focal_uncertainty(result, prior, corrected)
+        return focal_uncertainty(result, prior, result is not None and result.applied(self.config.mode))
 
     def status(self) -> str:
         """One phrase for the diagnostics."""
