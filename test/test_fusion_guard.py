@@ -115,6 +115,25 @@ def test_parallax_evidence_removes_low_parallax_points(truth):
     assert verdict.evidence['median_relative_std'] > 0
 
 
+def test_points_about_as_far_off_as_the_single_view_are_not_trusted(truth):
+    """A point whose std passes ``max_relative_std`` only by the single view's own error is
+    trusted below ``single_error_share`` of that error: its std at three quarters of it is not
+    trusted by default (the hand-held streams of docs/fusion.md were fused above their input
+    at the whole of it), and is at ``single_error_share`` 1."""
+    single = _single(truth, 6)
+    multi = _multi(truth, 6, density=0.08, noise=0.01)
+    omega = np.isfinite(multi)
+    plain = assess(single, multi, omega, int(omega.sum()), GuardConfig(), None)
+    single_error = plain.evidence['single_error']
+    assert single_error > 0.1
+    evidence = MultiViewEvidence(relative_std=np.where(omega, 0.75 * single_error, np.nan).astype(np.float32))
+    for share, decision in ((GuardConfig().single_error_share, 'single_view'), (1.0, 'full')):
+        config = GuardConfig(max_relative_std=0.05, single_error_share=share)
+        verdict = assess(single, multi, omega, int(omega.sum()), config, evidence)
+        assert verdict.decision == decision, (share, verdict.reason)
+        assert verdict.evidence['precise_fraction'] == (0.0 if decision == 'single_view' else 1.0)
+
+
 def test_corrections_do_not_reach_far_from_their_points(truth):
     # The single-view depth is 25 % too far on the left, 5 % too near on the right: unrelated
     # errors, as in two regions of a network's prediction.
@@ -193,6 +212,7 @@ def test_weak_stage2_support_keeps_the_single_view_depth(truth):
         ('min_trusted_points', 0),
         ('reach', -1.0),
         ('min_inlier_ratio', 1.2),
+        ('single_error_share', 1.5),
     ],
 )
 def test_bad_thresholds_raise(field, value):

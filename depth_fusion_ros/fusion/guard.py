@@ -88,7 +88,10 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     "within the radius (bounds the cost at the filter's dense points)",
     'local_tolerance': 'a point whose log residual deviates from its neighbours by more is inconsistent',
     'max_relative_std': "points whose depth_std / depth (1 px of matching error, and the filter's "
-    "focal length bias) is above this and above the single view's own error: untrusted",
+    "focal length bias) is above this and above single_error_share of the single view's own error: untrusted",
+    'single_error_share': 'a point whose depth_std / depth is above max_relative_std is still trusted below '
+    "this share of the single view's own error: points about as far off as the single view made it worse "
+    '(docs/fusion.md); 0: never',
     'min_precise_fraction': 'when a smaller share of the points passes max_relative_std, none is trusted: '
     'the few that pass are the tail of an error the rest share (an unverified focal length under rotation)',
     'min_agreement': 'points confirmed by a smaller fraction of the neighbour frames are untrusted',
@@ -118,6 +121,7 @@ class GuardConfig:
     max_neighbours: int = 16
     local_tolerance: float = 0.15
     max_relative_std: float = 0.15
+    single_error_share: float = 0.5
     min_precise_fraction: float = 0.2
     min_agreement: float = 0.5
     max_mv_noise: float = 0.06
@@ -143,7 +147,13 @@ class GuardConfig:
         for name in positive:
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f'guard.{name} must be a positive number, got {getattr(self, name)}')
-        for name in ('min_agreement', 'full_fraction', 'min_inlier_ratio', 'min_precise_fraction'):
+        for name in (
+            'min_agreement',
+            'full_fraction',
+            'min_inlier_ratio',
+            'min_precise_fraction',
+            'single_error_share',
+        ):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f'guard.{name} must be in [0, 1], got {getattr(self, name)}')
         for name in ('min_neighbours', 'max_neighbours', 'min_trusted_points', 'min_scale_points'):
@@ -354,8 +364,12 @@ def assess(
         rel = evidence.relative_std[rows, cols]
         stats['median_relative_std'] = float(np.nanmedian(rel)) if np.isfinite(rel).any() else float('nan')
         # A point may be as far off as its std says and still help a single view that is
-        # further off (a focal length verified to 2-4 % under rotation: docs/fusion.md).
-        precise = np.nan_to_num(rel, nan=np.inf) <= max(config.max_relative_std, single_error)
+        # further off (a focal length verified to 2-4 % under rotation: docs/fusion.md); only
+        # by a margin. ``single_error`` is read from the fit's spread, which cannot tell the
+        # single view's error from the points' own, and trusted up to the whole of it the points
+        # fused two hand-held streams (seed 71) to 1.003x and 1.02x their input.
+        limit = max(config.max_relative_std, config.single_error_share * single_error)
+        precise = np.nan_to_num(rel, nan=np.inf) <= limit
         stats['precise_fraction'] = float(precise.mean())
         if stats['precise_fraction'] < config.min_precise_fraction:
             # The std says how far an estimate may be off, and a shared cause (the focal length

@@ -106,6 +106,7 @@ GUARD_LIMITS: dict[str, Any] = {
     'max_neighbours': (1, 10000),
     'local_tolerance': (1e-6, None),
     'max_relative_std': (1e-6, None),
+    'single_error_share': (0.0, 1.0),
     'min_precise_fraction': (0.0, 1.0),
     'min_agreement': (0.0, 1.0),
     'max_mv_noise': (1e-6, None),

@@ -16,6 +16,8 @@ MAE, the run's summary and the node's own check verdicts (from its log):
 
     python scripts/diag/graph_stress_sweep.py translation rotation keyframes --seed 21 --out /tmp/gs
     python scripts/diag/graph_stress_sweep.py all --seed 21 --out /tmp/gs      # every stress case
+    python scripts/diag/graph_stress_sweep.py keyframes --seed 71 --out /tmp/gs \
+        --synth '--focal-error 0.05 --gain-sigma 0.1' --tag slam               # a case with more stressors
 
 docs/fusion.md "The stress cases through the node graph" holds the figures.
 """
@@ -25,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -68,8 +71,8 @@ def score(results: Path) -> str:
     )
 
 
-def sweep_case(case: str, seed: int, frames: int, out: Path) -> str:
-    d = out / f'{case}_{seed}'
+def sweep_case(case: str, seed: int, frames: int, out: Path, synth: list[str], tag: str) -> str:
+    d = out / f'{case}_{seed}{tag}'
     d.mkdir(parents=True, exist_ok=True)
     for old in ('seq', 'bag', 'rec', 'eval'):
         subprocess.run(['rm', '-rf', str(d / old)], check=True)
@@ -86,6 +89,7 @@ def sweep_case(case: str, seed: int, frames: int, out: Path) -> str:
             str(seed),
             *size,
             '--quiet',
+            *synth,
         ],
         d / 'synth.log',
     )
@@ -112,7 +116,8 @@ def sweep_case(case: str, seed: int, frames: int, out: Path) -> str:
     summary = next(
         line for line in (d / 'run.log').read_text().splitlines()[::-1] if 'keyframes chosen' in line
     )
-    return f'{case:16s} {score(d / "eval" / "results.json")} | {summary[:48]} | {node_checks(d / "run.log")}'
+    scored = score(d / 'eval' / 'results.json')
+    return f'{case + tag:16s} {scored} | {summary[:48]} | {node_checks(d / "run.log")}'
 
 
 def main() -> int:
@@ -123,6 +128,10 @@ def main() -> int:
     parser.add_argument('--seed', type=int, default=21)
     parser.add_argument('--frames', type=int, default=100)
     parser.add_argument('--out', type=Path, required=True, help='working folder (one subfolder per case)')
+    parser.add_argument(
+        '--synth', default='', help="more `depth-fusion synth` flags after the case's own, one quoted string"
+    )
+    parser.add_argument('--tag', default='', help='suffix of the case folders and lines (runs with --synth)')
     args = parser.parse_args()
     cases = list(STRESS_CASES) if args.cases == ['all'] else args.cases
     unknown = [c for c in cases if c not in STRESS_CASES]
@@ -131,7 +140,8 @@ def main() -> int:
     failed = 0
     for case in cases:
         try:
-            print(sweep_case(case, args.seed, args.frames, args.out), flush=True)
+            line = sweep_case(case, args.seed, args.frames, args.out, shlex.split(args.synth), args.tag)
+            print(line, flush=True)
         except (RuntimeError, StopIteration, KeyError, ValueError) as exc:
             failed += 1
             print(f'{case:16s} FAILED: {exc}', flush=True)
