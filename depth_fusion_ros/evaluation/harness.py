@@ -147,12 +147,13 @@ def evaluate_sequence(
     sequence = read
     told_camera = sequence.camera
     sequence, focal = check_focal(sequence, options.params)
-    focal_json = estimate_json(focal, corrected=sequence.camera != told_camera)
+    focal_corrected = sequence.camera != told_camera
+    focal_json = estimate_json(focal, corrected=focal_corrected)
     specs = [get_method(m) for m in methods]
     keyframes = run_keyframes(sequence, options)
     samples = set(sample_indices(keyframes, n_samples))
     records = {s.name: MethodRecord(s) for s in specs}
-    shared: dict[str, Any] = {FOCAL_SHARED_KEY: (focal, sequence.camera != told_camera)}
+    shared: dict[str, Any] = {FOCAL_SHARED_KEY: (focal, focal_corrected)}
     for i in progress(keyframes, desc=sequence.name, unit='kf', disable=not show_progress):
         ctx = KeyframeContext(sequence, i, options, shared)
         gt = ctx.gt_depth

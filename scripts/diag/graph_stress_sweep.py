@@ -144,7 +144,7 @@ def main() -> int:
             print(line, flush=True)
         except (RuntimeError, StopIteration, KeyError, ValueError) as exc:
             failed += 1
-            print(f'{case:16s} FAILED: {exc}', flush=True)
+            print(f'{case + args.tag:16s} FAILED: {exc}', flush=True)
     return 1 if failed else 0
 
 
