@@ -207,6 +207,49 @@ def test_points_on_one_corner_of_the_view_are_not_trained_on(small_sequence, tin
     assert everywhere.observe(sample).status != 'skipped'  # 0: any coverage
 
 
+def test_a_keyframe_whose_points_the_fusion_would_not_trust_is_not_trained_on(small_sequence, tiny_model):
+    """Points whose std says they may be more than ``max_relative_std`` off are not targets, as
+    the fusion's guard does not trust them; when all but a small share are such (a focal length
+    the check could not verify, under rotation: each biased alike; trained on, they made a
+    hand-held stream's network 1.3x worse) the keyframe is skipped."""
+    gt = small_sequence.gt_depth_working(0)
+    depth = np.full(gt.shape, np.nan, np.float32)
+    depth[::7, ::7] = gt[::7, ::7]
+    score = np.where(np.isfinite(depth), 1.0, np.nan).astype(np.float32)
+    frame = small_sequence.frames[0]
+
+    def sample(relative_std, limit=0.15):
+        std = (depth * relative_std).astype(np.float32)
+        return make_sample(
+            0,
+            frame.rgb,
+            small_sequence.camera,
+            depth,
+            score,
+            select_fraction=1.0,
+            mv_std=std,
+            max_relative_std=limit,
+        )
+
+    everything = _gt_sample(small_sequence, 0)
+    n_points = len(everything.train_uv) + len(everything.holdout_uv)
+    assert np.isnan(everything.precise_fraction)  # no std: nothing known, every point a target
+    half = np.where(np.arange(depth.shape[1]) < depth.shape[1] // 2, 0.05, 0.25)[None, :]
+    halved = sample(half)
+    assert 0.3 < halved.precise_fraction < 0.7
+    assert len(halved.train_uv) + len(halved.holdout_uv) == round(halved.precise_fraction * n_points)
+    assert (halved.train_uv[:, 0] < depth.shape[1] // 2).all()  # the precise half only
+    vague = sample(0.25)
+    assert vague.precise_fraction == 0.0
+    adapter = Adapter.from_spec(
+        tiny_model, AdaptConfig.from_dict({**FAST, 'guard_z': 0.0, 'guard_tolerance': 1.0})
+    )
+    report = adapter.observe(vague)
+    assert report.status == 'skipped' and report.reason.startswith('imprecise_points (0% of the points')
+    assert adapter.counters.reasons == {'imprecise_points': 1} and adapter.version == 0
+    assert adapter.observe(sample(0.25, limit=0.3)).status == 'updated'  # a looser limit trusts them
+
+
 def test_the_first_update_needs_points_over_half_the_view(small_sequence, tiny_model):
     """The first updates set the network's scale for the whole view: until one is accepted a
     keyframe needs ``start_coverage`` (half the image), then ``min_coverage`` (a quarter)."""
@@ -282,6 +325,29 @@ def test_assembler_waits_for_the_pose_once_poses_are_known(small_sequence):
     assert len(out) == 1 and out[0].has_photometric and len(out[0].neighbours) == 1
 
 
+def test_assembler_waits_for_the_std_once_stds_are_known(small_sequence):
+    seq = small_sequence
+    asm = KeyframeAssembler(select_fraction=1.0, neighbours=0, max_relative_std=0.1)
+    depth = seq.gt_depth_working(0)
+    score = np.ones_like(depth)
+    parts = [('rgb', seq.frames[0].rgb), ('depth', depth), ('score', score)]
+    out = [
+        s for part, value in parts for s in asm.add(10, part, value, seq.camera if part == 'rgb' else None)
+    ]
+    assert len(out) == 1 and np.isnan(out[0].precise_fraction)  # no std topic: complete without
+    assert asm.add(20, 'std', depth * 0.2) == []
+    out = [
+        s for part, value in parts for s in asm.add(20, part, value, seq.camera if part == 'rgb' else None)
+    ]
+    assert len(out) == 1 and out[0].precise_fraction == 0.0  # 0.2 > 0.1 everywhere
+    out = [
+        s for part, value in parts for s in asm.add(30, part, value, seq.camera if part == 'rgb' else None)
+    ]
+    assert out == []  # waits for its std now
+    out = asm.add(30, 'std', depth * 0.05)
+    assert len(out) == 1 and out[0].precise_fraction == 1.0
+
+
 def test_a_mount_turn_re_poses_the_neighbours_and_the_waiting_poses(small_sequence):
     """A keyframe's photometric neighbours posed before multi_view_node turned the camera and
     the keyframe after it would pair two cameras; ``repose`` turns the kept ones too, so the
@@ -312,6 +378,10 @@ def test_a_mount_turn_re_poses_the_neighbours_and_the_waiting_poses(small_sequen
 def test_bad_settings_are_clear_errors():
     with pytest.raises(ValueError, match=r'adaptation\.lr'):
         AdaptConfig.from_dict({'lr': 0.0})
+    with pytest.raises(ValueError, match=r'adaptation\.min_precise_fraction'):
+        AdaptConfig.from_dict({'min_precise_fraction': 1.5})
+    with pytest.raises(ValueError, match=r'adaptation\.max_relative_std'):
+        AdaptConfig.from_dict({'max_relative_std': 0.0})
     with pytest.raises(ValueError, match='unknown adaptation parameter'):
         AdaptConfig.from_dict({'learning_rate': 1e-3})
     with pytest.raises(ValueError, match='simulated'):

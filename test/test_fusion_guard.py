@@ -204,6 +204,24 @@ def test_weak_stage2_support_keeps_the_single_view_depth(truth):
     assert relaxed.decision != 'single_view' or 'stage 2 kept' not in relaxed.decision_reason
 
 
+def test_points_noisy_from_weak_geometry_are_not_trusted_nor_their_scale(truth):
+    """Points scattered by 10 % each around their neighbours *and* 40 % too near together (the
+    weak geometry of a SLAM keyframe under rotation with a wrong focal length: docs/fusion.md)
+    pass the local test and the averaged noise; ``max_point_noise`` keeps the single view."""
+    single = _single(truth, 8)
+    multi = _multi(truth, 8, density=0.08, noise=0.1) * np.float32(0.6)
+    guarded = fuse_keyframe(single, multi, None, FusionConfig(mode='fast'))
+    assert guarded.evidence['mv_noise'] > GuardConfig().max_point_noise, guarded.evidence
+    assert guarded.evidence['effective_noise'] < GuardConfig().max_mv_noise
+    assert guarded.decision == 'single_view' and 'point noise' in guarded.decision_reason
+    np.testing.assert_array_equal(guarded.depth, single)
+    relaxed = fuse_keyframe(
+        single, multi, None, FusionConfig(mode='fast'), guard_config=GuardConfig(max_point_noise=1.0)
+    )
+    assert relaxed.decision == 'full'
+    assert _mae(relaxed.depth, truth) > 1.2 * _mae(single, truth)
+
+
 @pytest.mark.parametrize(
     ('field', 'value'),
     [
@@ -213,6 +231,7 @@ def test_weak_stage2_support_keeps_the_single_view_depth(truth):
         ('reach', -1.0),
         ('min_inlier_ratio', 1.2),
         ('single_error_share', 1.5),
+        ('max_point_noise', 0.0),
     ],
 )
 def test_bad_thresholds_raise(field, value):

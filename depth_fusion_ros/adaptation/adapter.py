@@ -299,6 +299,12 @@ class Adapter:
         cfg = self.config
         self.counters.observed += 1
         # Both tests read the sample: a keyframe skipped is never preprocessed.
+        if sample.precise_fraction < cfg.min_precise_fraction:  # NaN (no std) compares false
+            reason = (
+                f'imprecise_points ({sample.precise_fraction:.0%} of the points within depth_std / depth '
+                f'{cfg.max_relative_std:g} < {cfg.min_precise_fraction:.0%})'
+            )
+            return self._skip(sample.key, reason, t0)
         n_train = len(sample.train_uv)
         if n_train < max(1, cfg.min_points):
             return self._skip(sample.key, f'too_few_points ({n_train} < {cfg.min_points})', t0)

@@ -64,6 +64,15 @@ class AdaptConfig:
     #: against 0.9x on a synthetic room), and one update on them moved the whole depth by 30-40 %
     #: (docs/adaptation.md, "The first keyframes").
     start_coverage: float = 0.5
+    #: A selected point is precise when its ``depth_std / depth`` (the multi-view node's std: one
+    #: pixel of matching error and the filter's focal length bias) is at most this, as the
+    #: fusion's ``guard.max_relative_std``.
+    max_relative_std: float = 0.15
+    #: A keyframe whose selected points are precise in a smaller share is not trained on (skipped,
+    #: imprecise_points), as the fusion's guard trusts none of them then: a focal length the
+    #: check could not verify under rotation biases them all (docs/adaptation.md, "Points the
+    #: fusion does not trust"). 0: every keyframe.
+    min_precise_fraction: float = 0.2
     #: Recent replay keyframes whose held-out points the guard checks with the new keyframe's.
     guard_keyframes: int = 4
     #: An update is rolled back when the guard error grows by more than this fraction (and
@@ -101,7 +110,9 @@ class AdaptConfig:
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ValueError(f'adaptation.{name} must be >= 0, got {getattr(self, name)}')
-        for name in ('min_coverage', 'start_coverage'):
+        if not self.max_relative_std > 0:
+            raise ValueError(f'adaptation.max_relative_std must be positive, got {self.max_relative_std}')
+        for name in ('min_coverage', 'start_coverage', 'min_precise_fraction'):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f'adaptation.{name} must be in [0, 1], got {getattr(self, name)}')
         for name in ('select_fraction',):

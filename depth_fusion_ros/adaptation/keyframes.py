@@ -3,9 +3,10 @@
 In the node graph a keyframe's image, pose, multi-view depth and score arrive on separate
 topics at different times, keyed by the same header stamp. ``KeyframeAssembler`` collects
 them and returns an :class:`~.sample.AdaptSample` as soon as the image, depth and score are
-in, with the pose when it came first or is still expected. It keeps the most recent posed
-keyframes as the photometric neighbours of the next ones (the previous keyframes with enough
-baseline), and bounded memory: at most ``max_pending`` incomplete keyframes.
+in, with the pose and the depth's std when they came first or are still expected. It keeps
+the most recent posed keyframes as the photometric neighbours of the next ones (the previous
+keyframes with enough baseline), and bounded memory: at most ``max_pending`` incomplete
+keyframes.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 from ..camera import PinholeCamera
 from .sample import AdaptSample, Neighbour, make_sample
 
-PARTS = ('rgb', 'depth', 'score', 'pose')
+PARTS = ('rgb', 'depth', 'score', 'pose', 'std')
 
 
 @dataclass
@@ -42,6 +43,7 @@ class KeyframeAssembler:
         min_baseline: float = 0.02,
         max_pending: int = 8,
         window: int = 8,
+        max_relative_std: float = 0.15,
     ):
         self.select_fraction = select_fraction
         self.holdout_fraction = holdout_fraction
@@ -49,11 +51,14 @@ class KeyframeAssembler:
         self.n_neighbours = int(neighbours)
         self.min_baseline = float(min_baseline)
         self.max_pending = int(max_pending)
+        self.max_relative_std = float(max_relative_std)
         self._pending: OrderedDict[int, _Parts] = OrderedDict()
         #: The recent posed keyframes, by stamp (ns): the neighbours of the next ones.
         self._recent: deque[tuple[int, Neighbour]] = deque(maxlen=max(1, window))
         #: Once any pose has arrived, a keyframe waits for its own (until it is evicted).
         self.poses_seen = False
+        #: The same for the multi-view depth's std (multi_view_node publishes it or never does).
+        self.stds_seen = False
         self.evicted_incomplete = 0
 
     def add(
@@ -64,17 +69,19 @@ class KeyframeAssembler:
             raise ValueError(f'unknown keyframe part {part!r}')
         if part == 'pose':
             self.poses_seen = True
+        elif part == 'std':
+            self.stds_seen = True
         entry = self._pending.setdefault(int(stamp_ns), _Parts())
         entry.values[part] = value
         if camera is not None:
             entry.camera = camera
         out: list[AdaptSample] = []
-        if self._ready(entry, waiting_for_pose=True):
+        if self._ready(entry, waiting=True):
             out.append(self._finish(int(stamp_ns)))
         while len(self._pending) > self.max_pending:
             old_stamp, old = next(iter(self._pending.items()))
-            if self._ready(old, waiting_for_pose=False):
-                out.append(self._finish(old_stamp))  # its pose never came: sparse term only
+            if self._ready(old, waiting=False):
+                out.append(self._finish(old_stamp))  # its pose (or std) never came: without it
             else:
                 self._pending.pop(old_stamp)
                 self.evicted_incomplete += 1
@@ -111,11 +118,12 @@ class KeyframeAssembler:
                 moved.add(stamp)
         return moved
 
-    def _ready(self, entry: _Parts, waiting_for_pose: bool) -> bool:
+    def _ready(self, entry: _Parts, waiting: bool) -> bool:
         v = entry.values
         if not all(k in v for k in ('rgb', 'depth', 'score')) or entry.camera is None:
             return False
-        return 'pose' in v or not (waiting_for_pose and self.poses_seen)
+        expected = [k for k, seen in (('pose', self.poses_seen), ('std', self.stds_seen)) if seen]
+        return not waiting or all(k in v for k in expected)
 
     def _neighbours(self, pose: np.ndarray) -> list[Neighbour]:
         chosen = []
@@ -142,6 +150,8 @@ class KeyframeAssembler:
             seed=self.seed,
             pose=pose,
             neighbours=neighbours,
+            mv_std=v.get('std'),
+            max_relative_std=self.max_relative_std,
         )
         if pose is not None:
             self._recent.append((stamp_ns, Neighbour(v['rgb'], pose)))

@@ -42,6 +42,10 @@ class AdaptSample:
     #: Camera-to-world pose of the keyframe, or None (then no photometric term).
     pose: np.ndarray | None = None
     neighbours: list[Neighbour] = field(default_factory=list)
+    #: Share of the selected points whose ``depth_std / depth`` is within the limit
+    #: (:func:`precise_points`; only those are training and held-out points); NaN when the
+    #: multi-view std did not come.
+    precise_fraction: float = float('nan')
 
     @property
     def has_photometric(self) -> bool:
@@ -98,11 +102,14 @@ def make_sample(
     seed: int = 0,
     pose: np.ndarray | None = None,
     neighbours: list[Neighbour] | None = None,
+    mv_std: np.ndarray | None = None,
+    max_relative_std: float = 0.15,
 ) -> AdaptSample:
     """A sample from a keyframe's multi-view depth and score maps (NaN = no estimate).
 
     Stage 1 keeps the best ``select_fraction`` by score (as the fusion does); of those, a seeded
-    ``holdout_fraction`` is kept apart for the guard.
+    ``holdout_fraction`` is kept apart for the guard. ``mv_std`` (the depth's std, optional)
+    keeps only the points precise at ``max_relative_std``, and their share.
     """
     if mv_depth.shape != rgb.shape[:2] or mv_score.shape != rgb.shape[:2]:
         raise ValueError(
@@ -114,6 +121,13 @@ def make_sample(
     rows, cols = np.nonzero(mask)
     uv = np.stack([cols, rows], axis=1).astype(np.float32)
     values = depth[rows, cols].astype(np.float32)
+    share = float('nan')
+    if mv_std is not None:
+        # Only the points the fusion's guard would trust are targets (a share too small to be
+        # evidence skips the keyframe: Adapter.observe).
+        precise = precise_points(values, mv_std[rows, cols], max_relative_std)
+        share = float(precise.mean()) if len(precise) else float('nan')
+        uv, values = uv[precise], values[precise]
     held = split_holdout(len(values), holdout_fraction, (int(seed), int(key) & 0x7FFFFFFF))
     return AdaptSample(
         key=int(key),
@@ -125,4 +139,13 @@ def make_sample(
         holdout_depth=values[held],
         pose=None if pose is None else np.asarray(pose, dtype=np.float64),
         neighbours=list(neighbours or []) if pose is not None else [],
+        precise_fraction=share,
     )
+
+
+def precise_points(depth: np.ndarray, std: np.ndarray, max_relative_std: float) -> np.ndarray:
+    """Which points have ``std / depth`` at most ``max_relative_std`` (a NaN std is not precise):
+    the points the fusion's guard trusts at most (``fusion/guard.py``, ``max_relative_std``)."""
+    with np.errstate(invalid='ignore', divide='ignore'):
+        rel = np.asarray(std, dtype=np.float64) / np.asarray(depth, dtype=np.float64)
+    return np.nan_to_num(rel, nan=np.inf) <= max_relative_std

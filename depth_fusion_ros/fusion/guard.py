@@ -96,6 +96,8 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'the few that pass are the tail of an error the rest share (an unverified focal length under rotation)',
     'min_agreement': 'points confirmed by a smaller fraction of the neighbour frames are untrusted',
     'max_mv_noise': 'averaged multi-view noise (log depth) above which no point bends the depth',
+    'max_point_noise': 'multi-view noise of one point (log depth, mv_noise) above which neither the points '
+    'nor their scale are trusted: geometry that weak shares its errors (docs/fusion.md)',
     'full_fraction': 'share of Ω that must be trusted to fuse every point (else only the trusted ones)',
     'min_trusted_points': 'fewer trusted points than this: no per-point fusion',
     'min_scale_points': 'fewer trusted points than this: no regional or global scale correction',
@@ -125,6 +127,7 @@ class GuardConfig:
     min_precise_fraction: float = 0.2
     min_agreement: float = 0.5
     max_mv_noise: float = 0.06
+    max_point_noise: float = 0.07
     full_fraction: float = 0.5
     min_trusted_points: int = 40
     min_scale_points: int = 20
@@ -142,6 +145,7 @@ class GuardConfig:
             'local_tolerance',
             'max_relative_std',
             'max_mv_noise',
+            'max_point_noise',
             'scale_sigma_px',
         )
         for name in positive:
@@ -412,6 +416,16 @@ def assess(
         # on average on the real sequences, 0.30-0.34 where the filter's rotation-only
         # estimates were 59 % off). Neither the points nor their scale can be trusted.
         reason = f'stage 2 kept {n_omega} of {n_stage1} stage-1 points (< {config.min_inlier_ratio:g})'
+        return verdict('single_view', reason, empty)
+    if mv_noise > config.max_point_noise:
+        # Points this noisy come from weak geometry (parallax small against the rotation and the
+        # calibration's error), whose errors are shared as well as scattered: on SLAM keyframe
+        # streams with a 5 % focal error, keyframes with a point noise of 0.07-0.09 gave scales
+        # up to 40 % off, and fused up to 1.8x their input (docs/fusion.md).
+        reason = (
+            f'multi-view point noise {mv_noise:.3f} > {config.max_point_noise:g}: '
+            'points and their scale untrusted'
+        )
         return verdict('single_view', reason, empty)
     noisy = effective_noise > min(config.max_mv_noise, single_error)
     if not noisy and n_trusted >= config.min_trusted_points:

@@ -110,6 +110,7 @@ GUARD_LIMITS: dict[str, Any] = {
     'min_precise_fraction': (0.0, 1.0),
     'min_agreement': (0.0, 1.0),
     'max_mv_noise': (1e-6, None),
+    'max_point_noise': (1e-6, None),
     'full_fraction': (0.0, 1.0),
     'min_trusted_points': (1, None),
     'min_scale_points': (1, None),

@@ -32,6 +32,7 @@ from .posing import TOPIC_POSING_TRANSFORM, TOPIC_REPOSED_KEYFRAMES, PosingLog, 
 
 TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
+TOPIC_MV_DEPTH_STD = 'depth_fusion/multi_view/depth_std'
 #: Published by multi_view_node for every keyframe (PoseStamped, world frame, keyframe stamp).
 TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
 SERVICE_SAVE = '~/save_model'
@@ -56,6 +57,8 @@ ADAPT_LIMITS: dict[str, Any] = {
     'min_points': (0, None),
     'min_coverage': (0.0, 1.0),
     'start_coverage': (0.0, 1.0),
+    'max_relative_std': (1e-6, None),
+    'min_precise_fraction': (0.0, 1.0),
     'guard_keyframes': (0, 1000),
     'guard_tolerance': (0.0, None),
     'guard_z': (0.0, None),
@@ -200,12 +203,14 @@ class NodeAdaptation:
             seed=self.config.seed,
             neighbours=int(p['adaptation.neighbours']),
             min_baseline=float(p['adaptation.min_baseline']),
+            max_relative_std=self.config.max_relative_std,
         )
         self._uncalibrated: set[int] = set()
         self._said_sparse_only = False
         q = node.input_qos
         node.subscribe(Image, TOPIC_MV_DEPTH, lambda m: self._on_depth(m, 'depth'), q)
         node.subscribe(Image, TOPIC_MV_SCORE, lambda m: self._on_depth(m, 'score'), q)
+        node.subscribe(Image, TOPIC_MV_DEPTH_STD, lambda m: self._on_depth(m, 'std'), q)
         node.subscribe(PoseStamped, TOPIC_KEYFRAME_POSE, self._on_pose, q)
         #: How multi_view_node posed each keyframe: a mount turn it takes re-poses the photometric
         #: neighbours (nodes/posing.py).

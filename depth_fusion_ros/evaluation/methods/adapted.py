@@ -74,6 +74,8 @@ def keyframe_sample(ctx: KeyframeContext, config: AdaptConfig) -> AdaptSample:
         seed=config.seed,
         pose=ctx.frame.pose,
         neighbours=neighbours,
+        mv_std=mv.depth_std,
+        max_relative_std=config.max_relative_std,
     )
 
 
