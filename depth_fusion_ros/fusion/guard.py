@@ -19,7 +19,10 @@ The guard therefore measures, per keyframe and without ground truth:
   ``local_tolerance`` is *inconsistent*. The fusion averages about
   the points of a neighbourhood, so the noise that reaches the depth is
   ``effective_noise = mv_noise / sqrt(neighbours + 1)``; per-point fusion pays only while it is
-  below ``max_mv_noise`` and below the single-view error ``sqrt(fit_spread² - mv_noise²)``;
+  below ``max_mv_noise`` and below the single-view error ``sqrt(fit_spread² - mv_noise²)``.
+  That average assumes independent errors; points whose own ``mv_noise`` is above
+  ``max_point_noise`` come from geometry too weak for it (their errors shared as well as
+  scattered), and the keyframe keeps its single view, their scale included;
 * **support**: stage-2 inliers (``n_omega``) and their share of the stage-1 points
   (``inlier_ratio``); points with no Ω neighbour cannot be checked and are not trusted;
 * **parallax** (when the multi-view result is known): each point's relative depth
