@@ -298,7 +298,7 @@ class Adapter:
         t0 = time.perf_counter()
         cfg = self.config
         self.counters.observed += 1
-        # Both tests read the sample: a keyframe skipped is never preprocessed.
+        # These tests read the sample: a keyframe skipped is never preprocessed.
         if sample.precise_fraction < cfg.min_precise_fraction:  # NaN (no std) compares false
             reason = (
                 f'imprecise_points ({sample.precise_fraction:.0%} of the points within depth_std / depth '
