@@ -43,8 +43,7 @@ class AdaptSample:
     pose: np.ndarray | None = None
     neighbours: list[Neighbour] = field(default_factory=list)
     #: Share of the selected points whose ``depth_std / depth`` is within the limit
-    #: (:func:`precise_points`; only those are training and held-out points); NaN when the
-    #: multi-view std did not come.
+    #: (:func:`precise_points`); NaN when the multi-view std did not come.
     precise_fraction: float = float('nan')
 
     @property
@@ -109,7 +108,7 @@ def make_sample(
 
     Stage 1 keeps the best ``select_fraction`` by score (as the fusion does); of those, a seeded
     ``holdout_fraction`` is kept apart for the guard. ``mv_std`` (the depth's std, optional)
-    keeps only the points precise at ``max_relative_std``, and their share.
+    gives the share of them precise at ``max_relative_std``.
     """
     if mv_depth.shape != rgb.shape[:2] or mv_score.shape != rgb.shape[:2]:
         raise ValueError(
@@ -122,12 +121,11 @@ def make_sample(
     uv = np.stack([cols, rows], axis=1).astype(np.float32)
     values = depth[rows, cols].astype(np.float32)
     share = float('nan')
-    if mv_std is not None:
-        # Only the points the fusion's guard would trust are targets (a share too small to be
-        # evidence skips the keyframe: Adapter.observe).
-        precise = precise_points(values, mv_std[rows, cols], max_relative_std)
-        share = float(precise.mean()) if len(precise) else float('nan')
-        uv, values = uv[precise], values[precise]
+    if mv_std is not None and len(values):
+        # A share too small to be evidence skips the keyframe (Adapter.observe). The points stay
+        # targets otherwise: keeping only the precise ones made the SLAM keyframe streams'
+        # adapted network 1.2-1.4x worse (their far points left; docs/adaptation.md).
+        share = float(precise_points(values, mv_std[rows, cols], max_relative_std).mean())
     held = split_holdout(len(values), holdout_fraction, (int(seed), int(key) & 0x7FFFFFFF))
     return AdaptSample(
         key=int(key),
