@@ -22,6 +22,8 @@ from ..camera import PinholeCamera
 from .sample import AdaptSample, Neighbour, make_sample
 
 PARTS = ('rgb', 'depth', 'score', 'pose', 'std')
+#: Parts a keyframe is complete without, until one of their kind has arrived.
+OPTIONAL_PARTS = ('pose', 'std')
 
 
 @dataclass
@@ -55,10 +57,9 @@ class KeyframeAssembler:
         self._pending: OrderedDict[int, _Parts] = OrderedDict()
         #: The recent posed keyframes, by stamp (ns): the neighbours of the next ones.
         self._recent: deque[tuple[int, Neighbour]] = deque(maxlen=max(1, window))
-        #: Once any pose has arrived, a keyframe waits for its own (until it is evicted).
-        self.poses_seen = False
-        #: The same for the multi-view depth's std (multi_view_node publishes it or never does).
-        self.stds_seen = False
+        #: The optional parts (pose, std) that have arrived once: from then on a keyframe waits
+        #: for its own (until it is evicted); a graph publishes each for every keyframe or never.
+        self.optional_seen: set[str] = set()
         self.evicted_incomplete = 0
 
     def add(
@@ -67,10 +68,8 @@ class KeyframeAssembler:
         """Add one part; returns the samples that became complete (usually none or one)."""
         if part not in PARTS:
             raise ValueError(f'unknown keyframe part {part!r}')
-        if part == 'pose':
-            self.poses_seen = True
-        elif part == 'std':
-            self.stds_seen = True
+        if part in OPTIONAL_PARTS:
+            self.optional_seen.add(part)
         entry = self._pending.setdefault(int(stamp_ns), _Parts())
         entry.values[part] = value
         if camera is not None:
@@ -122,8 +121,7 @@ class KeyframeAssembler:
         v = entry.values
         if not all(k in v for k in ('rgb', 'depth', 'score')) or entry.camera is None:
             return False
-        expected = [k for k, seen in (('pose', self.poses_seen), ('std', self.stds_seen)) if seen]
-        return not waiting or all(k in v for k in expected)
+        return not waiting or self.optional_seen.issubset(v)
 
     def _neighbours(self, pose: np.ndarray) -> list[Neighbour]:
         chosen = []

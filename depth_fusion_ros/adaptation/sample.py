@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import PinholeCamera
+from ..fusion.guard import within_relative_std
 from ..image_cells import ImageCells
 from ..multiview.stage1 import best_fraction_mask
 
@@ -43,7 +44,7 @@ class AdaptSample:
     pose: np.ndarray | None = None
     neighbours: list[Neighbour] = field(default_factory=list)
     #: Share of the selected points whose ``depth_std / depth`` is within the limit
-    #: (:func:`precise_points`); NaN when the multi-view std did not come.
+    #: (``fusion.guard.within_relative_std``); NaN when the multi-view std did not come.
     precise_fraction: float = float('nan')
 
     @property
@@ -125,7 +126,9 @@ def make_sample(
         # A share too small to be evidence skips the keyframe (Adapter.observe). The points stay
         # targets otherwise: keeping only the precise ones made the SLAM keyframe streams'
         # adapted network 1.2-1.4x worse (their far points left; docs/adaptation.md).
-        share = float(precise_points(values, mv_std[rows, cols], max_relative_std).mean())
+        with np.errstate(invalid='ignore', divide='ignore'):
+            relative_std = mv_std[rows, cols].astype(np.float64) / values
+        share = float(within_relative_std(relative_std, max_relative_std).mean())
     held = split_holdout(len(values), holdout_fraction, (int(seed), int(key) & 0x7FFFFFFF))
     return AdaptSample(
         key=int(key),
@@ -139,11 +142,3 @@ def make_sample(
         neighbours=list(neighbours or []) if pose is not None else [],
         precise_fraction=share,
     )
-
-
-def precise_points(depth: np.ndarray, std: np.ndarray, max_relative_std: float) -> np.ndarray:
-    """Which points have ``std / depth`` at most ``max_relative_std`` (a NaN std is not precise):
-    the points the fusion's guard trusts at most (``fusion/guard.py``, ``max_relative_std``)."""
-    with np.errstate(invalid='ignore', divide='ignore'):
-        rel = np.asarray(std, dtype=np.float64) / np.asarray(depth, dtype=np.float64)
-    return np.nan_to_num(rel, nan=np.inf) <= max_relative_std

@@ -272,6 +272,13 @@ def _local_deviation(
     return out, float(np.median(np.asarray(within, dtype=np.float64) - 1))
 
 
+def within_relative_std(relative_std: np.ndarray, limit: float) -> np.ndarray:
+    """Which estimates have ``depth_std / depth`` at most ``limit``; an unknown (NaN) one is not.
+    The guard's precision test, shared with the adaptation's choice of keyframes
+    (``adaptation/sample.py``), so that it trains only where the fusion would trust."""
+    return np.nan_to_num(relative_std, nan=np.inf) <= limit
+
+
 def _query_workers() -> int:
     """Threads for the k-d tree queries: the process's torch threads. A node process started on
     its own gets one (``nodes/threads.py``: three processes share the cores), and a query split
@@ -376,7 +383,7 @@ def assess(
         # single view's error from the points' own, and trusted up to the whole of it the points
         # fused two hand-held streams (seed 71) to 1.003x and 1.02x their input.
         limit = max(config.max_relative_std, config.single_error_share * single_error)
-        precise = np.nan_to_num(rel, nan=np.inf) <= limit
+        precise = within_relative_std(rel, limit)
         stats['precise_fraction'] = float(precise.mean())
         if stats['precise_fraction'] < config.min_precise_fraction:
             # The std says how far an estimate may be off, and a shared cause (the focal length
