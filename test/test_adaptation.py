@@ -473,3 +473,15 @@ def test_a_time_offset_correction_re_reads_the_neighbours_and_the_waiting_poses(
     np.testing.assert_allclose(out[0].pose, seq.frames[1].pose, atol=1e-12)
     np.testing.assert_allclose(out[0].neighbours[0].pose, seq.frames[0].pose, atol=1e-12)
     np.testing.assert_allclose(out[1].neighbours[0].pose, seq.frames[1].pose, atol=1e-12)
+
+
+def test_the_cudnn_switch_gives_the_flag_back_even_after_a_failed_step():
+    """Training on a GPU turns cuDNN off (adapter.py ``_convolutions``); a step that raises must
+    not leave it off for the process's inference."""
+    from depth_fusion_ros.adaptation.adapter import _cudnn_disabled
+
+    was = torch.backends.cudnn.enabled
+    with pytest.raises(RuntimeError, match='a failed step'), _cudnn_disabled():
+        assert not torch.backends.cudnn.enabled
+        raise RuntimeError('a failed step')
+    assert torch.backends.cudnn.enabled == was

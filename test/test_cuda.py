@@ -261,3 +261,26 @@ def test_map_archive_on_cuda_gives_back_what_it_evicted(tmp_path):
         meshes.append(v[np.lexsort(v.T[::-1])])
         tsdf.close()
     np.testing.assert_array_equal(meshes[0], meshes[1])
+
+
+@needs_cuda
+def test_training_on_cuda_runs_without_cudnn_and_gives_it_back():
+    """The adaptation's steps run with cuDNN off on a GPU (its per-shape first use cost a
+    training process seconds an update: adapter.py ``_convolutions``); inference keeps it."""
+    from depth_fusion_ros.adaptation.adapter import Adapter
+    from depth_fusion_ros.adaptation.config import AdaptConfig
+    from depth_fusion_ros.bench.adaptation import _samples
+
+    adapter = Adapter.from_spec('default', AdaptConfig(), 'cuda')
+    seen: list[bool] = []
+    steps = adapter._steps
+
+    def spy(*args, **kwargs):
+        seen.append(torch.backends.cudnn.enabled)
+        return steps(*args, **kwargs)
+
+    adapter._steps = spy
+    report = adapter.observe(_samples(1)[0])
+    assert report.status in ('updated', 'rolled_back'), report
+    assert seen == [False]
+    assert torch.backends.cudnn.enabled

@@ -16,12 +16,13 @@ they were computed with (a token), so writing into ``net`` from outside would le
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import itertools
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -116,6 +117,17 @@ def _output_bias(net: nn.Module) -> list[nn.Parameter]:
     """The network's final scalar bias (a global log-depth offset), if it has one."""
     scalars = [(n, p) for n, p in net.named_parameters() if p.numel() == 1 and n.endswith('bias')]
     return [scalars[-1][1]] if scalars else []
+
+
+@contextlib.contextmanager
+def _cudnn_disabled() -> Iterator[None]:
+    """cuDNN off, and back as it was (only that flag: ``cudnn.flags`` resets its others too)."""
+    was = torch.backends.cudnn.enabled
+    torch.backends.cudnn.enabled = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.enabled = was
 
 
 class Adapter:
@@ -295,6 +307,25 @@ class Adapter:
         device: losses stay on it until one read after the last step (a non-finite loss then
         restores the weights, as stopping at it would have).
         """
+        with self._convolutions():
+            return self._observe(sample, abort, behind)
+
+    def _convolutions(self) -> contextlib.AbstractContextManager[Any]:
+        """cuDNN off while training on a GPU: torch's own convolution kernels instead.
+
+        Why: cuDNN prepares its kernels for each new batch shape once per process, and the
+        guard's and the replay's batches grow with the buffer, so a training process's first
+        updates took seconds each. On an H200 (2026-12-04, ``scripts/diag/adapt_update_times.py
+        --cudnn``, one process each) the first five updates took 40.2 s with cuDNN, 59.2 s
+        autotuned, 8.5 s without it (7.5 s of which the process's first CUDA use); later
+        updates the same (median 297 / 251 ms with cuDNN, 302 / 207 ms without). The flag is
+        the process's: with the training in the node's own process (``adaptation.process``
+        false), inference on another thread may run without cuDNN meanwhile (the same numbers,
+        to float rounding). Inference alone keeps cuDNN.
+        """
+        return _cudnn_disabled() if self.device.type == 'cuda' else contextlib.nullcontext()
+
+    def _observe(self, sample: AdaptSample, abort: Callable[[], bool] | None, behind: bool) -> UpdateReport:
         t0 = time.perf_counter()
         cfg = self.config
         self.counters.observed += 1

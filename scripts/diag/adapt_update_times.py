@@ -9,6 +9,10 @@ of 5 keyframes observed, then 7 new keyframes: the order that showed the artefac
 now warms up with ``bench.adaptation._warm_up``) with every update synchronised and timed,
 then the same 7 again, with cProfile over the first pass of the timed keyframes (own time,
 top 25).
+
+``--cudnn off|benchmark`` runs the same with cuDNN disabled (torch's own convolution kernels)
+or autotuning: the first updates of a process on a GPU take seconds each in ``conv2d``, once
+per new batch shape (docs/adaptation.md). One process per setting: that cost is per process.
 """
 
 from __future__ import annotations
@@ -29,19 +33,29 @@ from depth_fusion_ros.bench.adaptation import _samples
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--device', default='cuda' if torch.cuda.is_available() else 'cpu')
+    ap.add_argument('--cudnn', choices=('default', 'off', 'benchmark'), default='default')
+    ap.add_argument('--no-profile', action='store_true', help='print the timings only')
     a = ap.parse_args()
+    if a.cudnn == 'off':
+        torch.backends.cudnn.enabled = False
+    elif a.cudnn == 'benchmark':
+        torch.backends.cudnn.benchmark = True
     sync = torch.cuda.synchronize if a.device.startswith('cuda') else (lambda: None)
     config = AdaptConfig()
     warm = 1 + max(config.guard_keyframes, config.replay_per_step)
     samples = _samples(warm + 7)
     adapter = Adapter.from_spec('default', config, a.device)
 
+    times: dict[str, list[float]] = {}
+
     def observe(s, tag: str) -> None:
         sync()
         t0 = time.perf_counter()
         r = adapter.observe(s)
         sync()
-        print(f'{tag} key {s.key}: {1e3 * (time.perf_counter() - t0):8.1f} ms  {r.status}', flush=True)
+        ms = 1e3 * (time.perf_counter() - t0)
+        times.setdefault(tag, []).append(ms)
+        print(f'{tag} key {s.key}: {ms:8.1f} ms  {r.status}', flush=True)
 
     for s in samples[:warm]:
         observe(s, 'warm')
@@ -52,6 +66,13 @@ def main() -> None:
     pr.disable()
     for s in samples[warm:]:
         observe(s, 'again')
+    summary = ', '.join(
+        f'{tag} sum {sum(v) / 1e3:.2f} s max {max(v):.0f} ms median {sorted(v)[len(v) // 2]:.0f} ms'
+        for tag, v in times.items()
+    )
+    print(f'cudnn {a.cudnn} on {a.device}: {summary}')
+    if a.no_profile:
+        return
     out = io.StringIO()
     pstats.Stats(pr, stream=out).sort_stats('tottime').print_stats(25)
     print('\n'.join(ln[:160] for ln in out.getvalue().splitlines() if ln.strip())[-6000:])

@@ -63,7 +63,9 @@ ros_venv() {  # the ROS wheels in a venv that sees the machine's torch; prints i
   echo "$RV/bin/python"
 }
 
-node_graph() {
+node_graph() {  # node_graph STEP_NAME [SCRIPT ARGS...]: the graph bench (or a script) in the ROS venv
+  local name=${1:-node_graph}
+  shift || true
   if [ ! -d "$WHEELS" ]; then
     echo "node graph: skipped, no ROS wheels in $WHEELS" | tee -a "$OUT/summary.txt"
     return 0
@@ -73,12 +75,21 @@ node_graph() {
   export AMENT_PREFIX_PATH=/tmp/ros_venv
   $ROSPY -c "import rclpy, torch, rosbags; print('ROS venv: rclpy', rclpy.__file__, 'torch', torch.__version__)" | tee -a "$OUT/summary.txt"
   # Every frame a keyframe of the recorded 30 Hz (drops reported), then paced at 10x (flat out).
-  TAIL=40 step node_graph "${NODE_GRAPH_LIMIT:-240}" env DEPTH_FUSION_BENCH_GRAPH_SET="${NODE_GRAPH_SET:-multi_view_node.keyframe_every=1}" \
-    DEPTH_FUSION_BENCH_GRAPH_RUNS="${NODE_GRAPH_RUNS:-composed:realtime:1,composed:paced:10}" \
-    $ROSPY -m depth_fusion_ros.cli.main bench --only node_graph --device "$DEVICE" --json "$LOGS/bench_node_graph.json"
+  if [ "$name" = node_graph ]; then
+    TAIL=40 step node_graph "${NODE_GRAPH_LIMIT:-240}" env DEPTH_FUSION_BENCH_GRAPH_SET="${NODE_GRAPH_SET:-multi_view_node.keyframe_every=1}" \
+      DEPTH_FUSION_BENCH_GRAPH_RUNS="${NODE_GRAPH_RUNS:-composed:realtime:1,composed:paced:10}" \
+      $ROSPY -m depth_fusion_ros.cli.main bench --only node_graph --device "$DEVICE" --json "$LOGS/bench_node_graph.json"
+  elif [ "$name" = graph_default ]; then  # every default (keyframe policy included)
+    TAIL=40 step graph_default "${NODE_GRAPH_LIMIT:-240}" env -u DEPTH_FUSION_BENCH_GRAPH_SET \
+      DEPTH_FUSION_BENCH_GRAPH_RUNS="${GRAPH_DEFAULT_RUNS:-composed:realtime:1,processes:realtime:1}" \
+      $ROSPY -m depth_fusion_ros.cli.main bench --only node_graph --device "$DEVICE" --json "$LOGS/bench_graph_default.json"
+  else
+    TAIL=60 step "$name" "${NODE_GRAPH_LIMIT:-240}" "$ROSPY" "$@"
+  fi
 }
 
-# STEPS, in order: cuda_tests, node_graph, bench:SECTION, split:STAGES (cuda_host_split.py --only
+# STEPS, in order: cuda_tests, node_graph, graph_default (every default; GRAPH_DEFAULT_RUNS),
+# sv_stall (scripts/diag/sv_stall.py: the single-view node's keyframes, composed), bench:SECTION, split:STAGES (cuda_host_split.py --only
 # STAGES), adapt_times. Unset: the order below (SECTIONS and PROFILES as described above).
 default_steps() {
   [ "${CUDA_TESTS:-1}" != 0 ] && echo cuda_tests
@@ -89,8 +100,12 @@ default_steps() {
 }
 for item in ${STEPS:-$(default_steps)}; do
   case "$item" in
-    cuda_tests) TAIL=8 step cuda_tests 150 $PY -m pytest test/test_cuda.py -q -p no:cacheprovider -rs ;;
+    cuda_tests)  # the tests' conftest imports rclpy: the ROS venv's python when the wheels are here
+      if [ -d "$WHEELS" ]; then TEST_PY=$(ros_venv); export AMENT_PREFIX_PATH=/tmp/ros_venv; else TEST_PY=$PY; fi
+      TAIL=8 step cuda_tests 150 "$TEST_PY" -m pytest test/test_cuda.py -q -p no:cacheprovider -rs ;;
     node_graph) node_graph ;;
+    graph_default) node_graph graph_default ;;
+    sv_stall) DEPTH_FUSION_BENCH_GRAPH_RUNS="${SV_STALL_RUNS:-composed:realtime:1}" node_graph sv_stall scripts/diag/sv_stall.py "$DEVICE" ;;
     bench:*)
       section=${item#bench:}
       TAIL=16 step "bench_$section" "${SECTION_LIMIT:-75}" $PY -m depth_fusion_ros.cli.main bench --only "$section" \
