@@ -485,3 +485,17 @@ def test_the_cudnn_switch_gives_the_flag_back_even_after_a_failed_step():
         assert not torch.backends.cudnn.enabled
         raise RuntimeError('a failed step')
     assert torch.backends.cudnn.enabled == was
+
+
+def test_the_anchor_lets_the_scale_follow_and_holds_the_shape(small_sequence, tiny_model):
+    """The anchor term (``adaptation.anchor_weight``) is zero at the starting network's depth
+    and for any change of its scale, and grows with a change of its shape."""
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig(anchor_weight=1.0))
+    prepared = adapter.prepare(_gt_sample(small_sequence, 2))
+    with torch.no_grad():
+        start = adapter._eval_forward(prepared.x)
+        assert float(adapter._anchor_term(start, [prepared])) == pytest.approx(0.0, abs=1e-6)
+        assert float(adapter._anchor_term(start + 0.3, [prepared])) == pytest.approx(0.0, abs=1e-6)
+        shape = start.clone()
+        shape[..., : shape.shape[-2] // 4, :] += 0.4  # a quarter of the rows moved: not a scale
+        assert float(adapter._anchor_term(shape, [prepared])) == pytest.approx(0.1, rel=0.05)

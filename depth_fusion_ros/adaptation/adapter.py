@@ -157,6 +157,7 @@ class Adapter:
             groups.append({'params': bias, 'lr': self.config.scale_lr})
         self._groups = groups
         self._snapshot: WeightSnapshot | None = None  # holds the optimiser, built on first use
+        self._start_net: nn.Module | None = None  # the weights the anchor holds to, copied on first use
         self.buffer: ReplayBuffer[PreparedSample] = ReplayBuffer(self.config.buffer_size)
         self.counters = AdapterCounters()
         self.version = 0
@@ -251,7 +252,25 @@ class Adapter:
         windows = None
         if rng is not None and fraction < 1.0:
             windows = draw_windows(len(batch), tuple(log_depth.shape[-2:]), fraction, rng)
-        return batch_loss(log_depth, batch, self.config, windows)
+        loss = batch_loss(log_depth, batch, self.config, windows)
+        if self.config.anchor_weight > 0:
+            loss = loss + self.config.anchor_weight * self._anchor_term(log_depth, batch)
+        return loss
+
+    def _anchor_term(self, log_depth: torch.Tensor, batch: list[PreparedSample]) -> torch.Tensor:
+        """Mean L1 of the log depth's change from the starting network, each keyframe's median
+        change removed (its scale may follow the points; its shape stays where no point says)."""
+        if self._start_net is None:
+            self._start_net = copy.deepcopy(self.net).eval().requires_grad_(False)
+        anchors = []
+        for s in batch:
+            if s.anchor_log is None:
+                with torch.no_grad():
+                    s.anchor_log = self._start_net(s.x)
+            anchors.append(s.anchor_log)
+        change = log_depth - torch.cat(anchors)
+        shift = change.detach().flatten(1).median(dim=1).values.view(-1, 1, 1, 1)
+        return (change - shift).abs().mean()
 
     def _guard(self, samples: list[PreparedSample]) -> list[torch.Tensor]:
         """Held-out point errors of ``samples`` that have held-out points, with the current

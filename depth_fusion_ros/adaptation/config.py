@@ -45,6 +45,9 @@ class AdaptConfig:
     photometric_weight: float = 1.0
     #: Weight of the edge-aware smoothness of mean-normalised inverse depth.
     smoothness_weight: float = 1e-3
+    #: Weight of the anchor: L1 of the log depth's change from the network it started from,
+    #: each keyframe's median change (its scale) allowed (docs/adaptation.md "The anchor").
+    anchor_weight: float = 0.5
     #: SSIM share of the photometric error (the rest is L1), as Monodepth2.
     ssim_alpha: float = 0.85
     #: Stage-1 selection: the best fraction of the multi-view points by score are targets.
@@ -101,6 +104,7 @@ class AdaptConfig:
             'sparse_weight',
             'photometric_weight',
             'smoothness_weight',
+            'anchor_weight',
             'guard_keyframes',
             'guard_tolerance',
             'guard_z',

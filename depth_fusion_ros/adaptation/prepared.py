@@ -86,6 +86,8 @@ class PreparedSample:
         self.holdout_log = torch.from_numpy(np.log(sample.holdout_depth)).to(device)
         #: (N, 2) grid_sample coordinates of the points (as ``losses.sample_map`` makes them).
         self.train_grid = point_grid(self.train_uv, self.width, self.height)
+        #: The starting network's log depth of this keyframe (the anchor's target), made on first use.
+        self.anchor_log: torch.Tensor | None = None
         self.holdout_grid = point_grid(self.holdout_uv, self.width, self.height)
         #: The guard's (n_holdout,) held-out point errors of this keyframe, by weights token
         #: (see ``Adapter``).

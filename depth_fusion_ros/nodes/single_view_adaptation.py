@@ -51,6 +51,7 @@ ADAPT_LIMITS: dict[str, Any] = {
     'sparse_weight': (0.0, None),
     'photometric_weight': (0.0, None),
     'smoothness_weight': (0.0, None),
+    'anchor_weight': (0.0, None),
     'ssim_alpha': (0.0, 1.0),
     'select_fraction': (1e-6, 1.0),
     'holdout_fraction': (0.0, 0.9),
