@@ -10,14 +10,17 @@ now warms up with ``bench.adaptation._warm_up``) with every update synchronised 
 then the same 7 again, with cProfile over the first pass of the timed keyframes (own time,
 top 25).
 
-``--cudnn off|benchmark`` runs the same with cuDNN disabled (torch's own convolution kernels)
-or autotuning: the first updates of a process on a GPU take seconds each in ``conv2d``, once
-per new batch shape (docs/adaptation.md). One process per setting: that cost is per process.
+``--cudnn on|off|benchmark`` runs the same with cuDNN on (torch's default), disabled (torch's
+own convolution kernels) or autotuning, whatever the adapter would choose; the default,
+``adapter``, is the adapter's own choice (cuDNN off while it trains on a GPU since 2026-12-04:
+the first updates of a process took seconds each in ``conv2d``, once per new batch shape,
+docs/adaptation.md). One process per setting: that cost is per process.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import io
 import pstats
@@ -33,13 +36,13 @@ from depth_fusion_ros.bench.adaptation import _samples
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--device', default='cuda' if torch.cuda.is_available() else 'cpu')
-    ap.add_argument('--cudnn', choices=('default', 'off', 'benchmark'), default='default')
+    ap.add_argument('--cudnn', choices=('adapter', 'on', 'off', 'benchmark'), default='adapter')
     ap.add_argument('--no-profile', action='store_true', help='print the timings only')
     a = ap.parse_args()
-    if a.cudnn == 'off':
-        torch.backends.cudnn.enabled = False
-    elif a.cudnn == 'benchmark':
-        torch.backends.cudnn.benchmark = True
+    if a.cudnn != 'adapter':  # the flags below, not the adapter's switch
+        Adapter._convolutions = lambda self: contextlib.nullcontext()
+        torch.backends.cudnn.enabled = a.cudnn != 'off'
+        torch.backends.cudnn.benchmark = a.cudnn == 'benchmark'
     sync = torch.cuda.synchronize if a.device.startswith('cuda') else (lambda: None)
     config = AdaptConfig()
     warm = 1 + max(config.guard_keyframes, config.replay_per_step)
