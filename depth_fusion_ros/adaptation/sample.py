@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..fusion.guard import within_relative_std
+from ..fusion.guard import relative_std, within_relative_std
 from ..image_cells import ImageCells
 from ..multiview.stage1 import best_fraction_mask
 
@@ -126,9 +126,8 @@ def make_sample(
         # A share too small to be evidence skips the keyframe (Adapter.observe). The points stay
         # targets otherwise: keeping only the precise ones made the SLAM keyframe streams'
         # adapted network 1.2-1.4x worse (their far points left; docs/adaptation.md).
-        with np.errstate(invalid='ignore', divide='ignore'):
-            relative_std = mv_std[rows, cols].astype(np.float64) / values
-        share = float(within_relative_std(relative_std, max_relative_std).mean())
+        precise = within_relative_std(relative_std(values, mv_std[rows, cols]), max_relative_std)
+        share = float(precise.mean())
     held = split_holdout(len(values), holdout_fraction, (int(seed), int(key) & 0x7FFFFFFF))
     return AdaptSample(
         key=int(key),

@@ -188,12 +188,7 @@ class MultiViewEvidence:
         cls, depth: np.ndarray | None, std: np.ndarray | None, agreement: np.ndarray | None = None
     ) -> MultiViewEvidence:
         """From the multi-view depth and its standard deviation (either None: no parallax evidence)."""
-        rel = None
-        if depth is not None and std is not None:
-            with np.errstate(invalid='ignore', divide='ignore'):
-                rel = (np.asarray(std, dtype=np.float32) / np.asarray(depth, dtype=np.float32)).astype(
-                    np.float32
-                )
+        rel = relative_std(depth, std) if depth is not None and std is not None else None
         return cls(relative_std=rel, agreement=agreement)
 
     @classmethod
@@ -272,11 +267,18 @@ def _local_deviation(
     return out, float(np.median(np.asarray(within, dtype=np.float64) - 1))
 
 
-def within_relative_std(relative_std: np.ndarray, limit: float) -> np.ndarray:
+def relative_std(depth: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """``std / depth`` in float32 (NaN where either is unknown): the precision the guard and the
+    adaptation's choice of keyframes test with :func:`within_relative_std`."""
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return (np.asarray(std, dtype=np.float32) / np.asarray(depth, dtype=np.float32)).astype(np.float32)
+
+
+def within_relative_std(rel: np.ndarray, limit: float) -> np.ndarray:
     """Which estimates have ``depth_std / depth`` at most ``limit``; an unknown (NaN) one is not.
     The guard's precision test, shared with the adaptation's choice of keyframes
     (``adaptation/sample.py``), so that it trains only where the fusion would trust."""
-    return np.nan_to_num(relative_std, nan=np.inf) <= limit
+    return np.nan_to_num(rel, nan=np.inf) <= limit
 
 
 def _query_workers() -> int:
