@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from scipy.spatial import cKDTree
 
 from depth_fusion_ros.fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence, assess
@@ -241,10 +242,9 @@ def test_bad_thresholds_raise(field, value):
 
 def _local_deviation_loop(points, residual, radius, min_neighbours, max_neighbours=None):
     """The per-point loop ``guard._local_deviation`` replaced: the reference it must match
-    (the nearest ``max_neighbours`` within the radius; every one when None)."""
-    from scipy.spatial import cKDTree
-
-    neighbours = cKDTree(points).query_ball_point(points, r=radius)
+    (the nearest ``max_neighbours`` within the radius, equidistant ones in index order; every
+    one when None)."""
+    neighbours = cKDTree(points).query_ball_point(points, r=radius)  # each list in index order
     out = np.full(len(points), np.nan)
     counts = np.zeros(len(points))
     for i, idx in enumerate(neighbours):
@@ -258,42 +258,65 @@ def _local_deviation_loop(points, residual, radius, min_neighbours, max_neighbou
     return out, float(np.median(counts))
 
 
+def _pixels(rng, density, shape=(60, 80)):
+    rows, cols = np.nonzero(rng.random(shape) < density)  # row-major, as Ω's points
+    return cols, rows
+
+
 @pytest.mark.parametrize('density', [0.02, 0.4])
-def test_local_deviation_is_the_per_point_median_exactly(density):
-    """Vectorised, the same numbers as the loop, on pixel points (sparse and isolated ones,
-    dense ones, duplicates, even and odd counts, tied residuals), with a cap above every
-    point's neighbour count."""
+@pytest.mark.parametrize('max_neighbours', [500, 16, 3])
+def test_local_deviation_is_the_per_point_median_exactly(density, max_neighbours):
+    """Vectorised, the same numbers as the loop on pixel points (sparse and isolated ones,
+    dense ones, even and odd counts, tied residuals), with a cap above every point's neighbour
+    count and below it: then equidistant neighbours (rings of up to 16 pixels) count in index
+    order, whichever order the k-d tree returned them in."""
     from depth_fusion_ros.fusion import guard
 
     rng = np.random.default_rng(7)
-    rows, cols = np.nonzero(rng.random((60, 80)) < density)
+    cols, rows = _pixels(rng, density)
     points = np.stack((cols, rows), axis=1).astype(np.float64)
-    points = np.concatenate((points, points[:5]))  # duplicates: distance 0, still neighbours
     residual = rng.normal(0.0, 0.2, len(points))
     residual[::7] = residual[0]  # ties: the median must not depend on their order
-    expected = _local_deviation_loop(points, residual, 12.0, 2)
-    got = guard._local_deviation(points, residual, 12.0, 2, max_neighbours=500)
+    expected = _local_deviation_loop(points, residual, 12.0, 2, max_neighbours)
+    got = guard._local_deviation(cols, rows, residual, 12.0, 2, max_neighbours)
     np.testing.assert_array_equal(got[0], expected[0])
     assert got[1] == expected[1]
     assert np.isfinite(got[0]).any()
-    empty = guard._local_deviation(np.zeros((0, 2)), np.zeros(0), 12.0, 2, 32)
+    empty = guard._local_deviation(np.zeros(0, int), np.zeros(0, int), np.zeros(0), 12.0, 2, 32)
     assert empty[0].shape == (0,) and empty[1] == 0.0
 
 
-def test_local_deviation_takes_the_nearest_neighbours_and_counts_every_one():
-    """Dense points (the filter's): the median is over the nearest ``max_neighbours`` within
-    the radius, the support counts all of them (a strided sample beyond SUPPORT_SAMPLE points)."""
+@pytest.mark.parametrize('radius', [12.0, 7.5, 3.0])
+def test_the_grid_search_gives_the_tree_search_numbers(radius):
+    """The GPU's search (every offset in one gather) and the CPU's (a k-d tree, its last ring
+    read in order) give the same medians and counts, here both on the CPU."""
+    from depth_fusion_ros.fusion import neighbour_median as nm
+
+    rng = np.random.default_rng(5)
+    for density in (0.05, 0.3, 0.9):
+        cols, rows = _pixels(rng, density, (90, 120))
+        values = rng.normal(0.0, 1.0, len(cols))
+        tree = nm.tree_median(cols, rows, values, radius, 16)
+        grid = nm.grid_median(cols, rows, values, radius, 16, torch.device('cpu'))
+        np.testing.assert_array_equal(tree[1], grid[1])
+        np.testing.assert_array_equal(tree[0], grid[0])
+
+
+def test_local_deviation_counts_every_neighbour_for_the_support():
+    """Dense points (the filter's): the support counts all neighbours within the radius, not
+    the ``max_neighbours`` of the median (a strided sample beyond SUPPORT_SAMPLE points)."""
     from depth_fusion_ros.fusion import guard
 
     rng = np.random.default_rng(3)
-    points = rng.uniform(0.0, 60.0, (1500, 2))  # ~110 neighbours within 12 px: no distance ties
-    residual = 0.1 * np.sin(points[:, 0] / 9.0) + rng.normal(0.0, 0.05, len(points))
-    expected = _local_deviation_loop(points, residual, 12.0, 2, max_neighbours=16)
-    got = guard._local_deviation(points, residual, 12.0, 2, max_neighbours=16)
-    np.testing.assert_allclose(got[0], expected[0], rtol=0, atol=1e-15)
-    assert got[1] == expected[1] and got[1] > 16
-    many = rng.uniform(0.0, 200.0, (3 * guard.SUPPORT_SAMPLE, 2))
-    _, support = guard._local_deviation(many, np.zeros(len(many)), 12.0, 2, max_neighbours=8)
+    cols, rows = _pixels(rng, 0.3, (60, 60))
+    _, support = guard._local_deviation(cols, rows, np.zeros(len(cols)), 12.0, 2, max_neighbours=16)
+    points = np.stack((cols, rows), axis=1).astype(float)
+    assert support == _local_deviation_loop(points, np.zeros(len(cols)), 12.0, 2)[1]
+    assert support > 16
+    cols, rows = _pixels(rng, 0.5, (120, 220))
+    assert len(cols) > 3 * guard.SUPPORT_SAMPLE
+    _, support = guard._local_deviation(cols, rows, np.zeros(len(cols)), 12.0, 2, max_neighbours=8)
+    many = np.stack((cols, rows), axis=1).astype(float)
     exact = np.median(cKDTree(many).query_ball_point(many, r=12.0, return_length=True) - 1)
     assert abs(support - exact) <= 0.05 * exact
 
@@ -340,5 +363,6 @@ def test_grid_counts_are_the_ball_query_counts_on_pixels(radius):
     sample = points[::3]
     expected = cKDTree(points).query_ball_point(sample, r=radius, return_length=True)
     np.testing.assert_array_equal(guard.grid_counts(points, sample, radius), expected)
-    assert guard.grid_counts(points + 0.25, sample + 0.25, radius) is None
-    assert guard.grid_counts(points - 1.0, sample - 1.0, radius) is None
+    for off_grid in (0.25, -1.0):
+        with pytest.raises(ValueError, match='non-negative integer'):
+            guard.grid_counts(points + off_grid, sample + off_grid, radius)

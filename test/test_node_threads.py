@@ -19,7 +19,7 @@ def test_opencv_and_the_guard_queries_take_the_nodes_share(monkeypatch):
     import cv2
     import torch
 
-    from depth_fusion_ros.fusion import guard
+    from depth_fusion_ros.fusion import neighbour_median
 
     before_torch, before_cv = torch.get_num_threads(), cv2.getNumThreads()
     monkeypatch.delenv('OMP_NUM_THREADS', raising=False)
@@ -28,7 +28,7 @@ def test_opencv_and_the_guard_queries_take_the_nodes_share(monkeypatch):
         line = threads.apply_node_threads()
         assert line.startswith('torch and OpenCV threads: 1')
         assert torch.get_num_threads() == 1 and cv2.getNumThreads() == 1
-        assert guard._query_workers() == 1
+        assert neighbour_median._query_workers() == 1
     finally:
         torch.set_num_threads(before_torch)
         cv2.setNumThreads(before_cv)

@@ -67,6 +67,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .neighbour_median import nearest_median
 from .subsample import seeded_subsample
 
 log = logging.getLogger(__name__)
@@ -223,47 +224,32 @@ SUPPORT_SAMPLE = 4096
 
 
 def _local_deviation(
-    points: np.ndarray, residual: np.ndarray, radius: float, min_neighbours: int, max_neighbours: int
+    cols: np.ndarray,
+    rows: np.ndarray,
+    residual: np.ndarray,
+    radius: float,
+    min_neighbours: int,
+    max_neighbours: int,
+    device: str = 'cpu',
 ) -> tuple[np.ndarray, float]:
     """|residual - median residual of its nearest ``max_neighbours`` other points within
     ``radius``| per point (NaN when fewer than ``min_neighbours`` neighbours), and the median
     number of neighbours within ``radius`` (all of them, not capped: the support).
 
-    Vectorised, because its cost follows |Ω|: the temporal filter sends 6-40k points per
-    keyframe, 150 neighbours each within 12 px. The nearest ones come from one k-nearest
-    query bounded by the radius (``max_neighbours`` + 1, so the point itself can be dropped
-    wherever it lies among duplicates); their residuals, sorted per row, give the median as
-    ``np.median`` computes it (tested against the per-point loop). Capping the neighbours
-    bounds the cost (a sort of all ~2M neighbour pairs took 0.5-0.7 s at 27k points; this,
-    0.1 s) and keeps the median local; with at most ``max_neighbours`` neighbours per point
-    (the sweep's ~2000 points) the numbers are those of every neighbour.
+    ``cols``, ``rows``: Ω's distinct pixels in row-major order. Capping the neighbours bounds
+    the cost (the temporal filter sends 6-40k points per keyframe, 150 neighbours each within
+    12 px) and keeps the median local; equidistant neighbours count in a fixed order
+    (``neighbour_median.py``), the same on the CPU and on a GPU.
     """
-    n = len(points)
+    n = len(cols)
     out = np.full(n, np.nan)
     if n == 0:
         return out, 0.0
-    from scipy.spatial import cKDTree  # here, not at the top: ~0.3 s off the fusion node's start
-
-    tree = cKDTree(points)
-    k = min(int(max_neighbours) + 1, n)
-    # query's bound is strict, query_ball_point's (the support) is not: pixels at exactly 12 px count
-    bound = radius * (1.0 + 1e-9)
-    workers = _query_workers()
-    distance, index = tree.query(points, k=k, distance_upper_bound=bound, workers=workers)
-    distance, index = distance.reshape(n, k), index.reshape(n, k)
-    keep = np.isfinite(distance) & (index != np.arange(n)[:, None])
-    keep[keep.sum(axis=1) == k, -1] = False  # the point itself was not among them: drop the farthest
-    values = np.where(keep, residual[np.minimum(index, n - 1)], np.inf)
-    values.sort(axis=1)
-    counts = keep.sum(axis=1)
-    checked = np.flatnonzero(counts >= max(min_neighbours, 1))
-    c = counts[checked]
-    middle = (values[checked, (c - 1) // 2] + values[checked, c // 2]) / 2.0
-    out[checked] = np.abs(residual[checked] - middle)
-    sample = points[:: max(1, -(-n // SUPPORT_SAMPLE))]
-    within = grid_counts(points, sample, radius)
-    if within is None:  # not pixel positions: the tree's ball query
-        within = tree.query_ball_point(sample, r=radius, return_length=True, workers=workers)
+    middle, count = nearest_median(cols, rows, residual, radius, max_neighbours, device)
+    checked = count >= max(min_neighbours, 1)
+    out[checked] = np.abs(residual[checked] - middle[checked])
+    points = np.stack((cols, rows), axis=1)
+    within = grid_counts(points, points[:: max(1, -(-n // SUPPORT_SAMPLE))], radius)
     return out, float(np.median(np.asarray(within, dtype=np.float64) - 1))
 
 
@@ -281,20 +267,10 @@ def within_relative_std(rel: np.ndarray, limit: float) -> np.ndarray:
     return np.nan_to_num(rel, nan=np.inf) <= limit
 
 
-def _query_workers() -> int:
-    """Threads for the k-d tree queries: the process's torch threads. A node process started on
-    its own gets one (``nodes/threads.py``: three processes share the cores), and a query split
-    over two threads on a core another process holds waits for the descheduled half; ``evaluate``
-    keeps one per core."""
-    import torch  # the fusion imports it anyway; here to keep this module's import light
-
-    return max(1, torch.get_num_threads())
-
-
-def grid_counts(points: np.ndarray, sample: np.ndarray, radius: float) -> np.ndarray | None:
+def grid_counts(points: np.ndarray, sample: np.ndarray, radius: float) -> np.ndarray:
     """How many of ``points`` lie within ``radius`` (inclusive) of each ``sample`` point, itself
     and duplicates included, as ``cKDTree.query_ball_point(..., return_length=True)`` counts;
-    ``None`` unless every coordinate is a non-negative integer (pixel positions).
+    every coordinate a non-negative integer (pixel positions; else a ValueError).
 
     Why: Ω's points are pixels, so the disk is a stack of row spans, each a difference of one
     row's cumulative sum of an occupancy image: (2r + 1) lookups per sample point and
@@ -305,7 +281,7 @@ def grid_counts(points: np.ndarray, sample: np.ndarray, radius: float) -> np.nda
         return np.zeros(len(sample), dtype=np.int64)
     pix, spix = points.astype(np.int64), sample.astype(np.int64)
     if not (np.array_equal(pix, points) and np.array_equal(spix, sample)) or pix.min() < 0 or spix.min() < 0:
-        return None
+        raise ValueError('grid_counts counts pixels: every coordinate must be a non-negative integer')
     r = int(np.floor(radius))
     height = int(max(pix[:, 1].max(), spix[:, 1].max())) + 1 + 2 * r
     width = int(max(pix[:, 0].max(), spix[:, 0].max())) + 2 + 2 * r  # a zero column left of x = 0
@@ -330,6 +306,7 @@ def assess(
     *,
     sample: int | None = None,
     seed: int = 0,
+    device: str = 'cpu',
 ) -> GuardVerdict:
     """Judge the multi-view evidence of one keyframe (all maps HxW on the working grid).
 
@@ -339,7 +316,7 @@ def assess(
     node fuses only ``max_points`` anyway; the local test's cost follows the points checked).
     Counts then stand for all of Ω: the trusted count and the neighbour support are scaled
     by ``|Ω| / sample``, the inlier ratio is Ω's own, and ``fewer_points`` trusts points of
-    the sample only.
+    the sample only. ``device``: where the local test's neighbour search runs (the fusion's).
     """
     config = config or GuardConfig()
     with np.errstate(invalid='ignore'):
@@ -359,11 +336,7 @@ def assess(
     stats['n_checked'] = float(n_checked)
     residual = np.log(m[rows, cols].astype(np.float64)) - np.log(base[rows, cols].astype(np.float64))
     deviation, support = _local_deviation(
-        np.stack((cols, rows), axis=1).astype(np.float64),
-        residual,
-        config.neighbourhood_px,
-        config.min_neighbours,
-        config.max_neighbours,
+        cols, rows, residual, config.neighbourhood_px, config.min_neighbours, config.max_neighbours, device
     )
     support *= thin
     checked = np.isfinite(deviation)

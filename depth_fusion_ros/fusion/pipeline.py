@@ -345,7 +345,17 @@ def fuse_keyframe(
         # The halo's points leave stage 1 as well: the inlier ratio asks whether the fit explains
         # the points the multi-view stage offered, and those were dropped for another reason.
         offered = n_stage1 - int(halo.get('n_halo', 0))
-        verdict = assess(base, m, omega, offered, guard_config, evidence, sample=sample, seed=config.seed)
+        verdict = assess(
+            base,
+            m,
+            omega,
+            offered,
+            guard_config,
+            evidence,
+            sample=sample,
+            seed=config.seed,
+            device=config.device,
+        )
         verdict.evidence.update(halo)
         verdict.evidence.update(stage3)
         if verdict.decision not in ('full', 'fewer_points'):

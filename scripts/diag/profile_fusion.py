@@ -6,8 +6,8 @@
 
 (the fusion node's settings: fast mode, compiled kernel, the 4096-point cap, every filter
 estimate in stage 1). Prints one line per keyframe (total, stage-1 and Ω points, the guard's
-decision, the pipeline's own selection / interpolation timings) and a cProfile of the
-fusion, guard and selection functions.
+decision, the pipeline's own selection / interpolation timings), a cProfile of the
+fusion, guard and selection functions, and the functions with the most own time.
 """
 
 from __future__ import annotations
@@ -45,3 +45,5 @@ if __name__ == '__main__':
     profile.disable()
     print('\n'.join(_rows))
     pstats.Stats(profile).sort_stats('cumulative').print_stats('fusion/|guard|selection', 20)
+    # Own time of everything the fusion calls (numpy, scipy, torch included): the host's share.
+    pstats.Stats(profile).sort_stats('tottime').print_stats(25)

@@ -1,0 +1,203 @@
+"""The median value of each pixel point's nearest neighbours: the guard's local test.
+
+The guard (``guard.py``) compares every Ω point's log residual with the median of its nearest
+``max_neighbours`` Ω neighbours within ``radius`` pixels. Ω's points are distinct pixels, so
+distances repeat (a ring of up to 16 pixels shares one), and which of several equidistant
+neighbours count must be defined, or the median depends on the search's internals. Here they
+count in the order of :func:`ring_offsets`, by row then column offset: for Ω's row-major
+points, their index order (the per-point reference loop in test/test_fusion_guard.py).
+
+Two searches give those same numbers, one per kind of device, because each is slow on the
+other (docs/performance.md "GPU", 2026-12-04):
+
+* on the CPU, SciPy's k-d tree: the ``max_neighbours`` nearest, then the ring at the last one's
+  distance read from an index image, so that its members count in ring order (the tree's own
+  choice among them is arbitrary). About 6-8 ms at the node's 4096 points on 2 cores; the grid
+  below takes 20-30 ms there.
+* on a GPU, the grid: every offset within the radius, nearest first, read from an index image
+  in one gather, and the first ``max_neighbours`` occupied ones taken. A few kernels and no host
+  synchronisation, where the tree costs the fusion node 12 of a keyframe's 53 ms on an H200's
+  host.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import torch
+
+from ..torch_device import resolve_device
+
+
+@functools.lru_cache(maxsize=8)
+def ring_offsets(radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(dx, dy)`` of every pixel offset within ``radius`` (inclusive), the centre excluded,
+    nearest first; equidistant ones by ``dy``, then ``dx``."""
+    r = int(np.floor(radius))
+    dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
+    d2 = dx * dx + dy * dy
+    keep = (d2 > 0) & (d2 <= radius * radius)
+    dx, dy, d2 = dx[keep], dy[keep], d2[keep]
+    order = np.lexsort((dx, dy, d2))
+    return dx[order], dy[order]
+
+
+def nearest_median(
+    cols: np.ndarray,
+    rows: np.ndarray,
+    values: np.ndarray,
+    radius: float,
+    max_neighbours: int,
+    device: str | torch.device = 'cpu',
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: the median of ``values`` over its nearest ``max_neighbours`` other points
+    within ``radius`` (NaN without any), and how many neighbours that median is over.
+
+    ``cols``, ``rows``: distinct non-negative pixel positions (int); ``values``: one float per
+    point. The median is ``np.median``'s (the mean of the two middle values for an even count).
+    """
+    if len(cols) == 0:
+        return np.zeros(0), np.zeros(0, dtype=np.int64)
+    dev = resolve_device(device)
+    if dev.type == 'cpu':
+        return tree_median(cols, rows, values, radius, max_neighbours)
+    return grid_median(cols, rows, values, radius, max_neighbours, dev)
+
+
+def _median_of_rows(candidates: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """``np.median`` of each row's ``count`` finite values (the rest +inf), NaN where none."""
+    ordered = np.sort(candidates, axis=1)
+    low = np.maximum(count - 1, 0) // 2
+    high = np.minimum(count // 2, ordered.shape[1] - 1)
+    at = np.arange(len(count))
+    return np.where(count > 0, (ordered[at, low] + ordered[at, high]) / 2.0, np.nan)
+
+
+def _index_image(cols: np.ndarray, rows: np.ndarray, border: int) -> np.ndarray:
+    """Point index per pixel of the image bordered by ``border`` pixels (-1: no point)."""
+    image = np.full((int(rows.max()) + 1 + 2 * border, int(cols.max()) + 1 + 2 * border), -1, dtype=np.int32)
+    image[rows + border, cols + border] = np.arange(len(cols), dtype=np.int32)
+    return image
+
+
+@functools.lru_cache(maxsize=8)
+def _rings(radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per squared distance ``s`` (rows 0 .. r²): its offsets ``dx``, ``dy`` in ring order,
+    padded with (0, 0) (the centre, never a neighbour) to the largest ring."""
+    dx, dy = ring_offsets(radius)
+    d2 = dx * dx + dy * dy
+    size = np.bincount(d2, minlength=int(np.floor(radius)) ** 2 + 1)
+    ring_dx = np.zeros((len(size), max(int(size.max()), 1)), dtype=np.int64)
+    ring_dy = np.zeros_like(ring_dx)
+    start = np.concatenate(([0], np.cumsum(size)[:-1]))
+    slot = np.arange(len(d2)) - start[d2]  # d2 is ascending: each ring's members in order
+    ring_dx[d2, slot], ring_dy[d2, slot] = dx, dy
+    return ring_dx, ring_dy, size
+
+
+def tree_median(
+    cols: np.ndarray, rows: np.ndarray, values: np.ndarray, radius: float, max_neighbours: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`nearest_median` on the CPU: a k-d tree, its ties at the last distance in ring order."""
+    from scipy.spatial import cKDTree  # here, not at the top: ~0.3 s off the fusion node's start
+
+    cols, rows = np.asarray(cols, dtype=np.int64), np.asarray(rows, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64)
+    n, k = len(cols), int(max_neighbours)
+    kq = min(k + 1, n)
+    points = np.stack((cols, rows), axis=1).astype(np.float64)
+    # query's bound is strict: pixels at exactly the radius count
+    distance, index = cKDTree(points).query(
+        points, k=kq, distance_upper_bound=radius * (1.0 + 1e-9), workers=_query_workers()
+    )
+    distance, index = distance.reshape(n, kq), index.reshape(n, kq)
+    # Distinct points: each point is its own nearest (column 0), the others follow by distance.
+    keep = np.isfinite(distance[:, 1:])
+    count = keep.sum(axis=1)
+    # Column k collects what is not taken (written there, never read).
+    candidates = np.full((n, k + 1), np.inf)
+    candidates[:, : kq - 1] = np.where(keep, values[np.minimum(index[:, 1:], n - 1)], np.inf)
+    full = np.flatnonzero(count == k)
+    if full.size:
+        _ring_order(candidates, full, distance[full, 1:], cols, rows, values, radius)
+    return _median_of_rows(candidates[:, :k], count), count
+
+
+def _ring_order(
+    candidates: np.ndarray,
+    full: np.ndarray,
+    distance: np.ndarray,
+    cols: np.ndarray,
+    rows: np.ndarray,
+    values: np.ndarray,
+    radius: float,
+) -> None:
+    """Rows ``full`` of ``candidates`` (the tree's ``k`` nearest, at ``distance``) with the
+    last ring's members in ring order, in place.
+
+    The last neighbour's ring may hold more points than the tree returned, and which of them
+    it returned is its own choice. The nearer ones stay (the first columns, the tree's order is
+    by distance); where the ring holds more points than the tree took, the rest of the row is
+    filled from the ring in ring order."""
+    k = candidates.shape[1] - 1
+    d2 = np.rint(distance**2).astype(np.int64)
+    last = d2[:, -1]
+    n_near = (d2 < last[:, None]).sum(axis=1)
+    ring_dx, ring_dy, _ = _rings(radius)
+    r = int(np.floor(radius))
+    image = _index_image(cols, rows, r)
+    width = image.shape[1]
+    centre = (rows[full] + r) * width + cols[full] + r
+    member = image.ravel()[centre[:, None] + (ring_dy * width + ring_dx)[last]]
+    occupied = (member >= 0) & (member != full[:, None])  # the padding (0, 0) is the point itself
+    cut = np.flatnonzero(occupied.sum(axis=1) > k - n_near)
+    if cut.size == 0:
+        return
+    occupied, member, n_near = occupied[cut], member[cut], n_near[cut]
+    rank = np.cumsum(occupied, axis=1)
+    take = occupied & (rank <= (k - n_near)[:, None])
+    fixed = candidates[full[cut]]
+    slot = np.where(take, n_near[:, None] + rank - 1, k)
+    np.put_along_axis(fixed, slot, np.where(take, values[np.maximum(member, 0)], np.inf), axis=1)
+    candidates[full[cut]] = fixed
+
+
+def grid_median(
+    cols: np.ndarray,
+    rows: np.ndarray,
+    values: np.ndarray,
+    radius: float,
+    max_neighbours: int,
+    device: torch.device,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`nearest_median` on a GPU: every offset within the radius in one gather, no host
+    synchronisation until the result is read."""
+    dx, dy = ring_offsets(radius)
+    r, k, n = int(np.floor(radius)), int(max_neighbours), len(cols)
+    width = int(np.max(cols)) + 1 + 2 * r
+    x = torch.as_tensor(np.asarray(cols, dtype=np.int64), device=device)
+    y = torch.as_tensor(np.asarray(rows, dtype=np.int64), device=device)
+    v = torch.as_tensor(np.asarray(values, dtype=np.float64), device=device)
+    flat = (y + r) * width + (x + r)
+    index = torch.full(((int(np.max(rows)) + 1 + 2 * r) * width,), -1, dtype=torch.int32, device=device)
+    index[flat] = torch.arange(n, dtype=torch.int32, device=device)
+    steps = torch.as_tensor(dy * width + dx, dtype=torch.int64, device=device)
+    neighbour = index[flat[:, None] + steps[None, :]]
+    found = neighbour >= 0
+    rank = torch.cumsum(found, dim=1)
+    use = found & (rank <= k)
+    # Column k collects what is not taken (scattered there, never read).
+    taken = torch.full((n, k + 1), torch.inf, dtype=torch.float64, device=device)
+    picked = torch.where(use, v[neighbour.clamp(min=0).long()], torch.inf)
+    taken.scatter_(1, torch.where(use, rank - 1, k), picked)
+    count = rank[:, -1].clamp(max=k).cpu().numpy()
+    return _median_of_rows(taken[:, :k].cpu().numpy(), count), count
+
+
+def _query_workers() -> int:
+    """Threads for the k-d tree query: the process's torch threads. A node process started on
+    its own gets one (``nodes/threads.py``: three processes share the cores), and a query split
+    over two threads on a core another process holds waits for the descheduled half; ``evaluate``
+    keeps one per core."""
+    return max(1, torch.get_num_threads())
