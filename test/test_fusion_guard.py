@@ -289,17 +289,18 @@ def test_local_deviation_is_the_per_point_median_exactly(density, max_neighbours
 @pytest.mark.parametrize('radius', [12.0, 7.5, 3.0])
 def test_the_grid_search_gives_the_tree_search_numbers(radius):
     """The GPU's search (every offset in one gather) and the CPU's (a k-d tree, its last ring
-    read in order) give the same medians and counts, here both on the CPU."""
+    read in order; row spans for the support) give the same medians and counts, here both on
+    the CPU."""
     from depth_fusion_ros.fusion import neighbour_median as nm
 
     rng = np.random.default_rng(5)
     for density in (0.05, 0.3, 0.9):
         cols, rows = _pixels(rng, density, (90, 120))
         values = rng.normal(0.0, 1.0, len(cols))
-        tree = nm.tree_median(cols, rows, values, radius, 16)
-        grid = nm.grid_median(cols, rows, values, radius, 16, torch.device('cpu'))
-        np.testing.assert_array_equal(tree[1], grid[1])
-        np.testing.assert_array_equal(tree[0], grid[0])
+        tree = nm.nearest_median(cols, rows, values, radius, 16, 'cpu', support_step=3)
+        grid = nm.grid_median(cols, rows, values, radius, 16, torch.device('cpu'), support_step=3)
+        for got, expected in zip(grid, tree, strict=True):
+            np.testing.assert_array_equal(got, expected)
 
 
 def test_local_deviation_counts_every_neighbour_for_the_support():
@@ -354,7 +355,7 @@ def test_a_sampled_guard_decides_as_the_full_one(truth, case):
 def test_grid_counts_are_the_ball_query_counts_on_pixels(radius):
     """The support's row-span counts equal the k-d tree's ball counts on pixel positions
     (duplicates, points on the border, a sample of them), and decline anything else."""
-    from depth_fusion_ros.fusion import guard
+    from depth_fusion_ros.fusion import neighbour_median
 
     rng = np.random.default_rng(11)
     rows, cols = np.nonzero(rng.random((50, 70)) < 0.3)
@@ -362,7 +363,7 @@ def test_grid_counts_are_the_ball_query_counts_on_pixels(radius):
     points = np.concatenate((points, points[:9], [[0.0, 0.0], [69.0, 49.0]]))
     sample = points[::3]
     expected = cKDTree(points).query_ball_point(sample, r=radius, return_length=True)
-    np.testing.assert_array_equal(guard.grid_counts(points, sample, radius), expected)
+    np.testing.assert_array_equal(neighbour_median.grid_counts(points, sample, radius), expected)
     for off_grid in (0.25, -1.0):
         with pytest.raises(ValueError, match='non-negative integer'):
-            guard.grid_counts(points + off_grid, sample + off_grid, radius)
+            neighbour_median.grid_counts(points + off_grid, sample + off_grid, radius)

@@ -47,6 +47,7 @@ import numpy as np
 
 from ..data.sequence import rgb_to_gray
 from ..point_lookup import bilinear_at
+from ..torch_device import resolve_device
 
 #: Half-length (px) of the search for the intensity edge along the gradient direction.
 SEARCH_PX = 3
@@ -86,16 +87,23 @@ def halo_points(
     m: np.ndarray,
     points: np.ndarray,
     min_step: float = 0.1,
+    device: str = 'cpu',
 ) -> np.ndarray:
     """The points of ``points`` (HxW bool) that sit in a silhouette's halo (see the module doc).
 
     ``image``: the keyframe (grey or RGB, the working grid); ``base``: the single-view depth the
     fusion starts from (metres, any global scale); ``m``: the multi-view depth. Returns an HxW
     bool mask, a subset of ``points``; empty when ``min_step`` is 0 or the points are too few.
+    ``device``: the fusion's; off the CPU the same test runs in torch (``occlusion_gpu.py``).
     """
     out = np.zeros(points.shape, dtype=bool)
     if min_step <= 0:
         return out
+    dev = resolve_device(device)
+    if dev.type != 'cpu':
+        from .occlusion_gpu import halo_points_torch  # it imports this module's constants
+
+        return halo_points_torch(image, base, m, points, min_step, dev)
     gray = gray_image(image)
     if gray.shape != points.shape:
         raise ValueError(f'keyframe image {gray.shape} and depth {points.shape} differ in size')

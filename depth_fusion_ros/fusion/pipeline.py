@@ -310,7 +310,7 @@ def fuse_keyframe(
         if output_kind == 'metric_depth':
             # A metric source is a depth already: its halo leaves before stage 2, whose line
             # is then fitted without it (the halo is too near by the whole step, a bias).
-            stage1, halo = _without_halo(image, s, m, stage1, config.halo_min_step)
+            stage1, halo = _without_halo(image, s, m, stage1, config.halo_min_step, config.device)
         fit = fit_alignment(s[stage1], m[stage1], output_kind, config)
         if not fit.ok:
             log.debug('stage 2 failed (%s) on %d stage-1 points', fit.reason, n_stage1)
@@ -324,7 +324,7 @@ def fuse_keyframe(
     consistency_config = consistency_config or ConsistencyConfig()
     if omega_mask is None and output_kind != 'metric_depth':
         # Relative and inverse sources are a depth only once aligned.
-        omega, halo = _without_halo(image, base, m, omega, config.halo_min_step)
+        omega, halo = _without_halo(image, base, m, omega, config.halo_min_step, config.device)
     stage3: dict[str, float] = {}
     if consistency_config.enabled and omega_mask is None:
         candidates = stage3_candidates(
@@ -419,13 +419,18 @@ def fuse_keyframe(
 
 
 def _without_halo(
-    image: np.ndarray | None, base: np.ndarray, m: np.ndarray, omega: np.ndarray, min_step: float
+    image: np.ndarray | None,
+    base: np.ndarray,
+    m: np.ndarray,
+    omega: np.ndarray,
+    min_step: float,
+    device: str = 'cpu',
 ) -> tuple[np.ndarray, dict[str, float]]:
     """Ω less the points in a silhouette's halo (``occlusion.halo_points``), and the evidence:
     ``halo_checked`` (0 when the test is off or the keyframe image is missing) and ``n_halo``."""
     if min_step <= 0 or image is None:
         return omega, {'halo_checked': 0.0, 'n_halo': 0.0}
-    halo = halo_points(image, base, m, omega, min_step)
+    halo = halo_points(image, base, m, omega, min_step, device)
     return omega & ~halo, {'halo_checked': 1.0, 'n_halo': float(np.count_nonzero(halo))}
 
 
