@@ -195,6 +195,45 @@ def test_fusion_on_cuda_matches_cpu(mode, compiled):
 
 
 @needs_cuda
+def test_the_guard_and_the_halo_test_on_cuda_give_the_cpu_points():
+    """The fusion's two tests that run in torch on a GPU (``neighbour_median.grid_median``,
+    ``occlusion_gpu.halo_points_torch``) give the CPU's numbers: the same neighbour medians and
+    counts, the same halo points, and so the same whole keyframe."""
+    import sys
+    from pathlib import Path
+
+    from depth_fusion_ros.fusion import neighbour_median as nm
+    from depth_fusion_ros.fusion.occlusion import halo_points
+    from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_fusion_halo import _rendered_keyframe
+
+    rng = np.random.default_rng(5)
+    for density in (0.05, 0.3, 0.9):
+        rows, cols = np.nonzero(rng.random((90, 120)) < density)
+        values = rng.normal(0.0, 1.0, len(cols))
+        for got, expected in zip(
+            nm.nearest_median(cols, rows, values, 12.0, 16, 'cuda', 3),
+            nm.nearest_median(cols, rows, values, 12.0, 16, 'cpu', 3),
+            strict=True,
+        ):
+            np.testing.assert_array_equal(got, expected)
+    image, single, multi, points = _rendered_keyframe()
+    cpu = halo_points(image, single, multi, points)
+    assert cpu.sum() > 100
+    np.testing.assert_array_equal(halo_points(image, single, multi, points, device='cuda'), cpu)
+    multi = np.where(points, multi, np.nan)
+    fused = {
+        device: fuse_keyframe(single, multi, None, FusionConfig(device=device), image=image)
+        for device in ('cpu', 'cuda')
+    }
+    assert fused['cuda'].decision == fused['cpu'].decision
+    np.testing.assert_array_equal(fused['cuda'].omega_mask, fused['cpu'].omega_mask)
+    np.testing.assert_allclose(fused['cuda'].depth, fused['cpu'].depth, atol=1e-3, equal_nan=True)
+
+
+@needs_cuda
 def test_shipped_network_on_cuda_matches_cpu(synthetic_sequence):
     from depth_fusion_ros.singleview.predictor import load_predictor
 

@@ -90,7 +90,9 @@ node_graph() {  # node_graph STEP_NAME [SCRIPT ARGS...]: the graph bench (or a s
 
 # STEPS, in order: cuda_tests, node_graph, graph_default (every default; GRAPH_DEFAULT_RUNS),
 # sv_stall (scripts/diag/sv_stall.py: the single-view node's keyframes, composed), bench:SECTION, split:STAGES (cuda_host_split.py --only
-# STAGES), adapt_times. Unset: the order below (SECTIONS and PROFILES as described above).
+# STAGES), adapt_times, fusion_profile (scripts/diag/profile_fusion.py: every keyframe of a 640x480
+# synthetic room fused at the node's 2048-point cap, and a cProfile of the fusion's host functions).
+# Unset: the order below (SECTIONS and PROFILES as described above).
 default_steps() {
   [ "${CUDA_TESTS:-1}" != 0 ] && echo cuda_tests
   echo node_graph
@@ -114,6 +116,11 @@ for item in ${STEPS:-$(default_steps)}; do
       stages=${item#split:}
       TAIL=40 step "split_${stages//,/_}" 150 $PY scripts/diag/cuda_host_split.py --device "$DEVICE" --repeats 30 --only "$stages" ;;
     adapt_times) TAIL=25 step adapt_update_times 100 $PY scripts/diag/adapt_update_times.py --device "$DEVICE" ;;
+    fusion_profile)  # each keyframe's fusion at the node's point cap, and its host functions
+      $PY -m depth_fusion_ros.cli.main synth /tmp/fusion_profile_room --frames 40 --seed 0 --width 640 --height 480 >/dev/null 2>&1
+      TAIL=75 step fusion_profile 120 $PY scripts/diag/profile_fusion.py evaluate /tmp/fusion_profile_room --frames 40 \
+        --stride 1 --single-view simulated --methods fused_fast --set fusion.max_points=2048 --device "$DEVICE" \
+        --no-figures --out /tmp/fusion_profile_out ;;
     *) echo "unknown step $item" | tee -a "$OUT/summary.txt" ;;
   esac
 done
