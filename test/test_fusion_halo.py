@@ -140,7 +140,7 @@ def test_the_bench_row_times_the_test_on_a_fattened_box_scene() -> None:
     work: most of the fattened points are flagged, and few others."""
     from depth_fusion_ros.bench.fusion import _halo_row
 
-    row = _halo_row(160, 120, 5000, repeats=1)
+    row = _halo_row(160, 120, 5000, repeats=1, device='cpu')
     assert row.unit == 's' and 0 < row.value < 5
     flagged, found, wrong = (int(n) for n in re.findall(r'flagged (\d+), (\d+) of the (\d+)', row.note)[0])
     assert wrong > 50

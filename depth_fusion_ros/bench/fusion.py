@@ -149,28 +149,30 @@ def run(opts: BenchOptions) -> list[BenchRow]:
     m_pts[: s_pts.size // 3] += rng.uniform(0.5, 2.0, s_pts.size // 3)
     _, ransac = _timed(lambda: fit_ransac(s_pts, m_pts), repeats)
     rows.append(BenchRow('RANSAC stage 2: s/keyframe', ransac, 's', '5000 stage-1 points, 200 hypotheses'))
-    rows.append(_halo_row(width, height, HALO_POINTS // 4 if opts.quick else HALO_POINTS, repeats))
+    halo_points_given = HALO_POINTS // 4 if opts.quick else HALO_POINTS
+    rows.append(_halo_row(width, height, halo_points_given, repeats, opts.device))
 
     if not opts.quick:
         rows.append(_memory_row(width, height, opts.device))
     return rows
 
 
-def _halo_row(width: int, height: int, n_points: int, repeats: int) -> BenchRow:
-    """The silhouette-halo test (``fusion/occlusion.py``, CPU only: numpy and OpenCV) on the
-    box scene, its image the depth's own edges under a random texture and its multi-view depth
-    the true one fattened by 2 px (the near side's minimum over 5x5 pixels, a matcher's halo),
-    so that the test finds halos and runs all five of its steps."""
+def _halo_row(width: int, height: int, n_points: int, repeats: int, device: str) -> BenchRow:
+    """The silhouette-halo test (``fusion/occlusion.py``: NumPy and OpenCV on the CPU, torch on a
+    GPU, ``occlusion_gpu.py``) on the box scene, its image the depth's own edges under a random
+    texture and its multi-view depth the true one fattened by 2 px (the near side's minimum over
+    5x5 pixels, a matcher's halo), so that the test finds halos and runs all five of its steps."""
     depth, single, _, omega = _scene(width, height, n_points, seed=2)
     rng = np.random.default_rng(2)
     image = np.clip(40.0 * depth + rng.normal(0.0, 8.0, depth.shape), 0, 255).astype(np.float32)
     fattened = cv2.erode(depth.astype(np.float32), np.ones((5, 5), np.uint8))
     multi = np.where(omega, fattened, np.nan).astype(np.float32)
-    halo = halo_points(image, single, multi, omega)
+    halo = halo_points(image, single, multi, omega, device=device)
     wrong = omega & (np.abs(fattened / depth - 1.0) > 0.1)
-    _, median = _timed(lambda: halo_points(image, single, multi, omega), repeats)
+    warmup = 0 if device == 'cpu' else 2
+    _, median = _timed(lambda: halo_points(image, single, multi, omega, device=device), repeats, warmup)
     note = (
-        f'{width}x{height}, {int(omega.sum())} multi-view points; flagged {int(halo.sum())}, '
+        f'{device}, {width}x{height}, {int(omega.sum())} multi-view points; flagged {int(halo.sum())}, '
         f'{int((halo & wrong).sum())} of the {int(wrong.sum())} in the halo (off by > 10 %)'
     )
     return BenchRow('halo test: s/keyframe', median, 's', _note(note))

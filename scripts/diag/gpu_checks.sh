@@ -90,7 +90,8 @@ node_graph() {  # node_graph STEP_NAME [SCRIPT ARGS...]: the graph bench (or a s
 
 # STEPS, in order: cuda_tests, node_graph, graph_default (every default; GRAPH_DEFAULT_RUNS),
 # sv_stall (scripts/diag/sv_stall.py: the single-view node's keyframes, composed), bench:SECTION, split:STAGES (cuda_host_split.py --only
-# STAGES), adapt_times, fusion_profile (scripts/diag/profile_fusion.py: every keyframe of a 640x480
+# STAGES), adapt_times, graph_profile (scripts/diag/graph_profile.py: yappi over the composed graph,
+# NODE_GRAPH_LIMIT seconds), fusion_profile (scripts/diag/profile_fusion.py: every keyframe of a 640x480
 # synthetic room fused at the node's 2048-point cap, and a cProfile of the fusion's host functions).
 # Unset: the order below (SECTIONS and PROFILES as described above).
 default_steps() {
@@ -107,6 +108,10 @@ for item in ${STEPS:-$(default_steps)}; do
       TAIL=8 step cuda_tests 150 "$TEST_PY" -m pytest test/test_cuda.py -q -p no:cacheprovider -rs ;;
     node_graph) node_graph ;;
     graph_default) node_graph graph_default ;;
+    graph_profile)  # every thread of the composed graph under yappi, every frame a keyframe, paced x10
+      DEPTH_FUSION_BENCH_GRAPH_SET="${NODE_GRAPH_SET:-multi_view_node.keyframe_every=1}" \
+        DEPTH_FUSION_BENCH_GRAPH_RUNS=composed:paced:10 YAPPI_CLOCK=cpu \
+        node_graph graph_profile scripts/diag/graph_profile.py "$DEVICE" ;;
     sv_stall) DEPTH_FUSION_BENCH_GRAPH_RUNS="${SV_STALL_RUNS:-composed:realtime:1}" node_graph sv_stall scripts/diag/sv_stall.py "$DEVICE" ;;
     bench:*)
       section=${item#bench:}

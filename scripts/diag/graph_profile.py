@@ -3,6 +3,8 @@
     DEPTH_FUSION_BENCH_GRAPH_SET=multi_view_node.keyframe_every=1 \
         python scripts/diag/graph_profile.py cuda [OUT_DIR]
 
+(``YAPPI_CLOCK=cpu``: CPU time per function instead of wall time, which counts waits too.)
+
 Runs ``bench --only node_graph`` composed, paced at 10x (``DEPTH_FUSION_BENCH_GRAPH_RUNS``
 defaults to ``composed:paced:10`` here), under yappi (``pip install yappi``; not a project
 dependency), then prints the functions with the most own time and the most inclusive time,
@@ -25,7 +27,7 @@ def main() -> None:
     device = sys.argv[1] if len(sys.argv) > 1 else 'cpu'
     out = Path(sys.argv[2]) if len(sys.argv) > 2 else None
     os.environ.setdefault(node_graph.RUNS_ENV, 'composed:paced:10')
-    yappi.set_clock_type('wall')
+    yappi.set_clock_type(os.environ.get('YAPPI_CLOCK', 'wall'))
     yappi.start(builtins=False)
     rows = node_graph.run(BenchOptions(device=device, repeats=1))
     yappi.stop()
