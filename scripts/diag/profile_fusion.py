@@ -10,11 +10,14 @@ decision, the pipeline's own selection / interpolation timings), then a cProfile
 ``fuse_keyframe`` calls only, after the first ``WARM_UP`` (so the kernels' compilation and
 the rest of the command stay out): the fusion, guard and selection functions by cumulative
 time, and every function by own time (numpy, scipy and torch included: the host's share).
+``PROFILE_FUSION_CPROFILE=0``: the per-keyframe lines only, timed without the profiler's
+overhead (for comparing two commits).
 """
 
 from __future__ import annotations
 
 import cProfile
+import os
 import pstats
 import sys
 import time
@@ -31,8 +34,11 @@ _rows: list[str] = []
 _profile = cProfile.Profile()
 
 
+_PROFILED = os.environ.get('PROFILE_FUSION_CPROFILE', '1') != '0'
+
+
 def _timed(*args, **kwargs):
-    profiled = len(_rows) >= WARM_UP
+    profiled = _PROFILED and len(_rows) >= WARM_UP
     if profiled:
         _profile.enable()
     start = time.perf_counter()
@@ -52,7 +58,7 @@ fusion_methods.fuse_keyframe = _timed
 if __name__ == '__main__':
     main(sys.argv[1:])
     print('\n'.join(_rows))
-    if len(_rows) > WARM_UP:
+    if _PROFILED and len(_rows) > WARM_UP:
         print(f'cProfile of keyframes {WARM_UP + 1}-{len(_rows)}:')
         pstats.Stats(_profile).sort_stats('cumulative').print_stats('fusion/|guard|selection', 30)
         pstats.Stats(_profile).sort_stats('tottime').print_stats(30)
