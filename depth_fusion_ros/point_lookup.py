@@ -4,8 +4,9 @@ Why: ``cv2.remap`` is OpenCV's bilinear sampler and several times faster than sc
 ``map_coordinates`` or a numpy gather (the halo test: 1.5-1.8 against 11.5 ms a lookup of
 21-22k points x 7; the synthetic renderer serves every texture sample of a frame with it).
 Its maps are images, each side below 32767, so the points are laid out in rows of
-``ROW_WIDTH`` and sent in calls of at most ``MAX_ROWS`` rows. The weights are OpenCV's
-(1/32 px steps); borders are replicated.
+``ROW_WIDTH`` and sent in calls of at most ``MAX_ROWS`` rows. OpenCV 5 weighs the four pixels
+exactly (earlier versions in 1/32 px steps; the halo test's torch twin, ``fusion/occlusion_gpu.py``,
+relies on it); borders are replicated.
 """
 
 from __future__ import annotations
