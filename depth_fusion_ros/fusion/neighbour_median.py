@@ -87,7 +87,7 @@ def _index_image(cols: np.ndarray, rows: np.ndarray, border: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _rings(radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _rings(radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Per squared distance ``s`` (rows 0 .. r²): its offsets ``dx``, ``dy`` in ring order,
     padded with (0, 0) (the centre, never a neighbour) to the largest ring."""
     dx, dy = ring_offsets(radius)
@@ -98,7 +98,7 @@ def _rings(radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     start = np.concatenate(([0], np.cumsum(size)[:-1]))
     slot = np.arange(len(d2)) - start[d2]  # d2 is ascending: each ring's members in order
     ring_dx[d2, slot], ring_dy[d2, slot] = dx, dy
-    return ring_dx, ring_dy, size
+    return ring_dx, ring_dy
 
 
 def tree_median(
@@ -149,7 +149,7 @@ def _ring_order(
     d2 = np.rint(distance**2).astype(np.int64)
     last = d2[:, -1]
     n_near = (d2 < last[:, None]).sum(axis=1)
-    ring_dx, ring_dy, _ = _rings(radius)
+    ring_dx, ring_dy = _rings(radius)
     r = int(np.floor(radius))
     image = _index_image(cols, rows, r)
     width = image.shape[1]
