@@ -199,15 +199,10 @@ def test_the_guard_and_the_halo_test_on_cuda_give_the_cpu_points():
     """The fusion's two tests that run in torch on a GPU (``neighbour_median.grid_median``,
     ``occlusion_gpu.halo_points_torch``) give the CPU's numbers: the same neighbour medians and
     counts, the same halo points, and so the same whole keyframe."""
-    import sys
-    from pathlib import Path
-
     from depth_fusion_ros.fusion import neighbour_median as nm
     from depth_fusion_ros.fusion.occlusion import halo_points
     from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_fusion_halo import _rendered_keyframe
+    from depth_fusion_ros.fusion.scenes import rendered_halo_keyframe
 
     rng = np.random.default_rng(5)
     for density in (0.05, 0.3, 0.9):
@@ -219,7 +214,7 @@ def test_the_guard_and_the_halo_test_on_cuda_give_the_cpu_points():
             strict=True,
         ):
             np.testing.assert_array_equal(got, expected)
-    image, single, multi, points = _rendered_keyframe()
+    image, single, multi, points = rendered_halo_keyframe()
     cpu = halo_points(image, single, multi, points)
     assert cpu.sum() > 100
     np.testing.assert_array_equal(halo_points(image, single, multi, points, device='cuda'), cpu)

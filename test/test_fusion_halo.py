@@ -18,6 +18,7 @@ from scipy.ndimage import gaussian_filter
 
 from depth_fusion_ros.fusion.occlusion import halo_points
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
+from depth_fusion_ros.fusion.scenes import rendered_halo_keyframe
 
 W, H = 160, 120
 BOX = (50, 110, 30, 80)  # x0, x1, y0, y1 (exclusive ends)
@@ -174,21 +175,6 @@ def test_the_lookups_are_bilinear_and_split_into_calls_opencv_takes(monkeypatch)
     assert point_lookup.bilinear_at(image, x[:0], y[:0]).shape == (0, 7)
 
 
-def _rendered_keyframe() -> tuple[np.ndarray, ...]:
-    """A rendered room keyframe with a noisy single view and dense, noisy multi-view points
-    that are fattened across its depth edges: halos, ramps and regions off, all at once."""
-    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-
-    frame = render_sequence(SynthConfig(width=W, height=H, frames=2, seed=4), max_frames=1).frames[0]
-    depth = frame.depth.astype(np.float32)
-    rng = np.random.default_rng(9)
-    single = np.exp(gaussian_filter(np.log(depth * 1.05), 1.5) + rng.normal(0.0, 0.02, depth.shape))
-    near = np.minimum.reduce([np.roll(depth, s, axis=a) for s in (-2, 0, 2) for a in (0, 1)])
-    m = np.where(rng.random(depth.shape) < 0.5, near, depth) * rng.normal(1.0, 0.02, depth.shape)
-    points = rng.random(depth.shape) < 0.6
-    return frame.rgb, single.astype(np.float32), m.astype(np.float32), points
-
-
 def test_the_torch_halo_test_finds_the_same_points_as_numpy() -> None:
     """``occlusion_gpu.halo_points_torch`` (the fusion's halo test on a GPU) is the NumPy test
     step for step: the same points on every scene here, run on the CPU."""
@@ -200,7 +186,7 @@ def test_the_torch_halo_test_finds_the_same_points_as_numpy() -> None:
     scenes = [
         (sc['image'], sc['single'], sc['m'], np.isfinite(sc['m'])),
         (sc['image'], np.full((H, W), 2.5, dtype=np.float32), sc['m'], np.isfinite(sc['m'])),
-        _rendered_keyframe(),
+        rendered_halo_keyframe(W, H),
     ]
     found = 0
     for image, single, m, points in scenes:

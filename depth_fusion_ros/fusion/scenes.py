@@ -2,7 +2,9 @@
 
 A slanted back plane with boxes in front of it: planar patches separated by depth edges,
 the structure the weights W2..W4 are designed for. No rendering and no camera model are
-needed — the fusion sees only depth images on a pixel grid.
+needed — the fusion sees only depth images on a pixel grid. One scene is rendered
+(:func:`rendered_halo_keyframe`): the halo test needs a keyframe image whose edges are the
+depth's.
 """
 
 from __future__ import annotations
@@ -63,3 +65,24 @@ def make_scene(
     multi[outliers] += rng.uniform(0.5, 2.0, size=n_outliers).astype(np.float32)
     good = np.isfinite(multi) & ~outliers
     return FusionScene(depth, single, multi, good, outliers)
+
+
+def rendered_halo_keyframe(
+    width: int = 160, height: int = 120, point_share: float = 0.6
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(rgb, single, multi, points)``: a rendered room keyframe, a noisy single view (5 % far,
+    blurred), and multi-view points on ``point_share`` of the pixels, half of them fattened
+    across the depth edges (the nearer depth 2 px away): halos, ramps and regions off at once,
+    for the halo test (``occlusion.py``) and its torch twin."""
+    from scipy.ndimage import gaussian_filter
+
+    from ..data.synthetic import SynthConfig, render_sequence
+
+    frame = render_sequence(SynthConfig(width=width, height=height, frames=2, seed=4), max_frames=1).frames[0]
+    depth = frame.depth.astype(np.float32)
+    rng = np.random.default_rng(9)
+    single = np.exp(gaussian_filter(np.log(depth * 1.05), 1.5) + rng.normal(0.0, 0.02, depth.shape))
+    near = np.minimum.reduce([np.roll(depth, s, axis=a) for s in (-2, 0, 2) for a in (0, 1)])
+    multi = np.where(rng.random(depth.shape) < 0.5, near, depth) * rng.normal(1.0, 0.02, depth.shape)
+    points = rng.random(depth.shape) < point_share
+    return frame.rgb, single.astype(np.float32), multi.astype(np.float32), points

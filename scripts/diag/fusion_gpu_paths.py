@@ -23,26 +23,14 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
-from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
 from depth_fusion_ros.fusion.neighbour_median import nearest_median
 from depth_fusion_ros.fusion.occlusion import halo_points
+from depth_fusion_ros.fusion.scenes import rendered_halo_keyframe
 from depth_fusion_ros.fusion.subsample import seeded_subsample
 
 #: The guard's sample in the fusion node (pipeline.GUARD_SAMPLE_FACTOR x load_max_points).
 GUARD_SAMPLE = 4096
-
-
-def _keyframe(width: int = 320, height: int = 240) -> tuple[np.ndarray, ...]:
-    frame = render_sequence(SynthConfig(width=width, height=height, frames=2, seed=4), max_frames=1).frames[0]
-    depth = frame.depth.astype(np.float32)
-    rng = np.random.default_rng(9)
-    single = np.exp(gaussian_filter(np.log(depth * 1.05), 1.5) + rng.normal(0.0, 0.02, depth.shape))
-    near = np.minimum.reduce([np.roll(depth, s, axis=a) for s in (-2, 0, 2) for a in (0, 1)])
-    m = np.where(rng.random(depth.shape) < 0.5, near, depth) * rng.normal(1.0, 0.02, depth.shape)
-    points = rng.random(depth.shape) < 0.38
-    return frame.rgb, single.astype(np.float32), m.astype(np.float32), points
 
 
 def _median_ms(call: Callable[[], object], repeats: int) -> float:
@@ -61,7 +49,7 @@ def main() -> None:
     parser.add_argument('--device', default='cuda')
     parser.add_argument('--repeats', type=int, default=30)
     args = parser.parse_args()
-    image, single, m, points = _keyframe()
+    image, single, m, points = rendered_halo_keyframe(320, 240, point_share=0.38)
     print(f'keyframe 320x240, {int(points.sum())} multi-view points; device {args.device}')
     halo = {dev: halo_points(image, single, m, points, device=dev) for dev in ('cpu', args.device)}
     for dev in ('cpu', args.device):
