@@ -12,8 +12,9 @@ other (docs/performance.md "GPU", 2026-12-04):
 
 * on the CPU, SciPy's k-d tree: the ``max_neighbours`` nearest, then the ring at the last one's
   distance read from an index image, so that its members count in ring order (the tree's own
-  choice among them is arbitrary). 6.6 ms at the node's 4096 points on 2 cores; the grid
-  below takes 20-30 ms there.
+  choice among them is arbitrary). On one thread, as in the fusion node: 9-10 ms at 4096
+  points and 21-22 ms at 8192, of which the ring order 1-3 ms; the grid below takes 20-30 ms
+  at 4096 there.
 * on a GPU, the grid: every offset within the radius, nearest first, read from an index image
   in one gather, the first ``max_neighbours`` occupied ones taken, and the support (every
   neighbour within the radius) counted from the same gather. A few kernels and no host
@@ -116,17 +117,15 @@ def tree_median(
     distance, index = cKDTree(points).query(
         points, k=kq, distance_upper_bound=radius * (1.0 + 1e-9), workers=_query_workers()
     )
-    distance, index = distance.reshape(n, kq), index.reshape(n, kq)
     # Distinct points: each point is its own nearest (column 0), the others follow by distance.
-    keep = np.isfinite(distance[:, 1:])
+    distance, index = distance.reshape(n, kq)[:, 1:], index.reshape(n, kq)[:, 1:]
+    keep = np.isfinite(distance)
     count = keep.sum(axis=1)
-    # Column k collects what is not taken (written there, never read).
-    candidates = np.full((n, k + 1), np.inf)
-    candidates[:, : kq - 1] = np.where(keep, values[np.minimum(index[:, 1:], n - 1)], np.inf)
+    candidates = np.where(keep, values[np.minimum(index, n - 1)], np.inf)
     full = np.flatnonzero(count == k)
     if full.size:
-        _ring_order(candidates, full, distance[full, 1:], cols, rows, values, radius)
-    return _median_of_rows(candidates[:, :k], count), count
+        _ring_order(candidates, full, distance[full], cols, rows, values, radius)
+    return _median_of_rows(candidates, count), count
 
 
 def _ring_order(
@@ -142,13 +141,14 @@ def _ring_order(
     last ring's members in ring order, in place.
 
     The last neighbour's ring may hold more points than the tree returned, and which of them
-    it returned is its own choice. The nearer ones stay (the first columns, the tree's order is
-    by distance); where the ring holds more points than the tree took, the rest of the row is
-    filled from the ring in ring order."""
-    k = candidates.shape[1] - 1
-    d2 = np.rint(distance**2).astype(np.int64)
-    last = d2[:, -1]
-    n_near = (d2 < last[:, None]).sum(axis=1)
+    it returned is its own choice. The nearer ones stay (the first columns: the tree's order is
+    by distance); where the ring holds more points than the tree took, the ring's columns are
+    filled from the ring in ring order. Pixel offsets give bit-identical distances within a
+    ring (sums of squared integers), so a ring's members compare equal."""
+    k = candidates.shape[1]
+    last_d = distance[:, -1]
+    n_at = (distance == last_d[:, None]).sum(axis=1)
+    last = np.rint(last_d * last_d).astype(np.int64)
     ring_dx, ring_dy = _rings(radius)
     r = int(np.floor(radius))
     image = _index_image(cols, rows, r)
@@ -156,16 +156,17 @@ def _ring_order(
     centre = (rows[full] + r) * width + cols[full] + r
     member = image.ravel()[centre[:, None] + (ring_dy * width + ring_dx)[last]]
     occupied = (member >= 0) & (member != full[:, None])  # the padding (0, 0) is the point itself
-    cut = np.flatnonzero(occupied.sum(axis=1) > k - n_near)
+    cut = np.flatnonzero(occupied.sum(axis=1) > n_at)
     if cut.size == 0:
         return
-    occupied, member, n_near = occupied[cut], member[cut], n_near[cut]
+    at, occupied, member, n_at = full[cut], occupied[cut], member[cut], n_at[cut]
     rank = np.cumsum(occupied, axis=1)
-    take = occupied & (rank <= (k - n_near)[:, None])
-    fixed = candidates[full[cut]]
-    slot = np.where(take, n_near[:, None] + rank - 1, k)
+    take = occupied & (rank <= n_at[:, None])
+    # Column k collects what is not taken (written there, never read).
+    fixed = np.concatenate((candidates[at], np.full((len(at), 1), np.inf)), axis=1)
+    slot = np.where(take, (k - n_at)[:, None] + rank - 1, k)
     np.put_along_axis(fixed, slot, np.where(take, values[np.maximum(member, 0)], np.inf), axis=1)
-    candidates[full[cut]] = fixed
+    candidates[at] = fixed[:, :k]
 
 
 def grid_median(

@@ -110,7 +110,7 @@ for item in ${STEPS:-$(default_steps)}; do
     graph_default) node_graph graph_default ;;
     graph_profile)  # every thread of the composed graph under yappi, every frame a keyframe, paced x10
       DEPTH_FUSION_BENCH_GRAPH_SET="${NODE_GRAPH_SET:-multi_view_node.keyframe_every=1}" \
-        DEPTH_FUSION_BENCH_GRAPH_RUNS=composed:paced:10 YAPPI_CLOCK=cpu \
+        DEPTH_FUSION_BENCH_GRAPH_RUNS=composed:paced:10 YAPPI_CLOCK=cpu YAPPI_ONLY=depth_fusion_ros/ \
         node_graph graph_profile scripts/diag/graph_profile.py "$DEVICE" ;;
     sv_stall) DEPTH_FUSION_BENCH_GRAPH_RUNS="${SV_STALL_RUNS:-composed:realtime:1}" node_graph sv_stall scripts/diag/sv_stall.py "$DEVICE" ;;
     bench:*)

@@ -3,7 +3,10 @@
     DEPTH_FUSION_BENCH_GRAPH_SET=multi_view_node.keyframe_every=1 \
         python scripts/diag/graph_profile.py cuda [OUT_DIR]
 
-(``YAPPI_CLOCK=cpu``: CPU time per function instead of wall time, which counts waits too.)
+(``YAPPI_CLOCK=cpu``: CPU time per function instead of wall time, which counts waits too.
+``YAPPI_ONLY=depth_fusion_ros/``: list only the functions whose file path holds that string;
+on a fresh GPU machine the fusion kernels' compilation in the same process fills the lists
+otherwise, as it did on 2026-12-04.)
 
 Runs ``bench --only node_graph`` composed, paced at 10x (``DEPTH_FUSION_BENCH_GRAPH_RUNS``
 defaults to ``composed:paced:10`` here), under yappi (``pip install yappi``; not a project
@@ -38,10 +41,12 @@ def main() -> None:
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         stats.save(str(out / 'graph.prof'), type='pstat')
+    only = os.environ.get('YAPPI_ONLY', '')
+    clock = os.environ.get('YAPPI_CLOCK', 'wall')
     for key, title in (('tsub', 'own time'), ('ttot', 'inclusive time')):
-        print(f'== top by {title} (wall, all threads)')
+        print(f'== top by {title} ({clock}, all threads{f", {only} only" if only else ""})')
         stats.sort(key, 'desc')
-        for s in list(stats)[:45]:
+        for s in [s for s in stats if only in s.module][:45]:
             name = f'{Path(s.module).name}:{s.lineno} {s.name}'
             print(f'{s.ncall:8d} {s.tsub:9.2f} {s.ttot:9.2f}  {name[:110]}')
     print('== threads')
