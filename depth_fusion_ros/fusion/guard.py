@@ -130,7 +130,7 @@ class GuardConfig:
     min_precise_fraction: float = 0.2
     min_agreement: float = 0.5
     max_mv_noise: float = 0.06
-    max_point_noise: float = 0.07
+    max_point_noise: float = 0.06
     full_fraction: float = 0.5
     min_trusted_points: int = 40
     min_scale_points: int = 20

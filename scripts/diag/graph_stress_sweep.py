@@ -12,7 +12,10 @@ keyframe policy and timing), the conversion to a bag and the DDS graph in betwee
 
 and prints one line: fused and single-view MAE of what the graph published, their ratio, the
 worst keyframe's ratio and how many keyframes were fused above their input, the multi-view
-MAE, the run's summary and the node's own check verdicts (from its log):
+MAE, the run's summary and the node's own check verdicts (from its log). The fusion's
+decisions are recorded too, and ``DIR/keyframes.jsonl`` holds one line per keyframe: its
+fused / single ratio beside the guard's decision and evidence (which evidence would have told
+a keyframe fused above its input):
 
     python scripts/diag/graph_stress_sweep.py translation rotation keyframes --seed 21 --out /tmp/gs
     python scripts/diag/graph_stress_sweep.py all --seed 21 --out /tmp/gs      # every stress case
@@ -71,6 +74,28 @@ def score(results: Path) -> str:
     )
 
 
+def keyframe_lines(results: Path, rec: Path, topic: str, out: Path) -> None:
+    """One JSON line per scored keyframe: fused / single ratio, decision and the guard's evidence
+    (keyframes and recorded decisions matched in stamp order)."""
+    from rosbags.highlevel import AnyReader
+
+    seq = next(iter(json.loads(results.read_text())['sequences'].values()))
+    fused, single = seq['methods']['graph_fused'], seq['methods']['graph_single_view']
+    ratios = [
+        (i, a / b)
+        for i, (a, b) in enumerate(zip(fused['per_frame_mae'], single['per_frame_mae'], strict=True))
+        if a is not None and b
+    ]
+    with AnyReader([rec]) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        said = [json.loads(reader.deserialize(raw, c.msgtype).data) for c, _, raw in reader.messages(conns)]
+    said.sort(key=lambda d: d['stamp'])
+    with out.open('w') as f:
+        for (frame, ratio), d in zip(ratios, said, strict=False):
+            line = {'frame': frame, 'ratio': round(ratio, 4), 'decision': d['decision'], **d['evidence']}
+            f.write(json.dumps(line) + '\n')
+
+
 def sweep_case(case: str, seed: int, frames: int, out: Path, synth: list[str], tag: str) -> str:
     d = out / f'{case}_{seed}{tag}'
     d.mkdir(parents=True, exist_ok=True)
@@ -94,7 +119,11 @@ def sweep_case(case: str, seed: int, frames: int, out: Path, synth: list[str], t
         d / 'synth.log',
     )
     run(['convert', str(d / 'seq'), str(d / 'bag')], d / 'convert.log')
-    run(['run', '--bag', str(d / 'bag'), '--record', str(d / 'rec')], d / 'run.log')
+    decisions = '/depth_fusion/fused/decision'
+    run(
+        ['run', '--bag', str(d / 'bag'), '--record', str(d / 'rec'), '--record-topic', decisions],
+        d / 'run.log',
+    )
     methods = 'graph_fused,graph_single_view,graph_multi_view'
     run(
         [
@@ -117,6 +146,7 @@ def sweep_case(case: str, seed: int, frames: int, out: Path, synth: list[str], t
         line for line in (d / 'run.log').read_text().splitlines()[::-1] if 'keyframes chosen' in line
     )
     scored = score(d / 'eval' / 'results.json')
+    keyframe_lines(d / 'eval' / 'results.json', d / 'rec', decisions, d / 'keyframes.jsonl')
     return f'{case + tag:16s} {scored} | {summary[:48]} | {node_checks(d / "run.log")}'
 
 
