@@ -180,6 +180,7 @@ def test_the_torch_halo_test_finds_the_same_points_as_numpy() -> None:
     step for step: the same points on every scene here, run on the CPU."""
     import torch
 
+    from depth_fusion_ros.fusion.occlusion import gray_image
     from depth_fusion_ros.fusion.occlusion_gpu import halo_points_torch
 
     sc = _scene()
@@ -191,7 +192,7 @@ def test_the_torch_halo_test_finds_the_same_points_as_numpy() -> None:
     found = 0
     for image, single, m, points in scenes:
         expected = halo_points(image, single, m, points)
-        got = halo_points_torch(image, single, m, points, 0.1, torch.device('cpu'))
+        got = halo_points_torch(gray_image(image), single, m, points, 0.1, torch.device('cpu'))
         np.testing.assert_array_equal(got, expected)
         found += int(expected.sum())
     assert found > 100

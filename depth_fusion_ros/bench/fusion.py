@@ -149,8 +149,8 @@ def run(opts: BenchOptions) -> list[BenchRow]:
     m_pts[: s_pts.size // 3] += rng.uniform(0.5, 2.0, s_pts.size // 3)
     _, ransac = _timed(lambda: fit_ransac(s_pts, m_pts), repeats)
     rows.append(BenchRow('RANSAC stage 2: s/keyframe', ransac, 's', '5000 stage-1 points, 200 hypotheses'))
-    halo_points_given = HALO_POINTS // 4 if opts.quick else HALO_POINTS
-    rows.append(_halo_row(width, height, halo_points_given, repeats, opts.device))
+    n_halo_points = HALO_POINTS // 4 if opts.quick else HALO_POINTS
+    rows.append(_halo_row(width, height, n_halo_points, repeats, opts.device))
 
     if not opts.quick:
         rows.append(_memory_row(width, height, opts.device))

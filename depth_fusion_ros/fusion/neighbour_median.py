@@ -198,9 +198,11 @@ def grid_median(
     taken = torch.full((n, k + 1), torch.inf, dtype=torch.float64, device=device)
     picked = torch.where(use, v[neighbour.clamp(min=0).long()], torch.inf)
     taken.scatter_(1, torch.where(use, rank - 1, k), picked)
-    within = rank[:, -1]
-    count = within.clamp(max=k).cpu().numpy()
-    return _median_of_rows(taken[:, :k].cpu().numpy(), count), count, within[::support_step].cpu().numpy()
+    # One read back: the taken values and every point's neighbour count side by side.
+    host = torch.cat((taken[:, :k], rank[:, -1:].to(torch.float64)), dim=1).cpu().numpy()
+    within = host[:, k].astype(np.int64)
+    count = np.minimum(within, k)
+    return _median_of_rows(host[:, :k], count), count, within[::support_step]
 
 
 def grid_counts(points: np.ndarray, sample: np.ndarray, radius: float) -> np.ndarray:

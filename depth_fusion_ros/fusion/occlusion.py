@@ -99,14 +99,14 @@ def halo_points(
     out = np.zeros(points.shape, dtype=bool)
     if min_step <= 0:
         return out
+    gray = gray_image(image)
+    if gray.shape != points.shape:
+        raise ValueError(f'keyframe image {gray.shape} and depth {points.shape} differ in size')
     dev = resolve_device(device)
     if dev.type != 'cpu':
         from .occlusion_gpu import halo_points_torch  # it imports this module's constants
 
-        return halo_points_torch(image, base, m, points, min_step, dev)
-    gray = gray_image(image)
-    if gray.shape != points.shape:
-        raise ValueError(f'keyframe image {gray.shape} and depth {points.shape} differ in size')
+        return halo_points_torch(gray, base, m, points, min_step, dev)
     with np.errstate(invalid='ignore', divide='ignore'):
         log_s = np.log(np.where(np.isfinite(base) & (base > 0), base, np.nan)).astype(np.float32)
         usable = points & np.isfinite(log_s) & np.isfinite(m) & (m > 0)

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
-from .occlusion import BEYOND_PX, BLUR_SIGMA, MIN_POINTS, NEAR_SHARE, SEARCH_PX, SIDE_PX, gray_image
+from .occlusion import BEYOND_PX, BLUR_SIGMA, MIN_POINTS, NEAR_SHARE, SEARCH_PX, SIDE_PX
 
 #: Sobel's 3-tap derivative and smoothing kernels (OpenCV's ksize=3).
 _DERIVATIVE = (-1.0, 0.0, 1.0)
@@ -30,25 +30,23 @@ _SMOOTH = (1.0, 2.0, 1.0)
 
 
 def halo_points_torch(
-    image: np.ndarray,
+    gray: np.ndarray,
     base: np.ndarray,
     m: np.ndarray,
     points: np.ndarray,
     min_step: float,
     device: torch.device,
 ) -> np.ndarray:
-    """``occlusion.halo_points`` on ``device``: the HxW bool mask of the halo's points."""
-    out = np.zeros(points.shape, dtype=bool)
-    gray = torch.as_tensor(gray_image(image), device=device)
-    if gray.shape != points.shape:
-        raise ValueError(f'keyframe image {tuple(gray.shape)} and depth {points.shape} differ in size')
+    """``occlusion.halo_points`` on ``device``, after its checks (``gray``: the keyframe's grey
+    image, ``occlusion.gray_image``, on the points' grid): the HxW bool mask of the halo's points."""
+    gray = torch.as_tensor(gray, device=device)
     s = torch.as_tensor(base, dtype=torch.float32, device=device)
     md = torch.as_tensor(m, dtype=torch.float32, device=device)
     log_s = torch.log(torch.where(torch.isfinite(s) & (s > 0), s, torch.nan))
     usable = torch.as_tensor(points, device=device) & torch.isfinite(log_s) & torch.isfinite(md) & (md > 0)
     rows, cols = torch.nonzero(usable, as_tuple=True)
     if rows.numel() < MIN_POINTS:
-        return out
+        return np.zeros(points.shape, dtype=bool)
     log_m = torch.log(md[rows, cols])
     scale = _median(log_m - log_s[rows, cols])
     x, y = cols.to(torch.float32), rows.to(torch.float32)
@@ -67,8 +65,9 @@ def halo_points_torch(
         far_log = far_side[c] + scale
         beyond = _beyond_agrees(log_points, y[c], x[c], nx[c], ny[c], grows[c], log_m[c], far_log)
         halo[c[beyond]] = False
-    out[rows[halo].cpu().numpy(), cols[halo].cpu().numpy()] = True
-    return out
+    out = torch.zeros(points.shape, dtype=torch.bool, device=device)
+    out[rows[halo], cols[halo]] = True
+    return out.cpu().numpy()
 
 
 def _median(values: torch.Tensor) -> torch.Tensor:

@@ -74,26 +74,27 @@ def score(results: Path) -> str:
     )
 
 
-def keyframe_lines(results: Path, rec: Path, topic: str, out: Path) -> None:
-    """One JSON line per scored keyframe: fused / single ratio, decision and the guard's evidence
-    (keyframes and recorded decisions matched in stamp order)."""
+def keyframe_lines(results: Path, seq: Path, rec: Path, topic: str, out: Path) -> None:
+    """One JSON line per scored keyframe: fused / single ratio, decision and the guard's evidence,
+    matched by stamp (``seq``'s rgb.txt gives each frame's); a keyframe without a recorded
+    decision gets ``"decision": null``."""
     from rosbags.highlevel import AnyReader
 
-    seq = next(iter(json.loads(results.read_text())['sequences'].values()))
-    fused, single = seq['methods']['graph_fused'], seq['methods']['graph_single_view']
-    ratios = [
-        (i, a / b)
-        for i, (a, b) in enumerate(zip(fused['per_frame_mae'], single['per_frame_mae'], strict=True))
-        if a is not None and b
-    ]
+    lines = (seq / 'rgb.txt').read_text().splitlines()
+    stamps = [float(line.split()[0]) for line in lines if line[:1] != '#']
+    scored = next(iter(json.loads(results.read_text())['sequences'].values()))
+    fused, single = scored['methods']['graph_fused'], scored['methods']['graph_single_view']
     with AnyReader([rec]) as reader:
         conns = [c for c in reader.connections if c.topic == topic]
         said = [json.loads(reader.deserialize(raw, c.msgtype).data) for c, _, raw in reader.messages(conns)]
-    said.sort(key=lambda d: d['stamp'])
+    by_stamp = {round(d['stamp'], 3): d for d in said}
     with out.open('w') as f:
-        for (frame, ratio), d in zip(ratios, said, strict=False):
-            line = {'frame': frame, 'ratio': round(ratio, 4), 'decision': d['decision'], **d['evidence']}
-            f.write(json.dumps(line) + '\n')
+        for frame, (a, b) in enumerate(zip(fused['per_frame_mae'], single['per_frame_mae'], strict=True)):
+            if a is None or not b:
+                continue
+            d = by_stamp.get(round(stamps[frame], 3))
+            line = {'frame': frame, 'ratio': round(a / b, 4), 'decision': d and d['decision']}
+            f.write(json.dumps({**line, **(d['evidence'] if d else {})}) + '\n')
 
 
 def sweep_case(case: str, seed: int, frames: int, out: Path, synth: list[str], tag: str) -> str:
@@ -146,7 +147,7 @@ def sweep_case(case: str, seed: int, frames: int, out: Path, synth: list[str], t
         line for line in (d / 'run.log').read_text().splitlines()[::-1] if 'keyframes chosen' in line
     )
     scored = score(d / 'eval' / 'results.json')
-    keyframe_lines(d / 'eval' / 'results.json', d / 'rec', decisions, d / 'keyframes.jsonl')
+    keyframe_lines(d / 'eval' / 'results.json', d / 'seq', d / 'rec', decisions, d / 'keyframes.jsonl')
     return f'{case + tag:16s} {scored} | {summary[:48]} | {node_checks(d / "run.log")}'
 
 
