@@ -42,6 +42,7 @@ def test_a_focal_length_ten_percent_long_is_found(wrong_focal):
     )
     message = estimate.message()
     assert 'camera_info says fx 288.8 px' in message and 'check the calibration' in message
+    assert 'lens distortion camera_info does not hold' in message
     assert check.add(wrong_focal.frames[0].gray, wrong_focal.frames[0].pose) is None  # once
 
 

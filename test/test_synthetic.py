@@ -586,3 +586,40 @@ def test_the_keyframe_stream_moves_one_step_every_frame_back_and_forth():
     # back and forth: it comes back to where it started every 20 frames
     np.testing.assert_allclose(poses[20], poses[0], atol=1e-9)
     assert np.linalg.norm(poses[5][:3, 3] - poses[0][:3, 3]) > 0.6  # five steps along the arc
+
+
+def test_a_distorted_lens_is_rendered_through_and_not_written_down(tmp_path):
+    """``lens_k1``: images and depth are seen through a radial distortion that camera.yaml does
+    not hold. Undistorting them with OpenCV's own model (plumb_bob, the same k1) gives back the
+    pinhole render: the rays are bent as OpenCV would bend them, and depth stays z-depth."""
+    from depth_fusion_ros.cli.main import main
+    from depth_fusion_ros.data.synthetic.render import undistorted_slopes
+
+    cfg = SynthConfig(width=160, height=120, frames=1, seed=4, parallax='high', boxes=8)
+    lens = SynthConfig(width=160, height=120, frames=1, seed=4, parallax='high', boxes=8, lens_k1=-0.2)
+    pinhole, bent = render_sequence(cfg), render_sequence(lens)
+    assert bent.camera == pinhole.camera == bent.gt_camera  # the pipeline is told a pinhole
+    cam = bent.gt_camera
+    K = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
+    D = np.array([-0.2, 0.0, 0.0, 0.0])
+    inner = (slice(8, -8), slice(8, -8))
+    moved = np.abs(bent.frames[0].depth - pinhole.frames[0].depth) / pinhole.frames[0].depth
+    back = cv2.undistort(bent.frames[0].depth, K, D) / pinhole.frames[0].depth - 1.0
+    assert np.median(moved[inner]) > 20 * np.median(np.abs(back[inner]))
+    assert np.median(np.abs(back[inner])) < 1e-4
+    grey = np.abs(cv2.undistort(bent.frames[0].rgb, K, D).astype(float) - pinhole.frames[0].rgb)
+    apart = np.abs(bent.frames[0].rgb.astype(float) - pinhole.frames[0].rgb)
+    assert grey[inner].mean() < 0.5 * apart[inner].mean()
+    # The slopes invert OpenCV's distortion exactly.
+    x, y = undistorted_slopes(np.array([0.5, -0.3, 0.0]), np.array([0.4, 0.2, 0.0]), -0.2)
+    r2 = x * x + y * y
+    assert np.allclose(x * (1 - 0.2 * r2), [0.5, -0.3, 0.0], atol=1e-12)
+    assert np.allclose(y * (1 - 0.2 * r2), [0.4, 0.2, 0.0], atol=1e-12)
+    with pytest.raises(ValueError, match='lens_k1'):
+        SynthConfig(lens_k1=0.5)
+    out = tmp_path / 'lens'
+    args = ['synth', str(out), '--frames', '1', '--width', '32', '--height', '24', '--lens-k1', '-0.1']
+    assert main([*args, '--quiet']) == 0
+    text = (out / 'SOURCE.md').read_text()
+    assert '--lens-k1 -0.1' in text and 'does not say so' in text and 'k1 = -0.1' in text
+    assert yaml.safe_load((out / 'camera.yaml').read_text()).get('D', [0.0])[0] == 0.0

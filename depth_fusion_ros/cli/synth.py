@@ -75,6 +75,10 @@ SCALAR_HELP: dict[str, str] = {
         '(0-0.05; default {default}: the smooth path)'
     ),
     'shake_deg': 'the same shake of the rotations, degrees (0-5; default {default})',
+    'lens_k1': (
+        'radial distortion k1 of the lens the images are rendered through (plumb_bob; camera.yaml '
+        'says none; -0.4..0.4, default {default})'
+    ),
 }
 
 
@@ -165,6 +169,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             'texture_period',
             'shake_m',
             'shake_deg',
+            'lens_k1',
         ),
     )
     p.add_argument(

@@ -44,6 +44,16 @@ VERDICTS = ('consistent', 'suspect', 'disagrees', 'unobservable')
 _SCALE_BOUNDS = (0.5, 2.0)
 
 
+#: What else reads as a focal error, for the warning: a lens distortion camera_info does not
+#: hold bends the image outwards or inwards as a focal change would (the stress case
+#: ``lens_distortion``: k1 -0.1 reads as +5 %), and a camera turned on its mount moves the
+#: epipoles as one does.
+CAUSES = (
+    '(a lens distortion camera_info does not hold, or a camera mounted turned from '
+    'camera_from_pose_frame, reads as a focal error too)'
+)
+
+
 @dataclass(frozen=True)
 class FocalCheckConfig:
     """When to check the focal length, and what to do when the images disagree with it."""
@@ -105,12 +115,12 @@ class FocalEstimate:
         )
         if self.verdict == 'disagrees':
             told = f'camera_info says fx {self.told_fx:.1f} px'
-            return f'focal length check: {told}, but {fit}: check the calibration'
+            return f'focal length check: {told}, but {fit}: check the calibration {CAUSES}'
         if self.verdict == 'suspect':
             return (
                 f'focal length check: camera_info says fx {self.told_fx:.1f} px, but {fit}: past the '
                 f'threshold by the fit, not surely: fx {self.told_fx:.1f} px kept; check the calibration '
-                '(a camera mounted turned from camera_from_pose_frame reads as a focal error too)'
+                f'{CAUSES}'
             )
         if self.verdict == 'unobservable':
             return (

@@ -103,6 +103,11 @@ class SynthConfig:
     #: and turn rate change every few hundred milliseconds. 0 = the smooth path.
     shake_m: float = 0.0
     shake_deg: float = 0.0
+    #: Radial distortion of the true lens (plumb_bob ``k1``, normalised coordinates: a point at
+    #: slope radius ``r`` is imaged at ``r (1 + k1 r^2)``; negative = barrel). Images and depth
+    #: are rendered through it; camera.yaml says no distortion, as for a camera whose
+    #: calibration left its lens out. 0 = a pinhole lens.
+    lens_k1: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ValueError:
@@ -166,6 +171,8 @@ class SynthConfig:
             raise bad('walker_speed', 'expected a walking speed in (0, 5] m/s')
         if not 0 <= self.shake_m <= 0.05 or not 0 <= self.shake_deg <= 5.0:
             raise bad('shake_m', 'expected a shake of 0..0.05 m and 0..5 degrees (std per axis)')
+        if not -0.4 <= self.lens_k1 <= 0.4:
+            raise bad('lens_k1', 'expected a radial distortion k1 of -0.4..0.4')
         if not (self.texture_period == 0 or 0.02 <= self.texture_period <= 0.5):
             raise bad('texture_period', 'expected 0 (aperiodic) or a period of 0.02..0.5 m')
 

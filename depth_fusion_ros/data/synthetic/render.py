@@ -2,7 +2,9 @@
 
 Every pixel's ray is ``X = o + t * d`` with the camera-frame direction
 ``d_c = ((u - cx) / fx, (v - cy) / fy, 1)`` (pixel centres per ``camera.py``), so the ray
-parameter ``t`` at the hit *is* the z-depth: no conversion from range, no rounding.
+parameter ``t`` at the hit *is* the z-depth: no conversion from range, no rounding. A lens
+with radial distortion (``lens_k1``) only bends those slopes (:func:`undistorted_slopes`);
+``t`` stays the z-depth.
 
 Rays are intersected with all boxes by the slab method, vectorised over pixels; each box
 is only tested against the screen rectangle its projected corners cover, which keeps a
@@ -45,12 +47,40 @@ class RenderedFrame:
     textured: np.ndarray
 
 
+def undistorted_slopes(xd: np.ndarray, yd: np.ndarray, k1: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ray slopes ``(x/z, y/z)`` seen at distorted normalised coordinates ``(xd, yd)`` of a lens
+    with radial distortion ``k1`` (OpenCV's plumb_bob, ``xd = x (1 + k1 r^2)``, ``r^2 = x^2 + y^2``).
+
+    The fixed-point iteration ``x = xd / (1 + k1 r^2)`` (as ``cv2.undistortPoints``), run in
+    float64 until no slope moves by 1e-12; it contracts wherever ``|3 k1 r^2| < 1``, which
+    the config's bound on ``k1`` keeps inside the image.
+    """
+    xd, yd = np.asarray(xd, dtype=np.float64), np.asarray(yd, dtype=np.float64)
+    x, y = xd.copy(), yd.copy()
+    if k1 == 0.0:
+        return x, y
+    for _ in range(100):
+        scale = 1.0 + k1 * (x * x + y * y)
+        nx, ny = xd / scale, yd / scale
+        step = max(float(np.max(np.abs(nx - x), initial=0.0)), float(np.max(np.abs(ny - y), initial=0.0)))
+        x, y = nx, ny
+        if step < 1e-12:
+            break
+    return x, y
+
+
+def _slopes(
+    camera: PinholeCamera, u: np.ndarray, v: np.ndarray, lens_k1: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame ray slopes (float32) of pixel positions ``u``, ``v``."""
+    a, b = undistorted_slopes((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, lens_k1)
+    return a.astype(np.float32), b.astype(np.float32)
+
+
 @lru_cache(maxsize=8)
-def _camera_rays(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+def _camera_rays(camera: PinholeCamera, lens_k1: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame ray slopes ``(x/z, y/z)`` of every pixel centre, (H, W) float32 each."""
-    u, v = camera.pixel_grid()
-    a = ((u - camera.cx) / camera.fx).astype(np.float32)
-    b = ((v - camera.cy) / camera.fy).astype(np.float32)
+    a, b = _slopes(camera, *camera.pixel_grid(), lens_k1)
     a.flags.writeable = False
     b.flags.writeable = False
     return a, b
@@ -144,14 +174,19 @@ def _screen_rect(
     return slice(v0, v1), slice(u0, u1)
 
 
-def cast_camera(scene: Scene, camera: PinholeCamera, T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray, Vec]:
+def cast_camera(
+    scene: Scene, camera: PinholeCamera, T_wc: np.ndarray, lens_k1: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, Vec]:
     """Z-depth (H, W) float32, surface (H, W) int32 and world ray directions (3 x (H, W))
-    of every pixel centre of a camera at pose ``T_wc``."""
+    of every pixel centre of a camera at pose ``T_wc`` (its lens distortion ``lens_k1``)."""
     origin = T_wc[:3, 3]
-    d = _rotate_rays(T_wc[:3, :3], *_camera_rays(camera))
+    d = _rotate_rays(T_wc[:3, :3], *_camera_rays(camera, lens_k1))
     t, surface = _room_exit(scene, origin, d)
+    everywhere = (slice(0, camera.height), slice(0, camera.width))
     for obj in range(1, scene.n_objects):
-        rect = _screen_rect(scene, obj, camera, T_wc)
+        # A distorted lens bends a box's outline off its corners' pinhole rectangle: each box
+        # is then tested over the whole image (slower, never wrong).
+        rect = everywhere if lens_k1 else _screen_rect(scene, obj, camera, T_wc)
         if rect is None:
             continue
         hit, t_obj, s_obj = _hit_box(scene, obj, origin, (d[0][rect], d[1][rect], d[2][rect]))
@@ -222,15 +257,13 @@ def _edge_pixels(surface: np.ndarray) -> np.ndarray:
 
 
 def _supersample_edges(
-    scene: Scene, camera: PinholeCamera, T_wc: np.ndarray, edge: np.ndarray, focal: float
+    scene: Scene, camera: PinholeCamera, T_wc: np.ndarray, edge: np.ndarray, focal: float, lens_k1: float
 ) -> np.ndarray:
     """Mean radiance (E, 3) of four rotated-grid sub-pixel rays for each edge pixel."""
     rows, cols = np.nonzero(edge)
     u = (cols[None, :] + RGSS_OFFSETS[:, 0][:, None]).reshape(-1)
     v = (rows[None, :] + RGSS_OFFSETS[:, 1][:, None]).reshape(-1)
-    a = ((u - camera.cx) / camera.fx).astype(np.float32)
-    b = ((v - camera.cy) / camera.fy).astype(np.float32)
-    d = _rotate_rays(T_wc[:3, :3], a, b)
+    d = _rotate_rays(T_wc[:3, :3], *_slopes(camera, u, v, lens_k1))
     origin = T_wc[:3, 3]
     t, surface = cast_rays(scene, origin, d)
     radiance = shade(scene, origin, d, t, surface, focal)
@@ -245,12 +278,12 @@ def _checked_pose(T_wc: np.ndarray) -> np.ndarray:
 
 
 def render_radiance(
-    scene: Scene, camera: PinholeCamera, T_wc: np.ndarray, *, antialias: bool = True
+    scene: Scene, camera: PinholeCamera, T_wc: np.ndarray, *, antialias: bool = True, lens_k1: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(radiance (H, W, 3) float32 grey levels, depth, surface id)`` of one instantaneous
     view: what reaches the sensor before its exposure, noise and quantisation."""
     T_wc = _checked_pose(T_wc)
-    depth, surface, d = cast_camera(scene, camera, T_wc)
+    depth, surface, d = cast_camera(scene, camera, T_wc, lens_k1)
     focal = float(np.sqrt(camera.fx * camera.fy))
     H, W = depth.shape
     flat = tuple(c.reshape(-1) for c in d)
@@ -258,7 +291,7 @@ def render_radiance(
     if antialias:
         edge = _edge_pixels(surface)
         if edge.any():
-            radiance[edge] = _supersample_edges(scene, camera, T_wc, edge, focal)
+            radiance[edge] = _supersample_edges(scene, camera, T_wc, edge, focal, lens_k1)
     return radiance, depth, surface
 
 
@@ -273,6 +306,7 @@ def render_frame(
     gain: float = 1.0,
     exposure_poses: np.ndarray | None = None,
     row_weights: np.ndarray | None = None,
+    lens_k1: float = 0.0,
 ) -> RenderedFrame:
     """Render one view of ``scene`` from camera-to-world pose ``T_wc``.
 
@@ -286,7 +320,8 @@ def render_frame(
     pose, which the pipeline is told). ``row_weights`` (H, K): each row's own mix of the K
     views instead of their mean (a rolling shutter: each row exposed at its own time; rows sum
     to 1). ``gain`` scales the colour before noise and clipping
-    (a frame's auto-exposure), so bright surfaces saturate as on a sensor.
+    (a frame's auto-exposure), so bright surfaces saturate as on a sensor. ``lens_k1``: the
+    lens's radial distortion (plumb_bob ``k1``); depth and colour are both seen through it.
     """
     if noise_sigma > 0 and rng is None:
         raise ValueError('render_frame: noise_sigma > 0 needs an rng (a numpy Generator)')
@@ -294,16 +329,19 @@ def render_frame(
         # The image is made of the exposure's views; of the stamp's pose only its geometry,
         # which the view at the stamp (the middle one of an odd count) has already cast.
         T_wc = _checked_pose(T_wc)
-        renders = [render_radiance(scene, camera, pose, antialias=antialias) for pose in exposure_poses]
+        renders = [
+            render_radiance(scene, camera, pose, antialias=antialias, lens_k1=lens_k1)
+            for pose in exposure_poses
+        ]
         at_stamp = [r for pose, r in zip(exposure_poses, renders, strict=True) if np.array_equal(pose, T_wc)]
-        depth, surface = at_stamp[0][1:] if at_stamp else cast_camera(scene, camera, T_wc)[:2]
+        depth, surface = at_stamp[0][1:] if at_stamp else cast_camera(scene, camera, T_wc, lens_k1)[:2]
         views = np.stack([r[0] for r in renders])
         if row_weights is None:
             radiance = views.mean(axis=0)
         else:
             radiance = np.einsum('khwc,hk->hwc', views, np.asarray(row_weights, dtype=np.float32))
     else:
-        radiance, depth, surface = render_radiance(scene, camera, T_wc, antialias=antialias)
+        radiance, depth, surface = render_radiance(scene, camera, T_wc, antialias=antialias, lens_k1=lens_k1)
     if gain != 1.0:
         radiance *= np.float32(gain)
     if noise_sigma > 0:

@@ -46,6 +46,11 @@ data with exact ground truth:
                    here; together they leave the focal check unable to tell (``unobservable``),
                    and the told focal length biases every rotation-dominant depth the same way
                    (``multiview/focal_bias.py``)
+``lens_distortion`` the ``rotation`` sweep through a lens with barrel distortion (plumb_bob
+                   k1 = -0.1: 4 % at the image corners, 11 px at 320x240) that camera_info
+                   does not hold (zero distortion): a camera used uncalibrated, or its
+                   images not rectified. Undone with a pinhole model, the told rotation
+                   leaves each point a shift that grows with its distance from the centre
 =================  ==========================================================================
 
 ``stress_config('rotation', width=160, height=120, frames=30)`` gives a small version for
@@ -108,6 +113,12 @@ STRESS_CASES: dict[str, dict[str, Any]] = {
         'pose_noise_m': 0.002,
         'pose_noise_deg': 0.1,
         'pose_time_offset': 0.01,
+    },
+    'lens_distortion': {
+        'motion': 'rotation_sweep',
+        'step_translation': 0.012,
+        'step_rotation_deg': 0.6,
+        'lens_k1': -0.1,
     },
 }
 

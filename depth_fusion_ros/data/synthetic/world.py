@@ -47,6 +47,8 @@ def sequence_name(cfg: SynthConfig) -> str:
     name = f'synth_s{cfg.seed}_{cfg.parallax if cfg.motion == "parallax" else cfg.motion}'
     if cfg.focal_error:
         name += f'_focal{cfg.focal_error:+g}'
+    if cfg.lens_k1:
+        name += f'_lensk1{cfg.lens_k1:+g}'
     if cfg.pose_noise_m or cfg.pose_noise_deg:
         name += f'_posenoise{cfg.pose_noise_m * 1000:g}mm{cfg.pose_noise_deg:g}deg'
     if cfg.mount_tilt_deg:
@@ -252,6 +254,7 @@ def iter_frames(
             gain=frame_gain(cfg, i),
             exposure_poses=None if exposures is None else exposures[i],
             row_weights=row_weights,
+            lens_k1=cfg.lens_k1,
         )
         yield i, frame, told[i]
 

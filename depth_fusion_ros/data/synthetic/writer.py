@@ -21,12 +21,19 @@ def _motion(cfg: SynthConfig) -> str:
 
 
 def _focal_note(cfg: SynthConfig) -> str:
-    if not cfg.focal_error:
-        return ''
-    return (
-        f'\n**camera.yaml is deliberately wrong**: its focal lengths are {cfg.focal_error:+.0%} off the '
-        f'ones used for rendering (fx = {cfg.camera().fx:g} px), a calibration-error stress case.'
-    )
+    note = ''
+    if cfg.focal_error:
+        note += (
+            f'\n**camera.yaml is deliberately wrong**: its focal lengths are {cfg.focal_error:+.0%} off the '
+            f'ones used for rendering (fx = {cfg.camera().fx:g} px), a calibration-error stress case.'
+        )
+    if cfg.lens_k1:
+        note += (
+            f'\n**The lens distorts and camera.yaml does not say so**: images and depth are rendered '
+            f'through a radial distortion k1 = {cfg.lens_k1:g} (plumb_bob), camera.yaml has none, a '
+            'calibration-error stress case.'
+        )
+    return note
 
 
 def _pose_note(cfg: SynthConfig) -> str:
@@ -109,8 +116,9 @@ Regenerate (bit-identical with the same package version):
 
 Ground truth: `depth/*.png` is the exact z-depth at pixel centres quantised to 1/5000 m
 (0 = invalid, none here); `groundtruth.txt` holds the camera-to-world poses (exact unless
-said above) at the same stamps as the images (no association error). Images are undistorted (zero plumb_bob
-distortion in `camera.yaml`); colour has Gaussian sensor noise of {cfg.noise_sigma:g} grey levels.
+said above) at the same stamps as the images (no association error). `camera.yaml` has zero
+plumb_bob distortion (the images are undistorted unless said above); colour has Gaussian sensor
+noise of {cfg.noise_sigma:g} grey levels.
 
 Config:
 
