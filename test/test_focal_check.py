@@ -43,6 +43,7 @@ def test_a_focal_length_ten_percent_long_is_found(wrong_focal):
     message = estimate.message()
     assert 'camera_info says fx 288.8 px' in message and 'check the calibration' in message
     assert 'lens distortion camera_info does not hold' in message
+    assert not estimate.lens_distorted  # a focal error is not taken for a lens
     assert check.add(wrong_focal.frames[0].gray, wrong_focal.frames[0].pose) is None  # once
 
 
@@ -50,6 +51,34 @@ def test_the_right_focal_length_is_not_flagged():
     estimate, _ = _check(render_sequence(stress_config('translation', **SIZE)))
     assert estimate is not None and estimate.verdict == 'consistent', estimate.message()
     assert abs(estimate.scale - 1) < 0.04 and 'agrees' in estimate.message()
+    assert not estimate.lens_distorted and 'k1' not in estimate.message()
+
+
+def test_a_lens_camera_info_does_not_hold_is_named():
+    """The stress case ``lens_distortion`` (a barrel lens of k1 -0.1, camera_info without it,
+    the rotation sweep): the pairs fit a radial distortion better than a focal change and
+    agree on it, whatever the focal verdict; the warning says so and ``check-focal`` exits 6."""
+    from depth_fusion_ros.cli.recordings import verdict_status
+
+    lens = render_sequence(stress_config('lens_distortion', width=320, height=240, frames=100, seed=5))
+    estimate, _ = _check(lens)
+    assert estimate is not None and estimate.lens is not None, 'the check did not finish'
+    assert estimate.lens_distorted, estimate.lens
+    assert -0.12 < estimate.lens.k1 < -0.06 and estimate.lens.cost_ratio < 0.8
+    assert 'the images fit a lens distortion k1 -0.' in estimate.message()
+    assert verdict_status('check-focal', 'seq', estimate, 12, FocalCheckConfig(), 100) == 6
+    pinhole, _ = _check(render_sequence(stress_config('rotation', width=320, height=240, frames=100, seed=5)))
+    assert pinhole is not None and not pinhole.lens_distorted, pinhole.lens
+
+
+def test_a_lens_is_reported_only_when_it_explains_the_pairs_clearly_better():
+    from depth_fusion_ros.multiview.lens_fit import LensFit
+
+    assert LensFit(-0.09, 0.003, 0.51, 0, 12).distorted
+    assert not LensFit(-0.02, 0.003, 0.51, 0, 12).distorted  # too small to name
+    assert not LensFit(0.15, 0.058, 0.98, 1, 12).distorted  # a focal change fits about as well
+    assert not LensFit(0.3, 0.002, 0.80, 9, 12).distorted  # most pairs ran off the range
+    assert not LensFit(0.0, float('inf'), float('inf'), 0, 0).distorted
 
 
 def test_forward_motion_with_the_right_focal_length_is_not_corrected():
@@ -254,3 +283,29 @@ def test_cli_check_focal_says_the_verdict_in_its_exit_status(tmp_path, capsys):
     assert main(['check-focal', str(wrong), '--frames', '6']) == 4
     assert 'not enough motion to tell' in capsys.readouterr().err
     assert main(['check-focal', str(tmp_path / 'none')]) == 1
+
+
+def test_the_node_warns_of_a_lens_whatever_the_focal_verdict():
+    """``multi_view_node`` says the check's verdict once: a lens the pairs show is a warning
+    (note ``lens_distortion``) also when the focal length itself agrees, and stays an info line
+    without one."""
+    from types import SimpleNamespace
+
+    from depth_fusion_ros.multiview.lens_fit import LensFit
+    from depth_fusion_ros.nodes.multi_view_checks import CheckCorrections
+    from depth_fusion_ros.nodes.stats import NodeStats
+
+    warnings, infos = [], []
+    node = SimpleNamespace(
+        stats=NodeStats(warnings.append), get_logger=lambda: SimpleNamespace(info=infos.append)
+    )
+    camera = stress_config('translation', width=320, height=240).camera()
+    plain = FocalEstimate(1.0, 0.005, 12, 4000, 'consistent', camera.fx, camera.fy)
+    lens = FocalEstimate(
+        1.0, 0.005, 12, 4000, 'consistent', camera.fx, camera.fy, LensFit(-0.09, 0.01, 0.6, 0, 12)
+    )
+    CheckCorrections._on_focal_estimate(node, camera, plain)
+    assert len(infos) == 1 and not warnings and node.stats.snapshot().noted == {}
+    CheckCorrections._on_focal_estimate(node, camera, lens)
+    assert node.stats.snapshot().noted == {'lens_distortion': 1}
+    assert len(warnings) == 1 and 'lens distortion k1 -0.09' in warnings[0] and len(infos) == 1

@@ -14,7 +14,9 @@ multi_view_node runs at start (focal_check.*; docs/multi_view.md, "The focal len
 No ground-truth depth is needed. Prints the verdict with the focal length the images and poses
 fit best. Exit status: 0 consistent, 3 disagrees, 4 cannot tell (too little motion or poses
 too noisy: the check did not finish, or its standard error is too large), 5 suspect (the fit
-is more than focal_check.threshold off, but not surely); 1 and 2 are errors.
+is more than focal_check.threshold off, but not surely), 6 the images fit a lens distortion
+that camera_info does not hold better than a focal change (whatever the focal verdict); 1 and
+2 are errors.
 
 examples:
   depth-fusion check-focal ~/data/rgbd_dataset_freiburg1_desk

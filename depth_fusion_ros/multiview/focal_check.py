@@ -17,7 +17,9 @@ pairs, :func:`estimate_focal_scale` fits one scale ``s`` of both focal lengths (
 point kept) minimising the Sampson distances of the kept matches under the told relative
 poses, pair by pair; their median is the estimate and their spread its standard error, once.
 Motion that does not constrain the focal length, or poses too noisy to tell, give a large
-one: ``unobservable``.
+one: ``unobservable``. The same pairs are fitted with a radial lens distortion too
+(``lens_fit.py``), which reads as a focal error under rotation: the estimate says when the
+images show one camera_info does not hold.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import numpy as np
 from ..camera import PinholeCamera
 from .epipolar_cost import skew, soft_l1_sampson
 from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling, graded_verdict
+from .lens_fit import LensFit, fit_lens
 from .paired_check import PairedCheck, feed
 
 log = logging.getLogger(__name__)
@@ -98,6 +101,9 @@ class FocalEstimate:
     verdict: str  # one of VERDICTS
     told_fx: float
     told_fy: float
+    #: The same pairs fitted with a radial lens distortion instead (``lens_fit.py``); None when
+    #: not fitted.
+    lens: LensFit | None = None
 
     @property
     def fx(self) -> float:
@@ -107,8 +113,18 @@ class FocalEstimate:
     def fy(self) -> float:
         return self.told_fy * self.scale
 
+    @property
+    def lens_distorted(self) -> bool:
+        """Whether the pairs fit a lens distortion camera_info does not hold (``LensFit.distorted``)."""
+        return self.lens is not None and self.lens.distorted
+
     def message(self) -> str:
-        """One line for the log: the verdict with its numbers."""
+        """One line for the log: the verdict with its numbers, and a lens distortion the images
+        show."""
+        text = self._verdict_message()
+        return f'{text}; {self.lens.message()}' if self.lens_distorted else text
+
+    def _verdict_message(self) -> str:
         fit = (
             f'the images and poses fit fx {self.fx:.1f} px best ({self.scale - 1:+.1%} +- {self.stderr:.1%}; '
             f'{self.pairs} image pairs, {self.matches} matches)'
@@ -188,7 +204,11 @@ def estimate_focal_scale(pairs: list[MatchedPair], K: np.ndarray) -> tuple[float
     The spread of the pairs' own fits says how much the poses let the images tell (the
     median absolute deviation, as a standard error of the median).
     """
-    scales = np.array([fit_pair_scale(p, K) for p in pairs])
+    return _median_scale(np.array([fit_pair_scale(p, K) for p in pairs]))
+
+
+def _median_scale(scales: np.ndarray) -> tuple[float, float]:
+    """The pairs' median focal scale and its standard error (:func:`estimate_focal_scale`)."""
     median = float(np.median(scales))
     if scales.size < 3:
         return median, math.inf
@@ -207,9 +227,15 @@ class FocalCheck(PairedCheck):
     REFINE_MATCHES: ClassVar[bool] = True
 
     def _estimate(self) -> FocalEstimate:
-        return self._verdict(*estimate_focal_scale(self.pairs, self.camera.K))
+        K = self.camera.K
+        scales = [fit_pair_scale(p, K) for p in self.pairs]
+        # Each pair's cost at its own best focal scale: what its best lens distortion must beat.
+        costs = [
+            float(_robust_costs(np.array([s]), K, p)[0]) for s, p in zip(scales, self.pairs, strict=True)
+        ]
+        return self._verdict(*_median_scale(np.array(scales)), fit_lens(self.pairs, K, costs))
 
-    def _verdict(self, scale: float, stderr: float) -> FocalEstimate:
+    def _verdict(self, scale: float, stderr: float, lens: LensFit | None = None) -> FocalEstimate:
         if not math.isfinite(stderr) or stderr > self.config.max_stderr or scale <= 0:
             verdict = 'unobservable'
         else:
@@ -217,7 +243,7 @@ class FocalCheck(PairedCheck):
             verdict = graded_verdict(size, size - 2.0 * stderr / scale, self.config.threshold)
         matches = sum(len(p.p1) for p in self.pairs)
         estimate = FocalEstimate(
-            scale, stderr, len(self.pairs), matches, verdict, self.camera.fx, self.camera.fy
+            scale, stderr, len(self.pairs), matches, verdict, self.camera.fx, self.camera.fy, lens
         )
         log.debug('%s', estimate.message())
         return estimate

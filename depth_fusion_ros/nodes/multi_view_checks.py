@@ -78,7 +78,10 @@ class CheckCorrections:
             self.stats.noted('focal_suspect', f'{estimate.message()} ({camera.width}x{camera.height})')
             return
         if estimate.verdict != 'disagrees':
-            self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
+            if estimate.lens_distorted:  # whatever the focal length: the images show a lens
+                self.stats.noted('lens_distortion', f'{estimate.message()} ({camera.width}x{camera.height})')
+            else:
+                self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
             return
         if self.focal_check.config.mode == 'correct':
             then = (
