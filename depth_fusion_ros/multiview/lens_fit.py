@@ -68,7 +68,7 @@ class LensFit:
 
     def message(self) -> str:
         return (
-            f'the images fit a lens distortion k1 {self.k1:+.2f} +- {self.stderr:.2f} better than a focal '
+            f'the images fit a lens distortion k1 {self.k1:+.3f} +- {self.stderr:.3f} better than a focal '
             f'change (at {self.cost_ratio:.2f} of its cost, median of {self.pairs} pairs): give camera_info '
             "the lens's distortion (D) or rectified images"
         )
