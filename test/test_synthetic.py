@@ -593,7 +593,7 @@ def test_a_distorted_lens_is_rendered_through_and_not_written_down(tmp_path):
     not hold. Undistorting them with OpenCV's own model (plumb_bob, the same k1) gives back the
     pinhole render: the rays are bent as OpenCV would bend them, and depth stays z-depth."""
     from depth_fusion_ros.cli.main import main
-    from depth_fusion_ros.data.synthetic.render import undistorted_slopes
+    from depth_fusion_ros.radial_lens import undistort_radial
 
     cfg = SynthConfig(width=160, height=120, frames=1, seed=4, parallax='high', boxes=8)
     lens = SynthConfig(width=160, height=120, frames=1, seed=4, parallax='high', boxes=8, lens_k1=-0.2)
@@ -610,11 +610,13 @@ def test_a_distorted_lens_is_rendered_through_and_not_written_down(tmp_path):
     grey = np.abs(cv2.undistort(bent.frames[0].rgb, K, D).astype(float) - pinhole.frames[0].rgb)
     apart = np.abs(bent.frames[0].rgb.astype(float) - pinhole.frames[0].rgb)
     assert grey[inner].mean() < 0.5 * apart[inner].mean()
-    # The slopes invert OpenCV's distortion exactly.
-    x, y = undistorted_slopes(np.array([0.5, -0.3, 0.0]), np.array([0.4, 0.2, 0.0]), -0.2)
+    # The slopes invert OpenCV's distortion exactly, and a column of k1 undoes each on its own.
+    x, y = undistort_radial(np.array([0.5, -0.3, 0.0]), np.array([0.4, 0.2, 0.0]), -0.2)
     r2 = x * x + y * y
     assert np.allclose(x * (1 - 0.2 * r2), [0.5, -0.3, 0.0], atol=1e-12)
     assert np.allclose(y * (1 - 0.2 * r2), [0.4, 0.2, 0.0], atol=1e-12)
+    xs, _ = undistort_radial(np.array([0.5, -0.3, 0.0]), np.array([0.4, 0.2, 0.0]), np.array([[-0.2], [0.0]]))
+    assert np.array_equal(xs[0], x) and np.array_equal(xs[1], [0.5, -0.3, 0.0])
     with pytest.raises(ValueError, match='lens_k1'):
         SynthConfig(lens_k1=0.5)
     out = tmp_path / 'lens'

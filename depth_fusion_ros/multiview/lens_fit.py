@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..radial_lens import undistort_radial
 from .epipolar_cost import skew, soft_l1_sampson
 from .image_pairs import MatchedPair
 
@@ -40,8 +41,6 @@ MIN_K1 = 0.04
 MAX_COST_RATIO = 0.85
 #: The largest share of the pairs whose best ``k1`` may lie at an end of the range.
 MAX_AT_END = 1.0 / 3.0
-#: Fixed-point steps of the undistortion (contracting while ``|3 k1 r^2| < 1``, as in the grid).
-_UNDISTORT_STEPS = 30
 
 
 @dataclass(frozen=True)
@@ -76,12 +75,7 @@ class LensFit:
 
 def _undistorted(p: np.ndarray, K: np.ndarray, k1: np.ndarray) -> np.ndarray:
     """Pixels ``p`` (N, 2) with each distortion of ``k1`` (S,) removed: (S, N, 2)."""
-    xd = (p[:, 0] - K[0, 2]) / K[0, 0]
-    yd = (p[:, 1] - K[1, 2]) / K[1, 1]
-    x, y = np.broadcast_to(xd, (len(k1), len(xd))), np.broadcast_to(yd, (len(k1), len(yd)))
-    for _ in range(_UNDISTORT_STEPS):
-        scale = 1.0 + k1[:, None] * (x * x + y * y)
-        x, y = xd / scale, yd / scale
+    x, y = undistort_radial((p[:, 0] - K[0, 2]) / K[0, 0], (p[:, 1] - K[1, 2]) / K[1, 1], k1[:, None])
     return np.stack((x * K[0, 0] + K[0, 2], y * K[1, 1] + K[1, 2]), axis=-1)
 
 

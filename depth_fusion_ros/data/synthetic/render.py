@@ -3,7 +3,7 @@
 Every pixel's ray is ``X = o + t * d`` with the camera-frame direction
 ``d_c = ((u - cx) / fx, (v - cy) / fy, 1)`` (pixel centres per ``camera.py``), so the ray
 parameter ``t`` at the hit *is* the z-depth: no conversion from range, no rounding. A lens
-with radial distortion (``lens_k1``) only bends those slopes (:func:`undistorted_slopes`);
+with radial distortion (``lens_k1``) only bends those slopes (``radial_lens.undistort_radial``);
 ``t`` stays the z-depth.
 
 Rays are intersected with all boxes by the slab method, vectorised over pixels; each box
@@ -24,6 +24,7 @@ from functools import lru_cache
 import numpy as np
 
 from ...camera import PinholeCamera
+from ...radial_lens import undistort_radial
 from .scene import Scene
 
 #: Hits closer than this along the ray (m) are ignored (the camera is never that close).
@@ -47,33 +48,11 @@ class RenderedFrame:
     textured: np.ndarray
 
 
-def undistorted_slopes(xd: np.ndarray, yd: np.ndarray, k1: float) -> tuple[np.ndarray, np.ndarray]:
-    """Ray slopes ``(x/z, y/z)`` seen at distorted normalised coordinates ``(xd, yd)`` of a lens
-    with radial distortion ``k1`` (OpenCV's plumb_bob, ``xd = x (1 + k1 r^2)``, ``r^2 = x^2 + y^2``).
-
-    The fixed-point iteration ``x = xd / (1 + k1 r^2)`` (as ``cv2.undistortPoints``), run in
-    float64 until no slope moves by 1e-12; it contracts wherever ``|3 k1 r^2| < 1``, which
-    the config's bound on ``k1`` keeps inside the image.
-    """
-    xd, yd = np.asarray(xd, dtype=np.float64), np.asarray(yd, dtype=np.float64)
-    x, y = xd.copy(), yd.copy()
-    if k1 == 0.0:
-        return x, y
-    for _ in range(100):
-        scale = 1.0 + k1 * (x * x + y * y)
-        nx, ny = xd / scale, yd / scale
-        step = max(float(np.max(np.abs(nx - x), initial=0.0)), float(np.max(np.abs(ny - y), initial=0.0)))
-        x, y = nx, ny
-        if step < 1e-12:
-            break
-    return x, y
-
-
 def _slopes(
     camera: PinholeCamera, u: np.ndarray, v: np.ndarray, lens_k1: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame ray slopes (float32) of pixel positions ``u``, ``v``."""
-    a, b = undistorted_slopes((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, lens_k1)
+    a, b = undistort_radial((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, lens_k1)
     return a.astype(np.float32), b.astype(np.float32)
 
 
