@@ -20,7 +20,8 @@ def _motion(cfg: SynthConfig) -> str:
     return f'{cfg.motion} ({cfg.step_translation:g} m and {cfg.step_rotation_deg:g} deg per frame)'
 
 
-def _focal_note(cfg: SynthConfig) -> str:
+def _calibration_note(cfg: SynthConfig) -> str:
+    """What camera.yaml deliberately gets wrong: its focal lengths, the lens it leaves out."""
     note = ''
     if cfg.focal_error:
         note += (
@@ -101,7 +102,7 @@ def _sensor_note(cfg: SynthConfig) -> str:
 def source_markdown(cfg: SynthConfig, out_dir: Path) -> str:
     """SOURCE.md text: how to regenerate the folder and what its ground truth is."""
     command = shlex.join(['depth-fusion', 'synth', str(out_dir), *cfg.cli_args()])
-    notes = _focal_note(cfg) + _pose_note(cfg) + _sensor_note(cfg)
+    notes = _calibration_note(cfg) + _pose_note(cfg) + _sensor_note(cfg)
     config = yaml.safe_dump(cfg.as_dict(), sort_keys=False, default_flow_style=None).strip()
     return f"""# Synthetic room {sequence_name(cfg)}
 
