@@ -13,9 +13,10 @@ the next sample (ORB features), so a pair has the same signal at any speed and f
 consecutive samples make a pair: their features are matched and the images'
 own essential matrix (RANSAC) keeps the matches that fit one rigid motion, and each match's
 second position is tracked from its first to sub-pixel (Lucas-Kanade). After ``pairs``
-pairs, :func:`estimate_focal_scale` fits one scale ``s`` of both focal lengths (principal
-point kept) minimising the Sampson distances of the kept matches under the told relative
-poses, pair by pair; their median is the estimate and their spread its standard error, once.
+pairs, :func:`fit_pair_scale` fits one scale ``s`` of both focal lengths (principal point
+kept) minimising the Sampson distances of the kept matches under the told relative poses,
+pair by pair; their median is the estimate and their spread its standard error, once
+(:func:`estimate_focal_scale`).
 Motion that does not constrain the focal length, or poses too noisy to tell, give a large
 one: ``unobservable``. The same pairs are fitted with a radial lens distortion too
 (``lens_fit.py``), which reads as a focal error under rotation: the estimate says when the
@@ -33,7 +34,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..camera import PinholeCamera
-from .epipolar_cost import skew, soft_l1_sampson
+from .epipolar_cost import scaled_fundamentals, soft_l1_sampson
 from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling, graded_verdict
 from .lens_fit import LensFit, fit_lens
 from .paired_check import PairedCheck, feed
@@ -157,27 +158,18 @@ class FocalEstimate:
         return PinholeCamera(camera.width, camera.height, camera.fx * s, camera.fy * s, camera.cx, camera.cy)
 
 
-def _fundamental(scales: np.ndarray, K: np.ndarray, T_ba: np.ndarray) -> np.ndarray:
-    """(S, 3, 3) fundamental matrices of the told pose with the focal lengths scaled by each of ``scales``."""
-    Ks = np.repeat(K[None].astype(np.float64), len(scales), axis=0)
-    Ks[:, 0, 0] *= scales
-    Ks[:, 1, 1] *= scales
-    Ki = np.linalg.inv(Ks)
-    E = skew(T_ba[:3, 3]) @ T_ba[:3, :3]
-    return np.transpose(Ki, (0, 2, 1)) @ E @ Ki
-
-
 def _robust_costs(scales: np.ndarray, K: np.ndarray, pair: MatchedPair) -> np.ndarray:
     """Soft-L1 sum of one pair's Sampson distances at each of ``scales`` (S,)."""
-    return soft_l1_sampson(_fundamental(scales, K, pair.T_ba), pair.p1, pair.p2).sum(axis=1)
+    return soft_l1_sampson(scaled_fundamentals(scales, K, pair.T_ba), pair.p1, pair.p2).sum(axis=1)
 
 
 #: The grid of focal scales every pair's cost is first evaluated on (1 % steps, log-spaced).
 _GRID = np.exp(np.arange(math.log(_SCALE_BOUNDS[0]), math.log(_SCALE_BOUNDS[1]), 0.01))
 
 
-def fit_pair_scale(pair: MatchedPair, K: np.ndarray) -> float:
-    """The focal scale that fits one pair's matches best under its told pose (soft-L1 cost).
+def fit_pair_scale(pair: MatchedPair, K: np.ndarray) -> tuple[float, float]:
+    """The focal scale that fits one pair's matches best under its told pose, and its soft-L1
+    cost there (what the pair's best lens distortion is measured against: ``lens_fit.py``).
 
     The whole bounded range on a 1 % grid first, in one vectorised pass, then a bounded scalar
     search between the best step's neighbours: a local fit started at 1 stays near 1 where the
@@ -191,11 +183,12 @@ def fit_pair_scale(pair: MatchedPair, K: np.ndarray) -> float:
     fit = minimize_scalar(
         lambda x: float(_robust_costs(np.array([x]), K, pair)[0]), bounds=(lo, hi), method='bounded'
     )
-    return float(fit.x)
+    return float(fit.x), float(fit.fun)
 
 
-def estimate_focal_scale(pairs: list[MatchedPair], K: np.ndarray) -> tuple[float, float]:
-    """The focal scale the pairs agree on (the median of their own fits) and its standard error.
+def estimate_focal_scale(scales: np.ndarray) -> tuple[float, float]:
+    """The focal scale the pairs agree on (the median of their own fits, ``scales``:
+    :func:`fit_pair_scale`) and its standard error.
 
     Why per pair: an error of a told relative pose moves every match of that pair alike, so
     the matches of one pair are not independent evidence. One fit over all matches is biased
@@ -204,11 +197,6 @@ def estimate_focal_scale(pairs: list[MatchedPair], K: np.ndarray) -> tuple[float
     The spread of the pairs' own fits says how much the poses let the images tell (the
     median absolute deviation, as a standard error of the median).
     """
-    return _median_scale(np.array([fit_pair_scale(p, K) for p in pairs]))
-
-
-def _median_scale(scales: np.ndarray) -> tuple[float, float]:
-    """The pairs' median focal scale and its standard error (:func:`estimate_focal_scale`)."""
     median = float(np.median(scales))
     if scales.size < 3:
         return median, math.inf
@@ -228,12 +216,8 @@ class FocalCheck(PairedCheck):
 
     def _estimate(self) -> FocalEstimate:
         K = self.camera.K
-        scales = [fit_pair_scale(p, K) for p in self.pairs]
-        # Each pair's cost at its own best focal scale: what its best lens distortion must beat.
-        costs = [
-            float(_robust_costs(np.array([s]), K, p)[0]) for s, p in zip(scales, self.pairs, strict=True)
-        ]
-        return self._verdict(*_median_scale(np.array(scales)), fit_lens(self.pairs, K, costs))
+        scales, costs = zip(*(fit_pair_scale(p, K) for p in self.pairs), strict=True)
+        return self._verdict(*estimate_focal_scale(np.array(scales)), fit_lens(self.pairs, K, list(costs)))
 
     def _verdict(self, scale: float, stderr: float, lens: LensFit | None = None) -> FocalEstimate:
         if not math.isfinite(stderr) or stderr > self.config.max_stderr or scale <= 0:

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..radial_lens import undistort_radial
-from .epipolar_cost import skew, soft_l1_sampson
+from .epipolar_cost import scaled_fundamentals, soft_l1_sampson
 from .image_pairs import MatchedPair
 
 #: The ``k1`` a pair may take (plumb_bob, normalised coordinates), on a 0.005 grid.
@@ -81,11 +81,8 @@ def _undistorted(p: np.ndarray, K: np.ndarray, k1: np.ndarray) -> np.ndarray:
 
 def _sampson_costs(K: np.ndarray, pair: MatchedPair, k1: np.ndarray) -> np.ndarray:
     """Soft-L1 sum of the pair's Sampson distances at the told focal length, each ``k1`` undone (S,)."""
-    T = pair.T_ba
-    Ki = np.linalg.inv(K)
-    F = Ki.T @ skew(T[:3, 3]) @ T[:3, :3] @ Ki
-    a, b = _undistorted(pair.p1, K, k1), _undistorted(pair.p2, K, k1)
-    return np.array([soft_l1_sampson(F[None], a[i], b[i])[0].sum() for i in range(len(k1))])
+    F = scaled_fundamentals(np.ones(1), K, pair.T_ba)
+    return soft_l1_sampson(F, _undistorted(pair.p1, K, k1), _undistorted(pair.p2, K, k1)).sum(axis=1)
 
 
 def fit_lens(pairs: list[MatchedPair], K: np.ndarray, scale_costs: list[float]) -> LensFit:
