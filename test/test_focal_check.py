@@ -129,6 +129,8 @@ def test_config_is_validated():
         FocalCheckConfig(pairs=2)
     with pytest.raises(ValueError, match='min_baseline'):
         FocalCheckConfig(min_baseline=0.0)
+    with pytest.raises(ValueError, match='lens_early_pairs >= 0'):
+        FocalCheckConfig(lens_early_pairs=-1)
     assert FocalCheck(stress_config('translation').camera(), FocalCheckConfig(mode='off')).done
 
 
@@ -286,9 +288,10 @@ def test_cli_check_focal_says_the_verdict_in_its_exit_status(tmp_path, capsys):
 
 
 def test_the_node_warns_of_a_lens_whatever_the_focal_verdict():
-    """``multi_view_node`` says the check's verdict once: a lens the pairs show is a warning
-    (note ``lens_distortion``) also when the focal length itself agrees, and stays an info line
-    without one."""
+    """``multi_view_node`` says the check's verdict once: a lens the pairs show and the node
+    does not take (``focal_check.mode`` warn) is a warning (note ``lens_distortion``) also when
+    the focal length itself agrees, and stays an info line without one (a lens taken:
+    test_lens_correction.py)."""
     from types import SimpleNamespace
 
     from depth_fusion_ros.multiview.lens_fit import LensFit
@@ -297,7 +300,9 @@ def test_the_node_warns_of_a_lens_whatever_the_focal_verdict():
 
     warnings, infos = [], []
     node = SimpleNamespace(
-        stats=NodeStats(warnings.append), get_logger=lambda: SimpleNamespace(info=infos.append)
+        stats=NodeStats(warnings.append),
+        get_logger=lambda: SimpleNamespace(info=infos.append),
+        _lens_correctable=lambda: False,
     )
     camera = stress_config('translation', width=320, height=240).camera()
     plain = FocalEstimate(1.0, 0.005, 12, 4000, 'consistent', camera.fx, camera.fy)

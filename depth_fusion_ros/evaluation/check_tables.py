@@ -30,9 +30,11 @@ def focal_table(doc: dict[str, Any]) -> str | None:
     def cells(c: dict) -> list[str]:
         fit = f'{c["fitted_fx"]:.1f} ({c["scale"] - 1:+.1%} +- {c["stderr"]:.1%})'
         used = c['fitted_fx'] if c['corrected'] else c['told_fx']
-        return [f'{c["told_fx"]:.1f}', fit, str(c['pairs']), f'{used:.1f}']
+        lens = c.get('lens_corrected_k1', 0.0)
+        lens_used = f'{lens:+.3f}' if lens else 'none'
+        return [f'{c["told_fx"]:.1f}', fit, str(c['pairs']), f'{used:.1f}', lens_used]
 
-    header = ['told fx (px)', 'fitted fx (px)', 'pairs', 'fx every method used']
+    header = ['told fx (px)', 'fitted fx (px)', 'pairs', 'fx every method used', 'lens k1 every method used']
     return _check_table(doc, 'focal_check', header, cells)
 
 

@@ -26,7 +26,7 @@ from ..progress import progress
 from . import mount, time_offset
 from .context import EvalOptions, KeyframeContext, SequenceContext, keyframe_indices
 from .focal import SHARED_KEY as FOCAL_SHARED_KEY
-from .focal import check_focal, estimate_json
+from .focal import check_focal, estimate_json, take_lens
 from .registry import MethodSpec, SequenceOutput, get_method
 
 log = logging.getLogger(__name__)
@@ -137,18 +137,23 @@ def evaluate_sequence(
     show_progress: bool = True,
 ) -> SequenceResult:
     """Run ``methods`` on the keyframes of an already loaded sequence (first the time offset,
-    mount and focal length checks, which may correct its poses and camera:
-    ``evaluation/time_offset.py``, ``evaluation/mount.py``, ``evaluation/focal.py``)."""
+    mount and focal length checks, which may correct its poses and camera, and a lens the focal
+    check finds, taken before the mount check as the node does: ``evaluation/time_offset.py``,
+    ``evaluation/mount.py``, ``evaluation/focal.py``)."""
     read, timing = time_offset.check_time_offset(sequence, options.params)
     timing_json = time_offset.estimate_json(timing, corrected=read is not sequence)
     sequence = read
+    sequence, first, lens_k1 = take_lens(sequence, options.params)
     read, mount_estimate = mount.check_mount(sequence, options.params)
     mount_json = mount.estimate_json(mount_estimate, corrected=read is not sequence)
+    again = read is not sequence or lens_k1 != 0.0  # the focal check's first look no longer holds
     sequence = read
     told_camera = sequence.camera
-    sequence, focal = check_focal(sequence, options.params)
+    sequence, focal = check_focal(sequence, options.params, first, again)
+    if focal is None and lens_k1:  # too few frames to finish again: the look that found the lens
+        focal = first
     focal_corrected = sequence.camera != told_camera
-    focal_json = estimate_json(focal, corrected=focal_corrected)
+    focal_json = estimate_json(focal, corrected=focal_corrected, lens_k1=lens_k1)
     specs = [get_method(m) for m in methods]
     keyframes = run_keyframes(sequence, options)
     samples = set(sample_indices(keyframes, n_samples))

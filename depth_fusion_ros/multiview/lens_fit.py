@@ -18,8 +18,9 @@ pair that reaches the end was not constrained). On the stress case ``lens_distor
 of 0.51-0.79. Every other stress case tried (seeds 0 and 1; the lateral sweeps, the rotation
 sweep with a pinhole lens, blur, a rolling shutter, a walker, tiles, a tilted mount) stayed at
 0.89 or above, and so did a lens seen on a lateral sweep (0.98: there its ``k1`` is not
-observable, and it costs the depth little). This only says what the images show; nothing is
-corrected.
+observable, and it costs the depth little). In ``focal_check.mode`` correct the fitted ``k1``
+is then added to the calibration the images are undistorted with (``data/lens_correction.py``;
+since 2026-12-04, the sixty-fourth session: before, the lens was only said).
 """
 
 from __future__ import annotations

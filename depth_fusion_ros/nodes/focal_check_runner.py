@@ -21,6 +21,7 @@ FOCAL_CHECK_LIMITS: dict[str, Any] = {
     'min_baseline': (1e-4, None),
     'min_rotation_deg': (1e-3, 180.0),
     'pairs': (5, 10000),
+    'lens_early_pairs': (0, 10000),
     'threshold': (1e-3, 0.9),
     'max_stderr': (1e-5, 1.0),
     'min_matches': (8, 100000),

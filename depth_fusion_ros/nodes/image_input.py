@@ -18,6 +18,7 @@ import numpy as np
 from ..camera import PinholeCamera
 from ..data import messages
 from ..data.compressed import decode_compressed, is_jpeg
+from ..data.lens_correction import add_radial, can_add_radial
 from ..data.undistort import CameraCalibration, Undistorter, check_distortion
 from ..geometry import PoseError
 from .params import ParamSpec
@@ -190,6 +191,10 @@ class CameraInput:
         self.fixed_distortion = tuple(fixed_distortion)
         self.calibration: CameraCalibration | None = None
         self._sensor_size: tuple[int, int] | None = None
+        #: A radial lens distortion the calibration does not hold, added to it once the focal
+        #: length check has fitted it (``data/lens_correction.py``; 0: none). Set by
+        #: ``multi_view_node`` (``focal_check.mode`` correct).
+        self.lens_k1 = 0.0
 
     @classmethod
     def from_parameters(cls, params: dict[str, Any], rectified: bool = False) -> CameraInput:
@@ -218,7 +223,16 @@ class CameraInput:
         sensor = (int(info_msg.width), int(info_msg.height))
         self._sensor_size = sensor if sensor != (calib.camera.width, calib.camera.height) else None
 
+    def can_correct_lens(self) -> bool:
+        """Whether a radial lens correction can be added to the calibration the images are
+        undistorted with (not a fisheye model; the fixed calibration is plumb_bob)."""
+        calib = self.calibration
+        return self.fixed_intrinsics is not None or (calib is not None and can_add_radial(calib))
+
     def _calibration_for(self, width: int, height: int) -> CameraCalibration:
+        return add_radial(self._told_calibration_for(width, height), self.lens_k1)
+
+    def _told_calibration_for(self, width: int, height: int) -> CameraCalibration:
         if self.fixed_intrinsics is not None:
             fx, fy, cx, cy = self.fixed_intrinsics
             return CameraCalibration(
@@ -266,7 +280,7 @@ class CameraInput:
         calib = self.calibration
         if not _is_compressed(msg) or calib is None or self.fixed_intrinsics is not None or not is_jpeg(msg):
             return None
-        undistorter = Undistorter.for_calibration(calib, self.width, self.height)
+        undistorter = Undistorter.for_calibration(add_radial(calib, self.lens_k1), self.width, self.height)
         k = undistorter.shrink
         if k == 1 or calib.camera.width % k or calib.camera.height % k:
             return None

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import PinholeCamera
+from ..data.messages import ns_to_sec
 from ..geometry import matrix_to_quat
 from ..multiview.focal_check import FocalEstimate
 from ..multiview.mount_check import MountEstimate
@@ -46,6 +47,8 @@ class CheckCorrections:
     _mount_unsaid: MountEstimate | None
     _mount_unsaid_lock: Any  # threading.Lock
     _restart_from_ns: int | None
+    _lens_taken: FocalEstimate | None
+    camera_input: Any  # nodes/image_input.py CameraInput
     _world_frame: str
     get_logger: Callable[[], Any]  # rclpy.node.Node's
 
@@ -73,15 +76,17 @@ class CheckCorrections:
 
     def _on_focal_estimate(self, camera: PinholeCamera, estimate: FocalEstimate) -> None:
         """The focal check's result for ``camera`` (its thread), said once; ``_on_posed_frame``
-        takes the corrected camera from the runner (``camera_for``)."""
+        takes the corrected camera from the runner (``camera_for``), the image callback a lens
+        distortion (``_take_lens_correction``, which says it)."""
+        if estimate.lens_distorted:  # whatever the focal length: the images show a lens
+            if not self._lens_correctable():
+                self.stats.noted('lens_distortion', f'{estimate.message()} ({camera.width}x{camera.height})')
+            return
         if estimate.verdict == 'suspect':  # warned once, not taken: the fit is not sure enough
             self.stats.noted('focal_suspect', f'{estimate.message()} ({camera.width}x{camera.height})')
             return
         if estimate.verdict != 'disagrees':
-            if estimate.lens_distorted:  # whatever the focal length: the images show a lens
-                self.stats.noted('lens_distortion', f'{estimate.message()} ({camera.width}x{camera.height})')
-            else:
-                self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
+            self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
             return
         if self.focal_check.config.mode == 'correct':
             then = (
@@ -91,6 +96,39 @@ class CheckCorrections:
         else:
             then = ' (focal_check.mode correct would use it)'
         self.stats.noted('focal_disagrees', estimate.message() + then)  # logged as a warning, once
+
+    def _lens_correctable(self) -> bool:
+        """Whether a lens distortion the focal check finds is taken: ``focal_check.mode`` correct
+        and a calibration a radial term can be added to (not a fisheye model)."""
+        return self.focal_check.config.mode == 'correct' and self.camera_input.can_correct_lens()
+
+    def _take_lens_correction(self, stamp_ns: int) -> None:
+        """Take a lens distortion the focal check found (callback thread, before the image
+        stamped ``stamp_ns`` is undistorted): its ``k1`` is added to the calibration from this
+        image on (``data/lens_correction.py``), and the frame history, the filter, the focal
+        length check and the mount check start over at it. Their frames were seen through the
+        lens; the focal length is then checked again on the undistorted images. A second fit
+        on those adds to the first."""
+        result = self.focal_check.result
+        if result is None or result is self._lens_taken or not result.lens_distorted:
+            return
+        self._lens_taken = result
+        if not self._lens_correctable():
+            return  # said by _on_focal_estimate
+        self.camera_input.lens_k1 += result.lens.k1
+        if self._restart_from_ns is None or stamp_ns > self._restart_from_ns:
+            self._restart_from_ns = stamp_ns
+        self.focal_check.restart()
+        self.mount_check.restart()
+        with self._mount_unsaid_lock:  # its pairs were seen through the lens
+            self._mount_unsaid = None
+        k1 = self.camera_input.lens_k1
+        self.stats.noted(
+            'lens_corrected',
+            f'{result.message()}; focal_check.mode correct: images undistorted with k1 {k1:+.3f} from '
+            f'the image stamped {ns_to_sec(stamp_ns):.3f} s on (camera_info D [{k1:.3f}, 0, 0, 0, 0] '
+            'would do it from the start), frame history, filter, focal length and mount checks start over',
+        )
 
     # --- time offset check ---------------------------------------------------------------------------
 

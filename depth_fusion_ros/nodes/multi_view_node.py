@@ -41,6 +41,7 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
 from ..geometry import invert_pose, load_rotations, rotation_angle, transform_from_parameter
+from ..multiview.focal_check import FocalEstimate
 from ..multiview.mount_check import MountEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
 from ..multiview.semidense import MultiViewConfig, estimate_semidense
@@ -174,6 +175,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         #: (``_on_mount_estimate``), under its lock (the check's thread and the callbacks')
         self._mount_unsaid: MountEstimate | None = None
         self._mount_unsaid_lock = threading.Lock()
+        #: The focal check result whose lens distortion was last taken (``_take_lens_correction``)
+        self._lens_taken: FocalEstimate | None = None
         self._last_keyframe_pose: np.ndarray | None = None
         self._image_stamps = self.stamp_guard('image')
         self._pose_stamps = self.stamp_guard('pose')
@@ -323,6 +326,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         received_at = self._last_input = time.monotonic()
         if not counted:
             self.stats.received('image')
+        self._take_lens_correction(header_stamp_ns(msg))
         try:
             image = self.camera_input.working_image(msg)
             previous_ns = self._image_stamps.last_ns
@@ -560,6 +564,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             extra['filter frames passed over (filter.max_update_rate)'] = self.filter_feed.rate_skipped
             extra['filter keyframes across a jump (estimates confirmed again)'] = self.filter_feed.jumps
         extra['focal length check'] = self.focal_check.status()
+        extra['lens k1 added to the calibration (focal length check)'] = round(self.camera_input.lens_k1, 4)
         extra['time offset check'] = self.time_offset_check.status()
         extra['mount check'] = self.mount_check.status()
         # Why a check can take longer than its pairs: it waits for the keyframes (check_runner.py).
