@@ -80,14 +80,18 @@ def test_the_camera_input_undistorts_with_the_lens_it_was_given():
     assert not CameraInput(160, 120).can_correct_lens()  # nothing to add it to before camera_info
 
 
-def _node(mode: str):
-    """The node's state ``CheckCorrections`` reads, with a focal check that found ``LENS``."""
+def _node(mode: str, D: tuple[float, ...] = ()):
+    """The node's state ``CheckCorrections`` reads, with a focal check that found ``LENS``, and
+    a camera_info of distortion ``D``."""
     from depth_fusion_ros.nodes.stats import NodeStats
 
     warnings, infos, restarts = [], [], []
     result = FocalEstimate(1.05, 0.004, 12, 4000, 'disagrees', 150.0, 150.0, LENS)
     inp = CameraInput(160, 120)
-    inp.update(m.camera_info_msg(CAMERA, m.header_msg(1, 'cam', kind=m.RCLPY), kind=m.RCLPY))
+    info = m.camera_info_msg(CAMERA, m.header_msg(1, 'cam', kind=m.RCLPY), kind=m.RCLPY)
+    if D:
+        info.distortion_model, info.d = 'plumb_bob', list(D)
+    inp.update(info)
     node = SimpleNamespace(
         stats=NodeStats(warnings.append),
         get_logger=lambda: SimpleNamespace(info=infos.append),
@@ -121,8 +125,16 @@ def test_the_node_takes_a_lens_once_and_starts_over():
     assert node.camera_input.lens_k1 == pytest.approx(-0.09)
     assert node._restart_from_ns == 5_000 and restarts == ['focal', 'mount'] and node._mount_unsaid is None
     assert node.stats.snapshot().noted == {'lens_corrected': 1}
-    assert 'images undistorted with k1 -0.090 from the image stamped 0.000 s on' in warnings[0]
+    said = 'k1 -0.090 added to the calibration the images are undistorted with, from the image stamped 0.0'
+    assert said in warnings[0]
     assert 'camera_info D [-0.090, 0, 0, 0, 0]' in warnings[0]
+    # A camera_info with a distortion of its own: the fit adds to its k1, and the hint says so.
+    node, *_, warnings, _, _ = _node('correct', (0.1, -0.2, 0.0, 0.0, 0.0))
+    node._lens_correctable = lambda: CheckCorrections._lens_correctable(node)
+    CheckCorrections._take_lens_correction(node, 5_000)
+    assert 'camera_info -0.090 added to D[0] would do it' in warnings[0]
+    taken = node.camera_input._calibration_for(160, 120)
+    np.testing.assert_allclose(taken.D, (0.01, -0.2, 0, 0, 0), atol=1e-15)
 
 
 def test_in_warn_mode_the_node_says_the_lens_and_keeps_its_calibration():

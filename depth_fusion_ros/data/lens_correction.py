@@ -22,8 +22,9 @@ from .sequence import Sequence
 from .undistort import CameraCalibration, Undistorter
 
 #: Distortion models the radial term can be added to (plumb_bob's ``k1`` is ``D[0]`` in both);
-#: ``equidistant`` (fisheye) models the lens otherwise.
-RADIAL_MODELS = ('plumb_bob', 'rational_polynomial', '', 'none')
+#: ``equidistant`` (fisheye) models the lens otherwise. A calibration without distortion takes
+#: it whatever its model is called.
+RADIAL_MODELS = ('plumb_bob', 'rational_polynomial')
 
 
 def can_add_radial(calib: CameraCalibration) -> bool:

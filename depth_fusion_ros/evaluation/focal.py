@@ -4,7 +4,7 @@ The check (``multiview/focal_check.py``) reads the sequence's first posed frames
 order. With ``focal_check.mode: correct`` and a camera the images and poses disagree with,
 every method then runs on the corrected camera, as the node's keyframes downstream of the
 multi-view node do; the ground truth keeps its own camera. A lens distortion the check finds
-is taken first (:func:`check_focal`).
+is taken first, before the mount check (:func:`take_lens`).
 """
 
 from __future__ import annotations

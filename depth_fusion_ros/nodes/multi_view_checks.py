@@ -123,11 +123,15 @@ class CheckCorrections:
         with self._mount_unsaid_lock:  # its pairs were seen through the lens
             self._mount_unsaid = None
         k1 = self.camera_input.lens_k1
+        told = self.camera_input.calibration
+        own = told is not None and told.is_distorted
+        fix = f'{k1:+.3f} added to D[0]' if own else f'D [{k1:.3f}, 0, 0, 0, 0]'
         self.stats.noted(
             'lens_corrected',
-            f'{result.message()}; focal_check.mode correct: images undistorted with k1 {k1:+.3f} from '
-            f'the image stamped {ns_to_sec(stamp_ns):.3f} s on (camera_info D [{k1:.3f}, 0, 0, 0, 0] '
-            'would do it from the start), frame history, filter, focal length and mount checks start over',
+            f'{result.message()}; focal_check.mode correct: k1 {k1:+.3f} added to the calibration the '
+            f'images are undistorted with, from the image stamped {ns_to_sec(stamp_ns):.3f} s on '
+            f'(camera_info {fix} would do it from the start), frame history, filter, focal length and '
+            'mount checks start over',
         )
 
     # --- time offset check ---------------------------------------------------------------------------
