@@ -17,7 +17,7 @@ from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.lens_correction import add_radial, can_add_radial, undistort_sequence
 from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence, stress_config
 from depth_fusion_ros.data.undistort import CameraCalibration
-from depth_fusion_ros.multiview.focal_check import FocalEstimate
+from depth_fusion_ros.multiview.focal_check import FocalCheckConfig, FocalEstimate
 from depth_fusion_ros.multiview.lens_fit import LensFit
 from depth_fusion_ros.nodes.image_input import CameraInput
 
@@ -122,7 +122,7 @@ def test_the_node_takes_a_lens_once_and_starts_over():
     assert not warnings and not infos and node.stats.snapshot().noted == {}
     CheckCorrections._take_lens_correction(node, 5_000)
     CheckCorrections._take_lens_correction(node, 6_000)
-    assert node.camera_input.lens_k1 == pytest.approx(-0.09)
+    assert node.camera_input.lens_k1 == pytest.approx(-0.09) and node.focal_check.after_lens
     assert node._restart_from_ns == 5_000 and restarts == ['focal', 'mount'] and node._mount_unsaid is None
     assert node.stats.snapshot().noted == {'lens_corrected': 1}
     said = 'k1 -0.090 added to the calibration the images are undistorted with, from the image stamped 0.0'
@@ -135,6 +135,29 @@ def test_the_node_takes_a_lens_once_and_starts_over():
     assert 'camera_info -0.090 added to D[0] would do it' in warnings[0]
     taken = node.camera_input._calibration_for(160, 120)
     np.testing.assert_allclose(taken.D, (0.01, -0.2, 0, 0, 0), atol=1e-15)
+
+
+def test_after_a_lens_a_focal_disagreement_is_said_not_taken():
+    """On images undistorted with a fitted lens, what the fit leaves of the lens reads as a
+    focal error (+12.2 % for a camera 5.3 % short): the check's disagreement is warned, with
+    why, and the multi-view depth keeps the told focal length."""
+    from depth_fusion_ros.nodes.focal_check_runner import FocalCheckRunner
+    from depth_fusion_ros.nodes.multi_view_checks import CheckCorrections
+    from depth_fusion_ros.nodes.stats import NodeStats
+
+    disagrees = FocalEstimate(1.122, 0.017, 12, 2000, 'disagrees', 150.0, 150.0)
+    assert disagrees.applied('correct') and not disagrees.applied('correct', after_lens=True)
+    node, *_ = _node('correct')
+    warnings = []
+    node.stats = NodeStats(warnings.append)
+    node.focal_check.after_lens = True
+    CheckCorrections._on_focal_estimate(node, CAMERA, disagrees)
+    assert node.stats.snapshot().noted == {'focal_disagrees': 1} and 'not taken' in warnings[0]
+    runner = FocalCheckRunner(FocalCheckConfig(), lambda *_: None)
+    runner._check = SimpleNamespace(camera=CAMERA, result=disagrees)
+    assert runner.camera_for(CAMERA).fx == pytest.approx(150.0 * 1.122)
+    runner.after_lens = True
+    assert runner.camera_for(CAMERA) == CAMERA
 
 
 def test_in_warn_mode_the_node_says_the_lens_and_keeps_its_calibration():

@@ -52,15 +52,17 @@ def take_lens(sequence: Sequence, params: dict) -> tuple[Sequence, FocalEstimate
 
 
 def check_focal(
-    sequence: Sequence, params: dict, first: FocalEstimate | None, again: bool
+    sequence: Sequence, params: dict, first: FocalEstimate | None, again: bool, after_lens: bool = False
 ) -> tuple[Sequence, FocalEstimate | None]:
     """The sequence to evaluate (its camera corrected when asked and needed) and the estimate
     (``None`` when the check is off or the sequence is too short to finish it).
 
     ``first``: :func:`take_lens`'s estimate, kept unless ``again`` (a lens was taken or the
-    mount check turned the poses since): then the check runs on the sequence as it is now."""
+    mount check turned the poses since): then the check runs on the sequence as it is now.
+    ``after_lens``: the images were undistorted with a lens the check fitted; a focal
+    disagreement is then not taken (``FocalEstimate.applied``)."""
     config, estimate = _run(sequence, params) if again else (_config(params), first)
-    if estimate is not None and estimate.applied(config.mode):
+    if estimate is not None and estimate.applied(config.mode, after_lens):
         sequence = dataclasses.replace(sequence, camera=estimate.corrected(sequence.camera))
         log.warning('%s: every method uses fx %.1f px (focal_check.mode correct)', sequence.name, estimate.fx)
     return sequence, estimate

@@ -149,7 +149,7 @@ def evaluate_sequence(
     again = read is not sequence or lens_k1 != 0.0  # the focal check's first look no longer holds
     sequence = read
     told_camera = sequence.camera
-    sequence, focal = check_focal(sequence, options.params, first, again)
+    sequence, focal = check_focal(sequence, options.params, first, again, after_lens=lens_k1 != 0.0)
     if focal is None and lens_k1:  # too few frames to finish again: the look that found the lens
         focal = first
     focal_corrected = sequence.camera != told_camera

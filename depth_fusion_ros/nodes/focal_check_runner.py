@@ -45,13 +45,16 @@ class FocalCheckRunner(PairedCheckRunner):
         super().__init__(config, on_result)
         #: ``(estimate, corrected camera)``: made once per estimate, not per frame.
         self._corrected: tuple[FocalEstimate, PinholeCamera] | None = None
+        #: Whether the images are undistorted with a lens the check fitted (set by the node):
+        #: a focal disagreement is then said, not taken (``FocalEstimate.applied``).
+        self.after_lens = False
 
     def camera_for(self, camera: PinholeCamera) -> PinholeCamera:
         """The camera the multi-view depth uses for frames of ``camera``: the fitted focal length
         once the check disagreed with this camera and ``focal_check.mode`` is correct, else
         ``camera`` itself."""
         result = self.result
-        if result is None or not result.applied(self.config.mode):
+        if result is None or not result.applied(self.config.mode, self.after_lens):
             return camera
         if camera != self.camera:
             return camera
@@ -64,7 +67,8 @@ class FocalCheckRunner(PairedCheckRunner):
         ``multiview/focal_bias.py``): ``prior`` until the check has read the stream, then what
         it verified."""
         result = self.result
-        return focal_uncertainty(result, prior, result is not None and result.applied(self.config.mode))
+        applied = result is not None and result.applied(self.config.mode, self.after_lens)
+        return focal_uncertainty(result, prior, applied)
 
     def status(self) -> str:
         """One phrase for the diagnostics."""

@@ -88,7 +88,12 @@ class CheckCorrections:
         if estimate.verdict != 'disagrees':
             self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
             return
-        if self.focal_check.config.mode == 'correct':
+        if self.focal_check.after_lens:
+            then = (
+                '; not taken: the images are undistorted with a lens the check fitted, and what the fit '
+                'leaves of the lens reads as a focal error too'
+            )
+        elif self.focal_check.config.mode == 'correct':
             then = (
                 '; focal_check.mode correct: the multi-view depth and the keyframe camera_info use '
                 f'fx {estimate.fx:.1f}, fy {estimate.fy:.1f} px from now on'
@@ -116,6 +121,7 @@ class CheckCorrections:
         if not self._lens_correctable():
             return  # said by _on_focal_estimate
         self.camera_input.lens_k1 += result.lens.k1
+        self.focal_check.after_lens = True
         if self._restart_from_ns is None or stamp_ns > self._restart_from_ns:
             self._restart_from_ns = stamp_ns
         self.focal_check.restart()
