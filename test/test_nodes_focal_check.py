@@ -4,11 +4,9 @@ default) the keyframes after it carry the corrected intrinsics downstream."""
 
 from __future__ import annotations
 
-import time
-
 import pytest
 from sensor_msgs.msg import CameraInfo, Image
-from test_nodes_multi_view import _Camera, _checks_caught_up, _mv_node
+from test_nodes_multi_view import _Camera, _mv_node, _send_checked
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
@@ -41,10 +39,7 @@ def test_a_wrong_focal_length_is_found_and_corrected_downstream(mode):
             if i == 30:  # the check's 12 pairs are in these 30 frames: let its thread finish
                 done = ros.wait_for(lambda: node.focal_check.result is not None, 60.0)
                 assert done, node.focal_check.status()
-            cam.publish_pose(frame.pose, stamps[i])
-            cam.publish_image(frame.rgb, stamps[i], seq.camera)
-            time.sleep(0.03)
-            _checks_caught_up(ros, node, i + 1)
+            _send_checked(ros, node, cam, (frame.pose, stamps[i]), (frame.rgb, stamps[i], seq.camera), i + 1)
         assert ros.wait_for(lambda: len(depths) == 6, 120.0), node.stats.snapshot().summary()
         snap = node.stats.snapshot()
         result = node.focal_check.result

@@ -6,12 +6,10 @@ pinhole camera's, those before it the lens's."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from sensor_msgs.msg import Image
-from test_nodes_multi_view import _Camera, _checks_caught_up, _stream_check_node
+from test_nodes_multi_view import _Camera, _notes_of, _send_checked, _stream_check_node, _wait_keyframes_out
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
@@ -40,29 +38,16 @@ def test_a_lens_is_found_and_the_images_undistorted_from_then_on():
             SIZE,
             **{'focal_check.pairs': PAIRS, 'time_offset_check.mode': 'off'},
         )
-        notes: list[tuple[str, str]] = []
-        noted = node.stats.noted
-
-        def noting(why, message='', **kw):
-            notes.append((why, message))
-            noted(why, message, **kw)
-
-        node.stats.noted = noting
+        notes = _notes_of(node)
         keyframes = ros.collect(Image, '/depth_fusion/keyframe/image')
         depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
         cam = _Camera(ros)
         taken_at = None
         for i, frame in enumerate(lens.frames):
-            cam.publish_pose(frame.pose, stamps[i])
-            cam.publish_image(frame.rgb, stamps[i], lens.camera)
-            time.sleep(0.02)
-            _checks_caught_up(ros, node, i + 1)
+            _send_checked(ros, node, cam, (frame.pose, stamps[i]), (frame.rgb, stamps[i], lens.camera), i + 1)
             if taken_at is None and node.camera_input.lens_k1 != 0.0:
                 taken_at = i
-        done = ros.wait_for(
-            lambda: node.posed_count == len(lens.frames) and len(depths) == node.keyframes_decided, 120.0
-        )
-        assert done, node.stats.snapshot().summary()
+        _wait_keyframes_out(ros, node, depths, len(lens.frames))
         snap = node.stats.snapshot()
         extra = node.diagnostic_extra()
         k1 = node.camera_input.lens_k1

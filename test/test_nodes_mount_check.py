@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import math
 import re
-import time
 
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import Image, TimeReference
-from test_nodes_multi_view import _Camera, _checks_caught_up, _stream_check_node
+from test_nodes_multi_view import _Camera, _notes_of, _send_checked, _stream_check_node, _wait_keyframes_out
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
@@ -56,9 +55,7 @@ def test_a_tilted_camera_is_found_and_its_poses_turned():
             SIZE,
             **{'mount_check.pairs': PAIRS, 'mount_check.early_pairs': 0, 'time_offset_check.mode': 'off'},
         )
-        notes: list[tuple[str, str]] = []
-        noted = node.stats.noted
-        node.stats.noted = lambda why, message='': (notes.append((why, message)), noted(why, message))
+        notes = _notes_of(node)
         depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
         poses = ros.collect(PoseStamped, '/depth_fusion/keyframe/pose')
         posings = ros.collect(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, latched_qos())
@@ -70,14 +67,8 @@ def test_a_tilted_camera_is_found_and_its_poses_turned():
                     node.mount_check.status(),
                     node.time_offset_check.status(),
                 )
-            cam.publish_pose(frame.pose, stamps[i])
-            cam.publish_image(frame.rgb, stamps[i], seq.camera)
-            time.sleep(0.03)
-            _checks_caught_up(ros, node, i + 1)
-        done = ros.wait_for(
-            lambda: node.posed_count == len(seq.frames) and len(depths) == node.keyframes_decided, 120.0
-        )
-        assert done, node.stats.snapshot().summary()
+            _send_checked(ros, node, cam, (frame.pose, stamps[i]), (frame.rgb, stamps[i], seq.camera), i + 1)
+        _wait_keyframes_out(ros, node, depths, len(seq.frames))
         snap = node.stats.snapshot()
         extra = node.diagnostic_extra()
         result = node.mount_check.result

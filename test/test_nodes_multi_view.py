@@ -62,6 +62,39 @@ def _checks_caught_up(ros: RosHarness, node: MultiViewNode, posed: int, timeout:
     assert done, (node.posed_count, posed, [c.pending for c in checks])
 
 
+def _send_checked(
+    ros: RosHarness, node: MultiViewNode, cam: _Camera, pose_stamp: tuple, image: tuple, posed: int
+) -> None:
+    """One frame of a calibration check's stream: its pose ``(T_wc, stamp_ns)`` and image
+    ``(rgb, stamp_ns, camera)``, then the wait until ``posed`` frames are posed and the checks
+    have taken theirs (``_checks_caught_up``)."""
+    cam.publish_pose(*pose_stamp)
+    cam.publish_image(*image)
+    time.sleep(0.03)
+    _checks_caught_up(ros, node, posed)
+
+
+def _wait_keyframes_out(ros: RosHarness, node: MultiViewNode, depths: list, frames: int) -> None:
+    """Waits until ``node`` has posed ``frames`` frames and published a depth for every keyframe
+    it chose."""
+    done = ros.wait_for(lambda: node.posed_count == frames and len(depths) == node.keyframes_decided, 120.0)
+    assert done, node.stats.snapshot().summary()
+
+
+def _notes_of(node: MultiViewNode) -> list[tuple[str, str]]:
+    """Every note ``node`` counts from now on, ``(reason, message)``, as it counts it: the
+    throttled log says a repeated note once, the test needs its text."""
+    notes: list[tuple[str, str]] = []
+    noted = node.stats.noted
+
+    def noting(reason: str, message: str = '', count: int = 1) -> None:
+        notes.append((reason, message))
+        noted(reason, message, count)
+
+    node.stats.noted = noting
+    return notes
+
+
 class _Camera:
     """Publishers of what a camera driver and a SLAM system publish."""
 

@@ -6,14 +6,12 @@ only warned about."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import Image
-from test_nodes_multi_view import _Camera, _checks_caught_up, _stream_check_node
+from test_nodes_multi_view import _Camera, _send_checked, _stream_check_node, _wait_keyframes_out
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
@@ -67,17 +65,13 @@ def _run(seq, mode: str):
                 assert ros.wait_for(lambda: node.time_offset_check.result is not None, 60.0), (
                     node.time_offset_check.status()
                 )
-            cam.publish_pose(source_poses[i], source_stamps[i])  # the pose source's own sample
-            cam.publish_image(frame.rgb, stamps[i], seq.camera)
-            time.sleep(0.03)
-            _checks_caught_up(ros, node, i)  # frame i is posed once the pose after it comes
+            # The pose source's own sample; frame i is posed once the pose after it comes.
+            sample = (source_poses[i], source_stamps[i])
+            _send_checked(ros, node, cam, sample, (frame.rgb, stamps[i], seq.camera), i)
         for k in range(len(seq.frames), len(source_stamps)):
             cam.publish_pose(source_poses[k], source_stamps[k])
         # Every keyframe the node chose is published (the correction restarts the keyframe phase).
-        done = ros.wait_for(
-            lambda: node.posed_count == len(seq.frames) and len(depths) == node.keyframes_decided, 120.0
-        )
-        assert done, node.stats.snapshot().summary()
+        _wait_keyframes_out(ros, node, depths, len(seq.frames))
         snap = node.stats.snapshot()
         status = node.diagnostic_extra()['time offset check']
         # How long the checks gave way to the keyframes (still running ones add to it meanwhile).
