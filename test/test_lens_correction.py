@@ -122,7 +122,8 @@ def test_the_node_takes_a_lens_once_and_starts_over():
     assert not warnings and not infos and node.stats.snapshot().noted == {}
     CheckCorrections._take_lens_correction(node, 5_000)
     CheckCorrections._take_lens_correction(node, 6_000)
-    assert node.camera_input.lens_k1 == pytest.approx(-0.09) and node.focal_check.after_lens
+    assert node.camera_input.lens_k1 == pytest.approx(-0.09)
+    assert not result.applied('correct', after_lens=node.camera_input.lens_k1 != 0.0)
     assert node._restart_from_ns == 5_000 and restarts == ['focal', 'mount'] and node._mount_unsaid is None
     assert node.stats.snapshot().noted == {'lens_corrected': 1}
     said = 'k1 -0.090 added to the calibration the images are undistorted with, from the image stamped 0.0'
@@ -150,14 +151,13 @@ def test_after_a_lens_a_focal_disagreement_is_said_not_taken():
     node, *_ = _node('correct')
     warnings = []
     node.stats = NodeStats(warnings.append)
-    node.focal_check.after_lens = True
+    node.camera_input.lens_k1 = -0.09
     CheckCorrections._on_focal_estimate(node, CAMERA, disagrees)
     assert node.stats.snapshot().noted == {'focal_disagrees': 1} and 'not taken' in warnings[0]
     runner = FocalCheckRunner(FocalCheckConfig(), lambda *_: None)
     runner._check = SimpleNamespace(camera=CAMERA, result=disagrees)
     assert runner.camera_for(CAMERA).fx == pytest.approx(150.0 * 1.122)
-    runner.after_lens = True
-    assert runner.camera_for(CAMERA) == CAMERA
+    assert runner.camera_for(CAMERA, after_lens=True) == CAMERA
 
 
 def test_in_warn_mode_the_node_says_the_lens_and_keeps_its_calibration():

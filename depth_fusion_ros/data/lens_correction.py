@@ -51,9 +51,11 @@ def undistort_sequence(sequence: Sequence, k1: float) -> Sequence:
     no depth is blended across an edge), undistorted by a radial ``k1``. The images are already
     on the working grid (``Sequence.camera``), the ground truth on its own (``gt_camera``); the
     normalised ``k1`` holds on both."""
-    rgb = Undistorter(sequence.camera, 'plumb_bob', (k1, 0.0, 0.0, 0.0, 0.0), *sequence.camera.size)
     gt_camera = sequence.gt_camera or sequence.camera
-    depth = Undistorter(gt_camera, 'plumb_bob', (k1, 0.0, 0.0, 0.0, 0.0), *gt_camera.size)
+    rgb, depth = (
+        Undistorter.for_calibration(add_radial(CameraCalibration(camera), k1), *camera.size)
+        for camera in (sequence.camera, gt_camera)
+    )
     frames = [
         dataclasses.replace(
             f, rgb=rgb.rgb(f.rgb), depth=None if f.depth is None else depth.depth(f.depth), _gray=None

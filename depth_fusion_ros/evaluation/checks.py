@@ -16,12 +16,17 @@ from ..multiview.params import apply_overrides
 log = logging.getLogger(__name__)
 
 
+def check_config(params: dict, stage: str, default: Any) -> Any:
+    """A check's config: ``default`` with the ``--set STAGE.*`` overrides of ``params``."""
+    return apply_overrides(default, params.get(stage, {}), stage)
+
+
 def run_check(
     sequence: Sequence, params: dict, stage: str, default: Any, run: Callable[[Sequence, Any], Any], what: str
 ) -> tuple[Any, Any]:
     """``(config, estimate)``: the check's config and its estimate, ``None`` when it is off or
     ran out of frames. ``run(sequence, config)`` returns the check fed with the sequence."""
-    config = apply_overrides(default, params.get(stage, {}), stage)
+    config = check_config(params, stage, default)
     if config.mode == 'off':
         return config, None
     check = run(sequence, config)

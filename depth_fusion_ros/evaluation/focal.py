@@ -17,8 +17,7 @@ from ..data.lens_correction import undistort_sequence
 from ..data.sequence import Sequence
 from ..multiview.focal_bias import focal_uncertainty
 from ..multiview.focal_check import FocalCheckConfig, FocalEstimate, check_frames
-from ..multiview.params import apply_overrides
-from .checks import run_check
+from .checks import check_config, run_check
 
 log = logging.getLogger(__name__)
 
@@ -61,15 +60,14 @@ def check_focal(
     mount check turned the poses since): then the check runs on the sequence as it is now.
     ``after_lens``: the images were undistorted with a lens the check fitted; a focal
     disagreement is then not taken (``FocalEstimate.applied``)."""
-    config, estimate = _run(sequence, params) if again else (_config(params), first)
+    if again:
+        config, estimate = _run(sequence, params)
+    else:
+        config, estimate = check_config(params, STAGE, FocalCheckConfig()), first
     if estimate is not None and estimate.applied(config.mode, after_lens):
         sequence = dataclasses.replace(sequence, camera=estimate.corrected(sequence.camera))
         log.warning('%s: every method uses fx %.1f px (focal_check.mode correct)', sequence.name, estimate.fx)
     return sequence, estimate
-
-
-def _config(params: dict) -> FocalCheckConfig:
-    return apply_overrides(FocalCheckConfig(), params.get(STAGE, {}), STAGE)
 
 
 def _run(sequence: Sequence, params: dict) -> tuple[FocalCheckConfig, FocalEstimate | None]:

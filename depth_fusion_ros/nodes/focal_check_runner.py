@@ -45,16 +45,14 @@ class FocalCheckRunner(PairedCheckRunner):
         super().__init__(config, on_result)
         #: ``(estimate, corrected camera)``: made once per estimate, not per frame.
         self._corrected: tuple[FocalEstimate, PinholeCamera] | None = None
-        #: Whether the images are undistorted with a lens the check fitted (set by the node):
-        #: a focal disagreement is then said, not taken (``FocalEstimate.applied``).
-        self.after_lens = False
 
-    def camera_for(self, camera: PinholeCamera) -> PinholeCamera:
+    def camera_for(self, camera: PinholeCamera, after_lens: bool = False) -> PinholeCamera:
         """The camera the multi-view depth uses for frames of ``camera``: the fitted focal length
         once the check disagreed with this camera and ``focal_check.mode`` is correct, else
-        ``camera`` itself."""
+        ``camera`` itself. ``after_lens``: the images are undistorted with a lens the check
+        fitted, and a disagreement is not taken (``FocalEstimate.applied``)."""
         result = self.result
-        if result is None or not result.applied(self.config.mode, self.after_lens):
+        if result is None or not result.applied(self.config.mode, after_lens):
             return camera
         if camera != self.camera:
             return camera
@@ -62,12 +60,12 @@ class FocalCheckRunner(PairedCheckRunner):
             self._corrected = (result, result.corrected(camera))
         return self._corrected[1]
 
-    def uncertainty(self, prior: float) -> float:
+    def uncertainty(self, prior: float, after_lens: bool = False) -> float:
         """How far the multi-view depth's focal length may still be off (relative,
         ``multiview/focal_bias.py``): ``prior`` until the check has read the stream, then what
-        it verified."""
+        it verified (``after_lens`` as for :meth:`camera_for`)."""
         result = self.result
-        applied = result is not None and result.applied(self.config.mode, self.after_lens)
+        applied = result is not None and result.applied(self.config.mode, after_lens)
         return focal_uncertainty(result, prior, applied)
 
     def status(self) -> str:

@@ -229,6 +229,13 @@ class CameraInput:
         calib = self.calibration
         return self.fixed_intrinsics is not None or (calib is not None and can_add_radial(calib))
 
+    def told_distorted(self) -> bool:
+        """Whether the calibration told (the fixed one, or camera_info's) has a distortion of
+        its own, which a lens correction adds to."""
+        if self.fixed_intrinsics is not None:
+            return any(d != 0.0 for d in self.fixed_distortion)
+        return self.calibration is not None and self.calibration.is_distorted
+
     def _calibration_for(self, width: int, height: int) -> CameraCalibration:
         return add_radial(self._told_calibration_for(width, height), self.lens_k1)
 

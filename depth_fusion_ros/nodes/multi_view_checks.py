@@ -88,7 +88,7 @@ class CheckCorrections:
         if estimate.verdict != 'disagrees':
             self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
             return
-        if self.focal_check.after_lens:
+        if self.camera_input.lens_k1 != 0.0:
             then = (
                 '; not taken: the images are undistorted with a lens the check fitted, and what the fit '
                 'leaves of the lens reads as a focal error too'
@@ -121,7 +121,6 @@ class CheckCorrections:
         if not self._lens_correctable():
             return  # said by _on_focal_estimate
         self.camera_input.lens_k1 += result.lens.k1
-        self.focal_check.after_lens = True
         if self._restart_from_ns is None or stamp_ns > self._restart_from_ns:
             self._restart_from_ns = stamp_ns
         self.focal_check.restart()
@@ -129,8 +128,7 @@ class CheckCorrections:
         with self._mount_unsaid_lock:  # its pairs were seen through the lens
             self._mount_unsaid = None
         k1 = self.camera_input.lens_k1
-        told = self.camera_input.calibration
-        own = told is not None and told.is_distorted
+        own = self.camera_input.told_distorted()
         fix = f'{k1:+.3f} added to D[0]' if own else f'D [{k1:.3f}, 0, 0, 0, 0]'
         self.stats.noted(
             'lens_corrected',

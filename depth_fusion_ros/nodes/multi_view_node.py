@@ -151,7 +151,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             self.focal_check = FocalCheckRunner.from_parameters(p, self._on_focal_estimate)
             if self.filter_feed is not None:
                 prior = self.filter_feed.config.focal_uncertainty
-                self.filter_feed.focal_uncertainty = lambda: self.focal_check.uncertainty(prior)
+                self.filter_feed.focal_uncertainty = lambda: self.focal_check.uncertainty(
+                    prior, self.camera_input.lens_k1 != 0.0
+                )
             self.time_offset_check = TimeOffsetCheckRunner.from_parameters(p, self._on_time_offset_estimate)
             self.mount_check = MountCheckRunner.from_parameters(p, self._on_mount_estimate)
         except ValueError as exc:
@@ -604,7 +606,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         # From the start: a time offset correction starts it over (its pairs were posed at the
         # old offset), and its verdict waits for the time offset check (_take_mount_correction).
         self.mount_check.offer(frame, image.camera)
-        camera = self.focal_check.camera_for(image.camera)
+        camera = self.focal_check.camera_for(image.camera, self.camera_input.lens_k1 != 0.0)
         job = None
         if self._is_keyframe_candidate(frame):
             neighbours = self._select_neighbours(frame, camera)
