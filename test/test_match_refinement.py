@@ -59,7 +59,9 @@ def test_image_pairs_track_only_between_images_of_one_size():
     from depth_fusion_ros.multiview.image_pairs import ImagePairs
 
     K = np.array([[200.0, 0.0, 160.0], [0.0, 200.0, 120.0], [0.0, 0.0, 1.0]])
-    pairs = ImagePairs(K, min_baseline=0.01, min_rotation_deg=2.0, min_matches=10, features=500, refine=True)
+    pairs = ImagePairs(
+        K, min_baseline=0.01, min_rotation_deg=2.0, min_matches=10, features=500, tracking='shift'
+    )
     big = _texture(4, (480, 640))
     small = cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA)
 

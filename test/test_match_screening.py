@@ -83,16 +83,18 @@ def test_a_level_robot_is_not_turned_by_the_matches_at_its_outlines():
     """The failure: the level robot of seed 45 (300 frames, 20 pairs 10 cm apart) was turned
     0.95 deg about x, sure at two standard errors of 0.10 deg: 17 % of its matches sit on
     occlusion outlines and slide along the flow. Screened, the same stream's fit falls to
-    0.60 deg, short of sure (suspect at the default 2.0, agrees at 1.5): not turned."""
+    0.60 deg, short of sure: not turned. Since its matches are tracked with an affine window
+    (and a turn's sureness counts the spread over the image), the unscreened stream is not
+    turned either, but its fit is still the furthest off: 0.63 deg about x against 0.43
+    screened (0.28 at 1.5)."""
     cfg = stress_config('mount_tilt', width=320, height=240, frames=300, seed=45, mount_tilt_deg=0.0)
     seq = render_sequence(cfg)
-    for ratio in (2.0, 1.5):
+    fitted = {}
+    for ratio in (2.0, 1.5, 0.0):
         screened = check_frames(seq.camera, seq.frames, MountCheckConfig(max_patch_residual=ratio)).result
         assert screened is not None and screened.pairs == 20, screened
         assert screened.verdict != 'disagrees', screened.message()
         assert np.array_equal(screened.rotation(), np.eye(4))
-        assert abs(screened.fitted_deg[0]) < 0.7, screened.fitted_deg
+        fitted[ratio] = screened.fitted_deg[0]
     assert MountCheckConfig().max_patch_residual == 2.0
-    unscreened = check_frames(seq.camera, seq.frames, MountCheckConfig(max_patch_residual=0.0)).result
-    assert unscreened is not None and unscreened.verdict == 'disagrees', unscreened.message()
-    assert unscreened.fitted_deg[0] > 0.9, unscreened.fitted_deg
+    assert fitted[1.5] < fitted[2.0] < 0.5 < fitted[0.0] - 0.1, fitted

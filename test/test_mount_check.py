@@ -23,6 +23,7 @@ from depth_fusion_ros.multiview.mount_check import (
     check_frames,
     cost_rises,
     fit_mount,
+    regional_spread,
     rotation_matrices,
     turned,
 )
@@ -127,7 +128,7 @@ def test_a_camera_mounted_2_deg_more_tilted_is_found(tilted):
 
 
 def test_the_early_look_ends_the_check_only_when_the_mount_surely_disagrees(level):
-    """At ``early_pairs`` (8) the check ends only on a turn sure at three standard errors: a
+    """From ``early_pairs`` (8) the check ends only on a turn sure at three standard errors: a
     2 deg turn told by 8 exact pairs ends it there; the same pairs told level do not, nor does
     the level robot, whose check goes on to all 20 pairs and agrees."""
     for turn, ends in (([2.0, -1.0, 0.5], True), ([0.0, 0.0, 0.0], False)):
@@ -145,6 +146,62 @@ def test_the_early_look_ends_the_check_only_when_the_mount_surely_disagrees(leve
     assert estimate is not None and estimate.pairs == 20 and estimate.verdict == 'consistent', estimate
     with pytest.raises(ValueError, match='early_pairs'):
         MountCheckConfig(early_pairs=3)
+
+
+def test_the_early_looks_go_on_at_each_pair_until_the_last_look():
+    """A look at each new pair from ``early_pairs`` on: a turn sure only at the 10th pair ends
+    the check there; at ``pairs`` the last look decides (with its two standard errors)."""
+    camera, pairs = _exact_pairs([2.0, 0.0, 0.0], 'forward', n_pairs=20)
+    check = MountCheck(camera, MountCheckConfig())
+    check.pairs = pairs[:10]
+    early = check._early_look()
+    assert early is not None and early.pairs == 10 and early.verdict == 'disagrees', early
+    assert np.allclose(early.rotvec_deg, [-2.0, 0.0, 0.0], atol=0.1), early.rotvec_deg
+    check.pairs = pairs
+    assert check._early_look() is None
+
+
+def _biased_in_one_quadrant(pairs: list, shift_px: float) -> list:
+    """The pairs with the second position of every match in the top-left quadrant moved down."""
+    out = []
+    for pair in pairs:
+        p2 = pair.p2.copy()
+        p2[(pair.p1[:, 0] < 159.5) & (pair.p1[:, 1] < 119.5), 1] += shift_px
+        out.append(MatchedPair(pair.a, pair.b, pair.p1, p2))
+    return out
+
+
+def test_a_bias_in_one_part_of_the_image_is_not_read_as_a_turn():
+    """The level robot's matches with a shared error in one quadrant (a checkered wall, the
+    corners of an outline: 1 px there): the pairs agree on a turn of 0.9 deg about x, sure by
+    their own spread. A turned mount moves every region alike; the fit's spread over the
+    image's quadrants says this one does not, and nothing is turned."""
+    camera, pairs = _exact_pairs([0.0, 0.0, 0.0], 'forward')
+    pairs = _biased_in_one_quadrant(pairs, 1.0)
+    check = MountCheck(camera, MountCheckConfig(pairs=len(pairs)))
+    check.pairs = pairs
+    v, cov = fit_mount(camera.K, pairs)
+    assert check._verdict(v, cov).verdict == 'disagrees'  # the pairs' spread alone
+    regional = regional_spread(camera.K, pairs, v)
+    estimate = check._verdict(v, cov, regional)
+    assert estimate.verdict == 'consistent' and estimate.angle_deg == 0.0, estimate.message()
+    assert min(estimate.stderr_deg) > 3 * min(check._verdict(v, cov).stderr_deg)
+
+
+def test_short_robot_streams_are_turned_when_tilted_and_left_when_level():
+    """100 frames (1.5 m, 14 pairs of the 20): the tilted robot of seed 125 went unturned (its
+    early look at 8 pairs not sure; the node graph's fused depth 1.17x its input), and the level
+    one of seed 131 was turned 1.17 deg by a bias its checkered and striped walls give. Now the
+    first is turned at its 10th pair and the second is not turned."""
+    size = {'width': 320, 'height': 240, 'frames': 100}
+    tilted_seq = render_sequence(stress_config('mount_tilt', seed=125, **size))
+    estimate = check_frames(tilted_seq.camera, tilted_seq.frames, MountCheckConfig()).result
+    assert estimate is not None and estimate.verdict == 'disagrees' and estimate.pairs <= 12, estimate
+    assert -2.2 < estimate.rotvec_deg[0] < -1.2, estimate.rotvec_deg
+    level_seq = render_sequence(stress_config('mount_tilt', seed=131, mount_tilt_deg=0.0, **size))
+    check = check_frames(level_seq.camera, level_seq.frames, MountCheckConfig())
+    assert len(check.pairs) >= 8  # the early looks were taken
+    assert check.result is None or check.result.verdict != 'disagrees', check.result.message()
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:

@@ -229,7 +229,7 @@ class FocalCheck(PairedCheck):
     result: FocalEstimate | None = None
     #: Matches tracked to sub-pixel: the detector's own positions biased the fit under forward
     #: motion (-7.2 % on an exact focal length, corrected) and scattered it (multiview/match_refinement.py).
-    REFINE_MATCHES: ClassVar[bool] = True
+    TRACKING: ClassVar[str] = 'shift'
 
     def _estimate(self) -> FocalEstimate:
         K = self.camera.K

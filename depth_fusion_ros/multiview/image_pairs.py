@@ -4,8 +4,9 @@ Both checks ask the same of a stream: frames far enough apart that a pair carrie
 at any speed and frame rate (moved ``min_baseline`` or turned ``min_rotation_deg`` since the
 last sample, by the told poses), and the matches of consecutive samples that fit one rigid
 motion (ORB, cross-checked Hamming matches, the images' own essential matrix:
-:func:`rigid_matches`), for the focal check with the second position of each tracked from
-the first to sub-pixel (:mod:`.match_refinement`). :class:`ImagePairs` does that once for each; the
+:func:`rigid_matches`), with the second position of each tracked from the first to sub-pixel
+where a check asks (``tracking``: by a shift for the focal check, :mod:`.match_refinement`; by an
+affine warp for the mount check, :mod:`.affine_tracking`). :class:`ImagePairs` does that once for each; the
 checks differ in what they fit to the pairs. Also the two checks' shared config rules.
 """
 
@@ -18,6 +19,7 @@ import cv2
 import numpy as np
 
 from ..geometry import relative_pose, rotation_angle
+from .affine_tracking import track_affine
 from .match_refinement import as_uint8, refine_matches
 from .match_screening import screen_matches
 
@@ -29,6 +31,10 @@ STANDARD_ERRORS = 2.0
 EARLY_STANDARD_ERRORS = 3.0
 #: OpenCV's random state (per thread) is set to this before each RANSAC: a deterministic check.
 _RANSAC_SEED = 12345
+#: How a pair's second positions are tracked from the first (``ImagePairs.tracking``): not at
+#: all (as detected), by a shifted window (:func:`.match_refinement.refine_matches`) or by an
+#: affine one (:func:`.affine_tracking.track_affine`).
+TRACKINGS = ('none', 'shift', 'affine')
 
 
 def check_mode(section: str, mode: object) -> str:
@@ -136,13 +142,15 @@ class ImagePairs:
         min_rotation_deg: float,
         min_matches: int,
         features: int,
-        refine: bool = False,
+        tracking: str = 'none',
         screen: float = 0.0,
     ) -> None:
+        if tracking not in TRACKINGS:
+            raise ValueError(f'tracking must be one of {", ".join(TRACKINGS)}, got {tracking!r}')
         self.K = K
-        #: Track each match's second position from the first (:mod:`.match_refinement`; which
-        #: checks do and why: ``PairedCheck.REFINE_MATCHES``).
-        self.refine = refine
+        #: How each match's second position is tracked from the first (:data:`TRACKINGS`; which
+        #: checks do what and why: ``PairedCheck.TRACKING``).
+        self.tracking = tracking
         #: Drop matches whose patch no single shift carries into the second image, above this
         #: multiple of the pair's median residual (:mod:`.match_screening`; 0: none dropped).
         self.screen = float(screen)
@@ -156,16 +164,16 @@ class ImagePairs:
 
     @classmethod
     def for_config(
-        cls, K: np.ndarray, config: object, refine: bool = False, screen: float = 0.0
+        cls, K: np.ndarray, config: object, tracking: str = 'none', screen: float = 0.0
     ) -> ImagePairs:
         c = config
-        return cls(K, c.min_baseline, c.min_rotation_deg, c.min_matches, c.features, refine, screen)  # type: ignore[attr-defined]
+        return cls(K, c.min_baseline, c.min_rotation_deg, c.min_matches, c.features, tracking, screen)  # type: ignore[attr-defined]
 
     @property
     def _tracks(self) -> bool:
         """Whether pairs are tracked from the last sample's image (refined or screened), which
         is then kept."""
-        return self.refine or self.screen > 0
+        return self.tracking != 'none' or self.screen > 0
 
     def far_enough(self, pose: np.ndarray, since: np.ndarray | None = None) -> bool:
         """Whether a frame at ``pose`` is the next sample: moved or turned enough since the last
@@ -200,8 +208,7 @@ class ImagePairs:
             if last_image is None or last_image.shape != image.shape:  # another grid: nothing to track
                 return None
             p1, p2 = screen_matches(last_image, image, p1, p2, self.screen)
-            if self.refine:
-                p1, p2 = refine_matches(last_image, image, p1, p2)
+            p1, p2 = _TRACKERS[self.tracking](last_image, image, p1, p2)
             if len(p1) < self.min_matches:
                 return None
         pair = MatchedPair(last, current, p1, p2)
@@ -212,3 +219,11 @@ class ImagePairs:
     def reset(self) -> None:
         self.last = None
         self._last_image = None
+
+
+def _as_detected(first: np.ndarray, second: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple:
+    """The matches as detected (``tracking`` 'none')."""
+    return p1, p2
+
+
+_TRACKERS = {'none': _as_detected, 'shift': refine_matches, 'affine': track_affine}

@@ -16,9 +16,12 @@ depth, to first order, as a turn of ``d / f`` and is corrected with it.
 from the last sample is the next sample (a turn alone only when ``min_rotation_deg`` is set
 under its 180); consecutive samples
 make a pair (ORB, the images' own essential matrix keeps the matches of one rigid motion:
-:mod:`.image_pairs`, as the other calibration checks). After ``pairs`` pairs, one rotation
-``M`` (the camera's frame in the told optical frame: ``T_wc = T_told @ M``) is fitted
-minimising the pairs' robust Sampson costs (Levenberg-Marquardt over the rotation vector).
+:mod:`.image_pairs`, as the other calibration checks; each match's second position tracked from
+the first with an affine window, :mod:`.affine_tracking`). One rotation ``M`` (the camera's
+frame in the told optical frame: ``T_wc = T_told @ M``) is fitted minimising the pairs' robust
+Sampson costs (Levenberg-Marquardt over the rotation vector): at each new pair from
+``early_pairs`` on, where only a turn sure at three standard errors ends the check, and at
+``pairs``, the last look.
 
 What the motion leaves unobserved is not corrected: a translation along an axis says nothing
 about a turn about that axis, and a turn about it leaves the depth as it is too. The fit's
@@ -30,11 +33,14 @@ is flatter, an error every pair shares moves the fit more than any standard erro
 the synthetic robots driving ahead, the matches at depth edges, corners where an outline
 crosses the background, slide along the flow by 0.3 px as the camera approaches; the pairs
 agree on it, so neither the sandwich nor the jackknife sees it, and with matches only below a
-high epipole it turned a level camera's fit by 1.8 deg). Along an observed direction the
-fitted component is kept when it is more than twice its standard error from zero, the others
-are zero. The verdict: ``disagrees`` when a kept component is at least ``threshold_deg``
-beyond twice its standard error, ``unobservable`` when no direction is observed, else
-``consistent``. Pairs need decimetres of baseline (``min_baseline`` 0.1 m): at centimetres a
+high epipole it turned a level camera's fit by 1.8 deg). Such an error comes from what part
+of the image shows (outlines, stripes, a checkered wall), so how sure a turn is also counts the
+spread of the fit over the image: a jackknife over its four quadrants about the principal
+point, which a turned mount moves alike and a local error does not. Along an observed direction
+the fitted component is kept when it is more than twice its standard error (with that spread)
+from zero, the others are zero. The verdict: ``disagrees`` when a kept component is at least
+``threshold_deg`` beyond twice its standard error, ``unobservable`` when no direction is
+observed, else ``consistent``. Pairs need decimetres of baseline (``min_baseline`` 0.1 m): at centimetres a
 degree moves the matches' epipolar residuals by hundredths of a pixel on forward motion, and
 the fit follows noise.
 """
@@ -45,6 +51,7 @@ import logging
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -78,6 +85,11 @@ _BLOCKS = 5
 _MAX_TURN_DEG = 15.0
 #: The turn (radians) along a principal direction at which ``min_cost_rise`` is read.
 _RISE_TURN = math.radians(1.0)
+#: The image is cut into this many columns and rows about the principal point for the regional
+#: jackknife (:func:`regional_spread`), a match counted by its first position.
+_REGIONS = 2
+#: A pair keeps a region's leave-out only with this many matches left.
+_MIN_REGION_MATCHES = 8
 
 
 @dataclass(frozen=True)
@@ -95,10 +107,11 @@ class MountCheckConfig:
     min_rotation_deg: float = 180.0
     #: Pairs of images the estimate uses (the check's last look; it ends there, once)
     pairs: int = 20
-    #: An earlier look with this many pairs (0, or pairs or more: none). It ends the check only
-    #: when the mount surely disagrees by three standard errors, a stricter bar than the last
-    #: look's two, for the extra look; anything less waits for all the pairs. A turned mount
-    #: triples the multi-view error while the check collects, and 20 pairs take about 2 m of travel
+    #: Earlier looks, at each new pair from this many on (0, or pairs or more: none). One ends
+    #: the check only when the mount surely disagrees by three standard errors, a stricter bar
+    #: than the last look's two, for the extra looks; anything less waits for the next pair. A
+    #: turned mount triples the multi-view error while the check collects, and 20 pairs take
+    #: about 2 m of travel
     early_pairs: int = 8
     #: A disagreement counts when a fitted component less twice its standard error is at least
     #: this (degrees)
@@ -140,7 +153,8 @@ class MountEstimate:
     rotvec_deg: tuple[float, float, float]
     #: The whole fit, before its unobserved and insignificant components were dropped (degrees)
     fitted_deg: tuple[float, float, float]
-    #: Standard errors of the fit along its principal directions (degrees), smallest first
+    #: Standard errors of the fit along its principal directions (degrees, the regional spread
+    #: counted), in the order of the pairs' own standard errors along them, smallest first
     stderr_deg: tuple[float, float, float]
     observed: int  # directions with a standard error within max_stderr_deg and the cost's rise
     pairs: int
@@ -207,9 +221,22 @@ def pair_costs(
     """Mean soft-L1 Sampson cost (S,) of matches ``p1 -> p2`` when the told relative pose ``T_ba``
     (first-camera to second-camera coordinates) is read in a camera turned by each of S rotation
     vectors (radians): ``M^T T_ba M``, i.e. its rotation conjugated and its translation turned."""
+    return _turned_costs(K, T_ba, p1, p2, _turns(rotvecs))
+
+
+def _turns(rotvecs: np.ndarray) -> np.ndarray:
+    """(S, 4, 4) transforms of rotation vectors (S, 3) (radians): made once per evaluation of all
+    the pairs (scipy's conversion cost as much as a pair's costs)."""
     M = np.zeros((len(rotvecs), 4, 4))
     M[:, :3, :3] = rotation_matrices(rotvecs)
     M[:, 3, 3] = 1.0
+    return M
+
+
+def _turned_costs(
+    K: np.ndarray, T_ba: np.ndarray, p1: np.ndarray, p2: np.ndarray, M: np.ndarray
+) -> np.ndarray:
+    """:func:`pair_costs` with the turns given as transforms ``M`` (S, 4, 4)."""
     return pose_costs(K, np.transpose(M, (0, 2, 1)) @ T_ba @ M, p1, p2)
 
 
@@ -248,8 +275,9 @@ def _derivatives(costs: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
 def _local(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Total cost, per-pair gradients (P, 3) and total Hessian at rotation vector ``v``."""
     total, grads, hessian = 0.0, [], np.zeros((3, 3))
+    M = _turns(v + _STENCIL)
     for pair in pairs:
-        c, g, H = _derivatives(pair_costs(K, pair.T_ba, pair.p1, pair.p2, v + _STENCIL))
+        c, g, H = _derivatives(_turned_costs(K, pair.T_ba, pair.p1, pair.p2, M))
         total += c
         grads.append(g)
         hessian += H
@@ -258,7 +286,8 @@ def _local(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> tuple[floa
 
 def _totals(K: np.ndarray, pairs: list[MatchedPair], rotvecs: np.ndarray) -> np.ndarray:
     """The pairs' summed cost (S,) at each of S rotation vectors (radians), one batch per pair."""
-    return np.sum([pair_costs(K, p.T_ba, p.p1, p.p2, rotvecs) for p in pairs], axis=0)
+    M = _turns(rotvecs)
+    return np.sum([_turned_costs(K, p.T_ba, p.p1, p.p2, M) for p in pairs], axis=0)
 
 
 def _total(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> float:
@@ -327,9 +356,41 @@ def fit_mount(K: np.ndarray, pairs: list[MatchedPair]) -> tuple[np.ndarray, np.n
     sandwich = inverse @ (grads.T @ grads * (n / max(n - 1, 1))) @ inverse
     blocks = np.array_split(np.arange(n), min(_BLOCKS, n))
     fits = np.array([_minimise(K, [pairs[i] for i in np.setdiff1d(np.arange(n), b)], v)[0] for b in blocks])
+    return v, sandwich + _jackknife(fits)
+
+
+def _jackknife(fits: np.ndarray) -> np.ndarray:
+    """The delete-one jackknife covariance (3, 3) of fits (B, 3), each without one of B blocks."""
     spread = fits - fits.mean(axis=0)
-    jackknife = spread.T @ spread * (len(blocks) - 1) / len(blocks)
-    return v, sandwich + jackknife
+    return spread.T @ spread * (len(fits) - 1) / len(fits)
+
+
+def regional_spread(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> np.ndarray:
+    """A jackknife covariance (3, 3) of the fit over image regions: the fit again without the
+    matches of each of ``_REGIONS`` x ``_REGIONS`` regions about the principal point.
+
+    Why: an error the pairs share comes from what part of the view shows (corners at outlines,
+    a striped or checkered wall), and the jackknife over pairs cannot see it. A turned mount
+    moves every region's epipolar lines alike; a local error moves the fit only with its region's
+    matches. On the synthetic robots, level ones fitted turns of up to 1.6 deg from such matches,
+    sure at three standard errors by the pairs' own spread (docs/multi_view.md, "Matches tracked
+    with an affine window").
+    """
+    fits = [_minimise(K, _without_region(K, pairs, r), v)[0] for r in range(_REGIONS * _REGIONS)]
+    return _jackknife(np.array(fits))
+
+
+def _without_region(K: np.ndarray, pairs: list[MatchedPair], region: int) -> list[MatchedPair]:
+    """The pairs without their matches in ``region`` (row-major, about the principal point), each
+    kept with at least ``_MIN_REGION_MATCHES`` matches left."""
+    out = []
+    for pair in pairs:
+        column = np.clip(np.floor(pair.p1[:, 0] / (2.0 * K[0, 2] + 1.0) * _REGIONS), 0, _REGIONS - 1)
+        row = np.clip(np.floor(pair.p1[:, 1] / (2.0 * K[1, 2] + 1.0) * _REGIONS), 0, _REGIONS - 1)
+        keep = row * _REGIONS + column != region
+        if int(keep.sum()) >= _MIN_REGION_MATCHES:
+            out.append(MatchedPair(pair.a, pair.b, pair.p1[keep], pair.p2[keep]))
+    return out
 
 
 @dataclass
@@ -338,31 +399,47 @@ class MountCheck(PairedCheck):
 
     config: MountCheckConfig = field(default_factory=MountCheckConfig)
     result: MountEstimate | None = None
+    TRACKING: ClassVar[str] = 'affine'
 
     def _screen_ratio(self) -> float:
         return self.config.max_patch_residual
 
     def _estimate(self) -> MountEstimate:
-        return self._verdict(*fit_mount(np.asarray(self.camera.K, dtype=np.float64), self.pairs))
+        K = np.asarray(self.camera.K, dtype=np.float64)
+        v, cov = fit_mount(K, self.pairs)
+        return self._verdict(v, cov, regional_spread(K, self.pairs, v))
 
     def _early_look(self) -> MountEstimate | None:
-        """At ``early_pairs`` pairs: the estimate if the mount surely disagrees at
-        ``EARLY_STANDARD_ERRORS``, else None (the check goes on to ``pairs``)."""
+        """At each new pair from ``early_pairs`` until ``pairs``: the estimate if the mount surely
+        disagrees at ``EARLY_STANDARD_ERRORS``, else None (the check goes on)."""
         n = self.config.early_pairs
-        if not 0 < n < self.config.pairs or len(self.pairs) != n:
+        if not 0 < n <= len(self.pairs) < self.config.pairs:
             return None
-        fit = fit_mount(np.asarray(self.camera.K, dtype=np.float64), self.pairs)
-        estimate = self._verdict(*fit, standard_errors=EARLY_STANDARD_ERRORS)
+        K = np.asarray(self.camera.K, dtype=np.float64)
+        v, cov = fit_mount(K, self.pairs)
+        # The regional spread can only make a turn less sure (it adds to the standard errors
+        # along the same directions), so it is fitted only for a look that is sure without it.
+        if self._verdict(v, cov, standard_errors=EARLY_STANDARD_ERRORS).verdict != 'disagrees':
+            return None
+        estimate = self._verdict(v, cov, regional_spread(K, self.pairs, v), EARLY_STANDARD_ERRORS)
         return estimate if estimate.verdict == 'disagrees' else None
 
     def _verdict(
-        self, v: np.ndarray, cov: np.ndarray, standard_errors: float = STANDARD_ERRORS
+        self,
+        v: np.ndarray,
+        cov: np.ndarray,
+        regional: np.ndarray | None = None,
+        standard_errors: float = STANDARD_ERRORS,
     ) -> MountEstimate:
+        """The estimate of fit ``v`` with covariance ``cov``: its principal directions say what
+        is observed, and how sure each component is counts the ``regional`` spread as well (read
+        along the same directions: that spread's own would mix a turn with what is unobserved)."""
         c = self.config
         w, U = np.linalg.eigh(0.5 * (cov + cov.T))
-        sd = np.sqrt(np.maximum(w, 0.0))
+        observed = np.sqrt(np.maximum(w, 0.0)) <= math.radians(c.max_stderr_deg)
+        total = cov if regional is None else cov + regional
+        sd = np.sqrt(np.maximum(np.einsum('ij,ik,kj->j', U, total, U), 0.0))
         components = U.T @ v
-        observed = sd <= math.radians(c.max_stderr_deg)
         # A verdict read from a given fit and covariance without its pairs has no cost to read:
         # the standard errors alone decide. A fit that is not finite reads no rise.
         if c.min_cost_rise > 0 and self.pairs:

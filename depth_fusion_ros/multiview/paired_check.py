@@ -30,15 +30,18 @@ class PairedCheck:
     result: Any = None
     frames: int = 0
     pairs: list[MatchedPair] = field(default_factory=list)
-    #: Whether the pairs' matches are tracked to sub-pixel (``ImagePairs.refine``). The focal
-    #: check does (``FocalCheck``); the mount check does not: tracked matches are so precise that
-    #: a rolling shutter or a forward stream read as a turned mount (docs/multi_view.md,
-    #: "Matches tracked to sub-pixel").
-    REFINE_MATCHES: ClassVar[bool] = False
+    #: How the pairs' matches are tracked to sub-pixel (``ImagePairs.tracking``). The focal check
+    #: shifts a window (``FocalCheck``): the detected positions carry an outward bias under
+    #: forward motion, which it reads as a focal length too short. The mount check warps it
+    #: (``MountCheck``), and reads how sure a turn is from the spread between image regions too:
+    #: shifted windows alone turned six level streams (docs/multi_view.md, "Matches tracked to
+    #: sub-pixel" and "Matches tracked with an affine window"). The time offset check keeps the
+    #: positions as detected.
+    TRACKING: ClassVar[str] = 'none'
 
     def __post_init__(self) -> None:
         screen = self._screen_ratio()
-        self._images = ImagePairs.for_config(self.camera.K, self.config, self.REFINE_MATCHES, screen)
+        self._images = ImagePairs.for_config(self.camera.K, self.config, self.TRACKING, screen)
 
     def _screen_ratio(self) -> float:
         """The pairs' outline screen (``ImagePairs.screen``; 0: every match kept): the mount

@@ -1,0 +1,112 @@
+"""Feature matches tracked with an affine window: the second image's position of each match
+found by warping the first image's window (Lucas-Kanade with an affine warp, a gain and an offset).
+
+Why: ORB fires wherever its corner response peaks in each image on its own, a pixel or a
+pyramid level's pixel apart (on a rendered robot's stream, 0.7 px from where the first position's
+surface point went, at the median). Under forward motion a window grows and shears between the
+two images, so a tracker that only shifts it (:mod:`.match_refinement`) is pulled by the part of
+the window that changed most. An affine warp follows the window as a plane's image moves: on the
+same stream the tracked positions lie 0.1 px from the truth at the median. The mount check fits a
+turn of a degree or two from these positions, and what every pair's matches share in error it
+reads as a turn (docs/multi_view.md, "Matches tracked with an affine window").
+
+The warp is found by inverse-compositional Gauss-Newton (Baker and Matthews, 2004): the first
+image's window, its gradients and their normal matrix are computed once per match; each step
+samples the second image under the current warp, matches its gain and offset to the window, and
+composes the inverse of the solved step. All matches of a pair run at once (one ``cv2.remap`` per
+step). The first position stays as detected: the window is centred on it.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+#: Half the window's side (px): 15 x 15 pixels, weighted by a Gaussian of :data:`SIGMA`.
+RADIUS = 7
+SIGMA = RADIUS / 1.5
+#: Gauss-Newton steps allowed, and the step (px) under which a match has converged.
+ITERATIONS = 20
+TOLERANCE_PX = 0.01
+#: A tracked position is kept within this of the matched keypoint (px), with the warp's area
+#: scale between these (a plane's image seldom doubles between two samples)...
+MOVE_TOLERANCE_PX = 3.0
+AREA_RANGE = (0.5, 2.0)
+#: ...and the window's contrast in the second image at least this share of the first's.
+MIN_GAIN = 0.2
+
+_OFFSETS = np.arange(-RADIUS, RADIUS + 1, dtype=np.float64)
+_GX, _GY = (a.ravel() for a in np.meshgrid(_OFFSETS, _OFFSETS))
+_WEIGHTS = np.exp(-(_GX**2 + _GY**2) / (2.0 * SIGMA**2))
+_WEIGHTS /= _WEIGHTS.sum()
+
+
+def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples (float64) of a float32 image at positions ``x``, ``y`` (M, N)."""
+    mx, my = x.astype(np.float32), y.astype(np.float32)
+    return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+
+
+def _gradient(image: np.ndarray, dx: int, dy: int) -> np.ndarray:
+    """Central difference of a float32 image along x (``dx=1``) or y (``dy=1``)."""
+    return cv2.Sobel(image, cv2.CV_32F, dx, dy, ksize=1) * 0.5
+
+
+def _warped(t: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The window's pixel positions (M, N) in the second image under warps ``A x + t``."""
+    x = t[:, :1] + A[:, 0, :1] * _GX + A[:, 0, 1:] * _GY
+    y = t[:, 1:] + A[:, 1, :1] * _GX + A[:, 1, 1:] * _GY
+    return x, y
+
+
+def _gain_matched(window: np.ndarray, template: np.ndarray, variance: np.ndarray) -> tuple:
+    """The second image's windows (M, N) with their weighted mean taken off, and the gain that
+    matches them to the zero-mean templates (M,)."""
+    centred = window - (window @ _WEIGHTS)[:, None]
+    return centred, (centred * template) @ _WEIGHTS / variance
+
+
+def track_affine(
+    first: np.ndarray, second: np.ndarray, p1: np.ndarray, p2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Matches ``p1 -> p2`` (M, 2) of two grey uint8 images with ``p2`` tracked from ``p1``'s
+    window under an affine warp; the matches whose tracking converged within
+    :data:`MOVE_TOLERANCE_PX` of ``p2`` (``p1`` as detected, the tracked ``p2``)."""
+    if len(p1) == 0:
+        return p1, p2
+    a, b = first.astype(np.float32), second.astype(np.float32)
+    x, y = p1[:, :1] + _GX, p1[:, 1:] + _GY
+    template = _sample(a, x, y)
+    template -= (template @ _WEIGHTS)[:, None]
+    variance = (template * template) @ _WEIGHTS + 1e-9
+    tx, ty = _sample(_gradient(a, 1, 0), x, y), _sample(_gradient(a, 0, 1), x, y)
+    jacobian = np.stack([tx, ty, tx * _GX, tx * _GY, ty * _GX, ty * _GY], axis=2)  # (M, N, 6)
+    weighted = jacobian * _WEIGHTS[None, :, None]
+    normal = np.einsum('mni,mnj->mij', weighted, jacobian)
+    damping = 1e-6 * np.trace(normal, axis1=1, axis2=2)[:, None, None] + 1e-12
+    solve = np.linalg.inv(normal + damping * np.eye(6))
+    t = np.asarray(p2, dtype=np.float64).copy()
+    A = np.tile(np.eye(2), (len(p1), 1, 1))
+    moving = np.ones(len(p1), dtype=bool)
+    for _ in range(ITERATIONS):
+        i = np.flatnonzero(moving)
+        if len(i) == 0:
+            break
+        centred, gain = _gain_matched(_sample(b, *_warped(t[i], A[i])), template[i], variance[i])
+        residual = centred / np.where(np.abs(gain) > 1e-3, gain, 1e-3)[:, None] - template[i]
+        step = np.einsum('mij,mj->mi', solve[i], np.einsum('mni,mn->mi', weighted[i], residual))
+        inverse = np.linalg.inv(np.eye(2) + step[:, 2:].reshape(-1, 2, 2))
+        A[i] = A[i] @ inverse  # the warp composed with the step's inverse
+        t[i] -= np.einsum('mij,mj->mi', A[i], step[:, :2])
+        moving[i] = np.linalg.norm(step[:, :2], axis=1) > TOLERANCE_PX
+    _, gain = _gain_matched(_sample(b, *_warped(t, A)), template, variance)
+    area = np.linalg.det(A)
+    keep = (
+        ~moving
+        & np.isfinite(t).all(axis=1)
+        & (np.linalg.norm(t - p2, axis=1) < MOVE_TOLERANCE_PX)
+        & (area > AREA_RANGE[0])
+        & (area < AREA_RANGE[1])
+        & (gain > MIN_GAIN)
+    )
+    return p1[keep], t[keep]
