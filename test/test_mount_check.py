@@ -186,6 +186,10 @@ def test_a_bias_in_one_part_of_the_image_is_not_read_as_a_turn():
     estimate = check._verdict(v, cov, regional)
     assert estimate.verdict == 'consistent' and estimate.angle_deg == 0.0, estimate.message()
     assert min(estimate.stderr_deg) > 3 * min(check._verdict(v, cov).stderr_deg)
+    # Matches in one quadrant only: no spread over the image to read, none counted.
+    corner = [MatchedPair(p.a, p.b, p.p1[p.p1[:, 0] < 100], p.p2[p.p1[:, 0] < 100]) for p in pairs]
+    corner = [MatchedPair(p.a, p.b, p.p1[p.p1[:, 1] < 100], p.p2[p.p1[:, 1] < 100]) for p in corner]
+    assert np.array_equal(regional_spread(camera.K, corner, v), np.zeros((3, 3)))
 
 
 def test_short_robot_streams_are_turned_when_tilted_and_left_when_level():

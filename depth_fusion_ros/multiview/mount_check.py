@@ -376,7 +376,10 @@ def regional_spread(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> n
     sure at three standard errors by the pairs' own spread (docs/multi_view.md, "Matches tracked
     with an affine window").
     """
-    fits = [_minimise(K, _without_region(K, pairs, r), v)[0] for r in range(_REGIONS * _REGIONS)]
+    left = [_without_region(K, pairs, r) for r in range(_REGIONS * _REGIONS)]
+    fits = [_minimise(K, kept, v)[0] for kept in left if kept]
+    if len(fits) < 2:  # every match in one region: no spread over the image to read
+        return np.zeros((3, 3))
     return _jackknife(np.array(fits))
 
 
