@@ -59,7 +59,9 @@ def _warped(t: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x, y
 
 
-def _gain_matched(window: np.ndarray, template: np.ndarray, variance: np.ndarray) -> tuple:
+def _gain_matched(
+    window: np.ndarray, template: np.ndarray, variance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The second image's windows (M, N) with their weighted mean taken off, and the gain that
     matches them to the zero-mean templates (M,)."""
     centred = window - (window @ _WEIGHTS)[:, None]
