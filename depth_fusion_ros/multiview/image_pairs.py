@@ -31,10 +31,20 @@ STANDARD_ERRORS = 2.0
 EARLY_STANDARD_ERRORS = 3.0
 #: OpenCV's random state (per thread) is set to this before each RANSAC: a deterministic check.
 _RANSAC_SEED = 12345
+
+
+def _as_detected(
+    first: np.ndarray, second: np.ndarray, p1: np.ndarray, p2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The matches as detected (``tracking`` 'none')."""
+    return p1, p2
+
+
 #: How a pair's second positions are tracked from the first (``ImagePairs.tracking``): not at
 #: all (as detected), by a shifted window (:func:`.match_refinement.refine_matches`) or by an
 #: affine one (:func:`.affine_tracking.track_affine`).
-TRACKINGS = ('none', 'shift', 'affine')
+_TRACKERS = {'none': _as_detected, 'shift': refine_matches, 'affine': track_affine}
+TRACKINGS = tuple(_TRACKERS)
 
 
 def check_mode(section: str, mode: object) -> str:
@@ -219,11 +229,3 @@ class ImagePairs:
     def reset(self) -> None:
         self.last = None
         self._last_image = None
-
-
-def _as_detected(first: np.ndarray, second: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple:
-    """The matches as detected (``tracking`` 'none')."""
-    return p1, p2
-
-
-_TRACKERS = {'none': _as_detected, 'shift': refine_matches, 'affine': track_affine}
