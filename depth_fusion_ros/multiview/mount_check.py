@@ -376,21 +376,28 @@ def regional_spread(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> n
     sure at three standard errors by the pairs' own spread (docs/multi_view.md, "Matches tracked
     with an affine window").
     """
-    left = [_without_region(K, pairs, r) for r in range(_REGIONS * _REGIONS)]
+    regions = [_regions(K, pair.p1) for pair in pairs]
+    left = [_without_region(pairs, regions, r) for r in range(_REGIONS * _REGIONS)]
     fits = [_minimise(K, kept, v)[0] for kept in left if kept]
     if len(fits) < 2:  # every match in one region: no spread over the image to read
         return np.zeros((3, 3))
     return _jackknife(np.array(fits))
 
 
-def _without_region(K: np.ndarray, pairs: list[MatchedPair], region: int) -> list[MatchedPair]:
-    """The pairs without their matches in ``region`` (row-major, about the principal point), each
-    kept with at least ``_MIN_REGION_MATCHES`` matches left."""
+def _regions(K: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The region (row-major, ``_REGIONS`` x ``_REGIONS`` about the principal point) of each
+    position (M, 2)."""
+    column = np.clip(np.floor(points[:, 0] / (2.0 * K[0, 2] + 1.0) * _REGIONS), 0, _REGIONS - 1)
+    row = np.clip(np.floor(points[:, 1] / (2.0 * K[1, 2] + 1.0) * _REGIONS), 0, _REGIONS - 1)
+    return (row * _REGIONS + column).astype(int)
+
+
+def _without_region(pairs: list[MatchedPair], regions: list[np.ndarray], region: int) -> list[MatchedPair]:
+    """The pairs without their matches in ``region`` (``regions``: each pair's matches' regions by
+    their first positions), each kept with at least ``_MIN_REGION_MATCHES`` matches left."""
     out = []
-    for pair in pairs:
-        column = np.clip(np.floor(pair.p1[:, 0] / (2.0 * K[0, 2] + 1.0) * _REGIONS), 0, _REGIONS - 1)
-        row = np.clip(np.floor(pair.p1[:, 1] / (2.0 * K[1, 2] + 1.0) * _REGIONS), 0, _REGIONS - 1)
-        keep = row * _REGIONS + column != region
+    for pair, where in zip(pairs, regions, strict=True):
+        keep = where != region
         if int(keep.sum()) >= _MIN_REGION_MATCHES:
             out.append(MatchedPair(pair.a, pair.b, pair.p1[keep], pair.p2[keep]))
     return out
