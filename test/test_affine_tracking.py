@@ -6,16 +6,10 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from test_match_refinement import _texture
 
 from depth_fusion_ros.multiview.affine_tracking import MOVE_TOLERANCE_PX, track_affine
-from depth_fusion_ros.multiview.match_refinement import as_uint8, refine_matches
-
-
-def _texture(seed: int = 0, size: tuple[int, int] = (240, 320)) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    noise = cv2.GaussianBlur(rng.random(size).astype(np.float32), (0, 0), 2.0)
-    noise = (noise - noise.min()) / (noise.max() - noise.min())
-    return as_uint8(noise)
+from depth_fusion_ros.multiview.match_refinement import refine_matches
 
 
 def _warped(first: np.ndarray, affine: np.ndarray, gain: float = 1.0, offset: float = 0.0) -> np.ndarray:

@@ -215,15 +215,6 @@ def rotation_matrices(rotvecs: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(rotvecs).as_matrix()
 
 
-def pair_costs(
-    K: np.ndarray, T_ba: np.ndarray, p1: np.ndarray, p2: np.ndarray, rotvecs: np.ndarray
-) -> np.ndarray:
-    """Mean soft-L1 Sampson cost (S,) of matches ``p1 -> p2`` when the told relative pose ``T_ba``
-    (first-camera to second-camera coordinates) is read in a camera turned by each of S rotation
-    vectors (radians): ``M^T T_ba M``, i.e. its rotation conjugated and its translation turned."""
-    return _turned_costs(K, T_ba, p1, p2, _turns(rotvecs))
-
-
 def _turns(rotvecs: np.ndarray) -> np.ndarray:
     """(S, 4, 4) transforms of rotation vectors (S, 3) (radians): made once per evaluation of all
     the pairs (scipy's conversion cost as much as a pair's costs)."""
@@ -233,10 +224,11 @@ def _turns(rotvecs: np.ndarray) -> np.ndarray:
     return M
 
 
-def _turned_costs(
-    K: np.ndarray, T_ba: np.ndarray, p1: np.ndarray, p2: np.ndarray, M: np.ndarray
-) -> np.ndarray:
-    """:func:`pair_costs` with the turns given as transforms ``M`` (S, 4, 4)."""
+def pair_costs(K: np.ndarray, T_ba: np.ndarray, p1: np.ndarray, p2: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """Mean soft-L1 Sampson cost (S,) of matches ``p1 -> p2`` when the told relative pose ``T_ba``
+    (first-camera to second-camera coordinates) is read in a camera turned by each of S turns
+    ``M`` (S, 4, 4; :func:`_turns`): ``M^T T_ba M``, i.e. its rotation conjugated and its
+    translation turned."""
     return pose_costs(K, np.transpose(M, (0, 2, 1)) @ T_ba @ M, p1, p2)
 
 
@@ -277,7 +269,7 @@ def _local(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> tuple[floa
     total, grads, hessian = 0.0, [], np.zeros((3, 3))
     M = _turns(v + _STENCIL)
     for pair in pairs:
-        c, g, H = _derivatives(_turned_costs(K, pair.T_ba, pair.p1, pair.p2, M))
+        c, g, H = _derivatives(pair_costs(K, pair.T_ba, pair.p1, pair.p2, M))
         total += c
         grads.append(g)
         hessian += H
@@ -287,7 +279,7 @@ def _local(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> tuple[floa
 def _totals(K: np.ndarray, pairs: list[MatchedPair], rotvecs: np.ndarray) -> np.ndarray:
     """The pairs' summed cost (S,) at each of S rotation vectors (radians), one batch per pair."""
     M = _turns(rotvecs)
-    return np.sum([_turned_costs(K, p.T_ba, p.p1, p.p2, M) for p in pairs], axis=0)
+    return np.sum([pair_costs(K, p.T_ba, p.p1, p.p2, M) for p in pairs], axis=0)
 
 
 def _total(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> float:
