@@ -15,13 +15,14 @@ from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
 from depth_fusion_ros.evaluation.context import EvalOptions
 from depth_fusion_ros.evaluation.harness import evaluate_sequence
-from depth_fusion_ros.multiview.image_pairs import MatchedPair, Sample
+from depth_fusion_ros.multiview.image_pairs import EARLY_STANDARD_ERRORS, MatchedPair, Sample
 from depth_fusion_ros.multiview.mount_check import (
     MountCheck,
     MountCheckConfig,
     MountEstimate,
     check_frames,
     cost_rises,
+    could_be_sure,
     fit_mount,
     regional_spread,
     rotation_matrices,
@@ -159,6 +160,27 @@ def test_the_early_looks_go_on_at_each_pair_until_the_last_look():
     assert np.allclose(early.rotvec_deg, [-2.0, 0.0, 0.0], atol=0.1), early.rotvec_deg
     check.pairs = pairs
     assert check._early_look() is None
+
+
+def test_a_look_skips_the_jackknife_only_where_it_could_not_disagree():
+    """``could_be_sure`` is the look's shortcut: 4000 random fits, sandwiches and jackknife
+    spreads, read as a look reads them (three standard errors); wherever the full covariance
+    disagrees, the sandwich alone said it could, and most of the fits a level camera gives (under
+    the threshold or within their spread) are skipped."""
+    rng = np.random.default_rng(11)
+    check = MountCheck(PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5), MountCheckConfig())
+    threshold = math.radians(check.config.threshold_deg)
+    disagrees = skipped = 0
+    for _ in range(4000):
+        v = np.radians(rng.normal(0.0, rng.choice([0.3, 1.0, 3.0]), 3))
+        A, B = (np.radians(rng.uniform(0.01, 0.6)) * rng.normal(size=(3, 3)) for _ in range(2))
+        sandwich, spread = A @ A.T, B @ B.T * rng.choice([0.0, 1.0])
+        sure = could_be_sure(v, sandwich, threshold, EARLY_STANDARD_ERRORS)
+        if check._verdict(v, sandwich + spread, standard_errors=EARLY_STANDARD_ERRORS).verdict == 'disagrees':
+            disagrees += 1
+            assert sure, (v, sandwich, spread)
+        skipped += not sure
+    assert disagrees > 400 and skipped > 1000, (disagrees, skipped)
 
 
 def _biased_in_one_quadrant(pairs: list, shift_px: float) -> list:

@@ -38,7 +38,14 @@ def scaled_fundamentals(scales: np.ndarray, K: np.ndarray, T_ba: np.ndarray) -> 
 def _signed_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
     """Signed Sampson distances (S, N) of matches ``p1 -> p2`` (N, 2) under each of S
     fundamental matrices ``F`` (S, 3, 3); or of matches of their own per candidate, ``p1``,
-    ``p2`` (S, N, 2) (the same matches with each candidate's lens distortion undone).
+    ``p2`` (S, N, 2) (the same matches with each candidate's lens distortion undone)."""
+    return _entries_sampson(np.moveaxis(F, (1, 2), (0, 1))[..., None], p1, p2)
+
+
+def _entries_sampson(f: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """Signed Sampson distances of matches ``p1 -> p2`` (..., N, 2) under fundamental matrices
+    given entry by entry, ``f`` (3, 3, ...) (each entry broadcasting against the matches: (S, 1)
+    for one matrix per candidate, (S, N) for one per candidate and match).
 
     Written out per component (the last coordinate is 1) rather than as ``einsum`` over the
     3-vectors: numpy's einsum loops over a dimension of 3 for every (S, N) element, the
@@ -46,14 +53,19 @@ def _signed_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray
     101 poses x 620 matches, a time offset check's pair) and the same to 1e-12."""
     x, y = p1[..., 0], p1[..., 1]
     u, v = p2[..., 0], p2[..., 1]
-    f = F[:, :, :, None]  # (S, 3, 3, 1): each entry against the N matches
-    fx1 = f[:, 0, 0] * x + f[:, 0, 1] * y + f[:, 0, 2]  # F x1, rows 0-2
-    fy1 = f[:, 1, 0] * x + f[:, 1, 1] * y + f[:, 1, 2]
-    fz1 = f[:, 2, 0] * x + f[:, 2, 1] * y + f[:, 2, 2]
-    gx2 = f[:, 0, 0] * u + f[:, 1, 0] * v + f[:, 2, 0]  # F^T x2, rows 0-1
-    gy2 = f[:, 0, 1] * u + f[:, 1, 1] * v + f[:, 2, 1]
+    fx1 = f[0, 0] * x + f[0, 1] * y + f[0, 2]  # F x1, rows 0-2
+    fy1 = f[1, 0] * x + f[1, 1] * y + f[1, 2]
+    fz1 = f[2, 0] * x + f[2, 1] * y + f[2, 2]
+    gx2 = f[0, 0] * u + f[1, 0] * v + f[2, 0]  # F^T x2, rows 0-1
+    gy2 = f[0, 1] * u + f[1, 1] * v + f[2, 1]
     norm = np.sqrt(fx1 * fx1 + fy1 * fy1 + gx2 * gx2 + gy2 * gy2)
     return (u * fx1 + v * fy1 + fz1) / np.maximum(norm, 1e-12)
+
+
+def _soft_l1(distances: np.ndarray) -> np.ndarray:
+    """Squares under ``_LOSS_SCALE_PX``, absolute values beyond."""
+    r = distances / _LOSS_SCALE_PX
+    return np.sqrt(1.0 + r * r) - 1.0
 
 
 def soft_l1_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
@@ -61,8 +73,14 @@ def soft_l1_sampson(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray
     :func:`_signed_sampson`) under each of S fundamental matrices ``F`` (S, 3, 3), in one pass:
     squares under ``_LOSS_SCALE_PX``, absolute values beyond. Every calibration check fits its
     parameter with it."""
-    r = _signed_sampson(F, p1, p2) / _LOSS_SCALE_PX
-    return np.sqrt(1.0 + r * r) - 1.0
+    return _soft_l1(_signed_sampson(F, p1, p2))
+
+
+def soft_l1_sampson_entries(f: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """:func:`soft_l1_sampson` of matches ``p1 -> p2`` (N, 2) each under a matrix of its own per
+    candidate, given entry by entry: ``f`` (3, 3, S, N) (the stacked pairs of ``pair_stack.py``,
+    each match under its own pair's matrix: contiguous per entry, as the arithmetic reads it)."""
+    return _soft_l1(_entries_sampson(f, p1, p2))
 
 
 def skews(t: np.ndarray) -> np.ndarray:

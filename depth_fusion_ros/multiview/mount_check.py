@@ -56,7 +56,6 @@ from typing import ClassVar
 import numpy as np
 
 from ..camera import PinholeCamera
-from .epipolar_cost import pose_costs
 from .image_pairs import (
     CHECK_MODES,
     EARLY_STANDARD_ERRORS,
@@ -66,6 +65,7 @@ from .image_pairs import (
     check_sampling,
     graded_verdict,
 )
+from .pair_stack import PairStack
 from .paired_check import PairedCheck, feed
 
 log = logging.getLogger(__name__)
@@ -224,14 +224,6 @@ def _turns(rotvecs: np.ndarray) -> np.ndarray:
     return M
 
 
-def pair_costs(K: np.ndarray, T_ba: np.ndarray, p1: np.ndarray, p2: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """Mean soft-L1 Sampson cost (S,) of matches ``p1 -> p2`` when the told relative pose ``T_ba``
-    (first-camera to second-camera coordinates) is read in a camera turned by each of S turns
-    ``M`` (S, 4, 4; :func:`_turns`): ``M^T T_ba M``, i.e. its rotation conjugated and its
-    translation turned."""
-    return pose_costs(K, np.transpose(M, (0, 2, 1)) @ T_ba @ M, p1, p2)
-
-
 def _stencil() -> np.ndarray:
     """The 19 offsets (radians) the value, gradient and Hessian are read from: the centre, ±h
     on each axis and the four (±h, ±h) on each pair of axes."""
@@ -250,40 +242,36 @@ def _stencil() -> np.ndarray:
 _STENCIL = _stencil()
 
 
-def _derivatives(costs: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Value, gradient (3,) and Hessian (3, 3) from the costs at ``_STENCIL`` (central differences)."""
+def _derivatives(costs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Values (P,), gradients (P, 3) and Hessians (P, 3, 3) from each of P pairs' costs at
+    ``_STENCIL`` (19, P) (central differences)."""
     h = _STEP
-    g = np.array([(costs[1 + 2 * i] - costs[2 + 2 * i]) / (2 * h) for i in range(3)])
-    H = np.diag([(costs[1 + 2 * i] + costs[2 + 2 * i] - 2 * costs[0]) / h**2 for i in range(3)])
+    g = np.stack([(costs[1 + 2 * i] - costs[2 + 2 * i]) / (2 * h) for i in range(3)], axis=-1)
+    H = np.zeros((costs.shape[1], 3, 3))
+    for i in range(3):
+        H[:, i, i] = (costs[1 + 2 * i] + costs[2 + 2 * i] - 2 * costs[0]) / h**2
     k = 7
     for i in range(3):
         for j in range(i + 1, 3):
             pp, pm, mp, mm = costs[k : k + 4]
-            H[i, j] = H[j, i] = (pp - pm - mp + mm) / (4 * h * h)
+            H[:, i, j] = H[:, j, i] = (pp - pm - mp + mm) / (4 * h * h)
             k += 4
-    return float(costs[0]), g, H
+    return costs[0], g, H
 
 
-def _local(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def _local(K: np.ndarray, stack: PairStack, v: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Total cost, per-pair gradients (P, 3) and total Hessian at rotation vector ``v``."""
-    total, grads, hessian = 0.0, [], np.zeros((3, 3))
-    M = _turns(v + _STENCIL)
-    for pair in pairs:
-        c, g, H = _derivatives(pair_costs(K, pair.T_ba, pair.p1, pair.p2, M))
-        total += c
-        grads.append(g)
-        hessian += H
-    return total, np.array(grads), hessian
+    c, grads, H = _derivatives(stack.turned_costs(K, _turns(v + _STENCIL)))
+    return float(c.sum()), grads, H.sum(axis=0)
 
 
-def _totals(K: np.ndarray, pairs: list[MatchedPair], rotvecs: np.ndarray) -> np.ndarray:
-    """The pairs' summed cost (S,) at each of S rotation vectors (radians), one batch per pair."""
-    M = _turns(rotvecs)
-    return np.sum([pair_costs(K, p.T_ba, p.p1, p.p2, M) for p in pairs], axis=0)
+def _totals(K: np.ndarray, stack: PairStack, rotvecs: np.ndarray) -> np.ndarray:
+    """The pairs' summed cost (S,) at each of S rotation vectors (radians)."""
+    return stack.turned_costs(K, _turns(rotvecs)).sum(axis=1)
 
 
-def _total(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> float:
-    return float(_totals(K, pairs, v[None])[0])
+def _total(K: np.ndarray, stack: PairStack, v: np.ndarray) -> float:
+    return float(_totals(K, stack, v[None])[0])
 
 
 def cost_rises(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -298,19 +286,17 @@ def cost_rises(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray, direction
     degree 3.5 %).
     """
     offsets = np.concatenate([np.zeros((1, 3)), _RISE_TURN * directions.T, -_RISE_TURN * directions.T])
-    costs = _totals(K, pairs, v + offsets)
+    costs = _totals(K, PairStack.of(pairs), v + offsets)
     centre = max(float(costs[0]), 1e-12)
     return ((costs[1:4] + costs[4:7]) / 2.0 - centre) / centre
 
 
-def _minimise(
-    K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _minimise(K: np.ndarray, stack: PairStack, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt from ``v`` on the eigenvalues of the summed Hessian (a flat direction
     moves only as far as its gradient pulls it, steps capped at 2 deg); the fit, the pairs'
     gradients and the summed Hessian there."""
     lam = 1e-3
-    total, grads, hessian = _local(K, pairs, v)
+    total, grads, hessian = _local(K, stack, v)
     for _ in range(_ITERATIONS):
         w, U = np.linalg.eigh(hessian)
         scale = max(float(w.max()), 1e-12)
@@ -319,10 +305,10 @@ def _minimise(
         norm = float(np.linalg.norm(step))
         if norm > _MAX_STEP:
             step *= _MAX_STEP / norm
-        if _total(K, pairs, v + step) < total:
+        if _total(K, stack, v + step) < total:
             v = v + step
             lam = max(lam / 3.0, 1e-7)
-            total, grads, hessian = _local(K, pairs, v)
+            total, grads, hessian = _local(K, stack, v)
             if norm < _TOLERANCE:
                 break
         else:
@@ -342,13 +328,44 @@ def fit_mount(K: np.ndarray, pairs: list[MatchedPair]) -> tuple[np.ndarray, np.n
     image, and the cost is not quadratic over a degree): fits of one stream from samples 1-6
     frames later spread with a standard deviation of 0.28 deg where it said 0.1.
     """
-    v, grads, hessian = _minimise(K, pairs, np.zeros(3))
+    v, sandwich = _fit(K, pairs)
+    return v, sandwich + _block_spread(K, pairs, v)
+
+
+def _fit(K: np.ndarray, pairs: list[MatchedPair]) -> tuple[np.ndarray, np.ndarray]:
+    """The best fit (radians) and its sandwich covariance (:func:`fit_mount`)."""
+    v, grads, hessian = _minimise(K, PairStack.of(pairs), np.zeros(3))
     n = len(pairs)
     inverse = np.linalg.pinv(hessian)
-    sandwich = inverse @ (grads.T @ grads * (n / max(n - 1, 1))) @ inverse
+    return v, inverse @ (grads.T @ grads * (n / max(n - 1, 1))) @ inverse
+
+
+def _block_spread(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> np.ndarray:
+    """The jackknife covariance (3, 3) over blocks of consecutive pairs (:func:`fit_mount`): five
+    fits more, most of a fit's cost."""
+    n = len(pairs)
     blocks = np.array_split(np.arange(n), min(_BLOCKS, n))
-    fits = np.array([_minimise(K, [pairs[i] for i in np.setdiff1d(np.arange(n), b)], v)[0] for b in blocks])
-    return v, sandwich + _jackknife(fits)
+    rest = [PairStack.of([pairs[i] for i in np.setdiff1d(np.arange(n), b)]) for b in blocks]
+    return _jackknife(np.array([_minimise(K, stack, v)[0] for stack in rest]))
+
+
+def could_be_sure(v: np.ndarray, sandwich: np.ndarray, threshold: float, standard_errors: float) -> bool:
+    """Whether fit ``v`` with sandwich covariance ``sandwich`` could still read as a turn of at
+    least ``threshold`` (radians), sure at ``standard_errors``, once the jackknife is added.
+
+    Why: a look needs the jackknife's five fits only when it could disagree, and the covariance
+    they add can only make a turn less sure. A disagreeing component ``c`` along a unit ``u``
+    has ``|c| >= threshold + k sd`` with ``sd^2 >= u^T S u``, so ``c^2 >= k^2 (u^T S u + eps)``
+    for any ``eps <= threshold^2 / k^2``, and the most any ``u`` gives of ``c^2 / u^T (S + eps)
+    u`` is ``v^T (S + eps)^-1 v``. Where that is under ``k^2``, or ``|v|`` is under the
+    threshold, no look at the full covariance can disagree (a necessary condition only: the
+    verdicts stay as they were, the looks cost less).
+    """
+    if float(np.linalg.norm(v)) < threshold:
+        return False
+    eps = 0.5 * (threshold / standard_errors) ** 2
+    distance = float(v @ np.linalg.solve(0.5 * (sandwich + sandwich.T) + eps * np.eye(3), v))
+    return distance >= standard_errors**2
 
 
 def _jackknife(fits: np.ndarray) -> np.ndarray:
@@ -370,7 +387,7 @@ def regional_spread(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> n
     """
     regions = [_regions(K, pair.p1) for pair in pairs]
     left = [_without_region(pairs, regions, r) for r in range(_REGIONS * _REGIONS)]
-    fits = [_minimise(K, kept, v)[0] for kept in left if kept]
+    fits = [_minimise(K, PairStack.of(kept), v)[0] for kept in left if kept]
     if len(fits) < 2:  # every match in one region: no spread over the image to read
         return np.zeros((3, 3))
     return _jackknife(np.array(fits))
@@ -418,7 +435,10 @@ class MountCheck(PairedCheck):
         if not 0 < n <= len(self.pairs) < self.config.pairs:
             return None
         K = np.asarray(self.camera.K, dtype=np.float64)
-        v, cov = fit_mount(K, self.pairs)
+        v, sandwich = _fit(K, self.pairs)
+        if not could_be_sure(v, sandwich, math.radians(self.config.threshold_deg), EARLY_STANDARD_ERRORS):
+            return None
+        cov = sandwich + _block_spread(K, self.pairs, v)
         # The regional spread can only make a turn less sure (it adds to the standard errors
         # along the same directions), so it is fitted only for a look that is sure without it.
         if self._verdict(v, cov, standard_errors=EARLY_STANDARD_ERRORS).verdict != 'disagrees':

@@ -1,0 +1,35 @@
+"""The mount check's stacked pairs: every pair's cost under every turn in one pass, the same as
+a pass per pair (``multiview/pair_stack.py``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_mount_check import _exact_pairs
+
+from depth_fusion_ros.multiview.epipolar_cost import pose_costs
+from depth_fusion_ros.multiview.mount_check import rotation_matrices
+from depth_fusion_ros.multiview.pair_stack import PairStack
+
+
+def _turns(rotvecs_deg: np.ndarray) -> np.ndarray:
+    M = np.zeros((len(rotvecs_deg), 4, 4))
+    M[:, :3, :3] = rotation_matrices(np.radians(rotvecs_deg))
+    M[:, 3, 3] = 1.0
+    return M
+
+
+def test_the_stacked_costs_are_each_pairs_own():
+    """Pairs of different sizes under 7 turns: each pair's mean cost is what a pass over that pair
+    alone gives (to 1e-12), and a pose that does not move costs inf, as one pass says."""
+    camera, pairs = _exact_pairs([1.0, -0.5, 0.2], 'forward', n_pairs=5)
+    pairs[1] = type(pairs[1])(pairs[1].a, pairs[1].b, pairs[1].p1[:40], pairs[1].p2[:40])
+    still = type(pairs[2])(pairs[2].a, pairs[2].a, pairs[2].p1, pairs[2].p2)  # no motion at all
+    pairs.append(still)
+    M = _turns(np.random.default_rng(5).normal(0.0, 2.0, (7, 3)))
+    stacked = PairStack.of(pairs).turned_costs(camera.K, M)
+    assert stacked.shape == (7, len(pairs))
+    for j, pair in enumerate(pairs):
+        own = pose_costs(camera.K, np.transpose(M, (0, 2, 1)) @ pair.T_ba @ M, pair.p1, pair.p2)
+        assert np.allclose(stacked[:, j], own, rtol=1e-12, atol=0.0, equal_nan=False), j
+    assert np.isinf(stacked[:, -1]).all() and np.isfinite(stacked[:, :-1]).all()
+    assert PairStack.of([]).turned_costs(camera.K, M).shape == (7, 0)
