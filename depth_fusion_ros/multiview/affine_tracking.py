@@ -52,11 +52,15 @@ def _gradient(image: np.ndarray, dx: int, dy: int) -> np.ndarray:
     return cv2.Sobel(image, cv2.CV_32F, dx, dy, ksize=1) * 0.5
 
 
+#: The window's offsets as rows (3, N) of ``(1, x, y)``: a warp's positions are one product.
+_OFFSET_ROWS = np.stack([np.ones_like(_GX), _GX, _GY])
+
+
 def _warped(t: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The window's pixel positions (M, N) in the second image under warps ``A x + t``."""
-    x = t[:, :1] + A[:, 0, :1] * _GX + A[:, 0, 1:] * _GY
-    y = t[:, 1:] + A[:, 1, :1] * _GX + A[:, 1, 1:] * _GY
-    return x, y
+    rows = np.concatenate([t[:, :, None], A], axis=2)  # (M, 2, 3): each coordinate's (t, a_x, a_y)
+    xy = rows @ _OFFSET_ROWS
+    return xy[:, 0], xy[:, 1]
 
 
 def _gain_matched(
@@ -88,29 +92,30 @@ def track_affine(
     weighted = jacobian * _WEIGHTS
     normal = weighted @ np.transpose(jacobian, (0, 2, 1))
     damping = 1e-6 * np.trace(normal, axis1=1, axis2=2)[:, None, None] + 1e-12
-    solve = np.linalg.inv(normal + damping * np.eye(6))
+    descent = np.linalg.inv(normal + damping * np.eye(6)) @ weighted  # (M, 6, N): a step is one product
     t = np.asarray(p2, dtype=np.float64).copy()
     A = np.tile(np.eye(2), (len(p1), 1, 1))
-    moving = np.ones(len(p1), dtype=bool)
-    # The matches still moving, and their rows of what each step reads: taken again only when
-    # some converge, not every step.
-    i = np.arange(len(p1))
-    rows = (weighted, solve, template, variance)
+    # The rows each step reads (``rows``: which match each is) and which of them still move. A
+    # row that converged stays, unmoved, until a quarter have: copying the rows out at every
+    # step cost as much as the steps.
+    rows, live = np.arange(len(p1)), np.ones(len(p1), dtype=bool)
+    tm, var = template, variance
     for _ in range(ITERATIONS):
-        w, S, tm, var = rows
-        centred, gain = _gain_matched(_sample(b, *_warped(t[i], A[i])), tm, var)
+        centred, gain = _gain_matched(_sample(b, *_warped(t[rows], A[rows])), tm, var)
         residual = centred / np.where(np.abs(gain) > 1e-3, gain, 1e-3)[:, None] - tm
-        step = (S @ (w @ residual[:, :, None]))[:, :, 0]
-        inverse = np.linalg.inv(np.eye(2) + step[:, 2:].reshape(-1, 2, 2))
-        A[i] = A[i] @ inverse  # the warp composed with the step's inverse
+        step = (descent @ residual[:, :, None])[live, :, 0]
+        i = rows[live]
+        # The warp composed with the step's inverse.
+        A[i] = A[i] @ np.linalg.inv(np.eye(2) + step[:, 2:].reshape(-1, 2, 2))
         t[i] -= (A[i] @ step[:, :2, None])[:, :, 0]
-        still = np.linalg.norm(step[:, :2], axis=1) > TOLERANCE_PX
-        moving[i] = still
-        if not still.all():
-            i = i[still]
-            if len(i) == 0:
-                break
-            rows = tuple(r[still] for r in rows)
+        live[live] = np.linalg.norm(step[:, :2], axis=1) > TOLERANCE_PX
+        if not live.any():
+            break
+        if live.sum() < 0.75 * len(rows):
+            rows, descent, tm, var = rows[live], descent[live], tm[live], var[live]
+            live = np.ones(len(rows), dtype=bool)
+    moving = np.zeros(len(p1), dtype=bool)
+    moving[rows[live]] = True
     _, gain = _gain_matched(_sample(b, *_warped(t, A)), template, variance)
     area = np.linalg.det(A)
     keep = (
