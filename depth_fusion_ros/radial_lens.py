@@ -33,9 +33,8 @@ def undistort_radial(xd: np.ndarray, yd: np.ndarray, k1: float | np.ndarray) -> 
     xd, yd = np.asarray(xd, dtype=np.float64), np.asarray(yd, dtype=np.float64)
     k1 = np.asarray(k1, dtype=np.float64)
     shape = np.broadcast_shapes(xd.shape, yd.shape, k1.shape)
-    x, y = np.broadcast_to(xd, shape).copy(), np.broadcast_to(yd, shape).copy()
     if not np.any(k1):
-        return x, y
+        return np.broadcast_to(xd, shape).copy(), np.broadcast_to(yd, shape).copy()
     rd = np.broadcast_to(np.sqrt(xd * xd + yd * yd), shape)
     # The undistorted radius of a barrel distortion's fold (none for k1 >= 0), where the
     # distorted radius is largest, 2/3 of it: a radius beyond has no root and is taken there.
@@ -51,4 +50,4 @@ def undistort_radial(xd: np.ndarray, yd: np.ndarray, k1: float | np.ndarray) -> 
             break
     r = np.where(beyond, fold, r)
     scale = np.divide(r, rd, out=np.ones(shape), where=rd > 0)
-    return x * scale, y * scale
+    return xd * scale, yd * scale

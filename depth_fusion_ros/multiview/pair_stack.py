@@ -25,7 +25,8 @@ _MIN_MOTION = 1e-5
 class PairStack:
     """The pairs' told relative poses (P, 4, 4) and their matches end to end: ``p1``, ``p2``
     (N, 2), ``pair`` (N,) the pair each match belongs to, ``starts`` (P,) where each pair's
-    matches begin and ``counts`` (P,) how many there are."""
+    matches begin and ``counts`` (P,) how many there are. Made once per set of pairs a fit
+    minimises over (:meth:`of`), read by each of its evaluations."""
 
     T_ba: np.ndarray
     p1: np.ndarray
