@@ -4,6 +4,7 @@ a pass per pair (``multiview/pair_stack.py``)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from test_mount_check import _exact_pairs
 
 from depth_fusion_ros.multiview.epipolar_cost import pose_costs
@@ -20,7 +21,8 @@ def _turns(rotvecs_deg: np.ndarray) -> np.ndarray:
 
 def test_the_stacked_costs_are_each_pairs_own():
     """Pairs of different sizes under 7 turns: each pair's mean cost is what a pass over that pair
-    alone gives (to 1e-12), and a pose that does not move costs inf, as one pass says."""
+    alone gives (to 1e-12), a pose that does not move costs inf, as one pass says, and a pair
+    without matches is refused."""
     camera, pairs = _exact_pairs([1.0, -0.5, 0.2], 'forward', n_pairs=5)
     pairs[1] = type(pairs[1])(pairs[1].a, pairs[1].b, pairs[1].p1[:40], pairs[1].p2[:40])
     still = type(pairs[2])(pairs[2].a, pairs[2].a, pairs[2].p1, pairs[2].p2)  # no motion at all
@@ -33,3 +35,6 @@ def test_the_stacked_costs_are_each_pairs_own():
         assert np.allclose(stacked[:, j], own, rtol=1e-12, atol=0.0, equal_nan=False), j
     assert np.isinf(stacked[:, -1]).all() and np.isfinite(stacked[:, :-1]).all()
     assert PairStack.of([]).turned_costs(camera.K, M).shape == (7, 0)
+    empty = type(pairs[0])(pairs[0].a, pairs[0].b, pairs[0].p1[:0], pairs[0].p2[:0])
+    with pytest.raises(ValueError, match='pair 1 has no matches'):
+        PairStack.of([pairs[0], empty])

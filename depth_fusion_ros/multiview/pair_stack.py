@@ -37,8 +37,11 @@ class PairStack:
 
     @classmethod
     def of(cls, pairs: list[MatchedPair]) -> PairStack:
-        """The stack of ``pairs`` (each with at least one match), in their order."""
+        """The stack of ``pairs``, in their order; a pair without matches is an error (the checks'
+        pairs keep at least ``min_matches``; a pair's mean cost needs one)."""
         counts = np.array([len(p.p1) for p in pairs], dtype=np.int64)
+        if (counts == 0).any():
+            raise ValueError(f'PairStack: pair {int(np.argmin(counts))} has no matches')
         return cls(
             np.array([p.T_ba for p in pairs], dtype=np.float64).reshape(-1, 4, 4),
             np.concatenate([p.p1 for p in pairs]).astype(np.float64) if pairs else np.zeros((0, 2)),
