@@ -39,6 +39,8 @@ _OFFSETS = np.arange(-RADIUS, RADIUS + 1, dtype=np.float64)
 _GX, _GY = (a.ravel() for a in np.meshgrid(_OFFSETS, _OFFSETS))
 _WEIGHTS = np.exp(-(_GX**2 + _GY**2) / (2.0 * SIGMA**2))
 _WEIGHTS /= _WEIGHTS.sum()
+#: The window's offsets as rows (3, N) of ``(1, x, y)``: a warp's positions are one product.
+_OFFSET_ROWS = np.stack([np.ones_like(_GX), _GX, _GY])
 
 
 def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -50,10 +52,6 @@ def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 def _gradient(image: np.ndarray, dx: int, dy: int) -> np.ndarray:
     """Central difference of a float32 image along x (``dx=1``) or y (``dy=1``)."""
     return cv2.Sobel(image, cv2.CV_32F, dx, dy, ksize=1) * 0.5
-
-
-#: The window's offsets as rows (3, N) of ``(1, x, y)``: a warp's positions are one product.
-_OFFSET_ROWS = np.stack([np.ones_like(_GX), _GX, _GY])
 
 
 def _warped(t: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

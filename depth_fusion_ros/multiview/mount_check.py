@@ -328,25 +328,25 @@ def fit_mount(K: np.ndarray, pairs: list[MatchedPair]) -> tuple[np.ndarray, np.n
     image, and the cost is not quadratic over a degree): fits of one stream from samples 1-6
     frames later spread with a standard deviation of 0.28 deg where it said 0.1.
     """
-    v, sandwich = _fit(K, pairs)
-    return v, sandwich + _block_spread(K, pairs, v)
+    stack = PairStack.of(pairs)
+    v, sandwich = _fit(K, stack)
+    return v, sandwich + _block_spread(K, stack, v)
 
 
-def _fit(K: np.ndarray, pairs: list[MatchedPair]) -> tuple[np.ndarray, np.ndarray]:
+def _fit(K: np.ndarray, stack: PairStack) -> tuple[np.ndarray, np.ndarray]:
     """The best fit (radians) and its sandwich covariance (:func:`fit_mount`)."""
-    v, grads, hessian = _minimise(K, PairStack.of(pairs), np.zeros(3))
-    n = len(pairs)
+    v, grads, hessian = _minimise(K, stack, np.zeros(3))
+    n = len(stack)
     inverse = np.linalg.pinv(hessian)
     return v, inverse @ (grads.T @ grads * (n / max(n - 1, 1))) @ inverse
 
 
-def _block_spread(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> np.ndarray:
+def _block_spread(K: np.ndarray, stack: PairStack, v: np.ndarray) -> np.ndarray:
     """The jackknife covariance (3, 3) over blocks of consecutive pairs (:func:`fit_mount`): five
     fits more, most of a fit's cost."""
-    n = len(pairs)
-    blocks = np.array_split(np.arange(n), min(_BLOCKS, n))
-    rest = [PairStack.of([pairs[i] for i in np.setdiff1d(np.arange(n), b)]) for b in blocks]
-    return _jackknife(np.array([_minimise(K, stack, v)[0] for stack in rest]))
+    blocks = np.array_split(np.arange(len(stack)), min(_BLOCKS, len(stack)))
+    rest = [stack.keep(~np.isin(stack.pair, b)) for b in blocks]
+    return _jackknife(np.array([_minimise(K, kept, v)[0] for kept in rest]))
 
 
 def could_be_sure(v: np.ndarray, sandwich: np.ndarray, threshold: float, standard_errors: float) -> bool:
@@ -385,9 +385,10 @@ def regional_spread(K: np.ndarray, pairs: list[MatchedPair], v: np.ndarray) -> n
     sure at three standard errors by the pairs' own spread (docs/multi_view.md, "Matches tracked
     with an affine window").
     """
-    regions = [_regions(K, pair.p1) for pair in pairs]
-    left = [_without_region(pairs, regions, r) for r in range(_REGIONS * _REGIONS)]
-    fits = [_minimise(K, PairStack.of(kept), v)[0] for kept in left if kept]
+    stack = PairStack.of(pairs)
+    regions = _regions(K, stack.p1)
+    left = [stack.keep(regions != r, _MIN_REGION_MATCHES) for r in range(_REGIONS * _REGIONS)]
+    fits = [_minimise(K, kept, v)[0] for kept in left if len(kept)]
     if len(fits) < 2:  # every match in one region: no spread over the image to read
         return np.zeros((3, 3))
     return _jackknife(np.array(fits))
@@ -399,17 +400,6 @@ def _regions(K: np.ndarray, points: np.ndarray) -> np.ndarray:
     column = np.clip(np.floor(points[:, 0] / (2.0 * K[0, 2] + 1.0) * _REGIONS), 0, _REGIONS - 1)
     row = np.clip(np.floor(points[:, 1] / (2.0 * K[1, 2] + 1.0) * _REGIONS), 0, _REGIONS - 1)
     return (row * _REGIONS + column).astype(int)
-
-
-def _without_region(pairs: list[MatchedPair], regions: list[np.ndarray], region: int) -> list[MatchedPair]:
-    """The pairs without their matches in ``region`` (``regions``: each pair's matches' regions by
-    their first positions), each kept with at least ``_MIN_REGION_MATCHES`` matches left."""
-    out = []
-    for pair, where in zip(pairs, regions, strict=True):
-        keep = where != region
-        if int(keep.sum()) >= _MIN_REGION_MATCHES:
-            out.append(MatchedPair(pair.a, pair.b, pair.p1[keep], pair.p2[keep]))
-    return out
 
 
 @dataclass
@@ -435,10 +425,11 @@ class MountCheck(PairedCheck):
         if not 0 < n <= len(self.pairs) < self.config.pairs:
             return None
         K = np.asarray(self.camera.K, dtype=np.float64)
-        v, sandwich = _fit(K, self.pairs)
+        stack = PairStack.of(self.pairs)
+        v, sandwich = _fit(K, stack)
         if not could_be_sure(v, sandwich, math.radians(self.config.threshold_deg), EARLY_STANDARD_ERRORS):
             return None
-        cov = sandwich + _block_spread(K, self.pairs, v)
+        cov = sandwich + _block_spread(K, stack, v)
         # The regional spread can only make a turn less sure (it adds to the standard errors
         # along the same directions), so it is fitted only for a look that is sure without it.
         if self._verdict(v, cov, standard_errors=EARLY_STANDARD_ERRORS).verdict != 'disagrees':

@@ -42,14 +42,29 @@ class PairStack:
         counts = np.array([len(p.p1) for p in pairs], dtype=np.int64)
         if (counts == 0).any():
             raise ValueError(f'PairStack: pair {int(np.argmin(counts))} has no matches')
-        return cls(
-            np.array([p.T_ba for p in pairs], dtype=np.float64).reshape(-1, 4, 4),
-            np.concatenate([p.p1 for p in pairs]).astype(np.float64) if pairs else np.zeros((0, 2)),
-            np.concatenate([p.p2 for p in pairs]).astype(np.float64) if pairs else np.zeros((0, 2)),
-            np.repeat(np.arange(len(pairs)), counts),
-            np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64) if pairs else counts,
+        if not pairs:
+            return cls._made(np.zeros((0, 4, 4)), np.zeros((0, 2)), np.zeros((0, 2)), counts)
+        return cls._made(
+            np.array([p.T_ba for p in pairs], dtype=np.float64),
+            np.concatenate([p.p1 for p in pairs]).astype(np.float64),
+            np.concatenate([p.p2 for p in pairs]).astype(np.float64),
             counts,
         )
+
+    @classmethod
+    def _made(cls, T_ba: np.ndarray, p1: np.ndarray, p2: np.ndarray, counts: np.ndarray) -> PairStack:
+        """A stack of its poses, matches and each pair's match count (the rest follows from them)."""
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        return cls(T_ba, p1, p2, np.repeat(np.arange(len(counts)), counts), starts[: len(counts)], counts)
+
+    def keep(self, matches: np.ndarray, min_matches: int = 1) -> PairStack:
+        """The stack with only the ``matches`` (a mask (N,)) kept, and only the pairs left with at
+        least ``min_matches`` of them: the mount check's jackknifes leave out a block of pairs or
+        a region of the image this way, without making pairs anew."""
+        left = np.bincount(self.pair[matches], minlength=len(self))
+        pairs = left >= max(int(min_matches), 1)
+        matches = matches & pairs[self.pair]
+        return self._made(self.T_ba[pairs], self.p1[matches], self.p2[matches], left[pairs])
 
     def __len__(self) -> int:
         return len(self.counts)
