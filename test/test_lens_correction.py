@@ -104,7 +104,9 @@ def _node(mode: str, D: tuple[float, ...] = ()):
         _restart_from_ns=None,
         _mount_unsaid=object(),
         _mount_unsaid_lock=threading.Lock(),
+        _lens_pub=SimpleNamespace(sent=[]),
     )
+    node._lens_pub.publish = node._lens_pub.sent.append
     return node, result, warnings, infos, restarts
 
 
@@ -129,6 +131,11 @@ def test_the_node_takes_a_lens_once_and_starts_over():
     said = 'k1 -0.090 added to the calibration the images are undistorted with, from the image stamped 0.0'
     assert said in warnings[0]
     assert 'camera_info D [-0.090, 0, 0, 0, 0]' in warnings[0]
+    # The calibration taken, published once for the nodes reading the raw camera (lens_topic.py).
+    (info,) = node._lens_pub.sent
+    assert m.stamp_to_ns(info.header.stamp) == 5_000 and (info.width, info.height) == (160, 120)
+    assert info.distortion_model == 'plumb_bob'
+    np.testing.assert_allclose(info.d, (-0.09, 0, 0, 0, 0), atol=1e-15)
     # A camera_info with a distortion of its own: the fit adds to its k1, and the hint says so.
     node, *_, warnings, _, _ = _node('correct', (0.1, -0.2, 0.0, 0.0, 0.0))
     node._lens_correctable = lambda: CheckCorrections._lens_correctable(node)
@@ -136,6 +143,7 @@ def test_the_node_takes_a_lens_once_and_starts_over():
     assert 'camera_info -0.090 added to D[0] would do it' in warnings[0]
     taken = node.camera_input._calibration_for(160, 120)
     np.testing.assert_allclose(taken.D, (0.01, -0.2, 0, 0, 0), atol=1e-15)
+    np.testing.assert_allclose(node._lens_pub.sent[0].d, (0.01, -0.2, 0, 0, 0), atol=1e-15)
 
 
 def test_after_a_lens_a_focal_disagreement_is_said_not_taken():
@@ -168,7 +176,12 @@ def test_in_warn_mode_the_node_says_the_lens_and_keeps_its_calibration():
     CheckCorrections._on_focal_estimate(node, CAMERA, result)
     CheckCorrections._take_lens_correction(node, 5_000)
     assert node.stats.snapshot().noted == {'lens_distortion': 1} and 'k1 -0.09' in warnings[0]
-    assert node.camera_input.lens_k1 == 0.0 and node._restart_from_ns is None and not restarts
+    assert (
+        node.camera_input.lens_k1 == 0.0
+        and node._restart_from_ns is None
+        and not restarts
+        and not node._lens_pub.sent
+    )
 
 
 def test_evaluate_takes_the_lens_and_gets_the_multi_view_depth_back():

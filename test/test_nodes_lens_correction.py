@@ -2,17 +2,19 @@
 (a barrel lens of k1 -0.1, camera_info without it, the rotation sweep) is found by the focal
 length check, said once, and (``focal_check.mode: correct``, the default) the images from then
 on are undistorted with the fitted ``k1``: the keyframe images published after it are the
-pinhole camera's, those before it the lens's."""
+pinhole camera's, those before it the lens's, and the calibration taken is published once,
+stamped with the image it was taken at."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from sensor_msgs.msg import Image
+from sensor_msgs.msg import CameraInfo, Image
 from test_nodes_multi_view import _Camera, _notes_of, _send_checked, _stream_check_node, _wait_keyframes_out
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
+from depth_fusion_ros.nodes.lens_topic import TOPIC_LENS_CAMERA_INFO, lens_qos
 from depth_fusion_ros.nodes.testing import RosHarness
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
@@ -41,6 +43,7 @@ def test_a_lens_is_found_and_the_images_undistorted_from_then_on():
         notes = _notes_of(node)
         keyframes = ros.collect(Image, '/depth_fusion/keyframe/image')
         depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        lens_infos = ros.collect(CameraInfo, '/' + TOPIC_LENS_CAMERA_INFO, lens_qos())
         cam = _Camera(ros)
         taken_at = None
         for i, frame in enumerate(lens.frames):
@@ -48,6 +51,7 @@ def test_a_lens_is_found_and_the_images_undistorted_from_then_on():
             if taken_at is None and node.camera_input.lens_k1 != 0.0:
                 taken_at = i
         _wait_keyframes_out(ros, node, depths, len(lens.frames))
+        ros.wait_for(lambda: lens_infos, 5.0)
         snap = node.stats.snapshot()
         extra = node.diagnostic_extra()
         k1 = node.camera_input.lens_k1
@@ -67,3 +71,8 @@ def test_a_lens_is_found_and_the_images_undistorted_from_then_on():
         (after if k >= taken_at else before).append(closer)
     assert before and after, (taken_at, len(keyframes))
     assert not any(before) and all(after), (before, after)
+    # The calibration taken, for a node that undistorts the raw camera itself (lens_topic.py).
+    (info,) = lens_infos
+    assert m.stamp_to_ns(info.header.stamp) == stamps[taken_at] and info.distortion_model == 'plumb_bob'
+    np.testing.assert_allclose(info.d, (k1, 0, 0, 0, 0), atol=1e-12)
+    assert (info.width, info.height, info.k[0]) == (lens.camera.width, lens.camera.height, lens.camera.fx)

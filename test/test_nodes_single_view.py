@@ -137,6 +137,7 @@ def test_raw_camera_input_is_undistorted_and_output_kind_is_latched(torchscript_
                     Parameter('model', value=str(torchscript_model)),
                     Parameter('input_rectified', value=False),
                     Parameter('queue_size', value=8),
+                    Parameter('camera_info_wait', value=0.0),  # the first image dropped at once
                 ],
                 cli_args=[
                     '--ros-args',
@@ -167,6 +168,98 @@ def test_raw_camera_input_is_undistorted_and_output_kind_is_latched(torchscript_
     assert snap.dropped == {'no_camera_info': 1, 'size_mismatch': 1}
     assert (depths[0].width, depths[0].height) == (320, 240) and m.stamp_to_ns(depths[0].header.stamp) == 40
     assert len(kinds) <= 2 and {k.data for k in kinds} == {'metric_depth'}
+
+
+def test_raw_camera_images_before_the_first_camera_info_wait_for_it(torchscript_model):
+    """A raw camera whose camera_info comes a moment after its first images: they wait
+    (``camera_info_wait``) and are processed in order once it comes; an image further back than
+    the wait is dropped as ``no_camera_info``, counted."""
+    camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    with RosHarness() as ros:
+        node = ros.add(
+            SingleViewNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('model', value=str(torchscript_model)),
+                    Parameter('input_rectified', value=False),
+                    Parameter('camera_info_wait', value=0.5),
+                ],
+                cli_args=['--ros-args', '-r', 'depth_fusion/keyframe/image:=/cam/image', '-r',
+                          'depth_fusion/keyframe/camera_info:=/cam/info'],
+            )
+        )  # fmt: skip
+        images = ros.publisher(Image, '/cam/image', latched_qos(10))
+        infos = ros.publisher(CameraInfo, '/cam/info')
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers([images, infos])
+        stamps = [0, 400_000_000, 700_000_000, 800_000_000]  # the first is 0.8 s behind the last
+        for stamp in stamps:
+            images.publish(_image(_rgb(stamp % 7), stamp))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('image') == 4, 5.0)
+        time.sleep(0.2)
+        assert not depths and node.stats.snapshot().dropped == {'no_camera_info': 1}
+        infos.publish(m.camera_info_msg(camera, m.header_msg(stamps[-1], 'cam', kind=K), kind=K))
+        assert ros.wait_for(lambda: len(depths) >= 3, timeout=20.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+    assert [m.stamp_to_ns(d.header.stamp) for d in depths] == stamps[1:]
+    assert snap.dropped == {'no_camera_info': 1} and snap.received['image'] == 4, snap.summary()
+
+
+def test_raw_camera_input_takes_the_lens_the_multi_view_node_took(torchscript_model):
+    """Reading the raw camera itself, the node undistorts with the lens ``multi_view_node``
+    took (``depth_fusion/calibration/camera_info``, latched: published before the node
+    started) from the image stamped with it on, and the depth before it is of the told
+    calibration's image; a calibration that differs by more than ``k1`` is said, not taken."""
+    from depth_fusion_ros.data.undistort import CameraCalibration
+    from depth_fusion_ros.nodes.image_input import CameraInput
+    from depth_fusion_ros.nodes.lens_topic import TOPIC_LENS_CAMERA_INFO, lens_info_msg, lens_qos
+    from depth_fusion_ros.singleview.predictor import load_predictor
+
+    camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    told = m.camera_info_msg(camera, m.header_msg(20, 'cam', kind=K), kind=K)
+    sent = {stamp: _image(_rgb(stamp), stamp) for stamp in (40, 50, 80)}
+    with RosHarness() as ros:
+        lens = ros.publisher(CameraInfo, '/' + TOPIC_LENS_CAMERA_INFO, lens_qos())
+        lens.publish(lens_info_msg(CameraCalibration(camera, 'plumb_bob', (-0.09, 0, 0, 0, 0)), 50, 'cam'))
+        node = ros.add(
+            SingleViewNode(
+                context=ros.context,
+                parameter_overrides=[
+                    Parameter('model', value=str(torchscript_model)),
+                    Parameter('input_rectified', value=False),
+                ],
+                cli_args=['--ros-args', '-r', 'depth_fusion/keyframe/image:=/cam/image', '-r',
+                          'depth_fusion/keyframe/camera_info:=/cam/info'],
+            )
+        )  # fmt: skip
+        images = ros.publisher(Image, '/cam/image')
+        infos = ros.publisher(CameraInfo, '/cam/info')
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers([images, infos])
+        infos.publish(told)
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('camera_info') == 1, 5.0)
+        assert ros.wait_for(lambda: node.lens._pending, 10.0)  # the latched calibration
+        images.publish(sent[40])
+        assert ros.wait_for(lambda: len(depths) >= 1, timeout=20.0), node.stats.snapshot().summary()
+        before = node.camera_input.lens_k1
+        images.publish(sent[50])
+        assert ros.wait_for(lambda: len(depths) >= 2, timeout=20.0), node.stats.snapshot().summary()
+        other = CameraCalibration(camera, 'plumb_bob', (-0.05, 0.2, 0, 0, 0))  # another k2
+        lens.publish(lens_info_msg(other, 70, 'cam'))
+        assert ros.wait_for(lambda: node.lens._pending, 10.0)
+        images.publish(sent[80])
+        assert ros.wait_for(lambda: len(depths) >= 3, timeout=20.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+    assert before == 0.0 and node.camera_input.lens_k1 == pytest.approx(-0.09)
+    assert snap.noted == {'lens_followed': 1, 'lens_not_followed': 1} and snap.dropped == {}, snap.summary()
+    reference, own = load_predictor(torchscript_model), CameraInput(320, 240)
+    own.update(told)
+    for depth, k1 in zip(depths, (0.0, -0.09, -0.09), strict=True):
+        stamp = m.stamp_to_ns(depth.header.stamp)
+        own.lens_k1 = k1
+        expected = reference.predict(own.working_image(sent[stamp]).rgb)
+        np.testing.assert_allclose(m.image_to_depth(depth), expected, rtol=1e-6, err_msg=str(stamp))
+    assert [m.stamp_to_ns(d.header.stamp) for d in depths] == [40, 50, 80]
 
 
 def test_missing_model_fails_at_start_naming_the_file(tmp_path):

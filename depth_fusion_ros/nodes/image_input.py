@@ -195,6 +195,9 @@ class CameraInput:
         #: length check has fitted it (``data/lens_correction.py``; 0: none). Set by
         #: ``multi_view_node`` (``focal_check.mode`` correct).
         self.lens_k1 = 0.0
+        #: The raw size of the last image undistorted: what the calibration in use is published
+        #: at (``lens_topic.py``; camera_info's own size where there is one).
+        self.raw_size: tuple[int, int] | None = None
 
     @classmethod
     def from_parameters(cls, params: dict[str, Any], rectified: bool = False) -> CameraInput:
@@ -235,6 +238,21 @@ class CameraInput:
         if self.fixed_intrinsics is not None:
             return any(d != 0.0 for d in self.fixed_distortion)
         return self.calibration is not None and self.calibration.is_distorted
+
+    def calibration_in_use(self) -> CameraCalibration | None:
+        """The calibration raw images are undistorted with now (the told one and ``lens_k1``),
+        at the raw size; None before there is one (no camera_info, or fixed intrinsics and no
+        image yet) or on rectified input."""
+        if self.rectified:
+            return None
+        calib = self.calibration
+        size = (calib.camera.width, calib.camera.height) if calib is not None else self.raw_size
+        if size is None:
+            return None
+        try:
+            return self._calibration_for(*size)
+        except InputError:
+            return None
 
     def _calibration_for(self, width: int, height: int) -> CameraCalibration:
         return add_radial(self._told_calibration_for(width, height), self.lens_k1)
@@ -277,6 +295,7 @@ class CameraInput:
             calib = self._calibration_for(width, height)
             undistorter = Undistorter.for_calibration(calib, self.width, self.height)
             rgb = undistorter.rgb(raw)
+            self.raw_size = (width, height)
         return WorkingImage(header_stamp_ns(msg), np.ascontiguousarray(rgb), undistorter.camera, msg.header)
 
     def _reduced_jpeg(self, msg: Any) -> tuple[np.ndarray, Undistorter] | None:

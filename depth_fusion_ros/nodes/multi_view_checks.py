@@ -24,6 +24,7 @@ from ..multiview.time_offset_check import TimeOffsetEstimate
 from ..pose_buffer import PoseBuffer
 from ..pose_corrections import Posing
 from .focal_check_runner import FocalCheckRunner
+from .lens_topic import lens_info_msg
 from .mount_check_runner import MountCheckRunner
 from .posing import TOPIC_REPOSED_KEYFRAMES, PosingPublisher
 from .time_offset_check_runner import TimeOffsetCheckRunner
@@ -107,13 +108,14 @@ class CheckCorrections:
         and a calibration a radial term can be added to (not a fisheye model)."""
         return self.focal_check.config.mode == 'correct' and self.camera_input.can_correct_lens()
 
-    def _take_lens_correction(self, stamp_ns: int) -> None:
+    def _take_lens_correction(self, stamp_ns: int, frame_id: str = '') -> None:
         """Take a lens distortion the focal check found (callback thread, before the image
         stamped ``stamp_ns`` is undistorted): its ``k1`` is added to the calibration from this
         image on (``data/lens_correction.py``), and the frame history, the filter, the focal
         length check and the mount check start over at it. Their frames were seen through the
         lens; the focal length is then checked again on the undistorted images. A second fit
-        on those adds to the first."""
+        on those adds to the first. The calibration taken is published for the nodes that read
+        the raw camera themselves (``lens_topic.py``)."""
         result = self.focal_check.result
         if result is None or result is self._lens_taken or not result.lens_distorted:
             return
@@ -121,6 +123,9 @@ class CheckCorrections:
         if not self._lens_correctable():
             return  # said by _on_focal_estimate
         self.camera_input.lens_k1 += result.lens.k1
+        taken = self.camera_input.calibration_in_use()
+        if taken is not None:
+            self._lens_pub.publish(lens_info_msg(taken, stamp_ns, frame_id))
         if self._restart_from_ns is None or stamp_ns > self._restart_from_ns:
             self._restart_from_ns = stamp_ns
         self.focal_check.restart()

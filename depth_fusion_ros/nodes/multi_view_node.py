@@ -64,6 +64,7 @@ from .image_input import (
     pose_from_message,
 )
 from .info_wait import AwaitingCalibration
+from .lens_topic import TOPIC_LENS_CAMERA_INFO, lens_qos
 from .mount_check_runner import MountCheckRunner
 from .multi_view_checks import CheckCorrections
 from .multi_view_filter import FilterFeed
@@ -203,6 +204,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
         self._std_pub = self.create_publisher(Image, TOPIC_DEPTH_STD, self.output_qos)
         self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
+        self._lens_pub = self.create_publisher(CameraInfo, TOPIC_LENS_CAMERA_INFO, lens_qos())
         self.posing = PosingPublisher(
             self, 'multi_view_node: pose_time_offset and the time offset check', int(p['pose_buffer_size'])
         )
@@ -328,7 +330,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         received_at = self._last_input = time.monotonic()
         if not counted:
             self.stats.received('image')
-        self._take_lens_correction(header_stamp_ns(msg))
+        self._take_lens_correction(header_stamp_ns(msg), msg.header.frame_id)
         try:
             image = self.camera_input.working_image(msg)
             previous_ns = self._image_stamps.last_ns

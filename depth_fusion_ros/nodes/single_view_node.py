@@ -37,7 +37,9 @@ from .announce import announce
 from .base import DepthFusionNode
 from .console import run_node
 from .graph_events import GraphEvents
-from .image_input import CameraInput, InputError, WorkingImage, working_grid_parameters
+from .image_input import CameraInput, InputError, WorkingImage, header_stamp_ns, working_grid_parameters
+from .info_wait import AwaitingCalibration
+from .lens_topic import LensFollower
 from .params import ParamSpec, torch_device
 from .single_view_adaptation import ADAPTATION_PARAMETERS, NodeAdaptation, adaptation_wanted
 
@@ -47,6 +49,9 @@ TOPIC_IMAGE = 'depth_fusion/keyframe/image'
 TOPIC_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
 TOPIC_DEPTH = 'depth_fusion/single_view/depth'
 TOPIC_OUTPUT_KIND = 'depth_fusion/single_view/output_kind'
+
+#: Images held for the first camera_info at most (a second of a 30 Hz camera; info_wait.py).
+MAX_WAITING_IMAGES = 30
 
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec(
@@ -64,6 +69,14 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         'resized to width x height; false: undistort and resize with camera_info (a raw camera topic)',
     ),
     *working_grid_parameters('; only for input_rectified: false'),
+    ParamSpec(
+        'camera_info_wait',
+        1.0,
+        'images that come before the first camera_info wait for it until the image stream is this many '
+        f'seconds (stamp time) ahead of them (at most {MAX_WAITING_IMAGES}); then they are dropped as '
+        'no_camera_info (0: drop at once); only for input_rectified: false',
+        0.0,
+    ),
     ParamSpec(
         'warmup',
         True,
@@ -88,6 +101,7 @@ class SingleViewNode(DepthFusionNode):
         p = self.params
         self.events = GraphEvents(self)
         self.camera_input = CameraInput.from_parameters(p, rectified=bool(p['input_rectified']))
+        self.awaiting_info = AwaitingCalibration(float(p['camera_info_wait']), MAX_WAITING_IMAGES)
         self._subscribe_inputs()
         try:
             self.predictor = self._load_predictor(str(p['model']), str(p['device']))
@@ -122,6 +136,8 @@ class SingleViewNode(DepthFusionNode):
         """
         self.subscribe(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, self.input_qos)
         self.subscribe(Image, TOPIC_IMAGE, self._on_image, self.input_qos)
+        #: A raw camera: the lens the multi-view node takes is taken here too (lens_topic.py).
+        self.lens = None if self.camera_input.rectified else LensFollower(self, self.camera_input)
 
     def _warm_up(self) -> None:
         """The network once on a blank working image, on the worker's thread: the thread that
@@ -143,15 +159,25 @@ class SingleViewNode(DepthFusionNode):
             self.camera_input.update(msg)
         except InputError as exc:
             self.stats.dropped(exc.reason, str(exc))
+            return
+        for _, image_msg in self.awaiting_info.release():
+            self._on_image(image_msg, counted=True)
 
-    def _on_image(self, msg: Image) -> None:
+    def _on_image(self, msg: Image, counted: bool = False) -> None:
         received_at = time.monotonic()
-        self.stats.received('image')
+        if not counted:
+            self.stats.received('image')
+        if self.lens is not None:
+            self.lens.before_image(header_stamp_ns(msg))
         try:
             image = self.camera_input.working_image(msg)
             if self._stamps.check(image.stamp_ns):
                 self.note_stream_restart('image', image.stamp_ns, 'its keyframes are processed as they come')
         except InputError as exc:
+            if exc.reason == 'no_camera_info':  # a raw camera whose camera_info comes a moment later
+                for _ in self.awaiting_info.hold(header_stamp_ns(msg), msg):
+                    self.stats.dropped(exc.reason, str(exc))
+                return
             self.stats.dropped(exc.reason, str(exc))
             return
         self.worker.submit(_Job(image, received_at))
