@@ -82,3 +82,32 @@ def test_pairer_replaces_an_old_keyframe_whose_stamp_a_new_stream_reuses():
     pairer.add(_header(9 * S), 'pose', 0)
     pairer.add(_header(12 * S), 'pose', 0)
     assert done == ['old 10', 'new 9', 'new 12'] and dropped == ['stream_restart']
+
+
+def test_a_stamp_without_any_keyframe_part_is_not_a_lost_keyframe():
+    """A single-view depth for every image of a raw camera, the multi-view parts for every
+    fifth: the others are closed as not keyframes (no drop, no dropped event) once a keyframe
+    part passes them. A keyframe that got one of its keyframe parts and misses another is still
+    dropped as ``unpaired``."""
+    done, dropped, events = [], [], []
+    pairer = StampPairer(
+        ('single', 'mv_depth', 'camera_info'),
+        ('rgb',),
+        timeout=10.0,
+        max_pending=16,
+        on_complete=lambda p: done.append(p.stamp_ns // S),
+        on_drop=lambda reason, message: dropped.append(reason),
+        on_dropped_keyframe=lambda stamp_ns, reason: events.append((stamp_ns // S, reason)),
+        keyframe_parts=('mv_depth', 'camera_info', 'rgb'),
+    )
+    for k in range(11):
+        pairer.add(_header(k * S), 'single', k)
+        if k % 5 == 0 and k != 5:
+            pairer.add(_header(k * S), 'camera_info', k)
+            pairer.add(_header(k * S), 'mv_depth', k)
+        if k == 5:  # chosen, its camera_info and image came, its depth was lost
+            pairer.add(_header(k * S), 'camera_info', k)
+            pairer.add(_header(k * S), 'rgb', k)
+    assert done == [0, 10] and pairer.not_keyframes == 8
+    assert dropped == ['unpaired'] and events == [(5, 'unpaired')]
+    assert pairer.pending == {}

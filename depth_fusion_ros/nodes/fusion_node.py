@@ -152,6 +152,10 @@ LOAD_MAX_POINTS = 2048
 WARMING_MAX_POINTS = 512
 
 REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
+#: The parts multi_view_node publishes for a keyframe it chose, and for no other image: a
+#: single-view depth passed by their streams without any of them was of an image it did not
+#: choose (single_view_node on a raw camera), not a lost keyframe (stamp_pairing.py).
+KEYFRAME_PARTS = ('mv_depth', 'mv_score', 'camera_info', 'rgb', 'mv_std')
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('device', 'cpu', 'torch device of the fusion: cpu, cuda, cuda:1, ...', validate=torch_device),
     ParamSpec(
@@ -294,6 +298,7 @@ class FusionNode(DepthFusionNode):
                 part, stamp_ns, 'the keyframes of the previous one still waiting time out'
             ),
             on_dropped_keyframe=lambda stamp_ns, reason: self.events.dropped(stamp_ns, reason),
+            keyframe_parts=KEYFRAME_PARTS,
         )
 
         self._depth_pub = self.create_publisher(Image, TOPIC_FUSED_DEPTH, self.output_qos)
@@ -394,7 +399,11 @@ class FusionNode(DepthFusionNode):
         return [Requirement('single', 'mv_depth', single), Requirement('mv_depth', 'single', mv)]
 
     def diagnostic_extra(self) -> dict[str, Any]:
-        return {'pending keyframes': len(self.pending), 'single-view output kind': self.output_kind}
+        return {
+            'pending keyframes': len(self.pending),
+            'single-view output kind': self.output_kind,
+            'single-view depths of images not chosen as keyframes': self.pairer.not_keyframes,
+        }
 
     def destroy_node(self) -> None:
         # Composed, this process lives on (and must not exit mid-compile); a node process

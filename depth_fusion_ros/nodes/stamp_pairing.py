@@ -8,6 +8,12 @@ keyframes wait (``pair_overflow``). Stragglers of a closed keyframe are counted
 (a bag played again): accepted, the closed stamps forgotten, and a pending keyframe whose stamp
 the new stream reuses is replaced (``stream_restart``). Memory stays bounded whatever the
 input. No ROS import: callers pass the message header.
+
+Not every stamp is a keyframe's. A single-view node reading a raw camera publishes a depth for
+every image, and only the images the multi-view node chose get its parts (``keyframe_parts``).
+A pending stamp that holds none of those parts when one of their streams passes it was not
+chosen: it is closed without a drop and counted in ``not_keyframes``. A stamp that holds any
+of them is a keyframe, and missing the rest is a drop as before.
 """
 
 from __future__ import annotations
@@ -50,8 +56,13 @@ class StampPairer:
         restart_after: float = 0.0,
         on_restart: Callable[[str, int], None] | None = None,
         on_dropped_keyframe: Callable[[int, str], None] | None = None,
+        keyframe_parts: Sequence[str] = (),
     ) -> None:
         self.required = tuple(required)
+        #: parts only a chosen keyframe gets (the multi-view node's); see the module docstring
+        self.keyframe_parts = frozenset(keyframe_parts)
+        #: stamps closed as not a keyframe's (passed by a keyframe part's stream, holding none)
+        self.not_keyframes = 0
         self.known = set(required) | set(optional)
         self.timeout = timeout
         self.max_pending = max_pending
@@ -113,6 +124,10 @@ class StampPairer:
 
     def _drop_passed(self, part: str, stamp_ns: int) -> None:
         for old in sorted(s for s, p in self.pending.items() if s < stamp_ns and part not in p.parts):
+            if part in self.keyframe_parts and self.keyframe_parts.isdisjoint(self.pending[old].parts):
+                self._close(old)  # an image the multi-view node did not choose: nothing lost
+                self.not_keyframes += 1
+                continue
             self._close(old, 'unpaired', f'will not get its {part}')
 
     def _close(self, stamp_ns: int, reason: str = '', message: str = '') -> Pairing:
