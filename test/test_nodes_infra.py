@@ -11,7 +11,7 @@ import pytest
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data import messages as m
-from depth_fusion_ros.nodes.image_input import CameraInput, InputError, StampGuard, pose_from_message
+from depth_fusion_ros.nodes.image_input import CameraInput, InputError, pose_from_message
 from depth_fusion_ros.nodes.params import (
     ParamSpec,
     build_dataclass,
@@ -19,6 +19,7 @@ from depth_fusion_ros.nodes.params import (
     missing_descriptions,
     yaml_section,
 )
+from depth_fusion_ros.nodes.stamp_guard import StampGuard
 from depth_fusion_ros.nodes.stats import NodeStats
 from depth_fusion_ros.nodes.worker import BoundedWorker
 

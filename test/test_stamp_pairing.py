@@ -7,7 +7,8 @@ from __future__ import annotations
 import pytest
 
 from depth_fusion_ros.data import messages as m
-from depth_fusion_ros.nodes.image_input import InputError, StampGuard
+from depth_fusion_ros.nodes.input_error import InputError
+from depth_fusion_ros.nodes.stamp_guard import StampGuard
 from depth_fusion_ros.nodes.stamp_pairing import StampPairer
 
 S = 1_000_000_000

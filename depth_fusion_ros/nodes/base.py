@@ -25,10 +25,10 @@ from rclpy.node import Node
 from ..data import messages
 from . import diagnostics as diag
 from .graph_events import GraphEvents
-from .image_input import StampGuard
 from .input_watch import InputWatch
 from .params import ParamSpec, declare_parameters
 from .qos import QOS_CHOICES, qos_profile
+from .stamp_guard import StampGuard
 from .stats import NodeStats
 from .worker import POLICIES, BoundedWorker
 

@@ -1,15 +1,15 @@
 """Incoming messages -> checked arrays on the working grid, or an :class:`InputError` saying why not.
 
 Every way a message can be unusable (wrong encoding, an image whose size does not match its
-camera_info, no camera_info yet, a NaN or non-unit quaternion, a stamp that goes backwards
-or repeats) becomes an ``InputError`` carrying a short *reason* key. The node counts the drop
+camera_info, no camera_info yet, a NaN or non-unit quaternion; a stamp that goes backwards
+or repeats, in ``stamp_guard.py``) becomes an ``InputError`` (``input_error.py``) carrying a
+short *reason* key. The node counts the drop
 under that key and warns (throttled per key), so one broken stream neither kills the node
 nor floods the log, and the counters say exactly what was wrong.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,6 +21,7 @@ from ..data.compressed import decode_compressed, is_jpeg
 from ..data.lens_correction import add_radial, can_add_radial
 from ..data.undistort import CameraCalibration, Undistorter, check_distortion
 from ..geometry import PoseError
+from .input_error import InputError
 from .params import ParamSpec
 
 #: Encodings ``messages.image_to_rgb`` turns into RGB: rgb8, bgr8, rgba8, bgra8, mono8, 8UC1, 8UC3,
@@ -29,14 +30,6 @@ from .params import ParamSpec
 #: v4l2_camera), embedded (camera_ros / libcamera) and industrial (Spinnaker, Arena, pylon) camera
 #: drivers publish.
 COLOUR_ENCODINGS = messages.COLOUR_ENCODINGS
-
-
-class InputError(ValueError):
-    """A message the node cannot use; ``reason`` is the counter key (``bad_encoding`` ...)."""
-
-    def __init__(self, reason: str, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
 
 
 @dataclass(frozen=True)
@@ -52,69 +45,6 @@ class WorkingImage:
 def header_stamp_ns(msg: Any) -> int:
     """Integer nanoseconds of ``msg.header.stamp`` (exact, the key used to pair keyframes)."""
     return messages.stamp_to_ns(msg.header.stamp)
-
-
-class StampGuard:
-    """Rejects stamps that repeat or go backwards on one stream (a replay glitch, a bad driver),
-    and takes a large backward jump for what it is: a new stream.
-
-    A bag played again, a looped bag or a client restarted with the same sequence starts over
-    at stamps the node has passed; without this every message of it would be dropped as out
-    of order. A jump back of at least ``restart_after`` seconds is accepted and reported by
-    :meth:`check` (``True``), as tf2 clears its buffer when time jumps back. Two streams
-    interleaved on one topic would jump back and forth: after ``MAX_RESTARTS`` restarts within
-    ``RESTART_WINDOW`` seconds (wall time) the guard drops again, and the input watch names
-    the mix.
-    """
-
-    MAX_RESTARTS = 3
-    RESTART_WINDOW = 10.0
-
-    def __init__(self, stream: str, restart_after: float = 0.0) -> None:
-        self.stream = stream
-        self.restart_after = float(restart_after)
-        self.last_ns: int | None = None
-        #: wall times (monotonic s) of the recent restarts, for the interleaving limit
-        self._restarts: list[float] = []
-
-    def check(self, stamp_ns: int) -> bool:
-        """Raise ``InputError`` for a duplicate or older stamp; otherwise remember ``stamp_ns``.
-
-        Returns ``True`` when ``stamp_ns`` begins a new stream (a jump back of at least
-        ``restart_after`` s, ``> 0``): the caller starts over.
-        """
-        restarted = False
-        if self.last_ns is not None:
-            if stamp_ns == self.last_ns:
-                raise InputError(
-                    f'duplicate_stamp_{self.stream}',
-                    f'{self.stream} stamp {messages.ns_to_sec(stamp_ns):.6f} repeats the previous one',
-                )
-            if stamp_ns < self.last_ns:
-                restarted = self._restart_allowed(stamp_ns)
-                if not restarted:
-                    raise InputError(
-                        f'stamp_out_of_order_{self.stream}',
-                        f'{self.stream} stamp {messages.ns_to_sec(stamp_ns):.6f} is older than the '
-                        f'previous {messages.ns_to_sec(self.last_ns):.6f}',
-                    )
-        self.last_ns = stamp_ns
-        return restarted
-
-    def _restart_allowed(self, stamp_ns: int) -> bool:
-        assert self.last_ns is not None
-        jump = messages.ns_to_sec(self.last_ns - stamp_ns)
-        if self.restart_after <= 0 or jump < self.restart_after:
-            return False
-        now = time.monotonic()
-        self._restarts = [t for t in self._restarts if now - t < self.RESTART_WINDOW]
-        if len(self._restarts) >= self.MAX_RESTARTS:
-            return False
-        self._restarts.append(now)
-        return True
-
-    def reset(self) -> None:
-        self.last_ns = None
 
 
 def calibration_from_parameters(intrinsics: list[float], distortion: list[float]) -> tuple[float, ...] | None:

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..data import messages
-from .image_input import InputError, StampGuard
+from .input_error import InputError
+from .stamp_guard import StampGuard
 
 #: How many closed keyframe stamps are remembered to recognise late parts.
 CLOSED_MEMORY = 256
