@@ -127,27 +127,28 @@ def test_keyframes_sent_while_the_network_loads_are_processed_after(torchscript_
     assert snap.dropped == {}
 
 
+#: A raw camera's topics, remapped onto the node's inputs (``input_rectified: false``).
+RAW_REMAPS = [
+    '--ros-args',
+    '-r',
+    'depth_fusion/keyframe/image:=/cam/image',
+    '-r',
+    'depth_fusion/keyframe/camera_info:=/cam/info',
+]
+
+
+def _raw_camera_node(ros: RosHarness, model: Path, **params: object) -> SingleViewNode:
+    """A single_view_node reading the raw camera on ``/cam/image`` and ``/cam/info``."""
+    overrides = [Parameter('model', value=str(model)), Parameter('input_rectified', value=False)]
+    overrides += [Parameter(name, value=value) for name, value in params.items()]
+    return ros.add(SingleViewNode(context=ros.context, parameter_overrides=overrides, cli_args=RAW_REMAPS))
+
+
 def test_raw_camera_input_is_undistorted_and_output_kind_is_latched(torchscript_model):
     camera = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
     with RosHarness() as ros:
-        node = ros.add(
-            SingleViewNode(
-                context=ros.context,
-                parameter_overrides=[
-                    Parameter('model', value=str(torchscript_model)),
-                    Parameter('input_rectified', value=False),
-                    Parameter('queue_size', value=8),
-                    Parameter('camera_info_wait', value=0.0),  # the first image dropped at once
-                ],
-                cli_args=[
-                    '--ros-args',
-                    '-r',
-                    'depth_fusion/keyframe/image:=/cam/image',
-                    '-r',
-                    'depth_fusion/keyframe/camera_info:=/cam/info',
-                ],
-            )
-        )
+        # camera_info_wait 0: the first image, before camera_info, dropped at once
+        node = _raw_camera_node(ros, torchscript_model, queue_size=8, camera_info_wait=0.0)
         images = ros.publisher(Image, '/cam/image')
         infos = ros.publisher(CameraInfo, '/cam/info')
         depths = ros.collect(Image, '/depth_fusion/single_view/depth')
@@ -176,18 +177,7 @@ def test_raw_camera_images_before_the_first_camera_info_wait_for_it(torchscript_
     the wait is dropped as ``no_camera_info``, counted."""
     camera = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
     with RosHarness() as ros:
-        node = ros.add(
-            SingleViewNode(
-                context=ros.context,
-                parameter_overrides=[
-                    Parameter('model', value=str(torchscript_model)),
-                    Parameter('input_rectified', value=False),
-                    Parameter('camera_info_wait', value=0.5),
-                ],
-                cli_args=['--ros-args', '-r', 'depth_fusion/keyframe/image:=/cam/image', '-r',
-                          'depth_fusion/keyframe/camera_info:=/cam/info'],
-            )
-        )  # fmt: skip
+        node = _raw_camera_node(ros, torchscript_model, camera_info_wait=0.5)
         images = ros.publisher(Image, '/cam/image', latched_qos(10))
         infos = ros.publisher(CameraInfo, '/cam/info')
         depths = ros.collect(Image, '/depth_fusion/single_view/depth')
@@ -221,17 +211,7 @@ def test_raw_camera_input_takes_the_lens_the_multi_view_node_took(torchscript_mo
     with RosHarness() as ros:
         lens = ros.publisher(CameraInfo, '/' + TOPIC_LENS_CAMERA_INFO, lens_qos())
         lens.publish(lens_info_msg(CameraCalibration(camera, 'plumb_bob', (-0.09, 0, 0, 0, 0)), 50, 'cam'))
-        node = ros.add(
-            SingleViewNode(
-                context=ros.context,
-                parameter_overrides=[
-                    Parameter('model', value=str(torchscript_model)),
-                    Parameter('input_rectified', value=False),
-                ],
-                cli_args=['--ros-args', '-r', 'depth_fusion/keyframe/image:=/cam/image', '-r',
-                          'depth_fusion/keyframe/camera_info:=/cam/info'],
-            )
-        )  # fmt: skip
+        node = _raw_camera_node(ros, torchscript_model)
         images = ros.publisher(Image, '/cam/image')
         infos = ros.publisher(CameraInfo, '/cam/info')
         depths = ros.collect(Image, '/depth_fusion/single_view/depth')
