@@ -104,6 +104,21 @@ def test_the_uncertainty_is_what_the_focal_check_verified(verdict, scale, stderr
     assert focal_uncertainty(estimate, 0.0, corrected) == 0.0  # 0: off
 
 
+def test_an_early_agreement_bounds_the_uncertainty_until_the_result():
+    """Before the result, an early look that agreed bounds the focal error by its offset and
+    two standard errors where that is below the prior; one that did not agree says nothing,
+    and the result, once there, decides alone."""
+    early = SimpleNamespace(verdict='consistent', scale=1.01, stderr=0.01)
+    assert focal_uncertainty(None, 0.1, False, early) == pytest.approx(math.log(1.01) + 0.02)
+    wide = SimpleNamespace(verdict='consistent', scale=1.04, stderr=0.04)
+    assert focal_uncertainty(None, 0.1, False, wide) == 0.1  # never above the prior
+    unsure = SimpleNamespace(verdict='unobservable', scale=1.0, stderr=0.001)
+    assert focal_uncertainty(None, 0.1, False, unsure) == 0.1
+    final = SimpleNamespace(verdict='unobservable', scale=0.86, stderr=0.181)
+    assert focal_uncertainty(final, 0.1, False, early) == pytest.approx(0.181)
+    assert focal_uncertainty(None, 0.0, False, early) == 0.0  # 0: off
+
+
 def test_the_filter_publishes_the_bias_in_the_std_only():
     """The same stream with and without the focal uncertainty: the same estimates, depths and
     posterior; only ``depth_std`` grows, by more where the rotation dominates."""

@@ -54,6 +54,19 @@ def test_the_right_focal_length_is_not_flagged():
     assert not estimate.lens_distorted and 'k1' not in estimate.message()
 
 
+def test_an_early_look_that_agrees_is_kept_and_the_check_goes_on(wrong_focal):
+    """At ``lens_early_pairs`` the check fits its pairs once already: an estimate that agrees is
+    kept as ``early`` (what bounds the filter's focal uncertainty until the result) and the
+    check still reads all its pairs; one on a focal length 10 % long is not kept."""
+    estimate, check = _check(render_sequence(stress_config('translation', **SIZE)))
+    assert check.early is not None and check.early.pairs == 8, check.early
+    assert check.early.verdict == 'consistent' and estimate.pairs == PAIRS
+    _, check = _check(wrong_focal)
+    assert check.early is None and check.result.verdict == 'disagrees'
+    _, check = _check(wrong_focal, lens_early_pairs=0)  # no early look at all
+    assert check.early is None
+
+
 def test_a_lens_camera_info_does_not_hold_is_named():
     """The stress case ``lens_distortion`` (a barrel lens of k1 -0.1, camera_info without it,
     the rotation sweep): the pairs fit a radial distortion better than a focal change and

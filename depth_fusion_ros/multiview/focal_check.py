@@ -77,7 +77,9 @@ class FocalCheckConfig:
     pairs: int = 12
     #: Pairs after which the check ends early when they already show a lens distortion
     #: (``LensFit.distorted``; 0, or pairs or more: never): the lens is then taken 16 frames
-    #: sooner on the stress streams, and the focal length checked again on the undistorted images
+    #: sooner on the stress streams, and the focal length checked again on the undistorted images.
+    #: A fit that already agrees there bounds the multi-view depth's focal uncertainty until
+    #: the check ends (its offset plus two standard errors, ``focal_bias.focal_uncertainty``)
     lens_early_pairs: int = 8
     #: A disagreement counts when |log(fitted / told focal length)| less twice its standard
     #: error is at least this (0.05: surely more than 5 % off); a fit this far off but not
@@ -227,6 +229,9 @@ class FocalCheck(PairedCheck):
 
     config: FocalCheckConfig = field(default_factory=FocalCheckConfig)
     result: FocalEstimate | None = None
+    #: The early look's estimate when it agreed (``consistent``) and the check went on: what
+    #: the filter's focal uncertainty is bounded by until the result (``focal_bias.py``).
+    early: FocalEstimate | None = None
     #: Matches tracked to sub-pixel: the detector's own positions biased the fit under forward
     #: motion (-7.2 % on an exact focal length, corrected) and scattered it (multiview/match_refinement.py).
     TRACKING: ClassVar[str] = 'shift'
@@ -238,7 +243,8 @@ class FocalCheck(PairedCheck):
 
     def _early_look(self) -> FocalEstimate | None:
         """At ``lens_early_pairs`` pairs: the estimate if they already show a lens distortion
-        (the same rule as at the end: ``LensFit.distorted``), else None. Why early: the node
+        (the same rule as at the end: ``LensFit.distorted``), else None; an estimate that
+        already agrees is kept as :attr:`early`. Why early: the node
         takes the lens and starts its history over, so every frame before that is seen through
         it. On the lens stress streams 8 pairs named it on 11 of 11 at 320x240 (frame 33 instead
         of 49); on the 48 other stress streams of seeds 0, 1 and 121 none came nearer than a
@@ -247,7 +253,11 @@ class FocalCheck(PairedCheck):
         if not 0 < n < self.config.pairs or len(self.pairs) != n:
             return None
         estimate = self._estimate()
-        return estimate if estimate.lens_distorted else None
+        if estimate.lens_distorted:
+            return estimate
+        if estimate.verdict == 'consistent':
+            self.early = estimate  # not a verdict: the check goes on to its pairs
+        return None
 
     def _verdict(self, scale: float, stderr: float, lens: LensFit | None = None) -> FocalEstimate:
         if not math.isfinite(stderr) or stderr > self.config.max_stderr or scale <= 0:

@@ -62,11 +62,13 @@ class FocalCheckRunner(PairedCheckRunner):
 
     def uncertainty(self, prior: float, after_lens: bool = False) -> float:
         """How far the multi-view depth's focal length may still be off (relative,
-        ``multiview/focal_bias.py``): ``prior`` until the check has read the stream, then what
-        it verified (``after_lens`` as for :meth:`camera_for`)."""
+        ``multiview/focal_bias.py``): ``prior`` until the check has read the stream (or what its
+        early look bounded, when that agreed), then what it verified (``after_lens`` as for
+        :meth:`camera_for`)."""
         result = self.result
         applied = result is not None and result.applied(self.config.mode, after_lens)
-        return focal_uncertainty(result, prior, applied)
+        check = self._check
+        return focal_uncertainty(result, prior, applied, None if check is None else check.early)
 
     def status(self) -> str:
         """One phrase for the diagnostics."""
