@@ -4,14 +4,23 @@ not fake a disagreement, and ``evaluate`` corrects the camera when asked."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
 
+from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
 from depth_fusion_ros.evaluation.context import EvalOptions
 from depth_fusion_ros.evaluation.harness import evaluate_sequence
-from depth_fusion_ros.multiview.focal_check import FocalCheck, FocalCheckConfig, FocalEstimate, check_frames
+from depth_fusion_ros.multiview.focal_check import (
+    FocalCheck,
+    FocalCheckConfig,
+    FocalEstimate,
+    censored,
+    check_frames,
+)
 
 #: 320x240 over a 1 m sweep in 40 frames: a pair every two frames.
 SIZE = {'width': 320, 'height': 240, 'frames': 40, 'seed': 5}
@@ -126,6 +135,45 @@ def test_noisy_poses_do_not_fake_a_disagreement():
     noisy = stress_config('pose_noise', **SIZE, pose_noise_m=0.004, pose_noise_deg=0.25)
     estimate, _ = _check(render_sequence(noisy))
     assert estimate is not None and estimate.verdict != 'disagrees', estimate.message()
+
+
+def test_pairs_that_fit_at_the_end_of_the_range_leave_the_focal_length_unobservable():
+    """A SLAM's keyframe stream (15 cm and 6.7 deg apart, poses jittered by 5 mm and 0.3 deg,
+    camera_info 5 % long; seed 161): half the pairs fit best at half the focal length, as far as
+    the fit reaches (a pose error is an angle, fewer pixels at a shorter focal length). Their
+    median and its spread read -48 % +- 0.9 %, which the node took (fx 142 px for 262.5). Pairs
+    at the range's end are censored: more than a tenth of them, and the focal length is
+    unobservable, kept as told; one of twelve changes nothing."""
+    slam = stress_config(
+        'keyframes',
+        width=320,
+        height=240,
+        frames=16,
+        seed=161,
+        focal_error=0.05,
+        pose_noise_m=0.005,
+        pose_noise_deg=0.3,
+        gain_sigma=0.1,
+    )
+    estimate, check = _check(render_sequence(slam))
+    assert estimate is not None and estimate.verdict == 'unobservable', estimate.message()
+    assert estimate.censored >= 2 and estimate.scale < 0.6  # the poses' noise, not a focal length
+    assert not estimate.applied('correct') and check.early is None
+    message = estimate.message()
+    assert 'end of the range searched' in message and 'fx 275.6 px kept' in message
+    assert censored(np.array([0.5, 0.505, 0.51, 1.0, 1.96, 1.97, 1.99])).tolist() == [
+        True,
+        True,
+        False,
+        False,
+        False,
+        True,
+        True,
+    ]
+    check = FocalCheck(PinholeCamera(320, 240, 288.8, 288.8, 159.5, 119.5), FocalCheckConfig())
+    check.pairs = [SimpleNamespace(p1=np.zeros((40, 2)))] * PAIRS  # their count and matches are read
+    assert check._verdict(0.9, 0.01, None, n_censored=1).verdict == 'disagrees'
+    assert check._verdict(0.9, 0.01, None, n_censored=2).verdict == 'unobservable'
 
 
 def test_a_camera_that_stands_still_gives_no_pairs(wrong_focal):
