@@ -158,9 +158,11 @@ def test_pairs_that_fit_at_the_end_of_the_range_leave_the_focal_length_unobserva
     estimate, check = _check(render_sequence(slam))
     assert estimate is not None and estimate.verdict == 'unobservable', estimate.message()
     assert estimate.censored >= 2 and estimate.scale < 0.6  # the poses' noise, not a focal length
+    assert estimate.poses_unfit
     assert not estimate.applied('correct') and check.early is None
     message = estimate.message()
     assert 'end of the range searched' in message and 'fx 275.6 px kept' in message
+    assert 'camera_from_pose_frame' in message
     assert censored(np.array([0.5, 0.505, 0.51, 1.0, 1.96, 1.97, 1.99])).tolist() == [
         True,
         True,

@@ -134,6 +134,12 @@ class FocalEstimate:
         return self.told_fy * self.scale
 
     @property
+    def poses_unfit(self) -> bool:
+        """Whether too many pairs fit best at the end of the range (:func:`too_many_censored`):
+        the told poses fit the images at no focal length."""
+        return too_many_censored(self.censored, self.pairs)
+
+    @property
     def lens_distorted(self) -> bool:
         """Whether the pairs fit a lens distortion camera_info does not hold (``LensFit.distorted``)."""
         return self.lens is not None and self.lens.distorted
@@ -158,12 +164,12 @@ class FocalEstimate:
                 f'threshold by the fit, not surely: fx {self.told_fx:.1f} px kept; check the calibration '
                 f'{CAUSES}'
             )
-        if self.verdict == 'unobservable' and too_many_censored(self.censored, self.pairs):
+        if self.verdict == 'unobservable' and self.poses_unfit:
             return (
                 f'focal length check: {self.censored} of {self.pairs} image pairs fit best at the end of '
                 f'the range searched (half or twice fx {self.told_fx:.1f} px): their told poses fit '
-                f'their images at no focal length (noisy poses, or poses of another camera): fx '
-                f'{self.told_fx:.1f} px kept, unchecked'
+                f'their images at no focal length (noisy poses, or poses of another frame than the '
+                f'optical frame: camera_from_pose_frame): fx {self.told_fx:.1f} px kept, unchecked'
             )
         if self.verdict == 'unobservable':
             return (

@@ -86,6 +86,9 @@ class CheckCorrections:
         if estimate.verdict == 'suspect':  # warned once, not taken: the fit is not sure enough
             self.stats.noted('focal_suspect', f'{estimate.message()} ({camera.width}x{camera.height})')
             return
+        if estimate.poses_unfit:  # a warning, once: the poses are not this camera's, or too noisy
+            self.stats.noted('focal_poses_unfit', f'{estimate.message()} ({camera.width}x{camera.height})')
+            return
         if estimate.verdict != 'disagrees':
             self.get_logger().info(f'{estimate.message()} ({camera.width}x{camera.height})')
             return
