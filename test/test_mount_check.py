@@ -88,6 +88,51 @@ def _verdict(camera: PinholeCamera, pairs: list) -> MountEstimate:
     return check._verdict(*fit_mount(camera.K, pairs))
 
 
+def test_poses_of_a_body_frame_are_taken_as_a_whole_frame_turn():
+    """Poses of a body frame (x forward, REP 103) told as the optical frame's turn every relative
+    pose by 120 deg, which the mount's local fit cannot reach (it refuses beyond 15 deg). The
+    pairs' rotation axes and translation directions show it (``frame_fit.py``): the check ends at
+    its early look with the exact axis rotation and says to set camera_from_pose_frame. A right
+    frame, and a straight drive (one direction: a turn about it is free), give none."""
+    import cv2
+
+    from depth_fusion_ros.multiview.frame_fit import axis_rotations, gross_frame_turn
+
+    R_bc = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical axes in the body
+    body = np.degrees(cv2.Rodrigues(R_bc.T)[0].ravel())  # T_told = T_optical @ R_bc^T
+    camera, pairs = _exact_pairs(body, 'turning', n_pairs=8)
+    check = MountCheck(camera, MountCheckConfig())
+    check.pairs = pairs
+    estimate = check._early_look()
+    assert estimate is not None and estimate.frame and estimate.verdict == 'disagrees'
+    assert np.allclose(estimate.rotation()[:3, :3], R_bc, atol=1e-9), estimate.rotvec_deg
+    assert estimate.angle_deg == pytest.approx(120.0, abs=1e-6)
+    message = estimate.message()
+    assert "not of the camera's optical frame" in message and 'set camera_from_pose_frame' in message
+    assert gross_frame_turn(camera.K, _exact_pairs([0.0, 0.0, 0.0], 'turning', n_pairs=8)[1]) is None
+    assert gross_frame_turn(camera.K, _exact_pairs([2.0, -1.0, 0.5], 'turning', n_pairs=8)[1]) is None
+    assert gross_frame_turn(camera.K, _exact_pairs(body, 'straight', n_pairs=8)[1]) is None
+    assert len(axis_rotations()) == 24
+
+
+def test_a_rendered_sweep_posed_as_a_body_frame_is_turned_back_to_the_optical_frame():
+    """The ``rotation`` sweep with its poses given as those of a body frame (x forward): the
+    check finds the REP 103 turn from the images (about frame 73 of 100) and nothing else."""
+    import dataclasses
+
+    R_bc = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    body = np.eye(4)
+    body[:3, :3] = R_bc.T
+    seq = render_sequence(stress_config('rotation', width=320, height=240, frames=100, seed=3))
+    frames = [dataclasses.replace(f, pose=f.pose @ body) for f in seq.frames]
+    check = check_frames(seq.camera, frames, MountCheckConfig())
+    assert check.result is not None and check.result.frame, check.result
+    assert check.result.verdict == 'disagrees' and check.frames < 100
+    assert np.allclose(check.result.rotation()[:3, :3], R_bc, atol=1e-9)
+    level = check_frames(seq.camera, seq.frames, MountCheckConfig()).result  # the same, told right
+    assert level is None or not level.frame
+
+
 def test_the_fit_finds_a_told_turn_from_exact_matches():
     """Turning motion observes all three directions: the fit is the turn back, to 0.1 deg."""
     camera, pairs = _exact_pairs([2.0, -1.0, 0.5], 'turning')

@@ -98,3 +98,34 @@ def test_a_tilted_camera_is_found_and_its_poses_turned():
     np.testing.assert_allclose(turned, correction, atol=1e-9)
     assert _angle_deg(turned, np.eye(4)) == pytest.approx(2.0, abs=0.6)
     assert all(m.stamp_to_ns(t.time_ref) == m.stamp_to_ns(t.header.stamp) for t in times)
+
+
+def test_poses_of_a_body_frame_are_turned_to_the_optical_frame_and_the_mount_checked_again():
+    """A pose source that gives its body frame (x forward) as the camera's, camera_from_pose_frame
+    left out: the mount check finds the whole frame's turn from the images at its early look
+    (``frame_fit.py``), the node turns every pose by it from then on, says the
+    camera_from_pose_frame that fits, and starts the mount check over for the tilt that is left."""
+    size = {'width': 240, 'height': 180, 'frames': 100, 'seed': 3}
+    seq = render_sequence(stress_config('rotation', **size))
+    R_bc = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical axes in the body
+    body = np.eye(4)
+    body[:3, :3] = R_bc.T
+    stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    with RosHarness() as ros:
+        node = _stream_check_node(ros, size, **{'time_offset_check.mode': 'off', 'focal_check.mode': 'off'})
+        notes = _notes_of(node)
+        depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        cam = _Camera(ros)
+        for i, frame in enumerate(seq.frames):
+            told = (frame.pose @ body, stamps[i])
+            _send_checked(ros, node, cam, told, (frame.rgb, stamps[i], seq.camera), i + 1)
+        _wait_keyframes_out(ros, node, depths, len(seq.frames))
+        snap = node.stats.snapshot()
+        correction = node._mount_correction.copy()
+        status = node.mount_check.status()
+    assert snap.noted.get('mount_disagrees') == 1 and snap.dropped == {}, snap.summary()
+    np.testing.assert_allclose(correction[:3, :3], R_bc, atol=1e-9)
+    said = [message for reason, message in notes if reason == 'mount_disagrees']
+    assert len(said) == 1 and "not of the camera's optical frame" in said[0], said
+    assert 'camera_from_pose_frame [0, 0, 0, -0.5, 0.5, -0.5, 0.5] fits' in said[0], said[0]
+    assert not status.startswith('disagrees'), status  # started over: the tilt left is its own

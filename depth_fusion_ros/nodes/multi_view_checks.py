@@ -224,6 +224,8 @@ class CheckCorrections:
         self._mount_correction = rotation
         self._restart_from_ns = 0
         self.focal_check.restart()  # its pairs were posed in the told frame
+        if result.frame:  # a frame convention taken: the mount's own tilt is left to fit
+            self.mount_check.restart()
         self.stats.noted(
             'mount_disagrees',
             f'{result.message()}; mount_check.mode correct: every camera pose is '

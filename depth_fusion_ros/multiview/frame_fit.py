@@ -1,0 +1,157 @@
+"""Poses of another frame than the camera's: a turn of the told frame far beyond a mount error.
+
+Why: ROS frames differ by whole axes. A pose source that publishes its body or IMU frame (x
+forward, z up: REP 103) where the graph expects the optical frame (z forward, y down), with
+``camera_from_pose_frame`` left out, turns every told relative pose by about 90-120 deg. The mount
+check (``mount_check.py``) fits turns near the told frame only (its local fit from zero, refused
+beyond ``_MAX_TURN_DEG``), so such a stream was triangulated with the wrong motion: 7-Scenes
+0-499 given as a body frame's poses was fused to 1.04x its single view, and the adaptation,
+trained on its points, made the single view 0.90 m against 0.48 m (docs/multi_view.md, "Poses
+of another frame").
+
+A frame turn shows in every pair without a fit of the cost: with the camera's frame ``M`` in
+the told one (``T_wc = T_told @ M``), the images' own relative motion of a pair is the told
+one seen from the turned frame, ``R_img = M^T R_told M`` and ``t_img ~ M^T t_told``. So the
+rotation axes and the translation directions the images give (``cv2.recoverPose`` of the
+pair's matches) are the told ones turned by ``M^T``: one rotation between two sets of unit
+vectors (Wahba's problem, solved by an SVD: Kabsch). :func:`gross_frame_turn` returns it when
+it is far from the identity and fits the pairs far better than the identity does; the mount
+check then refines it on the pairs' own cost and takes it like a mount turn.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .image_pairs import MatchedPair
+
+#: A turn smaller than this (degrees) is the mount check's own to fit: the same as its
+#: ``_MAX_TURN_DEG``, beyond which it refuses a fit.
+MIN_TURN_DEG = 15.0
+#: The told frame must miss the images' directions by at least this (degrees, median over
+#: them): a frame turned by whole axes misses them by 90-120, a right one by the directions' own
+#: noise (7-Scenes 0-499: 12-18, most of it the translations of pairs that also turn)...
+MIN_TOLD_RESIDUAL_DEG = 45.0
+#: ... and the turned frame must fit them this many times better (the same noise: 9-21 deg on
+#: 7-Scenes' body-frame poses after the turn, 96-116 before).
+MIN_FIT_GAIN = 3.0
+#: A pair's rotation axis counts when the images turn by at least this (degrees): below it the
+#: axis is noise.
+MIN_ROTATION_DEG = 2.0
+#: Directions needed (axes and translations together) for a fit: two independent ones fix a
+#: rotation, more make it a verdict.
+MIN_DIRECTIONS = 6
+#: The told directions must span two dimensions: their second singular value at least this
+#: share of the first.
+MIN_SPREAD = 0.2
+#: A fitted turn this near (degrees) one that maps axes onto axes is taken as that one: frame
+#: conventions differ by whole axes, and the fit is a few degrees off after 8 pairs (5.9 deg
+#: on 7-Scenes' body-frame poses). A tilt of the camera on its body beyond it is left to the
+#: mount check's next look.
+SNAP_DEG = 10.0
+
+
+@dataclass(frozen=True)
+class FrameTurn:
+    """The turn of the told frame that the pairs' directions fit (``T_wc = T_told @ M``)."""
+
+    rotvec: np.ndarray  # (3,) radians, of M
+    told_residual_deg: float  # median angle between the images' directions and the told ones
+    fit_residual_deg: float  # the same after the turn
+    directions: int
+
+    @property
+    def angle_deg(self) -> float:
+        return math.degrees(float(np.linalg.norm(self.rotvec)))
+
+
+def pair_directions(K: np.ndarray, pair: MatchedPair) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The told and the images' unit directions of one pair: its translation always, its
+    rotation axis when the images turn by ``MIN_ROTATION_DEG`` or more; empty when the images'
+    motion cannot be recovered."""
+    E, _ = cv2.findEssentialMat(pair.p1, pair.p2, K, cv2.RANSAC, 0.999, 1.0)
+    if E is None or E.shape != (3, 3):
+        return [], []
+    _, R_img, t_img, _ = cv2.recoverPose(E, pair.p1, pair.p2, K)
+    T = pair.T_ba
+    told, image = [], []
+    t_told, t_seen = T[:3, 3], t_img.ravel()
+    if np.linalg.norm(t_told) > 1e-9 and np.linalg.norm(t_seen) > 1e-9:
+        told.append(t_told / np.linalg.norm(t_told))
+        image.append(t_seen / np.linalg.norm(t_seen))
+    r_told, r_seen = _rotvec(T[:3, :3]), _rotvec(R_img)
+    if min(np.linalg.norm(r_told), np.linalg.norm(r_seen)) >= math.radians(MIN_ROTATION_DEG):
+        told.append(r_told / np.linalg.norm(r_told))
+        image.append(r_seen / np.linalg.norm(r_seen))
+    return told, image
+
+
+def gross_frame_turn(K: np.ndarray, pairs: list[MatchedPair]) -> FrameTurn | None:
+    """The turn ``M`` of the told frame the pairs' directions fit (see module), or None when it
+    is not a whole frame's: under ``MIN_TURN_DEG``, a told frame that misses the directions by
+    less than ``MIN_TOLD_RESIDUAL_DEG``, a turn that fits them less than ``MIN_FIT_GAIN`` times
+    better, or too few directions, or all of them along one line (``MIN_SPREAD``)."""
+    told, image = [], []
+    for pair in pairs:
+        a, b = pair_directions(np.asarray(K, dtype=np.float64), pair)
+        told += a
+        image += b
+    if len(told) < MIN_DIRECTIONS:
+        return None
+    A, B = np.array(told), np.array(image)
+    spread = np.linalg.svd(A, compute_uv=False)
+    if spread[1] < MIN_SPREAD * spread[0]:
+        return None  # one direction (a straight drive that does not turn) leaves a turn about it free
+    U, _, Vt = np.linalg.svd(A.T @ B)  # Kabsch: Q = argmin sum |b - Q a|^2, Q = M^T
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    Q = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    told_residual = _median_angle_deg(A, B)
+    fit_residual = _median_angle_deg(A @ Q.T, B)
+    turn = FrameTurn(_rotvec(Q.T), told_residual, fit_residual, len(told))
+    if (
+        turn.angle_deg < MIN_TURN_DEG
+        or told_residual < MIN_TOLD_RESIDUAL_DEG
+        or fit_residual * MIN_FIT_GAIN > told_residual
+    ):
+        return None
+    return turn
+
+
+def axis_rotations() -> np.ndarray:
+    """The 24 rotations (24, 3, 3) that map the axes onto the axes (signed permutations of
+    determinant 1): the turns between frame conventions."""
+    out = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.ndindex(2, 2, 2):
+            R = np.zeros((3, 3))
+            R[range(3), perm] = [1.0 - 2.0 * k for k in signs]
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return np.array(out)
+
+
+def snapped(rotvec: np.ndarray) -> np.ndarray:
+    """``rotvec`` (radians) replaced by the nearest axis rotation (:func:`axis_rotations`) when
+    that is within ``SNAP_DEG``, else as it is."""
+    R = cv2.Rodrigues(np.asarray(rotvec, dtype=np.float64).reshape(3, 1))[0]
+    axes = axis_rotations()
+    # The angle between R and each: from the trace of R^T A.
+    cos = np.clip((np.einsum('ij,kij->k', R, axes) - 1.0) / 2.0, -1.0, 1.0)
+    best = int(np.argmax(cos))
+    if math.degrees(math.acos(cos[best])) > SNAP_DEG:
+        return np.asarray(rotvec, dtype=np.float64)
+    return _rotvec(axes[best])
+
+
+def _median_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = np.clip(np.einsum('ij,ij->i', a, b), -1.0, 1.0)
+    return float(np.degrees(np.median(np.arccos(cos))))
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    v, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64))
+    return v.ravel()
