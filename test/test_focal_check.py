@@ -25,6 +25,8 @@ from depth_fusion_ros.multiview.focal_check import (
 #: 320x240 over a 1 m sweep in 40 frames: a pair every two frames.
 SIZE = {'width': 320, 'height': 240, 'frames': 40, 'seed': 5}
 PAIRS = 12
+#: A SLAM's keyframe poses: jittered by 5 mm and 0.3 deg, camera_info 5 % long, gain noise.
+SLAM_NOISE = {'focal_error': 0.05, 'pose_noise_m': 0.005, 'pose_noise_deg': 0.3, 'gain_sigma': 0.1}
 
 
 @pytest.fixture(scope='module')
@@ -144,17 +146,7 @@ def test_pairs_that_fit_at_the_end_of_the_range_leave_the_focal_length_unobserva
     median and its spread read -48 % +- 0.9 %, which the node took (fx 142 px for 262.5). Pairs
     at the range's end are censored: more than a tenth of them, and the focal length is
     unobservable, kept as told; one of twelve changes nothing."""
-    slam = stress_config(
-        'keyframes',
-        width=320,
-        height=240,
-        frames=16,
-        seed=161,
-        focal_error=0.05,
-        pose_noise_m=0.005,
-        pose_noise_deg=0.3,
-        gain_sigma=0.1,
-    )
+    slam = stress_config('keyframes', **SIZE | {'frames': 16, 'seed': 161}, **SLAM_NOISE)
     estimate, check = _check(render_sequence(slam))
     assert estimate is not None and estimate.verdict == 'unobservable', estimate.message()
     assert estimate.censored >= 2 and estimate.scale < 0.6  # the poses' noise, not a focal length
