@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .image_pairs import MatchedPair
+from .image_pairs import RANSAC_SEED, MatchedPair
 
 #: A turn smaller than this (degrees) is the mount check's own to fit: the same as its
 #: ``_MAX_TURN_DEG``, beyond which it refuses a fit.
@@ -73,6 +73,7 @@ def pair_directions(K: np.ndarray, pair: MatchedPair) -> tuple[list[np.ndarray],
     """The told and the images' unit directions of one pair: its translation always, its
     rotation axis when the images turn by ``MIN_ROTATION_DEG`` or more; empty when the images'
     motion cannot be recovered."""
+    cv2.setRNGSeed(RANSAC_SEED)  # the same pair gives the same motion whatever ran before
     E, _ = cv2.findEssentialMat(pair.p1, pair.p2, K, cv2.RANSAC, 0.999, 1.0)
     if E is None or E.shape != (3, 3):
         return [], []
@@ -90,14 +91,24 @@ def pair_directions(K: np.ndarray, pair: MatchedPair) -> tuple[list[np.ndarray],
     return told, image
 
 
-def gross_frame_turn(K: np.ndarray, pairs: list[MatchedPair]) -> FrameTurn | None:
+Directions = tuple[list[np.ndarray], list[np.ndarray]]
+
+
+def gross_frame_turn(
+    K: np.ndarray, pairs: list[MatchedPair], known: list[Directions] | None = None
+) -> FrameTurn | None:
     """The turn ``M`` of the told frame the pairs' directions fit (see module), or None when it
     is not a whole frame's: under ``MIN_TURN_DEG``, a told frame that misses the directions by
     less than ``MIN_TOLD_RESIDUAL_DEG``, a turn that fits them less than ``MIN_FIT_GAIN`` times
-    better, or too few directions, or all of them along one line (``MIN_SPREAD``)."""
+    better, or too few directions, or all of them along one line (``MIN_SPREAD``).
+
+    ``known``: the directions of the first pairs (:func:`pair_directions`), kept by a caller
+    that looks again at each new pair; it is extended with the others."""
+    known = [] if known is None else known
+    for pair in pairs[len(known) :]:
+        known.append(pair_directions(np.asarray(K, dtype=np.float64), pair))
     told, image = [], []
-    for pair in pairs:
-        a, b = pair_directions(np.asarray(K, dtype=np.float64), pair)
+    for a, b in known[: len(pairs)]:
         told += a
         image += b
     if len(told) < MIN_DIRECTIONS:

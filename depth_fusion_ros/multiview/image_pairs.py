@@ -30,7 +30,7 @@ CHECK_MODES = ('off', 'warn', 'correct')
 STANDARD_ERRORS = 2.0
 EARLY_STANDARD_ERRORS = 3.0
 #: OpenCV's random state (per thread) is set to this before each RANSAC: a deterministic check.
-_RANSAC_SEED = 12345
+RANSAC_SEED = 12345
 
 
 def _as_detected(
@@ -107,7 +107,7 @@ def rigid_matches(
         return None
     p1 = a[0][[m.queryIdx for m in matches]]
     p2 = b[0][[m.trainIdx for m in matches]]
-    cv2.setRNGSeed(_RANSAC_SEED)
+    cv2.setRNGSeed(RANSAC_SEED)
     E, mask = cv2.findEssentialMat(p1, p2, K, cv2.RANSAC, 0.999, 1.0)
     if E is None or mask is None or E.shape != (3, 3):
         return None

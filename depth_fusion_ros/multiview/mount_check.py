@@ -429,6 +429,9 @@ class MountCheck(PairedCheck):
     config: MountCheckConfig = field(default_factory=MountCheckConfig)
     result: MountEstimate | None = None
     TRACKING: ClassVar[str] = 'affine'
+    #: Each pair's directions for the frame check (``frame_fit.pair_directions``), computed once
+    #: for every look.
+    _frame_directions: list = field(default_factory=list, repr=False)
 
     def _screen_ratio(self) -> float:
         return self.config.max_patch_residual
@@ -447,7 +450,7 @@ class MountCheck(PairedCheck):
         disagreement; None when the pairs show none, or when it does not lower their cost
         ``FRAME_COST_GAIN`` times (the mount's own fit decides). What is left
         of a tilt is the next look's (the node starts the check over once it takes the turn)."""
-        turn = gross_frame_turn(K, self.pairs)
+        turn = gross_frame_turn(K, self.pairs, self._frame_directions)
         if turn is None:
             return None
         stack = PairStack.of(self.pairs)
