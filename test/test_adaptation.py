@@ -127,6 +127,73 @@ def test_guard_rolls_back_a_poisoned_update_and_restores_weights_and_optimiser(s
     assert adapter.observe(_gt_sample(small_sequence, 5)).status == 'updated'
 
 
+def test_a_restart_gives_back_the_loaded_weights_with_an_empty_replay_and_a_fresh_optimiser(
+    small_sequence, tiny_model
+):
+    """The node restarts the adaptation when the poses every earlier keyframe's points came
+    from were another frame's: nothing learnt from them may stay, in the weights, the replay
+    or Adam's moments."""
+    config = AdaptConfig.from_dict({**FAST, 'start_coverage': 0.5})
+    adapter = Adapter.from_spec(tiny_model, config)
+    loaded = {k: v.clone() for k, v in adapter.net.state_dict().items()}
+    for i in range(3):
+        assert adapter.observe(_gt_sample(small_sequence, i, scale=1.5)).status == 'updated'
+    assert len(adapter.buffer) == 3 and adapter.coverage_needed() == config.min_coverage
+    report = adapter.restart(7, 'the poses were of another frame')
+    assert (report.status, report.key, report.version) == ('restarted', 7, 4)
+    assert adapter.version == 4 and adapter.counters.restarts == 1 and adapter.accepted == 0
+    for key, value in adapter.net.state_dict().items():
+        assert torch.equal(value, loaded[key]), key
+    assert len(adapter.buffer) == 0 and len(adapter.optimizer.state) == 0
+    assert adapter.coverage_needed() == 0.5  # the start's coverage again: these are the loaded weights
+    rgb = small_sequence.frames[4].rgb
+    np.testing.assert_array_equal(
+        adapter.predictor().predict(rgb), Adapter.from_spec(tiny_model).predictor().predict(rgb)
+    )
+    assert adapter.observe(_gt_sample(small_sequence, 3)).status == 'updated'  # and it learns again
+    assert adapter.version == 5 and len(adapter.buffer) == 1
+
+
+def test_the_training_thread_restarts_before_its_next_keyframe_and_lets_earlier_ones_go(
+    small_sequence, tiny_model
+):
+    """A restart from key 3: the keyframes 0-2 still queued, and keyframe 2 submitted after
+    it, are not trained on; inference gets the loaded weights back; keyframe 3 is trained on."""
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict(FAST))
+    slot = WeightSlot(adapter.predictor())
+    gate, entered = threading.Event(), threading.Event()
+    observe = adapter.observe
+
+    def held(sample, abort=None, behind=False):
+        entered.set()
+        gate.wait(60.0)
+        return observe(sample, abort, behind)
+
+    adapter.observe = held
+    reports = []
+    online = OnlineAdaptation(adapter, slot, queue_size=4, on_report=reports.append)
+    try:
+        online.submit(_gt_sample(small_sequence, 0, scale=1.5))
+        assert entered.wait(60.0)  # taken, and held at the gate
+        for i in (1, 2):  # these two wait
+            online.submit(_gt_sample(small_sequence, i, scale=1.5))
+        assert online.restart(3, 'turned') == 2 and online.stale == 2
+        assert online.submit(_gt_sample(small_sequence, 2, scale=1.5))  # no drop, just not trained on
+        assert online.stale == 3
+        gate.set()
+        assert online.wait_idle(60.0)
+        assert [r.status for r in reports] == ['updated', 'restarted']
+        assert not online.learnt and slot.version == adapter.version == 2
+        rgb = small_sequence.frames[4].rgb
+        loaded = Adapter.from_spec(tiny_model).predictor().predict(rgb)
+        np.testing.assert_array_equal(slot.get()[0].predict(rgb), loaded)
+        online.submit(_gt_sample(small_sequence, 3))
+        assert online.wait_idle(60.0)
+    finally:
+        assert online.stop()
+    assert [r.key for r in reports] == [0, 3, 3] and reports[-1].status == 'updated' and online.learnt
+
+
 def test_a_step_that_raises_leaves_the_weights_and_optimiser_as_before(
     small_sequence, tiny_model, monkeypatch
 ):

@@ -145,6 +145,22 @@ def test_the_training_thread_swaps_in_the_process_weights(remote, tiny_model, sm
     np.testing.assert_array_equal(slot.get()[0].predict(rgb), remote.predictor().predict(rgb))
 
 
+def test_a_restart_in_the_process_gives_back_the_loaded_weights(remote, tiny_model, small_sequence):
+    """The child starts over (Adapter.restart) and sends the loaded weights back for inference."""
+    loaded = _weights(remote.net)
+    rgb = small_sequence.frames[3].rgb
+    for i in (0, 1):
+        assert remote.observe(_gt_sample(small_sequence, i, scale=1.3)).status == 'updated'
+    assert any(not torch.equal(a, b) for a, b in zip(_weights(remote.net), loaded, strict=True))
+    report = remote.restart(2, 'turned')
+    assert (report.status, report.version, remote.version) == ('restarted', 3, 3)
+    assert remote.counters.restarts == 1
+    for a, b in zip(_weights(remote.net), loaded, strict=True):
+        assert torch.equal(a, b)
+    np.testing.assert_array_equal(remote.predictor().predict(rgb), load_predictor(tiny_model).predict(rgb))
+    assert remote.observe(_gt_sample(small_sequence, 2, scale=1.3)).status == 'updated'  # learns again
+
+
 def test_a_model_that_cannot_adapt_is_a_start_up_error(tmp_path):
     with pytest.raises(FileNotFoundError, match='single-view model not found'):
         RemoteAdapter(str(tmp_path / 'missing.pt'))

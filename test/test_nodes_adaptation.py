@@ -302,6 +302,61 @@ def test_a_mount_turn_multi_view_node_takes_re_poses_the_keyframe_poses_the_adap
     np.testing.assert_allclose(waiting[before[1]], room.frames[1].pose @ turn, atol=1e-12)
 
 
+def test_a_frame_turn_multi_view_node_takes_starts_the_adaptation_over(tiny_model, room):
+    """multi_view_node found that the told poses were a body frame's and turned the camera by
+    120 deg: every keyframe trained on before had points triangulated with the wrong motion.
+    The node goes back to the loaded weights (its next depth is the loaded network's, bit for
+    bit), says so, and does not train on a keyframe posed before the turn that comes later."""
+    original = load_predictor(tiny_model)
+    frame = np.eye(4)
+    frame[:3, :3] = Rotation.from_quat([-0.5, 0.5, -0.5, 0.5]).as_matrix()  # x forward -> optical
+    with RosHarness() as ros:
+        params = {
+            'adaptation.min_points': 5,
+            'adaptation.min_baseline': 0.0,
+            'adaptation.start_coverage': 0.0,
+            'adaptation.nice': 0,  # see the first test
+            'adaptation.queue_size': 8,
+        }
+        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model, **params)))
+        said = ros.publisher(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, posing_qos())
+        pubs = {
+            'image': ros.publisher(Image, '/depth_fusion/keyframe/image'),
+            'info': ros.publisher(CameraInfo, '/depth_fusion/keyframe/camera_info'),
+            'pose': ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose'),
+            'depth': ros.publisher(Image, '/depth_fusion/multi_view/depth'),
+            'score': ros.publisher(Image, '/depth_fusion/multi_view/score'),
+        }
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers([said, *pubs.values()])
+        pubs['info'].publish(m.camera_info_msg(room.camera, m.header_msg(1, FRAME, kind=K), kind=K))
+        said.publish(transform_msg(Posing(np.eye(4)), 1_000_000_000, 'camera', kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('camera_info') == 1, 10.0)
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('posing') == 1, 10.0)
+        stamps = [1_000_000_000 + i * 100_000_000 for i in range(5)]
+        for i in range(3):
+            _publish_keyframe(pubs, room, i, stamps[i])
+        assert ros.wait_for(lambda: len(depths) >= 3, timeout=30.0)
+        assert ros.wait_for(lambda: node.adaptation.slot.version >= 1, timeout=60.0), (
+            node.stats.snapshot().summary()
+        )
+        assert node.adaptation.online.wait_idle(60.0)
+        said.publish(transform_msg(Posing(frame), stamps[3], 'camera', kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().noted.get('adapt_restarted') == 1, 10.0)
+        assert node.adaptation.online.wait_idle(60.0)
+        version = node.adaptation.slot.version
+        _publish_keyframe(pubs, room, 2, stamps[2] + 50_000_000)  # posed before the turn, late
+        assert ros.wait_for(lambda: node.adaptation.online.stale == 1, timeout=30.0)
+        _publish_keyframe(pubs, room, 4, stamps[4], signals=False)
+        assert ros.wait_for(lambda: len(depths) >= 5, timeout=30.0)
+        assert node.adaptation.online.wait_idle(60.0)
+        snap = node.stats.snapshot()
+    np.testing.assert_array_equal(m.image_to_numpy(depths[4]), original.predict(room.frames[4].rgb))
+    assert node.adaptation.slot.version == version and node.adaptation.adapter.counters.restarts == 1
+    assert not node.adaptation.online.learnt  # shutdown would not write the loaded weights over a checkpoint
+    assert snap.published['adapted_weights'] >= 2 and not snap.dropped
+
+
 def test_the_keyframes_multi_view_node_reads_again_at_a_corrected_offset_move_in_the_adaptation(
     tiny_model, room
 ):

@@ -10,8 +10,14 @@ accepted weights (``inference_network``), so training never mutates a module tha
 predicting. Prequential use (offline evaluation): predict keyframe k with the current
 weights, then ``observe`` it.
 
-Only ``observe`` changes ``net``: the guard's per-keyframe errors are kept for the weights
-they were computed with (a token), so writing into ``net`` from outside would leave them stale.
+``restart`` starts the training over from the loaded weights, with an empty replay and a
+fresh optimiser: the node calls it when the poses every earlier training signal was computed
+from turn out to be another frame's (docs/adaptation.md, "A frame turn starts the training
+over").
+
+Only ``observe`` and ``restart`` change ``net``: the guard's per-keyframe errors are kept for
+the weights they were computed with (a token), so writing into ``net`` from outside would
+leave them stale.
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ from .window import draw_windows
 
 log = logging.getLogger(__name__)
 
-STATUSES = ('updated', 'rolled_back', 'skipped')
+STATUSES = ('updated', 'rolled_back', 'skipped', 'restarted')
 
 
 @dataclass
@@ -76,6 +82,8 @@ class AdapterCounters:
     steps: int = 0
     #: Updates trained with ``steps_when_behind`` steps (kept or rolled back).
     behind: int = 0
+    #: Times the training started over from the loaded weights (:meth:`Adapter.restart`).
+    restarts: int = 0
     train_seconds: float = 0.0
     reasons: dict[str, int] = field(default_factory=dict)
 
@@ -161,6 +169,11 @@ class Adapter:
         self.buffer: ReplayBuffer[PreparedSample] = ReplayBuffer(self.config.buffer_size)
         self.counters = AdapterCounters()
         self.version = 0
+        #: Updates accepted since the start or the last restart (the start coverage applies
+        #: again after a restart: the weights are the loaded ones).
+        self.accepted = 0
+        #: The loaded weights (parameters and buffers), for :meth:`restart`.
+        self._loaded = [t.detach().clone() for t in [*self.net.parameters(), *self.net.buffers()]]
         self._copies = InferenceCopies(self.net)
         # Names the current weights: guard errors computed under a token stay valid while it
         # is current (a rollback restores the token of the weights it restores).
@@ -409,6 +422,7 @@ class Adapter:
         else:
             self.counters.updated += 1
             self.version += 1
+            self.accepted += 1
             self.buffer.add(prepared)
         for s in guard_set:  # errors of weights that are gone are never asked for again
             s.guard_errors = {t: e for t, e in s.guard_errors.items() if t == self._token}
@@ -421,7 +435,30 @@ class Adapter:
         """Share of the image a keyframe's points must cover to be trained on: ``start_coverage``
         until an update was accepted, then ``min_coverage``."""
         cfg = self.config
-        return cfg.min_coverage if self.version > 0 else max(cfg.min_coverage, cfg.start_coverage)
+        return cfg.min_coverage if self.accepted > 0 else max(cfg.min_coverage, cfg.start_coverage)
+
+    @torch.no_grad()
+    def restart(self, key: int, reason: str) -> UpdateReport:
+        """Start over from the loaded weights: they, a fresh optimiser state and an empty replay
+        buffer, as a new ``version`` (inference takes it like an update).
+
+        Why: every keyframe trained on so far had multi-view points triangulated with poses that
+        the node later found wrong (another frame's; a turn of 120 deg on 7-Scenes). A rollback
+        cannot undo them: the guard judged each update on held-out points of the same wrong
+        poses. Kept, those updates made the single view 0.64 m against 0.48 m with the right
+        poses, live (docs/adaptation.md). ``key``: the first keyframe of the right poses.
+        """
+        t0 = time.perf_counter()
+        tensors = [t.detach() for t in [*self.net.parameters(), *self.net.buffers()]]
+        torch._foreach_copy_(tensors, [t.to(d.device) for t, d in zip(self._loaded, tensors, strict=True)])
+        self.optimizer.state.clear()  # Adam's moments and step counts of the updates undone
+        self.buffer.clear()
+        self._token = next(self._tokens)  # no guard error of earlier weights is reused
+        self.version += 1
+        self.accepted = 0
+        self.counters.restarts += 1
+        log.warning('adaptation: started over from the loaded weights (version %d): %s', self.version, reason)
+        return UpdateReport(key, 'restarted', reason, version=self.version, seconds=time.perf_counter() - t0)
 
     def _skip(self, key: int, reason: str, t0: float) -> UpdateReport:
         self.counters.skip(reason.split(' ')[0])

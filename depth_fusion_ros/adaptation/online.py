@@ -8,7 +8,8 @@ updates made meanwhile are the adapter's shorter ``behind`` ones: :func:`is_behi
 accepted update produces a *new* predictor around a copy of the weights, published through a
 :class:`WeightSlot`. Inference takes the slot's current predictor with one locked read and
 runs it; training never touches a module that is predicting, and a swap never waits for a
-prediction in flight.
+prediction in flight. ``restart`` starts the training over from the loaded weights, on this
+thread before the next keyframe, and lets go of the keyframes from before the poses changed.
 """
 
 from __future__ import annotations
@@ -114,12 +115,23 @@ class OnlineAdaptation:
         self._interval: float | None = None
         #: Seconds the last update that trained took (None before the first).
         self._last_update: float | None = None
+        #: A restart asked and not yet done: ``(first key of the new poses, reason)``.
+        self._restart: tuple[int, str] | None = None
+        #: Keyframes before the last restart's first key are not trained on (``stale``).
+        self._from_key: int | None = None
+        self.stale = 0
+        #: An update was accepted since the start or the last restart.
+        self.learnt = False
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     def submit(self, sample: AdaptSample) -> bool:
-        """Queue a keyframe for training; never blocks. False when an older one was dropped."""
+        """Queue a keyframe for training; never blocks. False when an older one was dropped.
+        A keyframe from before the last restart's first key is not queued (counted ``stale``)."""
         with self._cond:
+            if self._from_key is not None and sample.key < self._from_key:
+                self.stale += 1
+                return True
             now = self._clock()
             if self._last_submit is not None:
                 self._interval = now - self._last_submit
@@ -132,6 +144,20 @@ class OnlineAdaptation:
             self._queue.append(sample)
             self._cond.notify()
         return not dropped
+
+    def restart(self, from_key: int, reason: str) -> int:
+        """Start the training over from the loaded weights before the next keyframe it takes
+        (``adapter.restart``), and never train on a keyframe before ``from_key``: its points
+        came from the poses the restart is for. Returns the queued keyframes let go."""
+        with self._cond:
+            self._from_key = from_key if self._from_key is None else max(self._from_key, from_key)
+            kept = [s for s in self._queue if s.key >= self._from_key]
+            gone = len(self._queue) - len(kept)
+            self._queue = deque(kept)
+            self.stale += gone
+            self._restart = (from_key, reason)
+            self._cond.notify()
+        return gone
 
     def _lower_priority(self) -> None:
         """Make this (the training) thread and the torch worker threads it creates yield the CPU.
@@ -168,20 +194,23 @@ class OnlineAdaptation:
                 log.exception('adaptation: on_warm failed')
         while True:
             with self._cond:
-                while not self._queue and not self._stop:
+                while not self._queue and self._restart is None and not self._stop:
                     self._cond.wait()
                 if self._stop:
                     return
-                sample = self._queue.popleft()
-                behind = self._behind()
-                self._dropped_at_take = self.dropped
+                restart, self._restart = self._restart, None
+                if restart is None:
+                    sample = self._queue.popleft()
+                    behind = self._behind()
+                    self._dropped_at_take = self.dropped
                 self._busy = True
             try:
-                report = self.adapter.observe(sample, abort=lambda: self._stop, behind=behind)
-                if report.status != 'skipped':
-                    self._last_update = report.seconds
-                if report.status == 'updated':
+                if restart is not None:
+                    report = self.adapter.restart(*restart)
+                    self.learnt = False
                     self.slot.swap(self.adapter.predictor(), self.adapter.version)
+                else:
+                    report = self._observe(sample, behind)
                 if self.on_report is not None:
                     self.on_report(report)
             except Exception:  # a bad sample must not end adaptation
@@ -192,6 +221,15 @@ class OnlineAdaptation:
                     self._busy = False
                     self._cond.notify_all()
 
+    def _observe(self, sample: AdaptSample, behind: bool) -> UpdateReport:
+        report = self.adapter.observe(sample, abort=lambda: self._stop, behind=behind)
+        if report.status != 'skipped':
+            self._last_update = report.seconds
+        if report.status == 'updated':
+            self.learnt = True
+            self.slot.swap(self.adapter.predictor(), self.adapter.version)
+        return report
+
     def _behind(self) -> bool:
         """:func:`is_behind` for the keyframe just taken (called holding the lock)."""
         return is_behind(
@@ -201,7 +239,9 @@ class OnlineAdaptation:
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Block until nothing is queued or training (tests, flushing before a save)."""
         with self._cond:
-            return self._cond.wait_for(lambda: not self._queue and not self._busy, timeout)
+            return self._cond.wait_for(
+                lambda: not self._queue and self._restart is None and not self._busy, timeout
+            )
 
     def stop(self, timeout: float = 30.0) -> bool:
         """Stop after the update in hand (queued samples are discarded); True when joined."""

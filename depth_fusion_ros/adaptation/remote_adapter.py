@@ -73,6 +73,8 @@ class RemoteAdapter:
         self.net.eval()
         for p in self.net.parameters():
             p.requires_grad_(False)
+        #: The loaded weights (``state_dict`` order), for a restart without the child.
+        self._loaded = [t.detach().clone() for t in self.net.state_dict().values()]
         self._copies = InferenceCopies(self.net)
         self.counters = AdapterCounters()
         self.version = 0
@@ -148,6 +150,29 @@ class RemoteAdapter:
             self._load(weights)
         self.version = report.version
         return report
+
+    def restart(self, key: int, reason: str) -> UpdateReport:
+        """Start the child's training over from the loaded weights (``Adapter.restart``); they
+        come back as the new version. Where the child is gone, its weights here are reloaded
+        as they were loaded all the same: inference must not keep what the restart undoes."""
+        t0 = time.perf_counter()
+        self.warm_up()
+        reply = None
+        if self._error is None and self._ready:
+            try:
+                send(self._conn, ('restart', int(key), str(reason)))
+                reply = self._receive(None)
+            except OSError as exc:
+                self._fail(f'the training process is gone ({exc})')
+        if reply is not None and reply[0] == 'report':
+            _, report, self.counters, weights = reply
+            self._load(weights)
+            self.version = report.version
+            return report
+        self._load(self._loaded)
+        self.version += 1
+        self.counters.restarts += 1
+        return UpdateReport(key, 'restarted', reason, version=self.version, seconds=time.perf_counter() - t0)
 
     def predictor(self) -> DepthPredictor:
         """A predictor around a copy of the last accepted weights (as ``Adapter.predictor``)."""

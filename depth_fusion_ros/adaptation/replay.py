@@ -35,6 +35,9 @@ class ReplayBuffer(Generic[T]):
     def add(self, item: T) -> None:
         self._items.append(item)
 
+    def clear(self) -> None:
+        self._items.clear()
+
     def recent(self, count: int) -> list[T]:
         """The ``count`` most recent items, newest first."""
         if count <= 0:

@@ -21,6 +21,8 @@ request at a time:
 * ``('observe', sample, behind)`` -> ``('report', report, counters, weights)``, ``weights`` the
   accepted network's tensors (``state_dict`` order) after an ``updated`` report, else None;
   or ``('failed', text, counters)`` when the update raised;
+* ``('restart', key, reason)`` -> ``('report', report, counters, weights)``: the adapter
+  started over from the loaded weights (``Adapter.restart``), which come back;
 * ``('stop',)``, or the parent's end closing: the child returns; one that comes during an
   update stops the update first, as an abort does;
 * ``('abort',)`` while an update runs asks it to stop: between its steps the adapter looks at
@@ -139,6 +141,10 @@ def _loop(conn: Connection, adapter: Any) -> None:
             return
         if request[0] == 'abort':  # for an update that had ended before it came
             continue
+        if request[0] == 'restart':
+            report = adapter.restart(request[1], request[2])
+            send(conn, ('report', report, adapter.counters, _weights(adapter)))
+            continue
         _, sample, behind = request
         asked = _Requests(conn)
         try:
@@ -146,12 +152,15 @@ def _loop(conn: Connection, adapter: Any) -> None:
         except Exception as exc:  # a bad sample must not end adaptation (the parent counts it)
             send(conn, ('failed', f'{type(exc).__name__}: {exc}', adapter.counters))
         else:
-            weights = None
-            if report.status == 'updated':
-                weights = [t.detach().cpu() for t in adapter.net.state_dict().values()]
+            weights = _weights(adapter) if report.status == 'updated' else None
             send(conn, ('report', report, adapter.counters, weights))
         if asked.stop:
             return
+
+
+def _weights(adapter: Any) -> list[Any]:
+    """The adapter's network's tensors, ``state_dict`` order, on the CPU (for the pipe)."""
+    return [t.detach().cpu() for t in adapter.net.state_dict().values()]
 
 
 if __name__ == '__main__':

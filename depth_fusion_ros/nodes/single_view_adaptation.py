@@ -13,6 +13,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import Image
@@ -24,6 +25,7 @@ from ..adaptation.online import OnlineAdaptation, WeightSlot
 from ..adaptation.remote_adapter import RemoteAdapter
 from ..adaptation.sample import AdaptSample
 from ..data import messages
+from ..multiview.frame_fit import MIN_TURN_DEG
 from ..ros_home import expand_ros_home
 from .corrected_path import path_poses
 from .image_input import InputError, WorkingImage, depth_from_message, header_stamp_ns, pose_from_message
@@ -36,6 +38,10 @@ TOPIC_MV_DEPTH_STD = 'depth_fusion/multi_view/depth_std'
 #: Published by multi_view_node for every keyframe (PoseStamped, world frame, keyframe stamp).
 TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
 SERVICE_SAVE = '~/save_model'
+#: A turn of multi_view_node's camera at least this large (deg) is a whole frame's (its mount
+#: check fits turns of up to 15 deg, its frame check finds larger ones: multiview/frame_fit.py)
+#: and starts the adaptation over: the points trained on before came from motion that wrong.
+RESTART_TURN_DEG = MIN_TURN_DEG
 ADAPT_CHOICES = ('auto', 'true', 'false')
 #: Under ``$ROS_HOME`` (``~/.ros`` when unset; ros_home.py), expanded when it is written.
 DEFAULT_CHECKPOINT = '$ROS_HOME/depth_fusion_ros/single_view_adapted.pt'
@@ -129,6 +135,12 @@ ADAPTATION_PARAMETERS: tuple[ParamSpec, ...] = (
     ),
     *dataclass_specs(AdaptConfig, 'adaptation', {}, ADAPT_LIMITS),
 )
+
+
+def turn_degrees(turn: np.ndarray) -> float:
+    """The rotation angle of a 4x4 rigid turn, degrees."""
+    cos = (float(np.trace(turn[:3, :3])) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 def is_own_network(spec: str) -> bool:
@@ -262,8 +274,10 @@ class NodeAdaptation:
 
     def _on_posing(self, msg: Any) -> None:
         """multi_view_node's ``camera_from_pose_frame``; another one than the last (its mount
-        check turned the camera) re-poses the neighbours and waiting poses (``repose``). Counted
-        once taken (or dropped): a count read elsewhere never runs ahead of what is held."""
+        check turned the camera) re-poses the neighbours and waiting poses (``repose``). A turn
+        of a whole frame (:data:`RESTART_TURN_DEG` or more) also starts the training over
+        (:meth:`_restart`). Counted once taken (or dropped): a count read elsewhere never runs
+        ahead of what is held."""
         try:
             with self._lock:
                 turn = self.posings.on_transform(msg)
@@ -275,8 +289,27 @@ class NodeAdaptation:
             return
         finally:
             self.node.stats.received('posing')
+        angle = turn_degrees(turn)
         self.node.get_logger().info(
-            f'adaptation: multi_view_node turned the camera (mount check): {moved} kept poses re-posed'
+            f'adaptation: multi_view_node turned the camera by {angle:.1f} deg (mount check): {moved} kept '
+            'poses re-posed'
+        )
+        if angle >= RESTART_TURN_DEG:
+            self._restart(messages.stamp_to_ns(msg.header.stamp), angle)
+
+    def _restart(self, from_ns: int, angle: float) -> None:
+        """Start the training over from the loaded weights: the multi-view points of every
+        keyframe before ``from_ns`` were triangulated with motion turned by ``angle`` deg, and
+        the guard, which holds out points of the same poses, could not see it."""
+        reason = (
+            f'multi_view_node turned the camera by {angle:.0f} deg (the told poses were of another frame): '
+            'the keyframes trained on before were triangulated with the wrong motion'
+        )
+        let_go = self.online.restart(from_ns, reason)
+        self.node.stats.noted(
+            'adapt_restarted',
+            f'adaptation starts over from the loaded weights: {reason}; {let_go} queued keyframes let go, '
+            'none before the turn is trained on',
         )
 
     def _on_reposed(self, msg: Any) -> None:
@@ -339,7 +372,7 @@ class NodeAdaptation:
 
     def _on_report(self, report: UpdateReport) -> None:
         stats = self.node.stats
-        if report.status == 'updated':
+        if report.status in ('updated', 'restarted'):  # new weights swapped in either way
             stats.published('adapted_weights')
         elif report.status == 'rolled_back':
             g = report.guard
@@ -381,10 +414,12 @@ class NodeAdaptation:
             f'{c.skipped} skipped, {self.online.dropped} dropped, {self.online.failed} failed, '
             f'{c.behind} trained while behind'
         )
+        if c.restarts or self.online.stale:
+            summary += f', {c.restarts} restarts ({self.online.stale} keyframes before one not trained on)'
         self.node.get_logger().info(summary)
-        if self.checkpoint and self.slot.version == 0:
-            # Nothing learnt in this run: writing the weights as loaded would replace an earlier
-            # run's adapted checkpoint with them.
+        if self.checkpoint and not self.online.learnt:
+            # Nothing learnt in this run (or since a restart): writing the weights as loaded
+            # would replace an earlier run's adapted checkpoint with them.
             self.node.get_logger().info(
                 f'no adaptation update was accepted: {self.checkpoint} left as it was'
             )
