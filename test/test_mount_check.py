@@ -93,7 +93,10 @@ def test_poses_of_a_body_frame_are_taken_as_a_whole_frame_turn():
     pose by 120 deg, which the mount's local fit cannot reach (it refuses beyond 15 deg). The
     pairs' rotation axes and translation directions show it (``frame_fit.py``): the check ends at
     its early look with the exact axis rotation and says to set camera_from_pose_frame. A right
-    frame, and a straight drive (one direction: a turn about it is free), give none."""
+    frame gives none. A straight drive (one direction: a turn about it is free) gives the REP
+    103 turn, which carries its told line onto the seen one (``frame_fit.line_frame_turn``;
+    until 2026-12-05 it gave none, and a forward robot told its body frame was fused to 1.14x
+    its single view)."""
     import cv2
 
     from depth_fusion_ros.multiview.frame_fit import axis_rotations, gross_frame_turn
@@ -111,8 +114,39 @@ def test_poses_of_a_body_frame_are_taken_as_a_whole_frame_turn():
     assert "not of the camera's optical frame" in message and 'set camera_from_pose_frame' in message
     assert gross_frame_turn(camera.K, _exact_pairs([0.0, 0.0, 0.0], 'turning', n_pairs=8)[1]) is None
     assert gross_frame_turn(camera.K, _exact_pairs([2.0, -1.0, 0.5], 'turning', n_pairs=8)[1]) is None
-    assert gross_frame_turn(camera.K, _exact_pairs(body, 'straight', n_pairs=8)[1]) is None
+    line = gross_frame_turn(camera.K, _exact_pairs(body, 'straight', n_pairs=8)[1])
+    assert line is not None and line.along_line
+    assert np.allclose(cv2.Rodrigues(line.rotvec)[0], R_bc, atol=1e-9)
     assert len(axis_rotations()) == 24
+
+
+def test_a_straight_drive_takes_the_body_frame_turn_only_where_its_line_says_it():
+    """One direction of travel fixes a frame turn up to a twist about it (``line_frame_turn``):
+    told in a frame turned 90 deg about x, four axis rotations carry the told line onto the
+    seen one and REP 103's is not among them, so none is taken; told right (the directions
+    agree), none either; a forward drive that turns a little, told its body frame, the REP 103
+    turn, and the mount check takes it at its first frame look (``FRAME_EARLY_PAIRS`` pairs)
+    as seen by 2 of 3 directions."""
+    import cv2
+
+    from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL, gross_frame_turn
+    from depth_fusion_ros.multiview.mount_check import FRAME_EARLY_PAIRS
+
+    camera, pairs = _exact_pairs([90.0, 0.0, 0.0], 'straight', n_pairs=8)
+    assert gross_frame_turn(camera.K, pairs) is None
+    assert gross_frame_turn(camera.K, _exact_pairs([0.0, 0.0, 0.0], 'straight', n_pairs=8)[1]) is None
+    body = np.degrees(cv2.Rodrigues(BODY_TO_OPTICAL.T)[0].ravel())
+    camera, pairs = _exact_pairs(body, 'forward', n_pairs=8)
+    check = MountCheck(camera, MountCheckConfig())
+    for k in range(FRAME_EARLY_PAIRS, 9):
+        check.pairs = pairs[:k]
+        estimate = check._early_look()
+        if estimate is not None:
+            break
+    assert estimate is not None and estimate.frame and estimate.observed == 2, estimate
+    assert len(check.pairs) == 6  # the line's directions: MIN_DIRECTIONS
+    assert np.allclose(estimate.rotation()[:3, :3], BODY_TO_OPTICAL, atol=1e-9)
+    assert 'a straight drive' in estimate.message()
 
 
 def test_a_rendered_sweep_posed_as_a_body_frame_is_turned_back_to_the_optical_frame():
@@ -130,6 +164,26 @@ def test_a_rendered_sweep_posed_as_a_body_frame_is_turned_back_to_the_optical_fr
     assert check.result.verdict == 'disagrees' and check.frames < 100
     assert np.allclose(check.result.rotation()[:3, :3], R_bc, atol=1e-9)
     level = check_frames(seq.camera, seq.frames, MountCheckConfig()).result  # the same, told right
+    assert level is None or not level.frame
+
+
+def test_a_rendered_forward_drive_posed_as_a_body_frame_is_turned_back_to_the_optical_frame():
+    """The ``forward`` robot (a straight drive, a level camera) with its poses given as those
+    of its body frame: its translations lie along one line, and the check still takes the REP
+    103 turn (at 6 pairs, frame 42 of seed 171); told right, no frame turn."""
+    import dataclasses
+
+    from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL
+
+    body = np.eye(4)
+    body[:3, :3] = BODY_TO_OPTICAL.T
+    seq = render_sequence(stress_config('forward', width=320, height=240, frames=80, seed=3))
+    frames = [dataclasses.replace(f, pose=f.pose @ body) for f in seq.frames]
+    check = check_frames(seq.camera, frames, MountCheckConfig())
+    assert check.result is not None and check.result.frame, check.result
+    assert check.result.verdict == 'disagrees' and check.frames < 80
+    assert np.allclose(check.result.rotation()[:3, :3], BODY_TO_OPTICAL, atol=1e-9)
+    level = check_frames(seq.camera, seq.frames, MountCheckConfig()).result
     assert level is None or not level.frame
 
 

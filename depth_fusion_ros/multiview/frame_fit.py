@@ -17,6 +17,17 @@ pair's matches) are the told ones turned by ``M^T``: one rotation between two se
 vectors (Wahba's problem, solved by an SVD: Kabsch). :func:`gross_frame_turn` returns it when
 it is far from the identity and fits the pairs far better than the identity does; the mount
 check then refines it on the pairs' own cost and takes it like a mount turn.
+
+A straight drive gives one direction only (the translations, along one line; no rotation
+axis), which leaves a turn about that line free: the rotation is not fixed. But while the
+motion keeps to that line the free twist changes no triangulation, and the line itself is
+told wrong by 90 deg or so with a body frame's poses (a robot told to drive sideways). A
+forward robot with its body frame's poses was fused to 1.14x its single view (the `forward`
+stress case, seed 171), and the check said nothing. So for one line :func:`line_frame_turn`
+takes, among the axis rotations that carry the told line onto the seen one, the turn of
+REP 103's body frame (x forward, z up) to the optical frame: the usual mistake. Any other it
+takes only when it is the one axis rotation that fits. Where the robot turns later, the next
+look (the node starts the check over) sees the rotation axis and corrects the twist.
 """
 
 from __future__ import annotations
@@ -53,6 +64,10 @@ MIN_SPREAD = 0.2
 #: on 7-Scenes' body-frame poses). A tilt of the camera on its body beyond it is left to the
 #: mount check's next look.
 SNAP_DEG = 10.0
+#: The camera's optical frame (x right, y down, z forward) in a REP 103 body frame (x forward,
+#: y left, z up): ``T_wc = T_body @ M``, the ``camera_from_pose_frame`` [0, 0, 0, -0.5, 0.5,
+#: -0.5, 0.5] the node suggests; the turn taken for a line when it fits (:func:`line_frame_turn`).
+BODY_TO_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 @dataclass(frozen=True)
@@ -63,6 +78,9 @@ class FrameTurn:
     told_residual_deg: float  # median angle between the images' directions and the told ones
     fit_residual_deg: float  # the same after the turn
     directions: int
+    #: The directions lie along one line (a straight drive): the turn about it is not seen,
+    #: and the axis rotation taken is :data:`BODY_TO_OPTICAL` or the only one that fits.
+    along_line: bool = False
 
     @property
     def angle_deg(self) -> float:
@@ -116,7 +134,7 @@ def gross_frame_turn(
     A, B = np.array(told), np.array(image)
     spread = np.linalg.svd(A, compute_uv=False)
     if spread[1] < MIN_SPREAD * spread[0]:
-        return None  # one direction (a straight drive that does not turn) leaves a turn about it free
+        return line_frame_turn(A, B)  # a straight drive: a turn about its line is free
     U, _, Vt = np.linalg.svd(A.T @ B)  # Kabsch: Q = argmin sum |b - Q a|^2, Q = M^T
     d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
     Q = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
@@ -130,6 +148,29 @@ def gross_frame_turn(
     ):
         return None
     return turn
+
+
+def line_frame_turn(told: np.ndarray, seen: np.ndarray) -> FrameTurn | None:
+    """The frame turn of directions along one line (see module): among the axis rotations that
+    fit them ``MIN_FIT_GAIN`` times better than the told frame (which must miss them by
+    ``MIN_TOLD_RESIDUAL_DEG``), :data:`BODY_TO_OPTICAL`, else the only one; None when none
+    fits or several do and that one is not among them (the twist cannot be told)."""
+    told_residual = _median_angle_deg(told, seen)
+    if told_residual < MIN_TOLD_RESIDUAL_DEG:
+        return None
+    fits = []
+    for M in axis_rotations():
+        residual = _median_angle_deg(told @ M, seen)  # Q = M^T turns each told direction
+        if residual * MIN_FIT_GAIN <= told_residual:
+            fits.append((residual, M))
+    usual = [f for f in fits if np.allclose(f[1], BODY_TO_OPTICAL)]
+    if usual:
+        residual, M = usual[0]
+    elif len(fits) == 1:
+        residual, M = fits[0]
+    else:
+        return None
+    return FrameTurn(_rotvec(M), told_residual, residual, len(told), along_line=True)
 
 
 def axis_rotations() -> np.ndarray:
