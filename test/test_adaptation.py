@@ -157,10 +157,14 @@ def test_a_restart_gives_back_the_loaded_weights_with_an_empty_replay_and_a_fres
 def test_the_training_thread_restarts_before_its_next_keyframe_and_lets_earlier_ones_go(
     small_sequence, tiny_model
 ):
-    """A restart from key 3: the keyframes 0-2 still queued, and keyframe 2 submitted after
-    it, are not trained on; inference gets the loaded weights back; keyframe 3 is trained on."""
+    """A restart from key 3: inference gets the loaded weights back at once, the update in
+    hand stops, the keyframes 1-2 still queued and keyframe 2 submitted after it are not
+    trained on; keyframe 3 is."""
     adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict(FAST))
-    slot = WeightSlot(adapter.predictor())
+    assert adapter.observe(_gt_sample(small_sequence, 5, scale=1.5)).status == 'updated'
+    slot = WeightSlot(Adapter.from_spec(tiny_model).predictor())  # the node's: the loaded weights
+    rgb = small_sequence.frames[4].rgb
+    loaded = Adapter.from_spec(tiny_model).predictor().predict(rgb)
     gate, entered = threading.Event(), threading.Event()
     observe = adapter.observe
 
@@ -172,26 +176,28 @@ def test_the_training_thread_restarts_before_its_next_keyframe_and_lets_earlier_
     adapter.observe = held
     reports = []
     online = OnlineAdaptation(adapter, slot, queue_size=4, on_report=reports.append)
+    slot.swap(adapter.predictor(), adapter.version)  # inference on the learnt weights
+    assert not np.array_equal(slot.get()[0].predict(rgb), loaded)
     try:
         online.submit(_gt_sample(small_sequence, 0, scale=1.5))
         assert entered.wait(60.0)  # taken, and held at the gate
         for i in (1, 2):  # these two wait
             online.submit(_gt_sample(small_sequence, i, scale=1.5))
         assert online.restart(3, 'turned') == 2 and online.stale == 2
+        np.testing.assert_array_equal(slot.get()[0].predict(rgb), loaded)  # at once
         assert online.submit(_gt_sample(small_sequence, 2, scale=1.5))  # no drop, just not trained on
         assert online.stale == 3
         gate.set()
         assert online.wait_idle(60.0)
-        assert [r.status for r in reports] == ['updated', 'restarted']
+        assert [(r.status, r.reason) for r in reports] == [('skipped', 'stopped'), ('restarted', 'turned')]
         assert not online.learnt and slot.version == adapter.version == 2
-        rgb = small_sequence.frames[4].rgb
-        loaded = Adapter.from_spec(tiny_model).predictor().predict(rgb)
         np.testing.assert_array_equal(slot.get()[0].predict(rgb), loaded)
         online.submit(_gt_sample(small_sequence, 3))
         assert online.wait_idle(60.0)
     finally:
         assert online.stop()
     assert [r.key for r in reports] == [0, 3, 3] and reports[-1].status == 'updated' and online.learnt
+    assert slot.version == 3
 
 
 def test_a_step_that_raises_leaves_the_weights_and_optimiser_as_before(
