@@ -129,3 +129,44 @@ def test_poses_of_a_body_frame_are_turned_to_the_optical_frame_and_the_mount_che
     assert len(said) == 1 and "not of the camera's optical frame" in said[0], said
     assert 'camera_from_pose_frame [0, 0, 0, -0.5, 0.5, -0.5, 0.5] fits' in said[0], said[0]
     assert not status.startswith('disagrees'), status  # started over: the tilt left is its own
+
+
+def test_a_frame_turn_does_not_wait_for_the_time_offset_check():
+    """A time offset can fake a small turn, so a mount turn waits for the time offset check to
+    settle; a whole frame's turn cannot be faked, so it is taken as soon as it is found, and
+    the time offset check, whose pairs were posed in the wrong frame, starts over."""
+    size = {'width': 240, 'height': 180, 'frames': 100, 'seed': 3}
+    seq = render_sequence(stress_config('rotation', **size))
+    R_bc = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    body = np.eye(4)
+    body[:3, :3] = R_bc.T
+    stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    with RosHarness() as ros:
+        # The time offset check looks once, at 200 pairs: it cannot settle on this stream, as on
+        # the handheld robot (20 pairs) where the turn had waited.
+        params = {
+            'focal_check.mode': 'off',
+            'time_offset_check.early_pairs': 0,
+            'time_offset_check.pairs': 200,
+        }
+        node = _stream_check_node(ros, size, **params)
+        restarts = []
+        restart = node.time_offset_check.restart
+
+        def counted() -> None:
+            restarts.append(node.time_offset_check.settled)
+            restart()
+
+        node.time_offset_check.restart = counted
+        depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
+        cam = _Camera(ros)
+        for i, frame in enumerate(seq.frames):
+            told = (frame.pose @ body, stamps[i])
+            _send_checked(ros, node, cam, told, (frame.rgb, stamps[i], seq.camera), i + 1)
+        _wait_keyframes_out(ros, node, depths, len(seq.frames))
+        snap = node.stats.snapshot()
+        correction = node._mount_correction.copy()
+    assert snap.noted.get('mount_disagrees') == 1, snap.summary()
+    np.testing.assert_allclose(correction[:3, :3], R_bc, atol=1e-9)
+    assert restarts == [False]  # taken before the time offset check had settled, which started over
+    assert not node.time_offset_check.settled

@@ -206,14 +206,20 @@ class CheckCorrections:
         Only once the time offset check has settled: an offset fakes a turn. The mount check
         collects its pairs from the start meanwhile (until 2026-11-30 it began only then, and a
         short stream ended before its pairs were in); an offset correction starts it over
-        (``_take_offset_correction``), and a verdict that came before is said now."""
-        if not self.time_offset_check.settled:
+        (``_take_offset_correction``), and a verdict that came before is said now.
+
+        A whole frame's turn (``MountEstimate.frame``: the told poses are another frame's) does
+        not wait: no time offset fakes a turn by whole axes, and the time offset check's own
+        pairs were posed in the wrong frame, so it starts over. Waiting, the ``handheld`` robot
+        told its body frame took the turn found at 5 pairs only at the time offset check's 20th."""
+        result = self.mount_check.result
+        frame_turn = result is not None and result.frame and result.verdict == 'disagrees'
+        if not self.time_offset_check.settled and not frame_turn:
             return
         with self._mount_unsaid_lock:
             unsaid, self._mount_unsaid = self._mount_unsaid, None
         if unsaid is not None:
             self._say_mount_verdict(unsaid)
-        result = self.mount_check.result
         if result is None or result is self._mount_taken:
             return  # nothing new (a camera checked anew keeps the turn it has until its own verdict)
         self._mount_taken = result
@@ -226,6 +232,8 @@ class CheckCorrections:
         self.focal_check.restart()  # its pairs were posed in the told frame
         if result.frame:  # a frame convention taken: the mount's own tilt is left to fit
             self.mount_check.restart()
+            if not self.time_offset_check.settled:
+                self.time_offset_check.restart()  # its pairs were posed in the told frame
         self.stats.noted(
             'mount_disagrees',
             f'{result.message()}; mount_check.mode correct: every camera pose is '
