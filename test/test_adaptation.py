@@ -32,6 +32,21 @@ pytestmark = pytest.mark.usefixtures('one_torch_thread')
 FAST = {'steps_per_keyframe': 2, 'replay_per_step': 1, 'min_points': 5}
 
 
+def _hold_updates(adapter: Adapter, timeout: float) -> tuple[threading.Event, threading.Event]:
+    """Hold each ``adapter.observe`` at a gate (as a slow update would): returns the gate and
+    an event set when an update reached it."""
+    gate, entered = threading.Event(), threading.Event()
+    observe = adapter.observe
+
+    def held(sample, abort=None, behind=False):
+        entered.set()
+        gate.wait(timeout)
+        return observe(sample, abort, behind)
+
+    adapter.observe = held
+    return gate, entered
+
+
 def _options(model: str, **params) -> EvalOptions:
     return EvalOptions(frames=None, single_view=model, params={'adaptation': {**FAST, **params}})
 
@@ -165,15 +180,7 @@ def test_the_training_thread_restarts_before_its_next_keyframe_and_lets_earlier_
     slot = WeightSlot(Adapter.from_spec(tiny_model).predictor())  # the node's: the loaded weights
     rgb = small_sequence.frames[4].rgb
     loaded = Adapter.from_spec(tiny_model).predictor().predict(rgb)
-    gate, entered = threading.Event(), threading.Event()
-    observe = adapter.observe
-
-    def held(sample, abort=None, behind=False):
-        entered.set()
-        gate.wait(60.0)
-        return observe(sample, abort, behind)
-
-    adapter.observe = held
+    gate, entered = _hold_updates(adapter, 60.0)
     reports = []
     online = OnlineAdaptation(adapter, slot, queue_size=4, on_report=reports.append)
     slot.swap(adapter.predictor(), adapter.version)  # inference on the learnt weights
@@ -474,15 +481,8 @@ def test_an_update_made_while_behind_takes_the_shorter_steps(small_sequence, tin
     assert report.status == 'updated' and report.behind and report.steps == 1
     assert draws == [1, 1, 1, 1]  # FAST's replay_per_step, behind or not
 
-    reports, gate, entered = [], threading.Event(), threading.Event()
-    observe = adapter.observe
-
-    def held(sample, abort=None, behind=False):
-        entered.set()
-        gate.wait(30)
-        return observe(sample, abort, behind)
-
-    adapter.observe = held
+    reports = []
+    gate, entered = _hold_updates(adapter, 30.0)
     slot = WeightSlot(adapter.predictor())
     now = [0.0]  # the keyframes' arrival times, as the test says them
     online = OnlineAdaptation(adapter, slot, queue_size=2, on_report=reports.append, clock=lambda: now[0])

@@ -170,41 +170,26 @@ def test_a_frame_turn_the_refinement_cannot_reach_is_the_axis_rotation_of_lowest
     assert np.allclose(np.degrees(v), [-20.0, 10.0, -5.0], atol=0.2), np.degrees(v)
 
 
-def test_a_rendered_sweep_posed_as_a_body_frame_is_turned_back_to_the_optical_frame():
-    """The ``rotation`` sweep with its poses given as those of a body frame (x forward): the
-    check finds the REP 103 turn from the images (about frame 73 of 100) and nothing else."""
-    import dataclasses
-
-    R_bc = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    body = np.eye(4)
-    body[:3, :3] = R_bc.T
-    seq = render_sequence(stress_config('rotation', width=320, height=240, frames=100, seed=3))
-    frames = [dataclasses.replace(f, pose=f.pose @ body) for f in seq.frames]
-    check = check_frames(seq.camera, frames, MountCheckConfig())
-    assert check.result is not None and check.result.frame, check.result
-    assert check.result.verdict == 'disagrees' and check.frames < 100
-    assert np.allclose(check.result.rotation()[:3, :3], R_bc, atol=1e-9)
-    level = check_frames(seq.camera, seq.frames, MountCheckConfig()).result  # the same, told right
-    assert level is None or not level.frame
-
-
-def test_a_rendered_forward_drive_posed_as_a_body_frame_is_turned_back_to_the_optical_frame():
-    """The ``forward`` robot (a straight drive, a level camera) with its poses given as those
-    of its body frame: its translations lie along one line, and the check still takes the REP
-    103 turn (at 4 pairs, frame 28 of seed 171); told right, no frame turn."""
+@pytest.mark.parametrize(('case', 'frames'), [('rotation', 100), ('forward', 80)])
+def test_a_rendered_stream_posed_as_a_body_frame_is_turned_back_to_the_optical_frame(case, frames):
+    """A rendered stream with its poses given as those of a body frame (x forward): the check
+    finds the REP 103 turn from the images and nothing else; told right, no frame turn. The
+    ``rotation`` sweep turns (rotation axes and translations span the directions); the
+    ``forward`` robot drives straight ahead, its translations along one line, and the check
+    still takes the REP 103 turn (``line_frame_turn``; at 4 pairs, frame 28 of seed 171)."""
     import dataclasses
 
     from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL
 
     body = np.eye(4)
     body[:3, :3] = BODY_TO_OPTICAL.T
-    seq = render_sequence(stress_config('forward', width=320, height=240, frames=80, seed=3))
-    frames = [dataclasses.replace(f, pose=f.pose @ body) for f in seq.frames]
-    check = check_frames(seq.camera, frames, MountCheckConfig())
+    seq = render_sequence(stress_config(case, width=320, height=240, frames=frames, seed=3))
+    told = [dataclasses.replace(f, pose=f.pose @ body) for f in seq.frames]
+    check = check_frames(seq.camera, told, MountCheckConfig())
     assert check.result is not None and check.result.frame, check.result
-    assert check.result.verdict == 'disagrees' and check.frames < 80
+    assert check.result.verdict == 'disagrees' and check.frames < frames
     assert np.allclose(check.result.rotation()[:3, :3], BODY_TO_OPTICAL, atol=1e-9)
-    level = check_frames(seq.camera, seq.frames, MountCheckConfig()).result
+    level = check_frames(seq.camera, seq.frames, MountCheckConfig()).result  # the same, told right
     assert level is None or not level.frame
 
 

@@ -48,6 +48,17 @@ def _params(model: str, **extra) -> list[Parameter]:
     return [Parameter(k, value=v) for k, v in values.items()]
 
 
+def _keyframe_publishers(ros: RosHarness) -> dict:
+    """Publishers of a keyframe's parts as multi_view_node sends them to the single-view node."""
+    return {
+        'image': ros.publisher(Image, '/depth_fusion/keyframe/image'),
+        'info': ros.publisher(CameraInfo, '/depth_fusion/keyframe/camera_info'),
+        'pose': ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose'),
+        'depth': ros.publisher(Image, '/depth_fusion/multi_view/depth'),
+        'score': ros.publisher(Image, '/depth_fusion/multi_view/score'),
+    }
+
+
 def _publish_keyframe(pubs: dict, room, i: int, stamp: int, signals: bool = True) -> None:
     header = m.header_msg(stamp, FRAME, kind=K)
     f = room.frames[i]
@@ -102,13 +113,7 @@ def test_inference_never_waits_for_training_and_adapted_weights_are_saved(tiny_m
             return observe(sample, abort, behind)
 
         node.adaptation.adapter.observe = slow_observe
-        pubs = {
-            'image': ros.publisher(Image, '/depth_fusion/keyframe/image'),
-            'info': ros.publisher(CameraInfo, '/depth_fusion/keyframe/camera_info'),
-            'pose': ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose'),
-            'depth': ros.publisher(Image, '/depth_fusion/multi_view/depth'),
-            'score': ros.publisher(Image, '/depth_fusion/multi_view/score'),
-        }
+        pubs = _keyframe_publishers(ros)
         depths = ros.collect(Image, '/depth_fusion/single_view/depth')
         assert ros.wait_for_subscribers(list(pubs.values()))
         pubs['info'].publish(m.camera_info_msg(room.camera, m.header_msg(1, FRAME, kind=K), kind=K))
@@ -320,13 +325,7 @@ def test_a_frame_turn_multi_view_node_takes_starts_the_adaptation_over(tiny_mode
         }
         node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model, **params)))
         said = ros.publisher(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, posing_qos())
-        pubs = {
-            'image': ros.publisher(Image, '/depth_fusion/keyframe/image'),
-            'info': ros.publisher(CameraInfo, '/depth_fusion/keyframe/camera_info'),
-            'pose': ros.publisher(PoseStamped, '/depth_fusion/keyframe/pose'),
-            'depth': ros.publisher(Image, '/depth_fusion/multi_view/depth'),
-            'score': ros.publisher(Image, '/depth_fusion/multi_view/score'),
-        }
+        pubs = _keyframe_publishers(ros)
         depths = ros.collect(Image, '/depth_fusion/single_view/depth')
         assert ros.wait_for_subscribers([said, *pubs.values()])
         pubs['info'].publish(m.camera_info_msg(room.camera, m.header_msg(1, FRAME, kind=K), kind=K))

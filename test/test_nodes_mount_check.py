@@ -17,6 +17,7 @@ from test_nodes_multi_view import _Camera, _notes_of, _send_checked, _stream_che
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
+from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL
 from depth_fusion_ros.nodes.posing import TOPIC_POSING_TIME, TOPIC_POSING_TRANSFORM
 from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.testing import RosHarness
@@ -100,31 +101,39 @@ def test_a_tilted_camera_is_found_and_its_poses_turned():
     assert all(m.stamp_to_ns(t.time_ref) == m.stamp_to_ns(t.header.stamp) for t in times)
 
 
+_BODY_SIZE = {'width': 240, 'height': 180, 'frames': 100, 'seed': 3}
+
+
+def _send_body_stream(ros: RosHarness, node) -> None:
+    """The ``rotation`` sweep (``_BODY_SIZE``) with its poses given as those of a REP 103 body
+    frame, every frame checked in, and every keyframe out."""
+    seq = render_sequence(stress_config('rotation', **_BODY_SIZE))
+    body = np.eye(4)
+    body[:3, :3] = BODY_TO_OPTICAL.T  # T_told = T_optical @ M^-1
+    stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
+    cam = _Camera(ros)
+    for i, frame in enumerate(seq.frames):
+        told = (frame.pose @ body, stamps[i])
+        _send_checked(ros, node, cam, told, (frame.rgb, stamps[i], seq.camera), i + 1)
+    _wait_keyframes_out(ros, node, depths, len(seq.frames))
+
+
 def test_poses_of_a_body_frame_are_turned_to_the_optical_frame_and_the_mount_checked_again():
     """A pose source that gives its body frame (x forward) as the camera's, camera_from_pose_frame
     left out: the mount check finds the whole frame's turn from the images at its early look
     (``frame_fit.py``), the node turns every pose by it from then on, says the
     camera_from_pose_frame that fits, and starts the mount check over for the tilt that is left."""
-    size = {'width': 240, 'height': 180, 'frames': 100, 'seed': 3}
-    seq = render_sequence(stress_config('rotation', **size))
-    R_bc = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical axes in the body
-    body = np.eye(4)
-    body[:3, :3] = R_bc.T
-    stamps = [m.sec_to_ns(s) for s in seq.stamps]
     with RosHarness() as ros:
-        node = _stream_check_node(ros, size, **{'time_offset_check.mode': 'off', 'focal_check.mode': 'off'})
+        checks_off = {'time_offset_check.mode': 'off', 'focal_check.mode': 'off'}
+        node = _stream_check_node(ros, _BODY_SIZE, **checks_off)
         notes = _notes_of(node)
-        depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
-        cam = _Camera(ros)
-        for i, frame in enumerate(seq.frames):
-            told = (frame.pose @ body, stamps[i])
-            _send_checked(ros, node, cam, told, (frame.rgb, stamps[i], seq.camera), i + 1)
-        _wait_keyframes_out(ros, node, depths, len(seq.frames))
+        _send_body_stream(ros, node)
         snap = node.stats.snapshot()
         correction = node._mount_correction.copy()
         status = node.mount_check.status()
     assert snap.noted.get('mount_disagrees') == 1 and snap.dropped == {}, snap.summary()
-    np.testing.assert_allclose(correction[:3, :3], R_bc, atol=1e-9)
+    np.testing.assert_allclose(correction[:3, :3], BODY_TO_OPTICAL, atol=1e-9)
     said = [message for reason, message in notes if reason == 'mount_disagrees']
     assert len(said) == 1 and "not of the camera's optical frame" in said[0], said
     assert 'camera_from_pose_frame [0, 0, 0, -0.5, 0.5, -0.5, 0.5] fits' in said[0], said[0]
@@ -135,12 +144,6 @@ def test_a_frame_turn_does_not_wait_for_the_time_offset_check():
     """A time offset can fake a small turn, so a mount turn waits for the time offset check to
     settle; a whole frame's turn cannot be faked, so it is taken as soon as it is found, and
     the time offset check, whose pairs were posed in the wrong frame, starts over."""
-    size = {'width': 240, 'height': 180, 'frames': 100, 'seed': 3}
-    seq = render_sequence(stress_config('rotation', **size))
-    R_bc = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    body = np.eye(4)
-    body[:3, :3] = R_bc.T
-    stamps = [m.sec_to_ns(s) for s in seq.stamps]
     with RosHarness() as ros:
         # The time offset check looks once, at 200 pairs: it cannot settle on this stream, as on
         # the handheld robot (20 pairs) where the turn had waited.
@@ -149,7 +152,7 @@ def test_a_frame_turn_does_not_wait_for_the_time_offset_check():
             'time_offset_check.early_pairs': 0,
             'time_offset_check.pairs': 200,
         }
-        node = _stream_check_node(ros, size, **params)
+        node = _stream_check_node(ros, _BODY_SIZE, **params)
         restarts = []
         restart = node.time_offset_check.restart
 
@@ -158,15 +161,10 @@ def test_a_frame_turn_does_not_wait_for_the_time_offset_check():
             restart()
 
         node.time_offset_check.restart = counted
-        depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
-        cam = _Camera(ros)
-        for i, frame in enumerate(seq.frames):
-            told = (frame.pose @ body, stamps[i])
-            _send_checked(ros, node, cam, told, (frame.rgb, stamps[i], seq.camera), i + 1)
-        _wait_keyframes_out(ros, node, depths, len(seq.frames))
+        _send_body_stream(ros, node)
         snap = node.stats.snapshot()
         correction = node._mount_correction.copy()
     assert snap.noted.get('mount_disagrees') == 1, snap.summary()
-    np.testing.assert_allclose(correction[:3, :3], R_bc, atol=1e-9)
+    np.testing.assert_allclose(correction[:3, :3], BODY_TO_OPTICAL, atol=1e-9)
     assert restarts == [False]  # taken before the time offset check had settled, which started over
     assert not node.time_offset_check.settled
