@@ -347,6 +347,33 @@ def test_time_offset_moves_the_told_poses_along_the_path():
         SynthConfig(pose_time_offset=0.05)  # more than one frame period at 30 Hz
 
 
+def test_a_body_frames_poses_are_told_and_written_down(tmp_path):
+    """``pose_frame: body``: the told poses are those of a REP 103 body frame holding the camera
+    (``T_told = T_true @ M^-1``, the frame check's ``BODY_TO_OPTICAL``), the images and depth
+    those of the camera; ``camera_from_pose_frame`` M turns them back; SOURCE.md and the CLI
+    say so."""
+    from depth_fusion_ros.cli.main import main
+    from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL
+
+    base = {'width': 32, 'height': 24, 'frames': 3, 'seed': 2}
+    body = render_sequence(SynthConfig(**base, pose_frame='body'))
+    optical = render_sequence(SynthConfig(**base))
+    assert 'bodyposes' in body.name
+    M = np.eye(4)
+    M[:3, :3] = BODY_TO_OPTICAL
+    for a, b in zip(body.frames, optical.frames, strict=True):
+        assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
+        np.testing.assert_allclose(a.pose @ M, b.pose, atol=1e-12)
+    with pytest.raises(ValueError, match='pose_frame'):
+        SynthConfig(pose_frame='imu')
+    out = tmp_path / 'body'
+    args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
+    assert main([*args, '--pose-frame', 'body']) == 0
+    text = (out / 'SOURCE.md').read_text()
+    assert '--pose-frame body' in text and "a body frame's poses" in text
+    assert 'camera_from_pose_frame [0, 0, 0, -0.5, 0.5, -0.5, 0.5]' in text
+
+
 def test_cli_synth_time_offset_is_recorded(tmp_path):
     from depth_fusion_ros.cli.main import main
 

@@ -83,7 +83,7 @@ SCALAR_HELP: dict[str, str] = {
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..data.synthetic import MOTIONS, PARALLAX_MODES, STRESS_CASES, SynthConfig
+    from ..data.synthetic import MOTIONS, PARALLAX_MODES, POSE_FRAMES, STRESS_CASES, SynthConfig
 
     d = SynthConfig()
     p = sub.add_parser(
@@ -142,6 +142,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--no-antialias', dest='antialias', action='store_false', help='do not supersample silhouette pixels'
     )
     p.add_argument('--t0', type=float, default=d.t0, help=f'stamp of the first frame in s (default {d.t0:g})')
+    p.add_argument(
+        '--pose-frame',
+        choices=POSE_FRAMES,
+        default=d.pose_frame,
+        help="whose poses groundtruth.txt holds: 'optical', the camera's, or 'body', a REP 103 body "
+        "frame's (x forward, z up) holding it, as odometry published without camera_from_pose_frame "
+        f'gives them (default {d.pose_frame})',
+    )
     p.add_argument(
         '--motion',
         choices=MOTIONS,

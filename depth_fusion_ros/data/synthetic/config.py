@@ -14,6 +14,11 @@ PARALLAX_MODES = ('high', 'low')
 #: Camera motions: ``parallax`` = the ``parallax`` mode's trajectory; the others are the
 #: stress motions of ``motions.py`` (fixed per-frame translation and rotation steps).
 MOTIONS = ('parallax', 'rotation_sweep', 'keyframe_stream', 'forward')
+#: Whose poses the pipeline is given (``SynthConfig.pose_frame``).
+POSE_FRAMES = ('optical', 'body')
+#: The camera's optical frame (x right, y down, z forward) in a REP 103 body frame (x forward,
+#: y left, z up): ``T_body_cam`` rotation, ``multiview.frame_fit.BODY_TO_OPTICAL``.
+BODY_TO_OPTICAL = ((0.0, 0.0, 1.0), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0))
 
 #: Focal length at 640x480 (Kinect-like); other sizes scale it.
 DEFAULT_FOCAL_640 = 525.0
@@ -70,6 +75,11 @@ class SynthConfig:
     #: camera's x axis (``T_told = T_true @ R_x``): a camera mounted tilted against the pose
     #: frame it is told (a measured ``camera_from_pose_frame``, a hand-eye calibration). 0 = as told.
     mount_tilt_deg: float = 0.0
+    #: Whose poses the pipeline is given: 'optical', the camera's own (x right, y down, z
+    #: forward), or 'body', those of a REP 103 body frame holding it (x forward, y left, z up:
+    #: ``T_told = T_true @ M^-1`` with ``M`` the camera in the body), with no word of it, as a
+    #: robot's odometry published without ``camera_from_pose_frame`` gives them.
+    pose_frame: str = 'optical'
     #: The poses *given to the pipeline* are the true ones this many seconds later (a pose
     #: source whose clock runs ahead of the camera's, or a camera stamp taken late; negative:
     #: the other way), constant-velocity between neighbouring frames: a time offset between
@@ -155,6 +165,8 @@ class SynthConfig:
             raise bad('pose_noise_deg', 'expected a rotation std of 0..10 degrees')
         if not -10.0 <= self.mount_tilt_deg <= 10.0:
             raise bad('mount_tilt_deg', 'expected a tilt of -10..10 degrees')
+        if self.pose_frame not in POSE_FRAMES:
+            raise bad('pose_frame', f'expected one of {", ".join(POSE_FRAMES)}')
         if not abs(self.pose_time_offset) * self.fps <= 1.0:
             raise bad('pose_time_offset', f'expected at most one frame period (1 / fps = {1 / self.fps:g} s)')
         if not 0 <= self.exposure_time * self.fps <= 1.0:

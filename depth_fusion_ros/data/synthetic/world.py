@@ -25,7 +25,7 @@ import numpy as np
 
 from ...progress import progress
 from ..sequence import Frame, Sequence
-from .config import PARALLAX_MODES, SynthConfig
+from .config import BODY_TO_OPTICAL, PARALLAX_MODES, SynthConfig
 from .motions import MOTION_FUNCTIONS
 from .render import RenderedFrame, render_frame
 from .scene import Scene, build_scene
@@ -53,6 +53,8 @@ def sequence_name(cfg: SynthConfig) -> str:
         name += f'_posenoise{cfg.pose_noise_m * 1000:g}mm{cfg.pose_noise_deg:g}deg'
     if cfg.mount_tilt_deg:
         name += f'_tilt{cfg.mount_tilt_deg:+g}deg'
+    if cfg.pose_frame != 'optical':
+        name += f'_{cfg.pose_frame}poses'
     if cfg.pose_time_offset:
         name += f'_timeoffset{cfg.pose_time_offset * 1000:+g}ms'
     if cfg.exposure_time:
@@ -103,7 +105,8 @@ def shifted_poses(poses: np.ndarray, frames: float) -> np.ndarray:
 def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     """The camera-to-world poses the pipeline is given: the true ones moved by the config's time
     offset (``pose_time_offset``, :func:`shifted_poses`) and turned by its mount tilt
-    (``mount_tilt_deg``, about the camera's x axis), with its per-frame jitter
+    (``mount_tilt_deg``, about the camera's x axis), as a body frame's (``pose_frame``),
+    with its per-frame jitter
     (``pose_noise_m``, ``pose_noise_deg``); a copy of the true ones without either.
 
     Each frame draws a translation offset (isotropic Gaussian) and a rotation about a random
@@ -117,6 +120,8 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
         out[:, :3, :3] = (
             out[:, :3, :3] @ Rotation.from_rotvec([np.deg2rad(cfg.mount_tilt_deg), 0.0, 0.0]).as_matrix()
         )
+    if cfg.pose_frame == 'body':  # T_body = T_cam @ M^-1, the camera held with its optical axis forward
+        out[:, :3, :3] = out[:, :3, :3] @ np.asarray(BODY_TO_OPTICAL).T
     if not (cfg.pose_noise_m or cfg.pose_noise_deg):
         return out
     rotvecs, offsets = np.empty((len(out), 3)), np.empty((len(out), 3))

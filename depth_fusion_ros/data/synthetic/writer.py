@@ -52,6 +52,13 @@ def _pose_note(cfg: SynthConfig) -> str:
             f"image's stamp it is the camera's pose {cfg.pose_time_offset * 1000:+g} ms later (a camera / "
             'pose-source time offset stress case); the depth images stay exact.'
         )
+    if cfg.pose_frame == 'body':
+        note += (
+            "\n**groundtruth.txt holds a body frame's poses**: every pose is that of a REP 103 body "
+            'frame (x forward, y left, z up) holding the camera with its optical axis forward, not '
+            "the camera's optical frame; camera_from_pose_frame [0, 0, 0, -0.5, 0.5, -0.5, 0.5] turns "
+            'them back (a pose-frame stress case); the depth images stay exact.'
+        )
     if cfg.mount_tilt_deg:
         note += (
             f"\n**groundtruth.txt is deliberately turned**: every pose is the camera's turned by "
