@@ -168,3 +168,34 @@ def test_a_frame_turn_does_not_wait_for_the_time_offset_check():
     np.testing.assert_allclose(correction[:3, :3], BODY_TO_OPTICAL, atol=1e-9)
     assert restarts == [False]  # taken before the time offset check had settled, which started over
     assert not node.time_offset_check.settled
+
+
+def test_a_lens_found_after_a_frame_turn_waits_for_the_mount_checks_next_look():
+    """After a frame turn the focal and mount checks start over, and a mount tilt still left
+    fakes a lens (the ``mount_tilt`` robot of seed 201 told its body frame: its 2 deg read as
+    k1 -0.163, taken before the mount check looked again). A lens found then is taken only
+    once the mount check has looked again without turning the camera."""
+    from types import SimpleNamespace
+
+    lens = SimpleNamespace(lens_distorted=True, lens=SimpleNamespace(k1=-0.1), message=lambda: 'a lens')
+    agrees = SimpleNamespace(frame=False, verdict='consistent', message=lambda: 'agrees')
+    with RosHarness() as ros:
+        node = _stream_check_node(ros, _BODY_SIZE, **{'time_offset_check.mode': 'off'})
+        focal, mount = node.focal_check, node.mount_check
+        node._lens_correctable = lambda: True
+        try:
+            node.focal_check = SimpleNamespace(result=lens, config=focal.config, restart=lambda: None)
+            node._frame_tilt_unchecked = True  # as _take_mount_correction leaves it after a frame turn
+            node._take_lens_correction(1_000_000_000)
+            held = node.camera_input.lens_k1
+            node.mount_check = SimpleNamespace(result=agrees, config=mount.config)
+            node._take_mount_correction()  # the next look: no turn
+            unchecked = node._frame_tilt_unchecked
+            node.mount_check = mount
+            node._take_lens_correction(1_100_000_000)
+            taken = node.camera_input.lens_k1
+        finally:
+            node.focal_check, node.mount_check = focal, mount
+        snap = node.stats.snapshot()
+    assert held == 0.0 and not unchecked and taken == -0.1
+    assert snap.noted.get('lens_corrected') == 1, snap.summary()

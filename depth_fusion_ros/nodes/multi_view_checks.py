@@ -122,6 +122,12 @@ class CheckCorrections:
         result = self.focal_check.result
         if result is None or result is self._lens_taken or not result.lens_distorted:
             return
+        if self._frame_tilt_unchecked and self.mount_check.config.mode != 'off':
+            # After a frame turn both checks start over; a mount tilt still left fakes a lens
+            # (the `mount_tilt` robot of seed 201 told its body frame: a 2 deg tilt read as
+            # k1 -0.163). It is taken once the mount check has looked again and not turned the
+            # camera (a turn starts the focal check over, and the lens goes with it).
+            return
         self._lens_taken = result
         if not self._lens_correctable():
             return  # said by _on_focal_estimate
@@ -223,6 +229,7 @@ class CheckCorrections:
         if result is None or result is self._mount_taken:
             return  # nothing new (a camera checked anew keeps the turn it has until its own verdict)
         self._mount_taken = result
+        self._frame_tilt_unchecked = frame_turn and self.mount_check.config.mode == 'correct'
         if self.mount_check.config.mode != 'correct' or result.verdict != 'disagrees':
             return
         # The check read poses already turned by the correction so far: its turn adds to it.

@@ -180,6 +180,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self._mount_unsaid_lock = threading.Lock()
         #: The focal check result whose lens distortion was last taken (``_take_lens_correction``)
         self._lens_taken: FocalEstimate | None = None
+        #: A whole frame's turn was taken and the mount check has not looked again since: a lens
+        #: found meanwhile waits for it (``_take_lens_correction``)
+        self._frame_tilt_unchecked = False
         self._last_keyframe_pose: np.ndarray | None = None
         self._image_stamps = self.stamp_guard('image')
         self._pose_stamps = self.stamp_guard('pose')
