@@ -101,6 +101,7 @@ def _node(mode: str, D: tuple[float, ...] = ()):
         mount_check=SimpleNamespace(restart=lambda: restarts.append('mount')),
         camera_input=inp,
         _lens_taken=None,
+        _frame_tilt_unchecked=False,  # no frame turn taken (a lens then waits: test_nodes_mount_check)
         _restart_from_ns=None,
         _mount_unsaid=object(),
         _mount_unsaid_lock=threading.Lock(),
