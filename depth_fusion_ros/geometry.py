@@ -133,6 +133,14 @@ def validate_poses(T: np.ndarray, what: Sequence[str]) -> np.ndarray:
     return T
 
 
+#: The camera's optical frame (x right, y down, z forward) in a REP 103 body frame (x forward,
+#: y left, z up), as a rotation: ``T_wc = T_body @ M``, the ``camera_from_pose_frame``
+#: [0, 0, 0, -0.5, 0.5, -0.5, 0.5]. The frame check's usual turn (multiview/frame_fit.py) and
+#: the synthetic body-frame poses (data/synthetic, ``pose_frame``).
+BODY_TO_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+BODY_TO_OPTICAL.setflags(write=False)
+
+
 def rotation_angle(R: np.ndarray) -> float:
     """Angle (radians) of a rotation matrix."""
     c = (np.trace(R) - 1.0) / 2.0

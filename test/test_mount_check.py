@@ -129,7 +129,8 @@ def test_a_straight_drive_takes_the_body_frame_turn_only_where_its_line_says_it(
     as seen by 2 of 3 directions."""
     import cv2
 
-    from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL, gross_frame_turn
+    from depth_fusion_ros.geometry import BODY_TO_OPTICAL
+    from depth_fusion_ros.multiview.frame_fit import gross_frame_turn
     from depth_fusion_ros.multiview.mount_check import FRAME_EARLY_PAIRS
 
     camera, pairs = _exact_pairs([90.0, 0.0, 0.0], 'straight', n_pairs=8)
@@ -156,7 +157,7 @@ def test_a_frame_turn_the_refinement_cannot_reach_is_the_axis_rotation_of_lowest
     cost minimum by a small turn stays the refined fit (no axis rotation fits it better)."""
     import cv2
 
-    from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL
+    from depth_fusion_ros.geometry import BODY_TO_OPTICAL
     from depth_fusion_ros.multiview.mount_check import PairStack, _axis_or_refined
 
     body = np.degrees(cv2.Rodrigues(BODY_TO_OPTICAL.T)[0].ravel())
@@ -179,7 +180,7 @@ def test_a_rendered_stream_posed_as_a_body_frame_is_turned_back_to_the_optical_f
     still takes the REP 103 turn (``line_frame_turn``; at 4 pairs, frame 28 of seed 171)."""
     import dataclasses
 
-    from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL
+    from depth_fusion_ros.geometry import BODY_TO_OPTICAL
 
     body = np.eye(4)
     body[:3, :3] = BODY_TO_OPTICAL.T

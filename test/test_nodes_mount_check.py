@@ -17,7 +17,7 @@ from test_nodes_multi_view import _Camera, _notes_of, _send_checked, _stream_che
 
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
-from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL
+from depth_fusion_ros.geometry import BODY_TO_OPTICAL
 from depth_fusion_ros.nodes.posing import TOPIC_POSING_TIME, TOPIC_POSING_TRANSFORM
 from depth_fusion_ros.nodes.qos import latched_qos
 from depth_fusion_ros.nodes.testing import RosHarness

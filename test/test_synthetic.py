@@ -353,7 +353,7 @@ def test_a_body_frames_poses_are_told_and_written_down(tmp_path):
     those of the camera; ``camera_from_pose_frame`` M turns them back; SOURCE.md and the CLI
     say so."""
     from depth_fusion_ros.cli.main import main
-    from depth_fusion_ros.multiview.frame_fit import BODY_TO_OPTICAL
+    from depth_fusion_ros.geometry import BODY_TO_OPTICAL
 
     base = {'width': 32, 'height': 24, 'frames': 3, 'seed': 2}
     body = render_sequence(SynthConfig(**base, pose_frame='body'))

@@ -165,15 +165,14 @@ class Adapter:
             groups.append({'params': bias, 'lr': self.config.scale_lr})
         self._groups = groups
         self._snapshot: WeightSnapshot | None = None  # holds the optimiser, built on first use
-        self._start_net: nn.Module | None = None  # the weights the anchor holds to, copied on first use
+        #: The loaded weights: what the anchor holds to and what a restart goes back to.
+        self._start_net = copy.deepcopy(self.net).eval().requires_grad_(False)
         self.buffer: ReplayBuffer[PreparedSample] = ReplayBuffer(self.config.buffer_size)
         self.counters = AdapterCounters()
         self.version = 0
         #: Updates accepted since the start or the last restart (the start coverage applies
         #: again after a restart: the weights are the loaded ones).
         self.accepted = 0
-        #: The loaded weights (parameters and buffers), for :meth:`restart`.
-        self._loaded = [t.detach().clone() for t in [*self.net.parameters(), *self.net.buffers()]]
         self._copies = InferenceCopies(self.net)
         # Names the current weights: guard errors computed under a token stay valid while it
         # is current (a rollback restores the token of the weights it restores).
@@ -273,8 +272,6 @@ class Adapter:
     def _anchor_term(self, log_depth: torch.Tensor, batch: list[PreparedSample]) -> torch.Tensor:
         """Mean L1 of the log depth's change from the starting network, each keyframe's median
         change removed (its scale may follow the points; its shape stays where no point says)."""
-        if self._start_net is None:
-            self._start_net = copy.deepcopy(self.net).eval().requires_grad_(False)
         anchors = []
         for s in batch:
             if s.anchor_log is None:
@@ -449,8 +446,10 @@ class Adapter:
         poses, live (docs/adaptation.md). ``key``: the first keyframe of the right poses.
         """
         t0 = time.perf_counter()
-        tensors = [t.detach() for t in [*self.net.parameters(), *self.net.buffers()]]
-        torch._foreach_copy_(tensors, [t.to(d.device) for t, d in zip(self._loaded, tensors, strict=True)])
+        start = self._start_net
+        torch._foreach_copy_(
+            [*self.net.parameters(), *self.net.buffers()], [*start.parameters(), *start.buffers()]
+        )
         self.optimizer.state.clear()  # Adam's moments and step counts of the updates undone
         self.buffer.clear()
         self._token = next(self._tokens)  # no guard error of earlier weights is reused

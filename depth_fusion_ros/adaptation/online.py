@@ -217,7 +217,7 @@ class OnlineAdaptation:
                 if restart is not None:
                     report = self.adapter.restart(*restart)
                     self.learnt = False
-                    self.slot.swap(self.adapter.predictor(), self.adapter.version)
+                    self.slot.swap(self._loaded, self.adapter.version)  # the loaded weights, as they are
                 else:
                     report = self._observe(sample, behind)
                 if self.on_report is not None:

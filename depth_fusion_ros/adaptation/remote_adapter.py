@@ -152,9 +152,10 @@ class RemoteAdapter:
         return report
 
     def restart(self, key: int, reason: str) -> UpdateReport:
-        """Start the child's training over from the loaded weights (``Adapter.restart``); they
-        come back as the new version. Where the child is gone, its weights here are reloaded
-        as they were loaded all the same: inference must not keep what the restart undoes."""
+        """Start the child's training over from the loaded weights (``Adapter.restart``), and
+        take them here as the new version (they do not cross the pipe: this side holds them).
+        Where the child is gone they are taken all the same: inference must not keep what the
+        restart undoes."""
         t0 = time.perf_counter()
         self.warm_up()
         reply = None
@@ -164,12 +165,11 @@ class RemoteAdapter:
                 reply = self._receive(None)
             except OSError as exc:
                 self._fail(f'the training process is gone ({exc})')
+        self._load(self._loaded)
         if reply is not None and reply[0] == 'report':
-            _, report, self.counters, weights = reply
-            self._load(weights)
+            _, report, self.counters, _ = reply
             self.version = report.version
             return report
-        self._load(self._loaded)
         self.version += 1
         self.counters.restarts += 1
         return UpdateReport(key, 'restarted', reason, version=self.version, seconds=time.perf_counter() - t0)

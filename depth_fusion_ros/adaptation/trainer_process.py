@@ -21,8 +21,8 @@ request at a time:
 * ``('observe', sample, behind)`` -> ``('report', report, counters, weights)``, ``weights`` the
   accepted network's tensors (``state_dict`` order) after an ``updated`` report, else None;
   or ``('failed', text, counters)`` when the update raised;
-* ``('restart', key, reason)`` -> ``('report', report, counters, weights)``: the adapter
-  started over from the loaded weights (``Adapter.restart``), which come back;
+* ``('restart', key, reason)`` -> ``('report', report, counters, None)``: the adapter
+  started over from the loaded weights (``Adapter.restart``), which the parent holds too;
 * ``('stop',)``, or the parent's end closing: the child returns; one that comes during an
   update stops the update first, as an abort does;
 * ``('abort',)`` while an update runs asks it to stop: between its steps the adapter looks at
@@ -143,7 +143,7 @@ def _loop(conn: Connection, adapter: Any) -> None:
             continue
         if request[0] == 'restart':
             report = adapter.restart(request[1], request[2])
-            send(conn, ('report', report, adapter.counters, _weights(adapter)))
+            send(conn, ('report', report, adapter.counters, None))
             continue
         _, sample, behind = request
         asked = _Requests(conn)

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..geometry import BODY_TO_OPTICAL
 from .image_pairs import RANSAC_SEED, MatchedPair
 
 #: A turn smaller than this (degrees) is the mount check's own to fit: the same as its
@@ -65,10 +66,6 @@ MIN_SPREAD = 0.2
 #: on 7-Scenes' body-frame poses). A tilt of the camera on its body beyond it is left to the
 #: mount check's next look.
 SNAP_DEG = 10.0
-#: The camera's optical frame (x right, y down, z forward) in a REP 103 body frame (x forward,
-#: y left, z up): ``T_wc = T_body @ M``, the ``camera_from_pose_frame`` [0, 0, 0, -0.5, 0.5,
-#: -0.5, 0.5] the node suggests; the turn taken for a line when it fits (:func:`line_frame_turn`).
-BODY_TO_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 @dataclass(frozen=True)
@@ -164,7 +161,7 @@ def line_frame_turn(told: np.ndarray, seen: np.ndarray) -> FrameTurn | None:
         residual = _median_angle_deg(told @ M, seen)  # Q = M^T turns each told direction
         if residual * MIN_FIT_GAIN <= told_residual:
             fits.append((residual, M))
-    usual = [f for f in fits if np.allclose(f[1], BODY_TO_OPTICAL)]
+    usual = [f for f in fits if np.allclose(f[1], BODY_TO_OPTICAL)]  # REP 103: geometry.py
     if usual:
         residual, M = usual[0]
     elif len(fits) == 1:

@@ -61,7 +61,8 @@ import cv2
 import numpy as np
 
 from ..camera import PinholeCamera
-from .frame_fit import BODY_TO_OPTICAL, axis_rotations, gross_frame_turn, snapped
+from ..geometry import BODY_TO_OPTICAL
+from .frame_fit import axis_rotations, gross_frame_turn, snapped
 from .image_pairs import (
     CHECK_MODES,
     EARLY_STANDARD_ERRORS,

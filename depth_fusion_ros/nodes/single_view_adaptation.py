@@ -25,6 +25,7 @@ from ..adaptation.online import OnlineAdaptation, WeightSlot
 from ..adaptation.remote_adapter import RemoteAdapter
 from ..adaptation.sample import AdaptSample
 from ..data import messages
+from ..geometry import rotation_angle
 from ..multiview.frame_fit import MIN_TURN_DEG
 from ..ros_home import expand_ros_home
 from .corrected_path import path_poses
@@ -135,12 +136,6 @@ ADAPTATION_PARAMETERS: tuple[ParamSpec, ...] = (
     ),
     *dataclass_specs(AdaptConfig, 'adaptation', {}, ADAPT_LIMITS),
 )
-
-
-def turn_degrees(turn: np.ndarray) -> float:
-    """The rotation angle of a 4x4 rigid turn, degrees."""
-    cos = (float(np.trace(turn[:3, :3])) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 def is_own_network(spec: str) -> bool:
@@ -289,7 +284,7 @@ class NodeAdaptation:
             return
         finally:
             self.node.stats.received('posing')
-        angle = turn_degrees(turn)
+        angle = float(np.degrees(rotation_angle(turn[:3, :3])))
         self.node.get_logger().info(
             f'adaptation: multi_view_node turned the camera by {angle:.1f} deg (mount check): {moved} kept '
             'poses re-posed'

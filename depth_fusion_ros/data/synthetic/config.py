@@ -16,9 +16,6 @@ PARALLAX_MODES = ('high', 'low')
 MOTIONS = ('parallax', 'rotation_sweep', 'keyframe_stream', 'forward')
 #: Whose poses the pipeline is given (``SynthConfig.pose_frame``).
 POSE_FRAMES = ('optical', 'body')
-#: The camera's optical frame (x right, y down, z forward) in a REP 103 body frame (x forward,
-#: y left, z up): ``T_body_cam`` rotation, ``multiview.frame_fit.BODY_TO_OPTICAL``.
-BODY_TO_OPTICAL = ((0.0, 0.0, 1.0), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0))
 
 #: Focal length at 640x480 (Kinect-like); other sizes scale it.
 DEFAULT_FOCAL_640 = 525.0

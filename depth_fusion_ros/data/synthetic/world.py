@@ -23,9 +23,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from ...geometry import BODY_TO_OPTICAL
 from ...progress import progress
 from ..sequence import Frame, Sequence
-from .config import BODY_TO_OPTICAL, PARALLAX_MODES, SynthConfig
+from .config import PARALLAX_MODES, SynthConfig
 from .motions import MOTION_FUNCTIONS
 from .render import RenderedFrame, render_frame
 from .scene import Scene, build_scene
@@ -121,7 +122,7 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
             out[:, :3, :3] @ Rotation.from_rotvec([np.deg2rad(cfg.mount_tilt_deg), 0.0, 0.0]).as_matrix()
         )
     if cfg.pose_frame == 'body':  # T_body = T_cam @ M^-1, the camera held with its optical axis forward
-        out[:, :3, :3] = out[:, :3, :3] @ np.asarray(BODY_TO_OPTICAL).T
+        out[:, :3, :3] = out[:, :3, :3] @ BODY_TO_OPTICAL.T
     if not (cfg.pose_noise_m or cfg.pose_noise_deg):
         return out
     rotvecs, offsets = np.empty((len(out), 3)), np.empty((len(out), 3))
