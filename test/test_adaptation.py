@@ -3,6 +3,7 @@ invariance, guarded rollback of a poisoned update, the replay buffer and the los
 
 from __future__ import annotations
 
+import json
 import threading
 
 import numpy as np
@@ -12,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from depth_fusion_ros.adaptation.adapter import Adapter
 from depth_fusion_ros.adaptation.config import AdaptConfig
+from depth_fusion_ros.adaptation.fusion_trust import untrusted_reason, verdict_from_json
 from depth_fusion_ros.adaptation.keyframes import KeyframeAssembler
 from depth_fusion_ros.adaptation.losses import photometric
 from depth_fusion_ros.adaptation.online import OnlineAdaptation, WeightSlot
@@ -325,6 +327,71 @@ def test_a_keyframe_whose_points_the_fusion_would_not_trust_is_not_trained_on(sm
     assert report.status == 'skipped' and report.reason.startswith('imprecise_points (0% of the points')
     assert adapter.counters.reasons == {'imprecise_points': 1} and adapter.version == 0
     assert adapter.observe(sample(0.25, limit=0.3)).status == 'updated'  # a looser limit trusts them
+
+
+def test_a_keyframe_the_fusion_trusted_none_of_is_not_trained_on(small_sequence, tiny_model):
+    """Points wrong together (7-Scenes with its poses given inverted) pass the adaptation's own
+    tests, which judge them on points of the same kind; the fusion's guard, which sees how they
+    fit the single view, trusted none of them (``single_view``), yet they made the single view
+    1.9x worse. A keyframe with that verdict (or withheld) is skipped; ``follow_fusion_guard``
+    false trains on it as before, and the other verdicts are trusted."""
+    assert untrusted_reason('full', 'consistent multi-view points') == ''
+    assert untrusted_reason('scale_only', 'x') == '' and untrusted_reason('single_scaled') == ''
+    said = untrusted_reason('single_view', 'stage 2 kept 71 of 148 stage-1 points (< 0.5)')
+    assert said == (
+        'the fusion trusted none of its points (single_view: stage 2 kept 71 of 148 stage-1 points (< 0.5))'
+    )
+    assert untrusted_reason('full', 'no alignment', withheld=True).startswith('the fusion trusted none')
+    sample = _gt_sample(small_sequence, 0)
+    sample.untrusted = said
+    config = {**FAST, 'guard_z': 0.0, 'guard_tolerance': 1.0}
+    adapter = Adapter.from_spec(tiny_model, AdaptConfig.from_dict(config))
+    report = adapter.observe(sample)
+    assert report.status == 'skipped' and report.reason == f'untrusted_points ({said})'
+    assert adapter.counters.reasons == {'untrusted_points': 1} and adapter.version == 0
+    sample.untrusted = ''
+    assert adapter.observe(sample).status == 'updated'
+    sample.untrusted = said
+    ignoring = Adapter.from_spec(tiny_model, AdaptConfig.from_dict({**config, 'follow_fusion_guard': False}))
+    assert ignoring.observe(sample).status == 'updated'
+
+
+def test_a_fusion_verdict_is_read_by_its_exact_stamp():
+    """``fused/decision`` says the keyframe's stamp in seconds, which a float holds to about
+    240 ns at a 2026 stamp; the adaptation matches the verdict by ``stamp_ns``, exact. A
+    message without it is an error naming it (counted as ``bad_decision`` by the node)."""
+    stamp_ns = 1_796_498_280_888_172_923
+    verdict = {'stamp': stamp_ns / 1e9, 'stamp_ns': stamp_ns, 'decision': 'single_view', 'reason': 'r'}
+    text = json.dumps(verdict)
+    assert round(json.loads(text)['stamp'] * 1e9) != stamp_ns  # why the seconds cannot key it
+    assert verdict_from_json(text) == (stamp_ns, 'the fusion trusted none of its points (single_view: r)')
+    full = json.dumps({'stamp_ns': 5, 'decision': 'full', 'reason': 'ok', 'withheld': False})
+    assert verdict_from_json(full) == (5, '')
+    for bad in ('{"stamp": 1.5, "decision": "full"}', 'not json', '[]'):
+        with pytest.raises(ValueError, match='unreadable fusion decision'):
+            verdict_from_json(bad)
+
+
+def test_assembler_waits_for_the_fusion_verdict_once_verdicts_are_known(small_sequence):
+    """Without a fusion_node no verdict ever comes and nothing waits; once one has come, a
+    keyframe waits for its own (it comes after the fusion, later than the other parts)."""
+    seq = small_sequence
+    asm = KeyframeAssembler(select_fraction=1.0, neighbours=0)
+    depth = seq.gt_depth_working(0)
+    parts = [('rgb', seq.frames[0].rgb), ('depth', depth), ('score', np.ones_like(depth))]
+
+    def add(stamp):
+        camera = {'rgb': seq.camera}
+        return [s for part, v in parts for s in asm.add(stamp, part, v, camera.get(part))]
+
+    out = add(10)
+    assert len(out) == 1 and out[0].untrusted == ''
+    assert asm.add(10, 'trust', '') == []  # a verdict for a keyframe already given: let go
+    assert 10 not in asm._pending
+    assert add(20) == []  # verdicts are known now: waits for its own
+    out = asm.add(20, 'trust', 'the fusion trusted none of its points (single_view)')
+    assert len(out) == 1 and out[0].untrusted.startswith('the fusion trusted none')
+    assert asm.add(30, 'trust', '') == [] and len(add(30)) == 1  # a verdict first, then the parts
 
 
 def test_the_first_update_needs_points_over_half_the_view(small_sequence, tiny_model):

@@ -194,6 +194,63 @@ def test_a_rendered_stream_posed_as_a_body_frame_is_turned_back_to_the_optical_f
     assert level is None or not level.frame
 
 
+@pytest.mark.parametrize(('case', 'frames'), [('rotation', 100), ('forward', 80), ('handheld', 100)])
+def test_poses_given_inverted_are_found_and_not_taken_for_a_frame_turn(case, frames):
+    """A rendered stream with each pose inverted (the world's pose in the camera, T_cw, as a SLAM
+    system keeps it): the images' own motion fits the inverted poses, so the check says
+    ``inverted`` early and turns nothing (7-Scenes given its poses inverted was turned by
+    171.9 deg as a frame: ``pose_inversion.py``). The message says what the poses are. Told
+    right, the same stream is never read as inverted; nor is it told in a body frame (a turn)."""
+    import dataclasses
+
+    from depth_fusion_ros.geometry import BODY_TO_OPTICAL
+
+    seq = render_sequence(stress_config(case, width=320, height=240, frames=frames, seed=3))
+    told = [dataclasses.replace(f, pose=np.linalg.inv(f.pose)) for f in seq.frames]
+    check = check_frames(seq.camera, told, MountCheckConfig())
+    result = check.result
+    assert result is not None and result.verdict == 'inverted', result
+    assert not result.frame and np.array_equal(result.rotation(), np.eye(4)) and check.frames < frames
+    told_off, inverted_off = result.inverted_residuals_deg
+    assert told_off >= 45.0 and inverted_off * 3.0 <= told_off
+    assert "the world's pose in the camera (T_cw" in result.message()
+    right = check_frames(seq.camera, seq.frames, MountCheckConfig()).result
+    assert right is None or right.verdict != 'inverted'
+    body = np.eye(4)
+    body[:3, :3] = BODY_TO_OPTICAL.T
+    turned_frame = [dataclasses.replace(f, pose=f.pose @ body) for f in seq.frames]
+    as_body = check_frames(seq.camera, turned_frame, MountCheckConfig()).result
+    assert as_body is None or as_body.verdict != 'inverted'
+
+
+def test_directions_that_say_inverted_need_the_matches_to_agree():
+    """``recoverPose`` can be fooled (a repetitive wall): directions alone read the `repetitive`
+    stream of seed 151, posed right, as inverted. The matches' epipolar cost under the inverted
+    poses decides, as it does for a frame turn (``FRAME_COST_GAIN``): exact pairs posed right
+    whose directions are made to say inverted are not read so."""
+    from depth_fusion_ros.multiview import frame_fit
+    from depth_fusion_ros.multiview.pose_inversion import inverted_poses
+
+    camera, pairs = _exact_pairs([0.0, 0.0, 0.0], 'turning', n_pairs=8)
+    check = MountCheck(camera, MountCheckConfig())
+    check.pairs = pairs
+    known = frame_fit.pairs_directions(camera.K, pairs, [])
+    assert inverted_poses(known) is None  # told right: the told directions fit
+    fooled = [(told, inverted, inverted) for told, _, inverted in known]  # the images "say" inverted
+    assert inverted_poses(fooled) is not None
+    check._frame_directions = fooled
+    assert check._frame_estimate(camera.K) is None or check._frame_estimate(camera.K).verdict != 'inverted'
+
+    def inverted(sample):
+        return Sample(0.0, np.linalg.inv(sample.pose), sample.points, None)
+
+    flipped = [MatchedPair(inverted(p.a), inverted(p.b), p.p1, p.p2) for p in pairs]
+    check = MountCheck(camera, MountCheckConfig())
+    check.pairs = flipped
+    estimate = check._early_look()
+    assert estimate is not None and estimate.verdict == 'inverted'  # the same pairs told inverted
+
+
 def test_the_fit_finds_a_told_turn_from_exact_matches():
     """Turning motion observes all three directions: the fit is the turn back, to 0.1 deg."""
     camera, pairs = _exact_pairs([2.0, -1.0, 0.5], 'turning')

@@ -3,6 +3,7 @@ swap in, ~/save_model writes a checkpoint that loads, adapt false is bit-identic
 
 from __future__ import annotations
 
+import json
 import os
 import threading
 import time
@@ -354,6 +355,53 @@ def test_a_frame_turn_multi_view_node_takes_starts_the_adaptation_over(tiny_mode
     assert node.adaptation.slot.version == version and node.adaptation.adapter.counters.restarts == 1
     assert not node.adaptation.online.learnt  # shutdown would not write the loaded weights over a checkpoint
     assert snap.published['adapted_weights'] >= 2 and not snap.dropped
+
+
+def test_keyframes_whose_points_the_fusion_trusted_none_of_are_not_trained_on(tiny_model, room):
+    """fusion_node's verdict per keyframe (``fused/decision``, matched by its exact ``stamp_ns``):
+    once one has come, a keyframe waits for its own, and one whose points the guard trusted none
+    of (``single_view``) is skipped as ``untrusted_points``; the others train. A verdict without
+    ``stamp_ns`` is a counted drop, not a crash."""
+    with RosHarness() as ros:
+        params = {
+            'adaptation.min_points': 5,
+            'adaptation.min_baseline': 0.0,
+            'adaptation.start_coverage': 0.0,
+            'adaptation.nice': 0,  # see the first test
+            'adaptation.queue_size': 8,
+        }
+        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model, **params)))
+        pubs = _keyframe_publishers(ros)
+        verdicts = ros.publisher(String, '/depth_fusion/fused/decision')
+        depths = ros.collect(Image, '/depth_fusion/single_view/depth')
+        assert ros.wait_for_subscribers([verdicts, *pubs.values()])
+        pubs['info'].publish(m.camera_info_msg(room.camera, m.header_msg(1, FRAME, kind=K), kind=K))
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('camera_info') == 1, 10.0)
+        stamps = [1_796_498_280_888_172_923 + i * 100_000_000 for i in range(5)]
+
+        def verdict(stamp: int, decision: str) -> String:
+            said = {'stamp': stamp / 1e9, 'stamp_ns': stamp, 'decision': decision, 'reason': 'r'}
+            return String(data=json.dumps(said))
+
+        verdicts.publish(String(data=json.dumps({'stamp': 1.0, 'decision': 'full'})))  # no stamp_ns
+        assert ros.wait_for(lambda: node.stats.snapshot().dropped.get('bad_decision') == 1, 10.0)
+        verdicts.publish(verdict(stamps[0], 'single_view'))  # before its keyframe: it waits for nothing
+        assert ros.wait_for(lambda: node.stats.snapshot().received.get('fused_decision') == 2, 10.0)
+        for i, decision in enumerate(['single_view', 'single_view', 'full', 'full']):
+            _publish_keyframe(pubs, room, i, stamps[i])
+            assert ros.wait_for(lambda i=i: len(depths) >= i + 1, timeout=30.0)
+            if i:
+                verdicts.publish(verdict(stamps[i], decision))
+        assert ros.wait_for(lambda: node.adaptation.adapter.counters.observed >= 4, timeout=60.0), (
+            node.stats.snapshot().summary()
+        )
+        assert node.adaptation.online.wait_idle(60.0)
+        reasons = dict(node.adaptation.adapter.counters.reasons)
+        version = node.adaptation.slot.version
+        snap = node.stats.snapshot()
+    assert reasons == {'untrusted_points': 2}, reasons
+    assert version >= 1 and snap.received['fused_decision'] == 5, snap.summary()
+    assert snap.dropped == {'bad_decision': 1}, snap.summary()
 
 
 def test_the_keyframes_multi_view_node_reads_again_at_a_corrected_offset_move_in_the_adaptation(

@@ -140,6 +140,52 @@ def test_poses_of_a_body_frame_are_turned_to_the_optical_frame_and_the_mount_che
     assert not status.startswith('disagrees'), status  # started over: the tilt left is its own
 
 
+def _send_inverted_stream(ros: RosHarness, node) -> list:
+    """The ``rotation`` sweep (``_BODY_SIZE``) with each pose inverted (T_cw given as T_wc),
+    every frame checked in; the multi-view depths of its keyframes, all out."""
+    seq = render_sequence(stress_config('rotation', **_BODY_SIZE))
+    stamps = [m.sec_to_ns(s) for s in seq.stamps]
+    depths = ros.collect(Image, '/depth_fusion/multi_view/depth')
+    cam = _Camera(ros)
+    for i, frame in enumerate(seq.frames):
+        told = (np.linalg.inv(frame.pose), stamps[i])
+        _send_checked(ros, node, cam, told, (frame.rgb, stamps[i], seq.camera), i + 1)
+    _wait_keyframes_out(ros, node, depths, len(seq.frames))
+    return depths
+
+
+def test_poses_given_inverted_are_said_and_withhold_the_multi_view_depth():
+    """A pose source that gives the world's pose in the camera (T_cw, a SLAM's own) as the
+    camera's: the mount check finds it at its early look (``pose_inversion.py``), the node says
+    it once with what to set, turns nothing, and publishes no multi-view depth from the next
+    keyframe on (points of the inverted motion would only mislead the fusion and the
+    adaptation; each keyframe withheld is counted). With ``pose_inverted: true`` the same
+    stream is read right: nothing said, every keyframe's depth published."""
+    checks_off = {'time_offset_check.mode': 'off', 'focal_check.mode': 'off'}
+    with RosHarness() as ros:
+        node = _stream_check_node(ros, _BODY_SIZE, **checks_off)
+        notes = _notes_of(node)
+        depths = _send_inverted_stream(ros, node)
+        snap = node.stats.snapshot()
+        correction = node._mount_correction.copy()
+    said = [message for reason, message in notes if reason == 'poses_inverted']
+    assert len(said) == 1 and "the world's pose in the camera (T_cw" in said[0], notes
+    assert 'set pose_inverted: true' in said[0] and 'no multi-view depth from now on' in said[0]
+    assert 'mount_disagrees' not in snap.noted and np.array_equal(correction, np.eye(4)), snap.summary()
+    measured = [bool(np.isfinite(m.image_to_numpy(d)).any()) for d in depths]
+    withheld = snap.noted.get('inverted_poses_withheld', 0)
+    assert withheld >= 10 and measured[-withheld:] == [False] * withheld, (withheld, measured)
+    assert not any(measured[-withheld:]) and snap.dropped == {}, snap.summary()
+    with RosHarness() as ros:
+        node = _stream_check_node(ros, _BODY_SIZE, pose_inverted=True, **checks_off)
+        depths = _send_inverted_stream(ros, node)
+        snap = node.stats.snapshot()
+        result = node.mount_check.result
+    assert result is None or result.verdict != 'inverted', result
+    assert 'poses_inverted' not in snap.noted and 'inverted_poses_withheld' not in snap.noted, snap.summary()
+    assert sum(bool(np.isfinite(m.image_to_numpy(d)).any()) for d in depths) >= len(depths) - 2
+
+
 def test_a_frame_turn_does_not_wait_for_the_time_offset_check():
     """A time offset can fake a small turn, so a mount turn waits for the time offset check to
     settle; a whole frame's turn cannot be faked, so it is taken as soon as it is found, and

@@ -374,6 +374,26 @@ def test_a_body_frames_poses_are_told_and_written_down(tmp_path):
     assert 'camera_from_pose_frame [0, 0, 0, -0.5, 0.5, -0.5, 0.5]' in text
 
 
+def test_inverted_poses_are_told_and_written_down(tmp_path):
+    """``pose_frame: inverted``: the told poses are the camera's inverted (T_cw, a SLAM's own),
+    the images and depth the camera's; SOURCE.md says so and what reads them right."""
+    from depth_fusion_ros.cli.main import main
+
+    base = {'width': 32, 'height': 24, 'frames': 3, 'seed': 2}
+    inverted = render_sequence(SynthConfig(**base, pose_frame='inverted'))
+    optical = render_sequence(SynthConfig(**base))
+    assert 'invertedposes' in inverted.name
+    for a, b in zip(inverted.frames, optical.frames, strict=True):
+        assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
+        np.testing.assert_allclose(a.pose @ b.pose, np.eye(4), atol=1e-12)
+    out = tmp_path / 'inverted'
+    args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
+    assert main([*args, '--pose-frame', 'inverted']) == 0
+    text = (out / 'SOURCE.md').read_text()
+    assert '--pose-frame inverted' in text and 'holds inverted poses' in text
+    assert 'pose_inverted: true' in text
+
+
 def test_cli_synth_time_offset_is_recorded(tmp_path):
     from depth_fusion_ros.cli.main import main
 

@@ -365,6 +365,8 @@ class Adapter:
                 f'{cfg.max_relative_std:g} < {cfg.min_precise_fraction:.0%})'
             )
             return self._skip(sample.key, reason, t0)
+        if cfg.follow_fusion_guard and sample.untrusted:
+            return self._skip(sample.key, f'untrusted_points ({sample.untrusted})', t0)
         n_train = len(sample.train_uv)
         if n_train < max(1, cfg.min_points):
             return self._skip(sample.key, f'too_few_points ({n_train} < {cfg.min_points})', t0)

@@ -76,6 +76,12 @@ class AdaptConfig:
     #: check could not verify under rotation biases them all (docs/adaptation.md, "Points the
     #: fusion does not trust"). 0: every keyframe.
     min_precise_fraction: float = 0.2
+    #: A keyframe whose points the fusion's guard trusted none of (its verdict ``single_view``,
+    #: or withheld) is not trained on (skipped, untrusted_points): points wrong together pass
+    #: the adaptation's own tests, which judge them on points of the same kind
+    #: (adaptation/fusion_trust.py; docs/adaptation.md, "Keyframes the guard did not trust").
+    #: Without a fusion (no verdict ever heard) nothing changes.
+    follow_fusion_guard: bool = True
     #: Recent replay keyframes whose held-out points the guard checks with the new keyframe's.
     guard_keyframes: int = 4
     #: An update is rolled back when the guard error grows by more than this fraction (and

@@ -3,7 +3,9 @@
 In the node graph a keyframe's image, pose, multi-view depth and score arrive on separate
 topics at different times, keyed by the same header stamp. ``KeyframeAssembler`` collects
 them and returns an :class:`~.sample.AdaptSample` as soon as the image, depth and score are
-in, with the pose and the depth's std when they came first or are still expected. It keeps
+in, with the pose, the depth's std and the fusion's verdict (``trust``: the reason the guard
+trusted none of its points, '' when it did; ``fusion_trust.py``) when they came first or are
+still expected. It keeps
 the most recent posed keyframes as the photometric neighbours of the next ones (the previous
 keyframes with enough baseline), and bounded memory: at most ``max_pending`` incomplete
 keyframes.
@@ -21,9 +23,9 @@ import numpy as np
 from ..camera import PinholeCamera
 from .sample import AdaptSample, Neighbour, make_sample
 
-PARTS = ('rgb', 'depth', 'score', 'pose', 'std')
+PARTS = ('rgb', 'depth', 'score', 'pose', 'std', 'trust')
 #: Parts a keyframe is complete without, until one of their kind has arrived.
-OPTIONAL_PARTS = ('pose', 'std')
+OPTIONAL_PARTS = ('pose', 'std', 'trust')
 
 
 @dataclass
@@ -57,10 +59,15 @@ class KeyframeAssembler:
         self._pending: OrderedDict[int, _Parts] = OrderedDict()
         #: The recent posed keyframes, by stamp (ns): the neighbours of the next ones.
         self._recent: deque[tuple[int, Neighbour]] = deque(maxlen=max(1, window))
-        #: The optional parts (pose, std) that have arrived once: from then on a keyframe waits
-        #: for its own (until it is evicted); a graph publishes each for every keyframe or never.
+        #: The optional parts (pose, std, trust) that have arrived once: from then on a keyframe
+        #: waits for its own (until it is evicted); a graph publishes each for every keyframe or
+        #: never.
         self.optional_seen: set[str] = set()
         self.evicted_incomplete = 0
+        #: The last keyframes given as samples: an optional part that comes after its keyframe
+        #: was given (the first fusion verdict, which comes after the other parts) is let go
+        #: instead of waiting as a keyframe that never completes.
+        self._given: deque[int] = deque(maxlen=64)
 
     def add(
         self, stamp_ns: int, part: str, value: Any, camera: PinholeCamera | None = None
@@ -70,6 +77,8 @@ class KeyframeAssembler:
             raise ValueError(f'unknown keyframe part {part!r}')
         if part in OPTIONAL_PARTS:
             self.optional_seen.add(part)
+            if int(stamp_ns) in self._given and int(stamp_ns) not in self._pending:
+                return []
         entry = self._pending.setdefault(int(stamp_ns), _Parts())
         entry.values[part] = value
         if camera is not None:
@@ -134,6 +143,7 @@ class KeyframeAssembler:
 
     def _finish(self, stamp_ns: int) -> AdaptSample:
         entry = self._pending.pop(stamp_ns)
+        self._given.append(stamp_ns)
         v = entry.values
         pose = v.get('pose')
         neighbours = self._neighbours(pose) if pose is not None and self.n_neighbours > 0 else []
@@ -150,6 +160,7 @@ class KeyframeAssembler:
             neighbours=neighbours,
             mv_std=v.get('std'),
             max_relative_std=self.max_relative_std,
+            untrusted=str(v.get('trust') or ''),
         )
         if pose is not None:
             self._recent.append((stamp_ns, Neighbour(v['rgb'], pose)))

@@ -46,6 +46,9 @@ class AdaptSample:
     #: Share of the selected points whose ``depth_std / depth`` is within the limit
     #: (``fusion.guard.within_relative_std``); NaN when the multi-view std did not come.
     precise_fraction: float = float('nan')
+    #: Why the fusion's guard trusted none of the points ('' when it did, or said nothing):
+    #: ``fusion_trust.untrusted_reason``.
+    untrusted: str = ''
 
     @property
     def has_photometric(self) -> bool:
@@ -104,12 +107,14 @@ def make_sample(
     neighbours: list[Neighbour] | None = None,
     mv_std: np.ndarray | None = None,
     max_relative_std: float = 0.15,
+    untrusted: str = '',
 ) -> AdaptSample:
     """A sample from a keyframe's multi-view depth and score maps (NaN = no estimate).
 
     Stage 1 keeps the best ``select_fraction`` by score (as the fusion does); of those, a seeded
     ``holdout_fraction`` is kept apart for the guard. ``mv_std`` (the depth's std, optional)
-    gives the share of them precise at ``max_relative_std``.
+    gives the share of them precise at ``max_relative_std``. ``untrusted``: the fusion's reason
+    for trusting none of them (``fusion_trust.untrusted_reason``), '' otherwise.
     """
     if mv_depth.shape != rgb.shape[:2] or mv_score.shape != rgb.shape[:2]:
         raise ValueError(
@@ -140,4 +145,5 @@ def make_sample(
         pose=None if pose is None else np.asarray(pose, dtype=np.float64),
         neighbours=list(neighbours or []) if pose is not None else [],
         precise_fraction=share,
+        untrusted=untrusted,
     )

@@ -1,9 +1,10 @@
 """``depth-fusion adapt``: adapt a single-view network to posed sequences offline, self-supervised.
 
 The same code as the node's online adaptation and the evaluation's ``single_view_adapted``
-(``evaluation.methods.adapted.observe_keyframe``): keyframes in order, the multi-view search
-of each against its neighbours, then one guarded update on its selected multi-view points and
-its photometric consistency with the posed neighbours. Ground-truth depth is never read for
+(``evaluation.methods.adapted.adapted_prediction``): keyframes in order, the multi-view search
+of each against its neighbours, the fusion's verdict on its points, then one guarded update on
+its selected multi-view points and its photometric consistency with the posed neighbours
+(none where the fusion's guard trusted none of the points). Ground-truth depth is never read for
 training: no depth is read (folders without depth images, a robot's rosbag2 with its own
 topics). Writes a checkpoint that ``--single-view`` / ``model:`` load.
 """
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..evaluation.context import EvalOptions, KeyframeContext
     from ..evaluation.harness import load_evaluation_sequence
-    from ..evaluation.methods.adapted import adaptation_run, observe_keyframe
+    from ..evaluation.methods.adapted import adaptation_run, adapted_prediction
     from ..progress import progress
     from .evaluate import parse_rgb_cameras, recording_topics
     from .overrides import parse_overrides
@@ -112,8 +113,8 @@ def run(args: argparse.Namespace) -> int:
         keyframes = range(0, len(seq), max(1, args.stride))
         for i in progress(keyframes, desc=seq.name, unit='kf'):
             ctx = KeyframeContext(seq, i, options, shared)
+            adapted_prediction(ctx)  # predicted, fused (the guard's trust), then trained on
             run_state = adaptation_run(ctx)
-            observe_keyframe(ctx, run_state)
     if run_state is None:
         raise ValueError('the sequences hold no keyframe')
     c = run_state.adapter.counters

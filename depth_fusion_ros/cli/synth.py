@@ -146,9 +146,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         '--pose-frame',
         choices=POSE_FRAMES,
         default=d.pose_frame,
-        help="whose poses groundtruth.txt holds: 'optical', the camera's, or 'body', a REP 103 body "
+        help="whose poses groundtruth.txt holds: 'optical', the camera's, 'body', a REP 103 body "
         "frame's (x forward, z up) holding it, as odometry published without camera_from_pose_frame "
-        f'gives them (default {d.pose_frame})',
+        "gives them, or 'inverted', the camera's inverted (T_cw, as a SLAM system keeps them) "
+        f'(default {d.pose_frame})',
     )
     p.add_argument(
         '--motion',

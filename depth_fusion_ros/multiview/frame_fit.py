@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..geometry import BODY_TO_OPTICAL
+from ..geometry import BODY_TO_OPTICAL, invert_pose, relative_pose
 from .image_pairs import RANSAC_SEED, MatchedPair
 
 #: A turn smaller than this (degrees) is the mount check's own to fit: the same as its
@@ -85,29 +85,43 @@ class FrameTurn:
         return math.degrees(float(np.linalg.norm(self.rotvec)))
 
 
-def pair_directions(K: np.ndarray, pair: MatchedPair) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def pair_directions(K: np.ndarray, pair: MatchedPair) -> Directions:
     """The told and the images' unit directions of one pair: its translation always, its
     rotation axis when the images turn by ``MIN_ROTATION_DEG`` or more; empty when the images'
-    motion cannot be recovered."""
+    motion cannot be recovered. Third, the told ones again as they would be were the told poses
+    inverted (the world's pose in the camera: ``pose_inversion.py``), one for each told one."""
     cv2.setRNGSeed(RANSAC_SEED)  # the same pair gives the same motion whatever ran before
     E, _ = cv2.findEssentialMat(pair.p1, pair.p2, K, cv2.RANSAC, 0.999, 1.0)
     if E is None or E.shape != (3, 3):
-        return [], []
+        return [], [], []
     _, R_img, t_img, _ = cv2.recoverPose(E, pair.p1, pair.p2, K)
-    T = pair.T_ba
-    told, image = [], []
-    t_told, t_seen = T[:3, 3], t_img.ravel()
-    if np.linalg.norm(t_told) > 1e-9 and np.linalg.norm(t_seen) > 1e-9:
+    T, T_inv = pair.T_ba, relative_pose(invert_pose(pair.a.pose), invert_pose(pair.b.pose))
+    told, image, inverted = [], [], []
+    t_told, t_seen, t_inv = T[:3, 3], t_img.ravel(), T_inv[:3, 3]
+    if min(np.linalg.norm(t_told), np.linalg.norm(t_seen), np.linalg.norm(t_inv)) > 1e-9:
         told.append(t_told / np.linalg.norm(t_told))
         image.append(t_seen / np.linalg.norm(t_seen))
-    r_told, r_seen = _rotvec(T[:3, :3]), _rotvec(R_img)
+        inverted.append(t_inv / np.linalg.norm(t_inv))
+    r_told, r_seen, r_inv = _rotvec(T[:3, :3]), _rotvec(R_img), _rotvec(T_inv[:3, :3])
+    # Inverting the poses keeps each relative rotation's angle (R_b R_a^T against R_b^T R_a).
     if min(np.linalg.norm(r_told), np.linalg.norm(r_seen)) >= math.radians(MIN_ROTATION_DEG):
         told.append(r_told / np.linalg.norm(r_told))
         image.append(r_seen / np.linalg.norm(r_seen))
-    return told, image
+        inverted.append(r_inv / np.linalg.norm(r_inv))
+    return told, image, inverted
 
 
-Directions = tuple[list[np.ndarray], list[np.ndarray]]
+#: A pair's told, images' and inverted-told directions (:func:`pair_directions`).
+Directions = tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]
+
+
+def pairs_directions(K: np.ndarray, pairs: list[MatchedPair], known: list[Directions]) -> list[Directions]:
+    """The directions of each of ``pairs`` (:func:`pair_directions`): ``known`` holds those of
+    the first pairs, kept by a caller that looks again at each new pair, and is extended with
+    the others."""
+    for pair in pairs[len(known) :]:
+        known.append(pair_directions(np.asarray(K, dtype=np.float64), pair))
+    return known[: len(pairs)]
 
 
 def gross_frame_turn(
@@ -120,11 +134,8 @@ def gross_frame_turn(
 
     ``known``: the directions of the first pairs (:func:`pair_directions`), kept by a caller
     that looks again at each new pair; it is extended with the others."""
-    known = [] if known is None else known
-    for pair in pairs[len(known) :]:
-        known.append(pair_directions(np.asarray(K, dtype=np.float64), pair))
     told, image = [], []
-    for a, b in known[: len(pairs)]:
+    for a, b, _ in pairs_directions(K, pairs, [] if known is None else known):
         told += a
         image += b
     if len(told) < MIN_DIRECTIONS:
@@ -136,8 +147,8 @@ def gross_frame_turn(
     U, _, Vt = np.linalg.svd(A.T @ B)  # Kabsch: Q = argmin sum |b - Q a|^2, Q = M^T
     d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
     Q = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    told_residual = _median_angle_deg(A, B)
-    fit_residual = _median_angle_deg(A @ Q.T, B)
+    told_residual = median_angle_deg(A, B)
+    fit_residual = median_angle_deg(A @ Q.T, B)
     turn = FrameTurn(_rotvec(Q.T), told_residual, fit_residual, len(told))
     if (
         turn.angle_deg < MIN_TURN_DEG
@@ -153,12 +164,12 @@ def line_frame_turn(told: np.ndarray, seen: np.ndarray) -> FrameTurn | None:
     fit them ``MIN_FIT_GAIN`` times better than the told frame (which must miss them by
     ``MIN_TOLD_RESIDUAL_DEG``), :data:`BODY_TO_OPTICAL`, else the only one; None when none
     fits or several do and that one is not among them (the twist cannot be told)."""
-    told_residual = _median_angle_deg(told, seen)
+    told_residual = median_angle_deg(told, seen)
     if told_residual < MIN_TOLD_RESIDUAL_DEG:
         return None
     fits = []
     for M in axis_rotations():
-        residual = _median_angle_deg(told @ M, seen)  # Q = M^T turns each told direction
+        residual = median_angle_deg(told @ M, seen)  # Q = M^T turns each told direction
         if residual * MIN_FIT_GAIN <= told_residual:
             fits.append((residual, M))
     usual = [f for f in fits if np.allclose(f[1], BODY_TO_OPTICAL)]  # REP 103: geometry.py
@@ -197,7 +208,7 @@ def snapped(rotvec: np.ndarray) -> np.ndarray:
     return _rotvec(axes[best])
 
 
-def _median_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+def median_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     cos = np.clip(np.einsum('ij,ij->i', a, b), -1.0, 1.0)
     return float(np.degrees(np.median(np.arccos(cos))))
 

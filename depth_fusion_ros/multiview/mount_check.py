@@ -62,7 +62,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..geometry import BODY_TO_OPTICAL
-from .frame_fit import axis_rotations, gross_frame_turn, snapped
+from .frame_fit import axis_rotations, gross_frame_turn, pairs_directions, snapped
 from .image_pairs import (
     CHECK_MODES,
     EARLY_STANDARD_ERRORS,
@@ -74,6 +74,7 @@ from .image_pairs import (
 )
 from .pair_stack import PairStack
 from .paired_check import PairedCheck, feed
+from .pose_inversion import InvertedPoses, direction_fit, inverted_relative_pose
 
 log = logging.getLogger(__name__)
 
@@ -185,12 +186,15 @@ class MountEstimate:
     observed: int  # directions with a standard error within max_stderr_deg and the cost's rise
     pairs: int
     matches: int
-    verdict: str  # 'consistent', 'suspect', 'disagrees' or 'unobservable'
+    verdict: str  # 'consistent', 'suspect', 'disagrees', 'unobservable' or 'inverted' (pose_inversion.py)
     #: The camera axes (x, y, z) nearest the directions left unobserved, for the message
     unobserved_axes: tuple[str, ...] = ()
     #: The turn is a whole frame's (``frame_fit.py``: poses of a body frame given as the
     #: optical frame's), not a mount error
     frame: bool = False
+    #: With the verdict ``inverted`` (``pose_inversion.py``): the median angles (degrees) between
+    #: the images' directions and the told ones, as told and with the poses inverted
+    inverted_residuals_deg: tuple[float, float] = (0.0, 0.0)
 
     @property
     def angle_deg(self) -> float:
@@ -210,6 +214,14 @@ class MountEstimate:
         rv = ', '.join(f'{v:+.2f}' for v in self.rotvec_deg)
         sd = '/'.join(f'{s:.2f}' for s in self.stderr_deg)
         fit = f'{self.pairs} image pairs, {self.matches} matches, standard errors {sd} deg'
+        if self.verdict == 'inverted':
+            told, inverted = self.inverted_residuals_deg
+            return (
+                "mount check: the told poses fit the images inverted: they are the world's pose in the "
+                "camera (T_cw, as a SLAM system keeps it), where camera/pose means the camera's pose in "
+                f"the world (T_wc) (the images' motion {told:.0f} deg off the told one, {inverted:.0f} deg "
+                f'off the inverted one, median over {self.observed} directions of {self.pairs} image pairs)'
+            )
         if self.verdict == 'disagrees' and self.frame:
             return (
                 f"mount check: the told poses are not of the camera's optical frame (x right, y down, "
@@ -467,19 +479,29 @@ class MountCheck(PairedCheck):
         return self._verdict(v, cov, regional_spread(K, self.pairs, v))
 
     def _frame_estimate(self, K: np.ndarray) -> MountEstimate | None:
-        """A whole frame's turn (``frame_fit.gross_frame_turn``), refined on the pairs' cost from
-        there and taken as the axis rotation it is near (``frame_fit.snapped``), as a
-        disagreement; None when the pairs show none, or when it does not lower their cost
-        ``FRAME_COST_GAIN`` times (the mount's own fit decides). What is left
-        of a tilt is the next look's (the node starts the check over once it takes the turn)."""
+        """Poses given inverted (``pose_inversion.py``, the verdict ``inverted``: no fit, so
+        looked for first), else a whole frame's turn (``frame_fit.gross_frame_turn``), refined
+        on the pairs' cost from there and taken as the axis rotation it is near
+        (``frame_fit.snapped``), as a disagreement; None when the pairs show neither, or when
+        the turn does not lower their cost ``FRAME_COST_GAIN`` times (the mount's own fit
+        decides). Either must lower the pairs' cost that much; a turn that the inverted poses
+        fit better than is taken as inverted poses (the directions fooled). What is left of a
+        tilt is the next look's (the node starts the check over once it takes the turn)."""
+        stack = PairStack.of(self.pairs)
+        fit = direction_fit(pairs_directions(K, self.pairs, self._frame_directions))
+        cheaper = fit is not None and fit.says_inverted
+        if cheaper and self._inverted_cost(K, stack) * FRAME_COST_GAIN <= _total(K, stack, np.zeros(3)):
+            return self._inverted_estimate(fit)
         turn = gross_frame_turn(K, self.pairs, self._frame_directions)
         if turn is None:
             return None
-        stack = PairStack.of(self.pairs)
         # Along a line the cost is flat in the twist about it: the axis rotation as chosen.
         v = turn.rotvec if turn.along_line else _axis_or_refined(K, stack, turn.rotvec)
-        if _total(K, stack, v) * FRAME_COST_GAIN > _total(K, stack, np.zeros(3)):
+        turned_cost = _total(K, stack, v)
+        if turned_cost * FRAME_COST_GAIN > _total(K, stack, np.zeros(3)):
             return None  # the directions said a turn, the matches do not (a repetitive scene's)
+        if fit is not None and self._inverted_cost(K, stack) < turned_cost:
+            return self._inverted_estimate(fit)  # fooled directions: the inverted poses fit better
         _, grads, hessian = _local(K, stack, v)
         inverse = np.linalg.pinv(hessian)
         n = len(stack)
@@ -503,6 +525,21 @@ class MountCheck(PairedCheck):
             turn.fit_residual_deg,
         )
         return estimate
+
+    def _inverted_cost(self, K: np.ndarray, stack: PairStack) -> float:
+        """The pairs' summed cost with their told poses inverted (``pose_inversion.py``)."""
+        flipped = stack.with_poses(np.array([inverted_relative_pose(p) for p in self.pairs]))
+        return _total(K, flipped, np.zeros(3))
+
+    def _inverted_estimate(self, fit: InvertedPoses) -> MountEstimate:
+        """The verdict ``inverted`` (nothing turned) with the directions' fit for its message."""
+        zero = (0.0, 0.0, 0.0)
+        residuals = (fit.told_residual_deg, fit.inverted_residual_deg)
+        matches = sum(len(p.p1) for p in self.pairs)
+        n = len(self.pairs)
+        return MountEstimate(
+            zero, zero, zero, fit.directions, n, matches, 'inverted', inverted_residuals_deg=residuals
+        )
 
     def _early_look(self) -> MountEstimate | None:
         """At each new pair from ``early_pairs`` until ``pairs``: the estimate if the mount surely

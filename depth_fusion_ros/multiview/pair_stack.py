@@ -10,6 +10,7 @@ Stacked, the matches of all pairs meet their own pair's fundamental matrix in on
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +57,11 @@ class PairStack:
         """A stack of its poses, matches and each pair's match count (the rest follows from them)."""
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
         return cls(T_ba, p1, p2, np.repeat(np.arange(len(counts)), counts), starts[: len(counts)], counts)
+
+    def with_poses(self, T_ba: np.ndarray) -> PairStack:
+        """The same matches under other relative poses (P, 4, 4), one per pair: the pairs as
+        another reading of the told poses would pose them (``pose_inversion.py``)."""
+        return dataclasses.replace(self, T_ba=np.asarray(T_ba, dtype=np.float64))
 
     def keep(self, matches: np.ndarray, min_matches: int = 1) -> PairStack:
         """The stack with only the ``matches`` (a mask (N,)) kept, and only the pairs left with at

@@ -61,6 +61,13 @@ def camera_from_pose_frame_parameter() -> ParamSpec:
     )
 
 
+def pose_inverted_parameter() -> ParamSpec:
+    """``pose_inverted`` as ``multi_view_node`` declares it, for ``map_node``: the corrected
+    trajectory is of the same pose source, inverted alike."""
+    spec = next(spec for spec in robot_inputs.PARAMETERS if spec.name == 'pose_inverted')
+    return dataclasses.replace(spec, description=spec.description + '; here for the corrected trajectory')
+
+
 def correction_limits(params: Mapping[str, Any]) -> CorrectionLimits:
     """The limits a node's declared parameters give."""
     return CorrectionLimits(
@@ -84,26 +91,31 @@ def path_poses(msg: Any) -> tuple[np.ndarray, np.ndarray, int]:
     return np.asarray(stamps, np.int64), np.asarray(poses, np.float64).reshape(-1, 4, 4), bad
 
 
-def path_from_message(msg: Any, T_pose_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def path_from_message(
+    msg: Any, T_pose_cam: np.ndarray, inverted: bool = False
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Stamps (s), camera-to-world poses (P, 4, 4) and the number of unusable poses of a Path.
 
-    Its poses are of the pose stream's frame, as on ``camera/pose``: ``T_pose_cam``
-    (``camera_from_pose_frame``) makes them the optical frame's, as the keyframe poses are.
+    Its poses are of the pose stream's frame, as on ``camera/pose``: inverted first where
+    those are (``pose_inverted``), then ``T_pose_cam`` (``camera_from_pose_frame``) makes them
+    the optical frame's, as the keyframe poses are.
     (The correction ``T_new T_old^-1`` is the same whichever frame both are of, but ours are
     the camera's, so the path's must be too.)"""
     stamps_ns, poses, bad = path_poses(msg)
     seconds = np.array([messages.ns_to_sec(s) for s in stamps_ns.tolist()], np.float64)
+    if inverted:
+        poses = np.linalg.inv(poses)
     return seconds, poses @ T_pose_cam, bad
 
 
 def read_path(
-    stats: Any, msg: Any, T_pose_cam: np.ndarray, world_frame: str
+    stats: Any, msg: Any, T_pose_cam: np.ndarray, world_frame: str, inverted: bool = False
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """A corrected trajectory as a node takes it: received counted, unusable poses dropped
     (``bad_pose``, the rest used), a path in another frame than ``world_frame`` dropped
     (``frame_mismatch``; ``''``: not known yet, anything goes). ``None``: nothing to use."""
     stats.received('corrected_path')
-    stamps, poses, bad = path_from_message(msg, T_pose_cam)
+    stamps, poses, bad = path_from_message(msg, T_pose_cam, inverted)
     if bad:
         stats.dropped('bad_pose', f'corrected trajectory: {bad} of {len(msg.poses)} poses unusable')
     frame = msg.header.frame_id

@@ -476,7 +476,7 @@ class FusionNode(DepthFusionNode):
                 f'the {self.output_kind} source aligned to a non-positive depth (published as NaN)',
             )
         self.stats.count('decision', result.decision)
-        self._decision_pub.publish(String(data=decision_json(result, stamp, reduced)))
+        self._decision_pub.publish(String(data=decision_json(result, job.pairing.stamp_ns, reduced)))
         kind = messages.RCLPY
         self._depth_pub.publish(messages.depth_image_msg(result.depth, header, kind=kind))
         confidence = np.asarray(result.confidence, dtype=np.float32)
@@ -527,13 +527,18 @@ def _same_shape(part: np.ndarray | None, like: np.ndarray) -> np.ndarray | None:
     return part if part is not None and part.shape == like.shape else None
 
 
-def decision_json(result: Any, stamp: float, reduced_under_load: bool = False) -> str:
+def decision_json(result: Any, stamp_ns: int, reduced_under_load: bool = False) -> str:
     """The guard's verdict for one keyframe as one JSON line (``fused/decision``), and whether
-    the keyframe was fused with ``load_max_points`` points because another one waited."""
+    the keyframe was fused with ``load_max_points`` points because another one waited.
+
+    ``stamp`` is in seconds, for reading; ``stamp_ns`` is the keyframe's header stamp exactly
+    (a float of seconds holds a 2026 stamp to about 240 ns only), which single_view_node's
+    adaptation matches it by."""
     evidence = {k: (round(v, 4) if np.isfinite(v) else None) for k, v in result.evidence.items()}
     return json.dumps(
         {
-            'stamp': stamp,
+            'stamp': messages.ns_to_sec(stamp_ns),
+            'stamp_ns': int(stamp_ns),
             'decision': result.decision,
             'reason': result.decision_reason,
             'confidence': round(float(result.keyframe_confidence), 4),

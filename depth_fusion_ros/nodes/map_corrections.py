@@ -29,6 +29,7 @@ from .corrected_path import (
     camera_from_pose_frame_parameter,
     correction_limits,
     correction_parameters,
+    pose_inverted_parameter,
     read_path,
 )
 from .map_posing import MapPosing
@@ -49,6 +50,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ),
     *correction_parameters('rebuilds the map there'),
     camera_from_pose_frame_parameter(),
+    pose_inverted_parameter(),
 )
 
 
@@ -103,7 +105,8 @@ class MapCorrector:
         node = self.node
         with node._lock:
             # The pose source's own poses: each keyframe is compared through its own posing.
-            path = read_path(node.stats, msg, np.eye(4), node._world_frame)
+            inverted = bool(node.params['pose_inverted'])
+            path = read_path(node.stats, msg, np.eye(4), node._world_frame, inverted)
             if path is None:
                 return
             if self.store.max_bytes <= 0:

@@ -24,6 +24,7 @@ from ..multiview.time_offset_check import TimeOffsetEstimate
 from ..pose_buffer import PoseBuffer
 from ..pose_corrections import Posing
 from .focal_check_runner import FocalCheckRunner
+from .image_input import header_stamp_ns
 from .lens_topic import lens_info_msg
 from .mount_check_runner import MountCheckRunner
 from .posing import TOPIC_REPOSED_KEYFRAMES, PosingPublisher
@@ -49,6 +50,8 @@ class CheckCorrections:
     _mount_unsaid_lock: Any  # threading.Lock
     _restart_from_ns: int | None
     _lens_taken: FocalEstimate | None
+    _inverted_found: MountEstimate | None
+    pose_inverted: bool
     camera_input: Any  # nodes/image_input.py CameraInput
     _world_frame: str
     get_logger: Callable[[], Any]  # rclpy.node.Node's
@@ -250,12 +253,47 @@ class CheckCorrections:
     def _on_mount_estimate(self, camera: PinholeCamera, estimate: MountEstimate) -> None:
         """The mount check's result (its thread), said once: now, or, before the time offset
         check has settled, by the callbacks once it has (``_take_mount_correction``). In correct
-        mode the callbacks take the turn and say it then."""
+        mode the callbacks take the turn and say it then. Poses found inverted are said at once
+        (:meth:`_on_inverted_poses`): no time offset makes them."""
+        if estimate.verdict == 'inverted':
+            self._on_inverted_poses(estimate)
+            return
         with self._mount_unsaid_lock:
             if not self.time_offset_check.settled:
                 self._mount_unsaid = estimate
                 return
         self._say_mount_verdict(estimate)
+
+    def _on_inverted_poses(self, estimate: MountEstimate) -> None:
+        """The told poses fit the images inverted (``multiview/pose_inversion.py``): said once,
+        with what to set. With ``mount_check.mode`` correct the node publishes no multi-view
+        depth from the next keyframe on (``_withheld_for_inverted_poses``): triangulated with
+        the inverted motion, its points would only mislead the fusion and the adaptation (the
+        fusion gives the single view). Nothing is turned or inverted while running: the nodes
+        after this one read the keyframe poses as published."""
+        if self.pose_inverted:
+            fix = 'pose_inverted is true: the source gives T_wc already, set pose_inverted: false'
+        else:
+            fix = 'publish T_wc, or set pose_inverted: true'
+        if self.mount_check.config.mode == 'correct':
+            then = '; mount_check.mode correct: no multi-view depth from now on (the fusion gives the single '
+            then += 'view)'
+            self._inverted_found = estimate
+        else:
+            then = ' (mount_check.mode correct would withhold the multi-view depth)'
+        self.stats.noted('poses_inverted', f'{estimate.message()}: {fix}{then}')
+
+    def _withheld_for_inverted_poses(self, job: Any) -> bool:
+        """Whether this keyframe's multi-view depth is withheld: its poses were found inverted
+        (:meth:`_on_inverted_poses`); counted."""
+        if self._inverted_found is None:
+            return False
+        self.stats.noted(
+            'inverted_poses_withheld',
+            f'keyframe {ns_to_sec(header_stamp_ns(job)):.3f}: no multi-view depth, the told poses fit the '
+            'images inverted (pose_inverted)',
+        )
+        return True
 
     def _say_mount_verdict(self, estimate: MountEstimate) -> None:
         hint = self._mount_hint(self._mount_correction @ estimate.rotation())

@@ -133,6 +133,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             self.T_pose_cam = transform_from_parameter(p['camera_from_pose_frame'])
         except ValueError as exc:
             raise ValueError(f'{self.get_name()}: {exc}') from None
+        #: ``pose_inverted``: each told pose is T_cw and read inverted (robot_inputs.py)
+        self.pose_inverted = bool(p['pose_inverted'])
         self.device = str(p['device'])
         try:
             self.filter_feed = FilterFeed.from_parameters(
@@ -183,6 +185,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         #: A whole frame's turn was taken and the mount check has not looked again since: a lens
         #: found meanwhile waits for it (``_take_lens_correction``)
         self._frame_tilt_unchecked = False
+        #: The mount check found the told poses inverted (``_on_inverted_poses``): with
+        #: ``mount_check.mode`` correct no multi-view depth is published from then on
+        self._inverted_found: MountEstimate | None = None
         self._last_keyframe_pose: np.ndarray | None = None
         self._image_stamps = self.stamp_guard('image')
         self._pose_stamps = self.stamp_guard('pose')
@@ -282,7 +287,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self.stats.received('pose')
         self._last_input = time.monotonic()
         try:
-            T_wc = pose_from_message(msg) @ self.T_pose_cam
+            T_told = pose_from_message(msg)
+            T_wc = (invert_pose(T_told) if self.pose_inverted else T_told) @ self.T_pose_cam
             stamp_ns = header_stamp_ns(msg)
             if self._pose_stamps.check(stamp_ns):
                 self._start_over('pose', stamp_ns)
@@ -307,7 +313,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         as at a pose jump, so no neighbour and no propagated estimate crosses the correction,
         however small it is against the jump limits."""
         world = self._world_frame if len(self.pose_buffer) else ''  # (its default until a pose came)
-        path = read_path(self.stats, msg, self.T_pose_cam, world)
+        path = read_path(self.stats, msg, self.T_pose_cam, world, self.pose_inverted)
         if path is None:
             return
         stamps, poses = path
@@ -709,15 +715,18 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         pose_header = messages.header_msg(job.header.stamp, self._world_frame, kind=kind)
         self._kf_pose_pub.publish(messages.pose_stamped_msg(job.key.pose, pose_header, kind=kind))
         self.stats.published('keyframe')
+        nothing = np.full((job.camera.height, job.camera.width), np.nan, dtype=np.float32)
+        depth = score = std = nothing  # announced: downstream must still hear of the keyframe
         try:
-            result = self._estimate(job)
-            self._note_withheld(result)
-            depth, score = result.depth, result.score.astype(np.float32)
-            std = np.asarray(result.depth_std, dtype=np.float32)
-        except Exception as exc:  # the keyframe is announced: downstream must still hear of it
+            if not self._withheld_for_inverted_poses(job):
+                result = self._estimate(job)
+                self._note_withheld(result)
+                depth, score = result.depth, result.score.astype(np.float32)
+                std = np.asarray(result.depth_std, dtype=np.float32)
+        except Exception as exc:
             self.stats.dropped('processing_error', f'multi-view search failed: {type(exc).__name__}: {exc}')
             self.get_logger().debug(traceback.format_exc())
-            depth = score = std = np.full((job.camera.height, job.camera.width), np.nan, dtype=np.float32)
+            depth = score = std = nothing
         # before the depth, so the fusion node has it when the depth completes the keyframe
         self._std_pub.publish(messages.image_msg(std, '32FC1', job.header, kind=kind))
         self._depth_pub.publish(messages.depth_image_msg(depth, job.header, kind=kind))

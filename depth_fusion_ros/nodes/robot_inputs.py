@@ -9,6 +9,8 @@ and a pose that is not the camera's.
   ``TransformStamped`` (motion-capture bridges such as vicon_bridge, one topic per body: a
   ``/tf`` transform on a topic of its own; ``/tf`` itself needs tf2_msgs, not on pip). ``auto``
   waits for a publisher and subscribes with its type (ROS cannot subscribe "to any type").
+* ``pose_inverted`` reads each pose inverted, for a source that publishes the world's pose in
+  the camera (T_cw, as a SLAM system keeps it) where ROS means the camera's in the world.
 * ``camera_from_pose_frame`` is the fixed transform from the pose's frame (a body or IMU
   frame) to the camera optical frame: ``T_world_cam = T_world_pose @ T_pose_cam``. TF is not
   on pip for Jazzy, so it is a parameter (docs/nodes.md says how to read it from a URDF or
@@ -57,6 +59,14 @@ PARAMETERS: tuple[ParamSpec, ...] = (
         "x, y, z, qx, qy, qz, qw: the camera optical frame in the pose's frame (the pose's child frame, "
         "e.g. base_link or imu); T_world_cam = T_world_pose @ this; identity: the pose is the camera's",
         length=7,
+    ),
+    ParamSpec(
+        'pose_inverted',
+        False,
+        "true: each pose (and corrected trajectory) is the world's pose in the pose frame (T_cw, as "
+        "a SLAM system keeps it, e.g. ORB-SLAM's Tcw) and is inverted before use; ROS means the "
+        "frame's pose in the world (T_wc). The mount check says when the poses fit the images "
+        'inverted (multiview/pose_inversion.py)',
     ),
 )
 

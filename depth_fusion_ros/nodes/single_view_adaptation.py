@@ -17,9 +17,11 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import Image
+from std_msgs.msg import String
 
 from ..adaptation.adapter import Adapter, UpdateReport
 from ..adaptation.config import AdaptConfig
+from ..adaptation.fusion_trust import verdict_from_json
 from ..adaptation.keyframes import KeyframeAssembler
 from ..adaptation.online import OnlineAdaptation, WeightSlot
 from ..adaptation.remote_adapter import RemoteAdapter
@@ -36,6 +38,9 @@ from .posing import TOPIC_POSING_TRANSFORM, TOPIC_REPOSED_KEYFRAMES, PosingLog, 
 TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
 TOPIC_MV_DEPTH_STD = 'depth_fusion/multi_view/depth_std'
+#: fusion_node's verdict per keyframe (std_msgs/String JSON): a keyframe whose points it trusted
+#: none of is not trained on (adaptation/fusion_trust.py).
+TOPIC_FUSED_DECISION = 'depth_fusion/fused/decision'
 #: Published by multi_view_node for every keyframe (PoseStamped, world frame, keyframe stamp).
 TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
 SERVICE_SAVE = '~/save_model'
@@ -220,6 +225,8 @@ class NodeAdaptation:
         node.subscribe(Image, TOPIC_MV_SCORE, lambda m: self._on_depth(m, 'score'), q)
         node.subscribe(Image, TOPIC_MV_DEPTH_STD, lambda m: self._on_depth(m, 'std'), q)
         node.subscribe(PoseStamped, TOPIC_KEYFRAME_POSE, self._on_pose, q)
+        if self.config.follow_fusion_guard:
+            node.subscribe(String, TOPIC_FUSED_DECISION, self._on_decision, q)
         #: How multi_view_node posed each keyframe: a mount turn it takes re-poses the photometric
         #: neighbours (nodes/posing.py).
         self.posings = PosingLog()
@@ -254,6 +261,17 @@ class NodeAdaptation:
             self.node.stats.dropped(exc.reason, str(exc))
             return
         self._add(header_stamp_ns(msg), part, value)
+
+    def _on_decision(self, msg: String) -> None:
+        """fusion_node's verdict on a keyframe: the reason its guard trusted none of the points
+        ('' when it did) becomes the keyframe's ``trust`` part."""
+        self.node.stats.received('fused_decision')
+        try:
+            stamp_ns, untrusted = verdict_from_json(msg.data)
+        except ValueError as exc:
+            self.node.stats.dropped('bad_decision', f'fused/decision: {exc}')
+            return
+        self._add(stamp_ns, 'trust', untrusted)
 
     def _on_pose(self, msg: PoseStamped) -> None:
         self.node.stats.received('keyframe_pose')

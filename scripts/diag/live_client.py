@@ -118,7 +118,10 @@ class Client:
     def _on_decision(self, msg: String) -> None:
         try:
             verdict = json.loads(msg.data)
-            self.decisions[round(float(verdict['stamp']) * 1e9)] = verdict  # seconds (decision_json)
+            stamp_ns = verdict.get('stamp_ns')  # exact (decision_json); 'stamp' is seconds
+            if stamp_ns is None:
+                stamp_ns = round(float(verdict['stamp']) * 1e9)
+            self.decisions[int(stamp_ns)] = verdict
         except (ValueError, KeyError, TypeError) as exc:
             print(f'unreadable decision: {exc}', file=sys.stderr)
 

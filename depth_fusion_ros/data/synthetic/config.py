@@ -15,7 +15,7 @@ PARALLAX_MODES = ('high', 'low')
 #: stress motions of ``motions.py`` (fixed per-frame translation and rotation steps).
 MOTIONS = ('parallax', 'rotation_sweep', 'keyframe_stream', 'forward')
 #: Whose poses the pipeline is given (``SynthConfig.pose_frame``).
-POSE_FRAMES = ('optical', 'body')
+POSE_FRAMES = ('optical', 'body', 'inverted')
 
 #: Focal length at 640x480 (Kinect-like); other sizes scale it.
 DEFAULT_FOCAL_640 = 525.0
@@ -75,7 +75,9 @@ class SynthConfig:
     #: Whose poses the pipeline is given: 'optical', the camera's own (x right, y down, z
     #: forward), or 'body', those of a REP 103 body frame holding it (x forward, y left, z up:
     #: ``T_told = T_true @ M^-1`` with ``M`` the camera in the body), with no word of it, as a
-    #: robot's odometry published without ``camera_from_pose_frame`` gives them.
+    #: robot's odometry published without ``camera_from_pose_frame`` gives them; or 'inverted',
+    #: the camera's poses inverted (the world's pose in the camera, T_cw, as a SLAM system keeps
+    #: it and a relay may publish it: ``multiview/pose_inversion.py``).
     pose_frame: str = 'optical'
     #: The poses *given to the pipeline* are the true ones this many seconds later (a pose
     #: source whose clock runs ahead of the camera's, or a camera stamp taken late; negative:

@@ -107,7 +107,7 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     """The camera-to-world poses the pipeline is given: the true ones moved by the config's time
     offset (``pose_time_offset``, :func:`shifted_poses`) and turned by its mount tilt
     (``mount_tilt_deg``, about the camera's x axis), as a body frame's (``pose_frame``),
-    with its per-frame jitter
+    with its per-frame jitter, and, for ``pose_frame`` 'inverted', inverted
     (``pose_noise_m``, ``pose_noise_deg``); a copy of the true ones without either.
 
     Each frame draws a translation offset (isotropic Gaussian) and a rotation about a random
@@ -124,7 +124,7 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
     if cfg.pose_frame == 'body':  # T_body = T_cam @ M^-1, the camera held with its optical axis forward
         out[:, :3, :3] = out[:, :3, :3] @ BODY_TO_OPTICAL.T
     if not (cfg.pose_noise_m or cfg.pose_noise_deg):
-        return out
+        return _as_given(cfg, out)
     rotvecs, offsets = np.empty((len(out), 3)), np.empty((len(out), 3))
     for i in range(len(out)):  # one stream per frame; the draws only, the algebra is batched
         rng = np.random.default_rng([cfg.seed, _POSE_NOISE_STREAM, i])
@@ -133,7 +133,13 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
         offsets[i] = cfg.pose_noise_m * rng.normal(size=3)
     out[:, :3, :3] = out[:, :3, :3] @ Rotation.from_rotvec(rotvecs).as_matrix()
     out[:, :3, 3] += offsets
-    return out
+    return _as_given(cfg, out)
+
+
+def _as_given(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
+    """The source's poses as it publishes them: inverted for ``pose_frame`` 'inverted' (the
+    world's pose in the camera, T_cw, as a SLAM system keeps it)."""
+    return np.linalg.inv(poses) if cfg.pose_frame == 'inverted' else poses
 
 
 def pose_source(cfg: SynthConfig, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -59,6 +59,13 @@ def _pose_note(cfg: SynthConfig) -> str:
             "the camera's optical frame; camera_from_pose_frame [0, 0, 0, -0.5, 0.5, -0.5, 0.5] turns "
             'them back (a pose-frame stress case); the depth images stay exact.'
         )
+    if cfg.pose_frame == 'inverted':
+        note += (
+            "\n**groundtruth.txt holds inverted poses**: every pose is the world's pose in the camera "
+            "(T_cw), not the camera's in the world (T_wc) that the TUM format and ROS mean; "
+            'pose_inverted: true reads them right (a pose-convention stress case); the depth images '
+            'stay exact.'
+        )
     if cfg.mount_tilt_deg:
         note += (
             f"\n**groundtruth.txt is deliberately turned**: every pose is the camera's turned by "

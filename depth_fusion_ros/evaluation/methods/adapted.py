@@ -8,8 +8,11 @@ Prequential: keyframes are evaluated in order, and keyframe k is predicted by th
 it was *before* it trained on keyframe k (it has seen keyframes < k only); then it trains on
 k. The training signals are what the node graph has: the keyframe's multi-view result
 (shared with ``multi_view`` / ``fused``) and its posed multi-view neighbours; never the ground
-truth. Each sequence starts again from the original network. ``--set adaptation.<field>=``
-overrides ``AdaptConfig`` fields. ``depth-fusion adapt`` runs the same code to write a
+truth. As in the graph, a keyframe whose points the fusion's guard trusted none of, fusing the
+prediction of that keyframe, is not trained on (``adaptation.follow_fusion_guard``,
+adaptation/fusion_trust.py); that fusion is ``fused_adapted``'s own. Each sequence starts
+again from the original network. ``--set adaptation.<field>=`` overrides ``AdaptConfig``
+fields. ``depth-fusion adapt`` runs the same code to write a
 checkpoint.
 
 Per-frame extras: ``adapt_version`` (accepted updates so far), ``adapt_rolled_back``,
@@ -25,7 +28,9 @@ import numpy as np
 
 from ...adaptation.adapter import Adapter, UpdateReport
 from ...adaptation.config import AdaptConfig
+from ...adaptation.fusion_trust import untrusted_reason
 from ...adaptation.sample import AdaptSample, Neighbour, make_sample
+from ...fusion.pipeline import FusionResult
 from ...singleview.predictor import DepthPredictor
 from ..context import KeyframeContext
 from ..registry import MethodOutput, register_method
@@ -56,8 +61,9 @@ def adaptation_run(ctx: KeyframeContext) -> AdaptationRun:
     return ctx.shared_cached('adaptation:run', start)
 
 
-def keyframe_sample(ctx: KeyframeContext, config: AdaptConfig) -> AdaptSample:
-    """The keyframe's training signals: its selected multi-view points and posed neighbours."""
+def keyframe_sample(ctx: KeyframeContext, config: AdaptConfig, untrusted: str = '') -> AdaptSample:
+    """The keyframe's training signals: its selected multi-view points and posed neighbours;
+    ``untrusted``: the fusion's reason for trusting none of them ('' when it did)."""
     from .multi_view import multi_view_result, neighbour_indices
 
     mv = multi_view_result(ctx)
@@ -76,29 +82,41 @@ def keyframe_sample(ctx: KeyframeContext, config: AdaptConfig) -> AdaptSample:
         neighbours=neighbours,
         mv_std=mv.depth_std,
         max_relative_std=config.max_relative_std,
+        untrusted=untrusted,
     )
 
 
-def observe_keyframe(ctx: KeyframeContext, run: AdaptationRun) -> UpdateReport:
-    """Train on this keyframe; refresh the predictor when the update was kept."""
-    report = run.adapter.observe(keyframe_sample(ctx, run.adapter.config))
+def observe_keyframe(ctx: KeyframeContext, run: AdaptationRun, untrusted: str = '') -> UpdateReport:
+    """Train on this keyframe (``untrusted``: see :func:`keyframe_sample`); refresh the
+    predictor when the update was kept."""
+    report = run.adapter.observe(keyframe_sample(ctx, run.adapter.config, untrusted))
     if run.adapter.version != run.version:
         run.predictor = run.adapter.predictor()
         run.version = run.adapter.version
     return report
 
 
-def adapted_prediction(ctx: KeyframeContext) -> tuple[SingleViewPrediction, UpdateReport]:
-    """Prediction of the weights from before this keyframe, then the update on it (once)."""
+Adapted = tuple[SingleViewPrediction, UpdateReport, FusionResult | None]
 
-    def compute() -> tuple[SingleViewPrediction, UpdateReport]:
+
+def adapted_prediction(ctx: KeyframeContext) -> Adapted:
+    """Prediction of the weights from before this keyframe, its fusion when the guard's trust
+    is followed (``fused_adapted``'s; None otherwise), then the update on it (once)."""
+    from .fusion import fuse_automatic
+
+    def compute() -> Adapted:
         run = adaptation_run(ctx)
         depth = run.predictor.predict(ctx.frame.rgb)
         size = (ctx.camera.width, ctx.camera.height)
         if depth.shape[::-1] != size:
             depth = cv2.resize(depth, size, interpolation=cv2.INTER_LINEAR)
-        report = observe_keyframe(ctx, run)
-        return SingleViewPrediction(depth.astype(np.float32), run.predictor.output_kind), report
+        prediction = SingleViewPrediction(depth.astype(np.float32), run.predictor.output_kind)
+        fused, untrusted = None, ''
+        if run.adapter.config.follow_fusion_guard:
+            fused = fuse_automatic(ctx, prediction.depth, prediction.output_kind)
+            untrusted = untrusted_reason(fused.decision, fused.decision_reason, fused.withheld)
+        report = observe_keyframe(ctx, run, untrusted)
+        return prediction, report, fused
 
     return ctx.cached('adaptation:prediction', compute)
 
@@ -118,7 +136,7 @@ def _extras(report: UpdateReport) -> dict[str, float]:
     'neighbours, replay, guard); prequential: keyframe k predicted before training on it',
 )
 def single_view_adapted(ctx: KeyframeContext) -> MethodOutput:
-    prediction, report = adapted_prediction(ctx)
+    prediction, report, _ = adapted_prediction(ctx)
     return MethodOutput(prediction.depth, _extras(report))
 
 
@@ -129,7 +147,9 @@ def single_view_adapted(ctx: KeyframeContext) -> MethodOutput:
 def fused_adapted(ctx: KeyframeContext) -> MethodOutput:
     from .fusion import _output, fuse_automatic
 
-    prediction, report = adapted_prediction(ctx)
-    out = _output(fuse_automatic(ctx, prediction.depth, prediction.output_kind))
+    prediction, report, fused = adapted_prediction(ctx)
+    if fused is None:  # the adaptation did not follow the guard: this keyframe's fusion not made yet
+        fused = fuse_automatic(ctx, prediction.depth, prediction.output_kind)
+    out = _output(fused)
     out.extras.update(_extras(report))
     return out
