@@ -102,6 +102,13 @@ FRAME_COST_GAIN = 4.0
 #: from 8 (frame 132); 108 stress streams of five seeds and 5 real variants told right
 #: showed none at 3-8 pairs (docs/multi_view.md, "A straight drive, and an earlier look").
 FRAME_EARLY_PAIRS = 3
+#: Poses given inverted (``pose_inversion.py``) are looked for from this many pairs, on this
+#: many directions: the inversion is not fitted (a frame turn is, 3 parameters), and the
+#: matches' cost confirms it. Every keyframe before it is fused with points of the inverted
+#: motion: the `forward` robot of seed 221 given inverted poses had 6 such keyframes (the
+#: worst 2.96x its single view) with the inversion found at 4 pairs (frame 29).
+INVERSION_EARLY_PAIRS = 2
+INVERSION_MIN_DIRECTIONS = 2
 #: The 24 axis rotations as rotation vectors (radians): the frame turns tried on the pairs' cost
 #: (read only: never written to).
 _AXIS_ROTVECS = np.array([cv2.Rodrigues(R)[0].ravel() for R in axis_rotations()])
@@ -484,8 +491,9 @@ class MountCheck(PairedCheck):
         on the pairs' cost from there and taken as the axis rotation it is near
         (``frame_fit.snapped``), as a disagreement; None when the pairs show neither, or when
         the turn does not lower their cost ``FRAME_COST_GAIN`` times (the mount's own fit
-        decides). Either must lower the pairs' cost that much; a turn that the inverted poses
-        fit better than is taken as inverted poses (the directions fooled). What is left of a
+        decides). Either must lower the pairs' cost that much; a turn that does not fit the
+        matches ``FRAME_COST_GAIN`` times better than the inverted poses is taken as inverted
+        poses (the directions fooled). What is left of a
         tilt is the next look's (the node starts the check over once it takes the turn)."""
         stack = PairStack.of(self.pairs)
         fit = direction_fit(pairs_directions(K, self.pairs, self._frame_directions))
@@ -497,11 +505,15 @@ class MountCheck(PairedCheck):
             return None
         # Along a line the cost is flat in the twist about it: the axis rotation as chosen.
         v = turn.rotvec if turn.along_line else _axis_or_refined(K, stack, turn.rotvec)
-        turned_cost = _total(K, stack, v)
-        if turned_cost * FRAME_COST_GAIN > _total(K, stack, np.zeros(3)):
+        turned_cost, told = _total(K, stack, v), _total(K, stack, np.zeros(3))
+        if turned_cost * FRAME_COST_GAIN > told:
             return None  # the directions said a turn, the matches do not (a repetitive scene's)
-        if fit is not None and self._inverted_cost(K, stack) < turned_cost:
-            return self._inverted_estimate(fit)  # fooled directions: the inverted poses fit better
+        inverted = self._inverted_cost(K, stack) if fit is not None else math.inf
+        if turned_cost * FRAME_COST_GAIN > inverted and inverted * FRAME_COST_GAIN <= told:
+            # A turn fits 3 parameters to the pairs, the inversion none: a turn no clearly better
+            # than the inverted poses is the directions fooled (handheld, seed 221: 80 deg at 2.67
+            # against 3.03 inverted and 20.4 as told; a body frame's turn: 25-3000 times better).
+            return self._inverted_estimate(fit)
         _, grads, hessian = _local(K, stack, v)
         inverse = np.linalg.pinv(hessian)
         n = len(stack)
@@ -526,6 +538,19 @@ class MountCheck(PairedCheck):
         )
         return estimate
 
+    def _inversion_look(self, K: np.ndarray) -> MountEstimate | None:
+        """The verdict ``inverted`` before the frame check's first look (``INVERSION_EARLY_PAIRS``):
+        the directions say it (from ``INVERSION_MIN_DIRECTIONS``) and the matches fit the inverted
+        poses ``FRAME_COST_GAIN`` times better than the told ones; else None."""
+        known = pairs_directions(K, self.pairs, self._frame_directions)
+        fit = direction_fit(known, INVERSION_MIN_DIRECTIONS)
+        if fit is None or not fit.says_inverted:
+            return None
+        stack = PairStack.of(self.pairs)
+        if self._inverted_cost(K, stack) * FRAME_COST_GAIN > _total(K, stack, np.zeros(3)):
+            return None
+        return self._inverted_estimate(fit)
+
     def _inverted_cost(self, K: np.ndarray, stack: PairStack) -> float:
         """The pairs' summed cost with their told poses inverted (``pose_inversion.py``)."""
         flipped = stack.with_poses(np.array([inverted_relative_pose(p) for p in self.pairs]))
@@ -546,9 +571,11 @@ class MountCheck(PairedCheck):
         disagrees at ``EARLY_STANDARD_ERRORS``, else None (the check goes on). The frame check
         looks from ``FRAME_EARLY_PAIRS`` already (``early_pairs`` 0: no early look at all)."""
         n = self.config.early_pairs
-        if not 0 < min(n, FRAME_EARLY_PAIRS) <= len(self.pairs) < self.config.pairs:
+        if not 0 < min(n, INVERSION_EARLY_PAIRS) <= len(self.pairs) < self.config.pairs:
             return None
         K = np.asarray(self.camera.K, dtype=np.float64)
+        if len(self.pairs) < FRAME_EARLY_PAIRS:
+            return self._inversion_look(K)
         frame = self._frame_estimate(K)
         if frame is not None or len(self.pairs) < n:
             return frame
