@@ -109,6 +109,12 @@ FRAME_EARLY_PAIRS = 3
 #: worst 2.96x its single view) with the inversion found at 4 pairs (frame 29).
 INVERSION_EARLY_PAIRS = 2
 INVERSION_MIN_DIRECTIONS = 2
+#: From the first pair already when its matches fit the inverted poses this many times better
+#: than the told ones (on one direction or more): one pair is all a low-texture room gave in
+#: 100 frames (seed 221: 20.2 as told against 0.14 inverted). The first 4 pairs of 112 streams
+#: told right fit the inverted poses at most 1.4 times better each, of ten told in a body frame
+#: at most 4.9.
+SINGLE_PAIR_COST_GAIN = 20.0
 #: The 24 axis rotations as rotation vectors (radians): the frame turns tried on the pairs' cost
 #: (read only: never written to).
 _AXIS_ROTVECS = np.array([cv2.Rodrigues(R)[0].ravel() for R in axis_rotations()])
@@ -539,15 +545,18 @@ class MountCheck(PairedCheck):
         return estimate
 
     def _inversion_look(self, K: np.ndarray) -> MountEstimate | None:
-        """The verdict ``inverted`` before the frame check's first look (``INVERSION_EARLY_PAIRS``):
-        the directions say it (from ``INVERSION_MIN_DIRECTIONS``) and the matches fit the inverted
-        poses ``FRAME_COST_GAIN`` times better than the told ones; else None."""
+        """The verdict ``inverted`` before the frame check's first look: the directions say it
+        and the matches fit the inverted poses ``FRAME_COST_GAIN`` times better than the told
+        ones, from ``INVERSION_EARLY_PAIRS`` pairs on ``INVERSION_MIN_DIRECTIONS`` directions, or
+        ``SINGLE_PAIR_COST_GAIN`` times better from the first pair; else None."""
+        single = len(self.pairs) < INVERSION_EARLY_PAIRS
         known = pairs_directions(K, self.pairs, self._frame_directions)
-        fit = direction_fit(known, INVERSION_MIN_DIRECTIONS)
+        fit = direction_fit(known, 1 if single else INVERSION_MIN_DIRECTIONS)
         if fit is None or not fit.says_inverted:
             return None
         stack = PairStack.of(self.pairs)
-        if self._inverted_cost(K, stack) * FRAME_COST_GAIN > _total(K, stack, np.zeros(3)):
+        gain = SINGLE_PAIR_COST_GAIN if single else FRAME_COST_GAIN
+        if self._inverted_cost(K, stack) * gain > _total(K, stack, np.zeros(3)):
             return None
         return self._inverted_estimate(fit)
 
@@ -569,9 +578,10 @@ class MountCheck(PairedCheck):
     def _early_look(self) -> MountEstimate | None:
         """At each new pair from ``early_pairs`` until ``pairs``: the estimate if the mount surely
         disagrees at ``EARLY_STANDARD_ERRORS``, else None (the check goes on). The frame check
-        looks from ``FRAME_EARLY_PAIRS`` already (``early_pairs`` 0: no early look at all)."""
+        looks from ``FRAME_EARLY_PAIRS`` already, the inversion from the first pair
+        (:meth:`_inversion_look`; ``early_pairs`` 0: no early look at all)."""
         n = self.config.early_pairs
-        if not 0 < min(n, INVERSION_EARLY_PAIRS) <= len(self.pairs) < self.config.pairs:
+        if not 0 < min(n, 1) <= len(self.pairs) < self.config.pairs:
             return None
         K = np.asarray(self.camera.K, dtype=np.float64)
         if len(self.pairs) < FRAME_EARLY_PAIRS:
