@@ -76,6 +76,19 @@ def _publish_keyframe(pubs: dict, room, i: int, stamp: int, signals: bool = True
         )
 
 
+def _training_node(ros: RosHarness, tiny_model: str) -> SingleViewNode:
+    """A single-view node that trains on every keyframe the stand-in points allow: few points,
+    no baseline, no start coverage, at the inference's priority (see the first test)."""
+    params = {
+        'adaptation.min_points': 5,
+        'adaptation.min_baseline': 0.0,
+        'adaptation.start_coverage': 0.0,
+        'adaptation.nice': 0,
+        'adaptation.queue_size': 8,
+    }
+    return ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model, **params)))
+
+
 def test_inference_never_waits_for_training_and_adapted_weights_are_saved(tiny_model, room, tmp_path):
     checkpoint = tmp_path / 'adapted.pt'
     original = load_predictor(tiny_model)
@@ -317,14 +330,7 @@ def test_a_frame_turn_multi_view_node_takes_starts_the_adaptation_over(tiny_mode
     frame = np.eye(4)
     frame[:3, :3] = Rotation.from_quat([-0.5, 0.5, -0.5, 0.5]).as_matrix()  # x forward -> optical
     with RosHarness() as ros:
-        params = {
-            'adaptation.min_points': 5,
-            'adaptation.min_baseline': 0.0,
-            'adaptation.start_coverage': 0.0,
-            'adaptation.nice': 0,  # see the first test
-            'adaptation.queue_size': 8,
-        }
-        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model, **params)))
+        node = _training_node(ros, tiny_model)
         said = ros.publisher(TransformStamped, '/' + TOPIC_POSING_TRANSFORM, posing_qos())
         pubs = _keyframe_publishers(ros)
         depths = ros.collect(Image, '/depth_fusion/single_view/depth')
@@ -363,14 +369,7 @@ def test_keyframes_whose_points_the_fusion_trusted_none_of_are_not_trained_on(ti
     of (``single_view``) is skipped as ``untrusted_points``; the others train. A verdict without
     ``stamp_ns`` is a counted drop, not a crash."""
     with RosHarness() as ros:
-        params = {
-            'adaptation.min_points': 5,
-            'adaptation.min_baseline': 0.0,
-            'adaptation.start_coverage': 0.0,
-            'adaptation.nice': 0,  # see the first test
-            'adaptation.queue_size': 8,
-        }
-        node = ros.add(SingleViewNode(context=ros.context, parameter_overrides=_params(tiny_model, **params)))
+        node = _training_node(ros, tiny_model)
         pubs = _keyframe_publishers(ros)
         verdicts = ros.publisher(String, '/depth_fusion/fused/decision')
         depths = ros.collect(Image, '/depth_fusion/single_view/depth')

@@ -347,12 +347,21 @@ def test_time_offset_moves_the_told_poses_along_the_path():
         SynthConfig(pose_time_offset=0.05)  # more than one frame period at 30 Hz
 
 
+def _synth_source(tmp_path, pose_frame: str) -> str:
+    """SOURCE.md of a two-frame ``depth-fusion synth --pose-frame POSE_FRAME`` folder."""
+    from depth_fusion_ros.cli.main import main
+
+    out = tmp_path / pose_frame
+    args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
+    assert main([*args, '--pose-frame', pose_frame]) == 0
+    return (out / 'SOURCE.md').read_text()
+
+
 def test_a_body_frames_poses_are_told_and_written_down(tmp_path):
     """``pose_frame: body``: the told poses are those of a REP 103 body frame holding the camera
     (``T_told = T_true @ M^-1``, the frame check's ``BODY_TO_OPTICAL``), the images and depth
     those of the camera; ``camera_from_pose_frame`` M turns them back; SOURCE.md and the CLI
     say so."""
-    from depth_fusion_ros.cli.main import main
     from depth_fusion_ros.geometry import BODY_TO_OPTICAL
 
     base = {'width': 32, 'height': 24, 'frames': 3, 'seed': 2}
@@ -366,10 +375,7 @@ def test_a_body_frames_poses_are_told_and_written_down(tmp_path):
         np.testing.assert_allclose(a.pose @ M, b.pose, atol=1e-12)
     with pytest.raises(ValueError, match='pose_frame'):
         SynthConfig(pose_frame='imu')
-    out = tmp_path / 'body'
-    args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
-    assert main([*args, '--pose-frame', 'body']) == 0
-    text = (out / 'SOURCE.md').read_text()
+    text = _synth_source(tmp_path, 'body')
     assert '--pose-frame body' in text and "a body frame's poses" in text
     assert 'camera_from_pose_frame [0, 0, 0, -0.5, 0.5, -0.5, 0.5]' in text
 
@@ -377,7 +383,6 @@ def test_a_body_frames_poses_are_told_and_written_down(tmp_path):
 def test_inverted_poses_are_told_and_written_down(tmp_path):
     """``pose_frame: inverted``: the told poses are the camera's inverted (T_cw, a SLAM's own),
     the images and depth the camera's; SOURCE.md says so and what reads them right."""
-    from depth_fusion_ros.cli.main import main
 
     base = {'width': 32, 'height': 24, 'frames': 3, 'seed': 2}
     inverted = render_sequence(SynthConfig(**base, pose_frame='inverted'))
@@ -386,10 +391,7 @@ def test_inverted_poses_are_told_and_written_down(tmp_path):
     for a, b in zip(inverted.frames, optical.frames, strict=True):
         assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
         np.testing.assert_allclose(a.pose @ b.pose, np.eye(4), atol=1e-12)
-    out = tmp_path / 'inverted'
-    args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
-    assert main([*args, '--pose-frame', 'inverted']) == 0
-    text = (out / 'SOURCE.md').read_text()
+    text = _synth_source(tmp_path, 'inverted')
     assert '--pose-frame inverted' in text and 'holds inverted poses' in text
     assert 'pose_inverted: true' in text
 
