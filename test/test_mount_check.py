@@ -542,3 +542,7 @@ def test_cli_check_mount_says_the_verdict_in_its_exit_status(tmp_path, capsys):
     assert main(['check-mount', str(tilted), '--frames', '20']) == 4
     assert 'not enough motion to tell' in capsys.readouterr().err
     assert main(['check-mount', str(tmp_path / 'none')]) == 1
+    config = stress_config('rotation', width=320, height=240, frames=40, seed=3, pose_frame='inverted')
+    inverted = write_synthetic_sequence(tmp_path / 'inverted', config)
+    assert main(['check-mount', str(inverted)]) == 3  # a disagreement, not "cannot tell"
+    assert "the told poses fit the images inverted: they are the world's pose" in capsys.readouterr().out

@@ -14,7 +14,9 @@ offset check has settled (mount_check.*; docs/multi_view.md, "The mount check").
 degree or two more tilted than its told pose frame (camera_from_pose_frame, a hand-eye
 calibration) turns every relative pose; the images fit the poses best turned back. No
 ground-truth depth is needed; run check-sync first (clocks out of sync fake a turn). Prints the
-verdict with the rotation the images fit. Exit status: 0 consistent, 3 disagrees, 4 cannot tell
+verdict with the rotation the images fit, or that the poses fit them inverted (the world's pose
+in the camera, T_cw, given for the camera's). Exit status: 0 consistent, 3 disagrees (a turn, or
+the poses inverted), 4 cannot tell
 (too little motion: the check needs 20 image pairs 10 cm apart, about 2 m of travel, or 8
 when the turn is already sure by three standard errors, or no direction of the turn is pinned
 down); 1 and 2 are errors.

@@ -91,10 +91,11 @@ def load_recording(args: argparse.Namespace):
 
 
 def verdict_status(command: str, source: str, estimate: Any, pairs: int, config: Any, frames: int) -> int:
-    """Print a check's verdict and return its exit status: 0 consistent, 3 disagrees, 4 cannot
-    tell (not finished: said on stderr, with how far it got; or unobservable), 5 suspect (the
-    focal check: off by its fit, not surely), 6 a lens distortion camera_info does not hold
-    (the focal check's pairs fit one better than a focal change, whatever its verdict)."""
+    """Print a check's verdict and return its exit status: 0 consistent, 3 disagrees (the
+    mount check: a turn, or the poses inverted), 4 cannot tell (not finished: said on stderr,
+    with how far it got; or unobservable), 5 suspect (the focal check: off by its fit, not
+    surely), 6 a lens distortion camera_info does not hold (the focal check's pairs fit one
+    better than a focal change, whatever its verdict)."""
     if estimate is None:
         apart = f'{config.min_baseline:g} m or {config.min_rotation_deg:g} deg apart'
         print(
@@ -106,7 +107,7 @@ def verdict_status(command: str, source: str, estimate: Any, pairs: int, config:
     print(f'{source}: {estimate.message()}')
     if getattr(estimate, 'lens_distorted', False):
         return 6
-    return {'consistent': 0, 'disagrees': 3, 'suspect': 5}.get(estimate.verdict, 4)
+    return {'consistent': 0, 'disagrees': 3, 'inverted': 3, 'suspect': 5}.get(estimate.verdict, 4)
 
 
 def run_paired_check(args: Any, command: str, config_type: type, check_frames: Any) -> int:
