@@ -496,6 +496,33 @@ def test_evaluate_runs_the_check_and_turns_the_poses_when_asked(tilted, mode):
     assert report.split('## Mount check')[1].split('##')[0].rstrip().endswith(f'| {used} |')
 
 
+def test_evaluate_says_poses_given_inverted(caplog):
+    """``evaluate`` on a recording whose poses are inverted: the check's verdict ``inverted``
+    is in results.json and the report, and a warning says the methods used the poses as told."""
+    import logging
+
+    from depth_fusion_ros.evaluation.harness import results_document
+    from depth_fusion_ros.evaluation.report import report_markdown
+
+    config = stress_config('rotation', width=320, height=240, frames=24, seed=3, pose_frame='inverted')
+    seq = render_sequence(config)
+    options = EvalOptions(
+        frames=24,
+        keyframes=[20],
+        single_view='simulated',
+        width=320,
+        height=240,
+        params={'time_offset_check': {'mode': 'off'}, 'focal_check': {'mode': 'off'}},
+    )
+    with caplog.at_level(logging.WARNING, logger='depth_fusion_ros.evaluation.mount'):
+        result = evaluate_sequence(seq, ['single_view_simulated'], options, show_progress=False)
+    entry = result.to_json()['mount_check']
+    assert entry['verdict'] == 'inverted' and not entry['corrected'], entry
+    assert any('the told poses fit the images inverted' in r.getMessage() for r in caplog.records)
+    report = report_markdown(results_document([result], ['single_view_simulated'], options))
+    assert '| inverted |' in report.split('## Mount check')[1]
+
+
 def test_the_node_runner_checks_off_the_callbacks(tilted):
     """``multi_view_node``'s runner: frames offered from the callbacks, the estimate computed on
     its thread and reported once; the turn it gives the node, in correct mode only."""

@@ -5,7 +5,8 @@ after the time offset check (which may re-read the poses) and before the focal l
 With ``mount_check.mode: correct`` and poses the images disagree with, every frame's pose
 (and the pose source's record, ``Sequence.pose_stream``) is turned by the fitted rotation
 (``T @ M``), as the node turns the poses it reads from then on; the ground-truth depth is the
-camera's own and does not move.
+camera's own and does not move. Poses that fit the images inverted (``pose_inversion.py``)
+are said as a warning and used as told.
 """
 
 from __future__ import annotations
@@ -39,6 +40,13 @@ def check_mount(sequence: Sequence, params: dict) -> tuple[Sequence, MountEstima
             '%s: every method uses the poses turned by %.2f deg (mount_check.mode correct)',
             sequence.name,
             estimate.angle_deg,
+        )
+    if estimate is not None and estimate.verdict == 'inverted':
+        log.warning(
+            '%s: %s; every method uses the poses as told (write the camera poses, T_wc, in the '
+            'recording: multi_view_node withholds its multi-view depth for such poses)',
+            sequence.name,
+            estimate.message(),
         )
     return sequence, estimate
 
