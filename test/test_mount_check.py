@@ -229,15 +229,15 @@ def test_directions_that_say_inverted_need_the_matches_to_agree():
     poses decides, as it does for a frame turn (``FRAME_COST_GAIN``): exact pairs posed right
     whose directions are made to say inverted are not read so."""
     from depth_fusion_ros.multiview import frame_fit
-    from depth_fusion_ros.multiview.pose_inversion import inverted_poses
+    from depth_fusion_ros.multiview.pose_inversion import direction_fit
 
     camera, pairs = _exact_pairs([0.0, 0.0, 0.0], 'turning', n_pairs=8)
     check = MountCheck(camera, MountCheckConfig())
     check.pairs = pairs
     known = frame_fit.pairs_directions(camera.K, pairs, [])
-    assert inverted_poses(known) is None  # told right: the told directions fit
+    assert not direction_fit(known).says_inverted  # told right: the told directions fit
     fooled = [(told, inverted, inverted) for told, _, inverted in known]  # the images "say" inverted
-    assert inverted_poses(fooled) is not None
+    assert direction_fit(fooled).says_inverted
     check._frame_directions = fooled
     assert check._frame_estimate(camera.K) is None or check._frame_estimate(camera.K).verdict != 'inverted'
 

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..geometry import BODY_TO_OPTICAL, invert_pose, relative_pose
+from ..geometry import BODY_TO_OPTICAL
 from .image_pairs import RANSAC_SEED, MatchedPair
 
 #: A turn smaller than this (degrees) is the mount check's own to fit: the same as its
@@ -95,7 +95,7 @@ def pair_directions(K: np.ndarray, pair: MatchedPair) -> Directions:
     if E is None or E.shape != (3, 3):
         return [], [], []
     _, R_img, t_img, _ = cv2.recoverPose(E, pair.p1, pair.p2, K)
-    T, T_inv = pair.T_ba, relative_pose(invert_pose(pair.a.pose), invert_pose(pair.b.pose))
+    T, T_inv = pair.T_ba, pair.T_ba_inverted
     told, image, inverted = [], [], []
     t_told, t_seen, t_inv = T[:3, 3], t_img.ravel(), T_inv[:3, 3]
     if min(np.linalg.norm(t_told), np.linalg.norm(t_seen), np.linalg.norm(t_inv)) > 1e-9:

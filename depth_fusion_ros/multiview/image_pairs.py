@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..geometry import relative_pose, rotation_angle
+from ..geometry import invert_pose, relative_pose, rotation_angle
 from .affine_tracking import track_affine
 from .match_refinement import as_uint8, refine_matches
 from .match_screening import screen_matches
@@ -140,6 +140,12 @@ class MatchedPair:
     def T_ba(self) -> np.ndarray:
         """The told relative pose: first-camera coordinates to second-camera coordinates."""
         return relative_pose(self.a.pose, self.b.pose)
+
+    @property
+    def T_ba_inverted(self) -> np.ndarray:
+        """The same were the told poses inverted (the world's pose in the camera given as the
+        camera's in the world: ``pose_inversion.py``)."""
+        return relative_pose(invert_pose(self.a.pose), invert_pose(self.b.pose))
 
 
 class ImagePairs:

@@ -74,7 +74,7 @@ from .image_pairs import (
 )
 from .pair_stack import PairStack
 from .paired_check import PairedCheck, feed
-from .pose_inversion import InvertedPoses, direction_fit, inverted_relative_pose
+from .pose_inversion import InvertedPoses, direction_fit
 
 log = logging.getLogger(__name__)
 
@@ -503,9 +503,9 @@ class MountCheck(PairedCheck):
         tilt is the next look's (the node starts the check over once it takes the turn)."""
         stack = PairStack.of(self.pairs)
         fit = direction_fit(pairs_directions(K, self.pairs, self._frame_directions))
-        cheaper = fit is not None and fit.says_inverted
-        if cheaper and self._inverted_cost(K, stack) * FRAME_COST_GAIN <= _total(K, stack, np.zeros(3)):
-            return self._inverted_estimate(fit)
+        inverted = self._inversion(K, stack, fit, FRAME_COST_GAIN)
+        if inverted is not None:
+            return inverted
         turn = gross_frame_turn(K, self.pairs, self._frame_directions)
         if turn is None:
             return None
@@ -552,17 +552,23 @@ class MountCheck(PairedCheck):
         single = len(self.pairs) < INVERSION_EARLY_PAIRS
         known = pairs_directions(K, self.pairs, self._frame_directions)
         fit = direction_fit(known, 1 if single else INVERSION_MIN_DIRECTIONS)
+        gain = SINGLE_PAIR_COST_GAIN if single else FRAME_COST_GAIN
+        return self._inversion(K, PairStack.of(self.pairs), fit, gain)
+
+    def _inversion(
+        self, K: np.ndarray, stack: PairStack, fit: InvertedPoses | None, gain: float
+    ) -> MountEstimate | None:
+        """The verdict ``inverted`` when the directions say it (``fit.says_inverted``) and the
+        matches fit the inverted poses ``gain`` times better than the told ones; else None."""
         if fit is None or not fit.says_inverted:
             return None
-        stack = PairStack.of(self.pairs)
-        gain = SINGLE_PAIR_COST_GAIN if single else FRAME_COST_GAIN
         if self._inverted_cost(K, stack) * gain > _total(K, stack, np.zeros(3)):
             return None
         return self._inverted_estimate(fit)
 
     def _inverted_cost(self, K: np.ndarray, stack: PairStack) -> float:
         """The pairs' summed cost with their told poses inverted (``pose_inversion.py``)."""
-        flipped = stack.with_poses(np.array([inverted_relative_pose(p) for p in self.pairs]))
+        flipped = stack.with_poses(np.array([p.T_ba_inverted for p in self.pairs]))
         return _total(K, flipped, np.zeros(3))
 
     def _inverted_estimate(self, fit: InvertedPoses) -> MountEstimate:

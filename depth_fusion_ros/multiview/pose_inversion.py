@@ -35,9 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import invert_pose, relative_pose
 from .frame_fit import MIN_DIRECTIONS, MIN_FIT_GAIN, Directions, median_angle_deg
-from .image_pairs import MatchedPair
 
 #: The told directions must miss the images' by at least this (degrees, median). Lower than the
 #: frame check's 45 (``frame_fit.MIN_TOLD_RESIDUAL_DEG``): a turn is fitted to the directions,
@@ -78,15 +76,3 @@ def direction_fit(known: list[Directions], min_directions: int = MIN_DIRECTIONS)
         return None
     A, B, C = np.array(told), np.array(image), np.array(inverted)
     return InvertedPoses(median_angle_deg(A, B), median_angle_deg(C, B), len(told))
-
-
-def inverted_poses(known: list[Directions]) -> InvertedPoses | None:
-    """:func:`direction_fit` when it says the told poses are inverted (``says_inverted``), else None."""
-    fit = direction_fit(known)
-    return fit if fit is not None and fit.says_inverted else None
-
-
-def inverted_relative_pose(pair: MatchedPair) -> np.ndarray:
-    """The pair's relative pose (4, 4; first-camera to second-camera coordinates) were its told
-    poses inverted."""
-    return relative_pose(invert_pose(pair.a.pose), invert_pose(pair.b.pose))

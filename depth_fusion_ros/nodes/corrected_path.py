@@ -49,23 +49,25 @@ def correction_parameters(consequence: str) -> tuple[ParamSpec, ...]:
     )
 
 
+def _robot_input_parameter(name: str, here: str) -> ParamSpec:
+    """``name`` as ``multi_view_node`` declares it (``robot_inputs.PARAMETERS``), its
+    description saying what it does ``here``."""
+    spec = next(spec for spec in robot_inputs.PARAMETERS if spec.name == name)
+    return dataclasses.replace(spec, description=f'{spec.description}; here {here}')
+
+
 def camera_from_pose_frame_parameter() -> ParamSpec:
-    """``camera_from_pose_frame`` as ``multi_view_node`` declares it, for a node that takes the
-    corrected trajectory without the pose stream (``map_node``): there only the default for
-    keyframes whose posing ``multi_view_node`` did not say (nodes/posing.py)."""
-    spec = next(spec for spec in robot_inputs.PARAMETERS if spec.name == 'camera_from_pose_frame')
-    return dataclasses.replace(
-        spec,
-        description=spec.description
-        + '; here only for keyframes multi_view_node said no posing for (depth_fusion/posing/*)',
-    )
+    """``camera_from_pose_frame`` for a node that takes the corrected trajectory without the
+    pose stream (``map_node``): there only the default for keyframes whose posing
+    ``multi_view_node`` did not say (nodes/posing.py)."""
+    here = 'only for keyframes multi_view_node said no posing for (depth_fusion/posing/*)'
+    return _robot_input_parameter('camera_from_pose_frame', here)
 
 
 def pose_inverted_parameter() -> ParamSpec:
-    """``pose_inverted`` as ``multi_view_node`` declares it, for ``map_node``: the corrected
-    trajectory is of the same pose source, inverted alike."""
-    spec = next(spec for spec in robot_inputs.PARAMETERS if spec.name == 'pose_inverted')
-    return dataclasses.replace(spec, description=spec.description + '; here for the corrected trajectory')
+    """``pose_inverted`` for ``map_node``: the corrected trajectory is of the same pose source,
+    inverted alike."""
+    return _robot_input_parameter('pose_inverted', 'for the corrected trajectory')
 
 
 def correction_limits(params: Mapping[str, Any]) -> CorrectionLimits:

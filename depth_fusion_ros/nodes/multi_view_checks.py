@@ -52,6 +52,7 @@ class CheckCorrections:
     _lens_taken: FocalEstimate | None
     _inverted_found: MountEstimate | None
     pose_inverted: bool
+    filter_feed: Any  # nodes/multi_view_filter.py FilterFeed, or None (the sweep)
     camera_input: Any  # nodes/image_input.py CameraInput
     _world_frame: str
     get_logger: Callable[[], Any]  # rclpy.node.Node's
@@ -285,9 +286,12 @@ class CheckCorrections:
 
     def _withheld_for_inverted_poses(self, job: Any) -> bool:
         """Whether this keyframe's multi-view depth is withheld: its poses were found inverted
-        (:meth:`_on_inverted_poses`); counted."""
+        (:meth:`_on_inverted_poses`); counted. The filter's estimate of it, if it was fed before
+        the verdict, is let go (frames after it are not fed: ``_on_posed_frame``)."""
         if self._inverted_found is None:
             return False
+        if self.filter_feed is not None:
+            self.filter_feed.discard(job.key.index)
         self.stats.noted(
             'inverted_poses_withheld',
             f'keyframe {ns_to_sec(header_stamp_ns(job)):.3f}: no multi-view depth, the told poses fit the '

@@ -628,7 +628,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             self.posing.keyframe(image.stamp_ns)
             self._last_keyframe_pose = T_wc
             self.events.event(image.stamp_ns, EVENT_CHOSEN)
-        if self.filter_feed is not None:  # the filter sees every posed frame, as it comes
+        # The filter sees every posed frame, as it comes; none once the poses were found inverted
+        # (their multi-view depth is withheld: _withheld_for_inverted_poses).
+        if self.filter_feed is not None and self._inverted_found is None:
             # After 'chosen' (same writer): a replayer seeing this ack knows the decision.
             self.events.event(image.stamp_ns, EVENT_IMAGE)
             # 'image_done' comes from the feed, once the filter is done with the frame.
