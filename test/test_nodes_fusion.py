@@ -411,3 +411,56 @@ def test_the_keyframe_image_gives_the_halo_test_and_a_keyframe_without_it_is_cou
     assert first['halo_checked'] == 1.0 and 'n_halo' in first
     assert second['halo_checked'] == 0.0
     assert snap.noted.get('halo_unchecked') == 1
+
+
+def test_points_in_another_unit_than_the_single_view_are_taken_as_the_streams_scale():
+    """Poses not in metres (a monocular SLAM at 0.25 m a unit): the points sit at 0.25x the
+    single view. Before, every keyframe fell back to the single view in metres; now the third
+    keyframe notes the stream's scale once and is fused in the poses' unit."""
+    import json
+
+    stamps = [4_000_000_000 + 200_000_000 * k for k in range(4)]
+    scenes = []
+    for k in range(4):
+        scene = _scene(k % 2)
+        scene.single = (scene.gt * 1.05).astype(np.float32)  # a network about right in metres
+        scene.mv = (scene.mv * 0.25).astype(np.float32)  # the poses' unit: 0.25 m
+        scenes.append(scene)
+    with RosHarness() as ros:
+        depths = ros.collect(Image, '/depth_fusion/fused/depth')
+        node, decisions, inputs = _guarded_node(ros)
+        for k, (scene, stamp) in enumerate(zip(scenes, stamps, strict=True)):
+            inputs.keyframe(scene, stamp)
+            inputs.delivered(ros, node)
+            assert ros.wait_for(lambda n=k + 1: len(depths) == n, 20.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+
+    verdicts = [json.loads(msg.data) for msg in decisions]
+    factors = [v['evidence']['stream_scale'] for v in verdicts]
+    assert factors[:2] == [1.0, 1.0] and all(abs(f - 0.25 / 1.05) < 0.02 for f in factors[2:]), factors
+    assert [v['decision'] for v in verdicts[:2]] == ['single_view', 'single_view'], verdicts[:2]
+    assert all(v['decision'] in ('full', 'fewer_points') for v in verdicts[2:]), verdicts[2:]
+    assert snap.noted.get('stream_scale') == 1
+    for depth, scene in zip(depths[2:], scenes[2:], strict=True):
+        error = np.nanmedian(np.abs(m.image_to_numpy(depth) / (0.25 * scene.gt) - 1.0))
+        assert error < 0.05, error
+
+
+def test_stream_scale_warn_notes_and_keeps_metres():
+    import json
+
+    stamps = [5_000_000_000 + 200_000_000 * k for k in range(3)]
+    with RosHarness() as ros:
+        node = _fusion_node(ros, publish_points=False, **{'stream_scale.mode': 'warn'})
+        decisions = ros.collect(String, '/depth_fusion/fused/decision')
+        inputs = _Inputs(ros)
+        for k, stamp in enumerate(stamps):
+            scene = _scene(k % 2)
+            scene.single = (scene.gt * 1.05).astype(np.float32)
+            scene.mv = (scene.mv * 0.25).astype(np.float32)
+            inputs.keyframe(scene, stamp)
+            inputs.delivered(ros, node)
+        assert ros.wait_for(lambda: len(decisions) == 3, 20.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+    assert snap.noted.get('stream_scale') == 1
+    assert [json.loads(msg.data)['evidence']['stream_scale'] for msg in decisions] == [1.0, 1.0, 1.0]

@@ -109,7 +109,7 @@ def evaluation_stages() -> dict[str, set[str]]:
     from ..adaptation.config import AdaptConfig
     from ..evaluation.focal import STAGE as FOCAL_STAGE
     from ..evaluation.methods.adapted import STAGE as ADAPT_STAGE
-    from ..evaluation.methods.fusion import CONSISTENCY_STAGE, GUARD_STAGE
+    from ..evaluation.methods.fusion import CONSISTENCY_STAGE, GUARD_STAGE, STREAM_SCALE_STAGE
     from ..evaluation.methods.fusion import STAGE as FUSION_STAGE
     from ..evaluation.methods.mapping import STAGE as MAP_STAGE
     from ..evaluation.methods.multi_view import (
@@ -126,6 +126,7 @@ def evaluation_stages() -> dict[str, set[str]]:
     from ..fusion.consistency import ConsistencyConfig
     from ..fusion.guard import GuardConfig
     from ..fusion.pipeline import FusionConfig
+    from ..fusion.stream_scale import StreamScaleConfig
     from ..mapping.config import MapConfig
     from ..multiview.filter_config import FilterConfig
     from ..multiview.focal_check import FocalCheckConfig
@@ -147,6 +148,7 @@ def evaluation_stages() -> dict[str, set[str]]:
         MOUNT_STAGE: fields(MountCheckConfig),
         GUARD_STAGE: fields(GuardConfig),
         CONSISTENCY_STAGE: fields(ConsistencyConfig),
+        STREAM_SCALE_STAGE: fields(StreamScaleConfig),
         ADAPT_STAGE: fields(AdaptConfig),
         MAP_STAGE: fields(MapConfig),
         NEIGHBOURS_STAGE: fields(NeighbourConfig),

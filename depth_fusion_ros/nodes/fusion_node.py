@@ -43,6 +43,8 @@ from ..fusion.consistency import CONSISTENCY_PARAMETER_DESCRIPTIONS, Consistency
 from ..fusion.guard import GUARD_PARAMETER_DESCRIPTIONS, GuardConfig, MultiViewEvidence
 from ..fusion.interpolation import MODES as FUSION_MODES
 from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
+from ..fusion.stream_scale import MODES as STREAM_SCALE_MODES
+from ..fusion.stream_scale import STREAM_SCALE_PARAMETER_DESCRIPTIONS, StreamScale, StreamScaleConfig
 from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig
 from ..multiview.stage1 import METHOD_RULES, STAGE1_RULES, resolve_rule, stage1_mask
@@ -125,6 +127,17 @@ CONSISTENCY_LIMITS: dict[str, Any] = {
     'tolerance': (1e-6, None),
     'min_support': (0.0, None),
     'iterations': (1, 100),
+}
+#: Ranges of the ``stream_scale.*`` parameters (``StreamScaleConfig``; ``sample`` stays the core's).
+STREAM_SCALE_LIMITS: dict[str, Any] = {
+    'mode': STREAM_SCALE_MODES,
+    'window': (1, 1000),
+    'min_keyframes': (1, 1000),
+    'engage_ratio': (1.0 + 1e-6, None),
+    'max_spread': (1e-6, None),
+    'min_points': (1, None),
+    'min_share': (0.0, 1.0),
+    'relative_tolerance': (1e-6, None),
 }
 #: Set by the node itself (``device``) rather than under ``fusion.*``.
 FUSION_SKIP = ('device',)
@@ -242,6 +255,13 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     *dataclass_specs(
         ConsistencyConfig, 'consistency', CONSISTENCY_PARAMETER_DESCRIPTIONS, CONSISTENCY_LIMITS
     ),
+    *dataclass_specs(
+        StreamScaleConfig,
+        'stream_scale',
+        STREAM_SCALE_PARAMETER_DESCRIPTIONS,
+        STREAM_SCALE_LIMITS,
+        skip=('sample',),
+    ),
 )
 
 
@@ -281,6 +301,8 @@ class FusionNode(DepthFusionNode):
         self.config = build_dataclass(FusionConfig, p, 'fusion', device=str(p['device']))
         self.guard_config = build_dataclass(GuardConfig, p, 'guard')
         self.consistency_config = build_dataclass(ConsistencyConfig, p, 'consistency')
+        #: The single view's scale against the points over the stream (metric sources).
+        self.stream_scale = StreamScale(build_dataclass(StreamScaleConfig, p, 'stream_scale'))
         self.announced_kind: str | None = None
         self.announced_method: str | None = None
         self.required = REQUIRED_PARTS
@@ -444,6 +466,7 @@ class FusionNode(DepthFusionNode):
                 f'keyframe {stamp:.3f}: fused with at most {config.max_points} points, '
                 f'{waiting} more waiting (load_max_points{", kernels still compiling" if warming else ""})',
             )
+        single, factor = self._stream_scaled(single, mv_depth, stage1, job.pairing.stamp_ns)
         result = fuse_keyframe(
             single,
             mv_depth,
@@ -456,6 +479,7 @@ class FusionNode(DepthFusionNode):
             consistency_config=self.consistency_config,
             image=self._halo_image(parts.get('rgb'), single.shape, stamp),
         )
+        result.evidence['stream_scale'] = factor
         if result.withheld:
             self.stats.noted(
                 'withheld', f'keyframe {stamp:.3f}: no depth published ({result.decision_reason})'
@@ -487,6 +511,20 @@ class FusionNode(DepthFusionNode):
         self.stats.published('fused')
         self.events.event(job.pairing.stamp_ns, EVENT_FUSED)
         self.stats.processed(time.monotonic() - job.received_at)
+
+    def _stream_scaled(
+        self, single: np.ndarray, mv_depth: np.ndarray, stage1: np.ndarray, stamp_ns: int
+    ) -> tuple[np.ndarray, float]:
+        """A metric single view times the stream's factor (``fusion/stream_scale.py``), noted
+        once when the points are found to disagree with its scale; other kinds as they are."""
+        if self.output_kind != 'metric_depth':
+            return single, 1.0
+        if self.stream_scale.observe(single, mv_depth, stage1, stamp_ns):
+            self.stats.noted(
+                'stream_scale', f'keyframe {messages.ns_to_sec(stamp_ns):.3f}: {self.stream_scale.describe()}'
+            )
+        factor = self.stream_scale.factor
+        return (single * np.float32(factor) if factor != 1.0 else single), factor
 
     def _halo_image(self, rgb: np.ndarray | None, shape: tuple[int, ...], stamp: float) -> np.ndarray | None:
         """The keyframe image for the fusion's halo test, or None (counted) when it did not come

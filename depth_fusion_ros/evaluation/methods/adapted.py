@@ -113,7 +113,7 @@ def adapted_prediction(ctx: KeyframeContext) -> Adapted:
         prediction = SingleViewPrediction(depth.astype(np.float32), run.predictor.output_kind)
         fused, untrusted = None, ''
         if run.adapter.config.follow_fusion_guard:
-            fused = fuse_automatic(ctx, prediction.depth, prediction.output_kind)
+            fused = fuse_automatic(ctx, prediction.depth, prediction.output_kind, source='adapted')
             untrusted = untrusted_reason(fused.decision, fused.decision_reason, fused.withheld)
         report = observe_keyframe(ctx, run, untrusted)
         return prediction, report, fused
@@ -149,7 +149,7 @@ def fused_adapted(ctx: KeyframeContext) -> MethodOutput:
 
     prediction, report, fused = adapted_prediction(ctx)
     if fused is None:  # the adaptation did not follow the guard: this keyframe's fusion not made yet
-        fused = fuse_automatic(ctx, prediction.depth, prediction.output_kind)
+        fused = fuse_automatic(ctx, prediction.depth, prediction.output_kind, source='adapted')
     out = _output(fused)
     out.extras.update(_extras(report))
     return out

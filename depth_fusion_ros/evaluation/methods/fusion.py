@@ -41,6 +41,7 @@ stages); ``fused_consistent`` is ``fused`` with it on.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -49,14 +50,18 @@ import numpy as np
 from ...fusion.consistency import ConsistencyConfig
 from ...fusion.guard import DECISIONS, GuardConfig, MultiViewEvidence
 from ...fusion.pipeline import FusionConfig, FusionResult, fuse_keyframe
+from ...fusion.stream_scale import StreamScale, StreamScaleConfig
 from ...multiview.params import apply_overrides
 from ..context import KeyframeContext
 from ..distance_bands import band_sums
 from ..registry import MethodOutput, register_method
 
+log = logging.getLogger(__name__)
+
 STAGE = 'fusion'
 GUARD_STAGE = 'guard'
 CONSISTENCY_STAGE = 'consistency'
+STREAM_SCALE_STAGE = 'stream_scale'
 #: The paper's oracle: multi-view points whose error against ground truth is below 10 cm.
 DEFAULT_ORACLE_THRESHOLD = 0.10
 #: Evaluation defaults that differ from ``FusionConfig``'s.
@@ -98,6 +103,43 @@ def consistency_settings(ctx: KeyframeContext) -> ConsistencyConfig:
     return apply_overrides(ConsistencyConfig(), ctx.stage_params(CONSISTENCY_STAGE), CONSISTENCY_STAGE)
 
 
+def stream_scale_settings(ctx: KeyframeContext) -> StreamScaleConfig:
+    """``StreamScaleConfig`` with the run's ``--set stream_scale.*`` overrides (checked)."""
+    return apply_overrides(StreamScaleConfig(), ctx.stage_params(STREAM_SCALE_STAGE), STREAM_SCALE_STAGE)
+
+
+class _SequenceScale:
+    """The fusion node's stream scale (``fusion/stream_scale.py``) over a sequence's keyframes,
+    once per keyframe however many methods fuse it (their factors are memoised by index)."""
+
+    def __init__(self, config: StreamScaleConfig, name: str) -> None:
+        self.tracker = StreamScale(config)
+        self.factors: dict[int, float] = {}
+        self.name = name
+
+    def at(self, index: int, single: np.ndarray, mv_depth: np.ndarray, stage1: np.ndarray) -> float:
+        if index not in self.factors:
+            if self.tracker.observe(single, mv_depth, stage1, stamp=index):
+                log.warning('%s, keyframe at frame %d: %s', self.name, index, self.tracker.describe())
+            self.factors[index] = self.tracker.factor
+        return self.factors[index]
+
+
+def stream_scaled(
+    ctx: KeyframeContext, single: np.ndarray, kind: str, mv_depth: np.ndarray, stage1: np.ndarray, source: str
+) -> tuple[np.ndarray, float]:
+    """``single`` times the stream's factor so far (``source`` names whose single view it is:
+    the run's or the adapting network's, each with its own stream), and the factor."""
+    if kind != 'metric_depth':
+        return single, 1.0
+    scale = ctx.shared_cached(
+        f'stream_scale:{source}',
+        lambda: _SequenceScale(stream_scale_settings(ctx), f'{ctx.sequence.name} ({source})'),
+    )
+    factor = scale.at(ctx.index, single, mv_depth, stage1)
+    return (single * np.float32(factor) if factor != 1.0 else single), factor
+
+
 def _inputs(ctx: KeyframeContext) -> tuple[np.ndarray, str, Any]:
     """Single-view depth and kind, and the multi-view result of this keyframe (shared caches)."""
     from .multi_view import multi_view_result
@@ -137,6 +179,7 @@ def _output(result: FusionResult) -> MethodOutput:
         'withheld': float(result.withheld),
         'certainty': float(result.evidence.get('certainty', np.nan)),
         'certainty_floor': float(result.evidence.get('certainty_floor', np.nan)),
+        'stream_scale': float(result.evidence.get('stream_scale', 1.0)),
     }
     return MethodOutput(result.depth, extras)
 
@@ -158,11 +201,13 @@ def fuse_automatic(
     single: np.ndarray,
     kind: str,
     stage3: bool | None = None,
+    source: str = 'single_view',
     **forced: Any,
 ) -> FusionResult:
     """The automatic fusion of ``single`` (``kind`` units) with this keyframe's multi-view
     result, as the fusion node does it: the ``--set`` fusion, guard and stage-3 settings
-    (``stage3`` overrides ``consistency.enabled``) and the multi-view evidence (its std)."""
+    (``stage3`` overrides ``consistency.enabled``), the multi-view evidence (its std) and the
+    stream's scale (``stream_scaled``; ``source`` names the single view's stream)."""
     from .multi_view import multi_view_result
 
     config, extra = fusion_settings(ctx, **forced)
@@ -170,10 +215,12 @@ def fuse_automatic(
     consistency = consistency_settings(ctx)
     if stage3 is not None:
         consistency = dataclasses.replace(consistency, enabled=stage3)
-    return fuse_keyframe(
+    stage1 = _stage1(ctx, mv, extra)
+    single, factor = stream_scaled(ctx, single, kind, mv.depth, stage1, source)
+    result = fuse_keyframe(
         single,
         mv.depth,
-        _stage1(ctx, mv, extra),
+        stage1,
         config,
         output_kind=kind,
         guard_config=guard_settings(ctx),
@@ -181,6 +228,8 @@ def fuse_automatic(
         consistency_config=consistency,
         image=ctx.frame.gray,
     )
+    result.evidence['stream_scale'] = factor
+    return result
 
 
 def fused_result(ctx: KeyframeContext, **forced: Any) -> FusionResult:

@@ -1,0 +1,206 @@
+"""The stream's scale between a metric single view and the multi-view points, taken when they disagree.
+
+Why: stage 2 trusts a metric network's scale to a factor of ``metric_scale_range`` (2) per
+keyframe, and the interpolation bends the single view onto the points only near them (the
+certainty floor, the guard's reach). Two common sources break that on a whole stream:
+
+* **poses not in metres**: a monocular SLAM (ORB-SLAM3 mono, DSO, ...) gives positions in a
+  unit its initialisation chose, often a third of a metre; the multi-view depth is in that
+  unit. 7-Scenes 0-499 with its positions scaled by 0.3, live: every keyframe but 4 fell back
+  to the single view (stage 2 found no plausible scale), and what was published was in
+  metres against poses in another unit (a map built from it is nothing);
+* **a network off in scale on this camera**: the shipped network reads TUM fr1_xyz about 2x
+  too far (the points' scale 0.40-0.56 of it, live). The fusion then corrects the depth near
+  the points and leaves it 2x too far between them: two scales in one image.
+
+Both show the same way: over several keyframes, the points sit at one factor of the single
+view, well away from 1, and agree on it. The multi-view depth is the poses' own unit (it is
+triangulated from them), so the single view is then scaled into it, for the whole stream,
+before the keyframe is fused: ``s <- u s``, ``u`` the median factor of the last ``window``
+keyframes. Nothing changes where the factor stays within ``engage_ratio`` of 1 (a metric
+pose source and a network about right in scale: the per-keyframe fusion as before).
+
+Per keyframe the factor is the median of ``m / s`` over the stage-1 points; a keyframe counts
+only if at least ``min_share`` of its points lie within ``relative_tolerance`` of that factor
+(one consensus, not two clusters) and it has ``min_points``. The stream's factor is taken
+once ``min_keyframes`` of the last ``window`` counted keyframes agree (every log factor within
+``max_spread`` of their median) and their median is beyond ``engage_ratio``.
+From then on the factor follows the median of the last ``window`` keyframes for the rest of
+the stream (a network that adapts to the points moves it back towards 1 smoothly), and a
+stream whose stamps go back starts over.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from .subsample import seeded_subsample
+
+log = logging.getLogger(__name__)
+
+MODES = ('correct', 'warn', 'off')
+
+STREAM_SCALE_PARAMETER_DESCRIPTIONS = {
+    'mode': (
+        'a metric single view whose scale the multi-view points disagree with over the stream (poses not '
+        'in metres, e.g. a monocular SLAM; or a network off in scale on this camera): correct (scale the '
+        "single view into the poses' unit before fusing, noted once as stream_scale), warn (note it "
+        'only), off'
+    ),
+    'window': "keyframes whose factors (median multi-view / single-view depth) make the stream's",
+    'min_keyframes': "counted keyframes in the window before the stream's factor is judged",
+    'engage_ratio': 'the factor is taken once it is beyond this ratio of 1 (either way)',
+    'max_spread': 'every keyframe factor of the window must lie within this (log) of their median',
+    'min_points': 'stage-1 points a keyframe needs to count',
+    'min_share': "share of a keyframe's points within relative_tolerance of its factor for it to count",
+    'relative_tolerance': "relative distance of a point from the keyframe's factor that still agrees",
+}
+
+
+@dataclass(frozen=True)
+class StreamScaleConfig:
+    """Thresholds of :class:`StreamScale` (the ``stream_scale.*`` parameters of fusion_node)."""
+
+    mode: str = 'correct'
+    window: int = 5
+    min_keyframes: int = 3
+    #: 1.5: TUM fr1_xyz with the shipped network sits at 0.40-0.56, the 7-Scenes stretches
+    #: and the synthetic rooms at 0.85-1.05 (the network's own scale error, docs/fusion.md).
+    engage_ratio: float = 1.5
+    #: 0.25 (x1.28 either way): TUM fr1_xyz's first five factors lie within 0.18 of theirs.
+    max_spread: float = 0.25
+    min_points: int = 200
+    min_share: float = 0.5
+    relative_tolerance: float = 0.35
+    #: Points a keyframe's factor is computed from at most (a seeded subsample: the median
+    #: of 4096 is as good as of 16k, at a quarter of the cost).
+    sample: int = 4096
+
+    def __post_init__(self) -> None:
+        if self.mode is False:  # YAML 1.1 (and --set) read an unquoted off as false
+            object.__setattr__(self, 'mode', 'off')
+        if self.mode not in MODES:
+            raise ValueError(f'stream_scale.mode must be one of {", ".join(MODES)}, got {self.mode!r}')
+        if not 1 <= self.min_keyframes <= self.window:
+            raise ValueError(
+                f'stream_scale.min_keyframes must be in [1, window={self.window}], got {self.min_keyframes}'
+            )
+        if not (math.isfinite(self.engage_ratio) and self.engage_ratio > 1.0):
+            raise ValueError(f'stream_scale.engage_ratio must be a number > 1, got {self.engage_ratio}')
+        for name in ('max_spread', 'relative_tolerance'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f'stream_scale.{name} must be a positive number, got {value}')
+        if not 0.0 <= self.min_share <= 1.0:
+            raise ValueError(f'stream_scale.min_share must be in [0, 1], got {self.min_share}')
+        if self.min_points < 1 or self.sample < 1:
+            raise ValueError('stream_scale.min_points and stream_scale.sample must be >= 1')
+
+
+def keyframe_factor(
+    single: np.ndarray, mv_depth: np.ndarray, stage1: np.ndarray | None, config: StreamScaleConfig
+) -> float | None:
+    """The median ``m / s`` of one keyframe's stage-1 points, or None when it does not count
+    (fewer than ``min_points``, or fewer than ``min_share`` of them within
+    ``relative_tolerance`` of the median: no single consensus)."""
+    with np.errstate(invalid='ignore'):
+        usable = np.isfinite(single) & (single > 0) & np.isfinite(mv_depth) & (mv_depth > 0)
+    if stage1 is not None:
+        usable &= stage1
+    index = np.flatnonzero(usable)
+    if index.size < config.min_points:
+        return None
+    if index.size > config.sample:
+        index = index[seeded_subsample(index.size, config.sample, 0)]
+    ratio = mv_depth.ravel()[index].astype(np.float64) / single.ravel()[index]
+    factor = float(np.median(ratio))
+    share = float(np.mean(np.abs(ratio / factor - 1.0) <= config.relative_tolerance))
+    return factor if share >= config.min_share else None
+
+
+class StreamScale:
+    """The stream's factor from the single view to the points' unit (1 until taken)."""
+
+    def __init__(self, config: StreamScaleConfig | None = None) -> None:
+        self.config = config or StreamScaleConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the stream (a new one began)."""
+        self.factors: deque[float] = deque(maxlen=self.config.window)
+        self.taken = False
+        self.disagrees = False
+        self.last_stamp: int | None = None
+
+    @property
+    def factor(self) -> float:
+        """What the single view is multiplied by before fusing: 1 unless taken (``correct``)."""
+        if not self.taken or not self.factors:
+            return 1.0
+        return float(np.exp(np.median(np.log(self.factors))))
+
+    def observe(
+        self,
+        single: np.ndarray,
+        mv_depth: np.ndarray,
+        stage1: np.ndarray | None,
+        stamp: int | None = None,
+    ) -> bool:
+        """Take one keyframe's factor into the window (raw single view: before any factor).
+
+        Returns True on the keyframe where the stream is first found to disagree (the caller
+        notes it once, with :meth:`describe`). A ``stamp`` older than the last starts over.
+        """
+        if self.config.mode == 'off':
+            return False
+        if stamp is not None:
+            if self.last_stamp is not None and stamp < self.last_stamp:
+                log.info('stream scale: stamps went back, a new stream: starting over')
+                self.reset()
+            self.last_stamp = stamp
+        factor = keyframe_factor(single, mv_depth, stage1, self.config)
+        if factor is None:
+            return False
+        self.factors.append(factor)
+        if self.disagrees:
+            return False
+        if len(self.factors) < self.config.min_keyframes:
+            return False
+        logs = np.log(np.asarray(self.factors))
+        centre = float(np.median(logs))
+        spread = float(np.max(np.abs(logs - centre)))
+        if abs(centre) <= math.log(self.config.engage_ratio) or spread > self.config.max_spread:
+            return False
+        self.disagrees = True
+        self.taken = self.config.mode == 'correct'
+        return True
+
+    def describe(self) -> str:
+        """One line for the note: the factor, what it may mean and what was done."""
+        u = float(np.exp(np.median(np.log(self.factors)))) if self.factors else float('nan')
+        done = (
+            "the single view is scaled into the poses' unit before fusing from now on (fusion_node "
+            'stream_scale.mode: warn to keep metres)'
+            if self.taken
+            else 'not corrected (stream_scale.mode: warn)'
+        )
+        return (
+            f'the multi-view points sit at {u:.3f}x the single-view depth over '
+            f'{len(self.factors)} keyframes: '
+            'the poses are not in metres (a monocular SLAM?) or the network is off in scale on this camera; '
+            f'{done}'
+        )
+
+
+__all__ = [
+    'MODES',
+    'STREAM_SCALE_PARAMETER_DESCRIPTIONS',
+    'StreamScale',
+    'StreamScaleConfig',
+    'keyframe_factor',
+]

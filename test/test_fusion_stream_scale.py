@@ -1,0 +1,149 @@
+"""The stream's scale between a metric single view and the points (fusion/stream_scale.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
+from depth_fusion_ros.fusion.scenes import make_scene
+from depth_fusion_ros.fusion.stream_scale import StreamScale, StreamScaleConfig, keyframe_factor
+
+H, W = 60, 80
+
+
+def _keyframe(factor: float, seed: int = 0, noise: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """A single view and points at ``factor`` of it, with 3 % noise, on a fifth of the pixels."""
+    rng = np.random.default_rng(seed)
+    single = rng.uniform(1.0, 4.0, (H, W)).astype(np.float32)
+    mv = np.full((H, W), np.nan, np.float32)
+    points = rng.random((H, W)) < 0.2
+    mv[points] = single[points] * factor * np.exp(rng.normal(0.0, noise, points.sum()))
+    return single, mv
+
+
+def test_a_keyframe_factor_is_the_median_ratio_and_needs_one_consensus():
+    config = StreamScaleConfig()
+    single, mv = _keyframe(0.4)
+    assert keyframe_factor(single, mv, None, config) == pytest.approx(0.4, rel=0.01)
+    # Three clusters at 0.2, 1 and 5 times: no factor most points agree on.
+    rng = np.random.default_rng(1)
+    spread = mv * rng.choice([0.5, 2.5, 12.5], size=mv.shape).astype(np.float32)
+    assert keyframe_factor(single, spread, None, config) is None
+    # Too few points (a stage-1 mask keeping 50).
+    keep = np.zeros((H, W), bool)
+    keep.ravel()[np.flatnonzero(np.isfinite(mv))[:50]] = True
+    assert keyframe_factor(single, mv, keep, config) is None
+
+
+def test_the_factor_is_taken_once_three_keyframes_agree_and_then_follows_the_window():
+    scale = StreamScale()
+    found = [scale.observe(*_keyframe(0.35, seed), None, stamp=seed) for seed in range(3)]
+    assert found == [False, False, True]
+    assert scale.factor == pytest.approx(0.35, rel=0.02)
+    assert 'monocular SLAM' in scale.describe() and '0.35' in scale.describe()
+    # A network adapting to the points moves the factor back towards 1, smoothly.
+    for seed in range(3, 8):
+        assert not scale.observe(*_keyframe(0.9, seed), None, stamp=seed)
+    assert scale.factor == pytest.approx(0.9, rel=0.02)
+
+
+def test_a_scale_about_right_or_points_that_disagree_change_nothing():
+    near_one = StreamScale()
+    for seed in range(6):
+        near_one.observe(*_keyframe(0.75 if seed % 2 else 1.3, seed), None, stamp=seed)
+    assert near_one.factor == 1.0 and not near_one.disagrees
+    scattered = StreamScale()
+    for seed, factor in enumerate([0.2, 0.5, 0.2, 0.5, 0.9, 0.2]):
+        scattered.observe(*_keyframe(factor, seed), None, stamp=seed)
+    assert scattered.factor == 1.0 and not scattered.disagrees
+
+
+def test_warn_notes_without_scaling_off_does_nothing_and_a_new_stream_starts_over():
+    warn = StreamScale(StreamScaleConfig(mode='warn'))
+    assert [warn.observe(*_keyframe(3.0, s), None, stamp=s) for s in range(3)] == [False, False, True]
+    assert warn.factor == 1.0 and 'not corrected' in warn.describe()
+    assert StreamScaleConfig(mode=False).mode == 'off'  # an unquoted YAML off
+    off = StreamScale(StreamScaleConfig(mode='off'))
+    assert not any(off.observe(*_keyframe(3.0, s), None, stamp=s) for s in range(5))
+    scale = StreamScale()
+    for s in range(3):
+        scale.observe(*_keyframe(3.0, s), None, stamp=10 + s)
+    assert scale.factor == pytest.approx(3.0, rel=0.02)
+    scale.observe(*_keyframe(1.0, 9), None, stamp=0)  # stamps went back: a new stream
+    assert scale.factor == 1.0 and len(scale.factors) == 1
+
+
+@pytest.mark.parametrize(
+    'change',
+    [
+        {'mode': 'fix'},
+        {'window': 2, 'min_keyframes': 3},
+        {'engage_ratio': 1.0},
+        {'max_spread': 0.0},
+        {'min_share': 2},
+    ],
+)
+def test_bad_settings_are_refused_by_name(change):
+    with pytest.raises(ValueError, match='stream_scale'):
+        StreamScaleConfig(**change)
+
+
+def test_the_single_view_scaled_into_the_points_unit_fuses_like_a_metric_pair():
+    """What the node does with the factor: the scene's points at 0.3x, the single view scaled
+    by the factor, fused as if both were in one unit (before: stage 2 found no plausible scale)."""
+    scene = make_scene(W, H, n_points=W * H // 20, scale=1.0, offset=0.1, seed=3)
+    mv = (scene.multi * 0.3).astype(np.float32)
+    config = FusionConfig(mode='fast')
+    before = fuse_keyframe(scene.single, mv, None, config)
+    assert before.decision == 'single_view'
+    factor = keyframe_factor(scene.single, mv, None, StreamScaleConfig(min_points=50))
+    after = fuse_keyframe(scene.single * np.float32(factor), mv, None, config)
+    assert after.decision in ('full', 'fewer_points')
+    truth = 0.3 * scene.depth
+    error_after = np.nanmean(np.abs(after.depth - truth))
+    error_scaled_single = np.nanmean(np.abs(scene.single * factor - truth))
+    assert error_after < error_scaled_single
+
+
+class _Context:
+    """What ``evaluation.methods.fusion.stream_scaled`` reads of a keyframe context."""
+
+    def __init__(self, shared: dict, index: int, params: dict | None = None) -> None:
+        from types import SimpleNamespace
+
+        self.shared, self.index, self.params = shared, index, params or {}
+        self.sequence = SimpleNamespace(name='seq')
+
+    def shared_cached(self, key, factory):
+        if key not in self.shared:
+            self.shared[key] = factory()
+        return self.shared[key]
+
+    def stage_params(self, stage):
+        return self.params.get(stage, {})
+
+
+def test_evaluate_takes_each_keyframe_once_per_source_and_leaves_relative_sources_alone():
+    from depth_fusion_ros.evaluation.methods.fusion import stream_scaled
+
+    shared: dict = {}
+    factors = []
+    for index in range(4):
+        single, mv = _keyframe(0.3, index)
+        for _ in range(2):  # two methods fuse the same keyframe: one observation
+            scaled, factor = stream_scaled(
+                _Context(shared, index), single, 'metric_depth', mv, None, 'single_view'
+            )
+        factors.append(factor)
+        assert np.allclose(scaled, single * np.float32(factor))
+    assert factors[:2] == [1.0, 1.0] and factors[2] == pytest.approx(0.3, rel=0.02)
+    assert len(shared['stream_scale:single_view'].tracker.factors) == 4
+    single, mv = _keyframe(0.3, 9)
+    assert stream_scaled(_Context(shared, 9), single, 'inverse_depth', mv, None, 'single_view')[1] == 1.0
+    warned: dict = {}
+    for index in range(4):
+        single, mv = _keyframe(0.3, index)
+        context = _Context(warned, index, {'stream_scale': {'mode': 'warn'}})
+        assert stream_scaled(context, single, 'metric_depth', mv, None, 'single_view')[1] == 1.0
+    assert warned['stream_scale:single_view'].tracker.disagrees
