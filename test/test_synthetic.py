@@ -396,6 +396,29 @@ def test_inverted_poses_are_told_and_written_down(tmp_path):
     assert 'pose_inverted: true' in text
 
 
+def test_a_pose_unit_scales_positions_and_depth_and_is_written_down(tmp_path):
+    """``pose_scale``: positions and depth in a unit of 1 / pose_scale metres (a monocular
+    SLAM's), the images rendered in metres; SOURCE.md and the CLI say so."""
+    from depth_fusion_ros.cli.main import main
+
+    base = {'width': 32, 'height': 24, 'frames': 3, 'seed': 2}
+    scaled = render_sequence(SynthConfig(**base, pose_scale=0.3))
+    metric = render_sequence(SynthConfig(**base))
+    assert 'posescale0.3' in scaled.name
+    for a, b in zip(scaled.frames, metric.frames, strict=True):
+        assert np.array_equal(a.rgb, b.rgb)
+        np.testing.assert_allclose(a.depth, 0.3 * b.depth, rtol=1e-6)
+        np.testing.assert_allclose(a.pose[:3, 3], 0.3 * b.pose[:3, 3], atol=1e-12)
+        np.testing.assert_array_equal(a.pose[:3, :3], b.pose[:3, :3])
+    with pytest.raises(ValueError, match='pose_scale'):
+        SynthConfig(pose_scale=2.0)
+    out = tmp_path / 'unit'
+    args = ['synth', str(out), '--frames', '2', '--width', '32', '--height', '24', '--quiet']
+    assert main([*args, '--pose-scale', '0.5']) == 0
+    text = (out / 'SOURCE.md').read_text()
+    assert '--pose-scale 0.5' in text and 'unit of 2 m' in text
+
+
 def test_cli_synth_time_offset_is_recorded(tmp_path):
     from depth_fusion_ros.cli.main import main
 

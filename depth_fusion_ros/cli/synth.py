@@ -44,6 +44,10 @@ SCALAR_HELP: dict[str, str] = {
         'the true ones; default {default})'
     ),
     'pose_noise_deg': 'the same jitter of the rotations, degrees (default {default})',
+    'pose_scale': (
+        'positions (groundtruth.txt) and depth images in a unit of 1/this metres, as a monocular SLAM '
+        'gives them; images rendered in metres (0.05..1; default {default})'
+    ),
     'mount_tilt_deg': (
         'degrees: the poses written to groundtruth.txt are the true ones turned about the camera x '
         'axis, a camera mounted tilted against its pose frame (-10..10; default {default})'
@@ -168,6 +172,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             'pose_noise_m',
             'pose_noise_deg',
             'mount_tilt_deg',
+            'pose_scale',
             'pose_time_offset',
             'exposure_time',
             'readout_time',

@@ -21,6 +21,8 @@ a keyframe fused above its input):
     python scripts/diag/graph_stress_sweep.py all --seed 21 --out /tmp/gs      # every stress case
     python scripts/diag/graph_stress_sweep.py keyframes --seed 71 --out /tmp/gs \
         --synth '--focal-error 0.05 --gain-sigma 0.1' --tag slam               # a case with more stressors
+    python scripts/diag/graph_stress_sweep.py handheld --seed 21 --out /tmp/gs --tag _off \
+        --synth '--pose-scale 0.3' --run-set fusion_node.stream_scale.mode=off  # a node parameter set
 
 docs/fusion.md "The stress cases through the node graph" holds the figures.
 """
@@ -97,7 +99,9 @@ def keyframe_lines(results: Path, seq: Path, rec: Path, topic: str, out: Path) -
             f.write(json.dumps({**line, **(d['evidence'] if d else {})}) + '\n')
 
 
-def sweep_case(case: str, seed: int, frames: int, out: Path, synth: list[str], tag: str) -> str:
+def sweep_case(
+    case: str, seed: int, frames: int, out: Path, synth: list[str], tag: str, run_set: list[str] | None = None
+) -> str:
     d = out / f'{case}_{seed}{tag}'
     d.mkdir(parents=True, exist_ok=True)
     for old in ('seq', 'bag', 'rec', 'eval'):
@@ -122,7 +126,16 @@ def sweep_case(case: str, seed: int, frames: int, out: Path, synth: list[str], t
     run(['convert', str(d / 'seq'), str(d / 'bag')], d / 'convert.log')
     decisions = '/depth_fusion/fused/decision'
     run(
-        ['run', '--bag', str(d / 'bag'), '--record', str(d / 'rec'), '--record-topic', decisions],
+        [
+            'run',
+            '--bag',
+            str(d / 'bag'),
+            '--record',
+            str(d / 'rec'),
+            '--record-topic',
+            decisions,
+            *(arg for item in run_set or () for arg in ('--set', item)),
+        ],
         d / 'run.log',
     )
     methods = 'graph_fused,graph_single_view,graph_multi_view'
@@ -163,6 +176,13 @@ def main() -> int:
         '--synth', default='', help="more `depth-fusion synth` flags after the case's own, one quoted string"
     )
     parser.add_argument('--tag', default='', help='suffix of the case folders and lines (runs with --synth)')
+    parser.add_argument(
+        '--run-set',
+        action='append',
+        default=[],
+        metavar='NODE.PARAM=VALUE',
+        help='a node parameter for `depth-fusion run --set` (repeatable; use with --tag)',
+    )
     args = parser.parse_args()
     cases = list(STRESS_CASES) if args.cases == ['all'] else args.cases
     unknown = [c for c in cases if c not in STRESS_CASES]
@@ -171,7 +191,9 @@ def main() -> int:
     failed = 0
     for case in cases:
         try:
-            line = sweep_case(case, args.seed, args.frames, args.out, shlex.split(args.synth), args.tag)
+            line = sweep_case(
+                case, args.seed, args.frames, args.out, shlex.split(args.synth), args.tag, args.run_set
+            )
             print(line, flush=True)
         except (RuntimeError, StopIteration, KeyError, ValueError) as exc:
             failed += 1

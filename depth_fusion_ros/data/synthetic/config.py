@@ -79,6 +79,11 @@ class SynthConfig:
     #: the camera's poses inverted (the world's pose in the camera, T_cw, as a SLAM system keeps
     #: it and a relay may publish it: ``multiview/pose_inversion.py``).
     pose_frame: str = 'optical'
+    #: The positions *given to the pipeline* (groundtruth.txt) and the depth images are in a
+    #: unit of ``1 / pose_scale`` metres: positions and depths times this, as a monocular SLAM
+    #: gives them (its unit is what its initialisation chose). The images are rendered in
+    #: metres, so a metric network still reads metres (``fusion/stream_scale.py``). 1 = metres.
+    pose_scale: float = 1.0
     #: The poses *given to the pipeline* are the true ones this many seconds later (a pose
     #: source whose clock runs ahead of the camera's, or a camera stamp taken late; negative:
     #: the other way), constant-velocity between neighbouring frames: a time offset between
@@ -166,6 +171,8 @@ class SynthConfig:
             raise bad('mount_tilt_deg', 'expected a tilt of -10..10 degrees')
         if self.pose_frame not in POSE_FRAMES:
             raise bad('pose_frame', f'expected one of {", ".join(POSE_FRAMES)}')
+        if not 0.05 <= self.pose_scale <= 1.0:
+            raise bad('pose_scale', 'expected 0.05..1 (a unit of 1..20 m; depth PNGs hold 13 units)')
         if not abs(self.pose_time_offset) * self.fps <= 1.0:
             raise bad('pose_time_offset', f'expected at most one frame period (1 / fps = {1 / self.fps:g} s)')
         if not 0 <= self.exposure_time * self.fps <= 1.0:

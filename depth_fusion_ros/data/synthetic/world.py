@@ -56,6 +56,8 @@ def sequence_name(cfg: SynthConfig) -> str:
         name += f'_tilt{cfg.mount_tilt_deg:+g}deg'
     if cfg.pose_frame != 'optical':
         name += f'_{cfg.pose_frame}poses'
+    if cfg.pose_scale != 1.0:
+        name += f'_posescale{cfg.pose_scale:g}'
     if cfg.pose_time_offset:
         name += f'_timeoffset{cfg.pose_time_offset * 1000:+g}ms'
     if cfg.exposure_time:
@@ -137,8 +139,12 @@ def told_poses(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
 
 
 def _as_given(cfg: SynthConfig, poses: np.ndarray) -> np.ndarray:
-    """The source's poses as it publishes them: inverted for ``pose_frame`` 'inverted' (the
-    world's pose in the camera, T_cw, as a SLAM system keeps it)."""
+    """The source's poses as it publishes them: positions in its unit (``pose_scale``), then
+    inverted for ``pose_frame`` 'inverted' (the world's pose in the camera, T_cw, as a SLAM
+    system keeps it)."""
+    if cfg.pose_scale != 1.0:
+        poses = poses.copy()
+        poses[:, :3, 3] *= cfg.pose_scale
     return np.linalg.inv(poses) if cfg.pose_frame == 'inverted' else poses
 
 
@@ -268,6 +274,8 @@ def iter_frames(
             row_weights=row_weights,
             lens_k1=cfg.lens_k1,
         )
+        if cfg.pose_scale != 1.0:  # the ground truth in the poses' unit, as they are
+            frame = replace(frame, depth=frame.depth * np.float32(cfg.pose_scale))
         yield i, frame, told[i]
 
 

@@ -66,6 +66,12 @@ def _pose_note(cfg: SynthConfig) -> str:
             'pose_inverted: true reads them right (a pose-convention stress case); the depth images '
             'stay exact.'
         )
+    if cfg.pose_scale != 1.0:
+        note += (
+            f'\n**Positions and depth are in a unit of {1 / cfg.pose_scale:.3g} m**: groundtruth.txt and '
+            f'depth/*.png are the true ones times {cfg.pose_scale:g}, as a monocular SLAM gives them; the '
+            'images are rendered in metres (a pose-unit stress case).'
+        )
     if cfg.mount_tilt_deg:
         note += (
             f"\n**groundtruth.txt is deliberately turned**: every pose is the camera's turned by "
