@@ -25,8 +25,9 @@ only if at least ``min_share`` of its points lie within ``relative_tolerance`` o
 (one consensus, not two clusters) and it has ``min_points``. The stream's factor is taken
 once ``min_keyframes`` of the last ``window`` counted keyframes agree (every log factor within
 ``max_spread`` of their median) and their median is beyond ``engage_ratio``.
-From then on the factor follows the median of the last ``window`` keyframes for the rest of
-the stream (a network that adapts to the points moves it back towards 1 smoothly), and a
+From then on, for the rest of the stream, each keyframe is scaled by its own factor where it
+counts and lies within ``max_spread`` of the window's median (a network that adapts to the
+points moves towards 1 between keyframes, and a median would lag it), else by that median; a
 stream whose stamps go back starts over.
 """
 
@@ -136,13 +137,21 @@ class StreamScale:
         self.taken = False
         self.disagrees = False
         self.last_stamp: int | None = None
+        #: The last keyframe's own factor (None where it did not count).
+        self.current: float | None = None
 
     @property
     def factor(self) -> float:
-        """What the single view is multiplied by before fusing: 1 unless taken (``correct``)."""
+        """What the single view is multiplied by before fusing: 1 unless taken (``correct``);
+        then the last keyframe's own factor where it counted and lies within ``max_spread`` of
+        the window's median (no lag behind a network that adapts to the points), else that
+        median (a keyframe whose points did not agree, or one far off the stream)."""
         if not self.taken or not self.factors:
             return 1.0
-        return float(np.exp(np.median(np.log(self.factors))))
+        centre = float(np.median(np.log(self.factors)))
+        if self.current is not None and abs(np.log(self.current) - centre) <= self.config.max_spread:
+            return float(self.current)
+        return float(np.exp(centre))
 
     def observe(
         self,
@@ -164,6 +173,7 @@ class StreamScale:
                 self.reset()
             self.last_stamp = stamp
         factor = keyframe_factor(single, mv_depth, stage1, self.config)
+        self.current = factor
         if factor is None:
             return False
         self.factors.append(factor)
