@@ -15,10 +15,10 @@ certainty floor, the guard's reach). Two common sources break that on a whole st
 
 Both show the same way: over several keyframes, the points sit at one factor of the single
 view, well away from 1, and agree on it. The multi-view depth is the poses' own unit (it is
-triangulated from them), so the single view is then scaled into it, for the whole stream,
-before the keyframe is fused: ``s <- u s``, ``u`` the median factor of the last ``window``
-keyframes. Nothing changes where the factor stays within ``engage_ratio`` of 1 (a metric
-pose source and a network about right in scale: the per-keyframe fusion as before).
+triangulated from them), so the single view is then scaled into it, for the rest of the
+stream, before each keyframe is fused: ``s <- u s`` (``u`` below). Nothing changes where the
+factor stays within ``engage_ratio`` of 1 (a metric pose source and a network about right in
+scale: the per-keyframe fusion as before).
 
 Per keyframe the factor is the median of ``m / s`` over the stage-1 points; a keyframe counts
 only if at least ``min_share`` of its points lie within ``relative_tolerance`` of that factor
@@ -189,6 +189,15 @@ class StreamScale:
         self.disagrees = True
         self.taken = self.config.mode == 'correct'
         return True
+
+    def scaled(
+        self, single: np.ndarray, mv_depth: np.ndarray, stage1: np.ndarray | None, stamp: int | None = None
+    ) -> tuple[np.ndarray, float, bool]:
+        """:meth:`observe` this keyframe, then ``single`` times :attr:`factor`: the single view to
+        fuse, the factor, and whether the stream was first found to disagree here."""
+        found = self.observe(single, mv_depth, stage1, stamp)
+        factor = self.factor
+        return (single * np.float32(factor) if factor != 1.0 else single), factor, found
 
     def describe(self) -> str:
         """One line for the note: the factor, what it may mean and what was done."""

@@ -519,12 +519,12 @@ class FusionNode(DepthFusionNode):
         once when the points are found to disagree with its scale; other kinds as they are."""
         if self.output_kind != 'metric_depth':
             return single, 1.0
-        if self.stream_scale.observe(single, mv_depth, stage1, stamp_ns):
+        single, factor, found = self.stream_scale.scaled(single, mv_depth, stage1, stamp_ns)
+        if found:
             self.stats.noted(
                 'stream_scale', f'keyframe {messages.ns_to_sec(stamp_ns):.3f}: {self.stream_scale.describe()}'
             )
-        factor = self.stream_scale.factor
-        return (single * np.float32(factor) if factor != 1.0 else single), factor
+        return single, factor
 
     def _halo_image(self, rgb: np.ndarray | None, shape: tuple[int, ...], stamp: float) -> np.ndarray | None:
         """The keyframe image for the fusion's halo test, or None (counted) when it did not come

@@ -119,9 +119,9 @@ class _SequenceScale:
 
     def at(self, index: int, single: np.ndarray, mv_depth: np.ndarray, stage1: np.ndarray) -> float:
         if index not in self.factors:
-            if self.tracker.observe(single, mv_depth, stage1, stamp=index):
+            _, self.factors[index], found = self.tracker.scaled(single, mv_depth, stage1, stamp=index)
+            if found:
                 log.warning('%s, keyframe at frame %d: %s', self.name, index, self.tracker.describe())
-            self.factors[index] = self.tracker.factor
         return self.factors[index]
 
 
