@@ -70,9 +70,12 @@ class StreamScaleConfig:
     mode: str = 'correct'
     window: int = 5
     min_keyframes: int = 3
-    #: 1.5: TUM fr1_xyz with the shipped network sits at 0.40-0.56, the 7-Scenes stretches
-    #: and the synthetic rooms at 0.85-1.05 (the network's own scale error, docs/fusion.md).
-    engage_ratio: float = 1.5
+    #: 2, stage 2's ``metric_scale_range``: within it each keyframe's own fit takes the scale
+    #: (and the adaptation learns it); beyond it no keyframe can be fused. 1.5 was tried: a
+    #: real stream's network is off in scale by view, not by stream (7-Scenes played
+    #: backwards, live: 5-keyframe stretches at 0.52-0.62, taken, then 12 keyframes above
+    #: their input against none), docs/fusion.md "The stream's scale".
+    engage_ratio: float = 2.0
     #: 0.25 (x1.28 either way): TUM fr1_xyz's first five factors lie within 0.18 of theirs.
     max_spread: float = 0.25
     min_points: int = 200
