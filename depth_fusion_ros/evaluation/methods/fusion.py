@@ -30,7 +30,9 @@ the alignment and has no trusted one; it is then scored on no pixel, and the rep
 table counts it), the guard's ``decision`` (index into ``guard.DECISIONS``: 0 full ... 4
 single-view) and ``keyframe_confidence``, ``certainty`` (the mean share of the correction
 the certainty floor kept) and ``certainty_floor`` (the κ this keyframe used, in units of one
-point's largest weight; both NaN where the keyframe was not interpolated). ``--set
+point's largest weight; both NaN where the keyframe was not interpolated) and ``stream_scale``
+(the factor the metric single view was scaled by into the points' unit,
+``fusion/stream_scale.py``; 1 until taken, ``--set stream_scale.*``). ``--set
 guard.<GuardConfig field>=...`` sets its thresholds; the automatic methods give it the
 multi-view result's per-pixel evidence (``depth_std``, and the neighbour agreement when the
 multi-view stage provides one). ``--set consistency.<field>=...``
