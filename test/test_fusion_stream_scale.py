@@ -107,13 +107,10 @@ def test_the_single_view_scaled_into_the_points_unit_fuses_like_a_metric_pair():
 
 
 class _Context:
-    """What ``evaluation.methods.fusion.stream_scaled`` reads of a keyframe context."""
+    """What ``evaluation.methods.fusion.sequence_scale`` reads of a keyframe context."""
 
-    def __init__(self, shared: dict, index: int, params: dict | None = None) -> None:
-        from types import SimpleNamespace
-
-        self.shared, self.index, self.params = shared, index, params or {}
-        self.sequence = SimpleNamespace(name='seq')
+    def __init__(self, shared: dict, params: dict | None = None) -> None:
+        self.shared, self.params = shared, params or {}
 
     def shared_cached(self, key, factory):
         if key not in self.shared:
@@ -124,26 +121,40 @@ class _Context:
         return self.params.get(stage, {})
 
 
+def _fused(single, mv, kind, scale, index):
+    return fuse_keyframe(single, mv, None, FusionConfig(mode='fast'), kind, stream_scale=scale, stamp=index)
+
+
 def test_evaluate_takes_each_keyframe_once_per_source_and_leaves_relative_sources_alone():
-    from depth_fusion_ros.evaluation.methods.fusion import stream_scaled
+    """``evaluate`` fuses each keyframe once per method, all with the sequence's stream scale of
+    their single-view source: a keyframe fused twice is taken once, and the single view each
+    fusion starts from is the scaled one."""
+    from depth_fusion_ros.evaluation.methods.fusion import sequence_scale
 
     shared: dict = {}
     factors = []
     for index in range(4):
         single, mv = _keyframe(0.3, index)
         for _ in range(2):  # two methods fuse the same keyframe: one observation
-            scaled, factor = stream_scaled(
-                _Context(shared, index), single, 'metric_depth', mv, None, 'single_view'
+            result = _fused(
+                single, mv, 'metric_depth', sequence_scale(_Context(shared), 'single_view'), index
             )
+        factor = result.evidence['stream_scale']
         factors.append(factor)
-        assert np.allclose(scaled, single * np.float32(factor))
+        assert np.allclose(result.single_aligned, single * np.float32(factor))
     assert factors[:2] == [1.0, 1.0] and factors[2] == pytest.approx(0.3, rel=0.02)
-    assert len(shared['stream_scale:single_view'].tracker.factors) == 4
+    assert len(shared['stream_scale:single_view'].factors) == 4
     single, mv = _keyframe(0.3, 9)
-    assert stream_scaled(_Context(shared, 9), single, 'inverse_depth', mv, None, 'single_view')[1] == 1.0
+    inverse = _fused(1.0 / single, mv, 'inverse_depth', sequence_scale(_Context(shared), 'single_view'), 9)
+    assert inverse.evidence['stream_scale'] == 1.0
     warned: dict = {}
     for index in range(4):
         single, mv = _keyframe(0.3, index)
-        context = _Context(warned, index, {'stream_scale': {'mode': 'warn'}})
-        assert stream_scaled(context, single, 'metric_depth', mv, None, 'single_view')[1] == 1.0
-    assert warned['stream_scale:single_view'].tracker.disagrees
+        context = _Context(warned, {'stream_scale': {'mode': 'warn'}})
+        assert (
+            _fused(single, mv, 'metric_depth', sequence_scale(context, 'single_view'), index).evidence[
+                'stream_scale'
+            ]
+            == 1.0
+        )
+    assert warned['stream_scale:single_view'].disagrees

@@ -48,6 +48,7 @@ from .interpolation import (
 from .occlusion import check_min_step, halo_points
 from .precision import check_half_weight, precision_weights
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
+from .stream_scale import StreamScale
 from .subsample import seeded_subsample
 from .valid_depth import sanitize_depth
 from .weights import WeightParams, check_structure_scale, check_weight_params
@@ -254,9 +255,53 @@ class FusionResult:
     #: source needs an alignment (relative or inverse depth, or ``align_scale``) and none was
     #: trusted: see :func:`withheld`.
     withheld: bool = False
+    #: True on the keyframe where ``stream_scale`` first found the points in another unit than
+    #: the single view (the caller says it once: ``StreamScale.describe``).
+    stream_scale_found: bool = False
 
 
 def fuse_keyframe(
+    single_depth: np.ndarray,
+    mv_depth: np.ndarray,
+    stage1_mask: np.ndarray | None,
+    config: FusionConfig | None = None,
+    output_kind: str = 'metric_depth',
+    *,
+    omega_mask: np.ndarray | None = None,
+    guard_config: GuardConfig | None = None,
+    evidence: MultiViewEvidence | None = None,
+    consistency_config: ConsistencyConfig | None = None,
+    image: np.ndarray | None = None,
+    stream_scale: StreamScale | None = None,
+    stamp: int | None = None,
+) -> FusionResult:
+    """Fuse one keyframe (all inputs HxW on the working grid).
+
+    ``stream_scale``: the stream's scale (``stream_scale.py``) a metric single view is
+    multiplied by first, observed on this keyframe (``stamp``: its stamp, or any increasing
+    key); ``evidence['stream_scale']`` holds the factor used. The rest is :func:`_fuse`.
+    """
+    found, factor = False, 1.0
+    if stream_scale is not None and output_kind == 'metric_depth':
+        single_depth, factor, found = stream_scale.scaled(single_depth, mv_depth, stage1_mask, stamp)
+    result = _fuse(
+        single_depth,
+        mv_depth,
+        stage1_mask,
+        config,
+        output_kind,
+        omega_mask=omega_mask,
+        guard_config=guard_config,
+        evidence=evidence,
+        consistency_config=consistency_config,
+        image=image,
+    )
+    result.evidence['stream_scale'] = factor
+    result.stream_scale_found = found
+    return result
+
+
+def _fuse(
     single_depth: np.ndarray,
     mv_depth: np.ndarray,
     stage1_mask: np.ndarray | None,

@@ -40,11 +40,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..check_modes import CHECK_MODES, check_mode
 from .subsample import seeded_subsample
 
 log = logging.getLogger(__name__)
 
-MODES = ('correct', 'warn', 'off')
+MODES = CHECK_MODES
 
 STREAM_SCALE_PARAMETER_DESCRIPTIONS = {
     'mode': (
@@ -86,10 +87,7 @@ class StreamScaleConfig:
     sample: int = 4096
 
     def __post_init__(self) -> None:
-        if self.mode is False:  # YAML 1.1 (and --set) read an unquoted off as false
-            object.__setattr__(self, 'mode', 'off')
-        if self.mode not in MODES:
-            raise ValueError(f'stream_scale.mode must be one of {", ".join(MODES)}, got {self.mode!r}')
+        object.__setattr__(self, 'mode', check_mode('stream_scale', self.mode))
         if not 1 <= self.min_keyframes <= self.window:
             raise ValueError(
                 f'stream_scale.min_keyframes must be in [1, window={self.window}], got {self.min_keyframes}'
@@ -111,7 +109,11 @@ def keyframe_factor(
 ) -> float | None:
     """The median ``m / s`` of one keyframe's stage-1 points, or None when it does not count
     (fewer than ``min_points``, or fewer than ``min_share`` of them within
-    ``relative_tolerance`` of the median: no single consensus)."""
+    ``relative_tolerance`` of the median: no single consensus). Images of different sizes
+    count for nothing here: the fusion refuses them, naming them."""
+    shape = np.shape(single)
+    if np.shape(mv_depth) != shape or (stage1 is not None and np.shape(stage1) != shape):
+        return None
     with np.errstate(invalid='ignore'):
         usable = np.isfinite(single) & (single > 0) & np.isfinite(mv_depth) & (mv_depth > 0)
     if stage1 is not None:
@@ -143,6 +145,10 @@ class StreamScale:
         #: The last keyframe's own factor (None where it did not count).
         self.current: float | None = None
 
+    def _median(self) -> float:
+        """The median factor of the window (NaN when empty)."""
+        return float(np.exp(np.median(np.log(self.factors)))) if self.factors else float('nan')
+
     @property
     def factor(self) -> float:
         """What the single view is multiplied by before fusing: 1 unless taken (``correct``);
@@ -151,10 +157,10 @@ class StreamScale:
         median (a keyframe whose points did not agree, or one far off the stream)."""
         if not self.taken or not self.factors:
             return 1.0
-        centre = float(np.median(np.log(self.factors)))
-        if self.current is not None and abs(np.log(self.current) - centre) <= self.config.max_spread:
+        centre = self._median()
+        if self.current is not None and abs(np.log(self.current / centre)) <= self.config.max_spread:
             return float(self.current)
-        return float(np.exp(centre))
+        return centre
 
     def observe(
         self,
@@ -166,9 +172,10 @@ class StreamScale:
         """Take one keyframe's factor into the window (raw single view: before any factor).
 
         Returns True on the keyframe where the stream is first found to disagree (the caller
-        notes it once, with :meth:`describe`). A ``stamp`` older than the last starts over.
+        notes it once, with :meth:`describe`). A ``stamp`` older than the last starts over; the
+        last one again is not taken twice (``evaluate`` fuses a keyframe once per method).
         """
-        if self.config.mode == 'off':
+        if self.config.mode == 'off' or (stamp is not None and stamp == self.last_stamp):
             return False
         if stamp is not None:
             if self.last_stamp is not None and stamp < self.last_stamp:
@@ -204,7 +211,7 @@ class StreamScale:
 
     def describe(self) -> str:
         """One line for the note: the factor, what it may mean and what was done."""
-        u = float(np.exp(np.median(np.log(self.factors)))) if self.factors else float('nan')
+        u = self._median()
         done = (
             "the single view is scaled into the poses' unit before fusing from now on (fusion_node "
             'stream_scale.mode: warn to keep metres)'

@@ -36,8 +36,9 @@ from typing import ClassVar
 import numpy as np
 
 from ..camera import PinholeCamera
+from ..check_modes import CHECK_MODES, check_mode
 from .epipolar_cost import scaled_fundamentals, soft_l1_sampson
-from .image_pairs import CHECK_MODES, MatchedPair, check_mode, check_sampling, graded_verdict
+from .image_pairs import MatchedPair, check_sampling, graded_verdict
 from .lens_fit import LensFit, fit_lens
 from .paired_check import PairedCheck, feed
 

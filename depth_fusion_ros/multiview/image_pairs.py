@@ -23,8 +23,6 @@ from .affine_tracking import track_affine
 from .match_refinement import as_uint8, refine_matches
 from .match_screening import screen_matches
 
-#: What a check may do: nothing, say it, or also correct what it found.
-CHECK_MODES = ('off', 'warn', 'correct')
 #: Standard errors a fit must clear a check's threshold by: at its last look, and at an early
 #: look (``early_pairs``: the mount and time offset checks), whose error over fewer pairs is noisier.
 STANDARD_ERRORS = 2.0
@@ -45,16 +43,6 @@ def _as_detected(
 #: affine one (:func:`.affine_tracking.track_affine`).
 _TRACKERS = {'none': _as_detected, 'shift': refine_matches, 'affine': track_affine}
 TRACKINGS = tuple(_TRACKERS)
-
-
-def check_mode(section: str, mode: object) -> str:
-    """A check's ``mode``, validated; YAML 1.1 reads an unquoted ``mode: off`` (or ``--set
-    ...=off``) as false, which is off."""
-    if mode is False:
-        return 'off'
-    if mode not in CHECK_MODES:
-        raise ValueError(f'{section}.mode: {mode!r} is not one of {", ".join(CHECK_MODES)}')
-    return str(mode)
 
 
 def check_sampling(section: str, config: object) -> None:

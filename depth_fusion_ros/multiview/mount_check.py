@@ -61,14 +61,13 @@ import cv2
 import numpy as np
 
 from ..camera import PinholeCamera
+from ..check_modes import CHECK_MODES, check_mode
 from ..geometry import BODY_TO_OPTICAL
 from .frame_fit import axis_rotations, gross_frame_turn, pairs_directions, snapped
 from .image_pairs import (
-    CHECK_MODES,
     EARLY_STANDARD_ERRORS,
     STANDARD_ERRORS,
     MatchedPair,
-    check_mode,
     check_sampling,
     graded_verdict,
 )

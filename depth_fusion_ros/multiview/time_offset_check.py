@@ -35,15 +35,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import PinholeCamera
+from ..check_modes import CHECK_MODES, check_mode
 from ..pose_curve import interpolate_poses_cubic
 from .epipolar_cost import pose_costs
 from .image_pairs import (
-    CHECK_MODES,
     EARLY_STANDARD_ERRORS,
     STANDARD_ERRORS,
     ImagePairs,
     MatchedPair,
-    check_mode,
     check_sampling,
     graded_verdict,
 )

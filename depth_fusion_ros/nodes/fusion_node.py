@@ -466,7 +466,6 @@ class FusionNode(DepthFusionNode):
                 f'keyframe {stamp:.3f}: fused with at most {config.max_points} points, '
                 f'{waiting} more waiting (load_max_points{", kernels still compiling" if warming else ""})',
             )
-        single, factor = self._stream_scaled(single, mv_depth, stage1, job.pairing.stamp_ns)
         result = fuse_keyframe(
             single,
             mv_depth,
@@ -478,8 +477,11 @@ class FusionNode(DepthFusionNode):
             evidence=MultiViewEvidence.from_depth_std(mv_depth, _same_shape(parts.get('mv_std'), mv_depth)),
             consistency_config=self.consistency_config,
             image=self._halo_image(parts.get('rgb'), single.shape, stamp),
+            stream_scale=self.stream_scale,
+            stamp=job.pairing.stamp_ns,
         )
-        result.evidence['stream_scale'] = factor
+        if result.stream_scale_found:
+            self.stats.noted('stream_scale', f'keyframe {stamp:.3f}: {self.stream_scale.describe()}')
         if result.withheld:
             self.stats.noted(
                 'withheld', f'keyframe {stamp:.3f}: no depth published ({result.decision_reason})'
@@ -511,20 +513,6 @@ class FusionNode(DepthFusionNode):
         self.stats.published('fused')
         self.events.event(job.pairing.stamp_ns, EVENT_FUSED)
         self.stats.processed(time.monotonic() - job.received_at)
-
-    def _stream_scaled(
-        self, single: np.ndarray, mv_depth: np.ndarray, stage1: np.ndarray, stamp_ns: int
-    ) -> tuple[np.ndarray, float]:
-        """A metric single view times the stream's factor (``fusion/stream_scale.py``), noted
-        once when the points are found to disagree with its scale; other kinds as they are."""
-        if self.output_kind != 'metric_depth':
-            return single, 1.0
-        single, factor, found = self.stream_scale.scaled(single, mv_depth, stage1, stamp_ns)
-        if found:
-            self.stats.noted(
-                'stream_scale', f'keyframe {messages.ns_to_sec(stamp_ns):.3f}: {self.stream_scale.describe()}'
-            )
-        return single, factor
 
     def _halo_image(self, rgb: np.ndarray | None, shape: tuple[int, ...], stamp: float) -> np.ndarray | None:
         """The keyframe image for the fusion's halo test, or None (counted) when it did not come

@@ -110,36 +110,11 @@ def stream_scale_settings(ctx: KeyframeContext) -> StreamScaleConfig:
     return apply_overrides(StreamScaleConfig(), ctx.stage_params(STREAM_SCALE_STAGE), STREAM_SCALE_STAGE)
 
 
-class _SequenceScale:
-    """The fusion node's stream scale (``fusion/stream_scale.py``) over a sequence's keyframes,
-    once per keyframe however many methods fuse it (their factors are memoised by index)."""
-
-    def __init__(self, config: StreamScaleConfig, name: str) -> None:
-        self.tracker = StreamScale(config)
-        self.factors: dict[int, float] = {}
-        self.name = name
-
-    def at(self, index: int, single: np.ndarray, mv_depth: np.ndarray, stage1: np.ndarray) -> float:
-        if index not in self.factors:
-            _, self.factors[index], found = self.tracker.scaled(single, mv_depth, stage1, stamp=index)
-            if found:
-                log.warning('%s, keyframe at frame %d: %s', self.name, index, self.tracker.describe())
-        return self.factors[index]
-
-
-def stream_scaled(
-    ctx: KeyframeContext, single: np.ndarray, kind: str, mv_depth: np.ndarray, stage1: np.ndarray, source: str
-) -> tuple[np.ndarray, float]:
-    """``single`` times the stream's factor so far (``source`` names whose single view it is:
-    the run's or the adapting network's, each with its own stream), and the factor."""
-    if kind != 'metric_depth':
-        return single, 1.0
-    scale = ctx.shared_cached(
-        f'stream_scale:{source}',
-        lambda: _SequenceScale(stream_scale_settings(ctx), f'{ctx.sequence.name} ({source})'),
-    )
-    factor = scale.at(ctx.index, single, mv_depth, stage1)
-    return (single * np.float32(factor) if factor != 1.0 else single), factor
+def sequence_scale(ctx: KeyframeContext, source: str) -> StreamScale:
+    """The fusion node's stream scale (``fusion/stream_scale.py``) over this sequence's
+    keyframes, one per single-view ``source`` (the run's, the adapting network's); each
+    keyframe is taken once however many methods fuse it (keyed by its index)."""
+    return ctx.shared_cached(f'stream_scale:{source}', lambda: StreamScale(stream_scale_settings(ctx)))
 
 
 def _inputs(ctx: KeyframeContext) -> tuple[np.ndarray, str, Any]:
@@ -209,7 +184,7 @@ def fuse_automatic(
     """The automatic fusion of ``single`` (``kind`` units) with this keyframe's multi-view
     result, as the fusion node does it: the ``--set`` fusion, guard and stage-3 settings
     (``stage3`` overrides ``consistency.enabled``), the multi-view evidence (its std) and the
-    stream's scale (``stream_scaled``; ``source`` names the single view's stream)."""
+    stream's scale (:func:`sequence_scale`; ``source`` names the single view's stream)."""
     from .multi_view import multi_view_result
 
     config, extra = fusion_settings(ctx, **forced)
@@ -217,20 +192,23 @@ def fuse_automatic(
     consistency = consistency_settings(ctx)
     if stage3 is not None:
         consistency = dataclasses.replace(consistency, enabled=stage3)
-    stage1 = _stage1(ctx, mv, extra)
-    single, factor = stream_scaled(ctx, single, kind, mv.depth, stage1, source)
+    scale = sequence_scale(ctx, source)
     result = fuse_keyframe(
         single,
         mv.depth,
-        stage1,
+        _stage1(ctx, mv, extra),
         config,
         output_kind=kind,
         guard_config=guard_settings(ctx),
         evidence=MultiViewEvidence.from_result(mv),
         consistency_config=consistency,
         image=ctx.frame.gray,
+        stream_scale=scale,
+        stamp=ctx.index,
     )
-    result.evidence['stream_scale'] = factor
+    if result.stream_scale_found:
+        name, index = ctx.sequence.name, ctx.index
+        log.warning('%s (%s), keyframe at frame %d: %s', name, source, index, scale.describe())
     return result
 
 
