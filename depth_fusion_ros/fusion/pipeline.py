@@ -279,7 +279,7 @@ def fuse_keyframe(
 
     ``stream_scale``: the stream's scale (``stream_scale.py``) a metric single view is
     multiplied by first, observed on this keyframe (``stamp``: its stamp, or any increasing
-    key); ``evidence['stream_scale']`` holds the factor used. The rest is :func:`_fuse`.
+    key); ``evidence['stream_scale']`` then holds the factor used. The rest is :func:`_fuse`.
     """
     found, factor = False, 1.0
     if stream_scale is not None and output_kind == 'metric_depth':
@@ -296,8 +296,9 @@ def fuse_keyframe(
         consistency_config=consistency_config,
         image=image,
     )
-    result.evidence['stream_scale'] = factor
-    result.stream_scale_found = found
+    if stream_scale is not None:
+        result.evidence['stream_scale'] = factor
+        result.stream_scale_found = found
     return result
 
 
