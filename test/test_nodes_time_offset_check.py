@@ -77,6 +77,9 @@ def _run(seq, mode: str):
         # How long the checks gave way to the keyframes (still running ones add to it meanwhile).
         waited = node.diagnostic_extra()['calibration checks: seconds waited for the keyframes']
         assert isinstance(waited, float) and waited >= 0.0
+        # What the checks' threads took from the node: the time offset check found its offset.
+        cpu = node.diagnostic_extra()['calibration checks: CPU seconds']
+        assert isinstance(cpu, float) and cpu > 0.0
         focal = node.diagnostic_extra()['focal length check']
         result = node.time_offset_check.result
     index = {s: i for i, s in enumerate(stamps)}

@@ -274,6 +274,7 @@ def test_a_check_waits_for_the_keyframe_path_before_each_sample(late):
     assert runner.waited >= samples * MAX_YIELD_S * 0.9  # each later sample waited the whole cap
     # ... and only the samples: a pose alone would have added another MAX_YIELD_S
     assert runner.waited < samples * MAX_YIELD_S + MAX_YIELD_S / 5 + 0.3
+    assert 0.0 < runner.cpu < time.monotonic() - started + 1.0  # its own thread's CPU, counted
 
 
 def test_cli_check_sync_says_the_verdict_in_its_exit_status(tmp_path, late, capsys):

@@ -71,6 +71,9 @@ class CheckRunner:
         self.busy: Callable[[], bool] = _never
         #: Seconds the thread waited for the keyframe path, over the runner's life.
         self.waited = 0.0
+        #: CPU seconds the thread spent on its items (its own thread time), over the runner's
+        #: life: what the check took from the node (docs/performance.md, "A slower machine").
+        self.cpu = 0.0
 
     def _make(self, camera: PinholeCamera) -> Any:
         raise NotImplementedError
@@ -178,7 +181,11 @@ class CheckRunner:
                 # keyframe path first; a pose alone does not.
                 if self._sample_pose_of(item) is not None:
                     self._give_way(stopping)
-                result = self._feed(check, item)
+                started = time.thread_time()
+                try:
+                    result = self._feed(check, item)
+                finally:
+                    self.cpu += time.thread_time() - started
             finally:
                 inbox.task_done()
             if result is not None:

@@ -583,6 +583,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         # Why a check can take longer than its pairs: it waits for the keyframes (check_runner.py).
         waited = sum(r.waited for r in self.check_runners)
         extra['calibration checks: seconds waited for the keyframes'] = round(waited, 2)
+        extra['calibration checks: CPU seconds'] = round(sum(r.cpu for r in self.check_runners), 2)
         return extra
 
     def destroy_node(self) -> None:
@@ -596,6 +597,12 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self.focal_check.close()
         self.time_offset_check.close()
         self.mount_check.close()
+        cpu = sum(r.cpu for r in self.check_runners)
+        if cpu > 0.0:  # what the checks took from the keyframes, said once
+            waited = sum(r.waited for r in self.check_runners)
+            self.get_logger().info(
+                f'calibration checks: {cpu:.1f} CPU s over the run, {waited:.1f} s waited for the keyframes'
+            )
         if self.filter_feed is not None:
             self.filter_feed.close()
 
