@@ -146,7 +146,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--depth-camera', type=Path, help='ground-truth depth camera YAML (default: camera.yaml)')
     p.add_argument('--depth-factor', type=float, default=5000.0, help='depth PNG units per metre')
     p.add_argument('--frames', type=int, default=0, help='first N frames (0: all)')
-    p.add_argument('--rate', type=float, default=30.0, help='images per second')
+    p.add_argument(
+        '--rate',
+        type=float,
+        default=30.0,
+        help='play the stamps at rate / 30 of real time (30: as recorded, whatever the camera rate; '
+        '60: twice as fast)',
+    )
     p.add_argument('--start-delay', type=float, default=3.0, help='s after discovery, then play')
     p.add_argument('--compressed', action='store_true', help='publish JPEG CompressedImage (image_transport)')
     p.add_argument(
