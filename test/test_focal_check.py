@@ -131,6 +131,43 @@ def test_a_fit_off_by_more_than_the_threshold_but_not_surely_is_suspect_not_agre
     assert verdict_status('check-focal', 'seq', suspect, 12, FocalCheckConfig(), 100) == 5
 
 
+def test_a_focal_disagreement_a_lens_explains_as_well_is_suspect_and_not_taken():
+    """A lens camera_info does not hold reads as a focal error under rotation; where a radial
+    distortion fits the pairs about as well as the focal change (cost ratio under
+    ``MIN_FOCAL_MARGIN``), the disagreement is ``suspect``: said with the lens, never corrected
+    (``lens_distortion`` seed 231 read +6.9 % +- 0.7 % at a ratio of 1.03, and its correction
+    fused the stream at 1.045x its input). A focal length 10 % long (ratios 1.27-1.73) is still
+    corrected."""
+    from depth_fusion_ros.multiview.lens_fit import MIN_FOCAL_MARGIN, LensFit
+
+    check = FocalCheck(PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5), FocalCheckConfig())
+    rival = check._verdict(1.069, 0.007, LensFit(-0.045, 0.02, 1.03, 0, 12))
+    assert rival.verdict == 'suspect' and rival.lens_rivals and not rival.lens_distorted
+    assert not rival.applied('correct')
+    message = rival.message()
+    assert 'fx 280.6 px best' in message
+    assert 'a lens distortion k1 -0.045 fits the pairs about as well' in message
+    assert 'fx 262.5 px kept' in message and 'distortion D' in message
+    focal = check._verdict(0.922, 0.012, LensFit(-0.18, 0.06, 1.61, 6, 12))
+    assert focal.verdict == 'disagrees' and focal.applied('correct') and not focal.lens_rivals
+    assert check._verdict(0.922, 0.012, LensFit(-0.18, 0.06, MIN_FOCAL_MARGIN, 6, 12)).verdict == 'disagrees'
+    assert not LensFit(-0.09, 0.003, 0.51, 0, 12).rivals_focal  # reported: taken instead
+    assert not LensFit(-0.05, 0.003, 1.0, 0, 2).rivals_focal  # too few pairs to say
+    # Only a disagreement is turned: an agreement a lens fits as well stays one.
+    assert check._verdict(1.01, 0.01, LensFit(-0.05, 0.05, 1.0, 1, 12)).verdict == 'consistent'
+
+
+def test_the_lens_of_the_stress_stream_that_read_as_a_focal_error_is_not_taken_for_one():
+    """The rotation sweep through a barrel lens (k1 -0.1), seed 231, 100 frames at 320x240: its
+    pairs fit a focal length 6.9 % long about as well as a lens, and the check keeps the told
+    one."""
+    seq = render_sequence(stress_config('lens_distortion', width=320, height=240, frames=100, seed=231))
+    estimate = check_frames(seq.camera, seq.frames, FocalCheckConfig()).result
+    assert estimate is not None and estimate.verdict == 'suspect', estimate.message()
+    assert estimate.lens_rivals and not estimate.applied('correct')
+    assert estimate.scale == pytest.approx(1.069, abs=0.02)
+
+
 def test_noisy_poses_do_not_fake_a_disagreement():
     """4 mm and 0.25 deg of pose noise per frame: every match of a pair moves with its pose
     error, so the pairs disagree with each other, not with the focal length."""

@@ -42,6 +42,14 @@ MIN_K1 = 0.04
 MAX_COST_RATIO = 0.85
 #: The largest share of the pairs whose best ``k1`` may lie at an end of the range.
 MAX_AT_END = 1.0 / 3.0
+#: The least a distortion's cost must be of the focal fit's (median over the pairs) for a focal
+#: disagreement to be taken as one: below it a lens explains the pairs about as well, and the
+#: focal check says so instead of correcting (``LensFit.rivals_focal``). Measured 2026-12-06 on
+#: the stress streams' focal checks (docs/multi_view.md, "A lens that reads as a focal error"):
+#: the six sure disagreements of a focal length 10 % long (``wrong_focal``, seeds 152-231) at
+#: 1.27-1.73; the lens of ``lens_distortion`` seed 231, read as +6.9 % +- 0.7 %, at 1.03, and
+#: a blurred lateral sweep's false -7.2 % (``motion_blur`` 231) at 0.93.
+MIN_FOCAL_MARGIN = 1.15
 
 
 @dataclass(frozen=True)
@@ -65,6 +73,12 @@ class LensFit:
             and self.cost_ratio <= MAX_COST_RATIO
             and self.at_end <= MAX_AT_END * self.pairs
         )
+
+    @property
+    def rivals_focal(self) -> bool:
+        """Whether a lens distortion fits the pairs about as well as a focal change, without being
+        reported (:attr:`distorted`): a focal disagreement is then not sure to be one."""
+        return self.pairs >= 3 and not self.distorted and self.cost_ratio < MIN_FOCAL_MARGIN
 
     def message(self) -> str:
         return (
