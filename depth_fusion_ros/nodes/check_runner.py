@@ -35,8 +35,7 @@ from .params import build_dataclass
 #: a load that never lets up, the check still takes a sample every half second.
 MAX_YIELD_S = 0.5
 #: How often it looks again while it waits (s).
-import os as _os
-YIELD_POLL_S = float(_os.environ.get('DF_POLL', '0.005'))
+YIELD_POLL_S = 0.005
 
 
 def _never() -> bool:
