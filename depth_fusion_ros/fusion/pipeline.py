@@ -28,6 +28,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -267,35 +268,22 @@ def fuse_keyframe(
     config: FusionConfig | None = None,
     output_kind: str = 'metric_depth',
     *,
-    omega_mask: np.ndarray | None = None,
-    guard_config: GuardConfig | None = None,
-    evidence: MultiViewEvidence | None = None,
-    consistency_config: ConsistencyConfig | None = None,
-    image: np.ndarray | None = None,
     stream_scale: StreamScale | None = None,
     stamp: int | None = None,
+    **options: Any,
 ) -> FusionResult:
-    """Fuse one keyframe (all inputs HxW on the working grid).
+    """Fuse one keyframe (all inputs HxW on the working grid): :func:`_fuse`, whose keyword
+    ``options`` (``omega_mask``, ``guard_config``, ``evidence``, ``consistency_config``,
+    ``image``) it passes on.
 
     ``stream_scale``: the stream's scale (``stream_scale.py``) a metric single view is
     multiplied by first, observed on this keyframe (``stamp``: its stamp, or any increasing
-    key); ``evidence['stream_scale']`` then holds the factor used. The rest is :func:`_fuse`.
+    key); ``evidence['stream_scale']`` then holds the factor used.
     """
     found, factor = False, 1.0
     if stream_scale is not None and output_kind == 'metric_depth':
         single_depth, factor, found = stream_scale.scaled(single_depth, mv_depth, stage1_mask, stamp)
-    result = _fuse(
-        single_depth,
-        mv_depth,
-        stage1_mask,
-        config,
-        output_kind,
-        omega_mask=omega_mask,
-        guard_config=guard_config,
-        evidence=evidence,
-        consistency_config=consistency_config,
-        image=image,
-    )
+    result = _fuse(single_depth, mv_depth, stage1_mask, config, output_kind, **options)
     if stream_scale is not None:
         result.evidence['stream_scale'] = factor
         result.stream_scale_found = found

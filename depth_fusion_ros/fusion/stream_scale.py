@@ -40,12 +40,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..check_modes import CHECK_MODES, check_mode
+from ..check_modes import check_mode
 from .subsample import seeded_subsample
 
 log = logging.getLogger(__name__)
-
-MODES = CHECK_MODES
 
 STREAM_SCALE_PARAMETER_DESCRIPTIONS = {
     'mode': (
@@ -227,7 +225,6 @@ class StreamScale:
 
 
 __all__ = [
-    'MODES',
     'STREAM_SCALE_PARAMETER_DESCRIPTIONS',
     'StreamScale',
     'StreamScaleConfig',

@@ -37,13 +37,13 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
 
 from ..camera import PinholeCamera
+from ..check_modes import CHECK_MODES
 from ..data import messages
 from ..fusion import pipeline as fusion_pipeline
 from ..fusion.consistency import CONSISTENCY_PARAMETER_DESCRIPTIONS, ConsistencyConfig
 from ..fusion.guard import GUARD_PARAMETER_DESCRIPTIONS, GuardConfig, MultiViewEvidence
 from ..fusion.interpolation import MODES as FUSION_MODES
 from ..fusion.pipeline import FUSION_PARAMETER_DESCRIPTIONS, FusionConfig, fuse_keyframe
-from ..fusion.stream_scale import MODES as STREAM_SCALE_MODES
 from ..fusion.stream_scale import STREAM_SCALE_PARAMETER_DESCRIPTIONS, StreamScale, StreamScaleConfig
 from ..fusion.weights import WEIGHT_SETS
 from ..multiview.semidense import MultiViewConfig
@@ -130,7 +130,7 @@ CONSISTENCY_LIMITS: dict[str, Any] = {
 }
 #: Ranges of the ``stream_scale.*`` parameters (``StreamScaleConfig``; ``sample`` stays the core's).
 STREAM_SCALE_LIMITS: dict[str, Any] = {
-    'mode': STREAM_SCALE_MODES,
+    'mode': CHECK_MODES,
     'window': (1, 1000),
     'min_keyframes': (1, 1000),
     'engage_ratio': (1.0 + 1e-6, None),

@@ -581,10 +581,14 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         extra['time offset check'] = self.time_offset_check.status()
         extra['mount check'] = self.mount_check.status()
         # Why a check can take longer than its pairs: it waits for the keyframes (check_runner.py).
-        waited = sum(r.waited for r in self.check_runners)
+        waited, cpu = self._check_totals()
         extra['calibration checks: seconds waited for the keyframes'] = round(waited, 2)
-        extra['calibration checks: CPU seconds'] = round(sum(r.cpu for r in self.check_runners), 2)
+        extra['calibration checks: CPU seconds'] = round(cpu, 2)
         return extra
+
+    def _check_totals(self) -> tuple[float, float]:
+        """Seconds the three checks waited for the keyframe path, and CPU seconds they took."""
+        return sum(r.waited for r in self.check_runners), sum(r.cpu for r in self.check_runners)
 
     def destroy_node(self) -> None:
         if not self._destroyed:
@@ -594,12 +598,10 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
     def close_threads(self) -> None:
         """The checks and the filter feed publish (estimates, ``image_done``): they stop before
         the publishers go, once the worker is done with the keyframe in hand."""
-        self.focal_check.close()
-        self.time_offset_check.close()
-        self.mount_check.close()
-        cpu = sum(r.cpu for r in self.check_runners)
+        for runner in self.check_runners:
+            runner.close()
+        waited, cpu = self._check_totals()
         if cpu > 0.0:  # what the checks took from the keyframes, said once
-            waited = sum(r.waited for r in self.check_runners)
             self.get_logger().info(
                 f'calibration checks: {cpu:.1f} CPU s over the run, {waited:.1f} s waited for the keyframes'
             )
