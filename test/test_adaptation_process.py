@@ -188,9 +188,9 @@ def test_the_training_process_imports_the_package_the_node_runs():
     from pathlib import Path
 
     import depth_fusion_ros
-    from depth_fusion_ros.adaptation.remote_adapter import _child_environment
+    from depth_fusion_ros.child_process import child_environment
 
-    first = _child_environment()['PYTHONPATH'].split(os.pathsep)[0]
+    first = child_environment()['PYTHONPATH'].split(os.pathsep)[0]
     assert first == str(Path(depth_fusion_ros.__file__).resolve().parents[1])
 
 

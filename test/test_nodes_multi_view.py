@@ -30,7 +30,11 @@ FRAME = 'camera_rgb_optical_frame'
 
 def _mv_node(ros: RosHarness, **params) -> MultiViewNode:
     """A multi_view_node in ``ros`` with these parameter overrides (dotted names as keywords:
-    ``**{'filter.max_lag_frames': 0}``)."""
+    ``**{'filter.max_lag_frames': 0}``). The calibration checks' process runs at the node's
+    priority unless asked otherwise: a test that waits for a check's verdict would otherwise wait
+    on a niced process that the other test worker starves (test_check_process.py checks the
+    niceness)."""
+    params = {'calibration_checks.nice': 0, **params}
     overrides = [Parameter(k, value=v) for k, v in params.items()]
     return ros.add(MultiViewNode(context=ros.context, parameter_overrides=overrides))
 

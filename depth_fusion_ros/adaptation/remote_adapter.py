@@ -19,37 +19,26 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import socket
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
-from pathlib import Path
 
 import torch
 
+from ..child_process import child_environment, receive, send
 from ..singleview.predictor import DepthPredictor, predictor_from_network, resolve_device
 from .adapter import AdapterCounters, UpdateReport, load_adaptable
 from .config import AdaptConfig
 from .inference_copies import InferenceCopies
 from .sample import AdaptSample
-from .trainer_process import receive, send
 
 log = logging.getLogger(__name__)
 
 #: Seconds between the waiting thread's looks at ``abort`` while the child trains.
 POLL_S = 0.05
-
-
-def _child_environment() -> dict[str, str]:
-    """This environment, with the directory this package was imported from first on the
-    child's ``PYTHONPATH``: the child runs the same code as the node (a source tree, a
-    worktree, a colcon install), whatever the child's own default path would find."""
-    root = str(Path(__file__).resolve().parents[2])
-    path = os.environ.get('PYTHONPATH', '')
-    return {**os.environ, 'PYTHONPATH': os.pathsep.join(p for p in (root, path) if p)}
 
 
 class RemoteAdapter:
@@ -97,7 +86,7 @@ class RemoteAdapter:
                 str(int(self.idle)),
             ],
             pass_fds=(theirs.fileno(),),
-            env=_child_environment(),
+            env=child_environment(),
         )
         theirs.close()
         self._conn = Connection(ours.detach())

@@ -40,12 +40,12 @@ from __future__ import annotations
 
 import logging
 import os
-import pickle
 import signal
 import sys
 from multiprocessing.connection import Connection
 from typing import Any
 
+from ..child_process import receive, send
 from ..priority import idle_policy, lower_priority
 
 
@@ -68,18 +68,6 @@ class _Requests:
             self.abort = True
             self.stop = kind == 'stop'
         return self.abort
-
-
-def send(conn: Connection, message: tuple) -> None:
-    """``conn.send`` with the standard pickler: ``Connection.send`` uses multiprocessing's,
-    for which torch registers tensor reducers that share memory through multiprocessing's
-    resource sharer, and that needs a ``multiprocessing`` child (its authentication key):
-    this child is not one. Pickled plainly a tensor travels by value (2 MB a set of weights)."""
-    conn.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
-
-
-def receive(conn: Connection) -> tuple:
-    return pickle.loads(conn.recv_bytes())
 
 
 def main(argv: list[str]) -> int:

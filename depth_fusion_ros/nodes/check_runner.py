@@ -16,6 +16,12 @@ first and taken out: in a Python process a niced thread that holds the GIL while
 deschedules it holds up the node's other threads, and on a loaded machine the graph then
 fused fewer keyframes than at normal priority (docs/performance.md, "The calibration checks
 yield to the keyframes").
+
+So the checks' work runs in a process of its own where the node gives one (:attr:`CheckRunner.host`,
+``check_process.py``): the thread then only hands each item over and waits on the pipe, and the
+check the callbacks ask (:meth:`CheckRunner._item`) is a mirror that the process's replies keep
+up to date (its result, the focal check's early look, the pairs it holds). Without a host, or
+once the process is gone, the thread runs the check itself.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from typing import Any
 
 from ..camera import PinholeCamera
 from ..data.sequence import Frame
+from .check_process import CheckProcess, CheckProcessLostError
 from .params import build_dataclass
 
 #: How long a check's thread waits for the keyframe path at most before each sample (s): under
@@ -45,9 +52,9 @@ def _never() -> bool:
 class CheckRunner:
     """Feeds one check per camera from the callbacks on its own thread; reports its result once.
 
-    Subclasses say how a check is made (:meth:`_make`), what a frame gives it (:meth:`_item`,
-    on the callback thread; ``None``: nothing) and how the thread feeds it (:meth:`_feed`,
-    returning the result on the item that completes it).
+    Subclasses say how a check is made (:meth:`_recipe`), what a frame gives it (:meth:`_item`,
+    on the callback thread; ``None``: nothing) and which of its methods an item calls
+    (:meth:`_call`, returning the result on the item that completes it).
     """
 
     #: The thread's name, and how many items may wait for it.
@@ -73,16 +80,45 @@ class CheckRunner:
         self.waited = 0.0
         #: CPU seconds the thread spent on its items (its own thread time), over the runner's
         #: life: what the check took from the node (docs/performance.md, "A slower machine").
+        #: In the checks' process, the process's CPU on them.
         self.cpu = 0.0
+        #: The checks' process (``None``: the thread runs the check itself); set by the node.
+        self.host: CheckProcess | None = None
+        #: ``(check, pairs)``: the pairs the check in the process holds, as its last reply said,
+        #: and the mirror it is for (a reply to a check restarted meanwhile says nothing of the
+        #: new one); ``None``: the check runs here, and says it itself
+        self._remote_collected: tuple[Any, int] | None = None
+
+    def _recipe(self, camera: PinholeCamera) -> tuple[type, tuple]:
+        """The check for ``camera`` as ``(class, arguments)``: made here, and in the process."""
+        raise NotImplementedError
 
     def _make(self, camera: PinholeCamera) -> Any:
-        raise NotImplementedError
+        cls, args = self._recipe(camera)
+        return cls(*args)
 
     def _item(self, check: Any, frame: Frame) -> Any:
         raise NotImplementedError
 
-    def _feed(self, check: Any, item: Any) -> Any:
+    def _call(self, item: Any) -> tuple[str, tuple]:
+        """The check's method an item calls, and its arguments."""
         raise NotImplementedError
+
+    def _feed(self, check: Any, item: Any) -> Any:
+        method, args = self._call(item)
+        return getattr(check, method)(*args)
+
+    @property
+    def collected(self) -> int:
+        """The pairs the current check holds (0 before the first frame)."""
+        check = self._check
+        if check is None:
+            return 0
+        remote = self._remote_collected
+        if remote is not None and remote[0] is check:
+            return remote[1]
+        pairs = check.pairs
+        return len(pairs) if isinstance(pairs, list) else int(pairs)
 
     def _sample_pose_of(self, item: Any) -> Any:
         """The pose of ``item`` when it is a sample (``None``: not one): the reference of the next."""
@@ -131,7 +167,7 @@ class CheckRunner:
             self._sample_pose = None
             self._queue = queue.Queue(maxsize=self.queue_size)
             self._stopping = threading.Event()
-            args = (self._check, self._queue, self._stopping)
+            args = (self._check, self._recipe(camera), self._queue, self._stopping)
             self._thread = threading.Thread(target=self._run, args=args, daemon=True)
             self._thread.name = self.name
             self._thread.start()
@@ -171,27 +207,82 @@ class CheckRunner:
                 self._queue.put_nowait(None)
             self._thread = None
 
-    def _run(self, check: Any, inbox: queue.Queue, stopping: threading.Event) -> None:
-        while True:
-            item = inbox.get()
-            if item is None or stopping.is_set():
-                return
-            try:
-                # A sample costs the thread real work (features, matching), so it waits for the
-                # keyframe path first; a pose alone does not.
-                if self._sample_pose_of(item) is not None:
-                    self._give_way(stopping)
-                started = time.thread_time()
+    def _run(
+        self, check: Any, recipe: tuple[type, tuple], inbox: queue.Queue, stopping: threading.Event
+    ) -> None:
+        remote = _Remote(self.host, self.name, recipe)
+        try:
+            while True:
+                item = inbox.get()
+                if item is None or stopping.is_set():
+                    return
                 try:
-                    result = self._feed(check, item)
+                    # A sample costs real work (features, matching), so it waits for the
+                    # keyframe path first; a pose alone does not.
+                    if self._sample_pose_of(item) is not None:
+                        self._give_way(stopping)
+                    result = self._take(check, item, remote, stopping)
                 finally:
-                    self.cpu += time.thread_time() - started
-            finally:
-                inbox.task_done()
-            if result is not None:
-                if not stopping.is_set():  # a check restarted meanwhile reports nothing
-                    self._on_result(check.camera, result)
-                return
+                    inbox.task_done()
+                if result is not None:
+                    if not stopping.is_set():  # a check restarted meanwhile reports nothing
+                        self._on_result(check.camera, result)
+                    return
+        finally:
+            remote.drop()
+
+    def _take(self, check: Any, item: Any, remote: _Remote, stopping: threading.Event) -> Any:
+        """One item, in the process while there is one, else here; the result when it completes
+        the check."""
+        if remote.host is not None:
+            try:
+                return self._take_remote(check, item, remote)
+            except CheckProcessLostError:
+                remote.host = None
+                self._remote_collected = None  # this check says its own from now on
+                if stopping.is_set():
+                    return None
+                # Here from this item on: the mirror has none of the process's samples, so the
+                # check starts over, on this thread (the loss was said once, by the node).
+        started = time.thread_time()
+        try:
+            return self._feed(check, item)
+        finally:
+            self.cpu += time.thread_time() - started
+
+    def _take_remote(self, check: Any, item: Any, remote: _Remote) -> Any:
+        method, args = self._call(item)
+        reply = remote.feed(method, args)
+        self.cpu += float(reply[-1])
+        if reply[0] == 'error':  # raised here, as the check would have raised on this thread
+            raise RuntimeError(f'{self.name}: {reply[1]}')
+        _, result, early, collected, _ = reply
+        self._remote_collected = (check, int(collected))
+        if early is not None:
+            check.early = early
+        if result is not None:
+            check.result = result  # the mirror is done too: the callbacks queue no more
+        return result
+
+
+class _Remote:
+    """A runner thread's check in the checks' process: made there with its first item."""
+
+    def __init__(self, host: CheckProcess | None, name: str, recipe: tuple[type, tuple]) -> None:
+        self.host = host
+        self.recipe = recipe
+        self.key = None if host is None else host.key(name)
+        self.made = False
+
+    def feed(self, method: str, args: tuple) -> tuple:
+        if not self.made:
+            self.host.make(self.key, *self.recipe)
+            self.made = True
+        return self.host.feed(self.key, method, args)
+
+    def drop(self) -> None:
+        if self.made and self.host is not None:
+            self.host.drop(self.key)
 
 
 class PairedCheckRunner(CheckRunner):
@@ -213,8 +304,8 @@ class PairedCheckRunner(CheckRunner):
     def from_parameters(cls, params: dict[str, Any], on_result: Callable[[PinholeCamera, Any], None]) -> Any:
         return cls(build_dataclass(cls.config_type, params, cls.section), on_result)
 
-    def _make(self, camera: PinholeCamera) -> Any:
-        return self.check_type(camera, self.config)
+    def _recipe(self, camera: PinholeCamera) -> tuple[type, tuple]:
+        return self.check_type, (camera, self.config)
 
     def _item(self, check: Any, frame: Frame) -> tuple[Any, Any] | None:
         return (frame.gray, frame.pose) if check.wants(frame.pose, self._sample_pose) else None
@@ -222,5 +313,5 @@ class PairedCheckRunner(CheckRunner):
     def _sample_pose_of(self, item: tuple[Any, Any]) -> Any:
         return item[1]  # every item is a sample
 
-    def _feed(self, check: Any, item: tuple[Any, Any]) -> Any:
-        return check.add(*item)
+    def _call(self, item: tuple[Any, Any]) -> tuple[str, tuple]:
+        return 'add', item

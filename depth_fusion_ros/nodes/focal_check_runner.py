@@ -76,5 +76,4 @@ class FocalCheckRunner(PairedCheckRunner):
             return 'off'
         if self.result is not None:
             return f'{self.result.verdict}: fx {self.result.told_fx:.1f} -> {self.result.fx:.1f} px'
-        pairs = 0 if self._check is None else len(self._check.pairs)
-        return f'collecting ({pairs} of {self.config.pairs} image pairs)'
+        return f'collecting ({self.collected} of {self.config.pairs} image pairs)'

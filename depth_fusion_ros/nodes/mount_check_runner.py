@@ -60,5 +60,4 @@ class MountCheckRunner(PairedCheckRunner):
         if r is not None:
             turn = ', '.join(f'{v:+.2f}' for v in r.rotvec_deg)
             return f'{r.verdict}: turned [{turn}] deg ({r.observed} of 3 directions observed)'
-        pairs = 0 if self._check is None else len(self._check.pairs)
-        return f'collecting ({pairs} of {self.config.pairs} image pairs)'
+        return f'collecting ({self.collected} of {self.config.pairs} image pairs)'

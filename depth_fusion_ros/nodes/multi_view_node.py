@@ -51,6 +51,7 @@ from ..pose_jumps import PoseJump
 from . import robot_inputs
 from .announce import announce
 from .base import PUBLISHER_CHECK_PERIOD, DepthFusionNode
+from .check_process import CheckProcess
 from .console import run_node
 from .corrected_path import TOPIC_CORRECTED_PATH, correction_limits, read_path
 from .diagnostics import Requirement
@@ -222,8 +223,10 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self.worker = self.make_worker('multi_view', self._process, on_lost=self._on_keyframe_lost)
         #: The calibration checks' runners (their diagnostics, and the wait for the keyframes).
         self.check_runners = (self.focal_check, self.time_offset_check, self.mount_check)
+        self.check_process = self._check_process(p)
         for runner in self.check_runners:
             runner.busy = self._keyframe_path_busy
+            runner.host = self.check_process
         image_qos = qos_profile(str(p['input_qos']), max(int(p['image_qos_depth']), int(p['qos_depth'])))
         self.subscribe_input(CameraInfo, TOPIC_CAMERA_INFO, self._on_camera_info, image_qos)
         self._latched_info: Any = None
@@ -586,6 +589,22 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         extra['calibration checks: CPU seconds'] = round(cpu, 2)
         return extra
 
+    def _check_process(self, p: dict[str, Any]) -> CheckProcess | None:
+        """The checks' own process (started by the first check that needs it), or ``None``:
+        asked not to (``calibration_checks.process``), or every check is off."""
+        if not bool(p['calibration_checks.process']):
+            return None
+        if all(r.config.mode == 'off' for r in self.check_runners):
+            return None
+
+        def lost(why: str) -> None:
+            self.get_logger().error(
+                f"the calibration checks' process is gone: {why}; the checks go on on this node's "
+                'threads, each from its next frame'
+            )
+
+        return CheckProcess(int(p['calibration_checks.nice']), on_lost=lost)
+
     def _check_totals(self) -> tuple[float, float]:
         """Seconds the three checks waited for the keyframe path, and CPU seconds they took."""
         return sum(r.waited for r in self.check_runners), sum(r.cpu for r in self.check_runners)
@@ -600,6 +619,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         the publishers go, once the worker is done with the keyframe in hand."""
         for runner in self.check_runners:
             runner.close()
+        if self.check_process is not None:
+            self.check_process.close()
         waited, cpu = self._check_totals()
         if cpu > 0.0:  # what the checks took from the keyframes, said once
             self.get_logger().info(

@@ -13,6 +13,7 @@ from ..multiview.descriptors import PATCH_OFFSETS
 from ..multiview.neighbours import NeighbourConfig
 from ..multiview.semidense import MultiViewConfig
 from . import robot_inputs
+from .check_process import CHECK_PROCESS_PARAMETERS
 from .corrected_path import correction_parameters
 from .focal_check_runner import FOCAL_CHECK_PARAMETERS
 from .image_input import working_grid_parameters
@@ -199,4 +200,5 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     *FOCAL_CHECK_PARAMETERS,
     *TIME_OFFSET_CHECK_PARAMETERS,
     *MOUNT_CHECK_PARAMETERS,
+    *CHECK_PROCESS_PARAMETERS,
 )

@@ -78,21 +78,22 @@ class TimeOffsetCheckRunner(CheckRunner):
             return 0.0
         return result.offset
 
-    def _make(self, camera: PinholeCamera) -> TimeOffsetCheck:
-        return TimeOffsetCheck(camera, self.config, self.told)
+    def _recipe(self, camera: PinholeCamera) -> tuple[type, tuple]:
+        return TimeOffsetCheck, (camera, self.config, self.told)
 
     def _item(self, check: TimeOffsetCheck, frame: Frame) -> tuple[Any, float, Any]:
-        wanted = check.wants(frame.stamp, frame.pose, self._sample_pose)
+        # The check in the checks' process counts its pairs; the mirror here does not.
+        wanted = self.collected < self.config.pairs and check.wants(
+            frame.stamp, frame.pose, self._sample_pose
+        )
         return (frame.gray if wanted else None), frame.stamp, frame.pose  # the grey image only then
 
     def _sample_pose_of(self, item: tuple[Any, float, Any]) -> Any:
         return item[2] if item[0] is not None else None  # a sample is an item with its grey image
 
-    def _feed(self, check: TimeOffsetCheck, item: tuple[Any, float, Any]) -> TimeOffsetEstimate | None:
+    def _call(self, item: tuple[Any, float, Any]) -> tuple[str, tuple]:
         gray, stamp, pose = item
-        if gray is None:
-            return check.observe(stamp, pose)
-        return check.add(gray, stamp, pose)
+        return ('observe', (stamp, pose)) if gray is None else ('add', item)
 
     def status(self) -> str:
         """One phrase for the diagnostics."""
@@ -103,5 +104,4 @@ class TimeOffsetCheckRunner(CheckRunner):
             if r.verdict == 'unobservable':  # no fit worth naming: the told offset stays
                 return f'{r.verdict}: {r.fit_phrase()} (pose_time_offset {r.told:.3f} kept)'
             return f'{r.verdict}: {r.fit_phrase()} (pose_time_offset {r.fitted:.3f})'
-        pairs = 0 if self._check is None else self._check.pairs
-        return f'collecting ({pairs} of {self.config.pairs} image pairs)'
+        return f'collecting ({self.collected} of {self.config.pairs} image pairs)'
