@@ -11,7 +11,8 @@ second of the second half"); ``depth-fusion run`` prints it for the whole playba
 Read from Linux ``/proc/PID/stat`` (user + system time, in clock ticks, usually 10 ms) each
 time the run reports progress, and interpolated to the window's ends. A node's own process and
 its descendants are apart: the single-view node's training process runs at idle priority
-(``adaptation.idle_policy``) on what the others leave. Where ``/proc`` cannot be read (not
+(``adaptation.idle_policy``) on what the others leave, and the multi-view node's calibration
+checks run in a process of their own (``calibration_checks.process``). Where ``/proc`` cannot be read (not
 Linux) there are no figures, and nothing is printed.
 """
 
@@ -29,6 +30,8 @@ from pathlib import Path
 CHILDREN = "'s child processes"
 #: Said of the training process in ``depth-fusion run``'s line.
 TRAINING = ' (the training, at idle priority)'
+#: Said of the calibration checks' process (``nodes/check_process.py``).
+CHECKS = ' (the calibration checks)'
 #: Clock ticks per second of ``/proc/PID/stat``'s times.
 TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
 #: Seconds between two walks of each process's tree (:func:`descendants`); the descendants
@@ -39,6 +42,20 @@ TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
 #: docs/performance.md "The replayer's executor"). A process born in between is read from the
 #: next walk on, with all its CPU since it started.
 TREE_REFRESH_S = 5.0
+
+
+def child_note(name: str) -> str:
+    """What a budget line's child processes are, said after its name in ``depth-fusion run``'s
+    line: the single-view node's is the training (at idle priority, so its CPU is what the nodes
+    left), the multi-view node's the calibration checks (``calibration_checks.nice``), the
+    composed graph's both."""
+    if not name.endswith(CHILDREN):
+        return ''
+    if name.startswith('single_view'):
+        return TRAINING
+    if name.startswith('multi_view'):
+        return CHECKS
+    return f' ({TRAINING[2:-1]}; the calibration checks)' if name.startswith('graph') else ''
 
 
 def is_training(name: str) -> bool:
@@ -169,7 +186,7 @@ def budget_line(cpu: CpuSampler, fused: int, cores: int | None = None) -> str | 
     if not used or end <= start:
         return None
     parts = [
-        f'{name}{TRAINING if is_training(name) else ""} {1e3 * seconds / fused:.0f} ms'
+        f'{name}{child_note(name)} {1e3 * seconds / fused:.0f} ms'
         for name, seconds in sorted(used.items(), key=lambda item: -item[1])
     ]
     cores = cores or os.cpu_count() or 1

@@ -141,3 +141,13 @@ def test_only_the_single_view_nodes_children_are_called_the_training() -> None:
     child = "fusion's child processes"
     cpu = _sampler([(0.0, {child: 0.0}), (2.0, {child: 0.5})])
     assert budget_line(cpu, fused=10, cores=2).endswith(f'{child} 50 ms; 0.25 of 2 cores')
+
+
+def test_the_multi_view_nodes_child_is_called_the_calibration_checks() -> None:
+    """The checks' process (``calibration_checks.process``) is the multi-view node's child: the
+    line names it so, and the composed graph's children as both the training and the checks."""
+    mv, graph = "multi_view's child processes", "graph's child processes"
+    cpu = _sampler([(0.0, {mv: 0.0, graph: 0.0}), (2.0, {mv: 0.4, graph: 0.2})])
+    line = budget_line(cpu, fused=10, cores=2)
+    assert f'{mv} (the calibration checks) 40 ms' in line
+    assert f'{graph} (the training, at idle priority; the calibration checks) 20 ms' in line
