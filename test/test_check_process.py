@@ -112,9 +112,43 @@ def test_a_check_process_that_dies_is_said_once_and_the_check_goes_on_here(wrong
     assert reports[0].verdict == 'disagrees', runner.status()
 
 
-def test_a_check_process_starts_with_its_first_item_and_not_before():
-    """A node whose checks never see a posed frame starts no process."""
+def test_a_check_process_started_ahead_serves_its_first_item_and_ends_with_close(wrong_focal):
+    """The node starts the process as it starts (its imports done before the stream); one that
+    was never started starts with its first item; either ends with its node's close."""
+    lazy = CheckProcess()
+    assert lazy.pid is None
+    lazy.close()
+    assert lazy.pid is None
     host = CheckProcess()
-    assert host.pid is None
-    host.close()
-    assert host.pid is None
+    host.start()
+    pid = host.pid
+    assert pid is not None
+    host.start()  # once
+    assert host.pid == pid
+    runner = FocalCheckRunner(FocalCheckConfig(pairs=PAIRS), lambda *_: None)
+    runner.host = host
+    try:
+        _stream(runner, wrong_focal, frames=wrong_focal.frames[:5])
+        assert runner.collected > 0 and host.pid == pid and host.lost is None
+    finally:
+        runner.close()
+        host.close()
+    assert host._proc.poll() is not None
+
+
+def test_the_node_starts_its_checks_process_as_it_starts_and_ends_it_with_itself():
+    """``multi_view_node``: the process is started with the node (its imports done before the
+    stream), at ``calibration_checks.nice``; none when the checks are all off or
+    ``calibration_checks.process`` is false."""
+    from test_nodes_multi_view import _mv_node
+
+    off = {f'{check}.mode': 'off' for check in ('focal_check', 'time_offset_check', 'mount_check')}
+    with RosHarness() as ros:
+        node = _mv_node(ros, **{'calibration_checks.nice': 7})
+        host = node.check_process
+        assert host is not None and host.pid is not None
+        want = _niceness(os.getpid()) + 7  # the child lowers its own priority first thing
+        assert RosHarness.wait_for(lambda: _niceness(host.pid) == want, 10.0)
+        assert _mv_node(ros, **off).check_process is None
+        assert _mv_node(ros, **{'calibration_checks.process': False}).check_process is None
+    assert host._proc.wait(10) is not None  # the harness destroyed the node

@@ -7,8 +7,11 @@ to the process and waits on the pipe for the reply, holding no GIL meanwhile. Th
 take turns on the pipe (a lock): the process runs one check's item at a time, as one core at a
 lower priority should.
 
-The process starts with the first item a check hands it, not with the node: a node whose checks
-are off, or that never sees a posed frame, starts none (and its start costs the node nothing).
+The node starts the process as it starts (:meth:`CheckProcess.start`; a node whose checks are
+all off starts none), so the process has imported the checks' code before the stream comes:
+started with a check's first sample, it made the time offset check's correction a keyframe
+later in a paced replay (docs/performance.md, "The calibration checks in a process of their
+own"). Its start costs the node nothing: the child imports at its own priority.
 
 Faults: a process that cannot start or dies (killed, out of memory) is said once through
 ``on_lost``; every later call raises :class:`CheckProcessLostError` at once, and the runners go on
@@ -83,6 +86,12 @@ class CheckProcess:
     def key(self, name: str) -> str:
         """A key for a new check (one per check made; a restarted check gets a new one)."""
         return f'{name}:{next(self._keys)}'
+
+    def start(self) -> None:
+        """Start the process now (else the first check's item starts it)."""
+        with self._lock, contextlib.suppress(CheckProcessLostError):
+            if self._conn is None and self.lost is None and not self._closed:
+                self._start()
 
     def make(self, key: str, cls: type, args: tuple) -> None:
         """Make the check ``cls(*args)`` in the process under ``key`` (started here if need be)."""

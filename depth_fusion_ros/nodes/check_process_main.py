@@ -11,7 +11,7 @@ Started as ``python -m depth_fusion_ros.nodes.check_process_main FD NICE IDLE`` 
 ``multiprocessing``, whose spawn re-imports the parent's main script: a node's, with rclpy and
 torch), as the adaptation's training process is. This module imports only the standard
 library at the top; the child lowers its priority, then imports the checks' code (numpy,
-OpenCV, scipy; neither torch nor rclpy), one thread each.
+OpenCV, scipy; neither torch nor rclpy) at once, one thread each.
 
 Protocol over the connection on ``FD`` (``multiprocessing.connection``, pickled tuples), one
 request at a time from the parent's runner threads (their lock):
@@ -93,13 +93,22 @@ def serve(conn: Connection) -> None:
             checks.pop(request[1], None)
 
 
-def _one_thread() -> None:
-    """One thread for numpy's BLAS and OpenCV: the child stays on one core, whatever it does."""
+def _warm_up() -> None:
+    """One thread for numpy's BLAS and OpenCV (the child stays on one core, whatever it does),
+    and the checks' code imported now, while the node waits for its stream: a check's first
+    sample then finds the process ready (imported at the first one, the time offset check's
+    correction came a keyframe later in a paced replay)."""
     for name in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
         os.environ[name] = '1'
     import cv2
 
     cv2.setNumThreads(1)
+    # What the checks import where first used (so that a node imports them only once ready):
+    # in a fresh process they cost a check's first sample more than its own work.
+    import scipy.optimize
+    import scipy.spatial.transform  # noqa: F401
+
+    from ..multiview import focal_check, mount_check, time_offset_check  # noqa: F401
 
 
 def main(argv: list[str]) -> int:
@@ -110,7 +119,7 @@ def main(argv: list[str]) -> int:
     # Ctrl+C to the process group is the node's to handle; it ends this process as it shuts
     # down, and a node that dies closes the pipe.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _one_thread()
+    _warm_up()
     conn = Connection(fd)
     try:
         serve(conn)

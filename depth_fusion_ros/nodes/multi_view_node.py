@@ -590,7 +590,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         return extra
 
     def _check_process(self, p: dict[str, Any]) -> CheckProcess | None:
-        """The checks' own process (started by the first check that needs it), or ``None``:
+        """The checks' own process, started now, or ``None``:
         asked not to (``calibration_checks.process``), or every check is off."""
         if not bool(p['calibration_checks.process']):
             return None
@@ -603,7 +603,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
                 'threads, each from its next frame'
             )
 
-        return CheckProcess(int(p['calibration_checks.nice']), on_lost=lost)
+        process = CheckProcess(int(p['calibration_checks.nice']), on_lost=lost)
+        process.start()  # it imports the checks' code before the stream comes
+        return process
 
     def _check_totals(self) -> tuple[float, float]:
         """Seconds the three checks waited for the keyframe path, and CPU seconds they took."""
