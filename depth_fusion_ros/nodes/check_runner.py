@@ -239,7 +239,9 @@ class CheckRunner:
                 return self._take_remote(check, item, remote)
             except CheckProcessLostError:
                 remote.host = None
-                self._remote_collected = None  # this check says its own from now on
+                mirrored = self._remote_collected
+                if mirrored is not None and mirrored[0] is check:
+                    self._remote_collected = None  # this check says its own from now on
                 if stopping.is_set():
                     return None
                 # Here from this item on: the mirror has none of the process's samples, so the
