@@ -78,13 +78,29 @@ def focal_uncertainty(
     at seeds 151 and 152, every early look that agreed was on an exact focal length, and
     every stream with a wrong one (5 or 10 %) was ``unobservable`` or ``disagrees`` at 6, 8
     and 12 pairs (docs/multi_view.md, "An early agreement").
+
+    A result whose pairs fit a lens distortion better (``lens_distorted``) verified nothing of
+    the images the depth comes from: until the node has taken the lens and the check has read
+    the undistorted stream again (it starts over then), they carry the lens's error, which no
+    focal length removes. The uncertainty is then never below ``prior``: a keyframe filtered on
+    the distorted images and published after the result was trusted at the fit's 2 % and fused
+    at 1.19x its input (``lens_distortion`` seed 241, docs/fusion.md "A lens found while a
+    keyframe is on its way"); a lens that is not taken (``focal_check.mode`` warn, a fisheye
+    model) is the same for the whole stream.
     """
     if prior == 0.0:
         return 0.0
+    if estimate is not None and getattr(estimate, 'lens_distorted', False):
+        return max(prior, _verified(estimate, prior, corrected))
     if estimate is None:
         if early is None or early.verdict != 'consistent' or not math.isfinite(early.stderr):
             return prior
         return min(prior, abs(math.log(max(early.scale, 1e-6))) + EARLY_STDERRS * early.stderr)
+    return _verified(estimate, prior, corrected)
+
+
+def _verified(estimate: FocalEstimate, prior: float, corrected: bool) -> float:
+    """What the check's result says of the focal length the depth runs on (see above)."""
     spread = estimate.stderr if math.isfinite(estimate.stderr) else MAX_UNCERTAINTY
     verdict = estimate.verdict
     if verdict == 'unobservable':
