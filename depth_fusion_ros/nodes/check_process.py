@@ -9,8 +9,8 @@ lower priority should.
 
 The node starts the process as it starts (:meth:`CheckProcess.start`; a node whose checks are
 all off starts none), so the process has imported the checks' code before the stream comes:
-started with a check's first sample, it made the time offset check's correction a keyframe
-later in a paced replay (docs/performance.md, "The calibration checks in a process of their
+started with a check's first sample, it made the time offset check's correction 1-3
+keyframes later in a paced replay (docs/performance.md, "The calibration checks in a process of their
 own"). Its start costs the node nothing: the child imports at its own priority.
 
 Faults: a process that cannot start or dies (killed, out of memory) is said once through
@@ -65,11 +65,8 @@ class CheckProcessLostError(RuntimeError):
 class CheckProcess:
     """The parent's end of the checks' process (see module)."""
 
-    def __init__(
-        self, nice: int = DEFAULT_NICE, idle: bool = False, on_lost: Callable[[str], None] | None = None
-    ):
+    def __init__(self, nice: int = DEFAULT_NICE, on_lost: Callable[[str], None] | None = None):
         self.nice = int(nice)
-        self.idle = bool(idle)
         self._on_lost = on_lost
         self._lock = threading.Lock()
         self._proc: subprocess.Popen | None = None
@@ -148,7 +145,7 @@ class CheckProcess:
         command = [sys.executable, '-m', 'depth_fusion_ros.nodes.check_process_main']
         try:
             self._proc = subprocess.Popen(
-                [*command, str(theirs.fileno()), str(self.nice), str(int(self.idle))],
+                [*command, str(theirs.fileno()), str(self.nice)],
                 pass_fds=(theirs.fileno(),),
                 env=child_environment(),
             )

@@ -7,7 +7,7 @@ deschedules it holds everyone up (docs/performance.md, "The calibration checks y
 keyframes" and "A slower machine"). A process has its own interpreter, so its niceness only
 says who gets the CPU.
 
-Started as ``python -m depth_fusion_ros.nodes.check_process_main FD NICE IDLE`` (not by
+Started as ``python -m depth_fusion_ros.nodes.check_process_main FD NICE`` (not by
 ``multiprocessing``, whose spawn re-imports the parent's main script: a node's, with rclpy and
 torch), as the adaptation's training process is. This module imports only the standard
 library at the top; the child lowers its priority, then imports the checks' code (numpy,
@@ -37,7 +37,7 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from ..child_process import receive, send
-from ..priority import idle_policy, lower_priority
+from ..priority import lower_priority
 
 
 def collected(check: Any) -> int:
@@ -97,7 +97,7 @@ def _warm_up() -> None:
     """One thread for numpy's BLAS and OpenCV (the child stays on one core, whatever it does),
     and the checks' code imported now, while the node waits for its stream: a check's first
     sample then finds the process ready (imported at the first one, the time offset check's
-    correction came a keyframe later in a paced replay)."""
+    correction came 1-3 keyframes later in a paced replay)."""
     for name in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
         os.environ[name] = '1'
     import cv2
@@ -112,10 +112,8 @@ def _warm_up() -> None:
 
 
 def main(argv: list[str]) -> int:
-    fd, nice, idle = (int(a) for a in argv)
+    fd, nice = (int(a) for a in argv)
     lower_priority(nice)
-    if idle:
-        idle_policy()  # where refused, the niceness alone holds it back
     # Ctrl+C to the process group is the node's to handle; it ends this process as it shuts
     # down, and a node that dies closes the pipe.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
