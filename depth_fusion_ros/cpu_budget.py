@@ -28,10 +28,11 @@ from pathlib import Path
 #: How a process's descendants are named: after it, with this (the single-view node's are its
 #: training process).
 CHILDREN = "'s child processes"
-#: Said of the training process in ``depth-fusion run``'s line.
-TRAINING = ' (the training, at idle priority)'
-#: Said of the calibration checks' process (``nodes/check_process.py``).
-CHECKS = ' (the calibration checks)'
+#: What a node's child processes are, by the node (``child_role``): the single-view node's
+#: training runs at idle priority, so its CPU is what the nodes left, not their cost.
+TRAINING = 'the training, at idle priority'
+CHECKS = 'the calibration checks'
+CHILD_ROLES = {'single_view': TRAINING, 'multi_view': CHECKS, 'graph': f'{TRAINING}; {CHECKS}'}
 #: Clock ticks per second of ``/proc/PID/stat``'s times.
 TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
 #: Seconds between two walks of each process's tree (:func:`descendants`); the descendants
@@ -44,25 +45,14 @@ TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
 TREE_REFRESH_S = 5.0
 
 
-def child_note(name: str) -> str:
-    """What a budget line's child processes are, said after its name in ``depth-fusion run``'s
-    line: the single-view node's is the training (at idle priority, so its CPU is what the nodes
-    left), the multi-view node's the calibration checks (``calibration_checks.nice``), the
-    composed graph's both."""
+def child_role(name: str) -> str:
+    """What a budget line's child processes are ('' for a node's own process, or a node with no
+    such child): the single-view node's training, the multi-view node's calibration checks
+    (``calibration_checks.process``), the composed graph's both. A kernel builder below the
+    fusion node is named nothing it does not earn."""
     if not name.endswith(CHILDREN):
         return ''
-    if name.startswith('single_view'):
-        return TRAINING
-    if name.startswith('multi_view'):
-        return CHECKS
-    return f' ({TRAINING[2:-1]}; the calibration checks)' if name.startswith('graph') else ''
-
-
-def is_training(name: str) -> bool:
-    """Whether a budget line is the adaptation's training process: the child processes of the
-    single-view node, or composed, of the graph's one process (a kernel builder too, while one
-    runs). It runs at idle priority, so its CPU is what the nodes left, not their cost."""
-    return name.endswith(CHILDREN) and name.startswith(('single_view', 'graph'))
+    return CHILD_ROLES.get(name.removesuffix(CHILDREN), '')
 
 
 def descendants(pid: int | str = 'self') -> list[int]:
@@ -186,7 +176,7 @@ def budget_line(cpu: CpuSampler, fused: int, cores: int | None = None) -> str | 
     if not used or end <= start:
         return None
     parts = [
-        f'{name}{child_note(name)} {1e3 * seconds / fused:.0f} ms'
+        f'{name}{f" ({role})" if (role := child_role(name)) else ""} {1e3 * seconds / fused:.0f} ms'
         for name, seconds in sorted(used.items(), key=lambda item: -item[1])
     ]
     cores = cores or os.cpu_count() or 1

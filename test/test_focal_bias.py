@@ -98,7 +98,7 @@ def test_frames_combine_as_the_filter_weighs_them():
     ],
 )
 def test_the_uncertainty_is_what_the_focal_check_verified(verdict, scale, stderr, corrected, expected):
-    estimate = SimpleNamespace(verdict=verdict, scale=scale, stderr=stderr)
+    estimate = SimpleNamespace(verdict=verdict, scale=scale, stderr=stderr, lens_distorted=False)
     assert focal_uncertainty(estimate, 0.1, corrected) == pytest.approx(expected)
     assert focal_uncertainty(None, 0.1, False) == 0.1  # not read yet: the prior
     assert focal_uncertainty(estimate, 0.0, corrected) == 0.0  # 0: off
@@ -134,7 +134,7 @@ def test_an_early_agreement_bounds_the_uncertainty_until_the_result():
     assert focal_uncertainty(None, 0.1, False, wide) == 0.1  # never above the prior
     unsure = SimpleNamespace(verdict='unobservable', scale=1.0, stderr=0.001)
     assert focal_uncertainty(None, 0.1, False, unsure) == 0.1
-    final = SimpleNamespace(verdict='unobservable', scale=0.86, stderr=0.181)
+    final = SimpleNamespace(verdict='unobservable', scale=0.86, stderr=0.181, lens_distorted=False)
     assert focal_uncertainty(final, 0.1, False, early) == pytest.approx(0.181)
     assert focal_uncertainty(None, 0.0, False, early) == 0.0  # 0: off
 

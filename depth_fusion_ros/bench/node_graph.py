@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cpu_budget import CHILDREN, CpuSampler, descendants, is_training
+from ..cpu_budget import CpuSampler, child_role, descendants
 from . import BenchOptions, BenchRow, load_note
 
 TITLE = 'node graph (replayer -> multi-view + single-view -> fusion, real DDS)'
@@ -444,17 +444,9 @@ def cpu_rows(mode: str, cpu: CpuSampler, window: tuple[float, float, int] | None
 
 
 def _child_note(name: str) -> str:
-    """What a row's child processes are (``cpu_budget.child_note``), at more length."""
-    if name.startswith('multi_view') and name.endswith(CHILDREN):
-        return "; the calibration checks' process, at calibration_checks.nice"
-    if not is_training(name):
-        return ''
-    if name.startswith('graph'):
-        return (
-            "; the adaptation's training process, at idle priority: what the others leave, and "
-            "the calibration checks' process"
-        )
-    return "; the adaptation's training process, at idle priority: what the others leave"
+    """What a row's child processes are (``cpu_budget.child_role``)."""
+    role = child_role(name)
+    return f'; {role}' if role else ''
 
 
 def node_latencies(result, log_dir: Path | None) -> dict[str, float]:

@@ -90,7 +90,7 @@ def focal_uncertainty(
     """
     if prior == 0.0:
         return 0.0
-    if estimate is not None and getattr(estimate, 'lens_distorted', False):
+    if estimate is not None and estimate.lens_distorted:
         return max(prior, _verified(estimate, prior, corrected))
     if estimate is None:
         if early is None or early.verdict != 'consistent' or not math.isfinite(early.stderr):

@@ -40,7 +40,7 @@ from ..child_process import receive, send
 from ..priority import lower_priority
 
 
-def collected(check: Any) -> int:
+def pairs_held(check: Any) -> int:
     """The pairs a check holds: a list of pairs (the paired checks) or their count (the time
     offset check)."""
     pairs = getattr(check, 'pairs', 0)
@@ -71,7 +71,7 @@ def _feed(check: Any, method: str, args: tuple) -> tuple:
     except Exception as exc:  # the parent's runner raises it on its thread, as a local check would
         return ('error', f'{type(exc).__name__}: {exc}', time.thread_time() - started)
     cpu = time.thread_time() - started
-    return ('fed', result, getattr(check, 'early', None), collected(check), cpu)
+    return ('fed', result, getattr(check, 'early', None), pairs_held(check), cpu)
 
 
 def serve(conn: Connection) -> None:

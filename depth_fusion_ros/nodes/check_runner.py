@@ -36,6 +36,7 @@ from typing import Any
 from ..camera import PinholeCamera
 from ..data.sequence import Frame
 from .check_process import CheckProcess, CheckProcessLostError
+from .check_process_main import pairs_held
 from .params import build_dataclass
 
 #: How long a check's thread waits for the keyframe path at most before each sample (s): under
@@ -117,8 +118,7 @@ class CheckRunner:
         remote = self._remote_collected
         if remote is not None and remote[0] is check:
             return remote[1]
-        pairs = check.pairs
-        return len(pairs) if isinstance(pairs, list) else int(pairs)
+        return pairs_held(check)
 
     def _sample_pose_of(self, item: Any) -> Any:
         """The pose of ``item`` when it is a sample (``None``: not one): the reference of the next."""
