@@ -164,6 +164,40 @@ def test_edges_along_the_epipolar_line_are_not_searched():
     assert attempts[FilterConfig().min_epipolar_gradient] == 0
 
 
+def _striped_wall(camera: PinholeCamera, x: float, depth: float, period_px: float) -> np.ndarray:
+    """A fronto-parallel wall ``depth`` m away, seen from ``x`` m along it: wavy near-vertical
+    stripes ``period_px`` pixels apart, their contrast varying slowly (rendered exactly: the
+    same wall point has the same grey in every frame)."""
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
+    X = x + (u - camera.cx) * depth / camera.fx
+    Y = (v - camera.cy) * depth / camera.fy
+    phase = 2 * np.pi * X / (period_px * depth / camera.fx) + 0.8 * np.sin(2 * np.pi * Y / 0.4)
+    contrast = 0.25 + 0.1 * np.sin(2 * np.pi * X / 0.53) + 0.05 * np.sin(2 * np.pi * Y / 0.23)
+    return (0.5 + contrast * np.tanh(2.5 * np.sin(phase))).astype(np.float32)
+
+
+def test_a_texture_that_repeats_along_the_line_gives_no_estimates_rather_than_wrong_ones():
+    """``filter.first_check_px``: stripes 3 px apart, crossed by every epipolar line (sideways
+    motion). The whole-range search's coarse samples land on a neighbouring stripe, and the
+    short searches around it find a stripe in every frame: unchecked, every published estimate
+    is wrong, about a third of the wall's depth. Checked at one sample a pixel, no first
+    measurement is distinct, and nothing is published."""
+    camera = PinholeCamera(160, 120, 120.0, 120.0, 79.5, 59.5)
+    depth = 3.0
+    published = {}
+    for check in (0.0, FilterConfig().first_check_px):
+        f = DepthFilter(camera, FilterConfig(first_check_px=check))
+        for k in range(20):
+            pose = np.eye(4)
+            pose[0, 3] = 0.02 * k  # 2 cm sideways a frame, 0.8 px of the stripes
+            f.process(_striped_wall(camera, pose[0, 3], depth, 3.0), pose)
+        d = f.result(pose).depth
+        published[check] = d[np.isfinite(d) & (d > 0)]
+    unchecked, checked = published[0.0], published[FilterConfig().first_check_px]
+    assert unchecked.size > 500 and (np.abs(unchecked / depth - 1) > 0.2).mean() > 0.9
+    assert (np.abs(checked / depth - 1) > 0.2).sum() <= 0.02 * unchecked.size
+
+
 def test_converged_pixels_are_left_alone(synthetic_sequence, monkeypatch):
     """REMODE: a frame that cannot shrink a pixel's variance does not search it."""
     seq = synthetic_sequence

@@ -79,6 +79,16 @@ class FilterConfig:
     #: this baseline / scene depth: from a short baseline the whole range spans a few pixels,
     #: and a wrong first measurement is then confirmed by the short searches around it.
     seed_parallax: float = 0.03
+    #: A first measurement (a birth, a filled hole, an estimate carried across a jump) is searched
+    #: again over +- this many pixels around its match, one sample a pixel, and counts only when
+    #: no other minimum there comes within ``first_check_distinctiveness`` of it: on a texture
+    #: that repeats along the line every few pixels, the first match (from a whole-range search's
+    #: coarse samples, or a neighbours' prior) is a neighbouring period as often as not, and the
+    #: later short searches confirm it (``filter_first_check``). 0: off
+    first_check_px: float = 10.0
+    #: The distinctiveness (``1 - c1 / c2``, as ``min_distinctiveness``) a first measurement
+    #: needs within ``first_check_px``
+    first_check_distinctiveness: float = 0.2
     #: A match whose cost (1 - ZNCC) is above this is a failed observation (an outlier vote).
     max_cost: float = 0.4
     #: New pixels (long search) need a distinct minimum: modified second-best ratio at least this.
@@ -200,6 +210,8 @@ class FilterConfig:
             ('refine_samples', self.refine_samples >= 1, '>= 1'),
             ('seed_parallax', self.seed_parallax >= 0, '>= 0'),
             ('seed_attempts', self.seed_attempts >= 1, '>= 1'),
+            ('first_check_px', 0 <= self.first_check_px <= 100, 'in [0, 100]'),
+            ('first_check_distinctiveness', 0 <= self.first_check_distinctiveness <= 1, 'in [0, 1]'),
             ('max_cost', 0 < self.max_cost <= 2, 'in (0, 2]'),
             ('init_a', self.init_a > 0, 'positive'),
             ('init_b', self.init_b > 0, 'positive'),

@@ -18,6 +18,7 @@ import torch
 from ..true_indices import true_indices
 from .filter_bracket import bracket_seeds
 from .filter_buckets import bucket_members, search_buckets
+from .filter_first_check import check_first_matches
 from .filter_geometry import FrameGeometry, frame_geometry, grid_rows_in_place, row_motion
 from .filter_keyframe import FilterKeyframe
 from .filter_matches import Matches, apply_matches, measurement_variance
@@ -95,6 +96,7 @@ def _update_rows(
         valid &= ~bracketed | inside
     valid &= (x >= rho_min) & (x <= rho_max)
     valid &= j_x > 1e-6
+    valid = check_first_matches(filt, key, rows, desc, a_r, geo, x, j_x, valid)
     apply_matches(filt, key, Matches(rows, x, j_x, cost, f_r), valid, baseline)
     return seen
 

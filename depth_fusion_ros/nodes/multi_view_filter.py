@@ -52,6 +52,8 @@ FILTER_LIMITS: dict[str, Any] = {
     'refine_samples': (1, 64),
     'seed_parallax': (0.0, None),
     'seed_attempts': (1, 1000),
+    'first_check_px': (0.0, 100.0),
+    'first_check_distinctiveness': (0.0, 1.0),
     'max_cost': (0.0, 2.0),
     'min_distinctiveness': (0.0, 1.0),
     'init_a': (1e-3, None),
