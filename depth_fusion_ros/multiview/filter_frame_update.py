@@ -2,9 +2,10 @@
 
 Step 2 of ``filter.py``'s flow. Cheap per-pixel tests on every keyframe pixel first pick
 the rows the frame can teach something (:func:`choose_rows`); only those are searched
-along their epipolar line (:func:`search_rows`, in buckets by interval length) and fused
-(``filter_matches``: the Gaussian x uniform update of the rows that matched), so the frame's cost
-follows the pixels that still need it, not the candidate count.
+along their epipolar line (:func:`search_rows`, in buckets by interval length), a row's first
+measurement is checked once more at one sample a pixel (``filter_first_check``), and the
+matches are fused (``filter_matches``: the Gaussian x uniform update of the rows that matched),
+so the frame's cost follows the pixels that still need it, not the candidate count.
 """
 
 from __future__ import annotations
