@@ -18,9 +18,10 @@ estimate carried across a jump) is searched again over +- ``first_check_px`` pix
 match at one sample a pixel, and counts only where no other minimum there comes within
 ``first_check_distinctiveness`` of the best (``1 - c1 / c2``, the whole-range search's own
 test, ``min_distinctiveness``, which its coarse samples cannot apply to a repeat a few pixels
-long). A birth that fails is not born (the pixel is searched again in a later frame, where the
-line may cross the texture differently); a prior that fails takes an outlier vote, as a match
-that failed.
+long). Where it counts, the window's best is the measurement: the coarse search's match may
+lie beside it, or on a weaker repeat. A birth that fails is not born (the pixel is searched
+again in a later frame, where the line may cross the texture differently); a prior that fails
+takes an outlier vote, as a match that failed.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from ..true_indices import true_indices
-from .filter_geometry import FrameGeometry, grid_rows_in_place
+from .filter_geometry import FrameGeometry, grid_rows_in_place, row_motion
 from .filter_keyframe import FilterKeyframe
 
 if TYPE_CHECKING:
@@ -49,7 +50,8 @@ def check_first_matches(
     valid: torch.Tensor,
 ) -> torch.Tensor:
     """``valid`` (per searched row, changed in place) less the first measurements whose match
-    is not distinct within ``first_check_px`` pixels (see module).
+    is not distinct within ``first_check_px`` pixels (see module); where it is, the match ``x``
+    becomes the best of that window and ``j_x`` the motion there (both changed in place).
 
     ``rows``: the searched keyframe rows; ``desc``: the frame's descriptors; ``a_r``: the rows'
     projections at infinity (3, R) in the frame ``geo`` describes; ``x``, ``j_x``: each
@@ -77,4 +79,8 @@ def check_first_matches(
         with_distinctiveness=True,
     )
     distinct = found.ok & (found.distinct >= c.first_check_distinctiveness)
+    # The window's best, not the first match: a coarse search that landed beside the minimum
+    # (or on a weaker repeat within the window) is put right by the samples a pixel apart.
+    x.index_copy_(0, first, torch.where(distinct, found.rho, match))
+    j_x.index_copy_(0, first, row_motion(a_r.index_select(1, first), geo.b, x.index_select(0, first)))
     return valid.index_copy_(0, first, distinct)
