@@ -78,7 +78,11 @@ def check_first_matches(
         filt._chunk_elements,
         with_distinctiveness=True,
     )
+    # The whole window is searched, also where it reaches past the inverse-depth range (clamped,
+    # it would see less of a repeat); its best is a measurement only inside the range.
+    rho_min, rho_max = filt.rho_range
     distinct = found.ok & (found.distinct >= c.first_check_distinctiveness)
+    distinct &= (found.rho >= rho_min) & (found.rho <= rho_max)
     # The window's best, not the first match: a coarse search that landed beside the minimum
     # (or on a weaker repeat within the window) is put right by the samples a pixel apart.
     x.index_copy_(0, first, torch.where(distinct, found.rho, match))
