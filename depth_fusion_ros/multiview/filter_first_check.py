@@ -47,11 +47,13 @@ def check_first_matches(
     geo: FrameGeometry,
     x: torch.Tensor,
     j_x: torch.Tensor,
+    cost: torch.Tensor,
     valid: torch.Tensor,
 ) -> torch.Tensor:
     """``valid`` (per searched row, changed in place) less the first measurements whose match
     is not distinct within ``first_check_px`` pixels (see module); where it is, the match ``x``
-    becomes the best of that window and ``j_x`` the motion there (both changed in place).
+    becomes the best of that window, ``j_x`` the motion there and ``cost`` its cost (all three
+    changed in place: the measurement and what is recorded of it agree).
 
     ``rows``: the searched keyframe rows; ``desc``: the frame's descriptors; ``a_r``: the rows'
     projections at infinity (3, R) in the frame ``geo`` describes; ``x``, ``j_x``: each
@@ -86,5 +88,6 @@ def check_first_matches(
     # The window's best, not the first match: a coarse search that landed beside the minimum
     # (or on a weaker repeat within the window) is put right by the samples a pixel apart.
     x.index_copy_(0, first, torch.where(distinct, found.rho, match))
+    cost.index_copy_(0, first, torch.where(distinct, found.cost, cost.index_select(0, first)))
     j_x.index_copy_(0, first, row_motion(a_r.index_select(1, first), geo.b, x.index_select(0, first)))
     return valid.index_copy_(0, first, distinct)

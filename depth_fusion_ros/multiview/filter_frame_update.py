@@ -97,7 +97,7 @@ def _update_rows(
         valid &= ~bracketed | inside
     valid &= (x >= rho_min) & (x <= rho_max)
     valid &= j_x > 1e-6
-    valid = check_first_matches(filt, key, rows, desc, a_r, geo, x, j_x, valid)
+    valid = check_first_matches(filt, key, rows, desc, a_r, geo, x, j_x, cost, valid)
     apply_matches(filt, key, Matches(rows, x, j_x, cost, f_r), valid, baseline)
     return seen
 
