@@ -67,6 +67,17 @@ def test_confidence_weights_and_threshold():
     assert 2.0 < z < 2.04  # 0.9:0.3 weighting puts it at 2.025, an unweighted mean at 2.05
 
 
+@pytest.mark.parametrize(('power', 'expected'), [(1.0, 2.025), (2.0, 2.010)])
+def test_confidence_power_weights_the_confident_depth_more(power, expected):
+    """Weights 0.9 and 0.3 to the power: 2.025 m linearly, 2.010 m squared (0.81 against 0.09)."""
+    tsdf = TorchTSDF(MapConfig(engine='torch', voxel_size=0.04, min_weight=0.0, confidence_power=power))
+    tsdf.integrate(_wall(2.0), LOOK_DOWN_Z, CAMERA, confidence=np.full(_wall().shape, 0.9, np.float32))
+    tsdf.integrate(_wall(2.1), LOOK_DOWN_Z, CAMERA, confidence=np.full(_wall().shape, 0.3, np.float32))
+    assert abs(np.median(tsdf.mesh().vertices[:, 2]) - expected) < 0.004
+    with pytest.raises(ValueError, match=r'map\.confidence_power'):
+        MapConfig(confidence_power=0.0).validate()
+
+
 def test_depth_range_and_nan_are_left_out():
     tsdf = TorchTSDF(MapConfig(engine='torch', max_depth=3.0))
     depth = _wall(4.0)
@@ -175,7 +186,8 @@ def test_integration_matches_the_per_voxel_formula_at_image_edges_and_behind_the
     T[:3, 3] = [0.1, -0.05, 0.02]
     tsdf = TorchTSDF(MapConfig(engine='torch', voxel_size=0.05, min_depth=0.1, min_weight=0.0))
     updated = tsdf.integrate(depth, T, camera, confidence=confidence, rgb=rgb)
-    weights = np.where((depth >= 0.1) & (depth <= 6.0), confidence, 0.0)
+    # The weight is the confidence to the default power, 2.
+    weights = np.where((depth >= 0.1) & (depth <= 6.0), confidence.astype(np.float64) ** 2, 0.0)
     upd, t, w, c, z = _reference_update(tsdf, depth, weights, rgb, T, camera)
     b = tsdf.n_blocks
     got_w = tsdf.weight[:b].reshape(-1).numpy()

@@ -35,6 +35,12 @@ class MapConfig:
     #: Pixels whose confidence is below this are left out; the rest are weighted by confidence.
     #: 0: the consistency test below decides which pixels enter, the confidence only weights them.
     min_confidence: float = 0.0
+    #: A pixel's integration weight is its confidence to this power (torch engine; Open3D weighs
+    #: every pixel 1). The fused confidence falls off slowly with the depth's error (docs/fusion.md:
+    #: a pixel 10x less confident is about 3x less accurate), so a voxel seen by a few confident
+    #: pixels and many doubtful ones took the doubtful ones' depth; squared, the confident ones
+    #: decide where they exist (docs/mapping.md, "Weights that follow the error").
+    confidence_power: float = 2.0
     #: Keyframes before and after each keyframe that its depth is checked against
     #: (mapping/consistency.py); the map lags this many keyframes. 0: no check.
     consistency_span: int = 2
@@ -45,8 +51,9 @@ class MapConfig:
     #: A voxel's weight stops growing here, so a changed scene can still overwrite it.
     max_weight: float = 50.0
     #: Surface extraction keeps voxels observed with at least this accumulated weight (the fused
-    #: confidence, times the agreement factor since 2026-11-27: docs/mapping.md).
-    min_weight: float = 0.05
+    #: confidence, times the agreement factor since 2026-11-27, to ``confidence_power``:
+    #: docs/mapping.md; 0.05 while the weight was the confidence itself).
+    min_weight: float = 0.002
     #: Pixel stride of the block allocation pass: 4 px are 9 cm at 6 m (320 px wide, 60° field of
     #: view), well inside one 32 cm block, so no block is missed.
     allocation_stride: int = 4
@@ -87,6 +94,11 @@ class MapConfig:
             ('max_blocks', self.max_blocks >= 1, 'must be >= 1'),
             ('block_size', 2 <= self.block_size <= 32, 'must be in [2, 32]'),
             ('min_confidence', 0 <= self.min_confidence <= 1, 'must be in [0, 1]'),
+            (
+                'confidence_power',
+                0.01 <= self.confidence_power <= 8,
+                'must be in [0.01, 8]',
+            ),
             ('consistency_span', 0 <= self.consistency_span <= 10, 'must be in [0, 10]'),
             ('consistency_tolerance', 0 < self.consistency_tolerance < 1, 'must be in (0, 1)'),
             (
@@ -121,6 +133,8 @@ MAP_PARAMETER_DESCRIPTIONS = {
     'block_size': 'voxels along each edge of a block',
     'min_confidence': 'pixels whose fused confidence is below this are left out; the rest are weighted '
     'by their confidence (0: the consistency test decides which pixels enter)',
+    'confidence_power': "a pixel's integration weight is its confidence to this power (torch engine; "
+    'Open3D weighs every pixel 1)',
     'consistency_span': 'keyframes before and after each keyframe that its depth is checked against before '
     'integration (the map lags this many keyframes; save_map and shutdown integrate the rest); 0 = off',
     'consistency_tolerance': 'a pixel agrees with another keyframe when the depth it lands on there is '

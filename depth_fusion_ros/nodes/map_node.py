@@ -81,6 +81,7 @@ MAP_LIMITS: dict[str, Any] = {
     'max_blocks': (1, 10_000_000),
     'block_size': (2, 32),
     'min_confidence': (0.0, 1.0),
+    'confidence_power': (0.01, 8.0),
     'consistency_span': (0, 10),
     'consistency_tolerance': (1e-3, 0.999),
     'consistency_views': (1, 20),
