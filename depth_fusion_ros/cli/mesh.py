@@ -24,7 +24,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('map_file', help='a map file written by map_node (map_file, ~/save_map)')
     p.add_argument('--out', required=True, help='the .ply to write')
     p.add_argument('--overwrite', action='store_true', help='replace the .ply if it exists')
-    weight = 'voxels observed with less accumulated weight are left out (default: map.min_weight)'
+    weight = (
+        'voxels observed with less accumulated weight are left out (default: map.min_weight, for a '
+        'file of an earlier map.confidence_power the threshold of the same single observation)'
+    )
     p.add_argument('--min-weight', type=float, default=None, help=weight)
     blocks = at_least(1, '--max-blocks')
     p.add_argument('--max-blocks', type=blocks, default=10000, help='most blocks extracted at once (10000)')
@@ -34,8 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ..mapping.config import MapConfig
-    from ..mapping.map_file import file_blocks, read_state
+    from ..mapping.config import MapConfig, min_weight_at_power
+    from ..mapping.map_file import file_blocks, file_power, read_state
     from ..mapping.ply import write_ply
     from ..mapping.slab_surface import slab_mesh
     from .paths import OutputPathError, check_new_file
@@ -57,7 +60,13 @@ def run(args: argparse.Namespace) -> int:
     except OutputPathError as exc:
         print(f'depth-fusion mesh: {exc}', file=sys.stderr)
         return 2
-    min_weight = MapConfig().min_weight if args.min_weight is None else args.min_weight
+    # A file whose weights are another power of the confidence (one written before
+    # map.confidence_power: 1) gets the default threshold of the same single observation.
+    default = MapConfig()
+    power = file_power(state)
+    min_weight = args.min_weight
+    if min_weight is None:
+        min_weight = min_weight_at_power(default.min_weight, default.confidence_power, power)
     grid = file_blocks(state, min_weight)
 
     mesh = slab_mesh(grid.coords, grid.rows, args.max_blocks)

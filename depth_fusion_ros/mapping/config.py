@@ -122,6 +122,15 @@ class MapConfig:
         return self
 
 
+def min_weight_at_power(min_weight: float, power: float, other_power: float) -> float:
+    """``min_weight``, set for weights that are the confidence to ``power``, for weights that are
+    the confidence to ``other_power`` (a map file saved with another ``confidence_power``): the
+    threshold of the same single observation, ``min_weight ** (1 / power)`` of confidence."""
+    if min_weight <= 0 or other_power == power:
+        return min_weight
+    return float(min_weight ** (other_power / power))
+
+
 #: Descriptions of the fields, for the node's parameter table.
 MAP_PARAMETER_DESCRIPTIONS = {
     'voxel_size': 'edge of one TSDF voxel (m)',

@@ -33,6 +33,7 @@ files still load.
 from __future__ import annotations
 
 import io
+import logging
 import os
 import struct
 from collections.abc import Callable
@@ -46,6 +47,8 @@ from .block_surface import BlockGrid
 from .file_pages import unmap_pages
 from .keyframe_store import KeyframeStore
 from .torch_tsdf import TorchTSDF
+
+log = logging.getLogger(__name__)
 
 FORMAT = 'depth_fusion_ros.tsdf/2'
 #: The whole-file ``torch.save`` of earlier releases (still read).
@@ -128,6 +131,8 @@ def save_tsdf(
         'voxel_size': float(engine.config.voxel_size),
         'block_size': int(engine.config.block_size),
         'truncation': float(engine.trunc),
+        # What the weights are: the confidence to this power (files without it: 1, before 2026-12-06).
+        'confidence_power': float(engine.config.confidence_power),
         'world_frame': world_frame,
         'parts': {name: int(c.shape[0]) for name, (c, _) in parts.items()},
     }
@@ -226,6 +231,12 @@ def unmap_file_pages(state: dict) -> None:
         unmap_pages(mapped)
 
 
+def file_power(state: dict) -> float:
+    """The power of the confidence that a read map's weights are (1 for files written before
+    ``map.confidence_power``)."""
+    return float(state.get('confidence_power', 1.0))
+
+
 def file_blocks(state: dict, min_weight: float, part: str = '') -> BlockGrid:
     """The blocks of a :func:`read_state` map (CPU), surface voxels needing ``min_weight``;
     ``part='base'``: the fixed base saved beside the kept keyframes instead of the map."""
@@ -246,6 +257,16 @@ def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = 
             f'map file {path}: {state["voxel_size"] * 100:g} cm voxels in blocks of {state["block_size"]}, '
             f'map_node is configured for {cfg.voxel_size * 100:g} cm in blocks of {cfg.block_size} '
             "(set map.voxel_size and map.block_size to the file's)"
+        )
+    power = file_power(state)
+    if power != cfg.confidence_power:
+        log.warning(
+            'map file %s: its weights are the confidence to the power %g, new keyframes weigh it to %g '
+            '(map.confidence_power): its voxels count %s than new observations until overwritten',
+            path,
+            power,
+            cfg.confidence_power,
+            'more' if power < cfg.confidence_power else 'less',
         )
     n = int(state['coords'].shape[0])
     if n > cfg.max_blocks and not cfg.archive:
