@@ -114,6 +114,17 @@ def test_wrong_sizes_and_bad_config_are_refused():
         MapConfig(engine='nvblox').validate()
 
 
+def test_open3d_chosen_says_what_it_does_not_do(monkeypatch):
+    """Open3D takes no per-pixel weights and has no archive: its line says both (as if installed)."""
+    from depth_fusion_ros.mapping import engine
+
+    monkeypatch.setattr(engine, 'open3d_available', lambda: None)
+    open3d, note = engine._choose(MapConfig(engine='open3d'))
+    assert open3d and 'no archive' in note and 'map.confidence_power unused' in note
+    _, note = engine._choose(MapConfig(engine='open3d', confidence_power=1.0, archive=False))
+    assert note == 'TSDF engine: open3d (VoxelBlockGrid) on cpu'
+
+
 def test_engine_choice_says_what_it_picked():
     engine, note = make_map_direct(MapConfig(engine='torch'))
     assert engine.name == 'torch' and 'torch' in note
