@@ -11,7 +11,14 @@ from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
 from depth_fusion_ros.mapping.config import MapConfig, min_weight_at_power
 from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, rebuild
-from depth_fusion_ros.mapping.map_file import file_power, load_map, load_tsdf, read_state, save_tsdf
+from depth_fusion_ros.mapping.map_file import (
+    file_min_weight,
+    file_power,
+    load_map,
+    load_tsdf,
+    read_state,
+    save_tsdf,
+)
 from depth_fusion_ros.mapping.torch_tsdf import TorchTSDF
 from depth_fusion_ros.pose_corrections import CorrectionLimits, Posing
 
@@ -155,6 +162,9 @@ def test_a_map_saved_at_another_confidence_power_says_so_and_meshes_at_its_own_t
     path = tmp_path / 'old.tsdf'
     save_tsdf(old, path, 'world')
     assert file_power(read_state(path)) == 1.0
+    assert file_min_weight(read_state(path), MapConfig()) == pytest.approx(
+        0.002**0.5
+    )  # mesh and load_map's base
     # 0.002 of squared confidence is 0.0447 of plain confidence: the one look at 0.04 is under both.
     assert min_weight_at_power(0.002, 2.0, 1.0) == pytest.approx(0.002**0.5)
     assert main(['mesh', str(path), '--out', str(tmp_path / 'a.ply')]) == 1

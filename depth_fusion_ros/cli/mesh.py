@@ -37,8 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ..mapping.config import MapConfig, min_weight_at_power
-    from ..mapping.map_file import file_blocks, file_power, read_state
+    from ..mapping.config import MapConfig
+    from ..mapping.map_file import file_blocks, file_min_weight, read_state
     from ..mapping.ply import write_ply
     from ..mapping.slab_surface import slab_mesh
     from .paths import OutputPathError, check_new_file
@@ -60,13 +60,9 @@ def run(args: argparse.Namespace) -> int:
     except OutputPathError as exc:
         print(f'depth-fusion mesh: {exc}', file=sys.stderr)
         return 2
-    # A file whose weights are another power of the confidence (one written before
-    # map.confidence_power: 1) gets the default threshold of the same single observation.
-    default = MapConfig()
-    power = file_power(state)
-    min_weight = args.min_weight
-    if min_weight is None:
-        min_weight = min_weight_at_power(default.min_weight, default.confidence_power, power)
+    # A file saved at another map.confidence_power (before it: 1) gets the default threshold of
+    # the same single observation.
+    min_weight = file_min_weight(state, MapConfig()) if args.min_weight is None else args.min_weight
     grid = file_blocks(state, min_weight)
 
     mesh = slab_mesh(grid.coords, grid.rows, args.max_blocks)

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from .block_surface import BlockGrid
+from .config import MapConfig, min_weight_at_power
 from .file_pages import unmap_pages
 from .keyframe_store import KeyframeStore
 from .torch_tsdf import TorchTSDF
@@ -237,6 +238,13 @@ def file_power(state: dict) -> float:
     return float(state.get('confidence_power', 1.0))
 
 
+def file_min_weight(state: dict, config: MapConfig) -> float:
+    """``config.min_weight`` for a read map's own weights: the threshold of the same single
+    observation where the file was saved at another ``confidence_power`` (``mesh`` and the
+    fixed base of :func:`load_map` extract it with this)."""
+    return min_weight_at_power(config.min_weight, config.confidence_power, file_power(state))
+
+
 def file_blocks(state: dict, min_weight: float, part: str = '') -> BlockGrid:
     """The blocks of a :func:`read_state` map (CPU), surface voxels needing ``min_weight``;
     ``part='base'``: the fixed base saved beside the kept keyframes instead of the map."""
@@ -283,7 +291,8 @@ def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = 
     kept = state.get('store')
     if store is None or kept is None or not kept.get('keyframes') or store.max_bytes <= 0:
         # Nothing to rebuild from: all of it is the fixed base, which stays in the file's mapping.
-        return LoadedMap(world_frame, file_blocks(state, cfg.min_weight), 0)
+        return LoadedMap(world_frame, file_blocks(state, file_min_weight(state, cfg)), 0)
     restored = store.restore(kept)
-    base = file_blocks(state, cfg.min_weight, 'base') if state.get('base') is not None else None
+    has_base = state.get('base') is not None
+    base = file_blocks(state, file_min_weight(state, cfg), 'base') if has_base else None
     return LoadedMap(world_frame, base, restored)
