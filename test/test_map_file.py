@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-from depth_fusion_ros.mapping.config import MapConfig, min_weight_at_power
+from depth_fusion_ros.mapping.config import MapConfig, min_weight_for
 from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, rebuild
 from depth_fusion_ros.mapping.map_file import (
     file_min_weight,
@@ -148,27 +148,29 @@ def test_depth_fusion_mesh_writes_the_mesh_of_a_map_file(saved_map, tmp_path, ca
     assert main(['mesh', str(path), '--out', str(out), '--overwrite']) == 0
 
 
-def test_a_map_saved_at_another_confidence_power_says_so_and_meshes_at_its_own_threshold(tmp_path, caplog):
-    """The file records what its weights are (the confidence to ``map.confidence_power``); a
-    node that weighs new keyframes otherwise says so in one line, and ``depth-fusion mesh``
-    extracts an older file at the threshold of the same single observation."""
+def test_a_map_saved_with_other_weights_says_so_and_meshes_at_its_own_threshold(tmp_path, caplog):
+    """The file records what its weights are (the confidence to ``map.confidence_power`` over the
+    depth to ``map.depth_power``); a node that weighs new keyframes otherwise says so in one line,
+    and ``depth-fusion mesh`` extracts an older file at the threshold of the same single
+    observation at 2.5 m."""
     from depth_fusion_ros.cli.main import main
 
     depth = np.full((36, 48), 1.5, np.float32)
-    confidence = np.full(depth.shape, 0.04, np.float32)  # one look: 0.04, squared 0.0016
+    confidence = np.full(depth.shape, 0.04, np.float32)  # one look: 0.04
     camera = PinholeCamera(48, 36, 40.0, 40.0, 23.5, 17.5)
-    old = TorchTSDF(MapConfig(voxel_size=0.05, engine='torch', confidence_power=1.0))
+    old = TorchTSDF(MapConfig(voxel_size=0.05, engine='torch', confidence_power=1.0, depth_power=0.0))
     old.integrate(depth, np.eye(4), camera, confidence=confidence)
     path = tmp_path / 'old.tsdf'
     save_tsdf(old, path, 'world')
-    assert file_power(read_state(path)) == 1.0
-    assert file_min_weight(read_state(path), MapConfig()) == pytest.approx(
-        0.002**0.5
-    )  # mesh and load_map's base
-    # 0.002 of squared confidence is 0.0447 of plain confidence: the one look at 0.04 is under both.
-    assert min_weight_at_power(0.002, 2.0, 1.0) == pytest.approx(0.002**0.5)
+    assert file_power(read_state(path)) == (1.0, 0.0)
+    # The default 0.00032 of squared confidence over squared depth is 0.002 of squared confidence
+    # at 2.5 m, 0.0447 of plain confidence: the one look at 0.04 is under both.
+    assert file_min_weight(read_state(path), MapConfig()) == pytest.approx(0.002**0.5)  # mesh, load_map
+    assert min_weight_for(MapConfig(), 2.0, 0.0) == pytest.approx(0.002)
+    assert min_weight_for(MapConfig(), 2.0, 2.0) == MapConfig().min_weight
     assert main(['mesh', str(path), '--out', str(tmp_path / 'a.ply')]) == 1
     assert main(['mesh', str(path), '--out', str(tmp_path / 'b.ply'), '--min-weight', '0.03']) == 0
     with caplog.at_level('WARNING'):
         load_tsdf(TorchTSDF(MapConfig(voxel_size=0.05, engine='torch')), path)
-    assert 'the confidence to the power 1, new keyframes weigh it to 2' in caplog.text
+    said = 'the confidence to the power 1 over the depth to 0, new keyframes weigh them 2 and 2'
+    assert said in caplog.text

@@ -78,6 +78,23 @@ def test_confidence_power_weights_the_confident_depth_more(power, expected):
         MapConfig(confidence_power=0.0).validate()
 
 
+@pytest.mark.parametrize(('depth_power', 'expected'), [(0.0, 1.050), (2.0, 1.018)])
+def test_depth_power_weights_the_nearer_view_more(depth_power, expected):
+    """The same wall seen at 1 m and, 10 cm off, at 2.1 m (equally confident): an unweighted
+    mean puts it at 1.05 m, weights 1 / z^2 (1 against 0.227) at 1.018 m."""
+    tsdf = TorchTSDF(MapConfig(engine='torch', voxel_size=0.04, min_weight=0.0, depth_power=depth_power))
+    confident = np.full(_wall().shape, 0.9, np.float32)
+    tsdf.integrate(_wall(1.0), LOOK_DOWN_Z, CAMERA, confidence=confident)
+    back = np.eye(4)
+    back[2, 3] = -1.0  # one metre further back
+    tsdf.integrate(_wall(2.1), back, CAMERA, confidence=confident)
+    v = tsdf.mesh().vertices
+    middle = v[(np.abs(v[:, 0]) < 0.4) & (np.abs(v[:, 1]) < 0.3)]
+    assert len(middle) > 100 and abs(np.median(middle[:, 2]) - expected) < 0.004
+    with pytest.raises(ValueError, match=r'map\.depth_power'):
+        MapConfig(depth_power=-1.0).validate()
+
+
 def test_depth_range_and_nan_are_left_out():
     tsdf = TorchTSDF(MapConfig(engine='torch', max_depth=3.0))
     depth = _wall(4.0)
@@ -120,8 +137,9 @@ def test_open3d_chosen_says_what_it_does_not_do(monkeypatch):
 
     monkeypatch.setattr(engine, 'open3d_available', lambda: None)
     open3d, note = engine._choose(MapConfig(engine='open3d'))
-    assert open3d and 'no archive' in note and 'map.confidence_power unused' in note
-    _, note = engine._choose(MapConfig(engine='open3d', confidence_power=1.0, archive=False))
+    assert open3d and 'no archive' in note and 'map.confidence_power and map.depth_power unused' in note
+    plain = MapConfig(engine='open3d', confidence_power=1.0, depth_power=0.0, archive=False)
+    _, note = engine._choose(plain)
     assert note == 'TSDF engine: open3d (VoxelBlockGrid) on cpu'
 
 
@@ -197,8 +215,9 @@ def test_integration_matches_the_per_voxel_formula_at_image_edges_and_behind_the
     T[:3, 3] = [0.1, -0.05, 0.02]
     tsdf = TorchTSDF(MapConfig(engine='torch', voxel_size=0.05, min_depth=0.1, min_weight=0.0))
     updated = tsdf.integrate(depth, T, camera, confidence=confidence, rgb=rgb)
-    # The weight is the confidence to the default power, 2.
+    # The weight is the confidence to the default power, 2, over the depth to its default, 2.
     weights = np.where((depth >= 0.1) & (depth <= 6.0), confidence.astype(np.float64) ** 2, 0.0)
+    weights /= np.where(np.isfinite(depth), depth.astype(np.float64), 1.0) ** 2
     upd, t, w, c, z = _reference_update(tsdf, depth, weights, rgb, T, camera)
     b = tsdf.n_blocks
     got_w = tsdf.weight[:b].reshape(-1).numpy()

@@ -26,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--overwrite', action='store_true', help='replace the .ply if it exists')
     weight = (
         'voxels observed with less accumulated weight are left out (default: map.min_weight, for a '
-        'file of an earlier map.confidence_power the threshold of the same single observation)'
+        'file saved with other weights (map.confidence_power, map.depth_power) the threshold of the same '
+        'single observation at 2.5 m)'
     )
     p.add_argument('--min-weight', type=float, default=None, help=weight)
     blocks = at_least(1, '--max-blocks')
@@ -60,8 +61,8 @@ def run(args: argparse.Namespace) -> int:
     except OutputPathError as exc:
         print(f'depth-fusion mesh: {exc}', file=sys.stderr)
         return 2
-    # A file saved at another map.confidence_power (before it: 1) gets the default threshold of
-    # the same single observation.
+    # A file saved with other weights (an earlier map.confidence_power or map.depth_power) gets the
+    # default threshold of the same single observation.
     min_weight = file_min_weight(state, MapConfig()) if args.min_weight is None else args.min_weight
     grid = file_blocks(state, min_weight)
 

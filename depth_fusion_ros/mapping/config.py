@@ -41,6 +41,11 @@ class MapConfig:
     #: pixels and many doubtful ones took the doubtful ones' depth; squared, the confident ones
     #: decide where they exist (docs/mapping.md, "Weights that follow the error").
     confidence_power: float = 2.0
+    #: ... divided by its depth (m) to this power (torch engine). The fused confidence ranks a
+    #: pixel's error relative to its depth, while a voxel averages distances in metres: a pixel twice
+    #: as far off in metres counts a quarter, as in voxblox's 1 / z^2 (docs/mapping.md, "Weights in
+    #: metres"). 0: the confidence alone.
+    depth_power: float = 2.0
     #: Keyframes before and after each keyframe that its depth is checked against
     #: (mapping/consistency.py); the map lags this many keyframes. 0: no check.
     consistency_span: int = 2
@@ -51,9 +56,11 @@ class MapConfig:
     #: A voxel's weight stops growing here, so a changed scene can still overwrite it.
     max_weight: float = 50.0
     #: Surface extraction keeps voxels observed with at least this accumulated weight (the fused
-    #: confidence, times the agreement factor since 2026-11-27, to ``confidence_power``:
-    #: docs/mapping.md; 0.05 while the weight was the confidence itself).
-    min_weight: float = 0.002
+    #: confidence, times the agreement factor since 2026-11-27, to ``confidence_power``, over the
+    #: depth to ``depth_power``: docs/mapping.md). One observation at :data:`REFERENCE_DEPTH_M`
+    #: needs the confidence it needed before the depth term (0.002 of confidence squared; 0.05 while
+    #: the weight was the confidence itself).
+    min_weight: float = 0.00032
     #: Pixel stride of the block allocation pass: 4 px are 9 cm at 6 m (320 px wide, 60° field of
     #: view), well inside one 32 cm block, so no block is missed.
     allocation_stride: int = 4
@@ -99,6 +106,7 @@ class MapConfig:
                 0.01 <= self.confidence_power <= 8,
                 'must be in [0.01, 8]',
             ),
+            ('depth_power', 0 <= self.depth_power <= 4, 'must be in [0, 4]'),
             ('consistency_span', 0 <= self.consistency_span <= 10, 'must be in [0, 10]'),
             ('consistency_tolerance', 0 < self.consistency_tolerance < 1, 'must be in (0, 1)'),
             (
@@ -122,13 +130,22 @@ class MapConfig:
         return self
 
 
-def min_weight_at_power(min_weight: float, power: float, other_power: float) -> float:
-    """``min_weight``, set for weights that are the confidence to ``power``, for weights that are
-    the confidence to ``other_power`` (a map file saved with another ``confidence_power``): the
-    threshold of the same single observation, ``min_weight ** (1 / power)`` of confidence."""
-    if min_weight <= 0 or other_power == power:
-        return min_weight
-    return float(min_weight ** (other_power / power))
+#: The depth (m) at which ``map.min_weight`` keeps the single observation it kept before the
+#: depth term (0.002 of squared confidence, 2026-12-06): 0.00032 = 0.002 / 2.5^2. A map file saved
+#: with other weights is extracted at the threshold of that same observation.
+REFERENCE_DEPTH_M = 2.5
+
+
+def min_weight_for(config: MapConfig, power: float, depth_power: float) -> float:
+    """``config.min_weight`` for weights that are the confidence to ``power`` over the depth to
+    ``depth_power`` (a map file saved with other weights): the threshold of the same single
+    observation at :data:`REFERENCE_DEPTH_M`."""
+    same = power == config.confidence_power and depth_power == config.depth_power
+    if config.min_weight <= 0 or same:
+        return config.min_weight
+    at_reference = config.min_weight * REFERENCE_DEPTH_M**config.depth_power  # confidence to its power
+    confidence = at_reference ** (1.0 / config.confidence_power)
+    return float(confidence**power / REFERENCE_DEPTH_M**depth_power)
 
 
 #: Descriptions of the fields, for the node's parameter table.
@@ -144,13 +161,16 @@ MAP_PARAMETER_DESCRIPTIONS = {
     'by their confidence (0: the consistency test decides which pixels enter)',
     'confidence_power': "a pixel's integration weight is its confidence to this power (torch engine; "
     'Open3D weighs every pixel 1)',
+    'depth_power': "a pixel's integration weight is also divided by its depth (m) to this power, so that "
+    'it weighs a distance in metres (voxblox weighs 1/z^2; torch engine; 0 = the confidence alone)',
     'consistency_span': 'keyframes before and after each keyframe that its depth is checked against before '
     'integration (the map lags this many keyframes; save_map and shutdown integrate the rest); 0 = off',
     'consistency_tolerance': 'a pixel agrees with another keyframe when the depth it lands on there is '
     'within this fraction of its own',
     'consistency_views': 'other keyframes that must agree before a pixel is integrated',
     'max_weight': 'a voxel weight stops growing here (a changed scene can still overwrite it)',
-    'min_weight': 'surface extraction keeps voxels observed with at least this accumulated weight',
+    'min_weight': 'surface extraction keeps voxels observed with at least this accumulated weight (the '
+    'default keeps one observation of confidence 0.045 at 2.5 m, 0.018 at 1 m)',
     'allocation_stride': 'pixel stride of the block allocation pass',
     'archive': 'evicted blocks go to a file on disk and come back when a keyframe needs them again; '
     '~/save_map and map_file hold them (torch engine; false: evicted blocks are dropped)',

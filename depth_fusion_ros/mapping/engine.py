@@ -97,8 +97,8 @@ def _choose(config: MapConfig) -> tuple[bool, str]:
     if missing is None:
         archive = '; no archive: blocks evicted past map.max_blocks are lost' if config.archive else ''
         # Its integration takes no per-pixel weights: the confidence only selects (min_confidence).
-        unused = config.confidence_power != 1
-        weights = '; every pixel weighs 1 (map.confidence_power unused)' if unused else ''
+        unused = config.confidence_power != 1 or config.depth_power != 0
+        weights = '; every pixel weighs 1 (map.confidence_power and map.depth_power unused)' if unused else ''
         return True, f'TSDF engine: open3d (VoxelBlockGrid) on {config.device}{archive}{weights}'
     if wanted == 'auto':
         return False, f'TSDF engine: torch on {config.device} (auto; Open3D not installed)'

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from .block_surface import BlockGrid
-from .config import MapConfig, min_weight_at_power
+from .config import MapConfig, min_weight_for
 from .file_pages import unmap_pages
 from .keyframe_store import KeyframeStore
 from .torch_tsdf import TorchTSDF
@@ -134,6 +134,8 @@ def save_tsdf(
         'truncation': float(engine.trunc),
         # What the weights are: the confidence to this power (files without it: 1, before 2026-12-06).
         'confidence_power': float(engine.config.confidence_power),
+        # ... over the depth to this power (files without it: 0).
+        'depth_power': float(engine.config.depth_power),
         'world_frame': world_frame,
         'parts': {name: int(c.shape[0]) for name, (c, _) in parts.items()},
     }
@@ -232,17 +234,17 @@ def unmap_file_pages(state: dict) -> None:
         unmap_pages(mapped)
 
 
-def file_power(state: dict) -> float:
-    """The power of the confidence that a read map's weights are (1 for files written before
-    ``map.confidence_power``)."""
-    return float(state.get('confidence_power', 1.0))
+def file_power(state: dict) -> tuple[float, float]:
+    """What a read map's weights are: the powers of the confidence and of the depth (1 and 0 for
+    files written before ``map.confidence_power``, 0 for the depth before ``map.depth_power``)."""
+    return float(state.get('confidence_power', 1.0)), float(state.get('depth_power', 0.0))
 
 
 def file_min_weight(state: dict, config: MapConfig) -> float:
     """``config.min_weight`` for a read map's own weights: the threshold of the same single
-    observation where the file was saved at another ``confidence_power`` (``mesh`` and the
-    fixed base of :func:`load_map` extract it with this)."""
-    return min_weight_at_power(config.min_weight, config.confidence_power, file_power(state))
+    observation where the file was saved with other weights (``mesh`` and the fixed base of
+    :func:`load_map` extract it with this)."""
+    return min_weight_for(config, *file_power(state))
 
 
 def file_blocks(state: dict, min_weight: float, part: str = '') -> BlockGrid:
@@ -267,14 +269,15 @@ def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = 
             "(set map.voxel_size and map.block_size to the file's)"
         )
     power = file_power(state)
-    if power != cfg.confidence_power:
+    if power != (cfg.confidence_power, cfg.depth_power):
         log.warning(
-            'map file %s: its weights are the confidence to the power %g, new keyframes weigh it to %g '
-            '(map.confidence_power): its voxels count %s than new observations until overwritten',
+            'map file %s: its weights are the confidence to the power %g over the depth to %g, new keyframes '
+            'weigh them %g and %g (map.confidence_power, map.depth_power): its voxels and new observations '
+            'do not count alike until overwritten',
             path,
-            power,
+            *power,
             cfg.confidence_power,
-            'more' if power < cfg.confidence_power else 'less',
+            cfg.depth_power,
         )
     n = int(state['coords'].shape[0])
     if n > cfg.max_blocks and not cfg.archive:

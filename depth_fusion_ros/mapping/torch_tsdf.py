@@ -16,7 +16,8 @@ Integration of one keyframe (projective TSDF, as KinectFusion / Open3D):
 1. allocate the blocks around every observed surface point (``± truncation`` along the ray);
 2. project the voxels of those blocks into the depth image (nearest pixel);
 3. ``sdf = depth - z``; voxels with ``sdf > -truncation`` get ``tsdf = min(1, sdf/truncation)``
-   averaged with weight = pixel confidence to ``confidence_power`` (capped at ``max_weight``).
+   averaged with weight = pixel confidence to ``confidence_power`` over its depth to
+   ``depth_power`` (capped at ``max_weight``).
 
 Cost (docs/mapping.md has the profile): on a CPU the per-element work is cheap and what costs
 is the irregular work, so the voxels are gathered and written with ``index_select`` and
@@ -242,16 +243,20 @@ class TorchTSDF:
         cfg = self.config
         valid = (d >= cfg.min_depth) & (d <= cfg.max_depth)
         if confidence is None:
-            return valid.to(torch.float32)
-        c = torch.as_tensor(confidence, dtype=torch.float32, device=d.device)
-        if c.shape != d.shape:
-            raise ValueError(f'confidence is {tuple(c.shape)}, depth is {tuple(d.shape)}')
-        c = torch.nan_to_num(c, nan=0.0).clamp_(0.0, 1.0)
-        valid &= c >= cfg.min_confidence
-        if cfg.confidence_power != 1.0:  # the weight follows the error more steeply (MapConfig)
-            c.pow_(cfg.confidence_power)
-        # c in [0, 1] times 0 or 1 is exact: the weight is c where valid and 0 elsewhere.
-        return c.mul_(valid)
+            w = valid.to(torch.float32)
+        else:
+            c = torch.as_tensor(confidence, dtype=torch.float32, device=d.device)
+            if c.shape != d.shape:
+                raise ValueError(f'confidence is {tuple(c.shape)}, depth is {tuple(d.shape)}')
+            c = torch.nan_to_num(c, nan=0.0).clamp_(0.0, 1.0)
+            valid &= c >= cfg.min_confidence
+            if cfg.confidence_power != 1.0:  # the weight follows the error more steeply (MapConfig)
+                c.pow_(cfg.confidence_power)
+            # c in [0, 1] times 0 or 1 is exact: the weight is c where valid and 0 elsewhere.
+            w = c.mul_(valid)
+        if cfg.depth_power != 0:  # a distance in metres: its error grows with the depth (MapConfig)
+            w.div_(torch.where(valid, d, 1.0).clamp_(min=1e-3).pow_(cfg.depth_power))
+        return w
 
     def _allocate(
         self, d: torch.Tensor, w: torch.Tensor, T: torch.Tensor, camera: PinholeCamera

@@ -82,6 +82,7 @@ MAP_LIMITS: dict[str, Any] = {
     'block_size': (2, 32),
     'min_confidence': (0.0, 1.0),
     'confidence_power': (0.01, 8.0),
+    'depth_power': (0.0, 4.0),
     'consistency_span': (0, 10),
     'consistency_tolerance': (1e-3, 0.999),
     'consistency_views': (1, 20),
