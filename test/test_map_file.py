@@ -13,7 +13,7 @@ from depth_fusion_ros.mapping.config import MapConfig, min_weight_for
 from depth_fusion_ros.mapping.keyframe_store import KeyframeStore, rebuild
 from depth_fusion_ros.mapping.map_file import (
     file_min_weight,
-    file_power,
+    file_powers,
     load_map,
     load_tsdf,
     read_state,
@@ -162,7 +162,7 @@ def test_a_map_saved_with_other_weights_says_so_and_meshes_at_its_own_threshold(
     old.integrate(depth, np.eye(4), camera, confidence=confidence)
     path = tmp_path / 'old.tsdf'
     save_tsdf(old, path, 'world')
-    assert file_power(read_state(path)) == (1.0, 0.0)
+    assert file_powers(read_state(path)) == (1.0, 0.0)
     # The default 0.00032 of squared confidence over squared depth is 0.002 of squared confidence
     # at 2.5 m, 0.0447 of plain confidence: the one look at 0.04 is under both.
     assert file_min_weight(read_state(path), MapConfig()) == pytest.approx(0.002**0.5)  # mesh, load_map

@@ -17,6 +17,14 @@ from dataclasses import dataclass
 ENGINES = ('auto', 'torch', 'open3d')
 
 
+#: The depth (m) at which ``map.min_weight``'s default keeps the single observation it kept
+#: before the depth term (0.002 of squared confidence, 2026-12-06). A map file saved with other
+#: weights is extracted at the threshold of that same observation.
+REFERENCE_DEPTH_M = 2.5
+#: ``map.min_weight`` before the depth term: one observation of confidence 0.045.
+_SQUARED_CONFIDENCE_MIN_WEIGHT = 0.002
+
+
 @dataclass
 class MapConfig:
     """TSDF map parameters (voxel size, truncation, depth range, memory cap, weighting)."""
@@ -60,7 +68,7 @@ class MapConfig:
     #: depth to ``depth_power``: docs/mapping.md). One observation at :data:`REFERENCE_DEPTH_M`
     #: needs the confidence it needed before the depth term (0.002 of confidence squared; 0.05 while
     #: the weight was the confidence itself).
-    min_weight: float = 0.00032
+    min_weight: float = _SQUARED_CONFIDENCE_MIN_WEIGHT / REFERENCE_DEPTH_M**2  # 0.00032
     #: Pixel stride of the block allocation pass: 4 px are 9 cm at 6 m (320 px wide, 60° field of
     #: view), well inside one 32 cm block, so no block is missed.
     allocation_stride: int = 4
@@ -128,12 +136,6 @@ class MapConfig:
             if not ok:
                 raise ValueError(f'map.{name}={getattr(self, name)!r}: {why}')
         return self
-
-
-#: The depth (m) at which ``map.min_weight`` keeps the single observation it kept before the
-#: depth term (0.002 of squared confidence, 2026-12-06): 0.00032 = 0.002 / 2.5^2. A map file saved
-#: with other weights is extracted at the threshold of that same observation.
-REFERENCE_DEPTH_M = 2.5
 
 
 def min_weight_for(config: MapConfig, power: float, depth_power: float) -> float:

@@ -234,7 +234,7 @@ def unmap_file_pages(state: dict) -> None:
         unmap_pages(mapped)
 
 
-def file_power(state: dict) -> tuple[float, float]:
+def file_powers(state: dict) -> tuple[float, float]:
     """What a read map's weights are: the powers of the confidence and of the depth (1 and 0 for
     files written before ``map.confidence_power``, 0 for the depth before ``map.depth_power``)."""
     return float(state.get('confidence_power', 1.0)), float(state.get('depth_power', 0.0))
@@ -244,7 +244,7 @@ def file_min_weight(state: dict, config: MapConfig) -> float:
     """``config.min_weight`` for a read map's own weights: the threshold of the same single
     observation where the file was saved with other weights (``mesh`` and the fixed base of
     :func:`load_map` extract it with this)."""
-    return min_weight_for(config, *file_power(state))
+    return min_weight_for(config, *file_powers(state))
 
 
 def file_blocks(state: dict, min_weight: float, part: str = '') -> BlockGrid:
@@ -268,7 +268,7 @@ def load_map(engine: TorchTSDF, path: str | Path, store: KeyframeStore | None = 
             f'map_node is configured for {cfg.voxel_size * 100:g} cm in blocks of {cfg.block_size} '
             "(set map.voxel_size and map.block_size to the file's)"
         )
-    power = file_power(state)
+    power = file_powers(state)
     if power != (cfg.confidence_power, cfg.depth_power):
         log.warning(
             'map file %s: its weights are the confidence to the power %g over the depth to %g, new keyframes '
