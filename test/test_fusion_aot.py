@@ -52,6 +52,8 @@ def built_cache(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv('XDG_CACHE_HOME', str(root))
         mp.delenv(aot_kernels.ENV_SWITCH, raising=False)
+        # what a node on 2 cores has set (nodes/threads.py), and so its builder inherits
+        mp.setenv('OMP_NUM_THREADS', '1')
         aot_kernels.forget_loaded()
         config = FusionConfig(mode='fast', compile_kernel=True, max_points=512)
         assert start_kernels(node, config, background=True, build_ahead=True).compile_kernel is False
@@ -97,6 +99,25 @@ def test_built_kernels_are_found_and_give_the_eager_numbers(cache, built_cache):
         assert np.array_equal(finite, np.isfinite(ahead.offset))
         np.testing.assert_allclose(ahead.offset[finite], eager.offset[finite], atol=2e-5)
         np.testing.assert_allclose(ahead.support_distance[finite], eager.support_distance[finite], rtol=1e-4)
+
+
+def test_kernels_built_in_a_one_thread_process_run_on_the_callers_threads(cache):
+    """The builder ran with ``OMP_NUM_THREADS=1`` (the fixture): its libraries must still hold
+    a parallel loop (an OpenMP region sized at run time), or every process that loads them
+    fuses on one core whatever its ``torch.set_num_threads``. The numbers do not depend on it."""
+    for name in aot_kernels.KERNELS:
+        library = aot_kernels.package_path(name, PARAMS, CPU).read_bytes()
+        assert b'GOMP_parallel' in library, f'{name}: built without a parallel loop'
+    scene = make_scene(96, 72, n_points=300, seed=4)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = _fuse(scene, True, 'exact')
+        torch.set_num_threads(2)
+        two = _fuse(scene, True, 'exact')
+    finally:
+        torch.set_num_threads(threads)
+    np.testing.assert_allclose(two.offset, one.offset, atol=1e-6, equal_nan=True)
 
 
 def test_one_point_and_other_parameters_take_the_other_paths(cache):

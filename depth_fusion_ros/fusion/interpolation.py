@@ -286,9 +286,15 @@ _COMPILE_FAILED: set[str] = set()
 #: never split the one-pass loop by materialising an intermediate of size (pixels, Ω), which
 #: inductor does by default for an expression read more than 4 times (the weight is read
 #: by the five sums: three loops and two 64 MB buffers per chunk instead of one loop).
+#: C++: the loops' thread count is the caller's at run time (``#pragma omp parallel`` without
+#: ``num_threads``; torch's OpenMP runtime, which ``torch.set_num_threads`` sets), not the
+#: builder's: without it a build in a one-thread process (a fusion node's background builder,
+#: ``OMP_NUM_THREADS=1``) emitted no parallel loop at all, and every process that loaded that
+#: library fused on one core (exact 0.167 s at 2 threads against 0.089 s; docs/performance.md).
 _INDUCTOR_OPTIONS = {
     'cpp.enable_floating_point_contract_flag': 'fast',
     'realize_reads_threshold': 1 << 20,
+    'cpp.dynamic_threads': True,
 }
 
 #: On a CPU the kernel is called through inductor's C++ wrapper: the default Python wrapper's
