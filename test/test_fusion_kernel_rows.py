@@ -12,7 +12,8 @@ import functools
 
 import torch
 
-from depth_fusion_ros.fusion.interpolation import MIN_KERNEL_ROWS, _chunk_sums_inplace, _offsets_at
+from depth_fusion_ros.fusion.chunk_sums import chunk_sums_inplace
+from depth_fusion_ros.fusion.interpolation import MIN_KERNEL_ROWS, _offsets_at
 from depth_fusion_ros.fusion.weights import WeightParams, samples_at
 
 PARAMS = WeightParams()
@@ -30,7 +31,7 @@ def test_one_pixel_is_computed_in_a_padded_call_with_the_batch_numbers() -> None
     points = samples_at(torch.tensor([3, 40, 77, 150, 181]), WIDTH, s, gx, gy)
     v = torch.tensor([0.1, -0.2, 0.05, 0.3, -0.1])
     rows_seen: list[int] = []
-    eager = functools.partial(_chunk_sums_inplace, params=PARAMS)
+    eager = functools.partial(chunk_sums_inplace, params=PARAMS)
 
     def kernel(p, q, v, lw):
         rows_seen.append(int(p.x.shape[0]))

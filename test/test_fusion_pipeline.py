@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from depth_fusion_ros.fusion import interpolation
-from depth_fusion_ros.fusion.interpolation import (
-    _chunk_sums_inplace,
-    _chunk_sums_one_pass,
-    _exp_nonpositive,
-    _no_one_pass,
-    _one_pass_kernel,
-    interpolate,
+from depth_fusion_ros.fusion import chunk_sums, kernel_compile
+from depth_fusion_ros.fusion.chunk_sums import (
+    chunk_sums_inplace,
+    chunk_sums_one_pass,
+    exp_nonpositive,
+    no_one_pass,
+    one_pass_kernel,
 )
+from depth_fusion_ros.fusion.interpolation import interpolate
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
 from depth_fusion_ros.fusion.scenes import make_scene
 from depth_fusion_ros.fusion.weights import (
@@ -258,7 +258,7 @@ def test_compiled_and_eager_kernels_compute_the_same_sums(weights: str, point_we
     lw = torch.log(0.05 + torch.rand(1, 300, generator=g)).clamp_max(0) if point_weights else None
     params = WeightParams(weights=weights)
     reference = _reference_sums(p, q, v, params, lw)
-    for a, b in zip(reference, _chunk_sums_inplace(p, q, v, lw, params), strict=True):
+    for a, b in zip(reference, chunk_sums_inplace(p, q, v, lw, params), strict=True):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-5 * float(a.abs().max()))
 
 
@@ -267,8 +267,8 @@ def test_polynomial_exp_is_within_the_sums_own_float32_error() -> None:
     a float32 sum over 2000 points is of that order), and exactly 1 at 0."""
     x = -torch.linspace(0, 60, 200_001)
     ref = torch.exp(x.double())
-    assert float(((_exp_nonpositive(x).double() - ref) / ref).abs().max()) < interpolation.EXP_RTOL
-    assert float(_exp_nonpositive(torch.zeros(8))[0]) == 1.0
+    assert float(((exp_nonpositive(x).double() - ref) / ref).abs().max()) < chunk_sums.EXP_RTOL
+    assert float(exp_nonpositive(torch.zeros(8))[0]) == 1.0
 
 
 def test_polynomial_exp_keeps_its_accuracy_when_compiled() -> None:
@@ -276,12 +276,12 @@ def test_polynomial_exp_keeps_its_accuracy_when_compiled() -> None:
     differently), the exp's range reduction and exponent-bit scale keep the polynomial's accuracy."""
     x = -torch.linspace(0, 60, 20_001)
     ref = torch.exp(x.double())
-    options = interpolation._inductor_options(torch.device('cpu'))  # outside the try: a bad call fails
+    options = kernel_compile.inductor_options(torch.device('cpu'))  # outside the try: a bad call fails
     try:
-        compiled = torch.compile(_exp_nonpositive, dynamic=False, options=options)(x)
+        compiled = torch.compile(exp_nonpositive, dynamic=False, options=options)(x)
     except Exception as exc:  # no C++ toolchain: the eager fallback is what runs, tested above
         pytest.skip(f'torch.compile unavailable here: {exc}')
-    assert float(((compiled.double() - ref) / ref).abs().max()) < interpolation.EXP_RTOL
+    assert float(((compiled.double() - ref) / ref).abs().max()) < chunk_sums.EXP_RTOL
 
 
 @pytest.mark.parametrize('point_weights', [False, True])
@@ -301,16 +301,16 @@ def test_one_pass_sums_equal_the_two_pass_kernel(weights: str, n_points: int, po
     p, q, v = samples(64).column(), samples(n_points).row(), torch.randn(n_points, generator=g)
     lw = torch.log(0.05 + torch.rand(1, n_points, generator=g)).clamp_max(0) if point_weights else None
     params = WeightParams(weights=weights)
-    one_pass = _one_pass_kernel(lambda *a: _chunk_sums_one_pass(*a, params), params, chunk_elements=50)
-    no_compiler = _one_pass_kernel(_no_one_pass, params, chunk_elements=50)  # two-pass in blocks
-    reference = _chunk_sums_inplace(p, q, v, lw, params)
+    one_pass = one_pass_kernel(lambda *a: chunk_sums_one_pass(*a, params), params, chunk_elements=50)
+    no_compiler = one_pass_kernel(no_one_pass, params, chunk_elements=50)  # two-pass in blocks
+    reference = chunk_sums_inplace(p, q, v, lw, params)
     # The one-pass kernel's exp is EXP_RTOL-accurate: a sum whose terms cancel (v of both signs)
     # carries that error relative to its terms, Σ W̃|v| (min-subtracted, plus the min's share).
-    terms = _chunk_sums_inplace(p, q, v.abs(), lw, params)[0] + reference[3] * v.abs().sum()
+    terms = chunk_sums_inplace(p, q, v.abs(), lw, params)[0] + reference[3] * v.abs().sum()
     magnitudes = (terms, *reference[1:])
     for kernel in (one_pass, no_compiler):
         for a, b, m in zip(kernel(p, q, v, lw), reference, magnitudes, strict=True):
-            exp_error = 2 * interpolation.EXP_RTOL * m.abs()
+            exp_error = 2 * chunk_sums.EXP_RTOL * m.abs()
             assert bool(((a - b).abs() <= 1e-5 * b.abs() + 1e-6 * float(b.abs().max()) + exp_error).all())
 
 
@@ -322,11 +322,11 @@ def test_a_failing_compiler_falls_back_to_the_eager_kernel(monkeypatch: pytest.M
         return call
 
     monkeypatch.setattr(torch, 'compile', broken_compile)
-    monkeypatch.setattr(interpolation, '_COMPILED', {})
-    monkeypatch.setattr(interpolation, '_COMPILE_FAILED', set())
+    monkeypatch.setattr(kernel_compile, 'COMPILED', {})
+    monkeypatch.setattr(kernel_compile, 'COMPILE_FAILED', set())
     sc = make_scene(40, 30, n_points=25)
     omega = np.isfinite(sc.multi)
     eager = interpolate(sc.single, sc.multi, omega, chunk_elements=100)
     fallen = interpolate(sc.single, sc.multi, omega, chunk_elements=100, compile_kernel=True)
-    assert 'cpu' in interpolation._COMPILE_FAILED
+    assert 'cpu' in kernel_compile.COMPILE_FAILED
     assert np.allclose(eager.offset, fallen.offset, atol=1e-6, equal_nan=True)

@@ -40,7 +40,7 @@ except ImportError:  # not POSIX: builds are not serialised (each builds; the re
     fcntl = None  # type: ignore[assignment]
 
 from ..user_cache import user_cache
-from . import interpolation, weights
+from . import chunk_sums, interpolation, kernel_compile, weights
 from .weights import Samples, WeightParams
 
 log = logging.getLogger(__name__)
@@ -77,7 +77,7 @@ def _cpu_flags() -> str:
 @functools.cache
 def _source_digest() -> str:
     digest = hashlib.sha256()
-    for module in (interpolation, weights):
+    for module in (chunk_sums, interpolation, weights):
         digest.update(Path(module.__file__).read_bytes())
     return digest.hexdigest()
 
@@ -97,8 +97,8 @@ def package_path(name: str, params: WeightParams, device: torch.device) -> Path:
         _cpu_flags(),
         _source_digest(),
         # the options as written, not as this torch filters them: no inductor import on a lookup
-        repr(sorted(interpolation._INDUCTOR_OPTIONS.items())),
-        repr(sorted(interpolation._CPU_INDUCTOR_OPTIONS.items())) if device.type == 'cpu' else '',
+        repr(sorted(kernel_compile.INDUCTOR_OPTIONS.items())),
+        repr(sorted(kernel_compile.CPU_INDUCTOR_OPTIONS.items())) if device.type == 'cpu' else '',
     ):
         digest.update(str(part).encode())
     return cache_dir() / f'fusion_{name}_{digest.hexdigest()[:20]}.so'
@@ -108,7 +108,7 @@ def _sums_module(params: WeightParams) -> torch.nn.Module:
     class Sums(torch.nn.Module):
         def forward(self, px, py, ps, pgx, pgy, qx, qy, qs, qgx, qgy, v, lw):
             p, q = Samples(px, py, ps, pgx, pgy), Samples(qx, qy, qs, qgx, qgy)
-            return interpolation._chunk_sums_one_pass(p, q, v, lw, params)
+            return chunk_sums.chunk_sums_one_pass(p, q, v, lw, params)
 
     return Sums()
 
@@ -155,7 +155,7 @@ def build(params: WeightParams, device: torch.device | str = 'cpu') -> dict[str,
             package = torch._inductor.aoti_compile_and_package(
                 program,
                 package_path=str(Path(work) / 'kernel.pt2'),
-                inductor_configs=interpolation._inductor_options(device),
+                inductor_configs=kernel_compile.inductor_options(device),
             )
             _take_library(Path(package), target)
         seconds[name] = time.perf_counter() - start
@@ -301,7 +301,7 @@ def kernel(name: str, params: WeightParams, device: torch.device) -> Callable | 
             # One point is a size the package does not take: two passes. (One pixel never comes:
             # interpolation._offsets_at pads a call to MIN_KERNEL_ROWS.)
             if q.x.shape[-1] < 2:
-                return interpolation._no_one_pass()
+                return chunk_sums.no_one_pass()
             lw = torch.zeros_like(q.x) if lw is None else lw  # + 0 leaves every exponent as it was
             return tuple(loaded(*p, *q, v, lw))
 

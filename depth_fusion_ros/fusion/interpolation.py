@@ -18,11 +18,9 @@ normalised weights sum to one, so this module computes the *offset field* ``f - 
   exactly. The cost falls by about ``fast_stride²``; the error against exact is measured by
   the ``fused_fast`` evaluation method and the benchmark.
 
-``compile_kernel`` runs the per-chunk kernel and the corner blend through ``torch.compile``;
-the eager path uses an in-place two-pass kernel. The compiled kernel makes ONE pass over Ω
-per pixel (``ΣW̃v``, ``ΣW̃``, ``ΣW̃d``, ``min W̃`` and ``Σd`` in one loop, the min subtracted
-afterwards, which is exact algebra) with a polynomial exp as accurate as float32's own: it is
-bound by the three exponentials per weight, and nothing of size (pixels, Ω) touches memory.
+The per-chunk sums are :mod:`.chunk_sums`' (an in-place two-pass kernel in eager torch, a
+one-pass kernel to compile). ``compile_kernel`` runs that one and the corner blend as fused
+loops (:mod:`.kernel_compile`: built ahead of time, or ``torch.compile``).
 
 With ``certainty_floor`` > 0 every offset is also multiplied by ``ΣW̃ / (ΣW̃ + κ)``
 (:func:`certainty_share`), in the exact sums, so the fast mode blends faded offsets.
@@ -43,9 +41,9 @@ import numpy as np
 import torch
 
 from ..chunking import effective_chunk_elements
-from ..compile_lock import COMPILE_LOCK, compile_serialised
+from . import kernel_compile
+from .chunk_sums import chunk_sums_inplace, chunk_sums_one_pass, no_one_pass, one_pass_kernel
 from .weights import (
-    MAX_EXPONENT,
     Samples,
     WeightParams,
     depth_gradients,
@@ -106,123 +104,6 @@ def confidence_from_support(support_distance: np.ndarray, sigma1: float) -> np.n
     return np.nan_to_num(conf, nan=0.0).astype(np.float32)
 
 
-def _chunk_sums_inplace(
-    p: Samples, q: Samples, v: torch.Tensor, lw: torch.Tensor | None, params: WeightParams
-) -> tuple[torch.Tensor, ...]:
-    """Pixels ``p`` (C, 1) against points ``q`` (1, Q), with ``W' = W̃ - min W̃`` and
-    ``d = ‖p - q‖``: ``(ΣW'v, ΣW', ΣW'd, min W̃)`` per pixel, in place on two (C, Q) buffers.
-
-    The formulas of :mod:`.weights` (a test compares them), streamed through memory as few
-    times as eager torch allows. ``lw``: the points' log weights (1, Q), or None (all 1).
-    """
-    dx = q.x - p.x
-    dy = q.y - p.y
-    distance = torch.hypot(dx, dy)
-    w = torch.mul(distance, -1.0 / params.sigma1)
-    if lw is not None:
-        w.add_(lw)
-    w = w.clamp_(min=-MAX_EXPONENT).exp_()
-    if params.use_w2:
-        t = torch.sub(q.gx, p.gx).abs_().add_(params.sigma2)
-        w.div_(t.mul_(torch.sub(q.gy, p.gy).abs_().add_(params.sigma2)))
-    if params.use_w34:
-        offset = p.s - q.s
-        for grad, delta in ((p.gx, dx), (p.gy, dy)):
-            torch.addcmul(offset, grad, delta, out=delta)  # delta is not needed after this
-            delta.abs_().clamp_(max=MAX_EXPONENT).neg_().exp_().add_(params.sigma3)
-            w.mul_(delta)
-    low = w.amin(dim=1, keepdim=True)
-    w.sub_(low)
-    return w @ v, w.sum(dim=1), w.mul_(distance).sum(dim=1), low.squeeze(1)
-
-
-#: exp(r) on |r| <= ln(2)/2: degree-4 minimax coefficients of the relative error, c0..c4, c0
-#: held at 1 so that exp(0) is exactly 1 (float32 evaluation 2.9e-6 relative; float32's own exp
-#: 6e-8). Why not the float32-accurate degree 6 (1e-7): each weight feeds sums over |Ω| points
-#: (2000 by default) that float32 accumulates with a rounding error of the same order (about
-#: sqrt(|Ω|) ulp, 3e-6), and the exact fusion's offsets move by 2.8e-7 m on the bench scene,
-#: while the kernel runs 1.15-1.2x faster on 2 threads (degree 5 is as slow as 6: docs/performance.md).
-_EXP_MINIMAX = (
-    1.0,
-    0.9999668598175049,
-    0.5000301599502563,
-    0.16787473857402802,
-    0.041513845324516296,
-)
-#: Bound of :func:`_exp_nonpositive`'s relative error (tests hold the kernel to it).
-EXP_RTOL = 3e-6
-#: ln 2 split so ``k * _LN2_HI`` is exact in float32 for the ``|k| <= 87`` used here (Cody-Waite).
-_LN2_HI = 0.693359375
-_LN2_LO = -2.12194440e-4
-
-
-def _exp_nonpositive(x: torch.Tensor) -> torch.Tensor:
-    """``exp(x)`` for float32 ``x`` in ``[-MAX_EXPONENT, 0]`` to < 3e-6 relative, in plain
-    tensor operations that ``torch.compile`` fuses into the kernel's loop.
-
-    ``exp(x) = 2**k exp(r)``: ``k = round(x / ln 2)`` goes straight into the exponent bits,
-    ``r = x - k ln 2`` (two-part ln 2, so ``r`` is accurate to float32 rounding) by a degree-4
-    minimax polynomial (Horner: four fused multiply-adds once compiled with FMA). Measured on
-    2 threads, this form beat Estrin's scheme and a magic-number rounding with exponent-bit
-    addition, which were as fast or faster on one thread (docs/performance.md).
-    """
-    k = torch.round(x * 1.4426950408889634)
-    r = (x - k * _LN2_HI) - k * _LN2_LO
-    poly = torch.full_like(r, _EXP_MINIMAX[-1])
-    for c in reversed(_EXP_MINIMAX[:-1]):
-        poly = poly * r + c
-    # k in [-87, 0] here, so 127 + k is a normal exponent field: 2**k exactly.
-    scale = ((k.to(torch.int32) + 127) << 23).view(torch.float32)
-    return poly * scale
-
-
-def _at_least(x: torch.Tensor, low: float) -> torch.Tensor:
-    """``max(x, low)`` as a compare and a blend (inductor's ``clamp`` keeps NaN: 3 instructions)."""
-    return torch.where(x < low, low, x)
-
-
-def _chunk_sums_one_pass(
-    p: Samples, q: Samples, v: torch.Tensor, lw: torch.Tensor | None, params: WeightParams
-) -> tuple[torch.Tensor, ...]:
-    """``(ΣW̃v, ΣW̃, ΣW̃d, min W̃, Σd)`` per pixel in ONE pass over Ω (what torch.compile
-    turns into a single loop with five accumulators, nothing of size (C, Q) in memory).
-
-    The min-subtracted sums of :func:`_chunk_sums_inplace` follow exactly: ``Σ(W̃ - m)v = ΣW̃v - mΣv``,
-    ``Σ(W̃ - m) = ΣW̃ - |Ω|m``, ``Σ(W̃ - m)d = ΣW̃d - mΣd`` (see :func:`_one_pass_kernel`, which
-    sends rows where ``|Ω|m`` is not negligible next to ``ΣW̃`` to the two-pass kernel).
-    Same factors as :func:`.weights.unnormalised_weights`, with :func:`_exp_nonpositive` for
-    the exponentials. The order of the expressions is the order of the generated loop body:
-    the longest chain (distance, its square root, W1's exponential) comes first so that the
-    CPU overlaps the others with it.
-    """
-    dx = q.x - p.x
-    dy = q.y - p.y
-    distance = torch.sqrt(dx * dx + dy * dy)
-    distance_sum = distance.sum(dim=1)
-    exponent = distance * (-1.0 / params.sigma1)
-    if lw is not None:  # the point's own weight folded into W1's exponential: one add
-        exponent = exponent + lw
-    w = _exp_nonpositive(_at_least(exponent, -MAX_EXPONENT))
-    if params.use_w34:
-        offset = p.s - q.s
-        w3 = _exp_nonpositive(_at_least(-torch.abs(offset + p.gx * dx), -MAX_EXPONENT)) + params.sigma3
-        w4 = _exp_nonpositive(_at_least(-torch.abs(offset + p.gy * dy), -MAX_EXPONENT)) + params.sigma3
-        structure = w3 * w4
-    if params.use_w2:
-        w2 = 1.0 / ((torch.abs(q.gx - p.gx) + params.sigma2) * (torch.abs(q.gy - p.gy) + params.sigma2))
-        structure = structure * w2 if params.use_w34 else w2
-    if params.use_w2 or params.use_w34:
-        w = w * structure
-    weighted_distance = (w * distance).sum(dim=1)
-    return (w * v).sum(dim=1), w.sum(dim=1), weighted_distance, w.amin(dim=1), distance_sum
-
-
-#: One-pass rows whose min-subtraction ``|Ω| min W̃`` exceeds this fraction of ``ΣW̃`` are
-#: recomputed with the two-pass kernel. Below it ``ΣW̃ - |Ω| min`` loses at most a factor
-#: 1 / (1 - 0.1) of float32 precision (the numerator and the distance sum at most a factor 2,
-#: since ``min Σ|v| <= ΣW̃|v|``); above it, up to all weights equal (|Ω| = 1, where the
-#: plain-normalisation guard takes over), the subtraction would cancel digits.
-ONE_PASS_MIN_RTOL = 0.1
 #: Fewest pixels per kernel call: a single fix-up pixel is padded to two. The kernels are
 #: compiled for dynamic sizes, which torch.compile makes from 2 up: one pixel is a size it
 #: specialises for, so the first keyframe whose fast mode fixed up a single pixel recompiled
@@ -230,149 +111,6 @@ ONE_PASS_MIN_RTOL = 0.1
 #: were dropped, docs/performance.md "GPU"); the ahead-of-time package does not take it at all
 #: (two passes instead).
 MIN_KERNEL_ROWS = 2
-#: Pixels per call of the one-pass kernel: it holds nothing of size (pixels, Ω), so the
-#: chunks are only as small as keeps every thread busy and the per-call overhead negligible.
-ONE_PASS_ROWS = 8192
-
-
-def _one_pass_kernel(
-    sums: Callable, params: WeightParams, chunk_elements: int, n_points: int = 1
-) -> Callable:
-    """The ``(ΣW'v, ΣW', ΣW'd, min W̃)`` kernel of :func:`_offsets_at` from the one-pass sums
-    ``sums(p, q, v, lw)`` (compiled), its shaky rows redone by :func:`_chunk_sums_inplace` in
-    blocks of ``chunk_elements`` pairs. ``kernel.rows`` tells :func:`_offsets_at` its chunk:
-    ``ONE_PASS_ROWS``, or ``chunk_elements / n_points`` (|Ω|) where that is more."""
-
-    def kernel(p: Samples, q: Samples, v: torch.Tensor, lw: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
-        n_q = q.x.shape[-1]
-        block = max(1, chunk_elements // max(1, n_q))
-        one_pass = sums(p, q, v, lw)
-        if one_pass is None:  # the compiler failed: two passes, in blocks of bounded memory
-            parts = [
-                _chunk_sums_inplace(p.take(slice(i, i + block)), q, v, lw, params)
-                for i in range(0, len(p.x), block)
-            ]
-            return tuple(torch.cat(column) for column in zip(*parts, strict=True))
-        wv, w, wd, low, d = one_pass
-        num = wv - low * v.sum()
-        den = w - n_q * low
-        dist = wd - low * d
-        shaky = torch.nonzero(n_q * low > ONE_PASS_MIN_RTOL * w).squeeze(1)
-        for start in range(0, shaky.numel(), block):
-            rows = shaky[start : start + block]
-            exact = _chunk_sums_inplace(Samples(*(t[rows] for t in p)), q, v, lw, params)
-            for out, value in zip((num, den, dist), exact[:3], strict=True):
-                out[rows] = value
-        return num, den, dist, low
-
-    # chunk_elements per point already gives more rows than ONE_PASS_ROWS on CUDA (64 M elements).
-    kernel.rows = max(ONE_PASS_ROWS, chunk_elements // max(1, n_points))  # type: ignore[attr-defined]
-    return kernel
-
-
-def _no_one_pass(*args: object) -> None:
-    """Fallback of the compiled one-pass sums: ``None`` tells :func:`_one_pass_kernel` to use
-    the two-pass eager kernel (the one-pass form in eager would hold a dozen (pixels, Ω)
-    temporaries)."""
-    return None
-
-
-_COMPILED: dict[tuple, Callable] = {}
-_COMPILE_FAILED: set[str] = set()
-
-#: Inductor settings of the fusion kernels. C++ (CPU): contract ``a * b + c`` into fused
-#: multiply-adds (inductor's default is ``-ffp-contract=off``; every polynomial step and sum
-#: becomes one instruction, rounded once: as accurate or more; 1.3x faster). Both backends:
-#: never split the one-pass loop by materialising an intermediate of size (pixels, Ω), which
-#: inductor does by default for an expression read more than 4 times (the weight is read
-#: by the five sums: three loops and two 64 MB buffers per chunk instead of one loop).
-#: C++: the loops' thread count is the caller's at run time (``#pragma omp parallel`` without
-#: ``num_threads``; torch's OpenMP runtime, which ``torch.set_num_threads`` sets), not the
-#: builder's: without it a build in a one-thread process (a fusion node's background builder,
-#: ``OMP_NUM_THREADS=1``) emitted no parallel loop at all, and every process that loaded that
-#: library fused on one core (exact 0.167 s at 2 threads against 0.089 s; docs/performance.md).
-_INDUCTOR_OPTIONS = {
-    'cpp.enable_floating_point_contract_flag': 'fast',
-    'realize_reads_threshold': 1 << 20,
-    'cpp.dynamic_threads': True,
-}
-
-#: On a CPU the kernel is called through inductor's C++ wrapper: the default Python wrapper's
-#: binding holds the GIL while the C++ loop runs (40-95 ms a keyframe), so in the composed graph
-#: every other node's Python waited for it; the C++ wrapper releases it around the call. Measured
-#: (docs/performance.md, 2026-11-27): composed paced median latency 480-510 -> 434-440 ms, the
-#: multi-view node's mean 217-222 -> 121-138 ms; the same offsets bit for bit; the compile about
-#: as long (``warm_up`` with an empty cache 15.5 against 14.6 s on 2 cores, a warm one 4.8 / 4.7 s).
-_CPU_INDUCTOR_OPTIONS = {'cpp_wrapper': True}
-
-
-def _inductor_options(device: torch.device) -> dict[str, object]:
-    """The :data:`_INDUCTOR_OPTIONS` (and on a CPU :data:`_CPU_INDUCTOR_OPTIONS`) this torch
-    knows (names move between releases; an unknown one would make ``torch.compile`` raise).
-    Imports the compiler, so holding ``COMPILE_LOCK`` (compile_lock.py)."""
-    try:
-        with COMPILE_LOCK:
-            import torch._inductor.config as inductor_config
-
-            known = inductor_config.get_config_copy()
-    except Exception:  # no inductor at all: compiling fails later (logged) and falls back to eager
-        return {}
-    options = dict(_INDUCTOR_OPTIONS)
-    if device.type == 'cpu':
-        options.update(_CPU_INDUCTOR_OPTIONS)
-    return {name: value for name, value in options.items() if name in known}
-
-
-def _maybe_compiled(
-    name: str,
-    fn: Callable,
-    params: WeightParams,
-    compile_kernel: bool,
-    device: torch.device,
-    fallback: Callable | None = None,
-) -> Callable:
-    """``fn(*args, params)`` as a function of ``args``, compiled with ``torch.compile``
-    (inductor) when asked and possible.
-
-    Compiling fuses the elementwise passes into one loop (several times faster on CPU than
-    eager). A failing compiler (no C++ toolchain, unsupported platform) is logged once and
-    eager code is used from then on: same numbers, only slower. ``fallback(*args)`` replaces
-    the eager ``fn`` after a failure when given (a kernel whose eager form would not bound
-    its memory).
-    """
-
-    def eager(*args: object) -> tuple[torch.Tensor, ...]:
-        return fn(*args, params)
-
-    if not compile_kernel or device.type in _COMPILE_FAILED:
-        return eager
-    from . import aot_kernels  # a package built ahead of time (depth-fusion kernels) needs no compile
-
-    compiled = aot_kernels.kernel(name, params, device)
-    what = (
-        'the ahead-of-time fusion kernels' if compiled is not None else 'torch.compile of the fusion kernels'
-    )
-    if compiled is None:
-        key = (name, params, device.type)
-        if key not in _COMPILED:
-            # Serialised: a compile session flips a process-wide flag other threads read, and the
-            # compiler's first import must not race another thread's (compile_lock.py).
-            _COMPILED[key] = compile_serialised(eager, dynamic=True, options=_inductor_options(device))
-        compiled = _COMPILED[key]
-
-    backup = fallback or eager
-
-    def guarded(*args: object) -> tuple[torch.Tensor, ...]:
-        if device.type in _COMPILE_FAILED:
-            return backup(*args)
-        try:
-            return compiled(*args)
-        except Exception as exc:  # the compiler stack raises many types; any failure means eager
-            _COMPILE_FAILED.add(device.type)
-            log.warning('%s failed on %s (%s); using eager', what, device, exc)
-            return backup(*args)
-
-    return guarded
 
 
 def _plain_normalisation(
@@ -547,15 +285,13 @@ def interpolate(
     floor = float(certainty_floor) * params.max_weight
     # Eager: the in-place two-pass kernel (fewer passes over memory); compiled: the one-pass
     # sums fused into one loop over Ω.
-    if compile_kernel and dev.type not in _COMPILE_FAILED:
-        kernel = _one_pass_kernel(
-            _maybe_compiled('sums', _chunk_sums_one_pass, params, True, dev, fallback=_no_one_pass),
-            params,
-            chunk_elements,
-            int(points.x.numel()),
+    if compile_kernel and dev.type not in kernel_compile.COMPILE_FAILED:
+        compiled = kernel_compile.maybe_compiled(
+            'sums', chunk_sums_one_pass, params, True, dev, fallback=no_one_pass
         )
+        kernel = one_pass_kernel(compiled, params, chunk_elements, int(points.x.numel()))
     else:
-        kernel = functools.partial(_chunk_sums_inplace, params=params)
+        kernel = functools.partial(chunk_sums_inplace, params=params)
 
     if mode == 'exact' or fast_stride == 1:
         pixel_index = torch.from_numpy(np.flatnonzero(valid_s)).to(dev)
@@ -579,7 +315,7 @@ def interpolate(
         chunk_elements,
         fast_stride,
         fast_refine,
-        _maybe_compiled('blend', _blend_corners, params, compile_kernel, dev),
+        kernel_compile.maybe_compiled('blend', _blend_corners, params, compile_kernel, dev),
         floor,
     )
     offset.ravel()[:] = off_t.cpu().numpy()
