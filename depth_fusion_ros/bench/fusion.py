@@ -20,10 +20,12 @@ import cv2
 import numpy as np
 import torch
 
+from ..fusion import aot_kernels, kernel_compile
 from ..fusion.interpolation import interpolate
 from ..fusion.occlusion import halo_points
 from ..fusion.scenes import planes_and_boxes
 from ..fusion.selection import fit_ransac
+from ..fusion.weights import WeightParams
 from . import BenchOptions, BenchRow
 
 TITLE = 'fusion (weighted interpolation, RANSAC selection)'
@@ -74,6 +76,18 @@ def _note(extra: str = '') -> str:
     return f'{extra}; {base}' if extra else base
 
 
+def _kernel_source(device: str) -> str:
+    """Which fused loops the compiled rows ran: the library built ahead of time (its threads
+    sized by the caller), ``torch.compile`` in this process, or eager code after a failed
+    compile. The figures differ by several times between them, so a row says which it is."""
+    dev = torch.device(device)
+    if dev.type in kernel_compile.COMPILE_FAILED:
+        return 'eager: the compiler failed (logged above)'
+    if aot_kernels.available(WeightParams(), dev):
+        return f'kernels built ahead of time ({aot_kernels.cache_dir()})'
+    return 'kernels compiled by torch.compile in this process'
+
+
 def run(opts: BenchOptions) -> list[BenchRow]:
     width, height, n_points = (
         (WIDTH // 2, HEIGHT // 2, N_POINTS // 4) if opts.quick else (WIDTH, HEIGHT, N_POINTS)
@@ -100,7 +114,8 @@ def run(opts: BenchOptions) -> list[BenchRow]:
                         )
 
                     first, median = _timed(call, repeats, warmup=2 if opts.device.startswith('cuda') else 0)
-                    rows.append(BenchRow(f'{mode} {tag}: s/keyframe', median, 's', _note(size)))
+                    what = f'{size}; {_kernel_source(opts.device)}' if compiled else size
+                    rows.append(BenchRow(f'{mode} {tag}: s/keyframe', median, 's', _note(what)))
                     if mode == 'exact':
                         pairs = float(np.isfinite(single).sum()) * int(omega.sum())
                         # wall time x threads per weight: the kernel's cost independent of threading
