@@ -313,3 +313,26 @@ def test_the_bench_says_which_kernels_its_compiled_rows_ran(cache, tmp_path, mon
     assert _kernel_source('cpu') == 'kernels compiled by torch.compile in this process'
     monkeypatch.setattr(kernel_compile, 'COMPILE_FAILED', {'cpu'})
     assert _kernel_source('cpu').startswith('eager')
+
+
+def test_libraries_unused_for_long_are_pruned_and_a_load_marks_one_used(cache, tmp_path):
+    """Each torch upgrade or kernel change leaves the old libraries behind: a build deletes
+    those nobody loaded for ``UNUSED_DAYS``, never the ones it keeps, and other files not."""
+    import os
+    import time
+
+    old = time.time() - (aot_kernels.UNUSED_DAYS + 1) * 86400.0
+    names = ('fusion_sums_stale.so', 'fusion_blend_recent.so', 'fusion_sums_kept.so', 'build.lock')
+    for name in names:
+        (tmp_path / name).write_bytes(b'x')
+        if name != 'fusion_blend_recent.so':
+            os.utime(tmp_path / name, (old, old))
+    removed = aot_kernels.prune_unused(tmp_path, keep=[tmp_path / 'fusion_sums_kept.so'])
+    assert [p.name for p in removed] == ['fusion_sums_stale.so']
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names[1:])
+
+    built = aot_kernels.package_path('sums', PARAMS, CPU)
+    os.utime(built, (old, old))
+    aot_kernels.forget_loaded()
+    assert aot_kernels.kernel('sums', PARAMS, CPU) is not None
+    assert built.stat().st_mtime > time.time() - 600  # loaded: marked used, so never pruned
