@@ -305,14 +305,14 @@ def test_a_node_stopped_while_it_compiles_leaves_no_semaphore_behind(tmp_path, g
 def test_the_bench_says_which_kernels_its_compiled_rows_ran(cache, tmp_path, monkeypatch):
     """``bench --only fusion``'s compiled rows differ several times between the library built
     ahead of time, an in-process compile and eager code: each row's note names the one it ran."""
-    from depth_fusion_ros.bench.fusion import _kernel_source
     from depth_fusion_ros.fusion import kernel_compile
+    from depth_fusion_ros.fusion.kernel_compile import kernel_source
 
-    assert _kernel_source('cpu').startswith('kernels built ahead of time')
+    assert kernel_source(PARAMS, 'cpu').startswith('kernels built ahead of time')
     monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path))
-    assert _kernel_source('cpu') == 'kernels compiled by torch.compile in this process'
+    assert kernel_source(PARAMS, 'cpu') == 'kernels compiled by torch.compile in this process'
     monkeypatch.setattr(kernel_compile, 'COMPILE_FAILED', {'cpu'})
-    assert _kernel_source('cpu').startswith('eager')
+    assert kernel_source(PARAMS, 'cpu').startswith('eager')
 
 
 def test_libraries_unused_for_long_are_pruned_and_a_load_marks_one_used(cache, tmp_path):

@@ -20,8 +20,8 @@ import cv2
 import numpy as np
 import torch
 
-from ..fusion import aot_kernels, kernel_compile
 from ..fusion.interpolation import interpolate
+from ..fusion.kernel_compile import kernel_source
 from ..fusion.occlusion import halo_points
 from ..fusion.scenes import planes_and_boxes
 from ..fusion.selection import fit_ransac
@@ -76,18 +76,6 @@ def _note(extra: str = '') -> str:
     return f'{extra}; {base}' if extra else base
 
 
-def _kernel_source(device: str) -> str:
-    """Which fused loops the compiled rows ran: the library built ahead of time (its threads
-    sized by the caller), ``torch.compile`` in this process, or eager code after a failed
-    compile. The figures differ by several times between them, so a row says which it is."""
-    dev = torch.device(device)
-    if dev.type in kernel_compile.COMPILE_FAILED:
-        return 'eager: the compiler failed (logged above)'
-    if aot_kernels.available(WeightParams(), dev):
-        return f'kernels built ahead of time ({aot_kernels.cache_dir()})'
-    return 'kernels compiled by torch.compile in this process'
-
-
 def run(opts: BenchOptions) -> list[BenchRow]:
     width, height, n_points = (
         (WIDTH // 2, HEIGHT // 2, N_POINTS // 4) if opts.quick else (WIDTH, HEIGHT, N_POINTS)
@@ -114,7 +102,7 @@ def run(opts: BenchOptions) -> list[BenchRow]:
                         )
 
                     first, median = _timed(call, repeats, warmup=2 if opts.device.startswith('cuda') else 0)
-                    what = f'{size}; {_kernel_source(opts.device)}' if compiled else size
+                    what = f'{size}; {kernel_source(WeightParams(), opts.device)}' if compiled else size
                     rows.append(BenchRow(f'{mode} {tag}: s/keyframe', median, 's', _note(what)))
                     if mode == 'exact':
                         pairs = float(np.isfinite(single).sum()) * int(omega.sum())

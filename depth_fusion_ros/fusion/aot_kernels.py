@@ -148,7 +148,7 @@ def build(params: WeightParams, device: torch.device | str = 'cpu') -> dict[str,
     if device.type != 'cpu':
         raise ValueError(f'ahead-of-time fusion kernels are built for the CPU only, not {device}')
     modules = {'sums': _sums_module(params), 'blend': _blend_module(params)}
-    seconds = {}
+    seconds, built = {}, []
     for name in KERNELS:
         start = time.perf_counter()
         args, dynamic = _examples(name)
@@ -162,10 +162,11 @@ def build(params: WeightParams, device: torch.device | str = 'cpu') -> dict[str,
                 inductor_configs=kernel_compile.inductor_options(device),
             )
             _take_library(Path(package), target)
+        built.append(target)
         seconds[name] = time.perf_counter() - start
         log.info('AOT fusion kernel %s built in %.1f s: %s', name, seconds[name], target)
     forget_loaded()
-    removed = prune_unused(cache_dir(), keep=[package_path(n, params, device) for n in KERNELS])
+    removed = prune_unused(cache_dir(), keep=built)
     if removed:
         log.info('removed %d fusion kernel file(s) not loaded for %d days', len(removed), UNUSED_DAYS)
     return seconds

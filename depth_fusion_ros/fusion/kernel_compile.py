@@ -68,6 +68,21 @@ def inductor_options(device: torch.device) -> dict[str, object]:
     return {name: value for name, value in options.items() if name in known}
 
 
+def kernel_source(params: WeightParams, device: torch.device | str) -> str:
+    """What :func:`maybe_compiled` gives the kernels of ``params`` on ``device`` now, in words:
+    the library built ahead of time (threads sized by the caller), ``torch.compile`` in this
+    process, or eager code after a failed compile. Their speeds differ several times, so a
+    figure taken with them says which (``bench --only fusion``)."""
+    from . import aot_kernels
+
+    dev = torch.device(device)
+    if dev.type in COMPILE_FAILED:
+        return 'eager: the compiler failed (logged above)'
+    if aot_kernels.available(params, dev):
+        return f'kernels built ahead of time ({aot_kernels.cache_dir()})'
+    return 'kernels compiled by torch.compile in this process'
+
+
 def maybe_compiled(
     name: str,
     fn: Callable,
