@@ -20,6 +20,7 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..true_indices import true_indices
 from .cost_volume import EpipolarRays, rows_per_chunk
+from .native_cost import native_frame_cost
 
 
 @dataclass
@@ -93,6 +94,18 @@ def _frame_cost(
     key_desc: torch.Tensor, frame_desc: torch.Tensor, a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor
 ) -> torch.Tensor:
     """Samples-first cost (S, R): rows ``a`` (3, R), ``rho`` (S, R), ``key_desc`` (C, R).
+
+    On a CPU the native kernel computes it (``native_cost.py``: the same numbers in one pass);
+    elsewhere, or where that cannot run, :func:`_frame_cost_torch`.
+    """
+    cost = native_frame_cost(key_desc, frame_desc, a, b, rho)
+    return cost if cost is not None else _frame_cost_torch(key_desc, frame_desc, a, b, rho)
+
+
+def _frame_cost_torch(
+    key_desc: torch.Tensor, frame_desc: torch.Tensor, a: torch.Tensor, b: torch.Tensor, rho: torch.Tensor
+) -> torch.Tensor:
+    """:func:`_frame_cost` in torch ops (any device).
 
     Samples-first because the per-row factors (the rows' projections, their descriptors)
     then broadcast along the contiguous rows: on CPU every elementwise op runs vectorised over

@@ -41,6 +41,7 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
 from ..geometry import invert_pose, load_rotations, rotation_angle, transform_from_parameter
+from ..multiview import native_cost
 from ..multiview.focal_check import FocalEstimate
 from ..multiview.mount_check import MountEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
@@ -251,6 +252,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         )
         # Every published pose and every image between two poses goes through them.
         load_rotations()
+        if self.device == 'cpu':
+            native_cost.prepare()  # the filter's per-frame cost: built here, not at the first frame
         self.events.ready()
 
     # --- callbacks (light: decode, check, buffer) ---------------------------------------------------

@@ -1,0 +1,126 @@
+"""A small C kernel of the package, compiled once per machine and loaded with ctypes.
+
+Why ctypes and the system C compiler rather than a torch extension: the kernels are plain C
+over raw float buffers (no torch headers, no pybind11, no ninja, nothing to pin), so building
+one is a single ``cc`` call of well under a second, and a ctypes call releases the GIL, so
+callers can split the work over threads. The compiler is the one inductor already needs for
+the compiled fusion kernels (``fusion/kernel_compile.py``); where there is none, or the CPU
+lacks what a kernel is written for, :func:`load_native` says so once and returns ``None`` and
+the caller keeps its torch code.
+
+A library is cached under the user cache (``user_cache('native')``), named by a digest of its
+source, the compiler's version and the flags, written to a temporary name and renamed into
+place, so that concurrent processes (the nodes of one graph) never load a half-written file
+and a changed source or compiler builds anew. ``DEPTH_FUSION_NATIVE=0`` in the environment
+turns every native kernel off (the torch code runs; for comparisons).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+from .user_cache import user_cache
+
+log = logging.getLogger(__name__)
+
+#: What the x86-64 kernels are written for (AVX2 and FMA: every x86-64 CPU since 2013-2015).
+X86_FLAGS = ('-mavx2', '-mfma')
+#: No contraction beyond the FMAs written out: the kernels reproduce torch's numbers.
+BASE_FLAGS = ('-O3', '-std=c11', '-fPIC', '-shared', '-ffp-contract=off', '-fno-math-errno')
+
+_lock = threading.Lock()
+_loaded: dict[str, ctypes.CDLL | None] = {}
+
+
+def native_enabled() -> bool:
+    """False when ``DEPTH_FUSION_NATIVE`` is ``0`` (or ``false``/``no``/``off``)."""
+    return os.environ.get('DEPTH_FUSION_NATIVE', '1').strip().lower() not in ('0', 'false', 'no', 'off')
+
+
+def load_native(source: Path) -> ctypes.CDLL | None:
+    """The library built from the C file ``source`` (built on first use), or ``None`` where it
+    cannot run here; the reason is logged once per source and process."""
+    key = str(source)
+    with _lock:
+        if key not in _loaded:
+            _loaded[key] = _build_and_load(source)
+        return _loaded[key]
+
+
+def _build_and_load(source: Path) -> ctypes.CDLL | None:
+    why = _unsupported()
+    if why is None:
+        try:
+            return ctypes.CDLL(str(_built(source)))
+        except (OSError, subprocess.SubprocessError) as exc:
+            why = f'building it failed ({str(exc).strip().splitlines()[-1] if str(exc).strip() else exc!r})'
+    log.info('native kernel %s not used: %s; the torch code runs instead', source.name, why)
+    return None
+
+
+def _unsupported() -> str | None:
+    """Why the x86-64 kernels cannot run on this machine, or None."""
+    if not native_enabled():
+        return 'DEPTH_FUSION_NATIVE=0'
+    if platform.machine().lower() not in ('x86_64', 'amd64'):
+        return f'written for x86-64 (this is {platform.machine()})'
+    flags = _cpu_flags()
+    if flags is not None and not {'avx2', 'fma'} <= flags:
+        return 'the CPU has no AVX2 and FMA'
+    if _compiler() is None:
+        return 'no C compiler (cc, gcc or $CC) on the PATH'
+    return None
+
+
+def _cpu_flags() -> set[str] | None:
+    """The CPU's feature flags from /proc/cpuinfo (None where it cannot be read)."""
+    try:
+        for line in Path('/proc/cpuinfo').read_text().splitlines():
+            if line.startswith('flags'):
+                return set(line.split(':', 1)[1].split())
+    except OSError:
+        return None
+    return None
+
+
+def _compiler() -> str | None:
+    for name in (os.environ.get('CC'), 'cc', 'gcc'):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def _built(source: Path) -> Path:
+    """The cached library of ``source``, compiled now if it is not there yet."""
+    cc = _compiler()
+    assert cc is not None
+    flags = [*BASE_FLAGS, *X86_FLAGS]
+    version = subprocess.run([cc, '--version'], capture_output=True, text=True, check=True, timeout=30).stdout
+    digest = hashlib.sha256(b'\0'.join([source.read_bytes(), version.encode(), ' '.join(flags).encode()]))
+    out = user_cache('native') / f'{source.stem}-{digest.hexdigest()[:16]}.so'
+    if out.exists():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f'.{source.stem}-', suffix='.so', dir=out.parent)
+    os.close(fd)
+    try:
+        done = subprocess.run(
+            [cc, *flags, '-o', tmp, str(source), '-lm'], capture_output=True, text=True, timeout=120
+        )
+        if done.returncode != 0:
+            raise subprocess.SubprocessError(done.stderr.strip() or f'{cc} exited with {done.returncode}')
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    log.info('native kernel %s built: %s', source.name, out)
+    return out

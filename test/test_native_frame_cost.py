@@ -1,0 +1,116 @@
+"""The native per-frame matching cost (``multiview/frame_cost.c``) against the torch code it replaces.
+
+The kernel must give the filter the numbers the torch code gives (``filter_search._frame_cost_torch``):
+on rows inside and outside the frame, behind the camera, with undefined inverse depths, in
+slices of larger tensors and split over threads; and the whole filter must end a stream in
+the same state with it and without it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import depth_fusion_ros.multiview.filter_search as search
+from depth_fusion_ros import native_build
+from depth_fusion_ros.multiview import native_cost
+from depth_fusion_ros.multiview.filter_search import _frame_cost_torch
+
+pytestmark = pytest.mark.usefixtures('one_torch_thread')
+
+WIDTH, HEIGHT = 80, 60
+
+
+def _native_or_skip() -> None:
+    if native_cost._load() is None:
+        pytest.skip(f'the native kernel cannot run here: {native_build._unsupported() or "it did not build"}')
+
+
+def _inputs(rows: int, samples: int, seed: int = 0):
+    gen = torch.Generator().manual_seed(seed)
+    desc = torch.randn(1, 7, HEIGHT, WIDTH, generator=gen)
+    desc[0, 6] = 0.0
+    desc[0, 6, 3:-3, 3:-3] = 1.0  # the visibility band, as patch_descriptors makes it
+    # Rows of a larger (C, N) / (3, N) tensor, as the filter's buckets are slices.
+    key = torch.randn(6, rows + 9, generator=gen)[:, 5 : 5 + rows]
+    a = torch.rand(3, rows + 9, generator=gen)[:, 5 : 5 + rows]
+    a[2] = a[2] * 0.5 + 0.5
+    a[:2] = (a[:2] * 2.4 - 1.2) * a[2]  # normalised coordinates in [-1.2, 1.2] at infinity: a few outside
+    a[2, 3::10] = -1.0  # behind the camera at small inverse depths: w clamped at 1e-4
+    b = torch.tensor([0.04, -0.02, 0.05])
+    rho = (torch.rand(samples, rows, generator=gen) * 3.0).contiguous()
+    rho[0, ::13] = math.nan  # undefined samples stay undefined
+    rho[-1, 1::7] = 1e9  # far outside: every corner out of the frame
+    return key, desc, a, b, rho
+
+
+def _compare(ours: torch.Tensor, reference: torch.Tensor) -> None:
+    assert ours.shape == reference.shape
+    assert torch.equal(torch.isnan(ours), torch.isnan(reference))
+    assert torch.equal(torch.isinf(ours), torch.isinf(reference))
+    finite = torch.isfinite(reference)
+    assert finite.float().mean() > 0.3 or finite.numel() < 100
+    if finite.any():
+        assert float((ours[finite] - reference[finite]).abs().max()) <= 1e-5
+
+
+@pytest.mark.parametrize(('rows', 'samples'), [(1, 1), (7, 3), (8, 6), (203, 11), (1000, 32)])
+def test_the_native_cost_is_the_torch_cost(rows, samples):
+    _native_or_skip()
+    key, desc, a, b, rho = _inputs(rows, samples)
+    ours = native_cost.native_frame_cost(key, desc, a, b, rho)
+    assert ours is not None
+    _compare(ours, _frame_cost_torch(key, desc, a, b, rho))
+
+
+def test_rows_split_over_threads_give_the_same_numbers(monkeypatch):
+    _native_or_skip()
+    key, desc, a, b, rho = _inputs(4001, 20, seed=3)
+    one = native_cost.native_frame_cost(key, desc, a, b, rho)
+    monkeypatch.setattr(native_cost, 'THREAD_MIN_LOOKUPS', 1)
+    before = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        split = native_cost.native_frame_cost(key, desc, a, b, rho)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(torch.isnan(one), torch.isnan(split))
+    assert torch.equal(one.nan_to_num(nan=-1.0), split.nan_to_num(nan=-1.0))
+
+
+def test_the_kernel_declines_what_it_was_not_written_for():
+    """More than seven channels, another dtype: None, and the caller's torch code runs."""
+    key, desc, a, b, rho = _inputs(50, 4)
+    wide = torch.cat((desc, desc[:, :2]), dim=1)
+    assert native_cost.native_frame_cost(torch.cat((key, key[:2])), wide, a, b, rho) is None
+    doubles = (t.double() for t in (key, desc, a, b, rho))
+    assert native_cost.native_frame_cost(*doubles) is None
+
+
+def test_the_environment_turns_native_kernels_off(monkeypatch):
+    monkeypatch.setenv('DEPTH_FUSION_NATIVE', '0')
+    assert not native_build.native_enabled()
+    assert native_build._unsupported() == 'DEPTH_FUSION_NATIVE=0'
+
+
+def test_the_filter_ends_a_stream_in_the_same_state_with_and_without_it(monkeypatch):
+    """The synthetic room through the whole filter: every estimate the same."""
+    _native_or_skip()
+    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
+    from depth_fusion_ros.multiview.filter import DepthFilter
+
+    seq = render_sequence(SynthConfig(width=160, height=120, frames=10, seed=4, parallax='high'))
+
+    def run() -> dict[str, torch.Tensor]:
+        filt = DepthFilter(seq.camera, None, device='cpu')
+        for frame in seq.frames:
+            filt.process(frame.gray, frame.pose)
+        return {k: getattr(filt.key.state, k).clone() for k in ('mu', 'var', 'a', 'b')}
+
+    native = run()
+    monkeypatch.setattr(search, 'native_frame_cost', lambda *args: None)
+    plain = run()
+    for name, values in native.items():
+        assert torch.allclose(values, plain[name], rtol=1e-5, atol=1e-6, equal_nan=True), name
