@@ -26,6 +26,7 @@ import torch
 
 from ..data.sequence import Sequence
 from ..metrics import good_density
+from ..multiview import native_cost
 from ..multiview.filter import DepthFilter
 from ..multiview.filter_config import FilterConfig
 from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
@@ -133,7 +134,12 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
     ratio_wall = statistics.median(a / b for a, b in zip(walls, sweep_walls, strict=True))
     ratio_cpu = statistics.median(a / b for a, b in zip(cpus, sweep_cpus, strict=True))
     rows = [
-        BenchRow(f'{label}: filter per frame (mean, wall)', mean * 1e3, 'ms', _note(f'{f.stats}')),
+        BenchRow(
+            f'{label}: filter per frame (mean, wall)',
+            mean * 1e3,
+            'ms',
+            _note(f'{f.stats}; {_search_code(opts.device)}'),
+        ),
         BenchRow(f'{label}: filter per frame (mean, CPU)', mean_cpu * 1e3, 'ms', _note()),
         BenchRow(f'{label}: sweep per keyframe (wall, same load)', sweep_wall * 1e3, 'ms', _note()),
         BenchRow(f'{label}: sweep per keyframe (CPU)', sweep_cpu * 1e3, 'ms', _note()),
@@ -151,6 +157,15 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
         ),
     ]
     return rows + _stage_rows(label, seq, opts.device), f
+
+
+def _search_code(device: str) -> str:
+    """Which code computed the searches' cost: the native kernel or torch (``native_cost.py``)."""
+    if device.startswith('cuda'):
+        return 'search cost: torch'
+    if native_cost.prepare():
+        return 'search cost: native kernel'
+    return 'search cost: torch (the native kernel is off or cannot run here)'
 
 
 def _accuracy(depth: np.ndarray, gt: np.ndarray, selected: np.ndarray) -> tuple[float, float]:
