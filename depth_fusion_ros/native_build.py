@@ -11,12 +11,14 @@ the caller keeps its torch code.
 A library is cached under the user cache (``user_cache('native')``), named by a digest of its
 source, the compiler's version and the flags, written to a temporary name and renamed into
 place, so that concurrent processes (the nodes of one graph) never load a half-written file
-and a changed source or compiler builds anew. ``DEPTH_FUSION_NATIVE=0`` in the environment
+and a changed source or compiler builds anew; a build deletes the libraries nobody loaded
+for 60 days (``cache_prune.py``). ``DEPTH_FUSION_NATIVE=0`` in the environment
 turns every native kernel off (the torch code runs; for comparisons).
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import logging
@@ -28,14 +30,17 @@ import tempfile
 import threading
 from pathlib import Path
 
+from .cache_prune import prune_unused
 from .user_cache import user_cache
 
 log = logging.getLogger(__name__)
 
 #: What the x86-64 kernels are written for (AVX2 and FMA: every x86-64 CPU since 2013-2015).
 X86_FLAGS = ('-mavx2', '-mfma')
-#: No contraction beyond the FMAs written out: the kernels reproduce torch's numbers.
-BASE_FLAGS = ('-O3', '-std=c11', '-fPIC', '-shared', '-ffp-contract=off', '-fno-math-errno')
+#: No contraction beyond the FMAs written out: the kernels reproduce torch's numbers. OpenMP:
+#: the library needs ``libgomp.so.1``, which resolves to the copy torch has loaded (the same
+#: runtime and thread team as torch's own parallel loops; two would spin against each other).
+BASE_FLAGS = ('-O3', '-std=c11', '-fPIC', '-shared', '-fopenmp', '-ffp-contract=off', '-fno-math-errno')
 
 _lock = threading.Lock()
 _loaded: dict[str, ctypes.CDLL | None] = {}
@@ -108,6 +113,8 @@ def _built(source: Path) -> Path:
     digest = hashlib.sha256(b'\0'.join([source.read_bytes(), version.encode(), ' '.join(flags).encode()]))
     out = user_cache('native') / f'{source.stem}-{digest.hexdigest()[:16]}.so'
     if out.exists():
+        with contextlib.suppress(OSError):  # marked used (cache_prune); a read-only cache stays as it is
+            os.utime(out)
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f'.{source.stem}-', suffix='.so', dir=out.parent)
@@ -123,4 +130,5 @@ def _built(source: Path) -> Path:
         if os.path.exists(tmp):
             os.unlink(tmp)
     log.info('native kernel %s built: %s', source.name, out)
+    prune_unused(out.parent, '*.so', keep=[out])
     return out

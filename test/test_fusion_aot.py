@@ -327,7 +327,7 @@ def test_libraries_unused_for_long_are_pruned_and_a_load_marks_one_used(cache, t
         (tmp_path / name).write_bytes(b'x')
         if name != 'fusion_blend_recent.so':
             os.utime(tmp_path / name, (old, old))
-    removed = aot_kernels.prune_unused(tmp_path, keep=[tmp_path / 'fusion_sums_kept.so'])
+    removed = aot_kernels.prune_unused(tmp_path, 'fusion_*.so', keep=[tmp_path / 'fusion_sums_kept.so'])
     assert [p.name for p in removed] == ['fusion_sums_stale.so']
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names[1:])
 

@@ -39,6 +39,7 @@ try:
 except ImportError:  # not POSIX: builds are not serialised (each builds; the rename keeps files whole)
     fcntl = None  # type: ignore[assignment]
 
+from ..cache_prune import UNUSED_DAYS, prune_unused
 from ..user_cache import user_cache
 from . import chunk_sums, interpolation, kernel_compile, weights
 from .weights import Samples, WeightParams
@@ -46,10 +47,6 @@ from .weights import Samples, WeightParams
 log = logging.getLogger(__name__)
 
 KERNELS = ('sums', 'blend')
-#: A library not loaded for this many days is deleted when new ones are built. Every torch
-#: upgrade, kernel source change or option change gives the kernels a new file name and leaves
-#: the old files behind (1.5 MB each), which nothing loads again; a loaded file is marked used.
-UNUSED_DAYS = 60
 ENV_SWITCH = 'DEPTH_FUSION_AOT'
 #: Dynamic sizes the packages accept (pixels per chunk, points of Ω, pixels of a keyframe).
 _MAX_SIZE = 1 << 24
@@ -166,29 +163,10 @@ def build(params: WeightParams, device: torch.device | str = 'cpu') -> dict[str,
         seconds[name] = time.perf_counter() - start
         log.info('AOT fusion kernel %s built in %.1f s: %s', name, seconds[name], target)
     forget_loaded()
-    removed = prune_unused(cache_dir(), keep=built)
+    removed = prune_unused(cache_dir(), 'fusion_*.so', keep=built)
     if removed:
         log.info('removed %d fusion kernel file(s) not loaded for %d days', len(removed), UNUSED_DAYS)
     return seconds
-
-
-def prune_unused(cache: Path, keep: list[Path], days: float = UNUSED_DAYS) -> list[Path]:
-    """Delete the kernel libraries of ``cache`` not loaded (nor built) for ``days``, except
-    ``keep``; returns those deleted. Another process may have one mapped: on POSIX it keeps
-    its mapping, and one about to load it finds no file and compiles (as for a cache never
-    built). A file that cannot be deleted stays (logged)."""
-    cutoff = time.time() - days * 86400.0
-    kept = {Path(p).resolve() for p in keep}
-    removed = []
-    for path in sorted(cache.glob('fusion_*.so')):
-        try:
-            if path.resolve() in kept or path.stat().st_mtime >= cutoff:
-                continue
-            path.unlink()
-            removed.append(path)
-        except OSError as exc:
-            log.warning('could not remove the unused fusion kernel %s (%s)', path, exc)
-    return removed
 
 
 @contextlib.contextmanager

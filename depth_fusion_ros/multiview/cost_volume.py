@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the first parallel sqrt)
+from .native_cost import native_sweep_cost
 
 
 @functools.lru_cache(maxsize=16)
@@ -174,6 +175,20 @@ def epipolar_rays(
 
 
 def sample_cost(
+    key_desc: torch.Tensor, neighbour_images: torch.Tensor, rays: EpipolarRays, rho: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`sample_cost_torch`'s cost and count; on a CPU by the native kernel
+    (``native_cost.py``: the same numbers in one pass), elsewhere or where that cannot run by
+    the torch code."""
+    if neighbour_images.device.type == 'cpu':
+        a, b = rays._normalised()
+        native = native_sweep_cost(key_desc, neighbour_images, a, b, rho)
+        if native is not None:
+            return native
+    return sample_cost_torch(key_desc, neighbour_images, rays, rho)
+
+
+def sample_cost_torch(
     key_desc: torch.Tensor, neighbour_images: torch.Tensor, rays: EpipolarRays, rho: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Neighbour-averaged ``1 - ZNCC`` (M, S) and the (soft) number of neighbours seeing each sample.

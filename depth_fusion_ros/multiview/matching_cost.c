@@ -1,0 +1,219 @@
+/* The epipolar matching cost (1 - ZNCC of patch descriptors) in one pass per lookup (x86-64, AVX2 + FMA).
+ *
+ * Two kernels compute, number for number, what the package's torch code computes:
+ * - frame_cost: the depth filter's cost against one frame, samples-first (S, R)
+ *   (filter_search._frame_cost_torch): each row's own inverse depths, one frame, the cost set
+ *   to inf where the frame does not see the sample;
+ * - sweep_cost: the sweep's cost against n neighbours, rows-first (M, S)
+ *   (cost_volume.sample_cost_torch): the neighbours' looked-up descriptors summed, then the
+ *   ZNCC with the row's key descriptor, and the summed visibility returned as the count.
+ * A lookup is grid_sample's (bilinear, zero padding, align_corners) of the descriptors at the
+ * point a + rho b projects to. Why native: on a CPU the torch code writes every looked-up
+ * channel to memory and reads it back for the dot product, and ATen's grid_sample gathers each
+ * channel of each corner separately. Here the descriptors are channels-last (one 8-float block
+ * a pixel), so a corner is one 256-bit load, and nothing but the cost is written: about 3x
+ * faster than the torch code on one core.
+ *
+ * Same numbers: ATen's vectorised CPU kernels contract their multiply-adds into FMAs (addcmul,
+ * grid_sample's corner sum), so those operations are written here as FMAs in the same order,
+ * and the rest without contraction (built with -ffp-contract=off); sums run in torch's order.
+ * On the machines this was checked on every cost is bit-identical to the torch code's
+ * (test/test_native_matching_cost.py).
+ *
+ * Layout: a descriptor table (H * W + 1, 8) floats, channels-last, the descriptor channels
+ * 0..C-1 and the visibility in channel C, its last block zeros (what an out-of-image corner
+ * reads); key (C, .) channel rows with stride ks.
+ */
+#include <immintrin.h>
+#include <math.h>
+#include <stdint.h>
+
+#define LANES 8
+
+/* The looked-up descriptor block (8 channels) of one point a + p b, as grid_sample computes it;
+ * `a`, `b` are the normalised projection's three coordinates (a + rho b: torch's addcmul). */
+static void lookup_one(const float *F, int H, int W, float a0, float a1, float a2, float b0, float b1,
+                       float b2, float p, float v[LANES]) {
+    float sx = (float)(W - 1) / 2, sy = (float)(H - 1) / 2;
+    float w = fmaf(p, b2, a2);
+    w = (1e-4f > w) ? 1e-4f : w; /* clamp(min=1e-4); a NaN stays NaN */
+    float gx = fmaf(p, b0, a0) / w, gy = fmaf(p, b1, a1) / w;
+    float ix = (gx + 1.0f) * sx, iy = (gy + 1.0f) * sy;
+    float x_w = floorf(ix), y_n = floorf(iy);
+    float wx = ix - x_w, e = 1.0f - wx, n = iy - y_n, s = 1.0f - n;
+    float nw = s * e, ne = s * wx, sw = n * e, se = n * wx;
+    int wm = (x_w > -1.0f) && (x_w < (float)W), em = (x_w + 1.0f > -1.0f) && (x_w + 1.0f < (float)W);
+    int nm = (y_n > -1.0f) && (y_n < (float)H), sm = (y_n + 1.0f > -1.0f) && (y_n + 1.0f < (float)H);
+    int64_t zero = (int64_t)H * W;
+    int64_t xi = (wm || em) ? (int64_t)x_w : 0, yi = (nm || sm) ? (int64_t)y_n : 0;
+    const float *pnw = F + LANES * ((nm && wm) ? yi * W + xi : zero);
+    const float *pne = F + LANES * ((nm && em) ? yi * W + xi + 1 : zero);
+    const float *psw = F + LANES * ((sm && wm) ? (yi + 1) * W + xi : zero);
+    const float *pse = F + LANES * ((sm && em) ? (yi + 1) * W + xi + 1 : zero);
+    for (int c = 0; c < LANES; c++) v[c] = fmaf(pse[c], se, fmaf(psw[c], sw, fmaf(pne[c], ne, pnw[c] * nw)));
+}
+
+static inline __m256 in_range(__m256 x, __m256 size) {
+    return _mm256_and_ps(_mm256_cmp_ps(x, _mm256_set1_ps(-1.0f), _CMP_GT_OQ), _mm256_cmp_ps(x, size, _CMP_LT_OQ));
+}
+
+/* The corner index of eight lookups, or the zero block where the corner is out of the image. */
+static inline __m256i corner(__m256i at, __m256 inside, __m256i zero) {
+    return _mm256_blendv_epi8(zero, at, _mm256_castps_si256(inside));
+}
+
+/* Eight lookups at once (lane j: the point a_j + p_j b_j): v[j] is lookup j's descriptor block. */
+static inline void lookup_eight(const float *F, int H, int W, __m256 a0, __m256 a1, __m256 a2, __m256 b0,
+                                __m256 b1, __m256 b2, __m256 p, __m256 v[8]) {
+    const __m256 one = _mm256_set1_ps(1.0f), lo = _mm256_set1_ps(1e-4f);
+    const __m256 fw = _mm256_set1_ps((float)W), fh = _mm256_set1_ps((float)H);
+    const __m256 sx = _mm256_set1_ps((float)(W - 1) / 2), sy = _mm256_set1_ps((float)(H - 1) / 2);
+    const __m256i iw = _mm256_set1_epi32(W), izero = _mm256_set1_epi32(H * W), ione = _mm256_set1_epi32(1);
+    /* a + rho b (addcmul), w clamped below at 1e-4 (max(lo, w) keeps a NaN w) */
+    __m256 w = _mm256_max_ps(lo, _mm256_fmadd_ps(p, b2, a2));
+    __m256 gx = _mm256_div_ps(_mm256_fmadd_ps(p, b0, a0), w);
+    __m256 gy = _mm256_div_ps(_mm256_fmadd_ps(p, b1, a1), w);
+    /* grid_sample: unnormalised (align_corners), the four corners and their weights */
+    __m256 ix = _mm256_mul_ps(_mm256_add_ps(gx, one), sx), iy = _mm256_mul_ps(_mm256_add_ps(gy, one), sy);
+    __m256 xw = _mm256_floor_ps(ix), yn = _mm256_floor_ps(iy);
+    __m256 wx = _mm256_sub_ps(ix, xw), e = _mm256_sub_ps(one, wx);
+    __m256 n = _mm256_sub_ps(iy, yn), sv = _mm256_sub_ps(one, n);
+    float wt[4][8];
+    _mm256_storeu_ps(wt[0], _mm256_mul_ps(sv, e));
+    _mm256_storeu_ps(wt[1], _mm256_mul_ps(sv, wx));
+    _mm256_storeu_ps(wt[2], _mm256_mul_ps(n, e));
+    _mm256_storeu_ps(wt[3], _mm256_mul_ps(n, wx));
+    __m256 wm = in_range(xw, fw), em = in_range(_mm256_add_ps(xw, one), fw);
+    __m256 nm = in_range(yn, fh), sm = in_range(_mm256_add_ps(yn, one), fh);
+    /* lanes with no corner inside are not converted (their coordinate may be NaN or huge) */
+    __m256i xi = _mm256_cvttps_epi32(_mm256_and_ps(xw, _mm256_or_ps(wm, em)));
+    __m256i yi = _mm256_cvttps_epi32(_mm256_and_ps(yn, _mm256_or_ps(nm, sm)));
+    __m256i at = _mm256_add_epi32(_mm256_mullo_epi32(yi, iw), xi);
+    __m256i below = _mm256_add_epi32(at, iw);
+    int32_t idx[4][8];
+    _mm256_storeu_si256((__m256i *)idx[0], corner(at, _mm256_and_ps(nm, wm), izero));
+    _mm256_storeu_si256((__m256i *)idx[1], corner(_mm256_add_epi32(at, ione), _mm256_and_ps(nm, em), izero));
+    _mm256_storeu_si256((__m256i *)idx[2], corner(below, _mm256_and_ps(sm, wm), izero));
+    _mm256_storeu_si256((__m256i *)idx[3], corner(_mm256_add_epi32(below, ione), _mm256_and_ps(sm, em), izero));
+    for (int j = 0; j < 8; j++) {
+        __m256 acc = _mm256_mul_ps(_mm256_loadu_ps(F + (int64_t)LANES * idx[0][j]), _mm256_set1_ps(wt[0][j]));
+        acc = _mm256_fmadd_ps(_mm256_loadu_ps(F + (int64_t)LANES * idx[1][j]), _mm256_set1_ps(wt[1][j]), acc);
+        acc = _mm256_fmadd_ps(_mm256_loadu_ps(F + (int64_t)LANES * idx[2][j]), _mm256_set1_ps(wt[2][j]), acc);
+        v[j] = _mm256_fmadd_ps(_mm256_loadu_ps(F + (int64_t)LANES * idx[3][j]), _mm256_set1_ps(wt[3][j]), acc);
+    }
+}
+
+static inline void transpose8(__m256 *r) {
+    __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
+    __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
+    __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
+    __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
+    __m256 u0 = _mm256_shuffle_ps(t0, t2, 0x44), u1 = _mm256_shuffle_ps(t0, t2, 0xEE);
+    __m256 u2 = _mm256_shuffle_ps(t1, t3, 0x44), u3 = _mm256_shuffle_ps(t1, t3, 0xEE);
+    __m256 u4 = _mm256_shuffle_ps(t4, t6, 0x44), u5 = _mm256_shuffle_ps(t4, t6, 0xEE);
+    __m256 u6 = _mm256_shuffle_ps(t5, t7, 0x44), u7 = _mm256_shuffle_ps(t5, t7, 0xEE);
+    r[0] = _mm256_permute2f128_ps(u0, u4, 0x20);
+    r[1] = _mm256_permute2f128_ps(u1, u5, 0x20);
+    r[2] = _mm256_permute2f128_ps(u2, u6, 0x20);
+    r[3] = _mm256_permute2f128_ps(u3, u7, 0x20);
+    r[4] = _mm256_permute2f128_ps(u0, u4, 0x31);
+    r[5] = _mm256_permute2f128_ps(u1, u5, 0x31);
+    r[6] = _mm256_permute2f128_ps(u2, u6, 0x31);
+    r[7] = _mm256_permute2f128_ps(u3, u7, 0x31);
+}
+
+/* filter_search._frame_cost_torch: the ZNCC (planes[0] keys[0], then addcmul_ per channel) and
+ * (count - zncc + 1e-3) / ((count + 1e-3) * (count >= 0.5)). */
+static inline float frame_one(const float *v, const float *key, int64_t ks, int C, int64_t r) {
+    float z = v[0] * key[r];
+    for (int c = 1; c < C; c++) z = fmaf(v[c], key[c * ks + r], z);
+    float count = v[C];
+    float vis = (count >= 0.5f) ? 1.0f : 0.0f;
+    return ((count - z) + 1e-3f) / ((count + 1e-3f) * vis);
+}
+
+/* One frame, samples-first: a (3, .) the rows' normalised projections at infinity with stride
+ * as, b the frame's normalised K t, rho and out (S, .) with row stride rs; R rows, in blocks of
+ * eight over `threads` OpenMP threads (torch's own libgomp: the same thread team). */
+void frame_cost(const float *F, int H, int W, int C, const float *key, int64_t ks, const float *a, int64_t as,
+                float b0, float b1, float b2, const float *rho, int64_t rs, int S, int64_t R, float *out,
+                int threads) {
+    const __m256 one = _mm256_set1_ps(1.0f), eps = _mm256_set1_ps(1e-3f), half = _mm256_set1_ps(0.5f);
+    const __m256 B0 = _mm256_set1_ps(b0), B1 = _mm256_set1_ps(b1), B2 = _mm256_set1_ps(b2);
+    const int64_t r8 = R & ~(int64_t)7;
+#pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
+    for (int64_t r = 0; r < r8; r += 8) {
+        const __m256 a0 = _mm256_loadu_ps(a + r), a1 = _mm256_loadu_ps(a + as + r), a2 = _mm256_loadu_ps(a + 2 * as + r);
+        __m256 k[LANES];
+        for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(key + c * ks + r);
+        for (int s = 0; s < S; s++) {
+            float *os = out + s * rs;
+            __m256 v[8];
+            lookup_eight(F, H, W, a0, a1, a2, B0, B1, B2, _mm256_loadu_ps(rho + s * rs + r), v);
+            transpose8(v); /* v[c]: channel c of the eight lookups */
+            __m256 z = _mm256_mul_ps(v[0], k[0]);
+            for (int c = 1; c < C; c++) z = _mm256_fmadd_ps(v[c], k[c], z);
+            __m256 count = v[C];
+            __m256 vis = _mm256_and_ps(_mm256_cmp_ps(count, half, _CMP_GE_OQ), one);
+            __m256 num = _mm256_add_ps(_mm256_sub_ps(count, z), eps);
+            _mm256_storeu_ps(os + r, _mm256_div_ps(num, _mm256_mul_ps(_mm256_add_ps(count, eps), vis)));
+        }
+    }
+    for (int s = 0; s < S; s++)
+        for (int64_t r = r8; r < R; r++) {
+            float v[LANES];
+            lookup_one(F, H, W, a[r], a[as + r], a[2 * as + r], b0, b1, b2, rho[s * rs + r], v);
+            out[s * rs + r] = frame_one(v, key, ks, C, r);
+        }
+}
+
+/* cost_volume.sample_cost_torch: the ZNCC of the summed lookups (mul_, then a sum over the
+ * channels in order) and (count - zncc + 1e-3) / (count + 1e-3). */
+static inline float sweep_one(const float *v, const float *key, int64_t ks, int C, int64_t m) {
+    float z = v[0] * key[m];
+    for (int c = 1; c < C; c++) z = z + v[c] * key[c * ks + m];
+    return ((v[C] - z) + 1e-3f) / (v[C] + 1e-3f);
+}
+
+/* n neighbours, rows-first: F n tables of (H * W + 1) blocks one after the other; a (n, M, 3)
+ * contiguous, the rows' normalised projections at infinity in each neighbour; b (n, 3); rho
+ * (M, S) with row stride rs (0: the same S inverse depths for every row); cost and count
+ * (M, S) contiguous; M rows over `threads` OpenMP threads. */
+void sweep_cost(const float *F, int n, int H, int W, int C, const float *key, int64_t ks, const float *a,
+                int64_t M, const float *b, const float *rho, int64_t rs, int S, float *cost, float *count,
+                int threads) {
+    const int64_t table = ((int64_t)H * W + 1) * LANES;
+    const int s8 = S & ~7;
+    const __m256 eps = _mm256_set1_ps(1e-3f);
+#pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
+    for (int64_t m = 0; m < M; m++) {
+        const float *pm = rho + m * rs;
+        for (int s = 0; s < s8; s += 8) {
+            __m256 p = _mm256_loadu_ps(pm + s), sum[8], v[8];
+            for (int k = 0; k < n; k++) {
+                const float *ak = a + (k * M + m) * 3, *bk = b + 3 * k;
+                lookup_eight(F + k * table, H, W, _mm256_set1_ps(ak[0]), _mm256_set1_ps(ak[1]), _mm256_set1_ps(ak[2]),
+                             _mm256_set1_ps(bk[0]), _mm256_set1_ps(bk[1]), _mm256_set1_ps(bk[2]), p, k ? v : sum);
+                if (k)
+                    for (int j = 0; j < 8; j++) sum[j] = _mm256_add_ps(sum[j], v[j]);
+            }
+            transpose8(sum); /* sum[c]: channel c of the eight samples, summed over the neighbours */
+            __m256 z = _mm256_mul_ps(sum[0], _mm256_set1_ps(key[m]));
+            for (int c = 1; c < C; c++) z = _mm256_add_ps(z, _mm256_mul_ps(sum[c], _mm256_set1_ps(key[c * ks + m])));
+            __m256 num = _mm256_add_ps(_mm256_sub_ps(sum[C], z), eps);
+            _mm256_storeu_ps(cost + m * S + s, _mm256_div_ps(num, _mm256_add_ps(sum[C], eps)));
+            _mm256_storeu_ps(count + m * S + s, sum[C]);
+        }
+        for (int s = s8; s < S; s++) {
+            float total[LANES], v[LANES];
+            for (int k = 0; k < n; k++) {
+                const float *ak = a + (k * M + m) * 3, *bk = b + 3 * k;
+                lookup_one(F + k * table, H, W, ak[0], ak[1], ak[2], bk[0], bk[1], bk[2], pm[s], k ? v : total);
+                if (k)
+                    for (int c = 0; c < LANES; c++) total[c] = total[c] + v[c];
+            }
+            cost[m * S + s] = sweep_one(total, key, ks, C, m);
+            count[m * S + s] = total[C];
+        }
+    }
+}
