@@ -63,13 +63,15 @@ def load_native(source: Path) -> ctypes.CDLL | None:
 
 def _build_and_load(source: Path) -> ctypes.CDLL | None:
     why = _unsupported()
-    if why is None:
-        try:
-            return ctypes.CDLL(str(_built(source)))
-        except (OSError, subprocess.SubprocessError) as exc:
-            why = f'building it failed ({str(exc).strip().splitlines()[-1] if str(exc).strip() else exc!r})'
-    log.info('native kernel %s not used: %s; the torch code runs instead', source.name, why)
-    return None
+    if why is not None:  # this machine: said, not a fault
+        log.info('native kernel %s not used: %s; the torch code runs instead', source.name, why)
+        return None
+    try:
+        return ctypes.CDLL(str(_built(source)))
+    except (OSError, subprocess.SubprocessError) as exc:  # it should have built here: a fault to see
+        detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else repr(exc)
+        log.warning('native kernel %s not built (%s); the torch code runs instead', source.name, detail)
+        return None
 
 
 def _unsupported() -> str | None:

@@ -91,6 +91,15 @@ def test_the_kernel_declines_what_it_was_not_written_for():
     assert native_cost.native_frame_cost(*doubles) is None
 
 
+def test_the_kernels_build_wherever_they_can_run():
+    """A machine the kernels are written for (x86-64 with AVX2 and FMA and a C compiler, as CI)
+    builds and loads them: a broken build is a failure here, not a quiet fall back to torch."""
+    why = native_build._unsupported()
+    if why is not None:
+        pytest.skip(f'not written for this machine: {why}')
+    assert native_cost.prepare()
+
+
 def test_the_environment_turns_native_kernels_off(monkeypatch):
     monkeypatch.setenv('DEPTH_FUSION_NATIVE', '0')
     assert not native_build.native_enabled()
