@@ -107,11 +107,22 @@ def _compiler() -> str | None:
 
 
 def _built(source: Path) -> Path:
-    """The cached library of ``source``, compiled now if it is not there yet."""
+    """The cached library of ``source``, compiled now if it is not there yet; without OpenMP
+    (one thread: the pragmas are ignored) where the compiler has none."""
     cc = _compiler()
     assert cc is not None
-    flags = [*BASE_FLAGS, *X86_FLAGS]
     version = subprocess.run([cc, '--version'], capture_output=True, text=True, check=True, timeout=30).stdout
+    failure: subprocess.SubprocessError | None = None
+    for flags in ([*BASE_FLAGS, *X86_FLAGS], [f for f in (*BASE_FLAGS, *X86_FLAGS) if f != '-fopenmp']):
+        try:
+            return _built_with(source, cc, version, flags)
+        except subprocess.SubprocessError as exc:
+            failure = failure or exc
+    assert failure is not None
+    raise failure
+
+
+def _built_with(source: Path, cc: str, version: str, flags: list[str]) -> Path:
     digest = hashlib.sha256(b'\0'.join([source.read_bytes(), version.encode(), ' '.join(flags).encode()]))
     out = user_cache('native') / f'{source.stem}-{digest.hexdigest()[:16]}.so'
     if out.exists():
@@ -122,15 +133,15 @@ def _built(source: Path) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f'.{source.stem}-', suffix='.so', dir=out.parent)
     os.close(fd)
     try:
-        done = subprocess.run(
-            [cc, *flags, '-o', tmp, str(source), '-lm'], capture_output=True, text=True, timeout=120
-        )
+        command = [cc, *flags, '-o', tmp, str(source), '-lm']
+        done = subprocess.run(command, capture_output=True, text=True, timeout=120)
         if done.returncode != 0:
             raise subprocess.SubprocessError(done.stderr.strip() or f'{cc} exited with {done.returncode}')
         os.replace(tmp, out)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
-    log.info('native kernel %s built: %s', source.name, out)
+    how = '' if '-fopenmp' in flags else ' without OpenMP (one thread)'
+    log.info('native kernel %s built%s: %s', source.name, how, out)
     prune_unused(out.parent, '*.so', keep=[out])
     return out
