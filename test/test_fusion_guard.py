@@ -303,6 +303,32 @@ def test_the_grid_search_gives_the_tree_search_numbers(radius):
             np.testing.assert_array_equal(got, expected)
 
 
+@pytest.mark.parametrize('radius', [12.0, 7.5, 3.0])
+@pytest.mark.parametrize('max_neighbours', [16, 3, 1])
+def test_the_native_ring_walk_gives_the_tree_search_numbers(radius, max_neighbours):
+    """The CPU's kernel (``ring_median.c``: each point walks the ring offsets and stops at the
+    k-th neighbour) and the k-d tree give the same medians, bit for bit, and the same counts;
+    ties among the values, sparse and dense points."""
+    from depth_fusion_ros import native_build
+    from depth_fusion_ros.fusion import neighbour_median as nm
+
+    if nm._ring_median_library() is None:
+        pytest.skip(f'the native kernel cannot run here: {native_build._unsupported() or "it did not build"}')
+    rng = np.random.default_rng(11)
+    for density in (0.01, 0.05, 0.3, 0.9):
+        cols, rows = _pixels(rng, density, (90, 120))
+        values = rng.normal(0.0, 1.0, len(cols))
+        values[::5] = values[0]
+        native = nm.native_median(cols, rows, values, radius, max_neighbours)
+        assert native is not None
+        tree = nm.tree_median(cols, rows, values, radius, max_neighbours)
+        np.testing.assert_array_equal(native[0], tree[0])
+        np.testing.assert_array_equal(native[1], tree[1])
+    assert nm.native_median(cols, rows, values, radius, 500) is None  # beyond the kernel's 256: the tree
+    values[3] = np.nan
+    assert nm.native_median(cols, rows, values, radius, max_neighbours) is None
+
+
 def test_local_deviation_counts_every_neighbour_for_the_support():
     """Dense points (the filter's): the support counts all neighbours within the radius, not
     the ``max_neighbours`` of the median (a strided sample beyond SUPPORT_SAMPLE points)."""
