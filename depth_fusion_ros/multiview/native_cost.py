@@ -43,7 +43,11 @@ def native_frame_cost(
     """``filter_search._frame_cost`` (S, R) by the native kernel, or ``None`` where it does not
     apply (then the caller's torch code runs): ``key_desc`` (C, R), ``frame_desc`` (1, C + 1, H,
     W), ``a`` (3, R) and ``b`` (3,) the rows' normalised rays, ``rho`` (S, R)."""
-    if frame_desc.dim() != 4 or frame_desc.shape[0] != 1 or not _applies(key_desc, frame_desc, a, b, rho):
+    rows = key_desc.shape[1]
+    shapes = (a.shape == (3, rows), b.shape == (3,), rho.dim() == 2 and rho.shape[1] == rows)
+    if frame_desc.dim() != 4 or frame_desc.shape[0] != 1 or not all(shapes):
+        return None
+    if not _applies(key_desc, frame_desc, a, b, rho):
         return None
     lib = _load()
     if lib is None:
@@ -52,7 +56,7 @@ def native_frame_cost(
     channels, height, width = key_desc.shape[0], frame_desc.shape[2], frame_desc.shape[3]
     key_desc, a = (t if t.stride(-1) == 1 else t.contiguous() for t in (key_desc, a))
     rho = rho.contiguous()
-    samples, rows = rho.shape
+    samples = rho.shape[0]
     out = torch.empty((samples, rows), dtype=torch.float32)
     b0, b1, b2 = (float(v) for v in b.tolist())
 
@@ -70,14 +74,18 @@ def native_sweep_cost(
     """``cost_volume.sample_cost``'s cost and count (M, S) by the native kernel, or ``None``:
     ``key_desc`` (C, M), ``neighbour_desc`` (n, C + 1, H, W), ``a`` (n, M, 3) and ``b`` (n, 3)
     the rays normalised (``EpipolarRays._normalised``), ``rho`` (S,) or (M, S)."""
-    if neighbour_desc.dim() != 4 or not _applies(key_desc, neighbour_desc, a, b, rho):
+    n, rows = neighbour_desc.shape[0], key_desc.shape[1]
+    shapes = (a.shape == (n, rows, 3), b.shape == (n, 3), rho.dim() == 1 or rho.shape[0] == rows)
+    if neighbour_desc.dim() != 4 or rho.dim() > 2 or not all(shapes):
+        return None
+    if not _applies(key_desc, neighbour_desc, a, b, rho):
         return None
     lib = _load()
     if lib is None:
         return None
     table = _channels_last(neighbour_desc)
-    n, _, height, width = neighbour_desc.shape
-    channels, rows = key_desc.shape
+    height, width = neighbour_desc.shape[2], neighbour_desc.shape[3]
+    channels = key_desc.shape[0]
     key_desc = key_desc if key_desc.stride(-1) == 1 else key_desc.contiguous()
     a, b, rho = a.contiguous(), b.contiguous(), rho.contiguous()
     samples = rho.shape[-1]
