@@ -143,6 +143,12 @@ _ring_lock = threading.Lock()
 _ring_library: list[ctypes.CDLL | None] = []  # loaded once: [library or None]
 
 
+def prepare() -> bool:
+    """Build (first run on this machine) or load the kernel now, so that a fusion node's first
+    keyframe does not wait for the compiler; whether it will be used."""
+    return _ring_median_library() is not None
+
+
 def _ring_median_library() -> ctypes.CDLL | None:
     with _ring_lock:
         if not _ring_library:

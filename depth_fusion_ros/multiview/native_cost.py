@@ -44,15 +44,11 @@ def native_frame_cost(
     apply (then the caller's torch code runs): ``key_desc`` (C, R), ``frame_desc`` (1, C + 1, H,
     W), ``a`` (3, R) and ``b`` (3,) the rows' normalised rays, ``rho`` (S, R)."""
     rows = key_desc.shape[1]
-    shapes = (a.shape == (3, rows), b.shape == (3,), rho.dim() == 2 and rho.shape[1] == rows)
-    if frame_desc.dim() != 4 or frame_desc.shape[0] != 1 or not all(shapes):
+    shapes = (frame_desc.dim() == 4 and frame_desc.shape[0] == 1, a.shape == (3, rows), b.shape == (3,))
+    ready = _ready(key_desc, frame_desc, (*shapes, rho.dim() == 2 and rho.shape[1] == rows), a, b, rho)
+    if ready is None:
         return None
-    if not _applies(key_desc, frame_desc, a, b, rho):
-        return None
-    lib = _load()
-    if lib is None:
-        return None
-    table = _channels_last(frame_desc)
+    lib, table = ready
     channels, height, width = key_desc.shape[0], frame_desc.shape[2], frame_desc.shape[3]
     key_desc, a = (t if t.stride(-1) == 1 else t.contiguous() for t in (key_desc, a))
     rho = rho.contiguous()
@@ -75,15 +71,12 @@ def native_sweep_cost(
     ``key_desc`` (C, M), ``neighbour_desc`` (n, C + 1, H, W), ``a`` (n, M, 3) and ``b`` (n, 3)
     the rays normalised (``EpipolarRays._normalised``), ``rho`` (S,) or (M, S)."""
     n, rows = neighbour_desc.shape[0], key_desc.shape[1]
-    shapes = (a.shape == (n, rows, 3), b.shape == (n, 3), rho.dim() == 1 or rho.shape[0] == rows)
-    if neighbour_desc.dim() != 4 or rho.dim() > 2 or not all(shapes):
+    shapes = (neighbour_desc.dim() == 4, a.shape == (n, rows, 3), b.shape == (n, 3))
+    per_sample = rho.dim() == 1 or (rho.dim() == 2 and rho.shape[0] == rows)
+    ready = _ready(key_desc, neighbour_desc, (*shapes, per_sample), a, b, rho)
+    if ready is None:
         return None
-    if not _applies(key_desc, neighbour_desc, a, b, rho):
-        return None
-    lib = _load()
-    if lib is None:
-        return None
-    table = _channels_last(neighbour_desc)
+    lib, table = ready
     height, width = neighbour_desc.shape[2], neighbour_desc.shape[3]
     channels = key_desc.shape[0]
     key_desc = key_desc if key_desc.stride(-1) == 1 else key_desc.contiguous()
@@ -107,14 +100,21 @@ def prepare() -> bool:
     return _load() is not None
 
 
-def _applies(key_desc: torch.Tensor, desc: torch.Tensor, *rest: torch.Tensor) -> bool:
-    """CPU float32 tensors whose descriptors (and visibility) fit one 8-float block."""
-    return (
-        desc.device.type == 'cpu'
+def _ready(
+    key_desc: torch.Tensor, desc: torch.Tensor, shapes: tuple[bool, ...], *rest: torch.Tensor
+) -> tuple[ctypes.CDLL, torch.Tensor] | None:
+    """The library and the descriptors' table for a kernel call, or None where the call does
+    not apply: a shape the caller's checks refused (``shapes``: never a read out of bounds), not
+    CPU float32, descriptors and visibility beyond one 8-float block, or no kernels here."""
+    applies = (
+        all(shapes)
+        and desc.device.type == 'cpu'
         and key_desc.shape[0] + 1 <= LANES
         and desc.shape[1] == key_desc.shape[0] + 1
         and all(t.dtype == torch.float32 for t in (key_desc, desc, *rest))
     )
+    lib = _load() if applies else None
+    return None if lib is None else (lib, _channels_last(desc))
 
 
 def _threads(lookups: int) -> int:

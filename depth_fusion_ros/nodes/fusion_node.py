@@ -39,6 +39,7 @@ from std_msgs.msg import String
 from ..camera import PinholeCamera
 from ..check_modes import CHECK_MODES
 from ..data import messages
+from ..fusion import neighbour_median
 from ..fusion import pipeline as fusion_pipeline
 from ..fusion.consistency import CONSISTENCY_PARAMETER_DESCRIPTIONS, ConsistencyConfig
 from ..fusion.guard import GUARD_PARAMETER_DESCRIPTIONS, GuardConfig, MultiViewEvidence
@@ -354,6 +355,8 @@ class FusionNode(DepthFusionNode):
             f'fusion ({self.config.mode} mode) on {p["device"]}: {self.resolve_topic_name(TOPIC_SINGLE)} + '
             f'{self.resolve_topic_name(TOPIC_MV_DEPTH)} -> {self.resolve_topic_name(TOPIC_FUSED_DEPTH)}'
         )
+        if str(p['device']) == 'cpu':
+            neighbour_median.prepare()  # the guard's native kernel: built here, not at the first keyframe
         self.events.ready(warm=self.kernels_ready.is_set())  # not warm while compiling in the background
 
     # --- callbacks: collect parts by stamp ------------------------------------------------------------
