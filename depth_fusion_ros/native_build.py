@@ -2,8 +2,8 @@
 
 Why ctypes and the system C compiler rather than a torch extension: the kernels are plain C
 over raw float buffers (no torch headers, no pybind11, no ninja, nothing to pin), so building
-one is a single ``cc`` call of well under a second, and a ctypes call releases the GIL, so
-callers can split the work over threads. The compiler is the one inductor already needs for
+one is a single ``cc`` call of well under a second, and a ctypes call releases the GIL (a
+node's other threads run while a kernel does). The compiler is the one inductor already needs for
 the compiled fusion kernels (``fusion/kernel_compile.py``); where there is none, or the CPU
 lacks what a kernel is written for, :func:`load_native` says so once and returns ``None`` and
 the caller keeps its torch code.
@@ -51,13 +51,18 @@ def native_enabled() -> bool:
     return os.environ.get('DEPTH_FUSION_NATIVE', '1').strip().lower() not in ('0', 'false', 'no', 'off')
 
 
-def load_native(source: Path) -> ctypes.CDLL | None:
-    """The library built from the C file ``source`` (built on first use), or ``None`` where it
-    cannot run here; the reason is logged once per source and process."""
+def load_native(source: Path, signatures: dict[str, list[type]]) -> ctypes.CDLL | None:
+    """The library built from the C file ``source`` (built on first use) with its functions'
+    argument types set from ``signatures`` (each returns nothing), or ``None`` where it cannot
+    run here; the reason is logged once per source and process."""
     key = str(source)
     with _lock:
         if key not in _loaded:
-            _loaded[key] = _build_and_load(source)
+            lib = _build_and_load(source)
+            for name, argtypes in signatures.items() if lib is not None else ():
+                function = getattr(lib, name)
+                function.argtypes, function.restype = argtypes, None
+            _loaded[key] = lib
         return _loaded[key]
 
 

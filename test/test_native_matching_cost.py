@@ -100,6 +100,24 @@ def test_the_kernels_build_wherever_they_can_run():
     assert native_cost.prepare()
 
 
+def test_a_compiler_without_openmp_builds_them_single_threaded(monkeypatch, tmp_path):
+    """A compiler that refuses ``-fopenmp`` (a ``cc`` wrapper here) still gives a library, built
+    without it, into the user cache; the kernel then gives the same numbers on one thread."""
+    if native_build._unsupported() is not None:
+        pytest.skip(f'not written for this machine: {native_build._unsupported()}')
+    real = native_build._compiler()
+    cc = tmp_path / 'cc'
+    cc.write_text(f'#!/bin/sh\nfor a in "$@"; do [ "$a" = -fopenmp ] && exit 1; done\nexec {real} "$@"\n')
+    cc.chmod(0o755)
+    monkeypatch.setenv('CC', str(cc))
+    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'cache'))
+    monkeypatch.setattr(native_build, '_loaded', {})
+    assert native_cost._load() is not None
+    assert len(list((tmp_path / 'cache' / 'depth_fusion_ros' / 'native').glob('matching_cost-*.so'))) == 1
+    key, desc, a, b, rho = _inputs(203, 11)
+    _compare(native_cost.native_frame_cost(key, desc, a, b, rho), _frame_cost_torch(key, desc, a, b, rho))
+
+
 def test_the_environment_turns_native_kernels_off(monkeypatch):
     monkeypatch.setenv('DEPTH_FUSION_NATIVE', '0')
     assert not native_build.native_enabled()

@@ -26,7 +26,6 @@ from __future__ import annotations
 import ctypes
 import functools
 import math
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -139,10 +138,6 @@ def native_median(
     return median, count
 
 
-_ring_lock = threading.Lock()
-_ring_library: list[ctypes.CDLL | None] = []  # loaded once: [library or None]
-
-
 def prepare() -> bool:
     """Build (first run on this machine) or load the kernel now, so that a fusion node's first
     keyframe does not wait for the compiler; whether it will be used."""
@@ -150,15 +145,9 @@ def prepare() -> bool:
 
 
 def _ring_median_library() -> ctypes.CDLL | None:
-    with _ring_lock:
-        if not _ring_library:
-            lib = load_native(Path(__file__).with_name('ring_median.c'))
-            if lib is not None:
-                p, i64 = ctypes.c_void_p, ctypes.c_int64
-                lib.ring_median.argtypes = [p, p, i64, p, i64, p, ctypes.c_int, p, p, ctypes.c_int]
-                lib.ring_median.restype = None
-            _ring_library.append(lib)
-        return _ring_library[0]
+    p, i64, i = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    signature = {'ring_median': [p, p, i64, p, i64, p, i, p, p, i]}
+    return load_native(Path(__file__).with_name('ring_median.c'), signature)
 
 
 def tree_median(

@@ -31,9 +31,12 @@ THREAD_MIN_LOOKUPS = 1 << 16
 TABLES_KEPT = 4
 
 _SOURCE = Path(__file__).with_name('matching_cost.c')
+_P, _I, _I64, _F = ctypes.c_void_p, ctypes.c_int, ctypes.c_int64, ctypes.c_float
+_SIGNATURES = {
+    'frame_cost': [_P, _I, _I, _I, _P, _I64, _P, _I64, _F, _F, _F, _P, _I64, _I, _I64, _P, _I],
+    'sweep_cost': [_P, _I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _I64, _I, _P, _P, _I],
+}
 _lock = threading.Lock()
-_library: ctypes.CDLL | None = None
-_loaded = False
 _tables: OrderedDict[int, tuple[torch.Tensor, int, torch.Tensor]] = OrderedDict()
 
 
@@ -125,20 +128,8 @@ def _threads(lookups: int) -> int:
 
 
 def _load() -> ctypes.CDLL | None:
-    """The kernels' library with its functions' signatures (built on first use), or None."""
-    global _library, _loaded
-    with _lock:
-        if not _loaded:
-            lib = load_native(_SOURCE)
-            if lib is not None:
-                p, i, i64, f = ctypes.c_void_p, ctypes.c_int, ctypes.c_int64, ctypes.c_float
-                lib.frame_cost.argtypes = [p, i, i, i, p, i64, p, i64, f, f, f, p, i64, i, i64, p, i]
-                lib.frame_cost.restype = None
-                lib.sweep_cost.argtypes = [p, i, i, i, i, p, i64, p, i64, p, p, i64, i, p, p, i]
-                lib.sweep_cost.restype = None
-                _library = lib
-            _loaded = True
-        return _library
+    """The kernels' library (built on first use), or None."""
+    return load_native(_SOURCE, _SIGNATURES)
 
 
 def _channels_last(desc: torch.Tensor) -> torch.Tensor:
