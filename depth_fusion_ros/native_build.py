@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import hashlib
 import logging
 import os
@@ -30,6 +31,7 @@ import tempfile
 import threading
 from pathlib import Path
 
+from .build_env import cpu_flags, switched_on
 from .cache_prune import prune_unused
 from .user_cache import user_cache
 
@@ -48,7 +50,7 @@ _loaded: dict[str, ctypes.CDLL | None] = {}
 
 def native_enabled() -> bool:
     """False when ``DEPTH_FUSION_NATIVE`` is ``0`` (or ``false``/``no``/``off``)."""
-    return os.environ.get('DEPTH_FUSION_NATIVE', '1').strip().lower() not in ('0', 'false', 'no', 'off')
+    return switched_on('DEPTH_FUSION_NATIVE')
 
 
 def load_native(source: Path, signatures: dict[str, list[type]]) -> ctypes.CDLL | None:
@@ -85,22 +87,11 @@ def _unsupported() -> str | None:
         return 'DEPTH_FUSION_NATIVE=0'
     if platform.machine().lower() not in ('x86_64', 'amd64'):
         return f'written for x86-64 (this is {platform.machine()})'
-    flags = _cpu_flags()
+    flags = cpu_flags()
     if flags is not None and not {'avx2', 'fma'} <= flags:
         return 'the CPU has no AVX2 and FMA'
     if _compiler() is None:
         return 'no C compiler (cc, gcc or $CC) on the PATH'
-    return None
-
-
-def _cpu_flags() -> set[str] | None:
-    """The CPU's feature flags from /proc/cpuinfo (None where it cannot be read)."""
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('flags'):
-                return set(line.split(':', 1)[1].split())
-    except OSError:
-        return None
     return None
 
 
@@ -111,12 +102,18 @@ def _compiler() -> str | None:
     return None
 
 
+@functools.cache
+def _compiler_version(cc: str) -> str:
+    """``cc --version``: part of every library's name (asked once per process, not per kernel)."""
+    return subprocess.run([cc, '--version'], capture_output=True, text=True, check=True, timeout=30).stdout
+
+
 def _built(source: Path) -> Path:
     """The cached library of ``source``, compiled now if it is not there yet; without OpenMP
     (one thread: the pragmas are ignored) where the compiler has none."""
     cc = _compiler()
     assert cc is not None
-    version = subprocess.run([cc, '--version'], capture_output=True, text=True, check=True, timeout=30).stdout
+    version = _compiler_version(cc)
     failure: subprocess.SubprocessError | None = None
     for flags in ([*BASE_FLAGS, *X86_FLAGS], [f for f in (*BASE_FLAGS, *X86_FLAGS) if f != '-fopenmp']):
         try:

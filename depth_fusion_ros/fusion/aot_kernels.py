@@ -39,6 +39,7 @@ try:
 except ImportError:  # not POSIX: builds are not serialised (each builds; the rename keeps files whole)
     fcntl = None  # type: ignore[assignment]
 
+from ..build_env import cpu_flags_line, switched_on
 from ..cache_prune import UNUSED_DAYS, prune_unused
 from ..user_cache import user_cache
 from . import chunk_sums, interpolation, kernel_compile, weights
@@ -57,22 +58,11 @@ def cache_dir() -> Path:
 
 
 def enabled(device: torch.device) -> bool:
-    return device.type == 'cpu' and os.environ.get(ENV_SWITCH, '1').strip().lower() not in (
-        '0',
-        'false',
-        'off',
-    )
+    return device.type == 'cpu' and switched_on(ENV_SWITCH)
 
 
-@functools.cache
 def _cpu_flags() -> str:
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('flags'):
-                return line
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+    return cpu_flags_line() or platform.processor() or platform.machine()
 
 
 @functools.cache
