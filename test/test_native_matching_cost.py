@@ -82,6 +82,51 @@ def test_rows_split_over_threads_give_the_same_numbers(monkeypatch):
     assert torch.equal(one.nan_to_num(nan=-1.0), split.nan_to_num(nan=-1.0))
 
 
+@pytest.mark.parametrize(
+    ('rows', 'samples', 'refine', 'distinct', 'edges'),
+    [(5, 3, 1, True, True), (203, 6, 0, False, False), (203, 8, 0, False, True), (1000, 16, 0, True, True),
+     (1003, 32, 2, True, True), (77, 32, 3, True, False)],
+)  # fmt: skip
+def test_the_native_search_is_the_torch_search(monkeypatch, rows, samples, refine, distinct, edges):
+    """A bucket's whole search (coarse samples, best, distinctiveness, fine samples, parabola)
+    in the kernel: each row's match, cost, ratio and verdict as the torch code gives them, bit
+    for bit, with undefined intervals among them (every fifth row's; NaN stays NaN)."""
+    _native_or_skip()
+    key, desc, a, b, _ = _inputs(rows, 2, seed=rows)
+    gen = torch.Generator().manual_seed(rows)
+    lo = torch.rand(rows, generator=gen) * 2.0
+    hi = lo + torch.rand(rows, generator=gen) * 0.5
+    lo[::5] = math.nan
+    args = (key, desc, (a, b), lo, hi, samples, refine, 1 << 22, distinct, edges)
+    ours = search.search_interval(*args)
+    monkeypatch.setattr(search, 'native_frame_search', lambda *args: None)
+    theirs = search.search_interval(*args)
+    assert (bool(theirs.ok.any()) or rows < 10) and not bool(theirs.ok.all())
+    assert torch.equal(ours.ok, theirs.ok)
+    for name in ('rho', 'cost', 'distinct'):
+        mine, reference = getattr(ours, name), getattr(theirs, name)
+        assert torch.equal(mine.nan_to_num(nan=-7.0), reference.nan_to_num(nan=-7.0)), name
+        assert torch.equal(mine.isnan(), reference.isnan()), name
+
+
+def test_the_native_search_splits_rows_over_threads_alike(monkeypatch):
+    _native_or_skip()
+    key, desc, a, b, _ = _inputs(4001, 2, seed=9)
+    lo = torch.rand(4001, generator=torch.Generator().manual_seed(9)) * 2.0
+    args = (key, desc, a, b, lo, lo + 0.3, 32, 2, True, True)
+    one = native_cost.native_frame_search(*args)
+    monkeypatch.setattr(native_cost, 'THREAD_MIN_LOOKUPS', 1)
+    before = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        split = native_cost.native_frame_search(*args)
+    finally:
+        torch.set_num_threads(before)
+    for mine, theirs in zip(one, split, strict=True):
+        assert torch.equal(mine.isnan(), theirs.isnan())
+        assert torch.equal(mine.nan_to_num(nan=-7.0), theirs.nan_to_num(nan=-7.0))
+
+
 def test_the_kernel_declines_what_it_was_not_written_for():
     """More than seven channels, another dtype: None, and the caller's torch code runs."""
     key, desc, a, b, rho = _inputs(50, 4)
@@ -89,6 +134,9 @@ def test_the_kernel_declines_what_it_was_not_written_for():
     assert native_cost.native_frame_cost(torch.cat((key, key[:2])), wide, a, b, rho) is None
     doubles = (t.double() for t in (key, desc, a, b, rho))
     assert native_cost.native_frame_cost(*doubles) is None
+    lo = torch.zeros(50)
+    too_many = native_cost.SEARCH_MAX_SAMPLES + 1
+    assert native_cost.native_frame_search(key, desc, a, b, lo, lo + 1, too_many, 2, True, True) is None
 
 
 def test_the_kernels_build_wherever_they_can_run():
@@ -140,6 +188,7 @@ def test_the_filter_ends_a_stream_in_the_same_state_with_and_without_it(monkeypa
 
     native = run()
     monkeypatch.setattr(search, 'native_frame_cost', lambda *args: None)
+    monkeypatch.setattr(search, 'native_frame_search', lambda *args: None)
     plain = run()
     for name, values in native.items():
         assert torch.allclose(values, plain[name], rtol=1e-5, atol=1e-6, equal_nan=True), name

@@ -20,7 +20,7 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from ..true_indices import true_indices
 from .cost_volume import EpipolarRays, rows_per_chunk
-from .native_cost import native_frame_cost
+from .native_cost import native_frame_cost, native_frame_search
 
 
 @dataclass
@@ -305,6 +305,12 @@ def search_interval(
         empty = lo.new_zeros(0)
         return SearchResult(empty, empty, empty, torch.zeros(0, dtype=torch.bool, device=lo.device))
     a, b = normalised_rows(rays) if isinstance(rays, EpipolarRays) else rays
+    # On a CPU, the whole search of each row in one native pass (the same numbers).
+    found = native_frame_search(
+        key_desc, frame_desc, a, b, lo, hi, samples, refine, with_distinctiveness, reject_edges
+    )
+    if found is not None:
+        return SearchResult(*found)
     chunk = rows_per_chunk(1, key_desc.shape[0] + 1, samples, chunk_elements)
     parts = [
         _search_rows(

@@ -217,3 +217,160 @@ void sweep_cost(const float *F, int n, int H, int W, int C, const float *key, in
         }
     }
 }
+
+/* ---- The filter's search of one bucket (filter_search._search_rows), whole, per row ---- */
+
+/* The cost of eight rows (lanes) at inverse depths p: frame_cost's arithmetic. */
+static inline __m256 cost_eight(const float *F, int H, int W, int C, const __m256 *k, __m256 a0, __m256 a1,
+                                __m256 a2, __m256 B0, __m256 B1, __m256 B2, __m256 p) {
+    const __m256 one = _mm256_set1_ps(1.0f), eps = _mm256_set1_ps(1e-3f), half = _mm256_set1_ps(0.5f);
+    __m256 v[8];
+    lookup_eight(F, H, W, a0, a1, a2, B0, B1, B2, p, v);
+    transpose8(v);
+    __m256 z = _mm256_mul_ps(v[0], k[0]);
+    for (int c = 1; c < C; c++) z = _mm256_fmadd_ps(v[c], k[c], z);
+    __m256 count = v[C];
+    __m256 vis = _mm256_and_ps(_mm256_cmp_ps(count, half, _CMP_GE_OQ), one);
+    __m256 num = _mm256_add_ps(_mm256_sub_ps(count, z), eps);
+    return _mm256_div_ps(num, _mm256_mul_ps(_mm256_add_ps(count, eps), vis));
+}
+
+/* _min0 (and min(dim=0) where a cost is NaN): the lowest of n costs at stride 8 and its first index. */
+static inline int first_min(const float *c, int n, float *value) {
+    int best = 0;
+    for (int s = 0; s < n; s++) {
+        if (isnan(c[8 * s])) { *value = c[8 * s]; return s; }
+        if (c[8 * s] < c[8 * best]) best = s;
+    }
+    *value = c[8 * best];
+    return best;
+}
+
+/* _distinctiveness: 1 - c1 / c2 over the local minima more than one sample from the best. */
+static float distinctiveness(const float *c, int S, int best, float c1) {
+    float c2 = INFINITY;
+    int nan = 0;
+    for (int s = 0; s < S; s++) {
+        float x = c[8 * s];
+        if (isnan(x)) { nan = 1; continue; }
+        int is_min = (s == S - 1 || x <= c[8 * (s + 1)]) && (s == 0 || x <= c[8 * (s - 1)]);
+        if (is_min && (s < best - 1 || s > best + 1) && x < c2) c2 = x;
+    }
+    /* cost / is_min: a NaN anywhere outside the best's neighbours makes amin NaN */
+    if (nan) {
+        for (int s = 0; s < S; s++)
+            if (isnan(c[8 * s]) && (s < best - 1 || s > best + 1)) c2 = NAN;
+    }
+    if (!isfinite(c2)) { /* a single basin: the largest finite cost (nan_to_num: NaN 0, inf -1) */
+        float largest = -INFINITY;
+        for (int s = 0; s < S; s++) {
+            float x = c[8 * s];
+            x = isnan(x) ? 0.0f : (x == INFINITY ? -1.0f : (x == -INFINITY ? -3.4028234663852886e38f : x));
+            if (x > largest) largest = x;
+        }
+        c2 = largest;
+    }
+    float d = 1.0f - c1 / (c2 < 1e-6f ? 1e-6f : c2);
+    return (d < 0.0f) ? 0.0f : ((d > 1.0f) ? 1.0f : d);
+}
+
+/* _parabola through samples j-1, j, j+1 (costs at stride 8); g the sample j's inverse depth. */
+static inline void parabola(float cm, float c0, float cp, float c1, float g, float step, float *rho, float *cost,
+                            uint8_t *ok) {
+    float curvature = (cm - 2.0f * c0) + cp;
+    int good = (curvature > 0.0f) && (curvature < INFINITY) && isfinite(c1);
+    float half_slope = (cm - cp) * 0.5f;
+    float delta = half_slope / (good ? curvature : 1.0f);
+    delta = (delta < -1.0f) ? -1.0f : ((delta > 1.0f) ? 1.0f : delta);
+    *rho = g + delta * step;
+    *cost = good ? c0 - 0.5f * (half_slope * delta) : INFINITY;
+    *ok = (uint8_t)good;
+}
+
+/* One block of eight rows (lanes; only the first `valid` written): S coarse samples in
+ * [lo, hi], the best, its distinctiveness, `refine` fine samples each side and the parabola. */
+static void search_eight(const float *F, int H, int W, int C, const __m256 *k, __m256 a0, __m256 a1, __m256 a2,
+                         __m256 B0, __m256 B1, __m256 B2, __m256 lo, __m256 hi, int S, int refine, int with_distinct,
+                         int reject_edges, int valid, float *rho, float *cost, float *distinct, uint8_t *ok,
+                         float *costs /* (S + 2 refine) x 8 */) {
+    __m256 step = _mm256_div_ps(_mm256_sub_ps(hi, lo), _mm256_set1_ps((float)(S - 1)));
+    for (int s = 0; s < S; s++) {
+        __m256 p = _mm256_fmadd_ps(step, _mm256_set1_ps((float)s), lo); /* addcmul(lo, step, k) */
+        _mm256_storeu_ps(costs + 8 * s, cost_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, p));
+    }
+    float los[8], steps[8], gbest[8], fsteps[8], c1s[8];
+    int bests[8];
+    _mm256_storeu_ps(los, lo);
+    _mm256_storeu_ps(steps, step);
+    for (int j = 0; j < 8; j++) {
+        bests[j] = first_min(costs + j, S, &c1s[j]);
+        gbest[j] = fmaf(steps[j], (float)bests[j], los[j]);
+        fsteps[j] = steps[j] / (float)(refine > 0 ? refine : 1);
+    }
+    float *fine = costs + 8 * S; /* the 2 refine fine costs, the best coarse one's left out */
+    if (refine > 0) {
+        __m256 gb = _mm256_loadu_ps(gbest), fs = _mm256_loadu_ps(fsteps);
+        for (int o = -refine, i = 0; o <= refine; o++) {
+            if (o == 0) continue;
+            __m256 p = _mm256_fmadd_ps(fs, _mm256_set1_ps((float)o), gb);
+            _mm256_storeu_ps(fine + 8 * i++, cost_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, p));
+        }
+    }
+    for (int j = 0; j < valid; j++) {
+        const float *c = costs + j;
+        int best = bests[j];
+        float c1 = c1s[j];
+        distinct[j] = with_distinct ? distinctiveness(c, S, best, c1) : c1;
+        if (refine == 0) {
+            int m = best < 1 ? 1 : (best > S - 2 ? S - 2 : best);
+            parabola(c[8 * (m - 1)], c[8 * m], c[8 * (m + 1)], c1, fmaf(steps[j], (float)m, los[j]), steps[j],
+                     &rho[j], &cost[j], &ok[j]);
+        } else {
+            float f[(2 * 64 + 1) * 8]; /* the fine costs in order at stride 8, the middle one c1 */
+            float fv;
+            for (int i = 0; i < refine; i++) f[i * 8] = fine[8 * i + j];
+            f[refine * 8] = c1;
+            for (int i = 0; i < refine; i++) f[(refine + 1 + i) * 8] = fine[8 * (refine + i) + j];
+            int m = first_min(f, 2 * refine + 1, &fv);
+            m = m < 1 ? 1 : (m > 2 * refine - 1 ? 2 * refine - 1 : m);
+            float g = fmaf(fsteps[j], (float)(m - refine), gbest[j]);
+            parabola(f[8 * (m - 1)], f[8 * m], f[8 * (m + 1)], c1, g, fsteps[j], &rho[j], &cost[j], &ok[j]);
+        }
+        if (reject_edges && (best <= 0 || best >= S - 1)) ok[j] = 0;
+    }
+}
+
+/* filter_search._search_rows of R rows (one bucket): key (C, .) stride ks, a (3, .) stride as,
+ * lo and hi (R,); out rho, cost, distinct (R,) and ok (R,) bytes; blocks of eight rows over
+ * `threads` OpenMP threads. S at most 512, refine at most 64 (the caller checks). */
+void frame_search(const float *F, int H, int W, int C, const float *key, int64_t ks, const float *a, int64_t as,
+                  float b0, float b1, float b2, const float *lo, const float *hi, int64_t R, int S, int refine,
+                  int with_distinct, int reject_edges, float *rho, float *cost, float *distinct, uint8_t *ok,
+                  int threads) {
+    const __m256 B0 = _mm256_set1_ps(b0), B1 = _mm256_set1_ps(b1), B2 = _mm256_set1_ps(b2);
+    const int64_t blocks = (R + 7) / 8;
+#pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
+    for (int64_t i = 0; i < blocks; i++) {
+        float costs[(512 + 2 * 64) * 8];
+        int64_t r = 8 * i;
+        int valid = (R - r < 8) ? (int)(R - r) : 8;
+        __m256 k[LANES], a0, a1, a2, l, h;
+        if (valid == 8) {
+            a0 = _mm256_loadu_ps(a + r), a1 = _mm256_loadu_ps(a + as + r), a2 = _mm256_loadu_ps(a + 2 * as + r);
+            l = _mm256_loadu_ps(lo + r), h = _mm256_loadu_ps(hi + r);
+            for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(key + c * ks + r);
+        } else { /* the last rows: lanes past the end repeat the last row (not written) */
+            float t[3 + 2 + LANES][8];
+            for (int j = 0; j < 8; j++) {
+                int64_t q = r + (j < valid ? j : valid - 1);
+                t[0][j] = a[q], t[1][j] = a[as + q], t[2][j] = a[2 * as + q], t[3][j] = lo[q], t[4][j] = hi[q];
+                for (int c = 0; c < C; c++) t[5 + c][j] = key[c * ks + q];
+            }
+            a0 = _mm256_loadu_ps(t[0]), a1 = _mm256_loadu_ps(t[1]), a2 = _mm256_loadu_ps(t[2]);
+            l = _mm256_loadu_ps(t[3]), h = _mm256_loadu_ps(t[4]);
+            for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(t[5 + c]);
+        }
+        search_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, l, h, S, refine, with_distinct, reject_edges, valid,
+                     rho + r, cost + r, distinct + r, ok + r, costs);
+    }
+}
