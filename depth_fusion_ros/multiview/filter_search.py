@@ -7,6 +7,8 @@ samples per pixel instead of tens, and one frame instead of four. That is what m
 update per posed frame affordable. The cost is the sweep's (``cost_volume.sample_cost``:
 ``1 - ZNCC`` of the same patch descriptors) on a per-pixel grid of inverse depths
 ``lo + (hi - lo) t``, then a finer grid around the best sample and a parabola, as the sweep.
+On a CPU a native kernel does a bucket's whole search per row (``native_cost.native_frame_search``:
+the same numbers); the torch code below is the reference, and runs on CUDA.
 """
 
 from __future__ import annotations

@@ -1,9 +1,12 @@
 /* The epipolar matching cost (1 - ZNCC of patch descriptors) in one pass per lookup (x86-64, AVX2 + FMA).
  *
- * Two kernels compute, number for number, what the package's torch code computes:
+ * Three kernels compute, number for number, what the package's torch code computes:
  * - frame_cost: the depth filter's cost against one frame, samples-first (S, R)
  *   (filter_search._frame_cost_torch): each row's own inverse depths, one frame, the cost set
  *   to inf where the frame does not see the sample;
+ * - frame_search: the depth filter's whole search of a bucket of rows against one frame
+ *   (filter_search._search_rows): frame_cost's costs on each row's grid of samples, the first
+ *   minimum, the second-best ratio, the fine samples each side and the parabola, per row;
  * - sweep_cost: the sweep's cost against n neighbours, rows-first (M, S)
  *   (cost_volume.sample_cost_torch): the neighbours' looked-up descriptors summed, then the
  *   ZNCC with the row's key descriptor, and the summed visibility returned as the count.

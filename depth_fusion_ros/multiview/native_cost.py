@@ -5,8 +5,9 @@ The filter's per-frame search (``filter_search._frame_cost``) and the sweep's co
 the descriptors (ATen's ``grid_sample``) at every sample, then the ZNCC with the row's key
 descriptor and the normalisation, each a pass over memory. The C kernels do all of it per
 sample, from a channels-last copy of the descriptors made once per frame, and write only the
-cost: the same numbers (bit for bit where checked, ``test_native_matching_cost.py``) in about
-a third of the time on one core. They serve the CPU only: on CUDA, or where the kernels cannot
+cost (for the filter, only each row's match: ``native_frame_search``): the same numbers (bit
+for bit where checked, ``test_native_matching_cost.py``) in about a third of the time on one
+core. They serve the CPU only: on CUDA, or where the kernels cannot
 be built (``native_build.load_native``), or for a descriptor of more than seven channels, the
 functions here return ``None`` and the torch code runs.
 """
