@@ -127,6 +127,34 @@ def test_the_native_search_splits_rows_over_threads_alike(monkeypatch):
         assert torch.equal(mine.nan_to_num(nan=-7.0), theirs.nan_to_num(nan=-7.0))
 
 
+@pytest.mark.parametrize(('n', 'channels', 'height', 'width'), [(1, 7, 60, 80), (4, 5, 7, 9), (2, 8, 3, 3)])
+def test_the_descriptor_table_is_the_channels_last_copy(monkeypatch, n, channels, height, width):
+    """The table the kernels read: each pixel's channels then zeros, a zero block after each
+    image; from a fresh buffer and from a reused one (a dropped table's, full of old values)."""
+    _native_or_skip()
+    from collections import OrderedDict
+
+    monkeypatch.setattr(native_cost, '_tables', OrderedDict())
+    monkeypatch.setattr(native_cost, '_spares', {})
+    lib = native_cost._load()
+    shape = (n, height * width + 1, native_cost.LANES)
+    for seed in (1, 2):
+        desc = torch.randn(n, channels, height, width, generator=torch.Generator().manual_seed(seed))
+        expected = torch.zeros(shape)
+        expected[:, :-1, :channels] = desc.permute(0, 2, 3, 1).reshape(n, height * width, channels)
+        table = native_cost._channels_last(lib, desc)
+        assert torch.equal(table, expected)
+        assert shape not in native_cost._spares  # the second one took the first one's memory
+        held = table
+        del table
+        native_cost._keep_spare(native_cost._tables.pop(id(desc))[2])
+        assert shape not in native_cost._spares  # still held here: not reused
+        del held
+        native_cost._tables[id(desc)] = (desc, desc._version, native_cost._channels_last(lib, desc))
+        native_cost._keep_spare(native_cost._tables.pop(id(desc))[2])
+        assert shape in native_cost._spares
+
+
 def test_the_kernel_declines_what_it_was_not_written_for():
     """More than seven channels, another dtype: None, and the caller's torch code runs."""
     key, desc, a, b, rho = _inputs(50, 4)

@@ -377,3 +377,27 @@ void frame_search(const float *F, int H, int W, int C, const float *key, int64_t
                      rho + r, cost + r, distinct + r, ok + r, costs);
     }
 }
+
+/* The descriptors' channels-last table (native_cost._channels_last): n images of `ch` planes
+ * (H * W each, contiguous, one image after the other) into n tables of H * W + 1 blocks of
+ * eight floats, the channels then zeros, and a zero block last. Eight pixels at a time: their
+ * eight planes' values loaded and transposed (a copy: exact). */
+void channels_last(const float *desc, int n, int ch, int64_t HW, float *table, int threads) {
+    const int64_t blocks = HW / 8;
+#pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
+    for (int64_t i = 0; i < n * blocks; i++) {
+        int64_t k = i / blocks, p = (i % blocks) * 8;
+        const float *d = desc + k * ch * HW;
+        float *t = table + (k * (HW + 1) + p) * LANES;
+        __m256 r[8];
+        for (int c = 0; c < 8; c++) r[c] = (c < ch) ? _mm256_loadu_ps(d + c * HW + p) : _mm256_setzero_ps();
+        transpose8(r);
+        for (int j = 0; j < 8; j++) _mm256_storeu_ps(t + LANES * j, r[j]);
+    }
+    for (int k = 0; k < n; k++) {
+        const float *d = desc + k * ch * HW;
+        float *t = table + k * (HW + 1) * LANES;
+        for (int64_t p = blocks * 8; p <= HW; p++) /* the last pixels, then the zero block */
+            for (int c = 0; c < LANES; c++) t[p * LANES + c] = (p < HW && c < ch) ? d[c * HW + p] : 0.0f;
+    }
+}

@@ -48,6 +48,7 @@ from ..camera import PinholeCamera
 from ..chunking import effective_chunk_elements
 from .cost_volume import EpipolarRays, epipolar_rays, rows_per_chunk, sample_cost
 from .descriptors import check_patch, gaussian_blur, patch_reach, stage_descriptors, zero_mean_basis
+from .native_scores import native_coarse_scores
 from .stage1 import best_fraction_mask, resolve_rule, stage1_mask
 from .views import prepare_views
 
@@ -250,8 +251,23 @@ def _gather(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return torch.gather(t, 1, idx[:, None])[:, 0]
 
 
-def _coarse_scores(cost: torch.Tensor, exclusion: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Best cost and sample per row, and the modified second-best ratio ``1 - c1 / c2``."""
+def _coarse_scores(
+    cost: torch.Tensor, count: torch.Tensor, need: float, exclusion: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Best cost and sample per row, and the modified second-best ratio ``1 - c1 / c2``, a
+    sample's cost counting only where ``count >= need`` (else inf). On a CPU by a native kernel
+    (``native_scores.py``: the same numbers in one pass a row), elsewhere by
+    :func:`_coarse_scores_torch`."""
+    scores = native_coarse_scores(cost, count, need, exclusion)
+    if scores is not None:
+        return scores
+    return _coarse_scores_torch(torch.where(count >= need, cost, torch.full_like(cost, math.inf)), exclusion)
+
+
+def _coarse_scores_torch(
+    cost: torch.Tensor, exclusion: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_coarse_scores` of the cost with the unseen samples already set to inf, in torch."""
     c1, best = cost.min(dim=1)
     inf = torch.full_like(cost[:, :1], math.inf)
     left = torch.cat((inf, cost[:, :-1]), dim=1)
@@ -285,10 +301,9 @@ def _search_chunk(
     h, w = neighbour_desc.shape[-2:]
     need = min_views - 0.5  # counts are soft (bilinear visibility), so round
     cost, count = sample_cost(key_desc, neighbour_desc, rays, rho_grid)
-    cost = torch.where(count >= need, cost, torch.full_like(cost, math.inf))
-    _, best, distinct = _coarse_scores(cost, config.second_min_exclusion)
+    c1, best, distinct = _coarse_scores(cost, count, need, config.second_min_exclusion)
     samples = rho_grid.shape[0]
-    ok = torch.isfinite(_gather(cost, best)) & (best > 0) & (best < samples - 1)
+    ok = torch.isfinite(c1) & (best > 0) & (best < samples - 1)
 
     # Fine grid of 2R+1 samples spanning the coarse neighbours of the best sample.
     r = config.refine_samples

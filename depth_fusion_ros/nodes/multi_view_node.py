@@ -41,7 +41,7 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
 from ..geometry import invert_pose, load_rotations, rotation_angle, transform_from_parameter
-from ..multiview import native_cost
+from ..multiview import native_cost, native_scores
 from ..multiview.focal_check import FocalEstimate
 from ..multiview.mount_check import MountEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
@@ -253,7 +253,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         # Every published pose and every image between two poses goes through them.
         load_rotations()
         if self.device == 'cpu':
-            native_cost.prepare()  # the filter's per-frame cost: built here, not at the first frame
+            native_cost.prepare()  # the matching cost and search: built here, not at the first frame
+            native_scores.prepare()  # the sweep's coarse scores
         self.events.ready()
 
     # --- callbacks (light: decode, check, buffer) ---------------------------------------------------
