@@ -3,7 +3,7 @@
 Each row's lowest cost, its first index and the second-best ratio must be the torch code's
 (``semidense._coarse_scores_torch`` of the volume with the unseen samples at inf) bit for bit:
 with unseen samples, rows seen nowhere, ties, NaN costs and counts, one sample and many, split
-over threads; and the sweep must give the same depth with the kernels and without them.
+over threads (the sweep with and without every native kernel: test_native_matching_cost.py).
 """
 
 from __future__ import annotations
@@ -77,45 +77,3 @@ def test_the_kernel_declines_what_it_was_not_written_for():
     cost, count = _volume(20, 8, seed=3)
     assert native_scores.native_coarse_scores(cost.double(), count.double(), 1.5, 2) is None
     assert native_scores.native_coarse_scores(cost, count[:, :4], 1.5, 2) is None
-
-
-def test_the_sweep_gives_the_same_depth_with_and_without_the_native_kernels(monkeypatch):
-    """Every native kernel of the sweep off (the cost and the scores): the same depth map."""
-    _native_or_skip()
-    import numpy as np
-
-    import depth_fusion_ros.multiview.cost_volume as cost_volume
-    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-    from depth_fusion_ros.multiview.neighbours import select_neighbours
-    from depth_fusion_ros.multiview.semidense import MultiViewConfig, estimate_semidense
-
-    seq = render_sequence(SynthConfig(width=160, height=120, frames=9, seed=8, parallax='high'))
-    key = 4
-    chosen = select_neighbours(seq.poses, key, 4, 'offline', seq.camera)
-    frames = seq.frames
-
-    def run():
-        return estimate_semidense(
-            frames[key].gray,
-            frames[key].pose,
-            [frames[i].gray for i in chosen],
-            [frames[i].pose for i in chosen],
-            seq.camera,
-            MultiViewConfig(),
-        )
-
-    native = run()
-    monkeypatch.setattr(semidense, 'native_coarse_scores', lambda *args: None)
-    monkeypatch.setattr(cost_volume, 'native_sweep_cost', lambda *args: None)
-    plain = run()
-    assert float(np.isfinite(native.depth).mean()) > 0.02
-    # The sweep's cost differs from torch's in the last bit on a few samples (matching_cost.c),
-    # so a handful of pixels may tip; the rest are the same to rounding.
-    both = np.isfinite(native.depth) & np.isfinite(plain.depth)
-    assert np.allclose(native.depth[both], plain.depth[both], rtol=1e-4)
-    assert float((np.isfinite(native.depth) == np.isfinite(plain.depth)).mean()) > 0.999
-    # With the cost from torch in both, the scores alone change nothing at all.
-    monkeypatch.undo()
-    monkeypatch.setattr(cost_volume, 'native_sweep_cost', lambda *args: None)
-    scores_only = run()
-    assert np.array_equal(scores_only.depth, plain.depth, equal_nan=True)
