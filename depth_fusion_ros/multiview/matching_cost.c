@@ -378,26 +378,29 @@ void frame_search(const float *F, int H, int W, int C, const float *key, int64_t
     }
 }
 
-/* The descriptors' channels-last table (native_cost._channels_last): n images of `ch` planes
- * (H * W each, contiguous, one image after the other) into n tables of H * W + 1 blocks of
- * eight floats, the channels then zeros, and a zero block last. Eight pixels at a time: their
- * eight planes' values loaded and transposed (a copy: exact). */
-void channels_last(const float *desc, int n, int ch, int64_t HW, float *table, int threads) {
-    const int64_t blocks = HW / 8;
+/* The descriptors' channels-last table (native_cost._channels_last): n images of `ch` channels
+ * of HW pixels, element (k, c, p) at desc[k sn + c sc + p sp], into n tables of HW + 1 blocks of
+ * eight floats, the channels then zeros, and a zero block last (a copy: exact). Planar images
+ * (sp 1) eight pixels at a time, their planes loaded and transposed; others (the filter's
+ * frame descriptors are interleaved, sc 1) pixel by pixel. */
+void channels_last(const float *desc, int n, int ch, int64_t HW, int64_t sn, int64_t sc, int64_t sp, float *table,
+                   int threads) {
+    const int64_t blocks = (sp == 1) ? HW / 8 : 0;
 #pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
     for (int64_t i = 0; i < n * blocks; i++) {
         int64_t k = i / blocks, p = (i % blocks) * 8;
-        const float *d = desc + k * ch * HW;
+        const float *d = desc + k * sn;
         float *t = table + (k * (HW + 1) + p) * LANES;
         __m256 r[8];
-        for (int c = 0; c < 8; c++) r[c] = (c < ch) ? _mm256_loadu_ps(d + c * HW + p) : _mm256_setzero_ps();
+        for (int c = 0; c < 8; c++) r[c] = (c < ch) ? _mm256_loadu_ps(d + c * sc + p) : _mm256_setzero_ps();
         transpose8(r);
         for (int j = 0; j < 8; j++) _mm256_storeu_ps(t + LANES * j, r[j]);
     }
+#pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
     for (int k = 0; k < n; k++) {
-        const float *d = desc + k * ch * HW;
+        const float *d = desc + k * sn;
         float *t = table + k * (HW + 1) * LANES;
-        for (int64_t p = blocks * 8; p <= HW; p++) /* the last pixels, then the zero block */
-            for (int c = 0; c < LANES; c++) t[p * LANES + c] = (p < HW && c < ch) ? d[c * HW + p] : 0.0f;
+        for (int64_t p = blocks * 8; p <= HW; p++) /* the pixels left (all, if not planar), then the zero block */
+            for (int c = 0; c < LANES; c++) t[p * LANES + c] = (p < HW && c < ch) ? d[c * sc + p * sp] : 0.0f;
     }
 }

@@ -41,7 +41,7 @@ _SIGNATURES = {
     'sweep_cost': [_P, _I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _I64, _I, _P, _P, _I],
     # then lo, hi, R, S, refine, the two switches, the four outputs, the threads
     'frame_search': [*_FRAME, _P, _P, _I64, _I, _I, _I, _I, _P, _P, _P, _P, _I],
-    'channels_last': [_P, _I, _I, _I64, _P, _I],
+    'channels_last': [_P, _I, _I, _I64, _I64, _I64, _I64, _P, _I],
 }
 #: The most coarse samples and fine samples a side of one native search (its stack arrays).
 SEARCH_MAX_SAMPLES, SEARCH_MAX_REFINE = 512, 64
@@ -207,9 +207,12 @@ def _channels_last(lib: ctypes.CDLL, desc: torch.Tensor) -> torch.Tensor:
         table = _spares.pop(shape, None)
     if table is None:
         table = torch.empty(shape, dtype=torch.float32)
-    planes = desc.contiguous()
+    # Pixels one stride apart (planar, or interleaved as the filter's frame descriptors are):
+    # read in place; anything else is made contiguous first.
+    flat = desc if desc.stride(2) == width * desc.stride(3) else desc.contiguous()
     pixels = height * width
-    lib.channels_last(planes.data_ptr(), n, ch, pixels, table.data_ptr(), _threads(n * pixels))
+    strides = (flat.stride(0), flat.stride(1), flat.stride(3))
+    lib.channels_last(flat.data_ptr(), n, ch, pixels, *strides, table.data_ptr(), _threads(n * pixels))
     with _lock:
         _tables[key] = (desc, desc._version, table)
         _tables.move_to_end(key)
