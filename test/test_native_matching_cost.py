@@ -157,6 +157,24 @@ def test_the_descriptor_table_is_the_channels_last_copy(monkeypatch, n, channels
         assert shape in native_cost._spares
 
 
+def test_descriptors_made_under_inference_mode_are_looked_up_too():
+    """Inference tensors have no version counter (the table cache's test of an in-place
+    change): their table is made for each call instead, and the numbers are the same."""
+    _native_or_skip()
+    key, desc, a, b, rho = _inputs(203, 11)
+    expected = _frame_cost_torch(key, desc, a, b, rho)
+    with torch.inference_mode():
+        frozen = desc.clone()
+        assert frozen.is_inference()
+        first = native_cost.native_frame_cost(key, frozen, a, b, rho)
+        frozen[:, :6].mul_(-1.0)  # the descriptors changed in place, unseen by any version counter
+        second = native_cost.native_frame_cost(key, frozen, a, b, rho)
+    _compare(first, expected)
+    flipped = desc.clone()
+    flipped[:, :6] *= -1.0
+    _compare(second, _frame_cost_torch(key, flipped, a, b, rho))
+
+
 def test_the_kernel_declines_what_it_was_not_written_for():
     """More than seven channels, another dtype: None, and the caller's torch code runs."""
     key, desc, a, b, rho = _inputs(50, 4)

@@ -196,9 +196,12 @@ def _channels_last(lib: ctypes.CDLL, desc: torch.Tensor) -> torch.Tensor:
     and a sweep's chunks share theirs), by the kernels' own transposing copy (a third of the
     time of torch's permuted copy into the table)."""
     key = id(desc)
+    # An inference tensor (made under torch.inference_mode) has no version counter and may
+    # change in place unseen: its table is made for each call and not kept.
+    version = None if desc.is_inference() else desc._version
     with _lock:
         kept = _tables.get(key)
-        if kept is not None and kept[0] is desc and kept[1] == desc._version:
+        if kept is not None and kept[0] is desc and version is not None and kept[1] == version:
             _tables.move_to_end(key)
             return kept[2]
     n, ch, height, width = desc.shape
@@ -213,8 +216,10 @@ def _channels_last(lib: ctypes.CDLL, desc: torch.Tensor) -> torch.Tensor:
     pixels = height * width
     strides = (flat.stride(0), flat.stride(1), flat.stride(3))
     lib.channels_last(flat.data_ptr(), n, ch, pixels, *strides, table.data_ptr(), _threads(n * pixels))
+    if version is None:
+        return table
     with _lock:
-        _tables[key] = (desc, desc._version, table)
+        _tables[key] = (desc, version, table)
         _tables.move_to_end(key)
         while len(_tables) > TABLES_KEPT:
             _keep_spare(_tables.popitem(last=False)[1][2])
