@@ -210,11 +210,14 @@ def _channels_last(lib: ctypes.CDLL, desc: torch.Tensor) -> torch.Tensor:
         table = _spares.pop(shape, None)
     if table is None:
         table = torch.empty(shape, dtype=torch.float32)
-    # Pixels one stride apart (planar, or interleaved as the filter's frame descriptors are):
-    # read in place; anything else is made contiguous first.
-    flat = desc if desc.stride(2) == width * desc.stride(3) else desc.contiguous()
+    # Pixels one stride apart in raster order (planar, or interleaved as the filter's frame
+    # descriptors are): read in place; anything else is made contiguous first.
+    flat, step = desc, _pixel_stride(desc)
+    if step is None:
+        flat = desc.contiguous()
+        step = _pixel_stride(flat)
     pixels = height * width
-    strides = (flat.stride(0), flat.stride(1), flat.stride(3))
+    strides = (flat.stride(0), flat.stride(1), step)
     lib.channels_last(flat.data_ptr(), n, ch, pixels, *strides, table.data_ptr(), _threads(n * pixels))
     if version is None:
         return table
@@ -224,6 +227,18 @@ def _channels_last(lib: ctypes.CDLL, desc: torch.Tensor) -> torch.Tensor:
         while len(_tables) > TABLES_KEPT:
             _keep_spare(_tables.popitem(last=False)[1][2])
     return table
+
+
+def _pixel_stride(desc: torch.Tensor) -> int | None:
+    """The stride between a (n, C, H, W) tensor's pixels in raster order, or None where they are
+    not evenly spaced. A dimension of size 1 may carry any stride (torch ignores it), so only
+    the strides that are ever stepped are read."""
+    height, width = desc.shape[2], desc.shape[3]
+    if width == 1:
+        return desc.stride(2)
+    if height == 1 or desc.stride(2) == width * desc.stride(3):
+        return desc.stride(3)
+    return None
 
 
 def _keep_spare(table: torch.Tensor) -> None:
