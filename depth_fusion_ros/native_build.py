@@ -53,6 +53,16 @@ def native_enabled() -> bool:
     return switched_on('DEPTH_FUSION_NATIVE')
 
 
+def kernel_threads(work: int, minimum: int) -> int:
+    """OpenMP threads for one kernel call of ``work`` items: torch's thread count (the kernels'
+    parallel loops run on torch's own thread team), or 1 below ``minimum`` items, where handing
+    the work over costs more than it saves. Each item is computed alone, so the numbers do not
+    depend on the split."""
+    import torch  # here: building a kernel needs no torch, a call does
+
+    return max(1, torch.get_num_threads()) if work >= minimum else 1
+
+
 def load_native(source: Path, signatures: dict[str, list[type]]) -> ctypes.CDLL | None:
     """The library built from the C file ``source`` (built on first use) with its functions'
     argument types set from ``signatures`` (each returns nothing), or ``None`` where it cannot

@@ -160,12 +160,12 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
 
 
 def _search_code(device: str) -> str:
-    """Which code computed the searches' cost: the native kernel or torch (``native_cost.py``)."""
+    """Which code ran the searches: the native kernels (cost and search) or torch (``native_cost.py``)."""
     if device.startswith('cuda'):
-        return 'search cost: torch'
+        return 'search: torch'
     if native_cost.prepare():
-        return 'search cost: native kernel'
-    return 'search cost: torch (the native kernel is off or cannot run here)'
+        return 'search: native kernels'
+    return 'search: torch (the native kernels are off or cannot run here)'
 
 
 def _accuracy(depth: np.ndarray, gt: np.ndarray, selected: np.ndarray) -> tuple[float, float]:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..native_build import load_native
+from ..native_build import kernel_threads, load_native
 from ..torch_device import resolve_device
 
 
@@ -108,6 +108,10 @@ def _rings(radius: float) -> tuple[np.ndarray, np.ndarray]:
     return ring_dx, ring_dy
 
 
+#: Points below which the ring walk does not go to the threads (the hand-over costs more).
+THREAD_MIN_POINTS = 2048
+
+
 def native_median(
     cols: np.ndarray, rows: np.ndarray, values: np.ndarray, radius: float, max_neighbours: int
 ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -130,7 +134,7 @@ def native_median(
     n = len(cols)
     median = np.empty(n, dtype=np.float64)
     count = np.empty(n, dtype=np.int64)
-    threads = max(1, torch.get_num_threads()) if n >= 2048 else 1
+    threads = kernel_threads(n, THREAD_MIN_POINTS)
     lib.ring_median(
         image.ctypes.data, at.ctypes.data, n, steps.ctypes.data, len(steps),
         values.ctypes.data, k, median.ctypes.data, count.ctypes.data, threads,

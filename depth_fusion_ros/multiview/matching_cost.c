@@ -125,14 +125,48 @@ static inline void transpose8(__m256 *r) {
     r[7] = _mm256_permute2f128_ps(u3, u7, 0x31);
 }
 
-/* filter_search._frame_cost_torch: the ZNCC (planes[0] keys[0], then addcmul_ per channel) and
- * (count - zncc + 1e-3) / ((count + 1e-3) * (count >= 0.5)). */
-static inline float frame_one(const float *v, const float *key, int64_t ks, int C, int64_t r) {
-    float z = v[0] * key[r];
-    for (int c = 1; c < C; c++) z = fmaf(v[c], key[c * ks + r], z);
-    float count = v[C];
-    float vis = (count >= 0.5f) ? 1.0f : 0.0f;
-    return ((count - z) + 1e-3f) / ((count + 1e-3f) * vis);
+/* Eight rows' values x[0..valid) in lanes, the spare lanes repeating the last row (a block at
+ * the end of the rows: computed, never written back). */
+static inline __m256 load_lanes(const float *x, int valid) {
+    if (valid == 8) return _mm256_loadu_ps(x);
+    float t[8];
+    for (int j = 0; j < 8; j++) t[j] = x[j < valid ? j : valid - 1];
+    return _mm256_loadu_ps(t);
+}
+
+/* The first `valid` lanes of v to x[0..valid). */
+static inline void store_lanes(float *x, __m256 v, int valid) {
+    if (valid == 8) {
+        _mm256_storeu_ps(x, v);
+        return;
+    }
+    float t[8];
+    _mm256_storeu_ps(t, v);
+    for (int j = 0; j < valid; j++) x[j] = t[j];
+}
+
+/* filter_search._frame_cost_torch for eight rows (lanes) at inverse depths p: the ZNCC
+ * (planes[0] keys[0], then addcmul_ per channel) and (count - zncc + 1e-3) / ((count + 1e-3)
+ * * (count >= 0.5)). */
+static inline __m256 cost_eight(const float *F, int H, int W, int C, const __m256 *k, __m256 a0, __m256 a1,
+                                __m256 a2, __m256 B0, __m256 B1, __m256 B2, __m256 p) {
+    const __m256 one = _mm256_set1_ps(1.0f), eps = _mm256_set1_ps(1e-3f), half = _mm256_set1_ps(0.5f);
+    __m256 v[8];
+    lookup_eight(F, H, W, a0, a1, a2, B0, B1, B2, p, v);
+    transpose8(v); /* v[c]: channel c of the eight lookups */
+    __m256 z = _mm256_mul_ps(v[0], k[0]);
+    for (int c = 1; c < C; c++) z = _mm256_fmadd_ps(v[c], k[c], z);
+    __m256 count = v[C];
+    __m256 vis = _mm256_and_ps(_mm256_cmp_ps(count, half, _CMP_GE_OQ), one);
+    __m256 num = _mm256_add_ps(_mm256_sub_ps(count, z), eps);
+    return _mm256_div_ps(num, _mm256_mul_ps(_mm256_add_ps(count, eps), vis));
+}
+
+/* The rays and key descriptors of the eight rows from r (the last block padded: load_lanes). */
+static inline void rows_eight(const float *key, int64_t ks, int C, const float *a, int64_t as, int64_t r, int valid,
+                              __m256 *k, __m256 *a0, __m256 *a1, __m256 *a2) {
+    *a0 = load_lanes(a + r, valid), *a1 = load_lanes(a + as + r, valid), *a2 = load_lanes(a + 2 * as + r, valid);
+    for (int c = 0; c < C; c++) k[c] = load_lanes(key + c * ks + r, valid);
 }
 
 /* One frame, samples-first: a (3, .) the rows' normalised projections at infinity with stride
@@ -141,33 +175,17 @@ static inline float frame_one(const float *v, const float *key, int64_t ks, int 
 void frame_cost(const float *F, int H, int W, int C, const float *key, int64_t ks, const float *a, int64_t as,
                 float b0, float b1, float b2, const float *rho, int64_t rs, int S, int64_t R, float *out,
                 int threads) {
-    const __m256 one = _mm256_set1_ps(1.0f), eps = _mm256_set1_ps(1e-3f), half = _mm256_set1_ps(0.5f);
     const __m256 B0 = _mm256_set1_ps(b0), B1 = _mm256_set1_ps(b1), B2 = _mm256_set1_ps(b2);
-    const int64_t r8 = R & ~(int64_t)7;
 #pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
-    for (int64_t r = 0; r < r8; r += 8) {
-        const __m256 a0 = _mm256_loadu_ps(a + r), a1 = _mm256_loadu_ps(a + as + r), a2 = _mm256_loadu_ps(a + 2 * as + r);
-        __m256 k[LANES];
-        for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(key + c * ks + r);
+    for (int64_t r = 0; r < R; r += 8) {
+        int valid = (R - r < 8) ? (int)(R - r) : 8;
+        __m256 k[LANES], a0, a1, a2;
+        rows_eight(key, ks, C, a, as, r, valid, k, &a0, &a1, &a2);
         for (int s = 0; s < S; s++) {
-            float *os = out + s * rs;
-            __m256 v[8];
-            lookup_eight(F, H, W, a0, a1, a2, B0, B1, B2, _mm256_loadu_ps(rho + s * rs + r), v);
-            transpose8(v); /* v[c]: channel c of the eight lookups */
-            __m256 z = _mm256_mul_ps(v[0], k[0]);
-            for (int c = 1; c < C; c++) z = _mm256_fmadd_ps(v[c], k[c], z);
-            __m256 count = v[C];
-            __m256 vis = _mm256_and_ps(_mm256_cmp_ps(count, half, _CMP_GE_OQ), one);
-            __m256 num = _mm256_add_ps(_mm256_sub_ps(count, z), eps);
-            _mm256_storeu_ps(os + r, _mm256_div_ps(num, _mm256_mul_ps(_mm256_add_ps(count, eps), vis)));
+            __m256 p = load_lanes(rho + s * rs + r, valid);
+            store_lanes(out + s * rs + r, cost_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, p), valid);
         }
     }
-    for (int s = 0; s < S; s++)
-        for (int64_t r = r8; r < R; r++) {
-            float v[LANES];
-            lookup_one(F, H, W, a[r], a[as + r], a[2 * as + r], b0, b1, b2, rho[s * rs + r], v);
-            out[s * rs + r] = frame_one(v, key, ks, C, r);
-        }
 }
 
 /* cost_volume.sample_cost_torch: the ZNCC of the summed lookups (mul_, then a sum over the
@@ -222,21 +240,6 @@ void sweep_cost(const float *F, int n, int H, int W, int C, const float *key, in
 }
 
 /* ---- The filter's search of one bucket (filter_search._search_rows), whole, per row ---- */
-
-/* The cost of eight rows (lanes) at inverse depths p: frame_cost's arithmetic. */
-static inline __m256 cost_eight(const float *F, int H, int W, int C, const __m256 *k, __m256 a0, __m256 a1,
-                                __m256 a2, __m256 B0, __m256 B1, __m256 B2, __m256 p) {
-    const __m256 one = _mm256_set1_ps(1.0f), eps = _mm256_set1_ps(1e-3f), half = _mm256_set1_ps(0.5f);
-    __m256 v[8];
-    lookup_eight(F, H, W, a0, a1, a2, B0, B1, B2, p, v);
-    transpose8(v);
-    __m256 z = _mm256_mul_ps(v[0], k[0]);
-    for (int c = 1; c < C; c++) z = _mm256_fmadd_ps(v[c], k[c], z);
-    __m256 count = v[C];
-    __m256 vis = _mm256_and_ps(_mm256_cmp_ps(count, half, _CMP_GE_OQ), one);
-    __m256 num = _mm256_add_ps(_mm256_sub_ps(count, z), eps);
-    return _mm256_div_ps(num, _mm256_mul_ps(_mm256_add_ps(count, eps), vis));
-}
 
 /* _min0 (and min(dim=0) where a cost is NaN): the lowest of n costs at stride 8 and its first index. */
 static inline int first_min(const float *c, int n, float *value) {
@@ -357,22 +360,9 @@ void frame_search(const float *F, int H, int W, int C, const float *key, int64_t
         float costs[(512 + 2 * 64) * 8];
         int64_t r = 8 * i;
         int valid = (R - r < 8) ? (int)(R - r) : 8;
-        __m256 k[LANES], a0, a1, a2, l, h;
-        if (valid == 8) {
-            a0 = _mm256_loadu_ps(a + r), a1 = _mm256_loadu_ps(a + as + r), a2 = _mm256_loadu_ps(a + 2 * as + r);
-            l = _mm256_loadu_ps(lo + r), h = _mm256_loadu_ps(hi + r);
-            for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(key + c * ks + r);
-        } else { /* the last rows: lanes past the end repeat the last row (not written) */
-            float t[3 + 2 + LANES][8];
-            for (int j = 0; j < 8; j++) {
-                int64_t q = r + (j < valid ? j : valid - 1);
-                t[0][j] = a[q], t[1][j] = a[as + q], t[2][j] = a[2 * as + q], t[3][j] = lo[q], t[4][j] = hi[q];
-                for (int c = 0; c < C; c++) t[5 + c][j] = key[c * ks + q];
-            }
-            a0 = _mm256_loadu_ps(t[0]), a1 = _mm256_loadu_ps(t[1]), a2 = _mm256_loadu_ps(t[2]);
-            l = _mm256_loadu_ps(t[3]), h = _mm256_loadu_ps(t[4]);
-            for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(t[5 + c]);
-        }
+        __m256 k[LANES], a0, a1, a2;
+        rows_eight(key, ks, C, a, as, r, valid, k, &a0, &a1, &a2);
+        __m256 l = load_lanes(lo + r, valid), h = load_lanes(hi + r, valid);
         search_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, l, h, S, refine, with_distinct, reject_edges, valid,
                      rho + r, cost + r, distinct + r, ok + r, costs);
     }

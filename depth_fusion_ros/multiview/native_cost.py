@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from ..native_build import load_native
+from ..native_build import kernel_threads, load_native
 
 #: The kernels' channels-last block: the descriptor channels and the visibility, padded.
 LANES = 8
@@ -178,10 +178,9 @@ def _ready(
 
 
 def _threads(lookups: int) -> int:
-    """torch's thread count for a call large enough to share (the kernels' OpenMP loops run on
-    torch's own thread team), else 1: each row is computed alone, so the numbers do not depend
-    on the split."""
-    return torch.get_num_threads() if lookups >= THREAD_MIN_LOOKUPS else 1
+    """The call's threads (``native_build.kernel_threads``), read at the call: the tests lower
+    :data:`THREAD_MIN_LOOKUPS`."""
+    return kernel_threads(lookups, THREAD_MIN_LOOKUPS)
 
 
 def _load() -> ctypes.CDLL | None:
@@ -193,8 +192,9 @@ def _channels_last(lib: ctypes.CDLL, desc: torch.Tensor) -> torch.Tensor:
     """Descriptors (n, C + 1, H, W) as n tables of (H * W + 1, 8) one after the other: a pixel's
     channels in one block, then a zero block (what a kernel reads for a corner outside the
     image). Made once per descriptor tensor (kept by identity and version: a frame's searches
-    and a sweep's chunks share theirs), by the kernels' own transposing copy (a third of the
-    time of torch's permuted copy into the table)."""
+    and a sweep's chunks share theirs), by the kernels' own copy (planar descriptors
+    transposed eight pixels at a time, interleaved ones read in place: a third of the time of
+    torch's permuted copy or less), into a dropped table's memory where one is free."""
     key = id(desc)
     # An inference tensor (made under torch.inference_mode) has no version counter and may
     # change in place unseen: its table is made for each call and not kept.

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from ..native_build import load_native
+from ..native_build import kernel_threads, load_native
 
 #: Rows below which one call does not go to the threads (the hand-over costs more).
 THREAD_MIN_ROWS = 2048
@@ -43,7 +43,7 @@ def native_coarse_scores(
     rows, samples = cost.shape
     c1, distinct = torch.empty(rows, dtype=torch.float32), torch.empty(rows, dtype=torch.float32)
     best = torch.empty(rows, dtype=torch.int64)
-    threads = torch.get_num_threads() if rows >= THREAD_MIN_ROWS else 1
+    threads = kernel_threads(rows, THREAD_MIN_ROWS)
     lib.sweep_scores(
         cost.data_ptr(), count.data_ptr(), rows, samples, float(need), int(exclusion),
         c1.data_ptr(), best.data_ptr(), distinct.data_ptr(), threads,
