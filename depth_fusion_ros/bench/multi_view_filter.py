@@ -26,7 +26,7 @@ import torch
 
 from ..data.sequence import Sequence
 from ..metrics import good_density
-from ..multiview import native_cost
+from ..multiview import native_apply, native_cost
 from ..multiview.filter import DepthFilter
 from ..multiview.filter_config import FilterConfig
 from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
@@ -160,12 +160,14 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
 
 
 def _search_code(device: str) -> str:
-    """Which code ran the searches: the native kernels (cost and search) or torch (``native_cost.py``)."""
+    """Which code ran the searches and the update of their matches: the native kernels (cost and
+    search, ``native_cost.py``; update, ``native_apply.py``) or torch."""
     if device.startswith('cuda'):
-        return 'search: torch'
-    if native_cost.prepare():
-        return 'search: native kernels'
-    return 'search: torch (the native kernels are off or cannot run here)'
+        return 'search and update: torch'
+    off = 'torch (the native kernels are off or cannot run here)'
+    search = 'native kernels' if native_cost.prepare() else off
+    update = 'native kernel' if native_apply.prepare() else off
+    return f'search: {search}; update: {update}'
 
 
 def _accuracy(depth: np.ndarray, gt: np.ndarray, selected: np.ndarray) -> tuple[float, float]:

@@ -18,6 +18,7 @@ from ..true_indices import true_indices
 from .filter_config import FilterConfig
 from .filter_keyframe import FilterKeyframe, no_estimate
 from .filter_update import BetaGaussian, gaussian_uniform_update, outlier_vote
+from .native_apply import native_apply_matches
 
 if TYPE_CHECKING:
     from .filter import DepthFilter
@@ -72,6 +73,8 @@ def apply_matches(
         # On a GPU the two indices below are two host round trips a frame, which the dense
         # form does not need and ``where`` is no slower there than arithmetic: kept as it was.
         _apply_dense(filt, key, matches, valid, baseline)
+        return
+    if native_apply_matches(filt, key, matches, valid, baseline):  # the same state, in two passes
         return
     _measure(filt, key, matches.take(true_indices(valid)), baseline)
     _vote(filt, key, matches.rows.index_select(0, true_indices(~matches.fresh & ~valid)))
