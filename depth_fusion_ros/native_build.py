@@ -86,9 +86,16 @@ def _build_and_load(source: Path) -> ctypes.CDLL | None:
     try:
         return ctypes.CDLL(str(_built(source)))
     except (OSError, subprocess.SubprocessError) as exc:  # it should have built here: a fault to see
-        detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else repr(exc)
-        log.warning('native kernel %s not built (%s); the torch code runs instead', source.name, detail)
+        log.warning('native kernel %s not built (%s); the torch code runs instead', source.name, _reason(exc))
         return None
+
+
+def _reason(exc: BaseException) -> str:
+    """One line of a failed build: the compiler's first error line (its last line is often a
+    caret under the source), else the last line, else the exception's name."""
+    lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
+    errors = [line for line in lines if 'error' in line.lower()]
+    return (errors or lines[-1:] or [repr(exc)])[0]
 
 
 def _unsupported() -> str | None:

@@ -10,6 +10,7 @@ filter and the sweep must give the same depth with them and without them.
 from __future__ import annotations
 
 import math
+import subprocess
 
 import pytest
 import torch
@@ -326,3 +327,18 @@ def test_the_sweep_gives_the_same_depth_with_and_without_it(monkeypatch):
     assert float(agree.float().mean()) > 0.999
     # The cost's last bits aside (above), the scores' kernel changes nothing at all.
     assert np.array_equal(cost_from_torch.depth, plain.depth, equal_nan=True)
+
+
+def test_a_failed_build_is_said_by_the_compilers_error_line():
+    """gcc's output ends with a caret under the source: the warning names the error instead."""
+    output = (
+        "x.c: In function 'f':\n"
+        "x.c:3:9: error: 'NULL' undeclared (first use in this function)\n"
+        '    3 |  return NULL;\n'
+        '      |         ^~~~\n'
+    )
+    assert native_build._reason(subprocess.SubprocessError(output)) == (
+        "x.c:3:9: error: 'NULL' undeclared (first use in this function)"
+    )
+    assert native_build._reason(subprocess.SubprocessError('cc exited with 1')) == 'cc exited with 1'
+    assert native_build._reason(OSError()) == 'OSError()'

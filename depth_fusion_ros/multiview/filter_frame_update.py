@@ -24,6 +24,7 @@ from .filter_geometry import FrameGeometry, frame_geometry, grid_rows_in_place, 
 from .filter_keyframe import FilterKeyframe
 from .filter_matches import Matches, apply_matches, measurement_variance
 from .filter_search import SearchResult
+from .native_choose import native_choose
 
 if TYPE_CHECKING:
     from .filter import DepthFilter
@@ -66,8 +67,12 @@ def _update_rows(
     rho_min, rho_max = filt.rho_range
     st = key.state
     baseline = max(float(np.linalg.norm(T_fk[:3, 3])), 1e-9)
-    geo = frame_geometry(key, filt.camera, T_fk, filt.margin)
-    rows, seen = choose_rows(filt, key, geo, baseline, only)
+    chosen = native_choose(filt, key, T_fk, baseline, only)  # the same, in one pass on a CPU
+    if chosen is None:
+        geo = frame_geometry(key, filt.camera, T_fk, filt.margin)
+        rows, seen = choose_rows(filt, key, geo, baseline, only)
+    else:
+        geo, rows, seen = chosen
     if rows.numel() == 0:
         return seen
     # Everything below runs on the chosen rows only (index_select: several times faster
