@@ -126,3 +126,7 @@ def test_the_kernel_declines_what_it_was_not_written_for():
     assert not native_apply.native_apply_matches(filt, key, matches, torch.ones(10, dtype=torch.bool), 0.05)
     for name, mine, theirs in zip(FIELDS, _fields(key), _fields(before), strict=True):
         assert _same(mine.to(theirs.dtype), theirs), name
+    # float64 matches against a float32 state: torch's update would compute in float64
+    key.state.mu = key.state.mu.float()
+    wide = Matches(rows, matches.x.double(), matches.j_x, matches.cost, matches.fresh)
+    assert not native_apply.native_apply_matches(filt, key, wide, torch.ones(10, dtype=torch.bool), 0.05)

@@ -182,6 +182,11 @@ class FilterConfig:
     #: read the stream, its standard error is used instead. 0: off.
     focal_uncertainty: float = 0.1
 
+    def seeds_at(self, parallax: float) -> bool:
+        """Whether a frame at ``parallax`` (baseline / scene depth) searches pixels without an
+        estimate over the whole range (``seed_parallax``)."""
+        return parallax >= self.seed_parallax
+
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad ``filter.<parameter>``."""
         checks = (

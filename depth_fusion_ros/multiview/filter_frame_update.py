@@ -125,7 +125,7 @@ def choose_rows(
     estimates = key.prior  # a measured, carried or filled prior
     want = (geo.along >= c.min_epipolar_gradient) & (fresh | geo.visible)
     want &= fresh | (st.var >= c.min_information * measurement_variance(c, st.mu, geo.j, baseline))
-    seeding = baseline / filt._scene >= c.seed_parallax
+    seeding = c.seeds_at(baseline / filt._scene)
     if seeding:
         want &= estimates | (key.attempts < c.seed_attempts)
     else:

@@ -41,15 +41,9 @@ def frame_geometry(
     numbers at about twice the cost), and the searches gather their rows with one
     ``index_select`` straight into the layout ``grid`` takes.
     """
-    K = np.asarray(camera.K, dtype=np.float64)
-    H = K @ T_fk[:3, :3] @ np.linalg.inv(K)  # pixel-to-pixel homography at infinity
-    dev = key.us.device
-    h = torch.as_tensor(H.T, dtype=torch.float32, device=dev)  # rows: H's columns
+    h, (b0, b1, b2) = frame_projection(camera, T_fk, key.us.device)
     # H (u, v, 1), one row per coordinate
     a = torch.addcmul(torch.addcmul(h[2][:, None], h[0][:, None], key.us), h[1][:, None], key.vs)
-    # K t_fk's float32 values as Python numbers: as operands they are cast back to float32
-    # (the same products), without a 0-d tensor select per use.
-    b0, b1, b2 = (float(v) for v in (K @ T_fk[:3, 3]).astype(np.float32))
     rho = key.state.mu
     a0, a1, a2 = a.unbind(0)
     w = a2 + rho * b2
@@ -61,13 +55,32 @@ def frame_geometry(
     along = (key.grad[0] * nu + key.grad[1] * nv).abs() / torch.clamp(norm, min=1e-9)
     front = w > 1e-9
     wc = torch.clamp(w, min=1e-9)
-    cu, cv = 0.5 * (camera.width - 1), 0.5 * (camera.height - 1)
+    cu, cv = image_centre(camera)
     visible = (
         front
         & (((a0 + rho * b0) / wc - cu).abs() <= cu - margin)
         & (((a1 + rho * b1) / wc - cv).abs() <= cv - margin)
     )
     return FrameGeometry(a, (b0, b1, b2), j, along, visible)
+
+
+def frame_projection(
+    camera: PinholeCamera, T_fk: np.ndarray, device: torch.device
+) -> tuple[torch.Tensor, tuple[float, float, float]]:
+    """The frame's pixel-to-pixel homography at infinity ``K R_fk K^-1`` as float32 rows of its
+    columns (``h[k]``: column k), and ``K t_fk``'s float32 values as Python numbers (as operands
+    they are cast back to float32: the same products, without a 0-d tensor select per use).
+    :func:`frame_geometry` and its native twin (``native_choose``) read the same values."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    H = K @ T_fk[:3, :3] @ np.linalg.inv(K)
+    h = torch.as_tensor(H.T, dtype=torch.float32, device=device)
+    b0, b1, b2 = (float(v) for v in (K @ T_fk[:3, 3]).astype(np.float32))
+    return h, (b0, b1, b2)
+
+
+def image_centre(camera: PinholeCamera) -> tuple[float, float]:
+    """The image's centre in pixels (the visibility test measures from it)."""
+    return 0.5 * (camera.width - 1), 0.5 * (camera.height - 1)
 
 
 def row_motion(a: torch.Tensor, b: tuple[float, float, float], rho: torch.Tensor) -> torch.Tensor:

@@ -33,12 +33,14 @@ def native_apply_matches(
     filt: DepthFilter, key: FilterKeyframe, matches: Matches, valid: torch.Tensor, baseline: float
 ) -> bool:
     """:func:`.filter_matches.apply_matches` on a CPU in the kernel, in place; ``False`` (and
-    nothing done) where it does not apply: not a CPU, state not float32 / int64 / bool as the
-    filter makes it, or no kernel here."""
+    nothing done) where it does not apply: not a CPU, state or matches not float32 / int64 /
+    bool as the filter makes them, or no kernel here."""
     st = key.state
+    floats = (st.mu, st.var, st.a, st.b, key.cost)
     applies = (
         matches.rows.device.type == 'cpu'
-        and all(t.dtype == torch.float32 and t.is_contiguous() for t in (st.mu, st.var, st.a, st.b, key.cost))
+        and all(t.dtype == torch.float32 and t.is_contiguous() for t in floats)
+        and all(t.dtype == torch.float32 for t in (matches.x, matches.j_x, matches.cost))
         and key.updates.dtype == torch.int64
         and key.prior.dtype == torch.bool
         and key.updates.is_contiguous()
@@ -49,7 +51,7 @@ def native_apply_matches(
         return False
     c = filt.config
     rows = matches.rows.contiguous()
-    x, j_x, cost = (t.to(torch.float32).contiguous() for t in (matches.x, matches.j_x, matches.cost))
+    x, j_x, cost = (t.contiguous() for t in (matches.x, matches.j_x, matches.cost))
     fresh = matches.fresh.contiguous()
     meas = true_indices(valid)
     votes = true_indices(~fresh & ~valid)

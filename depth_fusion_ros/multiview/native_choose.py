@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ..native_build import load_native
-from .filter_geometry import FrameGeometry
+from .filter_geometry import FrameGeometry, frame_projection, image_centre
 from .filter_keyframe import FilterKeyframe
 
 if TYPE_CHECKING:
@@ -38,18 +38,16 @@ def native_choose(
     if lib is None:
         return None
     c, cam = filt.config, filt.camera
-    K = np.asarray(cam.K, dtype=np.float64)
-    H = K @ T_fk[:3, :3] @ np.linalg.inv(K)
-    h = torch.as_tensor(H.T, dtype=torch.float32).contiguous()  # as frame_geometry has it
-    b = tuple(float(v) for v in (K @ T_fk[:3, 3]).astype(np.float32))
+    h, b = frame_projection(cam, T_fk, key.us.device)
+    h = h.contiguous()
     m = int(key.us.numel())
     a, j, along = torch.empty((3, m)), torch.empty(m), torch.empty(m)
     visible = torch.empty(m, dtype=torch.bool)
     rows = torch.empty(m, dtype=torch.long)
     counts = torch.zeros(3, dtype=torch.long)
-    cu, cv = 0.5 * (cam.width - 1), 0.5 * (cam.height - 1)
+    cu, cv = image_centre(cam)
     with_pose = c.pose_sigma != 0.0
-    seeding = baseline / filt._scene >= c.seed_parallax
+    seeding = c.seeds_at(baseline / filt._scene)
     st = key.state
     pixels = (key.us, key.vs, st.mu, st.var, key.prior)
     lib.filter_choose(
