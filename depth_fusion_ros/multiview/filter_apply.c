@@ -4,13 +4,13 @@
  * uniform update (filter_update.gaussian_uniform_update; a row without a prior its first
  * measurement), each row with a prior that matched nothing an outlier vote (b += 1), and a row
  * whose inlier ratio falls below the limit goes back to "no estimate". About sixty torch ops on
- * the few thousand rows of a frame, each a pass and a dispatch; here one pass each side of the
- * exponential, which stays torch's own (torch.exp: SLEEF's vector code and libm's on the tail,
- * so the same numbers need the same call), as does the square root (torch's is MKL's vector
- * code too, within an ulp but not always the nearest float). Every other operation is the torch code's, in its
- * order and float32 rounding (-ffp-contract=off, no FMA: the same numbers bit for bit,
- * test/test_native_filter_apply.py), including torch's ways of writing a scalar over a tensor
- * (``p / t`` is ``reciprocal(t) * p``).
+ * the few thousand rows of a frame, each a pass and a dispatch; here one pass before the
+ * exponential and the square root and one after them. Those two stay torch's own calls: this
+ * torch's CPU exp and sqrt are MKL's vector functions, within an ulp of the exact result but not
+ * always the nearest float, so only the same call gives the same numbers. Every other operation
+ * is the torch code's, in its order and float32 rounding (-ffp-contract=off, no FMA: the same
+ * numbers bit for bit, test/test_native_filter_apply.py), including torch's way of writing a
+ * scalar over a tensor (``p / t`` is ``reciprocal(t) * p``).
  *
  * rows: the keyframe row of each searched row; meas: the searched rows that measured (valid);
  * votes: those with a prior that did not. State arrays (M,): mu, var, a, b float32, updates
