@@ -23,12 +23,12 @@
 
 static inline float clamp_min(float v, float low) { return (v != v) ? v : (v < low ? low : v); }
 
-/* The geometry of pixels [first, last): branch-free, so the compiler vectorises it. */
-static void geometry(int64_t first, int64_t last, int64_t M, const float *restrict us, const float *restrict vs,
+/* The geometry of the M pixels: branch-free, so the compiler vectorises it. */
+static void geometry(int64_t M, const float *restrict us, const float *restrict vs,
                      const float *restrict mu, const float *restrict grad, const float *restrict h, float b0,
                      float b1, float b2, float cu, float cu_limit, float cv, float cv_limit, float *restrict a_out,
                      float *restrict j_out, float *restrict along_out, uint8_t *restrict visible_out) {
-    for (int64_t i = first; i < last; i++) {
+    for (int64_t i = 0; i < M; i++) {
         const float u = us[i], v = vs[i], rho = mu[i];
         /* a = addcmul(addcmul(h2, h0, u), h1, v): two fused multiply-adds per coordinate */
         const float a0 = fmaf(h[3], v, fmaf(h[0], u, h[6]));
@@ -54,8 +54,7 @@ void filter_choose(int64_t M, const float *us, const float *vs, const float *mu,
                    int seeding, int64_t seed_attempts, float *a_out, float *j_out, float *along_out,
                    uint8_t *visible_out, int64_t *rows_out, int64_t *counts) {
     int64_t n_rows = 0, n_estimates = 0, n_seen = 0;
-    geometry(0, M, M, us, vs, mu, grad, h, b0, b1, b2, cu, cu_limit, cv, cv_limit, a_out, j_out, along_out,
-             visible_out);
+    geometry(M, us, vs, mu, grad, h, b0, b1, b2, cu, cu_limit, cv, cv_limit, a_out, j_out, along_out, visible_out);
     for (int64_t i = 0; i < M; i++) { /* choose_rows */
         const float rho = mu[i], j = j_out[i];
         const int visible = visible_out[i];
