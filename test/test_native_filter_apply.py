@@ -130,3 +130,6 @@ def test_the_kernel_declines_what_it_was_not_written_for():
     key.state.mu = key.state.mu.float()
     wide = Matches(rows, matches.x.double(), matches.j_x, matches.cost, matches.fresh)
     assert not native_apply.native_apply_matches(filt, key, wide, torch.ones(10, dtype=torch.bool), 0.05)
+    # int32 rows: the kernel reads int64 indices
+    narrow = Matches(rows.int(), matches.x, matches.j_x, matches.cost, matches.fresh)
+    assert not native_apply.native_apply_matches(filt, key, narrow, torch.ones(10, dtype=torch.bool), 0.05)

@@ -43,21 +43,18 @@ void filter_measure_exponent(const int64_t *rows, const int64_t *meas, int64_t n
     }
 }
 
-static inline void reset(int64_t r, float *mu, float *var, float *a, float *b, int64_t *updates, uint8_t *prior,
-                         const float *none) {
-    mu[r] = none[0], var[r] = none[1], a[r] = none[2], b[r] = none[3], updates[r] = 0, prior[r] = 0;
-}
+/* Back to "no estimate" (filter_keyframe.no_estimate: the mean and variance of the whole range,
+ * the prior Beta, no measurement, no prior). */
+#define RESET(r) (mu[r] = none_mu, var[r] = none_var, a[r] = init_a, b[r] = init_b, updates[r] = 0, prior[r] = 0)
 
 /* The posterior of each measuring row from exp(exponent) and sqrt(2 pi total) (torch's, in e_in
- * and root_in; gaussian_uniform_update), a first
- * measurement where the row had no prior, the resets, then the votes. none: the "no estimate"
- * mean, variance, a and b (filter_keyframe.no_estimate). */
+ * and root_in; gaussian_uniform_update), a first measurement (init_a, init_b: the prior Beta)
+ * where the row had no prior, the resets, then the votes. */
 void filter_measure_finish(const int64_t *rows, const int64_t *meas, int64_t n, const float *x, const float *cost,
                            const uint8_t *fresh, const float *tau2_in, const float *e_in, const float *root_in,
-                           const int64_t *votes,
-                           int64_t n_votes, float *mu, float *var, float *a, float *b, int64_t *updates,
-                           uint8_t *prior, float *key_cost, float span, float init_a, float init_b,
-                           float min_ratio, const float *none) {
+                           const int64_t *votes, int64_t n_votes, float *mu, float *var, float *a, float *b,
+                           int64_t *updates, uint8_t *prior, float *key_cost, float span, float none_mu,
+                           float none_var, float init_a, float init_b, float min_ratio) {
     for (int64_t k = 0; k < n; k++) {
         const int64_t i = meas[k], r = rows[i];
         const float m0 = mu[r], v0 = var[r], a0 = a[r], b0 = b[r], tau2 = tau2_in[k], xi = x[i];
@@ -82,11 +79,11 @@ void filter_measure_finish(const int64_t *rows, const int64_t *meas, int64_t n, 
         }
         mu[r] = mu_n, var[r] = var_n, a[r] = a_n, b[r] = b_n;
         updates[r] += 1, prior[r] = 1, key_cost[r] = cost[i];
-        if (!fresh[i] && a_n / (a_n + b_n) < min_ratio) reset(r, mu, var, a, b, updates, prior, none);
+        if (!fresh[i] && a_n / (a_n + b_n) < min_ratio) RESET(r);
     }
     for (int64_t k = 0; k < n_votes; k++) { /* filter_update.outlier_vote */
         const int64_t r = rows[votes[k]];
         b[r] = b[r] + 1.0f;
-        if (a[r] / (a[r] + b[r]) < min_ratio) reset(r, mu, var, a, b, updates, prior, none);
+        if (a[r] / (a[r] + b[r]) < min_ratio) RESET(r);
     }
 }

@@ -39,6 +39,9 @@ def native_apply_matches(
     floats = (st.mu, st.var, st.a, st.b, key.cost)
     applies = (
         matches.rows.device.type == 'cpu'
+        and matches.rows.dtype == torch.long
+        and matches.fresh.dtype == torch.bool
+        and valid.dtype == torch.bool
         and all(t.dtype == torch.float32 and t.is_contiguous() for t in floats)
         and all(t.dtype == torch.float32 for t in (matches.x, matches.j_x, matches.cost))
         and key.updates.dtype == torch.int64
@@ -69,11 +72,11 @@ def native_apply_matches(
     )  # fmt: skip
     gaussian, root = torch.exp(exponent), torch.sqrt(spread)  # torch's own: see the module
     lo, hi = filt.rho_range
-    none = torch.tensor(no_estimate(filt)[:4], dtype=torch.float32)
+    none_mu, none_var, init_a, init_b = no_estimate(filt)[:4]  # a and b: also a first measurement's
     lib.filter_measure_finish(
         rows.data_ptr(), meas.data_ptr(), n, x.data_ptr(), cost.data_ptr(), fresh.data_ptr(),
         tau2.data_ptr(), gaussian.data_ptr(), root.data_ptr(), votes.data_ptr(), int(votes.numel()),
-        *state, float(hi - lo), float(c.init_a), float(c.init_b), float(c.min_inlier_ratio), none.data_ptr(),
+        *state, float(hi - lo), none_mu, none_var, init_a, init_b, float(c.min_inlier_ratio),
     )  # fmt: skip
     return True
 
@@ -87,6 +90,6 @@ def _library() -> ctypes.CDLL | None:
     p, i64, i, f = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int, ctypes.c_float
     signature = {
         'filter_measure_exponent': [p, p, i64, p, p, p, p, f, f, i, f, p, p, p],
-        'filter_measure_finish': [p, p, i64, p, p, p, p, p, p, p, i64, p, p, p, p, p, p, p, f, f, f, f, p],
+        'filter_measure_finish': [p, p, i64, p, p, p, p, p, p, p, i64, p, p, p, p, p, p, p, f, f, f, f, f, f],
     }
     return load_native(Path(__file__).with_name('filter_apply.c'), signature)
