@@ -104,5 +104,8 @@ def test_the_kernel_declines_what_it_was_not_written_for():
     gen = torch.Generator().manual_seed(9)
     filt = _filter(FilterConfig(), 1.0)
     key = _keyframe(100, gen, 0.5)
+    motion = _motion(gen, 2.0, 0.05)
+    short_mask = torch.ones(99, dtype=torch.bool)  # one entry short: the kernel would read past it
+    assert native_choose.native_choose(filt, key, motion, 0.05, short_mask) is None
     key.state.mu = key.state.mu.double()
-    assert native_choose.native_choose(filt, key, _motion(gen, 2.0, 0.05), 0.05, None) is None
+    assert native_choose.native_choose(filt, key, motion, 0.05, None) is None

@@ -42,6 +42,7 @@ def native_apply_matches(
         and matches.rows.dtype == torch.long
         and matches.fresh.dtype == torch.bool
         and valid.dtype == torch.bool
+        and all(t.shape == matches.rows.shape for t in (matches.x, matches.j_x, matches.cost, matches.fresh, valid))
         and all(t.dtype == torch.float32 and t.is_contiguous() for t in floats)
         and all(t.dtype == torch.float32 for t in (matches.x, matches.j_x, matches.cost))
         and key.updates.dtype == torch.int64

@@ -66,15 +66,17 @@ def native_choose(
 def _applies(key: FilterKeyframe, only: torch.Tensor | None) -> bool:
     st = key.state
     floats = (key.us, key.vs, st.mu, st.var, key.grad)
+    m = key.us.shape  # the kernel reads M entries of every per-pixel array
     return (
         key.us.device.type == 'cpu'
         and all(t.dtype == torch.float32 and t.is_contiguous() for t in floats)
-        and key.grad.shape == (2, key.us.numel())
+        and all(t.shape == m for t in (key.vs, st.mu, st.var, key.prior, key.attempts))
+        and key.grad.shape == (2, *m)
         and key.prior.dtype == torch.bool
         and key.prior.is_contiguous()
         and key.attempts.dtype == torch.long
         and key.attempts.is_contiguous()
-        and (only is None or (only.dtype == torch.bool and only.is_contiguous()))
+        and (only is None or (only.dtype == torch.bool and only.is_contiguous() and only.shape == m))
     )
 
 
