@@ -37,14 +37,15 @@ def native_apply_matches(
     bool as the filter makes them, or no kernel here."""
     st = key.state
     floats = (st.mu, st.var, st.a, st.b, key.cost)
+    per_row = (matches.x, matches.j_x, matches.cost)
     applies = (
         matches.rows.device.type == 'cpu'
         and matches.rows.dtype == torch.long
         and matches.fresh.dtype == torch.bool
         and valid.dtype == torch.bool
-        and all(t.shape == matches.rows.shape for t in (matches.x, matches.j_x, matches.cost, matches.fresh, valid))
+        and all(t.shape == matches.rows.shape for t in (*per_row, matches.fresh, valid))
         and all(t.dtype == torch.float32 and t.is_contiguous() for t in floats)
-        and all(t.dtype == torch.float32 for t in (matches.x, matches.j_x, matches.cost))
+        and all(t.dtype == torch.float32 for t in per_row)
         and key.updates.dtype == torch.int64
         and key.prior.dtype == torch.bool
         and key.updates.is_contiguous()
