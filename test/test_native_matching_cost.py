@@ -164,6 +164,34 @@ def test_the_descriptor_table_is_the_channels_last_copy(monkeypatch, n, channels
         assert shape in native_cost._spares
 
 
+def test_the_cpu_descriptors_are_the_table_itself():
+    """The filter's CPU descriptors are written as the kernels' table (``descriptors._interleave``):
+    the kernels read that memory in place, and it holds what the copy would (the channels,
+    zeros after them, a zero block after the image). A tensor of that layout without its zero
+    block is copied, not read past its end or with a corner that is not zero."""
+    _native_or_skip()
+    from depth_fusion_ros.multiview.descriptors import patch_descriptors
+
+    gen = torch.Generator().manual_seed(3)
+    images = torch.rand(1, HEIGHT, WIDTH, generator=gen)
+    desc = patch_descriptors(images, visibility_margin=3, channels=6, channels_last=True)
+    assert desc.shape == (1, 7, HEIGHT, WIDTH)
+    lib = native_cost._load()
+    table = native_cost._channels_last(lib, desc)
+    assert table.data_ptr() == desc.data_ptr()  # no copy
+    expected = torch.zeros(1, HEIGHT * WIDTH + 1, native_cost.LANES)
+    expected[:, :-1, :7] = desc.permute(0, 2, 3, 1).reshape(1, HEIGHT * WIDTH, 7)
+    assert torch.equal(table, expected)
+    planar = patch_descriptors(images, visibility_margin=3, channels=6)
+    assert torch.equal(desc, planar)  # the same numbers as the planar layout
+    spoiled = desc.as_strided((1, HEIGHT * WIDTH + 1, native_cost.LANES), ((HEIGHT * WIDTH + 1) * 8, 8, 1), 0)
+    spoiled[0, -1, 0] = 1.0  # the zero block written to: not a table any more
+    assert native_cost._table_in_place(desc) is None
+    copied = native_cost._channels_last(lib, desc)
+    assert copied.data_ptr() != desc.data_ptr()
+    assert torch.equal(copied, expected)
+
+
 def test_descriptors_made_under_inference_mode_are_looked_up_too():
     """Inference tensors have no version counter (the table cache's test of an in-place
     change): their table is made for each call instead, and the numbers are the same."""

@@ -58,7 +58,7 @@ def new_keyframe(
     at = lambda offset: pixels.index_select(0, flat + offset)  # noqa: E731
     grad = torch.stack(((at(1) - at(-1)) * 0.5, (at(width) - at(-width)) * 0.5))
     channels = desc.shape[1] - 1
-    if desc.is_contiguous(memory_format=torch.channels_last):  # CPU (DepthFilter._describe): channels adjoin
+    if desc.stride(1) == 1:  # CPU (DepthFilter._describe): a pixel's channels adjoin
         key_desc = desc[0].permute(1, 2, 0).reshape(-1, channels + 1).index_select(0, flat)
         key_desc = key_desc[:, :channels].T.contiguous()
     else:

@@ -194,7 +194,12 @@ def _channels_last(lib: ctypes.CDLL, desc: torch.Tensor) -> torch.Tensor:
     image). Made once per descriptor tensor (kept by identity and version: a frame's searches
     and a sweep's chunks share theirs), by the kernels' own copy (planar descriptors
     transposed eight pixels at a time, interleaved ones read in place: a third of the time of
-    torch's permuted copy or less), into a dropped table's memory where one is free."""
+    torch's permuted copy or less), into a dropped table's memory where one is free. Descriptors
+    written as a table in the first place (the CPU's, ``descriptors._interleave``) are read in
+    place (:func:`_table_in_place`)."""
+    in_place = _table_in_place(desc)
+    if in_place is not None:
+        return in_place
     key = id(desc)
     # An inference tensor (made under torch.inference_mode) has no version counter and may
     # change in place unseen: its table is made for each call and not kept.
@@ -227,6 +232,21 @@ def _channels_last(lib: ctypes.CDLL, desc: torch.Tensor) -> torch.Tensor:
         while len(_tables) > TABLES_KEPT:
             _keep_spare(_tables.popitem(last=False)[1][2])
     return table
+
+
+def _table_in_place(desc: torch.Tensor) -> torch.Tensor | None:
+    """The table ``desc`` already is, or None: one image's descriptors (1, C + 1, H, W) whose
+    pixels are blocks of :data:`LANES` floats from the start of their memory, followed in it by
+    one zero block (what a corner outside the image reads). The spare lanes of a block are
+    never read as channels, so only the zero block is checked."""
+    n, _, height, width = desc.shape
+    pixels = height * width
+    if n != 1 or desc.storage_offset() != 0 or tuple(desc.stride()[1:]) != (1, width * LANES, LANES):
+        return None
+    if desc.untyped_storage().nbytes() != (pixels + 1) * LANES * desc.element_size():
+        return None
+    table = desc.as_strided((1, pixels + 1, LANES), ((pixels + 1) * LANES, LANES, 1), 0)
+    return None if bool(table[0, pixels].any()) else table
 
 
 def _pixel_stride(desc: torch.Tensor) -> int | None:
