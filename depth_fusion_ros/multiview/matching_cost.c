@@ -368,6 +368,75 @@ void frame_search(const float *F, int H, int W, int C, const float *key, int64_t
     }
 }
 
+/* ---- The filter's first-measurement check (filter_first_check.check_first_matches), whole ---- */
+
+static inline float clamp_below(float v, float low) { return (v != v) ? v : (v < low ? low : v); }
+
+/* filter_geometry.row_motion at one row: |d p / d rho| of a + rho b (epipolar_motion, then
+ * torch.hypot: computed in double and rounded once, torch's correctly rounded result). */
+static inline float row_motion_one(float a0, float a1, float a2, float b0, float b1, float b2, float rho) {
+    float w = a2 + rho * b2;
+    float w2 = clamp_below(w * w, 1e-12f);
+    float du = (b0 * a2 - a0 * b2) / w2, dv = (b1 * a2 - a1 * b2) / w2;
+    return (float)sqrt((double)du * du + (double)dv * dv);
+}
+
+/* The check of R searched rows' first measurements: rows (R,) the keyframe rows, updates (M,)
+ * their measurement counts (a row with none and a valid match is a first measurement); a (3, .)
+ * stride as the rows' projections at infinity in pixels, b their K t; s0, s1 grid_sample's
+ * scale (torch's float32 2 / (W - 1), 2 / (H - 1)); x, jx, cost, valid (R,) the searches'
+ * matches, changed in place as the torch code changes them: each first measurement searched
+ * again over x +- px / jx in S samples (refine 0, the second-best ratio), distinct where that
+ * search is ok, its ratio at least dmin and its match in [rho_min, rho_max]; there the window's
+ * best replaces the match and its cost, the motion is taken at the match, and valid says
+ * distinct. first (R,) is scratch. Blocks of eight first measurements over `threads` threads. */
+void first_check(const float *F, int H, int W, int C, const float *key, int64_t ks, const int64_t *rows,
+                 const int64_t *updates, const float *a, int64_t as, float b0, float b1, float b2, float s0, float s1,
+                 float *x, float *jx, float *cost, uint8_t *valid, int64_t R, float px, int S, float dmin,
+                 float rho_min, float rho_max, int64_t *first, int threads) {
+    int64_t n = 0;
+    for (int64_t i = 0; i < R; i++)
+        if (valid[i] && updates[rows[i]] == 0) first[n++] = i;
+    /* filter_geometry.grid_rows_in_place: (b_k s_k) - b_2 for the two image coordinates */
+    const float nb0 = b0 * s0 - b2, nb1 = b1 * s1 - b2;
+    const __m256 B0 = _mm256_set1_ps(nb0), B1 = _mm256_set1_ps(nb1), B2 = _mm256_set1_ps(b2);
+    const int64_t blocks = (n + 7) / 8;
+#pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
+    for (int64_t blk = 0; blk < blocks; blk++) {
+        float costs[(512 + 2 * 64) * 8];
+        int valid_lanes = (n - 8 * blk < 8) ? (int)(n - 8 * blk) : 8;
+        float kl[LANES][8], l0[8], l1[8], l2[8], lo[8], hi[8], match[8];
+        for (int j = 0; j < 8; j++) {
+            int64_t i = first[8 * blk + (j < valid_lanes ? j : valid_lanes - 1)], r = rows[i];
+            for (int c = 0; c < C; c++) kl[c][j] = key[c * ks + r];
+            float a2 = a[2 * as + i];
+            l0[j] = a[i] * s0 - a2; /* a[:2].mul_(scale).sub_(a[2]) */
+            l1[j] = a[as + i] * s1 - a2;
+            l2[j] = a2;
+            float half = (1.0f / clamp_below(jx[i], 1e-6f)) * px; /* px / clamp(jx): reciprocal(t) * p */
+            match[j] = x[i];
+            lo[j] = match[j] - half;
+            hi[j] = match[j] + half;
+        }
+        __m256 k[LANES];
+        for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(kl[c]);
+        float rho[8], best[8], ratio[8];
+        uint8_t ok[8];
+        search_eight(F, H, W, C, k, _mm256_loadu_ps(l0), _mm256_loadu_ps(l1), _mm256_loadu_ps(l2), B0, B1, B2,
+                     _mm256_loadu_ps(lo), _mm256_loadu_ps(hi), S, 0, 1, 0, valid_lanes, rho, best, ratio, ok, costs);
+        for (int j = 0; j < valid_lanes; j++) {
+            int64_t i = first[8 * blk + j];
+            int distinct = ok[j] && ratio[j] >= dmin && rho[j] >= rho_min && rho[j] <= rho_max;
+            if (distinct) {
+                x[i] = rho[j];
+                cost[i] = best[j];
+            }
+            jx[i] = row_motion_one(a[i], a[as + i], a[2 * as + i], b0, b1, b2, x[i]);
+            valid[i] = (uint8_t)distinct;
+        }
+    }
+}
+
 /* The descriptors' channels-last table (native_cost._channels_last): n images of `ch` channels
  * of HW pixels, element (k, c, p) at desc[k sn + c sc + p sp], into n tables of HW + 1 blocks of
  * eight floats, the channels then zeros, and a zero block last (a copy: exact). Planar images

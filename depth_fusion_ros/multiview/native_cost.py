@@ -42,6 +42,32 @@ _SIGNATURES = {
     # then lo, hi, R, S, refine, the two switches, the four outputs, the threads
     'frame_search': [*_FRAME, _P, _P, _I64, _I, _I, _I, _I, _P, _P, _P, _P, _I],
     'channels_last': [_P, _I, _I, _I64, _I64, _I64, _I64, _P, _I],
+    # then rows, updates, a, a stride, b, the scale, x, j_x, cost, valid, R, the window
+    # (px, samples, ratio), the range, the scratch and the threads
+    'first_check': [
+        *_FRAME[:6],
+        _P,
+        _P,
+        _P,
+        _I64,
+        _F,
+        _F,
+        _F,
+        _F,
+        _F,
+        _P,
+        _P,
+        _P,
+        _P,
+        _I64,
+        _F,
+        _I,
+        _F,
+        _F,
+        _F,
+        _P,
+        _I,
+    ],
 }
 #: The most coarse samples and fine samples a side of one native search (its stack arrays).
 SEARCH_MAX_SAMPLES, SEARCH_MAX_REFINE = 512, 64
