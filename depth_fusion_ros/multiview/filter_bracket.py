@@ -16,8 +16,9 @@ import torch
 import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 
 from .filter_geometry import row_motion
-from .filter_keyframe import FilterKeyframe
+from .filter_keyframe import FilterKeyframe, padded_maps
 from .filter_window import window_reduce
+from .native_bracket import native_bracket
 
 if TYPE_CHECKING:
     from .filter import DepthFilter
@@ -46,6 +47,10 @@ def bracket_seeds(
     c = filt.config
     if c.seed_radius <= 0 or seeds.numel() == 0:
         return None
+    # The same in one native pass on a CPU (native_bracket); elsewhere the torch code below.
+    applied, use = native_bracket(filt, key, rows, seeds, a_r, b, lo, hi)
+    if applied:
+        return use
     # choose_rows (filter_frame_update) counted this attempt
     sel = seeds.masked_select(key.attempts.index_select(0, rows.index_select(0, seeds)) == 1)
     if sel.numel() == 0 or not bool(key.updates.any()):  # updates >= 0: any() is "any > 0"
@@ -84,14 +89,11 @@ def neighbour_range(
         return neighbour_range_dense(filt, key, rows)
     wp = w + 2 * r
     m = int(key.flat.numel())
-    if key.padded_rows is None or key.padded_flat is None:  # once per keyframe
-        key.padded_flat = (key.vs.long() + r) * wp + key.us.long() + r
-        key.padded_rows = torch.full(((h + 2 * r) * wp,), m, dtype=torch.long, device=filt.device)
-        key.padded_rows.index_copy_(0, key.padded_flat, torch.arange(m, device=filt.device))
+    padded_flat, padded_rows = padded_maps(filt, key)
     d = torch.arange(-r, r + 1, device=filt.device)
     offsets = (d[:, None] * wp + d[None, :]).reshape(-1)
-    window = (key.padded_flat.index_select(0, rows)[:, None] + offsets[None, :]).reshape(-1)
-    near = key.padded_rows.index_select(0, window)  # rows, m for "no candidate there"
+    window = (padded_flat.index_select(0, rows)[:, None] + offsets[None, :]).reshape(-1)
+    near = padded_rows.index_select(0, window)  # rows, m for "no candidate there"
     # Gathered first, then "no estimate" where there is no candidate (near == m): the
     # window's entries only, not a copy of the keyframe's state with a spare entry.
     inside = near.clamp(max=m - 1)

@@ -54,3 +54,18 @@ class FilterKeyframe:
     #: Camera-to-world poses of the last frames that updated this keyframe or, carried, the
     #: keyframes before it, in order (``multiview/focal_bias.py``)
     update_poses: list[np.ndarray] = field(default_factory=list)
+
+
+def padded_maps(filt: DepthFilter, key: FilterKeyframe) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each keyframe row's pixel in the image padded by ``seed_radius`` on every side, and that
+    padded image's row at each pixel (the row count where there is no candidate): a window of
+    a row is then a fixed set of offsets, never outside the map (the seed bracket's neighbour
+    lookups, ``filter_bracket``). Made once per keyframe."""
+    if key.padded_rows is None or key.padded_flat is None:
+        r = filt.config.seed_radius
+        h, w = filt.camera.height, filt.camera.width
+        wp, m = w + 2 * r, int(key.flat.numel())
+        key.padded_flat = (key.vs.long() + r) * wp + key.us.long() + r
+        key.padded_rows = torch.full(((h + 2 * r) * wp,), m, dtype=torch.long, device=filt.device)
+        key.padded_rows.index_copy_(0, key.padded_flat, torch.arange(m, device=filt.device))
+    return key.padded_flat, key.padded_rows
