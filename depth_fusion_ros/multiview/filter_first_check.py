@@ -33,7 +33,6 @@ import torch
 from ..true_indices import true_indices
 from .filter_geometry import FrameGeometry, grid_rows_in_place, row_motion
 from .filter_keyframe import FilterKeyframe
-from .native_first_check import native_first_check
 
 if TYPE_CHECKING:
     from .filter import DepthFilter
@@ -62,9 +61,6 @@ def check_first_matches(
     """
     c = filt.config
     if c.first_check_px <= 0:
-        return valid
-    # The same in one native pass on a CPU (native_first_check); elsewhere the torch code below.
-    if native_first_check(filt, key, rows, desc, a_r, geo, x, j_x, cost, valid):
         return valid
     first = true_indices(valid & (key.updates.index_select(0, rows) == 0))
     if first.numel() == 0:

@@ -6,6 +6,9 @@ along their epipolar line (:func:`search_rows`, in buckets by interval length), 
 measurement is checked once more at one sample a pixel (``filter_first_check``), and the
 matches are fused (``filter_matches``: the Gaussian x uniform update of the rows that matched),
 so the frame's cost follows the pixels that still need it, not the candidate count.
+On a CPU each step is a native pass with the same numbers (``native_choose``, ``native_bracket``,
+``native_rows``: the searches, their tests and the check; ``native_apply``); the torch code
+here is the reference, and runs on CUDA.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from .filter_keyframe import FilterKeyframe
 from .filter_matches import Matches, apply_matches, measurement_variance
 from .filter_search import SearchResult
 from .native_choose import native_choose
+from .native_rows import native_search_rows
 
 if TYPE_CHECKING:
     from .filter import DepthFilter
@@ -90,6 +94,35 @@ def _update_rows(
     hi = torch.clamp(mu_r + half, rho_min, rho_max).index_fill_(0, seeds, rho_max)
     bracketed = bracket_seeds(filt, key, rows, seeds, f_r, a_r, geo.b, lo, hi)
     filt.clock.switch(prefix + 'search')
+    # On a CPU the searches, the tests below and the first-measurement check in one native pass
+    # (native_rows: the same numbers); elsewhere, or with a test's search, the torch code.
+    searched = native_search_rows(filt, key, rows, desc, a_r, geo, lo, hi, j_r, f_r, bracketed)
+    if searched is None:
+        intervals = (lo, hi, j_r, f_r, seeds, bracketed)
+        x, j_x, cost, valid = _search_and_test(filt, key, rows, desc, a_r, geo, intervals, prefix)
+    else:  # its stage is the search's, the first-measurement check's searches included
+        x, j_x, cost, valid = searched
+        filt.clock.switch(prefix + 'update')
+    apply_matches(filt, key, Matches(rows, x, j_x, cost, f_r), valid, baseline)
+    return seen
+
+
+def _search_and_test(
+    filt: DepthFilter,
+    key: FilterKeyframe,
+    rows: torch.Tensor,
+    desc: torch.Tensor,
+    a_r: torch.Tensor,
+    geo: FrameGeometry,
+    intervals: tuple[torch.Tensor, ...],
+    prefix: str,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The searches of the chosen rows and the tests of their matches in torch: ``(x, j_x, cost,
+    valid)`` per row (``native_rows`` gives the same in one pass on a CPU). ``intervals``: each
+    row's ``lo``, ``hi``, motion at the prior, whether it has no prior, the rows without one and
+    the bracketed rows (or None)."""
+    lo, hi, j_r, f_r, seeds, bracketed = intervals
+    rho_min, rho_max = filt.rho_range
     # Through the filter (its module's search_interval, read at the call: tests count the searches).
     x, cost, valid = search_rows(filt, key, rows, desc, a_r, geo, lo, hi, j_r, f_r, seeds, filt.search)
     filt.clock.switch(prefix + 'update')
@@ -103,8 +136,7 @@ def _update_rows(
     valid &= (x >= rho_min) & (x <= rho_max)
     valid &= j_x > 1e-6
     valid = check_first_matches(filt, key, rows, desc, a_r, geo, x, j_x, cost, valid)
-    apply_matches(filt, key, Matches(rows, x, j_x, cost, f_r), valid, baseline)
-    return seen
+    return x, j_x, cost, valid
 
 
 def choose_rows(

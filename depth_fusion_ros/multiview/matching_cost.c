@@ -1,12 +1,16 @@
 /* The epipolar matching cost (1 - ZNCC of patch descriptors) in one pass per lookup (x86-64, AVX2 + FMA).
  *
- * Three kernels compute, number for number, what the package's torch code computes:
+ * Four kernels compute, number for number, what the package's torch code computes:
  * - frame_cost: the depth filter's cost against one frame, samples-first (S, R)
  *   (filter_search._frame_cost_torch): each row's own inverse depths, one frame, the cost set
  *   to inf where the frame does not see the sample;
  * - frame_search: the depth filter's whole search of a bucket of rows against one frame
  *   (filter_search._search_rows): frame_cost's costs on each row's grid of samples, the first
  *   minimum, the second-best ratio, the fine samples each side and the parabola, per row;
+ * - filter_rows: all of a frame's searches of the filter's chosen rows (filter_frame_update:
+ *   search_rows, the tests of each match, filter_first_check.check_first_matches): each row's
+ *   span and bucket, frame_search's search of each bucket, the motion at the match, a bracket's
+ *   edge test, the range, and every first measurement searched again at one sample a pixel;
  * - sweep_cost: the sweep's cost against n neighbours, rows-first (M, S)
  *   (cost_volume.sample_cost_torch): the neighbours' looked-up descriptors summed, then the
  *   ZNCC with the row's key descriptor, and the summed visibility returned as the count.
@@ -368,7 +372,7 @@ void frame_search(const float *F, int H, int W, int C, const float *key, int64_t
     }
 }
 
-/* ---- The filter's first-measurement check (filter_first_check.check_first_matches), whole ---- */
+/* ---- The filter's rows of one frame: helpers, the first-measurement check, then filter_rows ---- */
 
 static inline float clamp_below(float v, float low) { return (v != v) ? v : (v < low ? low : v); }
 
@@ -381,22 +385,16 @@ static inline float row_motion_one(float a0, float a1, float a2, float b0, float
     return (float)sqrt((double)du * du + (double)dv * dv);
 }
 
-/* The check of R searched rows' first measurements: rows (R,) the keyframe rows, updates (M,)
- * their measurement counts (a row with none and a valid match is a first measurement); a (3, .)
- * stride as the rows' projections at infinity in pixels, b their K t; s0, s1 grid_sample's
- * scale (torch's float32 2 / (W - 1), 2 / (H - 1)); x, jx, cost, valid (R,) the searches'
- * matches, changed in place as the torch code changes them: each first measurement searched
- * again over x +- px / jx in S samples (refine 0, the second-best ratio), distinct where that
- * search is ok, its ratio at least dmin and its match in [rho_min, rho_max]; there the window's
- * best replaces the match and its cost, the motion is taken at the match, and valid says
- * distinct. first (R,) is scratch. Blocks of eight first measurements over `threads` threads. */
-void first_check(const float *F, int H, int W, int C, const float *key, int64_t ks, const int64_t *rows,
-                 const int64_t *updates, const float *a, int64_t as, float b0, float b1, float b2, float s0, float s1,
-                 float *x, float *jx, float *cost, uint8_t *valid, int64_t R, float px, int S, float dmin,
-                 float rho_min, float rho_max, int64_t *first, int threads) {
-    int64_t n = 0;
-    for (int64_t i = 0; i < R; i++)
-        if (valid[i] && updates[rows[i]] == 0) first[n++] = i;
+/* The first-measurement check (filter_first_check.check_first_matches) of the n first measurements
+ * first[0..n) (positions in the searched rows): each searched again over x +- px / jx in S samples
+ * (refine 0, the second-best ratio), distinct where that search is ok, its ratio at least dmin and
+ * its match in [rho_min, rho_max]; there the window's best replaces the match and its cost. The
+ * motion is taken at the match, and valid says distinct. a (3, .) stride as: the searched rows'
+ * projections at infinity in pixels (b: K t), s0 s1 grid_sample's scale. */
+static void check_first(const float *F, int H, int W, int C, const float *key, int64_t ks, const int64_t *rows,
+                        const float *a, int64_t as, float b0, float b1, float b2, float s0, float s1, float *x,
+                        float *jx, float *cost, uint8_t *valid, const int64_t *first, int64_t n, float px, int S,
+                        float dmin, float rho_min, float rho_max, int threads) {
     /* filter_geometry.grid_rows_in_place: (b_k s_k) - b_2 for the two image coordinates */
     const float nb0 = b0 * s0 - b2, nb1 = b1 * s1 - b2;
     const __m256 B0 = _mm256_set1_ps(nb0), B1 = _mm256_set1_ps(nb1), B2 = _mm256_set1_ps(b2);
@@ -435,6 +433,116 @@ void first_check(const float *F, int H, int W, int C, const float *key, int64_t 
             valid[i] = (uint8_t)distinct;
         }
     }
+}
+
+/* ---- A frame's searches of the filter's chosen rows, whole (filter_frame_update: search_rows, the
+ * validity tests, the first-measurement check) ---- */
+
+/* torch.maximum: NaN if either is NaN */
+static inline float max_nan(float u, float v) { return (u != u || v != v) ? NAN : (u > v ? u : v); }
+
+/* The R rows of one frame: spans, buckets, searches, tests and first-measurement check.
+ * rows (R,) the keyframe rows chosen, updates (M,) their measurement counts, fresh (R,) bytes: no
+ * prior (a whole-range or bracketed search), bracketed (R,) bytes or NULL; a (3, .) stride as the
+ * rows' projections at infinity in pixels, b K t, s0 s1 grid_sample's scale; j (R,) the epipolar
+ * motion at the prior, lo hi (R,) the intervals. The buckets (filter_buckets): samples, refine and
+ * the distinctiveness switch of verify, short, medium and long in bucket[0..12), the span limits of
+ * short, verify and medium in limit[0..3) (verify and medium off where their samples are 0); tests
+ * max_cost, min_distinct, reject_edges; the range; the check's px, samples and ratio (px 0: off).
+ * Out: x, jx, cost (R,) and valid (R,) bytes; scratch (2 R,) int64. */
+void filter_rows(const float *F, int H, int W, int C, const float *key, int64_t ks, const int64_t *rows,
+                 const int64_t *updates, const uint8_t *fresh, const uint8_t *bracketed, const float *a, int64_t as,
+                 float b0, float b1, float b2, float s0, float s1, const float *j, const float *lo, const float *hi,
+                 int64_t R, const int *bucket, const float *limit, float max_cost, float min_distinct,
+                 int reject_edges, float rho_min, float rho_max, float check_px, int check_samples, float check_dmin,
+                 float *x, float *jx, float *cost, uint8_t *valid, int64_t *scratch, int threads,
+                 int64_t min_lookups) {
+    int64_t *order = scratch, *first = scratch + R;
+    int64_t counts[4] = {0, 0, 0, 0};
+    uint8_t *which = (uint8_t *)first; /* each row's bucket, before `first` is needed */
+    const int use_verify = bucket[0] > 0, use_medium = bucket[6] > 0;
+    for (int64_t i = 0; i < R; i++) {
+        /* search_rows: the interval in px (a whole-range search: the larger motion of its ends) */
+        float span = j[i] * (hi[i] - lo[i]);
+        if (fresh[i]) {
+            float a0 = a[i], a1 = a[as + i], a2 = a[2 * as + i];
+            float ends = max_nan(row_motion_one(a0, a1, a2, b0, b1, b2, lo[i]),
+                                 row_motion_one(a0, a1, a2, b0, b1, b2, hi[i]));
+            span = ends * (hi[i] - lo[i]);
+        }
+        /* filter_buckets.bucket_members: the first bucket whose test the row passes */
+        int known = !fresh[i];
+        int is_short = known && span <= limit[0];
+        int is_verify = use_verify && known && span <= limit[1];
+        is_short = is_short && !is_verify;
+        int rest = !is_short && !is_verify;
+        int is_medium = use_medium && span <= limit[2] && rest;
+        uint8_t b = is_verify ? 0 : (is_short ? 1 : (is_medium ? 2 : 3));
+        which[i] = b;
+        counts[b]++;
+    }
+    int64_t start[4], fill[4];
+    start[0] = 0;
+    for (int b = 1; b < 4; b++) start[b] = start[b - 1] + counts[b - 1];
+    for (int b = 0; b < 4; b++) fill[b] = start[b];
+    for (int64_t i = 0; i < R; i++) order[fill[which[i]]++] = i; /* a counting sort: row order within a bucket */
+    const float nb0 = b0 * s0 - b2, nb1 = b1 * s1 - b2;
+    const __m256 B0 = _mm256_set1_ps(nb0), B1 = _mm256_set1_ps(nb1), B2 = _mm256_set1_ps(b2);
+    for (int bk = 0; bk < 4; bk++) {
+        const int64_t n = counts[bk];
+        const int S = bucket[3 * bk], refine = bucket[3 * bk + 1], distinct = bucket[3 * bk + 2];
+        if (n == 0) continue;
+        const int64_t *members = order + start[bk];
+        const int team = (n * (S + 2 * refine) >= min_lookups) ? threads : 1;
+        const int64_t blocks = (n + 7) / 8;
+#pragma omp parallel for num_threads(team) schedule(static) if (team > 1)
+        for (int64_t blk = 0; blk < blocks; blk++) {
+            float costs[(512 + 2 * 64) * 8];
+            int lanes = (n - 8 * blk < 8) ? (int)(n - 8 * blk) : 8;
+            float kl[LANES][8], l0[8], l1[8], l2[8], l[8], h[8];
+            for (int q = 0; q < 8; q++) {
+                int64_t i = members[8 * blk + (q < lanes ? q : lanes - 1)], r = rows[i];
+                for (int c = 0; c < C; c++) kl[c][q] = key[c * ks + r];
+                float a2 = a[2 * as + i];
+                l0[q] = a[i] * s0 - a2; /* grid_rows_in_place */
+                l1[q] = a[as + i] * s1 - a2;
+                l2[q] = a2;
+                l[q] = lo[i];
+                h[q] = hi[i];
+            }
+            __m256 k[LANES];
+            for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(kl[c]);
+            float rho[8], best[8], ratio[8];
+            uint8_t ok[8];
+            search_eight(F, H, W, C, k, _mm256_loadu_ps(l0), _mm256_loadu_ps(l1), _mm256_loadu_ps(l2), B0, B1, B2,
+                         _mm256_loadu_ps(l), _mm256_loadu_ps(h), S, refine, distinct, reject_edges, lanes, rho, best,
+                         ratio, ok, costs);
+            for (int q = 0; q < lanes; q++) {
+                int64_t i = members[8 * blk + q];
+                int good = ok[q] && best[q] <= max_cost;
+                if (distinct) good = good && ratio[q] >= min_distinct;
+                x[i] = rho[q];
+                cost[i] = best[q];
+                valid[i] = (uint8_t)good;
+            }
+        }
+    }
+    /* _update_rows: the motion at the match, a bracket's edge test, the range and the motion test */
+    for (int64_t i = 0; i < R; i++) {
+        float m = row_motion_one(a[i], a[as + i], a[2 * as + i], b0, b1, b2, x[i]);
+        int good = valid[i];
+        if (bracketed && bracketed[i]) good = good && ((x[i] - lo[i]) * m >= 0.5f) && ((hi[i] - x[i]) * m >= 0.5f);
+        good = good && x[i] >= rho_min && x[i] <= rho_max && m > 1e-6f;
+        jx[i] = m;
+        valid[i] = (uint8_t)good;
+    }
+    if (check_px <= 0.0f) return;
+    int64_t n = 0;
+    for (int64_t i = 0; i < R; i++)
+        if (valid[i] && updates[rows[i]] == 0) first[n++] = i;
+    int team = (n * check_samples >= min_lookups) ? threads : 1;
+    check_first(F, H, W, C, key, ks, rows, a, as, b0, b1, b2, s0, s1, x, jx, cost, valid, first, n, check_px,
+                check_samples, check_dmin, rho_min, rho_max, team);
 }
 
 /* The descriptors' channels-last table (native_cost._channels_last): n images of `ch` channels

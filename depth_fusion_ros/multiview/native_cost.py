@@ -42,31 +42,43 @@ _SIGNATURES = {
     # then lo, hi, R, S, refine, the two switches, the four outputs, the threads
     'frame_search': [*_FRAME, _P, _P, _I64, _I, _I, _I, _I, _P, _P, _P, _P, _I],
     'channels_last': [_P, _I, _I, _I64, _I64, _I64, _I64, _P, _I],
-    # then rows, updates, a, a stride, b, the scale, x, j_x, cost, valid, R, the window
-    # (px, samples, ratio), the range, the scratch and the threads
-    'first_check': [
+    # then rows, updates, fresh, bracketed, a, its stride, b, the scale, j, lo, hi, R, the buckets and
+    # limits, the tests, the range, the check (px, samples, ratio), the outputs, the scratch, the
+    # threads and the lookups below which a search stays on one thread
+    'filter_rows': [
         *_FRAME[:6],
         _P,
         _P,
         _P,
-        _I64,
-        _F,
-        _F,
-        _F,
-        _F,
-        _F,
-        _P,
-        _P,
         _P,
         _P,
         _I64,
+        _F,
+        _F,
+        _F,
+        _F,
+        _F,
+        _P,
+        _P,
+        _P,
+        _I64,
+        _P,
+        _P,
+        _F,
         _F,
         _I,
         _F,
         _F,
         _F,
+        _I,
+        _F,
+        _P,
+        _P,
+        _P,
+        _P,
         _P,
         _I,
+        _I64,
     ],
 }
 #: The most coarse samples and fine samples a side of one native search (its stack arrays).
