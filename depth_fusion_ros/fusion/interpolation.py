@@ -438,6 +438,13 @@ def _blend_corners(
     return offset, support, total, best
 
 
+def _gather(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``values[index]`` of a 1-D tensor at an (N, 4) index, by ``index_select`` (the same values;
+    on a CPU a quarter of the time of advanced indexing at 320x240: 0.16-0.23 against 0.7 ms
+    each, five a keyframe)."""
+    return values.index_select(0, index.view(-1)).view(index.shape)
+
+
 def _fast_offsets(
     valid_s: np.ndarray,
     s: torch.Tensor,
@@ -478,15 +485,15 @@ def _fast_offsets(
     zero = torch.zeros(1, 1, dtype=s.dtype, device=dev)  # pixel positions enter only through dx, dy
     pixels = Samples(zero, zero, s[:, None], gx[:, None], gy[:, None])
     c = grid.corner_flat
-    corners = Samples(zero, zero, s[c], gx[c], gy[c])
+    corners = Samples(zero, zero, _gather(s, c), _gather(gx, c), _gather(gy, c))
     offset, support, total, best = blend(
         pixels,
         corners,
         grid.dx,
         grid.dy,
         grid.bilinear,
-        coarse_offset[grid.corner_index],
-        coarse_support[grid.corner_index],
+        _gather(coarse_offset, grid.corner_index),
+        _gather(coarse_support, grid.corner_index),
     )
 
     # Pixels the corners cannot represent (no usable corner, or a structure unlike all of
@@ -499,6 +506,6 @@ def _fast_offsets(
     if idx.numel():
         pixels = samples_at(idx, width, s, gx, gy)
         off, sup, _ = _offsets_at(pixels, points, v, lw, kernel, chunk_elements, params, floor)
-        offset[idx] = off
-        support[idx] = sup
+        offset.index_copy_(0, idx, off)
+        support.index_copy_(0, idx, sup)
     return offset, support, kept
