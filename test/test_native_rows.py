@@ -75,18 +75,17 @@ def _compare_every_frame(monkeypatch) -> dict[str, int]:
     calls = {'calls': 0, 'rows': 0, 'valid': 0}
     native = filter_frame_update.native_search_rows
 
-    def both(filt, key, rows, desc, a_r, geo, lo, hi, j_r, f_r, bracketed):
+    def both(filt, key, desc, chosen):
         updates = key.updates.clone()
-        mine = native(filt, key, rows, desc, a_r, geo, lo, hi, j_r, f_r, bracketed)
+        mine = native(filt, key, desc, chosen)
         assert mine is not None
         assert torch.equal(key.updates, updates)  # nothing of the keyframe changed before the update
-        seeds = torch.nonzero(f_r).flatten()
-        intervals = (lo.clone(), hi.clone(), j_r, f_r, seeds, bracketed)
-        theirs = filter_frame_update._search_and_test(filt, key, rows, desc, a_r.clone(), geo, intervals, '')
+        copy = chosen._replace(a=chosen.a.clone(), lo=chosen.lo.clone(), hi=chosen.hi.clone())
+        theirs = filter_frame_update._search_and_test(filt, key, desc, copy, '')
         for name, m, t in zip(NAMES, mine, theirs, strict=True):
             assert _same(m, t), name
         calls['calls'] += 1
-        calls['rows'] += int(rows.numel())
+        calls['rows'] += int(chosen.rows.numel())
         calls['valid'] += int(mine[3].sum())
         return mine
 

@@ -26,6 +26,7 @@ from .filter_first_check import check_first_matches
 from .filter_geometry import FrameGeometry, frame_geometry, grid_rows_in_place, row_motion
 from .filter_keyframe import FilterKeyframe
 from .filter_matches import Matches, apply_matches, measurement_variance
+from .filter_rows import ChosenRows
 from .filter_search import SearchResult
 from .native_choose import native_choose
 from .native_rows import native_search_rows
@@ -96,10 +97,10 @@ def _update_rows(
     filt.clock.switch(prefix + 'search')
     # On a CPU the searches, the tests below and the first-measurement check in one native pass
     # (native_rows: the same numbers); elsewhere, or with a test's search, the torch code.
-    searched = native_search_rows(filt, key, rows, desc, a_r, geo, lo, hi, j_r, f_r, bracketed)
+    chosen = ChosenRows(rows, a_r, geo, lo, hi, j_r, f_r, seeds, bracketed)
+    searched = native_search_rows(filt, key, desc, chosen)
     if searched is None:
-        intervals = (lo, hi, j_r, f_r, seeds, bracketed)
-        x, j_x, cost, valid = _search_and_test(filt, key, rows, desc, a_r, geo, intervals, prefix)
+        x, j_x, cost, valid = _search_and_test(filt, key, desc, chosen, prefix)
     else:  # its stage is the search's, the first-measurement check's searches included
         x, j_x, cost, valid = searched
         filt.clock.switch(prefix + 'update')
@@ -108,23 +109,14 @@ def _update_rows(
 
 
 def _search_and_test(
-    filt: DepthFilter,
-    key: FilterKeyframe,
-    rows: torch.Tensor,
-    desc: torch.Tensor,
-    a_r: torch.Tensor,
-    geo: FrameGeometry,
-    intervals: tuple[torch.Tensor, ...],
-    prefix: str,
+    filt: DepthFilter, key: FilterKeyframe, desc: torch.Tensor, chosen: ChosenRows, prefix: str
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The searches of the chosen rows and the tests of their matches in torch: ``(x, j_x, cost,
-    valid)`` per row (``native_rows`` gives the same in one pass on a CPU). ``intervals``: each
-    row's ``lo``, ``hi``, motion at the prior, whether it has no prior, the rows without one and
-    the bracketed rows (or None)."""
-    lo, hi, j_r, f_r, seeds, bracketed = intervals
+    valid)`` per row (``native_rows`` gives the same in one pass on a CPU)."""
+    rows, a_r, geo, lo, hi, _, _, _, bracketed = chosen
     rho_min, rho_max = filt.rho_range
     # Through the filter (its module's search_interval, read at the call: tests count the searches).
-    x, cost, valid = search_rows(filt, key, rows, desc, a_r, geo, lo, hi, j_r, f_r, seeds, filt.search)
+    x, cost, valid = search_rows(filt, key, desc, chosen, filt.search)
     filt.clock.switch(prefix + 'update')
     # The epipolar motion at the match: the bracket's edge test and the measurement
     # variance (only read where the match is valid, so one evaluation at x serves both).
@@ -174,15 +166,8 @@ def choose_rows(
 def search_rows(
     filt: DepthFilter,
     key: FilterKeyframe,
-    rows: torch.Tensor,
     desc: torch.Tensor,
-    a_r: torch.Tensor,
-    geo: FrameGeometry,
-    lo: torch.Tensor,
-    hi: torch.Tensor,
-    j_r: torch.Tensor,
-    fresh: torch.Tensor,
-    seeds: torch.Tensor,
+    chosen: ChosenRows,
     search: Callable[..., SearchResult],
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Search each chosen row in ``[lo, hi]``, in buckets by sample count (``bucket_members``).
@@ -193,6 +178,7 @@ def search_rows(
     ``filter_search.search_interval``, passed in by the filter.
     """
     c = filt.config
+    rows, a_r, geo, lo, hi, j_r, fresh, seeds, _ = chosen
     # Interval length in px: to first order at the prior mean for an estimate (as the
     # +-2 px floor is set); a whole-range search takes the larger motion of its two ends.
     span = j_r * (hi - lo)

@@ -20,8 +20,8 @@ import torch
 
 from . import native_cost
 from .filter_buckets import search_buckets
-from .filter_geometry import FrameGeometry
 from .filter_keyframe import FilterKeyframe
+from .filter_rows import ChosenRows
 from .filter_search import search_interval
 
 if TYPE_CHECKING:
@@ -33,17 +33,7 @@ _TOLERANCE = 1.0 + 1e-4
 
 
 def native_search_rows(
-    filt: DepthFilter,
-    key: FilterKeyframe,
-    rows: torch.Tensor,
-    desc: torch.Tensor,
-    a_r: torch.Tensor,
-    geo: FrameGeometry,
-    lo: torch.Tensor,
-    hi: torch.Tensor,
-    j_r: torch.Tensor,
-    fresh: torch.Tensor,
-    bracketed: torch.Tensor | None,
+    filt: DepthFilter, key: FilterKeyframe, desc: torch.Tensor, chosen: ChosenRows
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """``(x, j_x, cost, valid)`` per chosen row as ``_update_rows`` has them before the update
     (the searches, the tests and the first-measurement check done), or ``None``, nothing done,
@@ -51,6 +41,7 @@ def native_search_rows(
     intervals not of the filter's types, a bucket beyond the kernel's sample counts, or the
     kernels' own conditions (``native_cost._ready``: a CPU, float32, at most seven channels)."""
     c = filt.config
+    rows, a_r, geo, lo, hi, j_r, fresh, _, bracketed = chosen
     n = int(rows.numel())
     buckets = search_buckets(c)
     check = 2 * round(c.first_check_px) + 1 if c.first_check_px > 0 else 3
