@@ -4,7 +4,7 @@
  * px) instead of the whole range. In torch that is a gather of each such pixel's window through
  * the keyframe's padded pixel-to-row map, a masked minimum and maximum over it, then the interval's
  * ends widened by 2 min_search_px px at the epipolar motion there: some twenty small ops a frame,
- * and 81 gathered entries a pixel at the default radius. Here one loop per pixel does the same,
+ * and 49 gathered entries a pixel at the default radius of 3. Here one loop per pixel does the same,
  * every operation the torch code's in its order and float32 rounding (-ffp-contract=off):
  * torch's ``p / t`` is ``reciprocal(t) * p``, clamp keeps a NaN, the minimum and maximum are exact
  * (a NaN among the neighbours makes the pixel's range NaN, as amin / amax do), and the motion's

@@ -34,6 +34,18 @@ def search_buckets(config: FilterConfig) -> tuple[tuple[int, int, bool], ...]:
     )
 
 
+def bucket_limits(config: FilterConfig) -> tuple[float, float, float]:
+    """The interval lengths (px) at most of the ``short``, ``verify`` and ``medium`` buckets
+    (:func:`bucket_members`' tests; the native searches, ``native_rows``, take the same). The
+    verify and medium limits carry a tolerance: the floor, computed, lands a rounding error
+    above its length."""
+    c = config
+    tolerance = 1.0 + 1e-4
+    verify = (c.verify_samples - 1) * c.max_step_px * tolerance
+    medium = (c.medium_samples - 1) * c.max_step_px * tolerance
+    return c.short_samples * c.max_step_px, verify, medium
+
+
 def bucket_members(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterConfig) -> list[torch.Tensor]:
     """Rows of each bucket of :func:`search_buckets`, in row order, from each search's interval
     length in px.
@@ -47,18 +59,18 @@ def bucket_members(span_px: torch.Tensor, fresh: torch.Tensor, config: FilterCon
     over TUM's 37 frames, ``torch.profiler``, one thread, part of it ``true_indices``' share).
     """
     c = config
-    tolerance = 1.0 + 1e-4  # the floor, computed, lands a rounding error above its length
+    short_px, verify_px, medium_px = bucket_limits(c)
     known = ~fresh
-    short = known & (span_px <= c.short_samples * c.max_step_px)
+    short = known & (span_px <= short_px)
     if c.verify_samples:
-        verify = known & (span_px <= (c.verify_samples - 1) * c.max_step_px * tolerance)
+        verify = known & (span_px <= verify_px)
         not_verify = ~verify
         short &= not_verify
     else:
         verify = not_verify = None
     rest = ~short if not_verify is None else ~short & not_verify  # neither verify nor short
     if c.medium_samples:
-        medium = span_px <= (c.medium_samples - 1) * c.max_step_px * tolerance
+        medium = span_px <= medium_px
         long = rest & ~medium
         medium &= rest
     else:

@@ -2,7 +2,7 @@
 
 :func:`.filter_bracket.bracket_seeds` narrows the first search of each new pixel next to
 measured ones to its neighbours' inverse depths: in torch a gather of each pixel's window
-(81 entries at the default radius), a masked minimum and maximum, and the interval's ends at
+(49 entries at the default radius of 3), a masked minimum and maximum, and the interval's ends at
 the epipolar motion there, some twenty small ops a frame. The kernel gives the same intervals
 bit for bit in one loop per pixel. On CUDA, or where it cannot be built
 (``native_build.load_native``), the torch code runs.

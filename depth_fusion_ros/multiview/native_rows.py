@@ -19,17 +19,13 @@ from typing import TYPE_CHECKING
 import torch
 
 from . import native_cost
-from .filter_buckets import search_buckets
+from .filter_buckets import bucket_limits, search_buckets
 from .filter_keyframe import FilterKeyframe
 from .filter_rows import ChosenRows
 from .filter_search import search_interval
 
 if TYPE_CHECKING:
     from .filter import DepthFilter
-
-#: filter_buckets.bucket_members' tolerance on the verify and medium limits (the floor, computed,
-#: lands a rounding error above its length).
-_TOLERANCE = 1.0 + 1e-4
 
 
 def native_search_rows(
@@ -67,9 +63,7 @@ def native_search_rows(
     scale = torch.tensor([2.0 / (cam.width - 1), 2.0 / (cam.height - 1)], dtype=torch.float32).tolist()
     rho_min, rho_max = (float(v) for v in torch.tensor(filt.rho_range, dtype=torch.float32))
     table_args = torch.tensor([v for bucket in buckets for v in bucket], dtype=torch.int32)
-    step = c.max_step_px
-    verify, medium = ((k - 1) * step * _TOLERANCE for k in (c.verify_samples, c.medium_samples))
-    limits = torch.tensor([c.short_samples * step, verify, medium], dtype=torch.float32)
+    limits = torch.tensor(bucket_limits(c), dtype=torch.float32)
     x, j_x, cost = (torch.empty(n, dtype=torch.float32) for _ in range(3))
     valid = torch.empty(n, dtype=torch.bool)
     scratch = torch.empty(2 * n, dtype=torch.long)
