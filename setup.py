@@ -10,7 +10,12 @@ setup(
     name=PACKAGE,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
-    package_data={PACKAGE: ['models/*.pt', 'models/*.yaml', 'config/*.yaml', 'config/*.xml', 'multiview/*.c', 'fusion/*.c']},
+    package_data={
+        PACKAGE: [
+            'models/*.pt', 'models/*.yaml', 'config/*.yaml', 'config/*.xml',
+            'multiview/*.c', 'multiview/*.h', 'fusion/*.c',
+        ]
+    },
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),

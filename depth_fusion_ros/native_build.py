@@ -9,7 +9,8 @@ lacks what a kernel is written for, :func:`load_native` says so once and returns
 the caller keeps its torch code.
 
 A library is cached under the user cache (``user_cache('native')``), named by a digest of its
-source, the compiler's version and the flags, written to a temporary name and renamed into
+source (with the package's own headers it includes, ``#include "name.h"`` beside it: kernels
+share scalar helpers so), the compiler's version and the flags, written to a temporary name and renamed into
 place, so that concurrent processes (the nodes of one graph) never load a half-written file
 and a changed source or compiler builds anew; a build deletes the libraries nobody loaded
 for 60 days (``cache_prune.py``). ``DEPTH_FUSION_NATIVE=0`` in the environment
@@ -25,6 +26,7 @@ import hashlib
 import logging
 import os
 import platform
+import re
 import shutil
 import subprocess
 import tempfile
@@ -141,8 +143,16 @@ def _built(source: Path) -> Path:
     raise failure
 
 
+def _source_text(source: Path) -> bytes:
+    """The C file's bytes and those of every local header it includes (``#include "name"``,
+    resolved beside it, as the compiler does): a changed header names a new library."""
+    text = source.read_bytes()
+    headers = re.findall(rb'^\s*#\s*include\s+"([^"]+)"', text, flags=re.MULTILINE)
+    return b'\0'.join([text, *((source.parent / h.decode()).read_bytes() for h in headers)])
+
+
 def _built_with(source: Path, cc: str, version: str, flags: list[str]) -> Path:
-    digest = hashlib.sha256(b'\0'.join([source.read_bytes(), version.encode(), ' '.join(flags).encode()]))
+    digest = hashlib.sha256(b'\0'.join([_source_text(source), version.encode(), ' '.join(flags).encode()]))
     out = user_cache('native') / f'{source.stem}-{digest.hexdigest()[:16]}.so'
     if out.exists():
         with contextlib.suppress(OSError):  # marked used (cache_prune); a read-only cache stays as it is

@@ -9,6 +9,7 @@ filter and the sweep must give the same depth with them and without them.
 
 from __future__ import annotations
 
+import ctypes
 import math
 import subprocess
 
@@ -370,3 +371,24 @@ def test_a_failed_build_is_said_by_the_compilers_error_line():
     )
     assert native_build._reason(subprocess.SubprocessError('cc exited with 1')) == 'cc exited with 1'
     assert native_build._reason(OSError()) == 'OSError()'
+
+
+def test_a_changed_header_builds_a_new_library(monkeypatch, tmp_path):
+    """The filter's kernels share ``filter_native.h``: a library is named by its source and the
+    local headers it includes, so a changed header is built anew, not served from the cache."""
+    if native_build._unsupported() is not None:
+        pytest.skip(f'not written for this machine: {native_build._unsupported()}')
+    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'cache'))
+    monkeypatch.setattr(native_build, '_loaded', {})
+    source = tmp_path / 'kernel.c'
+    source.write_text('#include "helper.h"\nvoid answer(int *out) { out[0] = HELPER; }\n')
+    values = []
+    for helper in (1, 2):
+        (tmp_path / 'helper.h').write_text(f'#define HELPER {helper}\n')
+        lib = native_build.load_native(source, {'answer': [ctypes.c_void_p]})
+        native_build._loaded.clear()
+        out = (ctypes.c_int * 1)()
+        lib.answer(out)
+        values.append(out[0])
+    assert values == [1, 2]
+    assert len(list((tmp_path / 'cache' / 'depth_fusion_ros' / 'native').glob('kernel-*.so'))) == 2

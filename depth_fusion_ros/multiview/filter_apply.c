@@ -18,7 +18,7 @@
  */
 #include <stdint.h>
 
-static inline float clamp_min(float v, float low) { return (v != v) ? v : (v < low ? low : v); }
+#include "filter_native.h"
 
 /* The measurement variance (filter_matches.measurement_variance), the Gaussian term's exponent
  * -0.5 (x - mu)^2 / (var + tau2) and 2 pi (var + tau2), whose square root it is divided by, of
@@ -29,12 +29,7 @@ void filter_measure_exponent(const int64_t *rows, const int64_t *meas, int64_t n
                              float *spread_out) {
     for (int64_t k = 0; k < n; k++) {
         const int64_t i = meas[k], r = rows[i];
-        const float t = (1.0f / clamp_min(j_x[i], 1e-6f)) * pixel_sigma;
-        float tau2 = t * t;
-        if (with_pose) {
-            const float p = x[i] * pose_factor;
-            tau2 = tau2 + p * p;
-        }
+        const float tau2 = measurement_tau2(j_x[i], x[i], pixel_sigma, pose_factor, with_pose);
         const float d = x[i] - mu[r];
         const float total = var[r] + tau2;
         tau2_out[k] = tau2;
@@ -71,7 +66,7 @@ void filter_measure_finish(const int64_t *rows, const int64_t *meas, int64_t n, 
         const float ab12 = ab1 * (ab1 + 1.0f);
         const float e = (c1a1 * (a0 + 2.0f)) / ab12 + (c2a * a1) / ab12;
         float mu_n = c1 * m + c2 * m0;
-        float var_n = clamp_min((c1 * (s2 + m * m) + c2 * (v0 + m0 * m0)) - mu_n * mu_n, 1e-12f);
+        float var_n = clamp_below((c1 * (s2 + m * m) + c2 * (v0 + m0 * m0)) - mu_n * mu_n, 1e-12f);
         float a_n = (e - f) / (f - e / f);
         float b_n = (a_n * (1.0f - f)) / f;
         if (fresh[i]) { /* a first measurement */

@@ -20,22 +20,7 @@
 #include <math.h>
 #include <stdint.h>
 
-static inline float clamp_below(float v, float low) { return (v != v) ? v : (v < low ? low : v); }
-
-/* torch.clamp(v, low, high): NaN stays NaN */
-static inline float clamp_range(float v, float low, float high) {
-    if (v != v) return v;
-    v = (v < low) ? low : v;
-    return (v > high) ? high : v;
-}
-
-/* filter_geometry.row_motion at one row and inverse depth */
-static inline float motion(float a0, float a1, float a2, float b0, float b1, float b2, float rho) {
-    float w = a2 + rho * b2;
-    float w2 = clamp_below(w * w, 1e-12f);
-    float du = (b0 * a2 - a0 * b2) / w2, dv = (b1 * a2 - a1 * b2) / w2;
-    return (float)sqrt((double)du * du + (double)dv * dv);
-}
+#include "filter_native.h"
 
 void filter_bracket(int64_t S, const int64_t *seeds, const int64_t *rows, const int64_t *attempts,
                     const int64_t *updates, const float *mu, const int64_t *padded_flat, const int64_t *padded_rows,
@@ -62,9 +47,9 @@ void filter_bracket(int64_t S, const int64_t *seeds, const int64_t *rows, const 
         }
         if (nan || !isfinite(low)) continue; /* no measured neighbour (or a NaN one): the whole range */
         const float a0 = a[i], a1 = a[as + i], a2 = a[2 * as + i];
-        lo[i] = clamp_range(low - (1.0f / clamp_below(motion(a0, a1, a2, b0, b1, b2, low), 1e-9f)) * pad, rho_min,
+        lo[i] = clamp_range(low - (1.0f / clamp_below(row_motion_one(a0, a1, a2, b0, b1, b2, low), 1e-9f)) * pad, rho_min,
                             rho_max);
-        hi[i] = clamp_range(high + (1.0f / clamp_below(motion(a0, a1, a2, b0, b1, b2, high), 1e-9f)) * pad, rho_min,
+        hi[i] = clamp_range(high + (1.0f / clamp_below(row_motion_one(a0, a1, a2, b0, b1, b2, high), 1e-9f)) * pad, rho_min,
                             rho_max);
         use[i] = 1;
         n++;

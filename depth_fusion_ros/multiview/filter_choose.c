@@ -21,7 +21,7 @@
 #include <stddef.h>
 #include <stdint.h>
 
-static inline float clamp_min(float v, float low) { return (v != v) ? v : (v < low ? low : v); }
+#include "filter_native.h"
 
 /* The geometry of the M pixels: branch-free, so the compiler vectorises it. */
 static void geometry(int64_t M, const float *restrict us, const float *restrict vs,
@@ -37,11 +37,11 @@ static void geometry(int64_t M, const float *restrict us, const float *restrict 
         const float w = a2 + rho * b2;
         const float nu = a2 * b0 - a0 * b2;
         const float nv = a2 * b1 - a1 * b2;
-        const float norm = (float)sqrt((double)nu * nu + (double)nv * nv);
-        const float wc = clamp_min(w, 1e-9f);
+        const float norm = hypot_rounded(nu, nv);
+        const float wc = clamp_below(w, 1e-9f);
         a_out[i] = a0, a_out[M + i] = a1, a_out[2 * M + i] = a2;
-        j_out[i] = norm / clamp_min(w * w, 1e-12f);
-        along_out[i] = fabsf(grad[i] * nu + grad[M + i] * nv) / clamp_min(norm, 1e-9f);
+        j_out[i] = norm / clamp_below(w * w, 1e-12f);
+        along_out[i] = fabsf(grad[i] * nu + grad[M + i] * nv) / clamp_below(norm, 1e-9f);
         visible_out[i] = (uint8_t)((w > 1e-9f) & (fabsf((a0 + rho * b0) / wc - cu) <= cu_limit) &
                                    (fabsf((a1 + rho * b1) / wc - cv) <= cv_limit));
     }
@@ -62,15 +62,8 @@ void filter_choose(int64_t M, const float *us, const float *vs, const float *mu,
         n_estimates += estimate;
         n_seen += estimate && visible;
         int want = (along_out[i] >= min_gradient) && (fresh || visible);
-        if (want && !fresh) { /* var >= min_information * measurement_variance(mu, j) */
-            const float t = (1.0f / clamp_min(j, 1e-6f)) * pixel_sigma;
-            float tau2 = t * t;
-            if (with_pose) {
-                const float p = rho * pose_factor;
-                tau2 = tau2 + p * p;
-            }
-            want = var[i] >= min_information * tau2;
-        }
+        if (want && !fresh) /* var >= min_information * measurement_variance(mu, j) */
+            want = var[i] >= min_information * measurement_tau2(j, rho, pixel_sigma, pose_factor, with_pose);
         if (want && fresh) want = seeding && attempts[i] < seed_attempts;
         if (want && only != NULL) want = only[i] != 0;
         if (want) {

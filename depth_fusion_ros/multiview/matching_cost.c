@@ -35,6 +35,8 @@
 #include <math.h>
 #include <stdint.h>
 
+#include "filter_native.h"
+
 #define LANES 8
 
 /* The looked-up descriptor block (8 channels) of one point a + p b, as grid_sample computes it;
@@ -374,16 +376,6 @@ void frame_search(const float *F, int H, int W, int C, const float *key, int64_t
 
 /* ---- The filter's rows of one frame: helpers, the first-measurement check, then filter_rows ---- */
 
-static inline float clamp_below(float v, float low) { return (v != v) ? v : (v < low ? low : v); }
-
-/* filter_geometry.row_motion at one row: |d p / d rho| of a + rho b (epipolar_motion, then
- * torch.hypot: computed in double and rounded once, torch's correctly rounded result). */
-static inline float row_motion_one(float a0, float a1, float a2, float b0, float b1, float b2, float rho) {
-    float w = a2 + rho * b2;
-    float w2 = clamp_below(w * w, 1e-12f);
-    float du = (b0 * a2 - a0 * b2) / w2, dv = (b1 * a2 - a1 * b2) / w2;
-    return (float)sqrt((double)du * du + (double)dv * dv);
-}
 
 /* The first-measurement check (filter_first_check.check_first_matches) of the n first measurements
  * first[0..n) (positions in the searched rows): each searched again over x +- px / jx in S samples
