@@ -48,13 +48,12 @@ def native_bracket(
     n = int(rows.numel())
     use = torch.zeros(n, dtype=torch.bool)
     count = torch.zeros(1, dtype=torch.long)
-    rho_min, rho_max = (float(v) for v in torch.tensor(filt.rho_range, dtype=torch.float32))
     lib.filter_bracket(
         int(seeds.numel()), seeds.data_ptr(), rows.data_ptr(),
         key.attempts.data_ptr(), key.updates.data_ptr(), key.state.mu.data_ptr(),
         padded_flat.data_ptr(), padded_rows.data_ptr(), int(key.flat.numel()),
         r, filt.camera.width + 2 * r, a_r.data_ptr(), a_r.stride(0), *b, 2.0 * c.min_search_px,
-        rho_min, rho_max, lo.data_ptr(), hi.data_ptr(), use.data_ptr(), count.data_ptr(),
+        *filt.rho_range, lo.data_ptr(), hi.data_ptr(), use.data_ptr(), count.data_ptr(),
     )  # fmt: skip
     return True, (use if int(count[0]) > 0 else None)
 

@@ -36,50 +36,19 @@ _SOURCE = Path(__file__).with_name('matching_cost.c')
 _P, _I, _I64, _F = ctypes.c_void_p, ctypes.c_int, ctypes.c_int64, ctypes.c_float
 #: A frame's arguments (table, H, W, C, key, key stride, a, a stride, b0, b1, b2).
 _FRAME = (_P, _I, _I, _I, _P, _I64, _P, _I64, _F, _F, _F)
+#: filter_rows' arguments after the frame's first six: rows, updates, fresh, bracketed, a, its
+#: stride, b, the scale, j, lo, hi, R, the buckets and limits, the tests, the range, the check
+#: (px, samples, ratio), the outputs, the scratch, the threads and the lookups below which a
+#: search stays on one thread.
+_ROWS = (_P, _P, _P, _P, _P, _I64, _F, _F, _F, _F, _F, _P, _P, _P, _I64,
+         _P, _P, _F, _F, _I, _F, _F, _F, _I, _F, _P, _P, _P, _P, _P, _I, _I64)  # fmt: skip
 _SIGNATURES = {
     'frame_cost': [*_FRAME, _P, _I64, _I, _I64, _P, _I],
     'sweep_cost': [_P, _I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _I64, _I, _P, _P, _I],
     # then lo, hi, R, S, refine, the two switches, the four outputs, the threads
     'frame_search': [*_FRAME, _P, _P, _I64, _I, _I, _I, _I, _P, _P, _P, _P, _I],
     'channels_last': [_P, _I, _I, _I64, _I64, _I64, _I64, _P, _I],
-    # then rows, updates, fresh, bracketed, a, its stride, b, the scale, j, lo, hi, R, the buckets and
-    # limits, the tests, the range, the check (px, samples, ratio), the outputs, the scratch, the
-    # threads and the lookups below which a search stays on one thread
-    'filter_rows': [
-        *_FRAME[:6],
-        _P,
-        _P,
-        _P,
-        _P,
-        _P,
-        _I64,
-        _F,
-        _F,
-        _F,
-        _F,
-        _F,
-        _P,
-        _P,
-        _P,
-        _I64,
-        _P,
-        _P,
-        _F,
-        _F,
-        _I,
-        _F,
-        _F,
-        _F,
-        _I,
-        _F,
-        _P,
-        _P,
-        _P,
-        _P,
-        _P,
-        _I,
-        _I64,
-    ],
+    'filter_rows': [*_FRAME[:6], *_ROWS],
 }
 #: The most coarse samples and fine samples a side of one native search (its stack arrays).
 SEARCH_MAX_SAMPLES, SEARCH_MAX_REFINE = 512, 64

@@ -14,12 +14,14 @@ search the tests substitute, or where the kernels cannot be built, the torch cod
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING
 
 import torch
 
 from . import native_cost
 from .filter_buckets import bucket_limits, search_buckets
+from .filter_config import FilterConfig
 from .filter_keyframe import FilterKeyframe
 from .filter_rows import ChosenRows
 from .filter_search import search_interval
@@ -60,10 +62,10 @@ def native_search_rows(
         return None
     lib, table = ready
     cam = filt.camera
-    scale = torch.tensor([2.0 / (cam.width - 1), 2.0 / (cam.height - 1)], dtype=torch.float32).tolist()
-    rho_min, rho_max = (float(v) for v in torch.tensor(filt.rho_range, dtype=torch.float32))
-    table_args = torch.tensor([v for bucket in buckets for v in bucket], dtype=torch.int32)
-    limits = torch.tensor(bucket_limits(c), dtype=torch.float32)
+    # grid_sample's scale (filter_geometry.grid_rows_in_place) and the range: ctypes rounds each
+    # to float32 as torch does
+    scale = (2.0 / (cam.width - 1), 2.0 / (cam.height - 1))
+    bucket_table, limits = _bucket_arrays(c)
     x, j_x, cost = (torch.empty(n, dtype=torch.float32) for _ in range(3))
     valid = torch.empty(n, dtype=torch.bool)
     scratch = torch.empty(2 * n, dtype=torch.long)
@@ -72,13 +74,21 @@ def native_search_rows(
         rows.data_ptr(), key.updates.data_ptr(), fresh.data_ptr(),
         None if bracketed is None else bracketed.data_ptr(),
         a_r.data_ptr(), a_r.stride(0), *geo.b, *scale, j_r.data_ptr(), lo.data_ptr(), hi.data_ptr(), n,
-        table_args.data_ptr(), limits.data_ptr(), float(c.max_cost), float(c.min_distinctiveness),
-        int(c.reject_edge_minima), rho_min, rho_max,
+        bucket_table.data_ptr(), limits.data_ptr(), float(c.max_cost), float(c.min_distinctiveness),
+        int(c.reject_edge_minima), *filt.rho_range,
         float(c.first_check_px), check, float(c.first_check_distinctiveness),
         x.data_ptr(), j_x.data_ptr(), cost.data_ptr(), valid.data_ptr(), scratch.data_ptr(),
         native_cost._threads(native_cost.THREAD_MIN_LOOKUPS), native_cost.THREAD_MIN_LOOKUPS,
     )  # fmt: skip
     return x, j_x, cost, valid
+
+
+@functools.lru_cache(maxsize=8)
+def _bucket_arrays(config: FilterConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """The buckets' samples, refinement and ratio switch (int32, 4 x 3) and their length limits
+    (float32: short, verify, medium) as the kernel reads them, made once per configuration."""
+    table = torch.tensor([v for bucket in search_buckets(config) for v in bucket], dtype=torch.int32)
+    return table, torch.tensor(bucket_limits(config), dtype=torch.float32)
 
 
 def _fits(samples: int, refine: int) -> bool:
