@@ -26,7 +26,7 @@ import torch
 
 from ..data.sequence import Sequence
 from ..metrics import good_density
-from ..multiview import native_apply, native_bracket, native_choose, native_cost
+from ..multiview import native_cost, native_filter
 from ..multiview.filter import DepthFilter
 from ..multiview.filter_config import FilterConfig
 from ..multiview.semidense import MultiViewConfig, estimate_semidense, select_best_fraction
@@ -162,13 +162,12 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
 def _search_code(device: str) -> str:
     """Which code ran the searches (and the first-measurement check), the choice of rows, the
     seed bracket and the update of their matches: the native kernels (``native_cost.py``,
-    ``native_choose.py``, ``native_bracket.py``, ``native_apply.py``) or torch."""
+    ``native_filter.KERNELS``) or torch."""
     if device.startswith('cuda'):
         return 'search, choice of rows, bracket and update: torch'
     off = 'torch (the native kernels are off or cannot run here)'
     search = 'native kernels' if native_cost.prepare() else off
-    kernels = (native_apply, native_choose, native_bracket)
-    rest = 'native kernels' if all(k.prepare() for k in kernels) else off
+    rest = 'native kernels' if native_filter.prepare() else off
     return f'search: {search}; choice of rows, bracket and update: {rest}'
 
 

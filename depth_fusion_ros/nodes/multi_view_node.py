@@ -41,7 +41,7 @@ from ..camera import PinholeCamera
 from ..data import messages
 from ..data.sequence import Frame
 from ..geometry import invert_pose, load_rotations, rotation_angle, transform_from_parameter
-from ..multiview import native_apply, native_bracket, native_choose, native_cost, native_scores
+from ..multiview import native_cost, native_filter, native_scores
 from ..multiview.focal_check import FocalEstimate
 from ..multiview.mount_check import MountEstimate
 from ..multiview.neighbours import NeighbourConfig, select_neighbours
@@ -255,9 +255,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         if self.device == 'cpu':
             native_cost.prepare()  # the matching cost and search: built here, not at the first frame
             native_scores.prepare()  # the sweep's coarse scores
-            native_apply.prepare()  # the filter's update of a frame's matches
-            native_choose.prepare()  # the filter's geometry and choice of rows
-            native_bracket.prepare()  # the filter's seed bracket
+            native_filter.prepare()  # the filter's choice of rows, seed bracket and update
         self.events.ready()
 
     # --- callbacks (light: decode, check, buffer) ---------------------------------------------------
