@@ -160,15 +160,15 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
 
 
 def _search_code(device: str) -> str:
-    """Which code ran the searches (and the first-measurement check), the choice of rows, the
-    seed bracket and the update of their matches: the native kernels (``native_cost.py``,
-    ``native_filter.KERNELS``) or torch."""
+    """Which code ran the searches (and the first-measurement check), the descriptors, the
+    choice of rows, the seed bracket and the update of their matches: the native kernels
+    (``native_cost.py``, ``native_filter.KERNELS``) or torch (OpenCV for the descriptors)."""
     if device.startswith('cuda'):
-        return 'search, choice of rows, bracket and update: torch'
+        return 'search, descriptors, choice of rows, bracket and update: torch'
     off = 'torch (the native kernels are off or cannot run here)'
     search = 'native kernels' if native_cost.prepare() else off
     rest = 'native kernels' if native_filter.prepare() else off
-    return f'search: {search}; choice of rows, bracket and update: {rest}'
+    return f'search: {search}; descriptors, choice of rows, bracket and update: {rest}'
 
 
 def _accuracy(depth: np.ndarray, gt: np.ndarray, selected: np.ndarray) -> tuple[float, float]:

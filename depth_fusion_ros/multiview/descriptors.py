@@ -30,6 +30,7 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the first parallel sqrt)
 from ..separable import separable_sum
 from .native_cost import LANES
+from .native_descriptors import native_table
 
 #: Patch layouts (offsets in units of the patch stride): cost per lookup grows with the size.
 PATCH_OFFSETS: dict[str, tuple[tuple[int, int], ...]] = {
@@ -144,9 +145,18 @@ def patch_descriptors(
     :func:`sample_cost`. ``channels_last``: the same numbers stored channels-last (the
     filter's lookups read every channel of a tap at once), written in that layout rather
     than copied into it. On a CPU (float32) OpenCV computes them (:func:`_opencv_descriptors`),
-    elsewhere torch (:func:`_torch_descriptors`): the same numbers to float32 rounding.
+    elsewhere torch (:func:`_torch_descriptors`): the same numbers to float32 rounding. One
+    image channels-last on a CPU is described by the native kernel
+    (:func:`.native_descriptors.native_table`), the same numbers to float32 rounding again.
     """
     check_patch(patch, stride)
+    if channels_last:
+        floor = float(np.float32(len(PATCH_OFFSETS[patch]) * eps * eps))
+        basis = _basis_rows(patch, int(channels))
+        offsets = PATCH_OFFSETS[patch]
+        table = native_table(images, blur_sigma, offsets, stride, basis, floor, visibility_margin)
+        if table is not None:
+            return table
     blurred = gaussian_blur(images, blur_sigma)
     spec = _Spec(patch, int(stride), float(eps), visibility_margin, int(channels), bool(channels_last))
     if blurred.device.type == 'cpu' and blurred.dtype == torch.float32 and not blurred.requires_grad:
@@ -214,6 +224,14 @@ def _zero_border(images: torch.Tensor | np.ndarray, margin: int) -> None:
     images[..., -margin:, :] = 0.0
     images[..., :, :margin] = 0.0
     images[..., :, -margin:] = 0.0
+
+
+@functools.lru_cache(maxsize=16)
+def _basis_rows(patch: str, channels: int) -> np.ndarray:
+    """:func:`zero_mean_basis` in float32, built once per layout (read-only)."""
+    rows = zero_mean_basis(patch, channels).astype(np.float32)
+    rows.flags.writeable = False
+    return rows
 
 
 @functools.lru_cache(maxsize=16)

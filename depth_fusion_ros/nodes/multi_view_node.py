@@ -255,7 +255,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         if self.device == 'cpu':
             native_cost.prepare()  # the matching cost and search: built here, not at the first frame
             native_scores.prepare()  # the sweep's coarse scores
-            native_filter.prepare()  # the filter's choice of rows, seed bracket and update
+            native_filter.prepare()  # the filter's descriptors, choice of rows, seed bracket and update
         self.events.ready()
 
     # --- callbacks (light: decode, check, buffer) ---------------------------------------------------

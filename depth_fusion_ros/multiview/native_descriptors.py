@@ -1,0 +1,131 @@
+"""A frame's descriptors written as the native kernels' table in one native pass
+(``describe_table.c``).
+
+The temporal filter describes every posed frame and its searches read the descriptors from a
+table of :data:`.native_cost.LANES` floats a pixel. With OpenCV (``descriptors._opencv_descriptors``)
+that is a blur, a ``filter2D`` a channel, the norm plane by plane, a product a channel and a
+merge into the table, about 1 ms at 320x240 on one thread, a tenth of the filter's frame. The
+kernel blurs, projects, normalises and interleaves row by row in one pass. Its numbers are
+OpenCV's to float32 rounding (the same sums in another order), so the filter's later choices
+may differ in the last bits from a run without the kernel. On CUDA, for planar descriptors,
+several images, or where it cannot be built (``native_build.load_native``), OpenCV or torch
+describes as before.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..native_build import kernel_threads, load_native
+from .native_cost import LANES
+
+#: Below this many pixels one thread describes the image (a 320x240 frame: 76800).
+THREAD_MIN_PIXELS = 1 << 16
+#: The most taps a patch may have (``describe_table.c``'s TAPS: the 3x3 box).
+TAPS = 9
+
+
+def native_table(
+    images: torch.Tensor,
+    blur_sigma: float,
+    offsets: tuple[tuple[int, int], ...],
+    stride: int,
+    basis: np.ndarray,
+    floor: float,
+    margin: int | None,
+) -> torch.Tensor | None:
+    """The descriptors ``(1, K [+ 1], H, W)`` of one grey ``(1, H, W)`` image as a view of the
+    kernels' table (what ``descriptors._interleave`` returns), or None where the kernel does not
+    apply (not one CPU float32 image, too many channels for a block, no kernel here)."""
+    channels = basis.shape[0] + (margin is not None)
+    if not _applies(images, channels, offsets):
+        return None
+    lib = _library()
+    if lib is None:
+        return None
+    _, h, w = images.shape
+    image = images.detach().contiguous()
+    taps = _blur_taps(float(blur_sigma))
+    dx, dy, reach = _offsets(offsets, int(stride))
+    weights = _padded_basis(basis)
+    table = torch.empty((h * w + 1) * LANES, dtype=torch.float32)
+    lib.describe_table(
+        h, w, image.data_ptr(), len(taps), taps.ctypes.data, dx.ctypes.data, dy.ctypes.data, reach,
+        basis.shape[0], weights.ctypes.data, float(floor), -1 if margin is None else int(margin),
+        table.data_ptr(), kernel_threads(h * w, THREAD_MIN_PIXELS),
+    )  # fmt: skip
+    if math.isnan(float(table[0])):
+        raise MemoryError('describe_table: no memory for its working planes')
+    pixels = table[: h * w * LANES].view(1, h, w, LANES)
+    return pixels.permute(0, 3, 1, 2)[:, :channels]
+
+
+def _applies(images: torch.Tensor, channels: int, offsets: tuple[tuple[int, int], ...]) -> bool:
+    return (
+        images.device.type == 'cpu'
+        and images.dtype == torch.float32
+        and images.dim() == 3
+        and images.shape[0] == 1
+        and not images.requires_grad
+        and channels <= LANES
+        and len(offsets) <= TAPS
+        and images.shape[1] > 0
+        and images.shape[2] > 0
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _blur_taps(sigma: float) -> np.ndarray:
+    """``descriptors.gaussian_blur``'s taps (normalised, +-2.5 sigma rounded); one tap of 1 (no
+    blur) for sigma <= 0."""
+    if sigma <= 0:
+        return np.ones(1, dtype=np.float32)
+    radius = max(1, round(2.5 * sigma))
+    taps = [math.exp(-0.5 * (k / sigma) ** 2) for k in range(-radius, radius + 1)]
+    total = sum(taps)
+    return np.asarray([t / total for t in taps], dtype=np.float32)
+
+
+@functools.lru_cache(maxsize=8)
+def _offsets(offsets: tuple[tuple[int, int], ...], stride: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The taps' pixel offsets (x, then y; :data:`TAPS` of them, the unused ones at the centre)
+    and their largest magnitude."""
+    dx = np.zeros(TAPS, dtype=np.int32)
+    dy = np.zeros(TAPS, dtype=np.int32)
+    dx[: len(offsets)] = [ox * stride for ox, _ in offsets]
+    dy[: len(offsets)] = [oy * stride for _, oy in offsets]
+    return dx, dy, int(max(np.abs(dx).max(), np.abs(dy).max()))
+
+
+def _padded_basis(basis: np.ndarray) -> np.ndarray:
+    """The basis as the kernel reads it: (:data:`LANES`, :data:`TAPS`) float32, zero beyond its
+    rows and taps (the kernel always projects all of them; a zero row is a zero channel)."""
+    key = (basis.shape, basis.astype(np.float32).tobytes())
+    return _padded_from(key)
+
+
+@functools.lru_cache(maxsize=8)
+def _padded_from(key: tuple[tuple[int, ...], bytes]) -> np.ndarray:
+    (k, p), data = key
+    padded = np.zeros((LANES, TAPS), dtype=np.float32)
+    padded[:k, :p] = np.frombuffer(data, dtype=np.float32).reshape(k, p)
+    padded.flags.writeable = False
+    return padded
+
+
+def prepare() -> bool:
+    """Build (first run on this machine) or load the kernel now; whether it will be used."""
+    return _library() is not None
+
+
+def _library() -> ctypes.CDLL | None:
+    p, i64, i, f = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int, ctypes.c_float
+    inputs = [i64, i64, p, i, p, p, p, i, i, p, f, i]  # h, w, image, blur, taps, reach, basis, floor, margin
+    signature = {'describe_table': [*inputs, p, i]}  # the table, threads
+    return load_native(Path(__file__).with_name('describe_table.c'), signature)
