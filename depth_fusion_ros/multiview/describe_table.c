@@ -6,11 +6,12 @@
  * square root and reciprocal, a product a channel and a merge into the table: a dozen walks over
  * the image and a dozen planes of fresh memory, about 1 ms at 320x240 on one thread. Here the
  * blur is two passes into one padded plane, then each row's taps are projected, normalised and
- * written interleaved straight into the table, eight pixels at a time (an 8x8 transpose), with
- * streaming stores: the 2.4 MB table does not fit the cache, and in the filter's frame writing it
- * through the cache (each line read first) cost as much again as computing it (0.9 against 0.45
- * ms a frame). The numbers are OpenCV's (and torch's) to float32 rounding: the same sums in
- * another order, and fused multiply-adds (test/test_native_descriptors.py).
+ * written interleaved straight into the table, eight pixels at a time (an 8x8 transpose). The
+ * table is written through the cache, though in the filter's frame that costs as much again as
+ * computing it (0.45 ms a frame in a loop, 0.95 in the frame): streamed past the cache it was
+ * written in 0.65 ms, but the searches that read it next were 0.4-0.6 ms slower. The numbers are
+ * OpenCV's (and torch's) to float32 rounding: the same sums in another order, and fused
+ * multiply-adds (test/test_native_descriptors.py).
  *
  * image (h, w) grey, contiguous; blur (nb = 2 rb + 1) the blur's taps (border pixels repeated);
  * P taps at (dx[p], dy[p]) pixels from the centre (border pixels repeated), reach their largest
@@ -101,7 +102,6 @@ static void describe_row(const float *padded, int64_t h, int64_t w, int64_t wp, 
     const int banded = margin >= 0;
     const int row_inside = !banded || (y >= margin && y < h - margin);
     const __m256 lane = _mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7);
-    const int aligned = ((uintptr_t)out & 31) == 0;
     for (int64_t x0 = 0; x0 < w; x0 += 8) {
         __m256 tap[TAPS], r[LANES];
         for (int p = 0; p < TAPS; p++) tap[p] = _mm256_loadu_ps(src[p] + x0);
@@ -124,13 +124,8 @@ static void describe_row(const float *padded, int64_t h, int64_t w, int64_t wp, 
         for (int c = 0; c < K; c++) r[c] = _mm256_mul_ps(r[c], scale);
         transpose8(r);
         const int64_t n = (w - x0 < 8) ? w - x0 : 8;
-        if (n == 8 && aligned) { /* past the cache: the table is larger than it, and read back piecemeal */
-            for (int i = 0; i < 8; i++) _mm256_stream_ps(out + (x0 + i) * LANES, r[i]);
-        } else {
-            for (int64_t i = 0; i < n; i++) _mm256_storeu_ps(out + (x0 + i) * LANES, r[i]);
-        }
+        for (int64_t i = 0; i < n; i++) _mm256_storeu_ps(out + (x0 + i) * LANES, r[i]);
     }
-    _mm_sfence(); /* this thread's streamed stores ordered before anything it does next */
 }
 
 /* returns nothing; on an allocation failure the table's first float is NaN (the caller checks) */
