@@ -32,7 +32,9 @@ direction ``n`` of the image gradient at ``p``:
    an image edge), not an occlusion, and the point is right.
 
 The five together drop 2-14 % of the points of a stress case's stream (docs/fusion.md
-"Silhouette halos"; most on ``low_texture``). Where the single-view depth has no step at an
+"Silhouette halos"; most on ``low_texture``). On a CPU the five steps run point by point in C
+(``native_halo.py``, ``halo_test.c``: the same halos bit for bit, 2-3x faster); the numpy code
+below is the reference and runs where the kernel cannot. Where the single-view depth has no step at an
 edge, or the point lies on its near side, the point is kept: the test removes no point the
 single view cannot place.
 The single view's step must sit at the image's edge for the side to be right; a single view
@@ -48,6 +50,7 @@ import numpy as np
 from ..data.sequence import rgb_to_gray
 from ..point_lookup import bilinear_at
 from ..torch_device import resolve_device
+from .native_halo import native_halo
 
 #: Half-length (px) of the search for the intensity edge along the gradient direction.
 SEARCH_PX = 3
@@ -115,11 +118,19 @@ def halo_points(
         return out
     log_m = np.log(m[rows, cols].astype(np.float32))
     scale = float(np.median(log_m - log_s[rows, cols]))
+    gx, gy, magnitude = _gradients(gray)
+    finite = np.isfinite(log_s)
+    # The holes filled with the median (a network's depth has none: no median over the image)
+    filled = log_s if finite.all() else np.where(finite, log_s, np.float32(np.median(log_s[finite])))
+    log_points = np.full(points.shape, np.nan, dtype=np.float32)
+    log_points[rows, cols] = log_m
+    native = native_halo(magnitude, gx, gy, filled, log_points, rows, cols, log_m, scale, min_step)
+    if native is not None:  # the same five steps point by point, bit for bit
+        out[rows[native], cols[native]] = True
+        return out
     # Float32 coordinates: every sample position below is computed in float32 (half the work).
     x, y = cols.astype(np.float32), rows.astype(np.float32)
-    nx, ny, peak = _edge_offsets(gray, x, y, rows, cols)
-    finite = np.isfinite(log_s)
-    filled = np.where(finite, log_s, np.float32(np.median(log_s[finite])))
+    nx, ny, peak = _edge_offsets(gx, gy, magnitude, x, y, rows, cols)
     near_side, far_side, ramp, grows = _single_view_sides(filled, x, y, nx, ny)
     step = far_side - near_side  # >= 0 by construction: the far side's log depth minus the near's
     # Step 3: the far side is +n where the depth grows along n; p is at -peak from the edge.
@@ -127,8 +138,6 @@ def halo_points(
     halo = (step - ramp > min_step) & (offset > 0)
     halo &= log_m - scale < near_side + NEAR_SHARE * step
     # Step 5 on the candidates only (a fifth of the points or fewer: it is the costly one).
-    log_points = np.full(points.shape, np.nan, dtype=np.float32)
-    log_points[rows, cols] = log_m
     c = np.flatnonzero(halo)
     if c.size:
         far_log = far_side[c] + scale
@@ -170,16 +179,26 @@ def _beyond_agrees(
     return (count >= 2) & (np.abs(beyond - log_m) < np.abs(beyond - far_log))
 
 
+def _gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The blurred grey image's Sobel derivatives and gradient magnitude (float32)."""
+    g = cv2.GaussianBlur(gray, (0, 0), BLUR_SIGMA)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    return gx, gy, cv2.magnitude(gx, gy)
+
+
 def _edge_offsets(
-    gray: np.ndarray, x: np.ndarray, y: np.ndarray, rows: np.ndarray, cols: np.ndarray
+    gx: np.ndarray,
+    gy: np.ndarray,
+    magnitude: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
 ) -> tuple[np.ndarray, ...]:
     """Unit gradient direction at each point (``x``, ``y``: float32 coordinates; ``rows``,
     ``cols``: the same as indices) and the sub-pixel offset (along it) of the gradient
     magnitude's peak within ``±SEARCH_PX``."""
-    g = cv2.GaussianBlur(gray, (0, 0), BLUR_SIGMA)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
-    magnitude = cv2.magnitude(gx, gy)
     norm = np.maximum(magnitude[rows, cols], np.float32(1e-6))
     nx, ny = gx[rows, cols] / norm, gy[rows, cols] / norm
     steps = np.arange(-SEARCH_PX, SEARCH_PX + 1, dtype=np.float32)

@@ -39,7 +39,7 @@ from std_msgs.msg import String
 from ..camera import PinholeCamera
 from ..check_modes import CHECK_MODES
 from ..data import messages
-from ..fusion import neighbour_median
+from ..fusion import native_halo, neighbour_median
 from ..fusion import pipeline as fusion_pipeline
 from ..fusion.consistency import CONSISTENCY_PARAMETER_DESCRIPTIONS, ConsistencyConfig
 from ..fusion.guard import GUARD_PARAMETER_DESCRIPTIONS, GuardConfig, MultiViewEvidence
@@ -357,6 +357,7 @@ class FusionNode(DepthFusionNode):
         )
         if str(p['device']) == 'cpu':
             neighbour_median.prepare()  # the guard's native kernel: built here, not at the first keyframe
+            native_halo.prepare()  # the halo test's
         self.events.ready(warm=self.kernels_ready.is_set())  # not warm while compiling in the background
 
     # --- callbacks: collect parts by stamp ------------------------------------------------------------
