@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from native_calls import count_native_calls
 
 from depth_fusion_ros import native_build
 from depth_fusion_ros.multiview import descriptors, native_cost, native_descriptors
@@ -96,15 +97,7 @@ def test_rows_split_over_threads_give_the_same_numbers(monkeypatch):
 
 def test_the_kernel_declines_what_it_was_not_written_for(monkeypatch):
     _native_or_skip()
-    calls = []
-    real = native_descriptors.native_table
-
-    def counting(*args):
-        out = real(*args)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(descriptors, 'native_table', counting)
+    calls = count_native_calls(monkeypatch, descriptors, 'native_table')
     two = torch.stack([_image(20, 30)[0], _image(20, 30, seed=1)[0]])
     patch_descriptors(two, visibility_margin=4, channels=6, channels_last=True)  # two images
     patch_descriptors(_image(20, 30).double(), visibility_margin=4, channels=6, channels_last=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from native_calls import count_native_calls
 
 from depth_fusion_ros import native_build
 from depth_fusion_ros.fusion import native_halo, occlusion
@@ -23,15 +24,7 @@ def _native_or_skip() -> None:
 
 
 def _both(monkeypatch, *args, **kwargs) -> tuple[np.ndarray, np.ndarray]:
-    calls = []
-    real = native_halo.native_halo
-
-    def counting(*a):
-        out = real(*a)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(occlusion, 'native_halo', counting)
+    calls = count_native_calls(monkeypatch, occlusion, 'native_halo')
     mine = occlusion.halo_points(*args, **kwargs)
     with monkeypatch.context() as off:
         off.setattr(occlusion, 'native_halo', lambda *a: None)
