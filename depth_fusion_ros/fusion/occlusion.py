@@ -32,11 +32,11 @@ direction ``n`` of the image gradient at ``p``:
    an image edge), not an occlusion, and the point is right.
 
 The five together drop 2-14 % of the points of a stress case's stream (docs/fusion.md
-"Silhouette halos"; most on ``low_texture``). On a CPU the five steps run point by point in C
-(``native_halo.py``, ``halo_test.c``: the same halos bit for bit, 2-3x faster); the numpy code
-below is the reference and runs where the kernel cannot. Where the single-view depth has no step at an
+"Silhouette halos"; most on ``low_texture``). Where the single-view depth has no step at an
 edge, or the point lies on its near side, the point is kept: the test removes no point the
-single view cannot place.
+single view cannot place. On a CPU the five steps run point by point in C (``native_halo.py``,
+``halo_test.c``: the same halos bit for bit, 2-3x faster); the numpy code below is the
+reference and runs where the kernel cannot.
 The single view's step must sit at the image's edge for the side to be right; a single view
 from the image (a network) has its edges there, one from a misregistered depth camera may not
 (docs/fusion.md: TUM's ground-truth edges lie -1.7 to +2.2 px off the image's).
