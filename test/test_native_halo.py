@@ -89,6 +89,32 @@ def test_random_fields_give_numpys_halos(monkeypatch):
     assert np.array_equal(mine, theirs)
 
 
+GEOMETRIES = [(2, 4.0, 0.4, (2, 6)), (5, 9.5, 0.6, (4, 12)), (1, 6.0, 0.5, (0, 0))]
+
+
+@pytest.mark.parametrize(('search', 'side', 'share', 'beyond'), GEOMETRIES)
+def test_other_geometries_give_numpys_halos(monkeypatch, keyframe, search, side, share, beyond):
+    """``occlusion.py``'s constants reach the kernel at each call: changed there, the kernel
+    follows (no copy of them in C to fall out of step)."""
+    _native_or_skip()
+    constants = {'SEARCH_PX': search, 'SIDE_PX': side, 'NEAR_SHARE': share, 'BEYOND_PX': beyond}
+    for name, value in constants.items():
+        monkeypatch.setattr(occlusion, name, value)
+    rgb, single, multi, points = keyframe
+    mine, theirs = _both(monkeypatch, rgb, single, multi, points, 0.1)
+    assert int(theirs.sum()) > 20
+    assert np.array_equal(mine, theirs)
+
+
+def test_a_geometry_the_kernel_does_not_hold_goes_to_numpy(monkeypatch, keyframe):
+    _native_or_skip()
+    monkeypatch.setattr(occlusion, 'SEARCH_PX', native_halo.MAX_SEARCH_PX + 1)
+    calls = count_native_calls(monkeypatch, occlusion, 'native_halo')
+    rgb, single, multi, points = keyframe
+    occlusion.halo_points(rgb, single, multi, points, 0.1)
+    assert calls == [False]
+
+
 def test_the_bilinear_read_is_opencvs():
     """The kernel reads as ``point_lookup.bilinear_at`` (cv2.remap) does, to the bit: checked
     through the halo test above; here the form it relies on, numpy's float32 FMAs emulated in

@@ -16,17 +16,17 @@
  * mag, gx, gy (h, w): the blurred image's gradient magnitude and Sobel derivatives; filled (h, w):
  * the single-view log depth, its holes filled; n points at rows, cols with multi-view log depth
  * log_m; scale the median log ratio of the points to the single view; min_step the least step;
- * out (n,) bytes: 1 in a halo. Points split over threads: each is computed alone.
+ * search_px, side_px, near_share, beyond_from and beyond_to occlusion.py's constants; out (n,)
+ * bytes: 1 in a halo. Points split over threads: each is computed alone.
  */
 #include <math.h>
 #include <stdint.h>
 
-#define SEARCH_PX 3
-#define SIDE_PX 6.0f
-#define NEAR_SHARE 0.5f
-#define BEYOND_FROM 3
-#define BEYOND_TO 8
-#define BEYOND_SAMPLES ((BEYOND_TO - BEYOND_FROM + 1) * 3)
+/* the most the caller may ask for (native_halo.py checks): the search's half-length and the
+ * steps beyond (occlusion.py's SEARCH_PX and BEYOND_PX, handed over with SIDE_PX and NEAR_SHARE so
+ * that they are written once) */
+#define MAX_SEARCH_PX 32
+#define MAX_BEYOND_STEPS 64
 
 static inline int64_t clamp_index(int64_t v, int64_t high) { return v < 0 ? 0 : (v > high ? high : v); }
 
@@ -45,23 +45,23 @@ static inline float bilinear(const float *img, int64_t h, int64_t w, float x, fl
 }
 
 /* _edge_offsets at one point: the unit gradient direction and the sub-pixel offset of the
- * magnitude's peak within +-SEARCH_PX along it */
+ * magnitude's peak within +-search px along it */
 static void edge_offset(const float *mag, const float *gx, const float *gy, int64_t h, int64_t w, int64_t at,
-                        float x, float y, float *nx, float *ny, float *peak) {
+                        float x, float y, int search, float *nx, float *ny, float *peak) {
     float norm = mag[at];
     norm = (norm != norm) ? norm : (norm > 1e-6f ? norm : 1e-6f); /* np.maximum keeps a NaN */
     const float ux = gx[at] / norm, uy = gy[at] / norm;
-    float s[2 * SEARCH_PX + 1];
+    float s[2 * MAX_SEARCH_PX + 1];
     int j = 0;
-    for (int k = 0; k <= 2 * SEARCH_PX; k++) {
-        const float step = (float)(k - SEARCH_PX);
+    for (int k = 0; k <= 2 * search; k++) {
+        const float step = (float)(k - search);
         s[k] = bilinear(mag, h, w, x + step * ux, y + step * uy);
     }
-    for (int k = 1; k <= 2 * SEARCH_PX; k++) { /* np.argmax: the first largest, or the first NaN */
+    for (int k = 1; k <= 2 * search; k++) { /* np.argmax: the first largest, or the first NaN */
         if (s[j] != s[j]) break;
         if (s[k] != s[k] || s[k] > s[j]) j = k;
     }
-    j = j < 1 ? 1 : (j > 2 * SEARCH_PX - 1 ? 2 * SEARCH_PX - 1 : j);
+    j = j < 1 ? 1 : (j > 2 * search - 1 ? 2 * search - 1 : j);
     const float left = s[j - 1], centre = s[j], right = s[j + 1];
     const float curvature = (left - 2.0f * centre) + right;
     const int peaked = curvature < -1e-9f;
@@ -69,16 +69,16 @@ static void edge_offset(const float *mag, const float *gx, const float *gy, int6
     delta = (delta != delta) ? delta : (delta < -1.0f ? -1.0f : (delta > 1.0f ? 1.0f : delta));
     *nx = ux;
     *ny = uy;
-    *peak = (float)(j - SEARCH_PX) + delta;
+    *peak = (float)(j - search) + delta;
 }
 
 /* _beyond_agrees at one candidate */
 static int beyond_agrees(const float *log_points, int64_t h, int64_t w, float x, float y, float nx, float ny,
-                         int grows, float log_m, float far_log) {
+                         int grows, float log_m, float far_log, int from, int to) {
     const float sign = grows ? 1.0f : -1.0f;
-    float samples[BEYOND_SAMPLES];
+    float samples[3 * MAX_BEYOND_STEPS];
     int n = 0;
-    for (int t = BEYOND_FROM; t <= BEYOND_TO; t++) {
+    for (int t = from; t <= to; t++) {
         const float along = sign * (float)t;
         for (int l = -1; l <= 1; l++) {
             const float lateral = (float)l;
@@ -101,18 +101,20 @@ static int beyond_agrees(const float *log_points, int64_t h, int64_t w, float x,
 
 void halo_test(int64_t h, int64_t w, const float *mag, const float *gx, const float *gy, const float *filled,
                const float *log_points, int64_t n, const int64_t *rows, const int64_t *cols, const float *log_m,
-               float scale, float min_step, uint8_t *out, int threads) {
+               float scale, float min_step, int search_px, float side_px, float near_share, int beyond_from,
+               int beyond_to, uint8_t *out, int threads) {
 #pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
     for (int64_t i = 0; i < n; i++) {
         const int64_t at = rows[i] * w + cols[i];
         const float x = (float)cols[i], y = (float)rows[i];
         float nx, ny, peak;
-        edge_offset(mag, gx, gy, h, w, at, x, y, &nx, &ny, &peak);
-        /* _single_view_sides: the single view at +-SIDE_PX and +-2 SIDE_PX along n */
-        const float plus = bilinear(filled, h, w, x + SIDE_PX * nx, y + SIDE_PX * ny);
-        const float minus = bilinear(filled, h, w, x + -SIDE_PX * nx, y + -SIDE_PX * ny);
-        const float plus2 = bilinear(filled, h, w, x + 2.0f * SIDE_PX * nx, y + 2.0f * SIDE_PX * ny);
-        const float minus2 = bilinear(filled, h, w, x + -2.0f * SIDE_PX * nx, y + -2.0f * SIDE_PX * ny);
+        edge_offset(mag, gx, gy, h, w, at, x, y, search_px, &nx, &ny, &peak);
+        /* _single_view_sides: the single view at +-side_px and +-2 side_px along n */
+        const float side = side_px, far_side = 2.0f * side_px;
+        const float plus = bilinear(filled, h, w, x + side * nx, y + side * ny);
+        const float minus = bilinear(filled, h, w, x + -side * nx, y + -side * ny);
+        const float plus2 = bilinear(filled, h, w, x + far_side * nx, y + far_side * ny);
+        const float minus2 = bilinear(filled, h, w, x + -far_side * nx, y + -far_side * ny);
         const float diff = plus - minus;
         const float sign = (diff != diff) ? diff : (float)((diff > 0.0f) - (diff < 0.0f));
         const float ramp = sign * ((plus2 - plus) + (minus - minus2));
@@ -123,8 +125,9 @@ void halo_test(int64_t h, int64_t w, const float *mag, const float *gx, const fl
         const float step = far - near;
         const float offset = grows ? -peak : peak;
         int halo = ((step - ramp) > min_step) && (offset > 0.0f);
-        halo = halo && ((log_m[i] - scale) < near + NEAR_SHARE * step);
-        if (halo && beyond_agrees(log_points, h, w, x, y, nx, ny, grows, log_m[i], far + scale)) halo = 0;
+        halo = halo && ((log_m[i] - scale) < near + near_share * step);
+        if (halo && beyond_agrees(log_points, h, w, x, y, nx, ny, grows, log_m[i], far + scale, beyond_from, beyond_to))
+            halo = 0;
         out[i] = (uint8_t)halo;
     }
 }

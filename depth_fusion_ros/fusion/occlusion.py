@@ -50,7 +50,7 @@ import numpy as np
 from ..data.sequence import rgb_to_gray
 from ..point_lookup import bilinear_at
 from ..torch_device import resolve_device
-from .native_halo import native_halo
+from .native_halo import HaloShape, native_halo
 
 #: Half-length (px) of the search for the intensity edge along the gradient direction.
 SEARCH_PX = 3
@@ -124,7 +124,8 @@ def halo_points(
     filled = log_s if finite.all() else np.where(finite, log_s, np.float32(np.median(log_s[finite])))
     log_points = np.full(points.shape, np.nan, dtype=np.float32)
     log_points[rows, cols] = log_m
-    native = native_halo(magnitude, gx, gy, filled, log_points, rows, cols, log_m, scale, min_step)
+    shape = HaloShape(SEARCH_PX, SIDE_PX, NEAR_SHARE, BEYOND_PX)
+    native = native_halo(magnitude, gx, gy, filled, log_points, rows, cols, log_m, scale, min_step, shape)
     if native is not None:  # the same five steps point by point, bit for bit
         out[rows[native], cols[native]] = True
         return out

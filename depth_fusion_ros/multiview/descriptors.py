@@ -30,7 +30,7 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the first parallel sqrt)
 from ..separable import separable_sum
 from .native_cost import LANES
-from .native_descriptors import native_table
+from .native_descriptors import KernelBasis, kernel_basis, native_table
 
 #: Patch layouts (offsets in units of the patch stride): cost per lookup grows with the size.
 PATCH_OFFSETS: dict[str, tuple[tuple[int, int], ...]] = {
@@ -152,7 +152,7 @@ def patch_descriptors(
     check_patch(patch, stride)
     if channels_last:
         floor = float(np.float32(len(PATCH_OFFSETS[patch]) * eps * eps))
-        basis = _basis_rows(patch, int(channels))
+        basis = _kernel_basis(patch, int(channels))
         offsets = PATCH_OFFSETS[patch]
         table = native_table(images, blur_sigma, offsets, stride, basis, floor, visibility_margin)
         if table is not None:
@@ -227,11 +227,10 @@ def _zero_border(images: torch.Tensor | np.ndarray, margin: int) -> None:
 
 
 @functools.lru_cache(maxsize=16)
-def _basis_rows(patch: str, channels: int) -> np.ndarray:
-    """:func:`zero_mean_basis` in float32, built once per layout (read-only)."""
-    rows = zero_mean_basis(patch, channels).astype(np.float32)
-    rows.flags.writeable = False
-    return rows
+def _kernel_basis(patch: str, channels: int) -> KernelBasis | None:
+    """:func:`zero_mean_basis` in float32 as the native kernel reads it, built once per layout
+    (None where it does not fit the kernel)."""
+    return kernel_basis(zero_mean_basis(patch, channels).astype(np.float32))
 
 
 @functools.lru_cache(maxsize=16)

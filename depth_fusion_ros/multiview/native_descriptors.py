@@ -18,6 +18,7 @@ import ctypes
 import functools
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -31,20 +32,43 @@ THREAD_MIN_PIXELS = 1 << 16
 TAPS = 9
 
 
+class KernelBasis(NamedTuple):
+    """A patch basis as the kernel reads it: ``channels`` rows of ``taps`` weights, padded with
+    zeros to (:data:`LANES`, :data:`TAPS`) float32 (the kernel always projects all of them; a
+    zero row is a zero channel)."""
+
+    channels: int
+    taps: int
+    padded: np.ndarray
+
+
+def kernel_basis(rows: np.ndarray) -> KernelBasis | None:
+    """``rows`` (K, P) made a :class:`KernelBasis`, or None where they do not fit a block."""
+    k, p = rows.shape
+    if k > LANES or p > TAPS:
+        return None
+    padded = np.zeros((LANES, TAPS), dtype=np.float32)
+    padded[:k, :p] = rows
+    padded.flags.writeable = False
+    return KernelBasis(k, p, padded)
+
+
 def native_table(
     images: torch.Tensor,
     blur_sigma: float,
     offsets: tuple[tuple[int, int], ...],
     stride: int,
-    basis: np.ndarray,
+    basis: KernelBasis | None,
     floor: float,
     margin: int | None,
 ) -> torch.Tensor | None:
     """The descriptors ``(1, K [+ 1], H, W)`` of one grey ``(1, H, W)`` image as a view of the
     kernels' table (what ``descriptors._interleave`` returns), or None where the kernel does not
     apply (not one CPU float32 image, too many channels for a block, no kernel here)."""
-    channels = basis.shape[0] + (margin is not None)
-    if not _applies(images, channels, offsets):
+    if basis is None or basis.taps != len(offsets):
+        return None
+    channels = basis.channels + (margin is not None)
+    if not _applies(images, channels):
         return None
     lib = _library()
     if lib is None:
@@ -53,11 +77,10 @@ def native_table(
     image = images.detach().contiguous()
     taps = _blur_taps(float(blur_sigma))
     dx, dy, reach = _offsets(offsets, int(stride))
-    weights = _padded_basis(basis)
     table = torch.empty((h * w + 1) * LANES, dtype=torch.float32)
     lib.describe_table(
         h, w, image.data_ptr(), len(taps), taps.ctypes.data, dx.ctypes.data, dy.ctypes.data, reach,
-        basis.shape[0], weights.ctypes.data, float(floor), -1 if margin is None else int(margin),
+        basis.channels, basis.padded.ctypes.data, float(floor), -1 if margin is None else int(margin),
         table.data_ptr(), kernel_threads(h * w, THREAD_MIN_PIXELS),
     )  # fmt: skip
     if math.isnan(float(table[0])):
@@ -66,7 +89,7 @@ def native_table(
     return pixels.permute(0, 3, 1, 2)[:, :channels]
 
 
-def _applies(images: torch.Tensor, channels: int, offsets: tuple[tuple[int, int], ...]) -> bool:
+def _applies(images: torch.Tensor, channels: int) -> bool:
     return (
         images.device.type == 'cpu'
         and images.dtype == torch.float32
@@ -74,7 +97,6 @@ def _applies(images: torch.Tensor, channels: int, offsets: tuple[tuple[int, int]
         and images.shape[0] == 1
         and not images.requires_grad
         and channels <= LANES
-        and len(offsets) <= TAPS
         and images.shape[1] > 0
         and images.shape[2] > 0
     )
@@ -101,22 +123,6 @@ def _offsets(offsets: tuple[tuple[int, int], ...], stride: int) -> tuple[np.ndar
     dx[: len(offsets)] = [ox * stride for ox, _ in offsets]
     dy[: len(offsets)] = [oy * stride for _, oy in offsets]
     return dx, dy, int(max(np.abs(dx).max(), np.abs(dy).max()))
-
-
-def _padded_basis(basis: np.ndarray) -> np.ndarray:
-    """The basis as the kernel reads it: (:data:`LANES`, :data:`TAPS`) float32, zero beyond its
-    rows and taps (the kernel always projects all of them; a zero row is a zero channel)."""
-    key = (basis.shape, basis.astype(np.float32).tobytes())
-    return _padded_from(key)
-
-
-@functools.lru_cache(maxsize=8)
-def _padded_from(key: tuple[tuple[int, ...], bytes]) -> np.ndarray:
-    (k, p), data = key
-    padded = np.zeros((LANES, TAPS), dtype=np.float32)
-    padded[:k, :p] = np.frombuffer(data, dtype=np.float32).reshape(k, p)
-    padded.flags.writeable = False
-    return padded
 
 
 def prepare() -> bool:
