@@ -112,14 +112,14 @@ def halo_points(
         return halo_points_torch(gray, base, m, points, min_step, dev)
     with np.errstate(invalid='ignore', divide='ignore'):
         log_s = np.log(np.where(np.isfinite(base) & (base > 0), base, np.nan)).astype(np.float32)
-        usable = points & np.isfinite(log_s) & np.isfinite(m) & (m > 0)
+        finite = np.isfinite(log_s)
+        usable = points & finite & np.isfinite(m) & (m > 0)
     rows, cols = np.nonzero(usable)
     if len(rows) < MIN_POINTS:
         return out
     log_m = np.log(m[rows, cols].astype(np.float32))
     scale = float(np.median(log_m - log_s[rows, cols]))
     gx, gy, magnitude = _gradients(gray)
-    finite = np.isfinite(log_s)
     # The holes filled with the median (a network's depth has none: no median over the image)
     filled = log_s if finite.all() else np.where(finite, log_s, np.float32(np.median(log_s[finite])))
     log_points = np.full(points.shape, np.nan, dtype=np.float32)

@@ -30,7 +30,7 @@ import torch.nn.functional as F  # noqa: N812  (the conventional alias)
 from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the first parallel sqrt)
 from ..separable import separable_sum
 from .native_cost import LANES
-from .native_descriptors import KernelBasis, kernel_basis, native_table
+from .native_descriptors import KernelPatch, kernel_patch, native_table
 
 #: Patch layouts (offsets in units of the patch stride): cost per lookup grows with the size.
 PATCH_OFFSETS: dict[str, tuple[tuple[int, int], ...]] = {
@@ -59,10 +59,17 @@ def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
     """
     if sigma <= 0:
         return images
+    return separable_sum(images, gaussian_taps(sigma), replicate=True)
+
+
+@functools.lru_cache(maxsize=8)
+def gaussian_taps(sigma: float) -> tuple[float, ...]:
+    """:func:`gaussian_blur`'s normalised taps over +-2.5 sigma (rounded; at least one each
+    side), for sigma > 0; made once per sigma (the filter blurs every frame)."""
     radius = max(1, round(2.5 * sigma))
     taps = [math.exp(-0.5 * (k / sigma) ** 2) for k in range(-radius, radius + 1)]
     total = sum(taps)
-    return separable_sum(images, [t / total for t in taps], replicate=True)
+    return tuple(t / total for t in taps)
 
 
 def zero_mean_basis(patch: str, channels: int = 0) -> np.ndarray:
@@ -151,10 +158,8 @@ def patch_descriptors(
     """
     check_patch(patch, stride)
     if channels_last:
-        floor = float(np.float32(len(PATCH_OFFSETS[patch]) * eps * eps))
-        basis = _kernel_basis(patch, int(channels))
-        offsets = PATCH_OFFSETS[patch]
-        table = native_table(images, blur_sigma, offsets, stride, basis, floor, visibility_margin)
+        layout = _kernel_patch(patch, int(stride), int(channels), float(blur_sigma), float(eps))
+        table = native_table(images, layout, visibility_margin)
         if table is not None:
             return table
     blurred = gaussian_blur(images, blur_sigma)
@@ -227,10 +232,15 @@ def _zero_border(images: torch.Tensor | np.ndarray, margin: int) -> None:
 
 
 @functools.lru_cache(maxsize=16)
-def _kernel_basis(patch: str, channels: int) -> KernelBasis | None:
-    """:func:`zero_mean_basis` in float32 as the native kernel reads it, built once per layout
-    (None where it does not fit the kernel)."""
-    return kernel_basis(zero_mean_basis(patch, channels).astype(np.float32))
+def _kernel_patch(patch: str, stride: int, channels: int, sigma: float, eps: float) -> KernelPatch | None:
+    """The layout as the native kernel reads it (:func:`zero_mean_basis` in float32, the patch's
+    offsets and reach, :func:`gaussian_taps`, the norm's floor), made once per layout (None where
+    it does not fit the kernel)."""
+    offsets = PATCH_OFFSETS[patch]
+    blur = gaussian_taps(sigma) if sigma > 0 else (1.0,)
+    floor = float(np.float32(len(offsets) * eps * eps))
+    rows = zero_mean_basis(patch, channels).astype(np.float32)
+    return kernel_patch(rows, offsets, stride, patch_reach(patch, stride), blur, floor)
 
 
 @functools.lru_cache(maxsize=16)

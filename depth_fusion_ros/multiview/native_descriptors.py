@@ -15,7 +15,6 @@ describes as before.
 from __future__ import annotations
 
 import ctypes
-import functools
 import math
 from pathlib import Path
 from typing import NamedTuple
@@ -32,42 +31,55 @@ THREAD_MIN_PIXELS = 1 << 16
 TAPS = 9
 
 
-class KernelBasis(NamedTuple):
-    """A patch basis as the kernel reads it: ``channels`` rows of ``taps`` weights, padded with
-    zeros to (:data:`LANES`, :data:`TAPS`) float32 (the kernel always projects all of them; a
-    zero row is a zero channel)."""
+class KernelPatch(NamedTuple):
+    """A patch layout as the kernel reads it, made once per layout (``descriptors``): the basis
+    (``channels`` rows) padded with zeros to (:data:`LANES`, :data:`TAPS`) float32 (the kernel
+    always projects all of them; a zero row is a zero channel), the taps' pixel offsets ``dx``,
+    ``dy`` (:data:`TAPS` of them, the unused ones at the centre) and their ``reach``, the blur's
+    taps and the norm's ``floor`` (``P eps^2``)."""
 
     channels: int
-    taps: int
-    padded: np.ndarray
+    basis: np.ndarray
+    dx: np.ndarray
+    dy: np.ndarray
+    reach: int
+    blur: np.ndarray
+    floor: float
 
 
-def kernel_basis(rows: np.ndarray) -> KernelBasis | None:
-    """``rows`` (K, P) made a :class:`KernelBasis`, or None where they do not fit a block."""
-    k, p = rows.shape
-    if k > LANES or p > TAPS:
-        return None
-    padded = np.zeros((LANES, TAPS), dtype=np.float32)
-    padded[:k, :p] = rows
-    padded.flags.writeable = False
-    return KernelBasis(k, p, padded)
-
-
-def native_table(
-    images: torch.Tensor,
-    blur_sigma: float,
+def kernel_patch(
+    rows: np.ndarray,
     offsets: tuple[tuple[int, int], ...],
     stride: int,
-    basis: KernelBasis | None,
+    reach: int,
+    blur: tuple[float, ...],
     floor: float,
-    margin: int | None,
-) -> torch.Tensor | None:
+) -> KernelPatch | None:
+    """The layout of ``rows`` (K, P) at the patch ``offsets`` (``stride`` px apart, at most
+    ``reach`` px out) with the blur's taps ``blur`` (one tap of 1: none), or None where it does not
+    fit a block."""
+    k, p = rows.shape
+    if k > LANES or p > TAPS or p != len(offsets):
+        return None
+    basis = np.zeros((LANES, TAPS), dtype=np.float32)
+    basis[:k, :p] = rows
+    dx = np.zeros(TAPS, dtype=np.int32)
+    dy = np.zeros(TAPS, dtype=np.int32)
+    dx[:p] = [ox * stride for ox, _ in offsets]
+    dy[:p] = [oy * stride for _, oy in offsets]
+    taps = np.asarray(blur, dtype=np.float32)
+    for a in (basis, dx, dy, taps):
+        a.flags.writeable = False
+    return KernelPatch(k, basis, dx, dy, int(reach), taps, float(floor))
+
+
+def native_table(images: torch.Tensor, patch: KernelPatch | None, margin: int | None) -> torch.Tensor | None:
     """The descriptors ``(1, K [+ 1], H, W)`` of one grey ``(1, H, W)`` image as a view of the
     kernels' table (what ``descriptors._interleave`` returns), or None where the kernel does not
     apply (not one CPU float32 image, too many channels for a block, no kernel here)."""
-    if basis is None or basis.taps != len(offsets):
+    if patch is None:
         return None
-    channels = basis.channels + (margin is not None)
+    channels = patch.channels + (margin is not None)
     if not _applies(images, channels):
         return None
     lib = _library()
@@ -75,13 +87,11 @@ def native_table(
         return None
     _, h, w = images.shape
     image = images.detach().contiguous()
-    taps = _blur_taps(float(blur_sigma))
-    dx, dy, reach = _offsets(offsets, int(stride))
     table = torch.empty((h * w + 1) * LANES, dtype=torch.float32)
     lib.describe_table(
-        h, w, image.data_ptr(), len(taps), taps.ctypes.data, dx.ctypes.data, dy.ctypes.data, reach,
-        basis.channels, basis.padded.ctypes.data, float(floor), -1 if margin is None else int(margin),
-        table.data_ptr(), kernel_threads(h * w, THREAD_MIN_PIXELS),
+        h, w, image.data_ptr(), len(patch.blur), patch.blur.ctypes.data, patch.dx.ctypes.data,
+        patch.dy.ctypes.data, patch.reach, patch.channels, patch.basis.ctypes.data, patch.floor,
+        -1 if margin is None else int(margin), table.data_ptr(), kernel_threads(h * w, THREAD_MIN_PIXELS),
     )  # fmt: skip
     if math.isnan(float(table[0])):
         raise MemoryError('describe_table: no memory for its working planes')
@@ -100,29 +110,6 @@ def _applies(images: torch.Tensor, channels: int) -> bool:
         and images.shape[1] > 0
         and images.shape[2] > 0
     )
-
-
-@functools.lru_cache(maxsize=8)
-def _blur_taps(sigma: float) -> np.ndarray:
-    """``descriptors.gaussian_blur``'s taps (normalised, +-2.5 sigma rounded); one tap of 1 (no
-    blur) for sigma <= 0."""
-    if sigma <= 0:
-        return np.ones(1, dtype=np.float32)
-    radius = max(1, round(2.5 * sigma))
-    taps = [math.exp(-0.5 * (k / sigma) ** 2) for k in range(-radius, radius + 1)]
-    total = sum(taps)
-    return np.asarray([t / total for t in taps], dtype=np.float32)
-
-
-@functools.lru_cache(maxsize=8)
-def _offsets(offsets: tuple[tuple[int, int], ...], stride: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """The taps' pixel offsets (x, then y; :data:`TAPS` of them, the unused ones at the centre)
-    and their largest magnitude."""
-    dx = np.zeros(TAPS, dtype=np.int32)
-    dy = np.zeros(TAPS, dtype=np.int32)
-    dx[: len(offsets)] = [ox * stride for ox, _ in offsets]
-    dy[: len(offsets)] = [oy * stride for _, oy in offsets]
-    return dx, dy, int(max(np.abs(dx).max(), np.abs(dy).max()))
 
 
 def prepare() -> bool:
