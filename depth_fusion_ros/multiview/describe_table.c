@@ -35,24 +35,25 @@
 
 static inline int64_t clamp_index(int64_t v, int64_t high) { return v < 0 ? 0 : (v > high ? high : v); }
 
-/* one row of the horizontal blur, border pixels repeated: the ends tap by tap with clamped reads,
- * the inside as a sum of shifted rows (vectorised) */
+/* the horizontal blur at one pixel of a row, its reads clamped to the row (border pixels repeated) */
+static inline float blur_at(const float *src, int64_t w, int nb, const float *taps, int64_t x) {
+    float s = 0.0f;
+    for (int k = 0; k < nb; k++) s += taps[k] * src[clamp_index(x + k - nb / 2, w - 1)];
+    return s;
+}
+
+/* one row of the horizontal blur: the ends pixel by pixel, the inside [lo, hi) as a sum of
+ * shifted rows (vectorised) */
 static void blur_row(const float *src, int64_t w, int nb, const float *taps, float *dst) {
     const int rb = nb / 2;
-    for (int64_t x = 0; x < w; x++) {
-        if (x >= rb && x + rb < w) {
-            x = (w - rb - 1 > x) ? w - rb - 1 : x; /* skip the inside */
-            continue;
-        }
-        float s = 0.0f;
-        for (int k = 0; k < nb; k++) s += taps[k] * src[clamp_index(x + k - rb, w - 1)];
-        dst[x] = s;
-    }
-    for (int64_t x = rb; x + rb < w; x++) dst[x] = 0.0f;
+    const int64_t lo = rb < w ? rb : w, hi = (w - rb > lo) ? w - rb : lo;
+    for (int64_t x = 0; x < lo; x++) dst[x] = blur_at(src, w, nb, taps, x);
+    for (int64_t x = hi; x < w; x++) dst[x] = blur_at(src, w, nb, taps, x);
+    for (int64_t x = lo; x < hi; x++) dst[x] = 0.0f;
     for (int k = 0; k < nb; k++) {
         const float t = taps[k];
         const float *shifted = src + k - rb;
-        for (int64_t x = rb; x + rb < w; x++) dst[x] += t * shifted[x];
+        for (int64_t x = lo; x < hi; x++) dst[x] += t * shifted[x];
     }
 }
 
