@@ -8,13 +8,24 @@ the compiled fusion kernels (``fusion/kernel_compile.py``); where there is none,
 lacks what a kernel is written for, :func:`load_native` says so once and returns ``None`` and
 the caller keeps its torch code.
 
+Two kinds of kernel: most are plain C (and OpenMP), which any C compiler builds for any CPU;
+two (the matching cost and the frame descriptors) are written with x86-64 AVX2 and FMA
+intrinsics (they include ``<immintrin.h>``, directly or through a header of theirs). On an ARM
+robot computer (Jetson, Raspberry Pi, RK3588) or an x86-64 CPU without AVX2 the plain ones are
+built without the x86 flags and run, and the two others leave their work to torch and OpenCV.
+The plain kernels compute every number as their torch twins do on any CPU: their only fused
+multiply-adds are written out (``fmaf``, one rounding wherever it runs), and the compiler fuses
+none of its own (``-ffp-contract=off``).
+
 A library is cached under the user cache (``user_cache('native')``), named by a digest of its
 source (with the package's own headers it includes, ``#include "name.h"`` beside it: kernels
 share scalar helpers so), the compiler's version and the flags, written to a temporary name and renamed into
 place, so that concurrent processes (the nodes of one graph) never load a half-written file
 and a changed source or compiler builds anew; a build deletes the libraries nobody loaded
 for 60 days (``cache_prune.py``). ``DEPTH_FUSION_NATIVE=0`` in the environment
-turns every native kernel off (the torch code runs; for comparisons).
+turns every native kernel off (the torch code runs; for comparisons), and
+``DEPTH_FUSION_NATIVE=portable`` runs what an ARM machine runs: the plain kernels only, built
+without the x86 flags (tests and comparisons on an x86-64 machine).
 """
 
 from __future__ import annotations
@@ -41,6 +52,10 @@ log = logging.getLogger(__name__)
 
 #: What the x86-64 kernels are written for (AVX2 and FMA: every x86-64 CPU since 2013-2015).
 X86_FLAGS = ('-mavx2', '-mfma')
+#: What in a kernel's source (or a header of its own) makes it an x86-64 SIMD kernel.
+X86_SIMD_HEADER = b'immintrin.h'
+#: ``DEPTH_FUSION_NATIVE`` set to this: the plain kernels only, without the x86 flags.
+PORTABLE = 'portable'
 #: No contraction beyond the FMAs written out: the kernels reproduce torch's numbers. OpenMP:
 #: the library needs ``libgomp.so.1``, which resolves to the copy torch has loaded (the same
 #: runtime and thread team as torch's own parallel loops; two would spin against each other).
@@ -53,6 +68,18 @@ _loaded: dict[str, ctypes.CDLL | None] = {}
 def native_enabled() -> bool:
     """False when ``DEPTH_FUSION_NATIVE`` is ``0`` (or ``false``/``no``/``off``)."""
     return switched_on('DEPTH_FUSION_NATIVE')
+
+
+def portable_only() -> bool:
+    """Whether ``DEPTH_FUSION_NATIVE`` is ``portable``: the plain kernels only, built as on a
+    machine without AVX2 (an ARM board), the x86-64 SIMD ones left to torch."""
+    return os.environ.get('DEPTH_FUSION_NATIVE', '').strip().lower() == PORTABLE
+
+
+def needs_x86_simd(source: Path) -> bool:
+    """Whether the C file ``source`` is written with x86-64 SIMD intrinsics (it or a local
+    header of its own includes ``<immintrin.h>``); the others are plain C."""
+    return X86_SIMD_HEADER in _source_text(source)
 
 
 def kernel_threads(work: int, minimum: int) -> int:
@@ -81,7 +108,7 @@ def load_native(source: Path, signatures: dict[str, list[type]]) -> ctypes.CDLL 
 
 
 def _build_and_load(source: Path) -> ctypes.CDLL | None:
-    why = _unsupported()
+    why = _unsupported(source)
     if why is not None:  # this machine: said, not a fault
         log.info('native kernel %s not used: %s; the torch code runs instead', source.name, why)
         return None
@@ -100,18 +127,37 @@ def _reason(exc: BaseException) -> str:
     return (errors or lines[-1:] or [repr(exc)])[0]
 
 
-def _unsupported() -> str | None:
-    """Why the x86-64 kernels cannot run on this machine, or None."""
+def _unsupported(source: Path | None = None) -> str | None:
+    """Why the kernel ``source`` cannot run on this machine, or None; without a source, why the
+    x86-64 SIMD kernels cannot (the strictest: where they run, every kernel does)."""
     if not native_enabled():
         return 'DEPTH_FUSION_NATIVE=0'
-    if platform.machine().lower() not in ('x86_64', 'amd64'):
-        return f'written for x86-64 (this is {platform.machine()})'
-    flags = cpu_flags()
-    if flags is not None and not {'avx2', 'fma'} <= flags:
-        return 'the CPU has no AVX2 and FMA'
+    if source is None or needs_x86_simd(source):
+        why = _no_x86_simd()
+        if why is not None:
+            return why
     if _compiler() is None:
         return 'no C compiler (cc, gcc or $CC) on the PATH'
     return None
+
+
+def _no_x86_simd() -> str | None:
+    """Why this machine runs no x86-64 SIMD kernel (AVX2 and FMA), or None."""
+    if portable_only():
+        return f'DEPTH_FUSION_NATIVE={PORTABLE} (written with x86-64 AVX2 intrinsics)'
+    if platform.machine().lower() not in ('x86_64', 'amd64'):
+        return f'written with x86-64 AVX2 intrinsics (this is {platform.machine()})'
+    flags = cpu_flags()
+    if flags is not None and not {'avx2', 'fma'} <= flags:
+        return 'written with AVX2 and FMA intrinsics, which this CPU lacks'
+    return None
+
+
+def _machine_flags() -> tuple[str, ...]:
+    """The x86 flags where this machine runs the SIMD kernels: the plain kernels are built with
+    them there (the same library and speed as before they were built elsewhere), and without
+    them on any other CPU, or with ``DEPTH_FUSION_NATIVE=portable``."""
+    return X86_FLAGS if _no_x86_simd() is None else ()
 
 
 def _compiler() -> str | None:
@@ -134,7 +180,8 @@ def _built(source: Path) -> Path:
     assert cc is not None
     version = _compiler_version(cc)
     failure: subprocess.SubprocessError | None = None
-    for flags in ([*BASE_FLAGS, *X86_FLAGS], [f for f in (*BASE_FLAGS, *X86_FLAGS) if f != '-fopenmp']):
+    machine = _machine_flags()
+    for flags in ([*BASE_FLAGS, *machine], [f for f in (*BASE_FLAGS, *machine) if f != '-fopenmp']):
         try:
             return _built_with(source, cc, version, flags)
         except subprocess.SubprocessError as exc:

@@ -159,16 +159,27 @@ def _cost_rows(label: str, seq: Sequence, opts: BenchOptions) -> tuple[list[Benc
     return rows + _stage_rows(label, seq, opts.device), f
 
 
+#: The filter's steps by the module of their native kernel, in the order a frame runs them.
+_STEPS = ('search', 'descriptors', 'choice of rows', 'bracket', 'update')
+
+
 def _search_code(device: str) -> str:
     """Which code ran the searches (and the first-measurement check), the descriptors, the
     choice of rows, the seed bracket and the update of their matches: the native kernels
-    (``native_cost.py``, ``native_filter.KERNELS``) or torch (OpenCV for the descriptors)."""
+    (``native_cost.py``, ``native_filter.KERNELS``) or torch (OpenCV for the descriptors). Each
+    is said: where only the plain C kernels run (an ARM board, ``DEPTH_FUSION_NATIVE=portable``)
+    the search and the descriptors are torch's and OpenCV's and the rest native."""
     if device.startswith('cuda'):
         return 'search, descriptors, choice of rows, bracket and update: torch'
-    off = 'torch (the native kernels are off or cannot run here)'
-    search = 'native kernels' if native_cost.prepare() else off
-    rest = 'native kernels' if native_filter.prepare() else off
-    return f'search: {search}; descriptors, choice of rows, bracket and update: {rest}'
+    kernels = (native_cost, *native_filter.KERNELS)
+    ran = dict(zip(_STEPS, (kernel.prepare() for kernel in kernels), strict=True))
+    native = [step for step in _STEPS if ran[step]]
+    other = [step for step in _STEPS if not ran[step]]
+    if not other:
+        return f'{", ".join(_STEPS)}: native kernels'
+    if not native:
+        return f'{", ".join(_STEPS)}: torch (the native kernels are off or cannot run here)'
+    return f'{", ".join(native)}: native kernels; {", ".join(other)}: torch (their kernels cannot run here)'
 
 
 def _accuracy(depth: np.ndarray, gt: np.ndarray, selected: np.ndarray) -> tuple[float, float]:
