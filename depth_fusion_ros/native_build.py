@@ -8,14 +8,17 @@ the compiled fusion kernels (``fusion/kernel_compile.py``); where there is none,
 lacks what a kernel is written for, :func:`load_native` says so once and returns ``None`` and
 the caller keeps its torch code.
 
-Two kinds of kernel: most are plain C (and OpenMP), which any C compiler builds for any CPU;
-two (the matching cost and the frame descriptors) are written with x86-64 AVX2 and FMA
-intrinsics (they include ``<immintrin.h>``, directly or through a header of theirs). On an ARM
-robot computer (Jetson, Raspberry Pi, RK3588) or an x86-64 CPU without AVX2 the plain ones are
-built without the x86 flags and run, and the two others leave their work to torch and OpenCV.
-The plain kernels compute every number as their torch twins do on any CPU: their only fused
-multiply-adds are written out (``fmaf``, one rounding wherever it runs), and the compiler fuses
-none of its own (``-ffp-contract=off``).
+Every kernel is C (and OpenMP) that any C compiler builds for any CPU. On an x86-64 with AVX2
+and FMA they are built with those (``-mavx2 -mfma``), and the two that work eight lanes at a
+time (the matching cost, the frame descriptors) use the AVX2 intrinsics through
+``multiview/simd8.h``; on another CPU (an ARM robot computer: Jetson, Raspberry Pi, RK3588) they
+are built without the x86 flags and ``simd8.h`` gives the same operations as GCC vector
+extensions (NEON there: two registers a vector, FMAs and floors as vector instructions). Every
+number is the same on both: the only fused multiply-adds are written out (``fmaf``, or the FMA
+intrinsic: one rounding wherever it runs), the compiler fuses none of its own
+(``-ffp-contract=off``), and ``simd8.h`` keeps AVX2's rules where C has none. An x86-64 CPU
+without AVX2 and FMA (before 2013-2015) runs the torch code: it would compute each written-out
+FMA in software, three times slower than torch.
 
 A library is cached under the user cache (``user_cache('native')``), named by a digest of its
 source (with the package's own headers it includes, ``#include "name.h"`` beside it: kernels
@@ -24,8 +27,9 @@ place, so that concurrent processes (the nodes of one graph) never load a half-w
 and a changed source or compiler builds anew; a build deletes the libraries nobody loaded
 for 60 days (``cache_prune.py``). ``DEPTH_FUSION_NATIVE=0`` in the environment
 turns every native kernel off (the torch code runs; for comparisons), and
-``DEPTH_FUSION_NATIVE=portable`` runs what an ARM machine runs: the plain kernels only, built
-without the x86 flags (tests and comparisons on an x86-64 machine).
+``DEPTH_FUSION_NATIVE=portable`` builds them as an ARM machine does, without the x86 flags
+(the vector extensions' code, to test its numbers on an x86-64 machine, where its FMAs run in
+software: slow).
 """
 
 from __future__ import annotations
@@ -52,9 +56,7 @@ log = logging.getLogger(__name__)
 
 #: What the x86-64 kernels are written for (AVX2 and FMA: every x86-64 CPU since 2013-2015).
 X86_FLAGS = ('-mavx2', '-mfma')
-#: What in a kernel's source (or a header of its own) makes it an x86-64 SIMD kernel.
-X86_SIMD_HEADER = b'immintrin.h'
-#: ``DEPTH_FUSION_NATIVE`` set to this: the plain kernels only, without the x86 flags.
+#: ``DEPTH_FUSION_NATIVE`` set to this: the kernels built without the x86 flags.
 PORTABLE = 'portable'
 #: No contraction beyond the FMAs written out: the kernels reproduce torch's numbers. OpenMP:
 #: the library needs ``libgomp.so.1``, which resolves to the copy torch has loaded (the same
@@ -71,15 +73,9 @@ def native_enabled() -> bool:
 
 
 def portable_only() -> bool:
-    """Whether ``DEPTH_FUSION_NATIVE`` is ``portable``: the plain kernels only, built as on a
-    machine without AVX2 (an ARM board), the x86-64 SIMD ones left to torch."""
+    """Whether ``DEPTH_FUSION_NATIVE`` is ``portable``: the kernels built as on a machine
+    without AVX2 (an ARM board), whatever this CPU has."""
     return os.environ.get('DEPTH_FUSION_NATIVE', '').strip().lower() == PORTABLE
-
-
-def needs_x86_simd(source: Path) -> bool:
-    """Whether the C file ``source`` is written with x86-64 SIMD intrinsics (it or a local
-    header of its own includes ``<immintrin.h>``); the others are plain C."""
-    return X86_SIMD_HEADER in _source_text(source)
 
 
 def kernel_threads(work: int, minimum: int) -> int:
@@ -108,7 +104,7 @@ def load_native(source: Path, signatures: dict[str, list[type]]) -> ctypes.CDLL 
 
 
 def _build_and_load(source: Path) -> ctypes.CDLL | None:
-    why = _unsupported(source)
+    why = _unsupported()
     if why is not None:  # this machine: said, not a fault
         log.info('native kernel %s not used: %s; the torch code runs instead', source.name, why)
         return None
@@ -127,37 +123,27 @@ def _reason(exc: BaseException) -> str:
     return (errors or lines[-1:] or [repr(exc)])[0]
 
 
-def _unsupported(source: Path | None = None) -> str | None:
-    """Why the kernel ``source`` cannot run on this machine, or None; without a source, why the
-    x86-64 SIMD kernels cannot (the strictest: where they run, every kernel does)."""
+def _unsupported() -> str | None:
+    """Why the kernels cannot run on this machine, or None."""
     if not native_enabled():
         return 'DEPTH_FUSION_NATIVE=0'
-    if source is None or needs_x86_simd(source):
-        why = _no_x86_simd()
-        if why is not None:
-            return why
+    if _x86() and not portable_only():
+        flags = cpu_flags()
+        if flags is not None and not {'avx2', 'fma'} <= flags:
+            return "the CPU has no AVX2 and FMA (the kernels' FMAs would run in software, slower than torch)"
     if _compiler() is None:
         return 'no C compiler (cc, gcc or $CC) on the PATH'
     return None
 
 
-def _no_x86_simd() -> str | None:
-    """Why this machine runs no x86-64 SIMD kernel (AVX2 and FMA), or None."""
-    if portable_only():
-        return f'DEPTH_FUSION_NATIVE={PORTABLE} (written with x86-64 AVX2 intrinsics)'
-    if platform.machine().lower() not in ('x86_64', 'amd64'):
-        return f'written with x86-64 AVX2 intrinsics (this is {platform.machine()})'
-    flags = cpu_flags()
-    if flags is not None and not {'avx2', 'fma'} <= flags:
-        return 'written with AVX2 and FMA intrinsics, which this CPU lacks'
-    return None
+def _x86() -> bool:
+    return platform.machine().lower() in ('x86_64', 'amd64')
 
 
-def _machine_flags() -> tuple[str, ...]:
-    """The x86 flags where this machine runs the SIMD kernels: the plain kernels are built with
-    them there (the same library and speed as before they were built elsewhere), and without
-    them on any other CPU, or with ``DEPTH_FUSION_NATIVE=portable``."""
-    return X86_FLAGS if _no_x86_simd() is None else ()
+def machine_flags() -> tuple[str, ...]:
+    """The x86 flags on an x86-64 (which runs the kernels only with AVX2 and FMA: their eight
+    lanes are then AVX2 registers), none on another CPU or with ``DEPTH_FUSION_NATIVE=portable``."""
+    return X86_FLAGS if _x86() and not portable_only() else ()
 
 
 def _compiler() -> str | None:
@@ -180,7 +166,7 @@ def _built(source: Path) -> Path:
     assert cc is not None
     version = _compiler_version(cc)
     failure: subprocess.SubprocessError | None = None
-    machine = _machine_flags()
+    machine = machine_flags()
     for flags in ([*BASE_FLAGS, *machine], [f for f in (*BASE_FLAGS, *machine) if f != '-fopenmp']):
         try:
             return _built_with(source, cc, version, flags)

@@ -25,9 +25,7 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include <immintrin.h>
-
-#include "simd_transpose.h"
+#include "simd8.h"
 
 /* a pixel block (native_cost.LANES) and the most taps a patch has */
 #define LANES 8
@@ -84,30 +82,30 @@ static void describe_row(const float *padded, int64_t h, int64_t w, int64_t wp, 
     for (int p = 0; p < TAPS; p++) src[p] = padded + clamp_index(y + dy[p], h - 1) * wp + reach + dx[p];
     const int banded = margin >= 0;
     const int row_inside = !banded || (y >= margin && y < h - margin);
-    const __m256 lane = _mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7);
+    const v8f lane = v8_setr_ps(0, 1, 2, 3, 4, 5, 6, 7);
     for (int64_t x0 = 0; x0 < w; x0 += 8) {
-        __m256 tap[TAPS], r[LANES];
-        for (int p = 0; p < TAPS; p++) tap[p] = _mm256_loadu_ps(src[p] + x0);
-        __m256 total = _mm256_set1_ps(floor_);
+        v8f tap[TAPS], r[LANES];
+        for (int p = 0; p < TAPS; p++) tap[p] = v8_loadu_ps(src[p] + x0);
+        v8f total = v8_set1_ps(floor_);
         for (int c = 0; c < LANES; c++) {
-            __m256 acc = _mm256_mul_ps(_mm256_broadcast_ss(basis + c * TAPS), tap[0]);
-            for (int p = 1; p < TAPS; p++) acc = _mm256_fmadd_ps(_mm256_broadcast_ss(basis + c * TAPS + p), tap[p], acc);
+            v8f acc = v8_mul_ps(v8_broadcast_ss(basis + c * TAPS), tap[0]);
+            for (int p = 1; p < TAPS; p++) acc = v8_fmadd_ps(v8_broadcast_ss(basis + c * TAPS + p), tap[p], acc);
             r[c] = acc;
-            if (c < K) total = _mm256_fmadd_ps(acc, acc, total);
+            if (c < K) total = v8_fmadd_ps(acc, acc, total);
         }
-        __m256 scale = _mm256_div_ps(_mm256_set1_ps(1.0f), _mm256_sqrt_ps(total));
+        v8f scale = v8_div_ps(v8_set1_ps(1.0f), v8_sqrt_ps(total));
         if (banded) {
-            const __m256 x = _mm256_add_ps(_mm256_set1_ps((float)x0), lane);
-            const __m256 in = _mm256_and_ps(_mm256_cmp_ps(x, _mm256_set1_ps((float)margin), _CMP_GE_OQ),
-                                            _mm256_cmp_ps(x, _mm256_set1_ps((float)(w - margin)), _CMP_LT_OQ));
-            const __m256 inside = row_inside ? _mm256_and_ps(in, _mm256_set1_ps(1.0f)) : _mm256_setzero_ps();
-            scale = _mm256_mul_ps(scale, inside);
+            const v8f x = v8_add_ps(v8_set1_ps((float)x0), lane);
+            const v8f in = v8_and_ps(v8_cmp_ps(x, v8_set1_ps((float)margin), V8_CMP_GE),
+                                            v8_cmp_ps(x, v8_set1_ps((float)(w - margin)), V8_CMP_LT));
+            const v8f inside = row_inside ? v8_and_ps(in, v8_set1_ps(1.0f)) : v8_setzero_ps();
+            scale = v8_mul_ps(scale, inside);
             r[K] = inside;
         }
-        for (int c = 0; c < K; c++) r[c] = _mm256_mul_ps(r[c], scale);
+        for (int c = 0; c < K; c++) r[c] = v8_mul_ps(r[c], scale);
         transpose8(r);
         const int64_t n = (w - x0 < 8) ? w - x0 : 8;
-        for (int64_t i = 0; i < n; i++) _mm256_storeu_ps(out + (x0 + i) * LANES, r[i]);
+        for (int64_t i = 0; i < n; i++) v8_storeu_ps(out + (x0 + i) * LANES, r[i]);
     }
 }
 

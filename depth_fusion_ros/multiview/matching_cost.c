@@ -1,4 +1,5 @@
-/* The epipolar matching cost (1 - ZNCC of patch descriptors) in one pass per lookup (x86-64, AVX2 + FMA).
+/* The epipolar matching cost (1 - ZNCC of patch descriptors) in one pass per lookup, eight lanes a vector
+ * (simd8.h: AVX2 and FMA on x86-64, the same operations as vector extensions on other CPUs).
  *
  * Four kernels compute, number for number, what the package's torch code computes:
  * - frame_cost: the depth filter's cost against one frame, samples-first (S, R)
@@ -31,12 +32,11 @@
  * 0..C-1 and the visibility in channel C, its last block zeros (what an out-of-image corner
  * reads); key (C, .) channel rows with stride ks.
  */
-#include <immintrin.h>
 #include <math.h>
 #include <stdint.h>
 
 #include "filter_native.h"
-#include "simd_transpose.h"
+#include "simd8.h"
 
 #define LANES 8
 
@@ -63,96 +63,96 @@ static void lookup_one(const float *F, int H, int W, float a0, float a1, float a
     for (int c = 0; c < LANES; c++) v[c] = fmaf(pse[c], se, fmaf(psw[c], sw, fmaf(pne[c], ne, pnw[c] * nw)));
 }
 
-static inline __m256 in_range(__m256 x, __m256 size) {
-    return _mm256_and_ps(_mm256_cmp_ps(x, _mm256_set1_ps(-1.0f), _CMP_GT_OQ), _mm256_cmp_ps(x, size, _CMP_LT_OQ));
+static inline v8f in_range(v8f x, v8f size) {
+    return v8_and_ps(v8_cmp_ps(x, v8_set1_ps(-1.0f), V8_CMP_GT), v8_cmp_ps(x, size, V8_CMP_LT));
 }
 
 /* The corner index of eight lookups, or the zero block where the corner is out of the image. */
-static inline __m256i corner(__m256i at, __m256 inside, __m256i zero) {
-    return _mm256_blendv_epi8(zero, at, _mm256_castps_si256(inside));
+static inline v8i corner(v8i at, v8f inside, v8i zero) {
+    return v8_blendv_epi8(zero, at, v8_castps_si256(inside));
 }
 
 /* Eight lookups at once (lane j: the point a_j + p_j b_j): v[j] is lookup j's descriptor block. */
-static inline void lookup_eight(const float *F, int H, int W, __m256 a0, __m256 a1, __m256 a2, __m256 b0,
-                                __m256 b1, __m256 b2, __m256 p, __m256 v[8]) {
-    const __m256 one = _mm256_set1_ps(1.0f), lo = _mm256_set1_ps(1e-4f);
-    const __m256 fw = _mm256_set1_ps((float)W), fh = _mm256_set1_ps((float)H);
-    const __m256 sx = _mm256_set1_ps((float)(W - 1) / 2), sy = _mm256_set1_ps((float)(H - 1) / 2);
-    const __m256i iw = _mm256_set1_epi32(W), izero = _mm256_set1_epi32(H * W), ione = _mm256_set1_epi32(1);
+static inline void lookup_eight(const float *F, int H, int W, v8f a0, v8f a1, v8f a2, v8f b0,
+                                v8f b1, v8f b2, v8f p, v8f v[8]) {
+    const v8f one = v8_set1_ps(1.0f), lo = v8_set1_ps(1e-4f);
+    const v8f fw = v8_set1_ps((float)W), fh = v8_set1_ps((float)H);
+    const v8f sx = v8_set1_ps((float)(W - 1) / 2), sy = v8_set1_ps((float)(H - 1) / 2);
+    const v8i iw = v8_set1_epi32(W), izero = v8_set1_epi32(H * W), ione = v8_set1_epi32(1);
     /* a + rho b (addcmul), w clamped below at 1e-4 (max(lo, w) keeps a NaN w) */
-    __m256 w = _mm256_max_ps(lo, _mm256_fmadd_ps(p, b2, a2));
-    __m256 gx = _mm256_div_ps(_mm256_fmadd_ps(p, b0, a0), w);
-    __m256 gy = _mm256_div_ps(_mm256_fmadd_ps(p, b1, a1), w);
+    v8f w = v8_max_ps(lo, v8_fmadd_ps(p, b2, a2));
+    v8f gx = v8_div_ps(v8_fmadd_ps(p, b0, a0), w);
+    v8f gy = v8_div_ps(v8_fmadd_ps(p, b1, a1), w);
     /* grid_sample: unnormalised (align_corners), the four corners and their weights */
-    __m256 ix = _mm256_mul_ps(_mm256_add_ps(gx, one), sx), iy = _mm256_mul_ps(_mm256_add_ps(gy, one), sy);
-    __m256 xw = _mm256_floor_ps(ix), yn = _mm256_floor_ps(iy);
-    __m256 wx = _mm256_sub_ps(ix, xw), e = _mm256_sub_ps(one, wx);
-    __m256 n = _mm256_sub_ps(iy, yn), sv = _mm256_sub_ps(one, n);
+    v8f ix = v8_mul_ps(v8_add_ps(gx, one), sx), iy = v8_mul_ps(v8_add_ps(gy, one), sy);
+    v8f xw = v8_floor_ps(ix), yn = v8_floor_ps(iy);
+    v8f wx = v8_sub_ps(ix, xw), e = v8_sub_ps(one, wx);
+    v8f n = v8_sub_ps(iy, yn), sv = v8_sub_ps(one, n);
     float wt[4][8];
-    _mm256_storeu_ps(wt[0], _mm256_mul_ps(sv, e));
-    _mm256_storeu_ps(wt[1], _mm256_mul_ps(sv, wx));
-    _mm256_storeu_ps(wt[2], _mm256_mul_ps(n, e));
-    _mm256_storeu_ps(wt[3], _mm256_mul_ps(n, wx));
-    __m256 wm = in_range(xw, fw), em = in_range(_mm256_add_ps(xw, one), fw);
-    __m256 nm = in_range(yn, fh), sm = in_range(_mm256_add_ps(yn, one), fh);
+    v8_storeu_ps(wt[0], v8_mul_ps(sv, e));
+    v8_storeu_ps(wt[1], v8_mul_ps(sv, wx));
+    v8_storeu_ps(wt[2], v8_mul_ps(n, e));
+    v8_storeu_ps(wt[3], v8_mul_ps(n, wx));
+    v8f wm = in_range(xw, fw), em = in_range(v8_add_ps(xw, one), fw);
+    v8f nm = in_range(yn, fh), sm = in_range(v8_add_ps(yn, one), fh);
     /* lanes with no corner inside are not converted (their coordinate may be NaN or huge) */
-    __m256i xi = _mm256_cvttps_epi32(_mm256_and_ps(xw, _mm256_or_ps(wm, em)));
-    __m256i yi = _mm256_cvttps_epi32(_mm256_and_ps(yn, _mm256_or_ps(nm, sm)));
-    __m256i at = _mm256_add_epi32(_mm256_mullo_epi32(yi, iw), xi);
-    __m256i below = _mm256_add_epi32(at, iw);
+    v8i xi = v8_cvttps_epi32(v8_and_ps(xw, v8_or_ps(wm, em)));
+    v8i yi = v8_cvttps_epi32(v8_and_ps(yn, v8_or_ps(nm, sm)));
+    v8i at = v8_add_epi32(v8_mullo_epi32(yi, iw), xi);
+    v8i below = v8_add_epi32(at, iw);
     int32_t idx[4][8];
-    _mm256_storeu_si256((__m256i *)idx[0], corner(at, _mm256_and_ps(nm, wm), izero));
-    _mm256_storeu_si256((__m256i *)idx[1], corner(_mm256_add_epi32(at, ione), _mm256_and_ps(nm, em), izero));
-    _mm256_storeu_si256((__m256i *)idx[2], corner(below, _mm256_and_ps(sm, wm), izero));
-    _mm256_storeu_si256((__m256i *)idx[3], corner(_mm256_add_epi32(below, ione), _mm256_and_ps(sm, em), izero));
+    v8_storeu_si256((v8i *)idx[0], corner(at, v8_and_ps(nm, wm), izero));
+    v8_storeu_si256((v8i *)idx[1], corner(v8_add_epi32(at, ione), v8_and_ps(nm, em), izero));
+    v8_storeu_si256((v8i *)idx[2], corner(below, v8_and_ps(sm, wm), izero));
+    v8_storeu_si256((v8i *)idx[3], corner(v8_add_epi32(below, ione), v8_and_ps(sm, em), izero));
     for (int j = 0; j < 8; j++) {
-        __m256 acc = _mm256_mul_ps(_mm256_loadu_ps(F + (int64_t)LANES * idx[0][j]), _mm256_set1_ps(wt[0][j]));
-        acc = _mm256_fmadd_ps(_mm256_loadu_ps(F + (int64_t)LANES * idx[1][j]), _mm256_set1_ps(wt[1][j]), acc);
-        acc = _mm256_fmadd_ps(_mm256_loadu_ps(F + (int64_t)LANES * idx[2][j]), _mm256_set1_ps(wt[2][j]), acc);
-        v[j] = _mm256_fmadd_ps(_mm256_loadu_ps(F + (int64_t)LANES * idx[3][j]), _mm256_set1_ps(wt[3][j]), acc);
+        v8f acc = v8_mul_ps(v8_loadu_ps(F + (int64_t)LANES * idx[0][j]), v8_set1_ps(wt[0][j]));
+        acc = v8_fmadd_ps(v8_loadu_ps(F + (int64_t)LANES * idx[1][j]), v8_set1_ps(wt[1][j]), acc);
+        acc = v8_fmadd_ps(v8_loadu_ps(F + (int64_t)LANES * idx[2][j]), v8_set1_ps(wt[2][j]), acc);
+        v[j] = v8_fmadd_ps(v8_loadu_ps(F + (int64_t)LANES * idx[3][j]), v8_set1_ps(wt[3][j]), acc);
     }
 }
 
 /* Eight rows' values x[0..valid) in lanes, the spare lanes repeating the last row (a block at
  * the end of the rows: computed, never written back). */
-static inline __m256 load_lanes(const float *x, int valid) {
-    if (valid == 8) return _mm256_loadu_ps(x);
+static inline v8f load_lanes(const float *x, int valid) {
+    if (valid == 8) return v8_loadu_ps(x);
     float t[8];
     for (int j = 0; j < 8; j++) t[j] = x[j < valid ? j : valid - 1];
-    return _mm256_loadu_ps(t);
+    return v8_loadu_ps(t);
 }
 
 /* The first `valid` lanes of v to x[0..valid). */
-static inline void store_lanes(float *x, __m256 v, int valid) {
+static inline void store_lanes(float *x, v8f v, int valid) {
     if (valid == 8) {
-        _mm256_storeu_ps(x, v);
+        v8_storeu_ps(x, v);
         return;
     }
     float t[8];
-    _mm256_storeu_ps(t, v);
+    v8_storeu_ps(t, v);
     for (int j = 0; j < valid; j++) x[j] = t[j];
 }
 
 /* filter_search._frame_cost_torch for eight rows (lanes) at inverse depths p: the ZNCC
  * (planes[0] keys[0], then addcmul_ per channel) and (count - zncc + 1e-3) / ((count + 1e-3)
  * * (count >= 0.5)). */
-static inline __m256 cost_eight(const float *F, int H, int W, int C, const __m256 *k, __m256 a0, __m256 a1,
-                                __m256 a2, __m256 B0, __m256 B1, __m256 B2, __m256 p) {
-    const __m256 one = _mm256_set1_ps(1.0f), eps = _mm256_set1_ps(1e-3f), half = _mm256_set1_ps(0.5f);
-    __m256 v[8];
+static inline v8f cost_eight(const float *F, int H, int W, int C, const v8f *k, v8f a0, v8f a1,
+                                v8f a2, v8f B0, v8f B1, v8f B2, v8f p) {
+    const v8f one = v8_set1_ps(1.0f), eps = v8_set1_ps(1e-3f), half = v8_set1_ps(0.5f);
+    v8f v[8];
     lookup_eight(F, H, W, a0, a1, a2, B0, B1, B2, p, v);
     transpose8(v); /* v[c]: channel c of the eight lookups */
-    __m256 z = _mm256_mul_ps(v[0], k[0]);
-    for (int c = 1; c < C; c++) z = _mm256_fmadd_ps(v[c], k[c], z);
-    __m256 count = v[C];
-    __m256 vis = _mm256_and_ps(_mm256_cmp_ps(count, half, _CMP_GE_OQ), one);
-    __m256 num = _mm256_add_ps(_mm256_sub_ps(count, z), eps);
-    return _mm256_div_ps(num, _mm256_mul_ps(_mm256_add_ps(count, eps), vis));
+    v8f z = v8_mul_ps(v[0], k[0]);
+    for (int c = 1; c < C; c++) z = v8_fmadd_ps(v[c], k[c], z);
+    v8f count = v[C];
+    v8f vis = v8_and_ps(v8_cmp_ps(count, half, V8_CMP_GE), one);
+    v8f num = v8_add_ps(v8_sub_ps(count, z), eps);
+    return v8_div_ps(num, v8_mul_ps(v8_add_ps(count, eps), vis));
 }
 
 /* The rays and key descriptors of the eight rows from r (the last block padded: load_lanes). */
 static inline void rows_eight(const float *key, int64_t ks, int C, const float *a, int64_t as, int64_t r, int valid,
-                              __m256 *k, __m256 *a0, __m256 *a1, __m256 *a2) {
+                              v8f *k, v8f *a0, v8f *a1, v8f *a2) {
     *a0 = load_lanes(a + r, valid), *a1 = load_lanes(a + as + r, valid), *a2 = load_lanes(a + 2 * as + r, valid);
     for (int c = 0; c < C; c++) k[c] = load_lanes(key + c * ks + r, valid);
 }
@@ -163,14 +163,14 @@ static inline void rows_eight(const float *key, int64_t ks, int C, const float *
 void frame_cost(const float *F, int H, int W, int C, const float *key, int64_t ks, const float *a, int64_t as,
                 float b0, float b1, float b2, const float *rho, int64_t rs, int S, int64_t R, float *out,
                 int threads) {
-    const __m256 B0 = _mm256_set1_ps(b0), B1 = _mm256_set1_ps(b1), B2 = _mm256_set1_ps(b2);
+    const v8f B0 = v8_set1_ps(b0), B1 = v8_set1_ps(b1), B2 = v8_set1_ps(b2);
 #pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
     for (int64_t r = 0; r < R; r += 8) {
         int valid = (R - r < 8) ? (int)(R - r) : 8;
-        __m256 k[LANES], a0, a1, a2;
+        v8f k[LANES], a0, a1, a2;
         rows_eight(key, ks, C, a, as, r, valid, k, &a0, &a1, &a2);
         for (int s = 0; s < S; s++) {
-            __m256 p = load_lanes(rho + s * rs + r, valid);
+            v8f p = load_lanes(rho + s * rs + r, valid);
             store_lanes(out + s * rs + r, cost_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, p), valid);
         }
     }
@@ -193,25 +193,25 @@ void sweep_cost(const float *F, int n, int H, int W, int C, const float *key, in
                 int threads) {
     const int64_t table = ((int64_t)H * W + 1) * LANES;
     const int s8 = S & ~7;
-    const __m256 eps = _mm256_set1_ps(1e-3f);
+    const v8f eps = v8_set1_ps(1e-3f);
 #pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
     for (int64_t m = 0; m < M; m++) {
         const float *pm = rho + m * rs;
         for (int s = 0; s < s8; s += 8) {
-            __m256 p = _mm256_loadu_ps(pm + s), sum[8], v[8];
+            v8f p = v8_loadu_ps(pm + s), sum[8], v[8];
             for (int k = 0; k < n; k++) {
                 const float *ak = a + (k * M + m) * 3, *bk = b + 3 * k;
-                lookup_eight(F + k * table, H, W, _mm256_set1_ps(ak[0]), _mm256_set1_ps(ak[1]), _mm256_set1_ps(ak[2]),
-                             _mm256_set1_ps(bk[0]), _mm256_set1_ps(bk[1]), _mm256_set1_ps(bk[2]), p, k ? v : sum);
+                lookup_eight(F + k * table, H, W, v8_set1_ps(ak[0]), v8_set1_ps(ak[1]), v8_set1_ps(ak[2]),
+                             v8_set1_ps(bk[0]), v8_set1_ps(bk[1]), v8_set1_ps(bk[2]), p, k ? v : sum);
                 if (k)
-                    for (int j = 0; j < 8; j++) sum[j] = _mm256_add_ps(sum[j], v[j]);
+                    for (int j = 0; j < 8; j++) sum[j] = v8_add_ps(sum[j], v[j]);
             }
             transpose8(sum); /* sum[c]: channel c of the eight samples, summed over the neighbours */
-            __m256 z = _mm256_mul_ps(sum[0], _mm256_set1_ps(key[m]));
-            for (int c = 1; c < C; c++) z = _mm256_add_ps(z, _mm256_mul_ps(sum[c], _mm256_set1_ps(key[c * ks + m])));
-            __m256 num = _mm256_add_ps(_mm256_sub_ps(sum[C], z), eps);
-            _mm256_storeu_ps(cost + m * S + s, _mm256_div_ps(num, _mm256_add_ps(sum[C], eps)));
-            _mm256_storeu_ps(count + m * S + s, sum[C]);
+            v8f z = v8_mul_ps(sum[0], v8_set1_ps(key[m]));
+            for (int c = 1; c < C; c++) z = v8_add_ps(z, v8_mul_ps(sum[c], v8_set1_ps(key[c * ks + m])));
+            v8f num = v8_add_ps(v8_sub_ps(sum[C], z), eps);
+            v8_storeu_ps(cost + m * S + s, v8_div_ps(num, v8_add_ps(sum[C], eps)));
+            v8_storeu_ps(count + m * S + s, sum[C]);
         }
         for (int s = s8; s < S; s++) {
             float total[LANES], v[LANES];
@@ -283,19 +283,19 @@ static inline void parabola(float cm, float c0, float cp, float c1, float g, flo
 
 /* One block of eight rows (lanes; only the first `valid` written): S coarse samples in
  * [lo, hi], the best, its distinctiveness, `refine` fine samples each side and the parabola. */
-static void search_eight(const float *F, int H, int W, int C, const __m256 *k, __m256 a0, __m256 a1, __m256 a2,
-                         __m256 B0, __m256 B1, __m256 B2, __m256 lo, __m256 hi, int S, int refine, int with_distinct,
+static void search_eight(const float *F, int H, int W, int C, const v8f *k, v8f a0, v8f a1, v8f a2,
+                         v8f B0, v8f B1, v8f B2, v8f lo, v8f hi, int S, int refine, int with_distinct,
                          int reject_edges, int valid, float *rho, float *cost, float *distinct, uint8_t *ok,
                          float *costs /* (S + 2 refine) x 8 */) {
-    __m256 step = _mm256_div_ps(_mm256_sub_ps(hi, lo), _mm256_set1_ps((float)(S - 1)));
+    v8f step = v8_div_ps(v8_sub_ps(hi, lo), v8_set1_ps((float)(S - 1)));
     for (int s = 0; s < S; s++) {
-        __m256 p = _mm256_fmadd_ps(step, _mm256_set1_ps((float)s), lo); /* addcmul(lo, step, k) */
-        _mm256_storeu_ps(costs + 8 * s, cost_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, p));
+        v8f p = v8_fmadd_ps(step, v8_set1_ps((float)s), lo); /* addcmul(lo, step, k) */
+        v8_storeu_ps(costs + 8 * s, cost_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, p));
     }
     float los[8], steps[8], gbest[8], fsteps[8], c1s[8];
     int bests[8];
-    _mm256_storeu_ps(los, lo);
-    _mm256_storeu_ps(steps, step);
+    v8_storeu_ps(los, lo);
+    v8_storeu_ps(steps, step);
     for (int j = 0; j < 8; j++) {
         bests[j] = first_min(costs + j, S, &c1s[j]);
         gbest[j] = fmaf(steps[j], (float)bests[j], los[j]);
@@ -303,11 +303,11 @@ static void search_eight(const float *F, int H, int W, int C, const __m256 *k, _
     }
     float *fine = costs + 8 * S; /* the 2 refine fine costs, the best coarse one's left out */
     if (refine > 0) {
-        __m256 gb = _mm256_loadu_ps(gbest), fs = _mm256_loadu_ps(fsteps);
+        v8f gb = v8_loadu_ps(gbest), fs = v8_loadu_ps(fsteps);
         for (int o = -refine, i = 0; o <= refine; o++) {
             if (o == 0) continue;
-            __m256 p = _mm256_fmadd_ps(fs, _mm256_set1_ps((float)o), gb);
-            _mm256_storeu_ps(fine + 8 * i++, cost_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, p));
+            v8f p = v8_fmadd_ps(fs, v8_set1_ps((float)o), gb);
+            v8_storeu_ps(fine + 8 * i++, cost_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, p));
         }
     }
     for (int j = 0; j < valid; j++) {
@@ -341,16 +341,16 @@ void frame_search(const float *F, int H, int W, int C, const float *key, int64_t
                   float b0, float b1, float b2, const float *lo, const float *hi, int64_t R, int S, int refine,
                   int with_distinct, int reject_edges, float *rho, float *cost, float *distinct, uint8_t *ok,
                   int threads) {
-    const __m256 B0 = _mm256_set1_ps(b0), B1 = _mm256_set1_ps(b1), B2 = _mm256_set1_ps(b2);
+    const v8f B0 = v8_set1_ps(b0), B1 = v8_set1_ps(b1), B2 = v8_set1_ps(b2);
     const int64_t blocks = (R + 7) / 8;
 #pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
     for (int64_t i = 0; i < blocks; i++) {
         float costs[(512 + 2 * 64) * 8];
         int64_t r = 8 * i;
         int valid = (R - r < 8) ? (int)(R - r) : 8;
-        __m256 k[LANES], a0, a1, a2;
+        v8f k[LANES], a0, a1, a2;
         rows_eight(key, ks, C, a, as, r, valid, k, &a0, &a1, &a2);
-        __m256 l = load_lanes(lo + r, valid), h = load_lanes(hi + r, valid);
+        v8f l = load_lanes(lo + r, valid), h = load_lanes(hi + r, valid);
         search_eight(F, H, W, C, k, a0, a1, a2, B0, B1, B2, l, h, S, refine, with_distinct, reject_edges, valid,
                      rho + r, cost + r, distinct + r, ok + r, costs);
     }
@@ -371,7 +371,7 @@ static void check_first(const float *F, int H, int W, int C, const float *key, i
                         float dmin, float rho_min, float rho_max, int threads) {
     /* filter_geometry.grid_rows_in_place: (b_k s_k) - b_2 for the two image coordinates */
     const float nb0 = b0 * s0 - b2, nb1 = b1 * s1 - b2;
-    const __m256 B0 = _mm256_set1_ps(nb0), B1 = _mm256_set1_ps(nb1), B2 = _mm256_set1_ps(b2);
+    const v8f B0 = v8_set1_ps(nb0), B1 = v8_set1_ps(nb1), B2 = v8_set1_ps(b2);
     const int64_t blocks = (n + 7) / 8;
 #pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
     for (int64_t blk = 0; blk < blocks; blk++) {
@@ -390,12 +390,12 @@ static void check_first(const float *F, int H, int W, int C, const float *key, i
             lo[j] = match[j] - half;
             hi[j] = match[j] + half;
         }
-        __m256 k[LANES];
-        for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(kl[c]);
+        v8f k[LANES];
+        for (int c = 0; c < C; c++) k[c] = v8_loadu_ps(kl[c]);
         float rho[8], best[8], ratio[8];
         uint8_t ok[8];
-        search_eight(F, H, W, C, k, _mm256_loadu_ps(l0), _mm256_loadu_ps(l1), _mm256_loadu_ps(l2), B0, B1, B2,
-                     _mm256_loadu_ps(lo), _mm256_loadu_ps(hi), S, 0, 1, 0, valid_lanes, rho, best, ratio, ok, costs);
+        search_eight(F, H, W, C, k, v8_loadu_ps(l0), v8_loadu_ps(l1), v8_loadu_ps(l2), B0, B1, B2,
+                     v8_loadu_ps(lo), v8_loadu_ps(hi), S, 0, 1, 0, valid_lanes, rho, best, ratio, ok, costs);
         for (int j = 0; j < valid_lanes; j++) {
             int64_t i = first[8 * blk + j];
             int distinct = ok[j] && ratio[j] >= dmin && rho[j] >= rho_min && rho[j] <= rho_max;
@@ -461,7 +461,7 @@ void filter_rows(const float *F, int H, int W, int C, const float *key, int64_t 
     for (int b = 0; b < 4; b++) fill[b] = start[b];
     for (int64_t i = 0; i < R; i++) order[fill[which[i]]++] = i; /* a counting sort: row order within a bucket */
     const float nb0 = b0 * s0 - b2, nb1 = b1 * s1 - b2;
-    const __m256 B0 = _mm256_set1_ps(nb0), B1 = _mm256_set1_ps(nb1), B2 = _mm256_set1_ps(b2);
+    const v8f B0 = v8_set1_ps(nb0), B1 = v8_set1_ps(nb1), B2 = v8_set1_ps(b2);
     for (int bk = 0; bk < 4; bk++) {
         const int64_t n = counts[bk];
         const int S = bucket[3 * bk], refine = bucket[3 * bk + 1], distinct = bucket[3 * bk + 2];
@@ -484,12 +484,12 @@ void filter_rows(const float *F, int H, int W, int C, const float *key, int64_t 
                 l[q] = lo[i];
                 h[q] = hi[i];
             }
-            __m256 k[LANES];
-            for (int c = 0; c < C; c++) k[c] = _mm256_loadu_ps(kl[c]);
+            v8f k[LANES];
+            for (int c = 0; c < C; c++) k[c] = v8_loadu_ps(kl[c]);
             float rho[8], best[8], ratio[8];
             uint8_t ok[8];
-            search_eight(F, H, W, C, k, _mm256_loadu_ps(l0), _mm256_loadu_ps(l1), _mm256_loadu_ps(l2), B0, B1, B2,
-                         _mm256_loadu_ps(l), _mm256_loadu_ps(h), S, refine, distinct, reject_edges, lanes, rho, best,
+            search_eight(F, H, W, C, k, v8_loadu_ps(l0), v8_loadu_ps(l1), v8_loadu_ps(l2), B0, B1, B2,
+                         v8_loadu_ps(l), v8_loadu_ps(h), S, refine, distinct, reject_edges, lanes, rho, best,
                          ratio, ok, costs);
             for (int q = 0; q < lanes; q++) {
                 int64_t i = members[8 * blk + q];
@@ -532,10 +532,10 @@ void channels_last(const float *desc, int n, int ch, int64_t HW, int64_t sn, int
         int64_t k = i / blocks, p = (i % blocks) * 8;
         const float *d = desc + k * sn;
         float *t = table + (k * (HW + 1) + p) * LANES;
-        __m256 r[8];
-        for (int c = 0; c < 8; c++) r[c] = (c < ch) ? _mm256_loadu_ps(d + c * sc + p) : _mm256_setzero_ps();
+        v8f r[8];
+        for (int c = 0; c < 8; c++) r[c] = (c < ch) ? v8_loadu_ps(d + c * sc + p) : v8_setzero_ps();
         transpose8(r);
-        for (int j = 0; j < 8; j++) _mm256_storeu_ps(t + LANES * j, r[j]);
+        for (int j = 0; j < 8; j++) v8_storeu_ps(t + LANES * j, r[j]);
     }
 #pragma omp parallel for num_threads(threads) schedule(static) if (threads > 1)
     for (int k = 0; k < n; k++) {
