@@ -16,18 +16,25 @@ from pathlib import Path
 
 @functools.cache
 def cpu_flags_line() -> str | None:
-    """The ``flags`` line of /proc/cpuinfo (its first CPU), or None where it cannot be read."""
+    """The feature line of /proc/cpuinfo (its first CPU), or None where it cannot be read."""
     try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('flags'):
-                return line
+        return flags_line(Path('/proc/cpuinfo').read_text())
     except OSError:
         return None
+
+
+def flags_line(cpuinfo: str) -> str | None:
+    """The first feature line of a /proc/cpuinfo text: ``flags`` on an x86-64 (``avx2``,
+    ``fma``, ...), ``Features`` on an ARM board (``asimd``, ``sve``, ...); None without one."""
+    for line in cpuinfo.splitlines():
+        if line.startswith(('flags', 'Features')) and ':' in line:
+            return line
     return None
 
 
 def cpu_flags() -> set[str] | None:
-    """The CPU's feature flags (``avx2``, ``fma``, ...), or None where they cannot be read."""
+    """The CPU's feature flags (``avx2``, ``fma``, ...; an ARM board's ``asimd``, ...), or None
+    where they cannot be read."""
     line = cpu_flags_line()
     return None if line is None else set(line.split(':', 1)[1].split())
 

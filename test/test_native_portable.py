@@ -19,7 +19,7 @@ import pytest
 import torch
 
 import depth_fusion_ros
-from depth_fusion_ros import native_build
+from depth_fusion_ros import build_env, native_build
 from depth_fusion_ros.fusion import native_halo, neighbour_median, occlusion
 from depth_fusion_ros.fusion.scenes import rendered_halo_keyframe
 from depth_fusion_ros.multiview import native_cost, native_filter, native_scores
@@ -132,3 +132,13 @@ def test_where_the_kernels_run_and_how_they_are_built(monkeypatch):
     monkeypatch.setenv('DEPTH_FUSION_NATIVE', 'portable')  # the tests' way to build the ARM code here
     assert native_build._unsupported() is None
     assert native_build.machine_flags() == ()
+
+
+def test_the_cpus_features_are_read_on_x86_and_on_arm():
+    """The kernels' cache keys and the x86 check read the CPU's features: an x86-64's ``flags``
+    line, an ARM board's ``Features`` line (before, an ARM board's were not read at all)."""
+    x86 = 'processor\t: 0\nvendor_id\t: AuthenticAMD\nflags\t\t: fpu sse2 avx2 fma\nbugs\t\t: none\n'
+    arm = 'processor\t: 0\nBogoMIPS\t: 62.50\nFeatures\t: fp asimd evtstrm crc32 atomics\nCPU part\t: 0xd42\n'
+    assert build_env.flags_line(x86) == 'flags\t\t: fpu sse2 avx2 fma'
+    assert build_env.flags_line(arm) == 'Features\t: fp asimd evtstrm crc32 atomics'
+    assert build_env.flags_line('processor\t: 0\n') is None
