@@ -13,13 +13,13 @@ emulator is missing (the CI), with the reason.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from foreign_harness import missing_tools, record, replay
+from test_native_matching_cost import _inputs as cost_inputs
+from test_native_sweep_scores import _volume
 
 from depth_fusion_ros import native_build
 from depth_fusion_ros.fusion import native_halo, occlusion
@@ -39,123 +39,94 @@ def _library_or_skip(module):
     return lib
 
 
-def _replayed_alike(tmp_path: Path, source: Path, name: str, argtypes: list, calls: list) -> None:
+def _filter_stream(frames: int) -> None:
+    """The filter over a rendered room's first ``frames`` frames (its kernels' calls recorded)."""
+    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
+    from depth_fusion_ros.multiview.filter import DepthFilter
+
+    seq = render_sequence(SynthConfig(width=160, height=120, frames=frames, seed=4, parallax='high'))
+    filt = DepthFilter(seq.camera, None, device='cpu')
+    for frame in seq.frames:
+        filt.process(frame.gray, frame.pose)
+
+
+def _same_on_aarch64(
+    monkeypatch, tmp_path: Path, module, source: str, name: str, buffers, run, last: int = 0
+):
+    """Record ``name``'s calls while ``run()`` runs (the last ``last`` of them; 0: all), replay
+    each with ``source`` built for aarch64, and hold every buffer to this machine's values."""
+    lib = _library_or_skip(module)
+    argtypes = getattr(lib, name).argtypes
+    calls = record(monkeypatch, lib, name, buffers)
+    run()
     assert calls, f'{name} was not called'
-    for k, call in enumerate(calls):
+    for k, call in enumerate(calls[-last:] if last else calls):
         workdir = tmp_path / f'{name}_{k}'
         workdir.mkdir()
-        theirs = replay(source, name, argtypes, call, workdir)
+        theirs = replay(Path(module.__file__).with_name(source), name, argtypes, call, workdir)
         for index in call.after:
             assert call.same_values(index, theirs[index]), f'{name}: argument {index} differs on aarch64'
 
 
-def test_the_halo_test_on_aarch64_marks_the_same_points(monkeypatch, tmp_path):
-    lib = _library_or_skip(native_halo)
-    argtypes = lib.halo_test.argtypes
-    f32, i64 = np.float32, np.int64
-    planes = {i: (f32, 0) for i in range(2, 7)}
+F32, I32, I64, U8 = np.float32, np.int32, np.int64, np.uint8
 
+
+def test_the_halo_test_on_aarch64_marks_the_same_points(monkeypatch, tmp_path):
     def buffers(a):
         n, hw = a[7], a[0] * a[1]
-        return {**{i: (f32, hw) for i in planes}, 8: (i64, n), 9: (i64, n), 10: (f32, n), 18: (np.uint8, n)}
+        return {**{i: (F32, hw) for i in range(2, 7)}, 8: (I64, n), 9: (I64, n), 10: (F32, n), 18: (U8, n)}
 
-    calls = record(monkeypatch, lib, 'halo_test', buffers)
-    image, single, m, points = rendered_halo_keyframe(width=160, height=120, point_share=0.6)
-    assert occlusion.halo_points(image, single, m, points).any()
-    source = Path(native_halo.__file__).with_name('halo_test.c')
-    _replayed_alike(tmp_path, source, 'halo_test', argtypes, calls)
+    def run():
+        image, single, m, points = rendered_halo_keyframe(width=160, height=120, point_share=0.6)
+        assert occlusion.halo_points(image, single, m, points).any()
+
+    _same_on_aarch64(monkeypatch, tmp_path, native_halo, 'halo_test.c', 'halo_test', buffers, run)
 
 
 def test_the_sweep_scores_on_aarch64_are_the_same(monkeypatch, tmp_path):
-    lib = _library_or_skip(native_scores)
-    argtypes = lib.sweep_scores.argtypes
-    f32, i64 = np.float32, np.int64
-
     def buffers(a):
         m, s = a[2], a[3]
-        return {0: (f32, m * s), 1: (f32, m * s), 6: (f32, m), 7: (i64, m), 8: (f32, m)}
+        return {0: (F32, m * s), 1: (F32, m * s), 6: (F32, m), 7: (I64, m), 8: (F32, m)}
 
-    calls = record(monkeypatch, lib, 'sweep_scores', buffers)
-    gen = torch.Generator().manual_seed(3)
-    cost = torch.rand(600, 40, generator=gen) * 2.0
-    cost[cost < 0.04] = math.inf
-    cost[::97, 3] = math.nan
-    cost[::50] = math.inf
-    cost[1::50] = 0.5
-    count = torch.rand(600, 40, generator=gen) * 4.0
-    count[::31] = math.nan
-    assert native_scores.native_coarse_scores(cost, count, 1.5, 2) is not None
-    source = Path(native_scores.__file__).with_name('sweep_scores.c')
-    _replayed_alike(tmp_path, source, 'sweep_scores', argtypes, calls)
+    def run():
+        cost, count = _volume(600, 40, seed=3)  # unseen samples, rows seen nowhere, ties, NaN
+        assert native_scores.native_coarse_scores(cost, count, 1.5, 2) is not None
+
+    _same_on_aarch64(monkeypatch, tmp_path, native_scores, 'sweep_scores.c', 'sweep_scores', buffers, run)
 
 
 def test_the_filters_choice_of_rows_on_aarch64_is_the_same(monkeypatch, tmp_path):
-    lib = _library_or_skip(native_choose)
-    argtypes = lib.filter_choose.argtypes
-    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-    from depth_fusion_ros.multiview.filter import DepthFilter
-
-    f32, i64, u8 = np.float32, np.int64, np.uint8
-
     def buffers(a):
         m = a[0]
-        ins = {1: (f32, m), 2: (f32, m), 3: (f32, m), 4: (f32, m), 5: (u8, m), 6: (u8, m), 7: (i64, m)}
-        outs = {24: (f32, 3 * m), 25: (f32, m), 26: (f32, m), 27: (u8, m), 28: (i64, m), 29: (i64, 3)}
-        return {**ins, 8: (f32, 2 * m), 9: (f32, 9), **outs}
+        ins = {1: (F32, m), 2: (F32, m), 3: (F32, m), 4: (F32, m), 5: (U8, m), 6: (U8, m), 7: (I64, m)}
+        outs = {24: (F32, 3 * m), 25: (F32, m), 26: (F32, m), 27: (U8, m), 28: (I64, m), 29: (I64, 3)}
+        return {**ins, 8: (F32, 2 * m), 9: (F32, 9), **outs}
 
-    calls = record(monkeypatch, lib, 'filter_choose', buffers)
-    seq = render_sequence(SynthConfig(width=160, height=120, frames=6, seed=4, parallax='high'))
-    filt = DepthFilter(seq.camera, None, device='cpu')
-    for frame in seq.frames:
-        filt.process(frame.gray, frame.pose)
-    source = Path(native_choose.__file__).with_name('filter_choose.c')
-    _replayed_alike(tmp_path, source, 'filter_choose', argtypes, calls[-2:])
+    run = lambda: _filter_stream(6)  # noqa: E731
+    _same_on_aarch64(
+        monkeypatch, tmp_path, native_choose, 'filter_choose.c', 'filter_choose', buffers, run, 2
+    )
 
 
 def test_the_matching_cost_on_aarch64_is_the_same(monkeypatch, tmp_path):
-    lib = _library_or_skip(native_cost)
-    argtypes = lib.frame_cost.argtypes
-    f32 = np.float32
-
     def buffers(a):
         h, w, c, ks, as_, rs, s, r = a[1], a[2], a[3], a[5], a[7], a[12], a[13], a[14]
         table, keys, rays = (h * w + 1) * 8, (c - 1) * ks + r, 2 * as_ + r
-        return {0: (f32, table), 4: (f32, keys), 6: (f32, rays), 11: (f32, s * rs), 15: (f32, s * r)}
+        return {0: (F32, table), 4: (F32, keys), 6: (F32, rays), 11: (F32, s * rs), 15: (F32, s * r)}
 
-    calls = record(monkeypatch, lib, 'frame_cost', buffers)
-    gen = torch.Generator().manual_seed(8)
-    desc = torch.randn(1, 7, 24, 40, generator=gen)
-    desc[0, 6] = 0.0
-    desc[0, 6, 3:-3, 3:-3] = 1.0
-    key = torch.randn(6, 150, generator=gen)[:, 5:141]
-    a = torch.rand(3, 150, generator=gen)[:, 5:141]
-    a[2] = a[2] * 0.5 + 0.5
-    a[:2] = (a[:2] * 2.4 - 1.2) * a[2]
-    a[2, 3::10] = -1.0
-    rho = (torch.rand(11, 136, generator=gen) * 3.0).contiguous()
-    rho[0, ::13] = math.nan
-    rho[-1, 1::7] = 1e9
-    assert native_cost.native_frame_cost(key, desc, a, torch.tensor([0.04, -0.02, 0.05]), rho) is not None
-    source = Path(native_cost.__file__).with_name('matching_cost.c')
-    _replayed_alike(tmp_path, source, 'frame_cost', argtypes, calls)
+    def run():
+        key, desc, a, b, rho = cost_inputs(136, 11, seed=8)  # rows sliced, corners outside, NaN samples
+        assert native_cost.native_frame_cost(key, desc, a, b, rho) is not None
+
+    _same_on_aarch64(monkeypatch, tmp_path, native_cost, 'matching_cost.c', 'frame_cost', buffers, run)
 
 
 def test_the_frame_descriptors_on_aarch64_are_the_same(monkeypatch, tmp_path):
-    lib = _library_or_skip(native_descriptors)
-    argtypes = lib.describe_table.argtypes
-    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-    from depth_fusion_ros.multiview.filter import DepthFilter
-
-    f32, i32 = np.float32, np.int32
-
     def buffers(a):
         hw = a[0] * a[1]
-        return {2: (f32, hw), 4: (f32, a[3]), 5: (i32, 9), 6: (i32, 9), 9: (f32, 72), 12: (f32, (hw + 1) * 8)}
+        return {2: (F32, hw), 4: (F32, a[3]), 5: (I32, 9), 6: (I32, 9), 9: (F32, 72), 12: (F32, (hw + 1) * 8)}
 
-    calls = record(monkeypatch, lib, 'describe_table', buffers)
-    seq = render_sequence(SynthConfig(width=160, height=120, frames=3, seed=4, parallax='high'))
-    filt = DepthFilter(seq.camera, None, device='cpu')
-    for frame in seq.frames:
-        filt.process(frame.gray, frame.pose)
-    source = Path(native_descriptors.__file__).with_name('describe_table.c')
-    _replayed_alike(tmp_path, source, 'describe_table', argtypes, calls[-1:])
+    run = lambda: _filter_stream(3)  # noqa: E731
+    _same_on_aarch64(
+        monkeypatch, tmp_path, native_descriptors, 'describe_table.c', 'describe_table', buffers, run, 1
+    )
