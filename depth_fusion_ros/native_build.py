@@ -140,6 +140,19 @@ def _x86() -> bool:
     return platform.machine().lower() in ('x86_64', 'amd64')
 
 
+def unavailable() -> str | None:
+    """Why the native kernels do not run on this machine (``depth-fusion kernels`` says it), or
+    None where they do."""
+    return _unsupported()
+
+
+def build_target() -> str:
+    """What the kernels are built for here, in words (``depth-fusion kernels`` says it)."""
+    if machine_flags():
+        return 'x86-64 with AVX2 and FMA'
+    return f'{platform.machine() or "this CPU"} without x86 flags (simd8.h as vector extensions)'
+
+
 def machine_flags() -> tuple[str, ...]:
     """The x86 flags on an x86-64 (which runs the kernels only with AVX2 and FMA: their eight
     lanes are then AVX2 registers), none on another CPU or with ``DEPTH_FUSION_NATIVE=portable``."""

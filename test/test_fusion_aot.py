@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from depth_fusion_ros import native_build
 from depth_fusion_ros.fusion import aot_background, aot_kernels
 from depth_fusion_ros.fusion.interpolation import interpolate
 from depth_fusion_ros.fusion.scenes import make_scene
@@ -152,7 +153,12 @@ def test_the_cli_builds_only_when_missing(cache, capsys):
     from depth_fusion_ros.cli.main import main
 
     assert main(['kernels', '--if-missing']) == 0
-    assert 'already in' in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert 'already in' in out
+    if native_build.unavailable() is None:  # the C kernels too, and for which CPU
+        assert f'native C kernels: 8 of 8 ready for {native_build.build_target()}' in out
+    else:
+        assert 'native C kernels: not used here' in out
     assert main(['kernels', '--if-missing', '--background']) == 0
     assert 'already in' in capsys.readouterr().out
 

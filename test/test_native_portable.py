@@ -142,3 +142,17 @@ def test_the_cpus_features_are_read_on_x86_and_on_arm():
     assert build_env.flags_line(x86) == 'flags\t\t: fpu sse2 avx2 fma'
     assert build_env.flags_line(arm) == 'Features\t: fp asimd evtstrm crc32 atomics'
     assert build_env.flags_line('processor\t: 0\n') is None
+
+
+def test_the_kernels_command_says_why_none_run(monkeypatch, capsys):
+    """``depth-fusion kernels`` on a machine where the C kernels cannot run says why in its
+    native line (here: switched off), and goes on with the fusion's kernels."""
+    from depth_fusion_ros.cli import kernels
+
+    monkeypatch.setenv('DEPTH_FUSION_NATIVE', '0')
+    assert kernels._native_line() == (
+        'native C kernels: not used here (DEPTH_FUSION_NATIVE=0); their torch and numpy twins run'
+    )
+    monkeypatch.setenv('DEPTH_FUSION_NATIVE', 'portable')
+    monkeypatch.setattr(native_build.platform, 'machine', lambda: 'aarch64')
+    assert native_build.build_target() == 'aarch64 without x86 flags (simd8.h as vector extensions)'

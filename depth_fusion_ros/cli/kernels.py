@@ -1,4 +1,5 @@
-"""``depth-fusion kernels``: build the fusion kernels ahead of time so fusion nodes are warm at start."""
+"""``depth-fusion kernels``: build the fusion kernels ahead of time so fusion nodes are warm at start,
+and the native C kernels (said in one line: how many, for which CPU, or why none)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,9 @@ user cache (~/.cache/depth_fusion_ros/aot). A fusion node, run or evaluate that 
 warm within a second of starting, instead of after a 5-9 s torch.compile in every process
 (docs/running.md, "Warm at start"). Run it again after upgrading torch; nodes whose weight
 parameters (fusion.sigma1..3, fusion.weights) differ from the defaults compile as before.
+It first builds (or finds) the eight native C kernels in ~/.cache/depth_fusion_ros/native and
+says for which CPU (an x86-64 with AVX2 and FMA, or an ARM board's own vectors), or why they do
+not run here (docs/performance.md, "The native kernels on an ARM robot computer").
 
 examples:
   depth-fusion kernels                # ~17 s on 2 cores
@@ -45,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     from ..fusion import aot_kernels
     from ..fusion.pipeline import FusionConfig
 
+    print(_native_line(), flush=True)
     params = FusionConfig().weight_params
     cpu = torch.device('cpu')
     if not aot_kernels.enabled(cpu):
@@ -84,3 +89,21 @@ def run(args: argparse.Namespace) -> int:
     for name, took in seconds.items():
         print(f'{name}: built in {took:.1f} s -> {aot_kernels.package_path(name, params, cpu)}')
     return 0
+
+
+def _native_line() -> str:
+    """The native C kernels built (the first run on this machine) or found, in one line: a
+    user on an ARM board sees at once whether they run there."""
+    from .. import native_build
+    from ..fusion import native_halo, neighbour_median
+    from ..multiview import native_cost, native_filter, native_scores
+    from ..user_cache import user_cache
+
+    why = native_build.unavailable()
+    if why is not None:
+        return f'native C kernels: not used here ({why}); their torch and numpy twins run'
+    kernels = (native_cost, native_scores, *native_filter.KERNELS, native_halo, neighbour_median)
+    ready = sum(kernel.prepare() for kernel in kernels)
+    target, where = native_build.build_target(), user_cache('native')
+    line = f'native C kernels: {ready} of {len(kernels)} ready for {target} in {where}'
+    return line if ready == len(kernels) else f'{line}; the warnings above say why the others are not'
