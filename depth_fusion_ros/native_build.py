@@ -4,9 +4,9 @@ Why ctypes and the system C compiler rather than a torch extension: the kernels 
 over raw float buffers (no torch headers, no pybind11, no ninja, nothing to pin), so building
 one is a single ``cc`` call of well under a second, and a ctypes call releases the GIL (a
 node's other threads run while a kernel does). The compiler is the one inductor already needs for
-the compiled fusion kernels (``fusion/kernel_compile.py``); where there is none, or the CPU
-lacks what a kernel is written for, :func:`load_native` says so once and returns ``None`` and
-the caller keeps its torch code.
+the compiled fusion kernels (``fusion/kernel_compile.py``); where there is none, or the CPU is
+an x86-64 without AVX2 and FMA, :func:`load_native` says so once and returns ``None`` and the
+caller keeps its torch code.
 
 Every kernel is C (and OpenMP) that any C compiler builds for any CPU. On an x86-64 with AVX2
 and FMA they are built with those (``-mavx2 -mfma``), and the two that work eight lanes at a
@@ -104,7 +104,7 @@ def load_native(source: Path, signatures: dict[str, list[type]]) -> ctypes.CDLL 
 
 
 def _build_and_load(source: Path) -> ctypes.CDLL | None:
-    why = _unsupported()
+    why = unavailable()
     if why is not None:  # this machine: said, not a fault
         log.info('native kernel %s not used: %s; the torch code runs instead', source.name, why)
         return None
@@ -123,8 +123,9 @@ def _reason(exc: BaseException) -> str:
     return (errors or lines[-1:] or [repr(exc)])[0]
 
 
-def _unsupported() -> str | None:
-    """Why the kernels cannot run on this machine, or None."""
+def unavailable() -> str | None:
+    """Why the native kernels cannot run on this machine (``load_native`` logs it once a kernel,
+    ``depth-fusion kernels`` says it), or None where they can."""
     if not native_enabled():
         return 'DEPTH_FUSION_NATIVE=0'
     if _x86() and not portable_only():
@@ -138,12 +139,6 @@ def _unsupported() -> str | None:
 
 def _x86() -> bool:
     return platform.machine().lower() in ('x86_64', 'amd64')
-
-
-def unavailable() -> str | None:
-    """Why the native kernels do not run on this machine (``depth-fusion kernels`` says it), or
-    None where they do."""
-    return _unsupported()
 
 
 def build_target() -> str:

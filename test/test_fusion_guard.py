@@ -313,7 +313,7 @@ def test_the_native_ring_walk_gives_the_tree_search_numbers(radius, max_neighbou
     from depth_fusion_ros.fusion import neighbour_median as nm
 
     if nm._ring_median_library() is None:
-        pytest.skip(f'the native kernel cannot run here: {native_build._unsupported() or "it did not build"}')
+        pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
     rng = np.random.default_rng(11)
     for density in (0.01, 0.05, 0.3, 0.9):
         cols, rows = _pixels(rng, density, (90, 120))

@@ -28,7 +28,7 @@ FIELDS = ('mu', 'var', 'a', 'b', 'updates', 'prior', 'cost')
 
 def _native_or_skip() -> None:
     if native_apply._library() is None:
-        pytest.skip(f'the native kernel cannot run here: {native_build._unsupported() or "it did not build"}')
+        pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
 
 
 def _keyframe(m: int, gen: torch.Generator) -> SimpleNamespace:

@@ -30,7 +30,7 @@ pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
 def _native_or_skip() -> None:
     if native_choose._library() is None:
-        pytest.skip(f'the native kernel cannot run here: {native_build._unsupported() or "it did not build"}')
+        pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
 
 
 def _keyframe(m: int, gen: torch.Generator, estimates: float) -> SimpleNamespace:

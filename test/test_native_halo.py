@@ -20,7 +20,7 @@ from depth_fusion_ros.point_lookup import bilinear_at
 
 def _native_or_skip() -> None:
     if native_halo._library() is None:
-        pytest.skip(f'the native kernel cannot run here: {native_build._unsupported() or "it did not build"}')
+        pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
 
 
 def _both(monkeypatch, *args, **kwargs) -> tuple[np.ndarray, np.ndarray]:

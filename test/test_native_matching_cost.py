@@ -29,7 +29,7 @@ WIDTH, HEIGHT = 80, 60
 
 def _native_or_skip() -> None:
     if native_cost._load() is None:
-        pytest.skip(f'the native kernel cannot run here: {native_build._unsupported() or "it did not build"}')
+        pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
 
 
 def _inputs(rows: int, samples: int, seed: int = 0):
@@ -228,7 +228,7 @@ def test_the_kernel_declines_what_it_was_not_written_for():
 def test_the_kernels_build_wherever_they_can_run():
     """A machine the kernels are written for (x86-64 with AVX2 and FMA and a C compiler, as CI)
     builds and loads them: a broken build is a failure here, not a quiet fall back to torch."""
-    why = native_build._unsupported()
+    why = native_build.unavailable()
     if why is not None:
         pytest.skip(f'not written for this machine: {why}')
     assert native_cost.prepare()
@@ -237,8 +237,8 @@ def test_the_kernels_build_wherever_they_can_run():
 def test_a_compiler_without_openmp_builds_them_single_threaded(monkeypatch, tmp_path):
     """A compiler that refuses ``-fopenmp`` (a ``cc`` wrapper here) still gives a library, built
     without it, into the user cache; the kernel then gives the same numbers on one thread."""
-    if native_build._unsupported() is not None:
-        pytest.skip(f'not written for this machine: {native_build._unsupported()}')
+    if native_build.unavailable() is not None:
+        pytest.skip(f'not written for this machine: {native_build.unavailable()}')
     real = native_build._compiler()
     cc = tmp_path / 'cc'
     cc.write_text(f'#!/bin/sh\nfor a in "$@"; do [ "$a" = -fopenmp ] && exit 1; done\nexec {real} "$@"\n')
@@ -255,7 +255,7 @@ def test_a_compiler_without_openmp_builds_them_single_threaded(monkeypatch, tmp_
 def test_the_environment_turns_native_kernels_off(monkeypatch):
     monkeypatch.setenv('DEPTH_FUSION_NATIVE', '0')
     assert not native_build.native_enabled()
-    assert native_build._unsupported() == 'DEPTH_FUSION_NATIVE=0'
+    assert native_build.unavailable() == 'DEPTH_FUSION_NATIVE=0'
 
 
 def test_the_filter_ends_a_stream_in_the_same_state_with_and_without_it(monkeypatch):
@@ -378,8 +378,8 @@ def test_a_failed_build_is_said_by_the_compilers_error_line():
 def test_a_changed_header_builds_a_new_library(monkeypatch, tmp_path):
     """The filter's kernels share ``filter_native.h``: a library is named by its source and the
     local headers it includes, so a changed header is built anew, not served from the cache."""
-    if native_build._unsupported() is not None:
-        pytest.skip(f'not written for this machine: {native_build._unsupported()}')
+    if native_build.unavailable() is not None:
+        pytest.skip(f'not written for this machine: {native_build.unavailable()}')
     monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'cache'))
     monkeypatch.setattr(native_build, '_loaded', {})
     source = tmp_path / 'kernel.c'

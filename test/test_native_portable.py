@@ -121,16 +121,16 @@ def test_where_the_kernels_run_and_how_they_are_built(monkeypatch):
     _compiler_or_skip()
     monkeypatch.delenv('DEPTH_FUSION_NATIVE', raising=False)
     monkeypatch.setattr(native_build.platform, 'machine', lambda: 'aarch64')
-    assert native_build._unsupported() is None
+    assert native_build.unavailable() is None
     assert native_build.machine_flags() == ()
     monkeypatch.setattr(native_build.platform, 'machine', lambda: 'x86_64')
     monkeypatch.setattr(native_build, 'cpu_flags', lambda: {'sse2', 'avx2', 'fma'})
-    assert native_build._unsupported() is None
+    assert native_build.unavailable() is None
     assert native_build.machine_flags() == native_build.X86_FLAGS
     monkeypatch.setattr(native_build, 'cpu_flags', lambda: {'sse2', 'avx'})
-    assert 'no AVX2 and FMA' in native_build._unsupported()
+    assert 'no AVX2 and FMA' in native_build.unavailable()
     monkeypatch.setenv('DEPTH_FUSION_NATIVE', 'portable')  # the tests' way to build the ARM code here
-    assert native_build._unsupported() is None
+    assert native_build.unavailable() is None
     assert native_build.machine_flags() == ()
 
 

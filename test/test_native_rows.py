@@ -30,7 +30,7 @@ NAMES = ('x', 'j_x', 'cost', 'valid')
 
 def _native_or_skip() -> None:
     if native_cost._load() is None:
-        pytest.skip(f'the native kernel cannot run here: {native_build._unsupported() or "it did not build"}')
+        pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
 
 
 def _same(mine: torch.Tensor, theirs: torch.Tensor) -> bool:

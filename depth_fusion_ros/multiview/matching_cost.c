@@ -19,8 +19,8 @@
  * point a + rho b projects to. Why native: on a CPU the torch code writes every looked-up
  * channel to memory and reads it back for the dot product, and ATen's grid_sample gathers each
  * channel of each corner separately. Here the descriptors are channels-last (one 8-float block
- * a pixel), so a corner is one 256-bit load, and nothing but the cost is written: about 3x
- * faster than the torch code on one core.
+ * a pixel), so a corner is one eight-float load, and nothing but the cost is written: about 3x
+ * faster than the torch code on one x86-64 core.
  *
  * Same numbers: ATen's vectorised CPU kernels contract their multiply-adds into FMAs (addcmul,
  * grid_sample's corner sum), so those operations are written here as FMAs in the same order,
