@@ -118,12 +118,18 @@ static inline v8f v8_floor_ps(v8f a) {
 }
 /* All ones where the ordered predicate holds (false on NaN), else zero. */
 static inline v8f v8_cmp_ps(v8f a, v8f b, int predicate) {
-    v8i m = predicate == V8_CMP_GT ? (a > b) : predicate == V8_CMP_LT ? (a < b) : (a >= b);
+    v8i m;
+    if (predicate == V8_CMP_GT)
+        m = a > b;
+    else if (predicate == V8_CMP_LT)
+        m = a < b;
+    else
+        m = a >= b;
     return (v8f)m;
 }
 static inline v8i v8_cvttps_epi32(v8f a) {
     v8i r;
-    for (int j = 0; j < 8; j++) r[j] = (a[j] > -2147483649.0f && a[j] < 2147483648.0f) ? (int32_t)a[j] : INT32_MIN;
+    for (int j = 0; j < 8; j++) r[j] = (a[j] >= -2147483648.0f && a[j] < 2147483648.0f) ? (int32_t)a[j] : INT32_MIN;
     return r;
 }
 static inline v8i v8_castps_si256(v8f a) { return (v8i)a; }
