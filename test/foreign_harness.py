@@ -1,6 +1,6 @@
 """A native kernel's calls recorded here and replayed on another CPU (aarch64, under qemu-user).
 
-Why: the plain C kernels are built for ARM robot computers too (``native_build``), where the CI
+Why: the native kernels are built for ARM robot computers too (``native_build``), where the CI
 cannot run them. A call is recorded on this machine, where the kernel is checked against its
 torch twin: its scalar arguments and the bytes of every buffer before and after. The kernel's
 source is then cross-compiled with a generated ``main`` that reads the buffers, makes the same

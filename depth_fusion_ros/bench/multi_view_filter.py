@@ -167,8 +167,8 @@ def _search_code(device: str) -> str:
     """Which code ran the searches (and the first-measurement check), the descriptors, the
     choice of rows, the seed bracket and the update of their matches: the native kernels
     (``native_cost.py``, ``native_filter.KERNELS``) or torch (OpenCV for the descriptors). Each
-    is said: where only the plain C kernels run (an ARM board, ``DEPTH_FUSION_NATIVE=portable``)
-    the search and the descriptors are torch's and OpenCV's and the rest native."""
+    is said, as a kernel may be missing alone (a compiler that refused one file: its warning
+    says which)."""
     if device.startswith('cuda'):
         return 'search, descriptors, choice of rows, bracket and update: torch'
     kernels = (native_cost, *native_filter.KERNELS)
