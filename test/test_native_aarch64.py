@@ -33,7 +33,7 @@ def _library_or_skip(module):
     why = missing_tools()
     if why is not None:
         pytest.skip(f'cannot run aarch64 code here: {why}')
-    lib = (module._load if module is native_cost else module._library)()
+    lib = module._library()
     if lib is None:
         pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
     return lib

@@ -28,7 +28,7 @@ WIDTH, HEIGHT = 80, 60
 
 
 def _native_or_skip() -> None:
-    if native_cost._load() is None:
+    if native_cost._library() is None:
         pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
 
 
@@ -141,7 +141,7 @@ def test_the_descriptor_table_is_the_channels_last_copy(monkeypatch, n, channels
 
     monkeypatch.setattr(native_cost, '_tables', OrderedDict())
     monkeypatch.setattr(native_cost, '_spares', {})
-    lib = native_cost._load()
+    lib = native_cost._library()
     shape = (n, height * width + 1, native_cost.LANES)
     for seed in (1, 2):
         desc = torch.randn(n, channels, height, width, generator=torch.Generator().manual_seed(seed))
@@ -177,7 +177,7 @@ def test_the_cpu_descriptors_are_the_table_itself():
     images = torch.rand(1, HEIGHT, WIDTH, generator=gen)
     desc = patch_descriptors(images, visibility_margin=3, channels=6, channels_last=True)
     assert desc.shape == (1, 7, HEIGHT, WIDTH)
-    lib = native_cost._load()
+    lib = native_cost._library()
     table = native_cost._channels_last(lib, desc)
     assert table.data_ptr() == desc.data_ptr()  # no copy
     expected = torch.zeros(1, HEIGHT * WIDTH + 1, native_cost.LANES)
@@ -246,7 +246,7 @@ def test_a_compiler_without_openmp_builds_them_single_threaded(monkeypatch, tmp_
     monkeypatch.setenv('CC', str(cc))
     monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'cache'))
     monkeypatch.setattr(native_build, '_loaded', {})
-    assert native_cost._load() is not None
+    assert native_cost._library() is not None
     assert len(list((tmp_path / 'cache' / 'depth_fusion_ros' / 'native').glob('matching_cost-*.so'))) == 1
     key, desc, a, b, rho = _inputs(203, 11)
     _compare(native_cost.native_frame_cost(key, desc, a, b, rho), _frame_cost_torch(key, desc, a, b, rho))

@@ -29,7 +29,7 @@ NAMES = ('x', 'j_x', 'cost', 'valid')
 
 
 def _native_or_skip() -> None:
-    if native_cost._load() is None:
+    if native_cost._library() is None:
         pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
 
 

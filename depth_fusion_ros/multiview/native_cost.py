@@ -164,7 +164,7 @@ def native_sweep_cost(
 def prepare() -> bool:
     """Build (first run on this machine, well under a second) or load the kernels now, so that
     a node's first frame does not wait for the compiler; whether they will be used."""
-    return _load() is not None
+    return _library() is not None
 
 
 def _ready(
@@ -180,7 +180,7 @@ def _ready(
         and desc.shape[1] == key_desc.shape[0] + 1
         and all(t.dtype == torch.float32 for t in (key_desc, desc, *rest))
     )
-    lib = _load() if applies else None
+    lib = _library() if applies else None
     return None if lib is None else (lib, _channels_last(lib, desc))
 
 
@@ -190,7 +190,7 @@ def _threads(lookups: int) -> int:
     return kernel_threads(lookups, THREAD_MIN_LOOKUPS)
 
 
-def _load() -> ctypes.CDLL | None:
+def _library() -> ctypes.CDLL | None:
     """The kernels' library (built on first use), or None."""
     return load_native(_SOURCE, _SIGNATURES)
 
