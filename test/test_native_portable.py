@@ -19,10 +19,9 @@ import pytest
 import torch
 
 import depth_fusion_ros
-from depth_fusion_ros import build_env, native_build
-from depth_fusion_ros.fusion import native_halo, neighbour_median, occlusion
+from depth_fusion_ros import build_env, native_build, native_kernels
+from depth_fusion_ros.fusion import neighbour_median, occlusion
 from depth_fusion_ros.fusion.scenes import rendered_halo_keyframe
-from depth_fusion_ros.multiview import native_cost, native_filter, native_scores
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
@@ -56,7 +55,7 @@ def test_portable_builds_every_kernel_without_the_x86_flags(monkeypatch, tmp_pat
     for source in SOURCES:
         assert native_build.load_native(source, {}) is not None, source.name
     commands = [line for line in log.read_text().splitlines() if ' -o ' in line]  # not --version
-    assert len(commands) == len(SOURCES) == 8
+    assert len(commands) == len(SOURCES) == len(native_kernels.KERNELS) == 8
     assert not any(flag in command for command in commands for flag in native_build.X86_FLAGS)
 
 
@@ -105,12 +104,11 @@ def test_the_portable_build_gives_the_avx2_builds_numbers(monkeypatch, tmp_path)
     if native_build.machine_flags() != native_build.X86_FLAGS:
         pytest.skip('not an x86-64 CPU with AVX2 and FMA: only the portable build runs here')
     monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'cache'))
-    modules = (native_cost, native_scores, *native_filter.KERNELS, native_halo, neighbour_median)
     results = {}
     for mode in ('1', 'portable'):
         monkeypatch.setenv('DEPTH_FUSION_NATIVE', mode)
         monkeypatch.setattr(native_build, '_loaded', {})
-        assert all(m.prepare() for m in modules), mode
+        assert native_kernels.prepare() == len(native_kernels.KERNELS), mode
         results[mode] = _filter_and_fusion_tests()
     assert results['portable'] == results['1']
 

@@ -94,16 +94,13 @@ def run(args: argparse.Namespace) -> int:
 def _native_line() -> str:
     """The native C kernels built (the first run on this machine) or found, in one line: a
     user on an ARM board sees at once whether they run there."""
-    from .. import native_build
-    from ..fusion import native_halo, neighbour_median
-    from ..multiview import native_cost, native_filter, native_scores
+    from .. import native_build, native_kernels
     from ..user_cache import user_cache
 
     why = native_build.unavailable()
     if why is not None:
         return f'native C kernels: not used here ({why}); their torch and numpy twins run'
-    kernels = (native_cost, native_scores, *native_filter.KERNELS, native_halo, neighbour_median)
-    ready = sum(kernel.prepare() for kernel in kernels)
+    ready, total = native_kernels.prepare(), len(native_kernels.KERNELS)
     target, where = native_build.build_target(), user_cache('native')
-    line = f'native C kernels: {ready} of {len(kernels)} ready for {target} in {where}'
-    return line if ready == len(kernels) else f'{line}; the warnings above say why the others are not'
+    line = f'native C kernels: {ready} of {total} ready for {target} in {where}'
+    return line if ready == total else f'{line}; the warnings above say why the others are not'
