@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from foreign_harness import missing_tools, record, replay
+from native_calls import filter_end_state
 from test_native_matching_cost import _inputs as cost_inputs
 from test_native_sweep_scores import _volume
 
@@ -37,17 +38,6 @@ def _library_or_skip(module):
     if lib is None:
         pytest.skip(f'the native kernel cannot run here: {native_build.unavailable() or "it did not build"}')
     return lib
-
-
-def _filter_stream(frames: int) -> None:
-    """The filter over a rendered room's first ``frames`` frames (its kernels' calls recorded)."""
-    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-    from depth_fusion_ros.multiview.filter import DepthFilter
-
-    seq = render_sequence(SynthConfig(width=160, height=120, frames=frames, seed=4, parallax='high'))
-    filt = DepthFilter(seq.camera, None, device='cpu')
-    for frame in seq.frames:
-        filt.process(frame.gray, frame.pose)
 
 
 def _same_on_aarch64(
@@ -102,7 +92,7 @@ def test_the_filters_choice_of_rows_on_aarch64_is_the_same(monkeypatch, tmp_path
         outs = {24: (F32, 3 * m), 25: (F32, m), 26: (F32, m), 27: (U8, m), 28: (I64, m), 29: (I64, 3)}
         return {**ins, 8: (F32, 2 * m), 9: (F32, 9), **outs}
 
-    run = lambda: _filter_stream(6)  # noqa: E731
+    run = lambda: filter_end_state(6)  # noqa: E731
     _same_on_aarch64(
         monkeypatch, tmp_path, native_choose, 'filter_choose.c', 'filter_choose', buffers, run, 2
     )
@@ -126,7 +116,7 @@ def test_the_frame_descriptors_on_aarch64_are_the_same(monkeypatch, tmp_path):
         hw = a[0] * a[1]
         return {2: (F32, hw), 4: (F32, a[3]), 5: (I32, 9), 6: (I32, 9), 9: (F32, 72), 12: (F32, (hw + 1) * 8)}
 
-    run = lambda: _filter_stream(3)  # noqa: E731
+    run = lambda: filter_end_state(3)  # noqa: E731
     _same_on_aarch64(
         monkeypatch, tmp_path, native_descriptors, 'describe_table.c', 'describe_table', buffers, run, 1
     )

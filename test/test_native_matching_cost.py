@@ -15,6 +15,7 @@ import subprocess
 
 import pytest
 import torch
+from native_calls import filter_end_state
 
 import depth_fusion_ros.multiview.filter_search as search
 from depth_fusion_ros import native_build
@@ -261,21 +262,10 @@ def test_the_environment_turns_native_kernels_off(monkeypatch):
 def test_the_filter_ends_a_stream_in_the_same_state_with_and_without_it(monkeypatch):
     """The synthetic room through the whole filter: every estimate the same."""
     _native_or_skip()
-    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-    from depth_fusion_ros.multiview.filter import DepthFilter
-
-    seq = render_sequence(SynthConfig(width=160, height=120, frames=10, seed=4, parallax='high'))
-
-    def run() -> dict[str, torch.Tensor]:
-        filt = DepthFilter(seq.camera, None, device='cpu')
-        for frame in seq.frames:
-            filt.process(frame.gray, frame.pose)
-        return {k: getattr(filt.key.state, k).clone() for k in ('mu', 'var', 'a', 'b')}
-
-    native = run()
+    native = filter_end_state(10)
     monkeypatch.setattr(search, 'native_frame_cost', lambda *args: None)
     monkeypatch.setattr(search, 'native_frame_search', lambda *args: None)
-    plain = run()  # every native kernel of the filter off: the cost and the search
+    plain = filter_end_state(10)  # every native kernel of the filter off: the cost and the search
     for name, values in native.items():
         assert torch.allclose(values, plain[name], rtol=1e-5, atol=1e-6, equal_nan=True), name
 

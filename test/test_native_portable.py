@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from native_calls import filter_end_state
 
 import depth_fusion_ros
 from depth_fusion_ros import build_env, native_build, native_kernels
@@ -81,14 +82,7 @@ def _digest(*arrays) -> str:
 def _filter_and_fusion_tests() -> tuple[str, str, str]:
     """The filter's end state on a synthetic room, the halo test's points and the guard's
     neighbour medians on a rendered keyframe, each as a digest."""
-    from depth_fusion_ros.data.synthetic import SynthConfig, render_sequence
-    from depth_fusion_ros.multiview.filter import DepthFilter
-
-    seq = render_sequence(SynthConfig(width=160, height=120, frames=8, seed=4, parallax='high'))
-    filt = DepthFilter(seq.camera, None, device='cpu')
-    for frame in seq.frames:
-        filt.process(frame.gray, frame.pose)
-    state = _digest(*(getattr(filt.key.state, k) for k in ('mu', 'var', 'a', 'b')))
+    state = _digest(*filter_end_state(8).values())
     image, single, m, points = rendered_halo_keyframe(width=160, height=120, point_share=0.6)
     halo = occlusion.halo_points(image, single, m, points)
     rows, cols = np.nonzero(points)
