@@ -157,6 +157,12 @@ def test_the_filter_publishes_the_bias_in_the_std_only():
     np.testing.assert_array_equal(on.variance, off.variance)
     grown = on.depth_std[has] / off.depth_std[has]
     assert np.all(grown >= 1.0) and np.median(grown) > 1.5
+    # The bias is published apart as well (the guard weighs the points' scale by it): the std
+    # is the posterior's and the bias's in quadrature, and without an uncertainty it is 0.
+    np.testing.assert_array_equal(np.isfinite(on.bias_std), has)
+    quadrature = off.depth_std[has] ** 2 + on.bias_std[has] ** 2
+    np.testing.assert_allclose(on.depth_std[has] ** 2, quadrature, rtol=1e-4)
+    assert np.all(off.bias_std[has] == 0.0) and np.median(on.bias_std[has] / on.depth[has]) > 0.01
 
 
 def _ratio(sequence, uncertainty: float) -> float:

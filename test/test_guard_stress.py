@@ -178,14 +178,19 @@ def test_a_causal_streams_first_keyframe_is_never_worse():
     first keyframe and measured by the same few frames; with two measurements enough
     (``first_keyframe_min_updates`` 2) they were biased together and the fusion made the depth
     1.33x worse than its single-view input; with the default it is not. (The certainty floor
-    alone brings the biased case down to 1.02x, with its gain to 0.93x, and the halo test
-    alone to 1.15x; all three are off here, to test the filter.)"""
+    alone brings the biased case down to 1.02x, with its gain to 0.93x, the halo test alone to
+    1.15x, and the points' scale weighed by their shared focal bias alone to 1.17x; all four
+    are off here, to test the filter.)"""
     sequence = render_sequence(stress_config('rotation', width=320, height=240, frames=8, seed=2))
 
     def ratio(first_keyframe_min_updates: int) -> float:
         fusion = {'stage1': 'all', 'certainty_floor': 0.0, 'certainty_gain': 0.0, 'halo_min_step': 0.0}
         return _causal_ratio(
-            sequence, 5, fusion, filter={'first_keyframe_min_updates': first_keyframe_min_updates}
+            sequence,
+            5,
+            fusion,
+            filter={'first_keyframe_min_updates': first_keyframe_min_updates},
+            guard={'shared_scale': False},
         )
 
     assert ratio(2) > 1.2

@@ -53,9 +53,11 @@ class _Inputs:
         self.score = ros.publisher(Image, '/depth_fusion/multi_view/score')
         self.single = ros.publisher(Image, '/depth_fusion/single_view/depth')
         self.std = ros.publisher(Image, '/depth_fusion/multi_view/depth_std')  # optional part
-        assert ros.wait_for_subscribers([self.info, self.image, self.mv, self.score, self.single, self.std])
+        self.bias = ros.publisher(Image, '/depth_fusion/multi_view/bias_std')  # optional part
+        publishers = [self.info, self.image, self.mv, self.score, self.single, self.std, self.bias]
+        assert ros.wait_for_subscribers(publishers)
         #: messages sent per node counter (``received`` in the node's stats)
-        self.sent = {'camera_info': 0, 'mv_depth': 0, 'mv_score': 0, 'single': 0, 'mv_std': 0}
+        self.sent = {'camera_info': 0, 'mv_depth': 0, 'mv_score': 0, 'single': 0, 'mv_std': 0, 'mv_bias': 0}
 
     def send(self, part: str, msg: object) -> None:
         publisher, counter = {
@@ -65,6 +67,7 @@ class _Inputs:
             'score': (self.score, 'mv_score'),
             'single': (self.single, 'single'),
             'std': (self.std, 'mv_std'),
+            'bias': (self.bias, 'mv_bias'),
         }[part]
         if counter:
             self.sent[counter] += 1
@@ -342,6 +345,39 @@ def test_depth_std_part_gives_the_guard_its_parallax_evidence():
     assert first['evidence']['certainty_floor'] >= 0.1  # the floor this keyframe used
     assert second['evidence']['median_relative_std'] == pytest.approx(0.5, rel=1e-3)
     assert second['decision'] in ('single_scaled', 'single_view'), second
+
+
+def test_bias_std_part_weighs_the_points_scale_as_evaluate_does():
+    """multi_view_node publishes the part of the std every estimate shares (the filter's focal
+    length bias) before the depth; the guard reads its median over the trusted points and takes
+    that share of the points' global scale (``fusion/shared_scale.py``), as ``evaluate`` does
+    with the filter's result. An all-NaN part (the sweep's) shares nothing."""
+    import json
+
+    from depth_fusion_ros.fusion.shared_scale import scale_weight
+
+    scene = _scene(0)
+    a, b = 5_000_000_000, 5_033_333_333
+    precise = np.where(np.isfinite(scene.mv), 0.12 * scene.mv, np.nan).astype(np.float32)  # 12 % std
+    shared = np.where(np.isfinite(scene.mv), 0.1 * scene.mv, np.nan).astype(np.float32)  # 10 % of it shared
+    nothing = np.full_like(scene.mv, np.nan)
+    with RosHarness() as ros:
+        node, decisions, inputs = _guarded_node(ros)
+        for stamp, bias in ((a, nothing), (b, shared)):
+            header = m.header_msg(stamp, FRAME, kind=K)
+            inputs.send('std', m.image_msg(precise, '32FC1', header, kind=K))
+            inputs.send('bias', m.image_msg(bias, '32FC1', header, kind=K))
+            inputs.delivered(ros, node)
+            inputs.keyframe(scene, stamp)
+        assert ros.wait_for(lambda: len(decisions) == 2, 20.0), node.stats.snapshot().summary()
+        snap = node.stats.snapshot()
+
+    assert snap.dropped == {} and snap.received['mv_bias'] == 2
+    first, second = (json.loads(msg.data)['evidence'] for msg in decisions)
+    assert first['shared_std'] == 0.0 and first['scale_weight'] == 1.0
+    assert second['shared_std'] == pytest.approx(0.1, rel=1e-3)
+    expected = scale_weight(second['single_error'], second['shared_std'], second['scale'])
+    assert second['scale_weight'] == pytest.approx(expected, abs=1e-3) and second['scale_weight'] < 1.0
 
 
 def test_under_load_reduces_the_points_only_while_keyframes_wait():

@@ -40,6 +40,7 @@ def test_default_filter_method_publishes_accurate_keyframe_depth(synthetic_seque
         depth_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth')
         score_msgs = ros.collect(Image, '/depth_fusion/multi_view/score')
         std_msgs = ros.collect(Image, '/depth_fusion/multi_view/depth_std')
+        bias_msgs = ros.collect(Image, '/depth_fusion/multi_view/bias_std')
         ros.collect(CameraInfo, '/depth_fusion/keyframe/camera_info')
         # latched: a fusion_node that starts later still learns the method (its stage-1 rule)
         methods = ros.collect(String, '/depth_fusion/multi_view/method', latched_qos())
@@ -62,9 +63,13 @@ def test_default_filter_method_publishes_accurate_keyframe_depth(synthetic_seque
     # The filter saw every posed frame as it came, not only the keyframes (nor only up to the last).
     assert isinstance(filt, DepthFilter) and filt.stats.frames == len(seq.frames)
     assert _stamps(std_msgs) == _stamps(depth_msgs)  # the guard's parallax evidence, per keyframe
-    for depth_msg, std_msg in zip(depth_msgs, std_msgs, strict=True):
+    assert _stamps(bias_msgs) == _stamps(depth_msgs)  # the part of it every estimate shares
+    for depth_msg, std_msg, bias_msg in zip(depth_msgs, std_msgs, bias_msgs, strict=True):
         depth, std = m.image_to_numpy(depth_msg), m.image_to_numpy(std_msg)
         assert np.array_equal(np.isfinite(std), np.isfinite(depth)) and np.nanmin(std) > 0
+        bias = m.image_to_numpy(bias_msg)  # the filter's focal bias: within the std, never above it
+        assert np.array_equal(np.isfinite(bias), np.isfinite(depth))
+        assert np.nanmin(bias) >= 0 and np.all(bias[np.isfinite(bias)] <= std[np.isfinite(bias)] * (1 + 1e-5))
     for k, depth_msg, score_msg in zip(expected_keys, depth_msgs, score_msgs, strict=True):
         depth, score = m.image_to_numpy(depth_msg), m.image_to_numpy(score_msg)
         gt = seq.frames[k].depth

@@ -110,6 +110,10 @@ GUARD_PARAMETER_DESCRIPTIONS: dict[str, str] = {
     'reach': 'local corrections fade towards the single-view depth with the distance D to their points: '
     'weight exp(-(D / (reach x image width))^2); 0: off',
     'max_scale_error': 'largest standard error (log) of the global multi-view scale that is still applied',
+    'shared_scale': "weigh the points' global scale against the single view's when part of their std is "
+    'common to all of them (an unverified focal length under rotation): the share n^2 / (n^2 + b^2) of it '
+    "is taken, b the shared std, n^2 the larger of the single view's squared error and the squared "
+    'disagreement less b^2 (fusion/shared_scale.py); false: all of it',
 }
 
 
@@ -138,6 +142,7 @@ class GuardConfig:
     scale_sigma_px: float = 60.0
     reach: float = 0.3
     max_scale_error: float = 0.03
+    shared_scale: bool = True
 
     def __post_init__(self) -> None:
         self.validate()
@@ -177,25 +182,37 @@ class MultiViewEvidence:
     """Optional per-pixel evidence of the multi-view stage (HxW float32, NaN = none).
 
     ``relative_std``: ``depth_std / depth`` (parallax and epipolar geometry of the estimate);
-    ``agreement``: fraction of neighbour frames that confirm the match on their own.
+    ``agreement``: fraction of neighbour frames that confirm the match on their own;
+    ``shared_relative_std``: the part of ``relative_std`` every estimate has in common (the
+    bias of an unverified focal length under this motion, ``FilterResult.bias_std``).
     """
 
     relative_std: np.ndarray | None = None
     agreement: np.ndarray | None = None
+    shared_relative_std: np.ndarray | None = None
 
     @classmethod
     def from_depth_std(
-        cls, depth: np.ndarray | None, std: np.ndarray | None, agreement: np.ndarray | None = None
+        cls,
+        depth: np.ndarray | None,
+        std: np.ndarray | None,
+        agreement: np.ndarray | None = None,
+        bias_std: np.ndarray | None = None,
     ) -> MultiViewEvidence:
-        """From the multi-view depth and its standard deviation (either None: no parallax evidence)."""
-        rel = relative_std(depth, std) if depth is not None and std is not None else None
-        return cls(relative_std=rel, agreement=agreement)
+        """From the multi-view depth, its standard deviation (either None: no parallax evidence)
+        and the shared part of it (``bias_std``, m; None: unknown)."""
+        known = depth is not None
+        rel = relative_std(depth, std) if known and std is not None else None
+        shared = relative_std(depth, bias_std) if known and bias_std is not None else None
+        return cls(relative_std=rel, agreement=agreement, shared_relative_std=shared)
 
     @classmethod
     def from_result(cls, result: object) -> MultiViewEvidence:
-        """From a ``MultiViewResult`` (or anything with ``depth``/``depth_std``, optional ``agreement``)."""
+        """From a ``MultiViewResult`` (or anything with ``depth``/``depth_std``, optional
+        ``agreement`` and ``bias_std``)."""
         depth, std = getattr(result, 'depth', None), getattr(result, 'depth_std', None)
-        return cls.from_depth_std(depth, std, getattr(result, 'agreement', None))
+        agreement, bias = getattr(result, 'agreement', None), getattr(result, 'bias_std', None)
+        return cls.from_depth_std(depth, std, agreement, bias)
 
 
 @dataclass
@@ -340,6 +357,9 @@ def assess(
         agree = evidence.agreement[rows, cols]
         stats['median_agreement'] = float(np.nanmedian(agree)) if np.isfinite(agree).any() else float('nan')
         good &= np.nan_to_num(agree, nan=0.0) >= config.min_agreement
+    if evidence is not None and evidence.shared_relative_std is not None:
+        shared = np.nan_to_num(evidence.shared_relative_std[rows, cols], nan=0.0)
+        stats['shared_std'] = float(np.median(shared[good] if good.any() else shared))
     n_trusted = round(int(good.sum()) * thin)  # of all Ω
     trusted = np.zeros(omega.shape, dtype=bool)
     trusted[rows[good], cols[good]] = True

@@ -49,6 +49,7 @@ from .interpolation import (
 from .occlusion import check_min_step, halo_points
 from .precision import check_half_weight, precision_weights
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
+from .shared_scale import scale_weight, weighed_points
 from .stream_scale import StreamScale
 from .subsample import seeded_subsample
 from .valid_depth import sanitize_depth
@@ -392,6 +393,8 @@ def _fuse(
         )
         verdict.evidence.update(halo)
         verdict.evidence.update(stage3)
+        if guard_config.shared_scale and needs_fit is None:
+            m = _weigh_shared_scale(m, verdict)
         if verdict.decision not in ('full', 'fewer_points'):
             return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config, needs_fit)
         omega = verdict.trusted
@@ -492,6 +495,22 @@ def keyframe_floor(config: FusionConfig, verdict: GuardVerdict | None) -> float:
         return kappa
     ratio = noise / error if error > 0 else np.inf
     return float(min(max(kappa, config.certainty_gain * ratio * ratio), MAX_CERTAINTY_FLOOR))
+
+
+def _weigh_shared_scale(m: np.ndarray, verdict: GuardVerdict) -> np.ndarray:
+    """The points moved towards the single view's scale by what their shared std leaves of
+    theirs (``shared_scale.py``); the verdict's scale becomes the one taken, and the evidence
+    gets ``scale_weight`` (the share) where the guard read a shared std."""
+    shared = verdict.evidence.get('shared_std')
+    if shared is None:
+        return m
+    weight = scale_weight(verdict.evidence.get('single_error', np.nan), shared, verdict.scale)
+    verdict.evidence['scale_weight'] = weight
+    if weight >= 1.0:
+        return m
+    moved = weighed_points(m, verdict.scale, weight)
+    verdict.scale = float(np.exp(weight * np.log(verdict.scale)))
+    return moved
 
 
 def _verdict_fields(verdict: GuardVerdict | None) -> dict:

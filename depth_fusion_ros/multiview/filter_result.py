@@ -5,7 +5,8 @@ its relative inverse-depth std pass the ``filter.*`` thresholds):
 
 * ``depth`` = ``1 / mu``; ``depth_std`` = ``sqrt(sigma^2 + b^2) / mu^2`` (m): the posterior
   std and the bias ``b`` an uncertain focal length may give the estimate under this motion
-  (``focal_bias.py``; the posterior's own ``sigma`` is ``variance``);
+  (``focal_bias.py``; the posterior's own ``sigma`` is ``variance``), and ``bias_std`` =
+  ``b / mu^2``, the share of it every estimate has in common;
 * ``geometric_score`` = ``1 / sigma`` (the posterior inverse-depth std: every frame that
   matched it adds its ``J^2 / pixel_sigma^2``, as the sweep's one-pixel score sums its
   neighbours' ``J^2``);
@@ -48,6 +49,10 @@ class FilterResult(MultiViewResult):
     #: Set when nothing was published because under ``filter.min_published_fraction`` of the
     #: measured estimates passed the precision test: that share (the node notes it).
     withheld_fraction: float | None = None
+    #: The part of ``depth_std`` (m) that an uncertain focal length's bias gives the estimate
+    #: (``focal_bias.py``; NaN where no estimate, None when the filter adds none). Every
+    #: estimate of a keyframe shares it, so averaging points does not remove it.
+    bias_std: np.ndarray | None = None
     method: ClassVar[str] = 'filter'
 
 
@@ -92,6 +97,7 @@ def assemble_result(
         inlier_ratio=image(inlier),
         updates=image(updates.to(mu.dtype)),
         withheld_fraction=withheld_fraction,
+        bias_std=None if extra_variance is None else image(torch.sqrt(extra_variance) / (mu * mu)),
     )
 
 

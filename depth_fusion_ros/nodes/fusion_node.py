@@ -67,6 +67,7 @@ TOPIC_MV_DEPTH = 'depth_fusion/multi_view/depth'
 TOPIC_MV_SCORE = 'depth_fusion/multi_view/score'
 #: Optional part: the multi-view depth std (the guard's parallax evidence) when it came first.
 TOPIC_MV_DEPTH_STD = 'depth_fusion/multi_view/depth_std'
+TOPIC_MV_BIAS_STD = 'depth_fusion/multi_view/bias_std'
 TOPIC_MV_METHOD = 'depth_fusion/multi_view/method'
 TOPIC_KEYFRAME_IMAGE = 'depth_fusion/keyframe/image'
 TOPIC_KEYFRAME_CAMERA_INFO = 'depth_fusion/keyframe/camera_info'
@@ -169,7 +170,7 @@ REQUIRED_PARTS = ('single', 'mv_depth', 'mv_score', 'camera_info')
 #: The parts multi_view_node publishes for a keyframe it chose, and for no other image: a
 #: single-view depth passed by their streams without any of them was of an image it did not
 #: choose (single_view_node on a raw camera), not a lost keyframe (stamp_pairing.py).
-KEYFRAME_PARTS = ('mv_depth', 'mv_score', 'camera_info', 'rgb', 'mv_std')
+KEYFRAME_PARTS = ('mv_depth', 'mv_score', 'camera_info', 'rgb', 'mv_std', 'mv_bias')
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec('device', 'cpu', 'torch device of the fusion: cpu, cuda, cuda:1, ...', validate=torch_device),
     ParamSpec(
@@ -311,7 +312,7 @@ class FusionNode(DepthFusionNode):
         self.want_rgb = bool(p['publish_points'] and p['points_color']) or self.config.halo_min_step > 0
         self.pairer = StampPairer(
             REQUIRED_PARTS,
-            ('rgb', 'mv_std'),
+            ('rgb', 'mv_std', 'mv_bias'),
             timeout=float(p['pair_timeout']),
             max_pending=int(p['max_pending_keyframes']),
             on_complete=lambda pairing: self.worker.submit(_FusionJob(pairing, time.monotonic())),
@@ -349,6 +350,7 @@ class FusionNode(DepthFusionNode):
         self.subscribe(Image, TOPIC_MV_DEPTH, lambda m: self._on_depth(m, 'mv_depth'), q)
         self.subscribe(Image, TOPIC_MV_SCORE, lambda m: self._on_depth(m, 'mv_score'), q)
         self.subscribe(Image, TOPIC_MV_DEPTH_STD, lambda m: self._on_depth(m, 'mv_std'), q)
+        self.subscribe(Image, TOPIC_MV_BIAS_STD, lambda m: self._on_depth(m, 'mv_bias'), q)
         self.subscribe(Image, TOPIC_SINGLE, lambda m: self._on_depth(m, 'single'), q)
         self.create_wall_timer(min(0.5, float(p['pair_timeout']) / 2), self._expire)
         self.get_logger().info(
@@ -477,8 +479,12 @@ class FusionNode(DepthFusionNode):
             config,
             output_kind=self.output_kind,
             guard_config=self.guard_config,
-            # the parallax evidence evaluate gives the guard, when the optional std part came
-            evidence=MultiViewEvidence.from_depth_std(mv_depth, _same_shape(parts.get('mv_std'), mv_depth)),
+            # the parallax evidence evaluate gives the guard, when the optional std parts came
+            evidence=MultiViewEvidence.from_depth_std(
+                mv_depth,
+                _same_shape(parts.get('mv_std'), mv_depth),
+                bias_std=_same_shape(parts.get('mv_bias'), mv_depth),
+            ),
             consistency_config=self.consistency_config,
             image=self._halo_image(parts.get('rgb'), single.shape, stamp),
             stream_scale=self.stream_scale,

@@ -72,6 +72,7 @@ from .multi_view_checks import CheckCorrections
 from .multi_view_filter import FilterFeed
 from .multi_view_params import (
     PARAMETERS,
+    TOPIC_BIAS_STD,
     TOPIC_CAMERA_INFO,
     TOPIC_DEPTH,
     TOPIC_DEPTH_STD,
@@ -213,6 +214,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
         self._std_pub = self.create_publisher(Image, TOPIC_DEPTH_STD, self.output_qos)
+        self._bias_pub = self.create_publisher(Image, TOPIC_BIAS_STD, self.output_qos)
         self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
         self._lens_pub = self.create_publisher(CameraInfo, TOPIC_LENS_CAMERA_INFO, lens_qos())
         self.posing = PosingPublisher(
@@ -755,19 +757,22 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self._kf_pose_pub.publish(messages.pose_stamped_msg(job.key.pose, pose_header, kind=kind))
         self.stats.published('keyframe')
         nothing = np.full((job.camera.height, job.camera.width), np.nan, dtype=np.float32)
-        depth = score = std = nothing  # announced: downstream must still hear of the keyframe
+        depth = score = std = bias = nothing  # announced: downstream must still hear of the keyframe
         try:
             if not self._withheld_for_inverted_poses(job):
                 result = self._estimate(job)
                 self._note_withheld(result)
                 depth, score = result.depth, result.score.astype(np.float32)
                 std = np.asarray(result.depth_std, dtype=np.float32)
+                shared = getattr(result, 'bias_std', None)  # the filter's; the sweep has none
+                bias = nothing if shared is None else np.asarray(shared, dtype=np.float32)
         except Exception as exc:
             self.stats.dropped('processing_error', f'multi-view search failed: {type(exc).__name__}: {exc}')
             self.get_logger().debug(traceback.format_exc())
-            depth = score = std = nothing
-        # before the depth, so the fusion node has it when the depth completes the keyframe
+            depth = score = std = bias = nothing
+        # before the depth, so the fusion node has them when the depth completes the keyframe
         self._std_pub.publish(messages.image_msg(std, '32FC1', job.header, kind=kind))
+        self._bias_pub.publish(messages.image_msg(bias, '32FC1', job.header, kind=kind))
         self._depth_pub.publish(messages.depth_image_msg(depth, job.header, kind=kind))
         self._score_pub.publish(messages.image_msg(score, '32FC1', job.header, kind=kind))
         self.stats.published('depth')
