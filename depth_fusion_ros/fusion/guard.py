@@ -32,6 +32,10 @@ The guard therefore measures, per keyframe and without ground truth:
   the neighbour frames that individually confirm the match;
 * **fit residual**: the robust spread of the log residual over Ω (``fit_spread``), which
   bounds how much the multi-view scale can be trusted.
+* **shared bias** (when the multi-view stage provides it): the part of the points' relative
+  std they all have in common (``shared_std``, the median over the trusted points of the
+  filter's focal length bias); the pipeline then takes only the share of their global scale
+  that it leaves them against the single view (``shared_scale.py``, ``shared_scale``);
 
 and steps down a ladder (``DECISIONS``, least to most degraded):
 
