@@ -13,7 +13,12 @@ from scipy.spatial.transform import Rotation
 
 from depth_fusion_ros.adaptation.adapter import Adapter
 from depth_fusion_ros.adaptation.config import AdaptConfig
-from depth_fusion_ros.adaptation.fusion_trust import untrusted_reason, verdict_from_json
+from depth_fusion_ros.adaptation.fusion_trust import (
+    points_scale,
+    trust_from_json,
+    untrusted_reason,
+    verdict_from_json,
+)
 from depth_fusion_ros.adaptation.keyframes import KeyframeAssembler
 from depth_fusion_ros.adaptation.losses import photometric
 from depth_fusion_ros.adaptation.online import OnlineAdaptation, WeightSlot
@@ -27,6 +32,7 @@ from depth_fusion_ros.evaluation.methods.adapted import (
     observe_keyframe,
     single_view_adapted,
 )
+from depth_fusion_ros.evaluation.methods.fusion import fuse_automatic
 
 pytestmark = pytest.mark.usefixtures('one_torch_thread')
 
@@ -87,7 +93,10 @@ def test_prediction_of_keyframe_k_comes_from_weights_trained_on_keyframes_before
     for k in range(4):
         expected = adapter.predictor().predict(seq.frames[k].rgb)
         np.testing.assert_array_equal(scored[k], expected)  # bit-identical
-        adapter.observe(keyframe_sample(KeyframeContext(seq, k, options, replay_shared), adapter.config))
+        ctx = KeyframeContext(seq, k, options, replay_shared)
+        # the targets as the fusion of this prediction moved them (fusion_trust.points_scale)
+        fused = fuse_automatic(ctx, expected, adapter.predictor().output_kind, source='adapted')
+        adapter.observe(keyframe_sample(ctx, adapter.config, factor=points_scale(fused.evidence)))
     # Keyframe 0 is predicted by the untouched network, later ones by adapted weights.
     first = Adapter.from_spec(tiny_model).predictor().predict(seq.frames[3].rgb)
     assert not np.array_equal(scored[3], first)
@@ -370,6 +379,37 @@ def test_a_fusion_verdict_is_read_by_its_exact_stamp():
     for bad in ('{"stamp": 1.5, "decision": "full"}', 'not json', '[]'):
         with pytest.raises(ValueError, match='unreadable fusion decision'):
             verdict_from_json(bad)
+
+
+def test_the_adaptation_trains_on_the_points_as_the_fusion_moved_them(small_sequence):
+    """The fusion takes only the share ``scale_weight`` of the points' global scale when part
+    of their std is shared (fusion/shared_scale.py); the verdict says so, and the adaptation's
+    targets are the points moved by the same factor, so the network does not learn the bias
+    the fusion kept out. A verdict that weighed nothing (or says nothing of it) moves nothing."""
+    assert points_scale(None) == 1.0 and points_scale({'scale': 0.8}) == 1.0
+    assert points_scale({'scale': 0.8, 'scale_weight': 1.0}) == 1.0
+    assert points_scale({'scale': 0.8, 'scale_weight': 0.0}) == pytest.approx(1 / 0.8)
+    assert points_scale({'scale': 0.8, 'scale_weight': 0.5}) == pytest.approx(0.8**-0.5)
+    assert points_scale({'scale': None, 'scale_weight': 0.5}) == 1.0
+    evidence = {'scale': 0.8, 'scale_weight': 0.25}
+    verdict = {'stamp_ns': 7, 'decision': 'full', 'reason': 'ok', 'evidence': evidence}
+    stamp_ns, untrusted, factor = trust_from_json(json.dumps(verdict))
+    assert (stamp_ns, untrusted) == (7, '') and factor == pytest.approx(0.8**-0.75)
+
+    seq = small_sequence
+    depth = seq.gt_depth_working(0)
+    score = np.where(np.isfinite(depth), 1.0, np.nan).astype(np.float32)
+    rgb = seq.frames[0].rgb
+    as_is = make_sample(0, rgb, seq.camera, depth, score, select_fraction=1.0)
+    moved = make_sample(0, rgb, seq.camera, depth, score, select_fraction=1.0, points_scale=factor)
+    np.testing.assert_allclose(moved.train_depth, as_is.train_depth * factor, rtol=1e-6)
+    np.testing.assert_allclose(moved.holdout_depth, as_is.holdout_depth * factor, rtol=1e-6)
+    # the graph's way: the verdict's part carries the factor to the assembled sample
+    asm = KeyframeAssembler(select_fraction=1.0, neighbours=0)
+    for part, value in (('trust', ('', factor)), ('rgb', rgb), ('depth', depth), ('score', score)):
+        samples = asm.add(0, part, value, seq.camera if part == 'rgb' else None)
+    assert len(samples) == 1 and samples[0].untrusted == ''
+    np.testing.assert_allclose(samples[0].train_depth, moved.train_depth, rtol=1e-6)
 
 
 def test_assembler_waits_for_the_fusion_verdict_once_verdicts_are_known(small_sequence):

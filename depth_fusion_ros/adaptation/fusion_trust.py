@@ -16,11 +16,20 @@ other verdicts trust at least the points' scale.
 The verdict is the fusion's of the single view as it was predicted for that keyframe, so it
 is the same prequential order the adaptation already keeps (keyframe k is predicted before
 it is trained on).
+
+The verdict also says how much of the points' global scale the fusion took
+(``fusion/shared_scale.py``: the share their shared std leaves them against the single view,
+evidence ``scale`` and ``scale_weight``). The adaptation trains on the points moved as the
+fusion moved them (:func:`points_scale`): a bias every point shares (an unverified focal length
+under rotation) is otherwise learnt by the network, which the fusion then cannot keep apart from
+the scene (docs/adaptation.md, "The scale the fusion took").
 """
 
 from __future__ import annotations
 
 import json
+import math
+from collections.abc import Mapping
 from typing import Any
 
 #: The guard's verdicts under which it trusted none of the keyframe's points.
@@ -36,9 +45,31 @@ def untrusted_reason(decision: str, reason: str = '', withheld: bool = False) ->
     return f'the fusion trusted none of its points ({said})'
 
 
+def points_scale(evidence: Mapping[str, Any] | None) -> float:
+    """The factor the fusion moved the keyframe's points by, ``scale^-(1 - scale_weight)`` from
+    the guard's evidence (1 where it weighed nothing, or the evidence does not say)."""
+    if not evidence:
+        return 1.0
+    scale, weight = evidence.get('scale'), evidence.get('scale_weight')
+    try:
+        scale, weight = float(scale), float(weight)
+    except (TypeError, ValueError):
+        return 1.0
+    if not (math.isfinite(scale) and scale > 0 and math.isfinite(weight)) or weight >= 1.0:
+        return 1.0
+    return math.exp(-(1.0 - max(weight, 0.0)) * math.log(scale))
+
+
 def verdict_from_json(text: str) -> tuple[int, str]:
     """``(stamp_ns, untrusted reason)`` of one ``fused/decision`` message (fusion_node's
     ``decision_json``); ``ValueError`` for one that does not say them."""
+    stamp_ns, reason, _ = trust_from_json(text)
+    return stamp_ns, reason
+
+
+def trust_from_json(text: str) -> tuple[int, str, float]:
+    """``(stamp_ns, untrusted reason, points' scale factor)`` of one ``fused/decision``
+    message (:func:`verdict_from_json`, :func:`points_scale`)."""
     try:
         verdict: Any = json.loads(text)
         stamp_ns = int(verdict['stamp_ns'])
@@ -46,4 +77,6 @@ def verdict_from_json(text: str) -> tuple[int, str]:
     except (ValueError, TypeError, KeyError) as exc:
         raise ValueError(f'unreadable fusion decision: {exc!r}') from None
     reason = str(verdict.get('reason') or '')
-    return stamp_ns, untrusted_reason(decision, reason, bool(verdict.get('withheld')))
+    evidence = verdict.get('evidence')
+    factor = points_scale(evidence if isinstance(evidence, dict) else None)
+    return stamp_ns, untrusted_reason(decision, reason, bool(verdict.get('withheld'))), factor

@@ -108,6 +108,7 @@ def make_sample(
     mv_std: np.ndarray | None = None,
     max_relative_std: float = 0.15,
     untrusted: str = '',
+    points_scale: float = 1.0,
 ) -> AdaptSample:
     """A sample from a keyframe's multi-view depth and score maps (NaN = no estimate).
 
@@ -115,6 +116,9 @@ def make_sample(
     ``holdout_fraction`` is kept apart for the guard. ``mv_std`` (the depth's std, optional)
     gives the share of them precise at ``max_relative_std``. ``untrusted``: the fusion's reason
     for trusting none of them (``fusion_trust.untrusted_reason``), '' otherwise.
+    ``points_scale``: the factor the fusion moved the points by (``fusion_trust.points_scale``:
+    the share of their global scale a bias they all share left them); the targets, held-out
+    ones included, are the points so moved.
     """
     if mv_depth.shape != rgb.shape[:2] or mv_score.shape != rgb.shape[:2]:
         raise ValueError(
@@ -133,6 +137,8 @@ def make_sample(
         # adapted network 1.2-1.4x worse (their far points left; docs/adaptation.md).
         precise = within_relative_std(relative_std(values, mv_std[rows, cols]), max_relative_std)
         share = float(precise.mean())
+    if points_scale != 1.0:
+        values = (values * np.float32(points_scale)).astype(np.float32)
     held = split_holdout(len(values), holdout_fraction, (int(seed), int(key) & 0x7FFFFFFF))
     return AdaptSample(
         key=int(key),

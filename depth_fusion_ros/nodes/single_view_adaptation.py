@@ -21,7 +21,7 @@ from std_msgs.msg import String
 
 from ..adaptation.adapter import Adapter, UpdateReport
 from ..adaptation.config import AdaptConfig
-from ..adaptation.fusion_trust import verdict_from_json
+from ..adaptation.fusion_trust import trust_from_json
 from ..adaptation.keyframes import KeyframeAssembler
 from ..adaptation.online import OnlineAdaptation, WeightSlot
 from ..adaptation.remote_adapter import RemoteAdapter
@@ -264,14 +264,15 @@ class NodeAdaptation:
 
     def _on_decision(self, msg: String) -> None:
         """fusion_node's verdict on a keyframe: the reason its guard trusted none of the points
-        ('' when it did) becomes the keyframe's ``trust`` part."""
+        ('' when it did) and the factor it moved them by (the share of their scale it took)
+        become the keyframe's ``trust`` part."""
         self.node.stats.received('fused_decision')
         try:
-            stamp_ns, untrusted = verdict_from_json(msg.data)
+            stamp_ns, untrusted, factor = trust_from_json(msg.data)
         except ValueError as exc:
             self.node.stats.dropped('bad_decision', f'fused/decision: {exc}')
             return
-        self._add(stamp_ns, 'trust', untrusted)
+        self._add(stamp_ns, 'trust', (untrusted, factor))
 
     def _on_pose(self, msg: PoseStamped) -> None:
         self.node.stats.received('keyframe_pose')

@@ -28,7 +28,7 @@ import numpy as np
 
 from ...adaptation.adapter import Adapter, UpdateReport
 from ...adaptation.config import AdaptConfig
-from ...adaptation.fusion_trust import untrusted_reason
+from ...adaptation.fusion_trust import points_scale, untrusted_reason
 from ...adaptation.sample import AdaptSample, Neighbour, make_sample
 from ...fusion.pipeline import FusionResult
 from ...singleview.predictor import DepthPredictor
@@ -61,9 +61,12 @@ def adaptation_run(ctx: KeyframeContext) -> AdaptationRun:
     return ctx.shared_cached('adaptation:run', start)
 
 
-def keyframe_sample(ctx: KeyframeContext, config: AdaptConfig, untrusted: str = '') -> AdaptSample:
+def keyframe_sample(
+    ctx: KeyframeContext, config: AdaptConfig, untrusted: str = '', factor: float = 1.0
+) -> AdaptSample:
     """The keyframe's training signals: its selected multi-view points and posed neighbours;
-    ``untrusted``: the fusion's reason for trusting none of them ('' when it did)."""
+    ``untrusted``: the fusion's reason for trusting none of them ('' when it did); ``factor``:
+    the one the fusion moved them by (``fusion_trust.points_scale``)."""
     from .multi_view import multi_view_result, neighbour_indices
 
     mv = multi_view_result(ctx)
@@ -83,13 +86,16 @@ def keyframe_sample(ctx: KeyframeContext, config: AdaptConfig, untrusted: str = 
         mv_std=mv.depth_std,
         max_relative_std=config.max_relative_std,
         untrusted=untrusted,
+        points_scale=factor,
     )
 
 
-def observe_keyframe(ctx: KeyframeContext, run: AdaptationRun, untrusted: str = '') -> UpdateReport:
-    """Train on this keyframe (``untrusted``: see :func:`keyframe_sample`); refresh the
-    predictor when the update was kept."""
-    report = run.adapter.observe(keyframe_sample(ctx, run.adapter.config, untrusted))
+def observe_keyframe(
+    ctx: KeyframeContext, run: AdaptationRun, untrusted: str = '', factor: float = 1.0
+) -> UpdateReport:
+    """Train on this keyframe (``untrusted``, ``factor``: see :func:`keyframe_sample`); refresh
+    the predictor when the update was kept."""
+    report = run.adapter.observe(keyframe_sample(ctx, run.adapter.config, untrusted, factor))
     if run.adapter.version != run.version:
         run.predictor = run.adapter.predictor()
         run.version = run.adapter.version
@@ -111,11 +117,12 @@ def adapted_prediction(ctx: KeyframeContext) -> Adapted:
         if depth.shape[::-1] != size:
             depth = cv2.resize(depth, size, interpolation=cv2.INTER_LINEAR)
         prediction = SingleViewPrediction(depth.astype(np.float32), run.predictor.output_kind)
-        fused, untrusted = None, ''
+        fused, untrusted, factor = None, '', 1.0
         if run.adapter.config.follow_fusion_guard:
             fused = fuse_automatic(ctx, prediction.depth, prediction.output_kind, source='adapted')
             untrusted = untrusted_reason(fused.decision, fused.decision_reason, fused.withheld)
-        report = observe_keyframe(ctx, run, untrusted)
+            factor = points_scale(fused.evidence)
+        report = observe_keyframe(ctx, run, untrusted, factor)
         return prediction, report, fused
 
     return ctx.cached('adaptation:prediction', compute)
