@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from depth_fusion_ros.adaptation.adapter import Adapter
 from depth_fusion_ros.adaptation.config import AdaptConfig
 from depth_fusion_ros.adaptation.fusion_trust import (
+    FusionTrust,
     points_scale,
     trust_from_json,
     untrusted_reason,
@@ -393,8 +394,9 @@ def test_the_adaptation_trains_on_the_points_as_the_fusion_moved_them(small_sequ
     assert points_scale({'scale': None, 'scale_weight': 0.5}) == 1.0
     evidence = {'scale': 0.8, 'scale_weight': 0.25}
     verdict = {'stamp_ns': 7, 'decision': 'full', 'reason': 'ok', 'evidence': evidence}
-    stamp_ns, untrusted, factor = trust_from_json(json.dumps(verdict))
-    assert (stamp_ns, untrusted) == (7, '') and factor == pytest.approx(0.8**-0.75)
+    stamp_ns, trust = trust_from_json(json.dumps(verdict))
+    factor = trust.points_scale
+    assert (stamp_ns, trust.untrusted) == (7, '') and factor == pytest.approx(0.8**-0.75)
 
     seq = small_sequence
     depth = seq.gt_depth_working(0)
@@ -406,7 +408,7 @@ def test_the_adaptation_trains_on_the_points_as_the_fusion_moved_them(small_sequ
     np.testing.assert_allclose(moved.holdout_depth, as_is.holdout_depth * factor, rtol=1e-6)
     # the graph's way: the verdict's part carries the factor to the assembled sample
     asm = KeyframeAssembler(select_fraction=1.0, neighbours=0)
-    for part, value in (('trust', ('', factor)), ('rgb', rgb), ('depth', depth), ('score', score)):
+    for part, value in (('trust', trust), ('rgb', rgb), ('depth', depth), ('score', score)):
         samples = asm.add(0, part, value, seq.camera if part == 'rgb' else None)
     assert len(samples) == 1 and samples[0].untrusted == ''
     np.testing.assert_allclose(samples[0].train_depth, moved.train_depth, rtol=1e-6)
@@ -426,12 +428,12 @@ def test_assembler_waits_for_the_fusion_verdict_once_verdicts_are_known(small_se
 
     out = add(10)
     assert len(out) == 1 and out[0].untrusted == ''
-    assert asm.add(10, 'trust', '') == []  # a verdict for a keyframe already given: let go
+    assert asm.add(10, 'trust', FusionTrust()) == []  # a verdict for a keyframe already given: let go
     assert 10 not in asm._pending
     assert add(20) == []  # verdicts are known now: waits for its own
-    out = asm.add(20, 'trust', 'the fusion trusted none of its points (single_view)')
+    out = asm.add(20, 'trust', FusionTrust('the fusion trusted none of its points (single_view)'))
     assert len(out) == 1 and out[0].untrusted.startswith('the fusion trusted none')
-    assert asm.add(30, 'trust', '') == [] and len(add(30)) == 1  # a verdict first, then the parts
+    assert asm.add(30, 'trust', FusionTrust()) == [] and len(add(30)) == 1  # a verdict first, then the parts
 
 
 def test_the_first_update_needs_points_over_half_the_view(small_sequence, tiny_model):

@@ -30,10 +30,19 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 #: The guard's verdicts under which it trusted none of the keyframe's points.
 UNTRUSTED_DECISIONS = frozenset({'single_view'})
+
+
+class FusionTrust(NamedTuple):
+    """What the adaptation takes from the fusion's verdict on a keyframe (the assembler's
+    ``trust`` part): why it trusted none of the points ('' when it did), and the factor it
+    moved them by (:func:`points_scale`)."""
+
+    untrusted: str = ''
+    points_scale: float = 1.0
 
 
 def untrusted_reason(decision: str, reason: str = '', withheld: bool = False) -> str:
@@ -63,13 +72,13 @@ def points_scale(evidence: Mapping[str, Any] | None) -> float:
 def verdict_from_json(text: str) -> tuple[int, str]:
     """``(stamp_ns, untrusted reason)`` of one ``fused/decision`` message (fusion_node's
     ``decision_json``); ``ValueError`` for one that does not say them."""
-    stamp_ns, reason, _ = trust_from_json(text)
-    return stamp_ns, reason
+    stamp_ns, trust = trust_from_json(text)
+    return stamp_ns, trust.untrusted
 
 
-def trust_from_json(text: str) -> tuple[int, str, float]:
-    """``(stamp_ns, untrusted reason, points' scale factor)`` of one ``fused/decision``
-    message (:func:`verdict_from_json`, :func:`points_scale`)."""
+def trust_from_json(text: str) -> tuple[int, FusionTrust]:
+    """``(stamp_ns, FusionTrust)`` of one ``fused/decision`` message (:func:`verdict_from_json`,
+    :func:`points_scale`)."""
     try:
         verdict: Any = json.loads(text)
         stamp_ns = int(verdict['stamp_ns'])
@@ -79,4 +88,4 @@ def trust_from_json(text: str) -> tuple[int, str, float]:
     reason = str(verdict.get('reason') or '')
     evidence = verdict.get('evidence')
     factor = points_scale(evidence if isinstance(evidence, dict) else None)
-    return stamp_ns, untrusted_reason(decision, reason, bool(verdict.get('withheld'))), factor
+    return stamp_ns, FusionTrust(untrusted_reason(decision, reason, bool(verdict.get('withheld'))), factor)

@@ -3,9 +3,9 @@
 In the node graph a keyframe's image, pose, multi-view depth and score arrive on separate
 topics at different times, keyed by the same header stamp. ``KeyframeAssembler`` collects
 them and returns an :class:`~.sample.AdaptSample` as soon as the image, depth and score are
-in, with the pose, the depth's std and the fusion's verdict (``trust``: the reason the guard
-trusted none of its points, '' when it did, or that reason and the factor the fusion moved the
-points by; ``fusion_trust.py``) when they came first or are still expected. It keeps
+in, with the pose, the depth's std and the fusion's verdict (``trust``, a ``FusionTrust``: the
+reason the guard trusted none of its points, '' when it did, and the factor the fusion moved
+them by; ``fusion_trust.py``) when they came first or are still expected. It keeps
 the most recent posed keyframes as the photometric neighbours of the next ones (the previous
 keyframes with enough baseline), and bounded memory: at most ``max_pending`` incomplete
 keyframes.
@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import PinholeCamera
+from .fusion_trust import FusionTrust
 from .sample import AdaptSample, Neighbour, make_sample
 
 PARTS = ('rgb', 'depth', 'score', 'pose', 'std', 'trust')
@@ -145,6 +146,7 @@ class KeyframeAssembler:
         entry = self._pending.pop(stamp_ns)
         self._given.append(stamp_ns)
         v = entry.values
+        trust = v.get('trust') or FusionTrust()
         pose = v.get('pose')
         neighbours = self._neighbours(pose) if pose is not None and self.n_neighbours > 0 else []
         sample = make_sample(
@@ -160,19 +162,9 @@ class KeyframeAssembler:
             neighbours=neighbours,
             mv_std=v.get('std'),
             max_relative_std=self.max_relative_std,
-            untrusted=_reason(v.get('trust')),
-            points_scale=_factor(v.get('trust')),
+            untrusted=trust.untrusted,
+            points_scale=trust.points_scale,
         )
         if pose is not None:
             self._recent.append((stamp_ns, Neighbour(v['rgb'], pose)))
         return sample
-
-
-def _reason(trust: Any) -> str:
-    """The untrusted reason of a ``trust`` part: the reason itself, or ``(reason, factor)``."""
-    return str((trust[0] if isinstance(trust, tuple) else trust) or '')
-
-
-def _factor(trust: Any) -> float:
-    """The points' scale factor of a ``trust`` part (``fusion_trust.points_scale``; 1 without)."""
-    return float(trust[1]) if isinstance(trust, tuple) else 1.0

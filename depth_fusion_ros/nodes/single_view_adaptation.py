@@ -268,11 +268,11 @@ class NodeAdaptation:
         become the keyframe's ``trust`` part."""
         self.node.stats.received('fused_decision')
         try:
-            stamp_ns, untrusted, factor = trust_from_json(msg.data)
+            stamp_ns, trust = trust_from_json(msg.data)
         except ValueError as exc:
             self.node.stats.dropped('bad_decision', f'fused/decision: {exc}')
             return
-        self._add(stamp_ns, 'trust', (untrusted, factor))
+        self._add(stamp_ns, 'trust', trust)
 
     def _on_pose(self, msg: PoseStamped) -> None:
         self.node.stats.received('keyframe_pose')
