@@ -18,7 +18,6 @@ from depth_fusion_ros.adaptation.fusion_trust import (
     points_scale,
     trust_from_json,
     untrusted_reason,
-    verdict_from_json,
 )
 from depth_fusion_ros.adaptation.keyframes import KeyframeAssembler
 from depth_fusion_ros.adaptation.losses import photometric
@@ -374,12 +373,13 @@ def test_a_fusion_verdict_is_read_by_its_exact_stamp():
     verdict = {'stamp': stamp_ns / 1e9, 'stamp_ns': stamp_ns, 'decision': 'single_view', 'reason': 'r'}
     text = json.dumps(verdict)
     assert round(json.loads(text)['stamp'] * 1e9) != stamp_ns  # why the seconds cannot key it
-    assert verdict_from_json(text) == (stamp_ns, 'the fusion trusted none of its points (single_view: r)')
+    said = 'the fusion trusted none of its points (single_view: r)'
+    assert trust_from_json(text) == (stamp_ns, FusionTrust(said, 1.0))
     full = json.dumps({'stamp_ns': 5, 'decision': 'full', 'reason': 'ok', 'withheld': False})
-    assert verdict_from_json(full) == (5, '')
+    assert trust_from_json(full) == (5, FusionTrust('', 1.0))
     for bad in ('{"stamp": 1.5, "decision": "full"}', 'not json', '[]'):
         with pytest.raises(ValueError, match='unreadable fusion decision'):
-            verdict_from_json(bad)
+            trust_from_json(bad)
 
 
 def test_the_adaptation_trains_on_the_points_as_the_fusion_moved_them(small_sequence):

@@ -69,16 +69,10 @@ def points_scale(evidence: Mapping[str, Any] | None) -> float:
     return math.exp(-(1.0 - max(weight, 0.0)) * math.log(scale))
 
 
-def verdict_from_json(text: str) -> tuple[int, str]:
-    """``(stamp_ns, untrusted reason)`` of one ``fused/decision`` message (fusion_node's
-    ``decision_json``); ``ValueError`` for one that does not say them."""
-    stamp_ns, trust = trust_from_json(text)
-    return stamp_ns, trust.untrusted
-
-
 def trust_from_json(text: str) -> tuple[int, FusionTrust]:
-    """``(stamp_ns, FusionTrust)`` of one ``fused/decision`` message (:func:`verdict_from_json`,
-    :func:`points_scale`)."""
+    """``(stamp_ns, FusionTrust)`` of one ``fused/decision`` message (fusion_node's
+    ``decision_json``: the untrusted reason, and :func:`points_scale` of its evidence);
+    ``ValueError`` for one that does not say the stamp and the decision."""
     try:
         verdict: Any = json.loads(text)
         stamp_ns = int(verdict['stamp_ns'])
