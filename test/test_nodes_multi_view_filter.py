@@ -106,6 +106,9 @@ def test_a_sequence_played_again_starts_over_instead_of_being_dropped(synthetic_
                 time.sleep(0.02)
             count = n_pass * len(expected_keys)
             assert ros.wait_for(lambda c=count: len(depth_msgs) == c, 120.0), node.stats.snapshot().summary()
+        # every frame of both passes through the filter (the last images may still be on their
+        # way to the feed when the last keyframe is out: idle() alone passed early under load)
+        assert ros.wait_for(lambda: node.filter_feed.fed == 2 * len(seq.frames), 30.0), node.filter_feed.fed
         assert ros.wait_for(lambda: node.filter_feed.idle(), 30.0)
         snap = node.stats.snapshot()
         frames_seen = node.filter_feed.filter.stats.frames
