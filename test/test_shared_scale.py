@@ -11,7 +11,7 @@ import pytest
 
 from depth_fusion_ros.fusion.guard import GuardConfig, MultiViewEvidence
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
-from depth_fusion_ros.fusion.shared_scale import scale_weight, weighed_points
+from depth_fusion_ros.fusion.shared_scale import points_factor, scale_weight, weighed_points
 
 W, H = 160, 120
 
@@ -39,10 +39,11 @@ def test_the_weight_is_the_single_views_share_of_the_scales_variance():
 
 def test_the_points_move_by_what_the_weight_leaves_of_their_scale():
     m = np.array([[1.0, np.nan], [2.0, 4.0]], dtype=np.float32)
-    assert weighed_points(m, 0.8, 1.0) is m
-    np.testing.assert_allclose(weighed_points(m, 0.8, 0.0), m / 0.8, rtol=1e-6)
-    np.testing.assert_allclose(weighed_points(m, 0.8, 0.5), m / math.sqrt(0.8), rtol=1e-6)
-    assert weighed_points(m, 0.8, 0.5).dtype == np.float32
+    assert points_factor(0.8, 1.0) == 1.0 and points_factor(float('nan'), 0.5) == 1.0
+    assert weighed_points(m, points_factor(0.8, 1.0)) is m
+    np.testing.assert_allclose(weighed_points(m, points_factor(0.8, 0.0)), m / 0.8, rtol=1e-6)
+    np.testing.assert_allclose(weighed_points(m, points_factor(0.8, 0.5)), m / math.sqrt(0.8), rtol=1e-6)
+    assert weighed_points(m, points_factor(0.8, 0.5)).dtype == np.float32
 
 
 def _keyframe(shared: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, MultiViewEvidence]:

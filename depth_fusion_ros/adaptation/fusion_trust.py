@@ -28,9 +28,10 @@ the scene (docs/adaptation.md, "The scale the fusion took").
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Mapping
 from typing import Any, NamedTuple
+
+from ..fusion.shared_scale import points_factor
 
 #: The guard's verdicts under which it trusted none of the keyframe's points.
 UNTRUSTED_DECISIONS = frozenset({'single_view'})
@@ -55,18 +56,15 @@ def untrusted_reason(decision: str, reason: str = '', withheld: bool = False) ->
 
 
 def points_scale(evidence: Mapping[str, Any] | None) -> float:
-    """The factor the fusion moved the keyframe's points by, ``scale^-(1 - scale_weight)`` from
-    the guard's evidence (1 where it weighed nothing, or the evidence does not say)."""
+    """The factor the fusion moved the keyframe's points by (``fusion.shared_scale.points_factor``
+    of the guard's evidence ``scale`` and ``scale_weight``; 1 where the evidence does not say)."""
     if not evidence:
         return 1.0
-    scale, weight = evidence.get('scale'), evidence.get('scale_weight')
     try:
-        scale, weight = float(scale), float(weight)
+        scale, weight = float(evidence.get('scale')), float(evidence.get('scale_weight'))
     except (TypeError, ValueError):
         return 1.0
-    if not (math.isfinite(scale) and scale > 0 and math.isfinite(weight)) or weight >= 1.0:
-        return 1.0
-    return math.exp(-(1.0 - max(weight, 0.0)) * math.log(scale))
+    return points_factor(scale, weight)
 
 
 def trust_from_json(text: str) -> tuple[int, FusionTrust]:

@@ -49,7 +49,7 @@ from .interpolation import (
 from .occlusion import check_min_step, halo_points
 from .precision import check_half_weight, precision_weights
 from .selection import MIN_DEPTH, OUTPUT_KINDS, LinearFit, check_output_kind
-from .shared_scale import scale_weight, weighed_points
+from .shared_scale import points_factor, scale_weight, weighed_points
 from .stream_scale import StreamScale
 from .subsample import seeded_subsample
 from .valid_depth import sanitize_depth
@@ -506,11 +506,9 @@ def _weigh_shared_scale(m: np.ndarray, verdict: GuardVerdict) -> np.ndarray:
         return m
     weight = scale_weight(verdict.evidence.get('single_error', np.nan), shared, verdict.scale)
     verdict.evidence['scale_weight'] = weight
-    if weight >= 1.0:
-        return m
-    moved = weighed_points(m, verdict.scale, weight)
-    verdict.scale = float(np.exp(weight * np.log(verdict.scale)))
-    return moved
+    factor = points_factor(verdict.scale, weight)
+    verdict.scale *= factor  # scale^weight: the share of the points' scale taken
+    return weighed_points(m, factor)
 
 
 def _verdict_fields(verdict: GuardVerdict | None) -> dict:

@@ -46,10 +46,18 @@ def scale_weight(single_error: float, shared_std: float, scale: float) -> float:
     return n2 / (n2 + b * b) if n2 > 0 else 0.0
 
 
-def weighed_points(m: np.ndarray, scale: float, weight: float) -> np.ndarray:
-    """The multi-view depth ``m`` moved by ``1 - weight`` of the log of ``scale`` (the points'
-    global scale against the single view), towards the single view's scale."""
-    if weight >= 1.0 or not (math.isfinite(scale) and scale > 0):
+def points_factor(scale: float, weight: float) -> float:
+    """``scale^-(1 - weight)``: the factor that moves the points by ``1 - weight`` of the log of
+    ``scale`` (their global scale against the single view), towards the single view's scale
+    (1 where ``weight`` is 1 or more, or either is unknown). The fusion moves its points by it,
+    and the adaptation its targets (``adaptation/fusion_trust.py``)."""
+    if not (math.isfinite(scale) and scale > 0 and math.isfinite(weight)) or weight >= 1.0:
+        return 1.0
+    return math.exp(-(1.0 - max(weight, 0.0)) * math.log(scale))
+
+
+def weighed_points(m: np.ndarray, factor: float) -> np.ndarray:
+    """The multi-view depth ``m`` times :func:`points_factor` (``m`` itself for 1)."""
+    if factor == 1.0:
         return m
-    factor = np.float32(math.exp(-(1.0 - weight) * math.log(scale)))
-    return (m * factor).astype(m.dtype, copy=False)
+    return (m * np.float32(factor)).astype(m.dtype, copy=False)
