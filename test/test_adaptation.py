@@ -15,6 +15,7 @@ from depth_fusion_ros.adaptation.adapter import Adapter
 from depth_fusion_ros.adaptation.config import AdaptConfig
 from depth_fusion_ros.adaptation.fusion_trust import (
     FusionTrust,
+    fusion_trust,
     points_scale,
     trust_from_json,
     untrusted_reason,
@@ -96,7 +97,8 @@ def test_prediction_of_keyframe_k_comes_from_weights_trained_on_keyframes_before
         ctx = KeyframeContext(seq, k, options, replay_shared)
         # the targets as the fusion of this prediction moved them (fusion_trust.points_scale)
         fused = fuse_automatic(ctx, expected, adapter.predictor().output_kind, source='adapted')
-        adapter.observe(keyframe_sample(ctx, adapter.config, factor=points_scale(fused.evidence)))
+        trust = fusion_trust(fused.decision, fused.decision_reason, fused.withheld, fused.evidence)
+        adapter.observe(keyframe_sample(ctx, adapter.config, trust))
     # Keyframe 0 is predicted by the untouched network, later ones by adapted weights.
     first = Adapter.from_spec(tiny_model).predictor().predict(seq.frames[3].rgb)
     assert not np.array_equal(scored[3], first)

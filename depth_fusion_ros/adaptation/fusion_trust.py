@@ -46,6 +46,11 @@ class FusionTrust(NamedTuple):
     points_scale: float = 1.0
 
 
+#: A keyframe trained on as it is: no verdict (no fusion_node, ``follow_fusion_guard`` off), or
+#: one that trusted the points and moved nothing.
+AS_IS = FusionTrust()
+
+
 def untrusted_reason(decision: str, reason: str = '', withheld: bool = False) -> str:
     """The skip reason for a keyframe the guard did not trust ('' when it did): ``decision``
     and ``reason`` as ``fused/decision`` or ``FusionResult`` say them."""
@@ -67,10 +72,18 @@ def points_scale(evidence: Mapping[str, Any] | None) -> float:
     return points_factor(scale, weight)
 
 
+def fusion_trust(
+    decision: str, reason: str = '', withheld: bool = False, evidence: Mapping[str, Any] | None = None
+) -> FusionTrust:
+    """What the adaptation takes from a verdict, as ``fused/decision`` or a ``FusionResult``
+    say it: :func:`untrusted_reason` and :func:`points_scale`."""
+    return FusionTrust(untrusted_reason(decision, reason, withheld), points_scale(evidence))
+
+
 def trust_from_json(text: str) -> tuple[int, FusionTrust]:
     """``(stamp_ns, FusionTrust)`` of one ``fused/decision`` message (fusion_node's
-    ``decision_json``: the untrusted reason, and :func:`points_scale` of its evidence);
-    ``ValueError`` for one that does not say the stamp and the decision."""
+    ``decision_json``, :func:`fusion_trust`); ``ValueError`` for one that does not say the stamp
+    and the decision."""
     try:
         verdict: Any = json.loads(text)
         stamp_ns = int(verdict['stamp_ns'])
@@ -79,5 +92,5 @@ def trust_from_json(text: str) -> tuple[int, FusionTrust]:
         raise ValueError(f'unreadable fusion decision: {exc!r}') from None
     reason = str(verdict.get('reason') or '')
     evidence = verdict.get('evidence')
-    factor = points_scale(evidence if isinstance(evidence, dict) else None)
-    return stamp_ns, FusionTrust(untrusted_reason(decision, reason, bool(verdict.get('withheld'))), factor)
+    evidence = evidence if isinstance(evidence, dict) else None
+    return stamp_ns, fusion_trust(decision, reason, bool(verdict.get('withheld')), evidence)

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import PinholeCamera
-from .fusion_trust import FusionTrust
+from .fusion_trust import AS_IS
 from .sample import AdaptSample, Neighbour, make_sample
 
 PARTS = ('rgb', 'depth', 'score', 'pose', 'std', 'trust')
@@ -146,7 +146,7 @@ class KeyframeAssembler:
         entry = self._pending.pop(stamp_ns)
         self._given.append(stamp_ns)
         v = entry.values
-        trust = v.get('trust') or FusionTrust()
+        trust = v.get('trust', AS_IS)
         pose = v.get('pose')
         neighbours = self._neighbours(pose) if pose is not None and self.n_neighbours > 0 else []
         sample = make_sample(

@@ -28,7 +28,7 @@ import numpy as np
 
 from ...adaptation.adapter import Adapter, UpdateReport
 from ...adaptation.config import AdaptConfig
-from ...adaptation.fusion_trust import points_scale, untrusted_reason
+from ...adaptation.fusion_trust import AS_IS, FusionTrust, fusion_trust
 from ...adaptation.sample import AdaptSample, Neighbour, make_sample
 from ...fusion.pipeline import FusionResult
 from ...singleview.predictor import DepthPredictor
@@ -61,12 +61,10 @@ def adaptation_run(ctx: KeyframeContext) -> AdaptationRun:
     return ctx.shared_cached('adaptation:run', start)
 
 
-def keyframe_sample(
-    ctx: KeyframeContext, config: AdaptConfig, untrusted: str = '', factor: float = 1.0
-) -> AdaptSample:
+def keyframe_sample(ctx: KeyframeContext, config: AdaptConfig, trust: FusionTrust = AS_IS) -> AdaptSample:
     """The keyframe's training signals: its selected multi-view points and posed neighbours;
-    ``untrusted``: the fusion's reason for trusting none of them ('' when it did); ``factor``:
-    the one the fusion moved them by (``fusion_trust.points_scale``)."""
+    ``trust``: the fusion's reason for trusting none of them ('' when it did) and the factor it
+    moved them by (``fusion_trust.py``)."""
     from .multi_view import multi_view_result, neighbour_indices
 
     mv = multi_view_result(ctx)
@@ -85,17 +83,15 @@ def keyframe_sample(
         neighbours=neighbours,
         mv_std=mv.depth_std,
         max_relative_std=config.max_relative_std,
-        untrusted=untrusted,
-        points_scale=factor,
+        untrusted=trust.untrusted,
+        points_scale=trust.points_scale,
     )
 
 
-def observe_keyframe(
-    ctx: KeyframeContext, run: AdaptationRun, untrusted: str = '', factor: float = 1.0
-) -> UpdateReport:
-    """Train on this keyframe (``untrusted``, ``factor``: see :func:`keyframe_sample`); refresh
-    the predictor when the update was kept."""
-    report = run.adapter.observe(keyframe_sample(ctx, run.adapter.config, untrusted, factor))
+def observe_keyframe(ctx: KeyframeContext, run: AdaptationRun, trust: FusionTrust = AS_IS) -> UpdateReport:
+    """Train on this keyframe (``trust``: see :func:`keyframe_sample`); refresh the predictor
+    when the update was kept."""
+    report = run.adapter.observe(keyframe_sample(ctx, run.adapter.config, trust))
     if run.adapter.version != run.version:
         run.predictor = run.adapter.predictor()
         run.version = run.adapter.version
@@ -117,12 +113,11 @@ def adapted_prediction(ctx: KeyframeContext) -> Adapted:
         if depth.shape[::-1] != size:
             depth = cv2.resize(depth, size, interpolation=cv2.INTER_LINEAR)
         prediction = SingleViewPrediction(depth.astype(np.float32), run.predictor.output_kind)
-        fused, untrusted, factor = None, '', 1.0
+        fused, trust = None, AS_IS
         if run.adapter.config.follow_fusion_guard:
             fused = fuse_automatic(ctx, prediction.depth, prediction.output_kind, source='adapted')
-            untrusted = untrusted_reason(fused.decision, fused.decision_reason, fused.withheld)
-            factor = points_scale(fused.evidence)
-        report = observe_keyframe(ctx, run, untrusted, factor)
+            trust = fusion_trust(fused.decision, fused.decision_reason, fused.withheld, fused.evidence)
+        report = observe_keyframe(ctx, run, trust)
         return prediction, report, fused
 
     return ctx.cached('adaptation:prediction', compute)
