@@ -158,6 +158,7 @@ def test_slam_rate_poses_are_interpolated_and_depth_is_accurate(synthetic_sequen
         assert node.filter_feed is None  # the sweep, from the file (the default is the filter)
         out = _collect_outputs(ros)
         methods = ros.collect(String, '/depth_fusion/multi_view/method', latched_qos())
+        biases = ros.collect(Image, '/depth_fusion/multi_view/bias_std')  # the filter's only
         cam = _Camera(ros)
         first_pose = 0
         for i, frame in enumerate(seq.frames):
@@ -180,6 +181,7 @@ def test_slam_rate_poses_are_interpolated_and_depth_is_accurate(synthetic_sequen
 
     assert snap.dropped == {}, snap.summary()
     assert {msg.data for msg in methods} == {'sweep'}  # fusion_node's stage 1 follows it (announce.py)
+    assert biases == [] and node._bias_pub is None  # the sweep has no focal bias to send
     assert snap.received['pose'] == cam.poses_published and node.posed_count == len(seq.frames)
     key_stamps = [stamps[k] for k in expected_keys]
     for name in ('depth', 'score', 'keyframe', 'keyframe_info'):

@@ -214,7 +214,9 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         self._depth_pub = self.create_publisher(Image, TOPIC_DEPTH, self.output_qos)
         self._score_pub = self.create_publisher(Image, TOPIC_SCORE, self.output_qos)
         self._std_pub = self.create_publisher(Image, TOPIC_DEPTH_STD, self.output_qos)
-        self._bias_pub = self.create_publisher(Image, TOPIC_BIAS_STD, self.output_qos)
+        # the filter's focal length bias; the sweep has none, and sends nothing there
+        with_bias = str(p['multi_view.method']) == 'filter'
+        self._bias_pub = self.create_publisher(Image, TOPIC_BIAS_STD, self.output_qos) if with_bias else None
         self._kf_pose_pub = self.create_publisher(PoseStamped, TOPIC_KEYFRAME_POSE, self.output_qos)
         self._lens_pub = self.create_publisher(CameraInfo, TOPIC_LENS_CAMERA_INFO, lens_qos())
         self.posing = PosingPublisher(
@@ -764,7 +766,7 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
                 self._note_withheld(result)
                 depth, score = result.depth, result.score.astype(np.float32)
                 std = np.asarray(result.depth_std, dtype=np.float32)
-                shared = getattr(result, 'bias_std', None)  # the filter's; the sweep has none
+                shared = getattr(result, 'bias_std', None)
                 bias = nothing if shared is None else np.asarray(shared, dtype=np.float32)
         except Exception as exc:
             self.stats.dropped('processing_error', f'multi-view search failed: {type(exc).__name__}: {exc}')
@@ -772,7 +774,8 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
             depth = score = std = bias = nothing
         # before the depth, so the fusion node has them when the depth completes the keyframe
         self._std_pub.publish(messages.image_msg(std, '32FC1', job.header, kind=kind))
-        self._bias_pub.publish(messages.image_msg(bias, '32FC1', job.header, kind=kind))
+        if self._bias_pub is not None:
+            self._bias_pub.publish(messages.image_msg(bias, '32FC1', job.header, kind=kind))
         self._depth_pub.publish(messages.depth_image_msg(depth, job.header, kind=kind))
         self._score_pub.publish(messages.image_msg(score, '32FC1', job.header, kind=kind))
         self.stats.published('depth')

@@ -33,7 +33,8 @@ TOPIC_SCORE = 'depth_fusion/multi_view/score'
 #: Per-estimate depth standard deviation (m, 32FC1): the fusion guard's parallax evidence.
 TOPIC_DEPTH_STD = 'depth_fusion/multi_view/depth_std'
 #: The part of that std (m, 32FC1) every estimate of the keyframe shares: the bias of an
-#: unverified focal length under its motion (the filter's; NaN where none, or no filter).
+#: unverified focal length under its motion (the filter's, NaN where no estimate; the sweep
+#: publishes none).
 TOPIC_BIAS_STD = 'depth_fusion/multi_view/bias_std'
 #: The keyframe's interpolated camera-to-world pose, with its stamp (map_node pairs it by stamp).
 TOPIC_KEYFRAME_POSE = 'depth_fusion/keyframe/pose'
