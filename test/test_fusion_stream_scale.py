@@ -82,6 +82,8 @@ def test_warn_notes_without_scaling_off_does_nothing_and_a_new_stream_starts_ove
         {'engage_ratio': 1.0},
         {'max_spread': 0.0},
         {'min_share': 2},
+        {'max_jump': 1.0},
+        {'max_jump': float('inf')},
     ],
 )
 def test_bad_settings_are_refused_by_name(change):
@@ -104,6 +106,47 @@ def test_the_single_view_scaled_into_the_points_unit_fuses_like_a_metric_pair():
     error_after = np.nanmean(np.abs(after.depth - truth))
     error_scaled_single = np.nanmean(np.abs(scene.single * factor - truth))
     assert error_after < error_scaled_single
+
+
+def test_a_keyframe_whose_points_leave_the_stream_keeps_its_single_view():
+    """Points consistent among themselves and 2.3x off the stream's ratio (on a SLAM keyframe
+    stream: a match a wave along the line, kept by frames at equal baselines; docs/fusion.md "A
+    keyframe off the stream") are not fused, the keyframes around it are, and a stream whose
+    ratio really moves is fused again at its new level after three keyframes."""
+    scene = make_scene(W, H, n_points=W * H // 20, scale=1.0, offset=0.1, seed=3)
+    config = FusionConfig(mode='fast')
+
+    def fuse(stream: StreamScale, factor: float, stamp: int):
+        mv = (scene.multi * factor).astype(np.float32)
+        return fuse_keyframe(scene.single, mv, None, config, stream_scale=stream, stamp=stamp)
+
+    stream = StreamScale(StreamScaleConfig(min_points=50))
+    assert all(fuse(stream, 1.25, t).decision in ('full', 'fewer_points') for t in range(4))
+    off = fuse(stream, 0.55, 4)
+    assert off.decision == 'single_view' and off.decision_reason.startswith('scale_jump')
+    assert '2.27x off' in off.decision_reason and off.keyframe_confidence == 0.0
+    assert off.evidence['scale_jump'] == pytest.approx(np.log(0.55 / 1.25), abs=0.02)
+    kept = np.isfinite(scene.single)
+    assert np.allclose(off.depth[kept], scene.single[kept])
+    # The same keyframe without the check is fused at the points' scale.
+    unchecked = StreamScale(StreamScaleConfig(min_points=50, max_jump=0.0))
+    for t in range(4):
+        fuse(unchecked, 1.25, t)
+    assert fuse(unchecked, 0.55, 4).decision in ('full', 'fewer_points')
+    # Back on the stream: fused; a ratio that stays at its new level: fused from the third on.
+    assert fuse(stream, 1.25, 5).decision in ('full', 'fewer_points')
+    moved = [fuse(stream, 0.55, t) for t in (6, 7, 8)]
+    assert [r.decision_reason.startswith('scale_jump') for r in moved] == [True, True, False]
+    assert moved[2].decision in ('full', 'fewer_points')
+    # Another sequence played into the running node, with later stamps: a new stream, not a jump.
+    other = fuse(stream, 0.3, 100)
+    assert stream.jump is None and len(stream.factors) == 1
+    assert not other.decision_reason.startswith('scale_jump')
+    # stream_scale.mode off still judges the keyframes (it only stops the scaling).
+    judged = StreamScale(StreamScaleConfig(mode='off', min_points=50))
+    for t, factor in enumerate((1.0, 1.0, 1.0, 0.4)):
+        judged.observe(*_keyframe(factor, t), None, stamp=t)
+    assert judged.jumped and judged.factor == 1.0
 
 
 class _Context:

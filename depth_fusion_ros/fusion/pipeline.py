@@ -279,14 +279,19 @@ def fuse_keyframe(
 
     ``stream_scale``: the stream's scale (``stream_scale.py``) a metric single view is
     multiplied by first, observed on this keyframe (``stamp``: its stamp, or any increasing
-    key); ``evidence['stream_scale']`` then holds the factor used.
+    key); ``evidence['stream_scale']`` then holds the factor used, and ``scale_jump`` this
+    keyframe's log factor against the stream's where it was judged. A keyframe off the stream
+    by more than ``stream_scale.max_jump`` keeps its single view (:func:`_off_the_stream`).
     """
-    found, factor = False, 1.0
+    found, factor, jump = False, 1.0, None
     if stream_scale is not None and output_kind == 'metric_depth':
         single_depth, factor, found = stream_scale.scaled(single_depth, mv_depth, stage1_mask, stamp)
-    result = _fuse(single_depth, mv_depth, stage1_mask, config, output_kind, **options)
+        jump = stream_scale.jump_reason()
+    result = _fuse(single_depth, mv_depth, stage1_mask, config, output_kind, scale_jump=jump, **options)
     if stream_scale is not None:
         result.evidence['stream_scale'] = factor
+        if stream_scale.jump is not None:
+            result.evidence['scale_jump'] = stream_scale.jump
         result.stream_scale_found = found
     return result
 
@@ -303,6 +308,7 @@ def _fuse(
     evidence: MultiViewEvidence | None = None,
     consistency_config: ConsistencyConfig | None = None,
     image: np.ndarray | None = None,
+    scale_jump: str | None = None,
 ) -> FusionResult:
     """Fuse one keyframe (all inputs HxW on the working grid).
 
@@ -316,6 +322,8 @@ def _fuse(
     estimate of the stage-2 band tested against its neighbours, skipped with a given Ω.
     ``image``: the keyframe (grey or RGB) for the halo test (``occlusion.py``,
     ``halo_min_step``); without it the test is skipped (``evidence['halo_checked']`` 0).
+    ``scale_jump``: the reason this keyframe's points are off the stream's scale
+    (``StreamScale.jump_reason``), or None: with the guard on, the keyframe keeps its single view.
     """
     config = config or FusionConfig()
     check_output_kind(output_kind)
@@ -395,6 +403,8 @@ def _fuse(
         verdict.evidence.update(stage3)
         if guard_config.shared_scale and needs_fit is None:
             m = _weigh_shared_scale(m, verdict)
+        if scale_jump is not None:
+            verdict = _off_the_stream(verdict, scale_jump)
         if verdict.decision not in ('full', 'fewer_points'):
             return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config, needs_fit)
         omega = verdict.trusted
@@ -509,6 +519,20 @@ def _weigh_shared_scale(m: np.ndarray, verdict: GuardVerdict) -> np.ndarray:
     factor = points_factor(verdict.scale, weight)
     verdict.scale *= factor  # scale^weight: the share of the points' scale taken
     return weighed_points(m, factor)
+
+
+def _off_the_stream(verdict: GuardVerdict, reason: str) -> GuardVerdict:
+    """``single_view`` for a keyframe whose points sit off the stream's scale.
+
+    Why not a smaller step down the ladder: every lower step but the last takes the points'
+    scale, and that scale is what is off. Points consistent among themselves and 2x off the
+    stream's single-view ratio are a shared error (a match a period along the line, kept by
+    frames at equal baselines) far more often than a metric network's scale jumping 2x between
+    keyframes of one stream (``stream_scale.py``)."""
+    if verdict.decision == 'single_view':
+        return verdict
+    empty = np.zeros_like(verdict.trusted)
+    return GuardVerdict('single_view', reason, empty, 0.0, verdict.scale, verdict.evidence)
 
 
 def _verdict_fields(verdict: GuardVerdict | None) -> dict:

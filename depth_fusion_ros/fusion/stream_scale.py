@@ -29,6 +29,20 @@ From then on, for the rest of the stream, each keyframe is scaled by its own fac
 counts and lies within ``max_spread`` of the window's median (a network that adapts to the
 points moves towards 1 between keyframes, and a median would lag it), else by that median; a
 stream whose stamps go back starts over.
+
+**A keyframe off the stream** (``max_jump``): the same factors judge each keyframe's points
+against the stream's. A metric network's scale moves with the view, but slowly; the points
+are in the poses' unit. So a keyframe whose factor lies beyond ``max_jump`` (2) of the median
+of the window before it (at least ``min_keyframes`` factors) has points that disagree with the
+stream as a whole, and the fusion keeps its single view (``single_view``, reason
+``scale_jump``; ``pipeline.fuse_keyframe``). Measured: a SLAM keyframe stream (15 cm and 7 deg a
+frame, 0.3 deg of rotation noise) whose floor is papered with wavy stripes, where 74-83 % of a
+keyframe's points matched a wave a period along the line (2-3 measurements each, frames at
+equal baselines agree on the alias), read 0.43 against 1.0-1.08 on the keyframes around it,
+and fused 2.6-2.8x its input (docs/fusion.md, "A keyframe off the stream"). The jumped factor
+still joins the window, so a stream whose scale really moves (a network adapting to the points)
+is judged against its new level after a few keyframes. A step forward of ``NEW_STREAM_STEPS``
+keyframe periods starts over as a step back does (another sequence played into running nodes).
 """
 
 from __future__ import annotations
@@ -45,6 +59,12 @@ from .subsample import seeded_subsample
 
 log = logging.getLogger(__name__)
 
+#: A step between keyframe stamps at least this many times the median of the recent steps
+#: (and at least three of them seen) begins a new stream, as a step back does: another sequence
+#: played into the running nodes with later stamps (multi_view_node's image gap rule: 10 of its
+#: recent periods). Its network and points need not share the last stream's factor.
+NEW_STREAM_STEPS = 10.0
+
 STREAM_SCALE_PARAMETER_DESCRIPTIONS = {
     'mode': (
         'a metric single view whose scale the multi-view points disagree with over the stream (poses not '
@@ -59,6 +79,9 @@ STREAM_SCALE_PARAMETER_DESCRIPTIONS = {
     'min_points': 'stage-1 points a keyframe needs to count',
     'min_share': "share of a keyframe's points within relative_tolerance of its factor for it to count",
     'relative_tolerance': "relative distance of a point from the keyframe's factor that still agrees",
+    'max_jump': "a keyframe whose factor is beyond this ratio of the median of the window's factors before "
+    'it (at least min_keyframes) keeps its single view (decision single_view, scale_jump): its points '
+    'disagree with the stream (also with mode off); 0: off',
 }
 
 
@@ -80,6 +103,11 @@ class StreamScaleConfig:
     min_points: int = 200
     min_share: float = 0.5
     relative_tolerance: float = 0.35
+    #: 2, as ``engage_ratio`` and stage 2's ``metric_scale_range``, not fitted: no keyframe of the
+    #: other stress streams moved by more than 0.5 in log factor (1.65x) from the window's
+    #: median; the wrong ones of the striped-floor SLAM stream by 0.76-0.77 (2.13x), a thin
+    #: margin (docs/fusion.md, "A keyframe off the stream").
+    max_jump: float = 2.0
     #: Points a keyframe's factor is computed from at most (a seeded subsample: the median
     #: of 4096 is as good as of 16k, at a quarter of the cost).
     sample: int = 4096
@@ -96,6 +124,8 @@ class StreamScaleConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f'stream_scale.{name} must be a positive number, got {value}')
+        if not (self.max_jump == 0.0 or (math.isfinite(self.max_jump) and self.max_jump > 1.0)):
+            raise ValueError(f'stream_scale.max_jump must be 0 (off) or a number > 1, got {self.max_jump}')
         if not 0.0 <= self.min_share <= 1.0:
             raise ValueError(f'stream_scale.min_share must be in [0, 1], got {self.min_share}')
         if self.min_points < 1 or self.sample < 1:
@@ -140,8 +170,13 @@ class StreamScale:
         self.taken = False
         self.disagrees = False
         self.last_stamp: int | None = None
+        self._steps: deque[int] = deque(maxlen=2 * self.config.window)
         #: The last keyframe's own factor (None where it did not count).
         self.current: float | None = None
+        #: The last keyframe's log factor less the log median of the window before it (None
+        #: where either is missing): :attr:`jumped`.
+        self.jump: float | None = None
+        self._jump_centre = float('nan')
 
     def _median(self) -> float:
         """The median factor of the window (NaN when empty)."""
@@ -173,19 +208,23 @@ class StreamScale:
         notes it once, with :meth:`describe`). A ``stamp`` older than the last starts over; the
         last one again is not taken twice (``evaluate`` fuses a keyframe once per method).
         """
-        if self.config.mode == 'off' or (stamp is not None and stamp == self.last_stamp):
+        if stamp is not None and stamp == self.last_stamp:
+            return False
+        if self.config.mode == 'off' and self.config.max_jump == 0.0:
             return False
         if stamp is not None:
-            if self.last_stamp is not None and stamp < self.last_stamp:
-                log.info('stream scale: stamps went back, a new stream: starting over')
-                self.reset()
+            self._new_stream(stamp)
             self.last_stamp = stamp
         factor = keyframe_factor(single, mv_depth, stage1, self.config)
         self.current = factor
+        self.jump = None
         if factor is None:
             return False
+        if len(self.factors) >= self.config.min_keyframes:
+            self._jump_centre = self._median()
+            self.jump = math.log(factor / self._jump_centre)
         self.factors.append(factor)
-        if self.disagrees:
+        if self.disagrees or self.config.mode == 'off':
             return False
         if len(self.factors) < self.config.min_keyframes:
             return False
@@ -197,6 +236,40 @@ class StreamScale:
         self.disagrees = True
         self.taken = self.config.mode == 'correct'
         return True
+
+    def _new_stream(self, stamp: int) -> None:
+        """Start over where ``stamp`` begins a new stream: it goes back, or it steps forward by
+        ``NEW_STREAM_STEPS`` of the recent steps."""
+        last = self.last_stamp
+        if last is None:
+            return
+        if stamp < last:
+            log.info('stream scale: stamps went back, a new stream: starting over')
+            self.reset()
+        elif len(self._steps) >= 3 and stamp - last >= NEW_STREAM_STEPS * float(np.median(self._steps)):
+            log.info(
+                'stream scale: a gap of %.0f keyframe periods, a new stream: starting over',
+                (stamp - last) / float(np.median(self._steps)),
+            )
+            self.reset()
+        else:
+            self._steps.append(stamp - last)
+
+    @property
+    def jumped(self) -> bool:
+        """Whether the last keyframe's factor lies beyond ``max_jump`` of the stream's."""
+        limit = self.config.max_jump
+        return limit > 0 and self.jump is not None and abs(self.jump) > math.log(limit)
+
+    def jump_reason(self) -> str | None:
+        """The decision's reason where the last keyframe :attr:`jumped`, else None."""
+        if not self.jumped:
+            return None
+        return (
+            f'scale_jump: the points sit at {self.current:.3f}x the single view, '
+            f"{math.exp(abs(self.jump)):.2f}x off the stream's {self._jump_centre:.3f}x "
+            f'(> stream_scale.max_jump {self.config.max_jump:g}): points untrusted'
+        )
 
     def scaled(
         self, single: np.ndarray, mv_depth: np.ndarray, stage1: np.ndarray | None, stamp: int | None = None

@@ -140,6 +140,7 @@ STREAM_SCALE_LIMITS: dict[str, Any] = {
     'min_points': (1, None),
     'min_share': (0.0, 1.0),
     'relative_tolerance': (1e-6, None),
+    'max_jump': (0.0, None),
 }
 #: Set by the node itself (``device``) rather than under ``fusion.*``.
 FUSION_SKIP = ('device',)

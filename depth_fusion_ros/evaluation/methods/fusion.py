@@ -32,7 +32,9 @@ single-view) and ``keyframe_confidence``, ``certainty`` (the mean share of the c
 the certainty floor kept) and ``certainty_floor`` (the κ this keyframe used, in units of one
 point's largest weight; both NaN where the keyframe was not interpolated) and ``stream_scale``
 (the factor the metric single view was scaled by into the points' unit,
-``fusion/stream_scale.py``; 1 until taken, ``--set stream_scale.*``). ``--set
+``fusion/stream_scale.py``; 1 until taken, ``--set stream_scale.*``) and ``scale_jump`` (the
+keyframe's log factor less the stream's, NaN until judged; beyond ``stream_scale.max_jump``
+the keyframe keeps its single view). ``--set
 guard.<GuardConfig field>=...`` sets its thresholds; the automatic methods give it the
 multi-view result's per-pixel evidence (``depth_std``, and the neighbour agreement when the
 multi-view stage provides one). ``--set consistency.<field>=...``
@@ -157,6 +159,7 @@ def _output(result: FusionResult) -> MethodOutput:
         'certainty': float(result.evidence.get('certainty', np.nan)),
         'certainty_floor': float(result.evidence.get('certainty_floor', np.nan)),
         'stream_scale': float(result.evidence.get('stream_scale', 1.0)),
+        'scale_jump': float(result.evidence.get('scale_jump', np.nan)),
     }
     return MethodOutput(result.depth, extras)
 
