@@ -138,10 +138,12 @@ def test_a_keyframe_whose_points_leave_the_stream_keeps_its_single_view():
     moved = [fuse(stream, 0.55, t) for t in (6, 7, 8)]
     assert [r.decision_reason.startswith('scale_jump') for r in moved] == [True, True, False]
     assert moved[2].decision in ('full', 'fewer_points')
-    # Another sequence played into the running node, with later stamps: a new stream, not a jump.
-    other = fuse(stream, 0.3, 100)
-    assert stream.jump is None and len(stream.factors) == 1
-    assert not other.decision_reason.startswith('scale_jump')
+    # Another sequence played into the running node, with later stamps: not judged against the
+    # last one's keyframes until three of its own have come.
+    other = [fuse(stream, 1.3, t) for t in (100, 101, 102, 103)]
+    assert not any(r.decision_reason.startswith('scale_jump') for r in other)
+    assert [('scale_jump' in r.evidence) for r in other] == [False, False, False, True]
+    assert other[3].decision in ('full', 'fewer_points')
     # stream_scale.mode off still judges the keyframes (it only stops the scaling).
     judged = StreamScale(StreamScaleConfig(mode='off', min_points=50))
     for t, factor in enumerate((1.0, 1.0, 1.0, 0.4)):

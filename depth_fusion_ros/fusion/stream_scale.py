@@ -41,8 +41,10 @@ keyframe's points matched a wave a period along the line (2-3 measurements each,
 equal baselines agree on the alias), read 0.43 against 1.0-1.08 on the keyframes around it,
 and fused 2.6-2.8x its input (docs/fusion.md, "A keyframe off the stream"). The jumped factor
 still joins the window, so a stream whose scale really moves (a network adapting to the points)
-is judged against its new level after a few keyframes. A step forward of ``NEW_STREAM_STEPS``
-keyframe periods starts over as a step back does (another sequence played into running nodes).
+is judged against its new level after a few keyframes. After a step forward of
+``NEW_STREAM_STEPS`` keyframe periods (another sequence played into running nodes, or a camera
+that stopped a while) no keyframe is judged until ``min_keyframes`` have come since; the stream's
+factor itself is kept (a monocular SLAM's unit does not change with a pause).
 """
 
 from __future__ import annotations
@@ -60,9 +62,10 @@ from .subsample import seeded_subsample
 log = logging.getLogger(__name__)
 
 #: A step between keyframe stamps at least this many times the median of the recent steps
-#: (and at least three of them seen) begins a new stream, as a step back does: another sequence
-#: played into the running nodes with later stamps (multi_view_node's image gap rule: 10 of its
-#: recent periods). Its network and points need not share the last stream's factor.
+#: (and at least three of them seen) may begin another stream (multi_view_node's image gap
+#: rule: 10 of its recent periods): another sequence played into the running nodes with later
+#: stamps, whose network and points need not share the last one's ratio. Keyframes are judged
+#: again once ``min_keyframes`` have come after it.
 NEW_STREAM_STEPS = 10.0
 
 STREAM_SCALE_PARAMETER_DESCRIPTIONS = {
@@ -177,6 +180,8 @@ class StreamScale:
         #: where either is missing): :attr:`jumped`.
         self.jump: float | None = None
         self._jump_centre = float('nan')
+        #: Factors counted since the last gap of ``NEW_STREAM_STEPS`` (None: no gap).
+        self._since_gap: int | None = None
 
     def _median(self) -> float:
         """The median factor of the window (NaN when empty)."""
@@ -205,8 +210,9 @@ class StreamScale:
         """Take one keyframe's factor into the window (raw single view: before any factor).
 
         Returns True on the keyframe where the stream is first found to disagree (the caller
-        notes it once, with :meth:`describe`). A ``stamp`` older than the last starts over; the
-        last one again is not taken twice (``evaluate`` fuses a keyframe once per method).
+        notes it once, with :meth:`describe`). A ``stamp`` older than the last starts over, one
+        far ahead pauses the jump judgement (:meth:`_new_stream`); the last one again is not
+        taken twice (``evaluate`` fuses a keyframe once per method).
         """
         if stamp is not None and stamp == self.last_stamp:
             return False
@@ -220,10 +226,13 @@ class StreamScale:
         self.jump = None
         if factor is None:
             return False
-        if len(self.factors) >= self.config.min_keyframes:
+        settled = self._since_gap is None or self._since_gap >= self.config.min_keyframes
+        if settled and len(self.factors) >= self.config.min_keyframes:
             self._jump_centre = self._median()
             self.jump = math.log(factor / self._jump_centre)
         self.factors.append(factor)
+        if self._since_gap is not None:
+            self._since_gap += 1
         if self.disagrees or self.config.mode == 'off':
             return False
         if len(self.factors) < self.config.min_keyframes:
@@ -238,8 +247,9 @@ class StreamScale:
         return True
 
     def _new_stream(self, stamp: int) -> None:
-        """Start over where ``stamp`` begins a new stream: it goes back, or it steps forward by
-        ``NEW_STREAM_STEPS`` of the recent steps."""
+        """Start over where ``stamp`` goes back (a new stream); where it steps forward by
+        ``NEW_STREAM_STEPS`` of the recent steps, judge no keyframe until ``min_keyframes`` have
+        come since (the factor is kept)."""
         last = self.last_stamp
         if last is None:
             return
@@ -248,10 +258,12 @@ class StreamScale:
             self.reset()
         elif len(self._steps) >= 3 and stamp - last >= NEW_STREAM_STEPS * float(np.median(self._steps)):
             log.info(
-                'stream scale: a gap of %.0f keyframe periods, a new stream: starting over',
+                'stream scale: a gap of %.0f keyframe periods (another stream?): keyframes are judged '
+                'against the stream again after %d more',
                 (stamp - last) / float(np.median(self._steps)),
+                self.config.min_keyframes,
             )
-            self.reset()
+            self._since_gap = 0
         else:
             self._steps.append(stamp - last)
 
