@@ -526,9 +526,9 @@ def _off_the_stream(verdict: GuardVerdict, reason: str) -> GuardVerdict:
 
     Why not a smaller step down the ladder: every lower step but the last takes the points'
     scale, and that scale is what is off. Points consistent among themselves and 2x off the
-    stream's single-view ratio are a shared error (a match a period along the line, kept by
-    frames at equal baselines) far more often than a metric network's scale jumping 2x between
-    keyframes of one stream (``stream_scale.py``)."""
+    stream's single-view ratio are a shared error (matches a wave along the line under the
+    poses' noise, kept by frames at equal baselines) far more often than a metric network's
+    scale jumping 2x between keyframes of one stream (``stream_scale.py``)."""
     if verdict.decision == 'single_view':
         return verdict
     empty = np.zeros_like(verdict.trusted)
