@@ -500,3 +500,35 @@ def test_stream_scale_warn_notes_and_keeps_metres():
         snap = node.stats.snapshot()
     assert snap.noted.get('stream_scale') == 1
     assert [json.loads(msg.data)['evidence']['stream_scale'] for msg in decisions] == [1.0, 1.0, 1.0]
+
+
+def test_a_keyframe_whose_points_leave_the_streams_scale_keeps_its_single_view():
+    """Four keyframes whose points sit at 1.14x the network, then one at 0.52x (2.2x off the
+    stream: a matching error the points share, as on the SLAM stream of docs/fusion.md "A
+    keyframe off the stream"): the fifth is published as the single view, decided
+    ``single_view`` with the reason ``scale_jump`` and its jump in the evidence."""
+    import json
+
+    stamps = [7_000_000_000 + 200_000_000 * k for k in range(5)]
+    scenes = []
+    for k, factor in enumerate((1.2, 1.2, 1.2, 1.2, 0.55)):
+        scene = _scene(k % 2)
+        scene.single = (scene.gt * 1.05).astype(np.float32)
+        scene.mv = (scene.mv * factor).astype(np.float32)
+        scenes.append(scene)
+    with RosHarness() as ros:
+        depths = ros.collect(Image, '/depth_fusion/fused/depth')
+        node, decisions, inputs = _guarded_node(ros)
+        for k, (scene, stamp) in enumerate(zip(scenes, stamps, strict=True)):
+            inputs.keyframe(scene, stamp)
+            inputs.delivered(ros, node)
+            assert ros.wait_for(lambda n=k + 1: len(depths) == n, 20.0), node.stats.snapshot().summary()
+
+    verdicts = [json.loads(msg.data) for msg in decisions]
+    assert all(v['decision'] in ('full', 'fewer_points') for v in verdicts[:4]), verdicts[:4]
+    assert [('scale_jump' in v['evidence']) for v in verdicts] == [False, False, False, True, True]
+    off = verdicts[4]
+    assert off['decision'] == 'single_view' and off['reason'].startswith('scale_jump'), off
+    assert off['evidence']['scale_jump'] == pytest.approx(np.log(0.55 / 1.2), abs=0.03)
+    assert off['confidence'] == 0.0
+    np.testing.assert_allclose(m.image_to_numpy(depths[4]), scenes[4].single, rtol=1e-6)
