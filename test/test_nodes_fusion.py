@@ -449,18 +449,18 @@ def test_the_keyframe_image_gives_the_halo_test_and_a_keyframe_without_it_is_cou
     assert snap.noted.get('halo_unchecked') == 1
 
 
-def test_points_in_another_unit_than_the_single_view_are_taken_as_the_streams_scale():
-    """Poses not in metres (a monocular SLAM at 0.25 m a unit): the points sit at 0.25x the
-    single view. Before, every keyframe fell back to the single view in metres; now the third
-    keyframe notes the stream's scale once and is fused in the poses' unit."""
+def _stream(factors: tuple[float, ...], start_ns: int) -> tuple[list, list[dict], list, object]:
+    """One keyframe a factor, 0.2 s apart, through a guarded node, each after the last was
+    published: a network about right in metres (1.05x the truth) and points at ``factor`` x
+    the truth. Returns the scenes, the parsed decisions, the fused depths and the node's stats."""
     import json
 
-    stamps = [4_000_000_000 + 200_000_000 * k for k in range(4)]
+    stamps = [start_ns + 200_000_000 * k for k in range(len(factors))]
     scenes = []
-    for k in range(4):
+    for k, factor in enumerate(factors):
         scene = _scene(k % 2)
-        scene.single = (scene.gt * 1.05).astype(np.float32)  # a network about right in metres
-        scene.mv = (scene.mv * 0.25).astype(np.float32)  # the poses' unit: 0.25 m
+        scene.single = (scene.gt * 1.05).astype(np.float32)
+        scene.mv = (scene.mv * factor).astype(np.float32)
         scenes.append(scene)
     with RosHarness() as ros:
         depths = ros.collect(Image, '/depth_fusion/fused/depth')
@@ -470,15 +470,22 @@ def test_points_in_another_unit_than_the_single_view_are_taken_as_the_streams_sc
             inputs.delivered(ros, node)
             assert ros.wait_for(lambda n=k + 1: len(depths) == n, 20.0), node.stats.snapshot().summary()
         snap = node.stats.snapshot()
-
     verdicts = [json.loads(msg.data) for msg in decisions]
+    return scenes, verdicts, [m.image_to_numpy(d) for d in depths], snap
+
+
+def test_points_in_another_unit_than_the_single_view_are_taken_as_the_streams_scale():
+    """Poses not in metres (a monocular SLAM at 0.25 m a unit): the points sit at 0.25x the
+    single view. Before, every keyframe fell back to the single view in metres; now the third
+    keyframe notes the stream's scale once and is fused in the poses' unit."""
+    scenes, verdicts, depths, snap = _stream((0.25,) * 4, 4_000_000_000)
     factors = [v['evidence']['stream_scale'] for v in verdicts]
     assert factors[:2] == [1.0, 1.0] and all(abs(f - 0.25 / 1.05) < 0.02 for f in factors[2:]), factors
     assert [v['decision'] for v in verdicts[:2]] == ['single_view', 'single_view'], verdicts[:2]
     assert all(v['decision'] in ('full', 'fewer_points') for v in verdicts[2:]), verdicts[2:]
     assert snap.noted.get('stream_scale') == 1
     for depth, scene in zip(depths[2:], scenes[2:], strict=True):
-        error = np.nanmedian(np.abs(m.image_to_numpy(depth) / (0.25 * scene.gt) - 1.0))
+        error = np.nanmedian(np.abs(depth / (0.25 * scene.gt) - 1.0))
         assert error < 0.05, error
 
 
@@ -507,28 +514,11 @@ def test_a_keyframe_whose_points_leave_the_streams_scale_keeps_its_single_view()
     stream: a matching error the points share, as on the SLAM stream of docs/fusion.md "A
     keyframe off the stream"): the fifth is published as the single view, decided
     ``single_view`` with the reason ``scale_jump`` and its jump in the evidence."""
-    import json
-
-    stamps = [7_000_000_000 + 200_000_000 * k for k in range(5)]
-    scenes = []
-    for k, factor in enumerate((1.2, 1.2, 1.2, 1.2, 0.55)):
-        scene = _scene(k % 2)
-        scene.single = (scene.gt * 1.05).astype(np.float32)
-        scene.mv = (scene.mv * factor).astype(np.float32)
-        scenes.append(scene)
-    with RosHarness() as ros:
-        depths = ros.collect(Image, '/depth_fusion/fused/depth')
-        node, decisions, inputs = _guarded_node(ros)
-        for k, (scene, stamp) in enumerate(zip(scenes, stamps, strict=True)):
-            inputs.keyframe(scene, stamp)
-            inputs.delivered(ros, node)
-            assert ros.wait_for(lambda n=k + 1: len(depths) == n, 20.0), node.stats.snapshot().summary()
-
-    verdicts = [json.loads(msg.data) for msg in decisions]
+    scenes, verdicts, depths, _ = _stream((1.2, 1.2, 1.2, 1.2, 0.55), 7_000_000_000)
     assert all(v['decision'] in ('full', 'fewer_points') for v in verdicts[:4]), verdicts[:4]
     assert [('scale_jump' in v['evidence']) for v in verdicts] == [False, False, False, True, True]
     off = verdicts[4]
     assert off['decision'] == 'single_view' and off['reason'].startswith('scale_jump'), off
     assert off['evidence']['scale_jump'] == pytest.approx(np.log(0.55 / 1.2), abs=0.03)
     assert off['confidence'] == 0.0
-    np.testing.assert_allclose(m.image_to_numpy(depths[4]), scenes[4].single, rtol=1e-6)
+    np.testing.assert_allclose(depths[4], scenes[4].single, rtol=1e-6)
