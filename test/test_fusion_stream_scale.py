@@ -192,6 +192,7 @@ def test_evaluate_takes_each_keyframe_once_per_source_and_leaves_relative_source
     single, mv = _keyframe(0.3, 9)
     inverse = _fused(1.0 / single, mv, 'inverse_depth', sequence_scale(_Context(shared), 'single_view'), 9)
     assert inverse.evidence['stream_scale'] == 1.0
+    assert 'scale_jump' not in inverse.evidence  # not observed: no jump of the metric keyframes
     warned: dict = {}
     for index in range(4):
         single, mv = _keyframe(0.3, index)

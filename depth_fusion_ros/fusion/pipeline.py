@@ -36,7 +36,7 @@ from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the f
 from .agreement import agreement
 from .alignment import AlignedDepth, apply_alignment, fit_alignment
 from .consistency import ConsistencyConfig, consistent_points, stage3_candidates
-from .guard import GuardConfig, GuardVerdict, MultiViewEvidence, assess
+from .guard import DECISION_CONFIDENCE, GuardConfig, GuardVerdict, MultiViewEvidence, assess
 from .guard_apply import guarded_depth, limit_reach
 from .interpolation import (
     DEFAULT_CHUNK_ELEMENTS,
@@ -283,15 +283,18 @@ def fuse_keyframe(
     keyframe's log factor against the stream's where it was judged. A keyframe off the stream
     by more than ``stream_scale.max_jump`` keeps its single view (:func:`_off_the_stream`).
     """
-    found, factor, jump = False, 1.0, None
+    found, factor, jump, jump_reason = False, 1.0, None, None
     if stream_scale is not None and output_kind == 'metric_depth':
         single_depth, factor, found = stream_scale.scaled(single_depth, mv_depth, stage1_mask, stamp)
-        jump = stream_scale.jump_reason()
-    result = _fuse(single_depth, mv_depth, stage1_mask, config, output_kind, scale_jump=jump, **options)
+        # read here: a source this call does not observe must not show the last keyframe's jump
+        jump, jump_reason = stream_scale.jump, stream_scale.jump_reason()
+    result = _fuse(
+        single_depth, mv_depth, stage1_mask, config, output_kind, scale_jump_reason=jump_reason, **options
+    )
     if stream_scale is not None:
         result.evidence['stream_scale'] = factor
-        if stream_scale.jump is not None:
-            result.evidence['scale_jump'] = stream_scale.jump
+        if jump is not None:
+            result.evidence['scale_jump'] = jump
         result.stream_scale_found = found
     return result
 
@@ -308,7 +311,7 @@ def _fuse(
     evidence: MultiViewEvidence | None = None,
     consistency_config: ConsistencyConfig | None = None,
     image: np.ndarray | None = None,
-    scale_jump: str | None = None,
+    scale_jump_reason: str | None = None,
 ) -> FusionResult:
     """Fuse one keyframe (all inputs HxW on the working grid).
 
@@ -322,7 +325,7 @@ def _fuse(
     estimate of the stage-2 band tested against its neighbours, skipped with a given Ω.
     ``image``: the keyframe (grey or RGB) for the halo test (``occlusion.py``,
     ``halo_min_step``); without it the test is skipped (``evidence['halo_checked']`` 0).
-    ``scale_jump``: the reason this keyframe's points are off the stream's scale
+    ``scale_jump_reason``: why this keyframe's points are off the stream's scale
     (``StreamScale.jump_reason``), or None: with the guard on, the keyframe keeps its single view.
     """
     config = config or FusionConfig()
@@ -403,8 +406,8 @@ def _fuse(
         verdict.evidence.update(stage3)
         if guard_config.shared_scale and needs_fit is None:
             m = _weigh_shared_scale(m, verdict)
-        if scale_jump is not None:
-            verdict = _off_the_stream(verdict, scale_jump)
+        if scale_jump_reason is not None:
+            verdict = _off_the_stream(verdict, scale_jump_reason)
         if verdict.decision not in ('full', 'fewer_points'):
             return _guarded(aligned, m, fit, n_stage1, verdict, config, guard_config, needs_fit)
         omega = verdict.trusted
@@ -531,8 +534,13 @@ def _off_the_stream(verdict: GuardVerdict, reason: str) -> GuardVerdict:
     scale jumping 2x between keyframes of one stream (``stream_scale.py``)."""
     if verdict.decision == 'single_view':
         return verdict
-    empty = np.zeros_like(verdict.trusted)
-    return GuardVerdict('single_view', reason, empty, 0.0, verdict.scale, verdict.evidence)
+    return dataclasses.replace(
+        verdict,
+        decision='single_view',
+        reason=reason,
+        trusted=np.zeros_like(verdict.trusted),
+        confidence=DECISION_CONFIDENCE['single_view'],
+    )
 
 
 def _verdict_fields(verdict: GuardVerdict | None) -> dict:
