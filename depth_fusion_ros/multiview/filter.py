@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -62,11 +63,15 @@ from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
 from .filter_search import SearchResult, search_interval
 from .focal_bias import inverse_depth_bias, remember_update, spaced
+from .pose_refinement import PoseRefiner
 from .semidense import MultiViewConfig
 from .views import _as_gray
 
 #: What :meth:`DepthFilter.process` did with a frame.
 UPDATED, SKIPPED, KEYFRAME = 'updated', 'skipped', 'keyframe'
+#: Frames whose used (refined) pose :meth:`DepthFilter.result` can look up by their told pose:
+#: the node reads the frame it just fed, a fixed-lag read a few keyframes back.
+USED_POSES_KEPT = 256
 
 
 @dataclass
@@ -79,6 +84,10 @@ class FilterStats:
     skipped: int = 0
     keyframes: int = 0
     jumps: int = 0
+    #: Frames whose pose was refined against the keyframe's image, and frames that kept their
+    #: told pose because the refinement failed (``filter.refine_poses``).
+    refined: int = 0
+    kept_told: int = 0
 
 
 class DepthFilter:
@@ -117,6 +126,15 @@ class DepthFilter:
             max_candidate_fraction=self.config.max_candidate_fraction,
             min_gradient=self.config.min_gradient,
         )
+        c = self.config
+        self.refiner = (
+            PoseRefiner(camera, c.refine_sigma_deg, c.refine_sigma_m, c.refine_corners)
+            if c.refine_poses
+            else None
+        )
+        #: Told camera-to-world poses of the last frames (their bytes) -> the poses the filter
+        #: used for them: :meth:`result` reads an estimate in a frame by its told pose.
+        self._used_poses: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
     # --- public -------------------------------------------------------------------------------
 
@@ -135,7 +153,9 @@ class DepthFilter:
 
     def _process(self, gray: np.ndarray, pose: np.ndarray) -> str:
         T_wf = validate_pose(pose, 'frame pose')
-        image = torch.as_tensor(_as_gray(gray, 'frame image', self.camera), device=self.device)
+        told = T_wf
+        gray = _as_gray(gray, 'frame image', self.camera)
+        image = torch.as_tensor(gray, device=self.device)
         self.stats.frames += 1
         describe = lambda: self._describe(image)  # noqa: E731
         with torch.no_grad():
@@ -143,12 +163,20 @@ class DepthFilter:
                 self.key = new_keyframe(self, image, describe(), T_wf)
                 self.key.first = True
                 self.stats.keyframes += 1
+                self._used(told, T_wf, gray)
                 return KEYFRAME
             key = self.key
             T_fk = relative_pose(key.pose, T_wf)
             self._scene = self.scene_depth()
             parallax = float(np.linalg.norm(T_fk[:3, 3])) / self._scene
             rotation = math.degrees(rotation_angle(T_fk[:3, :3]))
+            if self.refiner is not None and (
+                parallax >= self.config.min_parallax or rotation >= self.config.keyframe_rotation_deg
+            ):
+                T_wf = self._refined(gray, T_wf)
+                T_fk = relative_pose(key.pose, T_wf)
+                parallax = float(np.linalg.norm(T_fk[:3, 3])) / self._scene
+                rotation = math.degrees(rotation_angle(T_fk[:3, :3]))
             usable = parallax >= self.config.min_parallax and rotation <= self.config.max_rotation_deg
             # A skipped frame needs no descriptors unless it becomes the keyframe.
             desc = describe() if usable else None
@@ -165,12 +193,41 @@ class DepthFilter:
                 # The carried estimates were measured by the old keyframe's frames.
                 self.key.update_poses = list(key.update_poses)
                 self.stats.keyframes += 1
+                self._used(told, T_wf, gray)
                 return KEYFRAME
+        self._used(told, T_wf)
         if usable:
             self.stats.updated += 1
             return UPDATED
         self.stats.skipped += 1
         return SKIPPED
+
+    def _refined(self, gray: np.ndarray, told: np.ndarray) -> np.ndarray:
+        """The frame's pose refined against the keyframe's image, or the told one (counted)."""
+        left = self.clock.switch('pose_refinement')
+        try:
+            refinement = self.refiner.refine(gray, told, self._scene)
+        finally:
+            self.clock.switch(left)
+        if refinement is None:
+            self.stats.kept_told += 1
+            return told
+        self.stats.refined += 1
+        return refinement.pose
+
+    def _used(self, told: np.ndarray, used: np.ndarray, keyframe_gray: np.ndarray | None = None) -> None:
+        """Remember the pose used for a frame told ``told`` (bounded); a new keyframe's image
+        and pose go to the refiner."""
+        self._used_poses[np.ascontiguousarray(told, dtype=np.float64).tobytes()] = used
+        while len(self._used_poses) > USED_POSES_KEPT:
+            self._used_poses.popitem(last=False)
+        if keyframe_gray is not None and self.refiner is not None:
+            self.refiner.keyframe(keyframe_gray, used)
+
+    def used_pose(self, told: np.ndarray) -> np.ndarray:
+        """The pose the filter used for the frame told ``told`` (refined, ``filter.refine_poses``);
+        ``told`` itself for a frame it has not seen or no longer remembers."""
+        return self._used_poses.get(np.ascontiguousarray(told, dtype=np.float64).tobytes(), told)
 
     def result(self, pose: np.ndarray | None = None, keyframe: FilterKeyframe | None = None) -> FilterResult:
         """Published estimates in the filter's keyframe, or warped into the camera at ``pose``.
@@ -198,7 +255,9 @@ class DepthFilter:
         st = key.state
         mu, var = st.mu[rows], st.var[rows]
         focal_var = self._focal_variance(key, rows, mu)
-        T_tk = None if pose is None else relative_pose(key.pose, validate_pose(pose, 'result pose'))
+        if pose is not None:
+            pose = self.used_pose(validate_pose(pose, 'result pose'))
+        T_tk = None if pose is None else relative_pose(key.pose, pose)
         if T_tk is None or np.allclose(T_tk, np.eye(4), atol=1e-9):
             target = key.flat[rows]
         else:
@@ -255,6 +314,8 @@ class DepthFilter:
             state = self.key.state
             state.var = torch.maximum(state.var, (state.mu * change) ** 2)
         self.camera = camera
+        if self.refiner is not None:
+            self.refiner.refocus(camera)
         return True
 
     def scene_depth(self) -> float:

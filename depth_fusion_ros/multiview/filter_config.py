@@ -181,6 +181,17 @@ class FilterConfig:
     #: large under rotation-dominant motion, small with a sideways baseline). Once the check has
     #: read the stream, its standard error is used instead. 0: off.
     focal_uncertainty: float = 0.1
+    #: Refine each frame's pose against the filter keyframe's image before it updates the filter:
+    #: corners tracked into the frame, the pose that puts them on their epipolar lines under a
+    #: prior at the told pose (``multiview/pose_refinement.py``). A SLAM's or a motion capture's
+    #: poses carry noise the images can see; with exact poses (a simulator) it costs a little.
+    refine_poses: bool = True
+    #: The refinement's prior: std of the told pose's rotation (degrees) ...
+    refine_sigma_deg: float = 0.5
+    #: ... and of its camera centre (m).
+    refine_sigma_m: float = 0.01
+    #: Corners of the keyframe tracked into each frame for the refinement, at most.
+    refine_corners: int = 300
 
     def seeds_at(self, parallax: float) -> bool:
         """Whether a frame at ``parallax`` (baseline / scene depth) searches pixels without an
@@ -238,6 +249,9 @@ class FilterConfig:
             ('fill_min_updates', self.fill_min_updates >= 1, '>= 1'),
             ('scene_depth', self.scene_depth > 0 and math.isfinite(self.scene_depth), 'positive'),
             ('focal_uncertainty', 0 <= self.focal_uncertainty <= 1, 'in [0, 1]'),
+            ('refine_sigma_deg', 0 < self.refine_sigma_deg <= 45, 'in (0, 45]'),
+            ('refine_sigma_m', 0 < self.refine_sigma_m <= 10, 'in (0, 10]'),
+            ('refine_corners', 20 <= self.refine_corners <= 10000, 'in [20, 10000]'),
         )
         for name, ok, what in checks:
             if not ok:

@@ -78,6 +78,9 @@ FILTER_LIMITS: dict[str, Any] = {
     'fill_min_neighbours': (1, 10000),
     'scene_depth': (1e-3, None),
     'focal_uncertainty': (0.0, 1.0),
+    'refine_sigma_deg': (1e-3, 45.0),
+    'refine_sigma_m': (1e-5, 10.0),
+    'refine_corners': (20, 10000),
 }
 
 FILTER_PARAMETERS: tuple[ParamSpec, ...] = (
@@ -179,9 +182,9 @@ class FilterFeed:
         self.rate = UpdateRate(max_rate, rate_cap_load)
         #: Frames passed over by ``max_update_rate`` (diagnostics).
         self.rate_skipped = 0
-        #: Keyframe switches across a jump of the filters this feed replaced (restarts, a new
-        #: camera): :attr:`jumps` adds the current filter's.
-        self._past_jumps = 0
+        #: ``FilterStats`` counts of the filters this feed replaced (restarts, a new camera):
+        #: :attr:`jumps`, :attr:`refined_poses` and :attr:`kept_told_poses` add the current filter's.
+        self._past_counts = {'jumps': 0, 'refined': 0, 'kept_told': 0}
         self._on_drop = on_drop
         self._on_error = on_error or on_drop
         self._on_skip = on_skip or on_drop
@@ -357,13 +360,28 @@ class FilterFeed:
     def jumps(self) -> int:
         """Filter keyframes switched across a jump (turned more than ``filter.max_rotation_deg``:
         the carried estimates confirmed again before they are published), over the feed's life."""
+        return self._lifetime('jumps')
+
+    @property
+    def refined_poses(self) -> int:
+        """Frames whose pose the filter refined against its keyframe's image, over the feed's life."""
+        return self._lifetime('refined')
+
+    @property
+    def kept_told_poses(self) -> int:
+        """Frames that kept their told pose because the refinement failed, over the feed's life."""
+        return self._lifetime('kept_told')
+
+    def _lifetime(self, name: str) -> int:
+        """A ``FilterStats`` count over every filter this feed has built."""
         current = self.filter
-        return self._past_jumps + (current.stats.jumps if current is not None else 0)
+        return self._past_counts[name] + (getattr(current.stats, name) if current is not None else 0)
 
     def _retire_filter(self) -> None:
-        """Drop the filter (it is built again for the next frame), keeping its jump count."""
+        """Drop the filter (it is built again for the next frame), keeping its counts."""
         if self.filter is not None:
-            self._past_jumps += self.filter.stats.jumps
+            for name in self._past_counts:
+                self._past_counts[name] += getattr(self.filter.stats, name)
         self.filter = None
 
     def _keep(self, index: int, outcome: FilterResult | Exception) -> None:

@@ -588,6 +588,10 @@ class MultiViewNode(CheckCorrections, DepthFusionNode):
         if self.filter_feed is not None:
             extra['filter frames passed over (filter.max_update_rate)'] = self.filter_feed.rate_skipped
             extra['filter keyframes across a jump (estimates confirmed again)'] = self.filter_feed.jumps
+            extra['filter frames with a refined pose (filter.refine_poses)'] = self.filter_feed.refined_poses
+            extra['filter frames that kept their told pose (refinement failed)'] = (
+                self.filter_feed.kept_told_poses
+            )
         extra['focal length check'] = self.focal_check.status()
         extra['lens k1 added to the calibration (focal length check)'] = round(self.camera_input.lens_k1, 4)
         extra['time offset check'] = self.time_offset_check.status()
