@@ -8,7 +8,12 @@ import cv2
 import numpy as np
 from test_match_refinement import _texture
 
-from depth_fusion_ros.multiview.affine_tracking import MOVE_TOLERANCE_PX, track_affine
+from depth_fusion_ros.multiview.affine_tracking import (
+    MOVE_TOLERANCE_PX,
+    affine_templates,
+    track_affine,
+    track_templates,
+)
 from depth_fusion_ros.multiview.match_refinement import refine_matches
 
 
@@ -58,3 +63,22 @@ def test_a_match_with_nothing_to_track_or_too_far_is_dropped():
     assert np.abs(kept2 - kept1).max() < 0.02
     empty = track_affine(first, first, np.zeros((0, 2)), np.zeros((0, 2)))
     assert empty[0].shape == (0, 2) and empty[1].shape == (0, 2)
+
+
+def test_windows_made_once_track_any_subset_as_a_fresh_call_would():
+    """The pose refinement makes a keyframe's windows once and tracks a different subset of them
+    into every frame: the same matches as tracking that subset from scratch."""
+    first = _texture()
+    affine = np.array([[1.03, 0.02, 1.4], [-0.01, 1.02, -0.8]])
+    second = _warped(first, affine)
+    rng = np.random.default_rng(3)
+    p1 = np.stack([rng.uniform(40, 280, 120), rng.uniform(40, 200, 120)], axis=1)
+    start = p1 @ affine[:, :2].T + affine[:, 2] + rng.uniform(-1.0, 1.0, p1.shape)
+    templates = affine_templates(first, p1)
+    subset = np.flatnonzero(rng.uniform(size=len(p1)) < 0.6)
+    once = track_templates(templates, second, start[subset], subset)
+    fresh = track_affine(first, second, p1[subset], start[subset])
+    assert len(once[0]) >= 0.9 * len(subset)
+    assert np.array_equal(once[0], fresh[0]) and np.array_equal(once[1], fresh[1])
+    whole = track_templates(templates, second, start)
+    assert np.array_equal(whole[1], track_affine(first, second, p1, start)[1])

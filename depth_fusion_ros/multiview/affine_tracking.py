@@ -19,6 +19,8 @@ step). The first position stays as detected: the window is centred on it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -70,15 +72,21 @@ def _gain_matched(
     return centred, (centred * template) @ _WEIGHTS / variance
 
 
-def track_affine(
-    first: np.ndarray, second: np.ndarray, p1: np.ndarray, p2: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Matches ``p1 -> p2`` (M, 2) of two grey uint8 images with ``p2`` tracked from ``p1``'s
-    window under an affine warp; the matches whose tracking converged within
-    :data:`MOVE_TOLERANCE_PX` of ``p2`` (``p1`` as detected, the tracked ``p2``)."""
-    if len(p1) == 0:
-        return p1, p2
-    a, b = first.astype(np.float32), second.astype(np.float32)
+@dataclass(frozen=True)
+class AffineTemplates:
+    """The first image's windows at its points, ready to track into any second image: what
+    depends on the first image only (windows, gradients, the normal matrices' inverses), made
+    once. The pose refinement tracks one keyframe's corners into every frame that follows it."""
+
+    points: np.ndarray  # (M, 2) positions in the first image
+    template: np.ndarray  # (M, N) zero-mean windows
+    variance: np.ndarray  # (M,)
+    descent: np.ndarray  # (M, 6, N) steepest descent images through the inverse normal matrices
+
+
+def affine_templates(first: np.ndarray, p1: np.ndarray) -> AffineTemplates:
+    """The windows of a grey uint8 image at ``p1`` (M, 2), ready for :func:`track_templates`."""
+    a = first.astype(np.float32)
     x, y = p1[:, :1] + _GX, p1[:, 1:] + _GY
     template = _sample(a, x, y)
     template -= (template @ _WEIGHTS)[:, None]
@@ -91,6 +99,39 @@ def track_affine(
     normal = weighted @ np.transpose(jacobian, (0, 2, 1))
     damping = 1e-6 * np.trace(normal, axis1=1, axis2=2)[:, None, None] + 1e-12
     descent = np.linalg.inv(normal + damping * np.eye(6)) @ weighted  # (M, 6, N): a step is one product
+    return AffineTemplates(p1, template, variance, descent)
+
+
+def track_affine(
+    first: np.ndarray, second: np.ndarray, p1: np.ndarray, p2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Matches ``p1 -> p2`` (M, 2) of two grey uint8 images with ``p2`` tracked from ``p1``'s
+    window under an affine warp; the matches whose tracking converged within
+    :data:`MOVE_TOLERANCE_PX` of ``p2`` (``p1`` as detected, the tracked ``p2``)."""
+    if len(p1) == 0:
+        return p1, p2
+    return track_templates(affine_templates(first, p1), second, p2)
+
+
+def track_templates(
+    templates: AffineTemplates, second: np.ndarray, p2: np.ndarray, subset: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`track_affine` from windows made once: ``subset`` (indices into ``templates``) are
+    the points tracked, to ``p2`` (len(subset), 2); all of them when ``None``."""
+    if subset is not None:
+        t = templates
+        templates = AffineTemplates(
+            t.points[subset], t.template[subset], t.variance[subset], t.descent[subset]
+        )
+    p1, template, variance, descent = (
+        templates.points,
+        templates.template,
+        templates.variance,
+        templates.descent,
+    )
+    if len(p1) == 0:
+        return p1, p2
+    b = second.astype(np.float32)
     t = np.asarray(p2, dtype=np.float64).copy()
     A = np.tile(np.eye(2), (len(p1), 1, 1))
     # The rows each step reads (``rows``: which match each is) and which of them still move. A

@@ -186,9 +186,11 @@ class FilterConfig:
     #: prior at the told pose (``multiview/pose_refinement.py``). A SLAM's or a motion capture's
     #: poses carry noise the images can see; with exact poses (a simulator) it costs a little.
     refine_poses: bool = True
-    #: The refinement's prior: std of the told pose's rotation (degrees) ...
+    #: The refinement's prior: std of the told pose's rotation (degrees). The epipolar
+    #: constraint cannot tell a short baseline's turn from a sideways step; the prior decides.
     refine_sigma_deg: float = 0.5
-    #: ... and of its camera centre (m).
+    #: The refinement's prior: std of the told pose's camera centre (m). The images do not tell
+    #: the baseline's length; the prior holds it.
     refine_sigma_m: float = 0.01
     #: Corners of the keyframe tracked into each frame for the refinement, at most.
     refine_corners: int = 300

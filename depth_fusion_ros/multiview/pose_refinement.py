@@ -42,7 +42,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..camera import PinholeCamera
-from .affine_tracking import track_affine
+from .affine_tracking import affine_templates, track_templates
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +112,9 @@ class PoseRefiner:
             self._image, self.max_corners, CORNER_QUALITY, CORNER_DISTANCE, blockSize=5
         )
         self._corners = np.zeros((0, 2), np.float32) if found is None else found.reshape(-1, 2)
+        # What every frame tracked against this keyframe shares, made once: its corners'
+        # affine windows.
+        self._templates = affine_templates(self._image, self._corners.astype(np.float64))
 
     def refine(self, gray: np.ndarray, told: np.ndarray, scene_depth: float) -> Refinement | None:
         """The frame's refined pose, or ``None`` (counted) where it keeps the told one."""
@@ -163,8 +166,8 @@ class PoseRefiner:
         ok &= (ahead[:, 0] > 2) & (ahead[:, 0] < w - 3) & (ahead[:, 1] > 2) & (ahead[:, 1] < h - 3)
         if ok.sum() < MIN_TRACKS:
             return None
-        first, second = track_affine(
-            self._image, frame, p0[ok].astype(np.float64), ahead[ok].astype(np.float64)
+        first, second = track_templates(
+            self._templates, frame, ahead[ok].astype(np.float64), np.flatnonzero(ok)
         )
         return (first, second) if len(first) >= MIN_TRACKS else None
 
