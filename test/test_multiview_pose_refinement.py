@@ -67,7 +67,11 @@ def test_a_frame_without_corners_keeps_its_told_pose(exact):
     refiner.keyframe(exact.frames[0].gray, exact.frames[0].pose)
     blank = np.full_like(exact.frames[1].gray, 0.5)
     assert refiner.refine(blank, exact.frames[1].pose, 2.0) is None
-    assert (refiner.refined, refiner.kept_told) == (0, 1)
+    f = DepthFilter(exact.camera)
+    f.process(exact.frames[0].gray, exact.frames[0].pose)
+    f.process(blank, exact.frames[1].pose)
+    assert (f.stats.refined, f.stats.kept_told) == (0, 1)
+    assert np.array_equal(f.used_pose(exact.frames[1].pose), exact.frames[1].pose)
 
 
 def _published(sequence, config: FilterConfig) -> tuple[float, float, DepthFilter]:
@@ -94,7 +98,7 @@ def test_the_filter_measures_more_and_better_with_refined_poses(noisy):
     assert bad < 0.5 * told_bad
     assert density > 1.5 * told_density
     assert f.stats.refined >= 0.8 * (len(noisy.frames) - 1)
-    assert f.stats.refined + f.stats.kept_told == f.refiner.refined + f.refiner.kept_told
+    assert f.stats.refined + f.stats.kept_told <= len(noisy.frames) - 1
 
 
 def test_a_result_asked_by_the_told_pose_is_read_at_the_refined_one(noisy):

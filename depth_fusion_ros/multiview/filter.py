@@ -222,7 +222,11 @@ class DepthFilter:
         while len(self._used_poses) > USED_POSES_KEPT:
             self._used_poses.popitem(last=False)
         if keyframe_gray is not None and self.refiner is not None:
-            self.refiner.keyframe(keyframe_gray, used)
+            left = self.clock.switch('pose_refinement')
+            try:
+                self.refiner.keyframe(keyframe_gray, used)
+            finally:
+                self.clock.switch(left)
 
     def used_pose(self, told: np.ndarray) -> np.ndarray:
         """The pose the filter used for the frame told ``told`` (refined, ``filter.refine_poses``);

@@ -74,6 +74,8 @@ class Refinement:
     tracks: int
     turn_deg: float
     shift_m: float
+    #: The tracks' median distance to their epipolar lines under the refined pose (px).
+    residual_px: float
 
 
 def as_uint8(gray: np.ndarray) -> np.ndarray:
@@ -95,9 +97,6 @@ class PoseRefiner:
         self._image: np.ndarray | None = None
         self._pose: np.ndarray | None = None
         self._corners = np.zeros((0, 2), dtype=np.float32)
-        #: Frames refined, and frames that kept their told pose (too few tracks, a solution too far).
-        self.refined = 0
-        self.kept_told = 0
 
     def refocus(self, camera: PinholeCamera) -> None:
         """Go on with ``camera``'s intrinsics (the focal check's correction)."""
@@ -117,24 +116,21 @@ class PoseRefiner:
         self._templates = affine_templates(self._image, self._corners.astype(np.float64))
 
     def refine(self, gray: np.ndarray, told: np.ndarray, scene_depth: float) -> Refinement | None:
-        """The frame's refined pose, or ``None`` (counted) where it keeps the told one."""
+        """The frame's refined pose, or ``None`` where it keeps the told one (the filter counts it)."""
         if self._image is None or self._pose is None:
             return None
         T_fk_told = np.linalg.inv(told) @ self._pose
         tracks = self._track(as_uint8(gray), T_fk_told, scene_depth)
         solved = None if tracks is None else self._solve(tracks[0], tracks[1], T_fk_told)
         if solved is None:
-            self.kept_told += 1
             return None
-        pose = self._pose @ np.linalg.inv(solved)
+        pose = self._pose @ np.linalg.inv(solved[0])
         turn = math.degrees(Rotation.from_matrix(told[:3, :3].T @ pose[:3, :3]).magnitude())
         shift = float(np.linalg.norm(pose[:3, 3] - told[:3, 3]))
         if turn > MAX_SIGMAS * math.degrees(self.sigma_rad) or shift > MAX_SIGMAS * self.sigma_m:
-            self.kept_told += 1
             log.debug('pose refinement dropped: moved %.2f deg, %.1f mm', turn, 1000 * shift)
             return None
-        self.refined += 1
-        return Refinement(pose, len(tracks[0]), turn, shift)
+        return Refinement(pose, len(tracks[0]), turn, shift, solved[1])
 
     def _track(
         self, frame: np.ndarray, T_fk: np.ndarray, scene_depth: float
@@ -171,29 +167,24 @@ class PoseRefiner:
         )
         return (first, second) if len(first) >= MIN_TRACKS else None
 
-    def _solve(self, p0: np.ndarray, p1: np.ndarray, T_fk_told: np.ndarray) -> np.ndarray | None:
+    def _solve(
+        self, p0: np.ndarray, p1: np.ndarray, T_fk_told: np.ndarray
+    ) -> tuple[np.ndarray, float] | None:
         """The keyframe-to-frame transform that puts the tracks on their epipolar lines, near
-        the told one. Parameters: a turn of the frame (rotation vector) and a move of its centre
-        in the keyframe's coordinates; iteratively reweighted Gauss-Newton for the Cauchy loss,
-        the Jacobian by forward differences, all :data:`_PROBES` parameter sets in one pass."""
-        x0 = self.K_inv @ np.vstack([p0.T, np.ones(len(p0))])
-        x1 = self.K_inv @ np.vstack([p1.T, np.ones(len(p1))])
-        R0, t0 = T_fk_told[:3, :3], T_fk_told[:3, 3]
-        centre = -R0.T @ t0
-        focal = float(self.K[0, 0])
+        the told one, and the tracks' median distance to their lines under it (px). Parameters:
+        a turn of the frame (rotation vector) and a move of its centre in the keyframe's
+        coordinates; iteratively reweighted Gauss-Newton for the Cauchy loss, the Jacobian by
+        forward differences, all :data:`_PROBES` parameter sets in one pass."""
+        lines = _EpipolarDistances(self.K_inv @ np.vstack([p0.T, np.ones(len(p0))]),
+                                   self.K_inv @ np.vstack([p1.T, np.ones(len(p1))]),
+                                   T_fk_told, float(self.K[0, 0]))  # fmt: skip
         prior = np.array([self.sigma_rad] * 3 + [self.sigma_m] * 3)
+        n = len(p0)
         p = np.zeros(6)
         for _ in range(SOLVER_STEPS):
             probes = p + _PROBES * (_STEP * prior)
-            R = Rotation.from_rotvec(probes[:, :3]).as_matrix() @ R0  # (7, 3, 3)
-            t = -np.einsum('kij,kj->ki', R, centre + probes[:, 3:])
-            E = _skew_batch(t) @ R
-            Ex0, Etx1 = E @ x0, np.transpose(E, (0, 2, 1)) @ x1  # (7, 3, N)
-            algebraic = np.einsum('in,kin->kn', x1, Ex0)
-            norm = np.sqrt(Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2) + 1e-12
-            r = np.concatenate([focal * algebraic / norm / TRACK_SIGMA_PX, probes / prior], axis=1)
+            r = np.concatenate([lines(probes) / TRACK_SIGMA_PX, probes / prior], axis=1)
             J = (r[1:] - r[0]) / (_STEP * prior)[:, None]  # (6, N + 6)
-            n = len(p0)
             w = np.ones(r.shape[1])
             w[:n] = 1.0 / (1.0 + (r[0, :n] / CAUCHY_SCALE) ** 2)
             H = (J * w) @ J.T
@@ -207,9 +198,33 @@ class PoseRefiner:
                 break
         if not np.all(np.isfinite(p)):
             return None
-        R = Rotation.from_rotvec(p[:3]).as_matrix() @ R0
+        return lines.transform(p), float(np.median(np.abs(lines(p[None])[0])))
+
+
+class _EpipolarDistances:
+    """Signed Sampson distances (px) of tracks ``x0 -> x1`` (normalised, (3, N)) to their
+    epipolar lines under told transforms moved by parameter sets (K, 6): a turn of the frame
+    and a move of its centre in the keyframe's coordinates."""
+
+    def __init__(self, x0: np.ndarray, x1: np.ndarray, T_fk_told: np.ndarray, focal: float) -> None:
+        self.x0, self.x1, self.focal = x0, x1, focal
+        self.R0 = T_fk_told[:3, :3]
+        self.centre = -self.R0.T @ T_fk_told[:3, 3]
+
+    def __call__(self, params: np.ndarray) -> np.ndarray:
+        R = Rotation.from_rotvec(params[:, :3]).as_matrix() @ self.R0  # (K, 3, 3)
+        t = -np.einsum('kij,kj->ki', R, self.centre + params[:, 3:])
+        E = _skew_batch(t) @ R
+        Ex0, Etx1 = E @ self.x0, np.transpose(E, (0, 2, 1)) @ self.x1  # (K, 3, N)
+        algebraic = np.einsum('in,kin->kn', self.x1, Ex0)
+        norm = np.sqrt(Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2) + 1e-12
+        return self.focal * algebraic / norm
+
+    def transform(self, params: np.ndarray) -> np.ndarray:
+        """The keyframe-to-frame transform (4x4) of one parameter set."""
+        R = Rotation.from_rotvec(params[:3]).as_matrix() @ self.R0
         T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, -R @ (centre + p[3:])
+        T[:3, :3], T[:3, 3] = R, -R @ (self.centre + params[3:])
         return T
 
 
