@@ -114,10 +114,15 @@ def track_affine(
 
 
 def track_templates(
-    templates: AffineTemplates, second: np.ndarray, p2: np.ndarray, subset: np.ndarray | None = None
+    templates: AffineTemplates,
+    second: np.ndarray,
+    p2: np.ndarray,
+    subset: np.ndarray | None = None,
+    iterations: int = ITERATIONS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`track_affine` from windows made once: ``subset`` (indices into ``templates``) are
-    the points tracked, to ``p2`` (len(subset), 2); all of them when ``None``."""
+    the points tracked, to ``p2`` (len(subset), 2); all of them when ``None``. ``iterations``:
+    the Gauss-Newton steps allowed (a match still moving after them is dropped)."""
     if subset is not None:
         t = templates
         templates = AffineTemplates(
@@ -139,7 +144,7 @@ def track_templates(
     # step cost as much as the steps.
     rows, live = np.arange(len(p1)), np.ones(len(p1), dtype=bool)
     tm, var = template, variance
-    for _ in range(ITERATIONS):
+    for _ in range(iterations):
         centred, gain = _gain_matched(_sample(b, *_warped(t[rows], A[rows])), tm, var)
         residual = centred / np.where(np.abs(gain) > 1e-3, gain, 1e-3)[:, None] - tm
         step = (descent @ residual[:, :, None])[live, :, 0]
