@@ -132,3 +132,14 @@ def test_a_result_asked_by_the_told_pose_is_read_at_the_refined_one(noisy):
 def test_bad_refinement_settings_are_named(field, value):
     with pytest.raises(ValueError, match=f'filter.{field}'):
         FilterConfig(**{field: value}).validate()
+
+
+def test_a_keyframe_without_corners_refines_nothing_and_fails_nothing(exact):
+    """A texture-less keyframe has no corners to track: the frames after it keep their told
+    poses (counted), and the filter goes on."""
+    blank = np.full_like(exact.frames[0].gray, 0.5)
+    f = DepthFilter(exact.camera)
+    assert f.process(blank, exact.frames[0].pose) == KEYFRAME
+    f.process(exact.frames[1].gray, exact.frames[1].pose)
+    assert (f.stats.refined, f.stats.kept_told) == (0, 1)
+    assert np.array_equal(f.used_pose(exact.frames[1].pose), exact.frames[1].pose)

@@ -56,8 +56,15 @@ def test_default_filter_method_publishes_accurate_keyframe_depth(synthetic_seque
         assert ros.wait_for(lambda: node.filter_feed.fed == len(seq.frames), 30.0)
         snap = node.stats.snapshot()
         filt = node.filter_feed.filter
+        extra = node.diagnostic_extra()
 
     assert snap.dropped == {}, snap.summary()
+    # Each frame's pose was refined against its filter keyframe's image (filter.refine_poses, on by
+    # default), and the diagnostics count it.
+    refined = extra['filter frames with a refined pose (filter.refine_poses)']
+    kept = extra['filter frames that kept their told pose (refinement failed)']
+    assert refined == filt.stats.refined >= 0.8 * (len(seq.frames) - 1)
+    assert kept == filt.stats.kept_told and refined + kept <= len(seq.frames) - 1
     assert {msg.data for msg in methods} == {'filter'} and len(methods) <= 2  # announce.py
     assert _stamps(depth_msgs) == [stamps[k] for k in expected_keys]
     # The filter saw every posed frame as it came, not only the keyframes (nor only up to the last).

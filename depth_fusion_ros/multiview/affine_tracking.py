@@ -86,6 +86,9 @@ class AffineTemplates:
 
 def affine_templates(first: np.ndarray, p1: np.ndarray) -> AffineTemplates:
     """The windows of a grey uint8 image at ``p1`` (M, 2), ready for :func:`track_templates`."""
+    if len(p1) == 0:
+        n = _GX.size
+        return AffineTemplates(np.zeros((0, 2)), np.zeros((0, n)), np.zeros(0), np.zeros((0, 6, n)))
     a = first.astype(np.float32)
     x, y = p1[:, :1] + _GX, p1[:, 1:] + _GY
     template = _sample(a, x, y)

@@ -39,11 +39,13 @@ filter's own keyframe). Everything is torch on ``device``.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 
@@ -66,6 +68,8 @@ from .focal_bias import inverse_depth_bias, remember_update, spaced
 from .pose_refinement import PoseRefiner
 from .semidense import MultiViewConfig
 from .views import _as_gray
+
+log = logging.getLogger(__name__)
 
 #: What :meth:`DepthFilter.process` did with a frame.
 UPDATED, SKIPPED, KEYFRAME = 'updated', 'skipped', 'keyframe'
@@ -207,6 +211,9 @@ class DepthFilter:
         left = self.clock.switch('pose_refinement')
         try:
             refinement = self.refiner.refine(gray, told, self._scene)
+        except (cv2.error, ValueError, np.linalg.LinAlgError) as exc:  # the told pose, counted
+            log.debug('pose refinement failed: %s', exc)
+            refinement = None
         finally:
             self.clock.switch(left)
         if refinement is None:
@@ -225,6 +232,8 @@ class DepthFilter:
             left = self.clock.switch('pose_refinement')
             try:
                 self.refiner.keyframe(keyframe_gray, used)
+            except (cv2.error, ValueError, np.linalg.LinAlgError) as exc:  # no refinement until the next
+                log.debug('pose refinement keyframe failed: %s', exc)
             finally:
                 self.clock.switch(left)
 

@@ -39,9 +39,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..camera import PinholeCamera
+from ..geometry import rotation_angle
 from .affine_tracking import affine_templates, track_templates
 
 log = logging.getLogger(__name__)
@@ -108,16 +108,17 @@ class PoseRefiner:
         self.K_inv = np.linalg.inv(self.K)
 
     def keyframe(self, gray: np.ndarray, pose: np.ndarray) -> None:
-        """The filter's new keyframe: its image (uint8), camera-to-world pose and corners."""
-        self._image = as_uint8(gray)
-        self._pose = np.asarray(pose, dtype=np.float64)
-        found = cv2.goodFeaturesToTrack(
-            self._image, self.max_corners, CORNER_QUALITY, CORNER_DISTANCE, blockSize=5
-        )
+        """The filter's new keyframe: its image (uint8), camera-to-world pose and corners. Until
+        this returns, no frame is refined (a failure leaves the refiner without a keyframe, not
+        with the last one)."""
+        self._image = self._pose = None
+        image = as_uint8(gray)
+        found = cv2.goodFeaturesToTrack(image, self.max_corners, CORNER_QUALITY, CORNER_DISTANCE, blockSize=5)
         self._corners = np.zeros((0, 2), np.float32) if found is None else found.reshape(-1, 2)
         # What every frame tracked against this keyframe shares, made once: its corners'
         # affine windows.
-        self._templates = affine_templates(self._image, self._corners.astype(np.float64))
+        self._templates = affine_templates(image, self._corners.astype(np.float64))
+        self._image, self._pose = image, np.asarray(pose, dtype=np.float64)
 
     def refine(self, gray: np.ndarray, told: np.ndarray, scene_depth: float) -> Refinement | None:
         """The frame's refined pose, or ``None`` where it keeps the told one (the filter counts it)."""
@@ -129,7 +130,7 @@ class PoseRefiner:
         if solved is None:
             return None
         pose = self._pose @ np.linalg.inv(solved[0])
-        turn = math.degrees(Rotation.from_matrix(told[:3, :3].T @ pose[:3, :3]).magnitude())
+        turn = math.degrees(rotation_angle(told[:3, :3].T @ pose[:3, :3]))
         shift = float(np.linalg.norm(pose[:3, 3] - told[:3, 3]))
         if turn > MAX_SIGMAS * math.degrees(self.sigma_rad) or shift > MAX_SIGMAS * self.sigma_m:
             log.debug('pose refinement dropped: moved %.2f deg, %.1f mm', turn, 1000 * shift)
@@ -216,7 +217,7 @@ class _EpipolarDistances:
         self.centre = -self.R0.T @ T_fk_told[:3, 3]
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
-        R = Rotation.from_rotvec(params[:, :3]).as_matrix() @ self.R0  # (K, 3, 3)
+        R = _rotations(params[:, :3]) @ self.R0  # (K, 3, 3)
         t = -np.einsum('kij,kj->ki', R, self.centre + params[:, 3:])
         E = _skew_batch(t) @ R
         Ex0, Etx1 = E @ self.x0, np.transpose(E, (0, 2, 1)) @ self.x1  # (K, 3, N)
@@ -226,7 +227,7 @@ class _EpipolarDistances:
 
     def transform(self, params: np.ndarray) -> np.ndarray:
         """The keyframe-to-frame transform (4x4) of one parameter set."""
-        R = Rotation.from_rotvec(params[:3]).as_matrix() @ self.R0
+        R = _rotations(params[None, :3])[0] @ self.R0
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, -R @ (self.centre + params[3:])
         return T
@@ -237,6 +238,19 @@ SOLVER_STEPS = 15
 _STEP = 1e-4
 #: The solution and one probe per parameter.
 _PROBES = np.vstack([np.zeros(6), np.eye(6)])
+
+
+def _rotations(rotvecs: np.ndarray) -> np.ndarray:
+    """(K, 3) rotation vectors -> (K, 3, 3) matrices (Rodrigues; scipy.spatial is kept out of the
+    node processes' start-up, issue 13)."""
+    angle = np.linalg.norm(rotvecs, axis=1)
+    small = angle < 1e-12
+    axis = rotvecs / np.where(small, 1.0, angle)[:, None]
+    K = _skew_batch(axis)
+    sin, cos = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    R = np.eye(3) + sin * K + (1.0 - cos) * (K @ K)
+    R[small] = np.eye(3) + _skew_batch(rotvecs[small])
+    return R
 
 
 def _skew_batch(v: np.ndarray) -> np.ndarray:
