@@ -4,8 +4,8 @@ Why: the filter triangulates with the poses it is told, and a SLAM's or a motion
 system's poses carry noise that the images can see. 0.3 deg of rotation noise moves an
 epipolar line by 1.4 px at 320x240, 5 mm of position noise is a third of a hand's baseline
 between two frames. On synthetic streams with that noise (5 mm and 0.3 deg per pose, as a
-SLAM's), 23-70 % of the filter's published estimates were more than 10 % off their keyframe's
-median error, against 5-11 % with exact poses, and the fusion took them where they agreed with
+SLAM's), 22-70 % of the filter's published estimates were more than 10 % off their keyframe's
+median error, against 6-11 % with exact poses, and the fusion took them where they agreed with
 each other (docs/multi_view.md, "Poses refined against the keyframe"). The filter's own
 estimates cannot correct the poses: they were measured with the same noisy poses, and an
 alignment to them followed their errors (tried: a direct photometric alignment, the
@@ -28,7 +28,8 @@ How, per frame (:meth:`PoseRefiner.refine`):
    never add up into a drift.
 
 A frame whose tracks are too few (:data:`MIN_TRACKS`), or whose solution moved the pose by
-more than :data:`MAX_SIGMAS` prior standard deviations, keeps its told pose (counted).
+more than :data:`MAX_SIGMAS` prior standard deviations, keeps its told pose (the filter
+counts it: ``FilterStats.kept_told``).
 """
 
 from __future__ import annotations
