@@ -141,6 +141,22 @@ BODY_TO_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
 BODY_TO_OPTICAL.setflags(write=False)
 
 
+def skews(t: np.ndarray) -> np.ndarray:
+    """(S, 3, 3) cross-product matrices of vectors ``t`` (S, 3)."""
+    out = np.zeros((len(t), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
+    return out - np.transpose(out, (0, 2, 1))
+
+
+def rotation_matrices(rotvecs: np.ndarray) -> np.ndarray:
+    """(S, 3, 3) rotations of rotation vectors (S, 3) (radians). scipy is imported here, at the
+    first call: scipy.spatial costs a node process ~0.3 s of CPU, which its start-up must not
+    pay (issue 13; the mount check and the pose refinement call this)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(rotvecs, dtype=np.float64).reshape(-1, 3)).as_matrix()
+
+
 def rotation_angle(R: np.ndarray) -> float:
     """Angle (radians) of a rotation matrix."""
     c = (np.trace(R) - 1.0) / 2.0

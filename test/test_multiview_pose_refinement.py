@@ -45,7 +45,7 @@ def _relative_errors(told, truth, frames: range) -> tuple[list[float], list[floa
         assert refined is not None, f'frame {i} kept its told pose'
         true_rel = np.linalg.inv(key.pose) @ truth.frames[i].pose
         before.append(_turn_deg(np.linalg.inv(key.pose) @ frame.pose, true_rel))
-        after.append(_turn_deg(np.linalg.inv(key.pose) @ refined.pose, true_rel))
+        after.append(_turn_deg(np.linalg.inv(key.pose) @ refined, true_rel))
     return before, after
 
 

@@ -111,8 +111,6 @@ def track_affine(
     """Matches ``p1 -> p2`` (M, 2) of two grey uint8 images with ``p2`` tracked from ``p1``'s
     window under an affine warp; the matches whose tracking converged within
     :data:`MOVE_TOLERANCE_PX` of ``p2`` (``p1`` as detected, the tracked ``p2``)."""
-    if len(p1) == 0:
-        return p1, p2
     return track_templates(affine_templates(first, p1), second, p2)
 
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import skews
+
 #: Sampson distance (px) where the soft-L1 loss turns from squares to absolute values.
 _LOSS_SCALE_PX = 0.5
 
@@ -20,8 +22,11 @@ def skew(t: np.ndarray) -> np.ndarray:
 
 
 def sampson_distances(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """Signed Sampson distances (px) of matches ``p1 -> p2`` (N, 2) under fundamental matrix ``F``."""
-    return _signed_sampson(F[None], p1, p2)[0]
+    """Signed Sampson distances (px) of matches ``p1 -> p2`` (N, 2) under fundamental matrix
+    ``F`` (3, 3): (N,); or under each of S matrices (S, 3, 3): (S, N)."""
+    if F.ndim == 2:
+        return _signed_sampson(F[None], p1, p2)[0]
+    return _signed_sampson(F, p1, p2)
 
 
 def scaled_fundamentals(scales: np.ndarray, K: np.ndarray, T_ba: np.ndarray) -> np.ndarray:
@@ -81,13 +86,6 @@ def soft_l1_sampson_entries(f: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np
     candidate, given entry by entry: ``f`` (3, 3, S, N) (the stacked pairs of ``pair_stack.py``,
     each match under its own pair's matrix: contiguous per entry, as the arithmetic reads it)."""
     return _soft_l1(_entries_sampson(f, p1, p2))
-
-
-def skews(t: np.ndarray) -> np.ndarray:
-    """(S, 3, 3) cross-product matrices of translations ``t`` (S, 3)."""
-    out = np.zeros((len(t), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-    return out - np.transpose(out, (0, 2, 1))
 
 
 def pose_costs(K: np.ndarray, T_ba: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:

@@ -44,6 +44,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -65,6 +66,7 @@ from .filter_propagate import warp_estimates
 from .filter_result import FilterResult, assemble_result
 from .filter_search import SearchResult, search_interval
 from .focal_bias import inverse_depth_bias, remember_update, spaced
+from .match_refinement import as_uint8
 from .pose_refinement import PoseRefiner
 from .semidense import MultiViewConfig
 from .views import _as_gray
@@ -158,8 +160,10 @@ class DepthFilter:
     def _process(self, gray: np.ndarray, pose: np.ndarray) -> str:
         T_wf = validate_pose(pose, 'frame pose')
         told = T_wf
-        gray = _as_gray(gray, 'frame image', self.camera)
+        raw, gray = gray, _as_gray(gray, 'frame image', self.camera)
         image = torch.as_tensor(gray, device=self.device)
+        # The refiner's OpenCV tracking takes uint8: the caller's own when it gave uint8.
+        gray8 = as_uint8(np.asarray(raw)) if self.refiner is not None else None
         self.stats.frames += 1
         describe = lambda: self._describe(image)  # noqa: E731
         with torch.no_grad():
@@ -167,20 +171,16 @@ class DepthFilter:
                 self.key = new_keyframe(self, image, describe(), T_wf)
                 self.key.first = True
                 self.stats.keyframes += 1
-                self._used(told, T_wf, gray)
+                self._used(told, T_wf, gray8)
                 return KEYFRAME
             key = self.key
-            T_fk = relative_pose(key.pose, T_wf)
             self._scene = self.scene_depth()
-            parallax = float(np.linalg.norm(T_fk[:3, 3])) / self._scene
-            rotation = math.degrees(rotation_angle(T_fk[:3, :3]))
+            T_fk, parallax, rotation = self._motion(key, T_wf)
             if self.refiner is not None and (
                 parallax >= self.config.min_parallax or rotation >= self.config.keyframe_rotation_deg
             ):
-                T_wf = self._refined(gray, T_wf)
-                T_fk = relative_pose(key.pose, T_wf)
-                parallax = float(np.linalg.norm(T_fk[:3, 3])) / self._scene
-                rotation = math.degrees(rotation_angle(T_fk[:3, :3]))
+                T_wf = self._refined(gray8, T_wf)
+                T_fk, parallax, rotation = self._motion(key, T_wf)
             usable = parallax >= self.config.min_parallax and rotation <= self.config.max_rotation_deg
             # A skipped frame needs no descriptors unless it becomes the keyframe.
             desc = describe() if usable else None
@@ -197,7 +197,7 @@ class DepthFilter:
                 # The carried estimates were measured by the old keyframe's frames.
                 self.key.update_poses = list(key.update_poses)
                 self.stats.keyframes += 1
-                self._used(told, T_wf, gray)
+                self._used(told, T_wf, gray8)
                 return KEYFRAME
         self._used(told, T_wf)
         if usable:
@@ -206,36 +206,45 @@ class DepthFilter:
         self.stats.skipped += 1
         return SKIPPED
 
-    def _refined(self, gray: np.ndarray, told: np.ndarray) -> np.ndarray:
+    def _motion(self, key: FilterKeyframe, T_wf: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """The keyframe-to-frame transform, its baseline over the scene depth, and its turn (deg)."""
+        T_fk = relative_pose(key.pose, T_wf)
+        return (
+            T_fk,
+            float(np.linalg.norm(T_fk[:3, 3])) / self._scene,
+            math.degrees(rotation_angle(T_fk[:3, :3])),
+        )
+
+    def _refined(self, gray8: np.ndarray, told: np.ndarray) -> np.ndarray:
         """The frame's pose refined against the keyframe's image, or the told one (counted)."""
-        left = self.clock.switch('pose_refinement')
-        try:
-            refinement = self.refiner.refine(gray, told, self._scene)
-        except (cv2.error, ValueError, np.linalg.LinAlgError) as exc:  # the told pose, counted
-            log.debug('pose refinement failed: %s', exc)
-            refinement = None
-        finally:
-            self.clock.switch(left)
-        if refinement is None:
+        refined = self._refining(self.refiner.refine, gray8, told, self._scene)
+        if refined is None:
             self.stats.kept_told += 1
             return told
         self.stats.refined += 1
-        return refinement.pose
+        return refined
 
-    def _used(self, told: np.ndarray, used: np.ndarray, keyframe_gray: np.ndarray | None = None) -> None:
+    def _used(self, told: np.ndarray, used: np.ndarray, keyframe_gray8: np.ndarray | None = None) -> None:
         """Remember the pose used for a frame told ``told`` (bounded); a new keyframe's image
         and pose go to the refiner."""
         self._used_poses[np.ascontiguousarray(told, dtype=np.float64).tobytes()] = used
         while len(self._used_poses) > USED_POSES_KEPT:
             self._used_poses.popitem(last=False)
-        if keyframe_gray is not None and self.refiner is not None:
-            left = self.clock.switch('pose_refinement')
-            try:
-                self.refiner.keyframe(keyframe_gray, used)
-            except (cv2.error, ValueError, np.linalg.LinAlgError) as exc:  # no refinement until the next
-                log.debug('pose refinement keyframe failed: %s', exc)
-            finally:
-                self.clock.switch(left)
+        if keyframe_gray8 is not None:
+            self._refining(self.refiner.keyframe, keyframe_gray8, used)
+
+    def _refining(self, call: Callable[..., Any], *args: Any) -> Any:
+        """A refiner call on the stage clock. A failure (OpenCV, the numbers) is ``None``: the told
+        pose for a frame (counted in ``stats.kept_told``), no refinement until the next keyframe
+        for a keyframe (its frames counted so)."""
+        left = self.clock.switch('pose_refinement')
+        try:
+            return call(*args)
+        except (cv2.error, ValueError, np.linalg.LinAlgError) as exc:
+            log.debug('pose refinement failed: %s', exc)
+            return None
+        finally:
+            self.clock.switch(left)
 
     def used_pose(self, told: np.ndarray) -> np.ndarray:
         """The pose the filter used for the frame told ``told`` (refined, ``filter.refine_poses``);

@@ -62,7 +62,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..check_modes import CHECK_MODES, check_mode
-from ..geometry import BODY_TO_OPTICAL
+from ..geometry import BODY_TO_OPTICAL, rotation_matrices
 from .frame_fit import axis_rotations, gross_frame_turn, pairs_directions, snapped
 from .image_pairs import (
     EARLY_STANDARD_ERRORS,
@@ -272,13 +272,6 @@ class MountEstimate:
             'mount check: the told optical frame agrees with the images and poses '
             f'({self.observed} of 3 directions observed; {fit}{unseen})'
         )
-
-
-def rotation_matrices(rotvecs: np.ndarray) -> np.ndarray:
-    """(S, 3, 3) rotations of rotation vectors (S, 3) (radians)."""
-    from scipy.spatial.transform import Rotation  # here: a node imports this module before it is ready
-
-    return Rotation.from_rotvec(rotvecs).as_matrix()
 
 
 def _turns(rotvecs: np.ndarray) -> np.ndarray:

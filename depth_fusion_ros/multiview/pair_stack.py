@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .epipolar_cost import skews, soft_l1_sampson_entries
+from ..geometry import skews
+from .epipolar_cost import soft_l1_sampson_entries
 from .image_pairs import MatchedPair
 
 #: A relative pose that moves less than this (m) has no epipolar geometry: its cost is ``inf``.

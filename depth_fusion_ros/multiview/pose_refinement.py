@@ -36,14 +36,15 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..geometry import rotation_angle
+from ..geometry import rotation_angle, rotation_matrices, skews
 from .affine_tracking import affine_templates, track_templates
+from .epipolar_cost import sampson_distances
+from .match_refinement import as_uint8
 
 log = logging.getLogger(__name__)
 
@@ -71,31 +72,11 @@ CORNER_QUALITY = 0.01
 CORNER_DISTANCE = 7
 
 
-@dataclass(frozen=True)
-class Refinement:
-    """A frame's refined camera-to-world pose, its tracks and how far it moved from the told pose."""
-
-    pose: np.ndarray
-    tracks: int
-    turn_deg: float
-    shift_m: float
-    #: The tracks' median distance to their epipolar lines under the refined pose (px).
-    residual_px: float
-
-
-def as_uint8(gray: np.ndarray) -> np.ndarray:
-    """A grey image as uint8 (float images are in [0, 1], as the filter takes them)."""
-    if gray.dtype == np.uint8:
-        return gray
-    return np.clip(np.asarray(gray, dtype=np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-
-
 class PoseRefiner:
     """Refines frames' poses against the current keyframe's image (see the module's docstring)."""
 
     def __init__(self, camera: PinholeCamera, sigma_deg: float, sigma_m: float, corners: int) -> None:
-        self.K = np.asarray(camera.K, dtype=np.float64)
-        self.K_inv = np.linalg.inv(self.K)
+        self.refocus(camera)
         self.sigma_rad = math.radians(sigma_deg)
         self.sigma_m = float(sigma_m)
         self.max_corners = int(corners)
@@ -109,9 +90,9 @@ class PoseRefiner:
         self.K_inv = np.linalg.inv(self.K)
 
     def keyframe(self, gray: np.ndarray, pose: np.ndarray) -> None:
-        """The filter's new keyframe: its image (uint8), camera-to-world pose and corners. Until
-        this returns, no frame is refined (a failure leaves the refiner without a keyframe, not
-        with the last one)."""
+        """The filter's new keyframe: its grey image (uint8, or float in [0, 1]), camera-to-world
+        pose and corners. Until this returns, no frame is refined (a failure leaves the refiner
+        without a keyframe, not with the last one)."""
         self._image = self._pose = None
         image = as_uint8(gray)
         found = cv2.goodFeaturesToTrack(image, self.max_corners, CORNER_QUALITY, CORNER_DISTANCE, blockSize=5)
@@ -121,8 +102,9 @@ class PoseRefiner:
         self._templates = affine_templates(image, self._corners.astype(np.float64))
         self._image, self._pose = image, np.asarray(pose, dtype=np.float64)
 
-    def refine(self, gray: np.ndarray, told: np.ndarray, scene_depth: float) -> Refinement | None:
-        """The frame's refined pose, or ``None`` where it keeps the told one (the filter counts it)."""
+    def refine(self, gray: np.ndarray, told: np.ndarray, scene_depth: float) -> np.ndarray | None:
+        """The frame's refined camera-to-world pose (its grey image uint8, or float in [0, 1]),
+        or ``None`` where it keeps the told one (the filter counts it)."""
         if self._image is None or self._pose is None:
             return None
         T_fk_told = np.linalg.inv(told) @ self._pose
@@ -130,13 +112,13 @@ class PoseRefiner:
         solved = None if tracks is None else self._solve(tracks[0], tracks[1], T_fk_told)
         if solved is None:
             return None
-        pose = self._pose @ np.linalg.inv(solved[0])
+        pose = self._pose @ np.linalg.inv(solved)
         turn = math.degrees(rotation_angle(told[:3, :3].T @ pose[:3, :3]))
         shift = float(np.linalg.norm(pose[:3, 3] - told[:3, 3]))
         if turn > MAX_SIGMAS * math.degrees(self.sigma_rad) or shift > MAX_SIGMAS * self.sigma_m:
             log.debug('pose refinement dropped: moved %.2f deg, %.1f mm', turn, 1000 * shift)
             return None
-        return Refinement(pose, len(tracks[0]), turn, shift, solved[1])
+        return pose
 
     def _track(
         self, frame: np.ndarray, T_fk: np.ndarray, scene_depth: float
@@ -173,23 +155,21 @@ class PoseRefiner:
         )
         return (first, second) if len(first) >= MIN_TRACKS else None
 
-    def _solve(
-        self, p0: np.ndarray, p1: np.ndarray, T_fk_told: np.ndarray
-    ) -> tuple[np.ndarray, float] | None:
-        """The keyframe-to-frame transform that puts the tracks on their epipolar lines, near
-        the told one, and the tracks' median distance to their lines under it (px). Parameters:
-        a turn of the frame (rotation vector) and a move of its centre in the keyframe's
-        coordinates; iteratively reweighted Gauss-Newton for the Cauchy loss, the Jacobian by
-        forward differences, all :data:`_PROBES` parameter sets in one pass."""
-        lines = _EpipolarDistances(self.K_inv @ np.vstack([p0.T, np.ones(len(p0))]),
-                                   self.K_inv @ np.vstack([p1.T, np.ones(len(p1))]),
-                                   T_fk_told, float(self.K[0, 0]))  # fmt: skip
+    def _solve(self, p0: np.ndarray, p1: np.ndarray, T_fk_told: np.ndarray) -> np.ndarray | None:
+        """The keyframe-to-frame transform that puts the tracks ``p0 -> p1`` (N, 2, px) on their
+        epipolar lines, near the told one. Parameters: a turn of the frame (rotation vector) and a
+        move of its centre in the keyframe's coordinates; iteratively reweighted Gauss-Newton for
+        the Cauchy loss, the Jacobian by forward differences, all :data:`_PROBES` parameter sets
+        in one pass (``epipolar_cost.sampson_distances`` takes them as a batch)."""
+        moved = _MovedPose(T_fk_told)
         prior = np.array([self.sigma_rad] * 3 + [self.sigma_m] * 3)
         n = len(p0)
         p = np.zeros(6)
         for _ in range(SOLVER_STEPS):
             probes = p + _PROBES * (_STEP * prior)
-            r = np.concatenate([lines(probes) / TRACK_SIGMA_PX, probes / prior], axis=1)
+            R, t = moved(probes)
+            F = self.K_inv.T @ skews(t) @ R @ self.K_inv
+            r = np.concatenate([sampson_distances(F, p0, p1) / TRACK_SIGMA_PX, probes / prior], axis=1)
             J = (r[1:] - r[0]) / (_STEP * prior)[:, None]  # (6, N + 6)
             w = np.ones(r.shape[1])
             w[:n] = 1.0 / (1.0 + (r[0, :n] / CAUCHY_SCALE) ** 2)
@@ -204,34 +184,24 @@ class PoseRefiner:
                 break
         if not np.all(np.isfinite(p)):
             return None
-        return lines.transform(p), float(np.median(np.abs(lines(p[None])[0])))
+        R, t = moved(p[None])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R[0], t[0]
+        return T
 
 
-class _EpipolarDistances:
-    """Signed Sampson distances (px) of tracks ``x0 -> x1`` (normalised, (3, N)) to their
-    epipolar lines under told transforms moved by parameter sets (K, 6): a turn of the frame
-    and a move of its centre in the keyframe's coordinates."""
+class _MovedPose:
+    """The told keyframe-to-frame transform moved by parameter sets (K, 6): a turn of the frame
+    (rotation vector, left-multiplied) and a move of its centre in the keyframe's coordinates."""
 
-    def __init__(self, x0: np.ndarray, x1: np.ndarray, T_fk_told: np.ndarray, focal: float) -> None:
-        self.x0, self.x1, self.focal = x0, x1, focal
+    def __init__(self, T_fk_told: np.ndarray) -> None:
         self.R0 = T_fk_told[:3, :3]
         self.centre = -self.R0.T @ T_fk_told[:3, 3]
 
-    def __call__(self, params: np.ndarray) -> np.ndarray:
-        R = _rotations(params[:, :3]) @ self.R0  # (K, 3, 3)
-        t = -np.einsum('kij,kj->ki', R, self.centre + params[:, 3:])
-        E = _skew_batch(t) @ R
-        Ex0, Etx1 = E @ self.x0, np.transpose(E, (0, 2, 1)) @ self.x1  # (K, 3, N)
-        algebraic = np.einsum('in,kin->kn', self.x1, Ex0)
-        norm = np.sqrt(Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2) + 1e-12
-        return self.focal * algebraic / norm
-
-    def transform(self, params: np.ndarray) -> np.ndarray:
-        """The keyframe-to-frame transform (4x4) of one parameter set."""
-        R = _rotations(params[None, :3])[0] @ self.R0
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, -R @ (self.centre + params[3:])
-        return T
+    def __call__(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rotations (K, 3, 3) and translations (K, 3) of the moved transforms."""
+        R = rotation_matrices(params[:, :3]) @ self.R0
+        return R, -np.einsum('kij,kj->ki', R, self.centre + params[:, 3:])
 
 
 #: The solver's steps at most, and its forward-difference step (in prior standard deviations).
@@ -239,25 +209,3 @@ SOLVER_STEPS = 15
 _STEP = 1e-4
 #: The solution and one probe per parameter.
 _PROBES = np.vstack([np.zeros(6), np.eye(6)])
-
-
-def _rotations(rotvecs: np.ndarray) -> np.ndarray:
-    """(K, 3) rotation vectors -> (K, 3, 3) matrices (Rodrigues; scipy.spatial is kept out of the
-    node processes' start-up, issue 13)."""
-    angle = np.linalg.norm(rotvecs, axis=1)
-    small = angle < 1e-12
-    axis = rotvecs / np.where(small, 1.0, angle)[:, None]
-    K = _skew_batch(axis)
-    sin, cos = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    R = np.eye(3) + sin * K + (1.0 - cos) * (K @ K)
-    R[small] = np.eye(3) + _skew_batch(rotvecs[small])
-    return R
-
-
-def _skew_batch(v: np.ndarray) -> np.ndarray:
-    """(K, 3) vectors -> (K, 3, 3) cross-product matrices."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
-    return out
