@@ -76,9 +76,10 @@ def test_windows_made_once_track_any_subset_as_a_fresh_call_would():
     start = p1 @ affine[:, :2].T + affine[:, 2] + rng.uniform(-1.0, 1.0, p1.shape)
     templates = affine_templates(first, p1)
     subset = np.flatnonzero(rng.uniform(size=len(p1)) < 0.6)
-    once = track_templates(templates, second, start[subset], subset)
+    *once, kept = track_templates(templates, second, start[subset], subset)
     fresh = track_affine(first, second, p1[subset], start[subset])
     assert len(once[0]) >= 0.9 * len(subset)
+    assert np.array_equal(p1[subset][kept], once[0])  # the mask says which tracked points were kept
     assert np.array_equal(once[0], fresh[0]) and np.array_equal(once[1], fresh[1])
     whole = track_templates(templates, second, start)
     assert np.array_equal(whole[1], track_affine(first, second, p1, start)[1])

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from depth_fusion_ros.data.synthetic import render_sequence, stress_config
+from depth_fusion_ros.multiview import pose_refinement
 from depth_fusion_ros.multiview.filter import KEYFRAME, DepthFilter
 from depth_fusion_ros.multiview.filter_config import FilterConfig
 from depth_fusion_ros.multiview.pose_refinement import PoseRefiner
@@ -143,3 +144,50 @@ def test_a_keyframe_without_corners_refines_nothing_and_fails_nothing(exact):
     f.process(exact.frames[1].gray, exact.frames[1].pose)
     assert (f.stats.refined, f.stats.kept_told) == (0, 1)
     assert np.array_equal(f.used_pose(exact.frames[1].pose), exact.frames[1].pose)
+
+
+def test_following_frames_go_on_from_the_previous_frames_tracks(monkeypatch):
+    """After a keyframe's first frame, each frame starts its tracks where the previous one found
+    them (one pyramid level instead of three: a third of the tracking's cost), and it turns the
+    noisy poses towards the truth as well as tracking from the told pose alone does. A frame
+    that keeps its told pose, and a new keyframe, start over from the told pose."""
+    stream = {'frames': 12, 'seed': 301}
+    truth = render_sequence(stress_config('rotation', **stream))
+    told = render_sequence(stress_config('rotation', **stream, **SLAM_NOISE))
+    levels: list[int] = []
+    lucas_kanade = pose_refinement.cv2.calcOpticalFlowPyrLK
+
+    def spy(*args, **kwargs):
+        levels.append(kwargs['maxLevel'])
+        return lucas_kanade(*args, **kwargs)
+
+    monkeypatch.setattr(pose_refinement.cv2, 'calcOpticalFlowPyrLK', spy)
+    key = truth.frames[0]
+    chained = PoseRefiner(told.camera, 0.5, 0.01, 300)
+    chained.keyframe(key.gray, key.pose)
+    before, after, alone, chained_levels = [], [], [], []
+    for i in range(1, 10):
+        frame, true_rel = told.frames[i], np.linalg.inv(key.pose) @ truth.frames[i].pose
+        levels.clear()
+        refined = chained.refine(frame.gray, frame.pose, 2.0)
+        assert refined is not None, f'frame {i} kept its told pose'
+        chained_levels.append(levels[0])
+        fresh = PoseRefiner(told.camera, 0.5, 0.01, 300)
+        fresh.keyframe(key.gray, key.pose)
+        on_its_own = fresh.refine(frame.gray, frame.pose, 2.0)
+        before.append(_turn_deg(np.linalg.inv(key.pose) @ frame.pose, true_rel))
+        after.append(_turn_deg(np.linalg.inv(key.pose) @ refined, true_rel))
+        alone.append(_turn_deg(np.linalg.inv(key.pose) @ on_its_own, true_rel))
+    full, chain = pose_refinement.LK_LEVELS, pose_refinement.CHAINED_LEVELS
+    # The first frame from the told pose; most others from the previous frame's tracks (a frame
+    # that kept fewer than half of the keyframe's corners makes the next one start over).
+    assert chained_levels[0] == full and chained_levels.count(chain) >= 5
+    assert np.median(after) < 0.5 * np.median(before)
+    assert np.median(after) <= np.median(alone) + 0.02
+    # A frame without corners keeps its told pose; the next starts over, as after a keyframe.
+    levels.clear()
+    assert chained.refine(np.full_like(key.gray, 0.5), told.frames[10].pose, 2.0) is None
+    assert chained.refine(told.frames[11].gray, told.frames[11].pose, 2.0) is not None
+    chained.keyframe(truth.frames[11].gray, truth.frames[11].pose)
+    chained.refine(told.frames[10].gray, told.frames[10].pose, 2.0)
+    assert levels[-2:] == [full] * 2

@@ -21,6 +21,7 @@ from __future__ import annotations
 import statistics
 import time
 
+import cv2
 import numpy as np
 import torch
 
@@ -46,7 +47,7 @@ TITLE = 'multi_view_filter (temporal inverse-depth filter against the per-keyfra
 def _note(extra: str = '') -> str:
     import os
 
-    base = f'load {os.getloadavg()[0]:.1f}, {torch.get_num_threads()} threads'
+    base = f'load {os.getloadavg()[0]:.1f}, {torch.get_num_threads()} torch and OpenCV threads'
     return f'{extra}; {base}' if extra else base
 
 
@@ -252,10 +253,17 @@ def _keyframe_stream(quick: bool) -> Sequence:
 
 def run(opts: BenchOptions) -> list[BenchRow]:
     """The synthetic room, the keyframe stream (cost only), then each ``--sequence`` (its
-    first frames), as ``bench.multi_view``."""
-    rows = filter_rows('synthetic room', _synthetic_sequence(opts.quick), opts)
-    rows += _cost_rows('synthetic keyframe stream', _keyframe_stream(opts.quick), opts)[0]
-    for path in opts.sequences:
-        real = _real_sequence(path, opts.quick)
-        rows += filter_rows(real.name, real, opts)
+    first frames), as ``bench.multi_view``. OpenCV runs on torch's threads, as in a node
+    (``nodes/threads.py``): the pose refinement's tracking on OpenCV's own pool of one thread
+    per core read 5-6 ms more CPU than wall time per frame."""
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(torch.get_num_threads())
+    try:
+        rows = filter_rows('synthetic room', _synthetic_sequence(opts.quick), opts)
+        rows += _cost_rows('synthetic keyframe stream', _keyframe_stream(opts.quick), opts)[0]
+        for path in opts.sequences:
+            real = _real_sequence(path, opts.quick)
+            rows += filter_rows(real.name, real, opts)
+    finally:
+        cv2.setNumThreads(before)
     return rows

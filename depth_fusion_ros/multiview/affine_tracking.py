@@ -111,7 +111,7 @@ def track_affine(
     """Matches ``p1 -> p2`` (M, 2) of two grey uint8 images with ``p2`` tracked from ``p1``'s
     window under an affine warp; the matches whose tracking converged within
     :data:`MOVE_TOLERANCE_PX` of ``p2`` (``p1`` as detected, the tracked ``p2``)."""
-    return track_templates(affine_templates(first, p1), second, p2)
+    return track_templates(affine_templates(first, p1), second, p2)[:2]
 
 
 def track_templates(
@@ -120,10 +120,12 @@ def track_templates(
     p2: np.ndarray,
     subset: np.ndarray | None = None,
     iterations: int = ITERATIONS,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`track_affine` from windows made once: ``subset`` (indices into ``templates``) are
     the points tracked, to ``p2`` (len(subset), 2); all of them when ``None``. ``iterations``:
-    the Gauss-Newton steps allowed (a match still moving after them is dropped)."""
+    the Gauss-Newton steps allowed (a match still moving after them is dropped). Also returns
+    which of the tracked points were kept (a mask over ``p2``): the pose refinement goes on
+    from the kept ones in the next frame."""
     if subset is not None:
         t = templates
         templates = AffineTemplates(
@@ -136,7 +138,7 @@ def track_templates(
         templates.descent,
     )
     if len(p1) == 0:
-        return p1, p2
+        return p1, p2, np.zeros(0, dtype=bool)
     b = second.astype(np.float32)
     t = np.asarray(p2, dtype=np.float64).copy()
     A = np.tile(np.eye(2), (len(p1), 1, 1))
@@ -171,4 +173,4 @@ def track_templates(
         & (area < AREA_RANGE[1])
         & (gain > MIN_GAIN)
     )
-    return p1[keep], t[keep]
+    return p1[keep], t[keep], keep

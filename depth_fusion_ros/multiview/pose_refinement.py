@@ -14,10 +14,18 @@ relative rotation 0.25-1.3 deg off where the told one was 0.27-0.43).
 How, per frame (:meth:`PoseRefiner.refine`):
 
 1. The keyframe's corners (Shi-Tomasi, ``cv2.goodFeaturesToTrack``, found once per keyframe)
-   are tracked into the frame by pyramidal Lucas-Kanade, starting where the told pose puts
-   them at the scene depth. A track is kept when tracking it back lands within
-   :data:`BACK_TRACK_PX` of its corner; an affine window then places it (``affine_tracking``:
-   0.02-0.03 px from the truth at the median on the synthetic streams).
+   are tracked into the frame by pyramidal Lucas-Kanade. The first frame after a keyframe
+   starts each corner where the told pose puts it at the scene depth, which is pixels off
+   where the depth is not the scene's: :data:`LK_LEVELS` pyramid levels. Every following
+   frame starts each corner the previous frame kept where it was found there, moved by the
+   told motion between the two frames (the previous one's refined pose to this one's told
+   pose): off by the pose noise alone, about a pixel, and :data:`CHAINED_LEVELS` level does
+   (the tracking's cost falls by two thirds: docs/performance.md). A track is kept when
+   tracking it back lands within :data:`BACK_TRACK_PX` of its corner; an affine window against
+   the keyframe's then places it (``affine_tracking``: 0.02-0.03 px from the truth at the
+   median on the synthetic streams), so that no error is carried from frame to frame. When
+   fewer than :data:`CHAINED_SHARE` of the keyframe's corners are still tracked, or the
+   previous frame kept its told pose, the frame starts over from the told pose.
 2. The relative pose minimises the tracks' Sampson distances to their epipolar lines under a
    Cauchy loss (iteratively reweighted Gauss-Newton), plus a Gaussian prior at the told pose:
    ``filter.refine_sigma_deg`` on the rotation and ``filter.refine_sigma_m`` on the camera
@@ -36,6 +44,7 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -59,9 +68,11 @@ MAX_SIGMAS = 6.0
 TRACK_SIGMA_PX = 0.5
 #: The Cauchy loss's scale, in those units: a track 0.5 px off its epipolar line weighs half.
 CAUCHY_SCALE = 1.0
-#: Lucas-Kanade: window, pyramid levels and stopping rule.
+#: Lucas-Kanade: window, pyramid levels from the told pose's prediction and from the previous
+#: frame's tracks, and stopping rule.
 LK_WINDOW = (15, 15)
 LK_LEVELS = 3
+CHAINED_LEVELS = 1
 LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 #: The affine window's Gauss-Newton steps: Lucas-Kanade has brought each track within a
 #: fraction of a pixel, and 8 steps placed them as well as 20 (the same share of wrong estimates
@@ -70,6 +81,10 @@ AFFINE_ITERATIONS = 8
 #: Shi-Tomasi: quality relative to the best corner, and the least distance between corners (px).
 CORNER_QUALITY = 0.01
 CORNER_DISTANCE = 7
+#: A frame goes on from the previous frame's tracks while they hold at least this share of the
+#: keyframe's corners; fewer, and it tracks them all from the told pose again (the ones lost to a
+#: blur or a passing occluder come back).
+CHAINED_SHARE = 0.5
 
 
 class PoseRefiner:
@@ -83,17 +98,19 @@ class PoseRefiner:
         self._image: np.ndarray | None = None
         self._pose: np.ndarray | None = None
         self._corners = np.zeros((0, 2), dtype=np.float32)
+        self._previous: _Tracks | None = None
 
     def refocus(self, camera: PinholeCamera) -> None:
         """Go on with ``camera``'s intrinsics (the focal check's correction)."""
         self.K = np.asarray(camera.K, dtype=np.float64)
         self.K_inv = np.linalg.inv(self.K)
+        self._previous = None
 
     def keyframe(self, gray: np.ndarray, pose: np.ndarray) -> None:
         """The filter's new keyframe: its grey image (uint8, or float in [0, 1]), camera-to-world
         pose and corners. Until this returns, no frame is refined (a failure leaves the refiner
         without a keyframe, not with the last one)."""
-        self._image = self._pose = None
+        self._image = self._pose = self._previous = None
         image = as_uint8(gray)
         found = cv2.goodFeaturesToTrack(image, self.max_corners, CORNER_QUALITY, CORNER_DISTANCE, blockSize=5)
         self._corners = np.zeros((0, 2), np.float32) if found is None else found.reshape(-1, 2)
@@ -108,8 +125,9 @@ class PoseRefiner:
         if self._image is None or self._pose is None:
             return None
         T_fk_told = np.linalg.inv(told) @ self._pose
-        tracks = self._track(as_uint8(gray), T_fk_told, scene_depth)
-        solved = None if tracks is None else self._solve(tracks[0], tracks[1], T_fk_told)
+        previous, self._previous = self._previous, None
+        tracks = self._track(as_uint8(gray), T_fk_told, scene_depth, previous)
+        solved = None if tracks is None else self._solve(tracks.first, tracks.second, T_fk_told)
         if solved is None:
             return None
         pose = self._pose @ np.linalg.inv(solved)
@@ -118,30 +136,35 @@ class PoseRefiner:
         if turn > MAX_SIGMAS * math.degrees(self.sigma_rad) or shift > MAX_SIGMAS * self.sigma_m:
             log.debug('pose refinement dropped: moved %.2f deg, %.1f mm', turn, 1000 * shift)
             return None
+        self._previous = _Tracks(tracks.index, tracks.second, solved)
         return pose
 
     def _track(
-        self, frame: np.ndarray, T_fk: np.ndarray, scene_depth: float
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """The keyframe's corners and where they are in ``frame``: LK from the told prediction,
-        checked back, then placed by an affine window."""
-        p0 = self._corners
-        if len(p0) < MIN_TRACKS or frame.shape != self._image.shape:
+        self, frame: np.ndarray, T_fk: np.ndarray, scene_depth: float, previous: _Tracks | None
+    ) -> _Tracked | None:
+        """The keyframe's corners and where they are in ``frame``: LK from the previous frame's
+        tracks or the told prediction, checked back, then placed by an affine window."""
+        index = np.arange(len(self._corners))
+        if len(index) < MIN_TRACKS or frame.shape != self._image.shape:
             return None
-        rays = self.K_inv @ np.vstack([p0.T, np.ones(len(p0))]) * scene_depth
-        seen = T_fk[:3, :3] @ rays + T_fk[:3, 3:4]
-        if np.any(seen[2] <= 0):
+        guess, levels = self._projected(index, T_fk, scene_depth), LK_LEVELS
+        if previous is not None and len(previous.index) >= CHAINED_SHARE * len(index):
+            then = self._projected(previous.index, previous.T_fk, scene_depth)
+            if then is not None and guess is not None:
+                index, levels = previous.index, CHAINED_LEVELS
+                guess = previous.position + guess[index] - then
+        if guess is None:
             return None
-        guess = (self.K @ seen)[:2] / seen[2]
+        p0 = self._corners[index]
         start = np.ascontiguousarray(p0, dtype=np.float32).reshape(-1, 1, 2)
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
         ahead, found, _ = cv2.calcOpticalFlowPyrLK(
-            self._image, frame, start, np.ascontiguousarray(guess.T, dtype=np.float32).reshape(-1, 1, 2),
-            winSize=LK_WINDOW, maxLevel=LK_LEVELS, flags=flags, criteria=LK_CRITERIA,
+            self._image, frame, start, np.ascontiguousarray(guess, dtype=np.float32).reshape(-1, 1, 2),
+            winSize=LK_WINDOW, maxLevel=levels, flags=flags, criteria=LK_CRITERIA,
         )  # fmt: skip
         back, found_back, _ = cv2.calcOpticalFlowPyrLK(
             frame, self._image, ahead, start.copy(),
-            winSize=LK_WINDOW, maxLevel=LK_LEVELS, flags=flags, criteria=LK_CRITERIA,
+            winSize=LK_WINDOW, maxLevel=levels, flags=flags, criteria=LK_CRITERIA,
         )  # fmt: skip
         ahead, back = ahead.reshape(-1, 2), back.reshape(-1, 2)
         h, w = frame.shape
@@ -150,10 +173,19 @@ class PoseRefiner:
         ok &= (ahead[:, 0] > 2) & (ahead[:, 0] < w - 3) & (ahead[:, 1] > 2) & (ahead[:, 1] < h - 3)
         if ok.sum() < MIN_TRACKS:
             return None
-        first, second = track_templates(
-            self._templates, frame, ahead[ok].astype(np.float64), np.flatnonzero(ok), AFFINE_ITERATIONS
+        first, second, kept = track_templates(
+            self._templates, frame, ahead[ok].astype(np.float64), index[ok], AFFINE_ITERATIONS
         )
-        return (first, second) if len(first) >= MIN_TRACKS else None
+        return _Tracked(first, second, index[ok][kept]) if len(first) >= MIN_TRACKS else None
+
+    def _projected(self, index: np.ndarray, T_fk: np.ndarray, depth: float) -> np.ndarray | None:
+        """Where keyframe-to-frame ``T_fk`` puts the corners ``index`` (M, 2, px) at ``depth``;
+        ``None`` where one falls behind the camera."""
+        p = self._corners[index].astype(np.float64)
+        seen = T_fk[:3, :3] @ (self.K_inv @ np.vstack([p.T, np.ones(len(p))]) * depth) + T_fk[:3, 3:4]
+        if np.any(seen[2] <= 0):
+            return None
+        return ((self.K @ seen)[:2] / seen[2]).T
 
     def _solve(self, p0: np.ndarray, p1: np.ndarray, T_fk_told: np.ndarray) -> np.ndarray | None:
         """The keyframe-to-frame transform that puts the tracks ``p0 -> p1`` (N, 2, px) on their
@@ -188,6 +220,23 @@ class PoseRefiner:
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R[0], t[0]
         return T
+
+
+class _Tracked(NamedTuple):
+    """A frame's tracks: the keyframe's corners, where they are in the frame, and which corners."""
+
+    first: np.ndarray  # (N, 2) px in the keyframe
+    second: np.ndarray  # (N, 2) px in the frame
+    index: np.ndarray  # (N,) into the keyframe's corners
+
+
+class _Tracks(NamedTuple):
+    """What the next frame starts from: the corners a refined frame kept, where, and its
+    refined keyframe-to-frame transform."""
+
+    index: np.ndarray
+    position: np.ndarray  # (N, 2) px
+    T_fk: np.ndarray
 
 
 class _MovedPose:
