@@ -228,11 +228,13 @@ def test_a_precise_single_views_keyframe_is_not_made_worse():
     follows the single-view depth's precision"): the default room, seed 0, keyframe 30 read
     causally. The points are right (1 % median error) but their residual against a 4 %
     network is mostly their own noise and the network's segment errors, which the normalised
-    weights carried onto the back wall, where no point is: 1.20x worse than the input with the
-    fixed floor alone. With the floor following the precision ratio (default) it is better
-    than its input. The halo test is off in both, to test the floor (it alone: 0.79x)."""
+    weights carried onto the back wall, where no point is: 1.10x worse than the input with the
+    fixed floor alone (1.19-1.20x while the pose refinement tracked every frame from the told
+    pose; from the previous frame's tracks its points moved a little). With the floor following
+    the precision ratio (default) it is better than its input (0.83x). The halo test is off in
+    both, to test the floor (it alone: 0.79x)."""
     sequence = render_sequence(SynthConfig(width=320, height=240, frames=31, seed=0))
     off = {'halo_min_step': 0.0}
-    assert _causal_ratio(sequence, 30, {'certainty_gain': 0.0, **off}, simulated=PRECISE_PRIOR) > 1.1
+    assert _causal_ratio(sequence, 30, {'certainty_gain': 0.0, **off}, simulated=PRECISE_PRIOR) > 1.05
     default = FusionConfig().certainty_gain
     assert _causal_ratio(sequence, 30, {'certainty_gain': default, **off}, simulated=PRECISE_PRIOR) <= 0.95

@@ -184,10 +184,13 @@ def test_following_frames_go_on_from_the_previous_frames_tracks(monkeypatch):
     assert chained_levels[0] == full and chained_levels.count(chain) >= 5
     assert np.median(after) < 0.5 * np.median(before)
     assert np.median(after) <= np.median(alone) + 0.02
-    # A frame without corners keeps its told pose; the next starts over, as after a keyframe.
+    # A frame without corners tries the previous frame's tracks, then all from the told pose,
+    # and keeps its told pose; the next starts over, as after a keyframe.
     levels.clear()
     assert chained.refine(np.full_like(key.gray, 0.5), told.frames[10].pose, 2.0) is None
+    assert levels == [chain, chain, full, full]
     assert chained.refine(told.frames[11].gray, told.frames[11].pose, 2.0) is not None
+    assert levels[4:] == [full, full]
     chained.keyframe(truth.frames[11].gray, truth.frames[11].pose)
     chained.refine(told.frames[10].gray, told.frames[10].pose, 2.0)
     assert levels[-2:] == [full] * 2

@@ -20,12 +20,13 @@ How, per frame (:meth:`PoseRefiner.refine`):
    frame starts each corner the previous frame kept where it was found there, moved by the
    told motion between the two frames (the previous one's refined pose to this one's told
    pose): off by the pose noise alone, about a pixel, and :data:`CHAINED_LEVELS` level does
-   (the tracking's cost falls by two thirds: docs/performance.md). A track is kept when
+   (Lucas-Kanade's cost on those frames falls by two thirds: docs/multi_view.md). A track is kept when
    tracking it back lands within :data:`BACK_TRACK_PX` of its corner; an affine window against
    the keyframe's then places it (``affine_tracking``: 0.02-0.03 px from the truth at the
    median on the synthetic streams), so that no error is carried from frame to frame. When
    fewer than :data:`CHAINED_SHARE` of the keyframe's corners are still tracked, or the
-   previous frame kept its told pose, the frame starts over from the told pose.
+   previous frame kept its told pose, the frame starts over from the told pose; so does a
+   frame whose tracks from the previous frame were too few.
 2. The relative pose minimises the tracks' Sampson distances to their epipolar lines under a
    Cauchy loss (iteratively reweighted Gauss-Newton), plus a Gaussian prior at the told pose:
    ``filter.refine_sigma_deg`` on the rotation and ``filter.refine_sigma_m`` on the camera
@@ -126,7 +127,10 @@ class PoseRefiner:
             return None
         T_fk_told = np.linalg.inv(told) @ self._pose
         previous, self._previous = self._previous, None
-        tracks = self._track(as_uint8(gray), T_fk_told, scene_depth, previous)
+        frame = as_uint8(gray)
+        tracks = self._track(frame, T_fk_told, scene_depth, previous)
+        if tracks is None and previous is not None:  # too few went on: all of them from the told pose
+            tracks = self._track(frame, T_fk_told, scene_depth, None)
         solved = None if tracks is None else self._solve(tracks.first, tracks.second, T_fk_told)
         if solved is None:
             return None
