@@ -194,3 +194,22 @@ def test_following_frames_go_on_from_the_previous_frames_tracks(monkeypatch):
     chained.keyframe(truth.frames[11].gray, truth.frames[11].pose)
     chained.refine(told.frames[10].gray, told.frames[10].pose, 2.0)
     assert levels[-2:] == [full] * 2
+
+
+def test_a_keyframe_streams_long_steps_track_from_the_told_pose(exact, noisy, monkeypatch):
+    """A SLAM keyframe stream's frames are 15 cm apart: from the previous frame's tracks a
+    point at half the scene depth would start 22 px off, beyond one pyramid level. Each frame
+    tracks from the told pose with every level, and is refined."""
+    levels: list[int] = []
+    lucas_kanade = pose_refinement.cv2.calcOpticalFlowPyrLK
+
+    def spy(*args, **kwargs):
+        levels.append(kwargs['maxLevel'])
+        return lucas_kanade(*args, **kwargs)
+
+    monkeypatch.setattr(pose_refinement.cv2, 'calcOpticalFlowPyrLK', spy)
+    refiner = PoseRefiner(noisy.camera, 0.5, 0.01, 300)
+    refiner.keyframe(exact.frames[0].gray, exact.frames[0].pose)
+    for frame in noisy.frames[1:4]:
+        assert refiner.refine(frame.gray, frame.pose, 2.0) is not None
+    assert levels == [pose_refinement.LK_LEVELS] * 6

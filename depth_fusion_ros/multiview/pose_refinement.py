@@ -24,9 +24,10 @@ How, per frame (:meth:`PoseRefiner.refine`):
    tracking it back lands within :data:`BACK_TRACK_PX` of its corner; an affine window against
    the keyframe's then places it (``affine_tracking``: 0.02-0.03 px from the truth at the
    median on the synthetic streams), so that no error is carried from frame to frame. When
-   fewer than :data:`CHAINED_SHARE` of the keyframe's corners are still tracked, or the
-   previous frame kept its told pose, the frame starts over from the told pose; so does a
-   frame whose tracks from the previous frame were too few.
+   fewer than :data:`CHAINED_SHARE` of the keyframe's corners are still tracked, the previous
+   frame kept its told pose, or the camera moved too far since (:data:`CHAINED_PARALLAX_PX`),
+   the frame starts over from the told pose; so does a frame whose tracks from the previous
+   frame were too few.
 2. The relative pose minimises the tracks' Sampson distances to their epipolar lines under a
    Cauchy loss (iteratively reweighted Gauss-Newton), plus a Gaussian prior at the told pose:
    ``filter.refine_sigma_deg`` on the rotation and ``filter.refine_sigma_m`` on the camera
@@ -86,6 +87,12 @@ CORNER_DISTANCE = 7
 #: keyframe's corners; fewer, and it tracks them all from the told pose again (the ones lost to a
 #: blur or a passing occluder come back).
 CHAINED_SHARE = 0.5
+#: ...and while the camera moved so little since the previous frame that a point at half the
+#: scene depth moves at most this much more than one at the scene depth (px): about half the
+#: reach of Lucas-Kanade's window (15 px) at one pyramid level. The handheld streams, TUM and
+#: 7-Scenes at 30 Hz move 0.5-4 px a frame so; a SLAM keyframe stream's 15 cm steps are 22 px,
+#: and tracked from the previous frame their poses moved twice as far from exact ones.
+CHAINED_PARALLAX_PX = 8.0
 
 
 class PoseRefiner:
@@ -152,7 +159,7 @@ class PoseRefiner:
         if len(index) < MIN_TRACKS or frame.shape != self._image.shape:
             return None
         guess, levels = self._projected(index, T_fk, scene_depth), LK_LEVELS
-        if previous is not None and len(previous.index) >= CHAINED_SHARE * len(index):
+        if self._chains(previous, len(index), T_fk, scene_depth):
             then = self._projected(previous.index, previous.T_fk, scene_depth)
             if then is not None and guess is not None:
                 index, levels = previous.index, CHAINED_LEVELS
@@ -181,6 +188,16 @@ class PoseRefiner:
             self._templates, frame, ahead[ok].astype(np.float64), index[ok], AFFINE_ITERATIONS
         )
         return _Tracked(first, second, index[ok][kept]) if len(first) >= MIN_TRACKS else None
+
+    def _chains(self, previous: _Tracks | None, corners: int, T_fk: np.ndarray, depth: float) -> bool:
+        """Whether the frame goes on from the previous frame's tracks: they hold at least
+        :data:`CHAINED_SHARE` of the corners, and the camera moved so little since that a point at
+        half the scene depth moves at most :data:`CHAINED_PARALLAX_PX` more than one at the
+        scene depth (the start's error, beyond the pose noise, where the depth is unknown)."""
+        if previous is None or len(previous.index) < CHAINED_SHARE * corners:
+            return False
+        moved = np.linalg.norm(_centre(T_fk) - _centre(previous.T_fk))
+        return bool(self.K[0, 0] * moved / depth <= CHAINED_PARALLAX_PX)
 
     def _projected(self, index: np.ndarray, T_fk: np.ndarray, depth: float) -> np.ndarray | None:
         """Where keyframe-to-frame ``T_fk`` puts the corners ``index`` (M, 2, px) at ``depth``;
@@ -224,6 +241,11 @@ class PoseRefiner:
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R[0], t[0]
         return T
+
+
+def _centre(T_fk: np.ndarray) -> np.ndarray:
+    """The frame's camera centre in the keyframe's coordinates."""
+    return -T_fk[:3, :3].T @ T_fk[:3, 3]
 
 
 class _Tracked(NamedTuple):
