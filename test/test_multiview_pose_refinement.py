@@ -146,7 +146,21 @@ def test_a_keyframe_without_corners_refines_nothing_and_fails_nothing(exact):
     assert np.array_equal(f.used_pose(exact.frames[1].pose), exact.frames[1].pose)
 
 
-def test_following_frames_go_on_from_the_previous_frames_tracks(monkeypatch):
+@pytest.fixture
+def levels(monkeypatch) -> list[int]:
+    """The pyramid levels of every Lucas-Kanade call the refiner makes, in order."""
+    seen: list[int] = []
+    lucas_kanade = pose_refinement.cv2.calcOpticalFlowPyrLK
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs['maxLevel'])
+        return lucas_kanade(*args, **kwargs)
+
+    monkeypatch.setattr(pose_refinement.cv2, 'calcOpticalFlowPyrLK', spy)
+    return seen
+
+
+def test_following_frames_go_on_from_the_previous_frames_tracks(levels):
     """After a keyframe's first frame, each frame starts its tracks where the previous one found
     them (one pyramid level instead of three: a third of the tracking's cost), and it turns the
     noisy poses towards the truth as well as tracking from the told pose alone does. A frame
@@ -154,14 +168,6 @@ def test_following_frames_go_on_from_the_previous_frames_tracks(monkeypatch):
     stream = {'frames': 12, 'seed': 301}
     truth = render_sequence(stress_config('rotation', **stream))
     told = render_sequence(stress_config('rotation', **stream, **SLAM_NOISE))
-    levels: list[int] = []
-    lucas_kanade = pose_refinement.cv2.calcOpticalFlowPyrLK
-
-    def spy(*args, **kwargs):
-        levels.append(kwargs['maxLevel'])
-        return lucas_kanade(*args, **kwargs)
-
-    monkeypatch.setattr(pose_refinement.cv2, 'calcOpticalFlowPyrLK', spy)
     key = truth.frames[0]
     chained = PoseRefiner(told.camera, 0.5, 0.01, 300)
     chained.keyframe(key.gray, key.pose)
@@ -196,18 +202,10 @@ def test_following_frames_go_on_from_the_previous_frames_tracks(monkeypatch):
     assert levels[-2:] == [full] * 2
 
 
-def test_a_keyframe_streams_long_steps_track_from_the_told_pose(exact, noisy, monkeypatch):
+def test_a_keyframe_streams_long_steps_track_from_the_told_pose(exact, noisy, levels):
     """A SLAM keyframe stream's frames are 15 cm apart: from the previous frame's tracks a
     point at half the scene depth would start 22 px off, beyond one pyramid level. Each frame
     tracks from the told pose with every level, and is refined."""
-    levels: list[int] = []
-    lucas_kanade = pose_refinement.cv2.calcOpticalFlowPyrLK
-
-    def spy(*args, **kwargs):
-        levels.append(kwargs['maxLevel'])
-        return lucas_kanade(*args, **kwargs)
-
-    monkeypatch.setattr(pose_refinement.cv2, 'calcOpticalFlowPyrLK', spy)
     refiner = PoseRefiner(noisy.camera, 0.5, 0.01, 300)
     refiner.keyframe(exact.frames[0].gray, exact.frames[0].pose)
     for frame in noisy.frames[1:4]:
