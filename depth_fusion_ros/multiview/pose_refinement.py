@@ -20,14 +20,14 @@ How, per frame (:meth:`PoseRefiner.refine`):
    frame starts each corner the previous frame kept where it was found there, moved by the
    told motion between the two frames (the previous one's refined pose to this one's told
    pose): off by the pose noise alone, about a pixel, and :data:`CHAINED_LEVELS` level does
-   (Lucas-Kanade's cost on those frames falls by two thirds: docs/multi_view.md). A track is kept when
-   tracking it back lands within :data:`BACK_TRACK_PX` of its corner; an affine window against
-   the keyframe's then places it (``affine_tracking``: 0.02-0.03 px from the truth at the
-   median on the synthetic streams), so that no error is carried from frame to frame. When
-   fewer than :data:`CHAINED_SHARE` of the keyframe's corners are still tracked, the previous
-   frame kept its told pose, or the camera moved too far since (:data:`CHAINED_PARALLAX_PX`),
-   the frame starts over from the told pose; so does a frame whose tracks from the previous
-   frame were too few.
+   (Lucas-Kanade's cost on those frames falls by two thirds: docs/multi_view.md). A track is
+   kept when tracking it back lands within :data:`BACK_TRACK_PX` of its corner; an affine
+   window against the keyframe's then places it (``affine_tracking``: 0.02-0.03 px from the
+   truth at the median on the synthetic streams), so that no error is carried from frame to
+   frame. When fewer than :data:`CHAINED_SHARE` of the keyframe's corners are still tracked,
+   the previous frame kept its told pose, or the camera moved too far since
+   (:data:`CHAINED_PARALLAX_PX`), the frame starts over from the told pose; so does a frame
+   whose tracks from the previous frame were too few.
 2. The relative pose minimises the tracks' Sampson distances to their epipolar lines under a
    Cauchy loss (iteratively reweighted Gauss-Newton), plus a Gaussian prior at the told pose:
    ``filter.refine_sigma_deg`` on the rotation and ``filter.refine_sigma_m`` on the camera
@@ -134,6 +134,8 @@ class PoseRefiner:
             return None
         T_fk_told = np.linalg.inv(told) @ self._pose
         previous, self._previous = self._previous, None
+        if not self._chains(previous, len(self._corners), T_fk_told, scene_depth):
+            previous = None
         frame = as_uint8(gray)
         tracks = self._track(frame, T_fk_told, scene_depth, previous)
         if tracks is None and previous is not None:  # too few went on: all of them from the told pose
@@ -154,12 +156,13 @@ class PoseRefiner:
         self, frame: np.ndarray, T_fk: np.ndarray, scene_depth: float, previous: _Tracks | None
     ) -> _Tracked | None:
         """The keyframe's corners and where they are in ``frame``: LK from the previous frame's
-        tracks or the told prediction, checked back, then placed by an affine window."""
+        tracks (``previous``, where the frame goes on from them) or the told prediction, checked
+        back, then placed by an affine window."""
         index = np.arange(len(self._corners))
         if len(index) < MIN_TRACKS or frame.shape != self._image.shape:
             return None
         guess, levels = self._projected(index, T_fk, scene_depth), LK_LEVELS
-        if self._chains(previous, len(index), T_fk, scene_depth):
+        if previous is not None:
             then = self._projected(previous.index, previous.T_fk, scene_depth)
             if then is not None and guess is not None:
                 index, levels = previous.index, CHAINED_LEVELS
