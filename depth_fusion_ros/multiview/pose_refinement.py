@@ -158,15 +158,15 @@ class PoseRefiner:
         """The keyframe's corners and where they are in ``frame``: LK from the previous frame's
         tracks (``previous``, where the frame goes on from them) or the told prediction, checked
         back, then placed by an affine window."""
-        index = np.arange(len(self._corners))
-        if len(index) < MIN_TRACKS or frame.shape != self._image.shape:
+        if len(self._corners) < MIN_TRACKS or frame.shape != self._image.shape:
             return None
-        guess, levels = self._projected(index, T_fk, scene_depth), LK_LEVELS
-        if previous is not None:
-            then = self._projected(previous.index, previous.T_fk, scene_depth)
-            if then is not None and guess is not None:
-                index, levels = previous.index, CHAINED_LEVELS
-                guess = previous.position + guess[index] - then
+        if previous is None:
+            index, levels = np.arange(len(self._corners)), LK_LEVELS
+            guess = self._projected(index, T_fk, scene_depth)
+        else:
+            index, levels = previous.index, CHAINED_LEVELS
+            now, then = (self._projected(index, T, scene_depth) for T in (T_fk, previous.T_fk))
+            guess = None if now is None or then is None else previous.position + now - then
         if guess is None:
             return None
         p0 = self._corners[index]
