@@ -162,7 +162,8 @@ def levels(monkeypatch) -> list[int]:
 
 def test_following_frames_go_on_from_the_previous_frames_tracks(levels):
     """After a keyframe's first frame, each frame starts its tracks where the previous one found
-    them (one pyramid level instead of three: a third of the tracking's cost), and it turns the
+    them (one pyramid level above the image instead of three: a third of the tracking's cost),
+    and it turns the
     noisy poses towards the truth as well as tracking from the told pose alone does. A frame
     that keeps its told pose, and a new keyframe, start over from the told pose."""
     stream = {'frames': 12, 'seed': 301}
@@ -191,9 +192,12 @@ def test_following_frames_go_on_from_the_previous_frames_tracks(levels):
     assert np.median(after) < 0.5 * np.median(before)
     assert np.median(after) <= np.median(alone) + 0.02
     # A frame without corners tries the previous frame's tracks, then all from the told pose,
-    # and keeps its told pose; the next starts over, as after a keyframe.
+    # and keeps its told pose; the next starts over, as after a keyframe. (The keyframe again
+    # and its first frame, so that the previous frame's tracks hold more than half the corners.)
+    chained.keyframe(key.gray, key.pose)
+    assert chained.refine(told.frames[1].gray, told.frames[1].pose, 2.0) is not None
     levels.clear()
-    assert chained.refine(np.full_like(key.gray, 0.5), told.frames[10].pose, 2.0) is None
+    assert chained.refine(np.full_like(key.gray, 0.5), told.frames[2].pose, 2.0) is None
     assert levels == [chain, chain, full, full]
     assert chained.refine(told.frames[11].gray, told.frames[11].pose, 2.0) is not None
     assert levels[4:] == [full, full]

@@ -20,6 +20,7 @@ step). The first position stays as detected: the window is centred on it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -114,17 +115,31 @@ def track_affine(
     return track_templates(affine_templates(first, p1), second, p2)[:2]
 
 
+class AffineTracks(NamedTuple):
+    """What :func:`track_templates` found: the kept points in the first image and in the
+    second, which of the tracked points were kept (a mask), and the kept points' warps."""
+
+    first: np.ndarray  # (N, 2)
+    second: np.ndarray  # (N, 2)
+    kept: np.ndarray  # (M,) bool
+    warps: np.ndarray  # (N, 2, 2): the affine part, first window -> second
+
+
 def track_templates(
     templates: AffineTemplates,
     second: np.ndarray,
     p2: np.ndarray,
     subset: np.ndarray | None = None,
     iterations: int = ITERATIONS,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    warps: np.ndarray | None = None,
+) -> AffineTracks:
     """:func:`track_affine` from windows made once: ``subset`` (indices into ``templates``) are
     the points tracked, to ``p2`` (len(subset), 2); all of them when ``None``. ``iterations``:
-    the Gauss-Newton steps allowed (a match still moving after them is dropped). Also returns
-    which of the tracked points were kept (a mask over ``p2``): the pose refinement goes on
+    the Gauss-Newton steps allowed (a match still moving after them is dropped). ``warps``
+    (len(subset), 2, 2): where each window's affine part starts (the identity when ``None``);
+    the pose refinement starts a frame's windows at the previous frame's warps, which the
+    windows have nearly reached, so that fewer steps converge. Also returns which of the
+    tracked points were kept (a mask over ``p2``) and their warps: the pose refinement goes on
     from the kept ones in the next frame."""
     if subset is not None:
         t = templates
@@ -138,18 +153,21 @@ def track_templates(
         templates.descent,
     )
     if len(p1) == 0:
-        return p1, p2, np.zeros(0, dtype=bool)
+        return AffineTracks(p1, p2, np.zeros(0, dtype=bool), np.zeros((0, 2, 2)))
     b = second.astype(np.float32)
     t = np.asarray(p2, dtype=np.float64).copy()
-    A = np.tile(np.eye(2), (len(p1), 1, 1))
+    A = np.tile(np.eye(2), (len(p1), 1, 1)) if warps is None else np.array(warps, dtype=np.float64)
+    # Each window's gain as last sampled: a converged window's last step moved it less than
+    # TOLERANCE_PX, so no final pass samples every window again to read it.
+    gain = np.zeros(len(p1))
     # The rows each step reads (``rows``: which match each is) and which of them still move. A
     # row that converged stays, unmoved, until a quarter have: copying the rows out at every
     # step cost as much as the steps.
     rows, live = np.arange(len(p1)), np.ones(len(p1), dtype=bool)
     tm, var = template, variance
     for _ in range(iterations):
-        centred, gain = _gain_matched(_sample(b, *_warped(t[rows], A[rows])), tm, var)
-        residual = centred / np.where(np.abs(gain) > 1e-3, gain, 1e-3)[:, None] - tm
+        centred, gain[rows] = _gain_matched(_sample(b, *_warped(t[rows], A[rows])), tm, var)
+        residual = centred / np.where(np.abs(gain[rows]) > 1e-3, gain[rows], 1e-3)[:, None] - tm
         step = (descent @ residual[:, :, None])[live, :, 0]
         i = rows[live]
         # The warp composed with the step's inverse.
@@ -163,7 +181,6 @@ def track_templates(
             live = np.ones(len(rows), dtype=bool)
     moving = np.zeros(len(p1), dtype=bool)
     moving[rows[live]] = True
-    _, gain = _gain_matched(_sample(b, *_warped(t, A)), template, variance)
     area = np.linalg.det(A)
     keep = (
         ~moving
@@ -173,4 +190,4 @@ def track_templates(
         & (area < AREA_RANGE[1])
         & (gain > MIN_GAIN)
     )
-    return p1[keep], t[keep], keep
+    return AffineTracks(p1[keep], t[keep], keep, A[keep])

@@ -19,13 +19,15 @@ How, per frame (:meth:`PoseRefiner.refine`):
    where the depth is not the scene's: :data:`LK_LEVELS` pyramid levels. Every following
    frame starts each corner the previous frame kept where it was found there, moved by the
    told motion between the two frames (the previous one's refined pose to this one's told
-   pose): off by the pose noise alone, about a pixel, and :data:`CHAINED_LEVELS` level does
-   (Lucas-Kanade's cost on those frames falls by two thirds: docs/multi_view.md). A track is
-   kept when tracking it back lands within :data:`BACK_TRACK_PX` of its corner; an affine
-   window against the keyframe's then places it (``affine_tracking``: 0.02-0.03 px from the
-   truth at the median on the synthetic streams), so that no error is carried from frame to
-   frame. When fewer than :data:`CHAINED_SHARE` of the keyframe's corners are still tracked,
-   the previous frame kept its told pose, or the camera moved too far since
+   pose): off by the pose noise alone, about a pixel, and :data:`CHAINED_LEVELS` level above
+   the image does (OpenCV's ``maxLevel``; Lucas-Kanade's cost on those frames falls by two
+   thirds: docs/multi_view.md). A track is kept when tracking it back lands within
+   :data:`BACK_TRACK_PX` of its corner; an affine window against the keyframe's then places it
+   (``affine_tracking``: 0.02-0.03 px from the truth at the median on the synthetic streams),
+   so that no error is carried from frame to frame. A frame that goes on from the previous one
+   starts each window at the warp the previous frame's reached, so fewer steps converge. When
+   fewer than :data:`CHAINED_SHARE` of the keyframe's corners are still tracked, the previous
+   frame kept its told pose, or the camera moved too far since
    (:data:`CHAINED_PARALLAX_PX`), the frame starts over from the told pose; so does a frame
    whose tracks from the previous frame were too few.
 2. The relative pose minimises the tracks' Sampson distances to their epipolar lines under a
@@ -149,7 +151,7 @@ class PoseRefiner:
         if turn > MAX_SIGMAS * math.degrees(self.sigma_rad) or shift > MAX_SIGMAS * self.sigma_m:
             log.debug('pose refinement dropped: moved %.2f deg, %.1f mm', turn, 1000 * shift)
             return None
-        self._previous = _Tracks(tracks.index, tracks.second, solved)
+        self._previous = _Tracks(tracks.index, tracks.second, solved, tracks.warps)
         return pose
 
     def _track(
@@ -161,10 +163,10 @@ class PoseRefiner:
         if len(self._corners) < MIN_TRACKS or frame.shape != self._image.shape:
             return None
         if previous is None:
-            index, levels = np.arange(len(self._corners)), LK_LEVELS
+            index, levels, warps = np.arange(len(self._corners)), LK_LEVELS, None
             guess = self._projected(index, T_fk, scene_depth)
         else:
-            index, levels = previous.index, CHAINED_LEVELS
+            index, levels, warps = previous.index, CHAINED_LEVELS, previous.warps
             now, then = (self._projected(index, T, scene_depth) for T in (T_fk, previous.T_fk))
             guess = None if now is None or then is None else previous.position + now - then
         if guess is None:
@@ -187,10 +189,13 @@ class PoseRefiner:
         ok &= (ahead[:, 0] > 2) & (ahead[:, 0] < w - 3) & (ahead[:, 1] > 2) & (ahead[:, 1] < h - 3)
         if ok.sum() < MIN_TRACKS:
             return None
-        first, second, kept = track_templates(
-            self._templates, frame, ahead[ok].astype(np.float64), index[ok], AFFINE_ITERATIONS
-        )
-        return _Tracked(first, second, index[ok][kept]) if len(first) >= MIN_TRACKS else None
+        found = track_templates(
+            self._templates, frame, ahead[ok].astype(np.float64), index[ok], AFFINE_ITERATIONS,
+            None if warps is None else warps[ok],
+        )  # fmt: skip
+        if len(found.first) < MIN_TRACKS:
+            return None
+        return _Tracked(found.first, found.second, index[ok][found.kept], found.warps)
 
     def _chains(self, previous: _Tracks | None, corners: int, T_fk: np.ndarray, depth: float) -> bool:
         """Whether the frame goes on from the previous frame's tracks: they hold at least
@@ -257,15 +262,17 @@ class _Tracked(NamedTuple):
     first: np.ndarray  # (N, 2) px in the keyframe
     second: np.ndarray  # (N, 2) px in the frame
     index: np.ndarray  # (N,) into the keyframe's corners
+    warps: np.ndarray  # (N, 2, 2): each corner's window, keyframe -> frame (affine part)
 
 
 class _Tracks(NamedTuple):
-    """What the next frame starts from: the corners a refined frame kept, where, and its
-    refined keyframe-to-frame transform."""
+    """What the next frame starts from: the corners a refined frame kept, where, with which
+    windows' warps, and its refined keyframe-to-frame transform."""
 
     index: np.ndarray
     position: np.ndarray  # (N, 2) px
     T_fk: np.ndarray
+    warps: np.ndarray  # (N, 2, 2)
 
 
 class _MovedPose:
