@@ -34,6 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from ..camera import PinholeCamera
 from ..geometry import interpolate_poses
+from .depth_registration import register_depth
 from .sequence import Frame, Sequence
 from .undistort import CameraCalibration, Undistorter, check_distortion
 
@@ -232,12 +233,13 @@ def read_camera_yaml(path: str | Path) -> CameraCalibration:
         if 'distortion_coefficients' in doc
         else np.zeros(0)
     )
+    centre = doc.get('centre_in_depth_camera', (0.0, 0.0, 0.0))
     try:
         camera = PinholeCamera.from_K(K, width, height)
         check_distortion(model, D)
-    except ValueError as exc:
+        return CameraCalibration(camera, model, tuple(D.tolist()), centre)
+    except (TypeError, ValueError) as exc:
         raise ValueError(f'{path}: {exc}') from None
-    return CameraCalibration(camera, model, tuple(D.tolist()))
 
 
 @dataclass(frozen=True)
@@ -408,36 +410,23 @@ def read_depth_file(
 
 
 def _load_frame(
-    i: int, af: AssociatedFrame, undistorter: Undistorter, depth_undistorter: Undistorter, depth_scale: float
+    i: int,
+    af: AssociatedFrame,
+    undistorter: Undistorter,
+    depth_undistorter: Undistorter,
+    depth_scale: float,
+    colour_centre: tuple[float, float, float],
 ) -> Frame:
     """One frame: colour on the working grid; depth undistorted (and registered into the colour
-    camera when the two calibrations differ) at the native resolution."""
+    camera, from ``colour_centre``, when the two calibrations differ) at the native resolution."""
     rgb = undistorter.rgb(read_rgb_file(af.rgb_file, undistorter.native_camera))
     depth = None
     if af.depth_file is not None:
         native = depth_undistorter.native_camera
         depth = depth_undistorter.depth(read_depth_file(af.depth_file, native, depth_scale))
         if depth_undistorter is not undistorter:
-            depth = register_depth(depth, native, undistorter.native_camera)
+            depth = register_depth(depth, native, undistorter.native_camera, colour_centre)
     return Frame(index=i, stamp=af.stamp, rgb=rgb, pose=af.pose, depth=depth)
-
-
-def register_depth(
-    depth: np.ndarray, depth_camera: PinholeCamera, colour_camera: PinholeCamera
-) -> np.ndarray:
-    """Resample depth from a depth camera onto the pixel grid of the colour camera.
-
-    For sensors whose depth and colour cameras sit at (nearly) the same optical centre with the
-    same orientation but have different intrinsics (7-Scenes: depth fx 585, colour about 525):
-    a point keeps its z, only its pixel moves, so this is a nearest-neighbour remap (NaN where
-    the depth camera does not see).
-    """
-    u, v = colour_camera.pixel_grid()
-    map_x = (depth_camera.cx + depth_camera.fx * (u - colour_camera.cx) / colour_camera.fx).astype(np.float32)
-    map_y = (depth_camera.cy + depth_camera.fy * (v - colour_camera.cy) / colour_camera.fy).astype(np.float32)
-    return cv2.remap(
-        depth, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=float('nan')
-    )
 
 
 def load_tum_sequence(
@@ -462,7 +451,9 @@ def load_tum_sequence(
     ``rgb_calibration``: the colour camera's calibration when the folder's camera.yaml
     describes the *depth* camera (7-Scenes ships the depth intrinsics). Colour is then
     undistorted with it, and the ground-truth depth is registered into the colour camera
-    with :func:`register_depth` (same optical centre assumed).
+    with :func:`.depth_registration.register_depth`, from the colour camera's
+    ``centre_in_depth_camera`` (the same optical centre where the YAML does not give one). The
+    poses stay the folder's.
     """
     index = read_tum_index(path, require_depth=require_depth)
     assoc = associate(index, depth_max_gap, require_depth=require_depth, max_frames=max_frames)
@@ -483,12 +474,13 @@ def load_tum_sequence(
     undistorter = undistorter_of(colour_calib)
     depth_undistorter = undistorter_of(depth_calib) if rgb_calibration is not None else undistorter
 
+    centre = colour_calib.centre_in_depth_camera
     # cv2 decodes with the GIL released: a few threads overlap PNG/JPEG decoding.
     workers = max(1, min(4, os.cpu_count() or 1))
     with ThreadPoolExecutor(workers) as pool:
         frames = list(
             pool.map(
-                lambda item: _load_frame(item[0], item[1], undistorter, depth_undistorter, depth_scale),
+                lambda item: _load_frame(*item, undistorter, depth_undistorter, depth_scale, centre),
                 enumerate(assoc.frames),
             )
         )

@@ -47,11 +47,23 @@ class CameraCalibration:
     camera: PinholeCamera
     distortion_model: str = 'plumb_bob'
     D: tuple[float, ...] = ()
+    #: A colour calibration given beside a dataset's depth camera (7-Scenes): this camera's
+    #: optical centre in the depth camera's optical frame (m), from which the ground-truth depth
+    #: is registered into it (``data.depth_registration``). Not part of a ROS camera_info.
+    centre_in_depth_camera: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'D', tuple(float(d) for d in np.asarray(self.D, dtype=np.float64).ravel()))
         if not all(np.isfinite(self.D)):
             raise ValueError(f'distortion coefficients must be finite, got {list(self.D)}')
+        try:
+            centre = tuple(float(c) for c in np.asarray(self.centre_in_depth_camera, np.float64).ravel())
+        except (TypeError, ValueError):
+            centre = ()
+        if len(centre) != 3 or not all(np.isfinite(centre)) or max(map(abs, centre)) > 1.0:
+            given = self.centre_in_depth_camera
+            raise ValueError(f'centre_in_depth_camera must be 3 finite metres within 1 m, got {given!r}')
+        object.__setattr__(self, 'centre_in_depth_camera', centre)
 
     @property
     def is_distorted(self) -> bool:

@@ -8,8 +8,9 @@ published live at ``--rate`` Hz on the graph's default topics; ``/depth_fusion/f
 ``/depth_fusion/fused/camera_info`` and ``/depth_fusion/single_view/depth`` received. Each
 fused keyframe is scored against the ground-truth depth nearest its stamp, resampled into the
 fused depth's camera (the working grid: ``initUndistortRectifyMap`` from the depth camera,
-nearest neighbour; same optical centre). The single-view depth of the same keyframes is the
-baseline the fusion must beat.
+nearest neighbour, where both cameras share the optical centre; each depth point projected from
+the colour camera's centre where its YAML gives ``centre_in_depth_camera``, as 7-Scenes' does).
+The single-view depth of the same keyframes is the baseline the fusion must beat.
 
     # the graph, one process per node, on its own ROS domain:
     export ROS_DOMAIN_ID=57
@@ -58,6 +59,37 @@ def camera(path: Path) -> tuple[int, int, np.ndarray, np.ndarray, str]:
     k = np.array(c['camera_matrix']['data'], dtype=np.float64).reshape(3, 3)
     d = np.array(c.get('distortion_coefficients', {}).get('data', [0.0] * 5), dtype=np.float64)
     return int(c['image_width']), int(c['image_height']), k, d, c.get('distortion_model', 'plumb_bob')
+
+
+def colour_centre(path: Path) -> np.ndarray:
+    """The colour camera's optical centre in the depth camera's frame (m), where its YAML gives
+    one (``centre_in_depth_camera``, 7-Scenes); zero where it does not."""
+    given = yaml.safe_load(path.read_text()).get('centre_in_depth_camera', [0.0] * 3)
+    return np.array(given, dtype=np.float64)
+
+
+def projected_depth(
+    depth: np.ndarray, dk: np.ndarray, k: np.ndarray, size: tuple[int, int], centre: np.ndarray
+) -> np.ndarray:
+    """``depth`` (the depth camera's grid, 0 where none) seen from a camera ``k`` at ``centre``
+    in the depth camera's frame, on a ``size`` (w, h) grid; the nearest surface where several
+    points land on one pixel, 0 where none."""
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u].astype(np.float64)
+    x = (u - dk[0, 2]) / dk[0, 0] * z - centre[0]
+    y = (v - dk[1, 2]) / dk[1, 1] * z - centre[1]
+    z = z - centre[2]
+    w, h = size
+    uc = np.rint(k[0, 0] * x / z + k[0, 2]).astype(np.int64)
+    vc = np.rint(k[1, 1] * y / z + k[1, 2]).astype(np.int64)
+    inside = (z > 0) & (uc >= 0) & (uc < w) & (vc >= 0) & (vc < h)
+    pixel, z = vc[inside] * w + uc[inside], z[inside]
+    order = np.lexsort((z, pixel))
+    pixel, z = pixel[order], z[order]
+    first = np.r_[True, pixel[1:] != pixel[:-1]]
+    out = np.zeros(h * w, dtype=np.float32)
+    out[pixel[first]] = z[first]
+    return out.reshape(h, w)
 
 
 def stamp_of(t: float):
@@ -183,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
         k[0, 2] = (k[0, 2] + 0.5) * args.upscale - 0.5
         k[1, 2] = (k[1, 2] + 0.5) * args.upscale - 0.5
     _, _, dk, dd, _ = camera(args.depth_camera or seq / 'camera.yaml')
+    centre = colour_centre(args.camera) if args.camera else np.zeros(3)
     images = read_list(seq / 'rgb.txt')
     if args.frames:
         images = images[: args.frames]
@@ -274,11 +307,15 @@ def main(argv: list[str] | None = None) -> int:
         gt_png = cv2.imread(str(seq / depths[near][1][0]), cv2.IMREAD_UNCHANGED)
         gt_raw = np.where(gt_png == 65535, 0, gt_png).astype(np.float32) / args.depth_factor  # 65535: none
         gh, gw = fused.shape
-        if (gh, gw) not in maps:  # the fused camera is the same for every keyframe of a stream
-            maps[gh, gw] = cv2.initUndistortRectifyMap(
-                dk, dd, np.eye(3), client.fused_k, (gw, gh), cv2.CV_32FC1
-            )
-        gt = cv2.remap(gt_raw, *maps[gh, gw], cv2.INTER_NEAREST, borderValue=0.0)
+        if centre.any():  # the colour camera beside the depth camera: each point from its centre
+            undistorted = cv2.undistort(gt_raw, dk, dd) if dd.any() else gt_raw
+            gt = projected_depth(undistorted, dk, client.fused_k, (gw, gh), centre)
+        else:
+            if (gh, gw) not in maps:  # the fused camera is the same for every keyframe of a stream
+                maps[gh, gw] = cv2.initUndistortRectifyMap(
+                    dk, dd, np.eye(3), client.fused_k, (gw, gh), cv2.CV_32FC1
+                )
+            gt = cv2.remap(gt_raw, *maps[gh, gw], cv2.INTER_NEAREST, borderValue=0.0)
         valid = (gt > 0) & np.isfinite(fused)
         single = client.single.get(key)
         paired = single is not None and single.shape == fused.shape
