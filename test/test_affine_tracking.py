@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 from test_match_refinement import _texture
 
 from depth_fusion_ros.multiview.affine_tracking import (
@@ -118,3 +119,5 @@ def test_windows_started_at_their_warps_converge_in_fewer_steps_to_the_same_plac
     moved = np.linalg.norm(a.second - b.second, axis=1)
     assert np.median(moved) < 0.005 and moved.max() < 0.1, (np.median(moved), moved.max())
     assert np.abs(np.median(a.warps, axis=0) - linear).max() < 0.005
+    with pytest.raises(ValueError, match='warps must be'):  # one warp per tracked point
+        track_templates(templates, second, start, warps=warps[:-1])

@@ -157,6 +157,8 @@ def track_templates(
     b = second.astype(np.float32)
     t = np.asarray(p2, dtype=np.float64).copy()
     A = np.tile(np.eye(2), (len(p1), 1, 1)) if warps is None else np.array(warps, dtype=np.float64)
+    if A.shape != (len(p1), 2, 2):
+        raise ValueError(f'warps must be ({len(p1)}, 2, 2), one per tracked point, got {A.shape}')
     # Each window's gain as last sampled: a converged window's last step moved it less than
     # TOLERANCE_PX, so no final pass samples every window again to read it.
     gain = np.zeros(len(p1))
@@ -166,8 +168,9 @@ def track_templates(
     rows, live = np.arange(len(p1)), np.ones(len(p1), dtype=bool)
     tm, var = template, variance
     for _ in range(iterations):
-        centred, gain[rows] = _gain_matched(_sample(b, *_warped(t[rows], A[rows])), tm, var)
-        residual = centred / np.where(np.abs(gain[rows]) > 1e-3, gain[rows], 1e-3)[:, None] - tm
+        centred, g = _gain_matched(_sample(b, *_warped(t[rows], A[rows])), tm, var)
+        gain[rows] = g
+        residual = centred / np.where(np.abs(g) > 1e-3, g, 1e-3)[:, None] - tm
         step = (descent @ residual[:, :, None])[live, :, 0]
         i = rows[live]
         # The warp composed with the step's inverse.

@@ -308,7 +308,11 @@ def main(argv: list[str] | None = None) -> int:
         gt_raw = np.where(gt_png == 65535, 0, gt_png).astype(np.float32) / args.depth_factor  # 65535: none
         gh, gw = fused.shape
         if centre.any():  # the colour camera beside the depth camera: each point from its centre
-            undistorted = cv2.undistort(gt_raw, dk, dd) if dd.any() else gt_raw
+            undistorted = gt_raw
+            if dd.any():  # nearest neighbour: a blend across an edge is a depth nothing has
+                size = gt_raw.shape[::-1]
+                plain = cv2.initUndistortRectifyMap(dk, dd, np.eye(3), dk, size, cv2.CV_32FC1)
+                undistorted = cv2.remap(gt_raw, *plain, cv2.INTER_NEAREST, borderValue=0.0)
             gt = projected_depth(undistorted, dk, client.fused_k, (gw, gh), centre)
         else:
             if (gh, gw) not in maps:  # the fused camera is the same for every keyframe of a stream
