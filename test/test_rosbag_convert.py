@@ -127,6 +127,11 @@ def test_bag_sequence_equals_folder_sequence(tmp_path):
         np.testing.assert_array_equal(a.depth, b.depth)  # NaN in the same places
         np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
     assert len(load_bag_sequence(out, max_frames=2)) == 2
+    # A colour calibration's depth-camera centre registers a folder's depth; a bag's depth is
+    # registered already, so the centre would do nothing there: an error, not an ignored option.
+    beside = CameraCalibration(bag.gt_camera, centre_in_depth_camera=(0.025, 0.0, 0.0))
+    with pytest.raises(ValueError, match="bag's depth is read as registered"):
+        load_bag_sequence(out, width=32, height=24, calibration=beside)
     depth = read_depth_images(out, DEPTH)
     assert sorted(depth) == [round(f.stamp * 1e9) for f in folder.frames]
     with pytest.raises(ValueError, match=r'no topic /nope \(it has: /camera/depth/image'):

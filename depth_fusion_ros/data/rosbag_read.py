@@ -177,6 +177,11 @@ def load_bag_sequence(
     rgb_stamps, depth_stamps, calib, pose_stamps, poses = _scan(
         path, rgb_topic, camera_info_topic if calibration is None else None, pose_topic, depth_topic
     )
+    if calibration is not None and any(calibration.centre_in_depth_camera):
+        raise ValueError(
+            f"{path}: the colour calibration gives centre_in_depth_camera, but a bag's depth is read as "
+            "registered to the colour camera already (the centre registers a TUM folder's depth camera)"
+        )
     calib = calibration or calib
     if calib is None:
         raise ValueError(f'{path}: no CameraInfo on {camera_info_topic}; pass a calibration')
