@@ -46,15 +46,10 @@ def _projected(
 ) -> np.ndarray:
     """Each depth pixel's point projected into the colour camera at ``centre``; a z-buffer by
     sorting (per colour pixel, the nearest point first)."""
-    v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
-    z = depth[v, u].astype(np.float64)
-    x = (u - depth_camera.cx) / depth_camera.fx * z - centre[0]
-    y = (v - depth_camera.cy) / depth_camera.fy * z - centre[1]
-    z = z - centre[2]
-    ahead = z > 0
-    x, y, z = x[ahead], y[ahead], z[ahead]
-    uc = np.rint(colour_camera.fx * x / z + colour_camera.cx).astype(np.int64)
-    vc = np.rint(colour_camera.fy * y / z + colour_camera.cy).astype(np.int64)
+    points = depth_camera.backproject(depth)[np.isfinite(depth) & (depth > 0)] - centre
+    points = points[points[:, 2] > 0]
+    uv, z = colour_camera.project(points)
+    uc, vc = np.rint(uv).astype(np.int64).T
     w, h = colour_camera.width, colour_camera.height
     inside = (uc >= 0) & (uc < w) & (vc >= 0) & (vc < h)
     pixel, z = vc[inside] * w + uc[inside], z[inside]

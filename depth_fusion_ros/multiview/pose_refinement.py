@@ -54,7 +54,7 @@ import cv2
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..geometry import rotation_angle, rotation_matrices, skews
+from ..geometry import invert_pose, rotation_angle, rotation_matrices, skews
 from .affine_tracking import affine_templates, track_templates
 from .epipolar_cost import sampson_distances
 from .match_refinement import as_uint8
@@ -142,7 +142,9 @@ class PoseRefiner:
         tracks = self._track(frame, T_fk_told, scene_depth, previous)
         if tracks is None and previous is not None:  # too few went on: all of them from the told pose
             tracks = self._track(frame, T_fk_told, scene_depth, None)
-        solved = None if tracks is None else self._solve(tracks.first, tracks.second, T_fk_told)
+        if tracks is None:
+            return None
+        solved = self._solve(self._corners[tracks.index].astype(np.float64), tracks.position, T_fk_told)
         if solved is None:
             return None
         pose = self._pose @ np.linalg.inv(solved)
@@ -151,12 +153,12 @@ class PoseRefiner:
         if turn > MAX_SIGMAS * math.degrees(self.sigma_rad) or shift > MAX_SIGMAS * self.sigma_m:
             log.debug('pose refinement dropped: moved %.2f deg, %.1f mm', turn, 1000 * shift)
             return None
-        self._previous = _Tracks(tracks.index, tracks.second, solved, tracks.warps)
+        self._previous = tracks._replace(T_fk=solved)
         return pose
 
     def _track(
         self, frame: np.ndarray, T_fk: np.ndarray, scene_depth: float, previous: _Tracks | None
-    ) -> _Tracked | None:
+    ) -> _Tracks | None:
         """The keyframe's corners and where they are in ``frame``: LK from the previous frame's
         tracks (``previous``, where the frame goes on from them) or the told prediction, checked
         back, then placed by an affine window."""
@@ -195,7 +197,7 @@ class PoseRefiner:
         )  # fmt: skip
         if len(found.first) < MIN_TRACKS:
             return None
-        return _Tracked(found.first, found.second, index[ok][found.kept], found.warps)
+        return _Tracks(index[ok][found.kept], found.second, found.warps)
 
     def _chains(self, previous: _Tracks | None, corners: int, T_fk: np.ndarray, depth: float) -> bool:
         """Whether the frame goes on from the previous frame's tracks: they hold at least
@@ -204,7 +206,7 @@ class PoseRefiner:
         scene depth (the start's error, beyond the pose noise, where the depth is unknown)."""
         if previous is None or len(previous.index) < CHAINED_SHARE * corners:
             return False
-        moved = np.linalg.norm(_centre(T_fk) - _centre(previous.T_fk))
+        moved = np.linalg.norm(invert_pose(T_fk)[:3, 3] - invert_pose(previous.T_fk)[:3, 3])
         return bool(self.K[0, 0] * moved / depth <= CHAINED_PARALLAX_PX)
 
     def _projected(self, index: np.ndarray, T_fk: np.ndarray, depth: float) -> np.ndarray | None:
@@ -251,28 +253,15 @@ class PoseRefiner:
         return T
 
 
-def _centre(T_fk: np.ndarray) -> np.ndarray:
-    """The frame's camera centre in the keyframe's coordinates."""
-    return -T_fk[:3, :3].T @ T_fk[:3, 3]
-
-
-class _Tracked(NamedTuple):
-    """A frame's tracks: the keyframe's corners, where they are in the frame, and which corners."""
-
-    first: np.ndarray  # (N, 2) px in the keyframe
-    second: np.ndarray  # (N, 2) px in the frame
-    index: np.ndarray  # (N,) into the keyframe's corners
-    warps: np.ndarray  # (N, 2, 2): each corner's window, keyframe -> frame (affine part)
-
-
 class _Tracks(NamedTuple):
-    """What the next frame starts from: the corners a refined frame kept, where, with which
-    windows' warps, and its refined keyframe-to-frame transform."""
+    """A frame's tracks, and what the next frame starts from: which of the keyframe's corners,
+    where they are in the frame, their windows' warps, and (once solved) the frame's refined
+    keyframe-to-frame transform."""
 
-    index: np.ndarray
-    position: np.ndarray  # (N, 2) px
-    T_fk: np.ndarray
-    warps: np.ndarray  # (N, 2, 2)
+    index: np.ndarray  # (N,) into the keyframe's corners
+    position: np.ndarray  # (N, 2) px in the frame
+    warps: np.ndarray  # (N, 2, 2): each corner's window, keyframe -> frame (affine part)
+    T_fk: np.ndarray | None = None
 
 
 class _MovedPose:
