@@ -95,10 +95,13 @@ def test_guard_off_and_given_omega_are_the_paper_fusion(truth):
     single = _single(truth, 4)
     multi = _multi(truth, 4, density=0.08, noise=0.35)
     off = fuse_keyframe(single, multi, None, FusionConfig(mode='fast', guard=False))
-    # No guard evidence; only the certainty floor's share kept and the halo test's report (not
-    # run here: no keyframe image), which are there either way.
+    # No guard evidence; only the certainty floor's share kept, the halo test's report (not
+    # run here: no keyframe image) and the edge test's (edge_points.py), there either way.
     assert off.decision == 'full'
-    assert set(off.evidence) == {'certainty', 'certainty_floor', 'halo_checked', 'n_halo'}
+    assert set(off.evidence) == {
+        'certainty', 'certainty_floor', 'halo_checked', 'n_halo', 'edge_share', 'edge_ratio', 'edge_explained'
+    }  # fmt: skip
+    assert off.evidence['edge_explained'] == 0.0, 'points spread over the image are left as they are'
     oracle = fuse_keyframe(single, multi, None, FusionConfig(mode='fast'), omega_mask=np.isfinite(multi))
     assert oracle.decision == 'full'
 

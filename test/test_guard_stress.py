@@ -180,11 +180,12 @@ def test_a_causal_streams_first_keyframe_is_never_worse():
     1.33x worse than its single-view input; with the default it is not. (The certainty floor
     alone brings the biased case down to 1.02x, with its gain to 0.93x, the halo test alone to
     1.15x, and the points' scale weighed by their shared focal bias alone to 1.17x; all four
-    are off here, to test the filter.)"""
+    are off here, to test the filter, and so is the edge cut.)"""
     sequence = render_sequence(stress_config('rotation', width=320, height=240, frames=8, seed=2))
 
     def ratio(first_keyframe_min_updates: int) -> float:
-        fusion = {'stage1': 'all', 'certainty_floor': 0.0, 'certainty_gain': 0.0, 'halo_min_step': 0.0}
+        fusion = {'stage1': 'all', 'certainty_floor': 0.0, 'certainty_gain': 0.0}
+        fusion |= {'halo_min_step': 0.0, 'edge_ratio': 0.0}
         return _causal_ratio(
             sequence,
             5,
@@ -205,10 +206,11 @@ def test_a_realistic_low_texture_streams_late_keyframe_is_never_worse():
     made the keyframe 1.15x worse than its input (the guard judged it ``full``: no evidence
     it reads tells this keyframe from those the long reach helps). With the certainty floor
     (default) the correction fades where the points' total weight is small, and it is not
-    worse. The halo test is off in both, to test the floor: it alone brings the keyframe to
-    0.89x (the halo's points were among those that carried the corrections)."""
+    worse. The halo test and the edge cut (``edge_points.py``) are off in both, to test the
+    floor: the halo test alone brings the keyframe to 0.89x (the halo's points were among those
+    that carried the corrections), the edge cut alone to 0.89x."""
     sequence = render_sequence(stress_config('low_texture', width=320, height=240, frames=71, seed=0))
-    off = {'halo_min_step': 0.0}
+    off = {'halo_min_step': 0.0, 'edge_ratio': 0.0}
     assert _causal_ratio(sequence, 70, {'certainty_floor': 0.0, 'certainty_gain': 0.0, **off}) > 1.1
     assert _causal_ratio(sequence, 70, {'certainty_floor': FusionConfig().certainty_floor, **off}) <= 1.0
 
@@ -232,9 +234,9 @@ def test_a_precise_single_views_keyframe_is_not_made_worse():
     fixed floor alone (1.19-1.20x while the pose refinement tracked every frame from the told
     pose; from the previous frame's tracks its points moved a little). With the floor following
     the precision ratio (default) it is better than its input (0.83x). The halo test is off in
-    both, to test the floor (it alone: 0.79x)."""
+    both, to test the floor (it alone: 0.79x), and so is the edge cut."""
     sequence = render_sequence(SynthConfig(width=320, height=240, frames=31, seed=0))
-    off = {'halo_min_step': 0.0}
+    off = {'halo_min_step': 0.0, 'edge_ratio': 0.0}
     assert _causal_ratio(sequence, 30, {'certainty_gain': 0.0, **off}, simulated=PRECISE_PRIOR) > 1.05
     default = FusionConfig().certainty_gain
     assert _causal_ratio(sequence, 30, {'certainty_gain': default, **off}, simulated=PRECISE_PRIOR) <= 0.95

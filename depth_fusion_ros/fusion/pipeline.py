@@ -5,9 +5,11 @@ call. Numpy in, numpy out; the interpolation runs on torch (``FusionConfig.devic
 
 Steps (paper §III-C/§III-D):
 
-1. stage-1 points = the given mask where ``m`` and ``s`` are finite (``n_stage1``), less
-   the points of a silhouette's halo when the keyframe image is given (``occlusion.py``; a
-   relative or inverse source after step 3 instead, once it is a depth);
+1. stage-1 points = the given mask where ``m`` and ``s`` are finite (``n_stage1``); for a
+   metric source whose points lie on its depth edges only, their corrections cut to what the
+   edges do not explain (``edge_points.py``, ``edge_ratio``); less the points of a
+   silhouette's halo when the keyframe image is given (``occlusion.py``; a relative or
+   inverse source after step 3 instead, once it is a depth);
 2. RANSAC ``m ≈ a·s + b`` over them; inliers = Ω (``n_omega``), or a given Ω (oracle);
 3. ``s ← a·s + b`` when aligning (default: only for non-metric sources), in the model's own
    space (``alignment.py``); pixels mapped to a non-positive depth are NaN (``n_nonpositive``);
@@ -36,6 +38,7 @@ from .. import vml_warmup  # noqa: F401  (MKL VML dispatch resolved before the f
 from .agreement import agreement
 from .alignment import AlignedDepth, apply_alignment, fit_alignment
 from .consistency import ConsistencyConfig, consistent_points, stage3_candidates
+from .edge_points import check_edge_ratio, edge_explained
 from .guard import DECISION_CONFIDENCE, GuardConfig, GuardVerdict, MultiViewEvidence, assess
 from .guard_apply import guarded_depth, limit_reach
 from .interpolation import (
@@ -113,6 +116,12 @@ FUSION_PARAMETER_DESCRIPTIONS: dict[str, str] = {
         'depth steps by more than this beyond a ramp, with a depth nearer than halfway; needs the '
         'keyframe image (0: off)'
     ),
+    'edge_ratio': (
+        "metric sources: where a keyframe's points lie on the single view's depth edges at least "
+        'this many times as often as its pixels (and at least 45 % of them), a point the single '
+        'view reaches within 5 px counts as agreeing with it, and only the rest of its correction '
+        'is fused (0: off)'
+    ),
     'guard': 'degrade the fusion per keyframe when the multi-view evidence cannot be trusted (guard.*)',
 }
 
@@ -161,6 +170,9 @@ class FusionConfig:
     #: Points in a silhouette's halo leave Ω (``occlusion.py``) where the single-view depth
     #: steps by more than this (log depth) at the edge; 0: off, every stage-2 point stays.
     halo_min_step: float = 0.1
+    #: Points concentrated on the single view's depth edges (``edge_points.py``): this many times
+    #: the pixels' rate, and their corrections within the edge's range are no evidence; 0: off.
+    edge_ratio: float = 2.8
     #: Check the evidence per keyframe and degrade gracefully (``guard.py``, ``GuardConfig``).
     guard: bool = True
     device: str = 'cpu'
@@ -196,6 +208,7 @@ class FusionConfig:
         check_half_weight(self.std_half_weight)
         check_certainty_floor(self.certainty_floor)
         check_min_step(self.halo_min_step)
+        check_edge_ratio(self.edge_ratio)
         if not (np.isfinite(self.certainty_gain) and self.certainty_gain >= 0):
             raise ValueError(
                 f'certainty_gain must be a finite number >= 0 (0: off), got {self.certainty_gain}'
@@ -354,9 +367,13 @@ def _fuse(
             return _fallback(s, stage1, n_stage1, 'too_few_points', needs_fit)
     else:
         if output_kind == 'metric_depth':
+            # Points only on the single view's edges first: those its edges explain agree with it
+            # (a halo among them), and neither the line nor the guard should read them as errors.
+            m, edges = edge_explained(s, m, stage1, config.edge_ratio)
             # A metric source is a depth already: its halo leaves before stage 2, whose line
             # is then fitted without it (the halo is too near by the whole step, a bias).
             stage1, halo = _without_halo(image, s, m, stage1, config.halo_min_step, config.device)
+            halo.update(edges)
         fit = fit_alignment(s[stage1], m[stage1], output_kind, config)
         if not fit.ok:
             log.debug('stage 2 failed (%s) on %d stage-1 points', fit.reason, n_stage1)
