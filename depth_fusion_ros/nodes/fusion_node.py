@@ -493,6 +493,14 @@ class FusionNode(DepthFusionNode):
         )
         if result.stream_scale_found:
             self.stats.noted('stream_scale', f'keyframe {stamp:.3f}: {self.stream_scale.describe()}')
+        explained = result.evidence.get('edge_explained', 0.0)
+        if explained > 0:  # fusion/edge_points.py: counted, so a summary says how often
+            self.stats.noted(
+                'edge_points',
+                f"keyframe {stamp:.3f}: its points lie on the single view's depth edges "
+                f"({result.evidence['edge_ratio']:.1f}x the pixels' rate); {explained:.0%} of them "
+                "agree with it within its edges' blur and corrected nothing",
+            )
         if result.withheld:
             self.stats.noted(
                 'withheld', f'keyframe {stamp:.3f}: no depth published ({result.decision_reason})'
