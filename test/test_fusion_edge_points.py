@@ -15,34 +15,16 @@ from scipy.ndimage import gaussian_filter
 
 from depth_fusion_ros.fusion.edge_points import edge_concentration, edge_explained
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
+from depth_fusion_ros.fusion.scenes import posts_keyframe
 
 W, H = 320, 240
 POSTS = [(40, 70), (120, 140), (200, 236), (270, 290)]  # x ranges of the posts (exclusive ends)
-TOP, BOTTOM = 30, 210
-POST_DEPTH = 2.2  # in front of a wall 3 m away
-
-
-def _truth() -> tuple[np.ndarray, np.ndarray]:
-    yy, xx = np.mgrid[0:H, 0:W]
-    depth = np.full((H, W), 3.0, dtype=np.float32)
-    post = np.zeros((H, W), dtype=bool)
-    for x0, x1 in POSTS:
-        post |= (xx >= x0) & (xx < x1) & (yy >= TOP) & (yy < BOTTOM)
-    depth[post] = POST_DEPTH
-    return depth, post
+ROWS = (30, 210)
 
 
 def _low_texture_keyframe() -> dict[str, np.ndarray]:
-    depth, _ = _truth()
-    single = np.exp(gaussian_filter(np.log(depth * 0.97), 2.0)).astype(np.float32)
-    yy, xx = np.mgrid[0:H, 0:W]
-    m = np.full((H, W), np.nan, dtype=np.float32)
-    inside = (yy >= TOP + 4) & (yy < BOTTOM - 4)
-    for x0, x1 in POSTS:
-        ring = inside & (((xx >= x0) & (xx < x0 + 3)) | ((xx >= x1 - 3) & (xx < x1)))
-        halo = inside & (((xx >= x0 - 2) & (xx < x0)) | ((xx >= x1) & (xx < x1 + 2)))
-        m[ring | halo] = POST_DEPTH  # the post's depth on both sides of its silhouette
-    return {'depth': depth, 'single': single, 'm': m}
+    scene = posts_keyframe(W, H, POSTS, ROWS, blur=2.0)
+    return {'depth': scene.depth, 'single': scene.single, 'm': scene.multi}
 
 
 def _mae(depth: np.ndarray, truth: np.ndarray) -> float:
@@ -65,7 +47,7 @@ def test_points_only_on_the_edges_no_longer_make_the_depth_worse_than_the_single
 
 
 def test_points_spread_over_textured_surfaces_are_left_as_they_are() -> None:
-    depth, _ = _truth()
+    depth = _low_texture_keyframe()['depth']
     single = np.exp(gaussian_filter(np.log(depth * 1.2), 2.5)).astype(np.float32)
     m = np.full((H, W), np.nan, dtype=np.float32)
     m[::6, ::6] = depth[::6, ::6]
@@ -88,6 +70,18 @@ def test_a_point_beyond_the_edges_range_keeps_the_excess() -> None:
     assert out[y, x] == pytest.approx(kf['single'][y, x] * 1.1 / window.min(), rel=1e-5)
     # a point within the range agrees with the single view
     assert out[y, x + 1] == pytest.approx(kf['single'][y, x + 1], rel=1e-6)
+
+
+def test_a_point_on_a_non_positive_single_view_pixel_is_left_as_it_is() -> None:
+    kf = _low_texture_keyframe()
+    points = np.isfinite(kf['m'])
+    y, x = 120, POSTS[0][0]
+    single = kf['single'].copy()
+    single[y, x] = -1.0  # a network's bad pixel
+    out, evidence = edge_explained(single, kf['m'], points, 2.8)
+    assert evidence['edge_explained'] > 0.9, 'the keyframe is still cut'
+    assert out[y, x] == kf['m'][y, x]
+    assert np.isfinite(out[points]).all() and (out[points] > 0).all()
 
 
 @pytest.mark.parametrize('value', [-1.0, 0.5, float('nan'), float('inf')])

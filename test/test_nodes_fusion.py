@@ -13,6 +13,7 @@ from std_msgs.msg import String
 from depth_fusion_ros.camera import PinholeCamera
 from depth_fusion_ros.data import messages as m
 from depth_fusion_ros.fusion.pipeline import FusionConfig, fuse_keyframe
+from depth_fusion_ros.fusion.scenes import posts_keyframe
 from depth_fusion_ros.multiview.stage1 import best_fraction_mask
 from depth_fusion_ros.nodes.fusion_node import FusionNode, under_load
 from depth_fusion_ros.nodes.qos import latched_qos
@@ -458,17 +459,8 @@ def test_points_only_on_the_single_views_edges_are_cut_and_counted():
     0.104 m.)"""
     import json
 
-    from scipy.ndimage import gaussian_filter
-
-    v, u = np.mgrid[0:H, 0:W]
-    gt = np.full((H, W), 3.0, np.float32)
-    mv = np.full((H, W), np.nan, np.float32)
-    for x0, x1 in ((30, 42), (80, 92), (125, 137)):
-        gt[(u >= x0) & (u < x1) & (v >= 15) & (v < 105)] = 2.2
-        rows = (v >= 19) & (v < 101)
-        edges = ((u >= x0 - 2) & (u < x0 + 3)) | ((u >= x1 - 3) & (u < x1 + 2))
-        mv[rows & edges] = 2.2
-    single = np.exp(gaussian_filter(np.log(gt * 0.97), 1.5)).astype(np.float32)
+    posts = posts_keyframe(W, H, [(30, 42), (80, 92), (125, 137)], (15, 105), blur=1.5)
+    gt, single, mv = posts.depth, posts.single, posts.multi
     score = np.where(np.isfinite(mv), 1.0, np.nan).astype(np.float32)
     scene = SimpleNamespace(gt=gt, single=single, mv=mv, score=score, rgb=np.zeros((H, W, 3), np.uint8))
     with RosHarness() as ros:

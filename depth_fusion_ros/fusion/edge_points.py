@@ -84,29 +84,30 @@ def local_range(log_depth: np.ndarray, radius: int = RADIUS_PX) -> tuple[np.ndar
     window; +inf / -inf where it holds none)."""
     kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
     finite = np.isfinite(log_depth)
-    low = cv2.erode(np.where(finite, log_depth, np.inf).astype(np.float32), kernel)
-    high = cv2.dilate(np.where(finite, log_depth, -np.inf).astype(np.float32), kernel)
+    low = cv2.erode(np.where(finite, log_depth, np.inf).astype(np.float32, copy=False), kernel)
+    high = cv2.dilate(np.where(finite, log_depth, -np.inf).astype(np.float32, copy=False), kernel)
     return low, high
 
 
 def edge_explained(
     single: np.ndarray, mv: np.ndarray, points: np.ndarray, min_ratio: float
 ) -> tuple[np.ndarray, dict[str, float]]:
-    """``mv`` with the corrections of ``points`` (HxW bool, finite positive depths in both)
-    cut to what the single view's edges do not explain, where the keyframe's points
-    concentrate on them (see the module's docstring); ``mv`` itself otherwise. Also the
-    evidence: ``edge_share``, ``edge_ratio`` and ``edge_explained`` (the share of the points
-    whose correction became 0; 0 when the keyframe was left as it is). ``min_ratio`` 0: off,
-    no evidence."""
+    """``mv`` with the corrections of ``points`` (HxW bool, finite positive multi-view depths;
+    a point whose single-view depth is not positive is left as it is) cut to what the single
+    view's edges do not explain, where the keyframe's points concentrate on them (see the
+    module's docstring); ``mv`` itself otherwise. Also the evidence: ``edge_share``,
+    ``edge_ratio`` and ``edge_explained`` (the share of the points whose correction became 0;
+    0 when the keyframe was left as it is). ``min_ratio`` 0: off, no evidence."""
     if min_ratio <= 0:
         return mv, {}
     with np.errstate(invalid='ignore', divide='ignore'):
-        log_s = np.log(single).astype(np.float32)
+        log_s = np.log(single).astype(np.float32, copy=False)
     share, ratio = edge_concentration(log_s, points)
     evidence = {'edge_share': share, 'edge_ratio': ratio, 'edge_explained': 0.0}
     if share < MIN_SHARE or ratio < min_ratio:
         return mv, evidence
     low, high = local_range(log_s)
+    points = points & np.isfinite(log_s)  # a point on a non-positive single view has no log to cut
     log_m = np.log(mv[points])
     correction = np.clip(0.0, log_m - high[points], log_m - low[points])
     out = mv.copy()

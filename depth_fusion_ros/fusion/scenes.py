@@ -86,3 +86,33 @@ def rendered_halo_keyframe(
     multi = np.where(rng.random(depth.shape) < 0.5, near, depth) * rng.normal(1.0, 0.02, depth.shape)
     points = rng.random(depth.shape) < point_share
     return frame.rgb, single.astype(np.float32), multi.astype(np.float32), points
+
+
+#: The posts of :func:`posts_keyframe` and the wall behind them (m).
+POST_DEPTH, WALL_DEPTH = 2.2, 3.0
+
+
+def posts_keyframe(
+    width: int, height: int, posts: list[tuple[int, int]], rows: tuple[int, int], blur: float
+) -> FusionScene:
+    """A low-texture keyframe whose multi-view points lie on silhouettes only (the failure of
+    ``edge_points.py``): posts (x ranges ``posts``, y range ``rows``, exclusive ends) at
+    :data:`POST_DEPTH` before a wall at :data:`WALL_DEPTH`; the post's depth 3 px inside each
+    side edge (``good``) and 2 px outside it (``outliers``: the halo), 4 px short of the post's
+    ends; a network's single view, 3 % too near over the image and blurred by ``blur`` px (in log
+    depth)."""
+    from scipy.ndimage import gaussian_filter
+
+    yy, xx = np.mgrid[0:height, 0:width]
+    top, bottom = rows
+    depth = np.full((height, width), WALL_DEPTH, dtype=np.float32)
+    good = np.zeros((height, width), dtype=bool)
+    halo = np.zeros((height, width), dtype=bool)
+    inside = (yy >= top + 4) & (yy < bottom - 4)
+    for x0, x1 in posts:
+        depth[(xx >= x0) & (xx < x1) & (yy >= top) & (yy < bottom)] = POST_DEPTH
+        good |= inside & (((xx >= x0) & (xx < x0 + 3)) | ((xx >= x1 - 3) & (xx < x1)))
+        halo |= inside & (((xx >= x0 - 2) & (xx < x0)) | ((xx >= x1) & (xx < x1 + 2)))
+    single = np.exp(gaussian_filter(np.log(depth * 0.97), blur)).astype(np.float32)
+    multi = np.where(good | halo, POST_DEPTH, np.nan).astype(np.float32)
+    return FusionScene(depth, single, multi, good, halo)
